@@ -12,6 +12,8 @@ __all__ = [
     "GroundTruthError",
     "ConfigError",
     "NoUsableDataError",
+    "BagError",
+    "InvalidMessageError",
 ]
 
 
@@ -47,3 +49,11 @@ class ConfigError(HdmapError):
 
 class NoUsableDataError(HdmapError):
     """There is nothing to work on (e.g. a bag without a single valid drive)."""
+
+
+class BagError(HdmapError):
+    """A bag is missing, unreadable, truncated or corrupted; the message names the path and the damage."""
+
+
+class InvalidMessageError(HdmapError):
+    """A (non-drive) message, e.g. a map or an origin, is malformed; the message names the field."""
