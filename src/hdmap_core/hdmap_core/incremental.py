@@ -1,0 +1,344 @@
+"""Incremental mapping by tiles: the map as a function of its inputs per place.
+
+The live node suite (``hdmap_ros.nodes``) keeps the map up to date as drives arrive. To make the
+incremental result converge to what the offline pipeline builds from the same drives, every piece
+of the map is a pure function of the drives that cover its place:
+
+- The plane is cut into square tiles of ``tile_size_m`` (key ``(ix, iy)``, ``ix = floor(x / size)``).
+- A drive *covers* a tile when its trajectory comes within ``margin_m`` of the tile.
+- A tile is mapped from all drives covering it, each clipped to the tile grown by the margin, with a
+  seed derived from the tile key only (:func:`tile_seed`); of the resulting steps only those whose
+  midpoint lies inside the tile proper are kept (:func:`select_steps`), so neighbouring tiles never
+  map the same place twice and the margin gives every kept step its full cut line and context.
+- A tile is re-estimated only when its drive count grew enough that the estimate improves
+  (:func:`needs_update`, a debounce); when the input settles, every tile whose drive set changed is
+  re-estimated once more, so the settled map depends on the final drive set only.
+- Feature ids are carried over from the previous map version where a feature persists
+  (:func:`carry_over_ids`), so consumers can follow a feature across versions.
+
+Stitching the tiles' segments into the complete map is Sec. VI of Immel et al. 2023 (the same
+mechanism that inserts a new drive's result into an existing map); see ``hdmap_core.stitching``.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hdmap_core.errors import ConfigError
+from hdmap_core.model import Detection, Drive, HDMap
+from hdmap_core.steps import Segment
+
+__all__ = [
+    "TileConfig",
+    "TileKey",
+    "tile_bounds",
+    "tiles_of_drive",
+    "tile_seed",
+    "clip_drive",
+    "select_steps",
+    "needs_update",
+    "map_tile",
+    "carry_over_ids",
+]
+
+TileKey = tuple[int, int]
+
+
+@dataclass(frozen=True)
+class TileConfig:
+    """How the plane is tiled for incremental mapping.
+
+    Attributes:
+        tile_size_m: edge length of a square tile [m].
+        margin_m: context around a tile: drives within it cover the tile and are mapped with it [m].
+            Must be below ``tile_size_m``; it should exceed the detection range ahead (~40 m) so that
+            every kept step sees its full context.
+        min_growth_fraction: re-estimate a mapped tile when its drive count grew by at least this
+            fraction of the count at the last estimate ...
+        min_growth_drives: ... and by at least this many drives. The estimate's noise falls as
+            1/sqrt(N), so a 10 % growth improves it by ~5 %.
+        seed: base seed; each tile's seed is derived from it and the tile key.
+    """
+
+    tile_size_m: float = 256.0
+    margin_m: float = 64.0
+    min_growth_fraction: float = 0.10
+    min_growth_drives: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (self.tile_size_m > 0 and math.isfinite(self.tile_size_m)):
+            raise ConfigError(f"tile_size_m must be > 0, got {self.tile_size_m}")
+        if not (0 <= self.margin_m < self.tile_size_m):
+            raise ConfigError(f"margin_m must be in [0, tile_size_m), got {self.margin_m}")
+        if self.min_growth_fraction < 0:
+            raise ConfigError(f"min_growth_fraction must be >= 0, got {self.min_growth_fraction}")
+        if self.min_growth_drives < 1:
+            raise ConfigError(f"min_growth_drives must be >= 1, got {self.min_growth_drives}")
+
+
+def tile_bounds(key: TileKey, *, tile_size_m: float, margin_m: float = 0.0) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) of a tile grown by ``margin_m`` on every side [m]."""
+    ix, iy = key
+    return (
+        ix * tile_size_m - margin_m,
+        iy * tile_size_m - margin_m,
+        (ix + 1) * tile_size_m + margin_m,
+        (iy + 1) * tile_size_m + margin_m,
+    )
+
+
+def _densify(xy: np.ndarray, max_step_m: float) -> np.ndarray:
+    """(N, 2) -> (M, 2): insert points so no two consecutive ones are more than max_step_m apart."""
+    if len(xy) < 2:
+        return xy
+    seg = np.diff(xy, axis=0)
+    n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / max_step_m).astype(int))
+    if int(n.max()) == 1:
+        return xy
+    frac = [np.arange(k) / k for k in n]
+    idx = np.repeat(np.arange(len(seg)), n)
+    t = np.concatenate(frac)
+    return np.vstack([xy[idx] + seg[idx] * t[:, None], xy[-1:]])
+
+
+def tiles_of_drive(drive: Drive, *, config: TileConfig) -> set[TileKey]:
+    """The tiles a drive covers: its trajectory comes within ``margin_m`` of them.
+
+    Args:
+        drive: a valid drive (trajectory (N, 2) in the map frame [m]).
+        config: tiling.
+
+    Returns:
+        Set of tile keys (ix, iy).
+    """
+    size, margin = config.tile_size_m, config.margin_m
+    xy = _densify(np.asarray(drive.xy, dtype=float), max_step_m=max(1.0, margin / 2 if margin else size / 4))
+    if len(xy) == 0:
+        return set()
+    lo = np.floor((xy - margin) / size).astype(np.int64)
+    hi = np.floor((xy + margin) / size).astype(np.int64)
+    keys: set[TileKey] = set()
+    # margin < size: each axis spans at most two tiles per point.
+    for ax in (lo[:, 0], hi[:, 0]):
+        for ay in (lo[:, 1], hi[:, 1]):
+            keys.update(zip(ax.tolist(), ay.tolist()))
+    return keys
+
+
+def tile_seed(key: TileKey, *, seed: int = 0) -> int:
+    """Deterministic 31-bit seed of a tile: the same tile always draws the same random choices."""
+    return zlib.crc32(f"{int(seed)}:{int(key[0])}:{int(key[1])}".encode()) & 0x7FFFFFFF
+
+
+def _inside(xy: np.ndarray, bounds: Sequence[float]) -> np.ndarray:
+    xmin, ymin, xmax, ymax = bounds
+    return (xy[:, 0] >= xmin) & (xy[:, 0] < xmax) & (xy[:, 1] >= ymin) & (xy[:, 1] < ymax)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) index ranges of the True runs of a boolean (N,) mask."""
+    if not mask.any():
+        return []
+    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    d = np.diff(m)
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
+
+
+def clip_drive(drive: Drive, bounds: Sequence[float]) -> Drive | None:
+    """The part of a drive inside a box, or None when fewer than 2 poses lie inside.
+
+    The trajectory keeps the poses from the first to the last one inside the box (a drive that
+    leaves and comes back keeps its excursion, so it stays one drive with one id); every detection
+    polyline is cut to its runs of points inside the box (runs of fewer than 2 points dropped).
+
+    Args:
+        drive: the drive (not modified).
+        bounds: (xmin, ymin, xmax, ymax) [m], half-open.
+    """
+    xy = np.asarray(drive.xy, dtype=float)
+    inside = _inside(xy, bounds)
+    idx = np.flatnonzero(inside)
+    if len(idx) < 2:
+        return None
+    a, b = int(idx[0]), int(idx[-1]) + 1
+    dets: list[Detection] = []
+    for det in drive.detections:
+        pts = np.asarray(det.points, dtype=float)
+        for s, e in _runs(_inside(pts, bounds)):
+            if e - s >= 2:
+                dets.append(Detection(type=det.type, points=pts[s:e]))
+    return replace(
+        drive,
+        xy=xy[a:b],
+        yaw=np.asarray(drive.yaw)[a:b],
+        stamps_ns=np.asarray(drive.stamps_ns)[a:b],
+        detections=tuple(dets),
+    )
+
+
+def select_steps(segments: Iterable[Segment], bounds: Sequence[float]) -> list[Segment]:
+    """Keep the steps whose midpoint lies inside ``bounds``; split segments where steps were cut.
+
+    A segment whose kept steps are not consecutive (the pivot left the box and came back) becomes
+    several segments of the same pivot, so the connection stage never bridges across the gap.
+    """
+    out: list[Segment] = []
+    for seg in segments:
+        if not seg.steps:
+            continue
+        mids = np.array([np.asarray(st.midpoint, dtype=float) for st in seg.steps]).reshape(-1, 2)
+        for s, e in _runs(_inside(mids, bounds)):
+            out.append(Segment(pivot_id=seg.pivot_id, steps=tuple(seg.steps[s:e])))
+    return out
+
+
+def needs_update(count_at_estimate: int, count_now: int, *, config: TileConfig) -> bool:
+    """Whether a tile's estimate improves enough to re-estimate it (the debounce).
+
+    A tile never estimated (count 0) with drives is always due. Otherwise the count must have grown
+    by ``max(min_growth_drives, ceil(min_growth_fraction * count_at_estimate))``.
+    """
+    if count_now <= 0:
+        return False
+    if count_at_estimate <= 0:
+        return True
+    need = max(config.min_growth_drives, math.ceil(config.min_growth_fraction * count_at_estimate - 1e-9))
+    return count_now - count_at_estimate >= need
+
+
+def map_tile(
+    drives: Sequence[Drive],
+    key: TileKey,
+    *,
+    tile_config: TileConfig,
+    pipeline_config: object,
+) -> list[Segment]:
+    """Map one tile from the drives covering it (stages of Sec. III-V up to the segments).
+
+    Every drive is clipped to the tile grown by the margin; drives are ordered by id and the seed is
+    derived from the tile key, so the result is a function of the drive set and the tile only.
+
+    Args:
+        drives: drives covering the tile (any order; not modified).
+        key: the tile.
+        tile_config: tiling.
+        pipeline_config: a ``hdmap_core.pipeline.PipelineConfig``.
+
+    Returns:
+        Segments of the steps inside the tile proper (may be empty).
+    """
+    from hdmap_core.pipeline import map_segments  # the pipeline is heavy; import on first use
+
+    grown = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.margin_m)
+    clipped = [c for c in (clip_drive(d, grown) for d in sorted(drives, key=lambda d: d.drive_id)) if c is not None]
+    if not clipped:
+        return []
+    segments = map_segments(clipped, config=pipeline_config, seed=tile_seed(key, seed=tile_config.seed))
+    core = tile_bounds(key, tile_size_m=tile_config.tile_size_m)
+    return select_steps(segments, core)
+
+
+# --- feature ids -----------------------------------------------------------------------------------
+
+
+def _resample(points: np.ndarray, spacing_m: float) -> np.ndarray:
+    pts = np.asarray(points, dtype=float)
+    if len(pts) < 2:
+        return pts
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        return pts[:1]
+    t = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / spacing_m)) + 1))
+    return np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], axis=1)
+
+
+def carry_over_ids(
+    new_map: HDMap,
+    old_map: HDMap | None,
+    *,
+    max_distance_m: float = 0.75,
+    min_overlap: float = 0.5,
+    spacing_m: float = 2.0,
+) -> HDMap:
+    """Give the features of a new map version the ids of the old features they continue.
+
+    A new feature continues an old one of the same type when at least ``min_overlap`` of the
+    shorter of the two (resampled every ``spacing_m``) lies within ``max_distance_m`` of the other.
+    Pairs are taken greedily by overlap (largest first); every old id is used at most once. Ids of
+    new features without a match stay as the stitcher made them unless that id is taken by a carried
+    one, in which case the next free id is used. Feature references (predecessors, successors,
+    topology ``features``) are rewritten accordingly.
+
+    Args:
+        new_map: the freshly stitched map (not modified).
+        old_map: the previous version, or None.
+
+    Returns:
+        ``new_map`` with renumbered features (same geometry, same order).
+    """
+    if old_map is None or not old_map.features or not new_map.features:
+        return new_map
+    from scipy.spatial import cKDTree
+
+    old_pts = [_resample(f.points, spacing_m) for f in old_map.features]
+    new_pts = [_resample(f.points, spacing_m) for f in new_map.features]
+    all_old = np.vstack(old_pts)
+    owner = np.repeat(np.arange(len(old_pts)), [len(p) for p in old_pts])
+    tree_all = cKDTree(all_old)
+    trees: dict[int, cKDTree] = {}
+
+    pairs: list[tuple[float, int, int]] = []
+    for j, (nf, npnt) in enumerate(zip(new_map.features, new_pts)):
+        # candidate old features: those with a point near any of this feature's points
+        near = tree_all.query_ball_point(npnt, r=max_distance_m)
+        cands = {int(owner[k]) for lst in near for k in lst}
+        for i in cands:
+            of = old_map.features[i]
+            if of.type != nf.type:
+                continue
+            if i not in trees:
+                trees[i] = cKDTree(old_pts[i])
+            d_new, _ = trees[i].query(npnt)
+            d_old, _ = cKDTree(npnt).query(old_pts[i])
+            frac_new = float(np.mean(d_new <= max_distance_m))
+            frac_old = float(np.mean(d_old <= max_distance_m))
+            ov = frac_new if len(npnt) <= len(old_pts[i]) else frac_old
+            if ov >= min_overlap:
+                pairs.append((ov, j, i))
+    pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
+    new_id: dict[int, int] = {}
+    used_old: set[int] = set()
+    for _, j, i in pairs:
+        if j in new_id or i in used_old:
+            continue
+        new_id[j] = int(old_map.features[i].id)
+        used_old.add(i)
+    taken = set(new_id.values())
+    for j, f in enumerate(new_map.features):
+        if j in new_id:
+            continue
+        cand = int(f.id)
+        while cand in taken:
+            cand = (cand + 1) % (1 << 64)
+        new_id[j] = cand
+        taken.add(cand)
+
+    # ids in the new map are unique, so old id -> index is a function
+    remap = {int(f.id): new_id[j] for j, f in enumerate(new_map.features)}
+
+    def _r(ids: Iterable[int]) -> tuple[int, ...]:
+        return tuple(remap.get(int(i), int(i)) for i in ids)
+
+    features = tuple(
+        replace(f, id=new_id[j], predecessors=_r(f.predecessors), successors=_r(f.successors))
+        for j, f in enumerate(new_map.features)
+    )
+    topology = tuple(replace(t, features=_r(t.features)) for t in new_map.topology)
+    return replace(new_map, features=features, topology=topology)
