@@ -1,0 +1,174 @@
+"""Tests of hdmap_ros.store: exact blob round trips, transactional drive and map stores."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
+from hdmap_core.steps import Segment, StepResult
+from hdmap_ros.store import (
+    DriveStore,
+    MapStore,
+    blob_to_drive,
+    blob_to_map,
+    blob_to_segments,
+    drive_to_blob,
+    map_to_blob,
+    segments_to_blob,
+)
+
+
+def _drive(drive_id="d1", n=5, x0=0.0):
+    rng = np.random.default_rng(abs(hash(drive_id)) % 1000)
+    xy = np.stack([x0 + np.arange(n, dtype=float), rng.normal(size=n)], axis=1)
+    return Drive(
+        drive_id=drive_id,
+        xy=xy,
+        yaw=rng.normal(size=n),
+        stamps_ns=np.arange(n, dtype=np.int64) * 10**8 + 1_700_000_000 * 10**9,
+        detections=(
+            Detection(FeatureType.SOLID, rng.normal(size=(3, 2))),
+            Detection(FeatureType.ROAD_BORDER, rng.normal(size=(2, 2))),
+        ),
+        vehicle_id="veh",
+    )
+
+
+def _assert_drive_equal(a: Drive, b: Drive):
+    assert (a.drive_id, a.vehicle_id, a.frame_id) == (b.drive_id, b.vehicle_id, b.frame_id)
+    np.testing.assert_array_equal(a.xy, b.xy)
+    np.testing.assert_array_equal(a.yaw, b.yaw)
+    np.testing.assert_array_equal(a.stamps_ns, b.stamps_ns)
+    assert [d.type for d in a.detections] == [d.type for d in b.detections]
+    for da, db in zip(a.detections, b.detections):
+        np.testing.assert_array_equal(da.points, db.points)
+
+
+def test_drive_blob_round_trip_is_exact():
+    d = _drive()
+    _assert_drive_equal(blob_to_drive(drive_to_blob(d)), d)
+    empty = Drive("e", np.zeros((2, 2)), np.zeros(2), np.zeros(2, np.int64))
+    _assert_drive_equal(blob_to_drive(drive_to_blob(empty)), empty)
+
+
+def _segments():
+    def step(pivot, i, k):
+        return StepResult(
+            pivot_id=pivot, index=i, s_m=2.0 * i + 0.1, midpoint=np.array([i * 2.0, 1.5]), heading=0.3,
+            width_m=11.5, valid=bool(i % 2 == 0), processed_before=bool(i == 1),
+            lateral_m=np.linspace(-5, 5, k), types=np.arange(k) % 4, counts=np.arange(k) + 2,
+            std_m=np.full(k, 0.07), drive_ids=tuple(f"x{j}" for j in range(i + 1)),
+        )
+
+    return [Segment("p1", tuple(step("p1", i, k) for i, k in enumerate([3, 0, 5]))), Segment("p2", ())]
+
+
+def test_segments_blob_round_trip_is_exact():
+    segs = _segments()
+    back = blob_to_segments(segments_to_blob(segs))
+    assert [s.pivot_id for s in back] == ["p1", "p2"]
+    assert len(back[1].steps) == 0
+    for a, b in zip(segs[0].steps, back[0].steps):
+        assert (a.pivot_id, a.index, a.s_m, a.heading, a.width_m, a.valid, a.processed_before, a.drive_ids) == (
+            b.pivot_id, b.index, b.s_m, b.heading, b.width_m, b.valid, b.processed_before, b.drive_ids
+        )
+        for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
+            np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
+    assert blob_to_segments(segments_to_blob([])) == []
+
+
+def _map():
+    f1 = MapFeature(
+        id=2**63 + 5, type=FeatureType.DASHED, points=np.array([[0.0, 0], [10, 0.5]]),
+        drive_count=np.array([3, 4]), lateral_std=np.array([0.1, 0.2]), successors=(7,),
+    )
+    f2 = MapFeature(id=7, type=FeatureType.SOLID, points=np.array([[10.0, 0.5], [20, 1], [30, 1]]),
+                    drive_count=np.array([1, 2, 3]), lateral_std=np.zeros(3), predecessors=(2**63 + 5,))
+    t = TopologyNode(id=99, position=np.array([1.0, 2.0]), heading=0.5, width=7.25, successors=(100,), features=(7,))
+    return HDMap(features=(f1, f2), topology=(t,), drive_ids=("a", "b"), version=12, stamp_ns=123, extra={"k": 1})
+
+
+def test_map_blob_round_trip_is_exact():
+    m = _map()
+    b = blob_to_map(map_to_blob(m))
+    assert (b.drive_ids, b.version, b.frame_id, b.stamp_ns, b.extra) == (m.drive_ids, 12, "map", 123, {"k": 1})
+    for fa, fb in zip(m.features, b.features):
+        assert (fa.id, fa.type, fa.predecessors, fa.successors) == (fb.id, fb.type, fb.predecessors, fb.successors)
+        np.testing.assert_array_equal(fa.points, fb.points)
+        np.testing.assert_array_equal(fa.drive_count, fb.drive_count)
+        np.testing.assert_array_equal(fa.lateral_std, fb.lateral_std)
+    (ta,), (tb,) = m.topology, b.topology
+    assert (ta.id, ta.heading, ta.width, ta.successors, ta.features) == (tb.id, tb.heading, tb.width, tb.successors, tb.features)
+    assert blob_to_map(map_to_blob(HDMap())).features == ()
+
+
+def test_drive_store_acknowledges_once_and_indexes_tiles(tmp_path):
+    st = DriveStore(tmp_path / "m.db")
+    assert st.add_drive(_drive("a"), [(0, 0), (1, 0)])
+    assert st.add_drive(_drive("b"), [(1, 0)])
+    assert not st.add_drive(_drive("a"), [(5, 5)])  # duplicate id: nothing stored
+    assert st.drive_ids() == ["a", "b"] and st.pending() == ["a", "b"]
+    assert st.tile_drive_count((1, 0)) == 2 and st.tile_drive_count((5, 5)) == 0
+    assert [d.drive_id for d in st.drives_covering((1, 0))] == ["a", "b"]
+    assert st.tiles_of(["b"]) == {(1, 0)}
+    assert st.stale_tiles() == [(0, 0), (1, 0)]
+    est = st.put_tile((1, 0), _segments(), drive_count=2)
+    assert est.version == 1 and st.put_tile((1, 0), [], drive_count=2).version == 2
+    assert st.stale_tiles() == [(0, 0)]
+    st.mark_processed(["a"])
+    assert st.pending() == ["b"]
+    st.close()
+    # everything survives reopening
+    st2 = DriveStore(tmp_path / "m.db")
+    assert st2.pending() == ["b"] and st2.tile((1, 0)).version == 2 and st2.tile((1, 0)).segments() == []
+    _assert_drive_equal(st2.drives_covering((0, 0))[0], _drive("a"))
+
+
+def test_map_store_ignores_old_tile_versions(tmp_path):
+    st = MapStore(tmp_path / "s.db")
+    blob = segments_to_blob(_segments())
+    assert st.put_tile((0, 0), 2, blob, ["a"])
+    assert not st.put_tile((0, 0), 2, blob, ["a"])
+    assert not st.put_tile((0, 0), 1, b"junk", ["a"])
+    assert st.tile_version((0, 0)) == 2 and st.tiles_signature() == "0,0:2"
+    assert st.map() == (None, "")
+    st.put_map(_map(), st.tiles_signature())
+    m, sig = st.map()
+    assert m.version == 12 and sig == "0,0:2"
+
+
+def test_sigkill_mid_transaction_keeps_committed_drives(tmp_path):
+    """A process killed inside a transaction leaves exactly the committed drives."""
+    db = tmp_path / "k.db"
+    script = textwrap.dedent(
+        f"""
+        import os, signal, numpy as np
+        from hdmap_core.model import Drive
+        from hdmap_ros.store import DriveStore
+        st = DriveStore({str(db)!r})
+        d = lambda i: Drive(f"d{{i}}", np.zeros((2, 2)), np.zeros(2), np.zeros(2, np.int64))
+        for i in range(3):
+            st.add_drive(d(i), [(0, i)])
+        st._con.execute("BEGIN IMMEDIATE")
+        st._con.execute("INSERT INTO drives(drive_id, blob) VALUES ('half', x'00')")
+        os.kill(os.getpid(), signal.SIGKILL)
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", script], cwd=str(tmp_path), env=_env(), capture_output=True)
+    assert proc.returncode == -9, proc.stderr.decode()
+    st = DriveStore(db)
+    assert st.drive_ids() == ["d0", "d1", "d2"]
+
+
+def _env():
+    import os
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(root / "src/hdmap_core"), str(root / "src/hdmap_ros"), env.get("PYTHONPATH", "")])
+    return env
