@@ -1,0 +1,111 @@
+"""Pure parts of the node suite, without rclpy: markers, health counters, tile messages."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
+from hdmap_core.steps import Segment, StepResult
+from hdmap_ros.diagnostics import OK, WARN, Health
+from hdmap_ros.markers import DELETEALL, LINE_LIST, LINE_STRIP, TYPE_COLORS, MarkerTypes, map_to_markers
+
+
+class _Msg(SimpleNamespace):
+    pass
+
+
+def _marker():
+    return _Msg(
+        header=None, ns="", id=0, type=0, action=0, points=[], frame_locked=False, color=None,
+        pose=_Msg(orientation=_Msg(w=0.0)), scale=_Msg(x=0.0),
+    )
+
+
+FAKE = MarkerTypes(MarkerArray=lambda: _Msg(markers=[]), Marker=_marker, Point=_Msg, ColorRGBA=_Msg)
+
+
+def _feat(fid, ftype, pts):
+    pts = np.asarray(pts, float)
+    return MapFeature(fid, ftype, pts, np.ones(len(pts), int), np.zeros(len(pts)))
+
+
+def test_markers_one_line_strip_per_feature_coloured_by_type():
+    m = HDMap(
+        features=(
+            _feat(2**64 - 1, FeatureType.SOLID, [[0, 0], [1, 0], [2, 0]]),
+            _feat(5, FeatureType.DASHED, [[0, 3], [2, 3]]),
+            _feat(6, FeatureType.SOLID, [[0, 6], [2, 6]]),
+            _feat(7, FeatureType.ROAD_BORDER, [[0, 9]]),  # one point: not drawable
+        ),
+        topology=(
+            TopologyNode(1, np.array([0.0, 1.5]), 0.0, 3.0, successors=(2,)),
+            TopologyNode(2, np.array([2.0, 1.5]), 0.0, 3.0),
+        ),
+    )
+    arr = map_to_markers(m, types=FAKE, header="H")
+    kinds = [(mk.action, mk.type, mk.ns, mk.id) for mk in arr.markers]
+    assert kinds[0][0] == DELETEALL
+    assert kinds[1:] == [
+        (0, LINE_STRIP, "features/solid", 0),
+        (0, LINE_STRIP, "features/dashed", 0),
+        (0, LINE_STRIP, "features/solid", 1),
+        (0, LINE_LIST, "topology", 0),
+    ]
+    assert [(p.x, p.y) for p in arr.markers[1].points] == [(0, 0), (1, 0), (2, 0)]
+    c = arr.markers[2].color
+    assert (c.r, c.g, c.b, c.a) == TYPE_COLORS[FeatureType.DASHED]
+    assert all(mk.header == "H" for mk in arr.markers)
+    assert [(p.x, p.y) for p in arr.markers[-1].points] == [(0.0, 1.5), (2.0, 1.5)]
+
+
+def test_health_counts_and_levels():
+    h = Health("hdmap: x", backlog_warn=3)
+    h.accept(); h.accept(); h.reject("non_finite_coordinates", "d7"); h.duplicate()
+    h.backlog = 2
+    kv = dict(h.key_values())
+    assert kv["drives_accepted"] == "2" and kv["drives_rejected"] == "1" and kv["drives_duplicate"] == "1"
+    assert kv["rejected.non_finite_coordinates"] == "1" and kv["last_update_time"] == "never"
+    assert h.level() == OK
+    h.backlog = 3
+    assert h.level() == WARN
+    h.backlog = 0
+    h.error("boom")
+    assert h.level() == WARN and "1 failed" in h.message()
+    h.updated(1_500_000_000_000_000_000)
+    assert dict(h.key_values())["last_update_time"] == "1500000000.000"
+
+
+def _segments():
+    def st(i, k):
+        return StepResult(
+            pivot_id="piv", index=i, s_m=2.0 * i, midpoint=np.array([10.0 + i, -3.25]), heading=0.125,
+            width_m=12.5, valid=i != 1, processed_before=i == 2, lateral_m=np.linspace(-6, 6, k),
+            types=np.array([1, 2, 3, 1, 2][:k]), counts=np.arange(k) + 1, std_m=np.full(k, 0.05),
+            drive_ids=("a", "b")[: i + 1],
+        )
+
+    return [Segment("piv", tuple(st(i, k) for i, k in enumerate([5, 0, 3]))), Segment("other", ())]
+
+
+def test_tile_msg_round_trip_through_cdr():
+    pytest.importorskip("rosbags")
+    from hdmap_ros.msgdefs import make_typestore
+    from hdmap_ros.nodes.tile_msgs import msg_to_tile, rosbags_tile_types, tile_to_msg
+
+    store = make_typestore()
+    segs = _segments()
+    msg = tile_to_msg((3, -2), segs, version=7, drive_ids=["a", "b"], tile_size_m=256.0,
+                      stamp_ns=1_700_000_000_123_456_789, types=rosbags_tile_types(store))
+    cdr = store.serialize_cdr(msg, "hdmap_msgs/msg/TileSegments")
+    back = msg_to_tile(store.deserialize_cdr(cdr, "hdmap_msgs/msg/TileSegments"))
+    assert (back.key, back.version, back.drive_ids, back.tile_size_m) == ((3, -2), 7, ("a", "b"), 256.0)
+    assert back.stamp_ns == 1_700_000_000_123_456_789
+    assert [s.pivot_id for s in back.segments] == ["piv", "other"]
+    for a, b in zip(segs[0].steps, back.segments[0].steps):
+        assert (a.index, a.s_m, a.heading, a.width_m, a.valid, a.processed_before, a.drive_ids) == (
+            b.index, b.s_m, b.heading, b.width_m, b.valid, b.processed_before, b.drive_ids)
+        for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
+            np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
