@@ -1,0 +1,299 @@
+"""Connection of distribution maxima (Sec. V): assignment, leftovers, closing rules, bridging.
+
+The synthetic roads run east (heading 0), so a maximum's lateral position is its world y.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hdmap_core.connection import ConnectionConfig, connect_segment, feature_chains, stable_uid
+from hdmap_core.errors import ConfigError, HdmapError
+from hdmap_core.model import FeatureType
+from hdmap_core.steps import Segment, StepResult
+
+B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+
+
+def make_step(
+    index: int,
+    lateral: list[float],
+    types: list[int],
+    *,
+    pivot: str = "p",
+    step_m: float = 2.0,
+    x0: float = 0.0,
+    y0: float = 0.0,
+    counts: list[int] | None = None,
+    std: list[float] | None = None,
+    valid: bool = True,
+    processed_before: bool = False,
+    heading: float = 0.0,
+) -> StepResult:
+    k = len(lateral)
+    s = index * step_m
+    mid = np.array([x0 + s * math.cos(heading), y0 + s * math.sin(heading)])
+    return StepResult(
+        pivot_id=pivot,
+        index=index,
+        s_m=s,
+        midpoint=mid,
+        heading=heading,
+        width_m=12.0,
+        valid=valid,
+        processed_before=processed_before,
+        lateral_m=np.asarray(lateral, dtype=float),
+        types=np.asarray(types, dtype=np.int64),
+        counts=np.asarray(counts if counts is not None else [5] * k, dtype=np.int64),
+        std_m=np.asarray(std if std is not None else [0.1] * k, dtype=float),
+        drive_ids=("a", "b"),
+    )
+
+
+def straight(n: int, lateral: list[float], types: list[int], **kw) -> list[StepResult]:
+    return [make_step(i, lateral, types, **kw) for i in range(n)]
+
+
+def chains_xy(g):
+    return [g.node_xy[c] for c in g.polylines()]
+
+
+def succ_count(g, chain_of_node, chain):
+    """Number of distinct polylines following the last node of ``chain``."""
+    last = chain[-1]
+    return len({chain_of_node[v] for u, v in g.edges if u == last and chain_of_node[v] != chain_of_node[last]})
+
+
+def pred_count(g, chain_of_node, chain):
+    first = chain[0]
+    return len({chain_of_node[u] for u, v in g.edges if v == first and chain_of_node[u] != chain_of_node[first]})
+
+
+def chain_index(g):
+    out = np.full(g.n_nodes, -1)
+    for k, c in enumerate(g.polylines()):
+        out[c] = k
+    return out
+
+
+@pytest.fixture
+def three_lines():
+    """  y= 3.5  B ------------------------
+         y= 0.0  D - - - - - - - - - - - -
+         y=-3.5  B ------------------------   (20 steps, 2 m apart)
+    with per-step counts/std varying along x."""
+    steps = [
+        make_step(i, [-3.5, 0.0, 3.5], [B, D, B], counts=[i + 1, 10, 3], std=[0.2, 0.05 + 0.01 * i, 0.3])
+        for i in range(20)
+    ]
+    return Segment("p", tuple(steps))
+
+
+def test_straight_road_gives_one_polyline_per_line(three_lines):
+    g = connect_segment(three_lines)
+    chains = g.polylines()
+    assert len(chains) == 3
+    assert sorted(len(c) for c in chains) == [20, 20, 20]
+    for c in chains:
+        xy = g.node_xy[c]
+        assert np.all(np.diff(xy[:, 0]) > 0)  # ordered in driving direction
+        np.testing.assert_allclose(np.diff(xy[:, 0]), 2.0, atol=1e-9)
+        assert np.ptp(xy[:, 1]) < 1e-9
+    dashed = next(c for c in chains if g.node_type[c[0]] == D)
+    np.testing.assert_allclose(g.node_std[dashed], 0.05 + 0.01 * np.arange(20), atol=1e-12)
+    right = next(c for c in chains if g.node_xy[c[0], 1] < 0)
+    np.testing.assert_array_equal(g.node_count[right], np.arange(1, 21))
+    assert g.stats.used == 20 and len(g.edges) == 57
+    assert g.n_topo == 20 and len(g.topo_edges) == 19
+    np.testing.assert_array_equal(g.node_topo[:6], [0, 0, 0, 1, 1, 1])  # cross references
+
+
+def test_unsorted_lateral_and_curved_road():
+    """Maxima listed in any order along a 90-degree curve still pair by position."""
+    r = 100.0
+    steps = []
+    for i in range(40):
+        th = i * 2.0 / r
+        mid = np.array([r * math.sin(th), r - r * math.cos(th)])
+        lat = [3.5, -3.5, 0.0] if i % 2 else [0.0, 3.5, -3.5]
+        typ = [B, B, D] if i % 2 else [D, B, B]
+        st = make_step(i, lat, typ, heading=th)
+        steps.append(StepResult(**{**st.__dict__, "midpoint": mid}))
+    g = connect_segment(Segment("p", tuple(steps)))
+    chains = g.polylines()
+    assert len(chains) == 3
+    for c in chains:
+        radius = np.linalg.norm(g.node_xy[c] - [0.0, r], axis=1)
+        assert np.ptp(radius) < 1e-6  # every chain stays on one concentric line
+
+
+def _split_segment():
+    r"""Two lines become three at a gore (the right line splits), 2 m steps:
+
+        y=3.5   B ----------------------------------------
+        y=0     S ----------------------------------------
+        y=-3.5  D --------------------*  gore at step 10
+                                       \----- D (y: -3.5 - 0.6*k)
+    """
+    steps = []
+    for i in range(25):
+        if i <= 10:
+            steps.append(make_step(i, [3.5, 0.0, -3.5], [B, S, D]))
+        else:
+            k = i - 10
+            steps.append(make_step(i, [3.5, 0.0, -3.5 + 0.1, -3.5 - 0.6 * k], [B, S, D, D]))
+    return Segment("p", tuple(steps))
+
+
+def test_split_gives_feature_with_two_successors():
+    g = connect_segment(_split_segment())
+    ci = chain_index(g)
+    chains = g.polylines()
+    splitting = [c for c in chains if succ_count(g, ci, c) == 2]
+    assert len(splitting) == 1
+    assert g.node_type[splitting[0][0]] == D
+    np.testing.assert_allclose(g.node_xy[splitting[0][-1]], [20.0, -3.5])
+    assert g.stats.splits == 1 and g.stats.merges == 0
+    assert len(chains) == 5  # B, S, dashed before the gore, its two branches
+
+
+def test_merge_gives_feature_with_two_predecessors():
+    """The split road driven backwards: two dashed lines converge into one."""
+    steps = []
+    for i in range(25):
+        if i < 14:
+            k = 14 - i
+            steps.append(make_step(i, [3.5, 0.0, -3.5 + 0.1, -3.5 - 0.6 * k], [B, S, D, D]))
+        else:
+            steps.append(make_step(i, [3.5, 0.0, -3.5], [B, S, D]))
+    g = connect_segment(Segment("p", tuple(steps)))
+    ci = chain_index(g)
+    merging = [c for c in g.polylines() if pred_count(g, ci, c) == 2]
+    assert len(merging) == 1
+    assert g.node_type[merging[0][0]] == D
+    assert g.stats.merges == 1 and g.stats.splits == 0
+
+
+def test_road_border_never_connects_to_marking():
+    """A border that vanishes beside a marking 0.5 m away is not joined to it (nor leftover-joined)."""
+    steps = [make_step(i, [0.0, -4.0, -4.5], [D, S, B]) for i in range(8)]
+    steps += [make_step(i, [0.0, -4.0], [D, S]) for i in range(8, 12)]
+    steps += [make_step(i, [0.0, -4.0, -4.5], [D, S, B]) for i in range(12, 16)]
+    for cfg in (ConnectionConfig(), ConnectionConfig.paper()):
+        g = connect_segment(Segment("p", tuple(steps)), config=cfg)
+        t = g.node_type
+        assert not np.any((t[g.edges[:, 0]] == B) != (t[g.edges[:, 1]] == B))
+    # the border is missing for 4 steps (8 m < max_gap_m): bridged into one polyline
+    g = connect_segment(Segment("p", tuple(steps)))
+    borders = [c for c in g.polylines() if g.node_type[c[0]] == B]
+    assert len(borders) == 1 and len(borders[0]) == 12
+
+
+def test_type_change_closes_polyline_rule1():
+    """dashed for 10 steps, then solid: two polylines, linked end to start."""
+    steps = [make_step(i, [0.0], [D if i < 10 else S]) for i in range(20)]
+    g = connect_segment(Segment("p", tuple(steps)))
+    chains = g.polylines()
+    assert len(chains) == 2
+    types = {int(g.node_type[c[0]]): len(c) for c in chains}
+    assert types == {D: 10, S: 10}
+    assert len(g.edges) == 19  # still connected: the dashed line's successor is the solid line
+
+
+@pytest.mark.parametrize("n_invalid, pieces", [(3, 1), (15, 2)])
+def test_gap_bridged_when_short_and_closes_when_long_rule3(n_invalid, pieces):
+    """Steps 10.. 10+n_invalid-1 failed (EM rejected): 8 m gap bridged, 32 m gap (> 20 m) closed."""
+    steps = []
+    for i in range(40):
+        bad = 10 <= i < 10 + n_invalid
+        steps.append(make_step(i, [] if bad else [-1.75, 1.75], [] if bad else [S, D], valid=not bad))
+    g = connect_segment(Segment("p", tuple(steps)))
+    assert len(g.polylines()) == 2 * pieces
+    assert len(g.components()) == pieces
+    if pieces == 1:
+        assert g.stats.gaps_bridged == 1 and g.stats.gaps_closed == 0
+    else:
+        assert g.stats.gaps_closed == 1
+
+
+def test_processed_before_closes_polylines_rule4():
+    steps = [make_step(i, [-1.75, 1.75], [S, D], processed_before=10 <= i < 12) for i in range(30)]
+    g = connect_segment(Segment("p", tuple(steps)))
+    assert g.stats.processed_before == 2
+    assert len(g.polylines()) == 4
+    assert len(g.components()) == 2
+    assert g.n_topo == 28
+
+
+def test_implausible_angle_step_rejected():
+    """One step's maxima all jump 3 m sideways (a failed optimisation): rejected and bridged."""
+    steps = [make_step(i, [-1.75 + (3.0 if i == 7 else 0.0), 1.75 + (3.0 if i == 7 else 0.0)], [S, D]) for i in range(15)]
+    g = connect_segment(Segment("p", tuple(steps)))
+    assert g.stats.rejected_angle == 1
+    assert 7 not in g.topo_step.tolist()
+    chains = g.polylines()
+    assert len(chains) == 2 and all(len(c) == 14 for c in chains)
+    assert np.all(np.abs(np.abs(g.node_xy[:, 1]) - 1.75) < 1e-9)
+
+
+def test_leftover_far_away_does_not_make_false_merge():
+    """A marking missing for a few steps 3.5 m from its neighbour: no merge by default, a merge in
+    the paper's variant (every leftover joins its nearest neighbour)."""
+    steps = [make_step(i, [-3.5, 0.0, 3.5] if not 5 <= i < 8 else [-3.5, 3.5], [B, D, B] if not 5 <= i < 8 else [B, B]) for i in range(15)]
+    g = connect_segment(Segment("p", tuple(steps)))
+    assert g.stats.merges == 0 and len(g.polylines()) == 3
+    gp = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig.paper())
+    assert len(gp.polylines()) > 3  # the paper's variant fragments here
+
+
+def test_ids_stable_and_distinct():
+    seg = _split_segment()
+    g1, g2 = connect_segment(seg), connect_segment(seg)
+    np.testing.assert_array_equal(g1.node_uid, g2.node_uid)
+    np.testing.assert_array_equal(g1.topo_uid, g2.topo_uid)
+    assert len(set(g1.node_uid.tolist())) == g1.n_nodes
+    assert int(g1.node_uid.max()) < 2**63 and int(g1.node_uid.min()) > 0
+    other = connect_segment(Segment("q", tuple(make_step(i, [0.0], [S], pivot="q") for i in range(3))))
+    assert not set(other.node_uid.tolist()) & set(g1.node_uid.tolist())
+    # the same pivot/step/slot always gives the same id, whatever else is in the segment
+    np.testing.assert_array_equal(stable_uid("feature:p", [3], [1]), g1.node_uid[3 * 3 + 1 : 3 * 3 + 2])
+
+
+def test_input_not_mutated_and_bad_input_rejected(three_lines):
+    before = [st.lateral_m.copy() for st in three_lines.steps]
+    connect_segment(three_lines)
+    for a, st in zip(before, three_lines.steps):
+        np.testing.assert_array_equal(a, st.lateral_m)
+    bad = make_step(0, [0.0, 1.0], [S])
+    with pytest.raises(HdmapError, match="types"):
+        connect_segment(Segment("p", (bad,)))
+    with pytest.raises(HdmapError, match="pivot"):
+        connect_segment(Segment("q", (make_step(0, [0.0], [S]),)))
+    with pytest.raises(ConfigError):
+        ConnectionConfig(max_mean_angle_deg=0.0)
+
+
+def test_empty_segment():
+    g = connect_segment(Segment("p", ()))
+    assert g.n_nodes == 0 and g.polylines() == [] and g.components() == []
+
+
+def test_feature_chains_opens_a_ring_deterministically():
+    edges = np.array([[0, 1], [1, 2], [2, 0]])
+    uid = np.array([30, 10, 20], dtype=np.uint64)
+    chains = feature_chains(3, edges, np.zeros(3, bool), np.zeros(3, int), uid)
+    assert len(chains) == 1 and chains[0].tolist() == [1, 2, 0]
+
+
+def test_feature_leaving_while_another_enters_keeps_the_step():
+    """The left border leaves the cut while a new line enters on the right in the same step: the
+    step is kept (median angle) and the two lines that persist stay single polylines."""
+    steps = [make_step(i, [-3.5, 0.0, 3.5], [S, D, S]) for i in range(6)]
+    steps += [make_step(i, [-7.0, -3.5, 0.0], [S, S, D]) for i in range(6, 12)]
+    g = connect_segment(Segment("p", tuple(steps)))
+    assert g.stats.rejected_angle == 0
+    lengths = sorted(len(c) for c in g.polylines())
+    assert lengths == [6, 6, 12, 12]
