@@ -1,0 +1,170 @@
+"""``hdmap bag2map IN -o OUT``: build the lane-level map of a fleet bag and write it as a map bag.
+
+Reads the drives and the origin of IN (rosbag2 directory or ``.mcap``), reports every rejected
+drive with its reason, runs :func:`hdmap_core.pipeline.build_map`, writes OUT (rosbag2 MCAP with
+the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
+features as RFC 7946 GeoJSON. Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hdmap_core.errors import NoUsableDataError
+from hdmap_core.model import GeoOrigin, HDMap
+from hdmap_ros.bagio import FleetBag, read_fleet_bag, write_map_bag
+from hdmap_ros.geojson import write_geojson
+
+__all__ = ["NAME", "HELP", "add_arguments", "run"]
+
+NAME = "bag2map"
+HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
+PRESETS = ("default", "paper", "naive")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", metavar="IN", help="fleet bag: rosbag2 directory (MCAP or sqlite3) or .mcap file")
+    parser.add_argument("-o", "--output", metavar="OUT", required=True, help="map bag directory to write")
+    parser.add_argument("--geojson", metavar="FILE", help="also write the map features as GeoJSON (WGS84)")
+    parser.add_argument("--preset", choices=PRESETS, default="default", help="pipeline preset (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the pipeline (default: %(default)s)")
+    parser.add_argument(
+        "--origin",
+        metavar="LAT,LON[,ALT]",
+        type=_parse_origin,
+        help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
+    )
+    parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+
+
+def _parse_origin(text: str) -> GeoOrigin:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not LAT,LON[,ALT]") from None
+    if len(values) not in (2, 3) or not np.all(np.isfinite(values)) or abs(values[0]) > 90 or abs(values[1]) > 180:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a WGS84 LAT,LON[,ALT]")
+    return GeoOrigin(*values)
+
+
+def _fail(message: str) -> int:
+    print(f"hdmap {NAME}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.output)
+    if out.exists() and not args.overwrite:
+        return _fail(f"{out} exists already (use --overwrite to replace it)")
+    if args.geojson and Path(args.geojson).is_dir():
+        return _fail(f"--geojson {args.geojson} is a directory")
+
+    t_start = time.perf_counter()
+    fleet = read_fleet_bag(args.bag)
+    _report_input(fleet)
+    if not fleet.drives:
+        reasons = _reason_counts(fleet)
+        raise NoUsableDataError(
+            f"{args.bag}: no usable drive ({len(fleet.rejected)} rejected{': ' + reasons if reasons else ''})"
+            + (f"; {fleet.error}" if fleet.error else "")
+        )
+    origin = args.origin or fleet.origin
+    if args.geojson and origin is None:
+        return _fail(f"--geojson needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
+
+    from hdmap_core import pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
+
+    config = pipeline.PipelineConfig.preset(args.preset)
+    with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
+        result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress)
+    hdmap: HDMap = result.map
+
+    write_map_bag(out, hdmap, origin, overwrite=args.overwrite)
+    print(f"wrote {out}: {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes")
+    if args.geojson:
+        write_geojson(hdmap, origin, args.geojson)
+        print(f"wrote {args.geojson}")
+    print(_summary(fleet, hdmap, result, time.perf_counter() - t_start))
+    return 0
+
+
+def _reason_counts(fleet: FleetBag) -> str:
+    counts: dict[str, int] = {}
+    for r in fleet.rejected:
+        counts[r.reason] = counts.get(r.reason, 0) + 1
+    return ", ".join(f"{n} {reason}" for reason, n in sorted(counts.items()))
+
+
+def _report_input(fleet: FleetBag) -> None:
+    for r in fleet.rejected:
+        print(f"hdmap {NAME}: rejected {r}", file=sys.stderr)
+    if fleet.error:
+        print(f"hdmap {NAME}: warning: {fleet.error}", file=sys.stderr)
+        print(f"hdmap {NAME}: going on with the {len(fleet.drives)} intact drive(s)", file=sys.stderr)
+
+
+def _summary(fleet: FleetBag, hdmap: HDMap, result: Any, seconds: float) -> str:
+    km_features = sum(
+        float(np.linalg.norm(np.diff(np.asarray(f.points), axis=0), axis=1).sum()) for f in hdmap.features
+    ) / 1000.0
+    drive_km = sum(d.length_m for d in fleet.drives) / 1000.0
+    lines = [
+        "summary:",
+        f"  drives read      {len(fleet.drives)} ({drive_km:.1f} km), rejected {len(fleet.rejected)}"
+        + (f" ({_reason_counts(fleet)})" if fleet.rejected else ""),
+        f"  map              {len(hdmap.features)} features ({km_features:.2f} km of polylines), "
+        f"{len(hdmap.topology)} topology nodes",
+        f"  wall time        {seconds:.1f} s (read + build + write)",
+    ]
+    report = getattr(result, "report", None)
+    if report is not None:
+        text = report.summary() if callable(getattr(report, "summary", None)) else _fields(report)
+        lines += ["  pipeline report:"] + [f"    {line}" for line in str(text).splitlines()]
+    return "\n".join(lines)
+
+
+def _fields(report: Any) -> str:
+    items = vars(report).items() if hasattr(report, "__dict__") else []
+    return "\n".join(f"{k}: {v}" for k, v in items if not k.startswith("_"))
+
+
+class _Progress:
+    """Progress callback for build_map: a tqdm bar on a terminal, silent otherwise.
+
+    Accepts ``progress(done, total)``, ``progress(done, total, message)`` or ``progress(fraction)``
+    with fraction in [0, 1].
+    """
+
+    def __init__(self, *, enabled: bool) -> None:
+        self.enabled = enabled
+        self.bar: Any = None
+        self.calls = 0
+
+    def __enter__(self) -> _Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+    def __call__(self, done: float, total: float | None = None, message: str | None = None, **_: Any) -> None:
+        self.calls += 1
+        if not self.enabled:
+            return
+        if self.bar is None:
+            from tqdm import tqdm  # noqa: PLC0415
+
+            self.bar = tqdm(total=total if total is not None else 1.0, desc=NAME, file=sys.stderr, leave=False)
+        if total is not None and self.bar.total != total:
+            self.bar.total = total
+        self.bar.n = done
+        if message:
+            self.bar.set_postfix_str(str(message), refresh=False)
+        self.bar.refresh()

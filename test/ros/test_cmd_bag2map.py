@@ -1,0 +1,126 @@
+"""`hdmap bag2map`: argument handling, bad input, and the wiring around build_map (faked here)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+
+from bag_samples import T0_NS, assert_maps_equal, make_drive, make_map
+from hdmap_core.model import GeoOrigin
+from hdmap_ros import cli
+from hdmap_ros.bagio import read_map_bag, write_fleet_bag
+
+ORIGIN = GeoOrigin(57.7, 11.97, 5.0)
+
+
+@pytest.fixture
+def fake_pipeline(monkeypatch):
+    """A stand-in for hdmap_core.pipeline with the contract's API; records its calls."""
+    calls = {}
+
+    @dataclass(frozen=True)
+    class PipelineConfig:
+        name: str
+
+        @classmethod
+        def preset(cls, name):
+            return cls(name)
+
+    @dataclass(frozen=True)
+    class BuildReport:
+        n_drives_used: int
+
+        def summary(self):
+            return f"drives used {self.n_drives_used}"
+
+    @dataclass(frozen=True)
+    class BuildResult:
+        map: object
+        report: BuildReport
+
+    def build_map(drives, *, config, seed=0, progress=None):
+        calls.update(drives=list(drives), config=config, seed=seed)
+        if progress is not None:
+            progress(1, 2)
+            progress(2, 2)
+        return BuildResult(make_map(n_features=3), BuildReport(len(drives)))
+
+    mod = types.ModuleType("hdmap_core.pipeline")
+    mod.PipelineConfig, mod.build_map = PipelineConfig, build_map
+    monkeypatch.setitem(sys.modules, "hdmap_core.pipeline", mod)
+    import hdmap_core
+
+    monkeypatch.setattr(hdmap_core, "pipeline", mod, raising=False)
+    return calls
+
+
+def _fleet(tmp_path, drives, origin=ORIGIN):
+    return write_fleet_bag(tmp_path / "fleet", drives, origin)
+
+
+def test_wiring_writes_map_bag_and_geojson(tmp_path, fake_pipeline, capsys):
+    good = [make_drive(f"d{i}", n=20, seed=i, start_ns=T0_NS + i * 10**9) for i in range(3)]
+    bad = replace(make_drive("broken", n=20, start_ns=T0_NS + 9 * 10**9), frame_id="odom")
+    bag = _fleet(tmp_path, good + [bad])
+    out, gj = tmp_path / "map", tmp_path / "map.geojson"
+    code = cli.main(["bag2map", str(bag), "-o", str(out), "--geojson", str(gj), "--preset", "paper", "--seed", "7"])
+    assert code == 0
+    assert [d.drive_id for d in fake_pipeline["drives"]] == ["d0", "d1", "d2"]
+    assert fake_pipeline["config"].name == "paper" and fake_pipeline["seed"] == 7
+    got = read_map_bag(out)
+    assert_maps_equal(make_map(n_features=3), got)
+    assert got.extra["origin"] == ORIGIN
+    assert len(json.loads(gj.read_text())["features"]) == 3
+    captured = capsys.readouterr()
+    assert "broken" in captured.err and "wrong_frame" in captured.err
+    assert "drives used 3" in captured.out and "rejected 1" in captured.out
+
+
+def test_no_usable_drive_exits_nonzero_with_reasons(tmp_path, fake_pipeline, capsys):
+    nan = make_drive("nan", n=10)
+    nan.xy[0, 1] = np.inf
+    bag = _fleet(tmp_path, [nan, replace(make_drive("odom", n=10), frame_id="odom")])
+    code = cli.main(["bag2map", str(bag), "-o", str(tmp_path / "map")])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "no usable drive" in err and "non_finite_coordinates" in err and "wrong_frame" in err
+    assert not (tmp_path / "map").exists() and "drives" not in fake_pipeline
+
+
+def test_missing_input_is_a_clear_error(tmp_path, capsys):
+    code = cli.main(["bag2map", str(tmp_path / "nope"), "-o", str(tmp_path / "map")])
+    assert code == 1 and "no such bag" in capsys.readouterr().err
+
+
+def test_existing_output_is_refused_before_reading(tmp_path, capsys):
+    (tmp_path / "map").mkdir()
+    code = cli.main(["bag2map", str(tmp_path / "nope"), "-o", str(tmp_path / "map")])
+    assert code == 2 and "exists already" in capsys.readouterr().err
+
+
+def test_geojson_without_origin(tmp_path, fake_pipeline, capsys):
+    bag = _fleet(tmp_path, [make_drive("a", n=10)], origin=None)
+    args = ["bag2map", str(bag), "-o", str(tmp_path / "map"), "--geojson", str(tmp_path / "m.geojson")]
+    assert cli.main(args) == 2 and "--origin" in capsys.readouterr().err
+    assert cli.main(args + ["--origin", "57.7,11.97"]) == 0
+    assert (tmp_path / "m.geojson").exists()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["bag2map", "in"],  # -o missing
+        ["bag2map", "in", "-o", "out", "--preset", "fancy"],
+        ["bag2map", "in", "-o", "out", "--seed", "x"],
+        ["bag2map", "in", "-o", "out", "--origin", "95,1"],
+    ],
+)
+def test_bad_arguments_are_usage_errors(argv, capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(argv)
+    assert info.value.code == 2
