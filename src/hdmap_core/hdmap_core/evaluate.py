@@ -1,0 +1,708 @@
+"""The paper's map metric (Immel et al. 2023, Sec. VII): lateral error of a map against ground truth.
+
+Along the ground truth's route centerlines a lateral cut line is placed every 2 m and limited to
+the carriageway; map and ground-truth polylines are intersected with it; each map point is matched
+to the nearest ground-truth point of the same type on that cut; the signed distance along the cut
+is the lateral error. From these matches come the total and offset-corrected error, coverage,
+recall, precision, type accuracy, fragmentation and the localization floor sigma/sqrt(n).
+``docs/evaluation.md`` defines every figure exactly.
+
+Typical use::
+
+    report = evaluate_map(hdmap, gt, drives=fleet.drives, sigma_loc_m=1.0)
+    print(report.summary())
+    json.dump(report.to_dict(), fp)
+    plot_evaluation(report, hdmap, gt, "eval.png")
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from hdmap_core.errors import ConfigError, HdmapError, NoUsableDataError
+from hdmap_core.evaluate_cuts import Cuts, intersect_cuts, reference_cuts, segments_of
+from hdmap_core.groundtruth import GroundTruth
+from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
+
+__all__ = [
+    "EvalConfig",
+    "TypeStats",
+    "CutProfile",
+    "EvalReport",
+    "evaluate_map",
+    "hdmap_from_ground_truth",
+    "plot_evaluation",
+    "EVAL_TYPES",
+]
+
+#: The feature types reported separately, in report order.
+EVAL_TYPES = (FeatureType.SOLID, FeatureType.DASHED, FeatureType.ROAD_BORDER)
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Settings of the metric. Defaults follow the paper where it gives a value (2 m steps).
+
+    Attributes:
+        step_m: distance between cut lines along each reference line (paper: 2 m).
+        recall_radius_m: a point counts for recall / precision when its partner of the same type on
+            the same cut is at most this far away.
+        gate_m: a map point farther than this from every ground-truth point of its type on its cut
+            is unmatched (no error is measured for it).
+        border_margin_m: the cut reaches this far beyond the first ground-truth road border on each
+            side, so that a map border displaced outwards is still seen.
+        max_half_length_m: the longest a cut may reach to each side (used where no border is found).
+        highway_only: reference lines only along lanes with ``highway`` True.
+        max_feature_angle_deg: a polyline segment counts at a cut only when its direction is within
+            this angle of the cut's driving direction (excludes the opposite carriageway, crossing
+            roads, overpasses). Also used for drives crossing a cut (floor) and for the borders that
+            limit the cut (there in either direction).
+        dedup_heading_deg: candidate cuts closer than step_m / 2 along, and within the extent across,
+            an earlier cut whose heading differs by less than this are the same cross section.
+        type_tie_m: for type accuracy, the same-type ground-truth point may be this much farther
+            than the nearest ground-truth point of any type (coincident lines, e.g. a border on
+            a solid edge line).
+        default_sigma_loc_m: localization sigma for the floor when none is given.
+    """
+
+    step_m: float = 2.0
+    recall_radius_m: float = 1.0
+    gate_m: float = 2.5
+    border_margin_m: float = 1.0
+    max_half_length_m: float = 25.0
+    highway_only: bool = True
+    max_feature_angle_deg: float = 60.0
+    dedup_heading_deg: float = 30.0
+    type_tie_m: float = 0.1
+    default_sigma_loc_m: float = 1.0
+
+    def __post_init__(self) -> None:
+        positive = ("step_m", "recall_radius_m", "gate_m", "max_half_length_m", "default_sigma_loc_m")
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"EvalConfig.{name} must be a finite number > 0, got {value!r}")
+        for name in ("border_margin_m", "type_tie_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"EvalConfig.{name} must be a finite number >= 0, got {value!r}")
+        for name in ("max_feature_angle_deg", "dedup_heading_deg"):
+            value = getattr(self, name)
+            if not (0 < value < 90):
+                raise ConfigError(f"EvalConfig.{name} must be in (0, 90) degrees, got {value!r}")
+        if self.recall_radius_m > self.gate_m:
+            raise ConfigError(
+                f"EvalConfig.recall_radius_m ({self.recall_radius_m}) must not exceed gate_m ({self.gate_m})"
+            )
+
+
+@dataclass(frozen=True)
+class TypeStats:
+    """Figures of one feature type (or of all types together). Errors in metres; NaN when empty.
+
+    Attributes:
+        n_gt_points: ground-truth points on the cuts.
+        n_map_points: map points on the cuts.
+        n_matched: map points matched (same type, within the gate) -> errors measured.
+        mean_m, median_m, p95_m: of the absolute lateral error of matched map points.
+        corrected_mean_m, corrected_median_m, corrected_p95_m: the same after removing each cut's
+            offset (mean signed error of its matched points, all types).
+        recall: share of ground-truth points with a same-type map point within recall_radius_m.
+        precision: share of map points with a same-type ground-truth point within recall_radius_m.
+        coverage: share of the cuts holding a ground-truth point of this type where at least one
+            map point of this type is matched.
+        n_cuts: cuts holding a ground-truth point of this type.
+    """
+
+    n_gt_points: int
+    n_map_points: int
+    n_matched: int
+    mean_m: float
+    median_m: float
+    p95_m: float
+    corrected_mean_m: float
+    corrected_median_m: float
+    corrected_p95_m: float
+    recall: float
+    precision: float
+    coverage: float
+    n_cuts: int
+
+
+@dataclass(frozen=True)
+class CutProfile:
+    """Per-cut results along the reference, K cuts in evaluation order (for plots and analysis).
+
+    Attributes:
+        station_m: (K,) distance along the de-duplicated reference [m].
+        center: (K, 2) cut reference point [m]; heading_rad: (K,) ENU yaw of the reference lane.
+        lo_m, hi_m: (K,) cut extent to the right (<= 0) and left (>= 0) [m].
+        n_gt, n_map, n_matched: (K,) ground-truth points, map points, matched map points.
+        error_m: (K,) mean absolute total error of the cut's matched points (NaN if none).
+        corrected_m: (K,) mean absolute offset-corrected error (NaN if none).
+        offset_m: (K,) the cut's offset, mean signed error, + = map left of truth (NaN if none).
+        drive_count: (K,) drives covering the cut (NaN if unknown).
+        floor_m: (K,) sigma_loc / sqrt(drive_count) (NaN if unknown or 0 drives).
+    """
+
+    station_m: np.ndarray
+    center: np.ndarray
+    heading_rad: np.ndarray
+    lo_m: np.ndarray
+    hi_m: np.ndarray
+    n_gt: np.ndarray
+    n_map: np.ndarray
+    n_matched: np.ndarray
+    error_m: np.ndarray
+    corrected_m: np.ndarray
+    offset_m: np.ndarray
+    drive_count: np.ndarray
+    floor_m: np.ndarray
+
+    @property
+    def reference(self) -> np.ndarray:
+        """(K,) bool: the cut holds at least one ground-truth point (part of the reference)."""
+        return self.n_gt > 0
+
+    @property
+    def evaluable(self) -> np.ndarray:
+        """(K,) bool: at least one map point is matched on the cut."""
+        return self.n_matched > 0
+
+    def to_dict(self) -> dict:
+        return {k: _jsonable(getattr(self, k)) for k in self.__dataclass_fields__}
+
+
+@dataclass(frozen=True)
+class EvalReport:
+    """Everything ``evaluate_map`` measured. See docs/evaluation.md for the definitions.
+
+    Attributes:
+        gt_name: name of the ground truth.
+        config: the settings used.
+        overall: figures over all types; per_type: the same per type label ("solid", ...).
+        type_accuracy: share of map points (with a ground-truth point of any type within the gate)
+            whose nearest ground-truth point has their type; n_typed: that denominator.
+        fragmentation_mean, fragmentation_max: distinct map features matched along each
+            ground-truth feature, over the n_gt_features ground-truth features with a match.
+        mean_abs_offset_m: mean over evaluable cuts of |offset| (the paper's offset error).
+        sigma_loc_m: localization sigma used for the floor.
+        floor_source: "drives" (trajectories crossing each cut), "map" (the matched map points'
+            drive_count) or "none" (no drive information).
+        floor_mean_m: mean over evaluable cuts with a known drive count of sigma_loc / sqrt(n).
+        drive_count_mean: mean drive count over the same cuts.
+        n_cuts, n_reference_cuts, n_evaluable_cuts: all cuts, cuts holding a ground-truth point,
+            cuts with a matched map point.
+        reference_length_m, evaluable_length_m: the latter two times step_m.
+        cuts: the per-cut profile.
+        skipped: messages about input parts that were left out (malformed map features, drives).
+        runtime_s: wall time of the evaluation.
+    """
+
+    gt_name: str
+    config: EvalConfig
+    overall: TypeStats
+    per_type: dict[str, TypeStats]
+    type_accuracy: float
+    n_typed: int
+    fragmentation_mean: float
+    fragmentation_max: int
+    n_gt_features: int
+    mean_abs_offset_m: float
+    sigma_loc_m: float
+    floor_source: str
+    floor_mean_m: float
+    drive_count_mean: float
+    n_cuts: int
+    n_reference_cuts: int
+    n_evaluable_cuts: int
+    reference_length_m: float
+    evaluable_length_m: float
+    cuts: CutProfile = field(repr=False)
+    skipped: tuple[str, ...] = ()
+    runtime_s: float = 0.0
+
+    @property
+    def coverage(self) -> float:
+        """Share of the reference that could be evaluated (== overall.coverage)."""
+        return self.overall.coverage
+
+    def to_dict(self, *, include_cuts: bool = False) -> dict:
+        """A JSON-able dict (NaN -> None); ``include_cuts`` adds the per-cut profile arrays."""
+        out = {
+            "gt_name": self.gt_name,
+            "config": dict(self.config.__dict__),
+            "overall": _jsonable(self.overall.__dict__),
+            "per_type": {k: _jsonable(v.__dict__) for k, v in self.per_type.items()},
+        }
+        for name in self.__dataclass_fields__:
+            if name in ("gt_name", "config", "overall", "per_type", "cuts"):
+                continue
+            out[name] = _jsonable(getattr(self, name))
+        out["coverage"] = _jsonable(self.coverage)
+        if include_cuts:
+            out["cuts"] = self.cuts.to_dict()
+        return out
+
+    def summary(self) -> str:
+        """A readable multi-line summary (what ``hdmap evaluate`` prints)."""
+        from hdmap_core.evaluate_plot import format_summary
+
+        return format_summary(self)
+
+
+def _jsonable(value: object) -> object:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind == "f":
+            return [_jsonable(v) for v in value.tolist()] if value.ndim == 1 else _jsonable(value.tolist())
+        return value.tolist()
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return v if math.isfinite(v) else None
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# Points on cuts and matching
+
+
+@dataclass(frozen=True)
+class _CutPoints:
+    """P intersection points of polylines with cuts."""
+
+    cut: np.ndarray  # (P,) cut index
+    s: np.ndarray  # (P,) lateral coordinate on the cut, + = left [m]
+    owner: np.ndarray  # (P,) polyline index
+    vertex: np.ndarray  # (P,) segment start vertex within the polyline
+    u: np.ndarray  # (P,) parameter along that segment
+
+
+def _points_on_cuts(cuts: Cuts, polylines: Sequence[np.ndarray], *, cos_min: float) -> _CutPoints:
+    """Where the polylines cross the cuts, keeping segments running with the cut's direction."""
+    segs = segments_of(polylines)
+    ci, si, s, u = intersect_cuts(cuts.center, cuts.normal, cuts.lo, cuts.hi, segs)
+    d = segs.b[si] - segs.a[si]
+    cos = (d * cuts.tangent[ci]).sum(axis=1) / np.linalg.norm(d, axis=1)
+    ok = cos >= cos_min
+    return _CutPoints(ci[ok], s[ok], segs.owner[si][ok], segs.vertex[si][ok], u[ok])
+
+
+def _nearest_on_same_cut(
+    q_cut: np.ndarray, q_s: np.ndarray, r_cut: np.ndarray, r_s: np.ndarray, *, width: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each query point, the nearest reference point on the same cut.
+
+    Both sets are keyed ``cut * width + s`` (``width`` > the longest cut) and searched by bisection.
+    Returns (Q,) index into the reference set (-1 if the cut has none) and (Q,) distance (inf).
+    """
+    idx = np.full(len(q_cut), -1, dtype=np.int64)
+    dist = np.full(len(q_cut), np.inf)
+    if len(q_cut) == 0 or len(r_cut) == 0:
+        return idx, dist
+    r_key = r_cut * width + r_s
+    order = np.argsort(r_key, kind="stable")
+    sorted_key = r_key[order]
+    pos = np.searchsorted(sorted_key, q_cut * width + q_s)
+    for cand in (pos - 1, pos):
+        valid = (cand >= 0) & (cand < len(order))
+        c = order[np.clip(cand, 0, len(order) - 1)]
+        valid &= r_cut[c] == q_cut
+        d = np.where(valid, np.abs(r_s[c] - q_s), np.inf)
+        better = d < dist
+        idx[better] = c[better]
+        dist[better] = d[better]
+    return idx, dist
+
+
+def _nearest_same_type(
+    q_cut: np.ndarray,
+    q_s: np.ndarray,
+    q_type: np.ndarray,
+    r_cut: np.ndarray,
+    r_s: np.ndarray,
+    r_type: np.ndarray,
+    *,
+    width: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``_nearest_on_same_cut`` restricted to reference points of the query point's type."""
+    idx = np.full(len(q_cut), -1, dtype=np.int64)
+    dist = np.full(len(q_cut), np.inf)
+    for t in np.unique(q_type):
+        qm = np.flatnonzero(q_type == t)
+        rm = np.flatnonzero(r_type == t)
+        i, d = _nearest_on_same_cut(q_cut[qm], q_s[qm], r_cut[rm], r_s[rm], width=width)
+        idx[qm] = np.where(i >= 0, rm[np.clip(i, 0, None)] if len(rm) else -1, -1)
+        dist[qm] = d
+    return idx, dist
+
+
+def _stats(values: np.ndarray) -> tuple[float, float, float]:
+    if len(values) == 0:
+        return math.nan, math.nan, math.nan
+    return float(np.mean(values)), float(np.median(values)), float(np.percentile(values, 95))
+
+
+def _share(num: int, den: int) -> float:
+    return num / den if den else math.nan
+
+
+# --------------------------------------------------------------------------------------------
+# Input checks
+
+
+def _valid_map_features(hdmap: HDMap, skipped: list[str]) -> list[MapFeature]:
+    """Map features usable for evaluation; malformed ones are named in ``skipped``."""
+    out = []
+    for f in hdmap.features:
+        pts = np.asarray(f.points, dtype=float) if f.points is not None else np.zeros((0, 2))
+        if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 2:
+            skipped.append(f"map feature {f.id}: points of shape {pts.shape}, need (N >= 2, 2)")
+            continue
+        if not np.all(np.isfinite(pts)):
+            skipped.append(f"map feature {f.id}: non-finite coordinates")
+            continue
+        out.append(f)
+    return out
+
+
+def _drive_counts(f: MapFeature, skipped: list[str]) -> np.ndarray:
+    dc = np.asarray(f.drive_count if f.drive_count is not None else (), dtype=float).reshape(-1)
+    if len(dc) != len(f.points):
+        if len(dc):
+            skipped.append(f"map feature {f.id}: drive_count has {len(dc)} values for {len(f.points)} points, ignored")
+        return np.zeros(len(f.points))
+    return np.where(np.isfinite(dc), dc, 0.0)
+
+
+def _valid_trajectories(drives: Sequence[Drive], skipped: list[str]) -> list[np.ndarray]:
+    out = []
+    for i, d in enumerate(drives):
+        xy = np.asarray(getattr(d, "xy", None), dtype=float)
+        name = getattr(d, "drive_id", f"#{i}")
+        if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) < 2 or not np.all(np.isfinite(xy)):
+            skipped.append(f"drive {name!r}: trajectory unusable (shape {xy.shape} or non-finite), not counted")
+            continue
+        out.append(xy)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# The metric
+
+
+def evaluate_map(
+    hdmap: HDMap,
+    gt: GroundTruth,
+    *,
+    config: EvalConfig = EvalConfig(),
+    drives: Sequence[Drive] | None = None,
+    sigma_loc_m: float | None = None,
+) -> EvalReport:
+    """Evaluate ``hdmap`` against ``gt`` with the paper's lateral metric (Sec. VII).
+
+    Args:
+        hdmap: the map to evaluate (features in the ground truth's frame).
+        gt: the ground truth; its route centerlines are the reference lines.
+        config: metric settings.
+        drives: the fleet drives the map was built from; their trajectories give the drive count
+            per cut for the floor. Without them the matched map points' ``drive_count`` is used.
+        sigma_loc_m: localization sigma for the floor [m] (default ``config.default_sigma_loc_m``).
+
+    Returns:
+        The report. An empty map gives coverage 0 and NaN errors.
+
+    Raises:
+        HdmapError: ``hdmap`` / ``gt`` are not an HDMap / GroundTruth, or sigma_loc_m <= 0.
+        NoUsableDataError: the ground truth yields no cut (no highway lane on any route; use
+            ``highway_only=False``).
+    """
+    t0 = time.perf_counter()
+    if not isinstance(hdmap, HDMap):
+        raise HdmapError(f"evaluate_map: hdmap must be an HDMap, got {type(hdmap).__name__}")
+    if not isinstance(gt, GroundTruth):
+        raise HdmapError(f"evaluate_map: gt must be a GroundTruth, got {type(gt).__name__}")
+    sigma = config.default_sigma_loc_m if sigma_loc_m is None else float(sigma_loc_m)
+    if not (math.isfinite(sigma) and sigma > 0):
+        raise ConfigError(f"evaluate_map: sigma_loc_m must be a finite number > 0, got {sigma_loc_m!r}")
+    cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
+    cuts = reference_cuts(
+        gt,
+        step_m=config.step_m,
+        highway_only=config.highway_only,
+        max_half_m=config.max_half_length_m,
+        margin_m=config.border_margin_m,
+        cos_feature=cos_feat,
+        cos_dedup=math.cos(math.radians(config.dedup_heading_deg)),
+    )
+    if len(cuts) == 0:
+        which = "highway lane" if config.highway_only else "lane"
+        raise NoUsableDataError(
+            f"ground truth {gt.name!r}: no {which} centerline of at least {config.step_m / 2} m on any route "
+            "to evaluate along" + (" (try highway_only=False / --all-lanes)" if config.highway_only else "")
+        )
+    skipped: list[str] = []
+    width = 4.0 * (config.max_half_length_m + config.border_margin_m) + 10.0
+
+    # Ground-truth and map points on the cuts.
+    gt_feats = list(gt.features)
+    gp = _points_on_cuts(cuts, [f.points for f in gt_feats], cos_min=cos_feat)
+    g_type = np.array([int(f.type) for f in gt_feats], dtype=np.int64)[gp.owner] if gt_feats else gp.owner
+    map_feats = _valid_map_features(hdmap, skipped)
+    mp = _points_on_cuts(cuts, [np.asarray(f.points, dtype=float) for f in map_feats], cos_min=cos_feat)
+    m_type = np.array([int(f.type) for f in map_feats], dtype=np.int64)[mp.owner] if map_feats else mp.owner
+    m_dc = _map_point_drive_counts(map_feats, mp, skipped)
+
+    # RULE 1: a map point is matched to the nearest ground-truth point of its type on its cut,
+    # within the gate; the signed difference along the cut is its lateral error.
+    gi, gd = _nearest_same_type(mp.cut, mp.s, m_type, gp.cut, gp.s, g_type, width=width)
+    matched = gd <= config.gate_m
+    err = np.where(matched, mp.s - gp.s[np.clip(gi, 0, None)] if len(gp.s) else 0.0, np.nan)
+
+    # RULE 2: the cut's offset is the mean signed error of its matched points (least squares).
+    k = len(cuts)
+    n_match = np.bincount(mp.cut[matched], minlength=k)
+    offset = np.full(k, np.nan)
+    has = n_match > 0
+    offset[has] = np.bincount(mp.cut[matched], weights=err[matched], minlength=k)[has] / n_match[has]
+    corrected = np.where(matched, err - offset[mp.cut] if len(mp.cut) else 0.0, np.nan)
+
+    # RULE 3: recall / precision within the recall radius, same type, same cut.
+    _, g_to_m = _nearest_same_type(gp.cut, gp.s, g_type, mp.cut, mp.s, m_type, width=width)
+    gt_hit = g_to_m <= config.recall_radius_m
+    map_hit = gd <= config.recall_radius_m
+
+    # RULE 4: type accuracy over map points with any ground-truth point within the gate.
+    _, any_d = _nearest_on_same_cut(mp.cut, mp.s, gp.cut, gp.s, width=width)
+    typed = any_d <= config.gate_m
+    type_ok = typed & (gd <= any_d + config.type_tie_m)
+
+    per_cut_err = _per_cut_mean(mp.cut[matched], np.abs(err[matched]), k)
+    per_cut_cor = _per_cut_mean(mp.cut[matched], np.abs(corrected[matched]), k)
+    n_gt_cut = np.bincount(gp.cut, minlength=k)
+    n_map_cut = np.bincount(mp.cut, minlength=k)
+
+    drive_count, floor_source = _cut_drive_counts(cuts, drives, mp, matched, m_dc, cos_feat, skipped)
+    floor = np.where(drive_count >= 1, sigma / np.sqrt(np.maximum(drive_count, 1.0)), np.nan)
+
+    per_type = {}
+    for t in EVAL_TYPES:
+        per_type[t.label] = _type_stats(
+            g_mask=g_type == t, m_mask=m_type == t, gp=gp, mp=mp, err=err, corrected=corrected,
+            matched=matched, gt_hit=gt_hit, map_hit=map_hit, k=k,
+        )
+    overall = _type_stats(
+        g_mask=np.ones(len(gp.cut), dtype=bool), m_mask=np.ones(len(mp.cut), dtype=bool), gp=gp, mp=mp,
+        err=err, corrected=corrected, matched=matched, gt_hit=gt_hit, map_hit=map_hit, k=k,
+    )
+
+    frag_mean, frag_max, n_frag = _fragmentation(gp, gi, matched, map_feats, mp)
+    evaluable = (n_match > 0) & (n_gt_cut > 0)
+    floor_ok = evaluable & np.isfinite(floor)
+    profile = CutProfile(
+        station_m=cuts.station_m,
+        center=cuts.center,
+        heading_rad=np.arctan2(cuts.tangent[:, 1], cuts.tangent[:, 0]),
+        lo_m=cuts.lo,
+        hi_m=cuts.hi,
+        n_gt=n_gt_cut,
+        n_map=n_map_cut,
+        n_matched=n_match,
+        error_m=per_cut_err,
+        corrected_m=per_cut_cor,
+        offset_m=offset,
+        drive_count=drive_count,
+        floor_m=floor,
+    )
+    n_ref = int(np.count_nonzero(n_gt_cut > 0))
+    n_eval = int(np.count_nonzero(evaluable))
+    return EvalReport(
+        gt_name=gt.name,
+        config=config,
+        overall=overall,
+        per_type=per_type,
+        type_accuracy=_share(int(np.count_nonzero(type_ok)), int(np.count_nonzero(typed))),
+        n_typed=int(np.count_nonzero(typed)),
+        fragmentation_mean=frag_mean,
+        fragmentation_max=frag_max,
+        n_gt_features=n_frag,
+        mean_abs_offset_m=float(np.mean(np.abs(offset[evaluable]))) if n_eval else math.nan,
+        sigma_loc_m=sigma,
+        floor_source=floor_source,
+        floor_mean_m=float(np.mean(floor[floor_ok])) if floor_ok.any() else math.nan,
+        drive_count_mean=float(np.mean(drive_count[floor_ok])) if floor_ok.any() else math.nan,
+        n_cuts=k,
+        n_reference_cuts=n_ref,
+        n_evaluable_cuts=n_eval,
+        reference_length_m=n_ref * config.step_m,
+        evaluable_length_m=n_eval * config.step_m,
+        cuts=profile,
+        skipped=tuple(skipped),
+        runtime_s=time.perf_counter() - t0,
+    )
+
+
+def _per_cut_mean(cut: np.ndarray, values: np.ndarray, k: int) -> np.ndarray:
+    n = np.bincount(cut, minlength=k)
+    out = np.full(k, np.nan)
+    out[n > 0] = np.bincount(cut, weights=values, minlength=k)[n > 0] / n[n > 0]
+    return out
+
+
+def _map_point_drive_counts(feats: list[MapFeature], mp: _CutPoints, skipped: list[str]) -> np.ndarray:
+    """(P,) drive_count at each map point on a cut: the value of the nearer segment end."""
+    if not feats:
+        return np.zeros(0)
+    counts = [_drive_counts(f, skipped) for f in feats]
+    offsets = np.concatenate([[0], np.cumsum([len(c) for c in counts])])
+    flat = np.concatenate(counts)
+    vertex = mp.vertex + (mp.u >= 0.5)
+    return flat[offsets[mp.owner] + vertex]
+
+
+def _cut_drive_counts(
+    cuts: Cuts,
+    drives: Sequence[Drive] | None,
+    mp: _CutPoints,
+    matched: np.ndarray,
+    m_dc: np.ndarray,
+    cos_min: float,
+    skipped: list[str],
+) -> tuple[np.ndarray, str]:
+    """(K,) drives covering each cut (NaN unknown) and where the number comes from.
+
+    With drives: trajectories crossing the cut in its direction, each drive once. Without: the
+    largest drive_count among the cut's matched map points (0 -> unknown).
+    """
+    k = len(cuts)
+    if drives is not None:
+        trajs = _valid_trajectories(drives, skipped)
+        tp = _points_on_cuts(cuts, trajs, cos_min=cos_min)
+        pairs = np.unique(tp.cut * (len(trajs) + 1) + tp.owner)
+        return np.bincount(pairs // (len(trajs) + 1), minlength=k).astype(float), "drives"
+    dc = np.zeros(k)
+    if matched.any():
+        np.maximum.at(dc, mp.cut[matched], m_dc[matched])
+    if not (dc > 0).any():
+        return np.full(k, np.nan), "none"
+    return np.where(dc > 0, dc, np.nan), "map"
+
+
+def _type_stats(
+    *,
+    g_mask: np.ndarray,
+    m_mask: np.ndarray,
+    gp: _CutPoints,
+    mp: _CutPoints,
+    err: np.ndarray,
+    corrected: np.ndarray,
+    matched: np.ndarray,
+    gt_hit: np.ndarray,
+    map_hit: np.ndarray,
+    k: int,
+) -> TypeStats:
+    sel = m_mask & matched
+    abs_err = np.abs(err[sel])
+    abs_cor = np.abs(corrected[sel])
+    gt_cuts = np.unique(gp.cut[g_mask])
+    covered = np.intersect1d(gt_cuts, np.unique(mp.cut[sel]))
+    mean, med, p95 = _stats(abs_err)
+    cmean, cmed, cp95 = _stats(abs_cor)
+    n_g, n_m = int(np.count_nonzero(g_mask)), int(np.count_nonzero(m_mask))
+    return TypeStats(
+        n_gt_points=n_g,
+        n_map_points=n_m,
+        n_matched=int(np.count_nonzero(sel)),
+        mean_m=mean,
+        median_m=med,
+        p95_m=p95,
+        corrected_mean_m=cmean,
+        corrected_median_m=cmed,
+        corrected_p95_m=cp95,
+        recall=_share(int(np.count_nonzero(gt_hit & g_mask)), n_g),
+        precision=_share(int(np.count_nonzero(map_hit & m_mask)), n_m),
+        coverage=_share(len(covered), len(gt_cuts)) if len(gt_cuts) else math.nan,
+        n_cuts=len(gt_cuts),
+    )
+
+
+def _fragmentation(
+    gp: _CutPoints, gi: np.ndarray, matched: np.ndarray, map_feats: list[MapFeature], mp: _CutPoints
+) -> tuple[float, int, int]:
+    """Distinct map features matched along each ground-truth feature: (mean, max, #GT features)."""
+    if not matched.any():
+        return math.nan, 0, 0
+    gt_owner = gp.owner[gi[matched]]
+    map_owner = mp.owner[matched]
+    pairs = np.unique(np.stack([gt_owner, map_owner], axis=1), axis=0)
+    _, per_gt = np.unique(pairs[:, 0], return_counts=True)
+    return float(np.mean(per_gt)), int(np.max(per_gt)), len(per_gt)
+
+
+# --------------------------------------------------------------------------------------------
+# Ground truth as a map; plotting
+
+
+def hdmap_from_ground_truth(gt: GroundTruth, *, lateral_shift_m: float = 0.0, drive_count: int = 0) -> HDMap:
+    """The ground-truth features as an ``HDMap`` ("perfect map"), optionally shifted sideways.
+
+    Args:
+        gt: the ground truth.
+        lateral_shift_m: every point moves this far along its feature's left normal (from central
+            differences of the points) [m]; + = left of the feature's direction.
+        drive_count: value of every point's ``drive_count``.
+
+    Returns:
+        A map whose feature ids are the ground-truth ids; ``lateral_std`` is 0; features whose
+        last point meets another's first point (within 5 cm) are linked as successor/predecessor.
+    """
+    feats = [f for f in gt.features if len(f.points) >= 2]
+    starts = np.array([f.points[0] for f in feats]) if feats else np.zeros((0, 2))
+    ends = np.array([f.points[-1] for f in feats]) if feats else np.zeros((0, 2))
+    succ: dict[int, list[int]] = {i: [] for i in range(len(feats))}
+    pred: dict[int, list[int]] = {i: [] for i in range(len(feats))}
+    if feats:
+        for i, js in enumerate(cKDTree(starts).query_ball_point(ends, r=0.05)):
+            for j in js:
+                if j != i:
+                    succ[i].append(j)
+                    pred[j].append(i)
+    out = []
+    for i, f in enumerate(feats):
+        pts = np.asarray(f.points, dtype=float)
+        if lateral_shift_m:
+            t = np.gradient(pts, axis=0)
+            t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+            pts = pts + lateral_shift_m * np.stack([-t[:, 1], t[:, 0]], axis=1)
+        out.append(
+            MapFeature(
+                id=int(f.id),
+                type=f.type,
+                points=pts,
+                drive_count=np.full(len(pts), int(drive_count), dtype=np.int64),
+                lateral_std=np.zeros(len(pts)),
+                predecessors=tuple(int(feats[j].id) for j in sorted(pred[i])),
+                successors=tuple(int(feats[j].id) for j in sorted(succ[i])),
+            )
+        )
+    return HDMap(features=tuple(out), extra={"source": f"ground truth {gt.name}", "lateral_shift_m": lateral_shift_m})
+
+
+def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str | Path) -> Path:
+    """Write a PNG: the map over the ground truth coloured by type, and the error with the drive
+    count along the reference (the paper's error-over-distance figure). Returns the path."""
+    from hdmap_core.evaluate_plot import plot_evaluation as _plot
+
+    return _plot(report, hdmap, gt, path)

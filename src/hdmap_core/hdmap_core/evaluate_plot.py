@@ -1,0 +1,179 @@
+"""Human-readable output of the evaluator: the text summary and the PNG figure.
+
+matplotlib is imported only when a figure is drawn, with the non-interactive Agg backend.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from hdmap_core.groundtruth import GroundTruth
+from hdmap_core.model import FeatureType, HDMap
+
+if TYPE_CHECKING:
+    from hdmap_core.evaluate import EvalReport
+
+__all__ = ["format_summary", "plot_evaluation", "TYPE_COLORS"]
+
+#: Colours per type (ground truth drawn light, map drawn strong).
+TYPE_COLORS = {
+    FeatureType.SOLID: "#2ca02c",
+    FeatureType.DASHED: "#1f77b4",
+    FeatureType.ROAD_BORDER: "#e8a100",
+    FeatureType.UNKNOWN: "#7f7f7f",
+}
+
+
+def _m(v: float) -> str:
+    return "   n/a" if not math.isfinite(v) else f"{v:6.3f}"
+
+
+def _pct(v: float) -> str:
+    return "   n/a" if not math.isfinite(v) else f"{100 * v:5.1f}%"
+
+
+def format_summary(report: EvalReport) -> str:
+    """The multi-line text summary of a report."""
+    cfg = report.config
+    lanes = "highway lanes" if cfg.highway_only else "all lanes"
+    lines = [
+        f"Evaluation against ground truth {report.gt_name!r} ({lanes}, a cut every {cfg.step_m:g} m, "
+        f"match gate {cfg.gate_m:g} m, recall radius {cfg.recall_radius_m:g} m)",
+        f"reference {report.reference_length_m / 1000:.2f} km ({report.n_reference_cuts} cuts), "
+        f"evaluable {report.evaluable_length_m / 1000:.2f} km: coverage {_pct(report.coverage).strip()}",
+        "",
+        "lateral error [m]       total:  mean median    p95 | offset-corrected:  mean median    p95"
+        " | recall precision coverage |  GT pts map pts matched",
+    ]
+    rows = [("all", report.overall)] + list(report.per_type.items())
+    for name, st in rows:
+        lines.append(
+            f"  {name:<12s}         {_m(st.mean_m)} {_m(st.median_m)} {_m(st.p95_m)} |"
+            f"                  {_m(st.corrected_mean_m)} {_m(st.corrected_median_m)} {_m(st.corrected_p95_m)} |"
+            f" {_pct(st.recall)}    {_pct(st.precision)}   {_pct(st.coverage)} |"
+            f" {st.n_gt_points:7d} {st.n_map_points:7d} {st.n_matched:7d}"
+        )
+    lines += [
+        "",
+        f"mean |offset| per cut {_m(report.mean_abs_offset_m).strip()} m; type accuracy "
+        f"{_pct(report.type_accuracy).strip()} of {report.n_typed} map points; fragmentation "
+        + (
+            f"{report.fragmentation_mean:.2f} map features per GT feature (max {report.fragmentation_max}, "
+            f"{report.n_gt_features} GT features)"
+            if report.n_gt_features
+            else "n/a"
+        ),
+    ]
+    if report.floor_source == "none":
+        lines.append(f"floor sigma/sqrt(n): n/a (no drive counts; sigma_loc {report.sigma_loc_m:g} m)")
+    else:
+        src = "drive trajectories" if report.floor_source == "drives" else "map drive_count"
+        lines.append(
+            f"floor sigma/sqrt(n): {_m(report.floor_mean_m).strip()} m mean over evaluable cuts "
+            f"(sigma_loc {report.sigma_loc_m:g} m, n from {src}: mean {report.drive_count_mean:.1f} drives)"
+        )
+    if report.skipped:
+        lines.append(f"skipped {len(report.skipped)} input part(s):")
+        lines += [f"  {s}" for s in report.skipped[:10]]
+        if len(report.skipped) > 10:
+            lines.append(f"  ... and {len(report.skipped) - 10} more")
+    lines.append(f"evaluated in {report.runtime_s:.2f} s")
+    return "\n".join(lines)
+
+
+def _smooth(values: np.ndarray, window: int) -> np.ndarray:
+    """Sliding-window mean ignoring NaN (NaN where the window holds no value)."""
+    ok = np.isfinite(values)
+    kernel = np.ones(window)
+    num = np.convolve(np.where(ok, values, 0.0), kernel, mode="same")
+    den = np.convolve(ok.astype(float), kernel, mode="same")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / np.maximum(den, 1), np.nan)
+
+
+def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str | Path) -> Path:
+    """Write the evaluation figure as PNG to ``path`` and return it.
+
+    Top: ground truth (light, wide) with the map over it (strong, narrow), both coloured by type,
+    and the evaluated cut positions. Bottom: mean absolute total and offset-corrected error per cut
+    along the reference (sliding window of ~50 m, like the paper's Fig. of error over distance),
+    the floor sigma/sqrt(n), and the drive count on a second axis; stretches without a matched map
+    point are shaded.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+    from matplotlib.lines import Line2D
+
+    path = Path(path)
+    fig, (ax_map, ax_err) = plt.subplots(
+        2, 1, figsize=(11, 13), gridspec_kw={"height_ratios": [2.3, 1]}, constrained_layout=True
+    )
+    for f in gt.features:
+        p = np.asarray(f.points)
+        ax_map.plot(p[:, 0], p[:, 1], color=TYPE_COLORS[f.type], lw=3.5, alpha=0.25, solid_capstyle="butt")
+    for f in hdmap.features:
+        p = np.asarray(f.points, dtype=float)
+        if p.ndim == 2 and len(p) >= 2 and p.shape[1] == 2:
+            ax_map.plot(p[:, 0], p[:, 1], color=TYPE_COLORS.get(f.type, "#7f7f7f"), lw=0.8)
+    cuts = report.cuts
+    ev = cuts.evaluable
+    ref = cuts.reference
+    # The evaluated cross sections, thinned to one in five so the map stays visible.
+    normal = np.stack([-np.sin(cuts.heading_rad), np.cos(cuts.heading_rad)], axis=1)
+    ends = np.stack([cuts.center + cuts.lo_m[:, None] * normal, cuts.center + cuts.hi_m[:, None] * normal], axis=1)
+    ax_map.add_collection(LineCollection(ends[ref][::5], colors="0.6", linewidths=0.3, alpha=0.5, zorder=0))
+    ax_map.scatter(*cuts.center[ref & ~ev].T, s=4, color="red", zorder=3, label="cut not evaluable")
+    ax_map.set_aspect("equal", adjustable="datalim")
+    ax_map.set_xlabel("x [m]")
+    ax_map.set_ylabel("y [m]")
+    ax_map.set_title(
+        f"map over ground truth {report.gt_name!r}: total {report.overall.mean_m:.3f} m, "
+        f"offset-corrected {report.overall.corrected_mean_m:.3f} m, coverage {100 * report.coverage:.1f} %"
+        if math.isfinite(report.overall.mean_m)
+        else f"map over ground truth {report.gt_name!r}: nothing evaluable"
+    )
+    handles = [Line2D([], [], color=TYPE_COLORS[t], lw=2, label=t.label) for t in TYPE_COLORS if t]
+    handles += [
+        Line2D([], [], color="k", lw=3.5, alpha=0.25, label="ground truth (light)"),
+        Line2D([], [], color="k", lw=0.8, label="map"),
+        Line2D([], [], color="0.6", lw=0.5, label="cut lines (every 5th)"),
+        Line2D([], [], color="red", marker="o", ls="", ms=3, label="cut not evaluable"),
+    ]
+    ax_map.legend(handles=handles, loc="best", fontsize=8)
+
+    km = cuts.station_m / 1000.0
+    window = max(1, int(round(50.0 / report.config.step_m)))
+    ax_err.plot(km, _smooth(cuts.error_m, window), color="#1f77b4", lw=1.0, label="total error (50 m mean)")
+    ax_err.plot(km, _smooth(cuts.corrected_m, window), color="#e07f2c", lw=1.0, label="offset-corrected error")
+    if np.isfinite(cuts.floor_m).any():
+        ax_err.plot(km, _smooth(cuts.floor_m, window), color="k", lw=0.8, ls="--", label="floor sigma/sqrt(n)")
+    gaps = ref & ~ev
+    if gaps.any():
+        ax_err.fill_between(
+            km, 0, 1, where=gaps, transform=ax_err.get_xaxis_transform(), color="red", alpha=0.12,
+            lw=0, label="not evaluable",
+        )
+    ax_err.set_xlabel("distance along the de-duplicated reference [km]")
+    ax_err.set_ylabel("mean absolute lateral error [m]")
+    ax_err.set_ylim(bottom=0)
+    ax_err.grid(alpha=0.3)
+    lines, labels = ax_err.get_legend_handles_labels()
+    if np.isfinite(cuts.drive_count).any():
+        ax_n = ax_err.twinx()
+        ax_n.plot(km, cuts.drive_count, color="#2ca02c", lw=0.6, alpha=0.7, label="drives per cut")
+        ax_n.set_ylabel("drives covering the cut")
+        ax_n.set_ylim(bottom=0)
+        l2, lb2 = ax_n.get_legend_handles_labels()
+        lines, labels = lines + l2, labels + lb2
+    ax_err.legend(lines, labels, loc="upper right", fontsize=8)
+    ax_err.set_title("lateral error and drive count along the reference")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,328 @@
+"""The evaluator (paper Sec. VII) on small synthetic roads with known answers and on a real map.
+
+The synthetic road, driving direction +x, 200 m long (y in metres)::
+
+    y = 7.5  ============================  road_border   (id 5)
+    y = 7.0  ----------------------------  solid          (id 4)
+               lane "B"   ->   centre 5.25
+    y = 3.5  - - - - - - - - - - - - - - -  dashed         (id 3)
+               lane "A"   ->   centre 1.75
+    y = 0.0  ----------------------------  solid          (id 2)
+    y = -0.5 ============================  road_border   (id 1)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hdmap_core.errors import ConfigError, NoUsableDataError
+from hdmap_core.evaluate import (
+    EvalConfig,
+    EvalReport,
+    evaluate_map,
+    hdmap_from_ground_truth,
+    plot_evaluation,
+)
+from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute, load_ground_truth
+from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
+
+LENGTH_M = 200.0
+MAPS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "maps"
+
+
+def _line(y: float, x0: float = 0.0, x1: float = LENGTH_M, reverse: bool = False) -> np.ndarray:
+    x = np.arange(x0, x1 + 1e-9, 1.0)
+    pts = np.stack([x, np.full_like(x, y)], axis=1)
+    return pts[::-1].copy() if reverse else pts
+
+
+@pytest.fixture
+def road() -> GroundTruth:
+    feats = (
+        GTFeature(1, FeatureType.ROAD_BORDER, _line(-0.5)),
+        GTFeature(2, FeatureType.SOLID, _line(0.0)),
+        GTFeature(3, FeatureType.DASHED, _line(3.5)),
+        GTFeature(4, FeatureType.SOLID, _line(7.0)),
+        GTFeature(5, FeatureType.ROAD_BORDER, _line(7.5)),
+    )
+    lanes = {
+        "A": GTLane("A", _line(1.75), left="B"),
+        "B": GTLane("B", _line(5.25), right="A"),
+    }
+    routes = (GTRoute("rA", ("A",)), GTRoute("rB", ("B",)))
+    return GroundTruth("two_lanes", feats, lanes, routes)
+
+
+def _drive(drive_id: str, y: float, x0: float, x1: float, reverse: bool = False) -> Drive:
+    xy = _line(y, x0, x1, reverse=reverse)
+    yaw = np.full(len(xy), math.pi if reverse else 0.0)
+    return Drive(drive_id, xy, yaw, np.arange(len(xy), dtype=np.int64) * 10**8)
+
+
+def _with_features(hdmap: HDMap, features: list[MapFeature]) -> HDMap:
+    return replace(hdmap, features=tuple(features))
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def test_ground_truth_against_itself_is_perfect(road: GroundTruth) -> None:
+    report = evaluate_map(hdmap_from_ground_truth(road), road)
+    # Two lanes, one cross section: the second lane's cuts are de-duplicated away.
+    assert report.n_cuts == report.n_reference_cuts == int(LENGTH_M / 2)
+    assert report.reference_length_m == pytest.approx(LENGTH_M)
+    ov = report.overall
+    assert ov.n_gt_points == ov.n_map_points == ov.n_matched == 5 * report.n_cuts
+    assert ov.mean_m == pytest.approx(0.0, abs=1e-9)
+    assert ov.p95_m == pytest.approx(0.0, abs=1e-9)
+    assert ov.recall == ov.precision == ov.coverage == 1.0
+    assert report.type_accuracy == 1.0
+    assert report.fragmentation_mean == 1.0 and report.n_gt_features == 5
+    assert set(report.per_type) == {"solid", "dashed", "road_border"}
+    for st in report.per_type.values():
+        assert st.recall == st.precision == st.coverage == 1.0
+    assert report.per_type["road_border"].n_gt_points == 2 * report.n_cuts
+    assert report.per_type["dashed"].n_gt_points == report.n_cuts
+
+
+@pytest.mark.parametrize("shift_m", [0.3, -0.3])
+def test_sideways_shift_is_total_error_not_shape_error(road: GroundTruth, shift_m: float) -> None:
+    report = evaluate_map(hdmap_from_ground_truth(road, lateral_shift_m=shift_m), road)
+    assert report.overall.mean_m == pytest.approx(0.3, abs=0.02)
+    assert report.overall.corrected_mean_m < 0.02
+    assert report.mean_abs_offset_m == pytest.approx(0.3, abs=0.02)
+    np.testing.assert_allclose(report.cuts.offset_m, shift_m, atol=1e-9)
+    for st in report.per_type.values():
+        assert st.mean_m == pytest.approx(0.3, abs=0.02)
+        assert st.recall == 1.0 and st.precision == 1.0  # 0.3 m is inside the 1 m radius
+
+
+def test_shift_beyond_recall_radius_keeps_errors_but_drops_recall(road: GroundTruth) -> None:
+    report = evaluate_map(hdmap_from_ground_truth(road, lateral_shift_m=1.2), road)
+    assert report.overall.mean_m == pytest.approx(1.2, abs=0.02)
+    assert report.overall.recall == 0.0 and report.overall.precision == 0.0
+    assert report.coverage == 1.0  # still inside the 2.5 m gate
+
+
+def test_one_wrong_type_lowers_type_accuracy(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    wrong = [replace(f, type=FeatureType.SOLID) if f.id == 3 else f for f in perfect.features]
+    report = evaluate_map(_with_features(perfect, wrong), road)
+    assert report.type_accuracy == pytest.approx(4 / 5)
+    assert report.per_type["dashed"].recall == 0.0
+    assert report.per_type["dashed"].coverage == 0.0
+    # The mislabelled line is 3.5 m from the nearest true solid line: outside the gate.
+    assert report.per_type["solid"].precision == pytest.approx(2 / 3)
+    assert report.overall.mean_m == pytest.approx(0.0, abs=1e-9)
+
+
+def test_missing_half_of_the_features_lowers_recall(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    kept = [f for f in perfect.features if f.id in (1, 3)]  # one border, the dashed line
+    report = evaluate_map(_with_features(perfect, kept), road)
+    assert report.overall.recall == pytest.approx(2 / 5)
+    assert report.overall.precision == 1.0
+    assert report.per_type["solid"].coverage == 0.0
+    assert report.per_type["road_border"].recall == pytest.approx(0.5)
+    assert report.coverage == 1.0  # every cut still has a matched point
+
+
+def test_map_of_half_the_road_length_covers_half(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    half = [replace(f, points=f.points[:101], drive_count=f.drive_count[:101], lateral_std=f.lateral_std[:101])
+            for f in perfect.features]
+    report = evaluate_map(_with_features(perfect, half), road)
+    assert report.coverage == pytest.approx(0.5, abs=0.011)
+    assert report.overall.recall == pytest.approx(0.5, abs=0.011)
+    assert report.evaluable_length_m == pytest.approx(LENGTH_M / 2, abs=2.0)
+    assert not report.cuts.evaluable[report.cuts.center[:, 0] > 101].any()
+
+
+def test_empty_map_gives_zero_coverage_without_crash(road: GroundTruth, tmp_path: Path) -> None:
+    report = evaluate_map(HDMap(), road)
+    assert report.coverage == 0.0
+    assert report.overall.recall == 0.0
+    assert math.isnan(report.overall.mean_m) and math.isnan(report.overall.precision)
+    assert report.n_evaluable_cuts == 0
+    doc = json.loads(json.dumps(report.to_dict(include_cuts=True), allow_nan=False))
+    assert doc["overall"]["mean_m"] is None and doc["coverage"] == 0.0
+    assert "n/a" in report.summary()
+    out = plot_evaluation(report, HDMap(), road, tmp_path / "empty.png")
+    assert out.stat().st_size > 0
+
+
+def test_opposite_direction_and_far_features_are_ignored(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    # The opposite carriageway's border just beyond ours (within the cut margin), and a line
+    # beyond the margin: neither is part of this carriageway.
+    extra = [
+        MapFeature(100, FeatureType.ROAD_BORDER, _line(8.2, reverse=True), np.zeros(201, int), np.zeros(201)),
+        MapFeature(101, FeatureType.SOLID, _line(9.0), np.zeros(201, int), np.zeros(201)),
+    ]
+    report = evaluate_map(_with_features(perfect, list(perfect.features) + extra), road)
+    assert report.overall.precision == 1.0
+    assert report.overall.n_map_points == 5 * report.n_cuts
+
+
+def test_map_border_displaced_outwards_is_still_seen(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    moved = [replace(f, points=f.points + [0.0, 0.8]) if f.id == 5 else f for f in perfect.features]
+    report = evaluate_map(_with_features(perfect, moved), road)
+    assert report.per_type["road_border"].coverage == 1.0
+    assert report.per_type["road_border"].mean_m == pytest.approx(0.4, abs=1e-6)  # (0 + 0.8) / 2
+
+
+def test_malformed_map_features_are_skipped_and_named(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    bad_pts = _line(3.0)
+    bad_pts[5] = np.nan
+    bad = [
+        MapFeature(900, FeatureType.SOLID, bad_pts, np.zeros(201, int), np.zeros(201)),
+        MapFeature(901, FeatureType.SOLID, np.zeros((1, 2)), np.zeros(1, int), np.zeros(1)),
+        replace(perfect.features[0], id=902, drive_count=np.zeros(3, int)),
+    ]
+    report = evaluate_map(_with_features(perfect, list(perfect.features[1:]) + bad), road)
+    text = "\n".join(report.skipped)
+    assert "900" in text and "non-finite" in text
+    assert "901" in text and "902" in text
+    assert report.overall.recall == 1.0  # 902 (a copy of feature 1 with bad counts) still evaluates
+
+
+def test_floor_from_drive_trajectories(road: GroundTruth) -> None:
+    drives = [_drive(f"a{i}", 1.75, 0.0, LENGTH_M) for i in range(4)]
+    drives += [_drive(f"b{i}", 5.25, 0.0, 100.0) for i in range(9)]
+    drives += [_drive("wrong_way", 3.0, 0.0, LENGTH_M, reverse=True)]
+    sigma = 0.8
+    report = evaluate_map(hdmap_from_ground_truth(road), road, drives=drives, sigma_loc_m=sigma)
+    assert report.floor_source == "drives"
+    x = report.cuts.center[:, 0]
+    first, second = x < 99.0, x > 101.0
+    np.testing.assert_allclose(report.cuts.drive_count[first], 13)
+    np.testing.assert_allclose(report.cuts.drive_count[second], 4)
+    np.testing.assert_allclose(report.cuts.floor_m[first], sigma / math.sqrt(13))
+    np.testing.assert_allclose(report.cuts.floor_m[second], sigma / 2)
+    assert report.floor_mean_m == pytest.approx(float(np.mean(report.cuts.floor_m)))
+    assert report.sigma_loc_m == sigma
+
+
+def test_floor_from_map_drive_counts_and_default_sigma(road: GroundTruth) -> None:
+    report = evaluate_map(hdmap_from_ground_truth(road, drive_count=9), road)
+    assert report.floor_source == "map"
+    assert report.floor_mean_m == pytest.approx(EvalConfig().default_sigma_loc_m / 3)
+    none = evaluate_map(hdmap_from_ground_truth(road), road)
+    assert none.floor_source == "none" and math.isnan(none.floor_mean_m)
+
+
+def test_fragmentation_counts_map_pieces_per_gt_feature(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    pieces = []
+    for f in perfect.features:
+        if f.id == 3:  # the dashed line in three pieces
+            for k, (a, b) in enumerate([(0, 70), (70, 140), (140, 201)]):
+                pieces.append(replace(f, id=300 + k, points=f.points[a:b + (b < 201)],
+                                      drive_count=f.drive_count[a:b + (b < 201)],
+                                      lateral_std=f.lateral_std[a:b + (b < 201)]))
+        else:
+            pieces.append(f)
+    report = evaluate_map(_with_features(perfect, pieces), road)
+    assert report.fragmentation_max == 3
+    assert report.fragmentation_mean == pytest.approx((4 * 1 + 3) / 5)
+
+
+def test_report_outputs(road: GroundTruth, tmp_path: Path) -> None:
+    hdmap = hdmap_from_ground_truth(road, lateral_shift_m=0.3, drive_count=5)
+    report = evaluate_map(hdmap, road)
+    doc = json.loads(json.dumps(report.to_dict(include_cuts=True), allow_nan=False))
+    assert doc["overall"]["mean_m"] == pytest.approx(0.3, abs=0.02)
+    assert set(doc["per_type"]) == {"solid", "dashed", "road_border"}
+    assert len(doc["cuts"]["station_m"]) == report.n_cuts
+    assert "cuts" not in report.to_dict()
+    text = report.summary()
+    for word in ("solid", "dashed", "road_border", "coverage", "type accuracy", "fragmentation", "floor"):
+        assert word in text
+    png = plot_evaluation(report, hdmap, road, tmp_path / "eval.png")
+    data = png.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+def test_no_highway_lane_is_a_clear_error(road: GroundTruth) -> None:
+    town = replace(road, lanes={k: replace(v, highway=False) for k, v in road.lanes.items()})
+    with pytest.raises(NoUsableDataError, match="highway"):
+        evaluate_map(hdmap_from_ground_truth(town), town)
+    report = evaluate_map(hdmap_from_ground_truth(town), town, config=EvalConfig(highway_only=False))
+    assert report.coverage == 1.0
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"step_m": 0.0}, {"gate_m": -1.0}, {"recall_radius_m": 3.0}, {"max_feature_angle_deg": 95.0},
+     {"border_margin_m": float("nan")}],
+)
+def test_bad_config_is_rejected(kwargs: dict) -> None:
+    with pytest.raises(ConfigError):
+        EvalConfig(**kwargs)
+
+
+def test_bad_arguments_are_rejected(road: GroundTruth) -> None:
+    with pytest.raises(ConfigError, match="sigma_loc_m"):
+        evaluate_map(HDMap(), road, sigma_loc_m=0.0)
+    with pytest.raises(Exception, match="HDMap"):
+        evaluate_map(road, road)  # type: ignore[arg-type]
+
+
+def test_inputs_are_not_mutated(road: GroundTruth) -> None:
+    hdmap = hdmap_from_ground_truth(road, lateral_shift_m=0.3)
+    before = [f.points.copy() for f in hdmap.features]
+    gt_before = [f.points.copy() for f in road.features]
+    evaluate_map(hdmap, road)
+    for f, p in zip(hdmap.features, before):
+        np.testing.assert_array_equal(f.points, p)
+    for f, p in zip(road.features, gt_before):
+        np.testing.assert_array_equal(f.points, p)
+
+
+# --------------------------------------------------------------------------------------------
+# A real map
+
+
+@pytest.fixture(scope="module")
+def e6mini() -> GroundTruth:
+    path = MAPS_DIR / "esmini_e6mini.gt.json"
+    if not path.exists():
+        pytest.skip(f"{path} not present")
+    return load_ground_truth(path)
+
+
+def test_real_map_against_itself_and_shifted(e6mini: GroundTruth, tmp_path: Path) -> None:
+    same = evaluate_map(hdmap_from_ground_truth(e6mini), e6mini)
+    assert same.overall.mean_m == pytest.approx(0.0, abs=1e-6)
+    assert same.overall.recall == same.overall.precision == 1.0
+    assert same.coverage > 0.99
+    assert same.type_accuracy == 1.0 and same.fragmentation_mean == 1.0
+    # Both carriageways of the 1.46 km motorway, each cross section once.
+    assert same.reference_length_m == pytest.approx(2 * 1460, rel=0.02)
+    shifted_map = hdmap_from_ground_truth(e6mini, lateral_shift_m=0.3)
+    shifted = evaluate_map(shifted_map, e6mini)
+    assert shifted.overall.mean_m == pytest.approx(0.3, abs=0.02)
+    assert shifted.overall.corrected_mean_m < 0.02
+    assert plot_evaluation(shifted, shifted_map, e6mini, tmp_path / "e6.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["carla_town04", "carla_town06"])
+def test_large_real_maps_shifted(name: str) -> None:
+    path = MAPS_DIR / f"{name}.gt.json"
+    if not path.exists():
+        pytest.skip(f"{path} not present")
+    gt = load_ground_truth(path)
+    report = evaluate_map(hdmap_from_ground_truth(gt, lateral_shift_m=0.3), gt)
+    assert report.overall.mean_m == pytest.approx(0.3, abs=0.02)
+    assert report.overall.corrected_mean_m < 0.02
+    assert report.coverage > 0.99
+    assert report.runtime_s < 10.0
