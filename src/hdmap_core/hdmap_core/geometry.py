@@ -1,0 +1,199 @@
+"""Pure, vectorised array math shared by the pipeline stages.
+
+Everything here works on numpy arrays in the metric map frame; nothing knows about drives or maps.
+Polylines are (N, 2) float arrays. "Left" is +90 deg from a heading (ENU yaw, counter-clockwise).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "arc_length",
+    "polyline_length",
+    "segment_headings",
+    "interp_angle",
+    "wrap_angle",
+    "resample_by_distance",
+    "rdp_mask_many",
+    "split_long_segments",
+    "cut_segment_intersections",
+]
+
+
+def arc_length(xy: np.ndarray) -> np.ndarray:
+    """Cumulative distance along a polyline.
+
+    Args:
+        xy: (N, 2) points [m].
+
+    Returns:
+        (N,) distance from the first point [m]; s[0] = 0.
+    """
+    xy = np.asarray(xy, dtype=float)
+    if len(xy) == 0:
+        return np.zeros(0)
+    d = np.hypot(*np.diff(xy, axis=0).T) if len(xy) > 1 else np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(d)])
+
+
+def polyline_length(xy: np.ndarray) -> float:
+    """Total length of a (N, 2) polyline [m]."""
+    xy = np.asarray(xy, dtype=float)
+    if len(xy) < 2:
+        return 0.0
+    return float(np.hypot(*np.diff(xy, axis=0).T).sum())
+
+
+def segment_headings(xy: np.ndarray) -> np.ndarray:
+    """(N-1,) ENU yaw of each segment of a (N, 2) polyline [rad]."""
+    d = np.diff(np.asarray(xy, dtype=float), axis=0)
+    return np.arctan2(d[:, 1], d[:, 0])
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray:
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def interp_angle(x: np.ndarray, xp: np.ndarray, angle_p: np.ndarray) -> np.ndarray:
+    """Linear interpolation of angles [rad] (through the unwrapped sequence), result wrapped."""
+    return wrap_angle(np.interp(x, xp, np.unwrap(np.asarray(angle_p, dtype=float))))
+
+
+def resample_by_distance(xy: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ``step_m`` along a polyline.
+
+    Args:
+        xy: (N, 2) polyline [m], N >= 2.
+        step_m: spacing [m] > 0.
+
+    Returns:
+        (points (K, 2), s (K,)) with s = 0, step, 2 step, ... <= total length.
+    """
+    s = arc_length(xy)
+    # Duplicate points make s non-increasing; np.interp needs increasing xp.
+    keep = np.concatenate([[True], np.diff(s) > 1e-9])
+    s, xy = s[keep], np.asarray(xy, dtype=float)[keep]
+    if len(s) < 2:
+        return xy[:1].copy(), np.zeros(1)
+    q = np.arange(0.0, s[-1] + 1e-9, step_m)
+    pts = np.stack([np.interp(q, s, xy[:, 0]), np.interp(q, s, xy[:, 1])], axis=1)
+    return pts, q
+
+
+def rdp_mask_many(xy: np.ndarray, starts: np.ndarray, epsilon_m: float) -> np.ndarray:
+    """Ramer-Douglas-Peucker on many polylines at once.
+
+    The polylines are stored back to back in ``xy``; polyline ``i`` is
+    ``xy[starts[i]:starts[i+1]]`` (the last one runs to the end). All open intervals are refined
+    together, one numpy pass per recursion level, instead of one Python call per polyline.
+
+    Args:
+        xy: (N, 2) points of all polylines [m].
+        starts: (P,) increasing start indices, starts[0] == 0; every polyline has >= 2 points.
+        epsilon_m: RDP tolerance [m]; points closer than this to the simplified line are dropped.
+
+    Returns:
+        (N,) bool mask of the points to keep (first and last point of every polyline kept).
+    """
+    xy = np.asarray(xy, dtype=float)
+    n = len(xy)
+    keep = np.zeros(n, dtype=bool)
+    if n == 0:
+        return keep
+    starts = np.asarray(starts, dtype=np.int64)
+    ends = np.concatenate([starts[1:], [n]]) - 1
+    keep[starts] = True
+    keep[ends] = True
+    lo, hi = starts.copy(), ends.copy()
+    while True:
+        open_ = hi - lo > 1
+        lo, hi = lo[open_], hi[open_]
+        if len(lo) == 0:
+            return keep
+        inner = hi - lo - 1
+        owner = np.repeat(np.arange(len(lo)), inner)
+        first = np.concatenate([[0], np.cumsum(inner)[:-1]])
+        idx = lo[owner] + 1 + (np.arange(len(owner)) - first[owner])
+        a, b = xy[lo[owner]], xy[hi[owner]]
+        ab = b - a
+        ap = xy[idx] - a
+        lab = np.hypot(ab[:, 0], ab[:, 1])
+        cross = np.abs(ab[:, 0] * ap[:, 1] - ab[:, 1] * ap[:, 0])
+        dist = np.where(lab > 1e-12, cross / np.maximum(lab, 1e-12), np.hypot(ap[:, 0], ap[:, 1]))
+        # Per interval: the farthest inner point (first one on ties).
+        order = np.lexsort((-dist, owner))
+        firsts = order[first]
+        dmax = dist[firsts]
+        split = dmax > epsilon_m
+        mid = idx[firsts][split]
+        keep[mid] = True
+        lo = np.concatenate([lo[split], mid])
+        hi = np.concatenate([mid, hi[split]])
+
+
+def split_long_segments(xy: np.ndarray, starts: np.ndarray, max_len_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Insert points so that no segment of any polyline is longer than ``max_len_m``.
+
+    Args:
+        xy: (N, 2) back-to-back polylines, ``starts`` as in :func:`rdp_mask_many`.
+        max_len_m: longest allowed segment [m].
+
+    Returns:
+        (xy_out (N', 2), starts_out (P,)).
+    """
+    xy = np.asarray(xy, dtype=float)
+    n = len(xy)
+    if n == 0:
+        return xy.copy(), np.asarray(starts, dtype=np.int64).copy()
+    seg_len = np.hypot(*np.diff(xy, axis=0).T)
+    last = np.zeros(n, dtype=bool)
+    last[np.asarray(starts[1:], dtype=np.int64) - 1] = True
+    last[-1] = True
+    # pieces[i]: how many sub-segments the segment starting at point i becomes (0 after a last point).
+    pieces = np.zeros(n, dtype=np.int64)
+    pieces[:-1] = np.maximum(1, np.ceil(seg_len / max_len_m).astype(np.int64))
+    pieces[last] = 0
+    count = np.where(last, 1, pieces)  # points emitted per input point
+    owner = np.repeat(np.arange(n), count)
+    first = np.concatenate([[0], np.cumsum(count)[:-1]])
+    k = np.arange(len(owner)) - first[owner]
+    nxt = np.minimum(owner + 1, n - 1)
+    frac = np.where(last[owner], 0.0, k / np.maximum(pieces[owner], 1))
+    out = xy[owner] + frac[:, None] * (xy[nxt] - xy[owner])
+    new_starts = first[np.asarray(starts, dtype=np.int64)]
+    return out, new_starts
+
+
+def cut_segment_intersections(
+    cut_origin: np.ndarray,
+    cut_dir: np.ndarray,
+    half_len_m: np.ndarray,
+    seg_a: np.ndarray,
+    seg_b: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intersect cut lines with segments, pairwise.
+
+    Cut line q runs through ``cut_origin[q]`` along the unit vector ``cut_dir[q]`` over the
+    parameter range [-half_len_m[q], +half_len_m[q]]. All arrays are given per pair (row j is one
+    cut line / segment pair), so callers broadcast candidate pairs beforehand.
+
+    Args:
+        cut_origin: (P, 2) [m]; cut_dir: (P, 2) unit vectors; half_len_m: (P,) [m].
+        seg_a, seg_b: (P, 2) segment end points [m].
+
+    Returns:
+        (hit (P,) bool, t (P,) position along the cut [m], u (P,) position along the segment in
+        [0, 1]). A segment end point on the cut counts for u in [0, 1), so a polyline crossing
+        exactly at a vertex is sampled once. Parallel pairs never hit.
+    """
+    d = seg_b - seg_a
+    w = seg_a - cut_origin
+    den = cut_dir[:, 0] * d[:, 1] - cut_dir[:, 1] * d[:, 0]
+    ok = np.abs(den) > 1e-12
+    den_s = np.where(ok, den, 1.0)
+    t = (w[:, 0] * d[:, 1] - w[:, 1] * d[:, 0]) / den_s
+    u = (w[:, 0] * cut_dir[:, 1] - w[:, 1] * cut_dir[:, 0]) / den_s
+    hit = ok & (u >= 0.0) & (u < 1.0) & (np.abs(t) <= half_len_m)
+    return hit, t, u

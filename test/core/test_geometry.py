@@ -1,0 +1,94 @@
+"""Tests of the shared array math (geometry.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hdmap_core.geometry import (
+    arc_length,
+    cut_segment_intersections,
+    rdp_mask_many,
+    resample_by_distance,
+    split_long_segments,
+    wrap_angle,
+)
+
+
+def _rdp_reference(pts: np.ndarray, eps: float) -> list[int]:
+    """Textbook recursive RDP, indices kept."""
+
+    def rec(i: int, j: int) -> list[int]:
+        if j - i < 2:
+            return [i, j]
+        a, b = pts[i], pts[j]
+        ab = b - a
+        lab = np.hypot(*ab)
+        d = np.abs(ab[0] * (pts[i + 1 : j, 1] - a[1]) - ab[1] * (pts[i + 1 : j, 0] - a[0])) / lab
+        k = int(np.argmax(d))
+        if d[k] <= eps:
+            return [i, j]
+        m = i + 1 + k
+        return rec(i, m)[:-1] + rec(m, j)
+
+    return rec(0, len(pts) - 1)
+
+
+def test_rdp_drops_collinear_points_keeps_corner():
+    #   (0,0) ---- (5,0) ---- (10,0)
+    #                           \
+    #                            (10,-5)
+    pts = np.array([[0, 0], [2.5, 0.01], [5, 0], [7.5, -0.01], [10, 0], [10, -2.5], [10, -5]], float)
+    keep = rdp_mask_many(pts, np.array([0]), 0.05)
+    np.testing.assert_array_equal(np.flatnonzero(keep), [0, 4, 6])
+
+
+@pytest.mark.parametrize("eps", [0.01, 0.1, 0.5])
+def test_rdp_many_polylines_equal_reference(eps):
+    rng = np.random.default_rng(3)
+    polys = [np.cumsum(rng.normal(0, 1, (n, 2)), axis=0) for n in (2, 3, 7, 25, 60)]
+    starts = np.cumsum([0] + [len(p) for p in polys[:-1]])
+    keep = rdp_mask_many(np.concatenate(polys), starts, eps)
+    for p, s0 in zip(polys, starts):
+        got = np.flatnonzero(keep[s0 : s0 + len(p)])
+        np.testing.assert_array_equal(got, _rdp_reference(p, eps))
+
+
+def test_split_long_segments_limits_length_and_keeps_shape():
+    xy = np.array([[0, 0], [25, 0], [25, 3], [0, 0], [0, 9]], float)
+    starts = np.array([0, 3])
+    out, new_starts = split_long_segments(xy, starts, 10.0)
+    ends = np.concatenate([new_starts[1:], [len(out)]])
+    for a, b in zip(new_starts, ends):
+        seg = np.hypot(*np.diff(out[a:b], axis=0).T)
+        assert seg.max() <= 10.0 + 1e-9
+    np.testing.assert_allclose(out[new_starts], xy[starts])
+    assert arc_length(out[new_starts[0] : new_starts[1]])[-1] == pytest.approx(28.0)
+
+
+def test_cut_intersections_match_brute_force():
+    rng = np.random.default_rng(1)
+    n = 4000
+    o = rng.uniform(-10, 10, (n, 2))
+    ang = rng.uniform(-np.pi, np.pi, n)
+    d = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    h = rng.uniform(1, 10, n)
+    a = rng.uniform(-10, 10, (n, 2))
+    b = a + rng.normal(0, 4, (n, 2))
+    hit, t, u = cut_segment_intersections(o, d, h, a, b)
+    # Brute force: solve the 2x2 system per pair.
+    for i in range(0, n, 37):
+        m = np.array([d[i], -(b[i] - a[i])]).T
+        tt, uu = np.linalg.solve(m, a[i] - o[i])
+        expect = 0 <= uu < 1 and abs(tt) <= h[i]
+        assert hit[i] == expect
+        if expect:
+            np.testing.assert_allclose(o[i] + t[i] * d[i], a[i] + u[i] * (b[i] - a[i]), atol=1e-9)
+            assert t[i] == pytest.approx(tt)
+
+
+def test_resample_and_wrap():
+    pts, s = resample_by_distance(np.array([[0, 0], [0, 0], [5, 0]], float), 2.0)
+    np.testing.assert_allclose(s, [0, 2, 4])
+    np.testing.assert_allclose(pts[:, 0], [0, 2, 4])
+    np.testing.assert_allclose(wrap_angle(np.array([3 * np.pi, -np.pi / 2])), [-np.pi, -np.pi / 2])

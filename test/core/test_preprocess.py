@@ -1,0 +1,77 @@
+"""Tests of Sec. III preprocessing and the segment index (preprocess.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hdmap_core.errors import ConfigError
+from hdmap_core.geometry import cut_segment_intersections
+from hdmap_core.model import Detection, Drive, FeatureType
+from hdmap_core.preprocess import PreprocessConfig, preprocess
+
+
+def _drive(dets, drive_id="a", length_m=100.0):
+    x = np.arange(0.0, length_m + 1e-9, 1.0)
+    xy = np.stack([x, np.zeros_like(x)], axis=1)
+    return Drive(drive_id, xy, np.zeros(len(x)), np.arange(len(x), dtype=np.int64), tuple(dets))
+
+
+def test_short_polylines_dropped_and_rdp_thins():
+    straight = np.stack([np.linspace(0, 50, 51), np.full(51, 2.0)], axis=1)  # 50 m, collinear
+    short = np.array([[10.0, -2.0], [11.0, -2.0], [12.9, -2.0]])  # 2.9 m < 3 m
+    just = np.array([[10.0, -4.0], [13.0, -4.0]])  # exactly 3 m: kept
+    unknown = Detection(FeatureType.UNKNOWN, straight + [0, 5])
+    idx = preprocess(
+        [_drive([Detection(FeatureType.SOLID, straight), Detection(FeatureType.DASHED, short), Detection(FeatureType.DASHED, just), unknown])],
+        config=PreprocessConfig(max_segment_m=100.0),
+    )
+    assert idx.n_polylines_in == 4
+    assert idx.n_polylines_kept == 2
+    # The collinear 51-point line is reduced to its two end points: one segment.
+    assert idx.n_segments == 2
+    assert sorted(idx.seg_type.tolist()) == [FeatureType.SOLID, FeatureType.DASHED]
+
+
+def test_travelled_distance_and_heading_of_segments():
+    line = np.stack([np.linspace(5, 45, 41), np.full(41, 3.0)], axis=1)
+    line[:, 1] += 0.3 * np.sin(line[:, 0])  # wiggly, so RDP keeps vertices
+    idx = preprocess([_drive([Detection(FeatureType.SOLID, line)])], config=PreprocessConfig(rdp_epsilon_m=0.01))
+    # Trajectory runs along x from 0 with s = x, so s of a vertex equals its x.
+    np.testing.assert_allclose(idx.seg_s_a, idx.seg_a[:, 0], atol=1e-6)
+    np.testing.assert_allclose(idx.seg_s_b, idx.seg_b[:, 0], atol=1e-6)
+    np.testing.assert_allclose(idx.seg_yaw, 0.0, atol=1e-9)
+
+
+def test_index_query_equals_brute_force():
+    rng = np.random.default_rng(7)
+    dets = []
+    for _ in range(60):
+        start = rng.uniform(-80, 80, 2)
+        steps = rng.normal(0, 3.0, (rng.integers(2, 30), 2))
+        dets.append(Detection(FeatureType(int(rng.integers(1, 4))), start + np.cumsum(steps, axis=0)))
+    drive = _drive(dets, length_m=10)
+    cfg = PreprocessConfig(min_length_m=0.0, rdp_epsilon_m=1e-9, max_segment_m=7.0, grid_cell_m=4.0)
+    idx = preprocess([drive], config=cfg)
+    q = 300
+    origin = rng.uniform(-90, 90, (q, 2))
+    ang = rng.uniform(-np.pi, np.pi, q)
+    direction = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    half = rng.uniform(2, 40, q)
+    hits = idx.intersect(origin, direction, half)
+    got = set(zip(hits.cut.tolist(), np.round(hits.t_m, 9).tolist()))
+    # Brute force: every cut against every segment.
+    s = idx.n_segments
+    qq = np.repeat(np.arange(q), s)
+    ss = np.tile(np.arange(s), q)
+    hit, t, _ = cut_segment_intersections(origin[qq], direction[qq], half[qq], idx.seg_a[ss], idx.seg_b[ss])
+    want = set(zip(qq[hit].tolist(), np.round(t[hit], 9).tolist()))
+    assert len(want) > 100
+    assert got == want
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ConfigError):
+        PreprocessConfig(grid_cell_m=0.0)
+    with pytest.raises(ConfigError):
+        PreprocessConfig(min_length_m=-1.0)
