@@ -95,6 +95,30 @@ def _smooth(values: np.ndarray, window: int) -> np.ndarray:
         return np.where(den > 0, num / np.maximum(den, 1), np.nan)
 
 
+_ZOOM_HALF_M = 40.0
+
+
+def _draw_map(ax, report: EvalReport, hdmap: HDMap, gt: GroundTruth, *, gt_lw: float, map_lw: float,
+              cut_every: int, lc: type) -> None:
+    """Ground truth (light, wide) and map (strong, narrow) by type, cut lines, non-evaluable cuts."""
+    for f in gt.features:
+        p = np.asarray(f.points)
+        ax.plot(p[:, 0], p[:, 1], color=TYPE_COLORS[f.type], lw=gt_lw, alpha=0.25, solid_capstyle="butt")
+    for f in hdmap.features:
+        p = np.asarray(f.points, dtype=float)
+        if p.ndim == 2 and len(p) >= 2 and p.shape[1] == 2:
+            ax.plot(p[:, 0], p[:, 1], color=TYPE_COLORS.get(f.type, "#7f7f7f"), lw=map_lw)
+    cuts = report.cuts
+    ref, ev = cuts.reference, cuts.evaluable
+    normal = np.stack([-np.sin(cuts.heading_rad), np.cos(cuts.heading_rad)], axis=1)
+    ends = np.stack([cuts.center + cuts.lo_m[:, None] * normal, cuts.center + cuts.hi_m[:, None] * normal], axis=1)
+    ax.add_collection(lc(ends[ref][::cut_every], colors="0.6", linewidths=0.3, alpha=0.6, zorder=0))
+    if (ref & ~ev).any():
+        ax.scatter(*cuts.center[ref & ~ev].T, s=4, color="red", zorder=3)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
 def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str | Path) -> Path:
     """Write the evaluation figure as PNG to ``path`` and return it.
 
@@ -110,47 +134,47 @@ def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
     from matplotlib.lines import Line2D
+    from matplotlib.patches import Rectangle
 
     path = Path(path)
-    fig, (ax_map, ax_err) = plt.subplots(
-        2, 1, figsize=(11, 13), gridspec_kw={"height_ratios": [2.3, 1]}, constrained_layout=True
-    )
-    for f in gt.features:
-        p = np.asarray(f.points)
-        ax_map.plot(p[:, 0], p[:, 1], color=TYPE_COLORS[f.type], lw=3.5, alpha=0.25, solid_capstyle="butt")
-    for f in hdmap.features:
-        p = np.asarray(f.points, dtype=float)
-        if p.ndim == 2 and len(p) >= 2 and p.shape[1] == 2:
-            ax_map.plot(p[:, 0], p[:, 1], color=TYPE_COLORS.get(f.type, "#7f7f7f"), lw=0.8)
     cuts = report.cuts
     ev = cuts.evaluable
     ref = cuts.reference
-    # The evaluated cross sections, thinned to one in five so the map stays visible.
-    normal = np.stack([-np.sin(cuts.heading_rad), np.cos(cuts.heading_rad)], axis=1)
-    ends = np.stack([cuts.center + cuts.lo_m[:, None] * normal, cuts.center + cuts.hi_m[:, None] * normal], axis=1)
-    ax_map.add_collection(LineCollection(ends[ref][::5], colors="0.6", linewidths=0.3, alpha=0.5, zorder=0))
-    ax_map.scatter(*cuts.center[ref & ~ev].T, s=4, color="red", zorder=3, label="cut not evaluable")
+    km = cuts.station_m / 1000.0
+    window = max(1, int(round(50.0 / report.config.step_m)))
+    err_smooth = _smooth(cuts.error_m, window)
+    zoom_k = int(np.nanargmax(err_smooth)) if np.isfinite(err_smooth).any() else int(np.argmax(ref))
+    zc, half = cuts.center[zoom_k], _ZOOM_HALF_M
+
+    fig = plt.figure(figsize=(13, 12), constrained_layout=True)
+    grid = fig.add_gridspec(2, 2, height_ratios=[1.6, 1], width_ratios=[1.4, 1])
+    ax_map, ax_zoom, ax_err = fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[0, 1]), fig.add_subplot(grid[1, :])
+    _draw_map(ax_map, report, hdmap, gt, gt_lw=3.5, map_lw=0.8, cut_every=5, lc=LineCollection)
+    _draw_map(ax_zoom, report, hdmap, gt, gt_lw=7.0, map_lw=1.3, cut_every=1, lc=LineCollection)
     ax_map.set_aspect("equal", adjustable="datalim")
-    ax_map.set_xlabel("x [m]")
-    ax_map.set_ylabel("y [m]")
-    ax_map.set_title(
+    ax_map.add_patch(Rectangle(zc - half, 2 * half, 2 * half, fill=False, ec="k", lw=1.0, zorder=4))
+    fig.suptitle(
         f"map over ground truth {report.gt_name!r}: total {report.overall.mean_m:.3f} m, "
         f"offset-corrected {report.overall.corrected_mean_m:.3f} m, coverage {100 * report.coverage:.1f} %"
         if math.isfinite(report.overall.mean_m)
         else f"map over ground truth {report.gt_name!r}: nothing evaluable"
     )
+    ax_map.set_title("overview", fontsize=10)
+    ax_zoom.set_xlim(zc[0] - half, zc[0] + half)
+    ax_zoom.set_ylim(zc[1] - half, zc[1] + half)
+    ax_zoom.set_aspect("equal", adjustable="box")
+    ax_zoom.set_title(f"zoom (box at left): largest error, {km[zoom_k]:.2f} km along the reference", fontsize=10)
     handles = [Line2D([], [], color=TYPE_COLORS[t], lw=2, label=t.label) for t in TYPE_COLORS if t]
     handles += [
-        Line2D([], [], color="k", lw=3.5, alpha=0.25, label="ground truth (light)"),
-        Line2D([], [], color="k", lw=0.8, label="map"),
-        Line2D([], [], color="0.6", lw=0.5, label="cut lines (every 5th)"),
+        Line2D([], [], color="k", lw=3.5, alpha=0.25, label="ground truth (light, wide)"),
+        Line2D([], [], color="k", lw=0.8, label="map (strong, narrow)"),
+        Line2D([], [], color="0.6", lw=0.5, label="cut lines (overview: every 5th)"),
         Line2D([], [], color="red", marker="o", ls="", ms=3, label="cut not evaluable"),
     ]
-    ax_map.legend(handles=handles, loc="best", fontsize=8)
+    ax_zoom.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=8)
 
-    km = cuts.station_m / 1000.0
-    window = max(1, int(round(50.0 / report.config.step_m)))
-    ax_err.plot(km, _smooth(cuts.error_m, window), color="#1f77b4", lw=1.0, label="total error (50 m mean)")
+    ax_err.axvline(km[zoom_k], color="k", lw=0.6, ls=":")
+    ax_err.plot(km, err_smooth, color="#1f77b4", lw=1.0, label="total error (50 m mean)")
     ax_err.plot(km, _smooth(cuts.corrected_m, window), color="#e07f2c", lw=1.0, label="offset-corrected error")
     if np.isfinite(cuts.floor_m).any():
         ax_err.plot(km, _smooth(cuts.floor_m, window), color="k", lw=0.8, ls="--", label="floor sigma/sqrt(n)")
