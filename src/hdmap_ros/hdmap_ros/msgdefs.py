@@ -34,7 +34,7 @@ def _installed_msg_dir() -> Path | None:
         return None
     try:
         share = Path(get_package_share_directory(PACKAGE))
-    except (PackageNotFoundError, LookupError, ValueError):
+    except (PackageNotFoundError, LookupError, ValueError, OSError):  # OSError: AMENT_PREFIX_PATH unset
         return None
     msg_dir = share / "msg"
     return msg_dir if any(msg_dir.glob("*.msg")) else None

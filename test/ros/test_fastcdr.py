@@ -1,0 +1,74 @@
+"""The vectorised Drive decoder agrees with rosbags' generic deserializer, or declines."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bag_samples import assert_drives_equal, make_drive
+from hdmap_core.model import Detection, FeatureType
+from hdmap_ros.convert import drive_to_msg, msg_to_drive
+from hdmap_ros.fastcdr import decode_drive
+from hdmap_ros.msgdefs import default_typestore
+
+DRIVE = "hdmap_msgs/msg/Drive"
+
+
+def _raw(drive_or_msg) -> bytes:
+    msg = drive_or_msg if hasattr(drive_or_msg, "trajectory") else drive_to_msg(drive_or_msg)
+    return bytes(default_typestore().serialize_cdr(msg, DRIVE))
+
+
+@pytest.mark.parametrize("drive_id", ["a", "ab", "abc", "abcd", "abcde", "drive-0123456", "ü-umlaut"])
+@pytest.mark.parametrize("frame", ["map", "m", "mapframe", ""])
+@pytest.mark.parametrize("n", [2, 3, 7])
+def test_agrees_with_generic_path_for_every_alignment(drive_id, frame, n):
+    drive = replace(make_drive(drive_id, n=max(n, 2), seed=n), frame_id=frame, vehicle_id=drive_id[:n])
+    drive = replace(drive, xy=drive.xy[:n], yaw=drive.yaw[:n], stamps_ns=drive.stamps_ns[:n])
+    raw = _raw(drive)
+    generic = msg_to_drive(default_typestore().deserialize_cdr(raw, DRIVE), expected_frame=None)
+    fast = decode_drive(raw)
+    assert fast is not None
+    assert_drives_equal(generic, fast)
+
+
+def test_empty_and_odd_detections():
+    dets = (
+        Detection(FeatureType.SOLID, np.zeros((0, 2))),
+        Detection(FeatureType.DASHED, np.ones((1, 2))),
+        Detection(9, np.arange(6.0).reshape(3, 2)),
+    )
+    drive = replace(make_drive("x", n=3), detections=dets)
+    fast = decode_drive(_raw(drive))
+    assert [int(d.type) for d in fast.detections] == [1, 2, 9]
+    np.testing.assert_array_equal(fast.detections[2].points, dets[2].points)
+    empty = replace(drive, xy=np.zeros((0, 2)), yaw=np.zeros(0), stamps_ns=np.zeros(0, np.int64), detections=())
+    assert len(decode_drive(_raw(empty)).xy) == 0
+    one = replace(drive, xy=drive.xy[:1], yaw=drive.yaw[:1], stamps_ns=drive.stamps_ns[:1])
+    got = decode_drive(_raw(one))
+    np.testing.assert_array_equal(got.xy, one.xy)
+    np.testing.assert_array_equal(got.stamps_ns, one.stamps_ns)
+
+
+def test_declines_mixed_frames_and_damage():
+    msg = drive_to_msg(make_drive("x", n=6))
+    msg.trajectory.poses[3].header.frame_id = "odom"
+    assert decode_drive(_raw(msg)) is None
+    raw = _raw(make_drive("y", n=6))
+    assert decode_drive(raw[:-30]) is None
+    assert decode_drive(raw + b"\x00" * 16) is None
+    assert decode_drive(b"\x00\x00" + raw[2:]) is None  # big endian: generic path
+
+
+@pytest.mark.parametrize("drive_id", ["a", "abcd", "drive-0123456", "ü"])
+@pytest.mark.parametrize("frame", ["map", "mapframe", ""])
+@pytest.mark.parametrize("n", [0, 1, 2, 5])
+def test_encoder_is_byte_identical_to_rosbags(drive_id, frame, n):
+    from hdmap_ros.fastcdr import encode_drive
+
+    drive = replace(make_drive(drive_id, n=6, seed=n), frame_id=frame)
+    drive = replace(drive, xy=drive.xy[:n], yaw=drive.yaw[:n], stamps_ns=drive.stamps_ns[:n])
+    drive = replace(drive, detections=drive.detections + (Detection(FeatureType.SOLID, np.zeros((0, 2))),))
+    assert encode_drive(drive) == _raw(drive)
