@@ -1,0 +1,886 @@
+"""Inter-segment connection: segments stitched into the complete hierarchical map (Sec. VI).
+
+Immel et al. 2023 keep the map as a hierarchical graph: a topology graph with one node per sampling
+step (road midpoint, heading, width) and a road-feature graph of polylines, each referring to the
+other. Every segment (one pivot drive, :class:`~hdmap_core.connection.SegmentGraph`) carries such a
+graph; :class:`MapGraph` holds the complete one and inserts segments as the paper describes:
+
+1. the segment's topology graph is split into connected components (breaks come from RULE 3/4);
+2. the start and end node of each component look up their nearest neighbours in the complete
+   topology graph with a kd-tree (``scipy.spatial.cKDTree``);
+3. a neighbour is accepted by a distance, heading and connection-angle check;
+4. the topology nodes are linked, and the feature nodes they refer to are joined by the
+   unmodified rectangular assignment, same type only.
+
+The same mechanism updates an existing map with newly mapped sections: ``MapGraph.integrate``
+adds segment graphs and replaces the graphs of re-estimated segments (keyed by segment key, or
+by place via ``keys_in_tiles``). Beyond the paper (switchable in :class:`StitchConfig`): component
+ends that duplicate a place already in the map are trimmed, loose polyline ends of different
+segments that continue each other are joined, and isolated specks are dropped.
+
+Feature ids are the stable uid of a polyline's first feature node (hash of pivot id, step index and
+slot), so the same input gives the same ids and adding an unrelated segment changes none.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from hdmap_core.connection import SegmentGraph, chain_links, feature_chains, stable_uid, tile_of
+from hdmap_core.errors import ConfigError, HdmapError
+from hdmap_core.model import HDMap, MapFeature, TopologyNode
+
+__all__ = ["StitchConfig", "MapGraph", "stitch", "to_hdmap", "graph_from_hdmap"]
+
+_BIG = 1.0e9
+_GATE = 1.0e4
+
+Link = tuple[str, int, str, int]  # (graph key, local index) -> (graph key, local index)
+
+
+@dataclass(frozen=True)
+class StitchConfig:
+    """Parameters of the inter-segment connection (the paper gives no numbers).
+
+    Attributes:
+        max_distance_m: kd-tree search radius for a component end's neighbour [m].
+        max_heading_diff_deg: the two topology nodes' headings differ at most this much [deg].
+        max_connection_angle_deg: the link from one node to the other deviates at most this much
+            from the driving direction (checked for links longer than ``angle_free_m``) [deg].
+        angle_free_m: links shorter than this skip the connection-angle check [m].
+        behind_tol_m: a predecessor may lie at most this far ahead of the start it links to
+            (and a successor this far behind the end) [m].
+        feature_max_m: features are joined across a link only when at most this far apart
+            across the cut [m].
+        duplicate_m: a join is skipped when the feature already continues within this distance of
+            the new partner (it would duplicate a polyline) [m].
+        trim_overlap: drop component end nodes that lie on a place already in the map.
+        overlap_radius_m: a topology node this close to another graph's node with a similar
+            heading is the same place [m].
+        join_loose_ends: join polyline ends and starts of different segments that continue each
+            other (same type, close across the cut) even where topology found no link.
+        join_radius_m: how far ahead of a loose end a loose start may begin [m].
+        join_lateral_m: how far across the cut a loose start may lie from the end [m].
+        min_isolated_length_m: polylines without any link and shorter than this are dropped
+            (single-step specks, false positives) [m].
+    """
+
+    max_distance_m: float = 12.0
+    max_heading_diff_deg: float = 30.0
+    max_connection_angle_deg: float = 80.0
+    angle_free_m: float = 3.0
+    behind_tol_m: float = 1.0
+    feature_max_m: float = 2.0
+    duplicate_m: float = 0.25
+    trim_overlap: bool = True
+    overlap_radius_m: float = 1.2
+    join_loose_ends: bool = True
+    join_radius_m: float = 8.0
+    join_lateral_m: float = 0.6
+    min_isolated_length_m: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "max_distance_m",
+            "angle_free_m",
+            "behind_tol_m",
+            "feature_max_m",
+            "duplicate_m",
+            "overlap_radius_m",
+            "join_radius_m",
+            "join_lateral_m",
+            "min_isolated_length_m",
+        ):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"{name} must be finite and >= 0, got {v}")
+        for name in ("max_heading_diff_deg", "max_connection_angle_deg"):
+            v = getattr(self, name)
+            if not 0 < v <= 180:
+                raise ConfigError(f"{name} must be in (0, 180], got {v}")
+
+    @classmethod
+    def paper(cls) -> StitchConfig:
+        """The paper's variant: topology links and same-type unmodified assignment only."""
+        return cls(trim_overlap=False, join_loose_ends=False, min_isolated_length_m=0.0)
+
+
+# --- the flat view of all graphs --------------------------------------------------------------------
+
+
+@dataclass
+class _Flat:
+    """All alive nodes and edges of a MapGraph in global indices (graphs in key order)."""
+
+    keys: list[str]
+    tmap: dict[str, np.ndarray]  # per graph: local topo index -> global or -1
+    nmap: dict[str, np.ndarray]  # per graph: local feature node index -> global or -1
+    t_graph: np.ndarray
+    t_local: np.ndarray
+    t_uid: np.ndarray
+    t_xy: np.ndarray
+    t_heading: np.ndarray
+    t_width: np.ndarray
+    t_start: np.ndarray
+    n_graph: np.ndarray
+    n_local: np.ndarray
+    n_uid: np.ndarray
+    n_xy: np.ndarray
+    n_type: np.ndarray
+    n_count: np.ndarray
+    n_std: np.ndarray
+    topo_edges: np.ndarray
+    edges: np.ndarray
+    leftover: np.ndarray
+
+    @property
+    def n_topo(self) -> int:
+        return len(self.t_uid)
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.n_uid)
+
+    def node_topo(self) -> np.ndarray:
+        return np.repeat(np.arange(self.n_topo), np.diff(self.t_start))
+
+
+def _remap(mask: np.ndarray, offset: int) -> np.ndarray:
+    out = np.full(len(mask), -1, dtype=np.int64)
+    out[mask] = offset + np.arange(int(mask.sum()))
+    return out
+
+
+def _map_edges(e: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if len(e) == 0:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=bool)
+    g = m[e]
+    ok = (g >= 0).all(axis=1)
+    return g[ok], ok
+
+
+def _wrap(a: np.ndarray | float) -> np.ndarray:
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _unit(h: float) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([math.cos(h), math.sin(h)]), np.array([-math.sin(h), math.cos(h)])
+
+
+class _UnionFind:
+    def __init__(self, labels: np.ndarray) -> None:
+        self.parent = list(range(int(labels.max()) + 1 if len(labels) else 0))
+        self.labels = labels
+
+    def find(self, node: int) -> int:
+        x = int(self.labels[node])
+        while self.parent[x] != x:
+            self.parent[x] = self.parent[self.parent[x]]
+            x = self.parent[x]
+        return x
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            self.parent[max(ra, rb)] = min(ra, rb)
+
+
+# --- the complete map graph ---------------------------------------------------------------------------
+
+
+@dataclass
+class IntegrateReport:
+    """What one ``MapGraph.integrate`` call did."""
+
+    added: int = 0
+    removed: int = 0
+    trimmed_nodes: int = 0
+    topology_links: int = 0
+    feature_links: int = 0
+    loose_ends_joined: int = 0
+
+
+class MapGraph:
+    """The complete hierarchical map graph, built from segment graphs and kept up to date.
+
+    State is keyed by segment key (``SegmentGraph.key``) and, through the topology nodes' tiles,
+    by place; links between segments are stored by (segment key, local index), so replacing a
+    segment drops exactly its own nodes and links.
+
+    Args:
+        graphs: segment graphs to integrate right away.
+        config: stitching parameters.
+    """
+
+    def __init__(self, graphs: Iterable[SegmentGraph] = (), *, config: StitchConfig = StitchConfig()) -> None:
+        self.config = config
+        self._graphs: dict[str, SegmentGraph] = {}
+        self._alive: dict[str, np.ndarray] = {}
+        self._topo_links: set[Link] = set()
+        self._feature_links: set[Link] = set()
+        self.version = 0
+        graphs = list(graphs)
+        if graphs:
+            self.integrate(graphs)
+
+    # -- queries --
+    @property
+    def keys(self) -> list[str]:
+        return sorted(self._graphs)
+
+    def graph(self, key: str) -> SegmentGraph:
+        return self._graphs[key]
+
+    def keys_in_tiles(self, tiles: Iterable[tuple[int, int]]) -> set[str]:
+        """Keys of the segment graphs with a topology node in any of ``tiles`` ((ix, iy) keys)."""
+        want = {(int(a), int(b)) for a, b in tiles}
+        out = set()
+        for key, g in self._graphs.items():
+            if g.n_topo and want & set(map(tuple, g.topo_tile.tolist())):
+                out.add(key)
+        return out
+
+    def copy(self) -> MapGraph:
+        """An independent copy (segment graphs are immutable and shared)."""
+        new = MapGraph(config=self.config)
+        new._graphs = dict(self._graphs)
+        new._alive = {k: v.copy() for k, v in self._alive.items()}
+        new._topo_links = set(self._topo_links)
+        new._feature_links = set(self._feature_links)
+        new.version = self.version
+        return new
+
+    @classmethod
+    def from_hdmap(cls, hdmap: HDMap, *, config: StitchConfig = StitchConfig()) -> MapGraph:
+        """A map graph holding an existing map (as one graph keyed ``"base"``), ids preserved."""
+        mg = cls(config=config)
+        g = graph_from_hdmap(hdmap)
+        mg._graphs[g.key] = g
+        mg._alive[g.key] = np.ones(g.n_topo, dtype=bool)
+        mg.version = int(hdmap.version)
+        return mg
+
+    # -- updates --
+    def remove(self, keys: Iterable[str]) -> int:
+        """Drop segment graphs (and every link touching them); returns how many were present."""
+        gone = {k for k in keys if k in self._graphs}
+        for k in gone:
+            del self._graphs[k]
+            del self._alive[k]
+        if gone:
+            self._topo_links = {ln for ln in self._topo_links if ln[0] not in gone and ln[2] not in gone}
+            self._feature_links = {ln for ln in self._feature_links if ln[0] not in gone and ln[2] not in gone}
+        return len(gone)
+
+    def integrate(self, graphs: Iterable[SegmentGraph], *, replace: Iterable[str] = ()) -> IntegrateReport:
+        """Insert segment graphs into the map (Sec. VI); a graph whose key is present replaces it.
+
+        Args:
+            graphs: new or re-estimated segment graphs (not modified).
+            replace: keys of further graphs to drop first (e.g. ``keys_in_tiles`` of re-mapped
+                tiles, or segments of another pivot that re-estimated the place).
+
+        Returns:
+            What was done. Also bumps ``version``.
+        """
+        new = sorted(graphs, key=lambda g: g.key)
+        keys = [g.key for g in new]
+        if len(set(keys)) != len(keys):
+            raise HdmapError(f"integrate got two segment graphs with the same key: {sorted(keys)}")
+        rep = IntegrateReport()
+        rep.removed = self.remove(set(replace) | set(keys))
+        for g in new:
+            self._graphs[g.key] = g
+            self._alive[g.key] = np.ones(g.n_topo, dtype=bool)
+        rep.added = len(new)
+        if self.config.trim_overlap and new:
+            rep.trimmed_nodes = self._trim([g.key for g in new])
+        self._stitch(rep)
+        if self.config.join_loose_ends:
+            self._join_loose_ends(rep)
+        self.version += 1
+        return rep
+
+    # -- internals --
+    def _flat(self) -> _Flat:
+        keys = self.keys
+        tmap: dict[str, np.ndarray] = {}
+        nmap: dict[str, np.ndarray] = {}
+        t_attrs = ("topo_uid", "topo_xy", "topo_heading", "topo_width")
+        n_attrs = ("node_uid", "node_xy", "node_type", "node_count", "node_std")
+        parts: dict[str, list] = {n: [] for n in ("tg", "tl", "tn", "ng", "nl", "te", "ne", "lo") + t_attrs + n_attrs}
+        t_off = n_off = 0
+        for gi, k in enumerate(keys):
+            g, alive = self._graphs[k], self._alive[k]
+            n_alive = np.repeat(alive, np.diff(g.topo_start))
+            tmap[k] = _remap(alive, t_off)
+            nmap[k] = _remap(n_alive, n_off)
+            tl = np.flatnonzero(alive)
+            nl = np.flatnonzero(n_alive)
+            parts["tg"].append(np.full(len(tl), gi))
+            parts["tl"].append(tl)
+            parts["tn"].append(np.diff(g.topo_start)[alive])
+            parts["ng"].append(np.full(len(nl), gi))
+            parts["nl"].append(nl)
+            for a in t_attrs:
+                parts[a].append(getattr(g, a)[tl])
+            for a in n_attrs:
+                parts[a].append(getattr(g, a)[nl])
+            te, _ = _map_edges(g.topo_edges, tmap[k])
+            ne, ok = _map_edges(g.edges, nmap[k])
+            parts["te"].append(te)
+            parts["ne"].append(ne)
+            parts["lo"].append(g.edge_leftover[ok] if len(ok) else np.zeros(0, dtype=bool))
+            t_off += len(tl)
+            n_off += len(nl)
+
+        def links(src: set[Link], maps: dict[str, np.ndarray]) -> np.ndarray:
+            out = []
+            for ka, ia, kb, ib in sorted(src):
+                a, b = maps[ka][ia], maps[kb][ib]
+                if a >= 0 and b >= 0:
+                    out.append((a, b))
+            return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+        def cat(name: str, empty: np.ndarray, dtype=None) -> np.ndarray:
+            out = np.concatenate(parts[name]) if parts[name] else empty
+            return out.astype(dtype) if dtype is not None else out
+
+        i0 = np.zeros(0, dtype=np.int64)
+        f0 = np.zeros(0)
+        e0 = np.zeros((0, 2), dtype=np.int64)
+        fl = links(self._feature_links, nmap)
+        return _Flat(
+            keys=keys,
+            tmap=tmap,
+            nmap=nmap,
+            t_graph=cat("tg", i0),
+            t_local=cat("tl", i0),
+            t_uid=cat("topo_uid", i0, np.uint64),
+            t_xy=cat("topo_xy", np.zeros((0, 2)), float).reshape(-1, 2),
+            t_heading=cat("topo_heading", f0, float),
+            t_width=cat("topo_width", f0, float),
+            t_start=np.concatenate([[0], np.cumsum(cat("tn", i0))]).astype(np.int64),
+            n_graph=cat("ng", i0),
+            n_local=cat("nl", i0),
+            n_uid=cat("node_uid", i0, np.uint64),
+            n_xy=cat("node_xy", np.zeros((0, 2)), float).reshape(-1, 2),
+            n_type=cat("node_type", i0, np.int64),
+            n_count=cat("node_count", i0, np.int64),
+            n_std=cat("node_std", f0, float),
+            topo_edges=np.concatenate([cat("te", e0).reshape(-1, 2), links(self._topo_links, tmap)]).astype(np.int64),
+            edges=np.concatenate([cat("ne", e0).reshape(-1, 2), fl]).astype(np.int64),
+            leftover=np.concatenate([cat("lo", np.zeros(0, dtype=bool)), np.zeros(len(fl), dtype=bool)]),
+        )
+
+    def _trim(self, new_keys: Sequence[str]) -> int:
+        """Kill component end nodes of new graphs that lie on a place another graph already maps."""
+        cfg = self.config
+        flat = self._flat()
+        if flat.n_topo == 0:
+            return 0
+        tree = cKDTree(flat.t_xy)
+        cos_max = math.cos(math.radians(cfg.max_heading_diff_deg))
+        killed = 0
+        for k in new_keys:
+            g, alive = self._graphs[k], self._alive[k]
+            gi = flat.keys.index(k)
+
+            def overlaps(t: int) -> bool:
+                near = tree.query_ball_point(g.topo_xy[t], cfg.overlap_radius_m)
+                for j in near:
+                    if flat.t_graph[j] == gi:
+                        continue
+                    kj = flat.keys[flat.t_graph[j]]
+                    if not self._alive[kj][flat.t_local[j]]:
+                        continue
+                    if math.cos(g.topo_heading[t] - flat.t_heading[j]) >= cos_max:
+                        return True
+                return False
+
+            for comp in g.components():
+                order = comp.tolist()
+                for walk in (order, order[::-1]):
+                    for t in walk:
+                        if not alive[t] or not overlaps(t):
+                            break
+                        alive[t] = False
+                        killed += 1
+        return killed
+
+    def _stitch(self, rep: IntegrateReport) -> None:
+        """Link dangling component starts/ends to their nearest valid neighbour (Sec. VI, 1-4)."""
+        cfg = self.config
+        flat = self._flat()
+        nt = flat.n_topo
+        if nt < 2:
+            return
+        te = flat.topo_edges
+        adj = coo_matrix((np.ones(len(te)), (te[:, 0], te[:, 1])), shape=(nt, nt))
+        _, labels = connected_components(adj, directed=True, connection="weak")
+        uf = _UnionFind(labels)
+        indeg = np.bincount(te[:, 1], minlength=nt) if len(te) else np.zeros(nt, dtype=np.int64)
+        outdeg = np.bincount(te[:, 0], minlength=nt) if len(te) else np.zeros(nt, dtype=np.int64)
+        tree = cKDTree(flat.t_xy)
+        out_adj: dict[int, list[int]] = {}
+        in_adj: dict[int, list[int]] = {}
+        for a, b in flat.edges.tolist():
+            out_adj.setdefault(a, []).append(b)
+            in_adj.setdefault(b, []).append(a)
+        existing = set(map(tuple, te.tolist()))
+        cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
+        tan_c = math.tan(math.radians(min(cfg.max_connection_angle_deg, 89.999)))
+
+        # 1. components' start (no predecessor) and end (no successor) nodes, in a fixed order
+        ends = [(int(i), True) for i in np.flatnonzero(outdeg == 0)]
+        starts = [(int(i), False) for i in np.flatnonzero(indeg == 0)]
+        todo = sorted(ends + starts, key=lambda x: (int(flat.t_uid[x[0]]), x[1]))
+        for i, is_end in todo:
+            if (is_end and outdeg[i]) or (not is_end and indeg[i]):
+                continue
+            u, n = _unit(float(flat.t_heading[i]))
+            best, best_d = -1, math.inf
+            # 2. nearest neighbours in the complete topology graph (kd-tree)
+            for j in tree.query_ball_point(flat.t_xy[i], cfg.max_distance_m):
+                if uf.find(j) == uf.find(i):
+                    continue
+                if math.cos(flat.t_heading[j] - flat.t_heading[i]) < cos_h:
+                    continue
+                d = flat.t_xy[j] - flat.t_xy[i] if is_end else flat.t_xy[i] - flat.t_xy[j]
+                along, lat, dist = float(d @ u), abs(float(d @ n)), float(math.hypot(*d))
+                # 3. distance and connection-angle check
+                if along < -cfg.behind_tol_m:
+                    continue
+                if dist > cfg.angle_free_m and lat > max(along, 0.0) * tan_c:
+                    continue
+                if dist < best_d:
+                    best, best_d = int(j), dist
+            if best < 0:
+                continue
+            a, b = (i, best) if is_end else (best, i)
+            if (a, b) in existing:
+                continue
+            # 4. link the topology nodes and join their features
+            existing.add((a, b))
+            outdeg[a] += 1
+            indeg[b] += 1
+            uf.union(a, b)
+            self._topo_links.add(self._link(flat, a, b, topo=True))
+            rep.topology_links += 1
+            rep.feature_links += self._join_features(flat, a, b, out_adj, in_adj)
+
+    @staticmethod
+    def _link(flat: _Flat, a: int, b: int, *, topo: bool) -> Link:
+        if topo:
+            return (flat.keys[flat.t_graph[a]], int(flat.t_local[a]), flat.keys[flat.t_graph[b]], int(flat.t_local[b]))
+        return (flat.keys[flat.n_graph[a]], int(flat.n_local[a]), flat.keys[flat.n_graph[b]], int(flat.n_local[b]))
+
+    def _join_features(
+        self, flat: _Flat, a: int, b: int, out_adj: dict[int, list[int]], in_adj: dict[int, list[int]]
+    ) -> int:
+        """Unmodified rectangular assignment between the features of linked topology nodes a -> b,
+        same type only."""
+        cfg = self.config
+        xa = np.arange(flat.t_start[a], flat.t_start[a + 1])
+        yb = np.arange(flat.t_start[b], flat.t_start[b + 1])
+        if len(xa) == 0 or len(yb) == 0:
+            return 0
+        _, n = _unit(float(flat.t_heading[b]))
+        lat = np.abs((flat.n_xy[yb][None, :, :] - flat.n_xy[xa][:, None, :]) @ n)
+        forbidden = flat.n_type[xa][:, None] != flat.n_type[yb][None, :]
+        cost = np.where(forbidden, _BIG, np.where(lat <= cfg.feature_max_m, lat, _GATE + lat))
+        rows, cols = linear_sum_assignment(cost)
+        made = 0
+        for r, c in zip(rows.tolist(), cols.tolist()):
+            if forbidden[r, c] or lat[r, c] > cfg.feature_max_m:
+                continue
+            x, y = int(xa[r]), int(yb[c])
+            # the feature already continues next to y (or y is already reached next to x): skip
+            if any(abs(float((flat.n_xy[z] - flat.n_xy[y]) @ n)) <= cfg.duplicate_m for z in out_adj.get(x, ())):
+                continue
+            if any(abs(float((flat.n_xy[w] - flat.n_xy[x]) @ n)) <= cfg.duplicate_m for w in in_adj.get(y, ())):
+                continue
+            out_adj.setdefault(x, []).append(y)
+            in_adj.setdefault(y, []).append(x)
+            self._feature_links.add(self._link(flat, x, y, topo=False))
+            made += 1
+        return made
+
+    def _join_loose_ends(self, rep: IntegrateReport) -> None:
+        """Join polyline ends to polyline starts of other segments that continue them."""
+        cfg = self.config
+        flat = self._flat()
+        nn = flat.n_nodes
+        if nn < 2:
+            return
+        e = flat.edges
+        outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        ends = np.flatnonzero(outdeg == 0)
+        starts = np.flatnonzero(indeg == 0)
+        if len(ends) == 0 or len(starts) == 0:
+            return
+        heading = flat.t_heading[flat.node_topo()]
+        tree = cKDTree(flat.n_xy[starts])
+        cand: list[tuple[float, int, int]] = []
+        for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
+            u, n = _unit(float(heading[i]))
+            for jj in near:
+                j = int(starts[jj])
+                if flat.n_graph[j] == flat.n_graph[i] or flat.n_type[j] != flat.n_type[i]:
+                    continue
+                d = flat.n_xy[j] - flat.n_xy[i]
+                along, lat = float(d @ u), abs(float(d @ n))
+                if along <= 0.0 or lat > cfg.join_lateral_m:
+                    continue
+                if math.cos(heading[j] - heading[i]) < math.cos(math.radians(cfg.max_heading_diff_deg)):
+                    continue
+                cand.append((lat + 0.05 * along, i, j))
+        if not cand:
+            return
+        ei = sorted({c[1] for c in cand})
+        sj = sorted({c[2] for c in cand})
+        ri, cj = {v: k for k, v in enumerate(ei)}, {v: k for k, v in enumerate(sj)}
+        cost = np.full((len(ei), len(sj)), _BIG)
+        for c, i, j in cand:
+            cost[ri[i], cj[j]] = min(cost[ri[i], cj[j]], c)
+        rows, cols = linear_sum_assignment(cost)
+        for r, c in zip(rows.tolist(), cols.tolist()):
+            if cost[r, c] < _BIG:
+                self._feature_links.add(self._link(flat, ei[r], sj[c], topo=False))
+                rep.loose_ends_joined += 1
+
+    # -- export --
+    def to_hdmap(
+        self, *, version: int | None = None, stamp_ns: int = 0, drive_ids: Sequence[str] | None = None
+    ) -> HDMap:
+        """The complete map as an ``HDMap``: every field of MapFeature / TopologyNode filled."""
+        flat = self._flat()
+        if drive_ids is None:
+            drive_ids = sorted({d for g in self._graphs.values() for d in g.drive_ids})
+        features, topology = _export(flat, self.config)
+        return HDMap(
+            features=features,
+            topology=topology,
+            drive_ids=tuple(drive_ids),
+            version=self.version if version is None else int(version),
+            stamp_ns=int(stamp_ns),
+            extra={"segments": len(self._graphs), "topology_links": len(self._topo_links),
+                   "feature_links": len(self._feature_links)},
+        )
+
+
+# --- export ----------------------------------------------------------------------------------------
+
+
+def _dedupe_uids(flat: _Flat) -> np.ndarray:
+    """Node uids, made unique should two graphs carry the same pivot step (rehashed with the key)."""
+    uid = flat.n_uid.copy()
+    _, first, counts = np.unique(uid, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        dup = np.flatnonzero(np.isin(uid, np.unique(uid)[counts > 1]))
+        keep_first = set(first.tolist())
+        for i in dup.tolist():
+            if i not in keep_first:
+                uid[i] = stable_uid(flat.keys[flat.n_graph[i]], int(flat.n_local[i]), 7)[()]
+    return uid
+
+
+def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
+    nn = flat.n_nodes
+    uid = _dedupe_uids(flat)
+    e = flat.edges
+    chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid)
+    link = chain_links(nn, e, flat.leftover, flat.n_type)
+    outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+    indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+    chain_of = np.full(nn, -1, dtype=np.int64)
+    for k, c in enumerate(chains):
+        chain_of[c] = k
+    cross = e[~link] if len(e) else e
+    succ: dict[int, set[int]] = {}
+    pred: dict[int, set[int]] = {}
+    in_cross: dict[int, list[int]] = {}
+    out_cross: dict[int, list[int]] = {}
+    for a, b in cross.tolist():
+        ca, cb = int(chain_of[a]), int(chain_of[b])
+        succ.setdefault(ca, set()).add(cb)
+        pred.setdefault(cb, set()).add(ca)
+        out_cross.setdefault(a, []).append(b)
+        in_cross.setdefault(b, []).append(a)
+
+    # geometry with junction points: a split's branches start at the split point, a merge's
+    # inflows end at the merge point, a type change meets in the middle of its edge
+    geoms = []
+    for c in chains:
+        idx = c.tolist()
+        xy = flat.n_xy[c]
+        cnt, std = flat.n_count[c], flat.n_std[c]
+        f, last = idx[0], idx[-1]
+        head = tail = None
+        if len(in_cross.get(f, ())) == 1:
+            u = in_cross[f][0]
+            if outdeg[u] >= 2:
+                head = flat.n_xy[u]
+            elif indeg[f] == 1:
+                head = 0.5 * (flat.n_xy[u] + flat.n_xy[f])
+        if len(out_cross.get(last, ())) == 1 and outdeg[last] == 1:
+            w = out_cross[last][0]
+            if indeg[w] >= 2:
+                tail = flat.n_xy[w]
+            else:
+                tail = 0.5 * (flat.n_xy[last] + flat.n_xy[w])
+        if head is not None:
+            xy, cnt, std = np.vstack([head, xy]), np.r_[cnt[:1], cnt], np.r_[std[:1], std]
+        if tail is not None:
+            xy, cnt, std = np.vstack([xy, tail]), np.r_[cnt, cnt[-1:]], np.r_[std, std[-1:]]
+        geoms.append((xy, cnt, std))
+
+    keep = np.ones(len(chains), dtype=bool)
+    for k, (xy, _, _) in enumerate(geoms):
+        isolated = k not in succ and k not in pred
+        length = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
+        if isolated and (len(xy) < 2 or length < cfg.min_isolated_length_m):
+            keep[k] = False
+    fid = np.array([int(uid[c[0]]) for c in chains], dtype=np.uint64)
+
+    features = []
+    for k, c in enumerate(chains):
+        if not keep[k]:
+            continue
+        xy, cnt, std = geoms[k]
+        features.append(
+            MapFeature(
+                id=int(fid[k]),
+                type=_ftype(int(flat.n_type[c[0]])),
+                points=np.ascontiguousarray(xy, dtype=float),
+                drive_count=np.asarray(cnt, dtype=np.int64),
+                lateral_std=np.asarray(std, dtype=float),
+                predecessors=tuple(sorted(int(fid[p]) for p in pred.get(k, ()) if keep[p])),
+                successors=tuple(sorted(int(fid[s]) for s in succ.get(k, ()) if keep[s])),
+            )
+        )
+
+    te = flat.topo_edges
+    tsucc: dict[int, list[int]] = {}
+    for a, b in te.tolist():
+        tsucc.setdefault(a, []).append(b)
+    topology = []
+    for t in range(flat.n_topo):
+        nodes = range(flat.t_start[t], flat.t_start[t + 1])
+        feats = []
+        for i in nodes:
+            k = int(chain_of[i])
+            if keep[k] and int(fid[k]) not in feats:
+                feats.append(int(fid[k]))
+        topology.append(
+            TopologyNode(
+                id=int(flat.t_uid[t]),
+                position=flat.t_xy[t].copy(),
+                heading=float(flat.t_heading[t]),
+                width=float(flat.t_width[t]),
+                successors=tuple(sorted({int(flat.t_uid[b]) for b in tsucc.get(t, ())})),
+                features=tuple(feats),
+            )
+        )
+    features.sort(key=lambda f: f.id)
+    topology.sort(key=lambda t: t.id)
+    return tuple(features), tuple(topology)
+
+
+def _ftype(code: int):
+    from hdmap_core.model import FeatureType
+
+    try:
+        return FeatureType(code)
+    except ValueError:
+        return FeatureType.UNKNOWN
+
+
+# --- public functions -----------------------------------------------------------------------------------
+
+
+def stitch(
+    graphs: Iterable[SegmentGraph],
+    *,
+    config: StitchConfig = StitchConfig(),
+    base: HDMap | None = None,
+    version: int | None = None,
+    stamp_ns: int = 0,
+) -> HDMap:
+    """Stitch segment graphs into the complete map (Sec. VI), optionally into an existing map.
+
+    Args:
+        graphs: segment graphs from ``connection.connect_segment`` (not modified).
+        config: stitching parameters.
+        base: an existing map to update with the new sections; its feature and topology ids are
+            kept where its features persist.
+        version: map version; default: the base's version + 1, else 1.
+        stamp_ns: header stamp of the map [ns].
+
+    Returns:
+        The complete hierarchical map.
+    """
+    mg = MapGraph.from_hdmap(base, config=config) if base is not None else MapGraph(config=config)
+    mg.integrate(graphs)
+    drive_ids = None
+    if base is not None:
+        drive_ids = sorted(set(base.drive_ids) | {d for k in mg.keys for d in mg.graph(k).drive_ids})
+    return mg.to_hdmap(version=version, stamp_ns=stamp_ns, drive_ids=drive_ids)
+
+
+def to_hdmap(
+    graph: MapGraph | SegmentGraph,
+    *,
+    drive_ids: Sequence[str] | None = None,
+    version: int = 0,
+    stamp_ns: int = 0,
+    config: StitchConfig = StitchConfig(),
+) -> HDMap:
+    """Export a map graph (or a single segment graph) as an ``HDMap``."""
+    if isinstance(graph, SegmentGraph):
+        mg = MapGraph(config=config)
+        mg._graphs[graph.key] = graph
+        mg._alive[graph.key] = np.ones(graph.n_topo, dtype=bool)
+        graph = mg
+    return graph.to_hdmap(version=version, stamp_ns=stamp_ns, drive_ids=drive_ids)
+
+
+def graph_from_hdmap(hdmap: HDMap, *, key: str = "base", tile_size_m: float = 256.0) -> SegmentGraph:
+    """Rebuild a hierarchical graph from an ``HDMap`` so that new segments can be stitched to it.
+
+    Each feature point becomes a feature node, attached to the nearest topology node that lists
+    the feature (else the nearest one); junction points added at export (split/merge/type change)
+    are removed again so that a re-export does not duplicate them. The first node of every feature
+    carries the feature's id, so an unchanged feature keeps its id.
+    """
+    from hdmap_core.connection import ConnectionStats
+
+    feats = list(hdmap.features)
+    topo = list(hdmap.topology)
+    by_id = {int(f.id): f for f in feats}
+    t_index = {int(t.id): k for k, t in enumerate(topo)}
+    lo: dict[int, int] = {}
+    hi: dict[int, int] = {}
+    for f in feats:
+        lo[int(f.id)], hi[int(f.id)] = 0, len(f.points)
+    for f in feats:  # drop junction points that duplicate a neighbour's point
+        for s in f.successors:
+            g = by_id.get(int(s))
+            if g is None or len(g.points) == 0 or len(f.points) == 0:
+                continue
+            if np.hypot(*(np.asarray(g.points[0]) - np.asarray(f.points[-1]))) < 1e-6:
+                merge = len(g.predecessors) >= 2
+                split = len(f.successors) >= 2
+                if merge and not split and hi[int(f.id)] - lo[int(f.id)] > 1:
+                    hi[int(f.id)] -= 1
+                elif hi[int(g.id)] - lo[int(g.id)] > 1:
+                    lo[int(g.id)] += 1
+                    if not (merge or split) and hi[int(f.id)] - lo[int(f.id)] > 1:
+                        hi[int(f.id)] -= 1
+    # topology
+    if topo:
+        t_xy = np.array([np.asarray(t.position, dtype=float)[:2] for t in topo])
+        t_h = np.array([float(t.heading) for t in topo])
+        t_w = np.array([float(t.width) for t in topo])
+        t_uid = np.array([int(t.id) for t in topo], dtype=np.uint64)
+    else:
+        t_xy, t_h, t_w, t_uid = np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.uint64)
+    t_edges = [(k, t_index[int(s)]) for k, t in enumerate(topo) for s in t.successors if int(s) in t_index]
+    listing: dict[int, list[int]] = {}
+    for k, t in enumerate(topo):
+        for fid in t.features:
+            listing.setdefault(int(fid), []).append(k)
+    tree = cKDTree(t_xy) if len(t_xy) else None
+
+    n_xy, n_type, n_cnt, n_std, n_uid, n_topo, n_feat, n_pos = [], [], [], [], [], [], [], []
+    extra_topo: list[tuple[np.ndarray, float]] = []
+    for f in feats:
+        fid = int(f.id)
+        pts = np.asarray(f.points, dtype=float)[:, :2][lo[fid] : hi[fid]]
+        if len(pts) == 0:
+            continue
+        cnt = np.asarray(f.drive_count)[lo[fid] : hi[fid]] if len(f.drive_count) else np.zeros(len(pts))
+        std = np.asarray(f.lateral_std)[lo[fid] : hi[fid]] if len(f.lateral_std) else np.zeros(len(pts))
+        cand = listing.get(fid, [])
+        if cand:
+            d = np.linalg.norm(pts[:, None, :] - t_xy[cand][None, :, :], axis=2)
+            tk = np.asarray(cand)[np.argmin(d, axis=1)]
+        elif tree is not None:
+            tk = tree.query(pts)[1]
+        else:  # a map without topology: one pseudo topology node per feature point
+            hdg = np.arctan2(*np.diff(pts, axis=0).T[::-1]) if len(pts) > 1 else np.zeros(1)
+            hdg = np.r_[hdg, hdg[-1:]][: len(pts)]
+            tk = len(topo) + len(extra_topo) + np.arange(len(pts))
+            extra_topo.extend((p, float(h)) for p, h in zip(pts, hdg))
+        uids = stable_uid(f"base:{fid}", np.arange(len(pts)))
+        uids[0] = np.uint64(fid & ((1 << 63) - 1)) or np.uint64(1)
+        n_xy.append(pts)
+        n_type.append(np.full(len(pts), int(f.type)))
+        n_cnt.append(cnt)
+        n_std.append(std)
+        n_uid.append(uids)
+        n_topo.append(np.asarray(tk, dtype=np.int64))
+        n_feat.append(np.full(len(pts), fid, dtype=np.uint64))
+        n_pos.append(np.arange(len(pts)))
+    if extra_topo:
+        t_xy = np.vstack([t_xy, np.array([p for p, _ in extra_topo])])
+        t_h = np.r_[t_h, [h for _, h in extra_topo]]
+        t_w = np.r_[t_w, np.zeros(len(extra_topo))]
+        t_uid = np.r_[t_uid, stable_uid("base-topo", np.arange(len(extra_topo)))]
+
+    def cat(parts, shape, dtype):
+        return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype=dtype)
+
+    xy = cat(n_xy, (0, 2), float)
+    tk = cat(n_topo, (0,), np.int64)
+    order = np.argsort(tk, kind="stable")
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+    feat_of = cat(n_feat, (0,), np.uint64)
+    pos = cat(n_pos, (0,), np.int64)
+    # edges: along each feature, and from a feature's last node to each successor's first node
+    first: dict[int, int] = {}
+    last: dict[int, int] = {}
+    edges = []
+    for i in range(len(xy)):
+        fid = int(feat_of[i])
+        first.setdefault(fid, i)
+        last[fid] = i
+        if pos[i] > 0:
+            edges.append((i - 1, i))
+    for f in feats:
+        for s in f.successors:
+            if int(f.id) in last and int(s) in first:
+                edges.append((last[int(f.id)], first[int(s)]))
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    counts = np.bincount(tk, minlength=len(t_uid)) if len(tk) else np.zeros(len(t_uid), dtype=np.int64)
+    return SegmentGraph(
+        key=key,
+        pivot_id=key,
+        topo_uid=t_uid.astype(np.uint64),
+        topo_step=np.arange(len(t_uid), dtype=np.int64),
+        topo_xy=t_xy.reshape(-1, 2),
+        topo_heading=t_h,
+        topo_width=t_w,
+        topo_edges=np.asarray(t_edges, dtype=np.int64).reshape(-1, 2),
+        topo_start=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        node_uid=cat(n_uid, (0,), np.uint64)[order],
+        node_xy=xy[order],
+        node_type=cat(n_type, (0,), np.int64)[order],
+        node_count=cat(n_cnt, (0,), np.int64)[order],
+        node_std=cat(n_std, (0,), float)[order],
+        edges=inv[e] if len(e) else e,
+        edge_leftover=np.zeros(len(e), dtype=bool),
+        drive_ids=tuple(hdmap.drive_ids),
+        stats=ConnectionStats(),
+        tile_size_m=tile_size_m,
+    )

@@ -1,0 +1,271 @@
+"""Inter-segment connection (Sec. VI): hierarchical graph, stitching, ids, incremental updates.
+
+Roads run east (heading 0): a maximum's lateral position is its world y (plus the midpoint's y).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hdmap_core.connection import ConnectionConfig, connect_segment
+from hdmap_core.errors import ConfigError, HdmapError
+from hdmap_core.model import FeatureType, HDMap
+from hdmap_core.steps import Segment, StepResult
+from hdmap_core.stitching import MapGraph, StitchConfig, graph_from_hdmap, stitch, to_hdmap
+
+B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+LINES = ([-3.5, 0.0, 3.5], [S, D, B])
+
+
+def step(pivot: str, i: int, x: float, lateral, types, *, y_mid: float = 0.0, processed_before=False, counts=None):
+    k = len(lateral)
+    return StepResult(
+        pivot_id=pivot,
+        index=i,
+        s_m=2.0 * i,
+        midpoint=np.array([x, y_mid]),
+        heading=0.0,
+        width_m=10.0,
+        valid=True,
+        processed_before=processed_before,
+        lateral_m=np.asarray(lateral, float) - y_mid,
+        types=np.asarray(types),
+        counts=np.asarray(counts if counts is not None else [4] * k),
+        std_m=np.full(k, 0.15),
+        drive_ids=(pivot, f"{pivot}-other"),
+    )
+
+
+def road(pivot: str, x0: float, n: int, lines=LINES, *, y_mid: float = 0.0, processed=()) -> Segment:
+    """n steps from x0 eastwards, 2 m apart; ``processed``: step indices marked processed_before."""
+    return Segment(
+        pivot,
+        tuple(step(pivot, i, x0 + 2.0 * i, lines[0], lines[1], y_mid=y_mid, processed_before=i in processed) for i in range(n)),
+    )
+
+
+def conn(seg: Segment):
+    return connect_segment(seg)
+
+
+def by_type(m: HDMap, t: int):
+    return [f for f in m.features if f.type == t]
+
+
+def assert_one_continuous(m: HDMap, x_from: float, x_to: float) -> None:
+    """Exactly one polyline per line, spanning x_from..x_to with ~2 m spacing, no duplicates."""
+    for t, y in ((S, -3.5), (D, 0.0), (B, 3.5)):
+        fs = by_type(m, t)
+        assert len(fs) == 1, f"type {t}: {len(fs)} polylines"
+        p = fs[0].points
+        np.testing.assert_allclose(p[:, 1], y, atol=1e-9)
+        assert p[0, 0] == pytest.approx(x_from) and p[-1, 0] == pytest.approx(x_to)
+        dx = np.diff(p[:, 0])
+        assert np.all(dx > 0) and dx.max() <= 2.0 + 1e-9
+
+
+def test_consecutive_segments_make_one_polyline_per_line():
+    r"""  a: x 0..98 | b: x 100..198   ->  one feature per line, 0..198."""
+    m = stitch([conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50))])
+    assert_one_continuous(m, 0.0, 198.0)
+    assert len(m.topology) == 100
+    # the topology chain runs through: one node without successor
+    assert sum(1 for t in m.topology if not t.successors) == 1
+
+
+def test_feature_fields_filled_from_step_results():
+    seg = Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [D], counts=[i + 3]) for i in range(10)))
+    m = stitch([conn(seg)])
+    (f,) = m.features
+    np.testing.assert_array_equal(f.drive_count, np.arange(3, 13))
+    np.testing.assert_allclose(f.lateral_std, 0.15)
+    assert f.points.shape == (10, 2) and f.drive_count.shape == (10,) and f.lateral_std.shape == (10,)
+    assert m.drive_ids == ("a", "a-other")
+    for t in m.topology:
+        assert t.features == (f.id,)
+        assert t.width == pytest.approx(10.0)
+
+
+def test_overlap_marked_processed_before_stitched_without_duplicates():
+    r"""  a: x 0..98
+          b: x 60..158, its steps at x 60..98 processed_before (RULE 4) -> joined at x 98 -> 100."""
+    b = road("b", 60.0, 50, y_mid=0.4, processed=set(range(20)))
+    m = stitch([conn(road("a", 0.0, 50)), conn(b)])
+    assert_one_continuous(m, 0.0, 158.0)
+
+
+@pytest.mark.parametrize("order", ["together", "a_then_b", "b_then_a"])
+def test_unmarked_overlap_is_trimmed_to_one_copy(order):
+    """Two pivots map x 60..98 twice (no processed_before): one copy survives, lines continuous."""
+    ga, gb = conn(road("a", 0.0, 50)), conn(road("b", 60.0, 50, y_mid=0.4))
+    if order == "together":
+        m = stitch([ga, gb])
+    else:
+        first, second = (ga, gb) if order == "a_then_b" else (gb, ga)
+        mg = MapGraph([first])
+        mg.integrate([second])
+        m = mg.to_hdmap()
+    assert_one_continuous(m, 0.0, 158.0)
+
+
+def test_stitch_joins_same_type_only():
+    """a ends with a dashed line, b starts with a solid one at the same place: not joined; the
+    border and the solid line continue."""
+    a = road("a", 0.0, 20, ([-3.5, 0.0, 3.5], [S, D, B]))
+    b = road("b", 40.0, 20, ([-3.5, 0.0, 3.5], [S, S, B]))
+    m = stitch([conn(a), conn(b)], config=StitchConfig(join_loose_ends=False))
+    assert len(by_type(m, S)) == 2  # the through solid line and the new solid centre line
+    assert len(by_type(m, B)) == 1 and len(by_type(m, D)) == 1
+    d = by_type(m, D)[0]
+    assert d.successors == () and d.points[-1, 0] == pytest.approx(38.0)
+    centre = next(f for f in by_type(m, S) if abs(f.points[0, 1]) < 1e-9)
+    assert centre.predecessors == ()
+
+
+def test_road_border_never_joined_to_marking_across_segments():
+    a = road("a", 0.0, 20, ([0.0], [B]))
+    b = road("b", 40.0, 20, ([0.0], [S]))
+    m = stitch([conn(a), conn(b)])
+    assert len(m.features) == 2
+    assert all(f.successors == () and f.predecessors == () for f in m.features)
+
+
+def _ramp(pivot: str, x0: float, n: int, *, converging: bool) -> Segment:
+    """A one-lane ramp right of the main road: its left solid line approaches the main road's
+    solid line (y=-3.5) at the merge end (converging) or leaves it from the split start."""
+    steps = []
+    for i in range(n):
+        k = (n - 1 - i) if converging else i
+        gap = 0.5 + 0.3 * k
+        left, right = -3.5 - gap, -3.5 - gap - 3.5
+        steps.append(step(pivot, i, x0 + 2.0 * i, [left, right], [S, B], y_mid=(left + right) / 2))
+    return Segment(pivot, tuple(steps))
+
+
+def test_merge_across_segments_gives_two_predecessors():
+    r"""  main: x 0..198 (S at y=-3.5);  ramp: x 20..58 converging, ends beside the main road.
+
+         ======================== S y=-3.5 ======>
+                          ____/  ramp S
+    """
+    m = stitch([conn(road("main", 0.0, 100)), conn(_ramp("ramp", 20.0, 20, converging=True))])
+    merging = [f for f in m.features if len(f.predecessors) == 2]
+    assert len(merging) == 1 and merging[0].type == S
+    ramp_line = next(f for f in by_type(m, S) if f.points[0, 0] == pytest.approx(20.0))
+    assert ramp_line.successors == (merging[0].id,)
+    np.testing.assert_allclose(ramp_line.points[-1], merging[0].points[0])  # meets at the merge point
+    # the topology has a node with two predecessors
+    preds = {}
+    for t in m.topology:
+        for s_ in t.successors:
+            preds[s_] = preds.get(s_, 0) + 1
+    assert max(preds.values()) == 2
+
+
+def test_split_across_segments_gives_two_successors():
+    m = stitch([conn(road("main", 0.0, 100)), conn(_ramp("ramp", 100.0, 20, converging=False))])
+    splitting = [f for f in m.features if len(f.successors) == 2]
+    assert len(splitting) == 1 and splitting[0].type == S
+    assert max(len(t.successors) for t in m.topology) == 2
+    for sid in splitting[0].successors:
+        succ = next(f for f in m.features if f.id == sid)
+        np.testing.assert_allclose(succ.points[0], splitting[0].points[-1])  # branches start at the split
+    # no road border joined to anything else
+    ids = {f.id: f for f in m.features}
+    for f in m.features:
+        for s_ in f.successors:
+            assert (f.type == B) == (ids[s_].type == B)
+
+
+def test_ids_stable_and_independent_of_unrelated_segments_and_order():
+    ga, gb = conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50))
+    gc = conn(road("c", 0.0, 50, ([500.0, 503.5], [D, S]), y_mid=501.75))  # an unrelated road far away
+    m1, m2 = stitch([ga, gb]), stitch([gb, ga])
+    ids1 = sorted(f.id for f in m1.features)
+    assert ids1 == sorted(f.id for f in m2.features)
+    assert ids1 == sorted(f.id for f in stitch([conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50))]).features)
+    m3 = stitch([ga, gb, gc])
+    assert set(ids1) < {f.id for f in m3.features}
+    assert {t.id for t in m1.topology} < {t.id for t in m3.topology}
+    assert all(0 < f.id < 2**63 for f in m3.features) and len({f.id for f in m3.features}) == len(m3.features)
+
+
+def test_topology_nodes_reference_crossing_features():
+    m = stitch([conn(road("a", 0.0, 30)), conn(_ramp("r", 60.0, 10, converging=False))])
+    feats = {f.id: f for f in m.features}
+    for t in m.topology:
+        assert t.features, "every step carries features"
+        for fid in t.features:
+            d = np.min(np.abs(feats[fid].points[:, 0] - t.position[0]))
+            assert d < 1e-6  # the feature has a point on this step
+    nodes = {t.id for t in m.topology}
+    assert all(s_ in nodes for t in m.topology for s_ in t.successors)
+
+
+def test_integrate_replaces_reestimated_segment_and_keeps_other_ids():
+    mg = MapGraph([conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50))])
+    v0 = mg.version
+    before = mg.to_hdmap()
+    # b re-estimated: same key, lines moved by 0.1 m
+    b2 = conn(road("b", 100.0, 50, ([-3.4, 0.1, 3.6], [S, D, B])))
+    rep = mg.integrate([b2])
+    assert rep.removed == 1 and rep.added == 1 and mg.version == v0 + 1
+    after = mg.to_hdmap()
+    assert sorted(f.id for f in after.features) == sorted(f.id for f in before.features)
+    solid = by_type(after, S)[0]
+    assert solid.points[-1, 1] == pytest.approx(-3.4) and solid.points[0, 1] == pytest.approx(-3.5)
+    # replacement by place: the tiles of b
+    keys = mg.keys_in_tiles([(0, 0)])
+    assert keys == {"a@0", "b@0"}
+    mg.integrate([], replace=["b@0"])
+    assert mg.keys == ["a@0"]
+    assert len(mg.to_hdmap().features) == 3
+
+
+def test_base_map_roundtrip_and_update():
+    base = stitch([conn(road("main", 0.0, 100)), conn(_ramp("ramp", 100.0, 20, converging=False))])
+    same = stitch([], base=base)
+    assert sorted(f.id for f in same.features) == sorted(f.id for f in base.features)
+    for f in base.features:
+        g = next(x for x in same.features if x.id == f.id)
+        np.testing.assert_allclose(g.points, f.points)
+        assert g.successors == f.successors and g.predecessors == f.predecessors
+        np.testing.assert_array_equal(g.drive_count, f.drive_count)
+    # update: a new section continuing the ramp is stitched onto the base map
+    ext = Segment("ext", tuple(step("ext", i, 140.0 + 2.0 * i, [-10.0, -13.5], [S, B], y_mid=-11.75) for i in range(10)))
+    upd = stitch([conn(ext)], base=base)
+    assert upd.version == base.version + 1
+    ramp_s = [f for f in by_type(upd, S) if f.points[-1, 0] == pytest.approx(158.0)]
+    assert len(ramp_s) == 1 and len(ramp_s[0].predecessors) == 1
+    assert set(base.drive_ids) < set(upd.drive_ids)
+
+
+def test_graph_from_hdmap_without_topology():
+    base = stitch([conn(road("a", 0.0, 10))])
+    bare = HDMap(features=base.features, drive_ids=base.drive_ids)
+    g = graph_from_hdmap(bare)
+    assert g.n_nodes == sum(len(f.points) for f in base.features)
+    assert sorted(f.id for f in to_hdmap(g).features) == sorted(f.id for f in base.features)
+
+
+def test_isolated_speck_dropped_and_bad_config():
+    speck = Segment("s", (step("s", 0, 0.0, [0.0], [D]), step("s", 1, 2.0, [0.0], [D])))
+    assert stitch([conn(speck)]).features == ()  # 2 m < min_isolated_length_m
+    assert len(stitch([conn(speck)], config=StitchConfig.paper()).features) == 1
+    single = Segment("s", (step("s", 0, 0.0, [0.0], [D]),))
+    assert stitch([conn(single)], config=StitchConfig.paper()).features == ()  # one point is no polyline
+    with pytest.raises(ConfigError):
+        StitchConfig(max_distance_m=-1.0)
+    g = conn(road("a", 0.0, 5))
+    with pytest.raises(HdmapError, match="same key"):
+        MapGraph([g, g])
+
+
+def test_segment_split_by_long_gap_is_not_rejoined_across_it():
+    """RULE 3 breaks a segment at a 40 m gap; stitching does not bridge it (beyond max_distance_m)."""
+    steps = [step("a", i, 2.0 * i, *LINES) for i in range(20)] + [step("a", i, 2.0 * i, *LINES) for i in range(40, 60)]
+    m = stitch([connect_segment(Segment("a", tuple(steps)), config=ConnectionConfig())])
+    assert len(m.features) == 6
