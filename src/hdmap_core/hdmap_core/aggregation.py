@@ -1,0 +1,262 @@
+"""Sec. IV-C: aggregation of the aligned clusters of one step, and the processed-stretch store.
+
+Each cluster is replaced by the maximum of its Gaussian kernel density estimate (bandwidth =
+``kde_bandwidth_factor`` x the cluster's standard deviation; the paper writes 6). The maximum is
+found on a grid and polished by mean-shift iterations (a fixed point of mean-shift is a stationary
+point of the KDE), all clusters of a step at once. Clusters whose density functions overlap by
+more than ``overlap_threshold`` (overlap coefficient: integral of min(p_i, p_j)) are the same
+physical feature seen with two types (misclassification): the one with fewer samples is dropped.
+
+The maxima are stored for every drive that took part, keyed by that drive's travelled distance
+(``ProcessedStore``), so that stretches already processed through another pivot are skipped.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hdmap_core.errors import ConfigError
+
+__all__ = ["AggregationConfig", "StepAggregate", "kde_maxima", "overlap_coefficients", "aggregate_step", "ProcessedStore"]
+
+_SQRT2PI = np.sqrt(2.0 * np.pi)
+
+
+@dataclass(frozen=True)
+class AggregationConfig:
+    """Aggregation options (Sec. IV-C). Values the paper leaves open are marked (open).
+
+    Attributes:
+        method: "kde" (paper: KDE maximum) or "mean" (plain cluster mean; the naive baseline).
+        kde_bandwidth_factor: kernel bandwidth = factor x cluster std (paper: 6).
+        kde_min_bandwidth_m: lower bound of the bandwidth [m] (a cluster of identical values).
+        overlap_filter: drop the smaller of two clusters whose densities overlap.
+        overlap_threshold: overlap coefficient in [0, 1] above which clusters are merged (open).
+        grid_points: grid size of the maximum search and the overlap integral per cluster.
+        single_drive_std_m: reported 1-sigma of a maximum supported by one drive [m].
+    """
+
+    method: str = "kde"
+    kde_bandwidth_factor: float = 6.0
+    kde_min_bandwidth_m: float = 0.02
+    overlap_filter: bool = True
+    overlap_threshold: float = 0.5
+    grid_points: int = 48
+    single_drive_std_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.method not in ("kde", "mean"):
+            raise ConfigError(f"AggregationConfig.method must be 'kde' or 'mean', got {self.method!r}")
+        if not (self.kde_bandwidth_factor > 0 and self.kde_min_bandwidth_m > 0):
+            raise ConfigError("AggregationConfig bandwidth factor and minimum must be > 0")
+        if not 0 <= self.overlap_threshold <= 1:
+            raise ConfigError(f"AggregationConfig.overlap_threshold must be in [0, 1], got {self.overlap_threshold!r}")
+        if self.grid_points < 8:
+            raise ConfigError("AggregationConfig.grid_points must be >= 8")
+
+
+@dataclass(frozen=True)
+class StepAggregate:
+    """The aggregated maxima of one step, sorted by lateral position.
+
+    Attributes:
+        lateral_m: (K,) maxima [m]; types: (K,); counts: (K,) distinct drives; std_m: (K,) 1-sigma
+        of each maximum [m]; n_samples: (K,); kept_labels: (K,) the input cluster label of each.
+    """
+
+    lateral_m: np.ndarray
+    types: np.ndarray
+    counts: np.ndarray
+    std_m: np.ndarray
+    n_samples: np.ndarray
+    kept_labels: np.ndarray
+
+
+def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 48, n_shift: int = 50) -> np.ndarray:
+    """Maximum of the Gaussian KDE of every cluster.
+
+    Args:
+        x: (M,) values [m]; labels: (M,) cluster 0..K-1 (every cluster non-empty).
+        bandwidth_m: (K,) kernel std per cluster [m].
+
+    Returns:
+        (K,) arg max of each cluster's KDE [m].
+    """
+    k = int(labels.max()) + 1
+    lo = np.full(k, np.inf)
+    hi = np.full(k, -np.inf)
+    np.minimum.at(lo, labels, x)
+    np.maximum.at(hi, labels, x)
+    g = np.linspace(0.0, 1.0, grid_points)
+    grid = lo[:, None] + (hi - lo)[:, None] * g[None, :]  # (K, G)
+    h = bandwidth_m[labels]
+    z = (grid[labels] - x[:, None]) / h[:, None]  # (M, G)
+    dens = np.zeros((k, grid_points))
+    np.add.at(dens, labels, np.exp(-0.5 * z * z))
+    m = grid[np.arange(k), np.argmax(dens, axis=1)]
+    for _ in range(n_shift):
+        w = np.exp(-0.5 * ((m[labels] - x) / h) ** 2)
+        num = np.bincount(labels, weights=w * x, minlength=k)
+        den = np.bincount(labels, weights=w, minlength=k)
+        new = np.where(den > 0, num / np.where(den > 0, den, 1.0), m)
+        if np.max(np.abs(new - m)) < 1e-9:
+            m = new
+            break
+        m = new
+    return m
+
+
+def _kde_on(points: np.ndarray, x: np.ndarray, h: float) -> np.ndarray:
+    z = (points[:, None] - x[None, :]) / h
+    return np.exp(-0.5 * z * z).sum(axis=1) / (len(x) * h * _SQRT2PI)
+
+
+def overlap_coefficients(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, pairs: np.ndarray, *, grid_points: int = 48) -> np.ndarray:
+    """Overlap coefficient integral(min(p_i, p_j)) of the KDEs of cluster pairs.
+
+    Args:
+        x: (M,); labels: (M,) 0..K-1; bandwidth_m: (K,); pairs: (P, 2) cluster index pairs.
+
+    Returns:
+        (P,) overlaps in [0, 1].
+    """
+    out = np.zeros(len(pairs))
+    for p, (i, j) in enumerate(pairs):
+        xi, xj = x[labels == i], x[labels == j]
+        hi_, hj = bandwidth_m[i], bandwidth_m[j]
+        lo = min(xi.min() - 4 * hi_, xj.min() - 4 * hj)
+        hi = max(xi.max() + 4 * hi_, xj.max() + 4 * hj)
+        grid = np.linspace(lo, hi, 4 * grid_points)
+        pi, pj = _kde_on(grid, xi, hi_), _kde_on(grid, xj, hj)
+        out[p] = float(np.minimum(pi, pj).sum() * (grid[1] - grid[0]))
+    return out
+
+
+def aggregate_step(
+    x: np.ndarray, labels: np.ndarray, types: np.ndarray, drive: np.ndarray, *, config: AggregationConfig
+) -> StepAggregate:
+    """Replace each cluster by its KDE maximum and filter overlapping clusters (Sec. IV-C).
+
+    Args:
+        x: (M,) corrected lateral positions [m]; labels: (M,) cluster labels (-1 ignored);
+        types: (M,) FeatureType codes; drive: (M,) drive codes.
+
+    Returns:
+        The maxima of the surviving clusters, sorted by position.
+    """
+    use = labels >= 0
+    if not use.any():
+        e = np.zeros(0)
+        ei = np.zeros(0, np.int64)
+        return StepAggregate(e, ei, ei, e, ei, ei)
+    x, types, drive = x[use], types[use], drive[use]
+    orig, lab = np.unique(labels[use], return_inverse=True)
+    k = len(orig)
+    n = np.bincount(lab, minlength=k).astype(float)
+    mean = np.bincount(lab, weights=x, minlength=k) / n
+    var = np.maximum(np.bincount(lab, weights=x * x, minlength=k) / n - mean * mean, 0.0)
+    std = np.sqrt(var)
+    ctype = np.zeros(k, dtype=np.int64)
+    ctype[lab] = types
+    n_drives = np.bincount(np.unique(lab * (int(drive.max()) + 1) + drive) // (int(drive.max()) + 1), minlength=k)
+    bw = np.maximum(config.kde_bandwidth_factor * std, config.kde_min_bandwidth_m)
+    if config.method == "kde":
+        pos = kde_maxima(x, lab, bw, grid_points=config.grid_points)
+    else:
+        pos = mean
+    keep = np.ones(k, dtype=bool)
+    if config.overlap_filter and k >= 2:
+        order = np.argsort(pos)
+        pairs = np.stack([order[:-1], order[1:]], axis=1)
+        # Only neighbours whose kernel ranges meet can overlap noticeably.
+        near = np.abs(pos[pairs[:, 0]] - pos[pairs[:, 1]]) < 4.0 * (bw[pairs[:, 0]] + bw[pairs[:, 1]])
+        pairs = pairs[near]
+        if len(pairs):
+            ov = overlap_coefficients(x, lab, bw, pairs, grid_points=config.grid_points)
+            for p in np.argsort(-ov):
+                if ov[p] <= config.overlap_threshold:
+                    break
+                i, j = pairs[p]
+                if keep[i] and keep[j]:
+                    keep[i if n[i] < n[j] else j] = False
+    idx = np.flatnonzero(keep)
+    idx = idx[np.argsort(pos[idx])]
+    sigma = np.where(n_drives[idx] > 1, std[idx] / np.sqrt(np.maximum(n_drives[idx], 1)), config.single_drive_std_m)
+    return StepAggregate(
+        lateral_m=pos[idx],
+        types=ctype[idx],
+        counts=n_drives[idx],
+        std_m=sigma,
+        n_samples=n[idx].astype(np.int64),
+        kept_labels=orig[idx],
+    )
+
+
+@dataclass
+class ProcessedStore:
+    """Travelled-distance intervals already processed, per drive (Sec. IV-C).
+
+    ``intervals[drive_id]`` is a sorted list of disjoint [start_m, end_m] pairs. JSON-serialisable
+    via ``to_json`` / ``from_json``. Methods return new stores; an instance is never changed in
+    place by the pipeline.
+    """
+
+    intervals: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+
+    def contains(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:
+        """(N,) bool: which travelled distances of a drive lie in a processed interval."""
+        s_m = np.asarray(s_m, dtype=float)
+        iv = self.intervals.get(drive_id)
+        if not iv:
+            return np.zeros(s_m.shape, dtype=bool)
+        a = np.array(iv, dtype=float)
+        i = np.searchsorted(a[:, 0], s_m, side="right") - 1
+        ok = i >= 0
+        return ok & (s_m <= a[np.maximum(i, 0), 1])
+
+    def with_marks(self, marks: dict[str, np.ndarray], *, pad_m: float, merge_gap_m: float) -> ProcessedStore:
+        """A new store with the given travelled distances added as processed.
+
+        Args:
+            marks: drive_id -> (N,) travelled distances [m] of processed steps.
+            pad_m: each mark covers [s - pad, s + pad] (half a step).
+            merge_gap_m: marks closer than this join one interval.
+        """
+        new = {k: list(v) for k, v in self.intervals.items()}
+        for did, s in marks.items():
+            s = np.sort(np.asarray(s, dtype=float))
+            if len(s) == 0:
+                continue
+            brk = np.flatnonzero(np.diff(s) > merge_gap_m)
+            starts = np.concatenate([[s[0]], s[brk + 1]]) - pad_m
+            ends = np.concatenate([s[brk], [s[-1]]]) + pad_m
+            new[did] = _merge(new.get(did, []) + list(zip(starts.tolist(), ends.tolist())))
+        return ProcessedStore(new)
+
+    def total_m(self) -> float:
+        return float(sum(b - a for iv in self.intervals.values() for a, b in iv))
+
+    def to_json(self) -> str:
+        return json.dumps({k: [[a, b] for a, b in v] for k, v in self.intervals.items()})
+
+    @classmethod
+    def from_json(cls, text: str) -> ProcessedStore:
+        try:
+            raw = json.loads(text)
+            return cls({str(k): _merge([(float(a), float(b)) for a, b in v]) for k, v in raw.items()})
+        except (ValueError, TypeError, AttributeError) as err:
+            raise ConfigError(f"processed-stretch store is not valid JSON of the documented form: {err}") from err
+
+
+def _merge(iv: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    iv = sorted(iv)
+    out: list[tuple[float, float]] = []
+    for a, b in iv:
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out

@@ -1,0 +1,81 @@
+"""Tests of Sec. IV-C aggregation and the processed-stretch store (aggregation.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_step, kde_maxima
+from hdmap_core.errors import ConfigError
+from hdmap_core.model import FeatureType
+
+
+@pytest.mark.parametrize("factor", [0.5, 1.0, 6.0])
+def test_kde_maximum_of_symmetric_cluster_is_its_centre(factor):
+    centre = 2.37
+    half = np.array([0.05, 0.12, 0.3, 0.31, 0.6])
+    x = np.concatenate([centre - half, centre + half, [centre]])
+    lab = np.zeros(len(x), dtype=np.int64)
+    m = kde_maxima(x, lab, np.array([factor * x.std()]))
+    assert m[0] == pytest.approx(centre, abs=1e-5)
+
+
+def test_kde_maximum_is_the_mode_not_the_mean():
+    # Eight samples at 0 +- 0.02, two outliers at 1.0: the mean moves, the mode stays.
+    x = np.array([-0.02, -0.01, 0.0, 0.0, 0.01, 0.02, -0.015, 0.015, 1.0, 1.0])
+    agg = aggregate_step(x, np.zeros(10, np.int64), np.full(10, 1), np.arange(10), config=AggregationConfig(kde_bandwidth_factor=0.3))
+    assert abs(agg.lateral_m[0]) < 0.02
+    assert x.mean() > 0.19
+
+
+def test_overlap_filter_drops_the_smaller_cluster():
+    rng = np.random.default_rng(0)
+    solid = rng.normal(1.75, 0.05, 12)
+    dashed_misclassified = rng.normal(1.78, 0.05, 3)  # the same line seen as dashed by few drives
+    other = rng.normal(-1.75, 0.05, 10)
+    x = np.concatenate([solid, dashed_misclassified, other])
+    labels = np.repeat([0, 1, 2], [12, 3, 10])
+    types = np.repeat([FeatureType.SOLID, FeatureType.DASHED, FeatureType.DASHED], [12, 3, 10])
+    drive = np.concatenate([np.arange(12), np.arange(3), np.arange(10)])
+    cfg = AggregationConfig(kde_bandwidth_factor=1.0, overlap_threshold=0.5)
+    agg = aggregate_step(x, labels, types, drive, config=cfg)
+    np.testing.assert_array_equal(agg.kept_labels, [2, 0])
+    np.testing.assert_array_equal(agg.types, [FeatureType.DASHED, FeatureType.SOLID])
+    np.testing.assert_array_equal(agg.counts, [10, 12])
+    off = aggregate_step(x, labels, types, drive, config=AggregationConfig(kde_bandwidth_factor=1.0, overlap_filter=False))
+    assert len(off.lateral_m) == 3
+
+
+def test_mean_method_and_uncertainty():
+    x = np.array([0.9, 1.1, 1.0, 1.0])
+    agg = aggregate_step(x, np.zeros(4, np.int64), np.ones(4, np.int64), np.array([0, 1, 2, 3]), config=AggregationConfig(method="mean"))
+    assert agg.lateral_m[0] == pytest.approx(1.0)
+    assert agg.std_m[0] == pytest.approx(x.std() / 2.0)
+    assert agg.counts[0] == 4
+
+
+def test_dropped_labels_ignored():
+    agg = aggregate_step(np.array([5.0, 0.0, 0.1]), np.array([-1, 0, 0]), np.ones(3, np.int64), np.arange(3), config=AggregationConfig())
+    assert len(agg.lateral_m) == 1 and agg.lateral_m[0] == pytest.approx(0.05, abs=1e-6)
+
+
+def test_processed_store_marks_merges_and_round_trips():
+    store = ProcessedStore()
+    s2 = store.with_marks({"a": np.array([10.0, 12.0, 14.0, 40.0]), "b": np.array([0.0])}, pad_m=1.0, merge_gap_m=6.0)
+    assert store.intervals == {}  # the input store is not changed
+    assert s2.intervals["a"] == [(9.0, 15.0), (39.0, 41.0)]
+    np.testing.assert_array_equal(s2.contains("a", np.array([8.9, 9.0, 12.0, 15.0, 20.0, 40.5])), [False, True, True, True, False, True])
+    assert not s2.contains("zzz", np.array([1.0])).any()
+    s3 = s2.with_marks({"a": np.array([16.0])}, pad_m=1.0, merge_gap_m=6.0)
+    assert s3.intervals["a"][0] == (9.0, 17.0)
+    back = ProcessedStore.from_json(s3.to_json())
+    assert back.intervals == s3.intervals
+    with pytest.raises(ConfigError):
+        ProcessedStore.from_json("{not json")
+
+
+def test_config_checks():
+    with pytest.raises(ConfigError):
+        AggregationConfig(method="median")
+    with pytest.raises(ConfigError):
+        AggregationConfig(overlap_threshold=1.5)

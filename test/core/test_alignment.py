@@ -1,0 +1,133 @@
+"""Tests of the Sec. IV-B EM offset estimation (alignment.py)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from sklearn.metrics import silhouette_samples
+
+from hdmap_core.alignment import (
+    AlignmentConfig,
+    align_step,
+    cluster_type,
+    kmeans_1d_all_k,
+    silhouette_samples_1d,
+    solve_offsets,
+)
+from hdmap_core.errors import ConfigError
+from hdmap_core.model import FeatureType
+
+LINES = np.array([-5.25, -1.75, 1.75, 5.25])
+LINE_TYPES = np.array([FeatureType.SOLID, FeatureType.DASHED, FeatureType.DASHED, FeatureType.SOLID])
+
+
+def _step(offsets, *, lines=LINES, types=LINE_TYPES, noise=0.0, seed=0):
+    """Samples of drives each seeing every line, drive d shifted by offsets[d]."""
+    rng = np.random.default_rng(seed)
+    offsets = np.asarray(offsets, float)
+    lat = (lines[None, :] + offsets[:, None]).ravel() + rng.normal(0, noise, len(offsets) * len(lines))
+    drive = np.repeat(np.arange(len(offsets)), len(lines))
+    return lat, np.tile(types, len(offsets)), drive
+
+
+def _sse(x, bounds):
+    return sum(((x[a:b] - x[a:b].mean()) ** 2).sum() for a, b in zip(bounds[:-1], bounds[1:]))
+
+
+def test_kmeans_dp_is_optimal():
+    rng = np.random.default_rng(5)
+    x = np.sort(rng.normal(0, 1, 11) + np.repeat([0, 4, 9], [4, 4, 3]))
+    parts = kmeans_1d_all_k(x, 4)
+    for k, b in enumerate(parts, start=1):
+        assert len(b) == k + 1
+        best = min(_sse(x, (0, *c, len(x))) for c in itertools.combinations(range(1, len(x)), k - 1))
+        assert _sse(x, b) == pytest.approx(best)
+
+
+def test_silhouette_matches_sklearn():
+    rng = np.random.default_rng(2)
+    x = rng.normal(0, 1, 30)
+    lab = rng.integers(0, 3, 30)
+    np.testing.assert_allclose(silhouette_samples_1d(x, lab), silhouette_samples(x[:, None], lab), atol=1e-12)
+
+
+def test_cluster_type_picks_k_by_silhouette_and_gap():
+    x = np.array([0.0, 0.1, -0.1, 3.5, 3.6, 3.4, 7.0, 7.1])
+    for method in ("silhouette", "gap"):
+        lab = cluster_type(x, method=method, k_max=6, single_cluster_silhouette=0.5, gap_split_m=1.0)
+        np.testing.assert_array_equal(lab, [0, 0, 0, 1, 1, 1, 2, 2])
+    single = cluster_type(np.array([0.0, 0.05, 0.1, 0.15, 0.2]), method="silhouette", k_max=4, single_cluster_silhouette=0.7, gap_split_m=1.0)
+    assert np.all(single == 0)
+
+
+@pytest.mark.parametrize("solver", ["lm", "closed_form"])
+def test_offsets_recovered_exactly_noise_free(solver):
+    # 5 drives each seeing 3 lines, shifted by known amounts.
+    shifts = np.array([0.6, -0.9, 0.25, 1.1, -0.4])
+    lat, types, drive = _step(shifts, lines=np.array([-5.25, -1.75, 1.75]), types=np.array([3, 2, 2]))
+    cfg = AlignmentConfig(solver=solver, ridge=1e-9, min_cluster_separation_m=2.0)
+    res = align_step(lat, types, drive, config=cfg)
+    assert res.valid
+    assert res.silhouette > 0.99
+    # Correction = -shift up to the common gauge (drift removal fixes the mean).
+    corr = res.offsets_m
+    np.testing.assert_allclose(corr - corr.mean(), -(shifts - shifts.mean()), atol=1e-5)
+    # Corrected samples collapse onto the lines (shifted by the mean shift).
+    x = lat + corr[drive]
+    for c in np.unique(res.labels):
+        assert np.ptp(x[res.labels == c]) < 1e-4
+
+
+def test_robust_loss_resists_one_bad_sample():
+    shifts = np.array([0.5, -0.5, 0.3, -0.3, 0.0, 0.2])
+    lat, types, drive = _step(shifts, noise=0.02, seed=1)
+    lat = lat.copy()
+    lat[0] += 0.8  # drive 0 sees one line 0.8 m off
+    plain = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form"))
+    robust = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form", robust_loss=True, huber_delta_m=0.1))
+    err_plain = abs((plain.offsets_m - plain.offsets_m.mean())[0] + (shifts[0] - shifts.mean()))
+    err_robust = abs((robust.offsets_m - robust.offsets_m.mean())[0] + (shifts[0] - shifts.mean()))
+    assert err_robust < 0.5 * err_plain
+
+
+def test_silhouette_gate_rejects_pure_noise():
+    rng = np.random.default_rng(0)
+    lat = rng.uniform(-7, 7, 60)
+    types = rng.integers(1, 4, 60)
+    drive = rng.integers(0, 10, 60)
+    res = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form"))
+    assert res.silhouette < 0.67
+    assert not res.valid
+
+
+def test_prior_offsets_and_gap_clustering():
+    shifts = np.array([0.7, -0.8, 0.4, -0.3])
+    lat, types, drive = _step(shifts, noise=0.01)
+    prior = -shifts + 0.05  # previous step's offsets, nearly right
+    cfg = AlignmentConfig(clustering="auto", solver="closed_form", prior_weight=1.0, remove_drift=False)
+    res = align_step(lat, types, drive, config=cfg, prior=prior)
+    assert res.valid
+    np.testing.assert_allclose(res.offsets_m, -shifts, atol=0.08)
+
+
+def test_no_offsets_when_estimation_off():
+    lat, types, drive = _step([0.3, -0.3, 0.1])
+    res = align_step(lat, types, drive, config=AlignmentConfig(estimate_offsets=False))
+    np.testing.assert_array_equal(res.offsets_m, 0.0)
+
+
+def test_solve_offsets_ignores_dropped_samples():
+    lat, types, drive = _step([0.2, -0.2])
+    labels = np.tile([0, 1, 2, 3], 2)
+    labels[0] = -1
+    o = solve_offsets(lat, labels, types, drive, 2, config=AlignmentConfig(solver="closed_form", ridge=1e-9))
+    assert o[0] - o[1] == pytest.approx(-0.4, abs=1e-6)
+
+
+def test_config_checks():
+    with pytest.raises(ConfigError):
+        AlignmentConfig(clustering="dbscan")
+    with pytest.raises(ConfigError):
+        AlignmentConfig(solver="adam")

@@ -1,0 +1,94 @@
+"""Tests of Sec. IV-A lateral sampling and cut-line refinement (sampling.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hdmap_core.model import Detection, Drive, FeatureType
+from hdmap_core.preprocess import preprocess
+from hdmap_core.sampling import SamplingConfig, pivot_walk, refine_cuts, sample_pivot
+from pipeline_fleet import LINES, make_drive, offset_line
+
+
+def _opposite_drive(drive_id: str) -> Drive:
+    """A drive on the other carriageway, 20 m to the right, going the other way.
+
+    ------>  ego carriageway (lines at +-1.75, +-5.25, borders +-6.5)
+    <------  opposite carriageway centred at -20 m (lines at -20 +- 1.75)
+    """
+    s = np.arange(0.0, 301.0, 1.0)
+    xy, h = offset_line(s, -20.0)
+    dets = []
+    for lat in (-18.25, -21.75):
+        p, _ = offset_line(s, lat)
+        dets.append(Detection(FeatureType.DASHED, p[::-1].copy()))
+    yaw = (h[::-1] + 2 * np.pi) % (2 * np.pi) - np.pi
+    return Drive(drive_id, xy[::-1].copy(), yaw, np.arange(len(s), dtype=np.int64), tuple(dets))
+
+
+def test_pivot_walk_steps_every_2m():
+    d = make_drive("p", lane=0.0, bias=0.0, s1=101.0)  # chords of the arc: just over 100 m
+    s, pts, heading = pivot_walk(d, step_m=2.0)
+    assert len(s) == 51
+    np.testing.assert_allclose(np.hypot(*np.diff(pts, axis=0).T), 2.0, atol=1e-3)
+    np.testing.assert_allclose(heading, s / 2000.0, atol=1e-4)  # arc of radius 2000 m
+
+
+def test_opposite_direction_samples_dropped():
+    pivot = make_drive("p", lane=0.0, bias=0.0)
+    drives = [pivot, _opposite_drive("o")]
+    idx = preprocess(drives)
+    cfg = SamplingConfig(initial_half_length_m=30.0, min_border_support=1)
+    ps = sample_pivot(idx, pivot, config=cfg)
+    assert ps.n_steps > 100
+    assert len(ps.drive) > 0
+    assert set(ps.drive.tolist()) == {0}  # nothing of the opposite drive survives
+    # ... although its lines do cross the initial cut: with the filter off they are sampled.
+    wide = SamplingConfig(initial_half_length_m=30.0, max_heading_diff_deg=180.0, min_border_support=1, max_width_m=60.0, margin_m=20.0)
+    ps2 = sample_pivot(idx, pivot, config=wide)
+    assert 1 in set(ps2.drive.tolist())
+
+
+@pytest.mark.parametrize("lane", [-3.5, 0.0, 3.5])
+def test_refinement_finds_borders(lane):
+    pivot = make_drive("p", lane=lane, bias=0.0)
+    others = [make_drive(f"d{i}", lane=0.0, bias=b) for i, b in enumerate([0.2, -0.2, 0.1])]
+    # A parallel road 12 m to the left (its border at +12 m) must be cut away.
+    extra = make_drive("x", lane=0.0, bias=0.0, lines=((12.0, FeatureType.ROAD_BORDER), (15.0, FeatureType.SOLID)))
+    idx = preprocess([pivot, *others, extra])
+    cfg = SamplingConfig(margin_m=0.5, spread_factor=2.0)
+    ps = sample_pivot(idx, pivot, config=cfg)
+    q = ps.n_steps // 2
+    lat = ps.lateral_m[ps.ptr[q] : ps.ptr[q + 1]]
+    types = ps.types[ps.ptr[q] : ps.ptr[q + 1]]
+    # Midpoint on the road centre, width = border to border + spread and constant margins.
+    _, h = offset_line(np.array([ps.s_m[q]]), 0.0)
+    centre, _ = offset_line(np.array([ps.s_m[q]]), 0.0)
+    off = np.dot(ps.midpoint[q] - centre[0], [-np.sin(h[0]), np.cos(h[0])])
+    assert off == pytest.approx(0.0, abs=0.05)
+    assert 13.0 + 2 * 0.5 <= ps.width_m[q] <= 13.0 + 2 * (0.5 + 2.0 * 0.2) + 0.05
+    assert lat.max() < 8.0 and lat.min() > -8.0
+    assert (types == FeatureType.ROAD_BORDER).sum() == 8  # 4 drives x 2 borders
+    assert not np.any(np.isclose(lat, 12.0, atol=1.0))
+
+
+def test_refinement_smooths_over_missing_borders():
+    # Steps 0..19 see borders at +-6.5; steps 20..39 see none: the width is carried over.
+    q = np.repeat(np.arange(20), 4)
+    t = np.tile([6.5, 6.5, -6.5, -6.5], 20)
+    types = np.full(len(q), FeatureType.ROAD_BORDER)
+    mid, width = refine_cuts(q, t, types, 40, config=SamplingConfig(margin_m=0.5, spread_factor=0.0))
+    np.testing.assert_allclose(width, 14.0)
+    np.testing.assert_allclose(mid, 0.0, atol=1e-12)
+
+
+def test_skip_mask_skips_steps():
+    pivot = make_drive("p", lane=0.0, bias=0.0, s1=100.0)
+    idx = preprocess([pivot])
+    s, _, _ = pivot_walk(pivot, step_m=2.0)
+    skip = s < 50.0
+    ps = sample_pivot(idx, pivot, config=SamplingConfig(min_border_support=1), skip=skip)
+    counts = np.diff(ps.ptr)
+    assert np.all(counts[skip] == 0)
+    assert np.all(counts[~skip] == 6)
