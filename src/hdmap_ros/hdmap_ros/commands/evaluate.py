@@ -1,0 +1,225 @@
+"""``hdmap evaluate MAP GT``: score a map against ground truth with the paper's metric (Sec. VII).
+
+MAP is a map bag (rosbag2 directory or ``.mcap`` with ``/hdmap/map``; the last map is used) or a
+``.gt.json`` file (its features then serve as the map: a sanity check that must score 0 m).
+GT is a ``.gt.json`` file, the name of a shared ground-truth map (e.g. ``carla_town04``, searched
+in ``$HDMAP_MAPS_DIR`` and in ``shared/data/maps`` beside the repository) or of a built-in
+synthetic highway (``motorway``, ...).
+
+``--fleet BAG`` gives the drives for the floor sigma_loc / sqrt(n); sigma_loc comes from
+``--sigma-loc``, else from ``BAG.sim.json`` beside the fleet bag (written by ``hdmap simulate``),
+else 1.0 m. Prints the summary; ``--json`` and ``--plot`` write the full report and the figure.
+Exit status: 0 done, 1 an error (unreadable input), 2 usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+from hdmap_core.errors import GroundTruthError, HdmapError
+from hdmap_core.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth, plot_evaluation
+from hdmap_core.groundtruth import GroundTruth, load_ground_truth
+from hdmap_core.model import HDMap
+
+__all__ = ["NAME", "HELP", "add_arguments", "run", "resolve_ground_truth", "sigma_from_sim_json"]
+
+NAME = "evaluate"
+HELP = "score a map (map bag or .gt.json) against ground truth: lateral error, coverage, recall, floor"
+MAPS_ENV = "HDMAP_MAPS_DIR"
+GT_SUFFIX = ".gt.json"
+
+# Keys of the simulator's config that hold the per-drive lateral localization sigma, most specific first.
+_SIGMA_KEYS = (
+    "sigma_loc_m",
+    "lateral_bias_sigma_m",
+    "bias_lateral_sigma_m",
+    "lateral_sigma_m",
+    "loc_lateral_sigma_m",
+    "bias_sigma_m",
+    "loc_bias_sigma_m",
+    "localization_sigma_m",
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("map", metavar="MAP", help="map bag (rosbag2 directory or .mcap) or a .gt.json used as map")
+    parser.add_argument("gt", metavar="GT", help="ground truth: .gt.json path, shared map name or synthetic name")
+    parser.add_argument("--fleet", metavar="BAG", help="fleet bag: its drives give the drive count per cut (floor)")
+    parser.add_argument(
+        "--sigma-loc",
+        metavar="M",
+        type=_positive_float,
+        help="localization sigma for the floor [m] (default: from BAG.sim.json beside --fleet, else 1.0)",
+    )
+    parser.add_argument("--json", metavar="OUT.json", help="write the full report (with per-cut arrays) as JSON")
+    parser.add_argument("--plot", metavar="OUT.png", help="write the figure: map over ground truth, error along the reference")
+    parser.add_argument("--all-lanes", action="store_true", help="evaluate along all route lanes, not only highway lanes")
+    parser.add_argument("--step", metavar="M", type=_positive_float, default=2.0, help="cut spacing [m] (default: %(default)s)")
+    parser.add_argument(
+        "--gate", metavar="M", type=_positive_float, default=EvalConfig().gate_m,
+        help="a map point farther than this from every same-type GT point is unmatched [m] (default: %(default)s)",
+    )
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0")
+    return value
+
+
+def _fail(message: str) -> int:
+    print(f"hdmap {NAME}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _map_dirs() -> list[Path]:
+    """Where shared ground-truth maps are looked for: $HDMAP_MAPS_DIR, then shared/data/maps in any
+    parent of this file or of the working directory (the repository's sibling ``shared``)."""
+    dirs = []
+    if os.environ.get(MAPS_ENV):
+        dirs.append(Path(os.environ[MAPS_ENV]))
+    for base in (Path(__file__).resolve(), Path.cwd().resolve()):
+        for parent in [base, *base.parents]:
+            cand = parent / "shared" / "data" / "maps"
+            if cand.is_dir() and cand not in dirs:
+                dirs.append(cand)
+    return dirs
+
+
+def resolve_ground_truth(spec: str) -> GroundTruth:
+    """Load ground truth from a path, a shared map name or a synthetic highway name.
+
+    Raises:
+        GroundTruthError: nothing of that name, or the file is not ground truth.
+    """
+    path = Path(spec)
+    if path.exists():
+        return load_ground_truth(path)
+    name = spec[: -len(GT_SUFFIX)] if spec.endswith(GT_SUFFIX) else spec
+    for d in _map_dirs():
+        cand = d / f"{name}{GT_SUFFIX}"
+        if cand.exists():
+            return load_ground_truth(cand)
+    try:
+        from hdmap_core.synthetic import SYNTHETIC_NAMES, synthetic_highway
+    except ImportError:  # the synthetic module is optional here
+        SYNTHETIC_NAMES, synthetic_highway = (), None
+    if name in SYNTHETIC_NAMES and synthetic_highway is not None:
+        return synthetic_highway(name)
+    searched = ", ".join(str(d) for d in _map_dirs()) or f"none (set ${MAPS_ENV})"
+    raise GroundTruthError(
+        f"ground truth {spec!r}: no such file, no {name}{GT_SUFFIX} in the map directories ({searched}) "
+        f"and not a synthetic highway name ({', '.join(SYNTHETIC_NAMES) or 'none available'})"
+    )
+
+
+def _load_map(spec: str) -> tuple[HDMap, str]:
+    """The map to evaluate and a description of where it came from."""
+    if spec.endswith(".json"):
+        gt = load_ground_truth(spec)
+        return hdmap_from_ground_truth(gt), f"ground truth {spec} used as map"
+    from hdmap_ros.bagio import read_map_bag
+
+    hdmap = read_map_bag(spec)
+    note = f"map bag {spec} (version {hdmap.version}, {len(hdmap.features)} features)"
+    if hdmap.extra.get("bag_error"):
+        note += f"; bag damaged after the map: {hdmap.extra['bag_error']}"
+    return hdmap, note
+
+
+def _sim_json_beside(bag: str) -> Path | None:
+    p = Path(bag.rstrip("/\\"))
+    for cand in (p.with_name(p.name + ".sim.json"), p.with_suffix(".sim.json")):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def sigma_from_sim_json(path: str | Path) -> float | None:
+    """The lateral localization sigma [m] recorded by the simulator, or None if not found.
+
+    Looks for the first of ``_SIGMA_KEYS`` anywhere in the document (config first), else for a key
+    naming both "sigma" and "lat" and ending in "_m".
+    """
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    found: dict[str, float] = {}
+
+    def walk(node: object, depth: int) -> None:
+        if depth > 4 or not isinstance(node, dict):
+            return
+        for key, value in node.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in found:
+                found[key] = float(value)
+            elif isinstance(value, dict) and key not in ("truth", "drives"):
+                walk(value, depth + 1)
+
+    walk(doc, 0)
+    for key in _SIGMA_KEYS:
+        if key in found and math.isfinite(found[key]) and found[key] > 0:
+            return found[key]
+    for key, value in found.items():
+        low = key.lower()
+        if "sigma" in low and "lat" in low and low.endswith("_m") and math.isfinite(value) and value > 0:
+            return value
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    for opt in ("json", "plot"):
+        out = getattr(args, opt)
+        if out and Path(out).is_dir():
+            return _fail(f"--{opt} {out} is a directory")
+    gt = resolve_ground_truth(args.gt)
+    hdmap, map_note = _load_map(args.map)
+    print(f"map: {map_note}")
+    print(f"ground truth: {gt.name} ({len(gt.features)} features, {len(gt.lanes)} lanes, {len(gt.routes)} routes)")
+
+    drives = None
+    sigma, sigma_note = args.sigma_loc, "--sigma-loc"
+    if args.fleet:
+        from hdmap_ros.bagio import read_fleet_bag
+
+        fleet = read_fleet_bag(args.fleet)
+        if fleet.error and not fleet.drives:
+            raise HdmapError(f"fleet bag {args.fleet}: {fleet.error}")
+        drives = fleet.drives
+        note = f"fleet: {len(drives)} drives from {args.fleet}"
+        if fleet.rejected:
+            note += f" ({len(fleet.rejected)} rejected)"
+        if fleet.error:
+            note += f"; read stopped early: {fleet.error}"
+        print(note)
+        if sigma is None:
+            sim = _sim_json_beside(args.fleet)
+            sigma = sigma_from_sim_json(sim) if sim else None
+            sigma_note = f"{sim.name}" if sigma is not None else "default"
+    if sigma is None:
+        sigma, sigma_note = EvalConfig().default_sigma_loc_m, "default"
+    print(f"sigma_loc: {sigma:g} m ({sigma_note})")
+
+    config = EvalConfig(step_m=args.step, gate_m=args.gate,
+                        highway_only=not args.all_lanes)
+    report = evaluate_map(hdmap, gt, config=config, drives=drives, sigma_loc_m=sigma)
+    print()
+    print(report.summary())
+    if args.json:
+        doc = report.to_dict(include_cuts=True)
+        doc["inputs"] = {"map": args.map, "gt": args.gt, "fleet": args.fleet, "sigma_loc_source": sigma_note}
+        Path(args.json).write_text(json.dumps(doc, allow_nan=False))
+        print(f"wrote {args.json}")
+    if args.plot:
+        plot_evaluation(report, hdmap, gt, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
