@@ -249,3 +249,19 @@ def test_iter_fleet_bag_streams_in_bag_order_and_flags_conflicting_origin(tmp_pa
     assert items[0] == ORIGIN
     assert items[1].drive_id == "a"
     assert isinstance(items[2], Rejection) and items[2].reason == "conflicting_origin"
+
+
+def test_baginfo_describes_drives_rejections_and_damage(tmp_path, capsys):
+    from hdmap_ros.baginfo import main
+
+    bad = replace(make_drive("zz-bad", n=5, start_ns=T0_NS + 10**10), frame_id="odom")
+    bag = write_fleet_bag(tmp_path / "fleet", _drives(2) + [bad], ORIGIN)
+    assert main([str(bag), "--drives"]) == 0
+    out = capsys.readouterr().out
+    assert "/fleet/drives" in out and "hdmap_msgs/msg/Drive" in out and "3 msgs" in out
+    assert "d000" in out and "d001" in out and "rejected drive 'zz-bad': wrong_frame" in out
+    mcap = _mcap_of(bag)
+    mcap.write_bytes(mcap.read_bytes()[:-100])
+    assert main([str(bag)]) == 1
+    assert "DAMAGED:" in capsys.readouterr().out
+    assert main([str(tmp_path / "missing")]) == 1
