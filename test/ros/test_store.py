@@ -116,8 +116,8 @@ def test_drive_store_acknowledges_once_and_indexes_tiles(tmp_path):
     assert [d.drive_id for d in st.drives_covering((1, 0))] == ["a", "b"]
     assert st.tiles_of(["b"]) == {(1, 0)}
     assert st.stale_tiles() == [(0, 0), (1, 0)]
-    est = st.put_tile((1, 0), _segments(), drive_count=2)
-    assert est.version == 1 and st.put_tile((1, 0), [], drive_count=2).version == 2
+    est = st.put_tile((1, 0), _segments(), ["a", "b"])
+    assert est.version == 1 and st.put_tile((1, 0), [], ["a", "b"]).version == 2
     assert st.stale_tiles() == [(0, 0)]
     st.mark_processed(["a"])
     assert st.pending() == ["b"]
@@ -125,6 +125,7 @@ def test_drive_store_acknowledges_once_and_indexes_tiles(tmp_path):
     # everything survives reopening
     st2 = DriveStore(tmp_path / "m.db")
     assert st2.pending() == ["b"] and st2.tile((1, 0)).version == 2 and st2.tile((1, 0)).segments() == []
+    assert st2.tile((1, 0)).drive_ids == ("a", "b") and st2.tile((1, 0)).drive_count == 2
     _assert_drive_equal(st2.drives_covering((0, 0))[0], _drive("a"))
 
 

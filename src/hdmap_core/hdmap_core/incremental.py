@@ -45,6 +45,8 @@ __all__ = [
     "map_tile",
     "carry_over_ids",
     "clean_drive",
+    "connect_tile",
+    "stitch_graphs",
 ]
 
 TileKey = tuple[int, int]
@@ -276,6 +278,41 @@ def clean_drive(drive: Drive, *, min_length_m: float = 3.0, rdp_epsilon_m: float
         Detection(type=det.type, points=pts[mask[s : s + len(pts)]]) for (det, pts), s in zip(kept, starts)
     )
     return replace(drive, detections=dets)
+
+
+def _stage_config(pipeline_config: object, *names: str) -> dict:
+    """``{"config": <sub-config>}`` when the pipeline config has one of ``names``, else {} (defaults)."""
+    for name in names:
+        sub = getattr(pipeline_config, name, None)
+        if sub is not None:
+            return {"config": sub}
+    return {}
+
+
+def connect_tile(segments: Sequence[Segment], *, pipeline_config: object) -> list:
+    """Sec. V for every segment of a tile: ``connection.connect_segment`` per segment.
+
+    Returns:
+        One ``SegmentGraph`` per segment with at least one step, in input order.
+    """
+    from hdmap_core.connection import connect_segment  # noqa: PLC0415
+
+    kw = _stage_config(pipeline_config, "connection")
+    return [connect_segment(seg, **kw) for seg in segments if seg.steps]
+
+
+def stitch_graphs(graphs: Sequence, *, pipeline_config: object, drive_ids: Iterable[str] = ()) -> HDMap:
+    """Sec. VI: the segment graphs of all tiles stitched into the complete map.
+
+    Args:
+        graphs: the tiles' segment graphs, in a deterministic order (by tile key, then segment).
+        pipeline_config: the ``PipelineConfig`` whose stitching options apply.
+        drive_ids: the drives integrated so far (stored in the map, sorted).
+    """
+    from hdmap_core.stitching import stitch  # noqa: PLC0415
+
+    hdmap = stitch(list(graphs), **_stage_config(pipeline_config, "stitching", "stitch"))
+    return replace(hdmap, drive_ids=tuple(sorted(set(drive_ids))))
 
 
 # --- feature ids -----------------------------------------------------------------------------------

@@ -279,13 +279,18 @@ class _Store:
 class TileEstimate:
     """The stored estimate of one tile."""
 
-    __slots__ = ("key", "version", "drive_count", "segments_blob")
+    __slots__ = ("key", "version", "drive_ids", "segments_blob")
 
-    def __init__(self, key: TileKey, version: int, drive_count: int, segments_blob: bytes | None) -> None:
+    def __init__(self, key: TileKey, version: int, drive_ids: Sequence[str], segments_blob: bytes | None) -> None:
         self.key = key
         self.version = version
-        self.drive_count = drive_count
+        self.drive_ids = tuple(drive_ids)
         self.segments_blob = segments_blob
+
+    @property
+    def drive_count(self) -> int:
+        """Number of drives the estimate was made from."""
+        return len(self.drive_ids)
 
     def segments(self) -> list[Segment]:
         return blob_to_segments(self.segments_blob) if self.segments_blob else []
@@ -310,6 +315,7 @@ class DriveStore(_Store):
         tx INTEGER NOT NULL, ty INTEGER NOT NULL,
         version INTEGER NOT NULL,
         drive_count INTEGER NOT NULL,
+        drive_ids TEXT NOT NULL,
         segments BLOB,
         PRIMARY KEY (tx, ty)
     )
@@ -372,12 +378,17 @@ class DriveStore(_Store):
         return [blob_to_drive(r[0]) for r in rows]
 
     def tile(self, key: TileKey) -> TileEstimate | None:
-        rows = self._query("SELECT version, drive_count, segments FROM tiles WHERE tx=? AND ty=?", key)
-        return TileEstimate(key, rows[0][0], rows[0][1], rows[0][2]) if rows else None
+        rows = self._query("SELECT version, drive_ids, segments FROM tiles WHERE tx=? AND ty=?", key)
+        return TileEstimate(key, rows[0][0], json.loads(rows[0][1]), rows[0][2]) if rows else None
 
     def tiles(self) -> list[TileEstimate]:
-        rows = self._query("SELECT tx, ty, version, drive_count, segments FROM tiles ORDER BY tx, ty")
-        return [TileEstimate((r[0], r[1]), r[2], r[3], r[4]) for r in rows]
+        rows = self._query("SELECT tx, ty, version, drive_ids, segments FROM tiles ORDER BY tx, ty")
+        return [TileEstimate((r[0], r[1]), r[2], json.loads(r[3]), r[4]) for r in rows]
+
+    def tiles_signature(self) -> str:
+        """Every (tile, version), as :meth:`MapStore.tiles_signature` names them."""
+        rows = self._query("SELECT tx, ty, version FROM tiles ORDER BY tx, ty")
+        return ";".join(f"{x},{y}:{v}" for x, y, v in rows)
 
     def stale_tiles(self) -> list[TileKey]:
         """Tiles whose estimate was made from fewer drives than now cover them (or never made)."""
@@ -388,17 +399,18 @@ class DriveStore(_Store):
         )
         return [(r[0], r[1]) for r in rows]
 
-    def put_tile(self, key: TileKey, segments: Sequence[Segment], drive_count: int) -> TileEstimate:
-        """Replace a tile's estimate in one transaction; returns it with its new version."""
+    def put_tile(self, key: TileKey, segments: Sequence[Segment], drive_ids: Sequence[str]) -> TileEstimate:
+        """Replace a tile's estimate (made from ``drive_ids``) in one transaction; returns it with its new version."""
         blob = segments_to_blob(segments)
+        ids = list(drive_ids)
         with self._tx() as con:
             row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
             version = (row[0] if row else 0) + 1
             con.execute(
-                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_count, segments) VALUES (?, ?, ?, ?, ?)",
-                (key[0], key[1], version, int(drive_count), blob),
+                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_count, drive_ids, segments) VALUES (?, ?, ?, ?, ?, ?)",
+                (key[0], key[1], version, len(ids), json.dumps(ids), blob),
             )
-        return TileEstimate(key, version, int(drive_count), blob)
+        return TileEstimate(key, version, ids, blob)
 
 
 class MapStore(_Store):

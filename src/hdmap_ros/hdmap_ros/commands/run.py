@@ -1,0 +1,154 @@
+"""``hdmap run BAG``: the whole node suite in one process, fed drive by drive from a bag.
+
+``ros2 launch`` is not there on wheel installs, so this runs drive_ingestor, segment_mapper,
+map_stitcher, map_publisher and bag_player in one rclpy executor (real DDS topics between them:
+``ros2 topic echo /hdmap/map`` from another process works). It exits when the bag is done and
+the map has settled (every drive mapped, every stale tile re-estimated, every estimate stitched),
+or stays up with ``--keep-alive``. The settled map can be written with ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from hdmap_core.errors import HdmapError, NoUsableDataError
+
+NAME = "run"
+HELP = "run the node suite in one process on a fleet bag (drive by drive) and write the settled map"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", help="fleet bag (rosbag2 directory or .mcap) to replay onto /fleet/drives")
+    parser.add_argument("--rate", type=float, default=0.0,
+                        help="replay speed factor of the bag's log times; 0 = as fast as possible (default)")
+    parser.add_argument("--out", "-o", help="write the settled map here (rosbag2 MCAP directory)")
+    parser.add_argument("--geojson", help="also write the settled map as GeoJSON (needs /fleet/origin in the bag)")
+    parser.add_argument("--state", help="directory of the SQLite stores (default: a fresh temporary one); "
+                                        "an existing state continues where it stopped")
+    parser.add_argument("--preset", default=None, help="pipeline preset (default: the params file's, 'default')")
+    parser.add_argument("--params-file", help="node parameters (YAML), applied over the package defaults")
+    parser.add_argument("--keep-alive", action="store_true", help="keep serving /hdmap/map after settling (Ctrl-C ends)")
+    parser.add_argument("--timeout", type=float, default=0.0, help="give up after this many seconds (0 = never)")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+
+
+class _Suite:
+    """The five nodes in one executor."""
+
+    def __init__(self, args: argparse.Namespace, state: Path) -> None:
+        import rclpy  # noqa: PLC0415
+        from rclpy.executors import MultiThreadedExecutor  # noqa: PLC0415
+        from rclpy.parameter import Parameter  # noqa: PLC0415
+
+        from hdmap_ros.nodes._common import with_default_params  # noqa: PLC0415
+        from hdmap_ros.nodes.bag_player import BagPlayer  # noqa: PLC0415
+        from hdmap_ros.nodes.drive_ingestor import DriveIngestor  # noqa: PLC0415
+        from hdmap_ros.nodes.map_publisher import MapPublisher  # noqa: PLC0415
+        from hdmap_ros.nodes.map_stitcher import MapStitcher  # noqa: PLC0415
+        from hdmap_ros.nodes.segment_mapper import SegmentMapper  # noqa: PLC0415
+
+        ros_args = ["hdmap-run", "--ros-args"]
+        if args.params_file:
+            ros_args += ["--params-file", str(args.params_file)]
+        self.context = rclpy.Context()
+        rclpy.init(args=with_default_params(ros_args), context=self.context)
+
+        def p(**kw):
+            return [Parameter(k, value=v) for k, v in kw.items()]
+
+        preset = {"preset": args.preset} if args.preset else {}
+        c = {"context": self.context}
+        self.ingestor = DriveIngestor(**c)
+        self.mapper = SegmentMapper(parameter_overrides=p(db_path=str(state / "segment_mapper.db"), **preset), **c)
+        self.stitcher = MapStitcher(parameter_overrides=p(db_path=str(state / "map_stitcher.db"), **preset), **c)
+        self.publisher = MapPublisher(**c)
+        self.player = BagPlayer(parameter_overrides=p(bag=str(args.bag), rate=float(args.rate)), **c)
+        self.nodes = [self.ingestor, self.mapper, self.stitcher, self.publisher, self.player]
+        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        for n in self.nodes:
+            self.executor.add_node(n)
+
+    def settled(self) -> bool:
+        """The bag is done and everything it caused has reached the map."""
+        if not self.player.done or self.ingestor.received < self.player.published:
+            return False
+        if self.mapper.received < self.ingestor.published or not self.mapper.is_settled():
+            return False
+        return self.mapper.store.tiles_signature() == self.stitcher.store.tiles_signature() and self.stitcher.is_settled()
+
+    def status(self) -> str:
+        m = self.stitcher.map
+        return (
+            f"drives played {self.player.published}, accepted {self.ingestor.health.accepted}, "
+            f"rejected {self.ingestor.health.rejected_total}, mapper backlog {self.mapper.health.backlog}, "
+            f"tiles {len(self.mapper.store.tiles())}, map version {m.version if m else 0} "
+            f"({len(m.features) if m else 0} features)"
+        )
+
+    def close(self) -> None:
+        import rclpy  # noqa: PLC0415
+
+        self.executor.shutdown()
+        for n in self.nodes:
+            n.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def run(args: argparse.Namespace) -> int:
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # never leave the machine by default
+    if not Path(args.bag).exists():
+        raise HdmapError(f"{args.bag}: no such bag")
+    tmp = None
+    if args.state:
+        state = Path(args.state)
+        state.mkdir(parents=True, exist_ok=True)
+    else:
+        tmp = tempfile.TemporaryDirectory(prefix="hdmap-run-")
+        state = Path(tmp.name)
+    suite = _Suite(args, state)
+    t0 = time.monotonic()
+    last_print = 0.0
+    try:
+        while True:
+            suite.executor.spin_once(timeout_sec=0.1)
+            now = time.monotonic()
+            if not args.quiet and now - last_print >= 2.0:
+                print(f"[{now - t0:6.1f} s] {suite.status()}", file=sys.stderr)
+                last_print = now
+            if not args.keep_alive and suite.settled():
+                break
+            if args.timeout and now - t0 > args.timeout:
+                print(f"hdmap run: not settled after {args.timeout:.0f} s: {suite.status()}", file=sys.stderr)
+                return 1
+        hdmap = suite.stitcher.map
+        if not args.quiet:
+            print(f"[{time.monotonic() - t0:6.1f} s] settled: {suite.status()}", file=sys.stderr)
+        if hdmap is None:
+            raise NoUsableDataError(f"{args.bag}: no usable drive, no map")
+        _write(args, hdmap)
+        return 0
+    finally:
+        suite.close()
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def _write(args: argparse.Namespace, hdmap) -> None:
+    from hdmap_ros.bagio import read_bag_origin, write_map_bag  # noqa: PLC0415
+
+    origin = read_bag_origin(args.bag) if (args.out or args.geojson) else None
+    if args.out:
+        write_map_bag(args.out, hdmap, origin, overwrite=True)
+        print(f"map version {hdmap.version} ({len(hdmap.features)} features) written to {args.out}")
+    if args.geojson:
+        if origin is None:
+            raise HdmapError(f"{args.bag} has no /fleet/origin: cannot write GeoJSON")
+        from hdmap_ros.geojson import write_geojson  # noqa: PLC0415
+
+        write_geojson(hdmap, origin, args.geojson)
+        print(f"GeoJSON written to {args.geojson}")

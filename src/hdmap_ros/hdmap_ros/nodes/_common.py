@@ -1,0 +1,119 @@
+"""Shared glue of the nodes: parameter declaration, the default YAML, ``main`` and diagnostics."""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from hdmap_ros import qos
+from hdmap_ros.diagnostics import Health, health_to_msg
+
+__all__ = ["declare", "params_file", "with_default_params", "run_node", "HealthMixin", "preset_config"]
+
+PACKAGE = "hdmap_ros"
+# src/hdmap_ros/hdmap_ros/nodes/_common.py -> src/hdmap_ros/config/hdmap.yaml
+_SOURCE_YAML = Path(__file__).resolve().parents[2] / "config" / "hdmap.yaml"
+
+
+def params_file() -> Path | None:
+    """config/hdmap.yaml from the installed share directory, else the source tree, else None."""
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory  # noqa: PLC0415
+
+        share = Path(get_package_share_directory(PACKAGE)) / "config" / "hdmap.yaml"
+        if share.is_file():
+            return share
+    except (ImportError, PackageNotFoundError, LookupError, ValueError):
+        pass
+    return _SOURCE_YAML if _SOURCE_YAML.is_file() else None
+
+
+def with_default_params(args: Sequence[str] | None) -> list[str]:
+    """ROS arguments with the package's default YAML loaded first (later --params-file override it)."""
+    argv = list(sys.argv if args is None else args)
+    yaml = params_file()
+    if yaml is None or os.environ.get("HDMAP_NO_DEFAULT_PARAMS"):
+        return argv
+    # Parameter files given later win, so the user's own --params-file still overrides ours.
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        return argv[: i + 1] + ["--params-file", str(yaml)] + argv[i + 1 :]
+    return argv + ["--ros-args", "--params-file", str(yaml)]
+
+
+def declare(
+    node: Node,
+    name: str,
+    default: Any,
+    description: str,
+    *,
+    lo: float | int | None = None,
+    hi: float | int | None = None,
+    read_only: bool = True,
+) -> Any:
+    """Declare a parameter with description, range and default; return its value.
+
+    ``lo``/``hi`` become a FloatingPointRange (float default) or IntegerRange (int default);
+    rclpy then rejects out-of-range values given in YAML or on the command line.
+    """
+    desc = ParameterDescriptor(description=description, read_only=read_only)
+    if lo is not None and hi is not None:
+        if isinstance(default, bool):
+            pass
+        elif isinstance(default, int):
+            desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+        elif isinstance(default, float):
+            desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+    return node.declare_parameter(name, default, desc).value
+
+
+def preset_config(name: str) -> Any:
+    """The pipeline's named preset (``default``, ``paper``, ``naive``)."""
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+
+    for ctor in ("preset", "from_preset"):
+        if hasattr(PipelineConfig, ctor):
+            return getattr(PipelineConfig, ctor)(name)
+    return PipelineConfig()
+
+
+class HealthMixin:
+    """Periodic /diagnostics of a node's :class:`Health`."""
+
+    health: Health
+
+    def _init_health(self: Any, label: str) -> None:
+        period = declare(self, "diagnostics_period_s", 1.0, "Period of /diagnostics messages [s].", lo=0.05, hi=60.0)
+        self.health = Health(name=f"hdmap: {label}", hardware_id=self.get_fully_qualified_name())
+        self._diag_pub = self.create_publisher(
+            __import__("diagnostic_msgs.msg", fromlist=["DiagnosticArray"]).DiagnosticArray,
+            "/diagnostics",
+            qos.DIAGNOSTICS,
+        )
+        self._diag_timer = self.create_timer(period, self.publish_health)
+
+    def publish_health(self: Any) -> None:
+        self._diag_pub.publish(health_to_msg([self.health], stamp=self.get_clock().now().to_msg()))
+
+
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> None:
+    """The ros2/demos ``main``: init, spin, clean shutdown on Ctrl-C or external shutdown."""
+    rclpy.init(args=with_default_params(args))
+    node = None
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,0 +1,153 @@
+"""bag_player: replays a fleet bag onto its topics (rosbag2 is not on wheel installs).
+
+Reads a rosbag2 directory or bare ``.mcap`` file (``hdmap_ros.bagio.iter_bag``) and publishes the
+raw CDR bytes of ``/fleet/drives`` (and ``/fleet/origin``, latched) on publishers of the recorded
+type, at the bag's log times scaled by ``rate`` (0 = as fast as possible), starting
+``start_offset_s`` into the bag, optionally in a loop. On stock Jazzy ``ros2 bag play`` does the same.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections.abc import Iterator
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from hdmap_core.errors import HdmapError
+from hdmap_ros import qos
+from hdmap_ros.bagio import DRIVES_TOPIC, ORIGIN_TOPIC, BagMessage, iter_bag
+from hdmap_ros.nodes._common import HealthMixin, declare, with_default_params
+
+__all__ = ["BagPlayer", "main", "message_class"]
+
+
+def message_class(type_name: str):
+    """``"pkg/msg/Name"`` -> the rclpy message class."""
+    pkg, _, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+class BagPlayer(HealthMixin, Node):
+    """Replays a bag; ``done`` becomes True at its end (never when looping)."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("bag_player", **kwargs)
+        self.bag = declare(self, "bag", "", "The fleet bag to replay (rosbag2 directory or .mcap file).")
+        self.rate = declare(self, "rate", 1.0, "Replay speed factor; 0 = as fast as possible.", lo=0.0, hi=10000.0)
+        self.loop = declare(self, "loop", False, "Start again at the end.")
+        self.start_offset_s = declare(self, "start_offset_s", 0.0, "Skip this much of the bag [s].", lo=0.0, hi=1e7)
+        self.wait_for_subscribers_s = declare(
+            self, "wait_for_subscribers_s", 5.0, "Wait up to this long for a /fleet/drives subscriber [s].", lo=0.0, hi=600.0
+        )
+        self.exit_when_done = declare(self, "exit_when_done", True, "Standalone: exit when the bag is done.")
+        self._init_health("bag_player")
+        self.done = False
+        self.published = 0
+        self._pubs: dict[str, object] = {}
+        self._it: Iterator[BagMessage] | None = None
+        self._next: BagMessage | None = None
+        self._t0_bag: int | None = None
+        self._t0_wall = 0.0
+        self._started = time.monotonic()
+        self._origin_sent = False
+        if not self.bag:
+            self.get_logger().error("parameter 'bag' is empty: nothing to play")
+            self.done = True
+            return
+        self._timer = self.create_timer(0.01, self.tick)
+
+    def _publisher(self, bm: BagMessage):
+        pub = self._pubs.get(bm.topic)
+        if pub is None:
+            profile = qos.LATCHED if bm.topic == ORIGIN_TOPIC else qos.DRIVES
+            pub = self.create_publisher(message_class(bm.msgtype), bm.topic, profile)
+            self._pubs[bm.topic] = pub
+        return pub
+
+    def _restart(self) -> None:
+        self._it = iter_bag(self.bag, topics=[DRIVES_TOPIC, ORIGIN_TOPIC])
+        self._next = None
+        self._t0_bag = None
+
+    def _pull(self) -> BagMessage | None:
+        if self._next is None and self._it is not None:
+            try:
+                self._next = next(self._it)
+            except StopIteration:
+                self._it = None
+            except HdmapError as err:  # damaged bag: what was intact has been played
+                self.health.error(str(err))
+                self.get_logger().error(f"bag {self.bag}: {err}")
+                self._it = None
+        return self._next
+
+    def tick(self) -> None:
+        if self.done:
+            return
+        if self._it is None and self._next is None:
+            if self._t0_bag is not None and not self.loop:
+                self._finish()
+                return
+            if not self._wait_ready():
+                return
+            self._restart()
+        now = time.monotonic()
+        while (bm := self._pull()) is not None:
+            if self._t0_bag is None:
+                self._t0_bag = bm.log_time_ns + int(self.start_offset_s * 1e9)
+                self._t0_wall = now
+            if bm.topic == ORIGIN_TOPIC:
+                if not self._origin_sent:  # latched: once is enough, also across loops
+                    self._publisher(bm).publish(bm.data)
+                    self._origin_sent = True
+                self._next = None
+                continue
+            if bm.log_time_ns < self._t0_bag:  # before the start offset
+                self._next = None
+                continue
+            if self.rate > 0 and now < self._t0_wall + (bm.log_time_ns - self._t0_bag) / 1e9 / self.rate:
+                return  # not due yet
+            self._publisher(bm).publish(bm.data)  # raw CDR as recorded
+            self._next = None
+            self.published += 1
+            self.health.accept()
+            self.health.updated()
+            if self.rate == 0:
+                return  # one per tick as fast as possible: the executor stays responsive
+        if self._it is None and not self.loop:
+            self._finish()
+
+    def _wait_ready(self) -> bool:
+        """True when a /fleet/drives subscriber is there or the wait is over."""
+        if self.count_subscribers(DRIVES_TOPIC) > 0:
+            return True
+        return time.monotonic() - self._started >= self.wait_for_subscribers_s
+
+    def _finish(self) -> None:
+        self.done = True
+        self.get_logger().info(f"bag {self.bag} done: {self.published} drive message(s) published")
+
+
+def main(args=None) -> None:
+    rclpy.init(args=with_default_params(args))
+    node = None
+    try:
+        node = BagPlayer()
+        while rclpy.ok() and not (node.done and node.exit_when_done):
+            rclpy.spin_once(node, timeout_sec=0.1)
+        for pub in node._pubs.values():  # let reliable readers take the tail before we go
+            pub.wait_for_all_acked(Duration(seconds=10))
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

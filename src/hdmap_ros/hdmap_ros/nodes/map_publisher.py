@@ -1,0 +1,113 @@
+"""map_publisher: the map for RViz / Foxglove, and a service that saves it.
+
+Subscribes ``/hdmap/map`` and ``/fleet/origin`` (both latched). Publishes
+``/hdmap/markers`` (visualization_msgs/MarkerArray, latched): one LINE_STRIP per feature coloured
+by type, plus the topology graph. Offers ``/hdmap/save_map`` (hdmap_msgs/srv/SaveMap): writes the
+current map as a rosbag2 MCAP directory at ``path`` and, when the WGS84 origin is known, as GeoJSON
+at ``path + ".geojson"``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from rclpy.node import Node
+from sensor_msgs.msg import NavSatFix
+from std_msgs.msg import Header
+
+from hdmap_core.errors import HdmapError
+from hdmap_core.model import GeoOrigin, HDMap
+from hdmap_ros import qos
+from hdmap_ros.bagio import write_map_bag
+from hdmap_ros.convert import msg_to_map, msg_to_origin, rclpy_types
+from hdmap_ros.geojson import write_geojson
+from hdmap_ros.markers import map_to_markers, rclpy_marker_types
+from hdmap_ros.nodes._common import HealthMixin, declare, run_node
+
+__all__ = ["MapPublisher", "main"]
+
+MAP_TOPIC = "/hdmap/map"
+ORIGIN_TOPIC = "/fleet/origin"
+MARKERS_TOPIC = "/hdmap/markers"
+SAVE_SERVICE = "/hdmap/save_map"
+
+
+class MapPublisher(HealthMixin, Node):
+    """Markers and the save service; see the module docstring."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("map_publisher", **kwargs)
+        self.line_width_m = declare(self, "line_width_m", 0.2, "Width of the feature LINE_STRIPs [m].", lo=0.01, hi=5.0)
+        self.show_topology = declare(self, "show_topology", True, "Also draw the topology graph.")
+        self.overwrite = declare(self, "overwrite", True, "The save service replaces an existing map bag at the path.")
+        self._init_health("map_publisher")
+        from hdmap_msgs.srv import SaveMap  # noqa: PLC0415
+
+        self.map: HDMap | None = None
+        self.origin: GeoOrigin | None = None
+        self._marker_types = rclpy_marker_types()
+        t = rclpy_types()
+        self._markers_pub = self.create_publisher(self._marker_types.MarkerArray, MARKERS_TOPIC, qos.LATCHED)
+        self._map_sub = self.create_subscription(t.Map, MAP_TOPIC, self.on_map, qos.LATCHED)
+        self._origin_sub = self.create_subscription(NavSatFix, ORIGIN_TOPIC, self.on_origin, qos.LATCHED)
+        self._srv = self.create_service(SaveMap, SAVE_SERVICE, self.on_save)
+
+    def on_map(self, msg) -> None:
+        try:
+            self.map = msg_to_map(msg)
+        except HdmapError as err:
+            self.health.reject("invalid_map", str(err))
+            self.get_logger().warning(f"map rejected: {err}")
+            return
+        header = Header(frame_id=self.map.frame_id, stamp=self.get_clock().now().to_msg())
+        self._markers_pub.publish(
+            map_to_markers(
+                self.map, types=self._marker_types, header=header, line_width_m=self.line_width_m,
+                topology=self.show_topology,
+            )
+        )
+        self.health.accept()
+        self.health.updated(time.time_ns())
+        self.health.set("map_version", self.map.version)
+
+    def on_origin(self, msg) -> None:
+        try:
+            self.origin = msg_to_origin(msg)
+        except HdmapError as err:
+            self.health.reject("invalid_origin", str(err))
+            self.get_logger().warning(f"origin rejected: {err}")
+
+    def on_save(self, request, response):
+        """Write the current map to ``request.path`` (MCAP) and ``request.path + '.geojson'``."""
+        path = Path(request.path).expanduser()
+        if not request.path:
+            response.success, response.message = False, "empty path"
+            return response
+        if self.map is None:
+            response.success, response.message = False, "no map received yet"
+            return response
+        try:
+            write_map_bag(path, self.map, self.origin, overwrite=self.overwrite)
+            written = [str(path)]
+            if self.origin is not None:
+                written.append(str(write_geojson(self.map, self.origin, Path(f"{path}.geojson"))))
+                note = ""
+            else:
+                note = " (no /fleet/origin received: GeoJSON not written)"
+        except (HdmapError, OSError) as err:
+            response.success, response.message = False, f"cannot save map version {self.map.version}: {err}"
+            self.get_logger().error(response.message)
+            return response
+        response.success = True
+        response.message = f"map version {self.map.version} written to {', '.join(written)}{note}"
+        self.get_logger().info(response.message)
+        return response
+
+
+def main(args=None) -> None:
+    run_node(MapPublisher, args)
+
+
+if __name__ == "__main__":
+    main()

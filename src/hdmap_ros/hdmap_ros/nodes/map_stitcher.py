@@ -1,0 +1,164 @@
+"""map_stitcher: tile estimates -> the complete hierarchical map on /hdmap/map (Sec. V-VI).
+
+Subscribes ``/hdmap/segments`` (hdmap_msgs/TileSegments). A tile estimate newer than the stored
+one replaces it (committed in one transaction; older or repeated versions are ignored, so replays
+after a restart are harmless). After a quiet ``debounce_s`` (or at the latest ``max_delay_s`` after
+the first unstitched update) the map is rebuilt: every tile's segments connected (Sec. V, cached
+per tile version), all stitched into the complete graph (Sec. VI), and feature ids carried over
+from the previous version where a feature persists (``incremental.carry_over_ids``). The map is
+committed with a growing version and published on ``/hdmap/map`` (RELIABLE, TRANSIENT_LOCAL,
+depth 1), so a late subscriber gets the latest map at once.
+
+Restart: the stored map is published again; if tiles changed after it was made it is rebuilt.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import traceback
+from dataclasses import replace
+
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+
+from hdmap_core.errors import HdmapError
+from hdmap_core.incremental import TileKey, carry_over_ids, connect_tile, stitch_graphs
+from hdmap_ros import qos
+from hdmap_ros.convert import map_to_msg, rclpy_types
+from hdmap_ros.nodes._common import HealthMixin, declare, preset_config, run_node
+from hdmap_ros.nodes.tile_msgs import msg_to_tile, rclpy_tile_types
+from hdmap_ros.store import MapStore, blob_to_segments, segments_to_blob
+
+__all__ = ["MapStitcher", "main"]
+
+SEGMENTS_TOPIC = "/hdmap/segments"
+MAP_TOPIC = "/hdmap/map"
+
+
+class MapStitcher(HealthMixin, Node):
+    """Integrates tile estimates into the map; see the module docstring."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("map_stitcher", **kwargs)
+        db = declare(self, "db_path", "~/.ros/hdmap/map_stitcher.db", "SQLite file of the map store.")
+        preset = declare(self, "preset", "default", "Pipeline preset: default, paper or naive.")
+        self.debounce_s = declare(
+            self, "debounce_s", 0.5, "Rebuild the map after this long without a new tile estimate [s].", lo=0.0, hi=600.0
+        )
+        self.max_delay_s = declare(
+            self, "max_delay_s", 5.0, "Rebuild at the latest this long after the first unstitched update [s].",
+            lo=0.0, hi=3600.0,
+        )
+        self.id_distance_m = declare(
+            self, "id_match_distance_m", 0.75, "A new feature keeps an old id when this close to it [m].", lo=0.01, hi=10.0
+        )
+        self.id_overlap = declare(
+            self, "id_min_overlap", 0.5, "... along at least this share of the shorter of the two.", lo=0.0, hi=1.0
+        )
+        depth = declare(
+            self, "segments_history_depth", 1000, "History depth of /hdmap/segments (match the mapper).", lo=1, hi=100000
+        )
+        self._init_health("map_stitcher")
+        self.pipeline_config = preset_config(preset)
+        self.store = MapStore(os.path.expanduser(db))
+        self._types = rclpy_types()
+        self._graphs: dict[TileKey, tuple[int, list]] = {}  # tile -> (version, segment graphs)
+        self._first_dirty: float | None = None
+        self._last_rx = 0.0
+        self.map, sig = self.store.map()
+        self._map_pub = self.create_publisher(self._types.Map, MAP_TOPIC, qos.LATCHED)
+        self._rx_group = MutuallyExclusiveCallbackGroup()
+        self._work_group = MutuallyExclusiveCallbackGroup()
+        self._sub = self.create_subscription(
+            rclpy_tile_types().TileSegments, SEGMENTS_TOPIC, self.on_tile, qos.replay(depth),
+            callback_group=self._rx_group,
+        )
+        self._timer = self.create_timer(0.1, self.work, callback_group=self._work_group)
+        if self.map is not None:
+            self._publish()
+        if self.store.tiles_signature() != sig:
+            self._first_dirty = time.monotonic()
+        self.get_logger().info(
+            f"map store {self.store.path}: {len(self.store.tiles())} tile(s), map version "
+            f"{self.map.version if self.map else 0}"
+        )
+
+    def on_tile(self, msg) -> None:
+        """Store a newer tile estimate; the rebuild happens in :meth:`work`."""
+        try:
+            tile = msg_to_tile(msg)
+        except (HdmapError, ValueError, TypeError) as err:
+            self.health.reject("invalid_tile", str(err))
+            self.get_logger().warning(f"tile message rejected: {err}")
+            return
+        if self.store.put_tile(tile.key, tile.version, segments_to_blob(tile.segments), tile.drive_ids):
+            self.health.accept()
+            now = time.monotonic()
+            self._last_rx = now
+            if self._first_dirty is None:
+                self._first_dirty = now
+        else:
+            self.health.duplicate()
+        self.health.backlog = int(self._first_dirty is not None)
+
+    def work(self) -> None:
+        if self._first_dirty is None:
+            return
+        now = time.monotonic()
+        if now - self._last_rx < self.debounce_s and now - self._first_dirty < self.max_delay_s:
+            return
+        self._first_dirty = None
+        try:
+            self.rebuild()
+        except HdmapError as err:
+            self._fail(str(err))
+        except Exception as err:  # noqa: BLE001 - a bug must not stop the live map; logged in full
+            self._fail(f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
+        self.health.backlog = int(self._first_dirty is not None)
+
+    def _fail(self, text: str) -> None:
+        self.health.error(text.splitlines()[0])
+        self.get_logger().error(f"map rebuild failed, previous map kept: {text}")
+
+    def rebuild(self) -> None:
+        """Stitch every stored tile into a new map version, commit and publish it."""
+        t0 = time.perf_counter()
+        sig = self.store.tiles_signature()
+        graphs, drive_ids = [], set()
+        for key, version, ids, blob in self.store.tiles():
+            cached = self._graphs.get(key)
+            if cached is None or cached[0] != version:
+                cached = (version, connect_tile(blob_to_segments(blob), pipeline_config=self.pipeline_config))
+                self._graphs[key] = cached
+            graphs.extend(cached[1])
+            drive_ids.update(ids)
+        new = stitch_graphs(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
+        new = carry_over_ids(new, self.map, max_distance_m=self.id_distance_m, min_overlap=self.id_overlap)
+        new = replace(new, version=(self.map.version if self.map else 0) + 1, stamp_ns=time.time_ns())
+        self.store.put_map(new, sig)
+        self.map = new
+        self._publish()
+        self.health.updated()
+        self.health.set("map_version", new.version)
+        self.health.set("features", len(new.features))
+        self.health.set("last_rebuild_s", f"{time.perf_counter() - t0:.3f}")
+
+    def _publish(self) -> None:
+        self._map_pub.publish(map_to_msg(self.map, types=self._types))
+
+    def is_settled(self) -> bool:
+        """Nothing waits to be stitched."""
+        return self._first_dirty is None
+
+    def destroy_node(self) -> None:
+        self.store.close()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    run_node(MapStitcher, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,201 @@
+"""segment_mapper: the drive store and the per-tile estimates (stages of Sec. III-IV, per tile).
+
+Subscribes ``/hdmap/drives_accepted``. Each new drive is committed to the SQLite drive store
+together with the tiles it covers (one transaction); from then on it is *acknowledged* (an ack is
+published on ``/hdmap/drive_acks``) and survives any crash. A worker then re-maps the tiles the
+new drives cover, each from all stored drives covering it (``hdmap_core.incremental.map_tile``),
+but only when the tile's drive count grew enough for the estimate to improve (parameters
+``min_growth_fraction`` / ``min_growth_drives``; a new tile is always mapped). Each estimate is
+committed (one transaction) and published on ``/hdmap/segments`` as hdmap_msgs/TileSegments with a
+growing version per tile. When no drive came for ``settle_after_s``, every tile whose estimate
+is older than its drive set is re-estimated once, so the settled map depends on the drives only.
+
+Restart: pending (acknowledged, unprocessed) drives are processed; with ``republish_on_start``
+every stored tile estimate is published again (the stitcher ignores versions it has).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import traceback
+
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from hdmap_core.errors import HdmapError, InvalidDriveError
+from hdmap_core.incremental import TileConfig, TileKey, map_tile, needs_update, tiles_of_drive
+from hdmap_core.model import validate_drive
+from hdmap_ros import qos
+from hdmap_ros.convert import msg_to_drive, rclpy_types
+from hdmap_ros.nodes._common import HealthMixin, declare, preset_config, run_node
+from hdmap_ros.nodes.tile_msgs import rclpy_tile_types, tile_to_msg
+from hdmap_ros.store import DriveStore, TileEstimate
+
+__all__ = ["SegmentMapper", "main"]
+
+ACCEPTED_TOPIC = "/hdmap/drives_accepted"
+SEGMENTS_TOPIC = "/hdmap/segments"
+ACKS_TOPIC = "/hdmap/drive_acks"
+
+
+class SegmentMapper(HealthMixin, Node):
+    """Keeps the drive store and publishes tile estimates; see the module docstring."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("segment_mapper", **kwargs)
+        db = declare(self, "db_path", "~/.ros/hdmap/segment_mapper.db", "SQLite file of the drive store.")
+        preset = declare(self, "preset", "default", "Pipeline preset: default, paper or naive.")
+        self.tile_config = TileConfig(
+            tile_size_m=declare(self, "tile_size_m", 256.0, "Edge of a map tile [m].", lo=32.0, hi=4096.0),
+            margin_m=declare(
+                self, "margin_m", 64.0, "Context mapped around a tile [m]; must be < tile_size_m.", lo=0.0, hi=1024.0
+            ),
+            min_growth_fraction=declare(
+                self, "min_growth_fraction", 0.10,
+                "Re-estimate a tile when its drive count grew by this fraction (and min_growth_drives).",
+                lo=0.0, hi=10.0,
+            ),
+            min_growth_drives=declare(
+                self, "min_growth_drives", 1, "Re-estimate a tile when at least this many drives were added.",
+                lo=1, hi=10000,
+            ),
+            seed=declare(self, "seed", 0, "Base seed; each tile's seed derives from it and the tile key.", lo=0, hi=2**31 - 1),
+        )
+        self.settle_after_s = declare(
+            self, "settle_after_s", 2.0, "Idle time after which stale tiles are re-estimated [s].", lo=0.0, hi=3600.0
+        )
+        depth = declare(
+            self, "segments_history_depth", 1000, "Tile estimates kept (TRANSIENT_LOCAL) for a restarting stitcher.",
+            lo=1, hi=100000,
+        )
+        accepted_depth = declare(
+            self, "accepted_history_depth", 100, "History depth of /hdmap/drives_accepted (match the ingestor).",
+            lo=1, hi=100000,
+        )
+        republish = declare(self, "republish_on_start", True, "Publish every stored tile estimate at start.")
+        self._init_health("segment_mapper")
+
+        self.pipeline_config = preset_config(preset)
+        self.store = DriveStore(os.path.expanduser(db))
+        self._types = rclpy_types()
+        self._tile_types = rclpy_tile_types()
+        self._last_input = time.monotonic()
+        self._failed: dict[TileKey, int] = {}  # tile -> drive count at which mapping failed
+        self.tiles_published = 0
+        self.received = 0
+
+        self._seg_pub = self.create_publisher(self._tile_types.TileSegments, SEGMENTS_TOPIC, qos.replay(depth))
+        self._ack_pub = self.create_publisher(String, ACKS_TOPIC, qos.ACKS)
+        # Receiving (commit + ack) stays quick and apart from the slow mapping worker.
+        self._rx_group = MutuallyExclusiveCallbackGroup()
+        self._work_group = MutuallyExclusiveCallbackGroup()
+        self._sub = self.create_subscription(
+            self._types.Drive, ACCEPTED_TOPIC, self.on_drive, qos.replay(accepted_depth), callback_group=self._rx_group
+        )
+        self._timer = self.create_timer(0.05, self.work, callback_group=self._work_group)
+        if republish:
+            for est in self.store.tiles():
+                self._publish(est)
+        self.health.backlog = len(self.store.pending())
+        self.health.set("drives_stored", self.store.drive_count())
+        self.get_logger().info(
+            f"drive store {self.store.path}: {self.store.drive_count()} drive(s), {self.health.backlog} pending, "
+            f"{len(self.store.tiles())} tile(s)"
+        )
+
+    # --- receiving -------------------------------------------------------------------------------
+
+    def on_drive(self, msg) -> None:
+        """Commit one drive (acknowledge it); mapping happens in :meth:`work`."""
+        self.received += 1
+        did = str(msg.drive_id)
+        try:
+            drive = validate_drive(msg_to_drive(msg, expected_frame=None), expected_frame="")
+        except InvalidDriveError as err:
+            self.health.reject(err.reason, did)
+            self.get_logger().warning(f"drive {did!r} rejected: {err.reason} ({err.detail})")
+            return
+        except HdmapError as err:
+            self.health.reject("invalid_message", f"{did!r}: {err}")
+            self.get_logger().warning(f"drive {did!r} rejected: {err}")
+            return
+        self._last_input = time.monotonic()
+        if not self.store.add_drive(drive, tiles_of_drive(drive, config=self.tile_config)):
+            self.health.duplicate()
+            return
+        self._ack_pub.publish(String(data=drive.drive_id))
+        self.health.accept()
+        self.health.backlog += 1
+        self.health.set("drives_stored", self.store.drive_count())
+
+    # --- mapping ---------------------------------------------------------------------------------
+
+    def work(self) -> None:
+        """Process all pending drives (debounced tile re-estimates), or settle when idle."""
+        pending = self.store.pending()
+        self.health.backlog = len(pending)
+        if pending:
+            for key in sorted(self.store.tiles_of(pending)):
+                est = self.store.tile(key)
+                count = self.store.tile_drive_count(key)
+                if needs_update(est.drive_count if est else 0, count, config=self.tile_config):
+                    self._estimate(key, count)
+            self.store.mark_processed(pending)
+            self.health.backlog = len(self.store.pending())
+            return
+        if time.monotonic() - self._last_input >= self.settle_after_s:
+            for key in self.store.stale_tiles():
+                count = self.store.tile_drive_count(key)
+                if self._failed.get(key) != count:
+                    self._estimate(key, count)
+
+    def _estimate(self, key: TileKey, count: int) -> None:
+        drives = self.store.drives_covering(key)
+        t0 = time.perf_counter()
+        try:
+            segments = map_tile(drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config)
+        except HdmapError as err:
+            self._fail(key, count, f"tile {key}: {err}")
+            return
+        except Exception as err:  # noqa: BLE001 - a bug on one tile must not stop the live map; logged in full
+            self._fail(key, count, f"tile {key}: {type(err).__name__}: {err}\n{traceback.format_exc()}")
+            return
+        est = self.store.put_tile(key, segments, [d.drive_id for d in drives])
+        self._failed.pop(key, None)
+        self._publish(est)
+        self.health.updated()
+        self.health.set("last_tile_update_s", f"{time.perf_counter() - t0:.3f}")
+        self.health.set("tiles", len(self.store.tiles()))
+
+    def _fail(self, key: TileKey, count: int, text: str) -> None:
+        self._failed[key] = count
+        self.health.error(text.splitlines()[0])
+        self.get_logger().error(f"mapping failed, tile kept as it was: {text}")
+
+    def _publish(self, est: TileEstimate) -> None:
+        msg = tile_to_msg(
+            est.key, est.segments(), version=est.version, drive_ids=est.drive_ids,
+            tile_size_m=self.tile_config.tile_size_m, stamp_ns=time.time_ns(), types=self._tile_types,
+        )
+        self._seg_pub.publish(msg)
+        self.tiles_published += 1
+
+    def is_settled(self) -> bool:
+        """No pending drive and no stale tile (that did not fail at its current count)."""
+        if self.store.pending():
+            return False
+        return all(self._failed.get(k) == self.store.tile_drive_count(k) for k in self.store.stale_tiles())
+
+    def destroy_node(self) -> None:
+        self.store.close()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    run_node(SegmentMapper, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,131 @@
+"""DDS test harness for the node tests (not a test module).
+
+Every test gets its own ROS_DOMAIN_ID (from 70-79, this suite's range) and discovery on loopback
+only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), set before any context is initialised; nodes run in
+this process on an explicit rclpy Context (so other test modules' rclpy use is untouched), or as
+subprocesses in their own session with the same environment (killed as a group).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def dds_env(domain_id: int) -> dict[str, str]:
+    """Environment of a node process: isolated domain, loopback discovery, the source tree first."""
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(domain_id)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(ROOT / "src/hdmap_core"), str(ROOT / "src/hdmap_ros")] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
+    )
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def wait_for(pred: Callable[[], object], timeout: float, *, what: str = "condition", poll: float = 0.05):
+    """Poll ``pred`` until truthy; return its value or fail with ``what``."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = pred()
+        if value:
+            return value
+        time.sleep(poll)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+class Ros:
+    """An initialised context with a spinning executor in a background thread."""
+
+    def __init__(self, domain_id: int) -> None:
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        os.environ["ROS_DOMAIN_ID"] = str(domain_id)
+        self.domain_id = domain_id
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.nodes: list[Node] = []
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._stop = False
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop and self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - shutting down under the spinner
+                if self._stop:
+                    return
+                raise
+
+    def add(self, node: Node) -> Node:
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def node(self, name: str) -> Node:
+        return self.add(Node(name, context=self.context))
+
+    def close(self) -> None:
+        self._stop = True
+        self._thread.join(timeout=5)
+        for n in self.nodes:
+            self.executor.remove_node(n)
+            n.destroy_node()
+        self.executor.shutdown()
+        rclpy.try_shutdown(context=self.context)
+
+
+class Proc:
+    """A node process in its own session (so the whole group can be signalled)."""
+
+    def __init__(self, module: str, domain_id: int, params: dict, log: Path) -> None:
+        args = [sys.executable, "-m", module, "--ros-args"]
+        for k, v in params.items():
+            args += ["-p", f"{k}:={_yaml(v)}"]
+        self.log = log
+        self._fh = open(log, "ab")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen(args, env=dds_env(domain_id), stdout=self._fh, stderr=subprocess.STDOUT,
+                                     start_new_session=True, cwd=str(log.parent))
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def kill(self, sig: int = signal.SIGKILL) -> None:
+        if self.alive():
+            os.killpg(self.proc.pid, sig)
+        self.proc.wait(timeout=20)
+
+    def stop(self) -> None:
+        if self.alive():
+            os.killpg(self.proc.pid, signal.SIGINT)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.kill()
+        self._fh.close()
+
+    def output(self) -> str:
+        return self.log.read_text(errors="replace")
+
+
+def _yaml(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return v if v else "''"
+    return repr(v)

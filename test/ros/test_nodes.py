@@ -1,0 +1,166 @@
+"""Node tests over real DDS (Fast DDS on loopback, an own ROS_DOMAIN_ID per test).
+
+Quick ones: the ingestor's validation and diagnostics, the bag player, the map publisher's markers
+and save service, parameter declarations. The end-to-end ones (whole suite on a bag, late joiner,
+SIGKILL/restart) are in test_nodes_e2e.py and marked slow.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("hdmap_msgs.msg")
+
+from dataclasses import replace  # noqa: E402
+
+from bag_samples import make_drive, make_map  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nodes_harness import Ros, wait_for  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
+from hdmap_core.model import GeoOrigin  # noqa: E402
+from hdmap_ros import qos  # noqa: E402
+from hdmap_ros.bagio import read_map_bag, write_fleet_bag  # noqa: E402
+from hdmap_ros.convert import drive_to_msg, map_to_msg, msg_to_drive, rclpy_types  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def ros(request):
+    # one domain per test (70-79 belong to this suite), so a straggler never crosses tests
+    domain = 70 + (abs(hash(request.node.name)) % 5)
+    r = Ros(domain)
+    yield r
+    r.close()
+
+
+def _collect(node, msg_type, topic, profile):
+    got = []
+    node.create_subscription(msg_type, topic, got.append, profile)
+    return got
+
+
+def _diag_values(arrays, name):
+    """Key/values of the latest status called ``name``."""
+    for arr in reversed(arrays):
+        for st in arr.status:
+            if st.name == name:
+                return {kv.key: kv.value for kv in st.values}
+    return None
+
+
+def test_ingestor_rejects_malformed_drives_and_stays_up(ros):
+    from hdmap_ros.nodes.drive_ingestor import DriveIngestor
+
+    ing = ros.add(DriveIngestor(context=ros.context, parameter_overrides=[Parameter("diagnostics_period_s", value=0.2)]))
+    t = rclpy_types()
+    probe = ros.node("probe")
+    accepted = _collect(probe, t.Drive, "/hdmap/drives_accepted", qos.replay(100))
+    diags = _collect(probe, DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS)
+    pub = probe.create_publisher(t.Drive, "/fleet/drives", qos.DRIVES)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, what="ingestor subscription")
+
+    good = make_drive("good", n=40)
+    nan = make_drive("nan", n=40)
+    nan.xy[5, 0] = np.nan
+    short = replace(make_drive("short"), xy=np.zeros((1, 2)), yaw=np.zeros(1), stamps_ns=np.zeros(1, np.int64))
+    wrong = replace(make_drive("wrong"), frame_id="odom")
+    for d in (good, nan, short, wrong, good, make_drive("good2", n=30)):
+        pub.publish(drive_to_msg(d, types=t))
+
+    wait_for(lambda: len(accepted) >= 2, 10, what="two accepted drives")
+    vals = wait_for(
+        lambda: (v := _diag_values(diags, "hdmap: drive_ingestor")) and v["drives_rejected"] == "4" and v,
+        10, what="diagnostics with 4 rejections",
+    )
+    assert [m.drive_id for m in accepted] == ["good", "good2"]
+    assert vals["drives_accepted"] == "2"
+    assert vals["rejected.non_finite_coordinates"] == "1"
+    assert vals["rejected.too_few_points"] == "1"
+    assert vals["rejected.wrong_frame"] == "1"
+    assert vals["rejected.duplicate_drive_id"] == "1"
+    # accepted drives come out cleaned: the 3-point road border (< 3 m) is gone
+    back = msg_to_drive(accepted[0])
+    assert len(back.detections) == 2 and len(good.detections) == 3
+    assert ing.health.accepted == 2
+
+
+def test_bag_player_replays_drives_in_order_and_latches_origin(ros, tmp_path):
+    from hdmap_ros.nodes.bag_player import BagPlayer
+
+    drives = [make_drive(f"d{i:02d}", n=20, seed=i, start_ns=10**18 + i * 10**8) for i in range(8)]
+    bag = write_fleet_bag(tmp_path / "fleet", drives, GeoOrigin(48.0, 11.0, 500.0))
+    t = rclpy_types()
+    probe = ros.node("probe")
+    got = _collect(probe, t.Drive, "/fleet/drives", qos.DRIVES)
+    player = ros.add(BagPlayer(context=ros.context, parameter_overrides=[
+        Parameter("bag", value=str(bag)), Parameter("rate", value=2.0), Parameter("start_offset_s", value=0.15)]))
+    wait_for(lambda: player.done, 20, what="player done")
+    wait_for(lambda: len(got) >= 6, 10, what="six drives")
+    # offset 0.15 s skips d00 and d01 (at 0 and 0.1 s); rate 2: 0.5 s of bag in ~0.25 s
+    assert [m.drive_id for m in got] == [f"d{i:02d}" for i in range(2, 8)]
+    np.testing.assert_array_equal(msg_to_drive(got[0]).xy, drives[2].xy)
+    late = ros.node("late")
+    from sensor_msgs.msg import NavSatFix
+
+    origin = _collect(late, NavSatFix, "/fleet/origin", qos.LATCHED)
+    wait_for(lambda: origin, 10, what="latched origin for a late subscriber")
+    assert origin[0].latitude == 48.0
+
+
+def test_map_publisher_markers_and_save_service(ros, tmp_path):
+    from visualization_msgs.msg import MarkerArray
+
+    from hdmap_msgs.srv import SaveMap
+    from hdmap_ros.nodes.map_publisher import MapPublisher
+
+    ros.add(MapPublisher(context=ros.context))
+    hdmap = make_map(n_features=3)
+    t = rclpy_types()
+    src = ros.node("source")
+    map_pub = src.create_publisher(t.Map, "/hdmap/map", qos.LATCHED)
+    from sensor_msgs.msg import NavSatFix, NavSatStatus
+
+    origin_pub = src.create_publisher(NavSatFix, "/fleet/origin", qos.LATCHED)
+    fix = NavSatStatus(status=NavSatStatus.STATUS_FIX)
+    origin_pub.publish(NavSatFix(status=fix, latitude=48.1, longitude=11.5, altitude=520.0))
+    map_pub.publish(map_to_msg(hdmap, types=t))
+
+    viewer = ros.node("viewer")  # joins after the map was published: markers are latched
+    markers = _collect(viewer, MarkerArray, "/hdmap/markers", qos.LATCHED)
+    arr = wait_for(lambda: markers and markers[-1], 10, what="markers")
+    strips = [m for m in arr.markers if m.type == 4]
+    assert len(strips) == 3 and {m.ns for m in strips} == {"features/solid", "features/dashed", "features/road_border"}
+
+    client = viewer.create_client(SaveMap, "/hdmap/save_map")
+    assert client.wait_for_service(timeout_sec=10)
+    out = tmp_path / "saved"
+    resp = _call(client, SaveMap.Request(path=str(out)))
+    assert resp.success, resp.message
+    back = read_map_bag(out)
+    assert [f.id for f in back.features] == [f.id for f in hdmap.features]
+    assert (tmp_path / "saved.geojson").is_file()
+    bad = _call(client, SaveMap.Request(path=""))
+    assert not bad.success and "empty" in bad.message
+
+
+def _call(client, request, timeout=20.0):
+    fut = client.call_async(request)
+    wait_for(fut.done, timeout, what="service response")
+    return fut.result()
+
+
+def test_parameters_have_descriptions_ranges_and_reject_out_of_range(ros):
+    from rclpy.exceptions import InvalidParameterValueException
+
+    from hdmap_ros.nodes.drive_ingestor import DriveIngestor
+
+    ing = ros.add(DriveIngestor(context=ros.context))
+    desc = ing.describe_parameter("min_detection_length_m")
+    assert desc.description and desc.floating_point_range[0].to_value == 100.0
+    assert ing.get_parameter("min_detection_length_m").value == 3.0
+    with pytest.raises(InvalidParameterValueException, match="rdp_epsilon_m"):
+        DriveIngestor(context=ros.context, parameter_overrides=[Parameter("rdp_epsilon_m", value=50.0)])
