@@ -326,3 +326,24 @@ def test_large_real_maps_shifted(name: str) -> None:
     assert report.overall.corrected_mean_m < 0.02
     assert report.coverage > 0.99
     assert report.runtime_s < 10.0
+
+
+def test_bad_ground_truth_parts_are_left_out_and_named(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    dashed = road.features[2].points.copy()
+    dashed[50] = np.nan
+    centre = road.lanes["A"].centerline.copy()
+    centre[10] = np.inf
+    bad = replace(
+        road,
+        features=road.features[:2] + (replace(road.features[2], points=dashed),) + road.features[3:]
+        + (GTFeature(99, FeatureType.SOLID, np.full((3, 2), np.nan)),),
+        lanes={**road.lanes, "A": replace(road.lanes["A"], centerline=centre)},
+        routes=road.routes + (GTRoute("ghost", ("A", "no_such_lane")),),
+    )
+    report = evaluate_map(perfect, bad)
+    text = "\n".join(report.skipped)
+    assert "feature 3: 1 non-finite" in text and "feature 99" in text
+    assert "lane A: 1 non-finite" in text and "route ghost" in text
+    assert report.overall.recall == 1.0 and report.overall.mean_m == pytest.approx(0.0, abs=1e-9)
+    assert report.n_reference_cuts == int(LENGTH_M / 2)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -378,6 +378,53 @@ def _valid_map_features(hdmap: HDMap, skipped: list[str]) -> list[MapFeature]:
     return out
 
 
+def _finite_points(pts: object) -> np.ndarray | None:
+    """(N, 2) float points with non-finite rows removed; None if not (N, 2) or fewer than 2 remain."""
+    arr = np.asarray(pts, dtype=float)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        return None
+    arr = arr[np.all(np.isfinite(arr), axis=1)]
+    return arr if len(arr) >= 2 else None
+
+
+def _clean_ground_truth(gt: GroundTruth, skipped: list[str]) -> GroundTruth:
+    """``gt`` with non-finite vertices dropped, unusable features/lanes and unknown route lanes left
+    out (each named in ``skipped``); ``gt`` itself when nothing is wrong."""
+    changed = False
+    feats = []
+    for f in gt.features:
+        pts = _finite_points(f.points)
+        if pts is None:
+            skipped.append(f"ground-truth feature {f.id}: fewer than 2 finite points, left out")
+            changed = True
+            continue
+        if len(pts) != len(f.points):
+            skipped.append(f"ground-truth feature {f.id}: {len(f.points) - len(pts)} non-finite point(s) dropped")
+            f, changed = replace(f, points=pts), True
+        feats.append(f)
+    lanes = {}
+    for lid, lane in gt.lanes.items():
+        pts = _finite_points(lane.centerline)
+        if pts is None:
+            skipped.append(f"ground-truth lane {lid}: fewer than 2 finite centerline points, left out")
+            changed = True
+            continue
+        if len(pts) != len(lane.centerline):
+            skipped.append(f"ground-truth lane {lid}: {len(lane.centerline) - len(pts)} non-finite point(s) dropped")
+            lane, changed = replace(lane, centerline=pts), True
+        lanes[lid] = lane
+    routes = []
+    for r in gt.routes:
+        known = tuple(lid for lid in r.lanes if lid in lanes)
+        if len(known) != len(r.lanes):
+            skipped.append(f"ground-truth route {r.id}: {len(r.lanes) - len(known)} unknown/unusable lane(s) left out")
+            r, changed = replace(r, lanes=known, lane_changes=()), True
+        routes.append(r)
+    if not changed:
+        return gt
+    return replace(gt, features=tuple(feats), lanes=lanes, routes=tuple(routes))
+
+
 def _drive_counts(f: MapFeature, skipped: list[str]) -> np.ndarray:
     dc = np.asarray(f.drive_count if f.drive_count is not None else (), dtype=float).reshape(-1)
     if len(dc) != len(f.points):
@@ -438,6 +485,8 @@ def evaluate_map(
     if not (math.isfinite(sigma) and sigma > 0):
         raise ConfigError(f"evaluate_map: sigma_loc_m must be a finite number > 0, got {sigma_loc_m!r}")
     cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
+    skipped: list[str] = []
+    gt = _clean_ground_truth(gt, skipped)
     cuts = reference_cuts(
         gt,
         step_m=config.step_m,
@@ -453,7 +502,6 @@ def evaluate_map(
             f"ground truth {gt.name!r}: no {which} centerline of at least {config.step_m / 2} m on any route "
             "to evaluate along" + (" (try highway_only=False / --all-lanes)" if config.highway_only else "")
         )
-    skipped: list[str] = []
     width = 4.0 * (config.max_half_length_m + config.border_margin_m) + 10.0
 
     # Ground-truth and map points on the cuts.
