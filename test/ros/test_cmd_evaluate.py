@@ -67,7 +67,9 @@ def test_map_bag_with_fleet_and_sim_json(road_path: Path, tmp_path: Path, capsys
         for i in range(4)
     ]
     fleet = write_fleet_bag(tmp_path / "fleet", drives, ORIGIN)
-    (tmp_path / "fleet.sim.json").write_text(json.dumps({"config": {"lateral_bias_sigma_m": 0.5}, "truth": {}}))
+    # As hdmap simulate writes it: sigma_loc = hypot(bias 0.3, drift 0.4) = 0.5.
+    sim = {"config": {"bias_lateral_sigma_m": 0.3, "drift_sigma_m": 0.4, "noise_sigma_m": 0.08}, "truth": {}}
+    (tmp_path / "fleet.sim.json").write_text(json.dumps(sim))
     out_json = tmp_path / "r.json"
     rc = cli.main(["evaluate", str(map_bag), str(road_path), "--fleet", str(fleet), "--json", str(out_json)])
     assert rc == 0
@@ -96,26 +98,30 @@ def test_all_lanes_flag_and_bad_numbers(road_path: Path, capsys) -> None:
         cli.main(["evaluate", str(road_path), str(road_path), "--sigma-loc", "-1"])
 
 
-def test_shared_and_synthetic_names_resolve(monkeypatch, road_path: Path) -> None:
+def test_shared_and_synthetic_names_resolve(monkeypatch, road_path: Path, tmp_path: Path) -> None:
     monkeypatch.setenv("HDMAP_MAPS_DIR", str(road_path.parent))
+    monkeypatch.chdir(tmp_path.parent)
     assert resolve_ground_truth("cli_road").name == "cli_road"
     assert resolve_ground_truth("cli_road.gt.json").name == "cli_road"
-    pytest.importorskip("hdmap_core.synthetic")
+    assert resolve_ground_truth(str(road_path)).name == "cli_road"
     assert resolve_ground_truth("motorway").features
 
 
 @pytest.mark.parametrize(
     ("doc", "want"),
     [
+        ({"config": {"bias_lateral_sigma_m": 0.7}}, 0.7),
+        ({"config": {"bias_lateral_sigma_m": 0.0, "drift_sigma_m": 0.0}}, None),
         ({"config": {"lateral_bias_sigma_m": 0.7}}, 0.7),
         ({"sigma_loc_m": 1.2, "config": {"lateral_bias_sigma_m": 0.7}}, 1.2),
         ({"config": {"loc": {"bias_lat_sigma_m": 0.9}}}, 0.9),
         ({"config": {"noise_m": 0.1}}, None),
+        ([1, 2], None),
     ],
 )
-def test_sigma_from_sim_json(tmp_path: Path, doc: dict, want: float | None) -> None:
+def test_sigma_from_sim_json(tmp_path: Path, doc: object, want: float | None) -> None:
     path = tmp_path / "x.sim.json"
     path.write_text(json.dumps(doc))
-    assert sigma_from_sim_json(path) == want
+    assert sigma_from_sim_json(path) == (pytest.approx(want) if want is not None else None)
     path.write_text("{not json")
     assert sigma_from_sim_json(path) is None

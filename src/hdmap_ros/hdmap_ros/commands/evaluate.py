@@ -3,12 +3,13 @@
 MAP is a map bag (rosbag2 directory or ``.mcap`` with ``/hdmap/map``; the last map is used) or a
 ``.gt.json`` file (its features then serve as the map: a sanity check that must score 0 m).
 GT is a ``.gt.json`` file, the name of a shared ground-truth map (e.g. ``carla_town04``, searched
-in ``$HDMAP_MAPS_DIR`` and in ``shared/data/maps`` beside the repository) or of a built-in
+in ``$HDMAP_MAPS_DIR`` and in ``shared/data/maps`` beside the repository, as ``hdmap simulate``
+does) or of a built-in
 synthetic highway (``motorway``, ...).
 
 ``--fleet BAG`` gives the drives for the floor sigma_loc / sqrt(n); sigma_loc comes from
-``--sigma-loc``, else from ``BAG.sim.json`` beside the fleet bag (written by ``hdmap simulate``),
-else 1.0 m. Prints the summary; ``--json`` and ``--plot`` write the full report and the figure.
+``--sigma-loc``, else from ``BAG.sim.json`` beside the fleet bag (written by ``hdmap simulate``:
+sqrt(bias_lateral_sigma_m^2 + drift_sigma_m^2)), else 1.0 m. Prints the summary; ``--json`` and ``--plot`` write the full report and the figure.
 Exit status: 0 done, 1 an error (unreadable input), 2 usage.
 """
 
@@ -17,11 +18,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
-from hdmap_core.errors import GroundTruthError, HdmapError
+from hdmap_core.errors import HdmapError
 from hdmap_core.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth, plot_evaluation
 from hdmap_core.groundtruth import GroundTruth, load_ground_truth
 from hdmap_core.model import HDMap
@@ -30,7 +30,6 @@ __all__ = ["NAME", "HELP", "add_arguments", "run", "resolve_ground_truth", "sigm
 
 NAME = "evaluate"
 HELP = "score a map (map bag or .gt.json) against ground truth: lateral error, coverage, recall, floor"
-MAPS_ENV = "HDMAP_MAPS_DIR"
 GT_SUFFIX = ".gt.json"
 
 # Keys of the simulator's config that hold the per-drive lateral localization sigma, most specific first.
@@ -81,45 +80,20 @@ def _fail(message: str) -> int:
     return 2
 
 
-def _map_dirs() -> list[Path]:
-    """Where shared ground-truth maps are looked for: $HDMAP_MAPS_DIR, then shared/data/maps in any
-    parent of this file or of the working directory (the repository's sibling ``shared``)."""
-    dirs = []
-    if os.environ.get(MAPS_ENV):
-        dirs.append(Path(os.environ[MAPS_ENV]))
-    for base in (Path(__file__).resolve(), Path.cwd().resolve()):
-        for parent in [base, *base.parents]:
-            cand = parent / "shared" / "data" / "maps"
-            if cand.is_dir() and cand not in dirs:
-                dirs.append(cand)
-    return dirs
-
-
 def resolve_ground_truth(spec: str) -> GroundTruth:
-    """Load ground truth from a path, a shared map name or a synthetic highway name.
+    """Load ground truth from a path, a shared map name (``carla_town04`` or ``carla_town04.gt.json``)
+    or a synthetic highway name, through :func:`hdmap_core.simulate.load_map` (one resolver for
+    ``hdmap simulate`` and ``hdmap evaluate``).
 
     Raises:
         GroundTruthError: nothing of that name, or the file is not ground truth.
     """
-    path = Path(spec)
-    if path.exists():
-        return load_ground_truth(path)
+    from hdmap_core.simulate import load_map
+
+    if Path(spec).exists():
+        return load_ground_truth(spec)
     name = spec[: -len(GT_SUFFIX)] if spec.endswith(GT_SUFFIX) else spec
-    for d in _map_dirs():
-        cand = d / f"{name}{GT_SUFFIX}"
-        if cand.exists():
-            return load_ground_truth(cand)
-    try:
-        from hdmap_core.synthetic import SYNTHETIC_NAMES, synthetic_highway
-    except ImportError:  # the synthetic module is optional here
-        SYNTHETIC_NAMES, synthetic_highway = (), None
-    if name in SYNTHETIC_NAMES and synthetic_highway is not None:
-        return synthetic_highway(name)
-    searched = ", ".join(str(d) for d in _map_dirs()) or f"none (set ${MAPS_ENV})"
-    raise GroundTruthError(
-        f"ground truth {spec!r}: no such file, no {name}{GT_SUFFIX} in the map directories ({searched}) "
-        f"and not a synthetic highway name ({', '.join(SYNTHETIC_NAMES) or 'none available'})"
-    )
+    return load_map(name)
 
 
 def _load_map(spec: str) -> tuple[HDMap, str]:
@@ -145,35 +119,52 @@ def _sim_json_beside(bag: str) -> Path | None:
 
 
 def sigma_from_sim_json(path: str | Path) -> float | None:
-    """The lateral localization sigma [m] recorded by the simulator, or None if not found.
+    """The lateral localization sigma [m] of the drives recorded by the simulator, or None.
 
-    Looks for the first of ``_SIGMA_KEYS`` anywhere in the document (config first), else for a key
-    naming both "sigma" and "lat" and ending in "_m".
+    ``hdmap simulate`` writes ``config.bias_lateral_sigma_m`` (constant per-drive bias) and
+    ``config.drift_sigma_m`` (slow Gauss-Markov drift, independent of the bias); at one cut a drive's
+    lateral error is their sum, so sigma_loc = sqrt(bias^2 + drift^2). Other documents: the first of
+    ``_SIGMA_KEYS`` found (config first), else a key naming both "sigma" and "lat" ending in "_m".
     """
     try:
         doc = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError):
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
+    if not isinstance(doc, dict):
+        return None
+    cfg = doc.get("config")
+    if isinstance(cfg, dict) and _number(cfg.get("bias_lateral_sigma_m")) is not None:
+        bias = _number(cfg["bias_lateral_sigma_m"]) or 0.0
+        drift = _number(cfg.get("drift_sigma_m")) or 0.0
+        sigma = math.hypot(bias, drift)
+        return sigma if sigma > 0 else None
     found: dict[str, float] = {}
 
     def walk(node: object, depth: int) -> None:
         if depth > 4 or not isinstance(node, dict):
             return
         for key, value in node.items():
-            if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in found:
+            if _number(value) is not None and key not in found:
                 found[key] = float(value)
             elif isinstance(value, dict) and key not in ("truth", "drives"):
                 walk(value, depth + 1)
 
+    walk(cfg, 0)
     walk(doc, 0)
     for key in _SIGMA_KEYS:
-        if key in found and math.isfinite(found[key]) and found[key] > 0:
+        if key in found and found[key] > 0:
             return found[key]
     for key, value in found.items():
         low = key.lower()
-        if "sigma" in low and "lat" in low and low.endswith("_m") and math.isfinite(value) and value > 0:
+        if "sigma" in low and "lat" in low and low.endswith("_m") and value > 0:
             return value
     return None
+
+
+def _number(value: object) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return None
+    return float(value)
 
 
 def run(args: argparse.Namespace) -> int:
