@@ -27,7 +27,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.errors import ConfigError, HdmapError, NoUsableDataError
-from hdmap_core.evaluate_cuts import Cuts, intersect_cuts, reference_cuts, segments_of
+from hdmap_core.evaluate_cuts import (
+    CutPoints,
+    Cuts,
+    nearest_on_same_cut,
+    nearest_same_type,
+    points_on_cuts,
+    reference_cuts,
+)
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
 
@@ -275,80 +282,6 @@ def _jsonable(value: object) -> object:
     return value
 
 
-# --------------------------------------------------------------------------------------------
-# Points on cuts and matching
-
-
-@dataclass(frozen=True)
-class _CutPoints:
-    """P intersection points of polylines with cuts."""
-
-    cut: np.ndarray  # (P,) cut index
-    s: np.ndarray  # (P,) lateral coordinate on the cut, + = left [m]
-    owner: np.ndarray  # (P,) polyline index
-    vertex: np.ndarray  # (P,) segment start vertex within the polyline
-    u: np.ndarray  # (P,) parameter along that segment
-
-
-def _points_on_cuts(cuts: Cuts, polylines: Sequence[np.ndarray], *, cos_min: float) -> _CutPoints:
-    """Where the polylines cross the cuts, keeping segments running with the cut's direction."""
-    segs = segments_of(polylines)
-    ci, si, s, u = intersect_cuts(cuts.center, cuts.normal, cuts.lo, cuts.hi, segs)
-    d = segs.b[si] - segs.a[si]
-    cos = (d * cuts.tangent[ci]).sum(axis=1) / np.linalg.norm(d, axis=1)
-    ok = cos >= cos_min
-    return _CutPoints(ci[ok], s[ok], segs.owner[si][ok], segs.vertex[si][ok], u[ok])
-
-
-def _nearest_on_same_cut(
-    q_cut: np.ndarray, q_s: np.ndarray, r_cut: np.ndarray, r_s: np.ndarray, *, width: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """For each query point, the nearest reference point on the same cut.
-
-    Both sets are keyed ``cut * width + s`` (``width`` > the longest cut) and searched by bisection.
-    Returns (Q,) index into the reference set (-1 if the cut has none) and (Q,) distance (inf).
-    """
-    idx = np.full(len(q_cut), -1, dtype=np.int64)
-    dist = np.full(len(q_cut), np.inf)
-    if len(q_cut) == 0 or len(r_cut) == 0:
-        return idx, dist
-    r_key = r_cut * width + r_s
-    order = np.argsort(r_key, kind="stable")
-    sorted_key = r_key[order]
-    pos = np.searchsorted(sorted_key, q_cut * width + q_s)
-    for cand in (pos - 1, pos):
-        valid = (cand >= 0) & (cand < len(order))
-        c = order[np.clip(cand, 0, len(order) - 1)]
-        valid &= r_cut[c] == q_cut
-        d = np.where(valid, np.abs(r_s[c] - q_s), np.inf)
-        better = d < dist
-        idx[better] = c[better]
-        dist[better] = d[better]
-    return idx, dist
-
-
-def _nearest_same_type(
-    q_cut: np.ndarray,
-    q_s: np.ndarray,
-    q_type: np.ndarray,
-    r_cut: np.ndarray,
-    r_s: np.ndarray,
-    r_type: np.ndarray,
-    *,
-    width: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``_nearest_on_same_cut`` restricted to reference points of the query point's type."""
-    idx = np.full(len(q_cut), -1, dtype=np.int64)
-    dist = np.full(len(q_cut), np.inf)
-    for t in np.unique(q_type):
-        qm = np.flatnonzero(q_type == t)
-        rm = np.flatnonzero(r_type == t)
-        i, d = _nearest_on_same_cut(q_cut[qm], q_s[qm], r_cut[rm], r_s[rm], width=width)
-        idx[qm] = np.where(i >= 0, rm[np.clip(i, 0, None)] if len(rm) else -1, -1)
-        dist[qm] = d
-    return idx, dist
-
-
 def _stats(values: np.ndarray) -> tuple[float, float, float]:
     if len(values) == 0:
         return math.nan, math.nan, math.nan
@@ -506,16 +439,16 @@ def evaluate_map(
 
     # Ground-truth and map points on the cuts.
     gt_feats = list(gt.features)
-    gp = _points_on_cuts(cuts, [f.points for f in gt_feats], cos_min=cos_feat)
+    gp = points_on_cuts(cuts, [f.points for f in gt_feats], cos_min=cos_feat)
     g_type = np.array([int(f.type) for f in gt_feats], dtype=np.int64)[gp.owner] if gt_feats else gp.owner
     map_feats = _valid_map_features(hdmap, skipped)
-    mp = _points_on_cuts(cuts, [np.asarray(f.points, dtype=float) for f in map_feats], cos_min=cos_feat)
+    mp = points_on_cuts(cuts, [np.asarray(f.points, dtype=float) for f in map_feats], cos_min=cos_feat)
     m_type = np.array([int(f.type) for f in map_feats], dtype=np.int64)[mp.owner] if map_feats else mp.owner
     m_dc = _map_point_drive_counts(map_feats, mp, skipped)
 
     # RULE 1: a map point is matched to the nearest ground-truth point of its type on its cut,
     # within the gate; the signed difference along the cut is its lateral error.
-    gi, gd = _nearest_same_type(mp.cut, mp.s, m_type, gp.cut, gp.s, g_type, width=width)
+    gi, gd = nearest_same_type(mp.cut, mp.s, m_type, gp.cut, gp.s, g_type, width=width)
     matched = gd <= config.gate_m
     err = np.where(matched, mp.s - gp.s[np.clip(gi, 0, None)] if len(gp.s) else 0.0, np.nan)
 
@@ -528,12 +461,12 @@ def evaluate_map(
     corrected = np.where(matched, err - offset[mp.cut] if len(mp.cut) else 0.0, np.nan)
 
     # RULE 3: recall / precision within the recall radius, same type, same cut.
-    _, g_to_m = _nearest_same_type(gp.cut, gp.s, g_type, mp.cut, mp.s, m_type, width=width)
+    _, g_to_m = nearest_same_type(gp.cut, gp.s, g_type, mp.cut, mp.s, m_type, width=width)
     gt_hit = g_to_m <= config.recall_radius_m
     map_hit = gd <= config.recall_radius_m
 
     # RULE 4: type accuracy over map points with any ground-truth point within the gate.
-    _, any_d = _nearest_on_same_cut(mp.cut, mp.s, gp.cut, gp.s, width=width)
+    _, any_d = nearest_on_same_cut(mp.cut, mp.s, gp.cut, gp.s, width=width)
     typed = any_d <= config.gate_m
     type_ok = typed & (gd <= any_d + config.type_tie_m)
 
@@ -609,7 +542,7 @@ def _per_cut_mean(cut: np.ndarray, values: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def _map_point_drive_counts(feats: list[MapFeature], mp: _CutPoints, skipped: list[str]) -> np.ndarray:
+def _map_point_drive_counts(feats: list[MapFeature], mp: CutPoints, skipped: list[str]) -> np.ndarray:
     """(P,) drive_count at each map point on a cut: the value of the nearer segment end."""
     if not feats:
         return np.zeros(0)
@@ -623,7 +556,7 @@ def _map_point_drive_counts(feats: list[MapFeature], mp: _CutPoints, skipped: li
 def _cut_drive_counts(
     cuts: Cuts,
     drives: Sequence[Drive] | None,
-    mp: _CutPoints,
+    mp: CutPoints,
     matched: np.ndarray,
     m_dc: np.ndarray,
     cos_min: float,
@@ -637,7 +570,7 @@ def _cut_drive_counts(
     k = len(cuts)
     if drives is not None:
         trajs = _valid_trajectories(drives, skipped)
-        tp = _points_on_cuts(cuts, trajs, cos_min=cos_min)
+        tp = points_on_cuts(cuts, trajs, cos_min=cos_min)
         pairs = np.unique(tp.cut * (len(trajs) + 1) + tp.owner)
         return np.bincount(pairs // (len(trajs) + 1), minlength=k).astype(float), "drives"
     dc = np.zeros(k)
@@ -652,8 +585,8 @@ def _type_stats(
     *,
     g_mask: np.ndarray,
     m_mask: np.ndarray,
-    gp: _CutPoints,
-    mp: _CutPoints,
+    gp: CutPoints,
+    mp: CutPoints,
     err: np.ndarray,
     corrected: np.ndarray,
     matched: np.ndarray,
@@ -687,7 +620,7 @@ def _type_stats(
 
 
 def _fragmentation(
-    gp: _CutPoints, gi: np.ndarray, matched: np.ndarray, map_feats: list[MapFeature], mp: _CutPoints
+    gp: CutPoints, gi: np.ndarray, matched: np.ndarray, map_feats: list[MapFeature], mp: CutPoints
 ) -> tuple[float, int, int]:
     """Distinct map features matched along each ground-truth feature: (mean, max, #GT features)."""
     if not matched.any():

@@ -19,7 +19,17 @@ import shapely
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import FeatureType
 
-__all__ = ["Cuts", "Segments", "segments_of", "intersect_cuts", "reference_cuts"]
+__all__ = [
+    "Cuts",
+    "Segments",
+    "CutPoints",
+    "segments_of",
+    "intersect_cuts",
+    "reference_cuts",
+    "points_on_cuts",
+    "nearest_on_same_cut",
+    "nearest_same_type",
+]
 
 _EPS = 1e-9
 _JOIN_TOL_M = 0.05  # successor gaps in the shared maps are <= 0.002 m
@@ -320,3 +330,78 @@ def reference_cuts(
     center, tangent, lo, hi = center[keep], tangent[keep], lo[keep], hi[keep]
     station = np.arange(len(center), dtype=float) * step_m
     return Cuts(center, tangent, _left(tangent), lo, hi, station)
+
+
+# --------------------------------------------------------------------------------------------
+# Points on cuts and matching
+
+
+@dataclass(frozen=True)
+class CutPoints:
+    """P intersection points of polylines with cuts."""
+
+    cut: np.ndarray  # (P,) cut index
+    s: np.ndarray  # (P,) lateral coordinate on the cut, + = left [m]
+    owner: np.ndarray  # (P,) polyline index
+    vertex: np.ndarray  # (P,) segment start vertex within the polyline
+    u: np.ndarray  # (P,) parameter along that segment
+
+
+def points_on_cuts(cuts: Cuts, polylines: Sequence[np.ndarray], *, cos_min: float) -> CutPoints:
+    """Where the polylines cross the cuts, keeping segments running with the cut's direction."""
+    segs = segments_of(polylines)
+    ci, si, s, u = intersect_cuts(cuts.center, cuts.normal, cuts.lo, cuts.hi, segs)
+    d = segs.b[si] - segs.a[si]
+    cos = (d * cuts.tangent[ci]).sum(axis=1) / np.linalg.norm(d, axis=1)
+    ok = cos >= cos_min
+    return CutPoints(ci[ok], s[ok], segs.owner[si][ok], segs.vertex[si][ok], u[ok])
+
+
+def nearest_on_same_cut(
+    q_cut: np.ndarray, q_s: np.ndarray, r_cut: np.ndarray, r_s: np.ndarray, *, width: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each query point, the nearest reference point on the same cut.
+
+    Both sets are keyed ``cut * width + s`` (``width`` > the longest cut) and searched by bisection.
+    Returns (Q,) index into the reference set (-1 if the cut has none) and (Q,) distance (inf).
+    """
+    idx = np.full(len(q_cut), -1, dtype=np.int64)
+    dist = np.full(len(q_cut), np.inf)
+    if len(q_cut) == 0 or len(r_cut) == 0:
+        return idx, dist
+    r_key = r_cut * width + r_s
+    order = np.argsort(r_key, kind="stable")
+    sorted_key = r_key[order]
+    pos = np.searchsorted(sorted_key, q_cut * width + q_s)
+    for cand in (pos - 1, pos):
+        valid = (cand >= 0) & (cand < len(order))
+        c = order[np.clip(cand, 0, len(order) - 1)]
+        valid &= r_cut[c] == q_cut
+        d = np.where(valid, np.abs(r_s[c] - q_s), np.inf)
+        better = d < dist
+        idx[better] = c[better]
+        dist[better] = d[better]
+    return idx, dist
+
+
+def nearest_same_type(
+    q_cut: np.ndarray,
+    q_s: np.ndarray,
+    q_type: np.ndarray,
+    r_cut: np.ndarray,
+    r_s: np.ndarray,
+    r_type: np.ndarray,
+    *,
+    width: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``nearest_on_same_cut`` restricted to reference points of the query point's type."""
+    idx = np.full(len(q_cut), -1, dtype=np.int64)
+    dist = np.full(len(q_cut), np.inf)
+    for t in np.unique(q_type):
+        qm = np.flatnonzero(q_type == t)
+        rm = np.flatnonzero(r_type == t)
+        i, d = nearest_on_same_cut(q_cut[qm], q_s[qm], r_cut[rm], r_s[rm], width=width)
+        ok = i >= 0
+        idx[qm[ok]] = rm[i[ok]]
+        dist[qm] = d
+    return idx, dist
