@@ -46,8 +46,8 @@ def fake_pipeline(monkeypatch):
     def build_map(drives, *, config, seed=0, progress=None):
         calls.update(drives=list(drives), config=config, seed=seed)
         if progress is not None:
-            progress(1, 2)
-            progress(2, 2)
+            progress("pivots", 1, 2)
+            progress("pivots", 2, 2)
         return BuildResult(make_map(n_features=3), BuildReport(len(drives)))
 
     mod = types.ModuleType("hdmap_core.pipeline")
@@ -124,3 +124,14 @@ def test_bad_arguments_are_usage_errors(argv, capsys):
     with pytest.raises(SystemExit) as info:
         cli.main(argv)
     assert info.value.code == 2
+
+
+def test_progress_bar_follows_stages(capsys):
+    from hdmap_ros.commands.bag2map import _Progress
+
+    with _Progress(enabled=True) as progress:
+        progress("pivots", 1, 4)
+        progress("pivots", 4, 4)
+        progress("final", 2, 3)
+        assert progress.stage == "final" and progress.bar.total == 3 and progress.bar.n == 2
+    assert "pivots" in capsys.readouterr().err

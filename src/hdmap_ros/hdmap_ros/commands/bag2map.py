@@ -136,15 +136,12 @@ def _fields(report: Any) -> str:
 
 
 class _Progress:
-    """Progress callback for build_map: a tqdm bar on a terminal, silent otherwise.
-
-    Accepts ``progress(done, total)``, ``progress(done, total, message)`` or ``progress(fraction)``
-    with fraction in [0, 1].
-    """
+    """The ``progress(stage, done, total)`` callback of build_map: a tqdm bar on a terminal."""
 
     def __init__(self, *, enabled: bool) -> None:
         self.enabled = enabled
         self.bar: Any = None
+        self.stage: str | None = None
         self.calls = 0
 
     def __enter__(self) -> _Progress:
@@ -154,17 +151,17 @@ class _Progress:
         if self.bar is not None:
             self.bar.close()
 
-    def __call__(self, done: float, total: float | None = None, message: str | None = None, **_: Any) -> None:
+    def __call__(self, stage: str, done: int, total: int) -> None:
         self.calls += 1
         if not self.enabled:
             return
-        if self.bar is None:
-            from tqdm import tqdm  # noqa: PLC0415
+        if self.bar is None or stage != self.stage:
+            from tqdm import tqdm  # noqa: PLC0415 - only on a terminal
 
-            self.bar = tqdm(total=total if total is not None else 1.0, desc=NAME, file=sys.stderr, leave=False)
-        if total is not None and self.bar.total != total:
-            self.bar.total = total
+            if self.bar is not None:
+                self.bar.close()
+            self.bar = tqdm(total=total, desc=f"{NAME}: {stage}", file=sys.stderr, leave=False, unit="")
+            self.stage = stage
+        self.bar.total = total
         self.bar.n = done
-        if message:
-            self.bar.set_postfix_str(str(message), refresh=False)
         self.bar.refresh()
