@@ -265,3 +265,36 @@ def test_baginfo_describes_drives_rejections_and_damage(tmp_path, capsys):
     assert main([str(bag)]) == 1
     assert "DAMAGED:" in capsys.readouterr().out
     assert main([str(tmp_path / "missing")]) == 1
+
+
+BAGS = Path(__file__).resolve().parents[2] / "bags"
+
+
+@pytest.mark.parametrize("name", ["e6mini_20", "ramps_20"])
+def test_sample_fleet_bags_read_cleanly(name):
+    got = read_fleet_bag(BAGS / name)
+    assert got.error is None and got.rejected == [] and got.origin is not None
+    assert len(got.drives) == 20 and len({d.drive_id for d in got.drives}) == 20
+    assert 10.0 < sum(d.length_m for d in got.drives) / 1000.0 < 13.0  # bags/README.md: 11.6 km
+
+
+def test_sample_bad_inputs_bag_is_as_documented():
+    got = read_fleet_bag(BAGS / "bad_inputs")
+    assert got.error is None and len(got.drives) == 4
+    assert [(r.drive_id, r.reason) for r in got.rejected] == [
+        ("bad-nan-trajectory", "non_finite_coordinates"),
+        ("bad-inf-detection", "non_finite_coordinates"),
+        ("bad-short-detection", "too_few_points"),
+        ("bad-empty-trajectory", "empty_trajectory"),
+        ("bad-one-pose", "too_few_points"),
+        ("bad-unknown-type", "unknown_type"),
+        ("bad-wrong-frame", "wrong_frame"),
+        ("bad-nan-heading", "bad_heading"),
+        ("", "empty_drive_id"),
+        ("motorway_s7_0001", "duplicate_drive_id"),
+        ("", "undecodable"),
+    ]
+    cut = read_fleet_bag(BAGS / "bad_inputs_truncated.mcap")
+    assert "truncated" in cut.error
+    assert [d.drive_id for d in cut.drives] == [d.drive_id for d in got.drives[:2]]
+    assert len(cut.rejected) == 8 and cut.origin == got.origin

@@ -135,3 +135,23 @@ def test_progress_bar_follows_stages(capsys):
         progress("final", 2, 3)
         assert progress.stage == "final" and progress.bar.total == 3 and progress.bar.n == 2
     assert "pivots" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_end_to_end_on_sample_bag(tmp_path, capsys):
+    """The real pipeline on bags/e6mini_20: a map bag and GeoJSON come out, consistent with each other."""
+    from pathlib import Path
+
+    bag = Path(__file__).resolve().parents[2] / "bags" / "e6mini_20"
+    out, gj = tmp_path / "map", tmp_path / "map.geojson"
+    assert cli.main(["bag2map", str(bag), "-o", str(out), "--geojson", str(gj), "--no-progress"]) == 0
+    hdmap = read_map_bag(out)
+    origin = hdmap.extra["origin"]
+    assert hdmap.features and hdmap.topology
+    assert set(hdmap.drive_ids) <= {f"esmini_e6mini_s1_{i:04d}" for i in range(100)} or hdmap.drive_ids
+    features = json.loads(gj.read_text())["features"]
+    assert len(features) == sum(len(f.points) >= 2 for f in hdmap.features)
+    lon, lat = np.array([c for f in features for c in f["geometry"]["coordinates"]]).T
+    # the e6mini map spans < 2 km: every point within ~0.03 deg of the origin
+    assert np.all(np.abs(lat - origin.latitude_deg) < 0.03) and np.all(np.abs(lon - origin.longitude_deg) < 0.05)
+    assert "pipeline report:" in capsys.readouterr().out
