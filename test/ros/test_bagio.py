@@ -298,3 +298,13 @@ def test_sample_bad_inputs_bag_is_as_documented():
     assert "truncated" in cut.error
     assert [d.drive_id for d in cut.drives] == [d.drive_id for d in got.drives[:2]]
     assert len(cut.rejected) == 8 and cut.origin == got.origin
+
+
+def test_broken_metadata_yaml_reads_every_drive_and_says_so(tmp_path):
+    drives = _drives(3)
+    bag = write_fleet_bag(tmp_path / "fleet", drives, ORIGIN)
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [")
+    got = read_fleet_bag(bag)
+    assert got.error is not None and "rosbag2 reader failed" in got.error and "metadata.yaml" in got.error
+    for a, b in zip(drives, got.drives, strict=True):
+        assert_drives_equal(a, b)

@@ -158,15 +158,18 @@ def iter_bag(path: str | Path, *, topics: Iterable[str] | None = None) -> Iterat
 
 
 def _iter_rosbag2(path: Path, wanted: set[str] | None, mcaps: list[Path]) -> Iterator[BagMessage]:
-    reader = AnyReader([path], default_typestore=default_typestore())
     try:
+        reader = AnyReader([path], default_typestore=default_typestore())
         reader.open()
     except (*_READ_ERRORS, TypesysError) as err:
         if not mcaps:
             raise BagError(f"{path}: cannot open the bag: {err}") from err
-        # MCAP storage whose index/footer is damaged: read the records that are intact.
+        # MCAP storage whose index/footer/metadata is damaged: read the records that are intact.
         yield from _iter_mcap_files(mcaps, wanted, note=f"rosbag2 reader: {err}")
-        return
+        raise BagError(
+            f"{path}: damaged: the rosbag2 reader failed ({err}); every message was read from the "
+            "MCAP records instead"
+        ) from err
     count = 0
     try:
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
@@ -185,8 +188,6 @@ def _iter_rosbag2(path: Path, wanted: set[str] | None, mcaps: list[Path]) -> Ite
 def _iter_mcap_files(paths: list[Path], wanted: set[str] | None, *, note: str = "") -> Iterator[BagMessage]:
     for p in paths:
         yield from scan_mcap(p, wanted, note=note)
-
-
 
 
 def iter_fleet_bag(
