@@ -1,0 +1,251 @@
+"""``hdmap bench``: the pipeline presets side by side on the same fleet bags, scored and timed.
+
+Each scenario is a fleet bag with its ground truth: either an existing bag (``BAG`` with
+``BAG.gt.json`` beside it, as ``hdmap simulate`` writes) or ``MAP:DRIVES[:SEED]``, simulated here
+with the simulator's default configuration (e.g. ``motorway_ramps:134``, the paper-like scenario).
+Every (scenario, preset) run happens in a fresh process, one after the other, so that wall time
+and peak memory (peak RSS of that process: imports, bag reading, map building and evaluation) are
+its own. The table has the evaluator's figures (``hdmap_core.evaluate``), the floor
+sigma_loc / sqrt(drives), build time and peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from hdmap_core.errors import ConfigError
+
+__all__ = ["NAME", "HELP", "add_arguments", "run", "Scenario", "run_one", "format_table"]
+
+NAME = "bench"
+HELP = "compare the pipeline presets on the same fleet bags: evaluator figures, floor, time, peak memory"
+PRESETS = ("default", "paper", "naive")
+DEFAULT_SCENARIOS = ("motorway_ramps:134",)
+
+# (key, header, format) of the table columns; values missing or NaN print as "-".
+COLUMNS = (
+    ("scenario", "scenario", "{}"),
+    ("preset", "preset", "{}"),
+    ("drives", "drives", "{:d}"),
+    ("drive_km", "drive km", "{:.1f}"),
+    ("mean_m", "mean m", "{:.3f}"),
+    ("p95_m", "p95 m", "{:.3f}"),
+    ("corrected_mean_m", "corr. mean m", "{:.3f}"),
+    ("floor_m", "floor m", "{:.3f}"),
+    ("mean_over_floor", "mean/floor", "{:.2f}"),
+    ("coverage", "coverage", "{:.1%}"),
+    ("recall", "recall", "{:.1%}"),
+    ("precision", "precision", "{:.1%}"),
+    ("type_accuracy", "type acc.", "{:.1%}"),
+    ("fragmentation", "fragm.", "{:.2f}"),
+    ("build_s", "build s", "{:.1f}"),
+    ("peak_rss_mb", "peak RSS MB", "{:.0f}"),
+)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One fleet bag to benchmark on.
+
+    Attributes:
+        name: label in the table.
+        bag: fleet bag path.
+        gt_path: ground truth (.gt.json).
+        sigma_loc_m: localization sigma for the floor (None: the evaluator's default).
+    """
+
+    name: str
+    bag: str
+    gt_path: str
+    sigma_loc_m: float | None = None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "scenarios",
+        nargs="*",
+        metavar="SCENARIO",
+        help="fleet bag (with BAG.gt.json beside it) or MAP:DRIVES[:SEED] to simulate "
+        f"(default: {' '.join(DEFAULT_SCENARIOS)})",
+    )
+    parser.add_argument(
+        "--presets", default=",".join(PRESETS), help="comma-separated presets to run (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--scale",
+        type=float,
+        action="append",
+        metavar="F",
+        help="multiply the drive count of simulated scenarios (repeatable, e.g. --scale 0.25 --scale 1 --scale 4)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="pipeline seed (default: %(default)s)")
+    parser.add_argument("--work-dir", metavar="DIR", help="keep simulated bags here (default: a temporary dir)")
+    parser.add_argument("--json", metavar="FILE", help="write every run's figures as JSON")
+    parser.add_argument("--markdown", metavar="FILE", help="write the table as Markdown")
+    parser.add_argument("--inline", action="store_true", help="run in this process (peak RSS then not per run)")
+
+
+def _presets(text: str) -> list[str]:
+    names = [p.strip() for p in text.split(",") if p.strip()]
+    unknown = [p for p in names if p not in PRESETS]
+    if not names or unknown:
+        raise ConfigError(f"--presets {text!r}: choose from {', '.join(PRESETS)}")
+    return names
+
+
+def _sigma_from_config(config: Any) -> float:
+    # The lateral error of a drive at one place: constant bias plus slow drift (independent).
+    return math.hypot(config.bias_lateral_sigma_m, config.drift_sigma_m)
+
+
+def prepare_scenarios(specs: list[str], *, scales: list[float], work_dir: Path) -> list[Scenario]:
+    """Resolve scenario specs; ``MAP:DRIVES[:SEED]`` specs are simulated into ``work_dir``."""
+    from hdmap_ros.commands.evaluate import sigma_from_sim_json  # noqa: PLC0415
+
+    out = []
+    for spec in specs:
+        path = Path(spec)
+        if path.exists():
+            gt = path.with_name(path.name + ".gt.json")
+            if not gt.exists():
+                raise ConfigError(f"scenario {spec}: no ground truth {gt} beside the bag")
+            sim = path.with_name(path.name + ".sim.json")
+            sigma = sigma_from_sim_json(sim) if sim.exists() else None
+            out.append(Scenario(path.name, str(path), str(gt), sigma))
+            continue
+        parts = spec.split(":")
+        if len(parts) not in (2, 3):
+            raise ConfigError(f"scenario {spec!r}: neither an existing bag nor MAP:DRIVES[:SEED]")
+        try:
+            drives, seed = int(parts[1]), int(parts[2]) if len(parts) == 3 else 0
+        except ValueError:
+            raise ConfigError(f"scenario {spec!r}: DRIVES and SEED must be integers") from None
+        for scale in scales:
+            n = max(1, round(drives * scale))
+            out.append(_simulate(parts[0], n, seed, work_dir))
+    return out
+
+
+def _simulate(map_name: str, n_drives: int, seed: int, work_dir: Path) -> Scenario:
+    from hdmap_core.groundtruth import save_ground_truth  # noqa: PLC0415
+    from hdmap_core.simulate import SimConfig, load_map, simulate_fleet, write_sim_json  # noqa: PLC0415
+    from hdmap_ros.bagio import write_fleet_bag  # noqa: PLC0415
+
+    name = f"{map_name}_{n_drives}_s{seed}"
+    bag = work_dir / name
+    config = SimConfig.from_dict({"n_drives": n_drives})
+    gt = load_map(map_name)
+    gt_path = bag.with_name(bag.name + ".gt.json")
+    if not (bag / "metadata.yaml").exists():
+        fleet = simulate_fleet(gt, config=config, seed=seed)
+        write_fleet_bag(bag, fleet.drives, fleet.origin, overwrite=True)
+        save_ground_truth(gt, gt_path)
+        write_sim_json(fleet, bag.with_name(bag.name + ".sim.json"))
+    return Scenario(name, str(bag), str(gt_path), _sigma_from_config(config))
+
+
+def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
+    """Read the bag, build the map with ``preset``, evaluate it; figures as a flat dict."""
+    import resource  # noqa: PLC0415
+
+    from hdmap_core import pipeline  # noqa: PLC0415
+    from hdmap_core.evaluate import evaluate_map  # noqa: PLC0415
+    from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
+    from hdmap_ros.bagio import read_fleet_bag  # noqa: PLC0415
+
+    fleet = read_fleet_bag(scenario.bag)
+    t0 = time.perf_counter()
+    result = pipeline.build_map(fleet.drives, config=pipeline.PipelineConfig.preset(preset), seed=seed)
+    build_s = time.perf_counter() - t0
+    rep = evaluate_map(
+        result.map, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m
+    )
+    o = rep.overall
+    floor = rep.floor_mean_m
+    return {
+        "scenario": scenario.name,
+        "preset": preset,
+        "drives": len(fleet.drives),
+        "drive_km": sum(d.length_m for d in fleet.drives) / 1000.0,
+        "mean_m": o.mean_m,
+        "median_m": o.median_m,
+        "p95_m": o.p95_m,
+        "corrected_mean_m": o.corrected_mean_m,
+        "floor_m": floor,
+        "mean_over_floor": o.mean_m / floor if floor and math.isfinite(floor) and floor > 0 else math.nan,
+        "coverage": rep.coverage,
+        "recall": o.recall,
+        "precision": o.precision,
+        "type_accuracy": rep.type_accuracy,
+        "fragmentation": rep.fragmentation_mean,
+        "n_features": len(result.map.features),
+        "build_s": build_s,
+        "stage_seconds": dict(getattr(result.report, "stage_seconds", {}) or {}),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    }
+
+
+def _cell(value: Any, fmt: str) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    try:
+        return fmt.format(value)
+    except (ValueError, TypeError):
+        return str(value)
+
+
+def format_table(rows: list[dict[str, Any]], *, markdown: bool = False) -> str:
+    """The runs as an aligned text table (or a Markdown table)."""
+    header = [h for _, h, _ in COLUMNS]
+    body = [[_cell(r.get(k), f) for k, _, f in COLUMNS] for r in rows]
+    if markdown:
+        lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+        return "\n".join(lines + ["| " + " | ".join(b) + " |" for b in body])
+    widths = [max(len(x) for x in col) for col in zip(header, *body)]
+    fmt_row = lambda cells: "  ".join(c.rjust(w) if i > 1 else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
+    return "\n".join([fmt_row(header), fmt_row(["-" * w for w in widths])] + [fmt_row(b) for b in body])
+
+
+def run(args: argparse.Namespace) -> int:
+    presets = _presets(args.presets)
+    scales = args.scale or [1.0]
+    if any(s <= 0 for s in scales):
+        raise ConfigError("--scale must be > 0")
+    with tempfile.TemporaryDirectory(prefix="hdmap-bench-") as tmp:
+        work_dir = Path(args.work_dir) if args.work_dir else Path(tmp)
+        work_dir.mkdir(parents=True, exist_ok=True)
+        scenarios = prepare_scenarios(list(args.scenarios) or list(DEFAULT_SCENARIOS), scales=scales, work_dir=work_dir)
+        rows = []
+        for sc in scenarios:
+            for preset in presets:
+                print(f"hdmap bench: {sc.name} / {preset} ...", file=sys.stderr, flush=True)
+                rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline))
+    table = format_table(rows)
+    print(table)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1, default=_json_default))
+    if args.markdown:
+        Path(args.markdown).write_text(format_table(rows, markdown=True) + "\n")
+    return 0
+
+
+def _json_default(value: Any) -> Any:
+    return None if isinstance(value, float) and not math.isfinite(value) else str(value)
+
+
+def _run_isolated(scenario: Scenario, preset: str, seed: int, *, inline: bool) -> dict[str, Any]:
+    if inline:
+        return run_one(scenario, preset, seed)
+    # A fresh process per run: its peak RSS and time are this run's alone.
+    with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"), max_tasks_per_child=1) as pool:
+        return pool.submit(run_one, scenario, preset, seed).result()

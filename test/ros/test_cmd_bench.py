@@ -1,0 +1,91 @@
+"""`hdmap bench`: scenario handling, figures wiring and the table (pipeline faked; real run is slow)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import types
+from dataclasses import dataclass
+
+import pytest
+
+from hdmap_core.evaluate import hdmap_from_ground_truth
+from hdmap_core.groundtruth import load_ground_truth
+from hdmap_ros import cli
+from hdmap_ros.commands.bench import format_table
+
+
+@pytest.fixture
+def gt_pipeline(monkeypatch, tmp_path):
+    """build_map stand-in returning the ground truth of the scenario as the map (a perfect map)."""
+
+    @dataclass(frozen=True)
+    class PipelineConfig:
+        name: str
+
+        @classmethod
+        def preset(cls, name):
+            return cls(name)
+
+    @dataclass(frozen=True)
+    class Result:
+        map: object
+        report: object
+
+    def build_map(drives, *, config, seed=0, progress=None):
+        (gt,) = tmp_path.glob("*.gt.json")
+        return Result(hdmap_from_ground_truth(load_ground_truth(gt)), types.SimpleNamespace(stage_seconds={"x": 0.0}))
+
+    mod = types.ModuleType("hdmap_core.pipeline")
+    mod.PipelineConfig, mod.build_map = PipelineConfig, build_map
+    monkeypatch.setitem(sys.modules, "hdmap_core.pipeline", mod)
+    import hdmap_core
+
+    monkeypatch.setattr(hdmap_core, "pipeline", mod, raising=False)
+    return tmp_path
+
+
+def test_inline_bench_on_a_simulated_scenario(gt_pipeline, capsys):
+    work = gt_pipeline
+    out_json, out_md = work / "bench.json", work / "bench.md"
+    code = cli.main([
+        "bench", "motorway:3", "--presets", "naive,paper", "--inline", "--work-dir", str(work),
+        "--json", str(out_json), "--markdown", str(out_md),
+    ])
+    assert code == 0
+    rows = json.loads(out_json.read_text())
+    assert [(r["scenario"], r["preset"]) for r in rows] == [("motorway_3_s0", "naive"), ("motorway_3_s0", "paper")]
+    for r in rows:
+        assert r["drives"] == 3 and r["drive_km"] > 0
+        assert r["mean_m"] < 0.01 and r["coverage"] > 0.9  # the ground truth scored against itself
+        assert r["floor_m"] > 0 and r["peak_rss_mb"] > 10
+    table = capsys.readouterr().out
+    assert "motorway_3_s0" in table and "mean/floor" in table
+    assert out_md.read_text().count("\n") == 4  # header, rule, two rows
+
+
+def test_table_prints_missing_figures_as_dash():
+    text = format_table([{"scenario": "s", "preset": "p", "drives": 2, "mean_m": math.nan, "coverage": 0.5}])
+    assert "50.0%" in text and " -" in text
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["bench", "motorway:3", "--presets", "fancy"], "--presets"),
+        (["bench", "no/such/bag"], "neither an existing bag"),
+        (["bench", "motorway:x"], "integers"),
+        (["bench", "motorway:3", "--scale", "0"], "--scale"),
+    ],
+)
+def test_bad_arguments(argv, message, capsys, tmp_path):
+    assert cli.main(argv + ["--work-dir", str(tmp_path)]) == 1
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_real_bench_in_a_subprocess(tmp_path, capsys):
+    assert cli.main(["bench", "motorway:4", "--presets", "naive", "--work-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "motorway_4_s0" in out and "naive" in out
