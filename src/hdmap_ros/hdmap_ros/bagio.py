@@ -24,7 +24,7 @@ import shutil
 import sqlite3
 import struct
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from rosbags.highlevel import AnyReader, AnyReaderError
@@ -80,14 +80,21 @@ class Rejection:
         drive_id: the drive's id ("" when the message is not a drive or its id is unreadable).
         reason: short key, e.g. ``non_finite_coordinates``, ``duplicate_drive_id``, ``undecodable``.
         detail: human-readable detail.
+        topic, log_time_ns: where the message is in the bag (set by the bag readers).
     """
 
     drive_id: str
     reason: str
     detail: str = ""
+    topic: str = ""
+    log_time_ns: int | None = None
 
     def __str__(self) -> str:
-        what = f"drive {self.drive_id!r}" if self.drive_id else "message"
+        if self.drive_id:
+            what = f"drive {self.drive_id!r}"
+        else:
+            where = f" at log time {self.log_time_ns}" if self.log_time_ns is not None else ""
+            what = f"{self.topic or 'a'} message{where}"
         return f"{what}: {self.reason}" + (f" ({self.detail})" if self.detail else "")
 
 
@@ -213,14 +220,15 @@ def iter_fleet_bag(
                     item = Rejection("", "conflicting_origin", f"{item} differs from the first origin {origin}")
                 else:
                     continue
-            yield item
-            continue
-        item = _decode_drive(bm, expected_frame)
-        if isinstance(item, Drive):
-            if item.drive_id in seen:
-                item = Rejection(item.drive_id, "duplicate_drive_id", "an earlier drive has this id; kept the first")
-            else:
-                seen.add(item.drive_id)
+        else:
+            item = _decode_drive(bm, expected_frame)
+            if isinstance(item, Drive):
+                if item.drive_id in seen:
+                    item = Rejection(item.drive_id, "duplicate_drive_id", "an earlier drive has this id; kept the first")
+                else:
+                    seen.add(item.drive_id)
+        if isinstance(item, Rejection):
+            item = replace(item, topic=bm.topic, log_time_ns=bm.log_time_ns)
         yield item
 
 
@@ -245,7 +253,7 @@ def _decode_drive(bm: BagMessage, expected_frame: str | None) -> Drive | Rejecti
     try:
         msg = bm.decode()
     except _DECODE_ERRORS as err:
-        return Rejection("", "undecodable", f"drive message at log time {bm.log_time_ns}: {err}")
+        return Rejection("", "undecodable", str(err))
     try:
         return msg_to_drive(msg, expected_frame=expected_frame)
     except InvalidDriveError as err:
