@@ -100,6 +100,7 @@ class SimConfig:
     visibility_next_marking: float = 0.70
     visibility_far_marking: float = 0.25
     visibility_border: float = 0.60
+    visibility_edge_m: float = 1.0  # width of the linear ramp between two bands' visibilities
     visibility_block_min_m: float = 10.0  # visibility is decided per block ~ U(min, max) along a
     visibility_block_max_m: float = 300.0  # feature: dropouts are on/off gaps of these lengths
     opposite_barrier: bool = True  # detect the opposite carriageway's median barrier
@@ -550,14 +551,23 @@ def _block_uniform(s: np.ndarray, group: np.ndarray, bmin: float, bmax: float, r
 
 
 def _visibility(cfg: SimConfig, typ: np.ndarray, abs_lat: np.ndarray) -> np.ndarray:
-    """(P,) detection probability of a feature point of type ``typ`` at lateral distance ``abs_lat``."""
+    """(P,) detection probability of a feature point of type ``typ`` at lateral distance ``abs_lat``.
+
+    Piecewise constant per band, with linear ramps of ``visibility_edge_m`` across the band
+    edges: a feature running right at an edge then does not flicker in and out.
+    """
+    bands = [cfg.ego_marking_max_lateral_m, cfg.next_marking_max_lateral_m, cfg.far_marking_max_lateral_m]
+    gaps = np.diff([0.0] + bands)
+    h = min(cfg.visibility_edge_m / 2.0, 0.5 * float(np.min(gaps[gaps > 0])) if np.any(gaps > 0) else 0.0)
+    values = [cfg.visibility_ego_marking, cfg.visibility_next_marking, cfg.visibility_far_marking, 0.0]
+    xp, fp = [0.0], [values[0]]
+    for i, edge in enumerate(bands):
+        xp += [edge - h, edge + h + 1e-9 * (i + 1)]
+        fp += [values[i], values[i + 1]]
+    p_mark = np.interp(abs_lat, np.maximum.accumulate(xp), fp)
+    hb = min(cfg.visibility_edge_m / 2.0, cfg.border_max_lateral_m)
+    p_border = np.interp(abs_lat, [0.0, cfg.border_max_lateral_m - hb, cfg.border_max_lateral_m + hb + 1e-9], [cfg.visibility_border, cfg.visibility_border, 0.0])
     marking = np.isin(typ, _MARKINGS)
-    p_mark = np.select(
-        [abs_lat <= cfg.ego_marking_max_lateral_m, abs_lat <= cfg.next_marking_max_lateral_m, abs_lat <= cfg.far_marking_max_lateral_m],
-        [cfg.visibility_ego_marking, cfg.visibility_next_marking, cfg.visibility_far_marking],
-        0.0,
-    )
-    p_border = np.where(abs_lat <= cfg.border_max_lateral_m, cfg.visibility_border, 0.0)
     return np.where(marking, p_mark, np.where(typ == _BORDER, p_border, 0.0))
 
 

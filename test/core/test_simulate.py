@@ -1,0 +1,467 @@
+"""Fleet simulator: its output follows its config (real statistics, measured against the GT)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from hdmap_core.errors import ConfigError, GroundTruthError, NoUsableDataError
+from hdmap_core.groundtruth import GroundTruth
+from hdmap_core.model import FeatureType, validate_drive
+from hdmap_core.simulate import (
+    DEFAULT_ORIGIN,
+    SimConfig,
+    fleet_to_dict,
+    load_map,
+    route_directions,
+    shared_maps_dirs,
+    simulate_fleet,
+)
+from hdmap_core.synthetic import synthetic_highway
+
+SHORT = dict(snippet_length_min_m=300.0, snippet_length_max_m=600.0)
+
+
+@pytest.fixture(scope="module")
+def ramps() -> GroundTruth:
+    return synthetic_highway("motorway_ramps", length_m=2500.0)
+
+
+@pytest.fixture(scope="module")
+def motorway() -> GroundTruth:
+    return synthetic_highway("motorway", length_m=2000.0)
+
+
+def _left(yaw: np.ndarray) -> np.ndarray:
+    return np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
+
+
+def _head(yaw: np.ndarray) -> np.ndarray:
+    return np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+
+
+class _Lines:
+    """Point-to-polyline distance, optionally of one type only (exact point-segment distance to the
+    segments at the k nearest vertices)."""
+
+    def __init__(self, polylines: list[np.ndarray], types: list[int]) -> None:
+        self.pts = np.concatenate(polylines)
+        self.type = np.concatenate([np.full(len(p), int(t)) for p, t in zip(polylines, types)])
+        last = np.concatenate([np.arange(len(p)) == len(p) - 1 for p in polylines])
+        self.has_next = ~last
+        self.tree = cKDTree(self.pts)
+
+    def distance(self, pts: np.ndarray, ftype: int | None = None, k: int = 12) -> np.ndarray:
+        k = min(k, len(self.pts))
+        _, j = self.tree.query(pts, k=k)
+        j = j.reshape(len(pts), k)
+        best = np.full(len(pts), np.inf)
+        for col in range(k):
+            for a in (j[:, col] - 1, j[:, col]):
+                a = np.clip(a, 0, len(self.pts) - 2)
+                ok = self.has_next[a] & ((self.type[a] == ftype) if ftype is not None else True)
+                p0, p1 = self.pts[a], self.pts[a + 1]
+                d = p1 - p0
+                t = np.clip(np.sum((pts - p0) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-12), 0.0, 1.0)
+                dist = np.linalg.norm(pts - (p0 + t[:, None] * d), axis=1)
+                best = np.where(ok, np.minimum(best, dist), best)
+        return best
+
+
+def _gt_lines(gt: GroundTruth) -> _Lines:
+    return _Lines([f.points for f in gt.features], [int(f.type) for f in gt.features])
+
+
+# ---------------------------------------------------------------------------- determinism
+
+
+def _same_fleet(a, b) -> bool:
+    if [d.drive_id for d in a.drives] != [d.drive_id for d in b.drives]:
+        return False
+    for da, db in zip(a.drives, b.drives):
+        if not (np.array_equal(da.xy, db.xy) and np.array_equal(da.stamps_ns, db.stamps_ns)):
+            return False
+        if len(da.detections) != len(db.detections):
+            return False
+        for x, y in zip(da.detections, db.detections):
+            if x.type != y.type or not np.array_equal(x.points, y.points):
+                return False
+    return True
+
+
+def test_same_seed_identical_other_seed_differs(ramps):
+    cfg = SimConfig(n_drives=6, **SHORT)
+    a = simulate_fleet(ramps, config=cfg, seed=5)
+    b = simulate_fleet(ramps, config=cfg, seed=5)
+    c = simulate_fleet(ramps, config=cfg, seed=6)
+    assert _same_fleet(a, b)
+    assert not _same_fleet(a, c)
+
+
+def test_drive_i_does_not_depend_on_the_number_of_drives(ramps):
+    few = simulate_fleet(ramps, config=SimConfig(n_drives=3, **SHORT), seed=2)
+    more = simulate_fleet(ramps, config=SimConfig(n_drives=6, **SHORT), seed=2)
+    more.drives[:] = more.drives[:3]
+    assert _same_fleet(few, more)
+
+
+# ---------------------------------------------------------------------------- drives
+
+
+def test_drives_are_valid_with_metre_poses_and_plausible_stamps(ramps):
+    cfg = SimConfig(n_drives=12, **SHORT)
+    fleet = simulate_fleet(ramps, config=cfg, seed=1)
+    assert fleet.origin == DEFAULT_ORIGIN
+    assert len({d.drive_id for d in fleet.drives}) == 12
+    starts = [d.start_ns for d in fleet.drives]
+    assert starts == sorted(starts)
+    for d in fleet.drives:
+        validate_drive(d)
+        truth = fleet.truth[d.drive_id]
+        step = np.linalg.norm(np.diff(truth["true_xy"], axis=0), axis=1)
+        assert np.median(step) == pytest.approx(1.0, abs=0.02)
+        speed = step.sum() / ((d.stamps_ns[-1] - d.stamps_ns[0]) * 1e-9)
+        assert cfg.speed_min_mps - 0.5 <= speed <= cfg.speed_max_mps + 0.5
+        assert truth["length_m"] <= cfg.snippet_length_max_m + 2.0
+        for det in d.detections:
+            sp = np.linalg.norm(np.diff(det.points, axis=0), axis=1)
+            assert sp.max() <= 2.0 + 0.5  # 1.5 m spacing plus noise
+
+
+def test_direction_bias_is_respected(ramps):
+    cfg = SimConfig(n_drives=200, snippet_length_min_m=20.0, snippet_length_max_m=40.0, direction_bias=0.8)
+    fleet = simulate_fleet(ramps, config=cfg, seed=3)
+    share = np.mean([t["direction"] == 0 for t in fleet.truth.values()])
+    assert share == pytest.approx(0.8, abs=0.08)
+    dirs = route_directions(ramps)
+    assert {dirs[t["route_id"]] for t in fleet.truth.values()} == {0, 1}
+
+
+def test_route_directions_of_a_real_two_way_map():
+    try:
+        gt = load_map("esmini_e6mini")
+    except GroundTruthError:
+        pytest.skip("shared maps not available")
+    dirs = route_directions(gt)
+    assert sorted(dirs.values()) == [0, 0, 0, 1, 1, 1]
+    heads = {}
+    for r in gt.routes:
+        c = gt.route_centerline(r)
+        heads[r.id] = (c[-1] - c[0]) / np.linalg.norm(c[-1] - c[0])
+    for a in gt.routes:
+        for b in gt.routes:
+            same = dirs[a.id] == dirs[b.id]
+            assert (np.dot(heads[a.id], heads[b.id]) > 0) == same
+
+
+def test_lane_changes_stay_on_existing_lanes(motorway):
+    cfg = SimConfig.noise_free(
+        n_drives=30, lane_change_rate_per_km=3.0, snippet_length_min_m=1000.0, snippet_length_max_m=1500.0
+    )
+    fleet = simulate_fleet(motorway, config=cfg, seed=4)
+    assert sum(t["n_lane_changes"] for t in fleet.truth.values()) > 10
+    routes = {r.id: motorway.route_centerline(r) for r in motorway.routes}
+    for d in fleet.drives:
+        t = fleet.truth[d.drive_id]
+        lane_no = int(t["route_id"][-1])
+        c = routes[t["route_id"]]
+        tree = cKDTree(c)
+        _, k = tree.query(t["true_xy"])
+        tan = np.gradient(c, axis=0)[k]
+        lat = np.sum((t["true_xy"] - c[k]) * np.stack([-tan[:, 1], tan[:, 0]], axis=1), axis=1) / np.linalg.norm(tan, axis=1)
+        # Never left of lane 1 or right of lane 3; at most one lane away.
+        assert lat.max() <= (0.05 if lane_no == 1 else 3.6)
+        assert lat.min() >= (-0.05 if lane_no == 3 else -3.6)
+        if t["n_lane_changes"]:
+            assert np.abs(lat).max() > 3.3
+            assert len(t["lane_sequence"]) > len(set(l.split(":")[2] for l in t["lane_sequence"][:1]))
+
+
+# ---------------------------------------------------------------------------- localization error
+
+
+def test_reported_minus_true_pose_is_the_recorded_error(ramps):
+    fleet = simulate_fleet(ramps, config=SimConfig(n_drives=5, **SHORT), seed=7)
+    for d in fleet.drives:
+        t = fleet.truth[d.drive_id]
+        delta = d.xy - t["true_xy"]
+        np.testing.assert_allclose(np.sum(delta * _left(d.yaw), axis=1), t["lateral_error_m"], atol=1e-9)
+        np.testing.assert_allclose(np.sum(delta * _head(d.yaw), axis=1), t["longitudinal_error_m"], atol=1e-9)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 1.0])
+def test_measured_lateral_offsets_have_the_configured_sigma(motorway, sigma):
+    """Per-drive lateral offset measured from the reported trajectory against the GT lane."""
+    cfg = SimConfig(
+        n_drives=150, bias_lateral_sigma_m=sigma, lane_change_rate_per_km=0.0,
+        snippet_length_min_m=150.0, snippet_length_max_m=250.0,
+    )
+    fleet = simulate_fleet(motorway, config=cfg, seed=11)
+    routes = {r.id: motorway.route_centerline(r) for r in motorway.routes}
+    est, rec = [], []
+    for d in fleet.drives:
+        t = fleet.truth[d.drive_id]
+        c = routes[t["route_id"]]
+        _, k = cKDTree(c).query(d.xy)
+        k = np.clip(k, 1, len(c) - 2)
+        tan = c[k + 1] - c[k - 1]
+        tan /= np.linalg.norm(tan, axis=1, keepdims=True)
+        lat = np.sum((d.xy - c[k]) * np.stack([-tan[:, 1], tan[:, 0]], axis=1), axis=1)
+        est.append(np.median(lat))
+        rec.append(t["lateral_error_mean_m"])
+    est, rec = np.array(est), np.array(rec)
+    expected = np.hypot(sigma, cfg.drift_sigma_m)  # bias plus (nearly constant over 250 m) drift
+    assert np.std(est) == pytest.approx(expected, rel=0.2)
+    assert np.std(est - rec) < 0.2  # only the in-lane wander separates them
+    assert np.corrcoef(est, rec)[0, 1] > 0.95
+    biases = np.array([t["bias_longitudinal_m"] for t in fleet.truth.values()])
+    assert np.std(biases) == pytest.approx(cfg.bias_longitudinal_sigma_m, rel=0.15)
+
+
+def test_drift_has_the_configured_sigma_and_correlation(motorway):
+    cfg = SimConfig(
+        n_drives=50, bias_lateral_sigma_m=0.0, bias_longitudinal_sigma_m=0.0,
+        snippet_length_min_m=1900.0, snippet_length_max_m=2000.0,
+    )
+    fleet = simulate_fleet(motorway, config=cfg, seed=12)
+    errs = [t["lateral_error_m"] for t in fleet.truth.values()]
+    pooled = np.concatenate(errs)
+    assert np.std(pooled) == pytest.approx(cfg.drift_sigma_m, rel=0.3)
+    lag = int(cfg.drift_corr_length_m)
+    a = np.concatenate([e[:-lag] for e in errs if len(e) > lag + 100])
+    b = np.concatenate([e[lag:] for e in errs if len(e) > lag + 100])
+    assert np.corrcoef(a, b)[0, 1] == pytest.approx(np.exp(-1.0), abs=0.2)
+
+
+# ---------------------------------------------------------------------------- detections
+
+
+def test_noise_free_detections_lie_on_the_ground_truth(ramps):
+    cfg = SimConfig.noise_free(n_drives=8, **SHORT)
+    fleet = simulate_fleet(ramps, config=cfg, seed=3)
+    lines = _gt_lines(ramps)
+    n = 0
+    for d in fleet.drives:
+        np.testing.assert_allclose(d.xy, fleet.truth[d.drive_id]["true_xy"], atol=1e-12)
+        for det in d.detections:
+            dist = lines.distance(det.points, int(det.type))
+            assert dist.max() < 1e-6
+            n += len(det.points)
+    assert n > 1000
+
+
+def test_detections_are_in_driving_direction_and_only_of_the_ego_road(ramps):
+    cfg = SimConfig.noise_free(n_drives=8, **SHORT)
+    fleet = simulate_fleet(ramps, config=cfg, seed=3)
+    feats = ramps.features
+    pts = np.concatenate([f.points for f in feats])
+    tan = np.concatenate([np.gradient(f.points, axis=0) for f in feats])
+    ftype = np.concatenate([np.full(len(f.points), int(f.type)) for f in feats])
+    tree = cKDTree(pts)
+    opposite_barrier_seen = False
+    for d in fleet.drives:
+        pose_tree = cKDTree(d.xy)
+        for det in d.detections:
+            ddir = det.points[-1] - det.points[0]
+            _, k = pose_tree.query(det.points.mean(axis=0))
+            assert np.dot(ddir, _head(d.yaw[k : k + 1])[0]) > 0  # ordered like the drive
+            _, j = tree.query(det.points[len(det.points) // 2])
+            if np.dot(tan[j], ddir) < 0:  # a feature of the other carriageway: only its barrier
+                assert ftype[j] == int(FeatureType.ROAD_BORDER)
+                opposite_barrier_seen = True
+    assert opposite_barrier_seen
+
+
+def test_bias_moves_detections_with_the_trajectory(ramps):
+    cfg = SimConfig.noise_free(n_drives=6, bias_lateral_sigma_m=1.0, bias_longitudinal_sigma_m=1.0, **SHORT)
+    fleet = simulate_fleet(ramps, config=cfg, seed=9)
+    lines = _gt_lines(ramps)
+    for d in fleet.drives:
+        t = fleet.truth[d.drive_id]
+        assert abs(t["bias_lateral_m"]) + abs(t["bias_longitudinal_m"]) > 0
+        pose_tree = cKDTree(d.xy)
+        for det in d.detections:
+            _, k = pose_tree.query(det.points)
+            back = det.points - t["bias_lateral_m"] * _left(d.yaw[k]) - t["bias_longitudinal_m"] * _head(d.yaw[k])
+            assert lines.distance(back, int(det.type)).max() < 0.01
+
+
+def _detected_share(gt: GroundTruth, fleet, cfg: SimConfig) -> dict[str, float]:
+    """Share of GT feature points beside the drives that some detection covers, per band."""
+    feats = gt.features
+    pts = np.concatenate([f.points for f in feats])
+    tan = np.concatenate([np.gradient(f.points, axis=0) for f in feats])
+    tan /= np.linalg.norm(tan, axis=1, keepdims=True)
+    ftype = np.concatenate([np.full(len(f.points), int(f.type)) for f in feats])
+    hit = {"ego": [], "next": [], "border": [], "opposite_barrier": []}
+    for d in fleet.drives:
+        true_xy = fleet.truth[d.drive_id]["true_xy"]
+        dist, k = cKDTree(true_xy).query(pts, distance_upper_bound=cfg.border_max_lateral_m + 1.0)
+        near = np.isfinite(dist)
+        p, t, ft, k = pts[near], tan[near], ftype[near], k[near]
+        v = p - true_xy[k]
+        along = np.sum(v * _head(d.yaw[k]), axis=1)
+        lat = np.sum(v * _left(d.yaw[k]), axis=1)
+        beside = (np.abs(along) < 0.5) & (k > 0) & (k < len(true_xy) - 1)
+        cos = np.sum(t * _head(d.yaw[k]), axis=1)
+        # a GT vertex is covered when a detection polyline passes within 1 cm (chords of the
+        # 1.5 m resampling cut curves by < 1 mm)
+        covered = _Lines([x.points for x in d.detections], [0] * len(d.detections)).distance(p, k=4) < 0.01
+        ftype_near = ft
+        marking = ftype_near != int(FeatureType.ROAD_BORDER)
+        same = beside & (cos > 0.9)
+        groups = {
+            "ego": same & marking & (np.abs(lat) <= cfg.ego_marking_max_lateral_m),
+            "next": same & marking & (np.abs(lat) > cfg.ego_marking_max_lateral_m) & (np.abs(lat) <= cfg.next_marking_max_lateral_m),
+            "border": same & ~marking & (np.abs(lat) <= cfg.border_max_lateral_m),
+            # the nearest opposite border on the left is the other carriageway's median barrier
+            "opposite_barrier": beside & (cos < -0.9) & ~marking & (lat > 0) & (lat <= cfg.border_max_lateral_m),
+        }
+        for key, sel in groups.items():
+            hit[key].append(covered[sel])
+    return {k: float(np.mean(np.concatenate(v))) for k, v in hit.items()}
+
+
+def test_visibility_rates_follow_the_config(motorway):
+    cfg = SimConfig.noise_free(
+        n_drives=50, snippet_length_min_m=600.0, snippet_length_max_m=1000.0,
+        visibility_ego_marking=0.95, visibility_next_marking=0.70, visibility_border=0.60,
+    )
+    fleet = simulate_fleet(motorway, config=cfg, seed=21)
+    share = _detected_share(motorway, fleet, cfg)
+    assert share["ego"] == pytest.approx(0.95, abs=0.04)
+    assert share["next"] == pytest.approx(0.70, abs=0.1)
+    assert share["border"] == pytest.approx(0.60, abs=0.1)
+    assert share["opposite_barrier"] == pytest.approx(0.60, abs=0.15)
+
+
+def test_dropouts_are_gaps_of_the_configured_length(motorway):
+    cfg = SimConfig.noise_free(n_drives=30, visibility_ego_marking=0.5, snippet_length_min_m=1500.0, snippet_length_max_m=1600.0)
+    fleet = simulate_fleet(motorway, config=cfg, seed=8)
+    gaps = []
+    for d in fleet.drives:
+        # consecutive detections of the same kind next to each other: the gap between them
+        for a, b in zip(d.detections[:-1], d.detections[1:]):
+            g = np.linalg.norm(b.points[0] - a.points[-1])
+            if a.type == b.type and 0.0 < g < 400.0:
+                ta = a.points[-1] - a.points[-2]
+                if abs(np.dot(ta / np.linalg.norm(ta), (b.points[0] - a.points[-1]) / g)) > 0.99:
+                    gaps.append(g)
+    gaps = np.array(gaps)
+    assert len(gaps) > 30
+    assert np.percentile(gaps, 10) >= cfg.visibility_block_min_m - 1.0
+    assert np.median(gaps) <= cfg.visibility_block_max_m
+
+
+def test_misclassification_rates(motorway):
+    cfg = SimConfig.noise_free(
+        n_drives=60, misclass_rate=0.075, marking_to_border_rate=0.02, snippet_length_min_m=800.0, snippet_length_max_m=1000.0
+    )
+    fleet = simulate_fleet(motorway, config=cfg, seed=13)
+    feats = motorway.features
+    pts = np.concatenate([f.points for f in feats])
+    ftype = np.concatenate([np.full(len(f.points), int(f.type)) for f in feats])
+    tree = cKDTree(pts)
+    swapped = to_border = total = 0
+    for d in fleet.drives:
+        for det in d.detections:
+            _, j = tree.query(det.points)
+            true = ftype[j]
+            m = true != int(FeatureType.ROAD_BORDER)
+            total += m.sum()
+            swapped += np.sum(m & (true != int(det.type)) & (int(det.type) != int(FeatureType.ROAD_BORDER)))
+            to_border += np.sum(m & (int(det.type) == int(FeatureType.ROAD_BORDER)))
+    assert swapped / total == pytest.approx(0.075, abs=0.03)
+    assert to_border / total == pytest.approx(0.02, abs=0.015)
+
+
+def test_false_positives_are_the_only_detections_off_the_ground_truth(ramps):
+    cfg = SimConfig.noise_free(n_drives=20, false_positive_rate_per_km=5.0, **SHORT)
+    fleet = simulate_fleet(ramps, config=cfg, seed=14)
+    lines = _gt_lines(ramps)
+    off = sum(1 for d in fleet.drives for det in d.detections if lines.distance(det.points).max() > 1e-6)
+    expected = sum(t["n_false_positives"] for t in fleet.truth.values())
+    assert off == expected
+    km = sum(d.length_m for d in fleet.drives) / 1000.0
+    assert abs(expected - 5.0 * km) < 4.0 * np.sqrt(5.0 * km)
+
+
+def test_measurement_noise_matches_sigma(motorway):
+    cfg = SimConfig.noise_free(n_drives=10, noise_sigma_m=0.1, noise_growth_per_m=0.0, noise_corr_length_m=0.0, **SHORT)
+    fleet = simulate_fleet(motorway, config=cfg, seed=15)
+    lines = _gt_lines(motorway)
+    d = np.concatenate([lines.distance(det.points, int(det.type)) for dr in fleet.drives for det in dr.detections])
+    # |N(0, s)| has RMS s; a few points may snap to a neighbouring line, none within 3.5 m
+    assert np.sqrt(np.mean(d**2)) == pytest.approx(0.1, rel=0.1)
+
+
+# ---------------------------------------------------------------------------- maps, config, errors
+
+
+SHARED = ["esmini_e6mini", "esmini_soderleden", "carla_town04", "carla_town06"]
+
+
+@pytest.mark.parametrize("name", SHARED)
+def test_runs_on_every_shared_map(name):
+    if not any((d / f"{name}.gt.json").is_file() for d in shared_maps_dirs()):
+        pytest.skip("shared maps not available")
+    gt = load_map(name)
+    fleet = simulate_fleet(gt, config=SimConfig(n_drives=6, **SHORT), seed=0)
+    assert len(fleet.drives) == 6
+    for d in fleet.drives:
+        validate_drive(d)
+    assert sum(len(d.detections) for d in fleet.drives) > 0
+    json.dumps(fleet_to_dict(fleet))
+
+
+def test_fleet_json_document(ramps):
+    fleet = simulate_fleet(ramps, config=SimConfig(n_drives=2, **SHORT), seed=0)
+    doc = json.loads(json.dumps(fleet_to_dict(fleet, include_trajectories=True)))
+    assert doc["config"]["bias_lateral_sigma_m"] == 1.0
+    one = doc["truth"][fleet.drives[0].drive_id]
+    assert one["bias_lateral_m"] == pytest.approx(fleet.truth[fleet.drives[0].drive_id]["bias_lateral_m"])
+    assert len(one["true_xy"]) == len(fleet.drives[0].xy)
+    assert "true_xy" not in json.loads(json.dumps(fleet_to_dict(fleet)))["truth"][fleet.drives[0].drive_id]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [
+        ({"bias_lateral_sigma_m": -1.0}, "bias_lateral_sigma_m"),
+        ({"visibility_border": 1.5}, "visibility_border"),
+        ({"snippet_length_min_m": 900.0, "snippet_length_max_m": 100.0}, "snippet_length_min_m"),
+        ({"route_weighting": "random"}, "route_weighting"),
+        ({"no_such_knob": 1}, "no_such_knob"),
+        ({"n_drives": "many"}, "n_drives"),
+    ],
+)
+def test_bad_config_raises_config_error(overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        SimConfig.from_dict(overrides)
+
+
+def test_config_parses_strings():
+    cfg = SimConfig.from_dict({"n_drives": "12", "opposite_barrier": "false", "noise_sigma_m": "0.2"})
+    assert (cfg.n_drives, cfg.opposite_barrier, cfg.noise_sigma_m) == (12, False, 0.2)
+
+
+def test_bad_seed_and_empty_map(ramps):
+    with pytest.raises(ConfigError, match="seed"):
+        simulate_fleet(ramps, config=SimConfig(n_drives=1), seed=-1)
+    empty = GroundTruth("empty", (), {}, ())
+    with pytest.raises(NoUsableDataError, match="empty"):
+        simulate_fleet(empty, config=SimConfig(n_drives=1))
+
+
+def test_load_map_by_name_and_path(tmp_path):
+    from hdmap_core.groundtruth import save_ground_truth
+
+    gt = load_map("lane_drop", length_m=1200.0)
+    assert gt.name == "lane_drop"
+    save_ground_truth(gt, tmp_path / "x.gt.json")
+    assert set(load_map(str(tmp_path / "x.gt.json")).lanes) == set(gt.lanes)
+    with pytest.raises(GroundTruthError, match="no map 'autobahn'"):
+        load_map("autobahn")
