@@ -308,3 +308,54 @@ def test_broken_metadata_yaml_reads_every_drive_and_says_so(tmp_path):
     assert got.error is not None and "rosbag2 reader failed" in got.error and "metadata.yaml" in got.error
     for a, b in zip(drives, got.drives, strict=True):
         assert_drives_equal(a, b)
+
+
+def test_zstd_compressed_mcap_reads_as_directory_and_bare_file(tmp_path):
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
+
+    drives = _drives(3)
+    store = default_typestore()
+    writer = Writer(tmp_path / "z", version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer:
+        dc = writer.add_connection(DRIVES_TOPIC, DRIVE_TYPE, typestore=store)
+        for d in drives:
+            writer.write(dc, d.start_ns, store.serialize_cdr(drive_to_msg(d), DRIVE_TYPE))
+    mcap = _mcap_of(tmp_path / "z")
+    assert b"zstd" in mcap.read_bytes()[:400]
+    for path in (tmp_path / "z", mcap):
+        got = read_fleet_bag(path)
+        assert got.error is None
+        for a, b in zip(drives, got.drives, strict=True):
+            assert_drives_equal(a, b)
+
+
+@pytest.mark.parametrize("compression", ["NONE", "LZ4", "ZSTD"])
+def test_mcap_from_another_writer_with_small_chunks_and_crcs(tmp_path, compression):
+    """A bare .mcap as other tools write it (mcap library: CRCs, small compressed chunks), then cut."""
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapWriter
+
+    from hdmap_ros.fastcdr import encode_drive
+
+    drives = _drives(12, n=200)
+    msgdef, _ = default_typestore().generate_msgdef(DRIVE_TYPE, ros_version=2)
+    path = tmp_path / "other.mcap"
+    with path.open("wb") as stream:
+        w = McapWriter(stream, chunk_size=20_000, compression=CompressionType[compression])
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema(DRIVE_TYPE, "ros2msg", msgdef.encode())
+        cid = w.register_channel(DRIVES_TOPIC, "cdr", sid)
+        for d in drives:
+            w.add_message(cid, d.start_ns, encode_drive(d), d.start_ns)
+        w.finish()
+    got = read_fleet_bag(path)
+    assert got.error is None
+    for a, b in zip(drives, got.drives, strict=True):
+        assert_drives_equal(a, b)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    cut = read_fleet_bag(path)
+    assert "truncated" in cut.error and 2 <= len(cut.drives) < len(drives)
+    for a, b in zip(drives, cut.drives):
+        assert_drives_equal(a, b)
