@@ -155,8 +155,13 @@ def test_split_gives_feature_with_two_successors():
     splitting = [c for c in chains if succ_count(g, ci, c) == 2]
     assert len(splitting) == 1
     assert g.node_type[splitting[0][0]] == D
-    np.testing.assert_allclose(g.node_xy[splitting[0][-1]], [20.0, -3.5])
-    assert g.stats.splits == 1 and g.stats.merges == 0
+    # at step 11 the branches are 0.7 m apart (< min_separation_m: one line seen twice), from
+    # step 12 on (1.3 m) they are two lines: the split is at step 11
+    np.testing.assert_allclose(g.node_xy[splitting[0][-1]], [22.0, -3.4])
+    assert g.stats.splits == 1 and g.stats.merges == 0 and g.stats.suppressed == 1
+    gp = connect_segment(_split_segment(), config=ConnectionConfig(min_separation_m=0.0))
+    split_p = [c for c in gp.polylines() if succ_count(gp, chain_index(gp), c) == 2]
+    np.testing.assert_allclose(gp.node_xy[split_p[0][-1]], [20.0, -3.5])
     assert len(chains) == 5  # B, S, dashed before the gore, its two branches
 
 
@@ -297,3 +302,20 @@ def test_feature_leaving_while_another_enters_keeps_the_step():
     assert g.stats.rejected_angle == 0
     lengths = sorted(len(c) for c in g.polylines())
     assert lengths == [6, 6, 12, 12]
+
+
+def test_close_duplicate_markings_suppressed():
+    """A misclassified copy of the dashed line 0.2 m beside it (fewer drives) is dropped; a border
+    0.5 m from a marking is kept (borders and markings are never merged); the paper's variant keeps all."""
+    steps = [
+        make_step(i, [0.0, 0.2, -3.5, -4.0], [D, S, S, B], counts=[6, 2, 5, 4]) if 3 <= i < 6
+        else make_step(i, [0.0, -3.5, -4.0], [D, S, B], counts=[6, 5, 4])
+        for i in range(10)
+    ]
+    g = connect_segment(Segment("p", tuple(steps)))
+    assert g.stats.suppressed == 3 and g.stats.splits == 0 and g.stats.merges == 0
+    assert sorted(len(c) for c in g.polylines()) == [10, 10, 10]
+    # slots stay those of the step's own arrays (stable ids): at step 3 the kept ones are 0, 2, 3
+    np.testing.assert_array_equal(g.node_uid[9:12], stable_uid("feature:p", 3, np.array([0, 2, 3])))
+    gp = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig.paper())
+    assert gp.stats.suppressed == 0 and len(gp.polylines()) > 3

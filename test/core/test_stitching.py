@@ -269,3 +269,23 @@ def test_segment_split_by_long_gap_is_not_rejoined_across_it():
     steps = [step("a", i, 2.0 * i, *LINES) for i in range(20)] + [step("a", i, 2.0 * i, *LINES) for i in range(40, 60)]
     m = stitch([connect_segment(Segment("a", tuple(steps)), config=ConnectionConfig())])
     assert len(m.features) == 6
+
+
+def test_one_point_feature_dropped_and_linked_past():
+    r"""Two dashed lines touch in one step and part again (an X):
+
+        \__/      the one-point piece at the touch is no polyline: dropped, and
+        /  \      both inflows link straight to both outflows; every feature has >= 2 points.
+    """
+    lat = lambda i: [0.0] if i == 5 else [-0.3 * abs(i - 5), 0.3 * abs(i - 5)]
+    seg = Segment("a", tuple(step("a", i, 2.0 * i, lat(i), [D] * len(lat(i))) for i in range(11)))
+    m = stitch([connect_segment(seg, config=ConnectionConfig(min_separation_m=0.0))])
+    assert all(len(f.points) >= 2 for f in m.features)
+    assert len(m.features) == 4
+    ins = [f for f in m.features if f.points[0, 0] == 0.0]
+    outs = [f for f in m.features if f.points[0, 0] > 0.0]
+    assert len(ins) == 2 and len(outs) == 2
+    for f in ins:
+        assert sorted(f.successors) == sorted(g.id for g in outs)
+    for g in outs:
+        assert sorted(g.predecessors) == sorted(f.id for f in ins)

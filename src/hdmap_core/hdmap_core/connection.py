@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -66,6 +66,9 @@ class ConnectionConfig:
         bridge_features: keep a polyline whose feature is missing in a step open for ``max_gap_m``
             so that it continues when the feature reappears (per-feature gap bridging; the paper
             bridges whole steps only).
+        min_separation_m: two lane markings (or two road borders) of one step closer than this
+            are one feature seen twice (typically a misclassified cluster the overlap filter
+            kept); only the one with more drives is used. 0 disables (the paper) [m].
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
     """
 
@@ -76,6 +79,7 @@ class ConnectionConfig:
     edge_slack_m: float = 0.3
     leftover_max_m: float = 2.0
     bridge_features: bool = True
+    min_separation_m: float = 1.0
     tile_size_m: float = 256.0
 
     def __post_init__(self) -> None:
@@ -87,6 +91,8 @@ class ConnectionConfig:
                 raise ConfigError(f"{name} must be in (0, 90], got {v}")
         if not self.edge_slack_m >= 0:
             raise ConfigError(f"edge_slack_m must be >= 0, got {self.edge_slack_m}")
+        if not self.min_separation_m >= 0:
+            raise ConfigError(f"min_separation_m must be >= 0, got {self.min_separation_m}")
         if not self.leftover_max_m >= 0:
             raise ConfigError(f"leftover_max_m must be >= 0, got {self.leftover_max_m}")
         if not (self.tile_size_m > 0 and math.isfinite(self.tile_size_m)):
@@ -95,7 +101,13 @@ class ConnectionConfig:
     @classmethod
     def paper(cls) -> ConnectionConfig:
         """The paper's variant: every leftover joined, no per-edge limit, whole-step bridging only."""
-        return cls(max_edge_angle_deg=90.0, leftover_max_m=math.inf, bridge_features=False, robust_angle=False)
+        return cls(
+            max_edge_angle_deg=90.0,
+            leftover_max_m=math.inf,
+            bridge_features=False,
+            robust_angle=False,
+            min_separation_m=0.0,
+        )
 
 
 @dataclass
@@ -111,6 +123,7 @@ class ConnectionStats:
     gaps_closed: int = 0
     splits: int = 0
     merges: int = 0
+    suppressed: int = 0
 
 
 @dataclass(frozen=True)
@@ -326,6 +339,27 @@ def _check_step(st: StepResult) -> None:
         raise HdmapError(f"step {st.index} of pivot {st.pivot_id!r}: midpoint/heading missing or not finite")
 
 
+def _separate(lat: np.ndarray, types: np.ndarray, counts: np.ndarray, min_sep_m: float) -> np.ndarray | None:
+    """Indices of the maxima to keep when markings (or borders) of one step lie closer than
+    ``min_sep_m``: the better supported one wins. None: keep all (the common case, no copy)."""
+    if min_sep_m <= 0 or len(lat) < 2:
+        return None
+    border = types == _BORDER
+    close = False
+    for cls in (border, ~border):
+        v = np.sort(lat[cls])
+        if len(v) > 1 and np.diff(v).min() < min_sep_m:
+            close = True
+    if not close:
+        return None
+    order = np.lexsort((np.abs(lat), -counts))  # most drives first, then nearest the midpoint
+    kept: list[int] = []
+    for i in order.tolist():
+        if all(border[i] != border[j] or abs(lat[i] - lat[j]) >= min_sep_m for j in kept):
+            kept.append(i)
+    return np.sort(np.asarray(kept, dtype=np.int64))
+
+
 @dataclass
 class _Assignment:
     regular: list[tuple[int, int]]
@@ -416,11 +450,11 @@ class _Builder:
         self.leftover: list[bool] = []
         self.n = 0
 
-    def add_step(self, st: StepResult, xy: np.ndarray) -> np.ndarray:
+    def add_step(self, st: StepResult, xy: np.ndarray, slots: np.ndarray) -> np.ndarray:
         idx = np.arange(self.n, self.n + len(xy))
         self.topo.append(st)
         self.xy.append(xy)
-        self.slots.append(np.arange(len(xy)))
+        self.slots.append(slots)  # index into the step's own arrays: the stable slot
         self.n += len(xy)
         self.starts.append(self.n)
         return idx
@@ -468,8 +502,19 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
             stats.invalid += 1
             skipped = True
             continue
-        xy = st.points()
         types = np.asarray(st.types, dtype=np.int64).reshape(-1)
+        sel = _separate(lat, types, np.asarray(st.counts).reshape(-1), config.min_separation_m)
+        if sel is not None:
+            st = replace(
+                st,
+                lateral_m=lat[sel],
+                types=types[sel],
+                counts=np.asarray(st.counts).reshape(-1)[sel],
+                std_m=np.asarray(st.std_m, dtype=float).reshape(-1)[sel],
+            )
+            stats.suppressed += len(lat) - len(sel)
+            types = types[sel]
+        xy = st.points()
         gap = st.s_m - last_s
         new_edges: list[tuple[int, int, bool]] = []
         if last_topo is not None and gap > config.max_gap_m:
@@ -490,7 +535,7 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
             new_edges += [(int(tip_idx[i]), base + j, True) for i, j in res.leftover]
             if skipped:
                 stats.gaps_bridged += 1
-        idx = b.add_step(st, xy)
+        idx = b.add_step(st, xy, sel if sel is not None else np.arange(len(xy)))
         t = len(b.topo) - 1
         if last_topo is not None:
             b.topo_edges.append((last_topo, t))

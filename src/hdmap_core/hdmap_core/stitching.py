@@ -646,7 +646,19 @@ def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tup
 
     keep = np.ones(len(chains), dtype=bool)
     for k, (xy, _, _) in enumerate(geoms):
-        isolated = k not in succ and k not in pred
+        if len(xy) < 2:  # one point is no polyline: drop it, its neighbours link past it
+            keep[k] = False
+            ps, ss = pred.pop(k, set()), succ.pop(k, set())
+            for p_ in ps:
+                succ[p_].discard(k)
+                succ[p_].update(x for x in ss if x != p_)
+            for s_ in ss:
+                pred[s_].discard(k)
+                pred[s_].update(x for x in ps if x != s_)
+    for k, (xy, _, _) in enumerate(geoms):
+        if not keep[k]:
+            continue
+        isolated = not succ.get(k) and not pred.get(k)
         length = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
         if isolated and (len(xy) < 2 or length < cfg.min_isolated_length_m):
             keep[k] = False
