@@ -39,16 +39,19 @@ class _Cursor:
     def align(self, n: int) -> None:
         self.pos = _BASE + -(-(self.pos - _BASE) // n) * n
 
-    def u32(self) -> int:
+    def _word(self, fmt: str) -> int:
         self.align(4)
         if self.pos + 4 > len(self.raw):
             raise _Layout
-        (v,) = struct.unpack_from("<I", self.raw, self.pos)
+        (v,) = struct.unpack_from(fmt, self.raw, self.pos)
         self.pos += 4
         return v
 
+    def u32(self) -> int:
+        return self._word("<I")
+
     def i32(self) -> int:
-        return struct.unpack("<i", struct.pack("<I", self.u32()))[0]
+        return self._word("<i")
 
     def u8(self) -> int:
         if self.pos >= len(self.raw):
