@@ -207,14 +207,12 @@ def encode_drive(drive: Drive) -> bytes:
     sec, nsec = np.divmod(stamps, 1_000_000_000)
     start_sec, start_nsec = (int(sec[0]), int(nsec[0])) if n else (0, 0)
     b = _Builder()
-    for text in (None, drive.drive_id, drive.vehicle_id):
-        if text is None:
-            b.i32(start_sec)
-            b.u32(start_nsec)
-            b.string(frame)
-        else:
-            b.string(text)
-    b.i32(start_sec)
+    b.i32(start_sec)  # Drive.header
+    b.u32(start_nsec)
+    b.string(frame)
+    b.string(drive.drive_id)
+    b.string(drive.vehicle_id)
+    b.i32(start_sec)  # trajectory.header
     b.u32(start_nsec)
     b.string(frame)
     b.u32(n)
