@@ -32,6 +32,7 @@ __all__ = [
 ]
 
 _EPS = 1e-9
+_CHUNK = 200_000  # segments per spatial-index query (bounds the memory of candidate pairs)
 _JOIN_TOL_M = 0.05  # successor gaps in the shared maps are <= 0.002 m
 
 
@@ -124,9 +125,10 @@ def intersect_cuts(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Intersect K cut lines with M segments at once.
 
-    A spatial index (shapely STRtree over the segments) yields the candidate pairs; the exact
-    intersection is solved with numpy. A segment's parameter ``u`` is taken half-open, [0, 1), except
-    for the last segment of a polyline, so a polyline crossing a cut at a vertex counts once.
+    A spatial index (shapely STRtree over the cut lines, bounding boxes only) yields the candidate
+    pairs; the exact intersection is solved with numpy, in chunks of segments to bound memory. A
+    segment's parameter ``u`` is taken half-open, [0, 1), except for the last segment of a
+    polyline, so a polyline crossing a cut at a vertex counts once.
 
     Args:
         center, normal: (K, 2) cut reference points and unit left normals.
@@ -135,19 +137,33 @@ def intersect_cuts(
 
     Returns:
         cut_idx (P,), seg_idx (P,), s (P,) lateral coordinate along the cut [m], u (P,) parameter
-        along the segment in [0, 1].
+        along the segment in [0, 1]; ordered by segment.
     """
-    empty = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
-    if len(center) == 0 or len(segs) == 0:
-        return empty
-    p0 = center + lo[:, None] * normal
-    p1 = center + hi[:, None] * normal
-    cut_lines = shapely.linestrings(np.stack([p0, p1], axis=1))
-    seg_lines = shapely.linestrings(np.stack([segs.a, segs.b], axis=1))
-    tree = shapely.STRtree(seg_lines)
-    ci, si = tree.query(cut_lines, predicate="intersects")
-    if len(ci) == 0:
-        return empty
+    out: list[tuple[np.ndarray, ...]] = []
+    if len(center) and len(segs):
+        p0 = center + lo[:, None] * normal
+        p1 = center + hi[:, None] * normal
+        tree = shapely.STRtree(shapely.linestrings(np.stack([p0, p1], axis=1)))
+        for start in range(0, len(segs), _CHUNK):
+            sl = slice(start, start + _CHUNK)
+            seg_lines = shapely.linestrings(np.stack([segs.a[sl], segs.b[sl]], axis=1))
+            si, ci = tree.query(seg_lines)
+            out.append(_solve(center, normal, lo, hi, segs, ci, si + start))
+    if not out:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+    return tuple(np.concatenate(parts) for parts in zip(*out))  # type: ignore[return-value]
+
+
+def _solve(
+    center: np.ndarray,
+    normal: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    segs: Segments,
+    ci: np.ndarray,
+    si: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact intersection of candidate pairs (cut ci, segment si): c + s n = a + u (b - a)."""
     c, n = center[ci], normal[ci]
     a, d = segs.a[si], segs.b[si] - segs.a[si]
     ac = a - c
