@@ -347,3 +347,16 @@ def test_bad_ground_truth_parts_are_left_out_and_named(road: GroundTruth) -> Non
     assert "lane A: 1 non-finite" in text and "route ghost" in text
     assert report.overall.recall == 1.0 and report.overall.mean_m == pytest.approx(0.0, abs=1e-9)
     assert report.n_reference_cuts == int(LENGTH_M / 2)
+
+
+def test_synthetic_highway_with_ramps_each_cross_section_once() -> None:
+    synthetic = pytest.importorskip("hdmap_core.synthetic")
+    length_m = 3000.0
+    gt = synthetic.synthetic_highway("motorway_ramps", length_m=length_m)
+    report = evaluate_map(hdmap_from_ground_truth(gt), gt)
+    assert report.coverage == 1.0 and report.overall.recall == 1.0 and report.overall.precision == 1.0
+    assert report.type_accuracy == 1.0 and report.fragmentation_mean == 1.0
+    # Two carriageways of 3 lanes (6 routes' worth of lanes) plus the ramps' own stretches beyond
+    # the gore: far less than the lane length, a little more than twice the road length.
+    lane_km = sum(np.linalg.norm(np.diff(l.centerline, axis=0), axis=1).sum() for l in gt.lanes.values() if l.highway)
+    assert 2 * length_m * 0.98 < report.reference_length_m < 2 * length_m * 1.5 < lane_km
