@@ -301,8 +301,12 @@ def _deduplicate(
         axis=1,
     )
     tree = shapely.STRtree(shapely.polygons(corners))
-    i, j = tree.query(shapely.points(center), predicate="intersects")
-    covers = (j < i) & ((tangent[i] * tangent[j]).sum(axis=1) >= cos_heading)
+    i, j = tree.query(shapely.points(center))  # bounding boxes; the exact test follows in numpy
+    d = center[i] - center[j]
+    along = np.abs((d * tangent[j]).sum(axis=1))
+    across = (d * normal[j]).sum(axis=1)
+    inside = (along <= half) & (across >= lo[j] - 1e-9) & (across <= hi[j] + 1e-9)
+    covers = inside & (j < i) & ((tangent[i] * tangent[j]).sum(axis=1) >= cos_heading)
     i, j = i[covers], j[covers]
     if len(i) == 0:
         return keep
