@@ -163,7 +163,8 @@ def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str
     ax_zoom.set_xlim(zc[0] - half, zc[0] + half)
     ax_zoom.set_ylim(zc[1] - half, zc[1] + half)
     ax_zoom.set_aspect("equal", adjustable="box")
-    ax_zoom.set_title(f"zoom (box at left): largest error, {km[zoom_k]:.2f} km along the reference", fontsize=10)
+    where = "largest error" if np.isfinite(err_smooth).any() else "start of the reference (nothing evaluable)"
+    ax_zoom.set_title(f"zoom (box at left): {where}, {km[zoom_k]:.2f} km along the reference", fontsize=10)
     handles = [Line2D([], [], color=TYPE_COLORS[t], lw=2, label=t.label) for t in TYPE_COLORS if t]
     handles += [
         Line2D([], [], color="k", lw=3.5, alpha=0.25, label="ground truth (light, wide)"),
