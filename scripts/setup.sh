@@ -25,10 +25,12 @@ cd "$ROOT"
 say() { printf '[setup] %s\n' "$*"; }
 die() { printf '[setup] error: %s\n' "$*" >&2; exit 1; }
 hash_of() { sha256sum | cut -d' ' -f1; }
+took() { local now; now=$(date +%s); say "  ($(( now - t_step )) s)"; t_step=$now; }
 # pip prints one warning per package for this machine's empty local mirror indexes: drop them.
 quiet_pip() { { grep -v -E "^WARNING: Location 'file:.*' is ignored" || true; }; }
 
 start=$(date +%s)
+t_step=$start
 
 # --- 1. virtual environment ------------------------------------------------------------------
 if [[ ! -x "$PY" ]]; then
@@ -37,6 +39,7 @@ if [[ ! -x "$PY" ]]; then
         || die "$PYTHON is $("$PYTHON" -V 2>&1); the ros-jazzy wheels need Python 3.11 (set PYTHON=...)"
     say "creating $VENV"
     "$PYTHON" -m venv "$VENV"
+    took
 fi
 "$PY" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null \
     || die "$VENV is broken or not Python 3.11: move it away and run make setup again"
@@ -53,6 +56,7 @@ if [[ "$FORCE" == 1 || "$(cat "$pip_stamp" 2>/dev/null)" != "$pip_hash" \
     "$PY" -m pip install --disable-pip-version-check --progress-bar off -q \
         -r requirements.txt -c constraints.txt 2>&1 | quiet_pip
     echo "$pip_hash" > "$pip_stamp"
+    took
     rm -f "$ROOT/install/.hdmap-build.stamp"   # new packages: rebuild the workspace
 else
     say "Python packages up to date"
@@ -82,6 +86,7 @@ if [[ "$FORCE" == 1 || "$(cat "$build_stamp" 2>/dev/null)" != "$build_hash" ]]; 
         "$VENV/bin/colcon" build --merge-install --symlink-install --base-paths src \
         2>&1 | { grep -v -E "doesn't contain any 'local_setup\.\*' files|byte-compiling is disabled" || true; }
     echo "$build_hash" > "$build_stamp"
+    took
 else
     say "workspace build up to date (install/)"
 fi
