@@ -68,8 +68,14 @@ def test_wiring_writes_map_bag_and_geojson(tmp_path, fake_pipeline, capsys):
     bad = replace(make_drive("broken", n=20, start_ns=T0_NS + 9 * 10**9), frame_id="odom")
     bag = _fleet(tmp_path, good + [bad])
     out, gj = tmp_path / "map", tmp_path / "map.geojson"
-    code = cli.main(["bag2map", str(bag), "-o", str(out), "--geojson", str(gj), "--preset", "paper", "--seed", "7"])
+    rep = tmp_path / "report.json"
+    code = cli.main([
+        "bag2map", str(bag), "-o", str(out), "--geojson", str(gj), "--preset", "paper", "--seed", "7",
+        "--report", str(rep),
+    ])
     assert code == 0
+    doc = json.loads(rep.read_text())
+    assert doc["drives"] == 3 and doc["rejected"][0]["drive_id"] == "broken" and doc["build"]["n_drives_used"] == 3
     assert [d.drive_id for d in fake_pipeline["drives"]] == ["d0", "d1", "d2"]
     assert fake_pipeline["config"].name == "paper" and fake_pipeline["seed"] == 7
     got = read_map_bag(out)
@@ -101,6 +107,8 @@ def test_existing_output_is_refused_before_reading(tmp_path, capsys):
     (tmp_path / "map").mkdir()
     code = cli.main(["bag2map", str(tmp_path / "nope"), "-o", str(tmp_path / "map")])
     assert code == 2 and "exists already" in capsys.readouterr().err
+    code = cli.main(["bag2map", str(tmp_path / "nope"), "-o", str(tmp_path / "map"), "--overwrite"])
+    assert code == 2 and "not a rosbag2 directory" in capsys.readouterr().err
 
 
 def test_geojson_without_origin(tmp_path, fake_pipeline, capsys):

@@ -9,6 +9,8 @@ features as RFC 7946 GeoJSON. Exit status: 0 done, 1 an error (e.g. no usable dr
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -41,6 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
+    parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
 
 
@@ -63,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.exists() and not args.overwrite:
         return _fail(f"{out} exists already (use --overwrite to replace it)")
+    if out.exists() and not (out / "metadata.yaml").exists():
+        return _fail(f"{out} exists and is not a rosbag2 directory; refusing to replace it")
     if args.geojson and Path(args.geojson).is_dir():
         return _fail(f"--geojson {args.geojson} is a directory")
 
@@ -91,8 +96,31 @@ def run(args: argparse.Namespace) -> int:
     if args.geojson:
         write_geojson(hdmap, origin, args.geojson)
         print(f"wrote {args.geojson}")
-    print(_summary(fleet, hdmap, result, time.perf_counter() - t_start))
+    seconds = time.perf_counter() - t_start
+    print(_summary(fleet, hdmap, result, seconds))
+    if args.report:
+        Path(args.report).write_text(json.dumps(_report_dict(args, fleet, hdmap, result, seconds), indent=1))
+        print(f"wrote {args.report}")
     return 0
+
+
+def _report_dict(args: argparse.Namespace, fleet: FleetBag, hdmap: HDMap, result: Any, seconds: float) -> dict:
+    report = getattr(result, "report", None)
+    build = dataclasses.asdict(report) if dataclasses.is_dataclass(report) else {}
+    return {
+        "input": str(args.bag),
+        "output": str(args.output),
+        "preset": args.preset,
+        "seed": args.seed,
+        "drives": len(fleet.drives),
+        "drive_km": sum(d.length_m for d in fleet.drives) / 1000.0,
+        "rejected": [dataclasses.asdict(r) for r in fleet.rejected],
+        "bag_error": fleet.error,
+        "features": len(hdmap.features),
+        "topology_nodes": len(hdmap.topology),
+        "wall_s": seconds,
+        "build": json.loads(json.dumps(build, default=str)),
+    }
 
 
 def _reason_counts(fleet: FleetBag) -> str:
