@@ -465,3 +465,14 @@ def test_load_map_by_name_and_path(tmp_path):
     assert set(load_map(str(tmp_path / "x.gt.json")).lanes) == set(gt.lanes)
     with pytest.raises(GroundTruthError, match="no map 'autobahn'"):
         load_map("autobahn")
+
+
+def test_every_parameter_is_documented_with_its_default():
+    from dataclasses import fields
+    from pathlib import Path
+
+    doc = Path(__file__).resolve().parents[2] / "docs" / "simulator.md"
+    text = doc.read_text()
+    default = SimConfig()
+    missing = [f.name for f in fields(SimConfig) if f"| `{f.name}` | `{getattr(default, f.name)!r}` |" not in text]
+    assert missing == []
