@@ -151,6 +151,8 @@ def _summary(fleet: FleetBag, hdmap: HDMap, result: Any, seconds: float) -> str:
         f"{len(hdmap.topology)} topology nodes",
         f"  wall time        {seconds:.1f} s (read + build + write)",
     ]
+    if fleet.error:
+        lines.insert(2, "  input bag        DAMAGED, only the intact drives before the damage were used")
     report = getattr(result, "report", None)
     if report is not None:
         text = report.summary() if callable(getattr(report, "summary", None)) else _fields(report)
