@@ -163,3 +163,11 @@ def test_end_to_end_on_sample_bag(tmp_path, capsys):
     # the e6mini map spans < 2 km: every point within ~0.03 deg of the origin
     assert np.all(np.abs(lat - origin.latitude_deg) < 0.03) and np.all(np.abs(lon - origin.longitude_deg) < 0.05)
     assert "pipeline report:" in capsys.readouterr().out
+
+
+def test_damaged_bag_goes_on_with_intact_drives(tmp_path, fake_pipeline, capsys):
+    bags = __import__("pathlib").Path(__file__).resolve().parents[2] / "bags"
+    code = cli.main(["bag2map", str(bags / "bad_inputs_truncated.mcap"), "-o", str(tmp_path / "map")])
+    captured = capsys.readouterr()
+    assert code == 0 and len(fake_pipeline["drives"]) == 2
+    assert "truncated" in captured.err and "DAMAGED" in captured.out
