@@ -30,7 +30,7 @@ from scipy.optimize import linear_sum_assignment
 
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType
-from hdmap_core.steps import Segment, StepResult, left_normal
+from hdmap_core.steps import Segment, StepResult
 
 __all__ = [
     "ConnectionConfig",
@@ -299,27 +299,40 @@ def feature_chains(
     has_prev = np.zeros(n_nodes, dtype=bool)
     nxt[edges[link, 0]] = edges[link, 1]
     has_prev[edges[link, 1]] = True
-    seen = np.zeros(n_nodes, dtype=bool)
-    nxt_l = nxt.tolist()
+    # list ranking by pointer doubling: each node's distance to the end of its chain and that end
+    dist = (nxt >= 0).astype(np.int64)
+    ptr = nxt.copy()
+    end = np.where(nxt >= 0, nxt, np.arange(n_nodes))
+    for _ in range(max(1, int(n_nodes).bit_length() + 1)):
+        live = ptr >= 0
+        if not live.any():
+            break
+        p = ptr[live]
+        dist[live] += dist[p]
+        end[live] = end[p]
+        ptr[live] = ptr[p]
+    on_chain = ptr < 0  # nodes still pointing on are on a ring
     chains: list[np.ndarray] = []
-
-    def walk(start: int) -> None:
-        out = [start]
-        seen[start] = True
-        j = nxt_l[start]
-        while j >= 0 and not seen[j]:
-            out.append(j)
-            seen[j] = True
-            j = nxt_l[j]
-        chains.append(np.asarray(out, dtype=np.int64))
-
-    for s in np.flatnonzero(~has_prev).tolist():
-        walk(s)
-    rest = np.flatnonzero(~seen)
+    idx = np.flatnonzero(on_chain)
+    if len(idx):
+        order = idx[np.lexsort((-dist[idx], end[idx]))]
+        cut = np.flatnonzero(np.diff(end[order])) + 1
+        chains = np.split(order, cut)
+    rest = np.flatnonzero(~on_chain)
     if len(rest):  # rings (a closed loop road): open each at its smallest uid
-        for s in rest[np.argsort(node_uid[rest], kind="stable")].tolist():
-            if not seen[s]:
-                walk(s)
+        seen = np.zeros(n_nodes, dtype=bool)
+        nxt_l = nxt.tolist()
+        for s0 in rest[np.argsort(node_uid[rest], kind="stable")].tolist():
+            if seen[s0]:
+                continue
+            out = [s0]
+            seen[s0] = True
+            j = nxt_l[s0]
+            while j >= 0 and not seen[j]:
+                out.append(j)
+                seen[j] = True
+                j = nxt_l[j]
+            chains.append(np.asarray(out, dtype=np.int64))
     chains.sort(key=lambda c: int(node_uid[c[0]]))
     return chains
 
@@ -328,6 +341,7 @@ def feature_chains(
 
 
 def _check_step(st: StepResult) -> None:
+    """Raise when a step that will be used has inconsistent arrays or a non-finite pose."""
     k = np.shape(st.lateral_m)
     for name in ("types", "counts", "std_m"):
         if np.shape(getattr(st, name)) != k:
@@ -335,7 +349,8 @@ def _check_step(st: StepResult) -> None:
                 f"step {st.index} of pivot {st.pivot_id!r}: {name} has shape {np.shape(getattr(st, name))}, "
                 f"lateral_m has {k}"
             )
-    if np.shape(st.midpoint) != (2,) or not np.all(np.isfinite(st.midpoint)) or not math.isfinite(st.heading):
+    mid = np.asarray(st.midpoint, dtype=float)
+    if mid.shape != (2,) or not (math.isfinite(mid[0]) and math.isfinite(mid[1]) and math.isfinite(st.heading)):
         raise HdmapError(f"step {st.index} of pivot {st.pivot_id!r}: midpoint/heading missing or not finite")
 
 
@@ -360,6 +375,12 @@ def _separate(lat: np.ndarray, types: np.ndarray, counts: np.ndarray, min_sep_m:
     return np.sort(np.asarray(kept, dtype=np.int64))
 
 
+def _median(v: np.ndarray) -> float:
+    w = np.sort(v)
+    h = len(w) // 2
+    return float(w[h]) if len(w) % 2 else 0.5 * float(w[h - 1] + w[h])
+
+
 @dataclass
 class _Assignment:
     regular: list[tuple[int, int]]
@@ -382,9 +403,10 @@ def _assign(
     pairs as the Euclidean distance does, and it stays comparable across bridged gaps).
     """
     d = new_xy[None, :, :] - tip_xy[:, None, :]
-    u = np.array([math.cos(heading), math.sin(heading)])
+    c, s_ = math.cos(heading), math.sin(heading)
+    u, nrm = np.array([c, s_]), np.array([-s_, c])
     along = d @ u
-    lat = np.abs(d @ left_normal(heading))
+    lat = np.abs(d @ nrm)
     # never connect a road border to another type
     forbidden = (tip_type[:, None] == _BORDER) != (new_type[None, :] == _BORDER)
     tan_max = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
@@ -400,8 +422,8 @@ def _assign(
     if n and m:
         if n == m and bool(tip_fresh.all()):
             # In 1-D the sorted pairing is the exact optimum of the assignment for |a - b| costs.
-            lt = tip_xy @ left_normal(heading)
-            ln = new_xy @ left_normal(heading)
+            lt = tip_xy @ nrm
+            ln = new_xy @ nrm
             rows, cols = np.argsort(lt, kind="stable"), np.argsort(ln, kind="stable")
             if not ok[rows, cols].all():
                 rows, cols = linear_sum_assignment(cost)
@@ -413,7 +435,7 @@ def _assign(
     if len(angles) == 0:
         mean_angle = 0.0
     else:
-        mean_angle = float(np.median(angles) if config.robust_angle else angles.mean())
+        mean_angle = float(_median(angles) if config.robust_angle else angles.mean())
     keep = ok[rows, cols]
     rows, cols = rows[keep], cols[keep]
 
@@ -437,27 +459,130 @@ def _assign(
     return _Assignment(regular=regular, leftover=leftover, mean_angle_deg=mean_angle)
 
 
-class _Builder:
-    """Accumulates the arrays of a SegmentGraph."""
+@dataclass
+class _Steps:
+    """The valid steps of a segment, flattened: maxima sorted by lateral position within a step.
 
-    def __init__(self) -> None:
-        self.topo: list[StepResult] = []
+    Step j owns maxima ``off[j]:off[j + 1]``; ``slot`` is each maximum's index in its step's own
+    arrays (the stable slot of its id).
+    """
+
+    steps: list[StepResult]
+    off: np.ndarray
+    lat: np.ndarray
+    xy: np.ndarray
+    typ: np.ndarray
+    cnt: np.ndarray
+    std: np.ndarray
+    slot: np.ndarray
+    fast: np.ndarray  # (J,) bool: step j continues step j-1 by the identity pairing, all plausible
+
+
+def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
+    for st in valid:
+        _check_step(st)
+    k = np.array([len(st.lateral_m) for st in valid], dtype=np.int64)
+    off = np.concatenate([[0], np.cumsum(k)]).astype(np.int64)
+    j_of = np.repeat(np.arange(len(valid)), k)
+    lat = np.concatenate([np.asarray(st.lateral_m, dtype=float).reshape(-1) for st in valid])
+    typ = np.concatenate([np.asarray(st.types, dtype=np.int64).reshape(-1) for st in valid])
+    cnt = np.concatenate([np.asarray(st.counts).reshape(-1) for st in valid]).astype(np.int64)
+    std = np.concatenate([np.asarray(st.std_m, dtype=float).reshape(-1) for st in valid])
+    slot = np.arange(len(lat)) - off[j_of]
+    keep = np.isfinite(lat)
+    if config.min_separation_m > 0:
+        keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m)
+    order = np.lexsort((lat, j_of))
+    order = order[keep[order]]
+    j_of, lat, typ, cnt, std, slot = j_of[order], lat[order], typ[order], cnt[order], std[order], slot[order]
+    k = np.bincount(j_of, minlength=len(valid))
+    off = np.concatenate([[0], np.cumsum(k)]).astype(np.int64)
+    mid = np.array([np.asarray(st.midpoint, dtype=float) for st in valid]).reshape(-1, 2)
+    hdg = np.array([float(st.heading) for st in valid])
+    nrm = np.stack([-np.sin(hdg), np.cos(hdg)], axis=1)
+    xy = mid[j_of] + lat[:, None] * nrm[j_of]
+    return _Steps(valid, off, lat, xy, typ, cnt, std, slot, _fast_pairs(valid, off, xy, typ, hdg, config))
+
+
+def _separate_all(j_of: np.ndarray, lat: np.ndarray, typ: np.ndarray, cnt: np.ndarray, min_sep_m: float) -> np.ndarray:
+    """(M,) bool keep-mask: a marking (or border) within ``min_sep_m`` of a better supported one of
+    the same class in the same step is one feature seen twice and is dropped."""
+    keep = np.ones(len(lat), dtype=bool)
+    cls = (typ == _BORDER).astype(np.int64)
+    order = np.lexsort((lat, cls, j_of))
+    same = (j_of[order][1:] == j_of[order][:-1]) & (cls[order][1:] == cls[order][:-1])
+    close = same & (np.diff(lat[order]) < min_sep_m)
+    if not close.any():
+        return keep
+    for j in np.unique(j_of[order][1:][close]).tolist():
+        idx = np.flatnonzero(j_of == j)
+        sel = _separate(lat[idx], typ[idx], cnt[idx], min_sep_m)
+        if sel is not None:
+            drop = np.ones(len(idx), dtype=bool)
+            drop[sel] = False
+            keep[idx[drop]] = False
+    return keep
+
+
+def _fast_pairs(
+    valid: list[StepResult], off: np.ndarray, xy: np.ndarray, typ: np.ndarray, hdg: np.ndarray, config: ConnectionConfig
+) -> np.ndarray:
+    """Which steps continue the previous valid step by the identity pairing of their sorted maxima
+    with every edge plausible and flat (the common case; the same result the assignment gives)."""
+    n = len(valid)
+    fast = np.zeros(n, dtype=bool)
+    if n < 2:
+        return fast
+    k = np.diff(off)
+    s_m = np.array([float(st.s_m) for st in valid])
+    cand = np.zeros(n, dtype=bool)
+    cand[1:] = (k[1:] == k[:-1]) & (k[1:] > 0) & ((s_m[1:] - s_m[:-1]) <= config.max_gap_m)
+    j = np.flatnonzero(cand)
+    if len(j) == 0:
+        return fast
+    # element-wise: maxima of step j against those of step j-1 at the same rank
+    kk = k[j]
+    elem_j = np.repeat(j, kk)
+    cur = np.concatenate([np.arange(off[a], off[a + 1]) for a in j.tolist()]) if len(j) < 64 else (
+        np.repeat(off[j], kk) + (np.arange(kk.sum()) - np.repeat(np.cumsum(kk) - kk, kk))
+    )
+    prev = cur - off[elem_j] + off[elem_j - 1]
+    d = xy[cur] - xy[prev]
+    c, sn = np.cos(hdg[elem_j]), np.sin(hdg[elem_j])
+    along = d[:, 0] * c + d[:, 1] * sn
+    lat = np.abs(-d[:, 0] * sn + d[:, 1] * c)
+    tan_e = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
+    tan_m = math.tan(math.radians(config.max_mean_angle_deg))
+    ok = (typ[cur] == typ[prev]) & (along > 0) & (lat <= config.edge_slack_m + along * tan_e) & (lat <= along * tan_m)
+    bad = np.bincount(elem_j[~ok], minlength=n)
+    fast[j] = bad[j] == 0
+    return fast
+
+
+class _Builder:
+    """Accumulates the used steps and the edges of a SegmentGraph."""
+
+    def __init__(self, flat: _Steps) -> None:
+        self.f = flat
+        self.used: list[int] = []  # valid-step index j of each topology node
+        self.node_base: list[int] = []  # first node index of each topology node
         self.topo_edges: list[tuple[int, int]] = []
-        self.starts = [0]
-        self.xy: list[np.ndarray] = []
-        self.slots: list[np.ndarray] = []
+        self.fast_links: list[int] = []  # topology node t continues t-1 by identity
         self.edges: list[tuple[int, int]] = []
         self.leftover: list[bool] = []
         self.n = 0
 
-    def add_step(self, st: StepResult, xy: np.ndarray, slots: np.ndarray) -> np.ndarray:
-        idx = np.arange(self.n, self.n + len(xy))
-        self.topo.append(st)
-        self.xy.append(xy)
-        self.slots.append(slots)  # index into the step's own arrays: the stable slot
-        self.n += len(xy)
-        self.starts.append(self.n)
-        return idx
+    def add(self, j: int) -> int:
+        self.used.append(j)
+        self.node_base.append(self.n)
+        self.n += int(self.f.off[j + 1] - self.f.off[j])
+        return len(self.used) - 1
+
+    def tips_of(self, t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Node indices, points and types of topology node t."""
+        j = self.used[t]
+        a, b = int(self.f.off[j]), int(self.f.off[j + 1])
+        return np.arange(self.node_base[t], self.node_base[t] + b - a), self.f.xy[a:b], self.f.typ[a:b]
 
 
 def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionConfig()) -> SegmentGraph:
@@ -479,79 +604,86 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
     for st in steps:
         if st.pivot_id != segment.pivot_id:
             raise HdmapError(f"segment {segment.pivot_id!r} holds a step of pivot {st.pivot_id!r}")
-        _check_step(st)
     stats = ConnectionStats(steps=len(steps))
-    b = _Builder()
-    tip_idx = np.zeros(0, dtype=np.int64)  # open polyline ends: node index ...
-    tip_s = np.zeros(0)  # ... the pivot distance of their step, their point and type
-    tip_xy = np.zeros((0, 2))
-    tip_type = np.zeros(0, dtype=np.int64)
+    valid = [st for st in steps if st.valid and not st.processed_before and len(st.lateral_m)]
+    flat = _flatten(valid, config) if valid else None
+    b = _Builder(flat) if flat is not None else None
+    # open polyline ends: either exactly the nodes of topology node ``last_topo`` (tips is None),
+    # or explicit arrays (node index, pivot distance of its step, point, type)
+    tips: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
     last_topo: int | None = None
+    last_j = -1
     last_s = 0.0
     skipped = False
     drive_ids: set[str] = set()
+    j = -1
 
     for st in steps:
         if st.processed_before:
             # RULE 4: a section already processed by another pivot closes every polyline
             stats.processed_before += 1
-            tip_idx, tip_s, tip_xy, tip_type, last_topo = tip_idx[:0], tip_s[:0], tip_xy[:0], tip_type[:0], None
+            tips, last_topo = None, None
             continue
-        lat = np.asarray(st.lateral_m, dtype=float).reshape(-1)
-        if not st.valid or len(lat) == 0 or not np.all(np.isfinite(lat)):
+        if not st.valid or len(st.lateral_m) == 0:
             stats.invalid += 1
             skipped = True
             continue
-        types = np.asarray(st.types, dtype=np.int64).reshape(-1)
-        sel = _separate(lat, types, np.asarray(st.counts).reshape(-1), config.min_separation_m)
-        if sel is not None:
-            st = replace(
-                st,
-                lateral_m=lat[sel],
-                types=types[sel],
-                counts=np.asarray(st.counts).reshape(-1)[sel],
-                std_m=np.asarray(st.std_m, dtype=float).reshape(-1)[sel],
-            )
-            stats.suppressed += len(lat) - len(sel)
-            types = types[sel]
-        xy = st.points()
-        gap = st.s_m - last_s
-        new_edges: list[tuple[int, int, bool]] = []
-        if last_topo is not None and gap > config.max_gap_m:
+        j += 1
+        assert b is not None and flat is not None  # valid steps exist here
+        a0, a1 = int(flat.off[j]), int(flat.off[j + 1])
+        if a0 == a1:  # every maximum was non-finite
+            stats.invalid += 1
+            skipped = True
+            continue
+        if last_topo is not None and st.s_m - last_s > config.max_gap_m:
             # RULE 3: the gap to the last valid step exceeds the threshold: close everything
             stats.gaps_closed += 1
-            tip_idx, tip_s, tip_xy, tip_type, last_topo = tip_idx[:0], tip_s[:0], tip_xy[:0], tip_type[:0], None
-        if last_topo is not None:
+            tips, last_topo = None, None
+        if last_topo is not None and tips is None and flat.fast[j] and last_j == j - 1:
+            # the common case: same features as the last step, every edge plausible
+            t = b.add(j)
+            b.topo_edges.append((last_topo, t))
+            b.fast_links.append(t)
+        elif last_topo is not None:
+            if tips is None:
+                ti, tx, tt = b.tips_of(last_topo)
+                tips = (ti, np.full(len(ti), last_s), tx, tt)
+            tip_idx, tip_s, tip_xy, tip_type = tips
             live = (st.s_m - tip_s) <= config.max_gap_m  # RULE 3 per polyline (bridged features)
             tip_idx, tip_s, tip_xy, tip_type = tip_idx[live], tip_s[live], tip_xy[live], tip_type[live]
-            fresh = tip_s == last_s
-            res = _assign(tip_xy, tip_type, fresh, xy, types, st.heading, config)
+            res = _assign(tip_xy, tip_type, tip_s == last_s, flat.xy[a0:a1], flat.typ[a0:a1], st.heading, config)
             if res.mean_angle_deg > config.max_mean_angle_deg:
                 stats.rejected_angle += 1  # implausible optimisation result: treat as a gap
                 skipped = True
+                tips = (tip_idx, tip_s, tip_xy, tip_type)
                 continue
-            base = b.n
-            new_edges = [(int(tip_idx[i]), base + j, False) for i, j in res.regular]
-            new_edges += [(int(tip_idx[i]), base + j, True) for i, j in res.leftover]
-            if skipped:
-                stats.gaps_bridged += 1
-        idx = b.add_step(st, xy, sel if sel is not None else np.arange(len(xy)))
-        t = len(b.topo) - 1
-        if last_topo is not None:
+            t = b.add(j)
+            base = b.node_base[t]
             b.topo_edges.append((last_topo, t))
-        for u, v, lo in new_edges:
-            b.edges.append((u, v))
-            b.leftover.append(lo)
-        matched = np.zeros(len(tip_idx), dtype=bool)
-        if new_edges:
-            used = {u for u, _, _ in new_edges}
-            matched = np.isin(tip_idx, list(used))
-        keep_old = ~matched if config.bridge_features else np.zeros(len(tip_idx), dtype=bool)
-        tip_idx = np.concatenate([tip_idx[keep_old], idx])
-        tip_s = np.concatenate([tip_s[keep_old], np.full(len(idx), st.s_m)])
-        tip_xy = np.concatenate([tip_xy[keep_old], xy])
-        tip_type = np.concatenate([tip_type[keep_old], types])
-        last_topo, last_s, skipped = t, st.s_m, False
+            used = set()
+            for pairs, lo in ((res.regular, False), (res.leftover, True)):
+                for i, k in pairs:
+                    b.edges.append((int(tip_idx[i]), base + k))
+                    b.leftover.append(lo)
+                    used.add(i)
+            if config.bridge_features and len(used) < len(tip_idx):
+                keep = np.ones(len(tip_idx), dtype=bool)
+                keep[list(used)] = False
+                ti, tx, tt = b.tips_of(t)
+                tips = (
+                    np.concatenate([tip_idx[keep], ti]),
+                    np.concatenate([tip_s[keep], np.full(len(ti), st.s_m)]),
+                    np.concatenate([tip_xy[keep], tx]),
+                    np.concatenate([tip_type[keep], tt]),
+                )
+            else:
+                tips = None
+        else:
+            t = b.add(j)
+            tips = None
+        if skipped and last_topo is not None:
+            stats.gaps_bridged += 1
+        last_topo, last_j, last_s, skipped = t, j, st.s_m, False
         stats.used += 1
         drive_ids.update(st.drive_ids)
 
@@ -559,43 +691,59 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
 
 
 def _finish(
-    segment: Segment, b: _Builder, stats: ConnectionStats, drive_ids: set[str], config: ConnectionConfig
+    segment: Segment, b: _Builder | None, stats: ConnectionStats, drive_ids: set[str], config: ConnectionConfig
 ) -> SegmentGraph:
-    first = b.topo[0].index if b.topo else (segment.steps[0].index if segment.steps else 0)
-    steps = np.array([t.index for t in b.topo], dtype=np.int64)
-    starts = np.asarray(b.starts, dtype=np.int64)
-    node_step = np.repeat(steps, np.diff(starts))
-    slots = np.concatenate(b.slots) if b.slots else np.zeros(0, dtype=np.int64)
-    edges = np.asarray(b.edges, dtype=np.int64).reshape(-1, 2)
-    n = b.n
+    used = np.asarray(b.used if b is not None else [], dtype=np.int64)
+    f = b.f if b is not None else None
+    topo_steps = [f.steps[j] for j in used.tolist()] if f is not None else []
+    first = topo_steps[0].index if topo_steps else (segment.steps[0].index if segment.steps else 0)
+    step_idx = np.array([st.index for st in topo_steps], dtype=np.int64)
+    if f is not None and len(used):
+        k = f.off[used + 1] - f.off[used]
+        rows = np.repeat(f.off[used], k) + (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k))
+    else:
+        k = np.zeros(0, dtype=np.int64)
+        rows = np.zeros(0, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(k)]).astype(np.int64)
+    node_step = np.repeat(step_idx, k)
+    # edges: the identity links of the fast path, then those of the assignment
+    e_fast = np.zeros((0, 2), dtype=np.int64)
+    if b is not None and b.fast_links:
+        t = np.asarray(b.fast_links, dtype=np.int64)
+        kt = k[t]
+        rank = np.arange(kt.sum()) - np.repeat(np.cumsum(kt) - kt, kt)
+        e_fast = np.stack([np.repeat(starts[t - 1], kt) + rank, np.repeat(starts[t], kt) + rank], axis=1)
+    e_slow = np.asarray(b.edges if b is not None else [], dtype=np.int64).reshape(-1, 2)
+    edges = np.concatenate([e_fast, e_slow])
+    leftover = np.concatenate([np.zeros(len(e_fast), dtype=bool), np.asarray(b.leftover if b else [], dtype=bool)])
+    n = len(rows)
     if len(edges):
-        out_deg = np.bincount(edges[:, 0], minlength=n)
-        in_deg = np.bincount(edges[:, 1], minlength=n)
-        stats.splits = int((out_deg >= 2).sum())
-        stats.merges = int((in_deg >= 2).sum())
+        order = np.lexsort((edges[:, 1], edges[:, 0]))
+        edges, leftover = edges[order], leftover[order]
+        stats.splits = int((np.bincount(edges[:, 0], minlength=n) >= 2).sum())
+        stats.merges = int((np.bincount(edges[:, 1], minlength=n) >= 2).sum())
+    stats.suppressed = int(sum(len(st.lateral_m) for st in f.steps) - len(f.lat)) if f is not None else 0
 
-    def cat(name: str, dtype: type) -> np.ndarray:
-        if not b.topo:
-            return np.zeros(0, dtype=dtype)
-        return np.concatenate([np.asarray(getattr(t, name), dtype=dtype).reshape(-1) for t in b.topo])
+    def pick(a: np.ndarray | None, empty: np.ndarray) -> np.ndarray:
+        return a[rows] if a is not None else empty
 
     return SegmentGraph(
         key=f"{segment.pivot_id}@{first}",
         pivot_id=segment.pivot_id,
-        topo_uid=stable_uid("topo:" + segment.pivot_id, steps),
-        topo_step=steps,
-        topo_xy=np.array([np.asarray(t.midpoint, dtype=float) for t in b.topo]).reshape(-1, 2),
-        topo_heading=np.array([float(t.heading) for t in b.topo]),
-        topo_width=np.array([float(t.width_m) for t in b.topo]),
-        topo_edges=np.asarray(b.topo_edges, dtype=np.int64).reshape(-1, 2),
+        topo_uid=stable_uid("topo:" + segment.pivot_id, step_idx),
+        topo_step=step_idx,
+        topo_xy=np.array([np.asarray(st.midpoint, dtype=float) for st in topo_steps]).reshape(-1, 2),
+        topo_heading=np.array([float(st.heading) for st in topo_steps]),
+        topo_width=np.array([float(st.width_m) for st in topo_steps]),
+        topo_edges=np.asarray(b.topo_edges if b else [], dtype=np.int64).reshape(-1, 2),
         topo_start=starts,
-        node_uid=stable_uid("feature:" + segment.pivot_id, node_step, slots),
-        node_xy=np.concatenate(b.xy) if b.xy else np.zeros((0, 2)),
-        node_type=cat("types", np.int64),
-        node_count=cat("counts", np.int64),
-        node_std=cat("std_m", float),
+        node_uid=stable_uid("feature:" + segment.pivot_id, node_step, pick(f.slot if f else None, np.zeros(0, np.int64))),
+        node_xy=pick(f.xy if f else None, np.zeros((0, 2))),
+        node_type=pick(f.typ if f else None, np.zeros(0, np.int64)),
+        node_count=pick(f.cnt if f else None, np.zeros(0, np.int64)),
+        node_std=pick(f.std if f else None, np.zeros(0)),
         edges=edges,
-        edge_leftover=np.asarray(b.leftover, dtype=bool),
+        edge_leftover=leftover,
         drive_ids=tuple(sorted(drive_ids)),
         stats=stats,
         tile_size_m=config.tile_size_m,

@@ -68,7 +68,11 @@ class StitchConfig:
         join_loose_ends: join polyline ends and starts of different segments that continue each
             other (same type, close across the cut) even where topology found no link.
         join_radius_m: how far ahead of a loose end a loose start may begin [m].
-        join_lateral_m: how far across the cut a loose start may lie from the end [m].
+        join_lateral_m: how far across the road a loose start may lie from the end's arc [m] ...
+        join_angle_deg: ... plus this angle's share of the distance [deg].
+        fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
+            with points on a cubic Hermite curve through the end tangents, this far apart; the
+            filled points carry drive_count 0 (no drive saw them). 0 disables [m].
         min_isolated_length_m: polylines without any link and shorter than this are dropped
             (single-step specks, false positives) [m].
     """
@@ -83,8 +87,10 @@ class StitchConfig:
     trim_overlap: bool = True
     overlap_radius_m: float = 1.2
     join_loose_ends: bool = True
-    join_radius_m: float = 8.0
-    join_lateral_m: float = 0.6
+    join_radius_m: float = 40.0
+    join_lateral_m: float = 0.5
+    join_angle_deg: float = 1.0
+    fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 5.0
 
     def __post_init__(self) -> None:
@@ -97,6 +103,8 @@ class StitchConfig:
             "overlap_radius_m",
             "join_radius_m",
             "join_lateral_m",
+            "join_angle_deg",
+            "fill_spacing_m",
             "min_isolated_length_m",
         ):
             v = getattr(self, name)
@@ -110,7 +118,7 @@ class StitchConfig:
     @classmethod
     def paper(cls) -> StitchConfig:
         """The paper's variant: topology links and same-type unmodified assignment only."""
-        return cls(trim_overlap=False, join_loose_ends=False, min_isolated_length_m=0.0)
+        return cls(trim_overlap=False, join_loose_ends=False, min_isolated_length_m=0.0, fill_spacing_m=0.0)
 
 
 # --- the flat view of all graphs --------------------------------------------------------------------
@@ -173,6 +181,23 @@ def _wrap(a: np.ndarray | float) -> np.ndarray:
 
 def _unit(h: float) -> tuple[np.ndarray, np.ndarray]:
     return np.array([math.cos(h), math.sin(h)]), np.array([-math.sin(h), math.cos(h)])
+
+
+class _Adjacency:
+    """Neighbour lookup over a fixed edge list (sorted, searched on demand) plus added edges."""
+
+    def __init__(self, src: np.ndarray, dst: np.ndarray, n: int) -> None:
+        order = np.argsort(src, kind="stable")
+        self._dst = dst[order]
+        self._ptr = np.searchsorted(src[order], np.arange(n + 1))
+        self._extra: dict[int, list[int]] = {}
+
+    def get(self, i: int) -> list[int]:
+        out = self._dst[self._ptr[i] : self._ptr[i + 1]].tolist()
+        return out + self._extra.get(i, [])
+
+    def add(self, i: int, j: int) -> None:
+        self._extra.setdefault(i, []).append(j)
 
 
 class _UnionFind:
@@ -430,12 +455,9 @@ class MapGraph:
         indeg = np.bincount(te[:, 1], minlength=nt) if len(te) else np.zeros(nt, dtype=np.int64)
         outdeg = np.bincount(te[:, 0], minlength=nt) if len(te) else np.zeros(nt, dtype=np.int64)
         tree = cKDTree(flat.t_xy)
-        out_adj: dict[int, list[int]] = {}
-        in_adj: dict[int, list[int]] = {}
-        for a, b in flat.edges.tolist():
-            out_adj.setdefault(a, []).append(b)
-            in_adj.setdefault(b, []).append(a)
-        existing = set(map(tuple, te.tolist()))
+        out_adj = _Adjacency(flat.edges[:, 0], flat.edges[:, 1], flat.n_nodes)
+        in_adj = _Adjacency(flat.edges[:, 1], flat.edges[:, 0], flat.n_nodes)
+        existing = _Adjacency(te[:, 0], te[:, 1], nt)
         cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
         tan_c = math.tan(math.radians(min(cfg.max_connection_angle_deg, 89.999)))
 
@@ -466,10 +488,10 @@ class MapGraph:
             if best < 0:
                 continue
             a, b = (i, best) if is_end else (best, i)
-            if (a, b) in existing:
+            if b in existing.get(a):
                 continue
             # 4. link the topology nodes and join their features
-            existing.add((a, b))
+            existing.add(a, b)
             outdeg[a] += 1
             indeg[b] += 1
             uf.union(a, b)
@@ -483,9 +505,7 @@ class MapGraph:
             return (flat.keys[flat.t_graph[a]], int(flat.t_local[a]), flat.keys[flat.t_graph[b]], int(flat.t_local[b]))
         return (flat.keys[flat.n_graph[a]], int(flat.n_local[a]), flat.keys[flat.n_graph[b]], int(flat.n_local[b]))
 
-    def _join_features(
-        self, flat: _Flat, a: int, b: int, out_adj: dict[int, list[int]], in_adj: dict[int, list[int]]
-    ) -> int:
+    def _join_features(self, flat: _Flat, a: int, b: int, out_adj: _Adjacency, in_adj: _Adjacency) -> int:
         """Unmodified rectangular assignment between the features of linked topology nodes a -> b,
         same type only."""
         cfg = self.config
@@ -504,12 +524,12 @@ class MapGraph:
                 continue
             x, y = int(xa[r]), int(yb[c])
             # the feature already continues next to y (or y is already reached next to x): skip
-            if any(abs(float((flat.n_xy[z] - flat.n_xy[y]) @ n)) <= cfg.duplicate_m for z in out_adj.get(x, ())):
+            if any(abs(float((flat.n_xy[z] - flat.n_xy[y]) @ n)) <= cfg.duplicate_m for z in out_adj.get(x)):
                 continue
-            if any(abs(float((flat.n_xy[w] - flat.n_xy[x]) @ n)) <= cfg.duplicate_m for w in in_adj.get(y, ())):
+            if any(abs(float((flat.n_xy[w] - flat.n_xy[x]) @ n)) <= cfg.duplicate_m for w in in_adj.get(y)):
                 continue
-            out_adj.setdefault(x, []).append(y)
-            in_adj.setdefault(y, []).append(x)
+            out_adj.add(x, y)
+            in_adj.add(y, x)
             self._feature_links.add(self._link(flat, x, y, topo=False))
             made += 1
         return made
@@ -530,20 +550,25 @@ class MapGraph:
             return
         heading = flat.t_heading[flat.node_topo()]
         tree = cKDTree(flat.n_xy[starts])
+        cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
+        tan_j = math.tan(math.radians(cfg.join_angle_deg))
         cand: list[tuple[float, int, int]] = []
         for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
-            u, n = _unit(float(heading[i]))
             for jj in near:
                 j = int(starts[jj])
                 if flat.n_graph[j] == flat.n_graph[i] or flat.n_type[j] != flat.n_type[i]:
                     continue
+                if math.cos(heading[j] - heading[i]) < cos_h:
+                    continue
+                # on a circular arc the chord runs along the mean of the two tangents, so the
+                # chord's offset from that direction is the lateral error of the join, curvature-free
+                mean_h = heading[i] + 0.5 * float(_wrap(heading[j] - heading[i]))
+                u, n = _unit(mean_h)
                 d = flat.n_xy[j] - flat.n_xy[i]
                 along, lat = float(d @ u), abs(float(d @ n))
-                if along <= 0.0 or lat > cfg.join_lateral_m:
+                if along <= 0.0 or lat > cfg.join_lateral_m + along * tan_j:
                     continue
-                if math.cos(heading[j] - heading[i]) < math.cos(math.radians(cfg.max_heading_diff_deg)):
-                    continue
-                cand.append((lat + 0.05 * along, i, j))
+                cand.append((lat + 0.02 * along, i, j))
         if not cand:
             return
         ei = sorted({c[1] for c in cand})
@@ -642,6 +667,8 @@ def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tup
             xy, cnt, std = np.vstack([head, xy]), np.r_[cnt[:1], cnt], np.r_[std[:1], std]
         if tail is not None:
             xy, cnt, std = np.vstack([xy, tail]), np.r_[cnt, cnt[-1:]], np.r_[std, std[-1:]]
+        if cfg.fill_spacing_m > 0 and len(xy) > 2:
+            xy, cnt, std = _fill_gaps(xy, cnt, std, cfg.fill_spacing_m)
         geoms.append((xy, cnt, std))
 
     keep = np.ones(len(chains), dtype=bool)
@@ -681,31 +708,75 @@ def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tup
             )
         )
 
+    # topology: successors by uid, and the kept features crossing each step (in lateral order)
     te = flat.topo_edges
-    tsucc: dict[int, list[int]] = {}
+    t_uid = flat.t_uid.tolist()
+    tsucc: dict[int, set[int]] = {}
     for a, b in te.tolist():
-        tsucc.setdefault(a, []).append(b)
+        tsucc.setdefault(a, set()).add(t_uid[b])
+    fid_node = np.where(keep[chain_of], fid[chain_of].astype(np.int64), -1).tolist() if nn else []
+    bounds = flat.t_start.tolist()
+    xy_l, hd_l, w_l = flat.t_xy, flat.t_heading.tolist(), flat.t_width.tolist()
     topology = []
     for t in range(flat.n_topo):
-        nodes = range(flat.t_start[t], flat.t_start[t + 1])
-        feats = []
-        for i in nodes:
-            k = int(chain_of[i])
-            if keep[k] and int(fid[k]) not in feats:
-                feats.append(int(fid[k]))
+        feats = tuple(dict.fromkeys(f for f in fid_node[bounds[t] : bounds[t + 1]] if f >= 0))
         topology.append(
             TopologyNode(
-                id=int(flat.t_uid[t]),
-                position=flat.t_xy[t].copy(),
-                heading=float(flat.t_heading[t]),
-                width=float(flat.t_width[t]),
-                successors=tuple(sorted({int(flat.t_uid[b]) for b in tsucc.get(t, ())})),
-                features=tuple(feats),
+                id=t_uid[t],
+                position=xy_l[t].copy(),
+                heading=hd_l[t],
+                width=w_l[t],
+                successors=tuple(sorted(tsucc.get(t, ()))),
+                features=feats,
             )
         )
     features.sort(key=lambda f: f.id)
     topology.sort(key=lambda t: t.id)
     return tuple(features), tuple(topology)
+
+
+def _fill_gaps(
+    xy: np.ndarray, cnt: np.ndarray, std: np.ndarray, spacing_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fill polyline edges longer than 1.5 x spacing with cubic Hermite points.
+
+    Args:
+        xy: (N, 2) points [m], N >= 3; cnt: (N,) drive counts; std: (N,) lateral std [m].
+
+    Returns:
+        The same arrays with the filled points inserted (count 0, std the larger of the ends').
+    """
+    seg = np.hypot(*np.diff(xy, axis=0).T)
+    long = np.flatnonzero(seg > 1.5 * spacing_m)
+    if len(long) == 0:
+        return xy, cnt, std
+    # tangents: central differences, one-sided at the ends, scaled per edge below
+    tang = np.gradient(xy, axis=0)
+    tang /= np.maximum(np.hypot(*tang.T), 1e-12)[:, None]
+    pieces_xy, pieces_c, pieces_s = [], [], []
+    prev = 0
+    for k in long.tolist():
+        pieces_xy.append(xy[prev : k + 1])
+        pieces_c.append(cnt[prev : k + 1])
+        pieces_s.append(std[prev : k + 1])
+        n_new = int(math.ceil(seg[k] / spacing_m)) - 1
+        t = (np.arange(1, n_new + 1) / (n_new + 1))[:, None]
+        p0, p1 = xy[k], xy[k + 1]
+        # tangents of the neighbouring edges (not through the gap itself)
+        m0 = (xy[k] - xy[k - 1]) if k > 0 else (p1 - p0)
+        m1 = (xy[k + 2] - xy[k + 1]) if k + 2 < len(xy) else (p1 - p0)
+        m0 = m0 / max(np.hypot(*m0), 1e-12) * seg[k]
+        m1 = m1 / max(np.hypot(*m1), 1e-12) * seg[k]
+        h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+        pieces_xy.append(h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1)
+        pieces_c.append(np.zeros(n_new, dtype=cnt.dtype))
+        pieces_s.append(np.full(n_new, max(std[k], std[k + 1])))
+        prev = k + 1
+    pieces_xy.append(xy[prev:])
+    pieces_c.append(cnt[prev:])
+    pieces_s.append(std[prev:])
+    del tang
+    return np.vstack(pieces_xy), np.concatenate(pieces_c), np.concatenate(pieces_s)
 
 
 def _ftype(code: int):
