@@ -6,6 +6,7 @@ import json
 import sys
 import types
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -148,8 +149,6 @@ def test_progress_bar_follows_stages(capsys):
 @pytest.mark.slow
 def test_end_to_end_on_sample_bag(tmp_path, capsys):
     """The real pipeline on bags/e6mini_20: a map bag and GeoJSON come out, consistent with each other."""
-    from pathlib import Path
-
     bag = Path(__file__).resolve().parents[2] / "bags" / "e6mini_20"
     out, gj = tmp_path / "map", tmp_path / "map.geojson"
     assert cli.main(["bag2map", str(bag), "-o", str(out), "--geojson", str(gj), "--no-progress"]) == 0
@@ -166,7 +165,7 @@ def test_end_to_end_on_sample_bag(tmp_path, capsys):
 
 
 def test_damaged_bag_goes_on_with_intact_drives(tmp_path, fake_pipeline, capsys):
-    bags = __import__("pathlib").Path(__file__).resolve().parents[2] / "bags"
+    bags = Path(__file__).resolve().parents[2] / "bags"
     code = cli.main(["bag2map", str(bags / "bad_inputs_truncated.mcap"), "-o", str(tmp_path / "map")])
     captured = capsys.readouterr()
     assert code == 0 and len(fake_pipeline["drives"]) == 2
