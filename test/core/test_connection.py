@@ -320,3 +320,24 @@ def test_close_duplicate_markings_suppressed():
     assert set(g.node_uid[at3].tolist()) == set(stable_uid("feature:p", 3, np.array([0, 2, 3])).tolist())
     gp = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig.paper())
     assert gp.stats.suppressed == 0 and len(gp.polylines()) > 3
+
+
+def test_fast_path_equals_assignment(monkeypatch):
+    """The vectorised identity pairing of unchanged steps gives exactly the assignment's graph."""
+    import hdmap_core.connection as conn_mod
+
+    rng = np.random.default_rng(3)
+    steps = []
+    for i in range(200):
+        lat = [-3.5, 0.0, 3.5] + ([-7.0] if 50 <= i < 120 else [])
+        typ = [B, D, B] + ([S] if 50 <= i < 120 else [])
+        valid = not (140 <= i < 143)
+        steps.append(make_step(i, list(np.asarray(lat) + rng.normal(0, 0.05, len(lat))), typ, valid=valid))
+    seg = Segment("p", tuple(steps))
+    fast = connect_segment(seg)
+    monkeypatch.setattr(conn_mod, "_fast_pairs", lambda valid, *a, **k: np.zeros(len(valid), dtype=bool))
+    slow = connect_segment(seg)
+    np.testing.assert_array_equal(fast.edges, slow.edges)
+    np.testing.assert_array_equal(fast.edge_leftover, slow.edge_leftover)
+    np.testing.assert_array_equal(fast.node_uid, slow.node_uid)
+    assert fast.stats == slow.stats

@@ -289,3 +289,31 @@ def test_one_point_feature_dropped_and_linked_past():
         assert sorted(f.successors) == sorted(g.id for g in outs)
     for g in outs:
         assert sorted(g.predecessors) == sorted(f.id for f in ins)
+
+
+def _arc_segment(pivot: str, i0: int, n: int, radius: float = 300.0) -> Segment:
+    """Steps i0..i0+n-1 along a left curve of the given radius (centre (0, radius)), 2 m apart,
+    one dashed line on the road midpoint."""
+    steps = []
+    for i in range(i0, i0 + n):
+        th = 2.0 * i / radius
+        mid = np.array([radius * math.sin(th), radius - radius * math.cos(th)])
+        st = step(pivot, i, 0.0, [0.0], [D])
+        steps.append(StepResult(**{**st.__dict__, "midpoint": mid, "heading": th}))
+    return Segment(pivot, tuple(steps))
+
+
+def test_loose_ends_joined_across_a_gap_with_curved_fill():
+    r"""Two pivots map one curved line with a 30 m hole between them (no topology link: beyond
+    max_distance_m): the loose ends are joined, the hole filled on the arc with drive_count 0."""
+    a, b = conn(_arc_segment("a", 0, 40)), conn(_arc_segment("b", 55, 40))
+    m = stitch([a, b])
+    assert len(m.features) == 1
+    f = m.features[0]
+    r = np.linalg.norm(f.points - [0.0, 300.0], axis=1)
+    assert np.abs(r - 300.0).max() < 0.05  # the filled points lie on the arc, not on the chord
+    assert np.diff(np.hypot(*np.diff(f.points, axis=0).T)).max() < 0.5  # ~even spacing
+    filled = f.drive_count == 0
+    assert 10 <= filled.sum() <= 16  # 30 m hole at ~2 m spacing
+    m_off = stitch([a, b], config=StitchConfig(join_loose_ends=False))
+    assert len(m_off.features) == 2
