@@ -1,5 +1,23 @@
 #!/usr/bin/env bash
-# Placeholder: the benchmark script replaces this file.
+# Benchmarks: presets side by side (default, paper, naive) on the same simulated fleets, with the
+# evaluator's figures, the floor, wall time and peak RSS per run, then the adjustment solver alone.
+#
+#   make bench                    # full: paper-like scenario at 0.25x, 1x, 4x drive-km
+#   BENCH_SMOKE=1 make bench      # smoke run (CI-sized): small scenario, one scale
 set -euo pipefail
-echo "bench not yet available" >&2
-exit 1
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-43}"
+OUT="${BENCH_OUT:-out/bench}"
+mkdir -p "$OUT"
+HDMAP=.venv/bin/hdmap
+
+if [[ -n "${BENCH_SMOKE:-}" ]]; then
+    "$HDMAP" bench esmini_e6mini:20:1 --work-dir "$OUT/fleets" --markdown "$OUT/smoke.md" --json "$OUT/smoke.json"
+    exit 0
+fi
+"$HDMAP" bench motorway_ramps:134:1 esmini_e6mini:40:1 esmini_soderleden:40:1 carla_town04:60:1 carla_town06:60:1 \
+    --work-dir "$OUT/fleets" --markdown "$OUT/presets.md" --json "$OUT/presets.json"
+"$HDMAP" bench motorway_ramps:134:1 --presets default --scale 0.25 --scale 1 --scale 4 \
+    --work-dir "$OUT/fleets" --markdown "$OUT/scaling.md" --json "$OUT/scaling.json"
+if [[ -f scripts/bench_adjustment.py ]]; then .venv/bin/python scripts/bench_adjustment.py; fi
