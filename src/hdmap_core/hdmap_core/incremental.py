@@ -289,8 +289,13 @@ def _stage_config(pipeline_config: object, *names: str) -> dict:
     return {}
 
 
-def connect_tile(segments: Sequence[Segment], *, pipeline_config: object) -> list:
+def connect_tile(segments: Sequence[Segment], key: TileKey, *, pipeline_config: object) -> list:
     """Sec. V for every segment of a tile: ``connection.connect_segment`` per segment.
+
+    The same pivot drive is mapped in every tile it crosses, and its step indices count from where
+    the drive was clipped to each tile; the segment graphs' keys (and the stable ids derived from
+    them) would collide across tiles. So each pivot id is suffixed with the tile key here
+    (``"<pivot>#<ix>,<iy>"``); drive ids of the steps stay as they are.
 
     Returns:
         One ``SegmentGraph`` per segment with at least one step, in input order.
@@ -298,7 +303,14 @@ def connect_tile(segments: Sequence[Segment], *, pipeline_config: object) -> lis
     from hdmap_core.connection import connect_segment  # noqa: PLC0415
 
     kw = _stage_config(pipeline_config, "connection")
-    return [connect_segment(seg, **kw) for seg in segments if seg.steps]
+    out = []
+    for seg in segments:
+        if not seg.steps:
+            continue
+        pivot = f"{seg.pivot_id}#{int(key[0])},{int(key[1])}"
+        seg = Segment(pivot_id=pivot, steps=tuple(replace(st, pivot_id=pivot) for st in seg.steps))
+        out.append(connect_segment(seg, **kw))
+    return out
 
 
 def stitch_graphs(graphs: Sequence, *, pipeline_config: object, drive_ids: Iterable[str] = ()) -> HDMap:

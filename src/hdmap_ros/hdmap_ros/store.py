@@ -271,6 +271,10 @@ class _Store:
         with self._tx() as con:
             con.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, value))
 
+    def version_total(self) -> int:
+        """Sum of all tile versions: equal in mapper and stitcher when the stitcher has every estimate."""
+        return int(self._query("SELECT COALESCE(SUM(version), 0) FROM tiles")[0][0])
+
     def close(self) -> None:
         with self._lock:
             self._con.close()

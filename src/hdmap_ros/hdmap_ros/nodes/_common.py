@@ -10,7 +10,7 @@ from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
 from hdmap_ros import qos
@@ -110,7 +110,9 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     node = None
     try:
         node = factory()
-        rclpy.spin(node)
+        # Two threads: a node's receiving callbacks (own callback group) stay responsive while its
+        # worker callback maps or stitches; callbacks of one group never run concurrently.
+        rclpy.spin(node, executor=MultiThreadedExecutor(num_threads=2))
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

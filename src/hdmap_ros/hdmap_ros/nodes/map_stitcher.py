@@ -62,6 +62,7 @@ class MapStitcher(HealthMixin, Node):
         self._init_health("map_stitcher")
         self.pipeline_config = preset_config(preset)
         self.store = MapStore(os.path.expanduser(db))
+        self.health.set("tile_versions", self.store.version_total())
         self._types = rclpy_types()
         self._graphs: dict[TileKey, tuple[int, list]] = {}  # tile -> (version, segment graphs)
         self._first_dirty: float | None = None
@@ -101,6 +102,7 @@ class MapStitcher(HealthMixin, Node):
         else:
             self.health.duplicate()
         self.health.backlog = int(self._first_dirty is not None)
+        self.health.set("tile_versions", self.store.version_total())
 
     def work(self) -> None:
         if self._first_dirty is None:
@@ -129,7 +131,7 @@ class MapStitcher(HealthMixin, Node):
         for key, version, ids, blob in self.store.tiles():
             cached = self._graphs.get(key)
             if cached is None or cached[0] != version:
-                cached = (version, connect_tile(blob_to_segments(blob), pipeline_config=self.pipeline_config))
+                cached = (version, connect_tile(blob_to_segments(blob), key, pipeline_config=self.pipeline_config))
                 self._graphs[key] = cached
             graphs.extend(cached[1])
             drive_ids.update(ids)

@@ -134,6 +134,11 @@ class SegmentMapper(HealthMixin, Node):
 
     def work(self) -> None:
         """Process all pending drives (debounced tile re-estimates), or settle when idle."""
+        self._work()
+        self.health.set("settled", self.is_settled())
+        self.health.set("tile_versions", self.store.version_total())
+
+    def _work(self) -> None:
         pending = self.store.pending()
         self.health.backlog = len(pending)
         if pending:
