@@ -454,6 +454,23 @@ def test_bad_seed_and_empty_map(ramps):
     empty = GroundTruth("empty", (), {}, ())
     with pytest.raises(NoUsableDataError, match="empty"):
         simulate_fleet(empty, config=SimConfig(n_drives=1))
+    with pytest.raises(GroundTruthError, match="GroundTruth"):
+        simulate_fleet({"features": []}, config=SimConfig(n_drives=1))
+    with pytest.raises(ConfigError, match="SimConfig"):
+        simulate_fleet(ramps, config={"n_drives": 1})
+
+
+def test_paper_sized_fleet_is_fast(ramps):
+    """134 drives / about 30 km: well under the few seconds the brief allows (CPU time)."""
+    import time
+
+    cfg = SimConfig(snippet_length_min_m=100.0, snippet_length_max_m=335.0)
+    t0 = time.process_time()
+    fleet = simulate_fleet(ramps, config=cfg, seed=0)
+    cpu_s = time.process_time() - t0
+    assert len(fleet.drives) == 134
+    assert 25.0 < fleet.summary()["km"] < 35.0
+    assert cpu_s < 5.0
 
 
 def test_load_map_by_name_and_path(tmp_path):

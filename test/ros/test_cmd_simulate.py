@@ -83,3 +83,12 @@ def test_bad_config_file(tmp_path, capsys):
     conf.write_text("[1, 2]")
     assert cli.main(["simulate", *ARGS, "--config", str(conf), "-o", str(tmp_path / "x")]) == 1
     assert "mapping" in capsys.readouterr().err
+
+
+def test_yaml_config(tmp_path):
+    pytest.importorskip("ruamel.yaml")
+    conf = tmp_path / "sim.yaml"
+    conf.write_text("n_drives: 2\nsnippet_length_min_m: 100\nsnippet_length_max_m: 300\nopposite_barrier: false\n")
+    assert cli.main(["simulate", "--map", "motorway", "--length-m", "600", "--config", str(conf), "-o", str(tmp_path / "y")]) == 0
+    sim = json.loads((tmp_path / "y.sim.json").read_text())
+    assert sim["config"]["opposite_barrier"] is False and len(sim["truth"]) == 2

@@ -602,8 +602,13 @@ def simulate_fleet(gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: in
 
     Raises:
         ConfigError: ``seed`` is negative or not an integer, or the config is invalid.
+        GroundTruthError: ``gt`` is not a ``GroundTruth``.
         NoUsableDataError: ``gt`` has no usable route.
     """
+    if not isinstance(gt, GroundTruth):
+        raise GroundTruthError(f"simulate_fleet: expected a GroundTruth, got {type(gt).__name__}")
+    if not isinstance(config, SimConfig):
+        raise ConfigError(f"simulate_fleet: expected a SimConfig, got {type(config).__name__}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"simulate_fleet: seed must be a non-negative integer, got {seed!r}")
     config.validate()
