@@ -99,10 +99,12 @@ for exe in "$ROOT"/install/lib/hdmap_ros/*; do
 done
 
 # Smoke test from another directory with a clean environment: what a newcomer will do.
-(cd / && env -i HOME="${HOME:-/tmp}" PATH=/usr/bin:/bin "$PY" -c \
-    'import rclpy; from hdmap_msgs.msg import Drive, Map; import hdmap_core, hdmap_ros.cli') \
-    || die "the built workspace does not import from a clean environment (see above)"
-(cd / && env -i HOME="${HOME:-/tmp}" PATH=/usr/bin:/bin "$VENV/bin/hdmap" --help >/dev/null) \
-    || die ".venv/bin/hdmap --help failed (see above)"
+# ROS + the built messages are this script's job (fatal); the CLI is code (a warning: the test
+# suite then says exactly what is broken).
+clean_run() { (cd / && env -i HOME="${HOME:-/tmp}" PATH=/usr/bin:/bin "$@"); }
+clean_run "$PY" -c 'import rclpy; from hdmap_msgs.msg import Drive, Map' \
+    || die "rclpy / hdmap_msgs do not import from a clean environment (see above)"
+clean_run "$VENV/bin/hdmap" --help >/dev/null \
+    || say "warning: setup is complete, but .venv/bin/hdmap --help fails (a code error, see above)"
 
 say "done in $(( $(date +%s) - start )) s: try  .venv/bin/hdmap --help   or   make test"
