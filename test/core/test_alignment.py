@@ -15,6 +15,7 @@ from hdmap_core.alignment import (
     kmeans_1d_all_k,
     silhouette_samples_1d,
     solve_offsets,
+    step_silhouette,
 )
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
@@ -92,12 +93,12 @@ def test_robust_loss_resists_one_bad_sample():
     assert err_robust < 0.5 * err_plain
 
 
-def test_silhouette_gate_rejects_pure_noise():
-    rng = np.random.default_rng(0)
-    lat = rng.uniform(-7, 7, 60)
-    types = rng.integers(1, 4, 60)
-    drive = rng.integers(0, 10, 60)
-    res = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form"))
+@pytest.mark.parametrize("seed", range(5))
+def test_silhouette_gate_rejects_pure_noise(seed):
+    # 3 drives x 40 samples of one type, no lines at all: a Gaussian blob of noise.
+    rng = np.random.default_rng(seed)
+    lat = rng.normal(0.0, 2.0, 120)
+    res = align_step(lat, np.full(120, 2), np.repeat(np.arange(3), 40), config=AlignmentConfig(solver="closed_form"))
     assert res.silhouette < 0.67
     assert not res.valid
 
@@ -131,3 +132,15 @@ def test_config_checks():
         AlignmentConfig(clustering="dbscan")
     with pytest.raises(ConfigError):
         AlignmentConfig(solver="adam")
+
+
+def test_fast_silhouette_equals_sklearn_per_type():
+    rng = np.random.default_rng(4)
+    x = np.concatenate([rng.normal(0, 0.2, 10), rng.normal(3.5, 0.3, 8), rng.normal(1.0, 0.2, 7), rng.normal(9, 0.2, 5)])
+    types = np.repeat([1, 1, 2, 2], [10, 8, 7, 5])
+    labels = np.repeat([0, 1, 2, 3], [10, 8, 7, 5])
+    want = np.concatenate([silhouette_samples(x[:18, None], labels[:18]), silhouette_samples(x[18:, None], labels[18:])])
+    assert step_silhouette(x, labels, types) == pytest.approx(want.mean())
+    # A type with a single cluster does not count.
+    x2 = np.concatenate([x, [20.0, 20.1]])
+    assert step_silhouette(x2, np.concatenate([labels, [4, 4]]), np.concatenate([types, [3, 3]])) == pytest.approx(want.mean())

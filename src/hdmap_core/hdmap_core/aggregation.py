@@ -17,10 +17,11 @@ import json
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import ndtr
 
 from hdmap_core.errors import ConfigError
 
-__all__ = ["AggregationConfig", "StepAggregate", "kde_maxima", "overlap_coefficients", "aggregate_step", "ProcessedStore"]
+__all__ = ["AggregationConfig", "StepAggregate", "ManyAggregates", "aggregate_many", "kde_maxima", "overlap_coefficients", "gaussian_overlap", "aggregate_step", "ProcessedStore"]
 
 _SQRT2PI = np.sqrt(2.0 * np.pi)
 
@@ -135,24 +136,76 @@ def overlap_coefficients(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndar
     return out
 
 
-def aggregate_step(
-    x: np.ndarray, labels: np.ndarray, types: np.ndarray, drive: np.ndarray, *, config: AggregationConfig
-) -> StepAggregate:
-    """Replace each cluster by its KDE maximum and filter overlapping clusters (Sec. IV-C).
+@dataclass(frozen=True)
+class ManyAggregates:
+    """Aggregated maxima of many steps at once, sorted by (step, lateral position).
+
+    Attributes:
+        step: (K,) step of each maximum; the other fields as in ``StepAggregate``.
+    """
+
+    step: np.ndarray
+    lateral_m: np.ndarray
+    types: np.ndarray
+    counts: np.ndarray
+    std_m: np.ndarray
+    n_samples: np.ndarray
+    kept_labels: np.ndarray
+
+
+def gaussian_overlap(mu1: np.ndarray, sd1: np.ndarray, mu2: np.ndarray, sd2: np.ndarray) -> np.ndarray:
+    """Overlap coefficient integral(min(p, q)) of two normal densities, vectorised, exact.
+
+    The densities cross where a quadratic in x vanishes; between and beyond the crossings the
+    smaller density is integrated with the normal CDF.
+    """
+    mu1, sd1, mu2, sd2 = (np.asarray(v, dtype=float) for v in (mu1, sd1, mu2, sd2))
+    # Order so that sd1 <= sd2.
+    swap = sd1 > sd2
+    mu1, mu2 = np.where(swap, mu2, mu1), np.where(swap, mu1, mu2)
+    sd1, sd2 = np.where(swap, sd2, sd1), np.where(swap, sd1, sd2)
+    equal = np.isclose(sd1, sd2, rtol=1e-9, atol=0.0)
+    # Equal widths: one crossing at the middle.
+    d = np.abs(mu1 - mu2)
+    ovl_eq = 2.0 * ndtr(-d / (2.0 * sd1))
+    a = 1.0 / (2 * sd1**2) - 1.0 / (2 * sd2**2)
+    b = mu2 / sd2**2 - mu1 / sd1**2
+    c = mu1**2 / (2 * sd1**2) - mu2**2 / (2 * sd2**2) - np.log(sd2 / sd1)
+    a_s = np.where(equal, 1.0, a)
+    disc = np.sqrt(np.maximum(b * b - 4 * a_s * c, 0.0))
+    x1 = (-b - disc) / (2 * a_s)
+    x2 = (-b + disc) / (2 * a_s)
+    lo, hi = np.minimum(x1, x2), np.maximum(x1, x2)
+    # The narrow density (sd1) is the smaller one outside [lo, hi], the wide one inside.
+    narrow_out = ndtr((lo - mu1) / sd1) + 1.0 - ndtr((hi - mu1) / sd1)
+    wide_in = ndtr((hi - mu2) / sd2) - ndtr((lo - mu2) / sd2)
+    return np.where(equal, ovl_eq, np.clip(narrow_out + wide_in, 0.0, 1.0))
+
+
+def aggregate_many(
+    x: np.ndarray,
+    step: np.ndarray,
+    labels: np.ndarray,
+    types: np.ndarray,
+    drive: np.ndarray,
+    *,
+    config: AggregationConfig,
+) -> ManyAggregates:
+    """Sec. IV-C for many steps at once: KDE maxima and the overlap filter per step.
 
     Args:
-        x: (M,) corrected lateral positions [m]; labels: (M,) cluster labels (-1 ignored);
-        types: (M,) FeatureType codes; drive: (M,) drive codes.
+        x: (M,) corrected lateral positions [m]; step: (M,) step of each sample; labels: (M,)
+        cluster labels, unique across steps (-1 ignored); types: (M,); drive: (M,) drive codes.
 
     Returns:
-        The maxima of the surviving clusters, sorted by position.
+        The surviving maxima, sorted by (step, position).
     """
     use = labels >= 0
     if not use.any():
         e = np.zeros(0)
         ei = np.zeros(0, np.int64)
-        return StepAggregate(e, ei, ei, e, ei, ei)
-    x, types, drive = x[use], types[use], drive[use]
+        return ManyAggregates(ei, e, ei, ei, e, ei, ei)
+    x, step, types, drive = x[use], step[use], types[use], drive[use]
     orig, lab = np.unique(labels[use], return_inverse=True)
     k = len(orig)
     n = np.bincount(lab, minlength=k).astype(float)
@@ -161,31 +214,33 @@ def aggregate_step(
     std = np.sqrt(var)
     ctype = np.zeros(k, dtype=np.int64)
     ctype[lab] = types
-    n_drives = np.bincount(np.unique(lab * (int(drive.max()) + 1) + drive) // (int(drive.max()) + 1), minlength=k)
+    cstep = np.zeros(k, dtype=np.int64)
+    cstep[lab] = step
+    nd = int(drive.max()) + 1
+    n_drives = np.bincount(np.unique(lab * nd + drive) // nd, minlength=k)
     bw = np.maximum(config.kde_bandwidth_factor * std, config.kde_min_bandwidth_m)
-    if config.method == "kde":
-        pos = kde_maxima(x, lab, bw, grid_points=config.grid_points)
-    else:
-        pos = mean
+    pos = kde_maxima(x, lab, bw, grid_points=config.grid_points) if config.method == "kde" else mean
     keep = np.ones(k, dtype=bool)
+    order = np.lexsort((pos, cstep))
     if config.overlap_filter and k >= 2:
-        order = np.argsort(pos)
-        pairs = np.stack([order[:-1], order[1:]], axis=1)
-        # Only neighbours whose kernel ranges meet can overlap noticeably.
-        near = np.abs(pos[pairs[:, 0]] - pos[pairs[:, 1]]) < 4.0 * (bw[pairs[:, 0]] + bw[pairs[:, 1]])
-        pairs = pairs[near]
+        a, b = order[:-1], order[1:]
+        near = (cstep[a] == cstep[b]) & (np.abs(pos[a] - pos[b]) < 4.0 * (bw[a] + bw[b]))
+        pairs = np.stack([a[near], b[near]], axis=1)
         if len(pairs):
-            ov = overlap_coefficients(x, lab, bw, pairs, grid_points=config.grid_points)
+            # Each KDE is approximated by a normal of the same mean and variance (var + h^2),
+            # whose overlap has a closed form; exact for the paper's wide kernels.
+            sd = np.sqrt(var + bw * bw)
+            ov = gaussian_overlap(mean[pairs[:, 0]], sd[pairs[:, 0]], mean[pairs[:, 1]], sd[pairs[:, 1]])
             for p in np.argsort(-ov):
                 if ov[p] <= config.overlap_threshold:
                     break
                 i, j = pairs[p]
                 if keep[i] and keep[j]:
                     keep[i if n[i] < n[j] else j] = False
-    idx = np.flatnonzero(keep)
-    idx = idx[np.argsort(pos[idx])]
+    idx = order[keep[order]]
     sigma = np.where(n_drives[idx] > 1, std[idx] / np.sqrt(np.maximum(n_drives[idx], 1)), config.single_drive_std_m)
-    return StepAggregate(
+    return ManyAggregates(
+        step=cstep[idx],
         lateral_m=pos[idx],
         types=ctype[idx],
         counts=n_drives[idx],
@@ -193,6 +248,22 @@ def aggregate_step(
         n_samples=n[idx].astype(np.int64),
         kept_labels=orig[idx],
     )
+
+
+def aggregate_step(
+    x: np.ndarray, labels: np.ndarray, types: np.ndarray, drive: np.ndarray, *, config: AggregationConfig
+) -> StepAggregate:
+    """Replace each cluster of one step by its KDE maximum and filter overlapping clusters.
+
+    Args:
+        x: (M,) corrected lateral positions [m]; labels: (M,) cluster labels (-1 ignored);
+        types: (M,) FeatureType codes; drive: (M,) drive codes.
+
+    Returns:
+        The maxima of the surviving clusters, sorted by position.
+    """
+    m = aggregate_many(x, np.zeros(len(x), np.int64), labels, types, drive, config=config)
+    return StepAggregate(m.lateral_m, m.types, m.counts, m.std_m, m.n_samples, m.kept_labels)
 
 
 @dataclass

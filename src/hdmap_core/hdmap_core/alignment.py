@@ -27,6 +27,8 @@ __all__ = [
     "StepAlignment",
     "kmeans_1d_all_k",
     "silhouette_samples_1d",
+    "silhouette_sorted",
+    "step_silhouette",
     "cluster_type",
     "cluster_step",
     "solve_offsets",
@@ -47,7 +49,8 @@ class AlignmentConfig:
             "gap" (split the sorted samples where the gap exceeds ``gap_split_m``; exact, O(n log n),
             right once offsets are roughly known) or "auto" (gap when every drive of the step has a
             prior offset, else silhouette).
-        k_max: largest k tried per type.
+        k_max: largest k tried per type (open; a carriageway shows at most a few lines of one
+            type, and many small clusters score well on silhouette even for noise).
         single_cluster_silhouette: with "silhouette", k = 1 when no k >= 2 reaches this score (open:
             the silhouette is undefined for k = 1).
         min_cluster_separation_m: with "silhouette", a k whose neighbouring cluster means of one
@@ -60,6 +63,8 @@ class AlignmentConfig:
             solved as linear least squares; LM only when the penalty is not negligible).
         penalty_s_per_m2: s of the penalty exp(-s d^2) (open; "set from the lane width": 0.25
             makes the penalty 0.05 at a 3.5 m lane width).
+        penalty_lm_threshold: with "closed_form", LM polishes only when some cluster's penalty
+            exceeds this (0.3: same-type clusters closer than about 2.2 m at s = 0.25).
         robust_loss: Huber-reweighted variance residuals (a drive's odd sample cannot pull).
         huber_delta_m: Huber threshold [m].
         ridge: weight of sum(o^2), fixes the gauge (common shift) and keeps lone drives at 0.
@@ -73,13 +78,14 @@ class AlignmentConfig:
 
     estimate_offsets: bool = True
     clustering: str = "silhouette"
-    k_max: int = 8
+    k_max: int = 6
     single_cluster_silhouette: float = 0.5
     min_cluster_separation_m: float = 0.0
     gap_split_m: float = 1.0
     n_iterations: int = 5
     solver: str = "lm"
     penalty_s_per_m2: float = 0.25
+    penalty_lm_threshold: float = 0.3
     robust_loss: bool = False
     huber_delta_m: float = 0.3
     ridge: float = 1e-4
@@ -228,7 +234,7 @@ def cluster_type(
                 if np.min(np.diff(means)) < min_separation_m:
                     continue
             lab = np.repeat(np.arange(len(b) - 1), np.diff(b))
-            s = float(silhouette_samples_1d(xs, lab).mean())
+            s = float(silhouette_sorted(xs, lab, np.zeros(n, np.int64)).mean())
             if s > best_s:
                 best_s, best_b = s, b
         if best_b is not None and best_s >= single_cluster_silhouette:
@@ -238,8 +244,28 @@ def cluster_type(
     return labels
 
 
+def gap_labels(x: np.ndarray, types: np.ndarray, gap_m: float) -> np.ndarray:
+    """Split the samples of every type at sorted gaps wider than ``gap_m``; exact, O(n log n).
+
+    Returns:
+        (n,) labels unique across types, increasing with (type, x).
+    """
+    n = len(x)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.lexsort((x, types))
+    xs, ts = x[order], types[order]
+    brk = np.ones(n, dtype=bool)
+    brk[1:] = (np.diff(xs) > gap_m) | (ts[1:] != ts[:-1])
+    labels = np.empty(n, dtype=np.int64)
+    labels[order] = np.cumsum(brk) - 1
+    return labels
+
+
 def cluster_step(x: np.ndarray, types: np.ndarray, *, method: str, config: AlignmentConfig) -> np.ndarray:
     """E-step: cluster every type separately; labels unique across types (M,)."""
+    if method == "gap":
+        return gap_labels(x, types, config.gap_split_m)
     labels = np.empty(len(x), dtype=np.int64)
     base = 0
     for t in np.unique(types):
@@ -288,6 +314,30 @@ def _penalty(mu: np.ndarray, ctype: np.ndarray, s: float) -> np.ndarray:
     return np.exp(-0.5 * s * dmin * dmin)
 
 
+def _closed_form(
+    x: np.ndarray, labels: np.ndarray, drive: np.ndarray, n_drives: int, w: np.ndarray, reg_w: np.ndarray, reg_t: np.ndarray
+) -> np.ndarray:
+    """Exact minimiser of sum_c (1/n_c) sum_j w_j (x_j + o_dj - mu_c(o))^2 + sum_d reg_w (o_d - reg_t)^2.
+
+    mu_c is the w-weighted mean of the corrected members. The cost is quadratic in o: with
+    m[c, d] = sum of w over drive d's members of c, X[c, d] = sum of w x over them and
+    W_c, S_c the cluster totals, its Hessian/2 is sum_c (diag(m_c) - m_c m_c^T / W_c) / n_c and
+    its gradient/2 at 0 is sum_c (X_c - S_c m_c / W_c) / n_c; one D x D solve.
+    """
+    k = int(labels.max()) + 1
+    n_c = np.bincount(labels, minlength=k).astype(float)
+    key = labels * n_drives + drive
+    m = np.bincount(key, weights=w, minlength=k * n_drives).reshape(k, n_drives)
+    xm = np.bincount(key, weights=w * x, minlength=k * n_drives).reshape(k, n_drives)
+    wc = np.maximum(m.sum(axis=1), 1e-300)
+    sc = xm.sum(axis=1)
+    inv_n = 1.0 / n_c
+    mn = m * np.sqrt(inv_n / wc)[:, None]
+    h = np.diag(m.T @ inv_n + reg_w) - mn.T @ mn
+    g = xm.T @ inv_n - m.T @ (sc * inv_n / wc)
+    return np.linalg.solve(h, reg_w * reg_t - g)
+
+
 def solve_offsets(
     x: np.ndarray,
     labels: np.ndarray,
@@ -314,9 +364,8 @@ def solve_offsets(
     if not use.any():
         return np.zeros(n_drives)
     x, labels, types, drive = x[use], labels[use], types[use], drive[use]
-    _, labels = np.unique(labels, return_inverse=True)
-    a, b, mean0, share = _variance_system(x, labels, drive, n_drives)
-    k = len(mean0)
+    uniq, labels = np.unique(labels, return_inverse=True)
+    k = len(uniq)
     ctype = np.zeros(k, dtype=types.dtype)
     ctype[labels] = types
     reg_w = np.full(n_drives, config.ridge)
@@ -325,21 +374,23 @@ def solve_offsets(
         has = np.isfinite(prior)
         reg_w = reg_w + np.where(has, config.prior_weight, 0.0)
         reg_t = np.where(has, config.prior_weight * np.nan_to_num(prior) / np.maximum(reg_w, 1e-300), 0.0)
-    row_w = np.ones(len(b))
-    o = np.zeros(n_drives)
-    n_irls = 6 if config.robust_loss else 1
-    for _ in range(n_irls):
-        aw = a * row_w[:, None]
-        bw = b * row_w
-        lhs = aw.T @ aw + np.diag(reg_w)
-        rhs = -aw.T @ bw + reg_w * reg_t
-        o = np.linalg.solve(lhs, rhs)
-        if config.robust_loss:
-            r = np.abs(a @ o + b) * np.sqrt(np.bincount(labels)[labels])  # back to metres
-            row_w = np.sqrt(np.minimum(1.0, config.huber_delta_m / np.maximum(r, 1e-12)))
+    w = np.ones(len(x))
+    n_c = np.bincount(labels, minlength=k).astype(float)
+    for it in range(4 if config.robust_loss else 1):
+        o = _closed_form(x, labels, drive, n_drives, w, reg_w, reg_t)
+        if config.robust_loss and it < 3:
+            y = x + o[drive]
+            mu = np.bincount(labels, weights=w * y, minlength=k) / np.maximum(np.bincount(labels, weights=w, minlength=k), 1e-300)
+            w = np.minimum(1.0, config.huber_delta_m / np.maximum(np.abs(y - mu[labels]), 1e-12))
     s = config.penalty_s_per_m2
-    need_lm = config.solver == "lm" or _penalty(mean0 + share @ o, ctype, s).max() > 1e-3
-    if need_lm and k >= 2 and s > 0:
+    centres = np.bincount(labels, weights=x + o[drive], minlength=k) / n_c
+    # The penalty only acts when two same-type clusters come close; the closed form already
+    # minimises the variance term, so LM runs only then (always with solver="lm", the paper's way).
+    need_lm = k >= 2 and s > 0 and (config.solver == "lm" or _penalty(centres, ctype, s).max() > config.penalty_lm_threshold)
+    share = None
+    if need_lm:
+        a, b, mean0, share = _variance_system(x, labels, drive, n_drives)
+        row_w = np.sqrt(w)
         sq_reg = np.sqrt(reg_w)
 
         def fun(v: np.ndarray) -> np.ndarray:
@@ -349,11 +400,92 @@ def solve_offsets(
         o = least_squares(fun, start, method="lm", xtol=1e-6, ftol=1e-8).x
     if config.remove_drift:
         # Road midpoint (mean cluster position) after correction = before it.
+        key = labels * n_drives + drive
+        share = np.bincount(key, minlength=k * n_drives).reshape(k, n_drives) / n_c[:, None]
         o = o - float((share @ o).mean())
     return np.clip(o, -config.max_offset_m, config.max_offset_m)
 
 
 # ----------------------------------------------------------------------------- EM
+
+
+def match_new_drives(
+    x: np.ndarray,
+    types: np.ndarray,
+    drive: np.ndarray,
+    offsets: np.ndarray,
+    known: np.ndarray,
+    *,
+    max_offset_m: float,
+    gap_m: float,
+    grid_m: float = 0.05,
+    capture_m: float = 0.5,
+) -> np.ndarray:
+    """Offsets of drives without a prior, by matching their samples onto the clusters of the
+    drives with one (a 1-D grid search: score = sum over the drive's samples of
+    max(0, 1 - distance to the nearest same-type cluster / capture_m)).
+
+    Args:
+        x: (M,) raw positions; types: (M,); drive: (M,) local codes; offsets: (D,) current offsets.
+        known: (D,) bool, drives whose offsets are trusted.
+
+    Returns:
+        (D,) offsets with the unknown drives' filled in (0 when nothing matches).
+    """
+    out = offsets.copy()
+    ks = known[drive]
+    if not ks.any():
+        return out
+    y = x[ks] + offsets[drive[ks]]
+    lab = gap_labels(y, types[ks], gap_m)
+    k = int(lab.max()) + 1
+    cnt = np.bincount(lab, minlength=k)
+    centre = np.bincount(lab, weights=y, minlength=k) / cnt
+    ctype = np.zeros(k, dtype=types.dtype)
+    ctype[lab] = types[ks]
+    us = np.flatnonzero(~ks)
+    cand = np.arange(-max_offset_m, max_offset_m + 1e-9, grid_m)
+    pos = x[us][None, :] + cand[:, None]  # (G, U)
+    same = types[us][:, None] == ctype[None, :]  # (U, K)
+    d = np.abs(pos[:, :, None] - centre[None, None, :])  # (G, U, K)
+    d = np.where(same[None, :, :], d, np.inf).min(axis=2)
+    score = np.maximum(0.0, 1.0 - d / capture_m)  # (G, U)
+    ud, inv = np.unique(drive[us], return_inverse=True)
+    per = score @ (inv[:, None] == np.arange(len(ud))[None, :]).astype(float)  # (G, Du)
+    # Prefer small offsets (localization errors are small more often): a 3 m shift costs less
+    # than one matched sample.
+    best = np.argmax(per - 0.02 * (cand * cand)[:, None], axis=0)
+    ok = per[best, np.arange(len(ud))] > 0
+    out[ud[ok]] = cand[best[ok]]
+    return out
+
+
+def register_drives(
+    x: np.ndarray, types: np.ndarray, drive: np.ndarray, n_drives: int, *, max_offset_m: float, gap_m: float
+) -> np.ndarray:
+    """Start offsets for a step without prior: greedy registration, drive after drive.
+
+    The drive with the most samples is the reference (offset 0); every other drive, in order of
+    sample count, is matched onto the clusters of the drives placed so far (``match_new_drives``),
+    which uses all types at once, so a solid line or a border breaks the lane-periodic ambiguity
+    of dashed lines. Drift removal later fixes the gauge.
+
+    Returns:
+        (D,) start offsets [m].
+    """
+    o = np.zeros(n_drives)
+    cnt = np.bincount(drive, minlength=n_drives)
+    order = np.argsort(-cnt, kind="stable")
+    known = np.zeros(n_drives, dtype=bool)
+    known[order[0]] = True
+    for d in order[1:]:
+        if cnt[d] == 0:
+            continue
+        sel = known[drive] | (drive == d)
+        kd = known.copy()
+        o = match_new_drives(x[sel], types[sel], drive[sel], o, kd, max_offset_m=max_offset_m, gap_m=gap_m)
+        known[d] = True
+    return o
 
 
 def _drop_thin_clusters(labels: np.ndarray, drive: np.ndarray, min_drives: int) -> np.ndarray:
@@ -367,13 +499,70 @@ def _drop_thin_clusters(labels: np.ndarray, drive: np.ndarray, min_drives: int) 
     return out
 
 
-def step_silhouette(x: np.ndarray, labels: np.ndarray) -> float:
-    """Mean silhouette of the labelled samples (all types together, labels as given); -1 when
-    fewer than two clusters."""
+def silhouette_sorted(xs: np.ndarray, run: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """Silhouette of 1-D samples whose clusters are contiguous runs of the sorted order, O(n).
+
+    In 1-D with contiguous clusters the nearest other cluster of a sample is a neighbouring run,
+    and summed distances to a run follow from prefix sums, so no distance matrix is needed.
+
+    Args:
+        xs: (n,) values sorted ascending within each group.
+        run: (n,) cluster id, non-decreasing, consecutive runs 0..R-1.
+        group: (n,) group id (e.g. type); silhouettes only compare clusters of one group.
+
+    Returns:
+        (n,) silhouette per sample; NaN where the group has a single cluster; 0 for singletons.
+    """
+    n = len(xs)
+    if n == 0:
+        return np.zeros(0)
+    r = int(run[-1]) + 1
+    start = np.searchsorted(run, np.arange(r + 1))
+    s = np.concatenate([[0.0], np.cumsum(xs)])
+    rgroup = group[start[:-1]]
+    i = np.arange(n)
+    a0, b0 = start[run], start[run + 1]
+    cnt = b0 - a0
+    own = (i - a0) * xs - (s[i] - s[a0]) + (s[b0] - s[i + 1]) - (b0 - i - 1) * xs
+    a = own / np.maximum(cnt - 1, 1)
+    rsum = s[start[1:]] - s[start[:-1]]
+    rmean = rsum / np.diff(start)
+    has_l = (run > 0) & (rgroup[np.maximum(run - 1, 0)] == group)
+    has_r = (run < r - 1) & (rgroup[np.minimum(run + 1, r - 1)] == group)
+    dl = np.where(has_l, xs - rmean[np.maximum(run - 1, 0)], np.inf)
+    dr = np.where(has_r, rmean[np.minimum(run + 1, r - 1)] - xs, np.inf)
+    b = np.minimum(dl, dr)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sil = (b - a) / np.maximum(a, b)
+    sil = np.where(cnt > 1, np.nan_to_num(sil, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    return np.where(np.isfinite(b), sil, np.nan)
+
+
+def step_silhouette(x: np.ndarray, labels: np.ndarray, types: np.ndarray) -> float:
+    """Mean silhouette of a step's labelled samples, each type scored on its own clusters.
+
+    Clustering is per type (Sec. IV-B), so the score is too: samples of types with at least two
+    clusters count; -1 when no type has two clusters.
+    """
     use = labels >= 0
-    if len(np.unique(labels[use])) < 2:
+    x, labels, types = x[use], labels[use], types[use]
+    if len(x) < 2:
         return -1.0
-    return float(silhouette_samples_1d(x[use], labels[use]).mean())
+    order = np.lexsort((x, types))
+    xs, ls, ts = x[order], labels[order], types[order]
+    change = np.ones(len(xs), dtype=bool)
+    change[1:] = (ls[1:] != ls[:-1]) | (ts[1:] != ts[:-1])
+    run = np.cumsum(change) - 1
+    if run[-1] + 1 == len(np.unique(ls)):
+        sil = silhouette_sorted(xs, run, ts)
+    else:  # clusters interleave (not contiguous): general per-type silhouette
+        sil = np.full(len(xs), np.nan)
+        for t in np.unique(ts):
+            sel = ts == t
+            if len(np.unique(ls[sel])) >= 2:
+                sil[sel] = silhouette_samples_1d(xs[sel], ls[sel])
+    ok = np.isfinite(sil)
+    return float(sil[ok].mean()) if ok.any() else -1.0
 
 
 def align_step(
@@ -401,12 +590,41 @@ def align_step(
     if len(x) == 0:
         return StepAlignment(np.zeros(0), np.zeros(0, np.int64), -1.0, False, 0)
     o = np.zeros(n_drives)
-    has_prior = prior is not None and np.all(np.isfinite(prior))
+    known = np.zeros(n_drives, dtype=bool) if prior is None else np.isfinite(prior)
     if prior is not None:
-        o = np.where(np.isfinite(prior), prior, 0.0)
-    method = config.clustering
-    if method == "auto":
-        method = "gap" if has_prior else "silhouette"
+        o = np.where(known, prior, 0.0)
+    if config.clustering != "auto" or not config.estimate_offsets:
+        return _em(x, types, drive, o, prior, method=config.clustering if config.clustering != "auto" else "gap", config=config)
+    # Tracking: drives carried over from the previous step keep their offsets, new ones are
+    # matched onto the clusters those form, then gaps separate the clusters. Without a
+    # carried-over drive, or when the tracked result fails the gate (a drive may have locked onto
+    # the wrong lane), the step is registered from scratch: greedy matching of drive after drive.
+    res = None
+    if known.any():
+        if not known.all():
+            o = match_new_drives(x, types, drive, o, known, max_offset_m=config.max_offset_m, gap_m=config.gap_split_m)
+        res = _em(x, types, drive, o, prior, method="gap", config=config)
+        if res.valid:
+            return res
+    o0 = register_drives(x, types, drive, n_drives, max_offset_m=config.max_offset_m, gap_m=config.gap_split_m)
+    fresh = _em(x, types, drive, o0, None, method="gap", config=config)
+    if res is None or fresh.silhouette > res.silhouette:
+        return fresh
+    return res
+
+
+def _em(
+    x: np.ndarray,
+    types: np.ndarray,
+    drive: np.ndarray,
+    o: np.ndarray,
+    prior: np.ndarray | None,
+    *,
+    method: str,
+    config: AlignmentConfig,
+) -> StepAlignment:
+    """E-step / M-step iterations from the start offsets ``o``."""
+    n_drives = len(o)
     labels = None
     it = 0
     for it in range(1, (config.n_iterations if config.estimate_offsets else 1) + 1):
@@ -418,6 +636,6 @@ def align_step(
         if not config.estimate_offsets:
             break
         o = solve_offsets(x, labels, types, drive, n_drives, config=config, prior=prior, init=o)
-    score = step_silhouette(x + o[drive], labels)
+    score = step_silhouette(x + o[drive], labels, types)
     valid = score >= config.silhouette_gate
     return StepAlignment(offsets_m=o, labels=labels, silhouette=score, valid=bool(valid), n_iterations=it)

@@ -122,10 +122,10 @@ def rdp_mask_many(xy: np.ndarray, starts: np.ndarray, epsilon_m: float) -> np.nd
         lab = np.hypot(ab[:, 0], ab[:, 1])
         cross = np.abs(ab[:, 0] * ap[:, 1] - ab[:, 1] * ap[:, 0])
         dist = np.where(lab > 1e-12, cross / np.maximum(lab, 1e-12), np.hypot(ap[:, 0], ap[:, 1]))
-        # Per interval: the farthest inner point (first one on ties).
-        order = np.lexsort((-dist, owner))
-        firsts = order[first]
-        dmax = dist[firsts]
+        # Per interval (its inner points are contiguous here): the farthest one, first on ties.
+        dmax = np.maximum.reduceat(dist, first)
+        pos = np.arange(len(dist))
+        firsts = np.minimum.reduceat(np.where(dist == dmax[owner], pos, len(dist)), first)
         split = dmax > epsilon_m
         mid = idx[firsts][split]
         keep[mid] = True

@@ -1,0 +1,563 @@
+"""The whole method (Immel et al. 2023): drives in, hierarchical map out.
+
+``map_segments`` runs stages 1-4 (preprocessing, lateral sampling, EM offset estimation,
+aggregation) along random pivot drives and returns one ``Segment`` per pivot; ``build_map`` adds
+the connection (Sec. V, ``hdmap_core.connection``) and stitching (Sec. VI,
+``hdmap_core.stitching``) stages and a run report.
+
+Presets (``PipelineConfig.preset``):
+- "paper": the paper's method as written; its open values read as documented in docs/pipeline.md.
+- "default": the improved variant: fast exact per-step EM (closed form, gap clustering after warm
+  start, offsets carried along a drive) plus the global joint offset adjustment
+  (``hdmap_core.adjustment``): a first pass produces per-step observations, one sparse
+  adjustment estimates every drive's offset curve, and a second pass samples and aggregates with
+  the samples shifted by it.
+- "naive": no offset correction at all: cluster means of the raw samples (the baseline).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_many
+from hdmap_core.alignment import AlignmentConfig, align_step
+from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
+from hdmap_core.model import Drive, HDMap, validate_drive
+from hdmap_core.preprocess import DetectionIndex, PreprocessConfig, preprocess
+from hdmap_core.sampling import PivotSamples, SamplingConfig, pivot_walk, sample_pivot
+from hdmap_core.steps import Segment, StepObservations, StepResult
+
+__all__ = [
+    "PipelineConfig",
+    "BuildReport",
+    "BuildResult",
+    "MappingResult",
+    "build_map",
+    "map_segments",
+    "map_stretches",
+    "prepare_drives",
+]
+
+_PRESETS = ("paper", "default", "naive")
+ProgressFn = Callable[[str, int, int], None]
+
+_EMPTY_F = np.zeros(0)
+_EMPTY_I = np.zeros(0, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """All options of the pipeline, one frozen config per stage.
+
+    Attributes:
+        preprocess, sampling, alignment, aggregation: stages 1-4.
+        use_global_adjustment: run the global joint per-drive offset adjustment between a first
+            (observation) pass and the final sampling/aggregation pass.
+        adjustment: ``hdmap_core.adjustment.AdjustConfig`` (None: its defaults).
+        final_alignment: EM options of the second pass (samples already shifted by the offset
+            model); None = ``alignment``.
+        connection: ``hdmap_core.connection.ConnectionConfig`` (None: its defaults).
+        stitching: ``hdmap_core.stitching`` config (None: its defaults).
+        name: the preset this config came from ("" when built by hand).
+    """
+
+    preprocess: PreprocessConfig = PreprocessConfig()
+    sampling: SamplingConfig = SamplingConfig()
+    alignment: AlignmentConfig = AlignmentConfig()
+    aggregation: AggregationConfig = AggregationConfig()
+    use_global_adjustment: bool = False
+    adjustment: Any = None
+    final_alignment: AlignmentConfig | None = None
+    connection: Any = None
+    stitching: Any = None
+    name: str = ""
+
+    @classmethod
+    def preset(cls, name: str) -> PipelineConfig:  # type: ignore[override]
+        """The named preset: "paper", "default" or "naive" (see the module docstring)."""
+        if name == "paper":
+            return cls(name="paper")
+        if name == "naive":
+            return cls(
+                sampling=SamplingConfig(),
+                alignment=AlignmentConfig(estimate_offsets=False, silhouette_gate=-1.0),
+                aggregation=AggregationConfig(method="mean", overlap_filter=False),
+                name="naive",
+            )
+        if name == "default":
+            fast = AlignmentConfig(
+                clustering="auto",
+                solver="closed_form",
+                n_iterations=4,
+                prior_weight=1.0,
+                robust_loss=True,
+                min_cluster_drives=1,
+                # Labels are fixed in the M-step and the closed form minimises the variance; the
+                # penalty would only push apart clusters of one feature split by a gap.
+                penalty_lm_threshold=2.0,
+            )
+            final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
+            return cls(
+                alignment=fast,
+                aggregation=AggregationConfig(kde_bandwidth_factor=1.0),
+                use_global_adjustment=True,
+                final_alignment=final,
+                name="default",
+            )
+        raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")
+
+
+@dataclass(frozen=True)
+class BuildReport:
+    """What a run did.
+
+    Attributes:
+        n_drives_in: drives given.
+        n_drives_used: valid, distinct drives used.
+        rejected: (drive_id, reason) per rejected drive.
+        km_mapped: pivot distance of accepted steps [km].
+        steps_total: sampling steps of all pivots (incl. skipped ones).
+        steps_rejected: steps without a result (EM gate failed or no samples).
+        steps_skipped_processed: steps skipped as already processed through another pivot.
+        seconds: wall time of the whole run [s].
+        stage_seconds: wall time per stage [s].
+    """
+
+    n_drives_in: int = 0
+    n_drives_used: int = 0
+    rejected: list[tuple[str, str]] = field(default_factory=list)
+    km_mapped: float = 0.0
+    steps_total: int = 0
+    steps_rejected: int = 0
+    steps_skipped_processed: int = 0
+    seconds: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        """A few readable lines."""
+        lines = [
+            f"drives: {self.n_drives_used} used of {self.n_drives_in} ({len(self.rejected)} rejected)",
+            f"steps: {self.steps_total} total, {self.steps_rejected} rejected, "
+            f"{self.steps_skipped_processed} skipped (processed before); {self.km_mapped:.2f} km mapped",
+            f"time: {self.seconds:.2f} s (" + ", ".join(f"{k} {v:.2f}" for k, v in self.stage_seconds.items()) + ")",
+        ]
+        for did, reason in self.rejected[:10]:
+            lines.append(f"  rejected {did!r}: {reason}")
+        if len(self.rejected) > 10:
+            lines.append(f"  ... and {len(self.rejected) - 10} more rejected")
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class BuildResult:
+    """Output of ``build_map``: the map, the per-pivot segments and the report."""
+
+    map: HDMap
+    segments: list[Segment]
+    report: BuildReport
+
+
+@dataclass(frozen=True)
+class MappingResult:
+    """Output of ``map_stretches`` (stages 1-4).
+
+    Attributes:
+        segments: one per pivot drive, in pivot order. A run of steps skipped as processed
+            before is represented by its first and last step (``processed_before=True``).
+        processed: the processed-stretch store after the run (input store plus new stretches).
+        observations: per accepted step of the last pass' first... of the observation pass (empty
+            unless requested or used by the global adjustment).
+        offset_model: the global offset model (None without global adjustment).
+        counters: steps_total, steps_rejected, steps_skipped_processed, steps_valid.
+        stage_seconds: wall time per stage [s].
+    """
+
+    segments: list[Segment]
+    processed: ProcessedStore
+    observations: list[StepObservations]
+    offset_model: Any
+    counters: dict[str, int]
+    stage_seconds: dict[str, float]
+
+
+# ----------------------------------------------------------------------------- input
+
+
+def prepare_drives(drives: Sequence[Drive]) -> tuple[list[Drive], list[tuple[str, str]]]:
+    """Validate drives; invalid and duplicate ones are rejected with a reason, never raised.
+
+    Returns:
+        (usable drives in input order, [(drive_id, reason), ...]).
+    """
+    ok: list[Drive] = []
+    rejected: list[tuple[str, str]] = []
+    seen: set[str] = set()
+    for d in drives:
+        try:
+            validate_drive(d)
+        except InvalidDriveError as err:
+            rejected.append((err.drive_id, f"{err.reason}" + (f": {err.detail}" if err.detail else "")))
+            continue
+        if d.drive_id in seen:
+            rejected.append((d.drive_id, "duplicate_drive_id"))
+            continue
+        seen.add(d.drive_id)
+        ok.append(d)
+    return ok, rejected
+
+
+# ----------------------------------------------------------------------------- stages 2-4 per pivot
+
+
+@dataclass
+class _Counters:
+    total: int = 0
+    rejected: int = 0
+    skipped: int = 0
+    valid: int = 0
+
+
+def _placeholder(pivot_id: str, q: int, ps: PivotSamples, *, processed: bool, drive_ids: tuple[str, ...] = ()) -> StepResult:
+    return StepResult(
+        pivot_id=pivot_id,
+        index=q,
+        s_m=float(ps.s_m[q]),
+        midpoint=ps.midpoint[q],
+        heading=float(ps.heading[q]),
+        width_m=float(ps.width_m[q]),
+        valid=False,
+        processed_before=processed,
+        lateral_m=_EMPTY_F,
+        types=_EMPTY_I,
+        counts=_EMPTY_I,
+        std_m=_EMPTY_F,
+        drive_ids=drive_ids,
+    )
+
+
+def _run_pivot(
+    index: DetectionIndex,
+    pivot: Drive,
+    skip: np.ndarray,
+    *,
+    config: PipelineConfig,
+    alignment: AlignmentConfig,
+    shift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
+    observations: list[StepObservations] | None,
+    counters: _Counters,
+) -> tuple[Segment, np.ndarray, np.ndarray]:
+    """Stages 2-4 along one pivot. Returns (segment, marked drive indices, their s [m]).
+
+    The EM runs step by step (offsets are carried along the pivot); sampling before it and the
+    aggregation after it run on all steps of the pivot at once.
+    """
+    ps = sample_pivot(index, pivot, config=config.sampling, skip=skip, shift=shift)
+    pid = pivot.drive_id
+    ids = np.asarray(index.drive_ids, dtype=object)
+    n_all = len(index.drive_ids)
+    prev = np.full(n_all, np.nan)  # last accepted offset per drive along this pivot
+    use_prior = alignment.prior_weight > 0 or alignment.clustering == "auto"
+    status = np.zeros(ps.n_steps, dtype=np.int8)  # 0 rejected, 1 skipped, 2 accepted
+    status[ps.skipped] = 1
+    step_ids: list[tuple[str, ...]] = [()] * ps.n_steps
+    cx: list[np.ndarray] = []
+    cstep: list[np.ndarray] = []
+    clab: list[np.ndarray] = []
+    ctyp: list[np.ndarray] = []
+    cdrv: list[np.ndarray] = []
+    cds: list[np.ndarray] = []
+    base = 0
+    for q in np.flatnonzero(~ps.skipped):
+        a, b = int(ps.ptr[q]), int(ps.ptr[q + 1])
+        if b - a < 2:
+            continue
+        x, ty, dg = ps.lateral_m[a:b], ps.types[a:b], ps.drive[a:b]
+        uniq, local = np.unique(dg, return_inverse=True)
+        prior = prev[uniq] if use_prior else None
+        al = align_step(x, ty, local, config=alignment, prior=prior)
+        step_ids[q] = tuple(ids[uniq])
+        if not al.valid:
+            continue
+        status[q] = 2
+        prev[uniq] = al.offsets_m
+        lab = np.where(al.labels >= 0, al.labels + base, -1)
+        base += int(al.labels.max()) + 1
+        cx.append(x + al.offsets_m[local])
+        cstep.append(np.full(b - a, q))
+        clab.append(lab)
+        ctyp.append(ty)
+        cdrv.append(dg)
+        cds.append(ps.drive_s_m[a:b])
+        if observations is not None:
+            observations.append(
+                StepObservations(
+                    pivot_id=pid,
+                    index=int(q),
+                    midpoint=ps.midpoint[q],
+                    heading=float(ps.heading[q]),
+                    drive_ids=tuple(ids[dg]),
+                    drive_s_m=ps.drive_s_m[a:b],
+                    lateral_m=x,
+                    types=ty,
+                    cluster=al.labels,
+                    offsets_m=al.offsets_m[local],
+                )
+            )
+    if cx:
+        xs, st, lb, ty, dv, ds = (np.concatenate(v) for v in (cx, cstep, clab, ctyp, cdrv, cds))
+        agg = aggregate_many(xs, st, lb, ty, dv, config=config.aggregation)
+    else:
+        xs = st = lb = ty = dv = ds = _EMPTY_I
+        agg = aggregate_many(_EMPTY_F, _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_I, config=config.aggregation)
+    ptr = np.searchsorted(agg.step, np.arange(ps.n_steps + 1))
+    has = np.diff(ptr) > 0
+    status[(status == 2) & ~has] = 0
+    steps: list[StepResult] = []
+    # A run of skipped (processed before) steps is represented by its first and last step only:
+    # they carry no data, and connection only needs to see where such a run starts and ends.
+    sk = status == 1
+    inner = sk.copy()
+    inner[:-1] &= sk[1:]
+    inner[1:] &= sk[:-1]
+    if len(inner):
+        inner[0] = inner[-1] = False
+    for q in range(ps.n_steps):
+        if inner[q]:
+            continue
+        if status[q] != 2:
+            steps.append(_placeholder(pid, q, ps, processed=bool(status[q] == 1), drive_ids=step_ids[q]))
+            continue
+        a, b = ptr[q], ptr[q + 1]
+        steps.append(
+            StepResult(
+                pivot_id=pid,
+                index=q,
+                s_m=float(ps.s_m[q]),
+                midpoint=ps.midpoint[q],
+                heading=float(ps.heading[q]),
+                width_m=float(ps.width_m[q]),
+                valid=True,
+                processed_before=False,
+                lateral_m=agg.lateral_m[a:b],
+                types=agg.types[a:b],
+                counts=agg.counts[a:b],
+                std_m=agg.std_m[a:b],
+                drive_ids=step_ids[q],
+            )
+        )
+    counters.total += ps.n_steps
+    counters.skipped += int((status == 1).sum())
+    counters.valid += int((status == 2).sum())
+    counters.rejected += int((status == 0).sum())
+    # Processed stretches: every drive that took part in an accepted step, keyed by its own
+    # travelled distance there (mean of its samples), plus the pivot itself.
+    ok = (lb >= 0) & (status[st] == 2) if len(lb) else np.zeros(0, bool)
+    key = st[ok] * np.int64(n_all) + dv[ok]
+    uk, inv = np.unique(key, return_inverse=True)
+    s_mean = np.bincount(inv, weights=ds[ok], minlength=len(uk)) / np.maximum(np.bincount(inv, minlength=len(uk)), 1)
+    valid_q = np.flatnonzero(status == 2)
+    pidx = index.drive_ids.index(pid)
+    md = np.concatenate([uk % n_all, np.full(len(valid_q), pidx)]).astype(np.int64)
+    ms = np.concatenate([s_mean, ps.s_m[valid_q]])
+    return Segment(pivot_id=pid, steps=tuple(steps)), md, ms
+
+
+def _run_pass(
+    drives: list[Drive],
+    index: DetectionIndex,
+    order: np.ndarray,
+    processed: ProcessedStore,
+    *,
+    config: PipelineConfig,
+    alignment: AlignmentConfig,
+    shift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
+    observations: list[StepObservations] | None,
+    counters: _Counters,
+    progress: ProgressFn | None,
+) -> tuple[list[Segment], ProcessedStore]:
+    segments: list[Segment] = []
+    step_m = config.sampling.step_m
+    for n_done, di in enumerate(order):
+        pivot = drives[int(di)]
+        s, _, _ = pivot_walk(pivot, step_m=step_m)
+        skip = processed.contains(pivot.drive_id, s)
+        seg, md, ms = _run_pivot(
+            index, pivot, skip, config=config, alignment=alignment, shift=shift, observations=observations, counters=counters
+        )
+        segments.append(seg)
+        if len(md):
+            marks: dict[str, np.ndarray] = {}
+            order_d = np.argsort(md, kind="stable")
+            md, ms = md[order_d], ms[order_d]
+            cut = np.flatnonzero(np.diff(md)) + 1
+            for dd, ss in zip(np.split(md, cut), np.split(ms, cut)):
+                marks[index.drive_ids[int(dd[0])]] = ss
+            processed = processed.with_marks(marks, pad_m=0.5 * step_m, merge_gap_m=3.0 * step_m)
+        if progress is not None:
+            progress("pivots", n_done + 1, len(order))
+    return segments, processed
+
+
+def _shift_fn(model: Any, drive_ids: tuple[str, ...]) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    def shift(drive_idx: np.ndarray, s_m: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(drive_idx))
+        if len(drive_idx) == 0:
+            return out
+        order = np.argsort(drive_idx, kind="stable")
+        di = drive_idx[order]
+        cut = np.flatnonzero(np.diff(di)) + 1
+        for part in np.split(order, cut):
+            out[part] = model.offset(drive_ids[int(drive_idx[part[0]])], s_m[part])
+        return out
+
+    return shift
+
+
+def map_stretches(
+    drives: Sequence[Drive],
+    *,
+    config: PipelineConfig = PipelineConfig.preset("default"),
+    seed: int = 0,
+    processed: ProcessedStore | None = None,
+    collect_observations: bool = False,
+    progress: ProgressFn | None = None,
+    validated: bool = False,
+) -> MappingResult:
+    """Stages 1-4 on valid drives, with the processed-stretch store in and out.
+
+    Args:
+        drives: drives (invalid ones are skipped silently here; use ``build_map`` for a report,
+            or pass ``validated=True`` when they were checked already).
+        config: pipeline options.
+        seed: seeds the random pivot order.
+        processed: stretches processed earlier (skipped as pivots' steps); not modified.
+        collect_observations: also return the per-step observations of the (first) pass.
+        progress: optional callback(stage, done, total).
+
+    Returns:
+        The segments, the updated store, observations and counters.
+
+    Raises:
+        NoUsableDataError: no valid drive.
+    """
+    if not validated:
+        drives, _ = prepare_drives(drives)
+    drives = list(drives)
+    if not drives:
+        raise NoUsableDataError("no valid drive to map")
+    store_in = processed if processed is not None else ProcessedStore()
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    index = preprocess(drives, config=config.preprocess)
+    seconds["preprocess"] = time.perf_counter() - t0
+    order = np.random.default_rng(seed).permutation(len(drives))
+    counters = _Counters()
+    obs: list[StepObservations] | None = [] if (collect_observations or config.use_global_adjustment) else None
+    t0 = time.perf_counter()
+    segments, store = _run_pass(
+        drives, index, order, store_in, config=config, alignment=config.alignment, shift=None,
+        observations=obs, counters=counters, progress=progress,
+    )
+    seconds["sampling_em"] = time.perf_counter() - t0
+    model = None
+    if config.use_global_adjustment:
+        try:
+            from hdmap_core.adjustment import AdjustConfig, adjust_offsets
+        except ImportError as err:  # the module is part of the package; say so clearly if absent
+            raise ConfigError(f"use_global_adjustment needs hdmap_core.adjustment: {err}") from err
+        t0 = time.perf_counter()
+        model = adjust_offsets(obs or [], config=config.adjustment if config.adjustment is not None else AdjustConfig())
+        seconds["adjustment"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        counters = _Counters()
+        segments, store = _run_pass(
+            drives, index, order, store_in, config=config,
+            alignment=config.final_alignment or config.alignment, shift=_shift_fn(model, index.drive_ids),
+            observations=None, counters=counters, progress=progress,
+        )
+        seconds["final_pass"] = time.perf_counter() - t0
+    return MappingResult(
+        segments=segments,
+        processed=store,
+        observations=obs if obs is not None else [],
+        offset_model=model,
+        counters={
+            "steps_total": counters.total,
+            "steps_rejected": counters.rejected,
+            "steps_skipped_processed": counters.skipped,
+            "steps_valid": counters.valid,
+        },
+        stage_seconds=seconds,
+    )
+
+
+def map_segments(
+    drives: Sequence[Drive],
+    *,
+    config: PipelineConfig = PipelineConfig.preset("default"),
+    seed: int = 0,
+    processed: ProcessedStore | None = None,
+) -> list[Segment]:
+    """Stages 1-4 only: one ``Segment`` per pivot drive (see ``map_stretches`` for the store)."""
+    return map_stretches(drives, config=config, seed=seed, processed=processed).segments
+
+
+def build_map(
+    drives: Sequence[Drive],
+    *,
+    config: PipelineConfig = PipelineConfig.preset("default"),
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+) -> BuildResult:
+    """Build the hierarchical map from fleet drives (the whole method).
+
+    Invalid drives (``validate_drive`` fails) and repeated drive ids are rejected with a reason
+    in the report; the run goes on with the rest.
+
+    Args:
+        drives: the fleet drives.
+        config: pipeline options (default: the "default" preset).
+        seed: seeds the random pivot order.
+        progress: optional callback(stage, done, total).
+
+    Returns:
+        The map, the per-pivot segments and the report.
+
+    Raises:
+        NoUsableDataError: no usable drive.
+    """
+    from hdmap_core.connection import ConnectionConfig, connect_segment
+    from hdmap_core.stitching import stitch
+
+    t_start = time.perf_counter()
+    drives_in = list(drives)
+    usable, rejected = prepare_drives(drives_in)
+    if not usable:
+        raise NoUsableDataError(f"none of the {len(drives_in)} drive(s) is usable: " + "; ".join(f"{d!r}: {r}" for d, r in rejected[:5]))
+    res = map_stretches(usable, config=config, seed=seed, progress=progress, validated=True)
+    seconds = dict(res.stage_seconds)
+    t0 = time.perf_counter()
+    ccfg = config.connection if config.connection is not None else ConnectionConfig()
+    graphs = [connect_segment(seg, config=ccfg) for seg in res.segments]
+    seconds["connection"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    hdmap = stitch(graphs, config=config.stitching) if config.stitching is not None else stitch(graphs)
+    seconds["stitching"] = time.perf_counter() - t0
+    c = res.counters
+    report = BuildReport(
+        n_drives_in=len(drives_in),
+        n_drives_used=len(usable),
+        rejected=rejected,
+        km_mapped=c["steps_valid"] * config.sampling.step_m / 1000.0,
+        steps_total=c["steps_total"],
+        steps_rejected=c["steps_rejected"],
+        steps_skipped_processed=c["steps_skipped_processed"],
+        seconds=time.perf_counter() - t_start,
+        stage_seconds=seconds,
+    )
+    return BuildResult(map=hdmap, segments=res.segments, report=report)

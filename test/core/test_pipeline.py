@@ -1,0 +1,132 @@
+"""Tests of the pipeline driver (pipeline.py): presets, processed stretches, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hdmap_core.aggregation import ProcessedStore
+from hdmap_core.errors import ConfigError, NoUsableDataError
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap
+from hdmap_core.pipeline import PipelineConfig, build_map, map_segments, map_stretches, prepare_drives
+from hdmap_core.steps import Segment
+from pipeline_fleet import LINES, make_fleet
+
+BIASES = [0.8, -0.5, 0.3, -1.1, 0.6, 0.0, -0.4]
+
+
+@pytest.fixture(scope="module")
+def fleet() -> list[Drive]:
+    return make_fleet(BIASES, noise_m=0.03, s1=200.0)
+
+
+def _bad_drive() -> Drive:
+    xy = np.array([[0.0, 0.0], [np.nan, 1.0], [2.0, 0.0]])
+    return Drive("broken", xy, np.zeros(3), np.arange(3, dtype=np.int64), ())
+
+
+def test_presets_are_frozen_and_distinct():
+    names = ("paper", "default", "naive")
+    cfgs = {n: PipelineConfig.preset(n) for n in names}
+    assert cfgs["default"].use_global_adjustment and not cfgs["paper"].use_global_adjustment
+    assert not cfgs["naive"].alignment.estimate_offsets
+    assert cfgs["paper"].alignment.solver == "lm" and cfgs["default"].alignment.solver == "closed_form"
+    assert cfgs["paper"].aggregation.kde_bandwidth_factor == 6.0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfgs["paper"].use_global_adjustment = True  # type: ignore[misc]
+    with pytest.raises(ConfigError):
+        PipelineConfig.preset("fast")
+
+
+@pytest.mark.parametrize("preset", ["paper", "default", "naive"])
+def test_map_segments_recovers_lines(fleet, preset):
+    segs = map_segments(fleet, config=PipelineConfig.preset(preset), seed=0)
+    assert len(segs) == len(fleet) and all(isinstance(s, Segment) for s in segs)
+    valid = [st for seg in segs for st in seg.steps if st.valid]
+    assert len(valid) > 80
+    truth = np.array(sorted(lat for lat, _ in LINES))
+    common = -np.mean(BIASES)  # the map keeps the fleet's mean error at most
+    n_exact = 0
+    for st in valid:
+        # Lateral positions relative to the road centre (the pivot's cut midpoint is not on it).
+        if len(st.lateral_m) == len(truth):
+            n_exact += 1
+            rel = st.lateral_m - st.lateral_m.mean()
+            tol = 0.25 if preset != "naive" else 0.8
+            np.testing.assert_allclose(rel, truth - truth.mean(), atol=tol)
+            np.testing.assert_array_equal(st.types, [t for _, t in sorted(LINES)])
+    assert n_exact > 0.8 * len(valid) if preset != "naive" else n_exact > 0
+    assert np.isfinite(common)
+
+
+def test_offset_correction_beats_naive_on_spread(fleet):
+    def spread(preset):
+        segs = map_segments(fleet, config=PipelineConfig.preset(preset), seed=0)
+        w = [st.lateral_m.max() - st.lateral_m.min() for seg in segs for st in seg.steps if st.valid and len(st.lateral_m) == 6]
+        return abs(np.mean(w) - 13.0)
+
+    assert spread("default") < 0.1
+
+
+def test_processed_stretches_are_skipped(fleet):
+    res = map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=0)
+    c = res.counters
+    assert c["steps_skipped_processed"] > 0.5 * c["steps_total"]  # all drives share one road
+    # Every drive's stretch was processed through the first pivot.
+    for d in fleet:
+        assert res.processed.contains(d.drive_id, np.array([50.0, 150.0])).all()
+    # Feeding the store back in: nothing is left to map.
+    again = map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=1, processed=res.processed)
+    assert again.counters["steps_valid"] == 0
+    assert again.counters["steps_skipped_processed"] == again.counters["steps_total"]
+    skipped = [st for seg in again.segments for st in seg.steps]
+    assert all(st.processed_before and not st.valid for st in skipped)
+    # ... and the store round-trips through JSON.
+    assert ProcessedStore.from_json(res.processed.to_json()).intervals == res.processed.intervals
+
+
+def test_observations_for_the_adjustment(fleet):
+    res = map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=0, collect_observations=True)
+    assert len(res.observations) == res.counters["steps_valid"]
+    ob = res.observations[len(res.observations) // 2]
+    m = len(ob.lateral_m)
+    assert len(ob.drive_ids) == m and ob.drive_s_m.shape == (m,) and ob.cluster.shape == (m,)
+    # Each drive's offset makes its samples agree: corrected samples of one cluster coincide.
+    corr = ob.lateral_m + ob.offsets_m
+    for c in np.unique(ob.cluster[ob.cluster >= 0]):
+        assert np.ptp(corr[ob.cluster == c]) < 0.3
+    # drive_s_m is the sampled drive's own travelled distance (drives start at s = 0 here).
+    pivot_steps = {st.index: st.s_m for seg in res.segments if seg.pivot_id == ob.pivot_id for st in seg.steps}
+    np.testing.assert_allclose(ob.drive_s_m, pivot_steps[ob.index], atol=2.0)
+
+
+def test_prepare_drives_rejects_with_reasons(fleet):
+    dup = fleet[0]
+    usable, rejected = prepare_drives([*fleet[:2], _bad_drive(), dup])
+    assert [d.drive_id for d in usable] == [fleet[0].drive_id, fleet[1].drive_id]
+    assert rejected[0][0] == "broken" and rejected[0][1].startswith("non_finite_coordinates")
+    assert rejected[1] == (dup.drive_id, "duplicate_drive_id")
+
+
+def test_map_stretches_raises_without_usable_drive():
+    with pytest.raises(NoUsableDataError):
+        map_stretches([_bad_drive()])
+
+
+def test_build_map_rejects_malformed_drive_and_goes_on(fleet):
+    pytest.importorskip("hdmap_core.stitching")
+    bad_type = Drive("badtype", fleet[0].xy, fleet[0].yaw, fleet[0].stamps_ns, (Detection(7, fleet[0].xy),))  # type: ignore[arg-type]
+    res = build_map([*fleet, _bad_drive(), bad_type], config=PipelineConfig.preset("default"), seed=0)
+    rep = res.report
+    assert rep.n_drives_in == len(fleet) + 2 and rep.n_drives_used == len(fleet)
+    assert {d for d, _ in rep.rejected} == {"broken", "badtype"}
+    assert isinstance(res.map, HDMap) and len(res.map.features) >= 6
+    assert rep.km_mapped > 0.1 and rep.steps_total > 0
+    assert "rejected 'broken'" in rep.summary()
+
+
+def test_build_map_all_bad_raises():
+    with pytest.raises(NoUsableDataError, match="none of the 1 drive"):
+        build_map([_bad_drive()])
