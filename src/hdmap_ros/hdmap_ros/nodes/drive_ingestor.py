@@ -52,7 +52,12 @@ class DriveIngestor(HealthMixin, Node):
 
     def on_drive(self, msg) -> None:
         """Validate, de-duplicate, clean and forward one drive; never raises on bad input."""
-        self.received += 1
+        try:
+            self._handle(msg)
+        finally:
+            self.received += 1  # counted once handled: "received" means "forwarded or refused"
+
+    def _handle(self, msg) -> None:
         did = str(getattr(msg, "drive_id", ""))
         try:
             drive = msg_to_drive(msg, expected_frame=self.expected_frame or None)

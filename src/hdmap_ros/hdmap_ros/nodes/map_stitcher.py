@@ -68,6 +68,8 @@ class MapStitcher(HealthMixin, Node):
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self.map, sig = self.store.map()
+        self._map_sig = sig  # the tile versions the current map was made from
+        self._failed_sig = ""
         self._map_pub = self.create_publisher(self._types.Map, MAP_TOPIC, qos.LATCHED)
         self._rx_group = MutuallyExclusiveCallbackGroup()
         self._work_group = MutuallyExclusiveCallbackGroup()
@@ -111,15 +113,17 @@ class MapStitcher(HealthMixin, Node):
         if now - self._last_rx < self.debounce_s and now - self._first_dirty < self.max_delay_s:
             return
         self._first_dirty = None
+        sig = self.store.tiles_signature()
         try:
             self.rebuild()
         except HdmapError as err:
-            self._fail(str(err))
+            self._fail(sig, str(err))
         except Exception as err:  # noqa: BLE001 - a bug must not stop the live map; logged in full
-            self._fail(f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
+            self._fail(sig, f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
         self.health.backlog = int(self._first_dirty is not None)
 
-    def _fail(self, text: str) -> None:
+    def _fail(self, sig: str, text: str) -> None:
+        self._failed_sig = sig  # these inputs cannot be stitched: nobody should wait for them
         self.health.error(text.splitlines()[0])
         self.get_logger().error(f"map rebuild failed, previous map kept: {text}")
 
@@ -140,6 +144,7 @@ class MapStitcher(HealthMixin, Node):
         new = replace(new, version=(self.map.version if self.map else 0) + 1, stamp_ns=time.time_ns())
         self.store.put_map(new, sig)
         self.map = new
+        self._map_sig = sig
         self._publish()
         self.health.updated()
         self.health.set("map_version", new.version)
@@ -150,8 +155,9 @@ class MapStitcher(HealthMixin, Node):
         self._map_pub.publish(map_to_msg(self.map, types=self._types))
 
     def is_settled(self) -> bool:
-        """Nothing waits to be stitched."""
-        return self._first_dirty is None
+        """Nothing waits to be stitched: the map was made from every stored tile estimate."""
+        sig = self.store.tiles_signature()
+        return self._first_dirty is None and sig in (self._map_sig, self._failed_sig)
 
     def destroy_node(self) -> None:
         self.store.close()

@@ -109,7 +109,12 @@ class SegmentMapper(HealthMixin, Node):
 
     def on_drive(self, msg) -> None:
         """Commit one drive (acknowledge it); mapping happens in :meth:`work`."""
-        self.received += 1
+        try:
+            self._receive(msg)
+        finally:
+            self.received += 1  # counted once handled, so "received" means "stored or refused"
+
+    def _receive(self, msg) -> None:
         did = str(msg.drive_id)
         try:
             drive = validate_drive(msg_to_drive(msg, expected_frame=None), expected_frame="")
