@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import math
 import sys
 import types
@@ -89,3 +90,19 @@ def test_real_bench_in_a_subprocess(tmp_path, capsys):
     assert cli.main(["bench", "motorway:4", "--presets", "naive", "--work-dir", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "motorway_4_s0" in out and "naive" in out
+
+
+def test_named_paper_like_scenario_is_simulated_with_its_overrides(tmp_path):
+    from hdmap_ros.commands.bench import NAMED_SCENARIOS, prepare_scenarios
+
+    scenarios = prepare_scenarios(["paper_like:6:3"], scales=[1.0, 0.5], work_dir=tmp_path)
+    assert [s.name for s in scenarios] == ["paper_like_6_s3", "paper_like_3_s3"]
+    sim = json.loads((tmp_path / "paper_like_6_s3.sim.json").read_text())
+    named = NAMED_SCENARIOS["paper_like"]
+    for key, value in named["sim"].items():
+        assert sim["config"][key] == value
+    gt = json.loads(Path(scenarios[0].gt_path).read_text())
+    # the layout is the long synthetic motorway with ramps, not the 3 km default
+    xs = [p[0] for f in gt["features"] for p in f["points"]]
+    ys = [p[1] for f in gt["features"] for p in f["points"]]
+    assert max(max(xs) - min(xs), max(ys) - min(ys)) > 0.6 * named["length_m"]

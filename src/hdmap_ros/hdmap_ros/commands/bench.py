@@ -30,7 +30,7 @@ __all__ = ["NAME", "HELP", "add_arguments", "run", "Scenario", "run_one", "forma
 NAME = "bench"
 HELP = "compare the pipeline presets on the same fleet bags: evaluator figures, floor, time, peak memory"
 PRESETS = ("default", "paper", "naive")
-DEFAULT_SCENARIOS = ("motorway_ramps:134",)
+DEFAULT_SCENARIOS = ("paper_like",)
 
 # (key, header, format) of the table columns; values missing or NaN print as "-".
 COLUMNS = (
@@ -75,7 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "scenarios",
         nargs="*",
         metavar="SCENARIO",
-        help="fleet bag (with BAG.gt.json beside it) or MAP:DRIVES[:SEED] to simulate "
+        help="fleet bag (with BAG.gt.json beside it), MAP:DRIVES[:SEED] to simulate, or a named "
+        "scenario NAME[:DRIVES[:SEED]] (paper_like) "
         f"(default: {' '.join(DEFAULT_SCENARIOS)})",
     )
     parser.add_argument(
@@ -108,6 +109,19 @@ def _sigma_from_config(config: Any) -> float:
     return math.hypot(config.bias_lateral_sigma_m, config.drift_sigma_m)
 
 
+# Named scenarios: a synthetic layout with simulator overrides. ``paper_like`` follows the paper's
+# data set (Sec. VII): both directions with exits and entries, 134 drive snippets, ~400 drive-km,
+# 5-25 drives per place (a 12 km motorway with an interchange every 3 km, snippets of 1-5 km).
+NAMED_SCENARIOS: dict[str, dict[str, Any]] = {
+    "paper_like": {
+        "map": "motorway_ramps",
+        "length_m": 12000.0,
+        "drives": 134,
+        "sim": {"snippet_length_min_m": 1000.0, "snippet_length_max_m": 5600.0},
+    },
+}
+
+
 def prepare_scenarios(specs: list[str], *, scales: list[float], work_dir: Path) -> list[Scenario]:
     """Resolve scenario specs; ``MAP:DRIVES[:SEED]`` specs are simulated into ``work_dir``."""
     from hdmap_ros.commands.evaluate import sigma_from_sim_json  # noqa: PLC0415
@@ -124,6 +138,22 @@ def prepare_scenarios(specs: list[str], *, scales: list[float], work_dir: Path) 
             out.append(Scenario(path.name, str(path), str(gt), sigma))
             continue
         parts = spec.split(":")
+        if parts[0] in NAMED_SCENARIOS:
+            named = NAMED_SCENARIOS[parts[0]]
+            try:
+                drives = int(parts[1]) if len(parts) > 1 and parts[1] else named["drives"]
+                seed = int(parts[2]) if len(parts) > 2 else 0
+            except ValueError:
+                raise ConfigError(f"scenario {spec!r}: DRIVES and SEED must be integers") from None
+            for scale in scales:
+                n = max(1, round(drives * scale))
+                out.append(
+                    _simulate(
+                        named["map"], n, seed, work_dir,
+                        label=parts[0], length_m=named["length_m"], sim=named["sim"],
+                    )
+                )
+            continue
         if len(parts) not in (2, 3):
             raise ConfigError(f"scenario {spec!r}: neither an existing bag nor MAP:DRIVES[:SEED]")
         try:
@@ -136,15 +166,24 @@ def prepare_scenarios(specs: list[str], *, scales: list[float], work_dir: Path) 
     return out
 
 
-def _simulate(map_name: str, n_drives: int, seed: int, work_dir: Path) -> Scenario:
+def _simulate(
+    map_name: str,
+    n_drives: int,
+    seed: int,
+    work_dir: Path,
+    *,
+    label: str | None = None,
+    length_m: float | None = None,
+    sim: dict[str, Any] | None = None,
+) -> Scenario:
     from hdmap_core.groundtruth import save_ground_truth  # noqa: PLC0415
     from hdmap_core.simulate import SimConfig, load_map, simulate_fleet, write_sim_json  # noqa: PLC0415
     from hdmap_ros.bagio import write_fleet_bag  # noqa: PLC0415
 
-    name = f"{map_name}_{n_drives}_s{seed}"
+    name = f"{label or map_name}_{n_drives}_s{seed}"
     bag = work_dir / name
-    config = SimConfig.from_dict({"n_drives": n_drives})
-    gt = load_map(map_name)
+    config = SimConfig.from_dict({**(sim or {}), "n_drives": n_drives})
+    gt = load_map(map_name, length_m=length_m)
     gt_path = bag.with_name(bag.name + ".gt.json")
     if not (bag / "metadata.yaml").exists():
         fleet = simulate_fleet(gt, config=config, seed=seed)
