@@ -83,10 +83,9 @@ class Ros:
     def close(self) -> None:
         self._stop = True
         self._thread.join(timeout=5)
+        self.executor.shutdown()  # before the nodes go: no callback may run on a destroyed node
         for n in self.nodes:
-            self.executor.remove_node(n)
             n.destroy_node()
-        self.executor.shutdown()
         rclpy.try_shutdown(context=self.context)
 
 

@@ -164,3 +164,25 @@ def test_parameters_have_descriptions_ranges_and_reject_out_of_range(ros):
     assert ing.get_parameter("min_detection_length_m").value == 3.0
     with pytest.raises(InvalidParameterValueException, match="rdp_epsilon_m"):
         DriveIngestor(context=ros.context, parameter_overrides=[Parameter("rdp_epsilon_m", value=50.0)])
+
+
+@pytest.mark.parametrize("module,cls", [
+    ("drive_ingestor", "DriveIngestor"), ("segment_mapper", "SegmentMapper"), ("map_stitcher", "MapStitcher"),
+    ("map_publisher", "MapPublisher"), ("bag_player", "BagPlayer"),
+])
+def test_config_yaml_names_only_declared_parameters(ros, tmp_path, module, cls):
+    import importlib
+
+    import yaml
+
+    from hdmap_ros.nodes._common import params_file
+
+    spec = yaml.safe_load(params_file().read_text())[module]["ros__parameters"]
+    overrides = [Parameter("db_path", value=str(tmp_path / "x.db"))] if "db_path" in spec else []
+    node = ros.add(getattr(importlib.import_module(f"hdmap_ros.nodes.{module}"), cls)(
+        context=ros.context, parameter_overrides=overrides))
+    undeclared = [k for k in spec if not node.has_parameter(k)]
+    assert not undeclared, f"{module}: {undeclared} in config/hdmap.yaml but not declared"
+    for k, v in spec.items():  # the YAML states the declared defaults (paths aside)
+        if k != "db_path":
+            assert node.get_parameter(k).value == v, k

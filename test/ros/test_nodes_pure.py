@@ -109,3 +109,13 @@ def test_tile_msg_round_trip_through_cdr():
             b.index, b.s_m, b.heading, b.width_m, b.valid, b.processed_before, b.drive_ids)
         for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
             np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
+
+
+def test_launch_file_compiles_and_names_every_node():
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "src/hdmap_ros/launch/hdmap.launch.py"
+    text = path.read_text()
+    compile(text, str(path), "exec")
+    for node in ("drive_ingestor", "segment_mapper", "map_stitcher", "map_publisher", "bag_player"):
+        assert f'"{node}"' in text
