@@ -341,3 +341,20 @@ def test_fast_path_equals_assignment(monkeypatch):
     np.testing.assert_array_equal(fast.edge_leftover, slow.edge_leftover)
     np.testing.assert_array_equal(fast.node_uid, slow.node_uid)
     assert fast.stats == slow.stats
+
+
+def test_low_support_maxima_dropped():
+    """A maximum seen by 1 of 10 drives flickering beside the dashed line is noise when
+    min_support_share=0.25 (1 < 2.5): no split/merge, three clean polylines."""
+    def st(i):
+        s = make_step(i, [-3.5, 0.0, 1.6, 3.5] if i % 3 == 0 else [-3.5, 0.0, 3.5],
+                      [B, D, D, B] if i % 3 == 0 else [B, D, B],
+                      counts=[8, 9, 1, 7] if i % 3 == 0 else [8, 9, 7])
+        return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(10))})
+
+    seg = Segment("p", tuple(st(i) for i in range(30)))
+    g = connect_segment(seg, config=ConnectionConfig(min_support_share=0.25))
+    assert sorted(len(c) for c in g.polylines()) == [30, 30, 30]
+    assert g.stats.splits == 0 and g.stats.merges == 0
+    g0 = connect_segment(seg, config=ConnectionConfig(min_support_share=0.0))
+    assert len(g0.polylines()) > 3

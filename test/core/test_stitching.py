@@ -277,8 +277,8 @@ def test_one_point_feature_dropped_and_linked_past():
         \__/      the one-point piece at the touch is no polyline: dropped, and
         /  \      both inflows link straight to both outflows; every feature has >= 2 points.
     """
-    lat = lambda i: [0.0] if i == 5 else [-0.3 * abs(i - 5), 0.3 * abs(i - 5)]
-    seg = Segment("a", tuple(step("a", i, 2.0 * i, lat(i), [D] * len(lat(i))) for i in range(11)))
+    lat = lambda i: [0.0] if i == 15 else [-0.1 * abs(i - 15), 0.1 * abs(i - 15)]
+    seg = Segment("a", tuple(step("a", i, 2.0 * i, lat(i), [D] * len(lat(i))) for i in range(31)))
     m = stitch([connect_segment(seg, config=ConnectionConfig(min_separation_m=0.0))])
     assert all(len(f.points) >= 2 for f in m.features)
     assert len(m.features) == 4
@@ -317,3 +317,57 @@ def test_loose_ends_joined_across_a_gap_with_curved_fill():
     assert 10 <= filled.sum() <= 16  # 30 m hole at ~2 m spacing
     m_off = stitch([a, b], config=StitchConfig(join_loose_ends=False))
     assert len(m_off.features) == 2
+
+
+def test_overlap_with_shifted_midpoints_trimmed_by_features():
+    """Pivot b's cut also spans an extra lane, so its midpoint lies 3.5 m beside a's: the places
+    overlap by their features, not their midpoints; one copy of each shared line survives."""
+    wide = ([-7.0, -3.5, 0.0, 3.5], [B, S, D, B])
+    b = road("b", 60.0, 50, wide, y_mid=-1.75)
+    m = stitch([conn(road("a", 0.0, 50, ([-3.5, 0.0, 3.5], [B, D, B]))), conn(b)])
+    for y, t in ((0.0, D), (3.5, B)):
+        fs = [f for f in m.features if f.type == t and abs(f.points[0, 1] - y) < 1e-6]
+        assert len(fs) == 1 and fs[0].points[-1, 0] == pytest.approx(158.0)
+    # without the feature test both copies of x 60..98 stay
+    m2 = stitch(
+        [conn(road("a", 0.0, 50, ([-3.5, 0.0, 3.5], [B, D, B]))), conn(b)],
+        config=StitchConfig(overlap_search_m=0.0, dedupe_loose_ends=False),
+    )
+    assert sum(len(f.points) for f in m2.features) > sum(len(f.points) for f in m.features) + 40
+
+
+def test_short_type_flicker_smoothed_long_change_kept():
+    """dashed 40 m, solid 6 m (misclassified), dashed 40 m, solid 40 m (a real change): two
+    polylines, dashed then solid; without smoothing four."""
+    types = [D] * 20 + [S] * 3 + [D] * 20 + [S] * 20
+    seg = Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t]) for i, t in enumerate(types)))
+    m = stitch([conn(seg)])
+    assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [FeatureType.DASHED, FeatureType.SOLID]
+    assert len(stitch([conn(seg)], config=StitchConfig(min_type_run_m=0.0)).features) == 4
+
+
+def test_spur_at_a_flicker_split_pruned():
+    """A second line appears for 3 steps 1 m beside the dashed line (a leftover split) and dies:
+    the spur is dropped, the dashed line stays one polyline."""
+    lat = lambda i: [0.0, -1.2] if 20 <= i < 23 else [0.0]
+    seg = Segment("a", tuple(step("a", i, 2.0 * i, lat(i), [D] * len(lat(i))) for i in range(50)))
+    g = conn(seg)
+    assert g.stats.splits == 1
+    m = stitch([g])
+    assert len(m.features) == 1 and len(m.features[0].points) == 50
+    assert len(stitch([g], config=StitchConfig(spur_max_m=0.0)).features) == 4
+
+
+def test_loose_end_running_on_another_line_deduplicated():
+    """b's dashed line starts on top of a's for 20 m (no topology overlap: b's other lines and
+    midpoint are elsewhere, trimming disabled): the duplicate start is dropped and the rest joins
+    a's line into one polyline."""
+    a = road("a", 0.0, 50, ([0.0], [D]))
+    b = road("b", 60.0, 50, ([0.0, -30.0], [D, S]), y_mid=-30.0)
+    cfg = StitchConfig(trim_overlap=False)
+    m = stitch([conn(a), conn(b)], config=cfg)
+    dashed = by_type(m, D)
+    assert len(dashed) == 1 and dashed[0].points[-1, 0] == pytest.approx(158.0)
+    assert np.all(np.diff(dashed[0].points[:, 0]) > 0)  # no doubling back
+    m0 = stitch([conn(a), conn(b)], config=StitchConfig(trim_overlap=False, dedupe_loose_ends=False))
+    assert len(by_type(m0, D)) == 2

@@ -69,6 +69,9 @@ class ConnectionConfig:
         min_separation_m: two lane markings (or two road borders) of one step closer than this
             are one feature seen twice (typically a misclassified cluster the overlap filter
             kept); only the one with more drives is used. 0 disables (the paper) [m].
+        min_support_share: a maximum supported by fewer than this share of the step's drives
+            (``counts < share * len(drive_ids)``) is noise (a false positive, a misclassified
+            copy) and not used. 0 disables (the paper).
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
     """
 
@@ -80,6 +83,7 @@ class ConnectionConfig:
     leftover_max_m: float = 2.0
     bridge_features: bool = True
     min_separation_m: float = 1.0
+    min_support_share: float = 0.0
     tile_size_m: float = 256.0
 
     def __post_init__(self) -> None:
@@ -93,6 +97,8 @@ class ConnectionConfig:
             raise ConfigError(f"edge_slack_m must be >= 0, got {self.edge_slack_m}")
         if not self.min_separation_m >= 0:
             raise ConfigError(f"min_separation_m must be >= 0, got {self.min_separation_m}")
+        if not 0 <= self.min_support_share <= 1:
+            raise ConfigError(f"min_support_share must be in [0, 1], got {self.min_support_share}")
         if not self.leftover_max_m >= 0:
             raise ConfigError(f"leftover_max_m must be >= 0, got {self.leftover_max_m}")
         if not (self.tile_size_m > 0 and math.isfinite(self.tile_size_m)):
@@ -490,6 +496,9 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     std = np.concatenate([np.asarray(st.std_m, dtype=float).reshape(-1) for st in valid])
     slot = np.arange(len(lat)) - off[j_of]
     keep = np.isfinite(lat)
+    if config.min_support_share > 0:
+        n_drives = np.array([max(len(st.drive_ids), 1) for st in valid])
+        keep &= cnt >= config.min_support_share * n_drives[j_of]
     if config.min_separation_m > 0:
         keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m)
     order = np.lexsort((lat, j_of))

@@ -42,6 +42,7 @@ __all__ = ["StitchConfig", "MapGraph", "stitch", "to_hdmap", "graph_from_hdmap"]
 
 _BIG = 1.0e9
 _GATE = 1.0e4
+_BORDER_CODE = 3  # FeatureType.ROAD_BORDER
 
 Link = tuple[str, int, str, int]  # (graph key, local index) -> (graph key, local index)
 
@@ -60,11 +61,25 @@ class StitchConfig:
             (and a successor this far behind the end) [m].
         feature_max_m: features are joined across a link only when at most this far apart
             across the cut [m].
+        same_type_only: join features of the same type only (the paper; default). False: a solid
+            and a dashed marking may be joined too (at ``type_mismatch_cost_m`` extra cost), since
+            their types flicker with misclassification; a road border still joins only a border.
+            The polyline closes there (RULE 1) unless ``min_type_run_m`` relabels the short run.
+            (Measured on one motorway_ramps run: no gain, so the paper's rule stays default.)
+        type_mismatch_cost_m: assignment cost added to a solid-dashed pair [m].
         duplicate_m: a join is skipped when the feature already continues within this distance of
             the new partner (it would duplicate a polyline) [m].
         trim_overlap: drop component end nodes that lie on a place already in the map.
         overlap_radius_m: a topology node this close to another graph's node with a similar
-            heading is the same place [m].
+            heading is the same place [m] ...
+        overlap_search_m: ... as is one up to this far away (midpoints of two pivots differ with
+            their cut lines) at most ``overlap_along_m`` along the road, when at least
+            ``overlap_share`` of its maxima (and 2) have a same-type twin within
+            ``overlap_feature_m`` across the road [m].
+        dedupe_loose_ends: drop dangling polyline ends/starts that run on top of another
+            segment's polyline of the same class (within ``twin_radius_m``) [see
+            ``MapGraph._dedupe_loose_ends``].
+        twin_radius_m: two feature nodes of different segments this close are one place [m].
         join_loose_ends: join polyline ends and starts of different segments that continue each
             other (same type, close across the cut) even where topology found no link.
         join_radius_m: how far ahead of a loose end a loose start may begin [m].
@@ -75,6 +90,11 @@ class StitchConfig:
             filled points carry drive_count 0 (no drive saw them). 0 disables [m].
         min_isolated_length_m: polylines without any link and shorter than this are dropped
             (single-step specks, false positives) [m].
+        spur_max_m: a polyline shorter than this that hangs off a split without successor (or
+            runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
+        min_type_run_m: along a polyline, a run of one marking type (solid/dashed) shorter than
+            this takes its neighbours' type instead of closing the polyline twice (RULE 1 on
+            misclassification flicker). 0 disables (the paper) [m].
     """
 
     max_distance_m: float = 12.0
@@ -83,15 +103,25 @@ class StitchConfig:
     angle_free_m: float = 3.0
     behind_tol_m: float = 1.0
     feature_max_m: float = 2.0
+    same_type_only: bool = True
+    type_mismatch_cost_m: float = 0.3
     duplicate_m: float = 0.25
     trim_overlap: bool = True
     overlap_radius_m: float = 1.2
+    overlap_search_m: float = 8.0
+    overlap_along_m: float = 1.2
+    overlap_feature_m: float = 0.5
+    overlap_share: float = 0.6
+    dedupe_loose_ends: bool = True
+    twin_radius_m: float = 1.1
     join_loose_ends: bool = True
     join_radius_m: float = 40.0
     join_lateral_m: float = 0.5
     join_angle_deg: float = 1.0
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 5.0
+    min_type_run_m: float = 20.0
+    spur_max_m: float = 12.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -99,13 +129,21 @@ class StitchConfig:
             "angle_free_m",
             "behind_tol_m",
             "feature_max_m",
+            "type_mismatch_cost_m",
             "duplicate_m",
             "overlap_radius_m",
+            "overlap_search_m",
+            "overlap_along_m",
+            "overlap_feature_m",
+            "overlap_share",
             "join_radius_m",
+            "twin_radius_m",
             "join_lateral_m",
             "join_angle_deg",
             "fill_spacing_m",
             "min_isolated_length_m",
+            "min_type_run_m",
+            "spur_max_m",
         ):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
@@ -118,7 +156,16 @@ class StitchConfig:
     @classmethod
     def paper(cls) -> StitchConfig:
         """The paper's variant: topology links and same-type unmodified assignment only."""
-        return cls(trim_overlap=False, join_loose_ends=False, min_isolated_length_m=0.0, fill_spacing_m=0.0)
+        return cls(
+            same_type_only=True,
+            trim_overlap=False,
+            dedupe_loose_ends=False,
+            join_loose_ends=False,
+            min_isolated_length_m=0.0,
+            fill_spacing_m=0.0,
+            min_type_run_m=0.0,
+            spur_max_m=0.0,
+        )
 
 
 # --- the flat view of all graphs --------------------------------------------------------------------
@@ -230,6 +277,7 @@ class IntegrateReport:
     trimmed_nodes: int = 0
     topology_links: int = 0
     feature_links: int = 0
+    deduplicated_nodes: int = 0
     loose_ends_joined: int = 0
 
 
@@ -249,6 +297,7 @@ class MapGraph:
         self.config = config
         self._graphs: dict[str, SegmentGraph] = {}
         self._alive: dict[str, np.ndarray] = {}
+        self._node_dead: dict[str, np.ndarray] = {}  # feature nodes dropped as duplicates
         self._topo_links: set[Link] = set()
         self._feature_links: set[Link] = set()
         self.version = 0
@@ -278,6 +327,7 @@ class MapGraph:
         new = MapGraph(config=self.config)
         new._graphs = dict(self._graphs)
         new._alive = {k: v.copy() for k, v in self._alive.items()}
+        new._node_dead = {k: v.copy() for k, v in self._node_dead.items()}
         new._topo_links = set(self._topo_links)
         new._feature_links = set(self._feature_links)
         new.version = self.version
@@ -300,6 +350,7 @@ class MapGraph:
         for k in gone:
             del self._graphs[k]
             del self._alive[k]
+            self._node_dead.pop(k, None)
         if gone:
             self._topo_links = {ln for ln in self._topo_links if ln[0] not in gone and ln[2] not in gone}
             self._feature_links = {ln for ln in self._feature_links if ln[0] not in gone and ln[2] not in gone}
@@ -329,6 +380,8 @@ class MapGraph:
         if self.config.trim_overlap and new:
             rep.trimmed_nodes = self._trim([g.key for g in new])
         self._stitch(rep)
+        if self.config.dedupe_loose_ends:
+            rep.deduplicated_nodes = self._dedupe_loose_ends()
         if self.config.join_loose_ends:
             self._join_loose_ends(rep)
         self.version += 1
@@ -346,13 +399,18 @@ class MapGraph:
         for gi, k in enumerate(keys):
             g, alive = self._graphs[k], self._alive[k]
             n_alive = np.repeat(alive, np.diff(g.topo_start))
+            if k in self._node_dead:
+                n_alive &= ~self._node_dead[k]
             tmap[k] = _remap(alive, t_off)
             nmap[k] = _remap(n_alive, n_off)
             tl = np.flatnonzero(alive)
             nl = np.flatnonzero(n_alive)
             parts["tg"].append(np.full(len(tl), gi))
             parts["tl"].append(tl)
-            parts["tn"].append(np.diff(g.topo_start)[alive])
+            per_topo = np.diff(g.topo_start)
+            if k in self._node_dead:
+                per_topo = np.bincount(np.repeat(np.arange(g.n_topo), per_topo)[n_alive], minlength=g.n_topo)
+            parts["tn"].append(per_topo[alive])
             parts["ng"].append(np.full(len(nl), gi))
             parts["nl"].append(nl)
             for a in t_attrs:
@@ -420,14 +478,29 @@ class MapGraph:
             gi = flat.keys.index(k)
 
             def overlaps(t: int) -> bool:
-                near = tree.query_ball_point(g.topo_xy[t], cfg.overlap_radius_m)
-                for j in near:
+                u, n = _unit(float(g.topo_heading[t]))
+                fl = g.node_xy[g.topo_start[t] : g.topo_start[t + 1]] @ n
+                ft = g.node_type[g.topo_start[t] : g.topo_start[t + 1]]
+                radius = max(cfg.overlap_radius_m, cfg.overlap_search_m)
+                for j in tree.query_ball_point(g.topo_xy[t], radius):
                     if flat.t_graph[j] == gi:
                         continue
                     kj = flat.keys[flat.t_graph[j]]
                     if not self._alive[kj][flat.t_local[j]]:
                         continue
-                    if math.cos(g.topo_heading[t] - flat.t_heading[j]) >= cos_max:
+                    if math.cos(g.topo_heading[t] - flat.t_heading[j]) < cos_max:
+                        continue
+                    d = flat.t_xy[j] - g.topo_xy[t]
+                    if math.hypot(*d) <= cfg.overlap_radius_m:
+                        return True  # the same road midpoint
+                    if abs(float(d @ u)) > cfg.overlap_along_m or len(fl) == 0:
+                        continue
+                    # the same features: most of this step's maxima have a twin of the same type
+                    other = slice(flat.t_start[j], flat.t_start[j + 1])
+                    gl, gt = flat.n_xy[other] @ n, flat.n_type[other]
+                    twin = (np.abs(fl[:, None] - gl[None, :]) <= cfg.overlap_feature_m) & (ft[:, None] == gt[None, :])
+                    matched = int(twin.any(axis=1).sum())
+                    if matched >= max(min(2, len(fl)), cfg.overlap_share * len(fl)):
                         return True
                 return False
 
@@ -515,8 +588,13 @@ class MapGraph:
             return 0
         _, n = _unit(float(flat.t_heading[b]))
         lat = np.abs((flat.n_xy[yb][None, :, :] - flat.n_xy[xa][:, None, :]) @ n)
-        forbidden = flat.n_type[xa][:, None] != flat.n_type[yb][None, :]
+        ta, tb = flat.n_type[xa][:, None], flat.n_type[yb][None, :]
+        if cfg.same_type_only:
+            forbidden = ta != tb
+        else:  # markings of either type may meet (flicker); a border only meets a border
+            forbidden = (ta == _BORDER_CODE) != (tb == _BORDER_CODE)
         cost = np.where(forbidden, _BIG, np.where(lat <= cfg.feature_max_m, lat, _GATE + lat))
+        cost = cost + np.where(ta != tb, cfg.type_mismatch_cost_m, 0.0)
         rows, cols = linear_sum_assignment(cost)
         made = 0
         for r, c in zip(rows.tolist(), cols.tolist()):
@@ -533,6 +611,53 @@ class MapGraph:
             self._feature_links.add(self._link(flat, x, y, topo=False))
             made += 1
         return made
+
+    def _dedupe_loose_ends(self) -> int:
+        """Drop the dangling ends of polylines that run on top of another segment's polyline.
+
+        From every loose end (no successor) walk back, and from every loose start walk forward,
+        while the node has a twin: a live feature node of another segment, of the same class
+        (marking / border), within ``twin_radius_m``. Those nodes map a place twice; the copy that
+        continues survives, and the loose-end join then connects the rest.
+        """
+        cfg = self.config
+        flat = self._flat()
+        nn = flat.n_nodes
+        if nn < 2:
+            return 0
+        e = flat.edges
+        outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        nxt = np.full(nn, -1, dtype=np.int64)
+        prv = np.full(nn, -1, dtype=np.int64)
+        if len(e):
+            one = (outdeg[e[:, 0]] == 1) & (indeg[e[:, 1]] == 1)
+            nxt[e[one, 0]] = e[one, 1]
+            prv[e[one, 1]] = e[one, 0]
+        border = flat.n_type == _BORDER_CODE
+        tree = cKDTree(flat.n_xy)
+        alive = np.ones(nn, dtype=bool)
+
+        def twin(j: int) -> bool:
+            for k in tree.query_ball_point(flat.n_xy[j], cfg.twin_radius_m):
+                if alive[k] and flat.n_graph[k] != flat.n_graph[j] and border[k] == border[j]:
+                    return True
+            return False
+
+        ends = [(int(flat.n_uid[i]), int(i), prv) for i in np.flatnonzero(outdeg == 0)]
+        starts = [(int(flat.n_uid[i]), int(i), nxt) for i in np.flatnonzero(indeg == 0)]
+        for _, i, step_to in sorted(ends + starts, key=lambda x: (x[0], x[1])):
+            j = i
+            while j >= 0 and alive[j] and twin(j):
+                alive[j] = False
+                j = int(step_to[j])
+        dead = np.flatnonzero(~alive)
+        for j in dead.tolist():
+            k = flat.keys[flat.n_graph[j]]
+            if k not in self._node_dead:
+                self._node_dead[k] = np.zeros(self._graphs[k].n_nodes, dtype=bool)
+            self._node_dead[k][flat.n_local[j]] = True
+        return len(dead)
 
     def _join_loose_ends(self, rep: IntegrateReport) -> None:
         """Join polyline ends to polyline starts of other segments that continue them."""
@@ -556,7 +681,11 @@ class MapGraph:
         for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
             for jj in near:
                 j = int(starts[jj])
-                if flat.n_graph[j] == flat.n_graph[i] or flat.n_type[j] != flat.n_type[i]:
+                if flat.n_graph[j] == flat.n_graph[i]:
+                    continue
+                if flat.n_type[j] != flat.n_type[i] and (
+                    cfg.same_type_only or (flat.n_type[j] == _BORDER_CODE) != (flat.n_type[i] == _BORDER_CODE)
+                ):
                     continue
                 if math.cos(heading[j] - heading[i]) < cos_h:
                     continue
@@ -568,7 +697,8 @@ class MapGraph:
                 along, lat = float(d @ u), abs(float(d @ n))
                 if along <= 0.0 or lat > cfg.join_lateral_m + along * tan_j:
                     continue
-                cand.append((lat + 0.02 * along, i, j))
+                mismatch = cfg.type_mismatch_cost_m if flat.n_type[j] != flat.n_type[i] else 0.0
+                cand.append((lat + 0.02 * along + mismatch, i, j))
         if not cand:
             return
         ei = sorted({c[1] for c in cand})
@@ -620,9 +750,15 @@ def _dedupe_uids(flat: _Flat) -> np.ndarray:
 
 
 def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
-    nn = flat.n_nodes
     uid = _dedupe_uids(flat)
+    if cfg.spur_max_m > 0 and flat.n_nodes:
+        keep = _spur_free(flat, uid, cfg.spur_max_m)
+        if not keep.all():
+            flat, uid = _subset_nodes(flat, keep), uid[keep]
+    nn = flat.n_nodes
     e = flat.edges
+    if cfg.min_type_run_m > 0 and nn:
+        flat.n_type = _smooth_types(flat, uid, cfg.min_type_run_m)
     chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid)
     link = chain_links(nn, e, flat.leftover, flat.n_type)
     outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
@@ -733,6 +869,151 @@ def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tup
     features.sort(key=lambda f: f.id)
     topology.sort(key=lambda t: t.id)
     return tuple(features), tuple(topology)
+
+
+def _spur_free(flat: _Flat, uid: np.ndarray, spur_max_m: float) -> np.ndarray:
+    """(N,) keep-mask without spurs: short polylines hanging off a split with no successor, or
+    into a merge with no predecessor (a feature flickering into view beside another makes a
+    split and an immediate dead end). Two rounds, so that a spur's removal can expose another."""
+    nn = flat.n_nodes
+    keep = np.ones(nn, dtype=bool)
+    for _ in range(2):
+        e = flat.edges[keep[flat.edges[:, 0]] & keep[flat.edges[:, 1]]] if len(flat.edges) else flat.edges
+        lo = flat.leftover[keep[flat.edges[:, 0]] & keep[flat.edges[:, 1]]] if len(flat.edges) else flat.leftover
+        outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        link = chain_links(nn, e, lo, flat.n_type)
+        cross = e[~link] if len(e) else e
+        into = dict(zip(cross[:, 1].tolist(), cross[:, 0].tolist()))
+        outof = dict(zip(cross[:, 0].tolist(), cross[:, 1].tolist()))
+        killed = 0
+        chains = feature_chains(nn, e, lo, flat.n_type, uid)
+        # bubbles: two short branches from one split node to one merge node (a flicker beside a
+        # line that comes back): the branch with fewer drives goes
+        by_ends: dict[tuple[int, int], list[np.ndarray]] = {}
+        for c in chains:
+            first, last = int(c[0]), int(c[-1])
+            if first in into and last in outof and outdeg[into[first]] >= 2 and indeg[outof[last]] >= 2:
+                by_ends.setdefault((into[first], outof[last]), []).append(c)
+        for (u, w), branches in by_ends.items():
+            if len(branches) < 2:
+                continue
+            chord = flat.n_xy[w] - flat.n_xy[u]
+            nrm = np.array([-chord[1], chord[0]]) / max(float(np.hypot(*chord)), 1e-9)
+
+            def rank(c: np.ndarray) -> tuple[float, float, int]:
+                dev = float(np.abs((flat.n_xy[c] - flat.n_xy[u]) @ nrm).mean())
+                return (-float(flat.n_count[c].mean()), dev, int(uid[c[0]]))
+
+            branches.sort(key=rank)
+            for c in branches[1:]:
+                if float(np.hypot(*np.diff(flat.n_xy[c], axis=0).T).sum()) < spur_max_m and keep[c].all():
+                    keep[c] = False
+                    killed += 1
+        for c in chains:
+            if not keep[c[0]] or len(c) > spur_max_m:  # > spur_max_m nodes is surely longer
+                continue
+            first, last = int(c[0]), int(c[-1])
+            has_in, has_out = first in into or indeg[first] > 0, last in outof or outdeg[last] > 0
+            if has_in == has_out:
+                continue  # isolated (speck filter) or through-going
+            length = float(np.hypot(*np.diff(flat.n_xy[c], axis=0).T).sum()) if len(c) > 1 else 0.0
+            if length >= spur_max_m:
+                continue
+            if has_in and outdeg[into[first]] >= 2 if first in into else False:
+                keep[c] = False
+                killed += 1
+            elif has_out and indeg[outof[last]] >= 2 if last in outof else False:
+                keep[c] = False
+                killed += 1
+        if not killed:
+            break
+    return keep
+
+
+def _subset_nodes(flat: _Flat, keep: np.ndarray) -> _Flat:
+    """The flat graph restricted to the kept feature nodes (topology unchanged)."""
+    new_idx = np.full(len(keep), -1, dtype=np.int64)
+    new_idx[keep] = np.arange(int(keep.sum()))
+    e, ok = _map_edges(flat.edges, new_idx)
+    leftover = flat.leftover[ok] if len(ok) else flat.leftover
+    if len(e):
+        # a leftover edge whose sibling branch was pruned no longer joins a split or merge
+        outdeg = np.bincount(e[:, 0], minlength=int(keep.sum()))
+        indeg = np.bincount(e[:, 1], minlength=int(keep.sum()))
+        leftover = leftover & ((outdeg[e[:, 0]] >= 2) | (indeg[e[:, 1]] >= 2))
+    per_topo = np.bincount(flat.node_topo()[keep], minlength=flat.n_topo)
+    return _Flat(
+        keys=flat.keys,
+        tmap=flat.tmap,
+        nmap={k: np.where(v >= 0, new_idx[np.maximum(v, 0)], -1) for k, v in flat.nmap.items()},
+        t_graph=flat.t_graph,
+        t_local=flat.t_local,
+        t_uid=flat.t_uid,
+        t_xy=flat.t_xy,
+        t_heading=flat.t_heading,
+        t_width=flat.t_width,
+        t_start=np.concatenate([[0], np.cumsum(per_topo)]).astype(np.int64),
+        n_graph=flat.n_graph[keep],
+        n_local=flat.n_local[keep],
+        n_uid=flat.n_uid[keep],
+        n_xy=flat.n_xy[keep],
+        n_type=flat.n_type[keep],
+        n_count=flat.n_count[keep],
+        n_std=flat.n_std[keep],
+        topo_edges=flat.topo_edges,
+        edges=e,
+        leftover=leftover,
+    )
+
+
+def _smooth_types(flat: _Flat, uid: np.ndarray, min_run_m: float) -> np.ndarray:
+    """Marking types with short runs along a polyline relabelled to their neighbours' type.
+
+    Aggregated types flicker where drives misclassify dashed/solid (5-10 % of stretches), and every
+    flicker would close the polyline (RULE 1). A run of one marking type shorter than
+    ``min_run_m`` inside a polyline takes the type of its longer neighbouring run; runs are merged
+    shortest first. Road borders and markings are never relabelled into each other.
+
+    Returns:
+        (N,) int type codes.
+    """
+    types = flat.n_type.copy()
+    is_border = (types == _BORDER_CODE).astype(np.int64)
+    chains = feature_chains(flat.n_nodes, flat.edges, flat.leftover, is_border, uid)
+    for c in chains:
+        if len(c) < 3 or is_border[c[0]]:
+            continue
+        t = types[c]
+        cut = np.flatnonzero(t[1:] != t[:-1]) + 1
+        if len(cut) == 0:
+            continue
+        seg = np.r_[0.0, np.hypot(*np.diff(flat.n_xy[c], axis=0).T)]
+        bounds = np.r_[0, cut, len(c)].tolist()
+        runs = [[bounds[k], bounds[k + 1], int(t[bounds[k]])] for k in range(len(bounds) - 1)]
+
+        def length(r: list[int]) -> float:
+            return float(seg[r[0] + 1 : r[1]].sum() + (seg[r[1]] if r[1] < len(c) else 0.0))
+
+        while len(runs) > 1:
+            k = min(range(len(runs)), key=lambda i: (length(runs[i]), i))
+            if length(runs[k]) >= min_run_m:
+                break
+            left = runs[k - 1] if k > 0 else None
+            right = runs[k + 1] if k + 1 < len(runs) else None
+            into = left if right is None or (left is not None and length(left) >= length(right)) else right
+            runs[k][2] = into[2]
+            merged: list[list[int]] = []
+            for r in runs:  # join neighbours of equal type
+                if merged and merged[-1][2] == r[2]:
+                    merged[-1][1] = r[1]
+                else:
+                    merged.append(r)
+            runs = merged
+        for a, b, ty in runs:
+            t[a:b] = ty
+        types[c] = t
+    return types
 
 
 def _fill_gaps(
