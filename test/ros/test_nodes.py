@@ -186,3 +186,17 @@ def test_config_yaml_names_only_declared_parameters(ros, tmp_path, module, cls):
     for k, v in spec.items():  # the YAML states the declared defaults (paths aside)
         if k != "db_path":
             assert node.get_parameter(k).value == v, k
+
+
+def test_bag_player_loops(ros, tmp_path):
+    from hdmap_ros.nodes.bag_player import BagPlayer
+
+    drives = [make_drive(f"L{i}", n=10, seed=i, start_ns=10**18 + i * 10**7) for i in range(3)]
+    bag = write_fleet_bag(tmp_path / "fleet", drives, None)
+    t = rclpy_types()
+    got = _collect(ros.node("probe"), t.Drive, "/fleet/drives", qos.DRIVES)
+    player = ros.add(BagPlayer(context=ros.context, parameter_overrides=[
+        Parameter("bag", value=str(bag)), Parameter("rate", value=0.0), Parameter("loop", value=True)]))
+    wait_for(lambda: len(got) >= 7, 20, what="a second pass over the bag")
+    assert [m.drive_id for m in got[:7]] == ["L0", "L1", "L2", "L0", "L1", "L2", "L0"]
+    assert not player.done
