@@ -75,7 +75,12 @@ class SegmentMapper(HealthMixin, Node):
             lo=1, hi=100000,
         )
         republish = declare(self, "republish_on_start", True, "Publish every stored tile estimate at start.")
+        self.work_slice_s = declare(
+            self, "work_slice_s", 0.5, "Mapping time per worker turn [s]; new drives are taken in between.",
+            lo=0.0, hi=600.0,
+        )
         self._init_health("segment_mapper")
+        self.health.backlog_warn = 200
 
         self.pipeline_config = preset_config(preset)
         self.store = DriveStore(os.path.expanduser(db))
@@ -98,7 +103,9 @@ class SegmentMapper(HealthMixin, Node):
         if republish:
             for est in self.store.tiles():
                 self._publish(est)
-        self.health.backlog = len(self.store.pending())
+        # the due tiles of before a restart (the queue is not stored; it follows from the store)
+        self._queue: set[TileKey] = {k for k in self.store.stale_tiles() if self._due(k)[0]}
+        self.health.backlog = len(self.store.pending()) + len(self._queue)
         self.health.set("drives_stored", self.store.drive_count())
         self.get_logger().info(
             f"drive store {self.store.path}: {self.store.drive_count()} drive(s), {self.health.backlog} pending, "
@@ -138,28 +145,47 @@ class SegmentMapper(HealthMixin, Node):
     # --- mapping ---------------------------------------------------------------------------------
 
     def work(self) -> None:
-        """Process all pending drives (debounced tile re-estimates), or settle when idle."""
+        """One worker turn: queue the tiles of new drives, map due tiles for a time slice, settle."""
         self._work()
+        self.health.backlog = len(self._queue) + len(self.store.pending())
+        self.health.set("tiles_due", len(self._queue))
         self.health.set("settled", self.is_settled())
         self.health.set("tile_versions", self.store.version_total())
 
+    def _due(self, key: TileKey) -> tuple[bool, int]:
+        est = self.store.tile(key)
+        count = self.store.tile_drive_count(key)
+        due = needs_update(est.drive_count if est else 0, count, config=self.tile_config)
+        return due and self._failed.get(key) != count, count
+
+    def _next_tile(self) -> TileKey:
+        # RULE: stretches no estimate covers yet go first (a new road is on the map at once);
+        # re-estimates of mapped stretches follow, in key order.
+        fresh = [k for k in self._queue if self.store.tile(k) is None]
+        return min(fresh) if fresh else min(self._queue)
+
     def _work(self) -> None:
         pending = self.store.pending()
-        self.health.backlog = len(pending)
         if pending:
-            for key in sorted(self.store.tiles_of(pending)):
-                est = self.store.tile(key)
-                count = self.store.tile_drive_count(key)
-                if needs_update(est.drive_count if est else 0, count, config=self.tile_config):
-                    self._estimate(key, count)
+            # A drive is processed once its tiles are queued; the queue itself need not be stored:
+            # at start it is rebuilt from the store (every tile that is due).
+            self._queue.update(self.store.tiles_of(pending))
             self.store.mark_processed(pending)
-            self.health.backlog = len(self.store.pending())
+        deadline = time.monotonic() + self.work_slice_s
+        while self._queue and time.monotonic() < deadline:
+            key = self._next_tile()
+            self._queue.discard(key)
+            due, count = self._due(key)
+            if due:
+                self._estimate(key, count)
+        if self._queue or pending or time.monotonic() - self._last_input < self.settle_after_s:
             return
-        if time.monotonic() - self._last_input >= self.settle_after_s:
-            for key in self.store.stale_tiles():
-                count = self.store.tile_drive_count(key)
-                if self._failed.get(key) != count:
-                    self._estimate(key, count)
+        for key in self.store.stale_tiles():  # settle: every estimate made from all its drives
+            count = self.store.tile_drive_count(key)
+            if self._failed.get(key) != count:
+                self._estimate(key, count)
+            if time.monotonic() >= deadline:
+                return
 
     def _estimate(self, key: TileKey, count: int) -> None:
         drives = self.store.drives_covering(key)
@@ -193,8 +219,8 @@ class SegmentMapper(HealthMixin, Node):
         self.tiles_published += 1
 
     def is_settled(self) -> bool:
-        """No pending drive and no stale tile (that did not fail at its current count)."""
-        if self.store.pending():
+        """No pending drive, no tile due and no stale tile (that did not fail at its current count)."""
+        if self._queue or self.store.pending():
             return False
         return all(self._failed.get(k) == self.store.tile_drive_count(k) for k in self.store.stale_tiles())
 
