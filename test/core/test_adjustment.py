@@ -110,7 +110,9 @@ def test_wrong_labels_are_resisted_by_the_robust_loss(burst_m):
     clean_obs, _ = simulate_step_observations(config=replace(sim, wrong_label_fraction=0.0), seed=5)
     rms = {}
     for loss in ("linear", "huber", "cauchy"):
-        model = adjust_offsets(obs, config=AdjustConfig(loss=loss))
+        # "linear" = no robustness at all (plain least squares, no coarse rejection)
+        cfg = AdjustConfig(loss=loss, coarse_reject_m=0.0 if loss == "linear" else 1.5)
+        model = adjust_offsets(obs, config=cfg)
         common, _, n_local, rel = _per_step_errors(obs, truth, model)
         rms[loss] = float(np.sqrt(np.mean(rel**2)))
         if loss != "linear":
@@ -122,6 +124,33 @@ def test_wrong_labels_are_resisted_by_the_robust_loss(burst_m):
     for loss in ("huber", "cauchy"):
         assert rms[loss] < 0.5 * rms["linear"]
         assert rms[loss] < 1.3 * rms_clean
+
+
+def test_lane_shifted_stretch_is_rejected_by_the_coarse_stage():
+    # Equally spaced lines: a drive associated one lane off is self-consistent (all its samples
+    # agree with an offset of 3.5 m), so a per-sample robust loss cannot see it; the curve would
+    # follow it. Here one drive is a lane off for 400 m of its length.
+    sim = replace(SMALL, line_offsets_m=(-5.25, -1.75, 1.75, 5.25), line_types=(2, 2, 2, 2))
+    obs, truth = simulate_step_observations(config=sim, seed=7)
+    victim = truth.drive_ids[int(np.argmax([g[-1] - g[0] for g in truth.grid_s_m]))]  # the longest drive
+    s_lo = truth.grid_s_m[truth.drive_ids.index(victim)][0] + 1000.0
+    shifted = []
+    for o in obs:
+        hit = (np.asarray(o.drive_ids) == victim) & (o.drive_s_m >= s_lo) & (o.drive_s_m < s_lo + 400.0)
+        if hit.any():
+            cl = o.cluster.copy()
+            cl[hit] = np.where(cl[hit] < 3, cl[hit] + 1, -1)
+            o = replace(o, cluster=cl)
+        shifted.append(o)
+    s = np.linspace(s_lo + 50.0, s_lo + 350.0, 7)
+    true = truth.true_correction(victim, s)
+    err_plain = np.abs(adjust_offsets(shifted, config=AdjustConfig(coarse_reject_m=0.0)).offset(victim, s) - true)
+    model = adjust_offsets(shifted)
+    err = np.abs(model.offset(victim, s) - true)
+    print(f"lane-shifted stretch: error without coarse stage {err_plain.round(2)}, with {err.round(2)}")
+    assert err_plain.max() > 1.0
+    assert err.max() < 0.5  # no data there: the curve bridges 400 m of drift
+    assert 0.0 < model.stats["coarse_rejected_fraction"] < 0.02
 
 
 def test_schur_elimination_matches_explicit_least_squares():

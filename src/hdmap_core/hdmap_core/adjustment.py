@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -65,6 +65,10 @@ class AdjustConfig:
             (a convex start keeps Cauchy from locking onto a wrong solution).
         iterations: maximum number of solves (1 = no re-weighting).
         tol_m: stop re-weighting when no offset changes by more than this.
+        coarse_reject_m: before the curves are fitted, one constant per drive is fitted (Huber);
+            samples farther than this from their cluster then are dropped as wrong associations
+            (e.g. a drive associated one lane off over a stretch, which a curve would follow).
+            0 = off.
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
             normal matrix; O(p^3) in the number of unknowns p).
         std_max_unknowns: above this many unknowns the std is not computed (left NaN).
@@ -80,6 +84,7 @@ class AdjustConfig:
     huber_warmup_iterations: int = 2
     iterations: int = 5
     tol_m: float = 2e-3
+    coarse_reject_m: float = 1.5
     compute_std: bool = True
     std_max_unknowns: int = 4000
 
@@ -89,6 +94,8 @@ class AdjustConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ConfigError(f"AdjustConfig.{name} must be finite and > 0, got {value!r}")
+        if not (np.isfinite(self.coarse_reject_m) and self.coarse_reject_m >= 0):
+            raise ConfigError(f"AdjustConfig.coarse_reject_m must be finite and >= 0, got {self.coarse_reject_m!r}")
         if not (np.isfinite(self.drift_sigma_m) and self.drift_sigma_m >= 0):
             raise ConfigError(f"AdjustConfig.drift_sigma_m must be finite and >= 0, got {self.drift_sigma_m!r}")
         if self.loss not in _LOSSES:
@@ -530,17 +537,61 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     if samples.s_m.size == 0:
         stats.update(n_samples_used=0, n_drives=0, n_unknowns=0, iterations=0)
         return OffsetModel(**base, stats=stats)
+    keep = np.ones(samples.s_m.size, dtype=bool)
+    if cfg.coarse_reject_m > 0 and cfg.drift_sigma_m > 0:
+        # RULE coarse-to-fine: a drive whose per-step association was a lane off over a stretch
+        # gives samples that agree with each other but not with the rest of the drive. A curve
+        # would follow them; one constant per drive does not, so they stand out here and are
+        # dropped before the curve is fitted.
+        coarse = replace(cfg, drift_sigma_m=0.0, bias_sigma_m=float(np.hypot(cfg.bias_sigma_m, cfg.drift_sigma_m)),
+                         loss="huber", iterations=min(cfg.iterations, 3))
+        fit0 = _irls(samples, coarse, keep)
+        keep = np.abs(fit0.residual) <= cfg.coarse_reject_m
+    fit = _irls(samples, cfg, keep)
+    r, info, lay = fit.residual, fit.info, fit.layout
+    inlier = keep & (np.abs(r) <= cfg.robust_k * cfg.noise_sigma_m)
+    stats.update(
+        n_drives=len(samples.drive_ids),
+        n_clusters=samples.n_clusters,
+        n_unknowns=lay.n_unknowns,
+        iterations=fit.iterations,
+        last_change_m=fit.last_change_m,
+        coarse_rejected_fraction=float(np.mean(~keep)),
+        downweighted_fraction=float(np.mean(info < 0.5 * cfg.noise_sigma_m**-2)),
+        inlier_rms_m=float(np.sqrt(np.mean(r[inlier] ** 2))) if inlier.any() else float("nan"),
+    )
+    theta, h = fit.theta, fit.normal
+    cov = None
+    if cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:
+        cov = _covariance_parts(h, lay)
+    stats["std_computed"] = cov is not None
+    return OffsetModel(**base, drives=_curves(samples, lay, theta, cov), stats=stats)
+
+
+@dataclass(frozen=True)
+class _Fit:
+    layout: _Layout
+    theta: np.ndarray  # (p,) unknowns
+    normal: sp.csr_matrix  # (p, p) final normal matrix incl. prior
+    info: np.ndarray  # (n,) final sample weights / noise variance
+    residual: np.ndarray  # (n,) residual of every sample about its weighted cluster mean [m]
+    iterations: int
+    last_change_m: float
+
+
+def _irls(samples: _Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
+    """Solve the adjustment with IRLS re-weighting; samples outside ``keep`` have weight 0."""
     lay = _layout(samples, cfg)
     a = _design(samples, lay, cfg)
     prior = _prior(lay, cfg)
-    info0 = np.full(samples.s_m.size, cfg.noise_sigma_m**-2)
-    weights = np.ones(samples.s_m.size)
+    info0 = np.where(keep, cfg.noise_sigma_m**-2, 0.0)
     theta = np.zeros(lay.n_unknowns)
     warmup = cfg.huber_warmup_iterations if cfg.loss == "cauchy" else 0
     info = info0.copy()
     h, rhs = _reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
     h = (h + prior).tocsr()
     solver = _Solver()
+    it, change = 0, 0.0
     for it in range(1, cfg.iterations + 1):
         new_theta = solver.solve(h, rhs, theta)
         change = float(np.max(np.abs(new_theta - theta), initial=0.0))
@@ -551,21 +602,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
             break
         weights = _robust_weights(r, cfg.robust_k * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
         h, rhs, info = _update_normal(h, rhs, a, samples, prior, info, info0 * weights)
-    inlier = np.abs(r) <= cfg.robust_k * cfg.noise_sigma_m
-    stats.update(
-        n_drives=len(samples.drive_ids),
-        n_clusters=samples.n_clusters,
-        n_unknowns=lay.n_unknowns,
-        iterations=it,
-        last_change_m=change,
-        downweighted_fraction=float(np.mean(info < 0.5 * info0)),
-        inlier_rms_m=float(np.sqrt(np.mean(r[inlier] ** 2))) if inlier.any() else float("nan"),
-    )
-    cov = None
-    if cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:
-        cov = _covariance_parts(h, lay)
-    stats["std_computed"] = cov is not None
-    return OffsetModel(**base, drives=_curves(samples, lay, theta, cov), stats=stats)
+    return _Fit(lay, theta, h, info, r, it, change)
 
 
 def _covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:
