@@ -77,12 +77,12 @@ def test_consecutive_segments_make_one_polyline_per_line():
 
 
 def test_feature_fields_filled_from_step_results():
-    seg = Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [D], counts=[i + 3]) for i in range(10)))
+    seg = Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [D], counts=[i + 3]) for i in range(20)))
     m = stitch([conn(seg)])
     (f,) = m.features
-    np.testing.assert_array_equal(f.drive_count, np.arange(3, 13))
+    np.testing.assert_array_equal(f.drive_count, np.arange(3, 23))
     np.testing.assert_allclose(f.lateral_std, 0.15)
-    assert f.points.shape == (10, 2) and f.drive_count.shape == (10,) and f.lateral_std.shape == (10,)
+    assert f.points.shape == (20, 2) and f.drive_count.shape == (20,) and f.lateral_std.shape == (20,)
     assert m.drive_ids == ("a", "a-other")
     for t in m.topology:
         assert t.features == (f.id,)
@@ -264,11 +264,18 @@ def test_isolated_speck_dropped_and_bad_config():
         MapGraph([g, g])
 
 
-def test_segment_split_by_long_gap_is_not_rejoined_across_it():
-    """RULE 3 breaks a segment at a 40 m gap; stitching does not bridge it (beyond max_distance_m)."""
+def test_segment_split_by_long_gap_rejoined_only_when_asked():
+    """RULE 3 breaks a segment at a 42 m gap: topology stitching does not bridge it (beyond
+    max_distance_m); the loose-end join of one segment does (and fills the gap with drive_count 0)."""
     steps = [step("a", i, 2.0 * i, *LINES) for i in range(20)] + [step("a", i, 2.0 * i, *LINES) for i in range(40, 60)]
-    m = stitch([connect_segment(Segment("a", tuple(steps)), config=ConnectionConfig())])
-    assert len(m.features) == 6
+    g = connect_segment(Segment("a", tuple(steps)), config=ConnectionConfig())
+    assert g.stats.gaps_closed == 1 and len(g.polylines()) == 6
+    assert len(stitch([g], config=StitchConfig(join_same_segment=False)).features) == 6
+    m = stitch([g])
+    assert len(m.features) == 3
+    for f in m.features:
+        assert f.points[0, 0] == pytest.approx(0.0) and f.points[-1, 0] == pytest.approx(118.0)
+        assert (f.drive_count == 0).sum() == 20  # x 40..78 filled
 
 
 def test_one_point_feature_dropped_and_linked_past():

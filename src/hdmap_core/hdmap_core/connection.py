@@ -83,7 +83,7 @@ class ConnectionConfig:
     leftover_max_m: float = 2.0
     bridge_features: bool = True
     min_separation_m: float = 1.0
-    min_support_share: float = 0.0
+    min_support_share: float = 0.25
     tile_size_m: float = 256.0
 
     def __post_init__(self) -> None:
@@ -113,6 +113,7 @@ class ConnectionConfig:
             bridge_features=False,
             robust_angle=False,
             min_separation_m=0.0,
+            min_support_share=0.0,
         )
 
 

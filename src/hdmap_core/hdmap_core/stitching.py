@@ -82,6 +82,8 @@ class StitchConfig:
         twin_radius_m: two feature nodes of different segments this close are one place [m].
         join_loose_ends: join polyline ends and starts of different segments that continue each
             other (same type, close across the cut) even where topology found no link.
+        join_same_segment: also join loose ends of one segment (split there by a gap longer
+            than the connection's ``max_gap_m``, RULE 3).
         join_radius_m: how far ahead of a loose end a loose start may begin [m].
         join_lateral_m: how far across the road a loose start may lie from the end's arc [m] ...
         join_angle_deg: ... plus this angle's share of the distance [deg].
@@ -115,11 +117,12 @@ class StitchConfig:
     dedupe_loose_ends: bool = True
     twin_radius_m: float = 1.1
     join_loose_ends: bool = True
-    join_radius_m: float = 40.0
+    join_same_segment: bool = True
+    join_radius_m: float = 60.0
     join_lateral_m: float = 0.5
     join_angle_deg: float = 1.0
     fill_spacing_m: float = 2.0
-    min_isolated_length_m: float = 5.0
+    min_isolated_length_m: float = 20.0
     min_type_run_m: float = 20.0
     spur_max_m: float = 12.0
 
@@ -681,7 +684,7 @@ class MapGraph:
         for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
             for jj in near:
                 j = int(starts[jj])
-                if flat.n_graph[j] == flat.n_graph[i]:
+                if flat.n_graph[j] == flat.n_graph[i] and not cfg.join_same_segment:
                     continue
                 if flat.n_type[j] != flat.n_type[i] and (
                     cfg.same_type_only or (flat.n_type[j] == _BORDER_CODE) != (flat.n_type[i] == _BORDER_CODE)
