@@ -378,3 +378,22 @@ def test_loose_end_running_on_another_line_deduplicated():
     assert np.all(np.diff(dashed[0].points[:, 0]) > 0)  # no doubling back
     m0 = stitch([conn(a), conn(b)], config=StitchConfig(trim_overlap=False, dedupe_loose_ends=False))
     assert len(by_type(m0, D)) == 2
+
+
+def test_rebuild_makes_the_map_independent_of_integration_order():
+    ga, gb = conn(road("a", 0.0, 50)), conn(road("b", 60.0, 50, y_mid=0.4))
+    gc = conn(_ramp("c", 100.0, 20, converging=False))
+    maps = []
+    for order in ([ga, gb, gc], [gc, gb, ga]):
+        mg = MapGraph()
+        for g in order:
+            mg.integrate([g])
+        mg.rebuild()
+        maps.append(mg.to_hdmap(version=0))
+    a, b = maps
+    assert [f.id for f in a.features] == [f.id for f in b.features]
+    for fa, fb in zip(a.features, b.features):
+        np.testing.assert_array_equal(fa.points, fb.points)
+        assert fa.successors == fb.successors and fa.predecessors == fb.predecessors
+    assert [t.id for t in a.topology] == [t.id for t in b.topology]
+    assert a.extra["last_integrate"]["added"] == 3

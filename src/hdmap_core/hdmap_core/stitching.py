@@ -304,6 +304,7 @@ class MapGraph:
         self._topo_links: set[Link] = set()
         self._feature_links: set[Link] = set()
         self.version = 0
+        self.last_report = IntegrateReport()
         graphs = list(graphs)
         if graphs:
             self.integrate(graphs)
@@ -334,6 +335,7 @@ class MapGraph:
         new._topo_links = set(self._topo_links)
         new._feature_links = set(self._feature_links)
         new.version = self.version
+        new.last_report = self.last_report
         return new
 
     @classmethod
@@ -358,6 +360,20 @@ class MapGraph:
             self._topo_links = {ln for ln in self._topo_links if ln[0] not in gone and ln[2] not in gone}
             self._feature_links = {ln for ln in self._feature_links if ln[0] not in gone and ln[2] not in gone}
         return len(gone)
+
+    def rebuild(self) -> IntegrateReport:
+        """Forget every trim, dedupe and link and stitch all segment graphs afresh (in key order).
+
+        After ``rebuild`` the map is a function of the set of segment graphs only, whatever the
+        order in which they were integrated (``integrate`` trims and links only what changed).
+        """
+        graphs = [self._graphs[k] for k in self.keys]
+        version = self.version
+        self._graphs, self._alive, self._node_dead = {}, {}, {}
+        self._topo_links, self._feature_links = set(), set()
+        rep = self.integrate(graphs)
+        self.version = version + 1
+        return rep
 
     def integrate(self, graphs: Iterable[SegmentGraph], *, replace: Iterable[str] = ()) -> IntegrateReport:
         """Insert segment graphs into the map (Sec. VI); a graph whose key is present replaces it.
@@ -388,6 +404,7 @@ class MapGraph:
         if self.config.join_loose_ends:
             self._join_loose_ends(rep)
         self.version += 1
+        self.last_report = rep
         return rep
 
     # -- internals --
@@ -731,8 +748,12 @@ class MapGraph:
             drive_ids=tuple(drive_ids),
             version=self.version if version is None else int(version),
             stamp_ns=int(stamp_ns),
-            extra={"segments": len(self._graphs), "topology_links": len(self._topo_links),
-                   "feature_links": len(self._feature_links)},
+            extra={
+                "segments": len(self._graphs),
+                "topology_links": len(self._topo_links),
+                "feature_links": len(self._feature_links),
+                "last_integrate": dict(self.last_report.__dict__),
+            },
         )
 
 
