@@ -397,3 +397,34 @@ def test_rebuild_makes_the_map_independent_of_integration_order():
         assert fa.successors == fb.successors and fa.predecessors == fb.predecessors
     assert [t.id for t in a.topology] == [t.id for t in b.topology]
     assert a.extra["last_integrate"]["added"] == 3
+
+
+def test_gore_split_placed_where_the_lane_line_ends():
+    r"""A dashed lane line ends at x=40; two solid gore lines start there and diverge by 3 cm/m.
+    The aggregation resolves them as two only from 1 m apart (x >= 74), so the connection yields
+    dashed -> one solid -> split. The map gives the common piece to both branches: the dashed line
+    has the two solid lines as successors, both starting at its end (as in the ground truth).
+
+        D D D D D *======------   solid A
+                   \====------    solid B
+    """
+    def lat(i):
+        x = 2.0 * i
+        if x < 40:
+            return [0.0], [D]
+        sep = 0.03 * (x - 40)
+        return ([0.0], [S]) if sep < 1.0 else ([-sep / 2, sep / 2], [S, S])
+
+    seg = Segment("a", tuple(step("a", i, 2.0 * i, *lat(i)) for i in range(80)))
+    m = stitch([conn(seg)])
+    (dashed,) = by_type(m, D)
+    assert len(dashed.successors) == 2
+    ids = {f.id: f for f in m.features}
+    for sid in dashed.successors:
+        b = ids[sid]
+        assert b.type == FeatureType.SOLID and b.predecessors == (dashed.id,)
+        np.testing.assert_allclose(b.points[0], dashed.points[-1])
+        assert b.points[-1, 0] == pytest.approx(158.0)
+    assert len(m.features) == 3
+    plain = stitch([conn(seg)], config=StitchConfig(gore_max_m=0.0))
+    assert len(plain.features) == 4 and len(by_type(plain, D)[0].successors) == 1

@@ -94,6 +94,9 @@ class StitchConfig:
             (single-step specks, false positives) [m].
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
             runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
+        gore_max_m: a common piece at most this long between a type change and a split into two
+            polylines of its type (a gore's lines before they are resolved) is given to both
+            branches, so the split sits where the lane line ends (merges alike). 0 disables [m].
         min_type_run_m: along a polyline, a run of one marking type (solid/dashed) shorter than
             this takes its neighbours' type instead of closing the polyline twice (RULE 1 on
             misclassification flicker). 0 disables (the paper) [m].
@@ -125,6 +128,7 @@ class StitchConfig:
     min_isolated_length_m: float = 20.0
     min_type_run_m: float = 20.0
     spur_max_m: float = 12.0
+    gore_max_m: float = 100.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -147,6 +151,7 @@ class StitchConfig:
             "min_isolated_length_m",
             "min_type_run_m",
             "spur_max_m",
+            "gore_max_m",
         ):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
@@ -168,6 +173,7 @@ class StitchConfig:
             fill_spacing_m=0.0,
             min_type_run_m=0.0,
             spur_max_m=0.0,
+            gore_max_m=0.0,
         )
 
 
@@ -890,9 +896,76 @@ def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tup
                 features=feats,
             )
         )
+    if cfg.gore_max_m > 0:
+        features, topology = _gore_junctions(features, topology, cfg.gore_max_m)
     features.sort(key=lambda f: f.id)
     topology.sort(key=lambda t: t.id)
     return tuple(features), tuple(topology)
+
+
+def _length(points: np.ndarray) -> float:
+    return float(np.hypot(*np.diff(points, axis=0).T).sum()) if len(points) > 1 else 0.0
+
+
+def _gore_junctions(
+    features: list[MapFeature], topology: list[TopologyNode], max_m: float
+) -> tuple[list[MapFeature], list[TopologyNode]]:
+    """Move splits (merges) of gore lines back (forward) to where the lane line's type changes.
+
+    At a gore a lane line (dashed) ends and two solid lines start from its end and diverge slowly;
+    the aggregation resolves them as two only once they are ~1 m apart, so the connection yields
+    dashed -> one solid -> split into two solids, the split tens of metres late. The common solid
+    piece is both lines at once: when it is at most ``max_m`` long, starts at a type change and
+    splits into two polylines of its own type, it is prepended to both branches, which become the
+    lane line's two successors. Merges mirror this.
+    """
+    from dataclasses import replace as _replace
+
+    byid = {f.id: f for f in features}
+    gone: dict[int, tuple[int, ...]] = {}  # removed common piece -> the branches that absorbed it
+    for c in sorted(features, key=lambda f: f.id):
+        if c.id in gone or _length(c.points) > max_m:
+            continue
+        for mode in ("split", "merge"):
+            outer = c.predecessors if mode == "split" else c.successors
+            branches = c.successors if mode == "split" else c.predecessors
+            if len(outer) != 1 or len(branches) != 2 or outer[0] in gone or any(b in gone for b in branches):
+                continue
+            p = byid[outer[0]]
+            bs = [byid[b] for b in branches]
+            if p.type == c.type or any(b.type != c.type for b in bs):
+                continue
+            back = (lambda b: b.predecessors) if mode == "split" else (lambda b: b.successors)
+            if any(back(b) != (c.id,) for b in bs):
+                continue
+            for b in bs:
+                if mode == "split":
+                    pts = np.vstack([c.points, b.points[1:]])
+                    cnt, std = np.r_[c.drive_count, b.drive_count[1:]], np.r_[c.lateral_std, b.lateral_std[1:]]
+                    byid[b.id] = _replace(b, points=pts, drive_count=cnt, lateral_std=std, predecessors=(p.id,))
+                else:
+                    pts = np.vstack([b.points[:-1], c.points])
+                    cnt, std = np.r_[b.drive_count[:-1], c.drive_count], np.r_[b.lateral_std[:-1], c.lateral_std]
+                    byid[b.id] = _replace(b, points=pts, drive_count=cnt, lateral_std=std, successors=(p.id,))
+            links = p.successors if mode == "split" else p.predecessors
+            new_links = tuple(sorted({x for x in links if x != c.id} | set(branches)))
+            byid[p.id] = _replace(p, **({"successors": new_links} if mode == "split" else {"predecessors": new_links}))
+            gone[c.id] = tuple(branches)
+            del byid[c.id]
+            break
+    if not gone:
+        return features, topology
+    topo = []
+    for t in topology:
+        if any(f in gone for f in t.features):
+            feats: list[int] = []
+            for f in t.features:
+                for g in gone.get(f, (f,)):
+                    if g not in feats:
+                        feats.append(g)
+            t = _replace(t, features=tuple(feats))
+        topo.append(t)
+    return list(byid.values()), topo
 
 
 def _spur_free(flat: _Flat, uid: np.ndarray, spur_max_m: float) -> np.ndarray:
