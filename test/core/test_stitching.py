@@ -428,3 +428,21 @@ def test_gore_split_placed_where_the_lane_line_ends():
     assert len(m.features) == 3
     plain = stitch([conn(seg)], config=StitchConfig(gore_max_m=0.0))
     assert len(plain.features) == 4 and len(by_type(plain, D)[0].successors) == 1
+
+
+def test_branch_starting_beside_a_line_joins_it_as_a_split():
+    """A ramp line of another pivot starts 1 m beside the main road's solid line and diverges: it
+    is joined as a branch (the main line gets two successors). A copy running parallel 1.5 m
+    beside the line for 40 m (no divergence) is not joined. (Topology stitching is switched off
+    here, max_distance_m=0, so that only the feature-level branch join acts.)"""
+    main = road("m", 0.0, 60, ([-3.5, 0.0], [S, D]))
+    ramp = Segment("r", tuple(step("r", i, 50.0 + 2.0 * i, [-4.5 - 0.3 * i], [S], y_mid=-8.0) for i in range(30)))
+    cfg = StitchConfig(trim_overlap=False, max_distance_m=0.0)
+    m = stitch([conn(main), conn(ramp)], config=cfg)
+    splitting = [f for f in m.features if len(f.successors) == 2]
+    assert len(splitting) == 1 and splitting[0].type == FeatureType.SOLID
+    par = Segment("p", tuple(step("p", i, 50.0 + 2.0 * i, [-5.0], [S], y_mid=-8.0) for i in range(20)))
+    m2 = stitch([conn(main), conn(par)], config=cfg)
+    assert all(len(f.successors) < 2 and len(f.predecessors) < 2 for f in m2.features)
+    m3 = stitch([conn(main), conn(ramp)], config=StitchConfig(trim_overlap=False, max_distance_m=0.0, branch_lateral_m=0.0))
+    assert all(len(f.successors) < 2 for f in m3.features)

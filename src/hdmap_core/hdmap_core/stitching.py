@@ -85,6 +85,12 @@ class StitchConfig:
         join_same_segment: also join loose ends of one segment (split there by a gap longer
             than the connection's ``max_gap_m``, RULE 3).
         join_radius_m: how far ahead of a loose end a loose start may begin [m].
+        branch_lateral_m: a loose start (end) still unjoined then joins the nearest node of
+            another segment's polyline of its type up to ``branch_radius_m`` behind (ahead) and
+            this far across the road: a split (merge) across segments. 0 disables [m].
+        branch_radius_m: see ``branch_lateral_m`` [m].
+        branch_divergence_m: ... only when the branch moves away from the line: ~10 m on, its
+            offset grew by at least this (a copy running beside the line is no branch) [m].
         join_lateral_m: how far across the road a loose start may lie from the end's arc [m] ...
         join_angle_deg: ... plus this angle's share of the distance [deg].
         fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
@@ -121,6 +127,9 @@ class StitchConfig:
     twin_radius_m: float = 1.1
     join_loose_ends: bool = True
     join_same_segment: bool = True
+    branch_lateral_m: float = 2.0
+    branch_radius_m: float = 8.0
+    branch_divergence_m: float = 0.3
     join_radius_m: float = 60.0
     join_lateral_m: float = 0.5
     join_angle_deg: float = 1.0
@@ -144,6 +153,9 @@ class StitchConfig:
             "overlap_feature_m",
             "overlap_share",
             "join_radius_m",
+            "branch_lateral_m",
+            "branch_radius_m",
+            "branch_divergence_m",
             "twin_radius_m",
             "join_lateral_m",
             "join_angle_deg",
@@ -288,6 +300,7 @@ class IntegrateReport:
     feature_links: int = 0
     deduplicated_nodes: int = 0
     loose_ends_joined: int = 0
+    branches_joined: int = 0
 
 
 class MapGraph:
@@ -697,7 +710,7 @@ class MapGraph:
         indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
         ends = np.flatnonzero(outdeg == 0)
         starts = np.flatnonzero(indeg == 0)
-        if len(ends) == 0 or len(starts) == 0:
+        if len(ends) == 0 and len(starts) == 0:
             return
         heading = flat.t_heading[flat.node_topo()]
         tree = cKDTree(flat.n_xy[starts])
@@ -725,19 +738,90 @@ class MapGraph:
                     continue
                 mismatch = cfg.type_mismatch_cost_m if flat.n_type[j] != flat.n_type[i] else 0.0
                 cand.append((lat + 0.02 * along + mismatch, i, j))
-        if not cand:
-            return
-        ei = sorted({c[1] for c in cand})
-        sj = sorted({c[2] for c in cand})
-        ri, cj = {v: k for k, v in enumerate(ei)}, {v: k for k, v in enumerate(sj)}
-        cost = np.full((len(ei), len(sj)), _BIG)
-        for c, i, j in cand:
-            cost[ri[i], cj[j]] = min(cost[ri[i], cj[j]], c)
-        rows, cols = linear_sum_assignment(cost)
-        for r, c in zip(rows.tolist(), cols.tolist()):
-            if cost[r, c] < _BIG:
-                self._feature_links.add(self._link(flat, ei[r], sj[c], topo=False))
-                rep.loose_ends_joined += 1
+        joined_e: set[int] = set()
+        joined_s: set[int] = set()
+        if cand:
+            ei = sorted({c[1] for c in cand})
+            sj = sorted({c[2] for c in cand})
+            ri, cj = {v: k for k, v in enumerate(ei)}, {v: k for k, v in enumerate(sj)}
+            cost = np.full((len(ei), len(sj)), _BIG)
+            for c, i, j in cand:
+                cost[ri[i], cj[j]] = min(cost[ri[i], cj[j]], c)
+            rows, cols = linear_sum_assignment(cost)
+            for r, c in zip(rows.tolist(), cols.tolist()):
+                if cost[r, c] < _BIG:
+                    self._feature_links.add(self._link(flat, ei[r], sj[c], topo=False))
+                    joined_e.add(ei[r])
+                    joined_s.add(sj[c])
+                    rep.loose_ends_joined += 1
+        if cfg.branch_lateral_m > 0:
+            rest_s = [int(j) for j in starts if int(j) not in joined_s]
+            rest_e = [int(i) for i in ends if int(i) not in joined_e]
+            rep.branches_joined += self._join_branches(flat, heading, rest_s, rest_e, e)
+
+    def _join_branches(self, flat: _Flat, heading: np.ndarray, starts: list[int], ends: list[int], e: np.ndarray) -> int:
+        """Join a polyline that starts (ends) beside another line of its type to that line: a
+        split (merge) across segments, as the leftover assignment does inside one (Sec. V).
+
+        A loose start joins the nearest node of another segment's polyline of the same type
+        that lies behind it (0 < along <= ``branch_radius_m``) at most ``branch_lateral_m`` across
+        the road; a loose end joins such a node ahead of it.
+        """
+        cfg = self.config
+        if not starts and not ends:
+            return 0
+        tree = cKDTree(flat.n_xy)
+        nn = flat.n_nodes
+        outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        nxt = np.full(nn, -1, dtype=np.int64)
+        prv = np.full(nn, -1, dtype=np.int64)
+        if len(e):
+            one = (outdeg[e[:, 0]] == 1) & (indeg[e[:, 1]] == 1)
+            nxt[e[one, 0]] = e[one, 1]
+            prv[e[one, 1]] = e[one, 0]
+
+        def diverges(i: int, j: int, lat0: float, walk: np.ndarray) -> bool:
+            """Whether the branch through i moves away from the line through j (not a twin
+            running beside it): ~10 m on along the branch the offset grew by
+            ``branch_divergence_m``."""
+            k = i
+            for _ in range(5):
+                if walk[k] < 0:
+                    break
+                k = int(walk[k])
+            if k == i:
+                return False
+            _, n = _unit(float(heading[k]))
+            offs = [
+                abs(float((flat.n_xy[q] - flat.n_xy[k]) @ n))
+                for q in tree.query_ball_point(flat.n_xy[k], 6.0)
+                if flat.n_graph[q] == flat.n_graph[j] and flat.n_type[q] == flat.n_type[j]
+            ]
+            return not offs or min(offs) >= lat0 + cfg.branch_divergence_m
+
+        made = 0
+        for nodes, sign, walk in ((starts, -1.0, nxt), (ends, 1.0, prv)):
+            for i in nodes:
+                u, n = _unit(float(heading[i]))
+                best, best_d, best_lat = -1, math.inf, 0.0
+                for j in tree.query_ball_point(flat.n_xy[i], cfg.branch_radius_m):
+                    if flat.n_graph[j] == flat.n_graph[i] or flat.n_type[j] != flat.n_type[i]:
+                        continue
+                    if math.cos(heading[j] - heading[i]) < math.cos(math.radians(cfg.max_heading_diff_deg)):
+                        continue
+                    d = flat.n_xy[j] - flat.n_xy[i]
+                    along, lat = sign * float(d @ u), abs(float(d @ n))
+                    if along <= 0.0 or lat > cfg.branch_lateral_m:
+                        continue
+                    dist = math.hypot(along, lat)
+                    if dist < best_d:
+                        best, best_d, best_lat = int(j), dist, lat
+                if best >= 0 and diverges(i, best, best_lat, walk):
+                    a, b = (best, i) if sign < 0 else (i, best)
+                    self._feature_links.add(self._link(flat, a, b, topo=False))
+                    made += 1
+        return made
 
     # -- export --
     def to_hdmap(
