@@ -443,6 +443,11 @@ def match_new_drives(
     centre = np.bincount(lab, weights=y, minlength=k) / cnt
     ctype = np.zeros(k, dtype=types.dtype)
     ctype[lab] = types[ks]
+    n_known = int(known.sum())
+    if n_known >= 5:  # clusters of one known drive only (e.g. its misclassified line) do not attract
+        nd = int(drive.max()) + 1
+        n_dr = np.bincount(np.unique(lab * nd + drive[ks]) // nd, minlength=k)
+        ctype = np.where(n_dr >= 2, ctype, -1)
     us = np.flatnonzero(~ks)
     cand = np.arange(-max_offset_m, max_offset_m + 1e-9, grid_m)
     pos = x[us][None, :] + cand[:, None]  # (G, U)
@@ -460,8 +465,72 @@ def match_new_drives(
     return out
 
 
+def recheck_offsets(
+    x: np.ndarray,
+    types: np.ndarray,
+    drive: np.ndarray,
+    offsets: np.ndarray,
+    *,
+    max_offset_m: float,
+    gap_m: float,
+    grid_m: float = 0.05,
+    capture_m: float = 0.5,
+    prior_per_m2: float = 0.02,
+    min_gain: float = 0.5,
+) -> np.ndarray:
+    """Move drives that tracking locked onto a wrong place (e.g. one lane off).
+
+    All drives at once: the samples are clustered with the current offsets; each drive's
+    absolute offset is scored on a grid by how well its samples land on same-type clusters that
+    other drives support, minus ``prior_per_m2 * offset^2`` (small errors are likelier, which
+    settles the lane-periodic ties of dashed lines). A drive moves when the best score beats its
+    current one by ``min_gain`` (about half a sample).
+
+    Returns:
+        (D,) offsets.
+    """
+    n_drives = len(offsets)
+    y = x + offsets[drive]
+    lab = gap_labels(y, types, gap_m)
+    k = int(lab.max()) + 1
+    centre = np.bincount(lab, weights=y, minlength=k) / np.bincount(lab, minlength=k)
+    ctype = np.zeros(k, dtype=types.dtype)
+    ctype[lab] = types
+    member = np.zeros((n_drives, k), dtype=bool)
+    member[drive, lab] = True
+    support = member.sum(axis=0)
+    # (M, K): clusters a sample may land on: same type and supported by other drives (two when
+    # there are enough drives, so one drive's misclassified line cannot attract another drive).
+    need = 2 if n_drives >= 6 else 1
+    ok = (types[:, None] == ctype[None, :]) & ((support[None, :] - member[drive]) >= need)
+    cand = np.arange(-max_offset_m, max_offset_m + 1e-9, grid_m)
+    pos = x[None, :] + cand[:, None]  # (G, M) absolute candidate offsets
+    d = np.abs(pos[:, :, None] - centre[None, None, :])
+    d = np.where(ok[None, :, :], d, np.inf).min(axis=2)
+    score = np.maximum(0.0, 1.0 - d / capture_m)  # (G, M)
+    onehot = (drive[:, None] == np.arange(n_drives)[None, :]).astype(float)
+    per = score @ onehot - prior_per_m2 * (cand * cand)[:, None]  # (G, D)
+    best = np.argmax(per, axis=0)
+    # Current place: the best candidate within capture_m of the current offset (the current
+    # offset itself is a little off by noise; compare like with like).
+    near = np.abs(cand[:, None] - offsets[None, :]) <= capture_m
+    cur = np.where(near, per, -np.inf).max(axis=0)
+    gain = per[best, np.arange(n_drives)] - cur
+    out = offsets.copy()
+    move = gain > min_gain
+    out[move] = cand[best[move]]
+    return out
+
+
 def register_drives(
-    x: np.ndarray, types: np.ndarray, drive: np.ndarray, n_drives: int, *, max_offset_m: float, gap_m: float
+    x: np.ndarray,
+    types: np.ndarray,
+    drive: np.ndarray,
+    n_drives: int,
+    *,
+    max_offset_m: float,
+    gap_m: float,
+    n_sweeps: int = 1,
 ) -> np.ndarray:
     """Start offsets for a step without prior: greedy registration, drive after drive.
 
@@ -485,6 +554,15 @@ def register_drives(
         kd = known.copy()
         o = match_new_drives(x[sel], types[sel], drive[sel], o, kd, max_offset_m=max_offset_m, gap_m=gap_m)
         known[d] = True
+    # Second sweep: every drive again against all others, so early drives (matched against few
+    # clusters) can move to a better-supported place.
+    for _ in range(n_sweeps):
+        for d in order:
+            if cnt[d] == 0:
+                continue
+            kd = known.copy()
+            kd[d] = False
+            o = match_new_drives(x, types, drive, o, kd, max_offset_m=max_offset_m, gap_m=gap_m)
     return o
 
 
@@ -572,6 +650,8 @@ def align_step(
     *,
     config: AlignmentConfig,
     prior: np.ndarray | None = None,
+    init: np.ndarray | None = None,
+    recheck: bool = False,
 ) -> StepAlignment:
     """EM lateral offset estimation at one step (Sec. IV-B).
 
@@ -581,6 +661,9 @@ def align_step(
         drive: (M,) local drive codes 0..D-1 (D = max + 1).
         config: EM options.
         prior: optional (D,) prior offsets (NaN where unknown), e.g. the previous step's.
+        init: optional (D,) start offsets (NaN where unknown) for drives without a prior, e.g.
+            remembered from earlier pivots; used to start from, not as a prior.
+        recheck: with "auto", first move drives locked onto a wrong place (``recheck_offsets``).
 
     Returns:
         The offsets, final labels and silhouette gate decision.
@@ -593,6 +676,10 @@ def align_step(
     known = np.zeros(n_drives, dtype=bool) if prior is None else np.isfinite(prior)
     if prior is not None:
         o = np.where(known, prior, 0.0)
+    if init is not None:
+        fill = ~known & np.isfinite(init)
+        o = np.where(fill, init, o)
+        known = known | fill
     if config.clustering != "auto" or not config.estimate_offsets:
         return _em(x, types, drive, o, prior, method=config.clustering if config.clustering != "auto" else "gap", config=config)
     # Tracking: drives carried over from the previous step keep their offsets, new ones are
@@ -603,6 +690,13 @@ def align_step(
     if known.any():
         if not known.all():
             o = match_new_drives(x, types, drive, o, known, max_offset_m=config.max_offset_m, gap_m=config.gap_split_m)
+        if recheck:
+            o2 = recheck_offsets(x, types, drive, o, max_offset_m=config.max_offset_m, gap_m=config.gap_split_m)
+            moved = o2 != o
+            if moved.any():
+                o = o2
+                if prior is not None:  # a moved drive must not be pulled back by its prior
+                    prior = np.where(moved, np.nan, prior)
         res = _em(x, types, drive, o, prior, method="gap", config=config)
         if res.valid:
             return res

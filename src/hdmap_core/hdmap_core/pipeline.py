@@ -47,6 +47,8 @@ _PRESETS = ("paper", "default", "naive")
 ProgressFn = Callable[[str, int, int], None]
 
 _EMPTY_F = np.zeros(0)
+# Tracked offsets are re-checked for lane-periodic lock-in every this many steps (10 m).
+_RECHECK_EVERY_STEPS = 5
 _EMPTY_I = np.zeros(0, dtype=np.int64)
 
 
@@ -96,7 +98,7 @@ class PipelineConfig:
                 n_iterations=4,
                 prior_weight=1.0,
                 robust_loss=True,
-                min_cluster_drives=1,
+                min_cluster_drives=2,
                 # Labels are fixed in the M-step and the closed form minimises the variance; the
                 # penalty would only push apart clusters of one feature split by a gap.
                 penalty_lm_threshold=2.0,
@@ -104,7 +106,7 @@ class PipelineConfig:
             final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
             return cls(
                 alignment=fast,
-                aggregation=AggregationConfig(kde_bandwidth_factor=1.0),
+                aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15),
                 use_global_adjustment=True,
                 final_alignment=final,
                 name="default",
@@ -222,6 +224,47 @@ class _Counters:
     valid: int = 0
 
 
+class _OffsetMemory:
+    """Offsets of drives from accepted steps of earlier pivots, by the drive's own distance.
+
+    A drive entering a step without an offset carried along the current pivot starts from the
+    offset it had nearby (within ``reach_m``) through an earlier pivot, instead of being
+    registered from scratch (which can lock a drive that sees only dashed lines onto the
+    neighbouring lane).
+    """
+
+    def __init__(self, n_drives: int, *, reach_m: float = 50.0) -> None:
+        self.reach_m = reach_m
+        self._s: list[list[np.ndarray]] = [[] for _ in range(n_drives)]
+        self._o: list[list[np.ndarray]] = [[] for _ in range(n_drives)]
+        self._sorted: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def add(self, drive: np.ndarray, s_m: np.ndarray, offset_m: np.ndarray) -> None:
+        for d in np.unique(drive):
+            sel = drive == d
+            self._s[int(d)].append(s_m[sel])
+            self._o[int(d)].append(offset_m[sel])
+            self._sorted.pop(int(d), None)
+
+    def lookup(self, uniq: np.ndarray, sample_s: np.ndarray, local: np.ndarray) -> np.ndarray:
+        out = np.full(len(uniq), np.nan)
+        for k, d in enumerate(uniq.tolist()):
+            if not self._s[d]:
+                continue
+            if d not in self._sorted:
+                s_all = np.concatenate(self._s[d])
+                o_all = np.concatenate(self._o[d])
+                order = np.argsort(s_all)
+                self._sorted[d] = (s_all[order], o_all[order])
+            s_all, o_all = self._sorted[d]
+            s = float(sample_s[local == k].mean())
+            i = int(np.clip(np.searchsorted(s_all, s), 1, len(s_all) - 1)) if len(s_all) > 1 else 0
+            j = i - 1 if i > 0 and abs(s_all[i - 1] - s) < abs(s_all[i] - s) else i
+            if abs(s_all[j] - s) <= self.reach_m:
+                out[k] = o_all[j]
+        return out
+
+
 def _placeholder(pivot_id: str, q: int, ps: PivotSamples, *, processed: bool, drive_ids: tuple[str, ...] = ()) -> StepResult:
     return StepResult(
         pivot_id=pivot_id,
@@ -250,6 +293,7 @@ def _run_pivot(
     shift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
     observations: list[StepObservations] | None,
     counters: _Counters,
+    memory: _OffsetMemory | None = None,
 ) -> tuple[Segment, np.ndarray, np.ndarray]:
     """Stages 2-4 along one pivot. Returns (segment, marked drive indices, their s [m]).
 
@@ -272,6 +316,9 @@ def _run_pivot(
     cdrv: list[np.ndarray] = []
     cds: list[np.ndarray] = []
     base = 0
+    mem_d: list[np.ndarray] = []
+    mem_s: list[np.ndarray] = []
+    mem_o: list[np.ndarray] = []
     for q in np.flatnonzero(~ps.skipped):
         a, b = int(ps.ptr[q]), int(ps.ptr[q + 1])
         if b - a < 2:
@@ -279,7 +326,10 @@ def _run_pivot(
         x, ty, dg = ps.lateral_m[a:b], ps.types[a:b], ps.drive[a:b]
         uniq, local = np.unique(dg, return_inverse=True)
         prior = prev[uniq] if use_prior else None
-        al = align_step(x, ty, local, config=alignment, prior=prior)
+        init = None
+        if memory is not None and prior is not None and np.isnan(prior).any():
+            init = memory.lookup(uniq, ps.drive_s_m[a:b], local)
+        al = align_step(x, ty, local, config=alignment, prior=prior, init=init, recheck=bool(q % _RECHECK_EVERY_STEPS == 0))
         step_ids[q] = tuple(ids[uniq])
         if not al.valid:
             continue
@@ -287,6 +337,12 @@ def _run_pivot(
         prev[uniq] = al.offsets_m
         lab = np.where(al.labels >= 0, al.labels + base, -1)
         base += int(al.labels.max()) + 1
+        if memory is not None:
+            cnt = np.bincount(local, minlength=len(uniq))
+            s_mean = np.bincount(local, weights=ps.drive_s_m[a:b], minlength=len(uniq)) / np.maximum(cnt, 1)
+            mem_d.append(uniq)
+            mem_s.append(s_mean)
+            mem_o.append(al.offsets_m)
         cx.append(x + al.offsets_m[local])
         cstep.append(np.full(b - a, q))
         clab.append(lab)
@@ -308,6 +364,8 @@ def _run_pivot(
                     offsets_m=al.offsets_m[local],
                 )
             )
+    if memory is not None and mem_d:
+        memory.add(np.concatenate(mem_d), np.concatenate(mem_s), np.concatenate(mem_o))
     if cx:
         xs, st, lb, ty, dv, ds = (np.concatenate(v) for v in (cx, cstep, clab, ctyp, cdrv, cds))
         agg = aggregate_many(xs, st, lb, ty, dv, config=config.aggregation)
@@ -382,12 +440,14 @@ def _run_pass(
 ) -> tuple[list[Segment], ProcessedStore]:
     segments: list[Segment] = []
     step_m = config.sampling.step_m
+    memory = _OffsetMemory(len(drives)) if (alignment.clustering == "auto" and alignment.estimate_offsets) else None
     for n_done, di in enumerate(order):
         pivot = drives[int(di)]
         s, _, _ = pivot_walk(pivot, step_m=step_m)
         skip = processed.contains(pivot.drive_id, s)
         seg, md, ms = _run_pivot(
-            index, pivot, skip, config=config, alignment=alignment, shift=shift, observations=observations, counters=counters
+            index, pivot, skip, config=config, alignment=alignment, shift=shift, observations=observations, counters=counters,
+            memory=memory,
         )
         segments.append(seg)
         if len(md):
