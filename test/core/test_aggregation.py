@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_step, kde_maxima
+from hdmap_core.aggregation import (
+    AggregationConfig,
+    ProcessedStore,
+    aggregate_many,
+    aggregate_step,
+    gaussian_overlap,
+    kde_maxima,
+)
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 
@@ -79,3 +86,30 @@ def test_config_checks():
         AggregationConfig(method="median")
     with pytest.raises(ConfigError):
         AggregationConfig(overlap_threshold=1.5)
+
+
+@pytest.mark.parametrize(("mu2", "s1", "s2"), [(0.5, 0.2, 0.2), (0.5, 0.2, 0.4), (1.0, 0.3, 0.1), (0.0, 0.2, 0.5), (3.0, 0.2, 0.3)])
+def test_gaussian_overlap_equals_numeric_integral(mu2, s1, s2):
+    grid = np.linspace(-6, 9, 200001)
+    p = np.exp(-0.5 * (grid / s1) ** 2) / (s1 * np.sqrt(2 * np.pi))
+    q = np.exp(-0.5 * ((grid - mu2) / s2) ** 2) / (s2 * np.sqrt(2 * np.pi))
+    want = np.minimum(p, q).sum() * (grid[1] - grid[0])
+    assert float(gaussian_overlap(0.0, s1, mu2, s2)) == pytest.approx(want, abs=1e-4)
+
+
+def test_aggregate_many_equals_per_step():
+    rng = np.random.default_rng(8)
+    parts = []
+    for step in range(5):
+        centres = np.array([-5.25, -1.75, 1.75, 5.25]) + rng.normal(0, 0.1)
+        for c, (mu, t) in enumerate(zip(centres, (1, 2, 2, 1))):
+            n = int(rng.integers(3, 9))
+            parts.append((rng.normal(mu, 0.08, n), np.full(n, step), np.full(n, step * 10 + c), np.full(n, t), np.arange(n)))
+    x, st, lab, ty, dr = (np.concatenate(v) for v in zip(*parts))
+    cfg = AggregationConfig(kde_bandwidth_factor=1.0)
+    many = aggregate_many(x, st, lab, ty, dr, config=cfg)
+    for step in range(5):
+        sel = st == step
+        one = aggregate_step(x[sel], lab[sel], ty[sel], dr[sel], config=cfg)
+        np.testing.assert_allclose(many.lateral_m[many.step == step], one.lateral_m, atol=1e-9)
+        np.testing.assert_array_equal(many.counts[many.step == step], one.counts)

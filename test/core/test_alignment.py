@@ -13,6 +13,8 @@ from hdmap_core.alignment import (
     align_step,
     cluster_type,
     kmeans_1d_all_k,
+    recheck_offsets,
+    register_drives,
     silhouette_samples_1d,
     solve_offsets,
     step_silhouette,
@@ -144,3 +146,46 @@ def test_fast_silhouette_equals_sklearn_per_type():
     # A type with a single cluster does not count.
     x2 = np.concatenate([x, [20.0, 20.1]])
     assert step_silhouette(x2, np.concatenate([labels, [4, 4]]), np.concatenate([types, [3, 3]])) == pytest.approx(want.mean())
+
+
+def _road_step(errors, *, seed=0, noise=0.03):
+    """A step of a 3-lane road: drive d sees every line shifted by errors[d] (+ noise)."""
+    rng = np.random.default_rng(seed)
+    lines = np.array([-6.5, -5.25, -1.75, 1.75, 5.25, 6.5])
+    ltypes = np.array([3, 1, 2, 2, 1, 3])
+    lat, types, drive = [], [], []
+    for d, e in enumerate(errors):
+        lat.append(lines + e + rng.normal(0, noise, len(lines)))
+        types.append(ltypes)
+        drive.append(np.full(len(lines), d))
+    return np.concatenate(lat), np.concatenate(types), np.concatenate(drive)
+
+
+def test_register_drives_without_prior_recovers_large_errors():
+    errors = np.array([0.0, 1.9, -2.2, 0.7, -1.2, 2.6])  # several beyond half a lane (1.75 m)
+    lat, types, drive = _road_step(errors)
+    o = register_drives(lat, types, drive, len(errors), max_offset_m=5.0, gap_m=1.0)
+    np.testing.assert_allclose(o - o[0], -(errors - errors[0]), atol=0.15)
+
+
+def test_recheck_moves_a_lane_locked_drive_back():
+    errors = np.array([0.3, -0.4, 0.1, 0.5, -0.2, 0.0, 0.2])
+    lat, types, drive = _road_step(errors, seed=3)
+    good = -errors
+    locked = good.copy()
+    locked[2] += 3.5  # drive 2 tracked one lane off: its dashed lines sit on the others' dashed
+    o = recheck_offsets(lat, types, drive, locked, max_offset_m=5.0, gap_m=1.0)
+    np.testing.assert_allclose(o, good, atol=0.1)
+    # Drives in the right place stay exactly where they are.
+    np.testing.assert_array_equal(np.delete(o, 2), np.delete(locked, 2))
+
+
+def test_tracked_step_with_prior_and_new_drive():
+    errors = np.array([0.3, -0.4, 0.1, 0.5, -0.2, 1.8])
+    lat, types, drive = _road_step(errors, seed=5)
+    prior = -errors.copy()
+    prior[5] = np.nan  # a drive that just joined
+    cfg = AlignmentConfig(clustering="auto", solver="closed_form", prior_weight=1.0, remove_drift=False)
+    res = align_step(lat, types, drive, config=cfg, prior=prior)
+    assert res.valid
+    np.testing.assert_allclose(res.offsets_m, -errors, atol=0.08)

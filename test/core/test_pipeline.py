@@ -47,7 +47,6 @@ def test_map_segments_recovers_lines(fleet, preset):
     valid = [st for seg in segs for st in seg.steps if st.valid]
     assert len(valid) > 80
     truth = np.array(sorted(lat for lat, _ in LINES))
-    common = -np.mean(BIASES)  # the map keeps the fleet's mean error at most
     n_exact = 0
     for st in valid:
         # Lateral positions relative to the road centre (the pivot's cut midpoint is not on it).
@@ -58,16 +57,17 @@ def test_map_segments_recovers_lines(fleet, preset):
             np.testing.assert_allclose(rel, truth - truth.mean(), atol=tol)
             np.testing.assert_array_equal(st.types, [t for _, t in sorted(LINES)])
     assert n_exact > 0.8 * len(valid) if preset != "naive" else n_exact > 0
-    assert np.isfinite(common)
 
 
-def test_offset_correction_beats_naive_on_spread(fleet):
-    def spread(preset):
+def test_corrected_road_width_beats_naive(fleet):
+    # Border to border is 13 m; without offset correction the outer clusters are smeared.
+    def width_error(preset):
         segs = map_segments(fleet, config=PipelineConfig.preset(preset), seed=0)
-        w = [st.lateral_m.max() - st.lateral_m.min() for seg in segs for st in seg.steps if st.valid and len(st.lateral_m) == 6]
+        w = [st.lateral_m.max() - st.lateral_m.min() for seg in segs for st in seg.steps if st.valid]
         return abs(np.mean(w) - 13.0)
 
-    assert spread("default") < 0.1
+    assert width_error("default") < 0.1
+    assert width_error("paper") < 0.1
 
 
 def test_processed_stretches_are_skipped(fleet):
