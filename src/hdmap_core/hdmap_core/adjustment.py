@@ -69,6 +69,15 @@ class AdjustConfig:
             samples farther than this from their cluster then are dropped as wrong associations
             (e.g. a drive associated one lane off over a stretch, which a curve would follow).
             0 = off.
+        reassociate_rounds: 0 = use the observations' cluster labels as given. > 0: first
+            re-associate every sample to the nearest cluster centre of its step and type by raw
+            position (centres: medians of the members' raw positions), fit, then this many times
+            re-associate with the fitted offsets applied and fit again (a global EM; it repairs
+            per-step associations that were a lane off).
+        reassociate_gate_m: after a fit, samples farther than this from every centre are dropped.
+        shift_search_m: before each re-association, every drive's offset is searched for a
+            constant shift within +-this (0.1 m grid, truncated-quadratic cost on the nearest
+            centres of the same type): repairs drives associated a whole lane off. 0 = off.
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
             normal matrix; O(p^3) in the number of unknowns p).
         std_max_unknowns: above this many unknowns the std is not computed (left NaN).
@@ -85,6 +94,9 @@ class AdjustConfig:
     iterations: int = 5
     tol_m: float = 2e-3
     coarse_reject_m: float = 1.5
+    reassociate_rounds: int = 2
+    reassociate_gate_m: float = 1.0
+    shift_search_m: float = 4.5
     compute_std: bool = True
     std_max_unknowns: int = 4000
 
@@ -100,6 +112,8 @@ class AdjustConfig:
             raise ConfigError(f"AdjustConfig.drift_sigma_m must be finite and >= 0, got {self.drift_sigma_m!r}")
         if self.loss not in _LOSSES:
             raise ConfigError(f"AdjustConfig.loss must be one of {_LOSSES}, got {self.loss!r}")
+        if self.reassociate_rounds < 0 or not self.reassociate_gate_m > 0:
+            raise ConfigError("AdjustConfig.reassociate_rounds must be >= 0 and reassociate_gate_m > 0")
         if self.iterations < 1 or self.huber_warmup_iterations < 0 or self.std_max_unknowns < 0:
             raise ConfigError(
                 "AdjustConfig.iterations must be >= 1, huber_warmup_iterations and std_max_unknowns >= 0"
@@ -268,19 +282,36 @@ def _jsonable(obj: Any) -> Any:
 
 
 @dataclass(frozen=True)
+class _Pool:
+    """Every finite sample of every readable step (before any cluster filtering)."""
+
+    drive: np.ndarray  # (n,) int drive index into drive_ids
+    drive_ids: tuple[str, ...]
+    s_m: np.ndarray  # (n,) travelled distance
+    lateral_m: np.ndarray  # (n,)
+    step: np.ndarray  # (n,) int step number (position in the observation sequence)
+    ftype: np.ndarray  # (n,) int FeatureType code
+    label: np.ndarray  # (n,) int cluster label from the observations (-1 = none)
+
+
+@dataclass(frozen=True)
 class _Samples:
-    drive: np.ndarray  # (n,) int drive index
+    """The samples one fit uses: in clusters seen by >= 2 drives, indices compacted."""
+
+    drive: np.ndarray  # (n,) int drive index into drive_ids
     s_m: np.ndarray  # (n,) travelled distance
     lateral_m: np.ndarray  # (n,)
     cluster: np.ndarray  # (n,) int global cluster index 0..C-1
     n_clusters: int
     drive_ids: tuple[str, ...]
+    pool_index: np.ndarray  # (n,) position of each sample in the _Pool
+    pool_drive: np.ndarray  # (D,) pool drive index of each drive
 
 
-def _gather(observations: Sequence[Any], stats: dict[str, Any]) -> _Samples:
-    """Concatenate all steps' clustered samples; skip malformed steps, drop non-finite samples."""
+def _gather(observations: Sequence[Any], stats: dict[str, Any]) -> _Pool:
+    """Concatenate all steps' samples; skip malformed steps, drop non-finite samples."""
     drive_lists: list[tuple[str, ...]] = []
-    s_list, lat_list, cl_list, step_list = [], [], [], []
+    s_list, lat_list, cl_list, type_list, step_list = [], [], [], [], []
     problems: list[str] = []
     n_bad_steps = 0
     for j, obs in enumerate(observations):
@@ -289,15 +320,17 @@ def _gather(observations: Sequence[Any], stats: dict[str, Any]) -> _Samples:
             s = np.asarray(obs.drive_s_m, dtype=float).ravel()
             lat = np.asarray(obs.lateral_m, dtype=float).ravel()
             cl = np.asarray(obs.cluster).ravel()
+            ty = np.asarray(obs.types).ravel()
         except (AttributeError, TypeError, ValueError) as err:
             reason = f"unreadable ({err})"
         else:
             m = len(ids)
-            reason = "" if s.size == lat.size == cl.size == m else (
-                f"array lengths differ: drive_ids {m}, drive_s_m {s.size}, lateral_m {lat.size}, cluster {cl.size}"
+            reason = "" if s.size == lat.size == cl.size == ty.size == m else (
+                f"array lengths differ: drive_ids {m}, drive_s_m {s.size}, lateral_m {lat.size}, "
+                f"types {ty.size}, cluster {cl.size}"
             )
-            if not reason and m and cl.dtype.kind not in "iu":
-                reason = f"cluster labels have dtype {cl.dtype}, want integer"
+            if not reason and m and (cl.dtype.kind not in "iu" or ty.dtype.kind not in "iu"):
+                reason = f"cluster labels ({cl.dtype}) and types ({ty.dtype}) must be integers"
         if reason:
             n_bad_steps += 1
             if len(problems) < _MAX_REPORTED_PROBLEMS:
@@ -307,42 +340,144 @@ def _gather(observations: Sequence[Any], stats: dict[str, Any]) -> _Samples:
         s_list.append(s)
         lat_list.append(lat)
         cl_list.append(cl)
+        type_list.append(ty)
         step_list.append(j)
     stats["n_steps"] = len(observations)
     stats["n_steps_skipped"] = n_bad_steps
     stats["problems"] = problems
     if not s_list:
-        stats["n_samples"] = 0
-        return _Samples(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), 0, ())
+        stats["n_samples"] = stats["n_nonfinite_dropped"] = 0
+        e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
+        return _Pool(e_i, (), e_f, e_f, e_i, e_i, e_i)
     s = np.concatenate(s_list)
     lat = np.concatenate(lat_list)
     label = np.concatenate(cl_list).astype(np.int64)
+    ftype = np.concatenate(type_list).astype(np.int64)
     step = np.repeat(np.asarray(step_list, dtype=np.int64), [len(ids) for ids in drive_lists])
     all_ids = [d for ids in drive_lists for d in ids]
     lookup: dict[str, int] = {}
     # index of each drive's first sample: unique per drive, built at C speed
     first = np.fromiter(map(lookup.setdefault, all_ids, range(len(all_ids))), dtype=np.int64, count=len(all_ids))
     stats["n_samples"] = int(s.size)
-
     finite = np.isfinite(s) & np.isfinite(lat)
     stats["n_nonfinite_dropped"] = int((~finite).sum())
-    keep = np.flatnonzero(finite & (label >= 0))
-    cl, _ = _compact(step[keep] * (int(label[keep].max(initial=0)) + 1) + label[keep])
-    # A cluster only carries information when >= 2 different drives are in it.
-    _, first_of_pair = np.unique(cl * s.size + first[keep], return_index=True)
-    n_drives_in = np.bincount(cl[first_of_pair], minlength=int(cl.max(initial=-1)) + 1)
-    inf = keep[n_drives_in[cl] >= 2]
-    cl, n_clusters = _compact(cl[n_drives_in[cl] >= 2])
-    drive, used_first = _compact(first[inf], return_values=True)
-    stats["n_samples_used"] = int(inf.size)
+    drive, firsts = _compact(first[finite], return_values=True)
+    return _Pool(drive, tuple(all_ids[i] for i in firsts), s[finite], lat[finite], step[finite], ftype[finite],
+                 label[finite])
+
+
+def _select(pool: _Pool, label: np.ndarray) -> _Samples:
+    """The samples with a label, in clusters seen by >= 2 different drives (others carry no information)."""
+    keep = np.flatnonzero(label >= 0)
+    cl, n_cl = _compact(pool.step[keep] * (int(label[keep].max(initial=0)) + 1) + label[keep])
+    _, first_of_pair = np.unique(cl * max(len(pool.drive_ids), 1) + pool.drive[keep], return_index=True)
+    n_drives_in = np.bincount(cl[first_of_pair], minlength=n_cl)
+    informative = n_drives_in[cl] >= 2
+    used = keep[informative]
+    cl, n_clusters = _compact(cl[informative])
+    drive, pool_drive = _compact(pool.drive[used], return_values=True)
     return _Samples(
         drive=drive,
-        s_m=s[inf],
-        lateral_m=lat[inf],
+        s_m=pool.s_m[used],
+        lateral_m=pool.lateral_m[used],
         cluster=cl,
         n_clusters=n_clusters,
-        drive_ids=tuple(all_ids[i] for i in used_first),
+        drive_ids=tuple(pool.drive_ids[i] for i in pool_drive),
+        pool_index=used,
+        pool_drive=np.asarray(pool_drive, dtype=np.int64),
     )
+
+
+@dataclass(frozen=True)
+class _Centres:
+    """Cluster centres of all steps, sorted by (step, type) group then position."""
+
+    key: np.ndarray  # (K,) sort key: group * span + position + span / 2
+    group: np.ndarray  # (K,) step * n_types + type
+    pos: np.ndarray  # (K,) centre position along the cut [m]
+    label: np.ndarray  # (K,) cluster label within its step
+    n_types: int
+    span: float
+
+
+def _centres(pool: _Pool, label: np.ndarray, v: np.ndarray) -> _Centres | None:
+    """Centres (median of the members' positions ``v``) of the clusters of ``label``."""
+    have = np.flatnonzero(label >= 0)
+    if have.size == 0:
+        return None
+    g, n_g = _compact(pool.step[have] * (int(label[have].max()) + 1) + label[have])
+    order = have[np.lexsort((v[have], g))]
+    starts = np.searchsorted(np.sort(g), np.arange(n_g))
+    mid = order[starts + np.bincount(g, minlength=n_g) // 2]
+    n_types = int(pool.ftype.max(initial=0)) + 1
+    span = 2.0 * float(np.abs(v).max(initial=0.0)) + 20.0
+    group = pool.step[mid] * n_types + pool.ftype[mid]
+    key = group * span + (v[mid] + span / 2)
+    o = np.argsort(key)
+    return _Centres(key[o], group[o], v[mid][o], label[mid][o], n_types, span)
+
+
+def _nearest(cen: _Centres, step: np.ndarray, ftype: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Label of and distance to the nearest centre of the same step and type (-1, inf if none)."""
+    grp = step * cen.n_types + ftype
+    idx = np.searchsorted(cen.key, grp * cen.span + (v + cen.span / 2))
+    best = np.full(v.shape, -1, dtype=np.int64)
+    best_d = np.full(v.shape, np.inf)
+    for cand in (idx - 1, idx):
+        cc = np.clip(cand, 0, cen.key.size - 1)
+        ok = (cand >= 0) & (cand < cen.key.size) & (cen.group[cc] == grp)
+        d = np.where(ok, np.abs(v - cen.pos[cc]), np.inf)
+        better = d < best_d
+        best[better], best_d[better] = cen.label[cc[better]], d[better]
+    return best, best_d
+
+
+def _reassociate(pool: _Pool, label: np.ndarray, offset: np.ndarray, *, gate_m: float) -> np.ndarray:
+    """New cluster labels: each sample joins the nearest cluster centre of its step and type.
+
+    Centres are the medians of the corrected positions ``lateral + offset`` of each current
+    cluster's members; a sample farther than ``gate_m`` from every centre gets -1. Labels stay
+    unique within a step (a centre keeps its cluster's label). Vectorised over all steps.
+    """
+    v = pool.lateral_m + offset
+    cen = _centres(pool, label, v)
+    if cen is None:
+        return label.copy()
+    best, dist = _nearest(cen, pool.step, pool.ftype, v)
+    return np.where(dist <= gate_m, best, -1).astype(np.int64)
+
+
+def _lane_shift_search(pool: _Pool, label: np.ndarray, offset: np.ndarray, model: OffsetModel,
+                       cfg: AdjustConfig) -> np.ndarray:
+    """(D,) constant correction per pool drive that best fits the cluster centres [m].
+
+    Per drive, a grid of shifts c in [-shift_search_m, shift_search_m] is scored with a truncated
+    quadratic: sum_i min(d_i(c), gate)^2 / noise^2 + (bias + c)^2 / bias_sigma^2, d_i the distance
+    of the shifted sample to the nearest centre of its step and type. Unlike IRLS this sees the
+    samples that a lane-off association rejects (borders, solid lines of the other type), so a
+    drive associated one lane off over its whole length snaps back. At most 400 samples per drive.
+    """
+    v = pool.lateral_m + offset
+    cen = _centres(pool, label, v)
+    n_d = len(pool.drive_ids)
+    if cen is None or cfg.shift_search_m <= 0:
+        return np.zeros(n_d)
+    order = np.argsort(pool.drive, kind="stable")
+    bounds = np.searchsorted(pool.drive[order], np.arange(n_d + 1))
+    picks = [order[b0:b1][:: max(1, (b1 - b0) // 400)] for b0, b1 in zip(bounds[:-1], bounds[1:])]
+    sel = np.concatenate(picks) if picks else np.zeros(0, np.int64)
+    grid = np.arange(-cfg.shift_search_m, cfg.shift_search_m + 1e-9, 0.1)
+    vv = v[sel][:, None] + grid[None, :]
+    _, dist = _nearest(cen, pool.step[sel][:, None], pool.ftype[sel][:, None], vv)
+    cost_s = np.minimum(dist, cfg.reassociate_gate_m) ** 2 / cfg.noise_sigma_m**2
+    cost = np.zeros((n_d, grid.size))
+    np.add.at(cost, pool.drive[sel], cost_s)
+    bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
+    cost += (bias[:, None] + grid[None, :]) ** 2 / cfg.bias_sigma_m**2
+    best = grid[np.argmin(cost, axis=1)]
+    # keep the current solution unless a shift is clearly better (a lane, not a nudge)
+    at_zero = cost[:, np.argmin(np.abs(grid))]
+    return np.where((np.abs(best) >= 1.0) & (cost.min(axis=1) < at_zero - 10.0), best, 0.0)
 
 
 def _compact(key: np.ndarray, *, return_values: bool = False) -> tuple[np.ndarray, Any]:
@@ -531,23 +666,32 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     """
     cfg = config
     stats: dict[str, Any] = {}
-    samples = _gather(observations, stats)
+    pool = _gather(observations, stats)
     base = dict(knot_spacing_m=cfg.knot_spacing_m, correlation_length_m=cfg.correlation_length_m,
                 drift_sigma_m=cfg.drift_sigma_m, bias_sigma_m=cfg.bias_sigma_m)
-    if samples.s_m.size == 0:
-        stats.update(n_samples_used=0, n_drives=0, n_unknowns=0, iterations=0)
+    label = pool.label
+    if cfg.reassociate_rounds > 0:
+        # RULE association from the prior: a drive's raw samples lie within its localization
+        # error (~1 m) of the truth, so the nearest cluster centre (median of the members' raw
+        # positions) is an association that no per-step EM lane shift can bias.
+        label = _reassociate(pool, label, np.zeros(pool.s_m.size), gate_m=np.inf)
+    samples, fit, keep = _fit_all(pool, label, cfg)
+    n_shifted = 0
+    for _ in range(cfg.reassociate_rounds):
+        if fit is None:
+            break
+        model = OffsetModel(**base, drives=_curves(samples, fit.layout, fit.theta, None))
+        offset = _pool_offsets(pool, model)
+        shift = _lane_shift_search(pool, label, offset, model, cfg)
+        n_shifted += int(np.count_nonzero(shift))
+        label = _reassociate(pool, label, offset + shift[pool.drive], gate_m=cfg.reassociate_gate_m)
+        samples, fit, keep = _fit_all(pool, label, cfg)
+    stats["n_samples_used"] = int(samples.s_m.size)
+    stats["lane_shifts"] = n_shifted
+    stats["relabelled_fraction"] = float(np.mean(label != pool.label)) if label.size else 0.0
+    if fit is None:
+        stats.update(n_drives=0, n_unknowns=0, iterations=0)
         return OffsetModel(**base, stats=stats)
-    keep = np.ones(samples.s_m.size, dtype=bool)
-    if cfg.coarse_reject_m > 0 and cfg.drift_sigma_m > 0:
-        # RULE coarse-to-fine: a drive whose per-step association was a lane off over a stretch
-        # gives samples that agree with each other but not with the rest of the drive. A curve
-        # would follow them; one constant per drive does not, so they stand out here and are
-        # dropped before the curve is fitted.
-        coarse = replace(cfg, drift_sigma_m=0.0, bias_sigma_m=float(np.hypot(cfg.bias_sigma_m, cfg.drift_sigma_m)),
-                         loss="huber", iterations=min(cfg.iterations, 3))
-        fit0 = _irls(samples, coarse, keep)
-        keep = np.abs(fit0.residual) <= cfg.coarse_reject_m
-    fit = _irls(samples, cfg, keep)
     r, info, lay = fit.residual, fit.info, fit.layout
     inlier = keep & (np.abs(r) <= cfg.robust_k * cfg.noise_sigma_m)
     stats.update(
@@ -566,6 +710,34 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         cov = _covariance_parts(h, lay)
     stats["std_computed"] = cov is not None
     return OffsetModel(**base, drives=_curves(samples, lay, theta, cov), stats=stats)
+
+
+def _fit_all(pool: _Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[_Samples, _Fit | None, np.ndarray]:
+    """Select the informative samples of ``label`` and fit them (coarse stage, then curves)."""
+    samples = _select(pool, label)
+    keep = np.ones(samples.s_m.size, dtype=bool)
+    if samples.s_m.size == 0:
+        return samples, None, keep
+    if cfg.coarse_reject_m > 0 and cfg.drift_sigma_m > 0:
+        # RULE coarse-to-fine: a drive associated a lane off over a stretch gives samples that
+        # agree with each other but not with the rest of the drive. A curve would follow them;
+        # one constant per drive does not, so they stand out here and are dropped.
+        coarse = replace(cfg, drift_sigma_m=0.0, bias_sigma_m=float(np.hypot(cfg.bias_sigma_m, cfg.drift_sigma_m)),
+                         loss="huber", iterations=min(cfg.iterations, 3))
+        keep = np.abs(_irls(samples, coarse, keep).residual) <= cfg.coarse_reject_m
+    return samples, _irls(samples, cfg, keep), keep
+
+
+def _pool_offsets(pool: _Pool, model: OffsetModel) -> np.ndarray:
+    """(n,) offset of every pool sample under ``model`` (0 for drives it does not know)."""
+    out = np.zeros(pool.s_m.size)
+    order = np.argsort(pool.drive, kind="stable")
+    bounds = np.searchsorted(pool.drive[order], np.arange(len(pool.drive_ids) + 1))
+    for d, did in enumerate(pool.drive_ids):  # one vectorised call per drive (~100s)
+        part = order[bounds[d]:bounds[d + 1]]
+        if part.size and did in model.drives:
+            out[part] = model.offset(did, pool.s_m[part])
+    return out
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,7 @@ class ChainSimConfig:
         line_offsets_m: lateral positions of the lines (+ = left).
         line_types: FeatureType code of each line.
         detect_prob: probability that a drive observes a line at a step.
+        line_detect_prob: per-line probabilities instead (empty = ``detect_prob`` for all).
         bias_sigma_m: sigma of the constant lateral bias per drive.
         zero_mean_bias: subtract the fleet mean from the drawn biases (gauge test).
         drift_sigma_m: stationary sigma of the Gauss-Markov drift (0 = none).
@@ -68,6 +69,7 @@ class ChainSimConfig:
         int(FeatureType.ROAD_BORDER),
     )
     detect_prob: float = 0.7
+    line_detect_prob: tuple[float, ...] = ()
     bias_sigma_m: float = 1.0
     zero_mean_bias: bool = False
     drift_sigma_m: float = 0.3
@@ -166,7 +168,8 @@ def simulate_step_observations(
         present = np.flatnonzero((starts <= u) & (u <= starts + lengths))
         if present.size == 0:
             continue
-        seen = rng.random((present.size, n_lines)) < cfg.detect_prob
+        seen = rng.random((present.size, n_lines)) < (np.asarray(cfg.line_detect_prob) if cfg.line_detect_prob
+                                                        else cfg.detect_prob)
         di, li = np.nonzero(seen)
         drv = present[di]
         s = s0[drv] + (u - starts[drv])
