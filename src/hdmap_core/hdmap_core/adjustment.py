@@ -76,7 +76,7 @@ class AdjustConfig:
             per-step associations that were a lane off).
         reassociate_gate_m: after a fit, samples farther than this from every centre are dropped.
         shift_search_m: before each re-association, every drive's offset is searched for a
-            constant shift within +-this (0.1 m grid, truncated-quadratic cost on the nearest
+            constant shift within +-this (0.25 m grid, truncated-quadratic cost on the nearest
             centres of the same type): repairs drives associated a whole lane off. 0 = off.
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
             normal matrix; O(p^3) in the number of unknowns p).
@@ -406,9 +406,10 @@ def _centres(pool: _Pool, label: np.ndarray, v: np.ndarray) -> _Centres | None:
     if have.size == 0:
         return None
     g, n_g = _compact(pool.step[have] * (int(label[have].max()) + 1) + label[have])
-    order = have[np.lexsort((v[have], g))]
-    starts = np.searchsorted(np.sort(g), np.arange(n_g))
-    mid = order[starts + np.bincount(g, minlength=n_g) // 2]
+    width = 2.0 * float(np.abs(v[have]).max()) + 1.0
+    o = np.argsort(g * width + (v[have] + width / 2))  # by cluster, then position
+    starts = np.concatenate([[0], np.cumsum(np.bincount(g, minlength=n_g))[:-1]])
+    mid = have[o][starts + np.bincount(g, minlength=n_g) // 2]
     n_types = int(pool.ftype.max(initial=0)) + 1
     span = 2.0 * float(np.abs(v).max(initial=0.0)) + 20.0
     group = pool.step[mid] * n_types + pool.ftype[mid]
@@ -432,22 +433,22 @@ def _nearest(cen: _Centres, step: np.ndarray, ftype: np.ndarray, v: np.ndarray) 
     return best, best_d
 
 
-def _reassociate(pool: _Pool, label: np.ndarray, offset: np.ndarray, *, gate_m: float) -> np.ndarray:
+def _reassociate(pool: _Pool, label: np.ndarray, offset: np.ndarray, cen: _Centres | None, *,
+                 gate_m: float) -> np.ndarray:
     """New cluster labels: each sample joins the nearest cluster centre of its step and type.
 
-    Centres are the medians of the corrected positions ``lateral + offset`` of each current
-    cluster's members; a sample farther than ``gate_m`` from every centre gets -1. Labels stay
-    unique within a step (a centre keeps its cluster's label). Vectorised over all steps.
+    ``cen``: the current clusters' centres (``_centres``); a sample whose corrected position
+    ``lateral + offset`` is farther than ``gate_m`` from every centre gets -1. Labels stay unique
+    within a step (a centre keeps its cluster's label). Vectorised over all steps.
     """
     v = pool.lateral_m + offset
-    cen = _centres(pool, label, v)
     if cen is None:
         return label.copy()
     best, dist = _nearest(cen, pool.step, pool.ftype, v)
     return np.where(dist <= gate_m, best, -1).astype(np.int64)
 
 
-def _lane_shift_search(pool: _Pool, label: np.ndarray, offset: np.ndarray, model: OffsetModel,
+def _lane_shift_search(pool: _Pool, cen: _Centres | None, offset: np.ndarray, model: OffsetModel,
                        cfg: AdjustConfig) -> np.ndarray:
     """(D,) constant correction per pool drive that best fits the cluster centres [m].
 
@@ -458,15 +459,15 @@ def _lane_shift_search(pool: _Pool, label: np.ndarray, offset: np.ndarray, model
     drive associated one lane off over its whole length snaps back. At most 400 samples per drive.
     """
     v = pool.lateral_m + offset
-    cen = _centres(pool, label, v)
     n_d = len(pool.drive_ids)
     if cen is None or cfg.shift_search_m <= 0:
         return np.zeros(n_d)
     order = np.argsort(pool.drive, kind="stable")
     bounds = np.searchsorted(pool.drive[order], np.arange(n_d + 1))
-    picks = [order[b0:b1][:: max(1, (b1 - b0) // 400)] for b0, b1 in zip(bounds[:-1], bounds[1:])]
+    picks = [order[b0:b1][:: max(1, (b1 - b0) // 200)] for b0, b1 in zip(bounds[:-1], bounds[1:])]
     sel = np.concatenate(picks) if picks else np.zeros(0, np.int64)
-    grid = np.arange(-cfg.shift_search_m, cfg.shift_search_m + 1e-9, 0.1)
+    # 0.25 m is fine enough to tell lanes apart; the fit that follows refines the offset
+    grid = np.arange(-cfg.shift_search_m, cfg.shift_search_m + 1e-9, 0.25)
     vv = v[sel][:, None] + grid[None, :]
     _, dist = _nearest(cen, pool.step[sel][:, None], pool.ftype[sel][:, None], vv)
     cost_s = np.minimum(dist, cfg.reassociate_gate_m) ** 2 / cfg.noise_sigma_m**2
@@ -670,21 +671,28 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     base = dict(knot_spacing_m=cfg.knot_spacing_m, correlation_length_m=cfg.correlation_length_m,
                 drift_sigma_m=cfg.drift_sigma_m, bias_sigma_m=cfg.bias_sigma_m)
     label = pool.label
+    n_shifted = 0
     if cfg.reassociate_rounds > 0:
         # RULE association from the prior: a drive's raw samples lie within its localization
         # error (~1 m) of the truth, so the nearest cluster centre (median of the members' raw
-        # positions) is an association that no per-step EM lane shift can bias.
-        label = _reassociate(pool, label, np.zeros(pool.s_m.size), gate_m=np.inf)
+        # positions) is an association that no per-step EM lane shift can bias. One constant
+        # per drive fitted on it is then enough to re-associate at the gate.
+        label = _reassociate(pool, label, np.zeros(pool.s_m.size), _centres(pool, label, pool.lateral_m),
+                             gate_m=np.inf)
+        samples = _select(pool, label)
+        if samples.s_m.size:
+            coarse = _coarse_config(cfg)
+            fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
+            model = OffsetModel(**base, drives=_curves(samples, fit.layout, fit.theta, None))
+            label, n = _shift_and_reassociate(pool, label, model, cfg)
+            n_shifted += n
     samples, fit, keep = _fit_all(pool, label, cfg)
-    n_shifted = 0
-    for _ in range(cfg.reassociate_rounds):
+    for _ in range(cfg.reassociate_rounds - 1):
         if fit is None:
             break
         model = OffsetModel(**base, drives=_curves(samples, fit.layout, fit.theta, None))
-        offset = _pool_offsets(pool, model)
-        shift = _lane_shift_search(pool, label, offset, model, cfg)
-        n_shifted += int(np.count_nonzero(shift))
-        label = _reassociate(pool, label, offset + shift[pool.drive], gate_m=cfg.reassociate_gate_m)
+        label, n = _shift_and_reassociate(pool, label, model, cfg)
+        n_shifted += n
         samples, fit, keep = _fit_all(pool, label, cfg)
     stats["n_samples_used"] = int(samples.s_m.size)
     stats["lane_shifts"] = n_shifted
@@ -712,6 +720,22 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     return OffsetModel(**base, drives=_curves(samples, lay, theta, cov), stats=stats)
 
 
+def _coarse_config(cfg: AdjustConfig) -> AdjustConfig:
+    """One constant per drive (prior: the total offset variance), Huber, few iterations."""
+    return replace(cfg, drift_sigma_m=0.0, bias_sigma_m=float(np.hypot(cfg.bias_sigma_m, cfg.drift_sigma_m)),
+                   loss="huber", iterations=min(cfg.iterations, 3))
+
+
+def _shift_and_reassociate(pool: _Pool, label: np.ndarray, model: OffsetModel, cfg: AdjustConfig
+                           ) -> tuple[np.ndarray, int]:
+    """Lane-shift search per drive, then re-association at the gate; returns labels and #shifted drives."""
+    offset = _pool_offsets(pool, model)
+    cen = _centres(pool, label, pool.lateral_m + offset)
+    shift = _lane_shift_search(pool, cen, offset, model, cfg)
+    new = _reassociate(pool, label, offset + shift[pool.drive], cen, gate_m=cfg.reassociate_gate_m)
+    return new, int(np.count_nonzero(shift))
+
+
 def _fit_all(pool: _Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[_Samples, _Fit | None, np.ndarray]:
     """Select the informative samples of ``label`` and fit them (coarse stage, then curves)."""
     samples = _select(pool, label)
@@ -722,9 +746,7 @@ def _fit_all(pool: _Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[_Sample
         # RULE coarse-to-fine: a drive associated a lane off over a stretch gives samples that
         # agree with each other but not with the rest of the drive. A curve would follow them;
         # one constant per drive does not, so they stand out here and are dropped.
-        coarse = replace(cfg, drift_sigma_m=0.0, bias_sigma_m=float(np.hypot(cfg.bias_sigma_m, cfg.drift_sigma_m)),
-                         loss="huber", iterations=min(cfg.iterations, 3))
-        keep = np.abs(_irls(samples, coarse, keep).residual) <= cfg.coarse_reject_m
+        keep = np.abs(_irls(samples, _coarse_config(cfg), keep).residual) <= cfg.coarse_reject_m
     return samples, _irls(samples, cfg, keep), keep
 
 
