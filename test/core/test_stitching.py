@@ -362,7 +362,7 @@ def test_spur_at_a_flicker_split_pruned():
     assert g.stats.splits == 1
     m = stitch([g])
     assert len(m.features) == 1 and len(m.features[0].points) == 50
-    assert len(stitch([g], config=StitchConfig(spur_max_m=0.0)).features) == 4
+    assert len(stitch([g], config=StitchConfig(spur_max_m=0.0, bubble_max_m=0.0)).features) == 4
 
 
 def test_loose_end_running_on_another_line_deduplicated():

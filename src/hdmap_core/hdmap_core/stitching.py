@@ -100,6 +100,9 @@ class StitchConfig:
             (single-step specks, false positives) [m].
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
             runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
+        bubble_max_m: of two branches from one split node to one merge node (or a branch beside
+            a direct edge between them) the one with fewer drives is dropped when shorter than
+            this: lanes do not split and rejoin within it [m].
         gore_max_m: a common piece at most this long between a type change and a split into two
             polylines of its type (a gore's lines before they are resolved) is given to both
             branches, so the split sits where the lane line ends (merges alike). 0 disables [m].
@@ -137,6 +140,7 @@ class StitchConfig:
     min_isolated_length_m: float = 20.0
     min_type_run_m: float = 20.0
     spur_max_m: float = 12.0
+    bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
 
     def __post_init__(self) -> None:
@@ -163,6 +167,7 @@ class StitchConfig:
             "min_isolated_length_m",
             "min_type_run_m",
             "spur_max_m",
+            "bubble_max_m",
             "gore_max_m",
         ):
             v = getattr(self, name)
@@ -185,6 +190,7 @@ class StitchConfig:
             fill_spacing_m=0.0,
             min_type_run_m=0.0,
             spur_max_m=0.0,
+            bubble_max_m=0.0,
             gore_max_m=0.0,
         )
 
@@ -865,8 +871,8 @@ def _dedupe_uids(flat: _Flat) -> np.ndarray:
 
 def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
     uid = _dedupe_uids(flat)
-    if cfg.spur_max_m > 0 and flat.n_nodes:
-        keep = _spur_free(flat, uid, cfg.spur_max_m)
+    if (cfg.spur_max_m > 0 or cfg.bubble_max_m > 0) and flat.n_nodes:
+        keep = _spur_free(flat, uid, cfg.spur_max_m, cfg.bubble_max_m)
         if not keep.all():
             flat, uid = _subset_nodes(flat, keep), uid[keep]
     nn = flat.n_nodes
@@ -1052,7 +1058,7 @@ def _gore_junctions(
     return list(byid.values()), topo
 
 
-def _spur_free(flat: _Flat, uid: np.ndarray, spur_max_m: float) -> np.ndarray:
+def _spur_free(flat: _Flat, uid: np.ndarray, spur_max_m: float, bubble_max_m: float) -> np.ndarray:
     """(N,) keep-mask without spurs: short polylines hanging off a split with no successor, or
     into a merge with no predecessor (a feature flickering into view beside another makes a
     split and an immediate dead end). Two rounds, so that a spur's removal can expose another."""
@@ -1076,7 +1082,14 @@ def _spur_free(flat: _Flat, uid: np.ndarray, spur_max_m: float) -> np.ndarray:
             first, last = int(c[0]), int(c[-1])
             if first in into and last in outof and outdeg[into[first]] >= 2 and indeg[outof[last]] >= 2:
                 by_ends.setdefault((into[first], outof[last]), []).append(c)
+        direct = set(map(tuple, cross.tolist()))
         for (u, w), branches in by_ends.items():
+            if (u, w) in direct:  # the other branch is the edge u -> w itself
+                for c in branches:
+                    if float(np.hypot(*np.diff(flat.n_xy[c], axis=0).T).sum()) < bubble_max_m and keep[c].all():
+                        keep[c] = False
+                        killed += 1
+                continue
             if len(branches) < 2:
                 continue
             chord = flat.n_xy[w] - flat.n_xy[u]
@@ -1088,7 +1101,7 @@ def _spur_free(flat: _Flat, uid: np.ndarray, spur_max_m: float) -> np.ndarray:
 
             branches.sort(key=rank)
             for c in branches[1:]:
-                if float(np.hypot(*np.diff(flat.n_xy[c], axis=0).T).sum()) < spur_max_m and keep[c].all():
+                if float(np.hypot(*np.diff(flat.n_xy[c], axis=0).T).sum()) < bubble_max_m and keep[c].all():
                     keep[c] = False
                     killed += 1
         for c in chains:
