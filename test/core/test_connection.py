@@ -272,9 +272,16 @@ def test_input_not_mutated_and_bad_input_rejected(three_lines):
     connect_segment(three_lines)
     for a, st in zip(before, three_lines.steps):
         np.testing.assert_array_equal(a, st.lateral_m)
-    bad = make_step(0, [0.0, 1.0], [S])
-    with pytest.raises(HdmapError, match="types"):
-        connect_segment(Segment("p", (bad,)))
+    # a malformed step is skipped and reported, the rest goes on
+    bad = make_step(5, [0.0, 1.0], [S])
+    nan_mid = StepResult(**{**make_step(6, [0.0], [S]).__dict__, "midpoint": np.array([np.nan, 0.0])})
+    ok = [make_step(i, [0.0], [S]) for i in range(12) if i not in (5, 6)]
+    g = connect_segment(Segment("p", tuple(ok + [bad, nan_mid])))
+    assert g.stats.malformed == 2 and any("types" in p for p in g.stats.problems)
+    assert g.stats.used == 10 and len(g.polylines()) == 1  # bridged over the two skipped steps
+    nan_lat = make_step(3, [0.0, np.nan], [S, D])
+    g = connect_segment(Segment("p", tuple([make_step(i, [0.0], [S]) for i in range(3)] + [nan_lat])))
+    assert g.n_nodes == 4 and np.isfinite(g.node_xy).all()
     with pytest.raises(HdmapError, match="pivot"):
         connect_segment(Segment("q", (make_step(0, [0.0], [S]),)))
     with pytest.raises(ConfigError):

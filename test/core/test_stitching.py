@@ -446,3 +446,12 @@ def test_branch_starting_beside_a_line_joins_it_as_a_split():
     assert all(len(f.successors) < 2 and len(f.predecessors) < 2 for f in m2.features)
     m3 = stitch([conn(main), conn(ramp)], config=StitchConfig(trim_overlap=False, max_distance_m=0.0, branch_lateral_m=0.0))
     assert all(len(f.successors) < 2 for f in m3.features)
+
+
+def test_stitch_rejects_non_graphs_and_handles_empty():
+    with pytest.raises(HdmapError, match="SegmentGraph"):
+        stitch([object()])
+    m = stitch([])
+    assert m.features == () and m.topology == ()
+    m = stitch([conn(Segment("e", ()))])
+    assert m.features == () and m.topology == ()

@@ -131,6 +131,8 @@ class ConnectionStats:
     splits: int = 0
     merges: int = 0
     suppressed: int = 0
+    malformed: int = 0
+    problems: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -486,8 +488,6 @@ class _Steps:
 
 
 def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
-    for st in valid:
-        _check_step(st)
     k = np.array([len(st.lateral_m) for st in valid], dtype=np.int64)
     off = np.concatenate([[0], np.cumsum(k)]).astype(np.int64)
     j_of = np.repeat(np.arange(len(valid)), k)
@@ -606,15 +606,32 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
         The segment's hierarchical graph. Steps that are invalid, processed before, or rejected
         by the angle check get no topology node.
 
+    Malformed steps (arrays of different lengths, non-finite midpoint or heading) are skipped
+    like invalid ones and reported in ``stats.malformed`` / ``stats.problems``; non-finite
+    maxima are dropped.
+
     Raises:
-        HdmapError: a step's arrays disagree in length, its midpoint/heading is not finite, or a
-            step belongs to another pivot.
+        HdmapError: a step belongs to another pivot than the segment.
     """
     steps = sorted(segment.steps, key=lambda s: s.index)
     for st in steps:
         if st.pivot_id != segment.pivot_id:
             raise HdmapError(f"segment {segment.pivot_id!r} holds a step of pivot {st.pivot_id!r}")
     stats = ConnectionStats(steps=len(steps))
+    # a malformed step (arrays of different lengths, non-finite pose) is reported and skipped like
+    # an invalid one: the rest of the segment goes on
+    bad: set[int] = set()
+    for k, st in enumerate(steps):
+        if st.valid and not st.processed_before and len(st.lateral_m):
+            try:
+                _check_step(st)
+            except HdmapError as err:
+                bad.add(k)
+                stats.malformed += 1
+                if len(stats.problems) < 10:
+                    stats.problems.append(str(err))
+    if bad:
+        steps = [replace(st, valid=False) if k in bad else st for k, st in enumerate(steps)]
     valid = [st for st in steps if st.valid and not st.processed_before and len(st.lateral_m)]
     flat = _flatten(valid, config) if valid else None
     b = _Builder(flat) if flat is not None else None

@@ -411,7 +411,11 @@ class MapGraph:
         Returns:
             What was done. Also bumps ``version``.
         """
-        new = sorted(graphs, key=lambda g: g.key)
+        new = list(graphs)
+        for g in new:
+            if not isinstance(g, SegmentGraph):
+                raise HdmapError(f"integrate takes SegmentGraph objects (connection.connect_segment), got {type(g).__name__}")
+        new.sort(key=lambda g: g.key)
         keys = [g.key for g in new]
         if len(set(keys)) != len(keys):
             raise HdmapError(f"integrate got two segment graphs with the same key: {sorted(keys)}")
