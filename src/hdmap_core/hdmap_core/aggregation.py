@@ -36,7 +36,7 @@ class AggregationConfig:
         kde_min_bandwidth_m: lower bound of the bandwidth [m] (a cluster of identical values).
         overlap_filter: drop the smaller of two clusters whose densities overlap.
         overlap_threshold: overlap coefficient in [0, 1] above which clusters are merged (open).
-        grid_points: grid size of the maximum search and the overlap integral per cluster.
+        grid_points: grid size of the coarse maximum search per cluster (mean-shift polishes).
         single_drive_std_m: reported 1-sigma of a maximum supported by one drive [m].
     """
 
@@ -45,7 +45,7 @@ class AggregationConfig:
     kde_min_bandwidth_m: float = 0.02
     overlap_filter: bool = True
     overlap_threshold: float = 0.5
-    grid_points: int = 48
+    grid_points: int = 16
     single_drive_std_m: float = 0.5
 
     def __post_init__(self) -> None:
@@ -76,7 +76,7 @@ class StepAggregate:
     kept_labels: np.ndarray
 
 
-def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 48, n_shift: int = 50) -> np.ndarray:
+def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 16, n_shift: int = 50) -> np.ndarray:
     """Maximum of the Gaussian KDE of every cluster.
 
     Args:

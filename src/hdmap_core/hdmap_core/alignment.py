@@ -473,7 +473,7 @@ def recheck_offsets(
     *,
     max_offset_m: float,
     gap_m: float,
-    grid_m: float = 0.05,
+    grid_m: float = 0.1,
     capture_m: float = 0.5,
     prior_per_m2: float = 0.02,
     min_gain: float = 0.5,
@@ -570,8 +570,8 @@ def _drop_thin_clusters(labels: np.ndarray, drive: np.ndarray, min_drives: int) 
     if min_drives <= 1:
         return labels
     use = labels >= 0
-    pairs = np.unique(np.stack([labels[use], drive[use]], axis=1), axis=0)
-    n_dr = np.bincount(pairs[:, 0], minlength=int(labels.max()) + 1)
+    nd = int(drive.max()) + 1
+    n_dr = np.bincount(np.unique(labels[use] * nd + drive[use]) // nd, minlength=int(labels.max()) + 1)
     out = labels.copy()
     out[use & (n_dr[np.maximum(labels, 0)] < min_drives)] = -1
     return out

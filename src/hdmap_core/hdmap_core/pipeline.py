@@ -47,8 +47,8 @@ _PRESETS = ("paper", "default", "naive")
 ProgressFn = Callable[[str, int, int], None]
 
 _EMPTY_F = np.zeros(0)
-# Tracked offsets are re-checked for lane-periodic lock-in every this many steps (10 m).
-_RECHECK_EVERY_STEPS = 5
+# Tracked offsets are re-checked for lane-periodic lock-in every this many steps (50 m).
+_RECHECK_EVERY_STEPS = 25
 _EMPTY_I = np.zeros(0, dtype=np.int64)
 
 
