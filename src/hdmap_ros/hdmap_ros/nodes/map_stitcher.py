@@ -139,13 +139,22 @@ class MapStitcher(HealthMixin, Node):
                 self._graphs[key] = cached
             graphs.extend(cached[1])
             drive_ids.update(ids)
+        t1 = time.perf_counter()
         new = stitch_graphs(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
+        t2 = time.perf_counter()
         new = carry_over_ids(new, self.map, max_distance_m=self.id_distance_m, min_overlap=self.id_overlap)
         new = replace(new, version=(self.map.version if self.map else 0) + 1, stamp_ns=time.time_ns())
+        t3 = time.perf_counter()
         self.store.put_map(new, sig)
         self.map = new
         self._map_sig = sig
+        t4 = time.perf_counter()
         self._publish()
+        self.health.set(
+            "last_rebuild_parts_s",
+            f"connect {t1 - t0:.3f}, stitch {t2 - t1:.3f}, ids {t3 - t2:.3f}, commit {t4 - t3:.3f}, "
+            f"publish {time.perf_counter() - t4:.3f}",
+        )
         self.health.updated()
         self.health.set("map_version", new.version)
         self.health.set("features", len(new.features))
