@@ -92,3 +92,18 @@ def test_skip_mask_skips_steps():
     counts = np.diff(ps.ptr)
     assert np.all(counts[skip] == 0)
     assert np.all(counts[~skip] == 6)
+
+
+def test_cache_gives_the_same_samples():
+    pivot = make_drive("p", lane=0.0, bias=0.0, s1=120.0)
+    others = [make_drive(f"d{i}", lane=3.5, bias=b) for i, b in enumerate([0.3, -0.2])]
+    idx = preprocess([pivot, *others])
+    cfg = SamplingConfig(min_border_support=1)
+    s, _, _ = pivot_walk(pivot, step_m=2.0)
+    cache: dict = {}
+    first = sample_pivot(idx, pivot, config=cfg, skip=s > 60.0, cache=cache)  # fills half
+    again = sample_pivot(idx, pivot, config=cfg, cache=cache)  # computes the rest only
+    plain = sample_pivot(idx, pivot, config=cfg)
+    assert first.ptr[-1] < plain.ptr[-1]
+    for name in ("ptr", "lateral_m", "types", "drive", "drive_s_m", "width_m"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(plain, name))

@@ -294,13 +294,14 @@ def _run_pivot(
     observations: list[StepObservations] | None,
     counters: _Counters,
     memory: _OffsetMemory | None = None,
+    hit_cache: dict | None = None,
 ) -> tuple[Segment, np.ndarray, np.ndarray]:
     """Stages 2-4 along one pivot. Returns (segment, marked drive indices, their s [m]).
 
     The EM runs step by step (offsets are carried along the pivot); sampling before it and the
     aggregation after it run on all steps of the pivot at once.
     """
-    ps = sample_pivot(index, pivot, config=config.sampling, skip=skip, shift=shift)
+    ps = sample_pivot(index, pivot, config=config.sampling, skip=skip, shift=shift, cache=hit_cache)
     pid = pivot.drive_id
     ids = np.asarray(index.drive_ids, dtype=object)
     n_all = len(index.drive_ids)
@@ -437,6 +438,7 @@ def _run_pass(
     observations: list[StepObservations] | None,
     counters: _Counters,
     progress: ProgressFn | None,
+    hit_cache: dict | None = None,
 ) -> tuple[list[Segment], ProcessedStore]:
     segments: list[Segment] = []
     step_m = config.sampling.step_m
@@ -447,7 +449,7 @@ def _run_pass(
         skip = processed.contains(pivot.drive_id, s)
         seg, md, ms = _run_pivot(
             index, pivot, skip, config=config, alignment=alignment, shift=shift, observations=observations, counters=counters,
-            memory=memory,
+            memory=memory, hit_cache=hit_cache,
         )
         segments.append(seg)
         if len(md):
@@ -518,10 +520,11 @@ def map_stretches(
     order = np.random.default_rng(seed).permutation(len(drives))
     counters = _Counters()
     obs: list[StepObservations] | None = [] if (collect_observations or config.use_global_adjustment) else None
+    hit_cache: dict | None = {} if config.use_global_adjustment else None
     t0 = time.perf_counter()
     segments, store = _run_pass(
         drives, index, order, store_in, config=config, alignment=config.alignment, shift=None,
-        observations=obs, counters=counters, progress=progress,
+        observations=obs, counters=counters, progress=progress, hit_cache=hit_cache,
     )
     seconds["sampling_em"] = time.perf_counter() - t0
     model = None
@@ -538,7 +541,7 @@ def map_stretches(
         segments, store = _run_pass(
             drives, index, order, store_in, config=config,
             alignment=config.final_alignment or config.alignment, shift=_shift_fn(model, index.drive_ids),
-            observations=None, counters=counters, progress=progress,
+            observations=None, counters=counters, progress=progress, hit_cache=hit_cache,
         )
         seconds["final_pass"] = time.perf_counter() - t0
     return MappingResult(

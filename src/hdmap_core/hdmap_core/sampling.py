@@ -231,6 +231,7 @@ def sample_pivot(
     config: SamplingConfig,
     skip: np.ndarray | None = None,
     shift: ShiftFn | None = None,
+    cache: dict | None = None,
 ) -> PivotSamples:
     """Sample all steps of one pivot drive (Sec. IV-A), vectorised over steps.
 
@@ -242,6 +243,8 @@ def sample_pivot(
             of steps of ``pivot_walk(pivot, step_m=config.step_m)``.
         shift: optional ``f(drive_index (H,), drive_s_m (H,)) -> (H,)`` lateral correction [m]
             added to each sample before refinement (the global offset model of the adjustment pass).
+        cache: optional dict, filled and reused across calls: the same-direction intersections
+            of each pivot's steps (by drive id), so a second pass does not intersect again.
 
     Returns:
         The refined samples of every step.
@@ -252,12 +255,29 @@ def sample_pivot(
     if skip.shape != (n,):
         raise ConfigError(f"skip mask has shape {skip.shape}, want ({n},)")
     normal = left_normal(heading).reshape(n, 2)
-    active = np.flatnonzero(~skip)
-    hits = index.intersect(pts[active], normal[active], np.full(len(active), config.initial_half_length_m))
-    q = active[hits.cut]
-    same_dir = np.abs(wrap_angle(hits.drive_yaw - heading[q])) <= np.deg2rad(config.max_heading_diff_deg)
-    q, t = q[same_dir], hits.t_m[same_dir]
-    types, drv, ds = hits.types[same_dir], hits.drive[same_dir], hits.drive_s_m[same_dir]
+    done = np.zeros(n, dtype=bool)
+    parts: list[tuple[np.ndarray, ...]] = []
+    if cache is not None and pivot.drive_id in cache:
+        done, old = cache[pivot.drive_id]
+        parts.append(old)
+    active = np.flatnonzero(~skip & ~done)
+    if len(active):
+        hits = index.intersect(pts[active], normal[active], np.full(len(active), config.initial_half_length_m))
+        qn = active[hits.cut]
+        same_dir = np.abs(wrap_angle(hits.drive_yaw - heading[qn])) <= np.deg2rad(config.max_heading_diff_deg)
+        parts.append((qn[same_dir], hits.t_m[same_dir], hits.types[same_dir], hits.drive[same_dir], hits.drive_s_m[same_dir]))
+    if len(parts) > 1:
+        merged = tuple(np.concatenate(v) for v in zip(*parts))
+    elif parts:
+        merged = parts[0]
+    else:
+        merged = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int8), np.zeros(0, np.int32), np.zeros(0))
+    if cache is not None:
+        now_done = done.copy()
+        now_done[active] = True
+        cache[pivot.drive_id] = (now_done, merged)
+    sel = ~skip[merged[0]]
+    q, t, types, drv, ds = (v[sel] for v in merged)
     if shift is not None and len(t):
         t = t + np.asarray(shift(drv, ds), dtype=float)
     mid, width = refine_cuts(q, t, types, n, config=config)
