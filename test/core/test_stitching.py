@@ -437,7 +437,7 @@ def test_branch_starting_beside_a_line_joins_it_as_a_split():
     here, max_distance_m=0, so that only the feature-level branch join acts.)"""
     main = road("m", 0.0, 60, ([-3.5, 0.0], [S, D]))
     ramp = Segment("r", tuple(step("r", i, 50.0 + 2.0 * i, [-4.5 - 0.3 * i], [S], y_mid=-8.0) for i in range(30)))
-    cfg = StitchConfig(trim_overlap=False, max_distance_m=0.0)
+    cfg = StitchConfig(trim_overlap=False, max_distance_m=0.0, branch_lateral_m=2.0)
     m = stitch([conn(main), conn(ramp)], config=cfg)
     splitting = [f for f in m.features if len(f.successors) == 2]
     assert len(splitting) == 1 and splitting[0].type == FeatureType.SOLID

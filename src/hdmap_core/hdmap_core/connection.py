@@ -63,6 +63,10 @@ class ConnectionConfig:
         edge_slack_m: lateral slack added to the edge angle limit (noise of the maxima) [m].
         leftover_max_m: a leftover node is joined to its nearest neighbour only when that is at
             most this far across the cut; ``inf`` joins every leftover, as in the paper [m].
+        leftover_same_type: join a leftover only to a node of its own type. At a gore the two
+            lines resolve as one of their type first and split later (solid -> two solids), so
+            real splits keep their leftover; a line that ends beside a line of the other marking
+            type (solid beside dashed) no longer merges into it. False: the paper.
         bridge_features: keep a polyline whose feature is missing in a step open for ``max_gap_m``
             so that it continues when the feature reappears (per-feature gap bridging; the paper
             bridges whole steps only).
@@ -81,6 +85,7 @@ class ConnectionConfig:
     max_edge_angle_deg: float = 35.0
     edge_slack_m: float = 0.3
     leftover_max_m: float = 2.0
+    leftover_same_type: bool = True
     bridge_features: bool = True
     min_separation_m: float = 1.0
     min_support_share: float = 0.25
@@ -110,6 +115,7 @@ class ConnectionConfig:
         return cls(
             max_edge_angle_deg=90.0,
             leftover_max_m=math.inf,
+            leftover_same_type=False,
             bridge_features=False,
             robust_angle=False,
             min_separation_m=0.0,
@@ -451,6 +457,8 @@ def _assign(
     # the paper's modification: leftovers join their nearest neighbour on the other side
     leftover: list[tuple[int, int]] = []
     near = ok & (lat <= config.leftover_max_m)
+    if config.leftover_same_type:
+        near &= tip_type[:, None] == new_type[None, :]
     matched_new = np.zeros(m, dtype=bool)
     matched_new[cols] = True
     matched_tip = np.zeros(n, dtype=bool)

@@ -130,7 +130,7 @@ class StitchConfig:
     twin_radius_m: float = 1.1
     join_loose_ends: bool = True
     join_same_segment: bool = True
-    branch_lateral_m: float = 2.0
+    branch_lateral_m: float = 0.0
     branch_radius_m: float = 8.0
     branch_divergence_m: float = 0.3
     join_radius_m: float = 60.0
