@@ -70,7 +70,8 @@ def main() -> int:
         st = model.stats
         print(f"adjust_offsets(compute_std={std}): wall {dt:.2f} s, cpu {dc:.2f} s  unknowns {st['n_unknowns']}  "
               f"clusters {st['n_clusters']}  iterations {st['iterations']}  "
-              f"downweighted {st['downweighted_fraction']:.3f}  inlier rms {st['inlier_rms_m']:.3f} m")
+              f"downweighted {st['downweighted_fraction']:.3f}  relabelled {st['relabelled_fraction']:.3f}  "
+              f"lane shifts {st['lane_shifts']}  inlier rms {st['inlier_rms_m']:.3f} m")
     ours, local, n_local = _common_error(obs, truth, model)
     print(f"mean |common offset error| per step: adjusted {ours:.3f} m, per-step (local) {local:.3f} m, "
           f"drives per step {n_local:.1f}")
