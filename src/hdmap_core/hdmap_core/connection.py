@@ -73,6 +73,9 @@ class ConnectionConfig:
         min_separation_m: two lane markings (or two road borders) of one step closer than this
             are one feature seen twice (typically a misclassified cluster the overlap filter
             kept); only the one with more drives is used. 0 disables (the paper) [m].
+        separation_count_ratio: ... only when the weaker one has at most this share of the
+            stronger one's drives. 1.0 (default): always. (0.5 keeps two well supported lines
+            about to diverge, but measured worse: they flicker and fragment more.)
         min_support_share: a maximum supported by fewer than this share of the step's drives
             (``counts < share * len(drive_ids)``) is noise (a false positive, a misclassified
             copy) and not used. 0 disables (the paper).
@@ -88,6 +91,7 @@ class ConnectionConfig:
     leftover_same_type: bool = True
     bridge_features: bool = True
     min_separation_m: float = 1.0
+    separation_count_ratio: float = 1.0
     min_support_share: float = 0.25
     tile_size_m: float = 256.0
 
@@ -369,9 +373,13 @@ def _check_step(st: StepResult) -> None:
         raise HdmapError(f"step {st.index} of pivot {st.pivot_id!r}: midpoint/heading missing or not finite")
 
 
-def _separate(lat: np.ndarray, types: np.ndarray, counts: np.ndarray, min_sep_m: float) -> np.ndarray | None:
+def _separate(
+    lat: np.ndarray, types: np.ndarray, counts: np.ndarray, min_sep_m: float, ratio: float = 1.0
+) -> np.ndarray | None:
     """Indices of the maxima to keep when markings (or borders) of one step lie closer than
-    ``min_sep_m``: the better supported one wins. None: keep all (the common case, no copy)."""
+    ``min_sep_m`` and one has at most ``ratio`` times the drives of the other: the better
+    supported one wins (two lines about to diverge have similar support and both stay).
+    None: keep all (the common case, no copy)."""
     if min_sep_m <= 0 or len(lat) < 2:
         return None
     border = types == _BORDER
@@ -385,7 +393,10 @@ def _separate(lat: np.ndarray, types: np.ndarray, counts: np.ndarray, min_sep_m:
     order = np.lexsort((np.abs(lat), -counts))  # most drives first, then nearest the midpoint
     kept: list[int] = []
     for i in order.tolist():
-        if all(border[i] != border[j] or abs(lat[i] - lat[j]) >= min_sep_m for j in kept):
+        if all(
+            border[i] != border[j] or abs(lat[i] - lat[j]) >= min_sep_m or counts[i] > ratio * counts[j]
+            for j in kept
+        ):
             kept.append(i)
     return np.sort(np.asarray(kept, dtype=np.int64))
 
@@ -509,7 +520,7 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
         n_drives = np.array([max(len(st.drive_ids), 1) for st in valid])
         keep &= cnt >= config.min_support_share * n_drives[j_of]
     if config.min_separation_m > 0:
-        keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m)
+        keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m, config.separation_count_ratio)
     order = np.lexsort((lat, j_of))
     order = order[keep[order]]
     j_of, lat, typ, cnt, std, slot = j_of[order], lat[order], typ[order], cnt[order], std[order], slot[order]
@@ -522,7 +533,9 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     return _Steps(valid, off, lat, xy, typ, cnt, std, slot, _fast_pairs(valid, off, xy, typ, hdg, config))
 
 
-def _separate_all(j_of: np.ndarray, lat: np.ndarray, typ: np.ndarray, cnt: np.ndarray, min_sep_m: float) -> np.ndarray:
+def _separate_all(
+    j_of: np.ndarray, lat: np.ndarray, typ: np.ndarray, cnt: np.ndarray, min_sep_m: float, ratio: float
+) -> np.ndarray:
     """(M,) bool keep-mask: a marking (or border) within ``min_sep_m`` of a better supported one of
     the same class in the same step is one feature seen twice and is dropped."""
     keep = np.ones(len(lat), dtype=bool)
@@ -534,7 +547,7 @@ def _separate_all(j_of: np.ndarray, lat: np.ndarray, typ: np.ndarray, cnt: np.nd
         return keep
     for j in np.unique(j_of[order][1:][close]).tolist():
         idx = np.flatnonzero(j_of == j)
-        sel = _separate(lat[idx], typ[idx], cnt[idx], min_sep_m)
+        sel = _separate(lat[idx], typ[idx], cnt[idx], min_sep_m, ratio)
         if sel is not None:
             drop = np.ones(len(idx), dtype=bool)
             drop[sel] = False
