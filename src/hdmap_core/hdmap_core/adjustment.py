@@ -14,12 +14,17 @@ a pose graph):
 
 The cluster positions x (one per cluster and step; they also absorb the pivot's own error) are
 nuisance parameters, eliminated in closed form (Schur complement: subtract the weighted cluster
-mean). Wrong associations are handled by IRLS with a Huber or Cauchy loss. Only the gauge that
+mean). The association is re-derived globally (raw-position association, per-drive lane-shift
+search, re-association with the fitted offsets: a global EM), a coarse one-constant-per-drive fit
+drops lane-off stretches, and IRLS with a Huber or Cauchy loss handles the remaining wrong
+associations. Only the gauge that
 the data cannot see (a shift common to all drives at a place) is set by the priors, which is what
 ties every place to the whole chain of overlapping drives. See docs/adjustment.md.
 
 Observations are ``hdmap_core.steps.StepObservations`` (duck-typed here: only ``drive_ids``,
-``drive_s_m``, ``lateral_m`` and ``cluster`` are read; ``pivot_id``/``index`` name bad steps).
+``drive_s_m``, ``lateral_m``, ``types`` and ``cluster`` are read; ``pivot_id``/``index`` name bad
+steps). The association (re-clustering all samples, lane-shift search) is in
+``hdmap_core.adjustment_assoc``.
 """
 
 from __future__ import annotations
@@ -38,12 +43,12 @@ try:
     from threadpoolctl import threadpool_limits
 except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
     threadpool_limits = None
+from hdmap_core import adjustment_assoc as assoc
 from hdmap_core.errors import ConfigError
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
 
 _LOSSES = ("linear", "huber", "cauchy")
-_MAX_REPORTED_PROBLEMS = 20
 _REWEIGHT_REL = 0.05  # IRLS: a sample is re-weighted only when its weight changes by more than 5 %
 
 
@@ -277,229 +282,6 @@ def _jsonable(obj: Any) -> Any:
 
 
 # ---------------------------------------------------------------------------------------------
-# Gathering the observations
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class _Pool:
-    """Every finite sample of every readable step (before any cluster filtering)."""
-
-    drive: np.ndarray  # (n,) int drive index into drive_ids
-    drive_ids: tuple[str, ...]
-    s_m: np.ndarray  # (n,) travelled distance
-    lateral_m: np.ndarray  # (n,)
-    step: np.ndarray  # (n,) int step number (position in the observation sequence)
-    ftype: np.ndarray  # (n,) int FeatureType code
-    label: np.ndarray  # (n,) int cluster label from the observations (-1 = none)
-
-
-@dataclass(frozen=True)
-class _Samples:
-    """The samples one fit uses: in clusters seen by >= 2 drives, indices compacted."""
-
-    drive: np.ndarray  # (n,) int drive index into drive_ids
-    s_m: np.ndarray  # (n,) travelled distance
-    lateral_m: np.ndarray  # (n,)
-    cluster: np.ndarray  # (n,) int global cluster index 0..C-1
-    n_clusters: int
-    drive_ids: tuple[str, ...]
-    pool_index: np.ndarray  # (n,) position of each sample in the _Pool
-    pool_drive: np.ndarray  # (D,) pool drive index of each drive
-
-
-def _gather(observations: Sequence[Any], stats: dict[str, Any]) -> _Pool:
-    """Concatenate all steps' samples; skip malformed steps, drop non-finite samples."""
-    drive_lists: list[tuple[str, ...]] = []
-    s_list, lat_list, cl_list, type_list, step_list = [], [], [], [], []
-    problems: list[str] = []
-    n_bad_steps = 0
-    for j, obs in enumerate(observations):
-        try:
-            ids = tuple(obs.drive_ids)
-            s = np.asarray(obs.drive_s_m, dtype=float).ravel()
-            lat = np.asarray(obs.lateral_m, dtype=float).ravel()
-            cl = np.asarray(obs.cluster).ravel()
-            ty = np.asarray(obs.types).ravel()
-        except (AttributeError, TypeError, ValueError) as err:
-            reason = f"unreadable ({err})"
-        else:
-            m = len(ids)
-            reason = "" if s.size == lat.size == cl.size == ty.size == m else (
-                f"array lengths differ: drive_ids {m}, drive_s_m {s.size}, lateral_m {lat.size}, "
-                f"types {ty.size}, cluster {cl.size}"
-            )
-            if not reason and m and (cl.dtype.kind not in "iu" or ty.dtype.kind not in "iu"):
-                reason = f"cluster labels ({cl.dtype}) and types ({ty.dtype}) must be integers"
-        if reason:
-            n_bad_steps += 1
-            if len(problems) < _MAX_REPORTED_PROBLEMS:
-                problems.append(f"step {getattr(obs, 'pivot_id', '?')}#{getattr(obs, 'index', j)}: {reason}")
-            continue
-        drive_lists.append(ids)
-        s_list.append(s)
-        lat_list.append(lat)
-        cl_list.append(cl)
-        type_list.append(ty)
-        step_list.append(j)
-    stats["n_steps"] = len(observations)
-    stats["n_steps_skipped"] = n_bad_steps
-    stats["problems"] = problems
-    if not s_list:
-        stats["n_samples"] = stats["n_nonfinite_dropped"] = 0
-        e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
-        return _Pool(e_i, (), e_f, e_f, e_i, e_i, e_i)
-    s = np.concatenate(s_list)
-    lat = np.concatenate(lat_list)
-    label = np.concatenate(cl_list).astype(np.int64)
-    ftype = np.concatenate(type_list).astype(np.int64)
-    step = np.repeat(np.asarray(step_list, dtype=np.int64), [len(ids) for ids in drive_lists])
-    all_ids = [d for ids in drive_lists for d in ids]
-    lookup: dict[str, int] = {}
-    # index of each drive's first sample: unique per drive, built at C speed
-    first = np.fromiter(map(lookup.setdefault, all_ids, range(len(all_ids))), dtype=np.int64, count=len(all_ids))
-    stats["n_samples"] = int(s.size)
-    finite = np.isfinite(s) & np.isfinite(lat)
-    stats["n_nonfinite_dropped"] = int((~finite).sum())
-    drive, firsts = _compact(first[finite], return_values=True)
-    return _Pool(drive, tuple(all_ids[i] for i in firsts), s[finite], lat[finite], step[finite], ftype[finite],
-                 label[finite])
-
-
-def _select(pool: _Pool, label: np.ndarray) -> _Samples:
-    """The samples with a label, in clusters seen by >= 2 different drives (others carry no information)."""
-    keep = np.flatnonzero(label >= 0)
-    cl, n_cl = _compact(pool.step[keep] * (int(label[keep].max(initial=0)) + 1) + label[keep])
-    _, first_of_pair = np.unique(cl * max(len(pool.drive_ids), 1) + pool.drive[keep], return_index=True)
-    n_drives_in = np.bincount(cl[first_of_pair], minlength=n_cl)
-    informative = n_drives_in[cl] >= 2
-    used = keep[informative]
-    cl, n_clusters = _compact(cl[informative])
-    drive, pool_drive = _compact(pool.drive[used], return_values=True)
-    return _Samples(
-        drive=drive,
-        s_m=pool.s_m[used],
-        lateral_m=pool.lateral_m[used],
-        cluster=cl,
-        n_clusters=n_clusters,
-        drive_ids=tuple(pool.drive_ids[i] for i in pool_drive),
-        pool_index=used,
-        pool_drive=np.asarray(pool_drive, dtype=np.int64),
-    )
-
-
-@dataclass(frozen=True)
-class _Centres:
-    """Cluster centres of all steps, sorted by (step, type) group then position."""
-
-    key: np.ndarray  # (K,) sort key: group * span + position + span / 2
-    group: np.ndarray  # (K,) step * n_types + type
-    pos: np.ndarray  # (K,) centre position along the cut [m]
-    label: np.ndarray  # (K,) cluster label within its step
-    n_types: int
-    span: float
-
-
-def _centres(pool: _Pool, label: np.ndarray, v: np.ndarray) -> _Centres | None:
-    """Centres (median of the members' positions ``v``) of the clusters of ``label``."""
-    have = np.flatnonzero(label >= 0)
-    if have.size == 0:
-        return None
-    g, n_g = _compact(pool.step[have] * (int(label[have].max()) + 1) + label[have])
-    width = 2.0 * float(np.abs(v[have]).max()) + 1.0
-    o = np.argsort(g * width + (v[have] + width / 2))  # by cluster, then position
-    starts = np.concatenate([[0], np.cumsum(np.bincount(g, minlength=n_g))[:-1]])
-    mid = have[o][starts + np.bincount(g, minlength=n_g) // 2]
-    n_types = int(pool.ftype.max(initial=0)) + 1
-    span = 2.0 * float(np.abs(v).max(initial=0.0)) + 20.0
-    group = pool.step[mid] * n_types + pool.ftype[mid]
-    key = group * span + (v[mid] + span / 2)
-    o = np.argsort(key)
-    return _Centres(key[o], group[o], v[mid][o], label[mid][o], n_types, span)
-
-
-def _nearest(cen: _Centres, step: np.ndarray, ftype: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Label of and distance to the nearest centre of the same step and type (-1, inf if none)."""
-    grp = step * cen.n_types + ftype
-    idx = np.searchsorted(cen.key, grp * cen.span + (v + cen.span / 2))
-    best = np.full(v.shape, -1, dtype=np.int64)
-    best_d = np.full(v.shape, np.inf)
-    for cand in (idx - 1, idx):
-        cc = np.clip(cand, 0, cen.key.size - 1)
-        ok = (cand >= 0) & (cand < cen.key.size) & (cen.group[cc] == grp)
-        d = np.where(ok, np.abs(v - cen.pos[cc]), np.inf)
-        better = d < best_d
-        best[better], best_d[better] = cen.label[cc[better]], d[better]
-    return best, best_d
-
-
-def _reassociate(pool: _Pool, label: np.ndarray, offset: np.ndarray, cen: _Centres | None, *,
-                 gate_m: float) -> np.ndarray:
-    """New cluster labels: each sample joins the nearest cluster centre of its step and type.
-
-    ``cen``: the current clusters' centres (``_centres``); a sample whose corrected position
-    ``lateral + offset`` is farther than ``gate_m`` from every centre gets -1. Labels stay unique
-    within a step (a centre keeps its cluster's label). Vectorised over all steps.
-    """
-    v = pool.lateral_m + offset
-    if cen is None:
-        return label.copy()
-    best, dist = _nearest(cen, pool.step, pool.ftype, v)
-    return np.where(dist <= gate_m, best, -1).astype(np.int64)
-
-
-def _lane_shift_search(pool: _Pool, cen: _Centres | None, offset: np.ndarray, model: OffsetModel,
-                       cfg: AdjustConfig) -> np.ndarray:
-    """(D,) constant correction per pool drive that best fits the cluster centres [m].
-
-    Per drive, a grid of shifts c in [-shift_search_m, shift_search_m] is scored with a truncated
-    quadratic: sum_i min(d_i(c), gate)^2 / noise^2 + (bias + c)^2 / bias_sigma^2, d_i the distance
-    of the shifted sample to the nearest centre of its step and type. Unlike IRLS this sees the
-    samples that a lane-off association rejects (borders, solid lines of the other type), so a
-    drive associated one lane off over its whole length snaps back. At most 400 samples per drive.
-    """
-    v = pool.lateral_m + offset
-    n_d = len(pool.drive_ids)
-    if cen is None or cfg.shift_search_m <= 0:
-        return np.zeros(n_d)
-    order = np.argsort(pool.drive, kind="stable")
-    bounds = np.searchsorted(pool.drive[order], np.arange(n_d + 1))
-    picks = [order[b0:b1][:: max(1, (b1 - b0) // 200)] for b0, b1 in zip(bounds[:-1], bounds[1:])]
-    sel = np.concatenate(picks) if picks else np.zeros(0, np.int64)
-    # 0.25 m is fine enough to tell lanes apart; the fit that follows refines the offset
-    grid = np.arange(-cfg.shift_search_m, cfg.shift_search_m + 1e-9, 0.25)
-    vv = v[sel][:, None] + grid[None, :]
-    _, dist = _nearest(cen, pool.step[sel][:, None], pool.ftype[sel][:, None], vv)
-    cost_s = np.minimum(dist, cfg.reassociate_gate_m) ** 2 / cfg.noise_sigma_m**2
-    cost = np.zeros((n_d, grid.size))
-    np.add.at(cost, pool.drive[sel], cost_s)
-    bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
-    cost += (bias[:, None] + grid[None, :]) ** 2 / cfg.bias_sigma_m**2
-    best = grid[np.argmin(cost, axis=1)]
-    # keep the current solution unless a shift is clearly better (a lane, not a nudge)
-    at_zero = cost[:, np.argmin(np.abs(grid))]
-    return np.where((np.abs(best) >= 1.0) & (cost.min(axis=1) < at_zero - 10.0), best, 0.0)
-
-
-def _compact(key: np.ndarray, *, return_values: bool = False) -> tuple[np.ndarray, Any]:
-    """Relabel non-negative int keys to 0..K-1 in increasing key order.
-
-    Returns (labels, K), or (labels, the distinct keys) with ``return_values``. O(n) with a
-    lookup table when the key range is small, else a sort.
-    """
-    if key.size == 0:
-        return key.astype(np.int64), (key if return_values else 0)
-    top = int(key.max()) + 1
-    if top <= 8 * key.size + 1024:
-        used = np.zeros(top, dtype=bool)
-        used[key] = True
-        new_id = np.cumsum(used) - 1
-        return new_id[key].astype(np.int64), (np.flatnonzero(used) if return_values else int(used.sum()))
-    values, labels = np.unique(key, return_inverse=True)
-    return labels.astype(np.int64), (values if return_values else values.size)
-
-
-# ---------------------------------------------------------------------------------------------
 # The linear system
 # ---------------------------------------------------------------------------------------------
 
@@ -512,7 +294,7 @@ class _Layout:
     n_unknowns: int
 
 
-def _layout(samples: _Samples, cfg: AdjustConfig) -> _Layout:
+def _layout(samples: assoc.Samples, cfg: AdjustConfig) -> _Layout:
     n_drives = len(samples.drive_ids)
     if cfg.drift_sigma_m == 0:
         n_knots = np.zeros(n_drives, dtype=np.int64)
@@ -529,7 +311,7 @@ def _layout(samples: _Samples, cfg: AdjustConfig) -> _Layout:
     return _Layout(k0, n_knots, col0, int((1 + n_knots).sum()))
 
 
-def _design(samples: _Samples, lay: _Layout, cfg: AdjustConfig) -> sp.csr_matrix:
+def _design(samples: assoc.Samples, lay: _Layout, cfg: AdjustConfig) -> sp.csr_matrix:
     """(n, p) matrix A with o(s_i) = A[i] @ theta (bias + linear interpolation of the drift)."""
     n = samples.s_m.size
     d = samples.drive
@@ -588,7 +370,7 @@ def _reduced_normal(a: sp.csr_matrix, cluster: np.ndarray, n_clusters: int, info
     return h.tocsr(), np.asarray(rhs).ravel()
 
 
-def _update_normal(h: sp.csr_matrix, rhs: np.ndarray, a: sp.csr_matrix, samples: _Samples, prior: sp.csr_matrix,
+def _update_normal(h: sp.csr_matrix, rhs: np.ndarray, a: sp.csr_matrix, samples: assoc.Samples, prior: sp.csr_matrix,
                    old_info: np.ndarray, want_info: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
     """Re-weight the normal equations, recomputing only the clusters whose weights changed.
 
@@ -645,7 +427,7 @@ def _robust_weights(r: np.ndarray, scale_m: float, loss: str) -> np.ndarray:
     return np.ones_like(r)
 
 
-def _residuals(a: sp.csr_matrix, theta: np.ndarray, samples: _Samples, info: np.ndarray) -> np.ndarray:
+def _residuals(a: sp.csr_matrix, theta: np.ndarray, samples: assoc.Samples, info: np.ndarray) -> np.ndarray:
     v = samples.lateral_m + a @ theta
     w_c = np.maximum(np.bincount(samples.cluster, weights=info, minlength=samples.n_clusters), 1e-300)
     mean_v = np.bincount(samples.cluster, weights=info * v, minlength=samples.n_clusters) / w_c
@@ -667,7 +449,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     """
     cfg = config
     stats: dict[str, Any] = {}
-    pool = _gather(observations, stats)
+    pool = assoc.gather(observations, stats)
     base = dict(knot_spacing_m=cfg.knot_spacing_m, correlation_length_m=cfg.correlation_length_m,
                 drift_sigma_m=cfg.drift_sigma_m, bias_sigma_m=cfg.bias_sigma_m)
     label = pool.label
@@ -677,9 +459,9 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         # error (~1 m) of the truth, so the nearest cluster centre (median of the members' raw
         # positions) is an association that no per-step EM lane shift can bias. One constant
         # per drive fitted on it is then enough to re-associate at the gate.
-        label = _reassociate(pool, label, np.zeros(pool.s_m.size), _centres(pool, label, pool.lateral_m),
+        label = assoc.reassociate(pool, label, np.zeros(pool.s_m.size), assoc.centres(pool, label, pool.lateral_m),
                              gate_m=np.inf)
-        samples = _select(pool, label)
+        samples = assoc.select(pool, label)
         if samples.s_m.size:
             coarse = _coarse_config(cfg)
             fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
@@ -726,19 +508,22 @@ def _coarse_config(cfg: AdjustConfig) -> AdjustConfig:
                    loss="huber", iterations=min(cfg.iterations, 3))
 
 
-def _shift_and_reassociate(pool: _Pool, label: np.ndarray, model: OffsetModel, cfg: AdjustConfig
+def _shift_and_reassociate(pool: assoc.Pool, label: np.ndarray, model: OffsetModel, cfg: AdjustConfig
                            ) -> tuple[np.ndarray, int]:
     """Lane-shift search per drive, then re-association at the gate; returns labels and #shifted drives."""
     offset = _pool_offsets(pool, model)
-    cen = _centres(pool, label, pool.lateral_m + offset)
-    shift = _lane_shift_search(pool, cen, offset, model, cfg)
-    new = _reassociate(pool, label, offset + shift[pool.drive], cen, gate_m=cfg.reassociate_gate_m)
+    cen = assoc.centres(pool, label, pool.lateral_m + offset)
+    bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
+    shift = assoc.lane_shift_search(pool, cen, offset, bias, search_m=cfg.shift_search_m,
+                                    gate_m=cfg.reassociate_gate_m, noise_sigma_m=cfg.noise_sigma_m,
+                                    bias_sigma_m=cfg.bias_sigma_m)
+    new = assoc.reassociate(pool, label, offset + shift[pool.drive], cen, gate_m=cfg.reassociate_gate_m)
     return new, int(np.count_nonzero(shift))
 
 
-def _fit_all(pool: _Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[_Samples, _Fit | None, np.ndarray]:
+def _fit_all(pool: assoc.Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[assoc.Samples, _Fit | None, np.ndarray]:
     """Select the informative samples of ``label`` and fit them (coarse stage, then curves)."""
-    samples = _select(pool, label)
+    samples = assoc.select(pool, label)
     keep = np.ones(samples.s_m.size, dtype=bool)
     if samples.s_m.size == 0:
         return samples, None, keep
@@ -750,7 +535,7 @@ def _fit_all(pool: _Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[_Sample
     return samples, _irls(samples, cfg, keep), keep
 
 
-def _pool_offsets(pool: _Pool, model: OffsetModel) -> np.ndarray:
+def _pool_offsets(pool: assoc.Pool, model: OffsetModel) -> np.ndarray:
     """(n,) offset of every pool sample under ``model`` (0 for drives it does not know)."""
     out = np.zeros(pool.s_m.size)
     order = np.argsort(pool.drive, kind="stable")
@@ -773,7 +558,7 @@ class _Fit:
     last_change_m: float
 
 
-def _irls(samples: _Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
+def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
     """Solve the adjustment with IRLS re-weighting; samples outside ``keep`` have weight 0."""
     lay = _layout(samples, cfg)
     a = _design(samples, lay, cfg)
@@ -818,7 +603,7 @@ def _covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:
     }
 
 
-def _curves(samples: _Samples, lay: _Layout, theta: np.ndarray, cov: dict[str, np.ndarray] | None
+def _curves(samples: assoc.Samples, lay: _Layout, theta: np.ndarray, cov: dict[str, np.ndarray] | None
             ) -> dict[str, DriveOffset]:
     out: dict[str, DriveOffset] = {}
     for d, did in enumerate(samples.drive_ids):  # one entry per drive (~100s): cheap
