@@ -172,8 +172,8 @@ class MappingResult:
         segments: one per pivot drive, in pivot order. A run of steps skipped as processed
             before is represented by its first and last step (``processed_before=True``).
         processed: the processed-stretch store after the run (input store plus new stretches).
-        observations: per accepted step of the last pass' first... of the observation pass (empty
-            unless requested or used by the global adjustment).
+        observations: one per accepted step of the first (observation) pass; empty unless
+            requested or used by the global adjustment.
         offset_model: the global offset model (None without global adjustment).
         counters: steps_total, steps_rejected, steps_skipped_processed, steps_valid.
         stage_seconds: wall time per stage [s].
