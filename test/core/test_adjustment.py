@@ -19,6 +19,7 @@ import pytest
 from hdmap_core.adjustment import AdjustConfig, OffsetModel, adjust_offsets
 from hdmap_core.adjustment_sim import ChainSimConfig, simulate_step_observations
 from hdmap_core.errors import ConfigError
+from hdmap_core.model import FeatureType
 from hdmap_core.steps import StepObservations
 
 # A short chain keeps every case around a second: 10 km road, 30 drives of 2-5 km.
@@ -348,6 +349,15 @@ def test_bad_steps_are_skipped_and_named():
     assert model.stats["n_nonfinite_dropped"] == 2
     for d in good.drives:
         np.testing.assert_allclose(model.offset(d, np.array([1000.0])), good.offset(d, np.array([1000.0])))
+
+
+def test_feature_type_members_are_accepted_as_types():
+    obs, _ = simulate_step_observations(config=SMALL, seed=0)
+    as_enum = [replace(o, types=np.array([FeatureType(int(x)) for x in o.types], dtype=object)) for o in obs]
+    a, b = adjust_offsets(obs), adjust_offsets(as_enum)
+    assert b.stats["n_steps_skipped"] == 0
+    d = next(iter(a.drives))
+    np.testing.assert_allclose(b.offset(d, np.array([1000.0])), a.offset(d, np.array([1000.0])))
 
 
 def test_nothing_usable_gives_an_empty_model():

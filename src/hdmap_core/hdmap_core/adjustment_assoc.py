@@ -59,6 +59,8 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
             lat = np.asarray(obs.lateral_m, dtype=float).ravel()
             cl = np.asarray(obs.cluster).ravel()
             ty = np.asarray(obs.types).ravel()
+            if ty.dtype == object:  # e.g. FeatureType members: IntEnum converts exactly
+                ty = ty.astype(np.int64)
         except (AttributeError, TypeError, ValueError) as err:
             reason = f"unreadable ({err})"
         else:
