@@ -320,6 +320,7 @@ def test_std_is_roughly_calibrated():
             d, s = o.drive_ids[0], np.array([o.drive_s_m[0]])
             z.append((model.offset(d, s)[0] - truth.true_correction(d, s)[0]) / model.std(d, s)[0])
     rms_z = float(np.sqrt(np.mean(np.square(z))))
+    print(f"error / posterior std: rms {rms_z:.2f} over {len(z)} steps")
     assert 0.4 < rms_z < 2.0
 
 
