@@ -5,11 +5,14 @@ Runs the real ``segment_mapper`` and ``map_stitcher`` node code in this process 
 context, no other process needed), feeding drives directly to their callbacks, so the figures are
 the node's own work per update (message conversion, SQLite commit, per-tile mapping, stitching):
 
-1. builds a map from ``--drives`` simulated drives on a synthetic motorway, drive by drive;
-2. times one more update: a ``--long-km`` drive (receive + commit, tile re-estimates, stitch);
-3. "replay at ``--rate``x": from the measured per-drive service times and the bag's drive start
-   times (simulator: 10-300 s apart), a single-server queue gives the backlog a live replay at
-   that rate would see (max and final); a growing backlog means the mapper cannot keep up.
+1. feeds the first ``--replay-drives`` drives one by one (each fully mapped and stitched) and keeps
+   the per-drive service times; then adds the rest and settles, so the map holds ``--drives``
+   drives with every tile estimated from all of its drives;
+2. times one more update, a ``--long-km`` drive, in phases: receive + commit (acknowledged),
+   mapping the stretches it adds + stitch (on the map), then the debounced re-estimates + stitch;
+3. "replay at ``--rate``x": from the service times of step 1 and those drives' start times
+   (simulator: 10-300 s apart), a single-server queue gives the backlog a live replay at that
+   rate would see; a growing backlog means the mapper cannot keep up.
 
 Prints the figures; no assertions. Example (the default is a small run):
 
@@ -37,6 +40,7 @@ def main() -> int:
     ap.add_argument("--snippet-m", type=float, nargs=2, default=(500.0, 2500.0), help="drive length range [m]")
     ap.add_argument("--long-km", type=float, default=10.0, help="length of the timed drive [km]")
     ap.add_argument("--rate", type=float, default=10.0, help="replay rate of the queue estimate")
+    ap.add_argument("--replay-drives", type=int, default=20, help="drives fed one by one for the replay estimate")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
@@ -46,6 +50,7 @@ def main() -> int:
     import rclpy
     from rclpy.parameter import Parameter
 
+    from hdmap_core.incremental import tiles_of_drive
     from hdmap_core.simulate import SimConfig, simulate_fleet
     from hdmap_core.synthetic import synthetic_highway
     from hdmap_ros.convert import drive_to_msg, rclpy_types
@@ -83,47 +88,92 @@ def main() -> int:
 
     mapper._publish = forward  # noqa: SLF001 - benchmark wiring, the node's own code otherwise
 
-    def update(drive) -> tuple[float, float, float]:
+    def receive(drive) -> float:
         msg = drive_to_msg(drive, types=types)
         t0 = time.perf_counter()
         mapper.on_drive(msg)
-        t1 = time.perf_counter()
-        mapper.work()
-        t2 = time.perf_counter()
+        return time.perf_counter() - t0
+
+    def run_until(pred) -> None:
+        while not pred():
+            mapper.work()
+
+    def stitch() -> float:
+        t0 = time.perf_counter()
         stitcher.rebuild()
-        t3 = time.perf_counter()
-        return t1 - t0, t2 - t1, t3 - t2
+        stitcher._first_dirty = None  # noqa: SLF001 - what the node's timer does before rebuilding
+        return time.perf_counter() - t0
 
+    drives = sorted(fleet.drives, key=lambda d: d.start_ns)
+    # 1. replay prefix drive by drive: per-drive service time = receive + every due tile + stitch
     service = []
-    t_build = time.perf_counter()
-    for i, d in enumerate(sorted(fleet.drives, key=lambda d: d.start_ns)):
-        rx, mp, st = update(d)
-        service.append(rx + mp + st)
-        if (i + 1) % 10 == 0:
-            print(f"  {i + 1:4d} drives: last update {service[-1]:.2f} s "
-                  f"(tiles {len(mapper.store.tiles())}, features {len(stitcher.map.features) if stitcher.map else 0})",
-                  flush=True)
-    build_s = time.perf_counter() - t_build
+    for d in drives[: args.replay_drives]:
+        t0 = time.perf_counter()
+        receive(d)
+        run_until(lambda: not mapper._queue and not mapper.store.pending())  # noqa: SLF001
+        stitch()
+        service.append(time.perf_counter() - t0)
+    # 2. the rest of the map: all drives in, every tile estimated once from all its drives
+    t0 = time.perf_counter()
+    for d in drives[args.replay_drives :]:
+        receive(d)
+    mapper._last_input = -1e9  # noqa: SLF001 - settle now
+    mapper.settle_after_s = 0.0
+    run_until(mapper.is_settled)
+    stitch()
+    mapper.settle_after_s = 3600.0
+    mapper._last_input = time.monotonic()  # noqa: SLF001
+    build_s = time.perf_counter() - t0
     n_tiles = len(mapper.store.tiles())
-    rx, mp, st = update(long_drive)
-    print(f"\nbuilt map of {len(fleet.drives)} drives drive by drive in {build_s:.1f} s ({n_tiles} tiles)")
-    print(f"one update, {long_drive.length_m / 1000:.2f} km drive: {rx + mp + st:.2f} s "
-          f"(receive+commit {rx:.3f} s, tile re-estimates {mp:.2f} s, stitch {st:.2f} s)")
+    counts = [mapper.store.tile_drive_count(t.key) for t in mapper.store.tiles()]
+    print(f"\nmap of {len(drives)} drives: {n_tiles} tiles, {len(stitcher.map.features)} features, "
+          f"drives per tile median {sorted(counts)[len(counts) // 2]} (settled build {build_s:.1f} s)")
 
-    # single-server queue at the given replay rate: arrivals = drive starts / rate
-    starts = sorted(d.start_ns for d in fleet.drives)
-    arrive = [(s - starts[0]) / 1e9 / args.rate for s in starts]
-    free, backlog_max, done_at = 0.0, 0, []
-    for a, s in zip(arrive, service):
-        begin = max(a, free)
-        free = begin + s
-        done_at.append(free)
-        backlog_max = max(backlog_max, sum(1 for x in arrive if a <= x < free))
-    late = [f - a for a, f in zip(arrive, done_at)]
-    gaps = [b - a for a, b in zip(arrive, arrive[1:])] or [0.0]
-    print(f"replay at {args.rate:g}x: drives arrive every {min(gaps):.1f}-{max(gaps):.1f} s, "
-          f"service {min(service):.2f}-{max(service):.2f} s (mean {sum(service) / len(service):.2f} s); "
-          f"max backlog {backlog_max} drive(s), max delay {max(late):.1f} s, last drive done {late[-1]:.1f} s after arrival")
+    # 3. one update with the long drive
+    def stitch_if_changed() -> float:
+        return stitch() if stitcher._first_dirty is not None else 0.0  # noqa: SLF001 - the node rebuilds only then
+
+    stitch_if_changed()
+    new = tiles_of_drive(long_drive, config=mapper.tile_config) - {t.key for t in mapper.store.tiles()}
+    updates0 = mapper.health.updates
+    t_rx = receive(long_drive)
+    slice_s, mapper.work_slice_s = mapper.work_slice_s, 0.0
+    t0 = time.perf_counter()
+    mapper.work()  # a turn without mapping time: the drive's tiles are queued
+    mapper.work_slice_s = slice_s
+    run_until(lambda: not (new & mapper._queue))  # noqa: SLF001 - the stretches it adds are mapped
+    t_new = time.perf_counter() - t0
+    s_new = stitch_if_changed()
+    queued, updates1 = len(mapper._queue), mapper.health.updates  # noqa: SLF001
+    t1 = time.perf_counter()
+    run_until(lambda: not mapper._queue)  # noqa: SLF001
+    t_due = time.perf_counter() - t1
+    s_all = stitch_if_changed()
+    n_re = mapper.health.updates - updates1
+    print(f"one update, {long_drive.length_m / 1000:.2f} km drive over "
+          f"{len(tiles_of_drive(long_drive, config=mapper.tile_config))} tiles ({len(new)} new, "
+          f"{updates1 - updates0} mapped for it):")
+    print(f"  receive + commit (acknowledged)           {t_rx:7.3f} s")
+    print(f"  new stretches mapped + stitched           {t_new + s_new:7.3f} s  (mapping {t_new:.3f}, stitch {s_new:.3f})")
+    print(f"  {queued} queued tiles checked, {n_re} due re-estimated + stitch {t_due + s_all:7.3f} s "
+          f"(mapping {t_due:.3f}, stitch {s_all:.3f})")
+    print(f"  total                                     {t_rx + t_new + s_new + t_due + s_all:7.3f} s")
+    print(f"  last map rebuild: {stitcher.health.extra.get('last_rebuild_parts_s')}")
+
+    # 4. single-server queue at the given replay rate over the drive-by-drive prefix
+    if service:
+        starts = [d.start_ns for d in drives[: len(service)]]
+        arrive = [(s - starts[0]) / 1e9 / args.rate for s in starts]
+        free, backlog_max, late = 0.0, 0, []
+        for a, s in zip(arrive, service):
+            free = max(a, free) + s
+            late.append(free - a)
+            backlog_max = max(backlog_max, sum(1 for x in arrive if a <= x < free))
+        gaps = [b - a for a, b in zip(arrive, arrive[1:])] or [0.0]
+        print(f"replay at {args.rate:g}x, first {len(service)} drives one by one: arrivals every "
+              f"{min(gaps):.1f}-{max(gaps):.1f} s, service {min(service):.2f}-{max(service):.2f} s "
+              f"(mean {sum(service) / len(service):.2f} s): max backlog {backlog_max}, max delay {max(late):.1f} s, "
+              f"last {late[-1]:.1f} s")
     mapper.destroy_node()
     stitcher.destroy_node()
     rclpy.try_shutdown(context=ctx)

@@ -382,14 +382,15 @@ def carry_over_ids(
         # candidate old features: those with a point near any of this feature's points
         near = tree_all.query_ball_point(npnt, r=max_distance_m)
         cands = {int(owner[k]) for lst in near for k in lst}
-        for i in cands:
+        new_tree = cKDTree(npnt) if cands else None
+        for i in sorted(cands):
             of = old_map.features[i]
             if of.type != nf.type:
                 continue
             if i not in trees:
                 trees[i] = cKDTree(old_pts[i])
             d_new, _ = trees[i].query(npnt)
-            d_old, _ = cKDTree(npnt).query(old_pts[i])
+            d_old, _ = new_tree.query(old_pts[i])
             frac_new = float(np.mean(d_new <= max_distance_m))
             frac_old = float(np.mean(d_old <= max_distance_m))
             ov = frac_new if len(npnt) <= len(old_pts[i]) else frac_old
