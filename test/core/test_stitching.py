@@ -455,3 +455,17 @@ def test_stitch_rejects_non_graphs_and_handles_empty():
     assert m.features == () and m.topology == ()
     m = stitch([conn(Segment("e", ()))])
     assert m.features == () and m.topology == ()
+
+
+def test_overlapping_loose_end_and_start_joined_without_doubling_back():
+    """a's line ends at x=98, b's starts 5 m behind it at x=93 (0.3 m aside): joined into one
+    polyline whose points keep going forward (a's overlapping nodes are dropped)."""
+    a = road("a", 0.0, 50, ([0.0], [D]))
+    b = road("b", 93.0, 40, ([0.3], [D]))
+    cfg = StitchConfig(trim_overlap=False, dedupe_loose_ends=False, max_distance_m=0.0)
+    m = stitch([conn(a), conn(b)], config=cfg)
+    assert len(m.features) == 1
+    x = m.features[0].points[:, 0]
+    assert np.all(np.diff(x) > 0) and x[0] == 0.0 and x[-1] == pytest.approx(171.0)
+    cfg0 = StitchConfig(trim_overlap=False, dedupe_loose_ends=False, max_distance_m=0.0, join_overlap_m=0.0)
+    assert len(stitch([conn(a), conn(b)], config=cfg0).features) == 2

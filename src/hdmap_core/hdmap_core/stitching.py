@@ -77,11 +77,15 @@ class StitchConfig:
             ``overlap_share`` of its maxima (and 2) have a same-type twin within
             ``overlap_feature_m`` across the road [m].
         dedupe_loose_ends: drop dangling polyline ends/starts that run on top of another
-            segment's polyline of the same class (within ``twin_radius_m``) [see
+            segment's polyline of the same class (``twin_lateral_m`` / ``twin_along_m``) [see
             ``MapGraph._dedupe_loose_ends``].
-        twin_radius_m: two feature nodes of different segments this close are one place [m].
+        twin_lateral_m: two feature nodes of different segments at most this far apart across
+            the road ...
+        twin_along_m: ... and this far along it (steps are 2 m apart) are one place [m].
         join_loose_ends: join polyline ends and starts of different segments that continue each
             other (same type, close across the cut) even where topology found no link.
+        join_overlap_m: a loose start up to this far behind a loose end (the two overlap) is
+            joined too, the end's overlapping nodes dropped [m].
         join_same_segment: also join loose ends of one segment (split there by a gap longer
             than the connection's ``max_gap_m``, RULE 3).
         join_radius_m: how far ahead of a loose end a loose start may begin [m].
@@ -127,9 +131,11 @@ class StitchConfig:
     overlap_feature_m: float = 0.5
     overlap_share: float = 0.6
     dedupe_loose_ends: bool = True
-    twin_radius_m: float = 1.1
+    twin_lateral_m: float = 0.5
+    twin_along_m: float = 1.2
     join_loose_ends: bool = True
     join_same_segment: bool = True
+    join_overlap_m: float = 8.0
     branch_lateral_m: float = 0.0
     branch_radius_m: float = 8.0
     branch_divergence_m: float = 0.3
@@ -157,10 +163,12 @@ class StitchConfig:
             "overlap_feature_m",
             "overlap_share",
             "join_radius_m",
+            "join_overlap_m",
             "branch_lateral_m",
             "branch_radius_m",
             "branch_divergence_m",
-            "twin_radius_m",
+            "twin_lateral_m",
+            "twin_along_m",
             "join_lateral_m",
             "join_angle_deg",
             "fill_spacing_m",
@@ -304,6 +312,7 @@ class IntegrateReport:
     trimmed_nodes: int = 0
     topology_links: int = 0
     feature_links: int = 0
+    pruned_nodes: int = 0
     deduplicated_nodes: int = 0
     loose_ends_joined: int = 0
     branches_joined: int = 0
@@ -428,6 +437,10 @@ class MapGraph:
         if self.config.trim_overlap and new:
             rep.trimmed_nodes = self._trim([g.key for g in new])
         self._stitch(rep)
+        if self.config.spur_max_m > 0 or self.config.bubble_max_m > 0:
+            # prune spurs and bubbles now, so that the ends they leave are deduplicated and joined
+            rep.pruned_nodes = self._kill(self._flat(), lambda fl: _spur_free(
+                fl, _dedupe_uids(fl), self.config.spur_max_m, self.config.bubble_max_m))
         if self.config.dedupe_loose_ends:
             rep.deduplicated_nodes = self._dedupe_loose_ends()
         if self.config.join_loose_ends:
@@ -661,6 +674,17 @@ class MapGraph:
             made += 1
         return made
 
+    def _kill(self, flat: _Flat, keep_fn) -> int:
+        """Mark the feature nodes that ``keep_fn(flat)`` (an (N,) keep-mask) drops as dead."""
+        keep = keep_fn(flat)
+        dead = np.flatnonzero(~keep)
+        for j in dead.tolist():
+            k = flat.keys[flat.n_graph[j]]
+            if k not in self._node_dead:
+                self._node_dead[k] = np.zeros(self._graphs[k].n_nodes, dtype=bool)
+            self._node_dead[k][flat.n_local[j]] = True
+        return len(dead)
+
     def _dedupe_loose_ends(self) -> int:
         """Drop the dangling ends of polylines that run on top of another segment's polyline.
 
@@ -687,10 +711,16 @@ class MapGraph:
         tree = cKDTree(flat.n_xy)
         alive = np.ones(nn, dtype=bool)
 
+        heading = flat.t_heading[flat.node_topo()]
+        reach = math.hypot(cfg.twin_along_m, cfg.twin_lateral_m)
+
         def twin(j: int) -> bool:
-            for k in tree.query_ball_point(flat.n_xy[j], cfg.twin_radius_m):
+            u, n = _unit(float(heading[j]))
+            for k in tree.query_ball_point(flat.n_xy[j], reach):
                 if alive[k] and flat.n_graph[k] != flat.n_graph[j] and border[k] == border[j]:
-                    return True
+                    d = flat.n_xy[k] - flat.n_xy[j]
+                    if abs(float(d @ n)) <= cfg.twin_lateral_m and abs(float(d @ u)) <= cfg.twin_along_m:
+                        return True
             return False
 
         ends = [(int(flat.n_uid[i]), int(i), prv) for i in np.flatnonzero(outdeg == 0)]
@@ -726,6 +756,11 @@ class MapGraph:
         tree = cKDTree(flat.n_xy[starts])
         cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
         tan_j = math.tan(math.radians(cfg.join_angle_deg))
+        prv = np.full(nn, -1, dtype=np.int64)
+        if len(e):
+            one = (outdeg[e[:, 0]] == 1) & (indeg[e[:, 1]] == 1)
+            prv[e[one, 1]] = e[one, 0]
+        cut: dict[tuple[int, int], tuple[int, list[int]]] = {}  # (end, start) -> (joined node, dropped)
         cand: list[tuple[float, int, int]] = []
         for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
             for jj in near:
@@ -744,8 +779,18 @@ class MapGraph:
                 u, n = _unit(mean_h)
                 d = flat.n_xy[j] - flat.n_xy[i]
                 along, lat = float(d @ u), abs(float(d @ n))
-                if along <= 0.0 or lat > cfg.join_lateral_m + along * tan_j:
+                if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
                     continue
+                src, dropped = i, []
+                while along <= 0.0:  # the start lies beside the end: drop the end's overlap
+                    if prv[src] < 0 or len(dropped) > 8:
+                        break
+                    dropped.append(src)
+                    src = int(prv[src])
+                    along = float((flat.n_xy[j] - flat.n_xy[src]) @ u)
+                if along <= 0.0:
+                    continue
+                cut[(i, j)] = (src, dropped)
                 mismatch = cfg.type_mismatch_cost_m if flat.n_type[j] != flat.n_type[i] else 0.0
                 cand.append((lat + 0.02 * along + mismatch, i, j))
         joined_e: set[int] = set()
@@ -758,12 +803,17 @@ class MapGraph:
             for c, i, j in cand:
                 cost[ri[i], cj[j]] = min(cost[ri[i], cj[j]], c)
             rows, cols = linear_sum_assignment(cost)
+            drop = np.ones(nn, dtype=bool)
             for r, c in zip(rows.tolist(), cols.tolist()):
                 if cost[r, c] < _BIG:
-                    self._feature_links.add(self._link(flat, ei[r], sj[c], topo=False))
+                    src, dropped = cut[(ei[r], sj[c])]
+                    drop[dropped] = False
+                    self._feature_links.add(self._link(flat, src, sj[c], topo=False))
                     joined_e.add(ei[r])
                     joined_s.add(sj[c])
                     rep.loose_ends_joined += 1
+            if not drop.all():
+                self._kill(flat, lambda fl: drop)
         if cfg.branch_lateral_m > 0:
             rest_s = [int(j) for j in starts if int(j) not in joined_s]
             rest_e = [int(i) for i in ends if int(i) not in joined_e]
