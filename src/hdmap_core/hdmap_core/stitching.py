@@ -34,9 +34,20 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from hdmap_core.connection import SegmentGraph, chain_links, feature_chains, stable_uid, tile_of
+from hdmap_core.connection import SegmentGraph
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_core.model import HDMap, MapFeature, TopologyNode
+from hdmap_core.graph import (
+    FlatGraph,
+    _dedupe_uids,
+    _map_edges,
+    _remap,
+    _spur_free,
+    _unit,
+    _wrap,
+    export_map,
+    graph_from_hdmap,
+)
+from hdmap_core.model import HDMap
 
 __all__ = ["StitchConfig", "MapGraph", "stitch", "to_hdmap", "graph_from_hdmap"]
 
@@ -201,68 +212,6 @@ class StitchConfig:
             bubble_max_m=0.0,
             gore_max_m=0.0,
         )
-
-
-# --- the flat view of all graphs --------------------------------------------------------------------
-
-
-@dataclass
-class _Flat:
-    """All alive nodes and edges of a MapGraph in global indices (graphs in key order)."""
-
-    keys: list[str]
-    tmap: dict[str, np.ndarray]  # per graph: local topo index -> global or -1
-    nmap: dict[str, np.ndarray]  # per graph: local feature node index -> global or -1
-    t_graph: np.ndarray
-    t_local: np.ndarray
-    t_uid: np.ndarray
-    t_xy: np.ndarray
-    t_heading: np.ndarray
-    t_width: np.ndarray
-    t_start: np.ndarray
-    n_graph: np.ndarray
-    n_local: np.ndarray
-    n_uid: np.ndarray
-    n_xy: np.ndarray
-    n_type: np.ndarray
-    n_count: np.ndarray
-    n_std: np.ndarray
-    topo_edges: np.ndarray
-    edges: np.ndarray
-    leftover: np.ndarray
-
-    @property
-    def n_topo(self) -> int:
-        return len(self.t_uid)
-
-    @property
-    def n_nodes(self) -> int:
-        return len(self.n_uid)
-
-    def node_topo(self) -> np.ndarray:
-        return np.repeat(np.arange(self.n_topo), np.diff(self.t_start))
-
-
-def _remap(mask: np.ndarray, offset: int) -> np.ndarray:
-    out = np.full(len(mask), -1, dtype=np.int64)
-    out[mask] = offset + np.arange(int(mask.sum()))
-    return out
-
-
-def _map_edges(e: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    if len(e) == 0:
-        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=bool)
-    g = m[e]
-    ok = (g >= 0).all(axis=1)
-    return g[ok], ok
-
-
-def _wrap(a: np.ndarray | float) -> np.ndarray:
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def _unit(h: float) -> tuple[np.ndarray, np.ndarray]:
-    return np.array([math.cos(h), math.sin(h)]), np.array([-math.sin(h), math.cos(h)])
 
 
 class _Adjacency:
@@ -450,7 +399,7 @@ class MapGraph:
         return rep
 
     # -- internals --
-    def _flat(self) -> _Flat:
+    def _flat(self) -> FlatGraph:
         keys = self.keys
         tmap: dict[str, np.ndarray] = {}
         nmap: dict[str, np.ndarray] = {}
@@ -503,7 +452,7 @@ class MapGraph:
         f0 = np.zeros(0)
         e0 = np.zeros((0, 2), dtype=np.int64)
         fl = links(self._feature_links, nmap)
-        return _Flat(
+        return FlatGraph(
             keys=keys,
             tmap=tmap,
             nmap=nmap,
@@ -635,12 +584,12 @@ class MapGraph:
             rep.feature_links += self._join_features(flat, a, b, out_adj, in_adj)
 
     @staticmethod
-    def _link(flat: _Flat, a: int, b: int, *, topo: bool) -> Link:
+    def _link(flat: FlatGraph, a: int, b: int, *, topo: bool) -> Link:
         if topo:
             return (flat.keys[flat.t_graph[a]], int(flat.t_local[a]), flat.keys[flat.t_graph[b]], int(flat.t_local[b]))
         return (flat.keys[flat.n_graph[a]], int(flat.n_local[a]), flat.keys[flat.n_graph[b]], int(flat.n_local[b]))
 
-    def _join_features(self, flat: _Flat, a: int, b: int, out_adj: _Adjacency, in_adj: _Adjacency) -> int:
+    def _join_features(self, flat: FlatGraph, a: int, b: int, out_adj: _Adjacency, in_adj: _Adjacency) -> int:
         """Unmodified rectangular assignment between the features of linked topology nodes a -> b,
         same type only."""
         cfg = self.config
@@ -674,7 +623,7 @@ class MapGraph:
             made += 1
         return made
 
-    def _kill(self, flat: _Flat, keep_fn) -> int:
+    def _kill(self, flat: FlatGraph, keep_fn) -> int:
         """Mark the feature nodes that ``keep_fn(flat)`` (an (N,) keep-mask) drops as dead."""
         keep = keep_fn(flat)
         dead = np.flatnonzero(~keep)
@@ -819,7 +768,7 @@ class MapGraph:
             rest_e = [int(i) for i in ends if int(i) not in joined_e]
             rep.branches_joined += self._join_branches(flat, heading, rest_s, rest_e, e)
 
-    def _join_branches(self, flat: _Flat, heading: np.ndarray, starts: list[int], ends: list[int], e: np.ndarray) -> int:
+    def _join_branches(self, flat: FlatGraph, heading: np.ndarray, starts: list[int], ends: list[int], e: np.ndarray) -> int:
         """Join a polyline that starts (ends) beside another line of its type to that line: a
         split (merge) across segments, as the leftover assignment does inside one (Sec. V).
 
@@ -891,7 +840,7 @@ class MapGraph:
         flat = self._flat()
         if drive_ids is None:
             drive_ids = sorted({d for g in self._graphs.values() for d in g.drive_ids})
-        features, topology = _export(flat, self.config)
+        features, topology = export_map(flat, self.config)
         return HDMap(
             features=features,
             topology=topology,
@@ -905,416 +854,6 @@ class MapGraph:
                 "last_integrate": dict(self.last_report.__dict__),
             },
         )
-
-
-# --- export ----------------------------------------------------------------------------------------
-
-
-def _dedupe_uids(flat: _Flat) -> np.ndarray:
-    """Node uids, made unique should two graphs carry the same pivot step (rehashed with the key)."""
-    uid = flat.n_uid.copy()
-    _, first, counts = np.unique(uid, return_index=True, return_counts=True)
-    if (counts > 1).any():
-        dup = np.flatnonzero(np.isin(uid, np.unique(uid)[counts > 1]))
-        keep_first = set(first.tolist())
-        for i in dup.tolist():
-            if i not in keep_first:
-                uid[i] = stable_uid(flat.keys[flat.n_graph[i]], int(flat.n_local[i]), 7)[()]
-    return uid
-
-
-def _export(flat: _Flat, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
-    uid = _dedupe_uids(flat)
-    if (cfg.spur_max_m > 0 or cfg.bubble_max_m > 0) and flat.n_nodes:
-        keep = _spur_free(flat, uid, cfg.spur_max_m, cfg.bubble_max_m)
-        if not keep.all():
-            flat, uid = _subset_nodes(flat, keep), uid[keep]
-    nn = flat.n_nodes
-    e = flat.edges
-    if cfg.min_type_run_m > 0 and nn:
-        flat.n_type = _smooth_types(flat, uid, cfg.min_type_run_m)
-    chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid)
-    link = chain_links(nn, e, flat.leftover, flat.n_type)
-    outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-    indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-    chain_of = np.full(nn, -1, dtype=np.int64)
-    for k, c in enumerate(chains):
-        chain_of[c] = k
-    cross = e[~link] if len(e) else e
-    succ: dict[int, set[int]] = {}
-    pred: dict[int, set[int]] = {}
-    in_cross: dict[int, list[int]] = {}
-    out_cross: dict[int, list[int]] = {}
-    for a, b in cross.tolist():
-        ca, cb = int(chain_of[a]), int(chain_of[b])
-        succ.setdefault(ca, set()).add(cb)
-        pred.setdefault(cb, set()).add(ca)
-        out_cross.setdefault(a, []).append(b)
-        in_cross.setdefault(b, []).append(a)
-
-    # geometry with junction points: a split's branches start at the split point, a merge's
-    # inflows end at the merge point, a type change meets in the middle of its edge
-    geoms = []
-    for c in chains:
-        idx = c.tolist()
-        xy = flat.n_xy[c]
-        cnt, std = flat.n_count[c], flat.n_std[c]
-        f, last = idx[0], idx[-1]
-        head = tail = None
-        if len(in_cross.get(f, ())) == 1:
-            u = in_cross[f][0]
-            if outdeg[u] >= 2:
-                head = flat.n_xy[u]
-            elif indeg[f] == 1:
-                head = 0.5 * (flat.n_xy[u] + flat.n_xy[f])
-        if len(out_cross.get(last, ())) == 1 and outdeg[last] == 1:
-            w = out_cross[last][0]
-            if indeg[w] >= 2:
-                tail = flat.n_xy[w]
-            else:
-                tail = 0.5 * (flat.n_xy[last] + flat.n_xy[w])
-        if head is not None:
-            xy, cnt, std = np.vstack([head, xy]), np.r_[cnt[:1], cnt], np.r_[std[:1], std]
-        if tail is not None:
-            xy, cnt, std = np.vstack([xy, tail]), np.r_[cnt, cnt[-1:]], np.r_[std, std[-1:]]
-        if cfg.fill_spacing_m > 0 and len(xy) > 2:
-            xy, cnt, std = _fill_gaps(xy, cnt, std, cfg.fill_spacing_m)
-        geoms.append((xy, cnt, std))
-
-    keep = np.ones(len(chains), dtype=bool)
-    for k, (xy, _, _) in enumerate(geoms):
-        if len(xy) < 2:  # one point is no polyline: drop it, its neighbours link past it
-            keep[k] = False
-            ps, ss = pred.pop(k, set()), succ.pop(k, set())
-            for p_ in ps:
-                succ[p_].discard(k)
-                succ[p_].update(x for x in ss if x != p_)
-            for s_ in ss:
-                pred[s_].discard(k)
-                pred[s_].update(x for x in ps if x != s_)
-    for k, (xy, _, _) in enumerate(geoms):
-        if not keep[k]:
-            continue
-        isolated = not succ.get(k) and not pred.get(k)
-        length = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
-        if isolated and (len(xy) < 2 or length < cfg.min_isolated_length_m):
-            keep[k] = False
-    fid = np.array([int(uid[c[0]]) for c in chains], dtype=np.uint64)
-
-    features = []
-    for k, c in enumerate(chains):
-        if not keep[k]:
-            continue
-        xy, cnt, std = geoms[k]
-        features.append(
-            MapFeature(
-                id=int(fid[k]),
-                type=_ftype(int(flat.n_type[c[0]])),
-                points=np.ascontiguousarray(xy, dtype=float),
-                drive_count=np.asarray(cnt, dtype=np.int64),
-                lateral_std=np.asarray(std, dtype=float),
-                predecessors=tuple(sorted(int(fid[p]) for p in pred.get(k, ()) if keep[p])),
-                successors=tuple(sorted(int(fid[s]) for s in succ.get(k, ()) if keep[s])),
-            )
-        )
-
-    # topology: successors by uid, and the kept features crossing each step (in lateral order)
-    te = flat.topo_edges
-    t_uid = flat.t_uid.tolist()
-    tsucc: dict[int, set[int]] = {}
-    for a, b in te.tolist():
-        tsucc.setdefault(a, set()).add(t_uid[b])
-    fid_node = np.where(keep[chain_of], fid[chain_of].astype(np.int64), -1).tolist() if nn else []
-    bounds = flat.t_start.tolist()
-    xy_l, hd_l, w_l = flat.t_xy, flat.t_heading.tolist(), flat.t_width.tolist()
-    topology = []
-    for t in range(flat.n_topo):
-        feats = tuple(dict.fromkeys(f for f in fid_node[bounds[t] : bounds[t + 1]] if f >= 0))
-        topology.append(
-            TopologyNode(
-                id=t_uid[t],
-                position=xy_l[t].copy(),
-                heading=hd_l[t],
-                width=w_l[t],
-                successors=tuple(sorted(tsucc.get(t, ()))),
-                features=feats,
-            )
-        )
-    if cfg.gore_max_m > 0:
-        features, topology = _gore_junctions(features, topology, cfg.gore_max_m)
-    features.sort(key=lambda f: f.id)
-    topology.sort(key=lambda t: t.id)
-    return tuple(features), tuple(topology)
-
-
-def _length(points: np.ndarray) -> float:
-    return float(np.hypot(*np.diff(points, axis=0).T).sum()) if len(points) > 1 else 0.0
-
-
-def _gore_junctions(
-    features: list[MapFeature], topology: list[TopologyNode], max_m: float
-) -> tuple[list[MapFeature], list[TopologyNode]]:
-    """Move splits (merges) of gore lines back (forward) to where the lane line's type changes.
-
-    At a gore a lane line (dashed) ends and two solid lines start from its end and diverge slowly;
-    the aggregation resolves them as two only once they are ~1 m apart, so the connection yields
-    dashed -> one solid -> split into two solids, the split tens of metres late. The common solid
-    piece is both lines at once: when it is at most ``max_m`` long, starts at a type change and
-    splits into two polylines of its own type, it is prepended to both branches, which become the
-    lane line's two successors. Merges mirror this.
-    """
-    from dataclasses import replace as _replace
-
-    byid = {f.id: f for f in features}
-    gone: dict[int, tuple[int, ...]] = {}  # removed common piece -> the branches that absorbed it
-    for c in sorted(features, key=lambda f: f.id):
-        if c.id in gone or _length(c.points) > max_m:
-            continue
-        for mode in ("split", "merge"):
-            outer = c.predecessors if mode == "split" else c.successors
-            branches = c.successors if mode == "split" else c.predecessors
-            if len(outer) != 1 or len(branches) != 2 or outer[0] in gone or any(b in gone for b in branches):
-                continue
-            p = byid[outer[0]]
-            bs = [byid[b] for b in branches]
-            if p.type == c.type or any(b.type != c.type for b in bs):
-                continue
-            back = (lambda b: b.predecessors) if mode == "split" else (lambda b: b.successors)
-            if any(back(b) != (c.id,) for b in bs):
-                continue
-            for b in bs:
-                if mode == "split":
-                    pts = np.vstack([c.points, b.points[1:]])
-                    cnt, std = np.r_[c.drive_count, b.drive_count[1:]], np.r_[c.lateral_std, b.lateral_std[1:]]
-                    byid[b.id] = _replace(b, points=pts, drive_count=cnt, lateral_std=std, predecessors=(p.id,))
-                else:
-                    pts = np.vstack([b.points[:-1], c.points])
-                    cnt, std = np.r_[b.drive_count[:-1], c.drive_count], np.r_[b.lateral_std[:-1], c.lateral_std]
-                    byid[b.id] = _replace(b, points=pts, drive_count=cnt, lateral_std=std, successors=(p.id,))
-            links = p.successors if mode == "split" else p.predecessors
-            new_links = tuple(sorted({x for x in links if x != c.id} | set(branches)))
-            byid[p.id] = _replace(p, **({"successors": new_links} if mode == "split" else {"predecessors": new_links}))
-            gone[c.id] = tuple(branches)
-            del byid[c.id]
-            break
-    if not gone:
-        return features, topology
-    topo = []
-    for t in topology:
-        if any(f in gone for f in t.features):
-            feats: list[int] = []
-            for f in t.features:
-                for g in gone.get(f, (f,)):
-                    if g not in feats:
-                        feats.append(g)
-            t = _replace(t, features=tuple(feats))
-        topo.append(t)
-    return list(byid.values()), topo
-
-
-def _spur_free(flat: _Flat, uid: np.ndarray, spur_max_m: float, bubble_max_m: float) -> np.ndarray:
-    """(N,) keep-mask without spurs: short polylines hanging off a split with no successor, or
-    into a merge with no predecessor (a feature flickering into view beside another makes a
-    split and an immediate dead end). Two rounds, so that a spur's removal can expose another."""
-    nn = flat.n_nodes
-    keep = np.ones(nn, dtype=bool)
-    for _ in range(2):
-        e = flat.edges[keep[flat.edges[:, 0]] & keep[flat.edges[:, 1]]] if len(flat.edges) else flat.edges
-        lo = flat.leftover[keep[flat.edges[:, 0]] & keep[flat.edges[:, 1]]] if len(flat.edges) else flat.leftover
-        outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-        indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-        link = chain_links(nn, e, lo, flat.n_type)
-        cross = e[~link] if len(e) else e
-        into = dict(zip(cross[:, 1].tolist(), cross[:, 0].tolist()))
-        outof = dict(zip(cross[:, 0].tolist(), cross[:, 1].tolist()))
-        killed = 0
-        chains = feature_chains(nn, e, lo, flat.n_type, uid)
-        # bubbles: two short branches from one split node to one merge node (a flicker beside a
-        # line that comes back): the branch with fewer drives goes
-        by_ends: dict[tuple[int, int], list[np.ndarray]] = {}
-        for c in chains:
-            first, last = int(c[0]), int(c[-1])
-            if first in into and last in outof and outdeg[into[first]] >= 2 and indeg[outof[last]] >= 2:
-                by_ends.setdefault((into[first], outof[last]), []).append(c)
-        direct = set(map(tuple, cross.tolist()))
-        for (u, w), branches in by_ends.items():
-            if (u, w) in direct:  # the other branch is the edge u -> w itself
-                for c in branches:
-                    if float(np.hypot(*np.diff(flat.n_xy[c], axis=0).T).sum()) < bubble_max_m and keep[c].all():
-                        keep[c] = False
-                        killed += 1
-                continue
-            if len(branches) < 2:
-                continue
-            chord = flat.n_xy[w] - flat.n_xy[u]
-            nrm = np.array([-chord[1], chord[0]]) / max(float(np.hypot(*chord)), 1e-9)
-
-            def rank(c: np.ndarray) -> tuple[float, float, int]:
-                dev = float(np.abs((flat.n_xy[c] - flat.n_xy[u]) @ nrm).mean())
-                return (-float(flat.n_count[c].mean()), dev, int(uid[c[0]]))
-
-            branches.sort(key=rank)
-            for c in branches[1:]:
-                if float(np.hypot(*np.diff(flat.n_xy[c], axis=0).T).sum()) < bubble_max_m and keep[c].all():
-                    keep[c] = False
-                    killed += 1
-        for c in chains:
-            if not keep[c[0]] or len(c) > spur_max_m:  # > spur_max_m nodes is surely longer
-                continue
-            first, last = int(c[0]), int(c[-1])
-            has_in, has_out = first in into or indeg[first] > 0, last in outof or outdeg[last] > 0
-            if has_in == has_out:
-                continue  # isolated (speck filter) or through-going
-            length = float(np.hypot(*np.diff(flat.n_xy[c], axis=0).T).sum()) if len(c) > 1 else 0.0
-            if length >= spur_max_m:
-                continue
-            if has_in and outdeg[into[first]] >= 2 if first in into else False:
-                keep[c] = False
-                killed += 1
-            elif has_out and indeg[outof[last]] >= 2 if last in outof else False:
-                keep[c] = False
-                killed += 1
-        if not killed:
-            break
-    return keep
-
-
-def _subset_nodes(flat: _Flat, keep: np.ndarray) -> _Flat:
-    """The flat graph restricted to the kept feature nodes (topology unchanged)."""
-    new_idx = np.full(len(keep), -1, dtype=np.int64)
-    new_idx[keep] = np.arange(int(keep.sum()))
-    e, ok = _map_edges(flat.edges, new_idx)
-    leftover = flat.leftover[ok] if len(ok) else flat.leftover
-    if len(e):
-        # a leftover edge whose sibling branch was pruned no longer joins a split or merge
-        outdeg = np.bincount(e[:, 0], minlength=int(keep.sum()))
-        indeg = np.bincount(e[:, 1], minlength=int(keep.sum()))
-        leftover = leftover & ((outdeg[e[:, 0]] >= 2) | (indeg[e[:, 1]] >= 2))
-    per_topo = np.bincount(flat.node_topo()[keep], minlength=flat.n_topo)
-    return _Flat(
-        keys=flat.keys,
-        tmap=flat.tmap,
-        nmap={k: np.where(v >= 0, new_idx[np.maximum(v, 0)], -1) for k, v in flat.nmap.items()},
-        t_graph=flat.t_graph,
-        t_local=flat.t_local,
-        t_uid=flat.t_uid,
-        t_xy=flat.t_xy,
-        t_heading=flat.t_heading,
-        t_width=flat.t_width,
-        t_start=np.concatenate([[0], np.cumsum(per_topo)]).astype(np.int64),
-        n_graph=flat.n_graph[keep],
-        n_local=flat.n_local[keep],
-        n_uid=flat.n_uid[keep],
-        n_xy=flat.n_xy[keep],
-        n_type=flat.n_type[keep],
-        n_count=flat.n_count[keep],
-        n_std=flat.n_std[keep],
-        topo_edges=flat.topo_edges,
-        edges=e,
-        leftover=leftover,
-    )
-
-
-def _smooth_types(flat: _Flat, uid: np.ndarray, min_run_m: float) -> np.ndarray:
-    """Marking types with short runs along a polyline relabelled to their neighbours' type.
-
-    Aggregated types flicker where drives misclassify dashed/solid (5-10 % of stretches), and every
-    flicker would close the polyline (RULE 1). A run of one marking type shorter than
-    ``min_run_m`` inside a polyline takes the type of its longer neighbouring run; runs are merged
-    shortest first. Road borders and markings are never relabelled into each other.
-
-    Returns:
-        (N,) int type codes.
-    """
-    types = flat.n_type.copy()
-    is_border = (types == _BORDER_CODE).astype(np.int64)
-    chains = feature_chains(flat.n_nodes, flat.edges, flat.leftover, is_border, uid)
-    for c in chains:
-        if len(c) < 3 or is_border[c[0]]:
-            continue
-        t = types[c]
-        cut = np.flatnonzero(t[1:] != t[:-1]) + 1
-        if len(cut) == 0:
-            continue
-        seg = np.r_[0.0, np.hypot(*np.diff(flat.n_xy[c], axis=0).T)]
-        bounds = np.r_[0, cut, len(c)].tolist()
-        runs = [[bounds[k], bounds[k + 1], int(t[bounds[k]])] for k in range(len(bounds) - 1)]
-
-        def length(r: list[int]) -> float:
-            return float(seg[r[0] + 1 : r[1]].sum() + (seg[r[1]] if r[1] < len(c) else 0.0))
-
-        while len(runs) > 1:
-            k = min(range(len(runs)), key=lambda i: (length(runs[i]), i))
-            if length(runs[k]) >= min_run_m:
-                break
-            left = runs[k - 1] if k > 0 else None
-            right = runs[k + 1] if k + 1 < len(runs) else None
-            into = left if right is None or (left is not None and length(left) >= length(right)) else right
-            runs[k][2] = into[2]
-            merged: list[list[int]] = []
-            for r in runs:  # join neighbours of equal type
-                if merged and merged[-1][2] == r[2]:
-                    merged[-1][1] = r[1]
-                else:
-                    merged.append(r)
-            runs = merged
-        for a, b, ty in runs:
-            t[a:b] = ty
-        types[c] = t
-    return types
-
-
-def _fill_gaps(
-    xy: np.ndarray, cnt: np.ndarray, std: np.ndarray, spacing_m: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fill polyline edges longer than 1.5 x spacing with cubic Hermite points.
-
-    Args:
-        xy: (N, 2) points [m], N >= 3; cnt: (N,) drive counts; std: (N,) lateral std [m].
-
-    Returns:
-        The same arrays with the filled points inserted (count 0, std the larger of the ends').
-    """
-    seg = np.hypot(*np.diff(xy, axis=0).T)
-    long = np.flatnonzero(seg > 1.5 * spacing_m)
-    if len(long) == 0:
-        return xy, cnt, std
-    # tangents: central differences, one-sided at the ends, scaled per edge below
-    tang = np.gradient(xy, axis=0)
-    tang /= np.maximum(np.hypot(*tang.T), 1e-12)[:, None]
-    pieces_xy, pieces_c, pieces_s = [], [], []
-    prev = 0
-    for k in long.tolist():
-        pieces_xy.append(xy[prev : k + 1])
-        pieces_c.append(cnt[prev : k + 1])
-        pieces_s.append(std[prev : k + 1])
-        n_new = int(math.ceil(seg[k] / spacing_m)) - 1
-        t = (np.arange(1, n_new + 1) / (n_new + 1))[:, None]
-        p0, p1 = xy[k], xy[k + 1]
-        # tangents of the neighbouring edges (not through the gap itself)
-        m0 = (xy[k] - xy[k - 1]) if k > 0 else (p1 - p0)
-        m1 = (xy[k + 2] - xy[k + 1]) if k + 2 < len(xy) else (p1 - p0)
-        m0 = m0 / max(np.hypot(*m0), 1e-12) * seg[k]
-        m1 = m1 / max(np.hypot(*m1), 1e-12) * seg[k]
-        h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
-        pieces_xy.append(h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1)
-        pieces_c.append(np.zeros(n_new, dtype=cnt.dtype))
-        pieces_s.append(np.full(n_new, max(std[k], std[k + 1])))
-        prev = k + 1
-    pieces_xy.append(xy[prev:])
-    pieces_c.append(cnt[prev:])
-    pieces_s.append(std[prev:])
-    del tang
-    return np.vstack(pieces_xy), np.concatenate(pieces_c), np.concatenate(pieces_s)
-
-
-def _ftype(code: int):
-    from hdmap_core.model import FeatureType
-
-    try:
-        return FeatureType(code)
-    except ValueError:
-        return FeatureType.UNKNOWN
 
 
 # --- public functions -----------------------------------------------------------------------------------
@@ -1364,135 +903,3 @@ def to_hdmap(
         mg._alive[graph.key] = np.ones(graph.n_topo, dtype=bool)
         graph = mg
     return graph.to_hdmap(version=version, stamp_ns=stamp_ns, drive_ids=drive_ids)
-
-
-def graph_from_hdmap(hdmap: HDMap, *, key: str = "base", tile_size_m: float = 256.0) -> SegmentGraph:
-    """Rebuild a hierarchical graph from an ``HDMap`` so that new segments can be stitched to it.
-
-    Each feature point becomes a feature node, attached to the nearest topology node that lists
-    the feature (else the nearest one); junction points added at export (split/merge/type change)
-    are removed again so that a re-export does not duplicate them. The first node of every feature
-    carries the feature's id, so an unchanged feature keeps its id.
-    """
-    from hdmap_core.connection import ConnectionStats
-
-    feats = list(hdmap.features)
-    topo = list(hdmap.topology)
-    by_id = {int(f.id): f for f in feats}
-    t_index = {int(t.id): k for k, t in enumerate(topo)}
-    lo: dict[int, int] = {}
-    hi: dict[int, int] = {}
-    for f in feats:
-        lo[int(f.id)], hi[int(f.id)] = 0, len(f.points)
-    for f in feats:  # drop junction points that duplicate a neighbour's point
-        for s in f.successors:
-            g = by_id.get(int(s))
-            if g is None or len(g.points) == 0 or len(f.points) == 0:
-                continue
-            if np.hypot(*(np.asarray(g.points[0]) - np.asarray(f.points[-1]))) < 1e-6:
-                merge = len(g.predecessors) >= 2
-                split = len(f.successors) >= 2
-                if merge and not split and hi[int(f.id)] - lo[int(f.id)] > 1:
-                    hi[int(f.id)] -= 1
-                elif hi[int(g.id)] - lo[int(g.id)] > 1:
-                    lo[int(g.id)] += 1
-                    if not (merge or split) and hi[int(f.id)] - lo[int(f.id)] > 1:
-                        hi[int(f.id)] -= 1
-    # topology
-    if topo:
-        t_xy = np.array([np.asarray(t.position, dtype=float)[:2] for t in topo])
-        t_h = np.array([float(t.heading) for t in topo])
-        t_w = np.array([float(t.width) for t in topo])
-        t_uid = np.array([int(t.id) for t in topo], dtype=np.uint64)
-    else:
-        t_xy, t_h, t_w, t_uid = np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.uint64)
-    t_edges = [(k, t_index[int(s)]) for k, t in enumerate(topo) for s in t.successors if int(s) in t_index]
-    listing: dict[int, list[int]] = {}
-    for k, t in enumerate(topo):
-        for fid in t.features:
-            listing.setdefault(int(fid), []).append(k)
-    tree = cKDTree(t_xy) if len(t_xy) else None
-
-    n_xy, n_type, n_cnt, n_std, n_uid, n_topo, n_feat, n_pos = [], [], [], [], [], [], [], []
-    extra_topo: list[tuple[np.ndarray, float]] = []
-    for f in feats:
-        fid = int(f.id)
-        pts = np.asarray(f.points, dtype=float)[:, :2][lo[fid] : hi[fid]]
-        if len(pts) == 0:
-            continue
-        cnt = np.asarray(f.drive_count)[lo[fid] : hi[fid]] if len(f.drive_count) else np.zeros(len(pts))
-        std = np.asarray(f.lateral_std)[lo[fid] : hi[fid]] if len(f.lateral_std) else np.zeros(len(pts))
-        cand = listing.get(fid, [])
-        if cand:
-            d = np.linalg.norm(pts[:, None, :] - t_xy[cand][None, :, :], axis=2)
-            tk = np.asarray(cand)[np.argmin(d, axis=1)]
-        elif tree is not None:
-            tk = tree.query(pts)[1]
-        else:  # a map without topology: one pseudo topology node per feature point
-            hdg = np.arctan2(*np.diff(pts, axis=0).T[::-1]) if len(pts) > 1 else np.zeros(1)
-            hdg = np.r_[hdg, hdg[-1:]][: len(pts)]
-            tk = len(topo) + len(extra_topo) + np.arange(len(pts))
-            extra_topo.extend((p, float(h)) for p, h in zip(pts, hdg))
-        uids = stable_uid(f"base:{fid}", np.arange(len(pts)))
-        uids[0] = np.uint64(fid & ((1 << 63) - 1)) or np.uint64(1)
-        n_xy.append(pts)
-        n_type.append(np.full(len(pts), int(f.type)))
-        n_cnt.append(cnt)
-        n_std.append(std)
-        n_uid.append(uids)
-        n_topo.append(np.asarray(tk, dtype=np.int64))
-        n_feat.append(np.full(len(pts), fid, dtype=np.uint64))
-        n_pos.append(np.arange(len(pts)))
-    if extra_topo:
-        t_xy = np.vstack([t_xy, np.array([p for p, _ in extra_topo])])
-        t_h = np.r_[t_h, [h for _, h in extra_topo]]
-        t_w = np.r_[t_w, np.zeros(len(extra_topo))]
-        t_uid = np.r_[t_uid, stable_uid("base-topo", np.arange(len(extra_topo)))]
-
-    def cat(parts, shape, dtype):
-        return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype=dtype)
-
-    xy = cat(n_xy, (0, 2), float)
-    tk = cat(n_topo, (0,), np.int64)
-    order = np.argsort(tk, kind="stable")
-    inv = np.empty_like(order)
-    inv[order] = np.arange(len(order))
-    feat_of = cat(n_feat, (0,), np.uint64)
-    pos = cat(n_pos, (0,), np.int64)
-    # edges: along each feature, and from a feature's last node to each successor's first node
-    first: dict[int, int] = {}
-    last: dict[int, int] = {}
-    edges = []
-    for i in range(len(xy)):
-        fid = int(feat_of[i])
-        first.setdefault(fid, i)
-        last[fid] = i
-        if pos[i] > 0:
-            edges.append((i - 1, i))
-    for f in feats:
-        for s in f.successors:
-            if int(f.id) in last and int(s) in first:
-                edges.append((last[int(f.id)], first[int(s)]))
-    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-    counts = np.bincount(tk, minlength=len(t_uid)) if len(tk) else np.zeros(len(t_uid), dtype=np.int64)
-    return SegmentGraph(
-        key=key,
-        pivot_id=key,
-        topo_uid=t_uid.astype(np.uint64),
-        topo_step=np.arange(len(t_uid), dtype=np.int64),
-        topo_xy=t_xy.reshape(-1, 2),
-        topo_heading=t_h,
-        topo_width=t_w,
-        topo_edges=np.asarray(t_edges, dtype=np.int64).reshape(-1, 2),
-        topo_start=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        node_uid=cat(n_uid, (0,), np.uint64)[order],
-        node_xy=xy[order],
-        node_type=cat(n_type, (0,), np.int64)[order],
-        node_count=cat(n_cnt, (0,), np.int64)[order],
-        node_std=cat(n_std, (0,), float)[order],
-        edges=inv[e] if len(e) else e,
-        edge_leftover=np.zeros(len(e), dtype=bool),
-        drive_ids=tuple(hdmap.drive_ids),
-        stats=ConnectionStats(),
-        tile_size_m=tile_size_m,
-    )
