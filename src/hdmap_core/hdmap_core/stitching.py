@@ -14,9 +14,13 @@ graph; :class:`MapGraph` holds the complete one and inserts segments as the pape
 
 The same mechanism updates an existing map with newly mapped sections: ``MapGraph.integrate``
 adds segment graphs and replaces the graphs of re-estimated segments (keyed by segment key, or
-by place via ``keys_in_tiles``). Beyond the paper (switchable in :class:`StitchConfig`): component
-ends that duplicate a place already in the map are trimmed, loose polyline ends of different
-segments that continue each other are joined, and isolated specks are dropped.
+by place via ``keys_in_tiles``); ``rebuild`` makes the map a function of the set of segment
+graphs. Beyond the paper (each switchable in :class:`StitchConfig`, all off in
+``StitchConfig.paper()``): component ends that duplicate a place already in the map are trimmed,
+spurs and bubbles pruned, dangling ends running on another segment's line deduplicated, loose ends
+that continue each other joined (gaps filled on a Hermite curve), and, at export
+(``hdmap_core.graph``), type flicker smoothed, gore splits placed at the lane line's end and
+isolated specks dropped.
 
 Feature ids are the stable uid of a polyline's first feature node (hash of pivot id, step index and
 slot), so the same input gives the same ids and adding an unrelated segment changes none.
