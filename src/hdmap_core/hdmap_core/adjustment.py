@@ -438,14 +438,17 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     """Estimate every drive's lateral offset curve from all steps jointly (sparse least squares).
 
     Args:
-        observations: StepObservations of all steps (any order, any pivots). Samples with
-            cluster -1, non-finite values, or in a cluster seen by fewer than 2 drives are not used;
+        observations: StepObservations of all steps (any order, any pivots). Their cluster labels
+            seed the association; with ``config.reassociate_rounds > 0`` every sample (also those
+            labelled -1) is re-associated to the nearest cluster of its step and type. Samples
+            with non-finite values, or in a cluster seen by fewer than 2 drives, are not used;
             malformed steps are skipped and named in ``stats["problems"]``.
         config: model and solver settings.
 
     Returns:
         OffsetModel with one curve per drive that has at least one usable sample. ``stats`` holds
-        counts, iterations, robust down-weighting and the inlier residual RMS.
+        counts, iterations, lane shifts, the relabelled / coarse-rejected / robustly down-weighted
+        fractions and the inlier residual RMS.
     """
     cfg = config
     stats: dict[str, Any] = {}
