@@ -57,6 +57,7 @@ __all__ = ["StitchConfig", "MapGraph", "stitch", "to_hdmap", "graph_from_hdmap"]
 
 _BIG = 1.0e9
 _GATE = 1.0e4
+_TWIN_EDGE_REACH_M = 10.0  # half the longest gap the connection bridges by default (max_gap_m)
 _BORDER_CODE = 3  # FeatureType.ROAD_BORDER
 
 Link = tuple[str, int, str, int]  # (graph key, local index) -> (graph key, local index)
@@ -643,7 +644,8 @@ class MapGraph:
 
         From every loose end (no successor) walk back, and from every loose start walk forward,
         while the node has a twin: a live feature node of another segment, of the same class
-        (marking / border), within ``twin_radius_m``. Those nodes map a place twice; the copy that
+        (marking / border) within ``twin_lateral_m`` across and ``twin_along_m`` along the road,
+        or on an edge of such a line within ``twin_lateral_m``. Those nodes map a place twice; the copy that
         continues survives, and the loose-end join then connects the rest.
         """
         cfg = self.config
@@ -665,14 +667,34 @@ class MapGraph:
         alive = np.ones(nn, dtype=bool)
 
         heading = flat.t_heading[flat.node_topo()]
-        reach = math.hypot(cfg.twin_along_m, cfg.twin_lateral_m)
+        # candidates up to half a bridged gap away: the other line may have no node next to j,
+        # only an edge across a gap; j is a twin of a node or of an edge out of it
+        reach = math.hypot(cfg.twin_along_m, cfg.twin_lateral_m) + _TWIN_EDGE_REACH_M
+        out_adj = _Adjacency(e[:, 0], e[:, 1], nn)
+
+        def close_to(j: int, k: int, n: np.ndarray, u: np.ndarray) -> bool:
+            d = flat.n_xy[k] - flat.n_xy[j]
+            if abs(float(d @ n)) <= cfg.twin_lateral_m and abs(float(d @ u)) <= cfg.twin_along_m:
+                return True
+            for k2 in out_adj.get(k):
+                if not alive[k2]:
+                    continue
+                seg = flat.n_xy[k2] - flat.n_xy[k]
+                length = float(math.hypot(*seg))
+                if length < 1e-9:
+                    continue
+                t = float((flat.n_xy[j] - flat.n_xy[k]) @ seg) / length**2
+                if 0.0 <= t <= 1.0:
+                    off = flat.n_xy[k] + t * seg - flat.n_xy[j]
+                    if float(math.hypot(*off)) <= cfg.twin_lateral_m:
+                        return True
+            return False
 
         def twin(j: int) -> bool:
             u, n = _unit(float(heading[j]))
             for k in tree.query_ball_point(flat.n_xy[j], reach):
                 if alive[k] and flat.n_graph[k] != flat.n_graph[j] and border[k] == border[j]:
-                    d = flat.n_xy[k] - flat.n_xy[j]
-                    if abs(float(d @ n)) <= cfg.twin_lateral_m and abs(float(d @ u)) <= cfg.twin_along_m:
+                    if close_to(j, int(k), n, u):
                         return True
             return False
 
