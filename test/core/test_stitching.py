@@ -469,3 +469,20 @@ def test_overlapping_loose_end_and_start_joined_without_doubling_back():
     assert np.all(np.diff(x) > 0) and x[0] == 0.0 and x[-1] == pytest.approx(171.0)
     cfg0 = StitchConfig(trim_overlap=False, dedupe_loose_ends=False, max_distance_m=0.0, join_overlap_m=0.0)
     assert len(stitch([conn(a), conn(b)], config=cfg0).features) == 2
+
+
+def test_duplicate_inside_a_bridged_gap_deduplicated_against_the_edge():
+    r"""a's dashed line has no result for 16 m (x 40..54, bridged by one edge); b maps a short
+    copy of it inside that hole (0.2 m aside). The copy has no twin node, only a twin edge: it is
+    dropped, and a's line stays one polyline.
+
+        a:  - - - - - - -*- - - - - - - - - -*- - - - - - -
+        b:                  - - - - - -                     (0.2 m aside)
+    """
+    a_steps = [step("a", i, 2.0 * i, [0.0], [D]) for i in range(50) if not 20 <= i < 27]
+    a = Segment("a", tuple(a_steps))
+    b = Segment("b", tuple(step("b", i, 41.0 + 2.0 * i, [0.2, -30.0], [D, S], y_mid=-30.0) for i in range(6)))
+    cfg = StitchConfig(trim_overlap=False, min_isolated_length_m=0.0, max_distance_m=0.0)
+    m = stitch([conn(a), conn(b)], config=cfg)
+    assert len(by_type(m, D)) == 1
+    assert by_type(m, D)[0].points[0, 0] == 0.0 and by_type(m, D)[0].points[-1, 0] == pytest.approx(98.0)
