@@ -69,7 +69,7 @@ class TileConfig:
     """
 
     tile_size_m: float = 256.0
-    margin_m: float = 64.0
+    margin_m: float = 128.0
     min_growth_fraction: float = 0.10
     min_growth_drives: int = 1
     seed: int = 0

@@ -50,7 +50,7 @@ class SegmentMapper(HealthMixin, Node):
         self.tile_config = TileConfig(
             tile_size_m=declare(self, "tile_size_m", 256.0, "Edge of a map tile [m].", lo=32.0, hi=4096.0),
             margin_m=declare(
-                self, "margin_m", 64.0, "Context mapped around a tile [m]; must be < tile_size_m.", lo=0.0, hi=1024.0
+                self, "margin_m", 128.0, "Context mapped around a tile [m]; must be < tile_size_m.", lo=0.0, hi=1024.0
             ),
             min_growth_fraction=declare(
                 self, "min_growth_fraction", 0.10,
