@@ -17,12 +17,18 @@ Presets (``PipelineConfig.preset``):
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+
+try:  # threadpoolctl comes with scikit-learn
+    from threadpoolctl import threadpool_limits
+except ImportError:  # pragma: no cover
+    threadpool_limits = None
 
 from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_many
 from hdmap_core.alignment import AlignmentConfig, align_step
@@ -98,7 +104,7 @@ class PipelineConfig:
                 n_iterations=4,
                 prior_weight=1.0,
                 robust_loss=True,
-                min_cluster_drives=2,
+                min_cluster_drives=1,
                 # Labels are fixed in the M-step and the closed form minimises the variance; the
                 # penalty would only push apart clusters of one feature split by a gap.
                 penalty_lm_threshold=2.0,
@@ -512,6 +518,23 @@ def map_stretches(
     drives = list(drives)
     if not drives:
         raise NoUsableDataError("no valid drive to map")
+    # Tens of thousands of tiny (D x D) solves: multithreaded BLAS only adds sync overhead
+    # (measured: 3.6 ms per 55 x 55 solve with 2 threads on a loaded 2-core machine).
+    limit = threadpool_limits(limits=1, user_api="blas") if threadpool_limits is not None else contextlib.nullcontext()
+    with limit:
+        return _map_stretches(drives, config=config, seed=seed, processed=processed,
+                              collect_observations=collect_observations, progress=progress)
+
+
+def _map_stretches(
+    drives: list[Drive],
+    *,
+    config: PipelineConfig,
+    seed: int,
+    processed: ProcessedStore | None,
+    collect_observations: bool,
+    progress: ProgressFn | None,
+) -> MappingResult:
     store_in = processed if processed is not None else ProcessedStore()
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
