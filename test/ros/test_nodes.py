@@ -200,3 +200,14 @@ def test_bag_player_loops(ros, tmp_path):
     wait_for(lambda: len(got) >= 7, 20, what="a second pass over the bag")
     assert [m.drive_id for m in got[:7]] == ["L0", "L1", "L2", "L0", "L1", "L2", "L0"]
     assert not player.done
+
+
+def test_mapper_refuses_a_store_made_with_another_tiling(ros, tmp_path):
+    from hdmap_core.errors import ConfigError
+    from hdmap_ros.nodes.segment_mapper import SegmentMapper
+
+    db = Parameter("db_path", value=str(tmp_path / "m.db"))
+    first = SegmentMapper(context=ros.context, parameter_overrides=[db])
+    first.destroy_node()
+    with pytest.raises(ConfigError, match="tile_size_m=256.0"):
+        SegmentMapper(context=ros.context, parameter_overrides=[db, Parameter("tile_size_m", value=512.0)])

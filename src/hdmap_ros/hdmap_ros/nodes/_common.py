@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
@@ -93,11 +94,7 @@ class HealthMixin:
     def _init_health(self: Any, label: str) -> None:
         period = declare(self, "diagnostics_period_s", 1.0, "Period of /diagnostics messages [s].", lo=0.05, hi=60.0)
         self.health = Health(name=f"hdmap: {label}", hardware_id=self.get_fully_qualified_name())
-        self._diag_pub = self.create_publisher(
-            __import__("diagnostic_msgs.msg", fromlist=["DiagnosticArray"]).DiagnosticArray,
-            "/diagnostics",
-            qos.DIAGNOSTICS,
-        )
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS)
         self._diag_timer = self.create_timer(period, self.publish_health)
 
     def publish_health(self: Any) -> None:

@@ -24,7 +24,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from hdmap_core.errors import HdmapError, InvalidDriveError
+from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
 from hdmap_core.incremental import TileConfig, TileKey, map_tile, needs_update, tiles_of_drive
 from hdmap_core.model import validate_drive
 from hdmap_ros import qos
@@ -84,6 +84,7 @@ class SegmentMapper(HealthMixin, Node):
 
         self.pipeline_config = preset_config(preset)
         self.store = DriveStore(os.path.expanduser(db))
+        self._check_tiling()
         self._types = rclpy_types()
         self._tile_types = rclpy_tile_types()
         self._last_input = time.monotonic()
@@ -111,6 +112,18 @@ class SegmentMapper(HealthMixin, Node):
             f"drive store {self.store.path}: {self.store.drive_count()} drive(s), {self.health.backlog} pending, "
             f"{len(self.store.tiles())} tile(s)"
         )
+
+    def _check_tiling(self) -> None:
+        """A store keeps the tiling it was made with: another one would mix incompatible tiles."""
+        cfg = self.tile_config
+        tiling = f"tile_size_m={cfg.tile_size_m!r} margin_m={cfg.margin_m!r} seed={cfg.seed!r}"
+        stored = self.store.get_meta("tiling")
+        if stored is None:
+            self.store.set_meta("tiling", tiling)
+        elif stored != tiling:
+            raise ConfigError(
+                f"{self.store.path} was made with {stored}, not {tiling}: use that tiling or a new db_path"
+            )
 
     # --- receiving -------------------------------------------------------------------------------
 
