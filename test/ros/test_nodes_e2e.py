@@ -79,6 +79,7 @@ class Suite:
 
         self.probe.create_subscription(TileSegments, "/hdmap/segments", self._on_seg, qos.replay(1000))
         self.drive_pub = self.probe.create_publisher(t.Drive, "/fleet/drives", qos.DRIVES)
+        self.probe.create_subscription(t.Map, "/hdmap/map", self.maps.append, qos.LATCHED)
 
     def _on_seg(self, _msg) -> None:
         self.segments += 1
@@ -176,6 +177,7 @@ def uninterrupted(fleet, tmp_path_factory):
         hdmap = suite.late_map()
         alive = {n: suite.procs[n].alive() for n in NODES}
         diags = dict(suite.diags)
+        diags["versions"] = [msg_to_map(m) for m in suite.maps]
     except AssertionError:
         print("diagnostics:", suite.diags, "\nacks:", sorted(set(suite.acks)), "\n", suite.logs())
         suite.close()
@@ -197,6 +199,20 @@ def test_replayed_bag_gives_latched_map_matching_ground_truth_and_offline(fleet,
     # and 2 % coverage (one-sided: the per-tile estimate has come out better than the offline one)
     assert live.overall.mean_m <= off.overall.mean_m + 0.05
     assert live.coverage >= off.coverage - 0.02
+
+
+def test_feature_ids_stay_while_features_persist(uninterrupted):
+    versions = uninterrupted[2]["versions"]
+    assert len(versions) >= 2 and [m.version for m in versions] == sorted({m.version for m in versions})
+    kept = 0
+    for old, new in zip(versions, versions[1:]):
+        by_geometry = {(int(f.type), np.round(f.points, 6).tobytes()): f.id for f in old.features}
+        for f in new.features:
+            old_id = by_geometry.get((int(f.type), np.round(f.points, 6).tobytes()))
+            if old_id is not None:
+                assert f.id == old_id
+                kept += 1
+    assert kept > 0  # some features did persist unchanged across versions
 
 
 def test_malformed_drives_show_on_diagnostics_and_nodes_stay_up(uninterrupted):
