@@ -189,3 +189,17 @@ def test_tracked_step_with_prior_and_new_drive():
     res = align_step(lat, types, drive, config=cfg, prior=prior)
     assert res.valid
     np.testing.assert_allclose(res.offsets_m, -errors, atol=0.08)
+
+
+def test_lone_clusters_accepted_only_when_asked_and_tight():
+    # Two drives on a ramp, each seeing one solid and one border: no type has two clusters.
+    lat = np.array([-1.8, 1.7, -1.75, 1.75])
+    types = np.array([1, 3, 1, 3])
+    drive = np.array([0, 0, 1, 1])
+    paper = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form"))
+    assert paper.silhouette == -1.0 and not paper.valid
+    lone = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form", lone_cluster_max_std_m=0.3))
+    assert lone.valid
+    wide = np.array([-2.6, 1.7, -1.0, 1.75])  # the solid samples disagree by 1.6 m
+    res = align_step(wide, types, drive, config=AlignmentConfig(estimate_offsets=False, lone_cluster_max_std_m=0.3))
+    assert not res.valid

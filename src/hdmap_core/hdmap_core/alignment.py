@@ -72,6 +72,9 @@ class AlignmentConfig:
             step's offset: offsets smoothed along a drive). 0 = independent steps (paper).
         remove_drift: keep the mean cluster position unchanged by the correction (paper).
         silhouette_gate: steps scoring below are rejected (paper: 0.67).
+        lone_cluster_max_std_m: when no type has two clusters the silhouette is undefined (the
+            paper rejects such a step); > 0 accepts it when every cluster's std is at most this
+            [m] (sparse places: one drive on a ramp).
         min_cluster_drives: clusters supported by fewer distinct drives are dropped (label -1).
         max_offset_m: offsets are clipped to +-this [m].
     """
@@ -92,6 +95,7 @@ class AlignmentConfig:
     prior_weight: float = 0.0
     remove_drift: bool = True
     silhouette_gate: float = 0.67
+    lone_cluster_max_std_m: float = 0.0
     min_cluster_drives: int = 1
     max_offset_m: float = 5.0
 
@@ -730,6 +734,17 @@ def _em(
         if not config.estimate_offsets:
             break
         o = solve_offsets(x, labels, types, drive, n_drives, config=config, prior=prior, init=o)
-    score = step_silhouette(x + o[drive], labels, types)
+    y = x + o[drive]
+    score = step_silhouette(y, labels, types)
     valid = score >= config.silhouette_gate
+    if score == -1.0 and config.lone_cluster_max_std_m > 0:
+        # No type has two clusters (e.g. one drive on a ramp seeing one line of each type): the
+        # silhouette is undefined; accept when every cluster is tight.
+        use = labels >= 0
+        if use.any():
+            k = int(labels[use].max()) + 1
+            n = np.bincount(labels[use], minlength=k)
+            mean = np.bincount(labels[use], weights=y[use], minlength=k) / np.maximum(n, 1)
+            var = np.bincount(labels[use], weights=y[use] ** 2, minlength=k) / np.maximum(n, 1) - mean**2
+            valid = bool(np.sqrt(np.maximum(var[n > 0], 0.0)).max() <= config.lone_cluster_max_std_m)
     return StepAlignment(offsets_m=o, labels=labels, silhouette=score, valid=bool(valid), n_iterations=it)

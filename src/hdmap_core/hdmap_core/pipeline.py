@@ -108,6 +108,7 @@ class PipelineConfig:
                 # Labels are fixed in the M-step and the closed form minimises the variance; the
                 # penalty would only push apart clusters of one feature split by a gap.
                 penalty_lm_threshold=2.0,
+                lone_cluster_max_std_m=0.3,
             )
             final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
             return cls(
