@@ -107,3 +107,16 @@ def test_cache_gives_the_same_samples():
     assert first.ptr[-1] < plain.ptr[-1]
     for name in ("ptr", "lateral_m", "types", "drive", "drive_s_m", "width_m"):
         np.testing.assert_array_equal(getattr(again, name), getattr(plain, name))
+
+
+def test_border_support_fraction_ignores_a_few_inner_border_samples():
+    # 20 drives see the borders at +-6.5; two misclassify a dashed line at +1.75 as border.
+    q = np.zeros(44, dtype=np.int64)
+    t = np.concatenate([np.full(20, 6.5), np.full(20, -6.5), [1.75, 1.75, 1.8, 1.7]])
+    types = np.full(44, FeatureType.ROAD_BORDER)
+    drive = np.concatenate([np.arange(20), np.arange(20), [0, 1, 2, 3]])
+    cfg = SamplingConfig(spread_factor=0.0, margin_m=0.5)
+    _, w_plain = refine_cuts(q, t, types, 1, config=cfg, drive=drive)
+    _, w_frac = refine_cuts(q, t, types, 1, config=SamplingConfig(spread_factor=0.0, margin_m=0.5, min_border_support_fraction=0.25), drive=drive)
+    assert w_plain[0] < 10.0  # cut short at the misclassified line
+    assert w_frac[0] == pytest.approx(14.0)

@@ -112,6 +112,7 @@ class PipelineConfig:
             )
             final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
             return cls(
+                sampling=SamplingConfig(min_border_support_fraction=0.05),
                 alignment=fast,
                 aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15),
                 use_global_adjustment=True,

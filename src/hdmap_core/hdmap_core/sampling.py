@@ -45,6 +45,9 @@ class SamplingConfig:
         min_border_support: a border sample only counts as the first border when at least this
             many border samples lie in its window (1 = the paper's literal first sample; more makes
             one badly localised drive unable to cut the road short).
+        min_border_support_fraction: the support needed is also at least this share of the
+            drives sampled at the step (dense fleets: a few misclassified or false border
+            samples inside the road must not cut it short).
         spread_factor: dl_s = spread_factor * std(first border group) (open).
         margin_m: constant margin dl_c [m] (open).
         width_smoothing_steps, width_decay: window and per-step weight decay of the weighted
@@ -59,6 +62,7 @@ class SamplingConfig:
     max_heading_diff_deg: float = 60.0
     border_window_m: float = 2.0
     min_border_support: int = 2
+    min_border_support_fraction: float = 0.0
     spread_factor: float = 2.0
     margin_m: float = 0.5
     width_smoothing_steps: int = 10
@@ -131,10 +135,11 @@ def pivot_walk(drive: Drive, *, step_m: float) -> tuple[np.ndarray, np.ndarray, 
     return s, pts, heading
 
 
-def _side_first_border(q: np.ndarray, d: np.ndarray, n_steps: int, *, window_m: float, support: int) -> np.ndarray:
+def _side_first_border(q: np.ndarray, d: np.ndarray, n_steps: int, *, window_m: float, support: np.ndarray) -> np.ndarray:
     """Per step, the distance d >= 0 of the first border sample with enough support, else NaN.
 
-    q: (B,) step of each border sample on this side; d: (B,) its distance from the pivot [m].
+    q: (B,) step of each border sample on this side; d: (B,) its distance from the pivot [m];
+    support: (n_steps,) border samples needed in the window, per step.
     """
     first = np.full(n_steps, np.nan)
     if len(q) == 0:
@@ -143,7 +148,7 @@ def _side_first_border(q: np.ndarray, d: np.ndarray, n_steps: int, *, window_m: 
     q, d = q[order], d[order]
     key = q * 1e6 + d  # steps are far apart in key space; d < 1e5 m
     n_in_window = np.searchsorted(key, key + window_m, side="right") - np.arange(len(key))
-    ok = n_in_window >= support
+    ok = n_in_window >= support[q]
     qk, dk = q[ok], d[ok]
     # First qualifying sample per step (already sorted by d within a step).
     is_first = np.ones(len(qk), dtype=bool)
@@ -191,7 +196,13 @@ def _fill(values: np.ndarray, default: float) -> np.ndarray:
 
 
 def refine_cuts(
-    step: np.ndarray, t_m: np.ndarray, types: np.ndarray, n_steps: int, *, config: SamplingConfig
+    step: np.ndarray,
+    t_m: np.ndarray,
+    types: np.ndarray,
+    n_steps: int,
+    *,
+    config: SamplingConfig,
+    drive: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Refined (smoothed) cut midpoint offset and length per step.
 
@@ -199,17 +210,23 @@ def refine_cuts(
         step: (H,) step index of each sample; t_m: (H,) sample position along the initial cut
             from the pivot point, + = left [m]; types: (H,) FeatureType codes.
         n_steps: Q.
+        drive: optional (H,) drive of each sample, for ``min_border_support_fraction``.
 
     Returns:
         (mid_m (Q,) midpoint offset from the pivot point along the cut [m], width_m (Q,) [m]).
     """
     border = types == FeatureType.ROAD_BORDER
+    support = np.full(n_steps, config.min_border_support, dtype=np.int64)
+    if drive is not None and config.min_border_support_fraction > 0 and len(step):
+        nd = int(drive.max()) + 1
+        n_drives = np.bincount(np.unique(step * nd + drive) // nd, minlength=n_steps)
+        support = np.maximum(support, np.ceil(config.min_border_support_fraction * n_drives).astype(np.int64))
     left = border & (t_m > 0)
     right = border & (t_m < 0)
     ends = []
     for mask, sign in ((left, 1.0), (right, -1.0)):
         q, d = step[mask], sign * t_m[mask]
-        first = _side_first_border(q, d, n_steps, window_m=config.border_window_m, support=config.min_border_support)
+        first = _side_first_border(q, d, n_steps, window_m=config.border_window_m, support=support)
         ends.append(_side_end(q, d, first, config=config))
     left_end, right_end = ends[0], -ends[1]
     width_raw = left_end - right_end
@@ -280,7 +297,7 @@ def sample_pivot(
     q, t, types, drv, ds = (v[sel] for v in merged)
     if shift is not None and len(t):
         t = t + np.asarray(shift(drv, ds), dtype=float)
-    mid, width = refine_cuts(q, t, types, n, config=config)
+    mid, width = refine_cuts(q, t, types, n, config=config, drive=drv)
     lat = t - mid[q]
     keep = np.abs(lat) <= 0.5 * width[q]
     q, lat, types, drv, ds = q[keep], lat[keep], types[keep], drv[keep], ds[keep]
