@@ -397,11 +397,27 @@ def solve_offsets(
         row_w = np.sqrt(w)
         sq_reg = np.sqrt(reg_w)
 
+        aw = a * row_w[:, None]
+        same = ctype[:, None] == ctype[None, :]
+        np.fill_diagonal(same, False)
+        has_nb = same.any(axis=1)
+
         def fun(v: np.ndarray) -> np.ndarray:
-            return np.concatenate([(a @ v + b) * row_w, _penalty(mean0 + share @ v, ctype, s), sq_reg * (v - reg_t)])
+            return np.concatenate([aw @ v + b * row_w, _penalty(mean0 + share @ v, ctype, s), sq_reg * (v - reg_t)])
+
+        def jac(v: np.ndarray) -> np.ndarray:
+            # Analytic Jacobian: the variance rows are linear; penalty_i = exp(-s d_i^2 / 2) with
+            # d_i = |mu_i - mu_j*| to the nearest same-type cluster j*, mu = mean0 + share @ v.
+            mu = mean0 + share @ v
+            d = np.where(same, np.abs(mu[:, None] - mu[None, :]), np.inf)
+            j = np.argmin(d, axis=1)
+            diff = mu - mu[j]
+            pen = np.where(has_nb, np.exp(-0.5 * s * diff * diff), 0.0)
+            jp = (-s * diff * pen)[:, None] * (share - share[j])
+            return np.vstack([aw, np.where(has_nb[:, None], jp, 0.0), np.diag(sq_reg)])
 
         start = o if config.solver == "closed_form" else (np.zeros(n_drives) if init is None else init)
-        o = least_squares(fun, start, method="lm", xtol=1e-6, ftol=1e-8).x
+        o = least_squares(fun, start, jac=jac, method="lm", xtol=1e-6, ftol=1e-8).x
     if config.remove_drift:
         # Road midpoint (mean cluster position) after correction = before it.
         key = labels * n_drives + drive
