@@ -150,3 +150,10 @@ def test_end_to_end_on_simulated_motorway():
     assert good.corrected_mean_m < 0.12
     assert good.mean_m < naive.mean_m
     assert good.precision > 0.95
+
+
+def test_progress_reports_every_pivot(fleet):
+    calls = []
+    map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=0, progress=lambda *a: calls.append(a))
+    assert calls[-1] == ("pivots", len(fleet), len(fleet))
+    assert [c[1] for c in calls] == list(range(1, len(fleet) + 1))
