@@ -44,7 +44,7 @@ class MapStitcher(HealthMixin, Node):
         db = declare(self, "db_path", "~/.ros/hdmap/map_stitcher.db", "SQLite file of the map store.")
         preset = declare(self, "preset", "default", "Pipeline preset: default, paper or naive.")
         self.debounce_s = declare(
-            self, "debounce_s", 0.5, "Rebuild the map after this long without a new tile estimate [s].", lo=0.0, hi=600.0
+            self, "debounce_s", 1.0, "Rebuild the map after this long without a new tile estimate [s].", lo=0.0, hi=600.0
         )
         self.max_delay_s = declare(
             self, "max_delay_s", 5.0, "Rebuild at the latest this long after the first unstitched update [s].",
