@@ -7,6 +7,8 @@ SIGKILL/restart) are in test_nodes_e2e.py and marked slow.
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 import pytest
 
@@ -31,7 +33,7 @@ pytestmark = pytest.mark.ros
 @pytest.fixture
 def ros(request):
     # one domain per test (70-79 belong to this suite), so a straggler never crosses tests
-    domain = 70 + (abs(hash(request.node.name)) % 5)
+    domain = 70 + zlib.crc32(request.node.name.encode()) % 5
     r = Ros(domain)
     yield r
     r.close()
