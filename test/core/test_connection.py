@@ -365,3 +365,27 @@ def test_low_support_maxima_dropped():
     assert g.stats.splits == 0 and g.stats.merges == 0
     g0 = connect_segment(seg, config=ConnectionConfig(min_support_share=0.0))
     assert len(g0.polylines()) > 3
+
+
+def test_support_window_keeps_far_lines_of_a_wide_cut():
+    """A wide cut (a ramp beside the carriageway): the far lines are seen by 5-6 of 30 drives,
+    below a 0.25 share of the step's drives but not of the best line within 4 m (18); a
+    flickering weak copy beside a line 20 drives see is still dropped."""
+    def st(i):
+        lat = [-12.0, -9.0, -6.5, -3.5, 0.0, 3.5]
+        typ = [B, S, B, D, D, B]
+        cnt = [5, 6, 18, 19, 20, 18]
+        if i % 3 == 0:  # the weak copy, 1.6 m beside the dashed line at 0
+            lat, typ, cnt = lat + [1.6], typ + [D], cnt + [2]
+        s = make_step(i, lat, typ, counts=cnt)
+        return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(30))})
+
+    seg = Segment("p", tuple(st(i) for i in range(30)))
+    g_all = connect_segment(seg, config=ConnectionConfig(min_support_share=0.25))
+    g_win = connect_segment(seg, config=ConnectionConfig(min_support_share=0.25, support_window_m=4.0))
+    lat_all = sorted(round(float(np.median(g_all.node_xy[c][:, 1])), 1) for c in g_all.polylines())
+    lat_win = sorted(round(float(np.median(g_win.node_xy[c][:, 1])), 1) for c in g_win.polylines())
+    assert lat_all == [-6.5, -3.5, 0.0, 3.5]  # the far border and line are lost
+    assert lat_win == [-12.0, -9.0, -6.5, -3.5, 0.0, 3.5]  # kept, and no weak copy
+    assert all(len(c) == 30 for c in g_win.polylines())
+    assert g_win.stats.splits == 0 and g_win.stats.merges == 0

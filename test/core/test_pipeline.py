@@ -12,7 +12,7 @@ from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.pipeline import PipelineConfig, build_map, map_segments, map_stretches, prepare_drives
 from hdmap_core.steps import Segment
-from pipeline_fleet import LINES, make_fleet
+from pipeline_fleet import LINES, RADIUS_M, make_drive, make_fleet
 
 BIASES = [0.8, -0.5, 0.3, -1.1, 0.6, 0.0, -0.4]
 
@@ -85,6 +85,36 @@ def test_processed_stretches_are_skipped(fleet):
     assert all(st.processed_before and not st.valid for st in skipped)
     # ... and the store round-trips through JSON.
     assert ProcessedStore.from_json(res.processed.to_json()).intervals == res.processed.intervals
+
+
+def test_drive_beside_the_cut_is_not_marked_processed(fleet):
+    """Drives on a ramp beyond the right road border see the ego road's lines, so they take part
+    in the ego pivots' steps. The paper's reading marks them processed there, so the ramp is never
+    mapped; with mark_on_cut_only they are not on the ego cuts, stay unprocessed and, as pivots,
+    map the ramp's outer border (lateral -11.5 m), which no ego drive sees."""
+    ramp_lines = LINES + ((-8.5, FeatureType.ROAD_BORDER), (-11.5, FeatureType.ROAD_BORDER))
+    ramps = [make_drive(f"ramp{k}", lane=-10.0, bias=b, s0=5.0 * k, s1=200.0, lines=ramp_lines)
+             for k, b in enumerate([0.2, -0.3, 0.1])]
+    drives = [*fleet, *ramps]
+    seed = 0
+    assert np.random.default_rng(seed).permutation(len(drives))[0] < len(fleet)  # an ego pivot first
+
+    def ramp_steps(mark_on_cut_only: bool) -> list:
+        cfg = dataclasses.replace(PipelineConfig.preset("paper"), mark_on_cut_only=mark_on_cut_only)
+        res = map_stretches(drives, config=cfg, seed=seed)
+        return [st for seg in res.segments if seg.pivot_id.startswith("ramp") for st in seg.steps]
+
+    n_paper = sum(st.valid for st in ramp_steps(False))
+    valid = [st for st in ramp_steps(True) if st.valid]
+    assert n_paper < 10  # at most the ends, where no ego pivot step was accepted
+    assert len(valid) > 80  # one ramp pivot maps its ~95 steps, the other two are then processed
+    found = 0
+    for st in valid:
+        pts = st.points()[st.types == int(FeatureType.ROAD_BORDER)]
+        # The road centre line is an arc of RADIUS_M about (0, RADIUS_M), curving left.
+        lateral = RADIUS_M - np.linalg.norm(pts - np.array([0.0, RADIUS_M]), axis=1)
+        found += bool(np.any(np.abs(lateral + 11.5) < 0.5))
+    assert found > 0.8 * len(valid)
 
 
 def test_observations_for_the_adjustment(fleet):

@@ -79,6 +79,11 @@ class ConnectionConfig:
         min_support_share: a maximum supported by fewer than this share of the step's drives
             (``counts < share * len(drive_ids)``) is noise (a false positive, a misclassified
             copy) and not used. 0 disables (the paper).
+        support_window_m: when > 0, the share is taken of the best supported maximum of the step
+            within this lateral distance (itself included) instead of all the step's drives: on a
+            wide cut (a ramp beside the carriageway) the far lines are seen by only the drives
+            near them, while a false positive or misclassified copy still sits beside a line many
+            more drives saw [m].
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
     """
 
@@ -93,6 +98,7 @@ class ConnectionConfig:
     min_separation_m: float = 1.0
     separation_count_ratio: float = 1.0
     min_support_share: float = 0.25
+    support_window_m: float = 0.0
     tile_size_m: float = 256.0
 
     def __post_init__(self) -> None:
@@ -517,8 +523,11 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     slot = np.arange(len(lat)) - off[j_of]
     keep = np.isfinite(lat)
     if config.min_support_share > 0:
-        n_drives = np.array([max(len(st.drive_ids), 1) for st in valid])
-        keep &= cnt >= config.min_support_share * n_drives[j_of]
+        if config.support_window_m > 0:
+            ref = _local_max_count(j_of, lat, cnt, off, config.support_window_m)
+        else:
+            ref = np.array([max(len(st.drive_ids), 1) for st in valid])[j_of]
+        keep &= cnt >= config.min_support_share * ref
     if config.min_separation_m > 0:
         keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m, config.separation_count_ratio)
     order = np.lexsort((lat, j_of))
@@ -531,6 +540,21 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     nrm = np.stack([-np.sin(hdg), np.cos(hdg)], axis=1)
     xy = mid[j_of] + lat[:, None] * nrm[j_of]
     return _Steps(valid, off, lat, xy, typ, cnt, std, slot, _fast_pairs(valid, off, xy, typ, hdg, config))
+
+
+def _local_max_count(j_of: np.ndarray, lat: np.ndarray, cnt: np.ndarray, off: np.ndarray, window_m: float) -> np.ndarray:
+    """(M,) the largest count among the maxima of the same step within ``window_m`` laterally
+    (itself included). j_of (M,) step of each maximum (maxima grouped by step, ``off`` (J+1,)
+    the CSR offsets), lat (M,) lateral position [m], cnt (M,) drive counts."""
+    k = np.diff(off)
+    # All ordered pairs (a, b) within each step: a repeats k times, b runs over the step.
+    a = np.repeat(np.arange(len(lat)), k[j_of])
+    first = off[j_of][np.repeat(np.arange(len(lat)), k[j_of])]
+    b = first + (np.arange(len(a)) - np.repeat(np.cumsum(k[j_of]) - k[j_of], k[j_of]))
+    near = np.abs(lat[a] - lat[b]) <= window_m
+    ref = cnt.astype(np.int64).copy()
+    np.maximum.at(ref, a[near], cnt[b[near]])
+    return ref
 
 
 def _separate_all(

@@ -36,7 +36,8 @@ from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
 from hdmap_core.model import Drive, HDMap, validate_drive
 from hdmap_core.preprocess import DetectionIndex, PreprocessConfig, preprocess
 from hdmap_core.sampling import PivotSamples, SamplingConfig, pivot_walk, sample_pivot
-from hdmap_core.steps import Segment, StepObservations, StepResult
+from hdmap_core.geometry import arc_length
+from hdmap_core.steps import Segment, StepObservations, StepResult, left_normal
 
 __all__ = [
     "PipelineConfig",
@@ -71,6 +72,11 @@ class PipelineConfig:
             model); None = ``alignment``.
         connection: ``hdmap_core.connection.ConnectionConfig`` (None: its defaults).
         stitching: ``hdmap_core.stitching`` config (None: its defaults).
+        mark_on_cut_only: a drive's stretch is stored as processed at an accepted step only when
+            the drive itself was on the step's refined cut (its trajectory within half the cut
+            length of the midpoint). Off (the paper's reading): every drive whose samples took
+            part is marked, so a drive on a ramp beside the ego road, which sees the ego road's
+            lines, never becomes a pivot there and the ramp's outer features are not mapped.
         name: the preset this config came from ("" when built by hand).
     """
 
@@ -83,6 +89,7 @@ class PipelineConfig:
     final_alignment: AlignmentConfig | None = None
     connection: Any = None
     stitching: Any = None
+    mark_on_cut_only: bool = False
     name: str = ""
 
     @classmethod
@@ -111,12 +118,16 @@ class PipelineConfig:
                 lone_cluster_max_std_m=0.3,
             )
             final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
+            from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage module, loaded on use)
+
             return cls(
                 sampling=SamplingConfig(min_border_support_fraction=0.05),
                 alignment=fast,
                 aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15),
                 use_global_adjustment=True,
                 final_alignment=final,
+                mark_on_cut_only=True,
+                connection=ConnectionConfig(support_window_m=4.0),
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")
@@ -273,6 +284,44 @@ class _OffsetMemory:
         return out
 
 
+class _Tracks:
+    """The recorded trajectories of all drives, flat, for positions at travelled distances."""
+
+    def __init__(self, drives: Sequence[Drive]) -> None:
+        s_parts, xy_parts = [], []
+        self.length_m = np.zeros(len(drives))
+        for k, d in enumerate(drives):
+            xy = np.asarray(d.xy, dtype=float)
+            s = arc_length(xy)
+            s_parts.append(s)
+            xy_parts.append(xy)
+            self.length_m[k] = s[-1] if len(s) else 0.0
+        self.start = np.concatenate([[0], np.cumsum([len(v) for v in s_parts])]).astype(np.int64)
+        self.s = np.concatenate(s_parts) if s_parts else np.zeros(0)
+        self.xy = np.concatenate(xy_parts) if xy_parts else np.zeros((0, 2))
+        # Each drive's (sorted) distances offset by its index, so one search serves all drives.
+        self._big = float(self.length_m.max()) + 1.0 if len(drives) else 1.0
+        self._key = self.s + self._big * np.repeat(np.arange(len(drives)), np.diff(self.start))
+
+    def position(self, drive: np.ndarray, s_m: np.ndarray) -> np.ndarray:
+        """(N, 2) positions of drives ``drive`` (N,) at their travelled distances ``s_m`` (N,) [m]
+        (linear interpolation, clamped to the trajectory)."""
+        drive = np.asarray(drive, dtype=np.int64)
+        s = np.clip(np.asarray(s_m, dtype=float), 0.0, self.length_m[drive])
+        lo, hi = self.start[drive], self.start[drive + 1]
+        out = np.empty((len(drive), 2))
+        single = hi - lo < 2
+        out[single] = self.xy[lo[single]]
+        m = ~single
+        if m.any():
+            j = np.searchsorted(self._key, s[m] + self._big * drive[m], side="right")
+            j = np.clip(j, lo[m] + 1, hi[m] - 1)
+            s0, s1 = self.s[j - 1], self.s[j]
+            w = np.where(s1 > s0, (s[m] - s0) / np.where(s1 > s0, s1 - s0, 1.0), 0.0)[:, None]
+            out[m] = (1.0 - w) * self.xy[j - 1] + w * self.xy[j]
+        return out
+
+
 def _placeholder(pivot_id: str, q: int, ps: PivotSamples, *, processed: bool, drive_ids: tuple[str, ...] = ()) -> StepResult:
     return StepResult(
         pivot_id=pivot_id,
@@ -303,6 +352,7 @@ def _run_pivot(
     counters: _Counters,
     memory: _OffsetMemory | None = None,
     hit_cache: dict | None = None,
+    tracks: _Tracks | None = None,
 ) -> tuple[Segment, np.ndarray, np.ndarray]:
     """Stages 2-4 along one pivot. Returns (segment, marked drive indices, their s [m]).
 
@@ -422,11 +472,20 @@ def _run_pivot(
     counters.valid += int((status == 2).sum())
     counters.rejected += int((status == 0).sum())
     # Processed stretches: every drive that took part in an accepted step, keyed by its own
-    # travelled distance there (mean of its samples), plus the pivot itself.
+    # travelled distance there (mean of its samples), plus the pivot itself. With ``tracks``
+    # (mark_on_cut_only) only drives that were themselves on the refined cut.
     ok = (lb >= 0) & (status[st] == 2) if len(lb) else np.zeros(0, bool)
     key = st[ok] * np.int64(n_all) + dv[ok]
     uk, inv = np.unique(key, return_inverse=True)
     s_mean = np.bincount(inv, weights=ds[ok], minlength=len(uk)) / np.maximum(np.bincount(inv, minlength=len(uk)), 1)
+    if tracks is not None and len(uk):
+        uq, ud = uk // n_all, uk % n_all
+        pos = tracks.position(ud, s_mean)
+        lat = ((pos - ps.midpoint[uq]) * left_normal(ps.heading[uq]).reshape(-1, 2)).sum(axis=1)
+        if shift is not None:
+            lat = lat + np.asarray(shift(ud, s_mean), dtype=float)
+        on_cut = np.abs(lat) <= 0.5 * ps.width_m[uq]
+        uk, s_mean = uk[on_cut], s_mean[on_cut]
     valid_q = np.flatnonzero(status == 2)
     pidx = index.drive_ids.index(pid)
     md = np.concatenate([uk % n_all, np.full(len(valid_q), pidx)]).astype(np.int64)
@@ -447,6 +506,7 @@ def _run_pass(
     counters: _Counters,
     progress: ProgressFn | None,
     hit_cache: dict | None = None,
+    tracks: _Tracks | None = None,
 ) -> tuple[list[Segment], ProcessedStore]:
     segments: list[Segment] = []
     step_m = config.sampling.step_m
@@ -457,7 +517,7 @@ def _run_pass(
         skip = processed.contains(pivot.drive_id, s)
         seg, md, ms = _run_pivot(
             index, pivot, skip, config=config, alignment=alignment, shift=shift, observations=observations, counters=counters,
-            memory=memory, hit_cache=hit_cache,
+            memory=memory, hit_cache=hit_cache, tracks=tracks,
         )
         segments.append(seg)
         if len(md):
@@ -546,10 +606,12 @@ def _map_stretches(
     counters = _Counters()
     obs: list[StepObservations] | None = [] if (collect_observations or config.use_global_adjustment) else None
     hit_cache: dict | None = {} if config.use_global_adjustment else None
+    tracks = _Tracks(drives) if config.mark_on_cut_only else None
     t0 = time.perf_counter()
     segments, store = _run_pass(
         drives, index, order, store_in, config=config, alignment=config.alignment, shift=None,
         observations=obs, counters=counters, progress=progress, hit_cache=hit_cache,
+        tracks=tracks,
     )
     seconds["sampling_em"] = time.perf_counter() - t0
     model = None
@@ -567,6 +629,7 @@ def _map_stretches(
             drives, index, order, store_in, config=config,
             alignment=config.final_alignment or config.alignment, shift=_shift_fn(model, index.drive_ids),
             observations=None, counters=counters, progress=progress, hit_cache=hit_cache,
+            tracks=tracks,
         )
         seconds["final_pass"] = time.perf_counter() - t0
     return MappingResult(
