@@ -360,3 +360,86 @@ def test_synthetic_highway_with_ramps_each_cross_section_once() -> None:
     # the gore: far less than the lane length, a little more than twice the road length.
     lane_km = sum(np.linalg.norm(np.diff(l.centerline, axis=0), axis=1).sum() for l in gt.lanes.values() if l.highway)
     assert 2 * length_m * 0.98 < report.reference_length_m < 2 * length_m * 1.5 < lane_km
+
+
+# --------------------------------------------------------------------------------------------
+# Splits and merges
+
+
+@pytest.fixture(scope="module")
+def ramps() -> GroundTruth:
+    synthetic = pytest.importorskip("hdmap_core.synthetic")
+    return synthetic.synthetic_highway("motorway_ramps", length_m=3000.0)
+
+
+def _unlinked(hdmap: HDMap) -> HDMap:
+    return _with_features(hdmap, [replace(f, successors=(), predecessors=()) for f in hdmap.features])
+
+
+def test_ground_truth_map_has_every_split_and_merge(ramps: GroundTruth) -> None:
+    report = evaluate_map(hdmap_from_ground_truth(ramps), ramps)
+    # Per carriageway one interchange: the deceleration lane's dashed line starts on the edge line
+    # (split), at the exit gore it ends where two solid lines start (split); the entry mirrors it.
+    assert (report.gt_splits, report.gt_merges) == (4, 4)
+    assert (report.found_splits, report.found_merges) == (4, 4)
+    assert report.missing_branch_points == ()
+    assert all(b.evaluable for b in report.branch_points)
+    # The lane graph has one lane split (exit) and one lane merge (entry) per carriageway.
+    assert (report.gt_lane_splits, report.gt_lane_merges) == (2, 2)
+    doc = json.loads(json.dumps(report.to_dict(), allow_nan=False))
+    assert (doc["gt_splits"], doc["found_merges"], doc["missing_branch_points"]) == (4, 4, [])
+    assert "splits 4/4, merges 4/4" in report.summary()
+    shifted = evaluate_map(hdmap_from_ground_truth(ramps, lateral_shift_m=0.3), ramps)
+    assert (shifted.found_splits, shifted.found_merges) == (4, 4)
+
+
+def test_splits_without_links_are_missing(ramps: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(ramps)
+    report = evaluate_map(_unlinked(perfect), ramps)
+    assert (report.gt_splits, report.gt_merges) == (4, 4)
+    # Where a branch starts on the edge line's interior the geometry still connects them (a link
+    # cannot express it); at the gores, where lines end and start, only links do.
+    assert (report.found_splits, report.found_merges) == (2, 2)
+    missing = report.missing_branch_points
+    assert len(missing) == 4 and all("not connected" in b.reason for b in missing)
+    # Every feature pulled back from its ends by ~12 m as well, where a branch starting on the
+    # edge line has left it by > 0.1 m: nothing is connected any more.
+    cut = slice(15, -15)
+    trimmed = [replace(f, points=f.points[cut], drive_count=f.drive_count[cut], lateral_std=f.lateral_std[cut])
+               for f in _unlinked(perfect).features]
+    none = evaluate_map(_with_features(perfect, trimmed), ramps)
+    assert (none.gt_splits, none.gt_merges, none.found_splits, none.found_merges) == (4, 4, 0, 0)
+    text = none.summary()
+    assert "splits 0/4, merges 0/4" in text and "missing split at" in text
+
+
+def test_unmapped_branch_is_named(ramps: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(ramps)
+    # Leave out the ramps' inner solid lines (the features that start at the exit gores and end
+    # at the entry gores): those splits/merges lose a branch; the others stay found.
+    gore = {i for b in evaluate_map(perfect, ramps).branch_points if len(b.gt_features) == 3 for i in b.gt_features}
+    ramp_inner = {f.id for f in ramps.features if f.id in gore and f.type == FeatureType.SOLID
+                  and len(f.points) < 500}
+    kept = [f for f in perfect.features if f.id not in ramp_inner]
+    report = evaluate_map(_with_features(perfect, kept), ramps)
+    assert (report.found_splits, report.found_merges) == (2, 2)
+    assert all("not mapped" in b.reason for b in report.missing_branch_points)
+
+
+def test_real_map_branch_points_against_itself(e6mini: GroundTruth) -> None:
+    # e6mini is a plain 3 + 3 motorway: no lane or feature splits; the figure is 0 of 0.
+    report = evaluate_map(hdmap_from_ground_truth(e6mini), e6mini)
+    assert (report.gt_splits, report.gt_merges, report.found_splits, report.found_merges) == (0, 0, 0, 0)
+    assert (report.gt_lane_splits, report.gt_lane_merges) == (0, 0)
+
+
+@pytest.mark.slow
+def test_town04_ground_truth_map_finds_what_is_evaluable() -> None:
+    path = MAPS_DIR / "carla_town04.gt.json"
+    if not path.exists():
+        pytest.skip(f"{path} not present")
+    gt = load_ground_truth(path)
+    report = evaluate_map(hdmap_from_ground_truth(gt), gt)
+    assert report.found_splits == report.gt_splits and report.found_merges == report.gt_merges
+    assert report.gt_lane_splits > 0  # the lane graph branches; the markings stop at junctions
+    assert all(b.reason.startswith("not evaluable") for b in report.branch_points if not b.found)

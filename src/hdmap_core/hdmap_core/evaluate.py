@@ -35,6 +35,13 @@ from hdmap_core.evaluate_cuts import (
     points_on_cuts,
     reference_cuts,
 )
+from hdmap_core.evaluate_topology import (
+    BranchPoint,
+    check_branch_points,
+    ground_truth_branch_points,
+    map_feature_graph,
+    on_cuts,
+)
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
 
@@ -43,6 +50,7 @@ __all__ = [
     "TypeStats",
     "CutProfile",
     "EvalReport",
+    "BranchPoint",
     "evaluate_map",
     "hdmap_from_ground_truth",
     "plot_evaluation",
@@ -77,6 +85,13 @@ class EvalConfig:
             than the nearest ground-truth point of any type (coincident lines, e.g. a border on
             a solid edge line).
         default_sigma_loc_m: localization sigma for the floor when none is given.
+        topology_separation_m: splits/merges: each branch is sampled only on cuts where it is at
+            least this far from the other branches of its side.
+        topology_window_m: splits/merges: length of each branch's sample [m].
+        topology_reach_m: splits/merges: a branch's sample must start within this distance (along
+            the branch) of the point; map joints count within reach + window of it [m].
+        topology_attach_m: splits/merges: a map feature starting (ending) within this distance of
+            another map feature running the same way counts as connected to it without a link.
     """
 
     step_m: float = 2.0
@@ -89,9 +104,16 @@ class EvalConfig:
     dedup_heading_deg: float = 30.0
     type_tie_m: float = 0.1
     default_sigma_loc_m: float = 1.0
+    topology_separation_m: float = 2.0
+    topology_window_m: float = 20.0
+    topology_reach_m: float = 100.0
+    topology_attach_m: float = 0.1
 
     def __post_init__(self) -> None:
-        positive = ("step_m", "recall_radius_m", "gate_m", "max_half_length_m", "default_sigma_loc_m")
+        positive = (
+            "step_m", "recall_radius_m", "gate_m", "max_half_length_m", "default_sigma_loc_m",
+            "topology_separation_m", "topology_window_m", "topology_reach_m", "topology_attach_m",
+        )
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -210,6 +232,14 @@ class EvalReport:
         reference_length_m, evaluable_length_m: the latter two times step_m.
         cuts: the per-cut profile.
         skipped: messages about input parts that were left out (malformed map features, drives).
+        gt_splits, gt_merges: evaluable ground-truth splits / merges in the evaluated area
+            (branch points of the ground-truth features, see docs/evaluation.md).
+        found_splits, found_merges: those connected in the map.
+        branch_points: every ground-truth branch point in the evaluated area, evaluable or not,
+            with its verdict.
+        gt_lane_splits, gt_lane_merges: for context, ground-truth lanes (highway lanes unless
+            highway_only is False) with >= 2 successors / >= 2 predecessors. Where the ground-truth
+            markings stop at junctions these have no branch point of the features.
         runtime_s: wall time of the evaluation.
     """
 
@@ -232,6 +262,13 @@ class EvalReport:
     n_evaluable_cuts: int
     reference_length_m: float
     evaluable_length_m: float
+    gt_splits: int
+    gt_merges: int
+    found_splits: int
+    found_merges: int
+    branch_points: tuple[BranchPoint, ...]
+    gt_lane_splits: int
+    gt_lane_merges: int
     cuts: CutProfile = field(repr=False)
     skipped: tuple[str, ...] = ()
     runtime_s: float = 0.0
@@ -240,6 +277,11 @@ class EvalReport:
     def coverage(self) -> float:
         """Share of the reference that could be evaluated (== overall.coverage)."""
         return self.overall.coverage
+
+    @property
+    def missing_branch_points(self) -> tuple[BranchPoint, ...]:
+        """Evaluable ground-truth splits and merges that the map does not have connected."""
+        return tuple(b for b in self.branch_points if b.evaluable and not b.found)
 
     def to_dict(self, *, include_cuts: bool = False) -> dict:
         """A JSON-able dict (NaN -> None); ``include_cuts`` adds the per-cut profile arrays."""
@@ -250,9 +292,11 @@ class EvalReport:
             "per_type": {k: _jsonable(v.__dict__) for k, v in self.per_type.items()},
         }
         for name in self.__dataclass_fields__:
-            if name in ("gt_name", "config", "overall", "per_type", "cuts"):
+            if name in ("gt_name", "config", "overall", "per_type", "cuts", "branch_points"):
                 continue
             out[name] = _jsonable(getattr(self, name))
+        out["missing_branch_points"] = [b.to_dict() for b in self.missing_branch_points]
+        out["branch_points"] = [b.to_dict() for b in self.branch_points]
         out["coverage"] = _jsonable(self.coverage)
         if include_cuts:
             out["cuts"] = self.cuts.to_dict()
@@ -490,6 +534,8 @@ def evaluate_map(
     )
 
     frag_mean, frag_max, n_frag = _fragmentation(gp, gi, matched, map_feats, mp)
+    branch_points = _branch_points(gt_feats, cuts, gp, gi, gd, mp, map_feats, config, cos_feat)
+    evaluable_bp = [b for b in branch_points if b.evaluable]
     evaluable = (n_match > 0) & (n_gt_cut > 0)
     floor_ok = evaluable & np.isfinite(floor)
     profile = CutProfile(
@@ -529,6 +575,13 @@ def evaluate_map(
         n_evaluable_cuts=n_eval,
         reference_length_m=n_ref * config.step_m,
         evaluable_length_m=n_eval * config.step_m,
+        gt_splits=sum(b.kind == "split" for b in evaluable_bp),
+        gt_merges=sum(b.kind == "merge" for b in evaluable_bp),
+        found_splits=sum(b.kind == "split" and b.found for b in evaluable_bp),
+        found_merges=sum(b.kind == "merge" and b.found for b in evaluable_bp),
+        branch_points=tuple(branch_points),
+        gt_lane_splits=sum(len(ln.successors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()),
+        gt_lane_merges=sum(len(ln.predecessors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()),
         cuts=profile,
         skipped=tuple(skipped),
         runtime_s=time.perf_counter() - t0,
@@ -630,6 +683,37 @@ def _fragmentation(
     pairs = np.unique(np.stack([gt_owner, map_owner], axis=1), axis=0)
     _, per_gt = np.unique(pairs[:, 0], return_counts=True)
     return float(np.mean(per_gt)), int(np.max(per_gt)), len(per_gt)
+
+
+def _branch_points(
+    gt_feats: list,
+    cuts: Cuts,
+    gp: CutPoints,
+    gi: np.ndarray,
+    gd: np.ndarray,
+    mp: CutPoints,
+    map_feats: list[MapFeature],
+    config: EvalConfig,
+    cos_feat: float,
+) -> list[BranchPoint]:
+    """Ground-truth splits and merges in the evaluated area and whether the map has them connected."""
+    nodes = on_cuts(
+        ground_truth_branch_points(gt_feats, cos_min=cos_feat), cuts, half_step_m=config.step_m / 2, cos_min=cos_feat
+    )
+    if not nodes:
+        return []
+    near = gd <= config.recall_radius_m
+    return check_branch_points(
+        nodes,
+        gt_feats,
+        gp,
+        gi[near],
+        mp.owner[near],
+        map_feature_graph(map_feats, attach_m=config.topology_attach_m, cos_min=cos_feat),
+        separation_m=config.topology_separation_m,
+        window_m=config.topology_window_m,
+        reach_m=config.topology_reach_m,
+    )
 
 
 # --------------------------------------------------------------------------------------------

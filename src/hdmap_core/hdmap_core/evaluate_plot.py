@@ -68,6 +68,7 @@ def format_summary(report: EvalReport) -> str:
             else "n/a"
         ),
     ]
+    lines.append(_topology_line(report))
     if report.floor_source == "none":
         lines.append(f"floor sigma/sqrt(n): n/a (no drive counts; sigma_loc {report.sigma_loc_m:g} m)")
     else:
@@ -83,6 +84,24 @@ def format_summary(report: EvalReport) -> str:
             lines.append(f"  ... and {len(report.skipped) - 10} more")
     lines.append(f"evaluated in {report.runtime_s:.2f} s")
     return "\n".join(lines)
+
+
+def _topology_line(report: EvalReport) -> str:
+    """Splits and merges found, and the missing ones with their positions (at most 5 listed)."""
+    line = (
+        f"splits/merges connected in the map: splits {report.found_splits}/{report.gt_splits}, "
+        f"merges {report.found_merges}/{report.gt_merges}"
+    )
+    n_unevaluable = sum(not b.evaluable for b in report.branch_points)
+    if n_unevaluable:
+        line += f" ({n_unevaluable} more not evaluable)"
+    line += f"; GT lane graph: {report.gt_lane_splits} lane splits, {report.gt_lane_merges} lane merges"
+    missing = report.missing_branch_points
+    for b in missing[:5]:
+        line += f"\n  missing {b.kind} at ({b.x:.1f}, {b.y:.1f}): {b.reason}"
+    if len(missing) > 5:
+        line += f"\n  ... and {len(missing) - 5} more"
+    return line
 
 
 def _smooth(values: np.ndarray, window: int) -> np.ndarray:
