@@ -8,8 +8,9 @@ the node's own work per update (message conversion, SQLite commit, per-tile mapp
 1. feeds the first ``--replay-drives`` drives one by one (each fully mapped and stitched) and keeps
    the per-drive service times; then adds the rest and settles, so the map holds ``--drives``
    drives with every tile estimated from all of its drives;
-2. times one more update, a ``--long-km`` drive, in phases: receive + commit (acknowledged),
-   mapping the stretches it adds + stitch (on the map), then the debounced re-estimates + stitch;
+2. times one more update, a ``--long-km`` drive, in phases: the update (receive + commit =
+   acknowledged; the stretches it adds mapped + stitched = on the map), then, measured apart, the
+   background work (the debounced re-estimates + stitch; ``--profile N`` profiles it);
 3. "replay at ``--rate``x": from the service times of step 1 and those drives' start times
    (simulator: 10-300 s apart), a single-server queue gives the backlog a live replay at that
    rate would see; a growing backlog means the mapper cannot keep up.
@@ -43,6 +44,10 @@ def main() -> int:
     ap.add_argument("--replay-drives", type=int, default=20, help="drives fed one by one for the replay estimate")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--min-growth-drives", type=int, default=None,
+                    help="override the mapper's min_growth_drives (default: the node's default)")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="print the N costliest functions (cProfile, cumulative) of the re-estimate phase")
     args = ap.parse_args()
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", "79")
@@ -76,7 +81,8 @@ def main() -> int:
     rclpy.init(context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
     mapper = SegmentMapper(context=ctx, parameter_overrides=[
         Parameter("db_path", value=str(tmp / "m.db")), Parameter("settle_after_s", value=3600.0),
-        Parameter("preset", value=args.preset)])
+        Parameter("preset", value=args.preset)] + (
+        [Parameter("min_growth_drives", value=args.min_growth_drives)] if args.min_growth_drives else []))
     stitcher = MapStitcher(context=ctx, parameter_overrides=[
         Parameter("db_path", value=str(tmp / "s.db")), Parameter("preset", value=args.preset)])
     types, ttypes = rclpy_types(), rclpy_tile_types()
@@ -104,12 +110,22 @@ def main() -> int:
         stitcher._first_dirty = None  # noqa: SLF001 - what the node's timer does before rebuilding
         return time.perf_counter() - t0
 
+    def fresh_left() -> bool:
+        return bool(mapper.store.pending()) or any(k not in mapper._est_count for k in mapper._queue)  # noqa: SLF001
+
     drives = sorted(fleet.drives, key=lambda d: d.start_ns)
-    # 1. replay prefix drive by drive: per-drive service time = receive + every due tile + stitch
-    service = []
+    # 1. replay prefix drive by drive: per-drive service time = receive + every due tile + stitch,
+    #    split into the update (receive, new tiles mapped, stitch) and the background re-estimates
+    service, upd, first = [], [], None
     for d in drives[: args.replay_drives]:
         t0 = time.perf_counter()
+        n_new = len(tiles_of_drive(d, config=mapper.tile_config) - set(mapper._est_count))  # noqa: SLF001
         receive(d)
+        run_until(lambda: not fresh_left())
+        stitch()
+        upd.append(time.perf_counter() - t0)
+        if first is None:
+            first = (d.length_m / 1000.0, n_new, upd[-1])
         run_until(lambda: not mapper._queue and not mapper.store.pending())  # noqa: SLF001
         stitch()
         service.append(time.perf_counter() - t0)
@@ -145,22 +161,41 @@ def main() -> int:
     t_new = time.perf_counter() - t0
     s_new = stitch_if_changed()
     queued, updates1 = len(mapper._queue), mapper.health.updates  # noqa: SLF001
+    prof = None
+    if args.profile:
+        import cProfile
+
+        prof = cProfile.Profile()
+        prof.enable()
     t1 = time.perf_counter()
     run_until(lambda: not mapper._queue)  # noqa: SLF001
     t_due = time.perf_counter() - t1
+    if prof is not None:
+        prof.disable()
     s_all = stitch_if_changed()
     n_re = mapper.health.updates - updates1
     print(f"one update, {long_drive.length_m / 1000:.2f} km drive over "
           f"{len(tiles_of_drive(long_drive, config=mapper.tile_config))} tiles ({len(new)} new, "
           f"{updates1 - updates0} mapped for it):")
-    print(f"  receive + commit (acknowledged)           {t_rx:7.3f} s")
-    print(f"  new stretches mapped + stitched           {t_new + s_new:7.3f} s  (mapping {t_new:.3f}, stitch {s_new:.3f})")
-    print(f"  {queued} queued tiles checked, {n_re} due re-estimated + stitch {t_due + s_all:7.3f} s "
+    print(f"  update: receive + commit (acknowledged)   {t_rx:7.3f} s")
+    print(f"  update: new stretches mapped + stitched   {t_new + s_new:7.3f} s  (mapping {t_new:.3f}, stitch {s_new:.3f})")
+    print(f"  update total                              {t_rx + t_new + s_new:7.3f} s")
+    print(f"  background: {queued} queued tiles checked, {n_re} due re-estimated + stitch {t_due + s_all:7.3f} s "
           f"(mapping {t_due:.3f}, stitch {s_all:.3f})")
-    print(f"  total                                     {t_rx + t_new + s_new + t_due + s_all:7.3f} s")
+    print(f"  update + background                       {t_rx + t_new + s_new + t_due + s_all:7.3f} s")
     print(f"  last map rebuild: {stitcher.health.extra.get('last_rebuild_parts_s')}")
+    if prof is not None:
+        import pstats
+
+        pstats.Stats(prof).sort_stats("cumulative").print_stats(args.profile)
 
     # 4. single-server queue at the given replay rate over the drive-by-drive prefix
+    if first is not None:
+        print(f"first drive (all road new): {first[0]:.2f} km, {first[1]} tiles, update {first[2]:.2f} s "
+              f"({first[2] / max(first[1], 1):.2f} s per tile)")
+    if upd:
+        print(f"drive-by-drive prefix: update (ack + new tiles + stitch) {min(upd):.2f}-{max(upd):.2f} s "
+              f"(mean {sum(upd) / len(upd):.2f} s); with background re-estimates {min(service):.2f}-{max(service):.2f} s")
     if service:
         starts = [d.start_ns for d in drives[: len(service)]]
         arrive = [(s - starts[0]) / 1e9 / args.rate for s in starts]

@@ -163,3 +163,74 @@ def test_clean_drive_drops_short_and_unknown_and_thins():
     np.testing.assert_allclose(c.detections[0].points, [[0, 1], [50, 1]])
     np.testing.assert_allclose(c.detections[1].points, [[0, 0], [10, 0], [30, 10]])
     assert len(d.detections) == 4  # input untouched
+
+
+def test_needs_update_default_one_drive_never_makes_a_mapped_tile_due():
+    # the default debounce: one more drive never re-estimates a mapped tile, however few drives it
+    # has; 3 more drives do on sparse tiles, 10 % more on dense ones
+    cfg = TileConfig()
+    for n in range(1, 300):
+        assert not needs_update(n, n + 1, config=cfg)
+        need = max(3, -(-n // 10))
+        assert not needs_update(n, n + need - 1, config=cfg)
+        assert needs_update(n, n + need, config=cfg)
+    assert needs_update(0, 1, config=cfg)  # a new tile is always mapped
+
+
+@pytest.mark.parametrize("pm", [-1.0, 129.0])
+def test_tile_config_rejects_pivot_margin_outside_the_margin(pm):
+    with pytest.raises(ConfigError, match="pivot_margin_m"):
+        TileConfig(margin_m=128.0, pivot_margin_m=pm)
+
+
+def test_steps_outside_marks_exactly_the_pivot_steps_outside_the_box():
+    from hdmap_core.incremental import steps_outside
+    from hdmap_core.sampling import pivot_walk
+
+    d = _drive(_line(-100, 300, n=81), drive_id="a")  # poses every 5 m, steps every 2 m
+    bounds = (0.0, -10.0, 100.0, 10.0)
+    store = steps_outside([d, _drive(_line(10, 90), drive_id="b")], bounds, step_m=2.0)
+    s, pts, _ = pivot_walk(d, step_m=2.0)
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] < 100)
+    np.testing.assert_array_equal(store.contains("a", s), ~inside)
+    assert "b" not in store.intervals  # a drive wholly inside is not marked at all
+
+
+def _sim_tile():
+    from hdmap_core.pipeline import PipelineConfig
+    from hdmap_core.simulate import SimConfig, simulate_fleet
+    from hdmap_core.synthetic import synthetic_highway
+
+    gt = synthetic_highway("motorway", length_m=700.0, seed=3)
+    fleet = simulate_fleet(gt, config=SimConfig(n_drives=4, snippet_length_min_m=500, snippet_length_max_m=600), seed=3)
+    cfg = TileConfig(tile_size_m=128.0, margin_m=64.0)
+    cover: dict = {}
+    for d in fleet.drives:
+        for k in tiles_of_drive(d, config=cfg):
+            cover.setdefault(k, []).append(d)
+    mid = np.asarray(fleet.drives[0].xy)[len(fleet.drives[0].xy) // 2]
+    key = (int(np.floor(mid[0] / cfg.tile_size_m)), int(np.floor(mid[1] / cfg.tile_size_m)))
+    return cover[key], key, cfg, PipelineConfig.preset("default")
+
+
+def test_map_tile_pivot_margin_keeps_the_tile_and_equals_the_full_walk_at_the_margin():
+    from dataclasses import replace
+
+    from hdmap_core.incremental import map_tile
+
+    drives, key, cfg, pc = _sim_tile()
+    full = map_tile(drives, key, tile_config=cfg, pipeline_config=pc)
+    same = map_tile(drives, key, tile_config=replace(cfg, pivot_margin_m=cfg.margin_m), pipeline_config=pc)
+    near = map_tile(drives, key, tile_config=replace(cfg, pivot_margin_m=16.0), pipeline_config=pc)
+
+    def mids(segs):
+        return np.array([st.midpoint for sg in segs for st in sg.steps], dtype=float).reshape(-1, 2)
+
+    assert len(mids(full)) > 0
+    # walking the whole grown tile through the store path changes nothing
+    np.testing.assert_array_equal(mids(same), mids(full))
+    # walking only 16 m around the tile still maps the tile proper, and nothing outside it
+    xmin, ymin, xmax, ymax = tile_bounds(key, tile_size_m=cfg.tile_size_m)
+    m = mids(near)
+    assert len(m) >= 0.8 * len(mids(full))
+    assert ((m[:, 0] >= xmin) & (m[:, 0] < xmax) & (m[:, 1] >= ymin) & (m[:, 1] < ymax)).all()

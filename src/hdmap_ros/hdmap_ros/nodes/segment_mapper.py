@@ -10,6 +10,11 @@ committed (one transaction) and published on ``/hdmap/segments`` as hdmap_msgs/T
 growing version per tile. When no drive came for ``settle_after_s``, every tile whose estimate
 is older than its drive set is re-estimated once, so the settled map depends on the drives only.
 
+An update is: the drive committed and acknowledged, the tiles it adds (no estimate yet) mapped and
+published. Re-estimates of mapped tiles are background work: the worker takes them one tile at a
+time and only when no new drive waits and no new tile is queued, so a new drive waits at most for
+the one re-estimate in progress.
+
 Restart: pending (acknowledged, unprocessed) drives are processed; with ``republish_on_start``
 every stored tile estimate is published again (the stitcher ignores versions it has).
 """
@@ -58,10 +63,11 @@ class SegmentMapper(HealthMixin, Node):
                 lo=0.0, hi=10.0,
             ),
             min_growth_drives=declare(
-                self, "min_growth_drives", 1, "Re-estimate a tile when at least this many drives were added.",
+                self, "min_growth_drives", 3, "Re-estimate a tile when at least this many drives were added.",
                 lo=1, hi=10000,
             ),
             seed=declare(self, "seed", 0, "Base seed; each tile's seed derives from it and the tile key.", lo=0, hi=2**31 - 1),
+            pivot_margin_m=self._pivot_margin(),
         )
         self.settle_after_s = declare(
             self, "settle_after_s", 2.0, "Idle time after which stale tiles are re-estimated [s].", lo=0.0, hi=3600.0
@@ -104,6 +110,8 @@ class SegmentMapper(HealthMixin, Node):
         if republish:
             for est in self.store.tiles():
                 self._publish(est)
+        # drive count of each tile's latest estimate (the store's, cached: the worker asks per tile)
+        self._est_count: dict[TileKey, int] = {t.key: t.drive_count for t in self.store.tiles()}
         # the due tiles of before a restart (the queue is not stored; it follows from the store)
         self._queue: set[TileKey] = {k for k in self.store.stale_tiles() if self._due(k)[0]}
         self.health.backlog = len(self.store.pending()) + len(self._queue)
@@ -113,10 +121,22 @@ class SegmentMapper(HealthMixin, Node):
             f"{len(self.store.tiles())} tile(s)"
         )
 
+    def _pivot_margin(self) -> float | None:
+        margin = float(self.get_parameter("margin_m").value)
+        pm = declare(
+            self, "pivot_margin_m", 48.0,
+            "Pivots walk their steps only this far around a tile [m] (the whole margin stays context); "
+            ">= margin_m walks the whole grown tile.",
+            lo=0.0, hi=1024.0,
+        )
+        return None if pm >= margin else pm
+
     def _check_tiling(self) -> None:
         """A store keeps the tiling it was made with: another one would mix incompatible tiles."""
         cfg = self.tile_config
         tiling = f"tile_size_m={cfg.tile_size_m!r} margin_m={cfg.margin_m!r} seed={cfg.seed!r}"
+        if cfg.pivot_margin_m is not None:  # estimates made otherwise would differ
+            tiling += f" pivot_margin_m={cfg.pivot_margin_m!r}"
         stored = self.store.get_meta("tiling")
         if stored is None:
             self.store.set_meta("tiling", tiling)
@@ -166,27 +186,33 @@ class SegmentMapper(HealthMixin, Node):
         self.health.set("tile_versions", self.store.version_total())
 
     def _due(self, key: TileKey) -> tuple[bool, int]:
-        est = self.store.tile(key)
         count = self.store.tile_drive_count(key)
-        due = needs_update(est.drive_count if est else 0, count, config=self.tile_config)
+        due = needs_update(self._est_count.get(key, 0), count, config=self.tile_config)
         return due and self._failed.get(key) != count, count
 
     def _next_tile(self) -> TileKey:
         # RULE: stretches no estimate covers yet go first (a new road is on the map at once);
         # re-estimates of mapped stretches follow, in key order.
-        fresh = [k for k in self._queue if self.store.tile(k) is None]
+        fresh = [k for k in self._queue if k not in self._est_count]
         return min(fresh) if fresh else min(self._queue)
 
-    def _work(self) -> None:
+    def _take_pending(self) -> bool:
+        """Queue the tiles of acknowledged, unprocessed drives; True when there were any."""
         pending = self.store.pending()
         if pending:
             # A drive is processed once its tiles are queued; the queue itself need not be stored:
             # at start it is rebuilt from the store (every tile that is due).
             self._queue.update(self.store.tiles_of(pending))
             self.store.mark_processed(pending)
+        return bool(pending)
+
+    def _work(self) -> None:
+        pending = self._take_pending()
         deadline = time.monotonic() + self.work_slice_s
         while self._queue and time.monotonic() < deadline:
             key = self._next_tile()
+            if key in self._est_count and self._take_pending():
+                continue  # a re-estimate is background work: a drive that came meanwhile goes first
             self._queue.discard(key)
             due, count = self._due(key)
             if due:
@@ -197,7 +223,7 @@ class SegmentMapper(HealthMixin, Node):
             count = self.store.tile_drive_count(key)
             if self._failed.get(key) != count:
                 self._estimate(key, count)
-            if time.monotonic() >= deadline:
+            if time.monotonic() >= deadline or self.store.pending():
                 return
 
     def _estimate(self, key: TileKey, count: int) -> None:
@@ -212,6 +238,7 @@ class SegmentMapper(HealthMixin, Node):
             self._fail(key, count, f"tile {key}: {type(err).__name__}: {err}\n{traceback.format_exc()}")
             return
         est = self.store.put_tile(key, segments, [d.drive_id for d in drives])
+        self._est_count[key] = est.drive_count
         self._failed.pop(key, None)
         self._publish(est)
         self.health.updated()
