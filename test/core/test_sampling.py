@@ -120,3 +120,27 @@ def test_border_support_fraction_ignores_a_few_inner_border_samples():
     _, w_frac = refine_cuts(q, t, types, 1, config=SamplingConfig(spread_factor=0.0, margin_m=0.5, min_border_support_fraction=0.25), drive=drive)
     assert w_plain[0] < 10.0  # cut short at the misclassified line
     assert w_frac[0] == pytest.approx(14.0)
+
+
+def test_open_side_reaches_the_last_line_before_the_median():
+    """A border on the right only (a median without a barrier on the left): the lines of our four
+    lanes reach +9.5 m, the opposite carriageway's inner line (seen by our drives, so kept by
+    heading) lies 7 m further. The default width (16 m) clips the +9.5 m line; the open-side
+    chain ends the cut just after it and stops at the median."""
+    lines = [(-7.0, FeatureType.ROAD_BORDER), (-4.0, FeatureType.SOLID), (-0.5, FeatureType.DASHED),
+             (3.0, FeatureType.DASHED), (6.5, FeatureType.DASHED), (9.5, FeatureType.SOLID), (16.5, FeatureType.SOLID)]
+    n_steps, n_drives = 30, 5
+    q = np.repeat(np.arange(n_steps), n_drives * len(lines))
+    t = np.tile(np.repeat([lat for lat, _ in lines], n_drives), n_steps).astype(float)
+    types = np.tile(np.repeat([int(ty) for _, ty in lines], n_drives), n_steps)
+    drive = np.tile(np.arange(n_drives), n_steps * len(lines))
+    cfg = SamplingConfig(spread_factor=0.0, margin_m=0.5)
+    mid, width = refine_cuts(q, t, types, n_steps, config=cfg, drive=drive)
+    assert np.all(mid + 0.5 * width < 9.5)  # paper: the default width cuts the edge line off
+    mid, width = refine_cuts(q, t, types, n_steps, config=SamplingConfig(spread_factor=0.0, margin_m=0.5, open_side_gap_m=4.0), drive=drive)
+    np.testing.assert_allclose(mid + 0.5 * width, 10.0)  # the edge line + margin
+    np.testing.assert_allclose(mid - 0.5 * width, -7.5)  # the border side is unchanged
+    # A border seen on a side sets that side as before (here beyond the chain's gap).
+    types2 = np.where(t == 16.5, int(FeatureType.ROAD_BORDER), types)
+    mid, width = refine_cuts(q, t, types2, n_steps, config=SamplingConfig(spread_factor=0.0, margin_m=0.5, open_side_gap_m=4.0), drive=drive)
+    np.testing.assert_allclose(mid + 0.5 * width, 17.0)

@@ -121,13 +121,13 @@ class PipelineConfig:
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage module, loaded on use)
 
             return cls(
-                sampling=SamplingConfig(min_border_support_fraction=0.05),
+                sampling=SamplingConfig(min_border_support_fraction=0.05, open_side_gap_m=4.0),
                 alignment=fast,
                 aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15),
                 use_global_adjustment=True,
                 final_alignment=final,
                 mark_on_cut_only=True,
-                connection=ConnectionConfig(support_window_m=4.0),
+                connection=ConnectionConfig(support_window_m=4.0, separation_count_ratio=0.5),
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")

@@ -54,6 +54,12 @@ class SamplingConfig:
             moving average of the cut length (older steps weigh decay^k).
         midpoint_smoothing_steps: window of the plain moving average of the midpoint.
         default_width_m: cut length used before any border was seen [m].
+        open_side_gap_m: on a side of a step without a road border (e.g. a median without a
+            barrier), when > 0 the cut ends after the outermost sample of the chain of samples
+            (any type) that starts at the pivot and has no gap wider than this (lines of one
+            carriageway are a lane apart, a median is wider), plus the spread and constant
+            margins of the samples in ``border_window_m`` from there; 0 (the paper): such a side
+            follows the smoothed width of earlier steps, else ``default_width_m`` [m].
         min_width_m, max_width_m: clamp of the refined cut length [m].
     """
 
@@ -69,6 +75,7 @@ class SamplingConfig:
     width_decay: float = 0.8
     midpoint_smoothing_steps: int = 5
     default_width_m: float = 16.0
+    open_side_gap_m: float = 0.0
     min_width_m: float = 3.0
     max_width_m: float = 40.0
 
@@ -157,6 +164,33 @@ def _side_first_border(q: np.ndarray, d: np.ndarray, n_steps: int, *, window_m: 
     return first
 
 
+def _side_chain_end(q: np.ndarray, d: np.ndarray, n_steps: int, *, gap_m: float) -> np.ndarray:
+    """Per step, the distance d >= 0 of the outermost sample reached from the pivot through
+    samples no more than ``gap_m`` apart (the first one within ``gap_m`` of the pivot), else NaN.
+    q: (S,) step of each sample on this side; d: (S,) its distance from the pivot [m]."""
+    out = np.full(n_steps, np.nan)
+    if len(q) == 0:
+        return out
+    order = np.lexsort((d, q))
+    q, d = q[order], d[order]
+    new_step = np.ones(len(q), dtype=bool)
+    new_step[1:] = q[1:] != q[:-1]
+    gap = np.where(new_step, d, np.diff(d, prepend=0.0))
+    brk = (gap > gap_m).astype(np.int64)
+    cum = np.cumsum(brk)
+    start = np.flatnonzero(new_step)
+    # Breaks counted from the step's first sample (inclusive): 0 = still on the chain.
+    cum_in_step = cum - np.repeat(cum[start] - brk[start], np.diff(np.r_[start, len(q)]))
+    chain = cum_in_step == 0
+    # Samples are sorted by d within a step, so the last chained sample per step is the outermost.
+    qc, dc = q[chain], d[chain]
+    if len(qc):
+        is_last = np.ones(len(qc), dtype=bool)
+        is_last[:-1] = qc[1:] != qc[:-1]
+        out[qc[is_last]] = dc[is_last]
+    return out
+
+
 def _side_end(q: np.ndarray, d: np.ndarray, first: np.ndarray, *, config: SamplingConfig) -> np.ndarray:
     """Raw cut end per step on one side, as a distance >= 0 from the pivot (NaN: no border)."""
     n = len(first)
@@ -221,13 +255,18 @@ def refine_cuts(
         nd = int(drive.max()) + 1
         n_drives = np.bincount(np.unique(step * nd + drive) // nd, minlength=n_steps)
         support = np.maximum(support, np.ceil(config.min_border_support_fraction * n_drives).astype(np.int64))
-    left = border & (t_m > 0)
-    right = border & (t_m < 0)
     ends = []
-    for mask, sign in ((left, 1.0), (right, -1.0)):
+    for side, sign in ((t_m > 0, 1.0), (t_m < 0, -1.0)):
+        mask = border & side
         q, d = step[mask], sign * t_m[mask]
         first = _side_first_border(q, d, n_steps, window_m=config.border_window_m, support=support)
-        ends.append(_side_end(q, d, first, config=config))
+        end = _side_end(q, d, first, config=config)
+        if config.open_side_gap_m > 0 and np.isnan(end).any():
+            qa, da = step[side], sign * t_m[side]
+            chain = _side_chain_end(qa, da, n_steps, gap_m=config.open_side_gap_m)
+            open_end = _side_end(qa, da, chain, config=config)
+            end = np.where(np.isnan(end), open_end, end)
+        ends.append(end)
     left_end, right_end = ends[0], -ends[1]
     width_raw = left_end - right_end
     width = _fill(_causal_weighted_mean(width_raw, config.width_smoothing_steps, config.width_decay), config.default_width_m)
