@@ -11,7 +11,8 @@ the node's own work per update (message conversion, SQLite commit, per-tile mapp
 2. times one more update, a ``--long-km`` drive, in phases: the update (receive + commit =
    acknowledged; the stretches it adds mapped + stitched = on the map), then, measured apart, the
    background work (the debounced re-estimates + stitch; ``--profile N`` profiles it);
-3. "replay at ``--rate``x": from the service times of step 1 and those drives' start times
+3. the long drive alone on an empty map (all its road new; ``--no-new-road`` skips it);
+4. "replay at ``--rate``x": from the service times of step 1 and those drives' start times
    (simulator: 10-300 s apart), a single-server queue gives the backlog a live replay at that
    rate would see; a growing backlog means the mapper cannot keep up.
 
@@ -46,6 +47,9 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--min-growth-drives", type=int, default=None,
                     help="override the mapper's min_growth_drives (default: the node's default)")
+    ap.add_argument("--pivot-margin-m", type=float, default=None,
+                    help="override the mapper's pivot_margin_m (>= margin_m: walk the whole grown tile)")
+    ap.add_argument("--no-new-road", action="store_true", help="skip timing the long drive on an empty map")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="print the N costliest functions (cProfile, cumulative) of the re-estimate phase")
     args = ap.parse_args()
@@ -79,10 +83,11 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="hdmap-bench-"))
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+    mapper_overrides = [Parameter("preset", value=args.preset)] + (
+        [Parameter("min_growth_drives", value=args.min_growth_drives)] if args.min_growth_drives else []) + (
+        [Parameter("pivot_margin_m", value=args.pivot_margin_m)] if args.pivot_margin_m is not None else [])
     mapper = SegmentMapper(context=ctx, parameter_overrides=[
-        Parameter("db_path", value=str(tmp / "m.db")), Parameter("settle_after_s", value=3600.0),
-        Parameter("preset", value=args.preset)] + (
-        [Parameter("min_growth_drives", value=args.min_growth_drives)] if args.min_growth_drives else []))
+        Parameter("db_path", value=str(tmp / "m.db")), Parameter("settle_after_s", value=3600.0)] + mapper_overrides)
     stitcher = MapStitcher(context=ctx, parameter_overrides=[
         Parameter("db_path", value=str(tmp / "s.db")), Parameter("preset", value=args.preset)])
     types, ttypes = rclpy_types(), rclpy_tile_types()
@@ -189,7 +194,23 @@ def main() -> int:
 
         pstats.Stats(prof).sort_stats("cumulative").print_stats(args.profile)
 
-    # 4. single-server queue at the given replay rate over the drive-by-drive prefix
+    # 4. the long drive alone on an empty map: every stretch it covers is new road
+    if not args.no_new_road:
+        fresh = SegmentMapper(context=ctx, parameter_overrides=[
+            Parameter("db_path", value=str(tmp / "m2.db")), Parameter("settle_after_s", value=3600.0),
+            Parameter("republish_on_start", value=False)] + mapper_overrides)
+        fresh._publish = lambda est: None  # noqa: SLF001 - mapping only; the stitch is timed above
+        msg = drive_to_msg(long_drive, types=types)
+        t0 = time.perf_counter()
+        fresh.on_drive(msg)
+        while fresh._queue or fresh.store.pending():  # noqa: SLF001
+            fresh.work()
+        t_fresh = time.perf_counter() - t0
+        n_fresh = len(fresh.store.tiles())
+        print(f"the {long_drive.length_m / 1000:.2f} km drive on an empty map (all road new): {n_fresh} tiles "
+              f"mapped in {t_fresh:.2f} s ({t_fresh / max(n_fresh, 1):.3f} s per tile), without the stitch")
+        fresh.destroy_node()
+    # 5. single-server queue at the given replay rate over the drive-by-drive prefix
     if first is not None:
         print(f"first drive (all road new): {first[0]:.2f} km, {first[1]} tiles, update {first[2]:.2f} s "
               f"({first[2] / max(first[1], 1):.2f} s per tile)")
