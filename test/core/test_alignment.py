@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import itertools
 
 import numpy as np
@@ -203,3 +205,22 @@ def test_lone_clusters_accepted_only_when_asked_and_tight():
     wide = np.array([-2.6, 1.7, -1.0, 1.75])  # the solid samples disagree by 1.6 m
     res = align_step(wide, types, drive, config=AlignmentConfig(estimate_offsets=False, lone_cluster_max_std_m=0.3))
     assert not res.valid
+
+
+def test_one_drive_alone_accepted_when_asked():
+    # One drive seeing two dashed lines, two solids and a border: every cluster is a singleton,
+    # so the silhouette is 0 and the paper's gate rejects the step; lone_cluster_max_std_m
+    # accepts it (nothing to align, every cluster tight).
+    lat = np.array([-5.2, -1.75, 1.75, 5.2, 6.3])
+    types = np.array([1, 2, 2, 1, 3])
+    drive = np.zeros(5, dtype=np.int64)
+    gap = AlignmentConfig(clustering="gap", solver="closed_form")
+    paper = align_step(lat, types, drive, config=gap)
+    assert paper.silhouette == 0.0 and not paper.valid
+    lone = align_step(lat, types, drive, config=dataclasses.replace(gap, lone_cluster_max_std_m=0.3))
+    assert lone.valid
+    assert len(np.unique(lone.labels[lone.labels >= 0])) == 5
+    # Two drives half a lane apart: singleton clusters too, but the silhouette decides as before.
+    two = align_step(np.r_[lat, lat + 1.75], np.r_[types, types], np.r_[drive, drive + 1],
+                     config=dataclasses.replace(gap, estimate_offsets=False, lone_cluster_max_std_m=0.3))
+    assert two.silhouette < 0.67 and not two.valid

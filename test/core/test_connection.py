@@ -389,3 +389,20 @@ def test_support_window_keeps_far_lines_of_a_wide_cut():
     assert lat_win == [-12.0, -9.0, -6.5, -3.5, 0.0, 3.5]  # kept, and no weak copy
     assert all(len(c) == 30 for c in g_win.polylines())
     assert g_win.stats.splits == 0 and g_win.stats.merges == 0
+
+
+def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():
+    """A far line seen by one drive beside a border seen by three (of 30): the window rule alone
+    keeps it (1 >= 0.25 x 3); with window_min_count=2 only maxima of two or more drives are
+    rescued, the border stays."""
+    def st(i):
+        s = make_step(i, [-12.0, -9.5, -3.5, 0.0, 3.5], [B, S, D, D, B], counts=[3, 1, 19, 20, 18])
+        return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(30))})
+
+    seg = Segment("p", tuple(st(i) for i in range(30)))
+    cfg = ConnectionConfig(min_support_share=0.25, support_window_m=4.0)
+    lat1 = sorted(round(float(np.median(g.node_xy[c][:, 1])), 1) for g in [connect_segment(seg, config=cfg)] for c in g.polylines())
+    g2 = connect_segment(seg, config=ConnectionConfig(min_support_share=0.25, support_window_m=4.0, window_min_count=2))
+    lat2 = sorted(round(float(np.median(g2.node_xy[c][:, 1])), 1) for c in g2.polylines())
+    assert lat1 == [-12.0, -9.5, -3.5, 0.0, 3.5]
+    assert lat2 == [-12.0, -3.5, 0.0, 3.5]

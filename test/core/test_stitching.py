@@ -5,6 +5,7 @@ Roads run east (heading 0): a maximum's lateral position is its world y (plus th
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -486,3 +487,33 @@ def test_duplicate_inside_a_bridged_gap_deduplicated_against_the_edge():
     m = stitch([conn(a), conn(b)], config=cfg)
     assert len(by_type(m, D)) == 1
     assert by_type(m, D)[0].points[0, 0] == 0.0 and by_type(m, D)[0].points[-1, 0] == pytest.approx(98.0)
+
+
+@pytest.mark.parametrize("merge", [True, False])
+def test_continuations_merge_across_a_lone_leftover_edge(merge):
+    """A leftover edge whose split partner is gone (e.g. its nodes were dropped as twins of
+    another segment) still closes the polyline by RULE 2, though nothing splits or merges there.
+    With merge_continuations the two pieces are one polyline; without (the paper), two linked
+    ones."""
+    g = conn(road("a", 0.0, 50))
+    solid_edges = np.flatnonzero((g.node_type[g.edges[:, 0]] == S) & (g.node_xy[g.edges[:, 0], 0] == 48.0))
+    assert len(solid_edges) == 1
+    lo = g.edge_leftover.copy()
+    lo[solid_edges] = True
+    g = dataclasses.replace(g, edge_leftover=lo)
+    m = stitch([g], config=StitchConfig(merge_continuations=merge))
+    solids = by_type(m, S)
+    if merge:
+        assert len(solids) == 1
+        f = solids[0]
+        assert f.points[0, 0] == pytest.approx(0.0) and f.points[-1, 0] == pytest.approx(98.0)
+        assert np.all(np.diff(f.points[:, 0]) > 0) and np.diff(f.points[:, 0]).max() <= 2.0 + 1e-9
+        assert len(f.drive_count) == len(f.points) == len(f.lateral_std)
+        assert f.predecessors == () and f.successors == ()
+    else:
+        assert len(solids) == 2
+        a, b = sorted(solids, key=lambda f: f.points[0, 0])
+        assert a.successors == (b.id,) and b.predecessors == (a.id,)
+    # Every topology node names a solid feature of the map.
+    ids = {f.id for f in solids}
+    assert all(any(fid in ids for fid in t.features) for t in m.topology)

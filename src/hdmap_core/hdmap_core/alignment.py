@@ -73,7 +73,8 @@ class AlignmentConfig:
         remove_drift: keep the mean cluster position unchanged by the correction (paper).
         silhouette_gate: steps scoring below are rejected (paper: 0.67).
         lone_cluster_max_std_m: when no type has two clusters the silhouette is undefined (the
-            paper rejects such a step); > 0 accepts it when every cluster's std is at most this
+            paper rejects such a step), and with one drive alone every cluster is a singleton
+            (silhouette 0); > 0 accepts such a step when every cluster's std is at most this
             [m] (sparse places: one drive on a ramp).
         min_cluster_drives: clusters supported by fewer distinct drives are dropped (label -1).
         max_offset_m: offsets are clipped to +-this [m].
@@ -753,10 +754,12 @@ def _em(
     y = x + o[drive]
     score = step_silhouette(y, labels, types)
     valid = score >= config.silhouette_gate
-    if score == -1.0 and config.lone_cluster_max_std_m > 0:
-        # No type has two clusters (e.g. one drive on a ramp seeing one line of each type): the
-        # silhouette is undefined; accept when every cluster is tight.
-        use = labels >= 0
+    use = labels >= 0
+    one_drive = bool(use.any()) and bool(np.all(drive[use] == drive[use][0]))
+    if (score == -1.0 or (one_drive and not valid)) and config.lone_cluster_max_std_m > 0:
+        # No type has two clusters (e.g. one drive on a ramp seeing one line of each type), or
+        # one drive alone (one sample per line: every cluster a singleton, silhouette 0): the
+        # silhouette says nothing; accept when every cluster is tight.
         if use.any():
             k = int(labels[use].max()) + 1
             n = np.bincount(labels[use], minlength=k)

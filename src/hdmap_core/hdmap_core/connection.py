@@ -84,6 +84,8 @@ class ConnectionConfig:
             wide cut (a ramp beside the carriageway) the far lines are seen by only the drives
             near them, while a false positive or misclassified copy still sits beside a line many
             more drives saw [m].
+        window_min_count: the window rule keeps only maxima of at least this many drives (a
+            maximum of one drive flickers: one drive's false positive or misclassified stretch).
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
     """
 
@@ -99,6 +101,7 @@ class ConnectionConfig:
     separation_count_ratio: float = 1.0
     min_support_share: float = 0.25
     support_window_m: float = 0.0
+    window_min_count: int = 1
     tile_size_m: float = 256.0
 
     def __post_init__(self) -> None:
@@ -114,6 +117,10 @@ class ConnectionConfig:
             raise ConfigError(f"min_separation_m must be >= 0, got {self.min_separation_m}")
         if not 0 <= self.min_support_share <= 1:
             raise ConfigError(f"min_support_share must be in [0, 1], got {self.min_support_share}")
+        if not (self.support_window_m >= 0 and math.isfinite(self.support_window_m)):
+            raise ConfigError(f"support_window_m must be finite and >= 0, got {self.support_window_m}")
+        if self.window_min_count < 1:
+            raise ConfigError(f"window_min_count must be >= 1, got {self.window_min_count}")
         if not self.leftover_max_m >= 0:
             raise ConfigError(f"leftover_max_m must be >= 0, got {self.leftover_max_m}")
         if not (self.tile_size_m > 0 and math.isfinite(self.tile_size_m)):
@@ -523,11 +530,12 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     slot = np.arange(len(lat)) - off[j_of]
     keep = np.isfinite(lat)
     if config.min_support_share > 0:
+        n_drives = np.array([max(len(st.drive_ids), 1) for st in valid])[j_of]
+        ok = cnt >= config.min_support_share * n_drives
         if config.support_window_m > 0:
             ref = _local_max_count(j_of, lat, cnt, off, config.support_window_m)
-        else:
-            ref = np.array([max(len(st.drive_ids), 1) for st in valid])[j_of]
-        keep &= cnt >= config.min_support_share * ref
+            ok |= (cnt >= config.min_support_share * ref) & (cnt >= config.window_min_count)
+        keep &= ok
     if config.min_separation_m > 0:
         keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m, config.separation_count_ratio)
     order = np.lexsort((lat, j_of))

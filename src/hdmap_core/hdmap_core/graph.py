@@ -185,21 +185,30 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
         if isolated and (len(xy) < 2 or length < cfg.min_isolated_length_m):
             keep[k] = False
     fid = np.array([int(uid[c[0]]) for c in chains], dtype=np.uint64)
+    ctype = [int(flat.n_type[c[0]]) for c in chains]
+    runs = _continuation_runs(keep, succ, pred, ctype, fid) if cfg.merge_continuations else [[k] for k in np.flatnonzero(keep).tolist()]
+    head_of = np.arange(len(chains))
+    for run in runs:
+        head_of[run] = run[0]
 
     features = []
-    for k, c in enumerate(chains):
-        if not keep[k]:
-            continue
-        xy, cnt, std = geoms[k]
+    for run in runs:
+        k0, k1 = run[0], run[-1]
+        parts = [geoms[k] for k in run]
+        xy = parts[0][0]
+        cnt, std = parts[0][1], parts[0][2]
+        for pxy, pcnt, pstd in parts[1:]:
+            dup = len(xy) and len(pxy) and float(np.hypot(*(xy[-1] - pxy[0]))) < 1e-6
+            xy, cnt, std = np.vstack([xy, pxy[dup:]]), np.r_[cnt, pcnt[dup:]], np.r_[std, pstd[dup:]]
         features.append(
             MapFeature(
-                id=int(fid[k]),
-                type=_ftype(int(flat.n_type[c[0]])),
+                id=int(fid[k0]),
+                type=_ftype(ctype[k0]),
                 points=np.ascontiguousarray(xy, dtype=float),
                 drive_count=np.asarray(cnt, dtype=np.int64),
                 lateral_std=np.asarray(std, dtype=float),
-                predecessors=tuple(sorted(int(fid[p]) for p in pred.get(k, ()) if keep[p])),
-                successors=tuple(sorted(int(fid[s]) for s in succ.get(k, ()) if keep[s])),
+                predecessors=tuple(sorted({int(fid[head_of[p]]) for p in pred.get(k0, ()) if keep[p]})),
+                successors=tuple(sorted({int(fid[head_of[s]]) for s in succ.get(k1, ()) if keep[s]})),
             )
         )
 
@@ -209,7 +218,7 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
     tsucc: dict[int, set[int]] = {}
     for a, b in te.tolist():
         tsucc.setdefault(a, set()).add(t_uid[b])
-    fid_node = np.where(keep[chain_of], fid[chain_of].astype(np.int64), -1).tolist() if nn else []
+    fid_node = np.where(keep[chain_of], fid[head_of[chain_of]].astype(np.int64), -1).tolist() if nn else []
     bounds = flat.t_start.tolist()
     xy_l, hd_l, w_l = flat.t_xy, flat.t_heading.tolist(), flat.t_width.tolist()
     topology = []
@@ -230,6 +239,43 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
     features.sort(key=lambda f: f.id)
     topology.sort(key=lambda t: t.id)
     return tuple(features), tuple(topology)
+
+
+def _continuation_runs(
+    keep: np.ndarray, succ: dict[int, set[int]], pred: dict[int, set[int]], ctype: list[int], fid: np.ndarray
+) -> list[list[int]]:
+    """Kept chains grouped into runs that are one polyline: k -> s when s is k's only kept
+    successor, k is s's only kept predecessor and both have one type. Each run lists its chains
+    in driving direction; a closed ring of such links is opened at its smallest feature id."""
+    nxt: dict[int, int] = {}
+    has_prev: set[int] = set()
+    for k in np.flatnonzero(keep).tolist():
+        ss = [x for x in succ.get(k, ()) if keep[x]]
+        if len(ss) != 1 or ss[0] == k or ctype[ss[0]] != ctype[k]:
+            continue
+        s = ss[0]
+        ps = [x for x in pred.get(s, ()) if keep[x]]
+        if ps == [k]:
+            nxt[k] = s
+            has_prev.add(s)
+    runs: list[list[int]] = []
+    seen: set[int] = set()
+
+    def walk(k: int) -> list[int]:
+        run = [k]
+        seen.add(k)
+        while run[-1] in nxt and nxt[run[-1]] not in seen:
+            run.append(nxt[run[-1]])
+            seen.add(run[-1])
+        return run
+
+    for k in np.flatnonzero(keep).tolist():
+        if k not in has_prev:
+            runs.append(walk(k))
+    for k in sorted((k for k in np.flatnonzero(keep).tolist() if k not in seen), key=lambda k: int(fid[k])):
+        if k not in seen:  # on a ring of continuations
+            runs.append(walk(k))
+    return runs
 
 
 def _length(points: np.ndarray) -> float:

@@ -83,6 +83,8 @@ class SamplingConfig:
         for name in ("step_m", "initial_half_length_m", "max_heading_diff_deg", "default_width_m", "min_width_m"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"SamplingConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        if not (self.open_side_gap_m >= 0 and np.isfinite(self.open_side_gap_m)):
+            raise ConfigError(f"SamplingConfig.open_side_gap_m must be finite and >= 0, got {self.open_side_gap_m!r}")
         if self.max_width_m < self.min_width_m:
             raise ConfigError("SamplingConfig.max_width_m must be >= min_width_m")
         if not 0 < self.width_decay <= 1:

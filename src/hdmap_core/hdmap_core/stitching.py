@@ -129,6 +129,10 @@ class StitchConfig:
         min_type_run_m: along a polyline, a run of one marking type (solid/dashed) shorter than
             this takes its neighbours' type instead of closing the polyline twice (RULE 1 on
             misclassification flicker). 0 disables (the paper) [m].
+        merge_continuations: at export, a polyline whose only successor has it as its only
+            predecessor, of the same type, is one polyline with it (what closed them, e.g. a
+            leftover edge whose sibling branch was pruned or a one-point piece between them, is
+            gone). False: the paper.
     """
 
     max_distance_m: float = 12.0
@@ -164,6 +168,7 @@ class StitchConfig:
     spur_max_m: float = 12.0
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
+    merge_continuations: bool = True
 
     def __post_init__(self) -> None:
         for name in (
@@ -216,6 +221,7 @@ class StitchConfig:
             spur_max_m=0.0,
             bubble_max_m=0.0,
             gore_max_m=0.0,
+            merge_continuations=False,
         )
 
 
