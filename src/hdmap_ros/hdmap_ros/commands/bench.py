@@ -138,33 +138,27 @@ def prepare_scenarios(specs: list[str], *, scales: list[float], work_dir: Path) 
             sigma = sigma_from_sim_json(sim) if sim.exists() else None
             out.append(Scenario(path.name, str(path), str(gt), sigma))
             continue
-        parts = spec.split(":")
-        if parts[0] in NAMED_SCENARIOS:
-            named = NAMED_SCENARIOS[parts[0]]
-            try:
-                drives = int(parts[1]) if len(parts) > 1 and parts[1] else named["drives"]
-                seed = int(parts[2]) if len(parts) > 2 else 0
-            except ValueError:
-                raise ConfigError(f"scenario {spec!r}: DRIVES and SEED must be integers") from None
-            for scale in scales:
-                n = max(1, round(drives * scale))
-                out.append(
-                    _simulate(
-                        named["map"], n, seed, work_dir,
-                        label=parts[0], length_m=named["length_m"], sim=named["sim"],
-                    )
-                )
-            continue
-        if len(parts) not in (2, 3):
-            raise ConfigError(f"scenario {spec!r}: neither an existing bag nor MAP:DRIVES[:SEED]")
-        try:
-            drives, seed = int(parts[1]), int(parts[2]) if len(parts) == 3 else 0
-        except ValueError:
-            raise ConfigError(f"scenario {spec!r}: DRIVES and SEED must be integers") from None
-        for scale in scales:
-            n = max(1, round(drives * scale))
-            out.append(_simulate(parts[0], n, seed, work_dir))
+        name, drives, seed, named = _parse_simulated(spec)
+        map_name, kw = name, {}
+        if named is not None:
+            map_name, kw = named["map"], {"label": name, "length_m": named["length_m"], "sim": named["sim"]}
+        out.extend(_simulate(map_name, max(1, round(drives * s)), seed, work_dir, **kw) for s in scales)
     return out
+
+
+def _parse_simulated(spec: str) -> tuple[str, int, int, dict[str, Any] | None]:
+    """``MAP:DRIVES[:SEED]`` or ``NAME[:DRIVES[:SEED]]`` of a named scenario -> (map or scenario
+    name, drives, seed, the named scenario or None)."""
+    parts = spec.split(":")
+    named = NAMED_SCENARIOS.get(parts[0])
+    if len(parts) > 3 or (named is None and len(parts) < 2):
+        raise ConfigError(f"scenario {spec!r}: neither an existing bag nor MAP:DRIVES[:SEED]")
+    try:
+        drives = int(parts[1]) if len(parts) > 1 and parts[1] else named["drives"]
+        seed = int(parts[2]) if len(parts) > 2 else 0
+    except ValueError:
+        raise ConfigError(f"scenario {spec!r}: DRIVES and SEED must be integers") from None
+    return parts[0], drives, seed, named
 
 
 def _simulate(
