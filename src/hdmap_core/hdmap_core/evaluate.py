@@ -364,40 +364,41 @@ def _finite_points(pts: object) -> np.ndarray | None:
     return arr if len(arr) >= 2 else None
 
 
+def _usable_points(pts: np.ndarray, what: str, skipped: list[str]) -> np.ndarray | None:
+    """``pts`` with non-finite rows dropped (``pts`` itself when all are finite), None when fewer
+    than 2 remain; what was dropped is named in ``skipped``."""
+    clean = _finite_points(pts)
+    if clean is None:
+        skipped.append(f"ground-truth {what}: fewer than 2 finite points, left out")
+        return None
+    if len(clean) == len(pts):
+        return pts
+    skipped.append(f"ground-truth {what}: {len(pts) - len(clean)} non-finite point(s) dropped")
+    return clean
+
+
 def _clean_ground_truth(gt: GroundTruth, skipped: list[str]) -> GroundTruth:
     """``gt`` with non-finite vertices dropped, unusable features/lanes and unknown route lanes left
     out (each named in ``skipped``); ``gt`` itself when nothing is wrong."""
-    changed = False
+    n_skipped = len(skipped)
     feats = []
     for f in gt.features:
-        pts = _finite_points(f.points)
-        if pts is None:
-            skipped.append(f"ground-truth feature {f.id}: fewer than 2 finite points, left out")
-            changed = True
-            continue
-        if len(pts) != len(f.points):
-            skipped.append(f"ground-truth feature {f.id}: {len(f.points) - len(pts)} non-finite point(s) dropped")
-            f, changed = replace(f, points=pts), True
-        feats.append(f)
+        pts = _usable_points(f.points, f"feature {f.id}", skipped)
+        if pts is not None:
+            feats.append(f if pts is f.points else replace(f, points=pts))
     lanes = {}
     for lid, lane in gt.lanes.items():
-        pts = _finite_points(lane.centerline)
-        if pts is None:
-            skipped.append(f"ground-truth lane {lid}: fewer than 2 finite centerline points, left out")
-            changed = True
-            continue
-        if len(pts) != len(lane.centerline):
-            skipped.append(f"ground-truth lane {lid}: {len(lane.centerline) - len(pts)} non-finite point(s) dropped")
-            lane, changed = replace(lane, centerline=pts), True
-        lanes[lid] = lane
+        pts = _usable_points(lane.centerline, f"lane {lid}", skipped)
+        if pts is not None:
+            lanes[lid] = lane if pts is lane.centerline else replace(lane, centerline=pts)
     routes = []
     for r in gt.routes:
         known = tuple(lid for lid in r.lanes if lid in lanes)
         if len(known) != len(r.lanes):
             skipped.append(f"ground-truth route {r.id}: {len(r.lanes) - len(known)} unknown/unusable lane(s) left out")
-            r, changed = replace(r, lanes=known, lane_changes=()), True
+            r = replace(r, lanes=known, lane_changes=())
         routes.append(r)
-    if not changed:
+    if len(skipped) == n_skipped:
         return gt
     return replace(gt, features=tuple(feats), lanes=lanes, routes=tuple(routes))
 
