@@ -20,7 +20,6 @@ from pathlib import Path
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.groundtruth import save_ground_truth
-from hdmap_core.simulate import SimConfig, load_map, simulate_fleet, write_sim_json
 
 __all__ = ["NAME", "HELP", "add_arguments", "run", "load_overrides", "parse_set"]
 
@@ -104,6 +103,10 @@ def run(args: argparse.Namespace) -> int:
     overrides.update(parse_set(args.overrides))
     if args.drives is not None:
         overrides["n_drives"] = args.drives
+    # Imported here, not at module level: the simulator pulls in scipy.signal, which made every
+    # `hdmap` call (even --help) pay for it.
+    from hdmap_core.simulate import SimConfig, load_map, simulate_fleet, write_sim_json  # noqa: PLC0415
+
     config = SimConfig.from_dict(overrides)
     gt = load_map(args.map, length_m=args.length_m, map_seed=args.map_seed)
     from hdmap_ros.bagio import write_fleet_bag  # here: needs rosbags, the core part does not
