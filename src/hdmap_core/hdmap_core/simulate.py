@@ -36,6 +36,8 @@ from hdmap_core.groundtruth import GroundTruth, GTRoute, load_ground_truth
 from hdmap_core.model import Drive, GeoOrigin
 from hdmap_core.sim_sensor import FeatureIndex, detections, false_positives, feature_index, gauss_markov, smoothstep, unit_tangents
 
+ROUTE_WEIGHTINGS = ("coverage", "length", "uniform")
+
 __all__ = [
     "SimConfig",
     "Fleet",
@@ -75,7 +77,13 @@ class SimConfig:
     snippet_length_min_m: float = 500.0  # snippet length ~ U(min, max), capped by the route length
     snippet_length_max_m: float = 2500.0
     direction_bias: float = 0.7  # share of drives in the primary direction (paper: biased fleet)
-    route_weighting: str = "length"  # "length": routes drawn in proportion to length; "uniform"
+    # "coverage": each drive takes, of ``coverage_candidates`` snippets drawn as for "length", the one
+    # over the least-driven place so far, so every ramp gets driven (the paper's fleet has 5-25
+    # drives at every place); "length": a route drawn in proportion to its length; "uniform": every
+    # route of the direction equally likely.
+    route_weighting: str = "coverage"
+    coverage_candidates: int = 8  # snippets drawn per drive in "coverage" mode
+    coverage_cell_m: float = 50.0  # size of a "place" (grid cell per direction) in "coverage" mode
     speed_min_mps: float = 25.0  # per-drive constant speed ~ U(min, max) -> time stamps
     speed_max_mps: float = 35.0
     pose_spacing_m: float = 1.0  # distance between consecutive poses
@@ -162,8 +170,10 @@ class SimConfig:
                 raise ConfigError(f"SimConfig.{name}={getattr(self, name)!r} must be > 0")
         if self.n_drives < 0 or self.n_vehicles < 1:
             raise ConfigError(f"SimConfig: n_drives={self.n_drives} must be >= 0 and n_vehicles={self.n_vehicles} >= 1")
-        if self.route_weighting not in ("length", "uniform"):
-            raise ConfigError(f"SimConfig.route_weighting={self.route_weighting!r}: choose 'length' or 'uniform'")
+        if self.route_weighting not in ROUTE_WEIGHTINGS:
+            raise ConfigError(f"SimConfig.route_weighting={self.route_weighting!r}: choose one of {', '.join(ROUTE_WEIGHTINGS)}")
+        if self.coverage_candidates < 1 or self.coverage_cell_m <= 0:
+            raise ConfigError(f"SimConfig: coverage_candidates={self.coverage_candidates} must be >= 1 and coverage_cell_m={self.coverage_cell_m} > 0")
         if not 0.0 <= self.same_direction_cos_min < 1.0:
             raise ConfigError(f"SimConfig.same_direction_cos_min={self.same_direction_cos_min} must be in [0, 1)")
         if self.misclass_rate + self.marking_to_border_rate > 1.0:
@@ -527,6 +537,49 @@ def _lane_sequence(geom: _RouteGeom, k0: int, side_of: np.ndarray) -> list[str]:
     return [geom.lane_ids[i] for i in lane[keep]]
 
 
+def _draw_snippet(geom: _RouteGeom, cfg: SimConfig, rng: np.random.Generator) -> tuple[int, int]:
+    """(first pose index, pose count) of a snippet of random length at a uniformly random place."""
+    step = cfg.pose_spacing_m
+    snip = rng.uniform(cfg.snippet_length_min_m, cfg.snippet_length_max_m)
+    total = geom.length_m
+    start_m = rng.uniform(0.0, total - snip) if snip < total else 0.0
+    k0 = int(round(start_m / step))
+    return k0, max(2, min(len(geom.s) - k0, int(round(snip / step)) + 1))
+
+
+class _PlaceCounts:
+    """Drives so far per place (a ``cell_m`` grid cell of one driving direction), for the
+    "coverage" route choice."""
+
+    def __init__(self, cell_m: float) -> None:
+        self.cell_m = cell_m
+        self.ids: dict[tuple[int, int, int], int] = {}
+        self.count = np.zeros(0, dtype=np.int64)
+        self._cells: dict[str, np.ndarray] = {}  # route id -> cell id per pose
+
+    def cells(self, geom: _RouteGeom, direction: int) -> np.ndarray:
+        got = self._cells.get(geom.route_id)
+        if got is None:
+            ij = np.floor(geom.xy / self.cell_m).astype(np.int64)
+            got = np.array([self.ids.setdefault((direction, int(i), int(j)), len(self.ids)) for i, j in ij], dtype=np.int64)
+            self._cells[geom.route_id] = got
+            if len(self.ids) > len(self.count):
+                self.count = np.concatenate([self.count, np.zeros(len(self.ids) - len(self.count), dtype=np.int64)])
+        return got
+
+    def score(self, geom: _RouteGeom, direction: int, snippet: tuple[int, int]) -> tuple[int, float]:
+        """(fewest drives at a place of the snippet, mean drives over its places): lower is emptier."""
+        k0, m = snippet
+        cells = np.unique(self.cells(geom, direction)[k0 : k0 + m])  # may grow ``count``: index after
+        c = self.count[cells]
+        return int(c.min()), float(c.mean())
+
+    def add(self, geom: _RouteGeom, direction: int, snippet: tuple[int, int]) -> None:
+        k0, m = snippet
+        cells = np.unique(self.cells(geom, direction)[k0 : k0 + m])
+        self.count[cells] += 1
+
+
 def _simulate_drive(
     i: int,
     drive_id: str,
@@ -536,13 +589,12 @@ def _simulate_drive(
     idx: FeatureIndex,
     cfg: SimConfig,
     rng: np.random.Generator,
+    snippet: tuple[int, int] | None = None,
 ) -> tuple[Drive, dict]:
     step = cfg.pose_spacing_m
-    snip = rng.uniform(cfg.snippet_length_min_m, cfg.snippet_length_max_m)
-    total = geom.length_m
-    start_m = rng.uniform(0.0, total - snip) if snip < total else 0.0
-    k0 = int(round(start_m / step))
-    m = max(2, min(len(geom.s) - k0, int(round(snip / step)) + 1))
+    if snippet is None:
+        snippet = _draw_snippet(geom, cfg, rng)
+    k0, m = snippet
     sl = slice(k0, k0 + m)
     wander = gauss_markov(m, step, cfg.wander_sigma_m, cfg.wander_corr_length_m, rng)
     lc, side_of = _lane_change_offsets(geom, k0, m, cfg, rng)
@@ -626,18 +678,36 @@ def simulate_fleet(gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: in
     drives: list[Drive] = []
     truth: dict[str, dict] = {}
     t_ns = int(config.start_time_ns)
+    places = _PlaceCounts(config.coverage_cell_m)
+
+    def geom_of(route: GTRoute) -> _RouteGeom:
+        if route.id not in geoms:
+            geoms[route.id] = _build_route_geom(gt, route, config.pose_spacing_m, trees)
+        return geoms[route.id]
+
     for i, child in enumerate(children):
         rng = np.random.default_rng(child)
         d = 0 if rng.random() < config.direction_bias else 1
         pool = by_dir[d] or by_dir[1 - d]
-        w = np.array([lengths[r.id] if config.route_weighting == "length" else 1.0 for r in pool])
-        route = pool[int(rng.choice(len(pool), p=w / w.sum()))]
-        if route.id not in geoms:
-            geoms[route.id] = _build_route_geom(gt, route, config.pose_spacing_m, trees)
+        w = np.array([lengths[r.id] if config.route_weighting != "uniform" else 1.0 for r in pool])
+        snippet = None
+        if config.route_weighting == "coverage":
+            # Of a few snippets drawn as for "length", drive the one over the least-driven place.
+            best = None
+            for _ in range(config.coverage_candidates):
+                cand = pool[int(rng.choice(len(pool), p=w / w.sum()))]
+                snip = _draw_snippet(geom_of(cand), config, rng)
+                key = places.score(geom_of(cand), dirs[cand.id], snip)
+                if best is None or key < best[0]:
+                    best = (key, cand, snip)
+            _, route, snippet = best
+            places.add(geom_of(route), dirs[route.id], snippet)
+        else:
+            route = pool[int(rng.choice(len(pool), p=w / w.sum()))]
         if i > 0:
             t_ns += int(rng.uniform(config.drive_gap_min_s, config.drive_gap_max_s) * 1e9)
         drive_id = f"{gt.name}_s{seed}_{i:04d}"
-        drive, tr = _simulate_drive(i, drive_id, geoms[route.id], dirs[route.id], t_ns, idx, config, rng)
+        drive, tr = _simulate_drive(i, drive_id, geom_of(route), dirs[route.id], t_ns, idx, config, rng, snippet)
         drives.append(drive)
         truth[drive_id] = tr
     return Fleet(drives, config.origin, truth, config, int(seed), gt.name)
