@@ -406,3 +406,70 @@ def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():
     lat2 = sorted(round(float(np.median(g2.node_xy[c][:, 1])), 1) for c in g2.polylines())
     assert lat1 == [-12.0, -9.5, -3.5, 0.0, 3.5]
     assert lat2 == [-12.0, -3.5, 0.0, 3.5]
+
+
+# --- branches of the other marking type (leftover_other_type_m) ----------------------------------
+
+
+def _exit_segment(gap: float) -> Segment:
+    """A solid edge line at y=0 bending right by 3 cm/m from x=20; an exit's dashed line appears at
+    x=30 (when the two are resolved) ``gap`` m left of the solid line and runs straight on (the
+    solid line's first value there)."""
+    steps = []
+    for i in range(40):
+        x = 2.0 * i
+        y_solid = -0.03 * max(x - 20.0, 0.0)
+        if x < 30:
+            steps.append(make_step(i, [y_solid], [S]))
+        else:
+            steps.append(make_step(i, [y_solid, -0.3 + gap], [S, D]))
+    return Segment("p", tuple(steps))
+
+
+def test_dashed_branch_starting_beside_a_solid_line_is_a_split():
+    """The dashed line's first node (0.3 m beside the solid line) is the solid tip's leftover
+    partner: a split edge across marking types. Farther than leftover_other_type_m (or with it 0)
+    the dashed line starts unconnected, as a line of the other type ending beside one does."""
+    g = connect_segment(_exit_segment(0.0), config=ConnectionConfig(min_separation_m=0.0))
+    assert g.stats.splits == 1
+    (k,) = np.flatnonzero(g.edge_leftover)
+    u, v = g.edges[k]
+    assert g.node_type[u] == S and g.node_type[v] == D
+    assert g.node_xy[v, 0] == pytest.approx(30.0) and g.node_xy[u, 0] == pytest.approx(28.0)
+    off = connect_segment(_exit_segment(0.0), config=ConnectionConfig(min_separation_m=0.0, leftover_other_type_m=0.0))
+    assert off.stats.splits == 0 and not off.edge_leftover.any()
+    far = connect_segment(_exit_segment(1.5), config=ConnectionConfig(min_separation_m=0.0))
+    assert far.stats.splits == 0
+
+
+def test_solid_line_ending_beside_a_dashed_line_is_a_merge():
+    """An entry: the ramp's solid line converges on the dashed line and ends 0.5 m from it (the two
+    are not resolved closer): the solid line's last node joins the dashed line (a merge)."""
+    steps = []
+    for i in range(30):
+        x = 2.0 * i
+        if x < 30:
+            steps.append(make_step(i, [0.0, -2.0 + x * 0.05], [D, S]))
+        else:
+            steps.append(make_step(i, [0.0], [D]))
+    g = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig(min_separation_m=0.0))
+    assert g.stats.merges == 1
+    (k,) = np.flatnonzero(g.edge_leftover)
+    u, v = g.edges[k]
+    assert g.node_type[u] == S and g.node_type[v] == D and g.node_xy[v, 0] == pytest.approx(30.0)
+
+
+def test_chain_links_through_keeps_the_regular_continuation():
+    """Node 1 splits into 2 (regular, same type) and 3 (leftover); node 4 merges into 2 by an
+    edge of another type. Through: 0-1-2 stays one chain, 3 and 4 are branches. Without: every
+    junction closes the chains."""
+    from hdmap_core.connection import chain_links
+
+    edges = np.array([[0, 1], [1, 2], [1, 3], [4, 2]])
+    leftover = np.array([False, False, True, False])
+    types = np.array([S, S, S, S, D])
+    assert chain_links(5, edges, leftover, types, through=True).tolist() == [True, True, False, False]
+    assert chain_links(5, edges, leftover, types).tolist() == [True, False, False, False]
+    uid = np.arange(1, 6, dtype=np.uint64)
+    chains = feature_chains(5, edges, leftover, types, uid, through=True)
+    assert [c.tolist() for c in chains] == [[0, 1, 2], [3], [4]]

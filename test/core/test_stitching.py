@@ -287,7 +287,8 @@ def test_one_point_feature_dropped_and_linked_past():
     """
     lat = lambda i: [0.0] if i == 15 else [-0.1 * abs(i - 15), 0.1 * abs(i - 15)]
     seg = Segment("a", tuple(step("a", i, 2.0 * i, lat(i), [D] * len(lat(i))) for i in range(31)))
-    m = stitch([connect_segment(seg, config=ConnectionConfig(min_separation_m=0.0))])
+    m = stitch([connect_segment(seg, config=ConnectionConfig(min_separation_m=0.0))],
+               config=StitchConfig(through_lines=False))
     assert all(len(f.points) >= 2 for f in m.features)
     assert len(m.features) == 4
     ins = [f for f in m.features if f.points[0, 0] == 0.0]
@@ -363,7 +364,10 @@ def test_spur_at_a_flicker_split_pruned():
     assert g.stats.splits == 1
     m = stitch([g])
     assert len(m.features) == 1 and len(m.features[0].points) == 50
-    assert len(stitch([g], config=StitchConfig(spur_max_m=0.0, bubble_max_m=0.0)).features) == 4
+    assert len(stitch([g], config=StitchConfig(spur_max_m=0.0, bubble_max_m=0.0, through_lines=False)).features) == 4
+    # through lines: the unpruned spur starts on the dashed line, which stays whole
+    kept = stitch([g], config=StitchConfig(spur_max_m=0.0, bubble_max_m=0.0)).features
+    assert sorted(len(f.points) for f in kept) == [5, 50]
 
 
 def test_loose_end_running_on_another_line_deduplicated():
@@ -427,7 +431,7 @@ def test_gore_split_placed_where_the_lane_line_ends():
         np.testing.assert_allclose(b.points[0], dashed.points[-1])
         assert b.points[-1, 0] == pytest.approx(158.0)
     assert len(m.features) == 3
-    plain = stitch([conn(seg)], config=StitchConfig(gore_max_m=0.0))
+    plain = stitch([conn(seg)], config=StitchConfig(gore_max_m=0.0, through_lines=False))
     assert len(plain.features) == 4 and len(by_type(plain, D)[0].successors) == 1
 
 
@@ -438,10 +442,18 @@ def test_branch_starting_beside_a_line_joins_it_as_a_split():
     here, max_distance_m=0, so that only the feature-level branch join acts.)"""
     main = road("m", 0.0, 60, ([-3.5, 0.0], [S, D]))
     ramp = Segment("r", tuple(step("r", i, 50.0 + 2.0 * i, [-4.5 - 0.3 * i], [S], y_mid=-8.0) for i in range(30)))
-    cfg = StitchConfig(trim_overlap=False, max_distance_m=0.0, branch_lateral_m=2.0)
+    cfg = StitchConfig(trim_overlap=False, max_distance_m=0.0, branch_lateral_m=2.0, through_lines=False)
     m = stitch([conn(main), conn(ramp)], config=cfg)
     splitting = [f for f in m.features if len(f.successors) == 2]
     assert len(splitting) == 1 and splitting[0].type == FeatureType.SOLID
+    # through lines (default): the main solid line stays whole, the ramp line starts on its interior
+    m_thr = stitch([conn(main), conn(ramp)], config=dataclasses.replace(cfg, through_lines=True))
+    solid = [f for f in m_thr.features if f.type == FeatureType.SOLID]
+    main_solid = max(solid, key=lambda f: len(f.points))
+    branch = [f for f in solid if f is not main_solid]
+    assert len(solid) == 2 and main_solid.points[0, 0] == 0.0 and main_solid.points[-1, 0] == pytest.approx(118.0)
+    d = np.hypot(*(main_solid.points - branch[0].points[0]).T)
+    assert d.min() < 1e-9 and 0 < int(np.argmin(d)) < len(main_solid.points) - 1
     par = Segment("p", tuple(step("p", i, 50.0 + 2.0 * i, [-5.0], [S], y_mid=-8.0) for i in range(20)))
     m2 = stitch([conn(main), conn(par)], config=cfg)
     assert all(len(f.successors) < 2 and len(f.predecessors) < 2 for f in m2.features)
@@ -517,3 +529,47 @@ def test_continuations_merge_across_a_lone_leftover_edge(merge):
     # Every topology node names a solid feature of the map.
     ids = {f.id for f in solids}
     assert all(any(fid in ids for fid in t.features) for t in m.topology)
+
+
+def _exit_road() -> Segment:
+    """Solid edge line at y=0 bending right by 3 cm/m from x=40; from x=50 a dashed line runs on
+    straight 0.3 m beside it (an exit's deceleration lane line starting on the edge line)."""
+    steps = []
+    for i in range(60):
+        x = 2.0 * i
+        y = -0.03 * max(x - 40.0, 0.0)
+        steps.append(step("e", i, x, [y] if x < 50 else [y, -0.0], [S] if x < 50 else [S, D]))
+    return Segment("e", tuple(steps))
+
+
+def test_exit_line_starts_on_the_interior_of_the_whole_edge_line():
+    """Through lines: the solid edge line stays one feature across the split, and the dashed
+    branch's first point is one of its interior points (no link: a link joins a last point to a
+    first point). The paper's export breaks the edge line there and links three pieces."""
+    g = connect_segment(_exit_road(), config=ConnectionConfig(min_separation_m=0.0))
+    m = stitch([g])
+    (solid,) = by_type(m, S)
+    (dashed,) = by_type(m, D)
+    assert solid.points[0, 0] == 0.0 and solid.points[-1, 0] == pytest.approx(118.0)
+    assert not solid.successors and not dashed.predecessors
+    k = int(np.argmin(np.hypot(*(solid.points - dashed.points[0]).T)))
+    np.testing.assert_allclose(solid.points[k], dashed.points[0])
+    assert solid.points[k, 0] == pytest.approx(48.0)
+    paper = stitch([g], config=StitchConfig(through_lines=False))
+    assert len(paper.features) == 3
+    (head,) = [f for f in paper.features if len(f.successors) == 2]
+    assert head.type == FeatureType.SOLID
+
+
+def test_attached_branch_survives_a_base_map_round_trip():
+    """graph_from_hdmap turns a branch drawn on a through line back into a leftover edge, so
+    re-exporting the base map gives the same features (ids, points, links)."""
+    m = stitch([connect_segment(_exit_road(), config=ConnectionConfig(min_separation_m=0.0))])
+    g = graph_from_hdmap(m)
+    assert int(g.edge_leftover.sum()) == 1
+    again = stitch([], base=m)
+    assert sorted(f.id for f in again.features) == sorted(f.id for f in m.features)
+    for f in m.features:
+        (h,) = [x for x in again.features if x.id == f.id]
+        np.testing.assert_allclose(h.points, f.points)
+        assert h.predecessors == f.predecessors and h.successors == f.successors

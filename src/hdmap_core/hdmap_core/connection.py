@@ -67,6 +67,11 @@ class ConnectionConfig:
             lines resolve as one of their type first and split later (solid -> two solids), so
             real splits keep their leftover; a line that ends beside a line of the other marking
             type (solid beside dashed) no longer merges into it. False: the paper.
+        leftover_other_type_m: ... except when the marking of the other type is at most this far
+            across: two markings that close are one place, so the leftover is a branch starting
+            (ending) on the other line (an exit's dashed line starting on the solid edge line,
+            0.2-0.5 m from it when first resolved; an entry's solid line ending on the dashed
+            one). 0: same type only [m].
         bridge_features: keep a polyline whose feature is missing in a step open for ``max_gap_m``
             so that it continues when the feature reappears (per-feature gap bridging; the paper
             bridges whole steps only).
@@ -96,6 +101,7 @@ class ConnectionConfig:
     edge_slack_m: float = 0.3
     leftover_max_m: float = 2.0
     leftover_same_type: bool = True
+    leftover_other_type_m: float = 1.0
     bridge_features: bool = True
     min_separation_m: float = 1.0
     separation_count_ratio: float = 1.0
@@ -121,6 +127,8 @@ class ConnectionConfig:
             raise ConfigError(f"support_window_m must be finite and >= 0, got {self.support_window_m}")
         if self.window_min_count < 1:
             raise ConfigError(f"window_min_count must be >= 1, got {self.window_min_count}")
+        if not (self.leftover_other_type_m >= 0 and math.isfinite(self.leftover_other_type_m)):
+            raise ConfigError(f"leftover_other_type_m must be finite and >= 0, got {self.leftover_other_type_m}")
         if not self.leftover_max_m >= 0:
             raise ConfigError(f"leftover_max_m must be >= 0, got {self.leftover_max_m}")
         if not (self.tile_size_m > 0 and math.isfinite(self.tile_size_m)):
@@ -286,22 +294,32 @@ def tile_of(xy: np.ndarray, *, tile_size_m: float = 256.0) -> np.ndarray:
 
 
 def chain_links(
-    n_nodes: int, edges: np.ndarray, leftover: np.ndarray, node_type: np.ndarray
+    n_nodes: int, edges: np.ndarray, leftover: np.ndarray, node_type: np.ndarray, *, through: bool = False
 ) -> np.ndarray:
-    """(E,) bool: which edges continue a polyline (the others close one and open the next)."""
+    """(E,) bool: which edges continue a polyline (the others close one and open the next).
+
+    Args:
+        through: at a split (merge) whose node has exactly one continuing candidate out of
+            (into) it -- an edge of its own type not made by the leftover assignment -- that
+            edge still continues the polyline: the line runs through the junction and only the
+            branch (the leftover or type-changing edge) starts (ends) there, on the through
+            line's interior. False (the segment's own polylines, the paper): a split or merge
+            closes every polyline meeting there.
+    """
     if len(edges) == 0:
         return np.zeros(0, dtype=bool)
-    out_deg = np.bincount(edges[:, 0], minlength=n_nodes)
-    in_deg = np.bincount(edges[:, 1], minlength=n_nodes)
     u, v = edges[:, 0], edges[:, 1]
-    return (
-        (out_deg[u] == 1)  # a split (two successors) closes the polyline
-        & (in_deg[v] == 1)  # a merge (two predecessors) closes the polyline
-        # RULE 1: the edge joins two different types
-        & (node_type[u] == node_type[v])
-        # RULE 2: the edge was made by the leftover (modified) assignment
-        & ~np.asarray(leftover, dtype=bool)
-    )
+    # RULE 1: an edge joining two different types closes the polyline;
+    # RULE 2: an edge made by the leftover (modified) assignment closes it
+    cand = (node_type[u] == node_type[v]) & ~np.asarray(leftover, dtype=bool)
+    if through:
+        out_deg = np.bincount(u[cand], minlength=n_nodes)
+        in_deg = np.bincount(v[cand], minlength=n_nodes)
+    else:
+        out_deg = np.bincount(u, minlength=n_nodes)
+        in_deg = np.bincount(v, minlength=n_nodes)
+    # a split (two successors) and a merge (two predecessors) close the polyline
+    return cand & (out_deg[u] == 1) & (in_deg[v] == 1)
     # RULE 3 and RULE 4 make no edge at all (see connect_segment), so nothing continues there.
 
 
@@ -311,6 +329,8 @@ def feature_chains(
     leftover: np.ndarray,
     node_type: np.ndarray,
     node_uid: np.ndarray,
+    *,
+    through: bool = False,
 ) -> list[np.ndarray]:
     """Split a feature graph into polylines (maximal chains of continuing edges).
 
@@ -321,12 +341,13 @@ def feature_chains(
         node_type: (N,) int type codes.
         node_uid: (N,) uint64 node ids; a closed ring is opened at its smallest id so the result
             does not depend on node order.
+        through: see ``chain_links``.
 
     Returns:
         Chains of node indices in driving direction, ordered by the uid of their first node.
     """
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-    link = chain_links(n_nodes, edges, leftover, node_type)
+    link = chain_links(n_nodes, edges, leftover, node_type, through=through)
     nxt = np.full(n_nodes, -1, dtype=np.int64)
     has_prev = np.zeros(n_nodes, dtype=bool)
     nxt[edges[link, 0]] = edges[link, 1]
@@ -482,7 +503,10 @@ def _assign(
     leftover: list[tuple[int, int]] = []
     near = ok & (lat <= config.leftover_max_m)
     if config.leftover_same_type:
-        near &= tip_type[:, None] == new_type[None, :]
+        # a lane marking may still branch off (join) a marking of the other type right beside it
+        # (forbidden already keeps borders to borders): an exit's dashed line starts on the
+        # solid edge line, an entry's solid line ends on the dashed one
+        near &= (tip_type[:, None] == new_type[None, :]) | (lat <= config.leftover_other_type_m)
     matched_new = np.zeros(m, dtype=bool)
     matched_new[cols] = True
     matched_tip = np.zeros(n, dtype=bool)

@@ -118,24 +118,38 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
     e = flat.edges
     if cfg.min_type_run_m > 0 and nn:
         flat.n_type = _smooth_types(flat, uid, cfg.min_type_run_m)
-    chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid)
-    link = chain_links(nn, e, flat.leftover, flat.n_type)
+    through = getattr(cfg, "through_lines", False)
+    chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid, through=through)
+    link = chain_links(nn, e, flat.leftover, flat.n_type, through=through)
     outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
     indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
     chain_of = np.full(nn, -1, dtype=np.int64)
+    is_first = np.zeros(nn, dtype=bool)
+    is_last = np.zeros(nn, dtype=bool)
     for k, c in enumerate(chains):
         chain_of[c] = k
+        is_first[c[0]] = True
+        is_last[c[-1]] = True
     cross = e[~link] if len(e) else e
     succ: dict[int, set[int]] = {}
     pred: dict[int, set[int]] = {}
     in_cross: dict[int, list[int]] = {}
     out_cross: dict[int, list[int]] = {}
+    # a branch starting (ending) on the interior of a through line (``through_lines``) is no
+    # successor (predecessor) link -- a link joins a last point to a first point -- but is drawn
+    # from (to) the through line's node: (through chain, branch chain, "split" | "merge")
+    attached: list[tuple[int, int, str]] = []
     for a, b in cross.tolist():
         ca, cb = int(chain_of[a]), int(chain_of[b])
-        succ.setdefault(ca, set()).add(cb)
-        pred.setdefault(cb, set()).add(ca)
         out_cross.setdefault(a, []).append(b)
         in_cross.setdefault(b, []).append(a)
+        if is_last[a] and is_first[b]:
+            succ.setdefault(ca, set()).add(cb)
+            pred.setdefault(cb, set()).add(ca)
+        elif is_first[b]:
+            attached.append((ca, cb, "split"))
+        elif is_last[a]:
+            attached.append((cb, ca, "merge"))
 
     # geometry with junction points: a split's branches start at the split point, a merge's
     # inflows end at the merge point, a type change meets in the middle of its edge
@@ -167,6 +181,7 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
         geoms.append((xy, cnt, std))
 
     keep = np.ones(len(chains), dtype=bool)
+    on_through = {k for t, b, _ in attached for k in (t, b)}
     for k, (xy, _, _) in enumerate(geoms):
         if len(xy) < 2:  # one point is no polyline: drop it, its neighbours link past it
             keep[k] = False
@@ -180,7 +195,7 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
     for k, (xy, _, _) in enumerate(geoms):
         if not keep[k]:
             continue
-        isolated = not succ.get(k) and not pred.get(k)
+        isolated = not succ.get(k) and not pred.get(k) and k not in on_through
         length = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
         if isolated and (len(xy) < 2 or length < cfg.min_isolated_length_m):
             keep[k] = False
@@ -235,6 +250,9 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
             )
         )
     if cfg.gore_max_m > 0:
+        if attached:
+            branch_of = [(int(fid[head_of[t]]), int(fid[head_of[b]]), kind) for t, b, kind in attached if keep[t] and keep[b]]
+            features, topology = _gore_branches(features, topology, branch_of, cfg.gore_max_m)
         features, topology = _gore_junctions(features, topology, cfg.gore_max_m)
     features.sort(key=lambda f: f.id)
     topology.sort(key=lambda t: t.id)
@@ -280,6 +298,57 @@ def _continuation_runs(
 
 def _length(points: np.ndarray) -> float:
     return float(np.hypot(*np.diff(points, axis=0).T).sum()) if len(points) > 1 else 0.0
+
+
+def _gore_branches(
+    features: list[MapFeature], topology: list[TopologyNode], branches: list[tuple[int, int, str]], max_m: float
+) -> tuple[list[MapFeature], list[TopologyNode]]:
+    """``_gore_junctions`` for through lines: a branch of the through line's own type that starts
+    on it at most ``max_m`` after the through line began at a type change (a gore: the lane line
+    ends, two solid lines start and are resolved as two only tens of metres on) gets the common
+    piece prepended and the lane line as its predecessor, so the split sits where the lane line
+    ends. Merges mirror this.
+
+    Args:
+        branches: (through feature id, branch feature id, "split" | "merge").
+    """
+    from dataclasses import replace as _replace
+
+    byid = {f.id: f for f in features}
+    changed = False
+    for tid, bid, kind in sorted(branches):
+        c, b = byid.get(tid), byid.get(bid)
+        if c is None or b is None or b.type != c.type or len(c.points) < 2 or len(b.points) < 2:
+            continue
+        outer = c.predecessors if kind == "split" else c.successors
+        if len(outer) != 1 or outer[0] not in byid or byid[outer[0]].type == c.type:
+            continue
+        if (b.predecessors if kind == "split" else b.successors):
+            continue
+        p = byid[outer[0]]
+        end = b.points[0] if kind == "split" else b.points[-1]
+        i = int(np.argmin(np.hypot(*(np.asarray(c.points) - end).T)))
+        if float(np.hypot(*(c.points[i] - end))) > 1e-6:
+            continue
+        if kind == "split":
+            if i == 0 or _length(c.points[: i + 1]) > max_m:
+                continue
+            b = _replace(b, points=np.vstack([c.points[:i], b.points]),
+                         drive_count=np.r_[c.drive_count[:i], b.drive_count],
+                         lateral_std=np.r_[c.lateral_std[:i], b.lateral_std], predecessors=(p.id,))
+            p = _replace(p, successors=tuple(sorted(set(p.successors) | {b.id})))
+        else:
+            if i == len(c.points) - 1 or _length(c.points[i:]) > max_m:
+                continue
+            b = _replace(b, points=np.vstack([b.points, c.points[i + 1 :]]),
+                         drive_count=np.r_[b.drive_count, c.drive_count[i + 1 :]],
+                         lateral_std=np.r_[b.lateral_std, c.lateral_std[i + 1 :]], successors=(p.id,))
+            p = _replace(p, predecessors=tuple(sorted(set(p.predecessors) | {b.id})))
+        byid[b.id], byid[p.id] = b, p
+        changed = True
+    if not changed:
+        return features, topology
+    return [byid[f.id] for f in features], topology
 
 
 def _gore_junctions(
@@ -547,6 +616,33 @@ def _ftype(code: int) -> FeatureType:
 
 
 
+def _attachments(feats: list[MapFeature]) -> list[tuple[int, str, int, int]]:
+    """Branches drawn on a through line: (branch id, "split" | "merge", through id, index of the
+    through line's interior point that is the branch's first (split) or last (merge) point). Only
+    an end without a link counts, of a feature with >= 3 points, on a line of its class."""
+    pts = [np.asarray(f.points, dtype=float)[:, :2] for f in feats]
+    if not pts or sum(len(p) for p in pts) == 0:
+        return []
+    allp = np.concatenate(pts)
+    owner = np.repeat(np.arange(len(feats)), [len(p) for p in pts])
+    index = np.concatenate([np.arange(len(p)) for p in pts])
+    tree = cKDTree(allp)
+    border = [int(f.type) == _BORDER_CODE for f in feats]
+    out = []
+    for a, f in enumerate(feats):
+        if len(pts[a]) < 3:
+            continue
+        for kind, q, linked in (("split", pts[a][0], f.predecessors), ("merge", pts[a][-1], f.successors)):
+            if linked:
+                continue
+            for k in sorted(tree.query_ball_point(q, 1e-6)):
+                g = int(owner[k])
+                if g != a and border[g] == border[a] and 0 < index[k] < len(pts[g]) - 1:
+                    out.append((int(f.id), kind, int(feats[g].id), int(index[k])))
+                    break
+    return out
+
+
 def graph_from_hdmap(hdmap: HDMap, *, key: str = "base", tile_size_m: float = 256.0) -> SegmentGraph:
     """Rebuild a hierarchical graph from an ``HDMap`` so that new segments can be stitched to it.
 
@@ -577,6 +673,14 @@ def graph_from_hdmap(hdmap: HDMap, *, key: str = "base", tile_size_m: float = 25
                     lo[int(g.id)] += 1
                     if not (merge or split) and hi[int(f.id)] - lo[int(f.id)] > 1:
                         hi[int(f.id)] -= 1
+    # a branch drawn from (to) a through line's interior (``through_lines``): its first (last)
+    # point is the through line's node; it becomes a leftover edge again, the point is dropped
+    attach = _attachments(feats)
+    for bid, kind, _, _ in attach:
+        if kind == "split":
+            lo[bid] += 1
+        else:
+            hi[bid] -= 1
     # topology
     if topo:
         t_xy = np.array([np.asarray(t.position, dtype=float)[:2] for t in topo])
@@ -652,7 +756,13 @@ def graph_from_hdmap(hdmap: HDMap, *, key: str = "base", tile_size_m: float = 25
         for s in f.successors:
             if int(f.id) in last and int(s) in first:
                 edges.append((last[int(f.id)], first[int(s)]))
+    n_plain = len(edges)
+    for bid, kind, tid, k in attach:
+        if bid in first and tid in first:
+            node = first[tid] + k - lo[tid]
+            edges.append((node, first[bid]) if kind == "split" else (last[bid], node))
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    e_left = np.arange(len(e)) >= n_plain
     counts = np.bincount(tk, minlength=len(t_uid)) if len(tk) else np.zeros(len(t_uid), dtype=np.int64)
     return SegmentGraph(
         key=key,
@@ -670,7 +780,7 @@ def graph_from_hdmap(hdmap: HDMap, *, key: str = "base", tile_size_m: float = 25
         node_count=cat(n_cnt, (0,), np.int64)[order],
         node_std=cat(n_std, (0,), float)[order],
         edges=inv[e] if len(e) else e,
-        edge_leftover=np.zeros(len(e), dtype=bool),
+        edge_leftover=e_left,
         drive_ids=tuple(hdmap.drive_ids),
         stats=ConnectionStats(),
         tile_size_m=tile_size_m,

@@ -111,6 +111,9 @@ class StitchConfig:
         branch_radius_m: see ``branch_lateral_m`` [m].
         branch_divergence_m: ... only when the branch moves away from the line: ~10 m on, its
             offset grew by at least this (a copy running beside the line is no branch) [m].
+        branch_any_marking: a branch may join a lane marking of the other type (an exit's
+            dashed line starts on the solid edge line; an entry's solid line ends on the dashed
+            one); a road border joins only a border. False: same type only.
         join_lateral_m: how far across the road a loose start may lie from the end's arc [m] ...
         join_angle_deg: ... plus this angle's share of the distance [deg].
         fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
@@ -159,6 +162,7 @@ class StitchConfig:
     branch_lateral_m: float = 0.0
     branch_radius_m: float = 8.0
     branch_divergence_m: float = 0.3
+    branch_any_marking: bool = True
     join_radius_m: float = 60.0
     join_lateral_m: float = 0.5
     join_angle_deg: float = 1.0
@@ -169,6 +173,7 @@ class StitchConfig:
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
     merge_continuations: bool = True
+    through_lines: bool = True
 
     def __post_init__(self) -> None:
         for name in (
@@ -222,6 +227,7 @@ class StitchConfig:
             bubble_max_m=0.0,
             gore_max_m=0.0,
             merge_continuations=False,
+            through_lines=False,
         )
 
 
@@ -297,6 +303,7 @@ class MapGraph:
         self._node_dead: dict[str, np.ndarray] = {}  # feature nodes dropped as duplicates
         self._topo_links: set[Link] = set()
         self._feature_links: set[Link] = set()
+        self._branch_links: set[Link] = set()  # split/merge joins (leftover-like: a branch)
         self.version = 0
         self.last_report = IntegrateReport()
         graphs = list(graphs)
@@ -328,6 +335,7 @@ class MapGraph:
         new._node_dead = {k: v.copy() for k, v in self._node_dead.items()}
         new._topo_links = set(self._topo_links)
         new._feature_links = set(self._feature_links)
+        new._branch_links = set(self._branch_links)
         new.version = self.version
         new.last_report = self.last_report
         return new
@@ -353,6 +361,7 @@ class MapGraph:
         if gone:
             self._topo_links = {ln for ln in self._topo_links if ln[0] not in gone and ln[2] not in gone}
             self._feature_links = {ln for ln in self._feature_links if ln[0] not in gone and ln[2] not in gone}
+            self._branch_links = {ln for ln in self._branch_links if ln[0] not in gone and ln[2] not in gone}
         return len(gone)
 
     def rebuild(self) -> IntegrateReport:
@@ -364,7 +373,7 @@ class MapGraph:
         graphs = [self._graphs[k] for k in self.keys]
         version = self.version
         self._graphs, self._alive, self._node_dead = {}, {}, {}
-        self._topo_links, self._feature_links = set(), set()
+        self._topo_links, self._feature_links, self._branch_links = set(), set(), set()
         rep = self.integrate(graphs)
         self.version = version + 1
         return rep
@@ -463,6 +472,7 @@ class MapGraph:
         f0 = np.zeros(0)
         e0 = np.zeros((0, 2), dtype=np.int64)
         fl = links(self._feature_links, nmap)
+        bl = links(self._branch_links, nmap)
         return FlatGraph(
             keys=keys,
             tmap=tmap,
@@ -482,8 +492,9 @@ class MapGraph:
             n_count=cat("node_count", i0, np.int64),
             n_std=cat("node_std", f0, float),
             topo_edges=np.concatenate([cat("te", e0).reshape(-1, 2), links(self._topo_links, tmap)]).astype(np.int64),
-            edges=np.concatenate([cat("ne", e0).reshape(-1, 2), fl]).astype(np.int64),
-            leftover=np.concatenate([cat("lo", np.zeros(0, dtype=bool)), np.zeros(len(fl), dtype=bool)]),
+            edges=np.concatenate([cat("ne", e0).reshape(-1, 2), fl, bl]).astype(np.int64),
+            leftover=np.concatenate([cat("lo", np.zeros(0, dtype=bool)), np.zeros(len(fl), dtype=bool),
+                                     np.ones(len(bl), dtype=bool)]),
         )
 
     def _trim(self, new_keys: Sequence[str]) -> int:
@@ -841,13 +852,18 @@ class MapGraph:
             ]
             return not offs or min(offs) >= lat0 + cfg.branch_divergence_m
 
+        border = flat.n_type == _BORDER_CODE
         made = 0
         for nodes, sign, walk in ((starts, -1.0, nxt), (ends, 1.0, prv)):
             for i in nodes:
                 u, n = _unit(float(heading[i]))
                 best, best_d, best_lat = -1, math.inf, 0.0
                 for j in tree.query_ball_point(flat.n_xy[i], cfg.branch_radius_m):
-                    if flat.n_graph[j] == flat.n_graph[i] or flat.n_type[j] != flat.n_type[i]:
+                    if flat.n_graph[j] == flat.n_graph[i]:
+                        continue
+                    if flat.n_type[j] != flat.n_type[i] and (
+                        not cfg.branch_any_marking or border[j] or border[i]
+                    ):
                         continue
                     if math.cos(heading[j] - heading[i]) < math.cos(math.radians(cfg.max_heading_diff_deg)):
                         continue
@@ -860,7 +876,7 @@ class MapGraph:
                         best, best_d, best_lat = int(j), dist, lat
                 if best >= 0 and diverges(i, best, best_lat, walk):
                     a, b = (best, i) if sign < 0 else (i, best)
-                    self._feature_links.add(self._link(flat, a, b, topo=False))
+                    self._branch_links.add(self._link(flat, a, b, topo=False))
                     made += 1
         return made
 
@@ -882,7 +898,7 @@ class MapGraph:
             extra={
                 "segments": len(self._graphs),
                 "topology_links": len(self._topo_links),
-                "feature_links": len(self._feature_links),
+                "feature_links": len(self._feature_links) + len(self._branch_links),
                 "last_integrate": dict(self.last_report.__dict__),
             },
         )
