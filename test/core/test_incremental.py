@@ -234,3 +234,97 @@ def test_map_tile_pivot_margin_keeps_the_tile_and_equals_the_full_walk_at_the_ma
     m = mids(near)
     assert len(m) >= 0.8 * len(mids(full))
     assert ((m[:, 0] >= xmin) & (m[:, 0] < xmax) & (m[:, 1] >= ymin) & (m[:, 1] < ymax)).all()
+
+
+# --- the fleet-wide offset model ------------------------------------------------------------------
+
+
+def test_clip_reports_where_on_the_full_drive_the_clip_starts():
+    from hdmap_core.incremental import _clip
+
+    d = _drive(_line(-500, 500))  # poses every 1 m along y=0
+    clipped, s0 = _clip(d, (-128.0, -10.0, 384.0, 10.0))
+    assert clipped is not None and clipped.xy[0, 0] == -128.0
+    assert s0 == pytest.approx(372.0)
+    assert _clip(d, (600.0, 0.0, 700.0, 1.0)) == (None, 0.0)
+
+
+def _positions(drive, s):
+    from hdmap_core.geometry import arc_length
+
+    xy = np.asarray(drive.xy, dtype=float)
+    st = arc_length(xy)
+    return np.stack([np.interp(s, st, xy[:, 0]), np.interp(s, st, xy[:, 1])], axis=1)
+
+
+def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
+    from hdmap_core.incremental import map_tile_observed, observe_tile
+
+    drives, key, cfg, pc = _sim_tile()
+    obs = observe_tile(drives, key, tile_config=cfg, pipeline_config=pc)
+    _, obs2 = map_tile_observed(drives, key, tile_config=cfg, pipeline_config=pc)
+    assert len(obs) > 10 and len(obs) == len(obs2)
+    for a, b in zip(obs, obs2):  # the settle's observation pass and the streaming estimate agree exactly
+        assert (a.pivot_id, a.index, a.drive_ids) == (b.pivot_id, b.index, b.drive_ids)
+        for f in ("midpoint", "drive_s_m", "lateral_m", "types", "cluster"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    xmin, ymin, xmax, ymax = tile_bounds(key, tile_size_m=cfg.tile_size_m)
+    mids = np.array([o.midpoint for o in obs], dtype=float)
+    assert ((mids[:, 0] >= xmin) & (mids[:, 0] < xmax) & (mids[:, 1] >= ymin) & (mids[:, 1] < ymax)).all()
+    by_id = {d.drive_id: d for d in drives}
+    # the tile starts well into some drive: clip-relative distances would land far away
+    assert max(clip_drive(d, (xmin, ymin, xmax, ymax)) is not None and
+               float(np.hypot(*(np.asarray(d.xy[0]) - mids.mean(axis=0)))) for d in drives) > 150
+    for o in obs:
+        for did in set(o.drive_ids):
+            sel = np.array([x == did for x in o.drive_ids])
+            pos = _positions(by_id[did], o.drive_s_m[sel])
+            # a sample projected onto its own full trajectory lies beside the cut, not hundreds of m off
+            assert np.hypot(*(pos - o.midpoint).T).max() < 30.0
+
+
+def test_map_tile_with_a_fleet_model_shifts_by_it_at_full_drive_distances():
+    from dataclasses import replace
+
+    from hdmap_core.adjustment import DriveOffset
+    from hdmap_core.incremental import fleet_offsets, map_tile, observe_tile
+
+    drives, key, cfg, pc = _sim_tile()
+    model = fleet_offsets(observe_tile(drives, key, tile_config=cfg, pipeline_config=pc), pipeline_config=pc)
+    assert set(model.drives) == {d.drive_id for d in drives}
+
+    asked = []
+
+    class Spy:
+        def offset(self, drive_id, s_m):
+            asked.append((drive_id, np.asarray(s_m, dtype=float).copy()))
+            return model.offset(drive_id, s_m)
+
+    base = map_tile(drives, key, tile_config=cfg, pipeline_config=pc, offset_model=Spy())
+    assert base and asked
+    grown = tile_bounds(key, tile_size_m=cfg.tile_size_m, margin_m=cfg.margin_m + 30.0)
+    by_id = {d.drive_id: d for d in drives}
+    for did, s in asked:  # the model is asked at the tile's place on the full drives
+        pos = _positions(by_id[did], s)
+        assert ((pos[:, 0] >= grown[0]) & (pos[:, 0] < grown[2]) & (pos[:, 1] >= grown[1]) & (pos[:, 1] < grown[3])).all()
+    # a model 1 m further left for every drive moves the tile's features by 1 m along the cuts
+    plus = replace(model, drives={k: replace(v, bias_m=v.bias_m + 1.0) for k, v in model.drives.items()})
+    moved = map_tile(drives, key, tile_config=cfg, pipeline_config=pc, offset_model=plus)
+    from hdmap_core.steps import left_normal
+
+    # (cuts are re-centred on the shifted samples: compare positions across the pivot's walk)
+    after = {(st.pivot_id, st.index): st for sg in moved for st in sg.steps if st.valid}
+    pairs = [(a, after[(a.pivot_id, a.index)]) for sg in base for a in sg.steps
+             if a.valid and (a.pivot_id, a.index) in after and len(after[(a.pivot_id, a.index)].lateral_m) == len(a.lateral_m)]
+    shifts = [float(np.dot(np.asarray(b.midpoint) - a.midpoint, np.ravel(left_normal(a.heading))))
+              + np.median(b.lateral_m) - np.median(a.lateral_m) for a, b in pairs]
+    assert len(shifts) > 10 and abs(np.median(shifts) - 1.0) < 0.05
+    assert isinstance(next(iter(model.drives.values())), DriveOffset)
+
+
+def test_observations_signature_depends_on_the_drive_sets_only():
+    from hdmap_core.incremental import observations_signature
+
+    a = observations_signature([((0, 0), ["b", "a"]), ((1, 0), ["c"])])
+    assert a == observations_signature([((1, 0), ["c"]), ((0, 0), ["a", "b"])])
+    assert a != observations_signature([((0, 0), ["a", "b"]), ((1, 0), ["c", "d"])])

@@ -195,10 +195,10 @@ def test_replayed_bag_gives_latched_map_matching_ground_truth_and_offline(fleet,
     print(f"live: mean {live.overall.mean_m:.3f} m, coverage {live.coverage:.3f}; "
           f"offline: mean {off.overall.mean_m:.3f} m, coverage {off.coverage:.3f}")
     assert live.overall.mean_m < 0.5 and live.coverage > 0.3
-    # incremental means converging: no worse than the offline map by more than 0.05 m mean error
-    # and 2 % coverage (one-sided: the per-tile estimate has come out better than the offline one)
-    assert live.overall.mean_m <= off.overall.mean_m + 0.05
-    assert live.coverage >= off.coverage - 0.02
+    # incremental means converging: within 0.05 m mean error and 2 % coverage of the offline map,
+    # either way (the settled live map uses the fleet-wide offset model, as bag2map does)
+    assert abs(live.overall.mean_m - off.overall.mean_m) <= 0.05
+    assert abs(live.coverage - off.coverage) <= 0.02
 
 
 def test_feature_ids_stay_while_features_persist(uninterrupted):
@@ -271,6 +271,6 @@ def test_hdmap_run_replays_the_bag_in_one_process_and_writes_the_settled_map(fle
     assert sorted(hdmap.drive_ids) == sorted(d.drive_id for d in fleet.drives)
     live = evaluate_map(hdmap, fleet.gt)
     off = evaluate_map(fleet.offline, fleet.gt)
-    assert live.overall.mean_m <= off.overall.mean_m + 0.05
-    assert live.coverage >= off.coverage - 0.02
+    assert abs(live.overall.mean_m - off.overall.mean_m) <= 0.05
+    assert abs(live.coverage - off.coverage) <= 0.02
     assert (tmp_path / "m.json").stat().st_size > 0

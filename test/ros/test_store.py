@@ -15,9 +15,11 @@ from hdmap_ros.store import (
     MapStore,
     blob_to_drive,
     blob_to_map,
+    blob_to_observations,
     blob_to_segments,
     drive_to_blob,
     map_to_blob,
+    observations_to_blob,
     segments_to_blob,
 )
 
@@ -104,6 +106,73 @@ def test_map_blob_round_trip_is_exact():
     (ta,), (tb,) = m.topology, b.topology
     assert (ta.id, ta.heading, ta.width, ta.successors, ta.features) == (tb.id, tb.heading, tb.width, tb.successors, tb.features)
     assert blob_to_map(map_to_blob(HDMap())).features == ()
+
+
+def _observations():
+    from hdmap_core.steps import StepObservations
+
+    rng = np.random.default_rng(5)
+    return [
+        StepObservations(pivot_id="p#0,0", index=3, midpoint=np.array([1.5, -2.25]), heading=0.3,
+                         drive_ids=("a", "b", "a"), drive_s_m=rng.normal(size=3) * 1e3, lateral_m=rng.normal(size=3),
+                         types=np.array([1, 2, 3]), cluster=np.array([0, -1, 1]), offsets_m=rng.normal(size=3)),
+        StepObservations(pivot_id="q#1,0", index=0, midpoint=np.array([7.0, 8.0]), heading=-1.0,
+                         drive_ids=("c",), drive_s_m=np.array([np.pi]), lateral_m=np.array([1 / 3]),
+                         types=np.array([2]), cluster=np.array([0])),
+    ]
+
+
+def test_observations_blob_round_trip_is_exact():
+    obs = _observations()
+    back = blob_to_observations(observations_to_blob(obs))
+    assert len(back) == 2
+    for a, b in zip(obs, back):
+        assert (a.pivot_id, a.index, a.heading, a.drive_ids) == (b.pivot_id, b.index, b.heading, b.drive_ids)
+        for f in ("midpoint", "drive_s_m", "lateral_m", "types", "cluster", "offsets_m"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+            assert getattr(a, f).dtype.kind == getattr(b, f).dtype.kind
+    assert blob_to_observations(observations_to_blob([])) == []
+
+
+def test_drive_store_keeps_observations_and_the_fleet_model(tmp_path):
+    st = DriveStore(tmp_path / "m.db")
+    st.add_drive(_drive("a"), [(0, 0), (1, 0)])
+    st.add_drive(_drive("b"), [(1, 0)])
+    assert st.stale_observations() == [(0, 0), (1, 0)] and st.observation_sets() == []
+    assert st.model() == (None, "")
+    # an estimate made with the tile's own adjustment stores its observations in the same transaction
+    st.put_tile((1, 0), _segments(), ["a", "b"], observations=_observations())
+    st.put_observations((0, 0), _observations()[1:], ["a"])
+    assert st.stale_observations() == []
+    assert st.observation_sets() == [((0, 0), ["a"]), ((1, 0), ["a", "b"])]
+    assert [o.pivot_id for o in st.observations()] == ["q#1,0", "p#0,0", "q#1,0"]  # by tile
+    st.put_model({"format": "x", "v": [0.1, None]}, "sig1")
+    st.put_tile((0, 0), [], ["a"], model_sig="sig1")
+    # (1, 0) was made with its own adjustment; (0, 0) with the model
+    assert st.tiles_off_model("sig1") == [(1, 0)] and st.tiles_off_model("sig2") == [(0, 0), (1, 0)]
+    st.add_drive(_drive("c"), [(0, 0)])  # (0, 0) is stale now: not "made from all its drives"
+    assert st.tiles_off_model("sig1") == [(1, 0)] and st.stale_observations() == [(0, 0)]
+    st.close()
+    st2 = DriveStore(tmp_path / "m.db")
+    assert st2.model() == ({"format": "x", "v": [0.1, None]}, "sig1")
+    assert st2.observation_sets()[1] == ((1, 0), ["a", "b"])
+    st2.close()
+
+
+def test_drive_store_of_before_the_fleet_model_is_migrated(tmp_path):
+    import sqlite3
+
+    con = sqlite3.connect(tmp_path / "old.db")
+    con.execute("CREATE TABLE tiles (tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL, "
+                "drive_count INTEGER NOT NULL, drive_ids TEXT NOT NULL, segments BLOB, PRIMARY KEY (tx, ty))")
+    con.execute("INSERT INTO tiles VALUES (0, 0, 4, 1, '[\"a\"]', NULL)")
+    con.commit()
+    con.close()
+    st = DriveStore(tmp_path / "old.db")
+    st.add_drive(_drive("a"), [(0, 0)])
+    assert st.tile((0, 0)).version == 4 and st.tiles_off_model("s") == [(0, 0)]
+    assert st.put_tile((0, 0), [], ["a"], model_sig="s").version == 5 and st.tiles_off_model("s") == []
+    st.close()
 
 
 def test_drive_store_acknowledges_once_and_indexes_tiles(tmp_path):

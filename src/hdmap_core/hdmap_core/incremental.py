@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hdmap_core.errors import ConfigError
+from hdmap_core.geometry import arc_length
 from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.steps import Segment
 
@@ -44,6 +45,10 @@ __all__ = [
     "steps_outside",
     "needs_update",
     "map_tile",
+    "map_tile_observed",
+    "observe_tile",
+    "fleet_offsets",
+    "observations_signature",
     "carry_over_ids",
     "clean_drive",
     "connect_tile",
@@ -177,25 +182,33 @@ def clip_drive(drive: Drive, bounds: Sequence[float]) -> Drive | None:
         drive: the drive (not modified).
         bounds: (xmin, ymin, xmax, ymax) [m], half-open.
     """
+    clipped, _ = _clip(drive, bounds)
+    return clipped
+
+
+def _clip(drive: Drive, bounds: Sequence[float]) -> tuple[Drive | None, float]:
+    """:func:`clip_drive` and the travelled distance of the full drive where the clipped one starts [m]."""
     xy = np.asarray(drive.xy, dtype=float)
     inside = _inside(xy, bounds)
     idx = np.flatnonzero(inside)
     if len(idx) < 2:
-        return None
+        return None, 0.0
     a, b = int(idx[0]), int(idx[-1]) + 1
+    s0 = float(arc_length(xy[: a + 1])[-1])
     dets: list[Detection] = []
     for det in drive.detections:
         pts = np.asarray(det.points, dtype=float)
         for s, e in _runs(_inside(pts, bounds)):
             if e - s >= 2:
                 dets.append(Detection(type=det.type, points=pts[s:e]))
-    return replace(
+    clipped = replace(
         drive,
         xy=xy[a:b],
         yaw=np.asarray(drive.yaw)[a:b],
         stamps_ns=np.asarray(drive.stamps_ns)[a:b],
         detections=tuple(dets),
     )
+    return clipped, s0
 
 
 def select_steps(segments: Iterable[Segment], bounds: Sequence[float]) -> list[Segment]:
@@ -228,42 +241,193 @@ def needs_update(count_at_estimate: int, count_now: int, *, config: TileConfig) 
     return count_now - count_at_estimate >= need
 
 
+@dataclass(frozen=True)
+class _TileInput:
+    """The drives of a tile clipped to it, where each clip starts on its drive, and its pivot skips."""
+
+    clipped: list
+    s0: dict[str, float]
+    processed: object  # ProcessedStore or None
+    seed: int
+    core: tuple[float, float, float, float]
+
+
+def _tile_input(drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, pipeline_config: object) -> _TileInput:
+    grown = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.margin_m)
+    clipped, s0 = [], {}
+    for d in sorted(drives, key=lambda d: d.drive_id):
+        c, start = _clip(d, grown)
+        if c is not None:
+            clipped.append(c)
+            s0[c.drive_id] = start
+    from hdmap_core.pipeline import prepare_drives  # noqa: PLC0415 - the pipeline is heavy; import on first use
+
+    clipped, _ = prepare_drives(clipped)  # a clip can be degenerate (e.g. repeated poses): as map_stretches does
+    processed = None
+    if clipped and tile_config.pivot_margin_m is not None:
+        near = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.pivot_margin_m)
+        processed = steps_outside(clipped, near, step_m=float(pipeline_config.sampling.step_m))
+    return _TileInput(clipped, s0, processed, tile_seed(key, seed=tile_config.seed),
+                      tile_bounds(key, tile_size_m=tile_config.tile_size_m))
+
+
+class _ClippedOffsets:
+    """A fleet-wide offset model seen from drives clipped to a tile: ``s`` counts from the clip."""
+
+    def __init__(self, model: object, s0: dict[str, float]) -> None:
+        self.model, self.s0 = model, s0
+
+    def offset(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:
+        return self.model.offset(drive_id, np.asarray(s_m, dtype=float) + self.s0.get(drive_id, 0.0))
+
+
+def _core_observations(observations: Sequence, inp: _TileInput, key: TileKey) -> list:
+    """The observations of steps inside the tile proper, with travelled distances of the full drives.
+
+    Neighbouring tiles observe their margins too; keeping only the core steps, every place is
+    observed once in the union over all tiles (as in the offline pipeline's single first pass).
+    Pivot ids get the tile key as suffix (the same pivot is walked in every tile it crosses).
+    """
+    out = []
+    xmin, ymin, xmax, ymax = inp.core
+    for ob in observations:
+        mx, my = (float(v) for v in np.asarray(ob.midpoint, dtype=float)[:2])
+        if not (xmin <= mx < xmax and ymin <= my < ymax):
+            continue
+        shift = np.array([inp.s0.get(d, 0.0) for d in ob.drive_ids], dtype=float)
+        out.append(replace(ob, pivot_id=f"{ob.pivot_id}#{int(key[0])},{int(key[1])}",
+                           drive_s_m=np.asarray(ob.drive_s_m, dtype=float) + shift))
+    return out
+
+
 def map_tile(
     drives: Sequence[Drive],
     key: TileKey,
     *,
     tile_config: TileConfig,
     pipeline_config: object,
+    offset_model: object | None = None,
 ) -> list[Segment]:
     """Map one tile from the drives covering it (stages of Sec. III-V up to the segments).
 
     Every drive is clipped to the tile grown by the margin; drives are ordered by id and the seed is
-    derived from the tile key, so the result is a function of the drive set and the tile only.
+    derived from the tile key, so the result is a function of the drive set and the tile only
+    (and of ``offset_model`` when given).
 
     Args:
         drives: drives covering the tile (any order; not modified).
         key: the tile.
         tile_config: tiling.
         pipeline_config: a ``hdmap_core.pipeline.PipelineConfig``.
+        offset_model: a fleet-wide ``adjustment.OffsetModel`` (travelled distances of the full
+            drives, e.g. from :func:`fleet_offsets`). With it and a config using the global
+            adjustment, the tile runs only the final pass, its samples shifted by that model,
+            instead of the observation pass plus an adjustment over the tile's own steps.
 
     Returns:
         Segments of the steps inside the tile proper (may be empty).
     """
-    from hdmap_core.pipeline import map_segments  # the pipeline is heavy; import on first use
+    if offset_model is not None and getattr(pipeline_config, "use_global_adjustment", False):
+        inp = _tile_input(drives, key, tile_config, pipeline_config)
+        if not inp.clipped:
+            return []
+        segments = _final_pass(inp, pipeline_config, _ClippedOffsets(offset_model, inp.s0))
+        return select_steps(segments, inp.core)
+    return map_tile_observed(drives, key, tile_config=tile_config, pipeline_config=pipeline_config)[0]
 
-    grown = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.margin_m)
-    clipped = [c for c in (clip_drive(d, grown) for d in sorted(drives, key=lambda d: d.drive_id)) if c is not None]
-    if not clipped:
+
+def map_tile_observed(
+    drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: object
+) -> tuple[list[Segment], list]:
+    """:func:`map_tile` with the tile's own adjustment, and the observations of its steps.
+
+    Returns:
+        (segments of the tile proper, the first pass's ``StepObservations`` of the steps inside
+        the tile proper with travelled distances of the full drives: see :func:`observe_tile`).
+    """
+    from hdmap_core.pipeline import map_stretches  # the pipeline is heavy; import on first use
+
+    inp = _tile_input(drives, key, tile_config, pipeline_config)
+    if not inp.clipped:
+        return [], []
+    res = map_stretches(inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed,
+                        collect_observations=True, validated=True)
+    return select_steps(res.segments, inp.core), _core_observations(res.observations, inp, key)
+
+
+def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: object) -> list:
+    """The tile's observation pass: per-step EM along its pivots, no adjustment, no final pass.
+
+    Returns the ``StepObservations`` of the steps inside the tile proper; their ``drive_s_m`` are
+    travelled distances of the full (unclipped) drives, so the observations of all tiles together
+    feed one fleet-wide adjustment (:func:`fleet_offsets`). A function of the tile's drive set.
+    """
+    inp = _tile_input(drives, key, tile_config, pipeline_config)
+    if not inp.clipped:
         return []
-    processed = None
-    if tile_config.pivot_margin_m is not None:
-        near = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.pivot_margin_m)
-        processed = steps_outside(clipped, near, step_m=float(pipeline_config.sampling.step_m))
-    segments = map_segments(
-        clipped, config=pipeline_config, seed=tile_seed(key, seed=tile_config.seed), processed=processed
-    )
-    core = tile_bounds(key, tile_size_m=tile_config.tile_size_m)
-    return select_steps(segments, core)
+    return _core_observations(_first_pass(inp, pipeline_config), inp, key)
+
+
+def fleet_offsets(observations: Sequence, *, pipeline_config: object):
+    """The network-wide offset adjustment over the observations of all tiles (as ``bag2map`` does).
+
+    Same settings as the pipeline's own adjustment, without the posterior std (unused by the
+    mapping; O(p^3) in the fleet's knots). Deterministic for the same observations in the same order.
+    """
+    from hdmap_core.adjustment import AdjustConfig, adjust_offsets  # noqa: PLC0415
+
+    cfg = getattr(pipeline_config, "adjustment", None) or AdjustConfig()
+    return adjust_offsets(list(observations), config=replace(cfg, compute_std=False))
+
+
+def observations_signature(parts: Iterable[tuple[TileKey, Sequence[str]]]) -> str:
+    """A digest of which drive set each tile's observations were made from (any order in)."""
+    import hashlib  # noqa: PLC0415
+
+    h = hashlib.sha256()
+    for key, ids in sorted((tuple(int(v) for v in k), tuple(sorted(i))) for k, i in parts):
+        h.update(f"{key[0]},{key[1]}:{'|'.join(ids)};".encode())
+    return h.hexdigest()[:32]
+
+
+def _passes(inp: _TileInput, pipeline_config: object):
+    """The pipeline's per-pass machinery on a tile's drives (``pipeline.map_stretches`` split up)."""
+    import contextlib  # noqa: PLC0415
+
+    from hdmap_core import pipeline as pl  # noqa: PLC0415
+    from hdmap_core.preprocess import preprocess  # noqa: PLC0415
+
+    index = preprocess(inp.clipped, config=pipeline_config.preprocess)
+    order = np.random.default_rng(inp.seed).permutation(len(inp.clipped))
+    tracks = pl._Tracks(inp.clipped) if pipeline_config.mark_on_cut_only else None
+    limit = (pl.threadpool_limits(limits=1, user_api="blas") if pl.threadpool_limits is not None
+             else contextlib.nullcontext())
+    store = inp.processed if inp.processed is not None else pl.ProcessedStore()
+
+    def run(alignment, shift, observations):
+        with limit:
+            segments, _ = pl._run_pass(
+                inp.clipped, index, order, store, config=pipeline_config, alignment=alignment, shift=shift,
+                observations=observations, counters=pl._Counters(), progress=None, hit_cache={}, tracks=tracks,
+            )
+        return segments
+
+    return index, run
+
+
+def _first_pass(inp: _TileInput, pipeline_config: object) -> list:
+    _, run = _passes(inp, pipeline_config)
+    observations: list = []
+    run(pipeline_config.alignment, None, observations)
+    return observations
+
+
+def _final_pass(inp: _TileInput, pipeline_config: object, model: object) -> list[Segment]:
+    from hdmap_core import pipeline as pl  # noqa: PLC0415
+
+    index, run = _passes(inp, pipeline_config)
+    alignment = pipeline_config.final_alignment or pipeline_config.alignment
+    return run(alignment, pl._shift_fn(model, index.drive_ids), None)
 
 
 def steps_outside(drives: Sequence[Drive], bounds: Sequence[float], *, step_m: float):

@@ -32,7 +32,7 @@ import numpy as np
 
 from hdmap_core.incremental import TileKey
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
-from hdmap_core.steps import Segment, StepResult
+from hdmap_core.steps import Segment, StepObservations, StepResult
 
 __all__ = [
     "drive_to_blob",
@@ -41,6 +41,8 @@ __all__ = [
     "blob_to_segments",
     "map_to_blob",
     "blob_to_map",
+    "observations_to_blob",
+    "blob_to_observations",
     "DriveStore",
     "MapStore",
     "TileEstimate",
@@ -143,6 +145,52 @@ def blob_to_segments(blob: bytes) -> list[Segment]:
         out.append(Segment(pivot_id=pivot, steps=tuple(_with_pivot(st, pivot) for st in steps[at : at + n])))
         at += n
     return out
+
+
+def observations_to_blob(observations: Sequence[StepObservations]) -> bytes:
+    """Serialize step observations (every field) exactly; drive ids as indices into one id table."""
+    obs = list(observations)
+    ids: dict[str, int] = {}
+    for ob in obs:
+        for d in ob.drive_ids:
+            ids.setdefault(d, len(ids))
+
+    def cat(attr: str, dtype) -> np.ndarray:
+        parts = [np.asarray(getattr(ob, attr), dtype=dtype).reshape(-1) for ob in obs]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
+
+    return _pack(
+        {
+            "index": np.array([ob.index for ob in obs], dtype=np.int64),
+            "midpoint": np.array([np.asarray(ob.midpoint, dtype=np.float64).reshape(-1)[:2] for ob in obs]).reshape(-1, 2),
+            "heading": np.array([ob.heading for ob in obs], dtype=np.float64),
+            "k": np.array([len(ob.drive_ids) for ob in obs], dtype=np.int64),
+            "k_off": np.array([np.asarray(ob.offsets_m).size for ob in obs], dtype=np.int64),
+            "drive": np.array([ids[d] for ob in obs for d in ob.drive_ids], dtype=np.int64),
+            "drive_s_m": cat("drive_s_m", np.float64),
+            "lateral_m": cat("lateral_m", np.float64),
+            "types": cat("types", np.int64),
+            "cluster": cat("cluster", np.int64),
+            "offsets_m": cat("offsets_m", np.float64),
+        },
+        {"pivots": [ob.pivot_id for ob in obs], "drive_ids": list(ids)},
+    )
+
+
+def blob_to_observations(blob: bytes) -> list[StepObservations]:
+    a, m = _unpack(blob)
+    table = np.array(m["drive_ids"], dtype=object)
+    k = a["k"]
+    drv, ds, lat, typ, clu = (_split(a[n], k) for n in ("drive", "drive_s_m", "lateral_m", "types", "cluster"))
+    off = _split(a["offsets_m"], a["k_off"])
+    return [
+        StepObservations(
+            pivot_id=m["pivots"][i], index=int(a["index"][i]), midpoint=a["midpoint"][i],
+            heading=float(a["heading"][i]), drive_ids=tuple(table[drv[i]].tolist()), drive_s_m=ds[i],
+            lateral_m=lat[i], types=typ[i], cluster=clu[i], offsets_m=off[i],
+        )
+        for i in range(len(k))
+    ]
 
 
 def _with_pivot(step: StepResult, pivot: str) -> StepResult:
@@ -321,9 +369,24 @@ class DriveStore(_Store):
         drive_count INTEGER NOT NULL,
         drive_ids TEXT NOT NULL,
         segments BLOB,
+        model_sig TEXT NOT NULL DEFAULT '',
+        PRIMARY KEY (tx, ty)
+    );
+    CREATE TABLE IF NOT EXISTS tile_obs (
+        tx INTEGER NOT NULL, ty INTEGER NOT NULL,
+        drive_count INTEGER NOT NULL,
+        drive_ids TEXT NOT NULL,
+        blob BLOB NOT NULL,
         PRIMARY KEY (tx, ty)
     )
     """
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(path)
+        cols = {r[1] for r in self._query("PRAGMA table_info(tiles)")}
+        if "model_sig" not in cols:  # a store of before the fleet-wide offset model
+            with self._tx() as con:
+                con.execute("ALTER TABLE tiles ADD COLUMN model_sig TEXT NOT NULL DEFAULT ''")
 
     def add_drive(self, drive: Drive, tiles: Iterable[TileKey]) -> bool:
         """Store a drive and its tiles in one transaction; False (nothing stored) for a known id.
@@ -403,18 +466,94 @@ class DriveStore(_Store):
         )
         return [(r[0], r[1]) for r in rows]
 
-    def put_tile(self, key: TileKey, segments: Sequence[Segment], drive_ids: Sequence[str]) -> TileEstimate:
-        """Replace a tile's estimate (made from ``drive_ids``) in one transaction; returns it with its new version."""
+    def put_tile(
+        self,
+        key: TileKey,
+        segments: Sequence[Segment],
+        drive_ids: Sequence[str],
+        *,
+        model_sig: str = "",
+        observations: Sequence[StepObservations] | None = None,
+    ) -> TileEstimate:
+        """Replace a tile's estimate (made from ``drive_ids``) in one transaction; returns it with its new version.
+
+        Args:
+            model_sig: the signature of the fleet offset model the estimate was made with ('' = the
+                tile's own adjustment).
+            observations: when given, the tile's observations (made from the same drives) are
+                replaced in the same transaction.
+        """
         blob = segments_to_blob(segments)
         ids = list(drive_ids)
         with self._tx() as con:
             row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
             version = (row[0] if row else 0) + 1
             con.execute(
-                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_count, drive_ids, segments) VALUES (?, ?, ?, ?, ?, ?)",
-                (key[0], key[1], version, len(ids), json.dumps(ids), blob),
+                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_count, drive_ids, segments, model_sig) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (key[0], key[1], version, len(ids), json.dumps(ids), blob, model_sig),
             )
+            if observations is not None:
+                self._put_obs(con, key, observations, ids)
         return TileEstimate(key, version, ids, blob)
+
+    # --- the fleet-wide offset model and the observations it is estimated from ----------------------
+
+    @staticmethod
+    def _put_obs(con, key: TileKey, observations: Sequence[StepObservations], drive_ids: Sequence[str]) -> None:
+        ids = list(drive_ids)
+        con.execute(
+            "INSERT OR REPLACE INTO tile_obs(tx, ty, drive_count, drive_ids, blob) VALUES (?, ?, ?, ?, ?)",
+            (key[0], key[1], len(ids), json.dumps(ids), observations_to_blob(observations)),
+        )
+
+    def put_observations(self, key: TileKey, observations: Sequence[StepObservations], drive_ids: Sequence[str]) -> None:
+        """Replace a tile's observations (made from ``drive_ids``) in one transaction."""
+        with self._tx() as con:
+            self._put_obs(con, key, observations, drive_ids)
+
+    def stale_observations(self) -> list[TileKey]:
+        """Tiles whose observations were made from fewer drives than now cover them (or never made)."""
+        rows = self._query(
+            "SELECT c.tx, c.ty FROM (SELECT tx, ty, COUNT(*) AS n FROM drive_tiles GROUP BY tx, ty) c "
+            "LEFT JOIN tile_obs o ON o.tx = c.tx AND o.ty = c.ty "
+            "WHERE o.drive_count IS NULL OR o.drive_count < c.n ORDER BY c.tx, c.ty"
+        )
+        return [(r[0], r[1]) for r in rows]
+
+    def observation_sets(self) -> list[tuple[TileKey, list[str]]]:
+        """(tile, the drive ids its observations were made from), ordered by tile."""
+        rows = self._query("SELECT tx, ty, drive_ids FROM tile_obs ORDER BY tx, ty")
+        return [((r[0], r[1]), json.loads(r[2])) for r in rows]
+
+    def observations(self) -> list[StepObservations]:
+        """The observations of every tile, ordered by tile (then as stored)."""
+        out: list[StepObservations] = []
+        for (blob,) in self._query("SELECT blob FROM tile_obs ORDER BY tx, ty"):
+            out.extend(blob_to_observations(blob))
+        return out
+
+    def put_model(self, model: dict, sig: str) -> None:
+        """Store the fleet offset model (``OffsetModel.to_dict()``) made from the observations ``sig`` names."""
+        with self._tx() as con:
+            con.executemany(
+                "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+                [("offset_model", json.dumps(model)), ("offset_model_sig", sig)],
+            )
+
+    def model(self) -> tuple[dict | None, str]:
+        """(the stored fleet offset model dict or None, its signature or '')."""
+        text = self.get_meta("offset_model")
+        return (json.loads(text) if text else None), self.get_meta("offset_model_sig", "") or ""
+
+    def tiles_off_model(self, sig: str) -> list[TileKey]:
+        """Tiles made from all their drives but not with the model ``sig`` names."""
+        rows = self._query(
+            "SELECT t.tx, t.ty FROM tiles t JOIN (SELECT tx, ty, COUNT(*) AS n FROM drive_tiles GROUP BY tx, ty) c "
+            "ON t.tx = c.tx AND t.ty = c.ty WHERE t.drive_count >= c.n AND t.model_sig != ? ORDER BY t.tx, t.ty",
+            (sig,),
+        )
+        return [(r[0], r[1]) for r in rows]
 
 
 class MapStore(_Store):

@@ -10,6 +10,16 @@ committed (one transaction) and published on ``/hdmap/segments`` as hdmap_msgs/T
 growing version per tile. When no drive came for ``settle_after_s``, every tile whose estimate
 is older than its drive set is re-estimated once, so the settled map depends on the drives only.
 
+Offsets (presets with the global adjustment, e.g. ``default``): an estimate made while drives come
+adjusts offsets over the tile and its margin only, and its step observations are stored with it.
+When the input settles, (1) every tile's observations are brought up to its drive set
+(``incremental.observe_tile``), (2) one fleet-wide offset model is estimated from the
+observations of all tiles (``incremental.fleet_offsets``, the network-wide adjustment of
+``hdmap bag2map``) and stored (``OffsetModel.to_dict``) with a signature of the drive sets it was
+made from, and (3) every tile not yet made from all its drives with that model is re-estimated
+with it (the final pass only). Each is a pure function of the stored drives, so the settled map
+still depends on the drive set only, also across SIGKILL and restart.
+
 An update is: the drive committed and acknowledged, the tiles it adds (no estimate yet) mapped and
 published. Re-estimates of mapped tiles are background work: the worker takes them one tile at a
 time and only when no new drive waits and no new tile is queued, so a new drive waits at most for
@@ -30,7 +40,18 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
-from hdmap_core.incremental import TileConfig, TileKey, map_tile, needs_update, tiles_of_drive
+from hdmap_core.adjustment import OffsetModel
+from hdmap_core.incremental import (
+    TileConfig,
+    TileKey,
+    fleet_offsets,
+    map_tile,
+    map_tile_observed,
+    needs_update,
+    observations_signature,
+    observe_tile,
+    tiles_of_drive,
+)
 from hdmap_core.model import validate_drive
 from hdmap_ros import qos
 from hdmap_ros.convert import msg_to_drive, rclpy_types
@@ -95,6 +116,15 @@ class SegmentMapper(HealthMixin, Node):
         self._tile_types = rclpy_tile_types()
         self._last_input = time.monotonic()
         self._failed: dict[TileKey, int] = {}  # tile -> drive count at which mapping failed
+        # fleet-wide offset model (presets with the global adjustment only)
+        self.use_fleet_model = bool(getattr(self.pipeline_config, "use_global_adjustment", False))
+        self._obs_failed: dict[TileKey, int] = {}  # tile -> drive count at which its observation pass failed
+        self._model_failed_sig = ""  # observations whose fleet adjustment failed
+        self._obs_sig: str | None = None  # signature of the stored observations (None: recompute)
+        self._model: OffsetModel | None = None
+        self._model_sig = ""
+        self._model_cursor: TileKey | None = None  # last tile re-estimated with the model (round robin)
+        self._load_model()
         self.tiles_published = 0
         self.received = 0
 
@@ -219,6 +249,9 @@ class SegmentMapper(HealthMixin, Node):
                 self._estimate(key, count)
         if self._queue or pending or time.monotonic() - self._last_input < self.settle_after_s:
             return
+        if self.use_fleet_model and self._model_failed_sig != self._observations_sig():
+            self._settle_with_model(deadline)
+            return
         for key in self.store.stale_tiles():  # settle: every estimate made from all its drives
             count = self.store.tile_drive_count(key)
             if self._failed.get(key) != count:
@@ -226,18 +259,106 @@ class SegmentMapper(HealthMixin, Node):
             if time.monotonic() >= deadline or self.store.pending():
                 return
 
-    def _estimate(self, key: TileKey, count: int) -> None:
+    # --- the fleet-wide offset model -------------------------------------------------------------
+
+    def _load_model(self) -> None:
+        data, sig = self.store.model()
+        # RULE: the model is always used as stored (JSON round trip), so a restarted mapper maps with
+        # exactly the model an uninterrupted one would have used.
+        self._model = OffsetModel.from_dict(data) if data is not None else None
+        self._model_sig = sig if data is not None else ""
+
+    def _observations_sig(self) -> str:
+        if self._obs_sig is None:
+            sets = self.store.observation_sets()
+            self._obs_sig = observations_signature(sets) if sets else ""  # nothing observed: no model needed
+        return self._obs_sig
+
+    def _settle_with_model(self, deadline: float) -> None:
+        """Settle in three phases (module docstring); returns at the deadline or when a drive waits."""
+
+        def out_of_time() -> bool:
+            return time.monotonic() >= deadline or bool(self.store.pending())
+
+        for key in self.store.stale_observations():  # 1. observations of every tile's drive set
+            count = self.store.tile_drive_count(key)
+            if self._obs_failed.get(key) != count:
+                self._observe(key)
+            if out_of_time():
+                return
+        if any(self._obs_failed.get(k) != self.store.tile_drive_count(k) for k in self.store.stale_observations()):
+            return
+        sig = self._observations_sig()
+        if sig != self._model_sig:  # 2. the fleet-wide model of those observations
+            if not self._estimate_model(sig) or out_of_time():
+                return
+        keys = self._tiles_off_model()
+        if self._model_cursor is not None:  # round robin: a settle cut short goes on where it stopped
+            keys = [k for k in keys if k > self._model_cursor] + [k for k in keys if k <= self._model_cursor]
+        for key in keys:  # 3. every tile made from all its drives with that model
+            count = self.store.tile_drive_count(key)
+            if self._failed.get(key) != count:
+                self._estimate(key, count, model=True)
+            self._model_cursor = key
+            if out_of_time():
+                return
+
+    def _tiles_off_model(self) -> list[TileKey]:
+        off = set(self.store.tiles_off_model(self._model_sig)) | set(self.store.stale_tiles())
+        return sorted(off)
+
+    def _observe(self, key: TileKey) -> None:
         drives = self.store.drives_covering(key)
+        try:
+            obs = observe_tile(drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config)
+        except Exception as err:  # noqa: BLE001 - logged in full; the tile keeps its observations
+            self._obs_failed[key] = len(drives)
+            self.health.error(f"tile {key} observations: {type(err).__name__}: {err}")
+            self.get_logger().error(f"observation pass failed for tile {key}: {traceback.format_exc()}")
+            return
+        self.store.put_observations(key, obs, [d.drive_id for d in drives])
+        self._obs_sig = None
+        self._obs_failed.pop(key, None)
+
+    def _estimate_model(self, sig: str) -> bool:
         t0 = time.perf_counter()
         try:
-            segments = map_tile(drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config)
+            model = fleet_offsets(self.store.observations(), pipeline_config=self.pipeline_config)
+        except Exception as err:  # noqa: BLE001 - logged; tiles keep their own adjustment
+            self._model_failed_sig = sig
+            self.health.error(f"fleet offset model: {type(err).__name__}: {err}")
+            self.get_logger().error(f"fleet offset adjustment failed, tiles keep their own: {traceback.format_exc()}")
+            return False
+        self.store.put_model(model.to_dict(), sig)
+        self._load_model()
+        self.health.set("offset_model_drives", len(model.drives))
+        self.health.set("last_model_update_s", f"{time.perf_counter() - t0:.3f}")
+        return True
+
+    def _estimate(self, key: TileKey, count: int, *, model: bool = False) -> None:
+        drives = self.store.drives_covering(key)
+        t0 = time.perf_counter()
+        obs = None
+        try:
+            if model:
+                segments = map_tile(drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config,
+                                    offset_model=self._model)
+            elif self.use_fleet_model:
+                segments, obs = map_tile_observed(
+                    drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config
+                )
+            else:
+                segments = map_tile(drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config)
         except HdmapError as err:
             self._fail(key, count, f"tile {key}: {err}")
             return
         except Exception as err:  # noqa: BLE001 - a bug on one tile must not stop the live map; logged in full
             self._fail(key, count, f"tile {key}: {type(err).__name__}: {err}\n{traceback.format_exc()}")
             return
-        est = self.store.put_tile(key, segments, [d.drive_id for d in drives])
+        est = self.store.put_tile(key, segments, [d.drive_id for d in drives],
+                                  model_sig=self._model_sig if model else "", observations=obs)
+        if obs is not None:
+            self._obs_sig = None
         self._est_count[key] = est.drive_count
         self._failed.pop(key, None)
         self._publish(est)
@@ -259,10 +380,19 @@ class SegmentMapper(HealthMixin, Node):
         self.tiles_published += 1
 
     def is_settled(self) -> bool:
-        """No pending drive, no tile due and no stale tile (that did not fail at its current count)."""
+        """No pending drive, no tile due and no stale tile (that did not fail at its current count);
+        with the fleet model also: every tile observed, the model current, every tile made with it."""
         if self._queue or self.store.pending():
             return False
-        return all(self._failed.get(k) == self.store.tile_drive_count(k) for k in self.store.stale_tiles())
+        if self.use_fleet_model and self._model_failed_sig != self._observations_sig():
+            if any(self._obs_failed.get(k) != self.store.tile_drive_count(k) for k in self.store.stale_observations()):
+                return False
+            if self._model_sig != self._observations_sig():
+                return False
+            stale = self._tiles_off_model()
+        else:
+            stale = self.store.stale_tiles()
+        return all(self._failed.get(k) == self.store.tile_drive_count(k) for k in stale)
 
     def destroy_node(self) -> None:
         self.store.close()
