@@ -53,6 +53,45 @@ def test_overlap_filter_drops_the_smaller_cluster():
     assert len(off.lateral_m) == 3
 
 
+def _step(features):
+    """One step from (position, type, drives) per feature; every drive's sample sits exactly on
+    its feature, so each KDE maximum is the feature's position and each cluster's density the
+    0.15 m minimum bandwidth normal (two such clusters d apart overlap 2 * Phi(-d / 0.3))."""
+    labels = np.concatenate([np.full(n, c) for c, (_, _, n) in enumerate(features)])
+    x = np.array([features[c][0] for c in labels])
+    types = np.array([features[c][1] for c in labels])
+    drive = np.concatenate([np.arange(n) for _, _, n in features])
+    return x, labels, types, drive
+
+
+_AGG = dict(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15, overlap_threshold=0.3)
+
+
+def test_overlap_filter_border_beside_marking():
+    # A dashed lane line at 0 (8 drives), the solid edge line at 3.50 m (10 drives) and a curb
+    # 0.25 m beyond it (6 drives): overlap 2 * Phi(-0.25 / 0.3) = 0.40 > 0.3.
+    x, labels, types, drive = _step([(0.0, FeatureType.DASHED, 8), (3.50, FeatureType.SOLID, 10), (3.75, FeatureType.ROAD_BORDER, 6)])
+    paper = aggregate_step(x, labels, types, drive, config=AggregationConfig(**_AGG))
+    np.testing.assert_array_equal(paper.kept_labels, [0, 1])  # the curb (fewer samples) dropped
+    split = aggregate_step(x, labels, types, drive, config=AggregationConfig(overlap_border_marking=False, **_AGG))
+    np.testing.assert_array_equal(split.kept_labels, [0, 1, 2])
+    np.testing.assert_allclose(split.lateral_m, [0.0, 3.50, 3.75], atol=1e-9)
+    np.testing.assert_array_equal(split.types, [FeatureType.DASHED, FeatureType.SOLID, FeatureType.ROAD_BORDER])
+    np.testing.assert_array_equal(split.counts, [8, 10, 6])
+
+
+@pytest.mark.parametrize("copy_m", [3.52, 3.78])
+def test_overlap_filter_by_class_still_drops_a_misclassified_copy(copy_m):
+    # Plus a dashed copy of the edge line seen by 2 drives, beside the line (3.52 m) or beyond
+    # the curb (3.78 m: the curb lies between them in position, the pair must still be compared;
+    # overlap with the line 2 * Phi(-0.28 / 0.3) = 0.35 > 0.3).
+    feats = [(0.0, FeatureType.DASHED, 8), (3.50, FeatureType.SOLID, 10), (3.75, FeatureType.ROAD_BORDER, 6), (copy_m, FeatureType.DASHED, 2)]
+    x, labels, types, drive = _step(feats)
+    agg = aggregate_step(x, labels, types, drive, config=AggregationConfig(overlap_border_marking=False, **_AGG))
+    np.testing.assert_array_equal(agg.kept_labels, [0, 1, 2])
+    np.testing.assert_array_equal(agg.counts, [8, 10, 6])
+
+
 def test_mean_method_and_uncertainty():
     x = np.array([0.9, 1.1, 1.0, 1.0])
     agg = aggregate_step(x, np.zeros(4, np.int64), np.ones(4, np.int64), np.array([0, 1, 2, 3]), config=AggregationConfig(method="mean"))

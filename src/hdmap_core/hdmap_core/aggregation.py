@@ -20,6 +20,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from hdmap_core.errors import ConfigError
+from hdmap_core.model import FeatureType
 
 __all__ = ["AggregationConfig", "StepAggregate", "ManyAggregates", "aggregate_many", "kde_maxima", "overlap_coefficients", "gaussian_overlap", "aggregate_step", "ProcessedStore"]
 
@@ -36,6 +37,11 @@ class AggregationConfig:
         kde_min_bandwidth_m: lower bound of the bandwidth [m] (a cluster of identical values).
         overlap_filter: drop the smaller of two clusters whose densities overlap.
         overlap_threshold: overlap coefficient in [0, 1] above which clusters are merged (open).
+        overlap_border_marking: also filter a road-border cluster against a neighbouring
+            marking cluster (True: the paper, every neighbouring pair of a step). False: only
+            clusters of one class are compared (solid with dashed, border with border), since a
+            curb or barrier right beside an edge line (0.2-0.5 m) is a second physical feature,
+            not a misclassified copy of the line.
         grid_points: grid size of the coarse maximum search per cluster (mean-shift polishes).
         single_drive_std_m: reported 1-sigma of a maximum supported by one drive [m].
     """
@@ -45,6 +51,7 @@ class AggregationConfig:
     kde_min_bandwidth_m: float = 0.02
     overlap_filter: bool = True
     overlap_threshold: float = 0.5
+    overlap_border_marking: bool = True
     grid_points: int = 16
     single_drive_std_m: float = 0.5
 
@@ -223,8 +230,13 @@ def aggregate_many(
     keep = np.ones(k, dtype=bool)
     order = np.lexsort((pos, cstep))
     if config.overlap_filter and k >= 2:
-        a, b = order[:-1], order[1:]
-        near = (cstep[a] == cstep[b]) & (np.abs(pos[a] - pos[b]) < 4.0 * (bw[a] + bw[b]))
+        # Neighbours in position within a step (within each class when borders and markings
+        # are not compared, so a border between a line and its misclassified copy does not hide
+        # the pair).
+        cls = np.zeros(k, dtype=np.int64) if config.overlap_border_marking else (ctype == int(FeatureType.ROAD_BORDER)).astype(np.int64)
+        by_class = np.lexsort((pos, cstep, cls))
+        a, b = by_class[:-1], by_class[1:]
+        near = (cstep[a] == cstep[b]) & (cls[a] == cls[b]) & (np.abs(pos[a] - pos[b]) < 4.0 * (bw[a] + bw[b]))
         pairs = np.stack([a[near], b[near]], axis=1)
         if len(pairs):
             # Each KDE is approximated by a normal of the same mean and variance (var + h^2),
