@@ -355,6 +355,22 @@ def test_short_type_flicker_smoothed_long_change_kept():
     assert len(stitch([conn(seg)], config=StitchConfig(min_type_run_m=0.0)).features) == 4
 
 
+def test_sparse_flicker_between_one_type_relabelled_up_to_100_m():
+    """dashed 60 m, solid 40 m, dashed 60 m, solid 40 m (to the end). Seen by 2 drives the inner
+    solid run (between two dashed runs) is one drive's misclassification and takes the dashed
+    type; the last solid run (no dashed after it) stays. Seen by 10 drives (or with
+    sparse_type_run_m 0) the inner run stays: three type changes, four polylines."""
+    types = [D] * 30 + [S] * 20 + [D] * 30 + [S] * 20
+
+    def seg(count: int) -> Segment:
+        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[count]) for i, t in enumerate(types)))
+
+    m = stitch([conn(seg(2))])
+    assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [FeatureType.DASHED, FeatureType.SOLID]
+    assert len(stitch([conn(seg(10))]).features) == 4
+    assert len(stitch([conn(seg(2))], config=StitchConfig(sparse_type_run_m=0.0)).features) == 4
+
+
 def test_spur_at_a_flicker_split_pruned():
     """A second line appears for 3 steps 1 m beside the dashed line (a leftover split) and dies:
     the spur is dropped, the dashed line stays one polyline."""

@@ -117,7 +117,8 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
     nn = flat.n_nodes
     e = flat.edges
     if cfg.min_type_run_m > 0 and nn:
-        flat.n_type = _smooth_types(flat, uid, cfg.min_type_run_m)
+        flat.n_type = _smooth_types(flat, uid, cfg.min_type_run_m, getattr(cfg, "sparse_type_run_m", 0.0),
+                                    getattr(cfg, "sparse_drive_count", 0))
     through = getattr(cfg, "through_lines", False)
     chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid, through=through)
     link = chain_links(nn, e, flat.leftover, flat.n_type, through=through)
@@ -515,13 +516,18 @@ def _subset_nodes(flat: FlatGraph, keep: np.ndarray) -> FlatGraph:
     )
 
 
-def _smooth_types(flat: FlatGraph, uid: np.ndarray, min_run_m: float) -> np.ndarray:
+def _smooth_types(
+    flat: FlatGraph, uid: np.ndarray, min_run_m: float, sparse_run_m: float = 0.0, sparse_count: int = 0
+) -> np.ndarray:
     """Marking types with short runs along a polyline relabelled to their neighbours' type.
 
     Aggregated types flicker where drives misclassify dashed/solid (5-10 % of stretches), and every
     flicker would close the polyline (RULE 1). A run of one marking type shorter than
     ``min_run_m`` inside a polyline takes the type of its longer neighbouring run; runs are merged
-    shortest first. Road borders and markings are never relabelled into each other.
+    shortest first. Road borders and markings are never relabelled into each other. A run between
+    two runs of one other type (a flicker: A B A) seen by at most ``sparse_count`` drives (median
+    over its nodes) is relabelled up to ``sparse_run_m``: with 1-3 drives one drive's
+    misclassification decides the type for tens of metres.
 
     Returns:
         (N,) int type codes.
@@ -543,10 +549,22 @@ def _smooth_types(flat: FlatGraph, uid: np.ndarray, min_run_m: float) -> np.ndar
         def length(r: list[int]) -> float:
             return float(seg[r[0] + 1 : r[1]].sum() + (seg[r[1]] if r[1] < len(c) else 0.0))
 
+        cnt = flat.n_count[c]
+
+        def short(i: int) -> bool:
+            r = runs[i]
+            if length(r) < min_run_m:
+                return True
+            return (
+                length(r) < sparse_run_m and 0 < i < len(runs) - 1 and runs[i - 1][2] == runs[i + 1][2]
+                and float(np.median(cnt[r[0] : r[1]])) <= sparse_count
+            )
+
         while len(runs) > 1:
-            k = min(range(len(runs)), key=lambda i: (length(runs[i]), i))
-            if length(runs[k]) >= min_run_m:
+            cand = [i for i in range(len(runs)) if short(i)]
+            if not cand:
                 break
+            k = min(cand, key=lambda i: (length(runs[i]), i))
             left = runs[k - 1] if k > 0 else None
             right = runs[k + 1] if k + 1 < len(runs) else None
             into = left if right is None or (left is not None and length(left) >= length(right)) else right

@@ -121,6 +121,11 @@ class StitchConfig:
             filled points carry drive_count 0 (no drive saw them). 0 disables [m].
         min_isolated_length_m: polylines without any link and shorter than this are dropped
             (single-step specks, false positives) [m].
+        sparse_type_run_m: a flicker run (between two runs of one other type) seen by at most
+            ``sparse_drive_count`` drives (median) is relabelled when shorter than this (with
+            1-3 drives one drive's misclassification sets the type for tens of metres). 0
+            disables [m].
+        sparse_drive_count: see ``sparse_type_run_m``.
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
             runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
         bubble_max_m: of two branches from one split node to one merge node (or a branch beside
@@ -169,6 +174,8 @@ class StitchConfig:
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
     min_type_run_m: float = 20.0
+    sparse_type_run_m: float = 100.0
+    sparse_drive_count: int = 5
     spur_max_m: float = 12.0
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
@@ -200,6 +207,7 @@ class StitchConfig:
             "fill_spacing_m",
             "min_isolated_length_m",
             "min_type_run_m",
+            "sparse_type_run_m",
             "spur_max_m",
             "bubble_max_m",
             "gore_max_m",
@@ -223,6 +231,7 @@ class StitchConfig:
             min_isolated_length_m=0.0,
             fill_spacing_m=0.0,
             min_type_run_m=0.0,
+            sparse_type_run_m=0.0,
             spur_max_m=0.0,
             bubble_max_m=0.0,
             gore_max_m=0.0,
