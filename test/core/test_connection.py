@@ -473,3 +473,17 @@ def test_chain_links_through_keeps_the_regular_continuation():
     uid = np.arange(1, 6, dtype=np.uint64)
     chains = feature_chains(5, edges, leftover, types, uid, through=True)
     assert [c.tolist() for c in chains] == [[0, 1, 2], [3], [4]]
+
+
+def test_chain_links_through_takes_a_lone_leftover_of_its_type():
+    """An entry: the solid tip 0 merged into solid node 1 by a leftover edge while the dashed tip 2
+    took node 1 by the regular assignment (dashed -> solid). The solid line continues through
+    the leftover edge (its only edge of its type); two leftover edges of one type do not."""
+    from hdmap_core.connection import chain_links
+
+    edges = np.array([[0, 1], [2, 1], [1, 3]])
+    types = np.array([S, S, D, S])
+    assert chain_links(4, edges, np.array([True, False, False]), types, through=True).tolist() == [True, False, True]
+    assert chain_links(4, edges, np.array([True, False, False]), types).tolist() == [False, False, True]
+    both = np.array([[0, 1], [2, 1], [1, 3]])
+    assert chain_links(4, both, np.array([True, True, False]), np.array([S, S, S, S]), through=True).tolist() == [False, False, True]

@@ -521,15 +521,15 @@ def test_duplicate_inside_a_bridged_gap_deduplicated_against_the_edge():
 def test_continuations_merge_across_a_lone_leftover_edge(merge):
     """A leftover edge whose split partner is gone (e.g. its nodes were dropped as twins of
     another segment) still closes the polyline by RULE 2, though nothing splits or merges there.
-    With merge_continuations the two pieces are one polyline; without (the paper), two linked
-    ones."""
+    With merge_continuations (or through_lines, which continue a lone leftover edge of one type)
+    the two pieces are one polyline; without both (the paper), two linked ones."""
     g = conn(road("a", 0.0, 50))
     solid_edges = np.flatnonzero((g.node_type[g.edges[:, 0]] == S) & (g.node_xy[g.edges[:, 0], 0] == 48.0))
     assert len(solid_edges) == 1
     lo = g.edge_leftover.copy()
     lo[solid_edges] = True
     g = dataclasses.replace(g, edge_leftover=lo)
-    m = stitch([g], config=StitchConfig(merge_continuations=merge))
+    m = stitch([g], config=StitchConfig(merge_continuations=merge, through_lines=merge))
     solids = by_type(m, S)
     if merge:
         assert len(solids) == 1

@@ -300,21 +300,31 @@ def chain_links(
 
     Args:
         through: at a split (merge) whose node has exactly one continuing candidate out of
-            (into) it -- an edge of its own type not made by the leftover assignment -- that
-            edge still continues the polyline: the line runs through the junction and only the
-            branch (the leftover or type-changing edge) starts (ends) there, on the through
-            line's interior. False (the segment's own polylines, the paper): a split or merge
-            closes every polyline meeting there.
+            (into) it -- an edge of its own type not made by the leftover assignment, or, when
+            there is none, its one leftover edge of its own type -- that edge still continues
+            the polyline (when it is the other node's candidate too): the line runs through the
+            junction and only the branch (a leftover or type-changing edge) starts (ends)
+            there, on the through line's interior. False (the segment's own polylines, the
+            paper): a split or merge closes every polyline meeting there.
     """
     if len(edges) == 0:
         return np.zeros(0, dtype=bool)
     u, v = edges[:, 0], edges[:, 1]
     # RULE 1: an edge joining two different types closes the polyline;
     # RULE 2: an edge made by the leftover (modified) assignment closes it
-    cand = (node_type[u] == node_type[v]) & ~np.asarray(leftover, dtype=bool)
+    same = node_type[u] == node_type[v]
+    lo = np.asarray(leftover, dtype=bool)
+    cand = same & ~lo
     if through:
-        out_deg = np.bincount(u[cand], minlength=n_nodes)
-        in_deg = np.bincount(v[cand], minlength=n_nodes)
+        # each node continues in its one regular edge of its type, or, when it has none, in its
+        # one leftover edge of its type (an entry's solid line merging where the dashed line
+        # changes to solid: the solid tip's leftover edge is the line's only continuation)
+        def chosen(ends: np.ndarray) -> np.ndarray:
+            n_reg = np.bincount(ends[cand], minlength=n_nodes)
+            n_lo = np.bincount(ends[same & lo], minlength=n_nodes)
+            return (cand & (n_reg[ends] == 1)) | (same & lo & (n_reg[ends] == 0) & (n_lo[ends] == 1))
+
+        return chosen(u) & chosen(v)
     else:
         out_deg = np.bincount(u, minlength=n_nodes)
         in_deg = np.bincount(v, minlength=n_nodes)
