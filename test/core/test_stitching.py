@@ -447,6 +447,10 @@ def test_gore_split_placed_where_the_lane_line_ends():
         np.testing.assert_allclose(b.points[0], dashed.points[-1])
         assert b.points[-1, 0] == pytest.approx(158.0)
     assert len(m.features) == 3
+    # over the common piece (the two lines' one maximum at their middle) the two lines part
+    # again: at x=60 (truly +-0.3 m) they lie on opposite sides, each at most 0.3 m out
+    ys = [float(np.interp(60.0, ids[sid].points[:, 0], ids[sid].points[:, 1])) for sid in dashed.successors]
+    assert min(ys) < -0.05 and max(ys) > 0.05 and max(abs(y) for y in ys) <= 0.3
     plain = stitch([conn(seg)], config=StitchConfig(gore_max_m=0.0, through_lines=False))
     assert len(plain.features) == 4 and len(by_type(plain, D)[0].successors) == 1
 

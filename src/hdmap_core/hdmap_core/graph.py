@@ -331,21 +331,37 @@ def _gore_branches(
         i = int(np.argmin(np.hypot(*(np.asarray(c.points) - end).T)))
         if float(np.hypot(*(c.points[i] - end))) > 1e-6:
             continue
+        # The common piece is the one maximum of two lines not yet resolved, i.e. their middle:
+        # both lines leave the lane line's end tangentially and are ``sep`` apart where first
+        # resolved, so over the piece each is moved half the separation, growing with the square
+        # of the distance from the lane line's end (a line leaving tangentially), to its side.
+        cp = np.asarray(c.points, dtype=float)
         if kind == "split":
-            if i == 0 or _length(c.points[: i + 1]) > max_m:
+            if i == 0 or i + 1 >= len(cp) or _length(cp[: i + 1]) > max_m:
                 continue
-            b = _replace(b, points=np.vstack([c.points[:i], b.points]),
-                         drive_count=np.r_[c.drive_count[:i], b.drive_count],
-                         lateral_std=np.r_[c.lateral_std[:i], b.lateral_std], predecessors=(p.id,))
+            arc = np.r_[0.0, np.cumsum(np.hypot(*np.diff(cp[: i + 2], axis=0).T))]
+            half = 0.5 * (np.asarray(b.points[1], dtype=float) - cp[i + 1])
+            shift = ((arc[: i + 1] / max(arc[i + 1], 1e-9)) ** 2)[:, None] * half
+            common, rest = slice(0, i + 1), np.asarray(b.points[1:], dtype=float)
+            b = _replace(b, points=np.vstack([cp[common] + shift, rest]),
+                         drive_count=np.r_[c.drive_count[: i + 1], b.drive_count[1:]],
+                         lateral_std=np.r_[c.lateral_std[: i + 1], b.lateral_std[1:]], predecessors=(p.id,))
             p = _replace(p, successors=tuple(sorted(set(p.successors) | {b.id})))
         else:
-            if i == len(c.points) - 1 or _length(c.points[i:]) > max_m:
+            if i == len(cp) - 1 or i == 0 or _length(cp[i:]) > max_m:
                 continue
-            b = _replace(b, points=np.vstack([b.points, c.points[i + 1 :]]),
-                         drive_count=np.r_[b.drive_count, c.drive_count[i + 1 :]],
-                         lateral_std=np.r_[b.lateral_std, c.lateral_std[i + 1 :]], successors=(p.id,))
+            arc = np.r_[0.0, np.cumsum(np.hypot(*np.diff(cp[i - 1 :][::-1], axis=0).T))][::-1]  # to the end
+            half = 0.5 * (np.asarray(b.points[-2], dtype=float) - cp[i - 1])
+            shift = ((arc[1:] / max(arc[0], 1e-9)) ** 2)[:, None] * half
+            common, rest = slice(i, len(cp)), np.asarray(b.points[:-1], dtype=float)
+            b = _replace(b, points=np.vstack([rest, cp[common] + shift]),
+                         drive_count=np.r_[b.drive_count[:-1], c.drive_count[i:]],
+                         lateral_std=np.r_[b.lateral_std[:-1], c.lateral_std[i:]], successors=(p.id,))
             p = _replace(p, predecessors=tuple(sorted(set(p.predecessors) | {b.id})))
-        byid[b.id], byid[p.id] = b, p
+        cp = cp.copy()
+        cp[common] -= shift
+        c = _replace(c, points=cp)
+        byid[b.id], byid[p.id], byid[c.id] = b, p, c
         changed = True
     if not changed:
         return features, topology
