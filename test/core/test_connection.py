@@ -487,3 +487,28 @@ def test_chain_links_through_takes_a_lone_leftover_of_its_type():
     assert chain_links(4, edges, np.array([True, False, False]), types).tolist() == [False, False, True]
     both = np.array([[0, 1], [2, 1], [1, 3]])
     assert chain_links(4, both, np.array([True, True, False]), np.array([S, S, S, S]), through=True).tolist() == [False, False, True]
+
+
+def test_bridged_tip_does_not_take_the_next_line_when_a_line_appears():
+    """A solid line at y=0 is missing for 4 steps (bridged tip, 10 m back); when it is still
+    missing, a new solid line appears 1.2 m beside the one at -10.5. The assignment must pair
+    one tip with a node beyond the edge limits (dropped afterwards); pricing that pair by its full
+    distance made the shifted pairing cheaper (bridged solid tip -> dashed line 3.4 m across,
+    dashed tip -> solid line 7 m across, dropped). Now the dashed line continues, the bridged
+    tip's far pair is the dropped one and the new line is a split of its neighbour."""
+    steps = []
+    for i in range(10):
+        if i < 5:
+            steps.append(make_step(i, [-10.5, -3.6, 0.0], [S, D, S]))
+        elif i < 9:
+            steps.append(make_step(i, [-10.5, -3.6], [S, D]))
+        else:
+            steps.append(make_step(i, [-11.7, -10.5, -3.4], [S, S, D]))
+    g = connect_segment(Segment("p", tuple(steps)))
+    last = np.flatnonzero(np.isclose(g.node_xy[:, 0], 18.0))
+    into = {int(v): [int(u) for u in g.edges[g.edges[:, 1] == v, 0]] for v in last}
+    dashed = [v for v in last if g.node_type[v] == D][0]
+    (u,) = into[dashed]
+    assert g.node_type[u] == D and g.node_xy[u, 1] == pytest.approx(-3.6)
+    for v in last:  # nothing reaches step 9 from the solid line at y=0
+        assert all(abs(g.node_xy[w, 1]) > 1.0 for w in into[v])

@@ -45,6 +45,7 @@ __all__ = [
 _BORDER = int(FeatureType.ROAD_BORDER)
 _BIG = 1.0e9
 _GATE = 1.0e4  # cost added to a pair beyond the edge limits: taken only when nothing else is left
+_GATE_TIE = 1.0e-3  # weight of the distance of such a pair (ties among them only)
 _MASK63 = np.uint64((1 << 63) - 1)
 
 
@@ -486,7 +487,11 @@ def _assign(
     n, m = lat.shape
     rows = cols = np.zeros(0, dtype=np.int64)
     if config.max_edge_angle_deg < 90.0:
-        cost = np.where(forbidden, _BIG, np.where(plausible, lat, _GATE + lat))
+        # an implausible pair is dropped after solving, so its distance only breaks ties among
+        # such pairs (x 1e-3): with the full distance a chain of plausible but wrong pairs (a
+        # bridged tip taking the next line 3.5 m across) could cost less than one far
+        # implausible pair that is dropped anyway
+        cost = np.where(forbidden, _BIG, np.where(plausible, lat, _GATE + _GATE_TIE * lat))
     else:  # the paper's variant: plain point distances
         cost = np.where(forbidden, _BIG, lat)
     if n and m:
