@@ -13,6 +13,11 @@ of the map is a pure function of the drives that cover its place:
 - A tile is re-estimated only when its drive count grew enough that the estimate improves
   (:func:`needs_update`, a debounce); when the input settles, every tile whose drive set changed is
   re-estimated once more, so the settled map depends on the final drive set only.
+- Offsets: a tile can adjust them over its own drives (:func:`map_tile_observed`, which also returns
+  its step observations in travelled distances of the full drives), or take one fleet-wide model
+  (:func:`fleet_offsets` over the observations of all tiles, :func:`observe_tile`; the network-wide
+  adjustment of the offline pipeline) and run only the final pass with it
+  (``map_tile(..., offset_model=...)``). The live mapper settles with the latter.
 - Feature ids are carried over from the previous map version where a feature persists
   (:func:`carry_over_ids`), so consumers can follow a feature across versions.
 
