@@ -328,3 +328,22 @@ def test_observations_signature_depends_on_the_drive_sets_only():
     a = observations_signature([((0, 0), ["b", "a"]), ((1, 0), ["c"])])
     assert a == observations_signature([((1, 0), ["c"]), ((0, 0), ["a", "b"])])
     assert a != observations_signature([((0, 0), ["a", "b"]), ((1, 0), ["c", "d"])])
+
+
+def test_the_tiles_final_pass_is_the_pipelines_final_pass():
+    # the fleet-model path runs the pipeline's passes apart (incremental._passes); given the model
+    # the pipeline estimated itself, its final pass must give exactly the pipeline's segments
+    from hdmap_core.incremental import _final_pass, _tile_input
+    from hdmap_core.pipeline import map_stretches
+
+    drives, key, cfg, pc = _sim_tile()
+    inp = _tile_input(drives, key, cfg, pc)
+    res = map_stretches(inp.clipped, config=pc, seed=inp.seed, processed=inp.processed, validated=True)
+    mine = _final_pass(inp, pc, res.offset_model)
+    assert len(mine) == len(res.segments) and sum(len(s.steps) for s in mine) > 10
+    for a, b in zip(mine, res.segments):
+        assert a.pivot_id == b.pivot_id and len(a.steps) == len(b.steps)
+        for x, y in zip(a.steps, b.steps):
+            assert (x.index, x.valid, x.drive_ids) == (y.index, y.valid, y.drive_ids)
+            np.testing.assert_array_equal(x.lateral_m, y.lateral_m)
+            np.testing.assert_array_equal(x.midpoint, y.midpoint)
