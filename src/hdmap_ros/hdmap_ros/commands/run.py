@@ -3,7 +3,8 @@
 ``ros2 launch`` is not there on wheel installs, so this runs drive_ingestor, segment_mapper,
 map_stitcher, map_publisher and bag_player in one rclpy executor (real DDS topics between them:
 ``ros2 topic echo /hdmap/map`` from another process works). It exits when the bag is done and
-the map has settled (every drive mapped, every stale tile re-estimated, every estimate stitched),
+the map has settled (every drive mapped, every tile re-estimated from all its drives with the
+fleet offset model, every estimate stitched),
 or stays up with ``--keep-alive``. The settled map can be written with ``--out``.
 """
 
