@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import replace
 
 import itertools
 
@@ -224,3 +225,96 @@ def test_one_drive_alone_accepted_when_asked():
     two = align_step(np.r_[lat, lat + 1.75], np.r_[types, types], np.r_[drive, drive + 1],
                      config=dataclasses.replace(gap, estimate_offsets=False, lone_cluster_max_std_m=0.3))
     assert two.silhouette < 0.67 and not two.valid
+
+
+# Sparse-step rule: two drives on a 3-lane road (borders, solids, two dashed lines).
+_SPARSE_LINES = np.array([-6.5, -5.25, -1.75, 1.75, 5.25, 6.5])
+_SPARSE_TYPES = np.array([3, 1, 2, 2, 1, 3])
+_SPARSE = AlignmentConfig(clustering="gap", solver="closed_form", sparse_step_max_drives=2, sparse_step_max_std_m=0.3)
+
+
+def _two_drive_step(seen0, seen1, *, shift=0.4, err=None):
+    """Drive 0 sees lines ``seen0`` where they are, drive 1 lines ``seen1`` shifted by ``shift``
+    plus a per-line error ``err`` (indexed like the lines)."""
+    err = np.zeros(len(_SPARSE_LINES)) if err is None else np.asarray(err, float)
+    lat = np.r_[_SPARSE_LINES[seen0], _SPARSE_LINES[seen1] + shift + err[seen1]]
+    types = np.r_[_SPARSE_TYPES[seen0], _SPARSE_TYPES[seen1]]
+    drive = np.r_[np.zeros(len(seen0), np.int64), np.ones(len(seen1), np.int64)]
+    return lat, types, drive
+
+
+def test_sparse_step_with_lines_one_drive_misses_accepted_only_with_the_rule():
+    # Both see the two dashed lines; drive 0 also the left solid and border, drive 1 the right
+    # ones: four singletons (silhouette 0) pull the mean below 0.67 though every cluster is tight.
+    err = [0, 0, 0.05, -0.05, 0, 0]
+    lat, types, drive = _two_drive_step([0, 1, 2, 3], [2, 3, 4, 5], err=err)
+    paper = align_step(lat, types, drive, config=replace(_SPARSE, sparse_step_max_drives=0))
+    assert paper.silhouette < 0.67 and not paper.valid
+    res = align_step(lat, types, drive, config=_SPARSE)
+    assert res.valid and res.silhouette == pytest.approx(paper.silhouette)
+    # The offsets come from the shared lines: drive 1 is moved back onto drive 0.
+    assert res.offsets_m[1] - res.offsets_m[0] == pytest.approx(-0.4, abs=1e-3)
+    assert len(np.unique(res.labels)) == 6 and np.all(res.labels >= 0)
+    # A third drive makes the step no longer sparse (limit 2 drives), a limit of 3 covers it.
+    lat3 = np.r_[lat, _SPARSE_LINES[[2, 3]] - 0.2]
+    types3, drive3 = np.r_[types, _SPARSE_TYPES[[2, 3]]], np.r_[drive, [2, 2]]
+    assert not align_step(lat3, types3, drive3, config=_SPARSE).valid
+    assert align_step(lat3, types3, drive3, config=replace(_SPARSE, sparse_step_max_drives=3)).valid
+
+
+def test_sparse_step_rule_rejects_loose_clusters():
+    # Same layout, but the drives disagree on the dashed lines by 0.7 m in opposite directions:
+    # no offset makes both pairs tight (std 0.35 m), though they are far apart (silhouette > 0.67).
+    lat, types, drive = _two_drive_step([0, 1, 2, 3], [2, 3, 4, 5], shift=0.0, err=[0, 0, 0.7, -0.7, 0, 0])
+    res = align_step(lat, types, drive, config=_SPARSE)
+    assert not res.valid
+    assert len(np.unique(res.labels)) == 6  # each dashed pair is one cluster
+    assert step_silhouette(lat + res.offsets_m[drive], res.labels, types, skip_singletons=True) >= 0.67
+    # The std limit is what rejects it: a limit above 0.35 m accepts the step.
+    assert align_step(lat, types, drive, config=replace(_SPARSE, sparse_step_max_std_m=0.4)).valid
+
+
+def test_sparse_step_drops_a_type_clashing_singleton():
+    # Both see all four lane lines, but drive 0 takes the left solid for dashed: a dashed and a
+    # solid singleton 0.1 m apart.
+    lat, types, drive = _two_drive_step([1, 2, 3, 4], [1, 2, 3, 4], shift=0.0)
+    types = types.copy()
+    types[0] = 2
+    lat = lat.copy()
+    lat[0] += 0.1
+    keep = align_step(lat, types, drive, config=_SPARSE)
+    assert keep.labels[0] >= 0 and keep.labels[4] >= 0
+    res = align_step(lat, types, drive, config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    assert res.labels[0] == -1 and res.labels[4] == -1  # both singletons of the clash dropped
+    assert np.all(res.labels[[1, 2, 3, 5, 6, 7]] >= 0) and res.valid
+    # A singleton with no other type within 1 m stays: a border 1.25 m beside the solid.
+    lat2, types2, drive2 = _two_drive_step([0, 1, 2, 3, 4], [1, 2, 3, 4], shift=0.0)
+    res2 = align_step(lat2, types2, drive2, config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    assert res2.labels[0] >= 0 and res2.valid
+    # One drive's own samples of two types close together are no clash (a line beside a border).
+    lat4, types4, drive4 = _two_drive_step([0, 1, 2, 3], [1, 2, 3, 4], shift=0.0)
+    lat4, types4, drive4 = np.r_[lat4, 6.0], np.r_[types4, 3], np.r_[drive4, 1]
+    res4 = align_step(lat4, types4, drive4, config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    assert res4.labels[-2] >= 0 and res4.labels[-1] >= 0  # drive 1's solid at 5.25, border at 6.0
+    assert res4.valid
+    # ... but the same border seen by drive 0 clashes with drive 1's solid.
+    res5 = align_step(lat4, types4, np.r_[drive4[:-1], 0], config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    assert res5.labels[-2] == -1 and res5.labels[-1] == -1
+    # Steps with more drives than the limit keep their singletons.
+    lat3 = np.r_[lat, _SPARSE_LINES[[2, 3]]]
+    res3 = align_step(lat3, np.r_[types, 2, 2], np.r_[drive, 2, 2], config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    assert res3.labels[0] >= 0 and res3.labels[4] >= 0
+
+
+def test_sparse_step_config_checks():
+    with pytest.raises(ConfigError):
+        AlignmentConfig(sparse_step_max_drives=-1)
+    with pytest.raises(ConfigError):
+        AlignmentConfig(sparse_step_max_std_m=0.0)
+    # The paper preset stays faithful; the default preset uses the rule in both passes.
+    from hdmap_core.pipeline import PipelineConfig
+
+    assert PipelineConfig.preset("paper").alignment.sparse_step_max_drives == 0
+    default = PipelineConfig.preset("default")
+    assert default.alignment.sparse_step_max_drives > 0
+    assert default.final_alignment.sparse_step_max_drives == default.alignment.sparse_step_max_drives

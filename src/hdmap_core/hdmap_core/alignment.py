@@ -76,6 +76,16 @@ class AlignmentConfig:
             paper rejects such a step), and with one drive alone every cluster is a singleton
             (silhouette 0); > 0 accepts such a step when every cluster's std is at most this
             [m] (sparse places: one drive on a ramp).
+        sparse_step_max_drives: sparse-step rule, 0 = off (paper). In a step seen by at most this
+            many drives each drive sees lines the others miss; those are one-sample clusters
+            that score silhouette 0 and pull the mean below the gate although every cluster is
+            tight. Such a step is accepted when every cluster's std is at most
+            ``sparse_step_max_std_m`` and the mean silhouette of the samples in clusters of two or
+            more passes the gate.
+        sparse_step_max_std_m: cluster std limit of the sparse-step rule [m].
+        sparse_type_clash_m: with the sparse-step rule, a one-sample cluster is dropped (label -1)
+            when another drive's sample of another type lies within this distance [m] (two
+            drives disagreeing on the type of one line); 0 = no drop.
         min_cluster_drives: clusters supported by fewer distinct drives are dropped (label -1).
         max_offset_m: offsets are clipped to +-this [m].
     """
@@ -97,6 +107,9 @@ class AlignmentConfig:
     remove_drift: bool = True
     silhouette_gate: float = 0.67
     lone_cluster_max_std_m: float = 0.0
+    sparse_step_max_drives: int = 0
+    sparse_step_max_std_m: float = 0.3
+    sparse_type_clash_m: float = 0.0
     min_cluster_drives: int = 1
     max_offset_m: float = 5.0
 
@@ -109,6 +122,10 @@ class AlignmentConfig:
             raise ConfigError("AlignmentConfig.k_max, n_iterations, min_cluster_drives must be >= 1")
         if self.gap_split_m <= 0 or self.huber_delta_m <= 0 or self.ridge < 0 or self.prior_weight < 0:
             raise ConfigError("AlignmentConfig: gap_split_m, huber_delta_m > 0 and ridge, prior_weight >= 0 required")
+        if self.sparse_step_max_drives < 0 or self.sparse_step_max_std_m <= 0 or self.sparse_type_clash_m < 0:
+            raise ConfigError(
+                "AlignmentConfig: sparse_step_max_drives, sparse_type_clash_m >= 0 and sparse_step_max_std_m > 0 required"
+            )
 
 
 @dataclass(frozen=True)
@@ -637,16 +654,28 @@ def silhouette_sorted(xs: np.ndarray, run: np.ndarray, group: np.ndarray) -> np.
     return np.where(np.isfinite(b), sil, np.nan)
 
 
-def step_silhouette(x: np.ndarray, labels: np.ndarray, types: np.ndarray) -> float:
+def step_silhouette(x: np.ndarray, labels: np.ndarray, types: np.ndarray, *, skip_singletons: bool = False) -> float:
     """Mean silhouette of a step's labelled samples, each type scored on its own clusters.
 
     Clustering is per type (Sec. IV-B), so the score is too: samples of types with at least two
-    clusters count; -1 when no type has two clusters.
+    clusters count; -1 when no type has two clusters. ``skip_singletons``: the mean leaves out
+    the samples of one-sample clusters (their silhouette is 0 by definition; they still count
+    as the nearest cluster of others).
     """
     use = labels >= 0
     x, labels, types = x[use], labels[use], types[use]
     if len(x) < 2:
         return -1.0
+    sil, ls = _silhouette_values(x, labels, types)
+    ok = np.isfinite(sil)
+    if skip_singletons:
+        _, inv, cnt = np.unique(ls, return_inverse=True, return_counts=True)
+        ok &= cnt[inv] > 1
+    return float(sil[ok].mean()) if ok.any() else -1.0
+
+
+def _silhouette_values(x: np.ndarray, labels: np.ndarray, types: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sample silhouettes (NaN where the type has one cluster) and labels, in (type, x) order."""
     order = np.lexsort((x, types))
     xs, ls, ts = x[order], labels[order], types[order]
     change = np.ones(len(xs), dtype=bool)
@@ -660,8 +689,7 @@ def step_silhouette(x: np.ndarray, labels: np.ndarray, types: np.ndarray) -> flo
             sel = ts == t
             if len(np.unique(ls[sel])) >= 2:
                 sil[sel] = silhouette_samples_1d(xs[sel], ls[sel])
-    ok = np.isfinite(sil)
-    return float(sil[ok].mean()) if ok.any() else -1.0
+    return sil, ls
 
 
 def align_step(
@@ -752,8 +780,18 @@ def _em(
             break
         o = solve_offsets(x, labels, types, drive, n_drives, config=config, prior=prior, init=o)
     y = x + o[drive]
+    sparse = 0 < len(np.unique(drive)) <= config.sparse_step_max_drives
+    if sparse and config.sparse_type_clash_m > 0:
+        labels = _drop_type_clashing_singletons(y, labels, types, drive, config.sparse_type_clash_m)
     score = step_silhouette(y, labels, types)
     valid = score >= config.silhouette_gate
+    if sparse and not valid and score != -1.0:
+        # Few drives: lines one drive sees and the other misses are singletons (silhouette 0);
+        # judge the step by the clusters both see, and by every cluster being tight.
+        valid = (
+            _max_cluster_std(y, labels) <= config.sparse_step_max_std_m
+            and step_silhouette(y, labels, types, skip_singletons=True) >= config.silhouette_gate
+        )
     use = labels >= 0
     one_drive = bool(use.any()) and bool(np.all(drive[use] == drive[use][0]))
     if (score == -1.0 or (one_drive and not valid)) and config.lone_cluster_max_std_m > 0:
@@ -761,9 +799,44 @@ def _em(
         # one drive alone (one sample per line: every cluster a singleton, silhouette 0): the
         # silhouette says nothing; accept when every cluster is tight.
         if use.any():
-            k = int(labels[use].max()) + 1
-            n = np.bincount(labels[use], minlength=k)
-            mean = np.bincount(labels[use], weights=y[use], minlength=k) / np.maximum(n, 1)
-            var = np.bincount(labels[use], weights=y[use] ** 2, minlength=k) / np.maximum(n, 1) - mean**2
-            valid = bool(np.sqrt(np.maximum(var[n > 0], 0.0)).max() <= config.lone_cluster_max_std_m)
+            valid = _max_cluster_std(y, labels) <= config.lone_cluster_max_std_m
     return StepAlignment(offsets_m=o, labels=labels, silhouette=score, valid=bool(valid), n_iterations=it)
+
+
+def _max_cluster_std(y: np.ndarray, labels: np.ndarray) -> float:
+    """Largest std of a cluster's corrected positions (labels >= 0); inf when nothing is labelled."""
+    use = labels >= 0
+    if not use.any():
+        return float("inf")
+    lab, yy = labels[use], y[use]
+    k = int(lab.max()) + 1
+    n = np.bincount(lab, minlength=k)
+    mean = np.bincount(lab, weights=yy, minlength=k) / np.maximum(n, 1)
+    var = np.bincount(lab, weights=yy**2, minlength=k) / np.maximum(n, 1) - mean**2
+    return float(np.sqrt(np.maximum(var[n > 0], 0.0)).max())
+
+
+def _drop_type_clashing_singletons(
+    y: np.ndarray, labels: np.ndarray, types: np.ndarray, drive: np.ndarray, radius_m: float
+) -> np.ndarray:
+    """Label -1 for one-sample clusters with another drive's sample of another type within
+    ``radius_m``.
+
+    With two drives, a line one classifies as solid and the other as dashed becomes two
+    singletons side by side; neither is evidence of a line of its type. (One drive's own
+    samples of two types close together, e.g. a line beside the road border, are no clash.)
+    """
+    use = labels >= 0
+    if not use.any():
+        return labels
+    cnt = np.bincount(labels[use], minlength=int(labels.max()) + 1)
+    single = np.flatnonzero(use & (cnt[np.maximum(labels, 0)] == 1))
+    if len(single) == 0:
+        return labels
+    # All samples count as witnesses (also dropped ones: the other drive still saw something there).
+    near = np.abs(y[single][:, None] - y[None, :]) <= radius_m
+    other = (types[single][:, None] != types[None, :]) & (drive[single][:, None] != drive[None, :])
+    clash = (near & other).any(axis=1)
+    out = labels.copy()
+    out[single[clash]] = -1
+    return out

@@ -116,6 +116,11 @@ class PipelineConfig:
                 # penalty would only push apart clusters of one feature split by a gap.
                 penalty_lm_threshold=2.0,
                 lone_cluster_max_std_m=0.3,
+                # Steps of <= 3 drives: judged without the one-sample clusters (lines one drive
+                # misses), when every cluster is tight; type-clashing singletons dropped.
+                sparse_step_max_drives=3,
+                sparse_step_max_std_m=0.3,
+                sparse_type_clash_m=1.0,
             )
             final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage module, loaded on use)
