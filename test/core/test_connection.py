@@ -512,3 +512,64 @@ def test_bridged_tip_does_not_take_the_next_line_when_a_line_appears():
     assert g.node_type[u] == D and g.node_xy[u, 1] == pytest.approx(-3.6)
     for v in last:  # nothing reaches step 9 from the solid line at y=0
         assert all(abs(g.node_xy[w, 1]) > 1.0 for w in into[v])
+
+
+
+def _turning_pivot_segment() -> Segment:
+    """Four straight dashed lines along x (y = 0, 3.5, 7, 10.5) and the pivot's right line at
+    y = -3.5. The pivot drives at y = -1.75 for 10 steps, then turns 12 deg right onto an exit
+    whose lines (+-1.75 m beside it) follow it; 4 steps at the turn failed. After the gap its
+    cuts cross the straight lines obliquely."""
+    lines = [0.0, 3.5, 7.0, 10.5]
+    h1 = math.radians(-12.0)
+    steps = []
+    for i in range(25):
+        if i < 10:
+            mid, h, own = np.array([2.0 * i, -1.75]), 0.0, [-1.75]
+        else:
+            mid, h, own = np.array([18.0, -1.75]) + 2.0 * (i - 9) * np.array([math.cos(h1), math.sin(h1)]), h1, [-1.75, 1.75]
+        valid = not 10 <= i < 14
+        lat = sorted([(c - mid[1]) / math.cos(h) for c in lines] + own) if valid else []
+        k = len(lat)
+        steps.append(
+            StepResult(
+                pivot_id="p",
+                index=i,
+                s_m=2.0 * i,
+                midpoint=mid,
+                heading=h,
+                width_m=30.0,
+                valid=valid,
+                processed_before=False,
+                lateral_m=np.asarray(lat, dtype=float),
+                types=np.full(k, D, dtype=np.int64),
+                counts=np.full(k, 5, dtype=np.int64),
+                std_m=np.full(k, 0.1),
+                drive_ids=("a", "b"),
+            )
+        )
+    return Segment("p", tuple(steps))
+
+
+def _straight_line_jumps(g) -> list[float]:
+    """Across the gap: how far across each edge leaving a straight line (y >= 0) moves."""
+    a, b = g.node_xy[g.edges[:, 0]], g.node_xy[g.edges[:, 1]]
+    sel = (a[:, 0] < 19.0) & (b[:, 0] > 19.0) & (a[:, 1] > -0.5)
+    return np.abs(b[sel, 1] - a[sel, 1]).tolist()
+
+
+def test_lines_keep_their_place_when_the_pivot_turns_off():
+    """Where the pivot leaves the lines (an exit ramp), its heading is no frame for them: across
+    its rotated cut the pairing shifted by one lane looked straighter, so every line joined the
+    next one 3.5 m over (Town04's cloverleaf). Each tip is now paired in its own line's
+    direction: each straight line continues on itself."""
+    jumps = _straight_line_jumps(connect_segment(_turning_pivot_segment()))
+    assert len(jumps) == 4 and max(jumps) < 0.05
+
+
+def test_tip_frame_off_keeps_the_pivot_frame():
+    assert ConnectionConfig.paper().tip_frame_deg == 0.0
+    jumps = _straight_line_jumps(connect_segment(_turning_pivot_segment(), config=ConnectionConfig(tip_frame_deg=0.0)))
+    assert max(jumps) > 3.0  # the shifted pairing of the pivot's frame
+    with pytest.raises(ConfigError):
+        ConnectionConfig(tip_frame_deg=-1.0)

@@ -93,6 +93,16 @@ class ConnectionConfig:
         window_min_count: the window rule keeps only maxima of at least this many drives (a
             maximum of one drive flickers: one drive's false positive or misclassified stretch).
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
+        tip_frame_deg: a polyline end at least ``tip_frame_min_m`` (pivot travel) behind the new
+            step (a bridged gap) whose own direction (from its node ~3 edges back, at least
+            ``tip_frame_min_m`` away) differs from the new step's heading by more than this is
+            paired in its own frame (along / across its direction) instead of the pivot's: where
+            the pivot turns off (an exit ramp) the straight lines it still sees leave its
+            heading, and in its frame the pairing shifted by one lane looked straight (Town04's
+            cloverleaf: every line joined the next one 3.5 m over ~11 m). 0 disables [deg].
+        tip_frame_min_m: see ``tip_frame_deg`` [m].
+        tip_frame_max_deg: ... and by at most this: a pivot turning further is turning at an
+            intersection, where a line ending there must not continue straight across [deg].
     """
 
     max_gap_m: float = 20.0
@@ -110,6 +120,9 @@ class ConnectionConfig:
     support_window_m: float = 0.0
     window_min_count: int = 1
     tile_size_m: float = 256.0
+    tip_frame_deg: float = 5.0
+    tip_frame_min_m: float = 4.0
+    tip_frame_max_deg: float = 30.0
 
     def __post_init__(self) -> None:
         if not self.max_gap_m >= 0:
@@ -134,6 +147,10 @@ class ConnectionConfig:
             raise ConfigError(f"leftover_max_m must be >= 0, got {self.leftover_max_m}")
         if not (self.tile_size_m > 0 and math.isfinite(self.tile_size_m)):
             raise ConfigError(f"tile_size_m must be > 0, got {self.tile_size_m}")
+        for name in ("tip_frame_deg", "tip_frame_min_m", "tip_frame_max_deg"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"{name} must be finite and >= 0, got {v}")
 
     @classmethod
     def paper(cls) -> ConnectionConfig:
@@ -146,6 +163,7 @@ class ConnectionConfig:
             robust_angle=False,
             min_separation_m=0.0,
             min_support_share=0.0,
+            tip_frame_deg=0.0,
         )
 
 
@@ -467,17 +485,27 @@ def _assign(
     new_type: np.ndarray,
     heading: float,
     config: ConnectionConfig,
+    tip_dir: np.ndarray | None = None,
 ) -> _Assignment:
     """Modified rectangular assignment between open polyline ends (tips) and a step's maxima.
 
     The cost is the point distance across the cut of the new step (for consecutive steps it ranks
     pairs as the Euclidean distance does, and it stays comparable across bridged gaps).
+    ``tip_dir`` (n, 2): unit direction of each tip's own line, NaN where the new step's heading
+    is used; a tip with a direction is measured along / across its line instead.
     """
     d = new_xy[None, :, :] - tip_xy[:, None, :]
     c, s_ = math.cos(heading), math.sin(heading)
     u, nrm = np.array([c, s_]), np.array([-s_, c])
-    along = d @ u
-    lat = np.abs(d @ nrm)
+    own = np.zeros(len(tip_xy), dtype=bool) if tip_dir is None else np.isfinite(tip_dir[:, 0])
+    if own.any():
+        uu = np.where(own[:, None], tip_dir, u[None, :])
+        nn = np.stack([-uu[:, 1], uu[:, 0]], axis=1)
+        along = np.einsum("ijk,ik->ij", d, uu)
+        lat = np.abs(np.einsum("ijk,ik->ij", d, nn))
+    else:
+        along = d @ u
+        lat = np.abs(d @ nrm)
     # never connect a road border to another type
     forbidden = (tip_type[:, None] == _BORDER) != (new_type[None, :] == _BORDER)
     tan_max = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
@@ -495,7 +523,7 @@ def _assign(
     else:  # the paper's variant: plain point distances
         cost = np.where(forbidden, _BIG, lat)
     if n and m:
-        if n == m and bool(tip_fresh.all()):
+        if n == m and bool(tip_fresh.all()) and not own.any():
             # In 1-D the sorted pairing is the exact optimum of the assignment for |a - b| costs.
             lt = tip_xy @ nrm
             ln = new_xy @ nrm
@@ -673,18 +701,59 @@ class _Builder:
         self.edges: list[tuple[int, int]] = []
         self.leftover: list[bool] = []
         self.n = 0
+        self.flat_of: list[int] = []  # row of each node in the flattened steps
+        self.pred: list[int] = []  # each node's predecessor on its line (-1: none yet)
 
     def add(self, j: int) -> int:
         self.used.append(j)
         self.node_base.append(self.n)
-        self.n += int(self.f.off[j + 1] - self.f.off[j])
+        a, b = int(self.f.off[j]), int(self.f.off[j + 1])
+        self.n += b - a
+        self.flat_of.extend(range(a, b))
+        self.pred.extend([-1] * (b - a))
         return len(self.used) - 1
+
+    def direction(self, node: int, min_m: float, hops: int = 6) -> np.ndarray | None:
+        """Unit direction of the line ending in ``node``, from the first predecessor at least
+        ``min_m`` back (at most ``hops`` edges); None when there is none."""
+        p = self.f.xy[self.flat_of[node]]
+        q = node
+        for _ in range(hops):
+            q = self.pred[q]
+            if q < 0:
+                return None
+            d = p - self.f.xy[self.flat_of[q]]
+            dist = float(np.hypot(d[0], d[1]))
+            if dist >= min_m:
+                return d / dist
+        return None
 
     def tips_of(self, t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Node indices, points and types of topology node t."""
         j = self.used[t]
         a, b = int(self.f.off[j]), int(self.f.off[j + 1])
         return np.arange(self.node_base[t], self.node_base[t] + b - a), self.f.xy[a:b], self.f.typ[a:b]
+
+
+def _tip_frames(
+    b: _Builder, tip_idx: np.ndarray, gap_m: np.ndarray, heading: float, config: ConnectionConfig
+) -> np.ndarray | None:
+    """(n, 2) own line direction of each tip at least ``config.tip_frame_min_m`` back (pivot
+    travel ``gap_m``) that leaves the step heading by more than ``config.tip_frame_deg`` (NaN for
+    the others); None when no tip does."""
+    if config.tip_frame_deg <= 0 or len(tip_idx) == 0:
+        return None
+    out = np.full((len(tip_idx), 2), np.nan)
+    cos_max = math.cos(math.radians(config.tip_frame_deg))
+    cos_lim = math.cos(math.radians(max(config.tip_frame_max_deg, config.tip_frame_deg)))
+    h = np.array([math.cos(heading), math.sin(heading)])
+    for r, node in enumerate(tip_idx.tolist()):
+        if gap_m[r] < config.tip_frame_min_m:
+            continue
+        u = b.direction(int(node), config.tip_frame_min_m)
+        if u is not None and cos_lim <= float(u @ h) < cos_max:
+            out[r] = u
+    return out if np.isfinite(out[:, 0]).any() else None
 
 
 def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionConfig()) -> SegmentGraph:
@@ -763,6 +832,9 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
             t = b.add(j)
             b.topo_edges.append((last_topo, t))
             b.fast_links.append(t)
+            p0, q0 = b.node_base[last_topo], b.node_base[t]
+            for k in range(a1 - a0):
+                b.pred[q0 + k] = p0 + k
         elif last_topo is not None:
             if tips is None:
                 ti, tx, tt = b.tips_of(last_topo)
@@ -770,7 +842,10 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
             tip_idx, tip_s, tip_xy, tip_type = tips
             live = (st.s_m - tip_s) <= config.max_gap_m  # RULE 3 per polyline (bridged features)
             tip_idx, tip_s, tip_xy, tip_type = tip_idx[live], tip_s[live], tip_xy[live], tip_type[live]
-            res = _assign(tip_xy, tip_type, tip_s == last_s, flat.xy[a0:a1], flat.typ[a0:a1], st.heading, config)
+            tip_dir = _tip_frames(b, tip_idx, st.s_m - tip_s, float(st.heading), config)
+            res = _assign(
+                tip_xy, tip_type, tip_s == last_s, flat.xy[a0:a1], flat.typ[a0:a1], st.heading, config, tip_dir
+            )
             if res.mean_angle_deg > config.max_mean_angle_deg:
                 stats.rejected_angle += 1  # implausible optimisation result: treat as a gap
                 skipped = True
@@ -785,6 +860,8 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
                     b.edges.append((int(tip_idx[i]), base + k))
                     b.leftover.append(lo)
                     used.add(i)
+                    if not lo and b.pred[base + k] < 0:
+                        b.pred[base + k] = int(tip_idx[i])
             if config.bridge_features and len(used) < len(tip_idx):
                 keep = np.ones(len(tip_idx), dtype=bool)
                 keep[list(used)] = False
