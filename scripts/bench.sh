@@ -16,7 +16,7 @@ if [[ -n "${BENCH_SMOKE:-}" ]]; then
     "$HDMAP" bench esmini_e6mini:20:1 --work-dir "$OUT/fleets" --markdown "$OUT/smoke.md" --json "$OUT/smoke.json"
     exit 0
 fi
-"$HDMAP" bench paper_like:134:1 esmini_e6mini:40:1 esmini_soderleden:40:1 carla_town04:60:1 carla_town06:60:1 \
+"$HDMAP" bench paper_like:134:1 esmini_e6mini:40:1 esmini_soderleden:40:1 carla_town04:100:1 carla_town06:100:1 \
     --work-dir "$OUT/fleets" --markdown "$OUT/presets.md" --json "$OUT/presets.json"
 "$HDMAP" bench paper_like:134:1 --presets default --scale 0.25 --scale 1 --scale 4 \
     --work-dir "$OUT/fleets" --markdown "$OUT/scaling.md" --json "$OUT/scaling.json"

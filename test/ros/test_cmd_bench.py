@@ -106,3 +106,18 @@ def test_named_paper_like_scenario_is_simulated_with_its_overrides(tmp_path):
     xs = [p[0] for f in gt["features"] for p in f["points"]]
     ys = [p[1] for f in gt["features"] for p in f["points"]]
     assert max(max(xs) - min(xs), max(ys) - min(ys)) > 0.6 * named["length_m"]
+
+
+def test_simulated_fleet_is_reused_only_when_made_with_the_same_config(tmp_path):
+    from hdmap_ros.commands.bench import prepare_scenarios
+
+    (first,) = prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
+    sim = Path(first.bag).with_name("motorway_3_s2.sim.json")
+    stamp = sim.stat().st_mtime_ns
+    prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
+    assert sim.stat().st_mtime_ns == stamp  # same config and seed: the bag is reused
+    doc = json.loads(sim.read_text())
+    doc["config"]["route_weighting"] = "length"  # as if simulated by an older simulator default
+    sim.write_text(json.dumps(doc))
+    prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
+    assert json.loads(sim.read_text())["config"]["route_weighting"] == "coverage"  # simulated anew

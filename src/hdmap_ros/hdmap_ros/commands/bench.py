@@ -182,12 +182,26 @@ def _simulate(
     config = SimConfig.from_dict({**(sim or {}), "n_drives": n_drives})
     gt = load_map(map_name, length_m=length_m)
     gt_path = bag.with_name(bag.name + ".gt.json")
-    if not (bag / "metadata.yaml").exists():
+    if not _cached(bag, gt_path, config, seed):
         fleet = simulate_fleet(gt, config=config, seed=seed)
         write_fleet_bag(bag, fleet.drives, fleet.origin, overwrite=True)
         save_ground_truth(gt, gt_path)
         write_sim_json(fleet, bag.with_name(bag.name + ".sim.json"))
     return Scenario(name, str(bag), str(gt_path), _sigma_from_config(config))
+
+
+def _cached(bag: Path, gt_path: Path, config: Any, seed: int) -> bool:
+    """A bag simulated earlier into the work dir is reused only when its ``.sim.json`` says it was
+    made with this very simulator config and seed (a changed scenario or simulator default, e.g.
+    the route choice, simulates it anew instead of silently reusing a stale fleet)."""
+    sim_path = bag.with_name(bag.name + ".sim.json")
+    if not ((bag / "metadata.yaml").exists() and gt_path.exists() and sim_path.exists()):
+        return False
+    try:
+        doc = json.loads(sim_path.read_text())
+    except (OSError, ValueError):
+        return False
+    return doc.get("seed") == seed and doc.get("config") == json.loads(json.dumps(config.to_dict()))
 
 
 def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
