@@ -331,7 +331,7 @@ def test_observations_signature_depends_on_the_drive_sets_only():
 
 
 def test_the_tiles_final_pass_is_the_pipelines_final_pass():
-    # the fleet-model path runs the pipeline's passes apart (incremental._passes); given the model
+    # the fleet-model path runs the pipeline's passes apart (map_stretches with offset_model); given the model
     # the pipeline estimated itself, its final pass must give exactly the pipeline's segments
     from hdmap_core.incremental import _final_pass, _tile_input
     from hdmap_core.pipeline import map_stretches

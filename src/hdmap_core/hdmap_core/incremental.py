@@ -395,44 +395,23 @@ def observations_signature(parts: Iterable[tuple[TileKey, Sequence[str]]]) -> st
     return h.hexdigest()[:32]
 
 
-def _passes(inp: _TileInput, pipeline_config: object):
-    """The pipeline's per-pass machinery on a tile's drives (``pipeline.map_stretches`` split up)."""
-    import contextlib  # noqa: PLC0415
-
-    from hdmap_core import pipeline as pl  # noqa: PLC0415
-    from hdmap_core.preprocess import preprocess  # noqa: PLC0415
-
-    index = preprocess(inp.clipped, config=pipeline_config.preprocess)
-    order = np.random.default_rng(inp.seed).permutation(len(inp.clipped))
-    tracks = pl._Tracks(inp.clipped) if pipeline_config.mark_on_cut_only else None
-    limit = (pl.threadpool_limits(limits=1, user_api="blas") if pl.threadpool_limits is not None
-             else contextlib.nullcontext())
-    store = inp.processed if inp.processed is not None else pl.ProcessedStore()
-
-    def run(alignment, shift, observations):
-        with limit:
-            segments, _ = pl._run_pass(
-                inp.clipped, index, order, store, config=pipeline_config, alignment=alignment, shift=shift,
-                observations=observations, counters=pl._Counters(), progress=None, hit_cache={}, tracks=tracks,
-            )
-        return segments
-
-    return index, run
-
-
 def _first_pass(inp: _TileInput, pipeline_config: object) -> list:
-    _, run = _passes(inp, pipeline_config)
-    observations: list = []
-    run(pipeline_config.alignment, None, observations)
-    return observations
+    """The step observations of the pipeline's first pass on a tile's drives (no adjustment)."""
+    from dataclasses import replace  # noqa: PLC0415
+
+    from hdmap_core.pipeline import map_stretches  # noqa: PLC0415
+
+    first_only = replace(pipeline_config, use_global_adjustment=False)
+    return map_stretches(inp.clipped, config=first_only, seed=inp.seed, processed=inp.processed,
+                         collect_observations=True, validated=True).observations
 
 
 def _final_pass(inp: _TileInput, pipeline_config: object, model: object) -> list[Segment]:
-    from hdmap_core import pipeline as pl  # noqa: PLC0415
+    """The pipeline's final pass on a tile's drives with the fleet-wide offset ``model``."""
+    from hdmap_core.pipeline import map_stretches  # noqa: PLC0415
 
-    index, run = _passes(inp, pipeline_config)
-    alignment = pipeline_config.final_alignment or pipeline_config.alignment
-    return run(alignment, pl._shift_fn(model, index.drive_ids), None)
+    return map_stretches(inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed,
+                         validated=True, offset_model=model).segments
 
 
 def steps_outside(drives: Sequence[Drive], bounds: Sequence[float], *, step_m: float):

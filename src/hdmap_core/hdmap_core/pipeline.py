@@ -562,6 +562,7 @@ def map_stretches(
     collect_observations: bool = False,
     progress: ProgressFn | None = None,
     validated: bool = False,
+    offset_model: Any = None,
 ) -> MappingResult:
     """Stages 1-4 on valid drives, with the processed-stretch store in and out.
 
@@ -573,6 +574,9 @@ def map_stretches(
         processed: stretches processed earlier (skipped as pivots' steps); not modified.
         collect_observations: also return the per-step observations of the (first) pass.
         progress: optional callback(stage, done, total).
+        offset_model: a fleet-wide ``adjustment.OffsetModel`` estimated elsewhere (e.g. from the
+            observations of every tile of a live map): only the final pass runs, with the drives
+            shifted by it (``config.final_alignment``); no first pass, no adjustment here.
 
     Returns:
         The segments, the updated store, observations and counters.
@@ -590,7 +594,8 @@ def map_stretches(
     limit = threadpool_limits(limits=1, user_api="blas") if threadpool_limits is not None else contextlib.nullcontext()
     with limit:
         return _map_stretches(drives, config=config, seed=seed, processed=processed,
-                              collect_observations=collect_observations, progress=progress)
+                              collect_observations=collect_observations, progress=progress,
+                              offset_model=offset_model)
 
 
 def _map_stretches(
@@ -601,6 +606,7 @@ def _map_stretches(
     processed: ProcessedStore | None,
     collect_observations: bool,
     progress: ProgressFn | None,
+    offset_model: Any = None,
 ) -> MappingResult:
     store_in = processed if processed is not None else ProcessedStore()
     seconds: dict[str, float] = {}
@@ -612,15 +618,16 @@ def _map_stretches(
     obs: list[StepObservations] | None = [] if (collect_observations or config.use_global_adjustment) else None
     hit_cache: dict | None = {} if config.use_global_adjustment else None
     tracks = _Tracks(drives) if config.mark_on_cut_only else None
-    t0 = time.perf_counter()
-    segments, store = _run_pass(
-        drives, index, order, store_in, config=config, alignment=config.alignment, shift=None,
-        observations=obs, counters=counters, progress=progress, hit_cache=hit_cache,
-        tracks=tracks,
-    )
-    seconds["sampling_em"] = time.perf_counter() - t0
-    model = None
-    if config.use_global_adjustment:
+    model = offset_model
+    if model is None:
+        t0 = time.perf_counter()
+        segments, store = _run_pass(
+            drives, index, order, store_in, config=config, alignment=config.alignment, shift=None,
+            observations=obs, counters=counters, progress=progress, hit_cache=hit_cache,
+            tracks=tracks,
+        )
+        seconds["sampling_em"] = time.perf_counter() - t0
+    if model is None and config.use_global_adjustment:
         try:
             from hdmap_core.adjustment import AdjustConfig, adjust_offsets
         except ImportError as err:  # the module is part of the package; say so clearly if absent
@@ -628,6 +635,7 @@ def _map_stretches(
         t0 = time.perf_counter()
         model = adjust_offsets(obs or [], config=config.adjustment if config.adjustment is not None else AdjustConfig())
         seconds["adjustment"] = time.perf_counter() - t0
+    if model is not None:
         t0 = time.perf_counter()
         counters = _Counters()
         segments, store = _run_pass(
