@@ -593,3 +593,24 @@ def test_attached_branch_survives_a_base_map_round_trip():
         (h,) = [x for x in again.features if x.id == f.id]
         np.testing.assert_allclose(h.points, f.points)
         assert h.predecessors == f.predecessors and h.successors == f.successors
+
+
+def test_loose_ends_joined_where_the_pivot_heading_leaves_the_line():
+    """One dashed line along x, mapped by pivot a (x 0..40) and pivot b (x 48..100). b's pivot
+    comes in on an entry ramp: the heading of its first topology nodes is its own (40 deg, then
+    turning in), not the line's. Compared by those headings the end and the start differ by
+    more than max_heading_diff_deg and stayed apart (Town04's cloverleaf); compared by their
+    lines' own directions they continue each other and are joined across the 8 m gap."""
+    a = conn(road("a", 0.0, 21, ([0.0], [D])))
+    b = conn(road("b", 48.0, 27, ([0.0], [D])))
+    h = b.topo_heading.copy()
+    h[:8] = np.radians(np.linspace(40.0, 5.0, 8))
+    b = dataclasses.replace(b, topo_heading=h)
+    m = stitch([a, b])
+    assert len(m.features) == 1
+    p = m.features[0].points
+    assert p[0, 0] == pytest.approx(0.0) and p[-1, 0] == pytest.approx(100.0)
+    np.testing.assert_allclose(p[:, 1], 0.0, atol=1e-6)
+    assert len(stitch([a, b], config=StitchConfig(join_line_heading_m=0.0)).features) == 2
+    with pytest.raises(ConfigError):
+        StitchConfig(join_line_heading_deg=-1.0)

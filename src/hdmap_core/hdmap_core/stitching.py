@@ -116,6 +116,12 @@ class StitchConfig:
             one); a road border joins only a border. False: same type only.
         join_lateral_m: how far across the road a loose start may lie from the end's arc [m] ...
         join_angle_deg: ... plus this angle's share of the distance [deg].
+        join_line_heading_m: a loose end (start) is compared by its own polyline's direction,
+            from the node at least this far back (on), instead of its topology node's heading (the
+            pivot's, which leaves the lines where the pivot turns onto or off a ramp), when the
+            two differ by more than ``join_line_heading_deg`` (a few metres of noisy nodes are a
+            worse direction than the pivot's on an ordinary road). 0: the topology heading [m].
+        join_line_heading_deg: see ``join_line_heading_m`` [deg].
         fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
             with points on a cubic Hermite curve through the end tangents, this far apart; the
             filled points carry drive_count 0 (no drive saw them). 0 disables [m].
@@ -171,6 +177,8 @@ class StitchConfig:
     join_radius_m: float = 60.0
     join_lateral_m: float = 0.5
     join_angle_deg: float = 1.0
+    join_line_heading_m: float = 4.0
+    join_line_heading_deg: float = 10.0
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
     min_type_run_m: float = 20.0
@@ -204,6 +212,8 @@ class StitchConfig:
             "twin_along_m",
             "join_lateral_m",
             "join_angle_deg",
+            "join_line_heading_m",
+            "join_line_heading_deg",
             "fill_spacing_m",
             "min_isolated_length_m",
             "min_type_run_m",
@@ -230,6 +240,7 @@ class StitchConfig:
             join_loose_ends=False,
             min_isolated_length_m=0.0,
             fill_spacing_m=0.0,
+            join_line_heading_m=0.0,
             min_type_run_m=0.0,
             sparse_type_run_m=0.0,
             spur_max_m=0.0,
@@ -255,6 +266,21 @@ class _Adjacency:
 
     def add(self, i: int, j: int) -> None:
         self._extra.setdefault(i, []).append(j)
+
+
+def _line_heading(xy: np.ndarray, walk: np.ndarray, i: int, sign: float, min_m: float, hops: int = 6) -> float | None:
+    """Heading of the polyline at its end (sign +1, ``walk`` = predecessor) or start (sign -1,
+    ``walk`` = successor) node i, from the first node at least ``min_m`` along it (at most
+    ``hops`` edges); None when the polyline is shorter."""
+    k = i
+    for _ in range(hops):
+        k = int(walk[k])
+        if k < 0:
+            return None
+        d = (xy[i] - xy[k]) * sign
+        if math.hypot(d[0], d[1]) >= min_m:
+            return math.atan2(d[1], d[0])
+    return None
 
 
 class _UnionFind:
@@ -758,9 +784,22 @@ class MapGraph:
         cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
         tan_j = math.tan(math.radians(cfg.join_angle_deg))
         prv = np.full(nn, -1, dtype=np.int64)
+        nxt = np.full(nn, -1, dtype=np.int64)
         if len(e):
             one = (outdeg[e[:, 0]] == 1) & (indeg[e[:, 1]] == 1)
             prv[e[one, 1]] = e[one, 0]
+            nxt[e[one, 0]] = e[one, 1]
+        # the pivot's heading is no direction for a line it sees while turning onto or off a ramp
+        # (a line's loose end beside an entry ramp's pivot, heading 35 deg off the line): ends and
+        # starts whose own line leaves it are also compared in their lines' direction
+        line_h = heading.copy()
+        lim_l = math.radians(cfg.join_line_heading_deg)
+        if cfg.join_line_heading_m > 0:
+            for nodes, walk, sign in ((ends, prv, 1.0), (starts, nxt, -1.0)):
+                for i in nodes.tolist():
+                    h = _line_heading(flat.n_xy, walk, i, sign, cfg.join_line_heading_m)
+                    if h is not None and abs(float(_wrap(h - heading[i]))) > lim_l:
+                        line_h[i] = h
         cut: dict[tuple[int, int], tuple[int, list[int]]] = {}  # (end, start) -> (joined node, dropped)
         cand: list[tuple[float, int, int]] = []
         for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
@@ -772,28 +811,35 @@ class MapGraph:
                     cfg.same_type_only or (flat.n_type[j] == _BORDER_CODE) != (flat.n_type[i] == _BORDER_CODE)
                 ):
                     continue
-                if math.cos(heading[j] - heading[i]) < cos_h:
+                best: tuple[float, int, list[int]] | None = None
+                for hh in (heading, line_h) if (line_h[i] != heading[i] or line_h[j] != heading[j]) else (heading,):
+                    if math.cos(hh[j] - hh[i]) < cos_h:
+                        continue
+                    # on a circular arc the chord runs along the mean of the two tangents, so the
+                    # chord's offset from that direction is the lateral error of the join, curvature-free
+                    mean_h = hh[i] + 0.5 * float(_wrap(hh[j] - hh[i]))
+                    u, n = _unit(mean_h)
+                    d = flat.n_xy[j] - flat.n_xy[i]
+                    along, lat = float(d @ u), abs(float(d @ n))
+                    if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
+                        continue
+                    src, dropped = i, []
+                    while along <= 0.0:  # the start lies beside the end: drop the end's overlap
+                        if prv[src] < 0 or len(dropped) > 8:
+                            break
+                        dropped.append(src)
+                        src = int(prv[src])
+                        along = float((flat.n_xy[j] - flat.n_xy[src]) @ u)
+                    if along <= 0.0:
+                        continue
+                    c = lat + 0.02 * along
+                    if best is None or c < best[0]:
+                        best = (c, src, dropped)
+                if best is None:
                     continue
-                # on a circular arc the chord runs along the mean of the two tangents, so the
-                # chord's offset from that direction is the lateral error of the join, curvature-free
-                mean_h = heading[i] + 0.5 * float(_wrap(heading[j] - heading[i]))
-                u, n = _unit(mean_h)
-                d = flat.n_xy[j] - flat.n_xy[i]
-                along, lat = float(d @ u), abs(float(d @ n))
-                if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
-                    continue
-                src, dropped = i, []
-                while along <= 0.0:  # the start lies beside the end: drop the end's overlap
-                    if prv[src] < 0 or len(dropped) > 8:
-                        break
-                    dropped.append(src)
-                    src = int(prv[src])
-                    along = float((flat.n_xy[j] - flat.n_xy[src]) @ u)
-                if along <= 0.0:
-                    continue
-                cut[(i, j)] = (src, dropped)
+                cut[(i, j)] = (best[1], best[2])
                 mismatch = cfg.type_mismatch_cost_m if flat.n_type[j] != flat.n_type[i] else 0.0
-                cand.append((lat + 0.02 * along + mismatch, i, j))
+                cand.append((best[0] + mismatch, i, j))
         joined_e: set[int] = set()
         joined_s: set[int] = set()
         if cand:
