@@ -573,3 +573,24 @@ def test_tip_frame_off_keeps_the_pivot_frame():
     assert max(jumps) > 3.0  # the shifted pairing of the pivot's frame
     with pytest.raises(ConfigError):
         ConnectionConfig(tip_frame_deg=-1.0)
+
+
+def test_bridged_gap_does_not_join_a_line_to_its_neighbour_steeply():
+    """An inner (gore) border at y = 0 ends in a 10 m gap of failed steps; after it only the
+    outer border at y = -6 goes on (an entry ramp's gore closing). Across the gap the border tip
+    could pair with it at 27 deg (within max_edge_angle_deg): the outer border's piece then
+    continued the inner one and the outer border's own upstream piece stayed apart. A bridged
+    edge steeper than bridge_edge_angle_deg is not made: the outer border starts anew."""
+    steps = []
+    for i in range(25):
+        bad = 10 <= i < 15
+        lat, typ = ([0.0, 3.5], [B, D]) if i < 10 else ([-6.0, 3.5], [B, D])
+        steps.append(make_step(i, [] if bad else lat, [] if bad else typ, valid=not bad))
+    g = connect_segment(Segment("p", tuple(steps)))
+    dy = np.abs(g.node_xy[g.edges[:, 1], 1] - g.node_xy[g.edges[:, 0], 1])
+    assert dy.max() < 0.05
+    assert len(g.polylines()) == 3  # the dashed line bridged, two border pieces
+    g0 = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig(bridge_edge_angle_deg=90.0))
+    assert np.abs(g0.node_xy[g0.edges[:, 1], 1] - g0.node_xy[g0.edges[:, 0], 1]).max() > 5.0
+    with pytest.raises(ConfigError):
+        ConnectionConfig(bridge_edge_angle_deg=0.0)

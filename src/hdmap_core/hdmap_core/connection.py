@@ -101,6 +101,11 @@ class ConnectionConfig:
             heading, and in its frame the pairing shifted by one lane looked straight (Town04's
             cloverleaf: every line joined the next one 3.5 m over ~11 m). 0 disables [deg].
         tip_frame_min_m: see ``tip_frame_deg`` [m].
+        bridge_edge_angle_deg: a connection longer than ``bridge_edge_min_m`` along (across a
+            bridged gap) steeper than this is not made (``edge_slack_m`` added): a 30 deg edge
+            over 10 m is a line that ended joined to its neighbour 6 m over (an inner gore
+            border to the outer border at an entry), not one line. 90 disables [deg].
+        bridge_edge_min_m: see ``bridge_edge_angle_deg`` [m].
         tip_frame_max_deg: ... and by at most this: a pivot turning further is turning at an
             intersection, where a line ending there must not continue straight across [deg].
     """
@@ -123,11 +128,13 @@ class ConnectionConfig:
     tip_frame_deg: float = 5.0
     tip_frame_min_m: float = 4.0
     tip_frame_max_deg: float = 30.0
+    bridge_edge_angle_deg: float = 15.0
+    bridge_edge_min_m: float = 3.0
 
     def __post_init__(self) -> None:
         if not self.max_gap_m >= 0:
             raise ConfigError(f"max_gap_m must be >= 0, got {self.max_gap_m}")
-        for name in ("max_mean_angle_deg", "max_edge_angle_deg"):
+        for name in ("max_mean_angle_deg", "max_edge_angle_deg", "bridge_edge_angle_deg"):
             v = getattr(self, name)
             if not 0 < v <= 90:
                 raise ConfigError(f"{name} must be in (0, 90], got {v}")
@@ -147,7 +154,7 @@ class ConnectionConfig:
             raise ConfigError(f"leftover_max_m must be >= 0, got {self.leftover_max_m}")
         if not (self.tile_size_m > 0 and math.isfinite(self.tile_size_m)):
             raise ConfigError(f"tile_size_m must be > 0, got {self.tile_size_m}")
-        for name in ("tip_frame_deg", "tip_frame_min_m", "tip_frame_max_deg"):
+        for name in ("tip_frame_deg", "tip_frame_min_m", "tip_frame_max_deg", "bridge_edge_min_m"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ConfigError(f"{name} must be finite and >= 0, got {v}")
@@ -164,6 +171,7 @@ class ConnectionConfig:
             min_separation_m=0.0,
             min_support_share=0.0,
             tip_frame_deg=0.0,
+            bridge_edge_angle_deg=90.0,
         )
 
 
@@ -510,6 +518,10 @@ def _assign(
     forbidden = (tip_type[:, None] == _BORDER) != (new_type[None, :] == _BORDER)
     tan_max = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
     plausible = (along > 0.0) & (lat <= config.edge_slack_m + np.maximum(along, 0.0) * tan_max)
+    if config.bridge_edge_angle_deg < 90.0:
+        # across a bridged gap a steep edge is a line joined to its neighbour, not the line
+        tan_b = math.tan(math.radians(config.bridge_edge_angle_deg))
+        plausible &= (along <= config.bridge_edge_min_m) | (lat <= config.edge_slack_m + along * tan_b)
     ok = plausible & ~forbidden
 
     n, m = lat.shape
