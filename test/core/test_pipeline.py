@@ -34,6 +34,12 @@ def test_presets_are_frozen_and_distinct():
     assert not cfgs["naive"].alignment.estimate_offsets
     assert cfgs["paper"].alignment.solver == "lm" and cfgs["default"].alignment.solver == "closed_form"
     assert cfgs["paper"].aggregation.kde_bandwidth_factor == 6.0
+    from hdmap_core.connection import ConnectionConfig
+    from hdmap_core.stitching import StitchConfig
+
+    # the paper preset is the paper's method in stages 5-6 too, not our defaults
+    assert cfgs["paper"].connection == ConnectionConfig.paper() != ConnectionConfig()
+    assert cfgs["paper"].stitching == StitchConfig.paper() != StitchConfig()
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfgs["paper"].use_global_adjustment = True  # type: ignore[misc]
     with pytest.raises(ConfigError):

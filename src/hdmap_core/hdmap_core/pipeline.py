@@ -96,7 +96,12 @@ class PipelineConfig:
     def preset(cls, name: str) -> PipelineConfig:  # type: ignore[override]
         """The named preset: "paper", "default" or "naive" (see the module docstring)."""
         if name == "paper":
-            return cls(name="paper")
+            # stages 5-6 too as the paper writes them: every leftover joined, same-type unmodified
+            # assignment across segments, none of our clean-up (the dataclass defaults are ours)
+            from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
+            from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
+
+            return cls(connection=ConnectionConfig.paper(), stitching=StitchConfig.paper(), name="paper")
         if name == "naive":
             return cls(
                 sampling=SamplingConfig(),
