@@ -614,3 +614,51 @@ def test_loose_ends_joined_where_the_pivot_heading_leaves_the_line():
     assert len(stitch([a, b], config=StitchConfig(join_line_heading_m=0.0)).features) == 2
     with pytest.raises(ConfigError):
         StitchConfig(join_line_heading_deg=-1.0)
+
+
+def _gap_roads(through_lines):
+    """Pivots a (x 0..40) and b (x 80..120) map the three lines of one road, which all end at
+    the same 40 m gap; pivot c drove through the gap (x 42..78) mapping ``through_lines``
+    there (lateral positions; a pivot's step needs a line to have a topology node)."""
+    a = conn(road("a", 0.0, 21))
+    b = conn(road("b", 80.0, 21))
+    k = len(through_lines)
+    c = conn(Segment("c", tuple(step("c", i, 42.0 + 2.0 * i, through_lines, [D] * k) for i in range(19))))
+    return a, b, c
+
+
+def test_long_join_refused_across_a_gap_drives_passed_with_no_line_mapped():
+    """Every line of a road ends at one 40 m gap that drives went through (c's topology nodes
+    lie in it) but where no line was mapped beside the join (c saw only a line 20 m over, beyond
+    join_gap_lateral_m, as at a junction's mouth): a straight join across it would
+    be a filled line no drive saw (Town06's junction mouths), so it is refused; with the check
+    off (the paper's loose-end joins have none; 0 disables) the three lines are joined."""
+    a, b, c = _gap_roads([20.0])
+    m = stitch([a, b, c])
+    road_ = [f for f in m.features if abs(f.points[0, 1]) < 5.0]
+    assert len(road_) == 6
+    assert all(f.points[-1, 0] <= 40.0 or f.points[0, 0] >= 80.0 for f in road_)
+    off = stitch([a, b, c], config=StitchConfig(join_gap_check_m=0.0))
+    road_ = [f for f in off.features if abs(f.points[0, 1]) < 5.0]
+    assert len(road_) == 3
+    for f in road_:
+        assert f.points[0, 0] == pytest.approx(0.0) and f.points[-1, 0] == pytest.approx(120.0)
+    assert len(stitch([a, b, c], config=StitchConfig.paper()).features) == 7
+
+
+def test_long_join_made_where_neighbour_lines_are_mapped_through_the_gap():
+    """The same gap, but c mapped two other lines (7 m and -7 m over, within
+    join_gap_lateral_m) all through it: the road's lines are only unseen there, so the joins are
+    made; without c (no drive in the gap) they are made too. With a 5 m band the middle line
+    (y 0, c's lines 7 m over) is refused again, the outer ones (3.5 m from c's) still joined."""
+    a, b, c = _gap_roads([-7.0, 7.0])
+    m = stitch([a, b, c])
+    long_ = [f for f in m.features if f.points[0, 0] == pytest.approx(0.0)]
+    assert len(long_) == 3 and all(f.points[-1, 0] == pytest.approx(120.0) for f in long_)
+    assert len(stitch([a, b]).features) == 3
+    narrow = stitch([a, b, c], config=StitchConfig(join_gap_lateral_m=5.0))
+    for f in narrow.features:
+        if f.points[0, 0] == pytest.approx(0.0):
+            assert f.points[-1, 0] == pytest.approx(40.0 if f.points[0, 1] == 0.0 else 120.0)
+    with pytest.raises(ConfigError):
+        StitchConfig(join_gap_coverage=1.5)

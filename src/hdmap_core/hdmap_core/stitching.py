@@ -122,6 +122,17 @@ class StitchConfig:
             two differ by more than ``join_line_heading_deg`` (a few metres of noisy nodes are a
             worse direction than the pivot's on an ordinary road). 0: the topology heading [m].
         join_line_heading_deg: see ``join_line_heading_m`` [deg].
+        join_gap_check_m: a loose-end join longer than this is refused where drives passed
+            through the gap but its neighbour lines were not mapped there either: some topology
+            node (a pivot's step) lies in the middle half of the gap, within
+            ``join_gap_lateral_m`` across the join and ``join_gap_heading_deg`` of its direction,
+            while drive-supported feature nodes of that direction within ``join_gap_lateral_m``
+            cover less than ``join_gap_coverage`` of the 2 m bins of the middle half. Every line of
+            a road then ends at the same gap (a junction's mouth, where the steps failed): the
+            straight fill across it is no drive's line. 0 disables (the paper) [m].
+        join_gap_lateral_m: see ``join_gap_check_m`` [m].
+        join_gap_heading_deg: see ``join_gap_check_m`` [deg].
+        join_gap_coverage: see ``join_gap_check_m`` (share of bins, 0..1).
         fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
             with points on a cubic Hermite curve through the end tangents, this far apart; the
             filled points carry drive_count 0 (no drive saw them). 0 disables [m].
@@ -179,6 +190,10 @@ class StitchConfig:
     join_angle_deg: float = 1.0
     join_line_heading_m: float = 4.0
     join_line_heading_deg: float = 10.0
+    join_gap_check_m: float = 20.0
+    join_gap_lateral_m: float = 12.0
+    join_gap_heading_deg: float = 10.0
+    join_gap_coverage: float = 0.8
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
     min_type_run_m: float = 20.0
@@ -214,6 +229,9 @@ class StitchConfig:
             "join_angle_deg",
             "join_line_heading_m",
             "join_line_heading_deg",
+            "join_gap_check_m",
+            "join_gap_lateral_m",
+            "join_gap_heading_deg",
             "fill_spacing_m",
             "min_isolated_length_m",
             "min_type_run_m",
@@ -229,6 +247,8 @@ class StitchConfig:
             v = getattr(self, name)
             if not 0 < v <= 180:
                 raise ConfigError(f"{name} must be in (0, 180], got {v}")
+        if not 0.0 <= self.join_gap_coverage <= 1.0:
+            raise ConfigError(f"join_gap_coverage must be in [0, 1], got {self.join_gap_coverage}")
 
     @classmethod
     def paper(cls) -> StitchConfig:
@@ -241,6 +261,7 @@ class StitchConfig:
             min_isolated_length_m=0.0,
             fill_spacing_m=0.0,
             join_line_heading_m=0.0,
+            join_gap_check_m=0.0,
             min_type_run_m=0.0,
             sparse_type_run_m=0.0,
             spur_max_m=0.0,
@@ -249,6 +270,58 @@ class StitchConfig:
             merge_continuations=False,
             through_lines=False,
         )
+
+
+class _GapCheck:
+    """Whether a long loose-end join crosses a place drives passed with no line mapped beside it
+    (``StitchConfig.join_gap_check_m``). Trees are built on first use."""
+
+    LO, HI = 0.25, 0.75  # the middle half of the gap, along the join
+    BIN_M = 2.0  # step spacing
+
+    def __init__(self, flat: FlatGraph, node_heading: np.ndarray, cfg: StitchConfig) -> None:
+        self._flat = flat
+        self._node_heading = node_heading
+        self._lat = cfg.join_gap_lateral_m
+        self._cos = math.cos(math.radians(cfg.join_gap_heading_deg))
+        self._cover = cfg.join_gap_coverage
+        self._ttree: cKDTree | None = None
+        self._ntree: cKDTree | None = None
+        self._nsup = np.zeros(0, dtype=np.int64)
+
+    def _near(self, tree: cKDTree, xy: np.ndarray, p: np.ndarray, along: float, u: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Points of ``tree`` in the middle half of the gap within the lateral band: (index, along)."""
+        mid = p + 0.5 * (self.LO + self.HI) * along * u
+        r = math.hypot(0.5 * (self.HI - self.LO) * along, self._lat)
+        k = np.asarray(tree.query_ball_point(mid, r), dtype=np.int64)
+        if len(k) == 0:
+            return k, np.zeros(0)
+        rel = xy[k] - p
+        ra, rl = rel @ u, rel @ n
+        ok = (ra > self.LO * along) & (ra < self.HI * along) & (np.abs(rl) < self._lat)
+        return k[ok], ra[ok]
+
+    def unmapped(self, p: np.ndarray, along: float, h: float, u: np.ndarray, n: np.ndarray) -> bool:
+        """A join from ``p`` ``along`` m in direction ``h`` (unit ``u``, normal ``n``) crosses a
+        stretch drives passed (topology nodes in its middle half) whose lines beside it are missing
+        too (drive-supported nodes cover < ``join_gap_coverage`` of its 2 m bins)."""
+        fl = self._flat
+        if self._ttree is None:
+            self._ttree = cKDTree(fl.t_xy) if len(fl.t_xy) else None
+            self._nsup = np.flatnonzero(fl.n_count > 0)
+            self._ntree = cKDTree(fl.n_xy[self._nsup]) if len(self._nsup) else None
+        if self._ttree is None:
+            return False
+        k, _ = self._near(self._ttree, fl.t_xy, p, along, u, n)
+        if not np.any(np.cos(fl.t_heading[k] - h) > self._cos):
+            return False  # no drive went through the middle of the gap: nothing to hold against it
+        if self._ntree is None:
+            return True
+        k, ra = self._near(self._ntree, fl.n_xy[self._nsup], p, along, u, n)
+        ra = ra[np.cos(self._node_heading[self._nsup[k]] - h) > self._cos]
+        nb = max(1, int((self.HI - self.LO) * along / self.BIN_M))
+        b = np.floor((ra / along - self.LO) / (self.HI - self.LO) * nb).astype(np.int64)
+        return len(np.unique(b[(b >= 0) & (b < nb)])) < self._cover * nb
 
 
 class _Adjacency:
@@ -800,6 +873,7 @@ class MapGraph:
                     h = _line_heading(flat.n_xy, walk, i, sign, cfg.join_line_heading_m)
                     if h is not None and abs(float(_wrap(h - heading[i]))) > lim_l:
                         line_h[i] = h
+        gap = _GapCheck(flat, heading, cfg)
         cut: dict[tuple[int, int], tuple[int, list[int]]] = {}  # (end, start) -> (joined node, dropped)
         cand: list[tuple[float, int, int]] = []
         for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
@@ -822,6 +896,8 @@ class MapGraph:
                     d = flat.n_xy[j] - flat.n_xy[i]
                     along, lat = float(d @ u), abs(float(d @ n))
                     if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
+                        continue
+                    if 0 < cfg.join_gap_check_m < along and gap.unmapped(flat.n_xy[i], along, mean_h, u, n):
                         continue
                     src, dropped = i, []
                     while along <= 0.0:  # the start lies beside the end: drop the end's overlap
