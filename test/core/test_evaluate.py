@@ -211,6 +211,23 @@ def test_floor_from_drive_trajectories(road: GroundTruth) -> None:
     assert report.sigma_loc_m == sigma
 
 
+def test_realized_floor_is_the_mean_error_of_the_crossing_drives(road: GroundTruth) -> None:
+    drives = [_drive(f"a{i}", 1.75, 0.0, LENGTH_M) for i in range(4)]
+    drives += [_drive(f"b{i}", 5.25, 0.0, 100.0) for i in range(2)]
+    drives += [_drive("wrong_way", 3.0, 0.0, LENGTH_M, reverse=True)]
+    errors = {"a0": -0.4, "a1": -0.2, "a2": 0.0, "a3": -0.2, "b0": 0.9, "b1": 0.9, "wrong_way": 5.0}
+    report = evaluate_map(hdmap_from_ground_truth(road), road, drives=drives, sigma_loc_m=1.0, drive_errors=errors)
+    x = report.cuts.center[:, 0]
+    first, second = x < 99.0, x > 101.0
+    # first 100 m: the a and b drives (mean of -0.8 and 1.8 over 6 = 1/6), beyond: the a drives
+    # (-0.2); the wrong-way drive crosses no cut in its direction
+    expected = (np.count_nonzero(first) * (1.0 / 6.0) + np.count_nonzero(second) * 0.2) / (
+        np.count_nonzero(first) + np.count_nonzero(second))
+    assert report.fleet_floor_mean_m == pytest.approx(expected, abs=0.01)
+    assert "realized floor" in report.summary()
+    assert math.isnan(evaluate_map(hdmap_from_ground_truth(road), road, drives=drives).fleet_floor_mean_m)
+
+
 def test_floor_from_map_drive_counts_and_default_sigma(road: GroundTruth) -> None:
     report = evaluate_map(hdmap_from_ground_truth(road, drive_count=9), road)
     assert report.floor_source == "map"

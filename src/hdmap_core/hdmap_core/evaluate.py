@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -227,6 +227,11 @@ class EvalReport:
             drive_count) or "none" (no drive information).
         floor_mean_m: mean over evaluable cuts with a known drive count of sigma_loc / sqrt(n).
         drive_count_mean: mean drive count over the same cuts.
+        fleet_floor_mean_m: mean over the same cuts of |mean lateral error of the drives crossing
+            the cut| when their errors are known (simulated fleets): the realized floor. Any map
+            made from these drives alone (no absolute reference) inherits their common error, so a
+            fleet whose mean error is unluckily large bounds the mean from below, whatever sigma/sqrt(n)
+            says. NaN when the drive errors are not given.
         n_cuts, n_reference_cuts, n_evaluable_cuts: all cuts, cuts holding a ground-truth point,
             cuts with a matched map point.
         reference_length_m, evaluable_length_m: the latter two times step_m.
@@ -272,6 +277,7 @@ class EvalReport:
     cuts: CutProfile = field(repr=False)
     skipped: tuple[str, ...] = ()
     runtime_s: float = 0.0
+    fleet_floor_mean_m: float = math.nan
 
     @property
     def coverage(self) -> float:
@@ -435,6 +441,7 @@ def evaluate_map(
     config: EvalConfig = EvalConfig(),
     drives: Sequence[Drive] | None = None,
     sigma_loc_m: float | None = None,
+    drive_errors: Mapping[str, float] | None = None,
 ) -> EvalReport:
     """Evaluate ``hdmap`` against ``gt`` with the paper's lateral metric (Sec. VII).
 
@@ -445,6 +452,9 @@ def evaluate_map(
         drives: the fleet drives the map was built from; their trajectories give the drive count
             per cut for the floor. Without them the matched map points' ``drive_count`` is used.
         sigma_loc_m: localization sigma for the floor [m] (default ``config.default_sigma_loc_m``).
+        drive_errors: per drive id, its mean lateral localization error [m, left of its heading]
+            (the simulator's truth); with ``drives`` it gives the realized floor
+            ``fleet_floor_mean_m``.
 
     Returns:
         The report. An empty map gives coverage 0 and NaN errors.
@@ -522,6 +532,7 @@ def evaluate_map(
 
     drive_count, floor_source = _cut_drive_counts(cuts, drives, mp, matched, m_dc, cos_feat, skipped)
     floor = np.where(drive_count >= 1, sigma / np.sqrt(np.maximum(drive_count, 1.0)), np.nan)
+    fleet_err = _cut_fleet_error(cuts, drives, drive_errors, cos_feat) if drives is not None and drive_errors else None
 
     per_type = {}
     for t in EVAL_TYPES:
@@ -571,6 +582,7 @@ def evaluate_map(
         floor_source=floor_source,
         floor_mean_m=float(np.mean(floor[floor_ok])) if floor_ok.any() else math.nan,
         drive_count_mean=float(np.mean(drive_count[floor_ok])) if floor_ok.any() else math.nan,
+        fleet_floor_mean_m=_mean_abs(fleet_err, floor_ok),
         n_cuts=k,
         n_reference_cuts=n_ref,
         n_evaluable_cuts=n_eval,
@@ -633,6 +645,37 @@ def _cut_drive_counts(
     if not (dc > 0).any():
         return np.full(k, np.nan), "none"
     return np.where(dc > 0, dc, np.nan), "map"
+
+
+def _cut_fleet_error(
+    cuts: Cuts, drives: Sequence[Drive], drive_errors: Mapping[str, float], cos_min: float
+) -> np.ndarray:
+    """(K,) mean of the known lateral errors of the drives crossing each cut in its direction
+    (NaN where none is known). Crossing drives share the cut's left normal, so their errors add."""
+    ids, trajs = [], []
+    for d in drives:
+        xy = np.asarray(getattr(d, "xy", None), dtype=float)
+        e = drive_errors.get(getattr(d, "drive_id", None))
+        if e is None or not math.isfinite(float(e)) or xy.ndim != 2 or len(xy) < 2 or not np.all(np.isfinite(xy)):
+            continue
+        ids.append(float(e))
+        trajs.append(xy)
+    k = len(cuts)
+    if not trajs:
+        return np.full(k, np.nan)
+    tp = points_on_cuts(cuts, trajs, cos_min=cos_min)
+    pairs = np.unique(tp.cut * (len(trajs) + 1) + tp.owner)
+    cut, owner = pairs // (len(trajs) + 1), pairs % (len(trajs) + 1)
+    n = np.bincount(cut, minlength=k).astype(float)
+    total = np.bincount(cut, weights=np.asarray(ids)[owner], minlength=k)
+    return np.where(n > 0, total / np.maximum(n, 1.0), np.nan)
+
+
+def _mean_abs(values: np.ndarray | None, sel: np.ndarray) -> float:
+    if values is None:
+        return math.nan
+    ok = sel & np.isfinite(values)
+    return float(np.mean(np.abs(values[ok]))) if ok.any() else math.nan
 
 
 def _type_stats(

@@ -77,6 +77,11 @@ def format_summary(report: EvalReport) -> str:
             f"floor sigma/sqrt(n): {_m(report.floor_mean_m).strip()} m mean over evaluable cuts "
             f"(sigma_loc {report.sigma_loc_m:g} m, n from {src}: mean {report.drive_count_mean:.1f} drives)"
         )
+    if math.isfinite(report.fleet_floor_mean_m):
+        lines.append(
+            f"realized floor |mean error of the crossing drives|: {report.fleet_floor_mean_m:.3f} m mean over "
+            "evaluable cuts (the fleet's own common error, from its simulator truth)"
+        )
     if report.skipped:
         lines.append(f"skipped {len(report.skipped)} input part(s):")
         lines += [f"  {s}" for s in report.skipped[:10]]

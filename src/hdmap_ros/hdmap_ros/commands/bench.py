@@ -43,6 +43,7 @@ COLUMNS = (
     ("corrected_mean_m", "corr. mean m", "{:.3f}"),
     ("floor_m", "floor m", "{:.3f}"),
     ("mean_over_floor", "mean/floor", "{:.2f}"),
+    ("fleet_floor_m", "fleet err m", "{:.3f}"),
     ("coverage", "coverage", "{:.1%}"),
     ("recall", "recall", "{:.1%}"),
     ("precision", "precision", "{:.1%}"),
@@ -212,13 +213,16 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
     from hdmap_core.evaluate import evaluate_map  # noqa: PLC0415
     from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
     from hdmap_ros.bagio import read_fleet_bag  # noqa: PLC0415
+    from hdmap_ros.commands.evaluate import drive_errors_from_sim_json  # noqa: PLC0415
 
     fleet = read_fleet_bag(scenario.bag)
     t0 = time.perf_counter()
     result = pipeline.build_map(fleet.drives, config=pipeline.PipelineConfig.preset(preset), seed=seed)
     build_s = time.perf_counter() - t0
+    sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
     rep = evaluate_map(
-        result.map, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m
+        result.map, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m,
+        drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
     )
     o = rep.overall
     floor = rep.floor_mean_m
@@ -232,6 +236,7 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
         "p95_m": o.p95_m,
         "corrected_mean_m": o.corrected_mean_m,
         "floor_m": floor,
+        "fleet_floor_m": rep.fleet_floor_mean_m,
         "mean_over_floor": o.mean_m / floor if floor and math.isfinite(floor) and floor > 0 else math.nan,
         "coverage": rep.coverage,
         "recall": o.recall,

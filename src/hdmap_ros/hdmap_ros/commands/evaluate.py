@@ -26,7 +26,7 @@ from hdmap_core.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_trut
 from hdmap_core.groundtruth import GroundTruth, load_ground_truth
 from hdmap_core.model import HDMap
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "resolve_ground_truth", "sigma_from_sim_json"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "resolve_ground_truth", "sigma_from_sim_json", "drive_errors_from_sim_json"]
 
 NAME = "evaluate"
 HELP = "score a map (map bag or .gt.json) against ground truth: lateral error, coverage, recall, floor"
@@ -118,6 +118,23 @@ def _sim_json_beside(bag: str) -> Path | None:
     return None
 
 
+def drive_errors_from_sim_json(path: str | Path | None) -> dict[str, float] | None:
+    """Per drive id, its mean lateral localization error [m] as ``hdmap simulate`` recorded it
+    (``truth.<id>.lateral_error_mean_m``), or None when the file has none."""
+    if path is None:
+        return None
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    truth = doc.get("truth") if isinstance(doc, dict) else None
+    if not isinstance(truth, dict):
+        return None
+    out = {str(k): float(v["lateral_error_mean_m"]) for k, v in truth.items()
+           if isinstance(v, dict) and _number(v.get("lateral_error_mean_m")) is not None}
+    return out or None
+
+
 def sigma_from_sim_json(path: str | Path) -> float | None:
     """The lateral localization sigma [m] of the drives recorded by the simulator, or None.
 
@@ -177,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"map: {map_note}")
     print(f"ground truth: {gt.name} ({len(gt.features)} features, {len(gt.lanes)} lanes, {len(gt.routes)} routes)")
 
-    drives = None
+    drives, errors = None, None
     sigma, sigma_note = args.sigma_loc, "--sigma-loc"
     if args.fleet:
         from hdmap_ros.bagio import read_fleet_bag
@@ -192,8 +209,9 @@ def run(args: argparse.Namespace) -> int:
         if fleet.error:
             note += f"; read stopped early: {fleet.error}"
         print(note)
+        sim = _sim_json_beside(args.fleet)
+        errors = drive_errors_from_sim_json(sim)
         if sigma is None:
-            sim = _sim_json_beside(args.fleet)
             sigma = sigma_from_sim_json(sim) if sim else None
             sigma_note = f"{sim.name}" if sigma is not None else "default"
     if sigma is None:
@@ -202,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
 
     config = EvalConfig(step_m=args.step, gate_m=args.gate,
                         highway_only=not args.all_lanes)
-    report = evaluate_map(hdmap, gt, config=config, drives=drives, sigma_loc_m=sigma)
+    report = evaluate_map(hdmap, gt, config=config, drives=drives, sigma_loc_m=sigma, drive_errors=errors)
     print()
     print(report.summary())
     if args.json:
