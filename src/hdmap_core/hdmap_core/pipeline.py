@@ -137,7 +137,7 @@ class PipelineConfig:
                 use_global_adjustment=True,
                 final_alignment=final,
                 mark_on_cut_only=True,
-                connection=ConnectionConfig(support_window_m=4.0, window_min_count=2, separation_count_ratio=0.5),
+                connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")
