@@ -81,3 +81,27 @@ def assert_maps_equal(a: HDMap, b: HDMap) -> None:
         np.testing.assert_array_equal(na.position, nb.position)
         assert na.heading == nb.heading
         np.testing.assert_allclose(na.width, nb.width, rtol=1e-6)
+
+
+def install_fake_pipeline(monkeypatch, build_map) -> None:
+    """Replace ``hdmap_core.pipeline`` by a stand-in with the contract's API: ``build_map`` as
+    given and a ``PipelineConfig`` whose ``preset(name)`` keeps only the name (the CLI tests check
+    the glue, not the algorithms)."""
+    import sys  # noqa: PLC0415
+    import types  # noqa: PLC0415
+    from dataclasses import dataclass  # noqa: PLC0415
+
+    import hdmap_core  # noqa: PLC0415
+
+    @dataclass(frozen=True)
+    class PipelineConfig:
+        name: str
+
+        @classmethod
+        def preset(cls, name: str) -> PipelineConfig:
+            return cls(name)
+
+    mod = types.ModuleType("hdmap_core.pipeline")
+    mod.PipelineConfig, mod.build_map = PipelineConfig, build_map
+    monkeypatch.setitem(sys.modules, "hdmap_core.pipeline", mod)
+    monkeypatch.setattr(hdmap_core, "pipeline", mod, raising=False)

@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import json
-import sys
-import types
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from bag_samples import T0_NS, assert_maps_equal, make_drive, make_map
+from bag_samples import T0_NS, assert_maps_equal, install_fake_pipeline, make_drive, make_map
 from hdmap_core.model import GeoOrigin
 from hdmap_ros import cli
 from hdmap_ros.bagio import read_fleet_bag, read_map_bag, write_fleet_bag
@@ -23,14 +21,6 @@ ORIGIN = GeoOrigin(57.7, 11.97, 5.0)
 def fake_pipeline(monkeypatch):
     """A stand-in for hdmap_core.pipeline with the contract's API; records its calls."""
     calls = {}
-
-    @dataclass(frozen=True)
-    class PipelineConfig:
-        name: str
-
-        @classmethod
-        def preset(cls, name):
-            return cls(name)
 
     @dataclass(frozen=True)
     class BuildReport:
@@ -51,12 +41,7 @@ def fake_pipeline(monkeypatch):
             progress("pivots", 2, 2)
         return BuildResult(make_map(n_features=3), BuildReport(len(drives)))
 
-    mod = types.ModuleType("hdmap_core.pipeline")
-    mod.PipelineConfig, mod.build_map = PipelineConfig, build_map
-    monkeypatch.setitem(sys.modules, "hdmap_core.pipeline", mod)
-    import hdmap_core
-
-    monkeypatch.setattr(hdmap_core, "pipeline", mod, raising=False)
+    install_fake_pipeline(monkeypatch, build_map)
     return calls
 
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 import math
-import sys
 import types
 from dataclasses import dataclass
 
 import pytest
 
+from bag_samples import install_fake_pipeline
 from hdmap_core.evaluate import hdmap_from_ground_truth
 from hdmap_core.groundtruth import load_ground_truth
 from hdmap_ros import cli
@@ -22,14 +22,6 @@ def gt_pipeline(monkeypatch, tmp_path):
     """build_map stand-in returning the ground truth of the scenario as the map (a perfect map)."""
 
     @dataclass(frozen=True)
-    class PipelineConfig:
-        name: str
-
-        @classmethod
-        def preset(cls, name):
-            return cls(name)
-
-    @dataclass(frozen=True)
     class Result:
         map: object
         report: object
@@ -38,12 +30,7 @@ def gt_pipeline(monkeypatch, tmp_path):
         (gt,) = tmp_path.glob("*.gt.json")
         return Result(hdmap_from_ground_truth(load_ground_truth(gt)), types.SimpleNamespace(stage_seconds={"x": 0.0}))
 
-    mod = types.ModuleType("hdmap_core.pipeline")
-    mod.PipelineConfig, mod.build_map = PipelineConfig, build_map
-    monkeypatch.setitem(sys.modules, "hdmap_core.pipeline", mod)
-    import hdmap_core
-
-    monkeypatch.setattr(hdmap_core, "pipeline", mod, raising=False)
+    install_fake_pipeline(monkeypatch, build_map)
     return tmp_path
 
 
