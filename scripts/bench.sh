@@ -14,10 +14,12 @@ HDMAP=.venv/bin/hdmap
 
 if [[ -n "${BENCH_SMOKE:-}" ]]; then
     "$HDMAP" bench esmini_e6mini:20:1 --work-dir "$OUT/fleets" --markdown "$OUT/smoke.md" --json "$OUT/smoke.json"
+    .venv/bin/python scripts/bench_incremental.py --drives 12 --road-km 2 --long-km 2 --replay-drives 6
     exit 0
 fi
 "$HDMAP" bench paper_like:134:1 esmini_e6mini:40:1 esmini_soderleden:40:1 carla_town04:100:1 carla_town06:100:1 \
     --work-dir "$OUT/fleets" --markdown "$OUT/presets.md" --json "$OUT/presets.json"
 "$HDMAP" bench paper_like:134:1 --presets default --scale 0.25 --scale 1 --scale 4 \
     --work-dir "$OUT/fleets" --markdown "$OUT/scaling.md" --json "$OUT/scaling.json"
+.venv/bin/python scripts/bench_incremental.py --drives 100
 if [[ -f scripts/bench_adjustment.py ]]; then .venv/bin/python scripts/bench_adjustment.py; fi

@@ -125,12 +125,14 @@ def test_setup_script_is_strict_bash():
     assert "set -euo pipefail" in text
 
 
-def test_ci_runs_exactly_make_test():
+def test_ci_runs_make_test_then_the_benchmark_smoke_run():
     text = (REPO / ".ci" / "run").read_text()
     assert "set -euo pipefail" in text
     commands = [ln.strip() for ln in text.splitlines()
                 if ln.strip() and not ln.lstrip().startswith(("#", "export", "echo", "cd", "set"))]
-    assert commands == ["make test"]
+    assert commands == ["make test", 'BENCH_SMOKE=1 BENCH_OUT="${BENCH_OUT:-out/ci-bench}" make bench']
+    smoke = (SCRIPTS / "bench.sh").read_text().split('if [[ -n "${BENCH_SMOKE:-}" ]]; then', 1)[1].split("fi", 1)[0]
+    assert "bench esmini_e6mini" in smoke and "bench_incremental.py" in smoke and "exit 0" in smoke
 
 
 def test_requirements_pin_every_top_level_package():
