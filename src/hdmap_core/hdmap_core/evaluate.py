@@ -418,8 +418,9 @@ def _drive_counts(f: MapFeature, skipped: list[str]) -> np.ndarray:
     return np.where(np.isfinite(dc), dc, 0.0)
 
 
-def _valid_trajectories(drives: Sequence[Drive], skipped: list[str]) -> list[np.ndarray]:
-    out = []
+def _valid_trajectories(drives: Sequence[Drive], skipped: list[str]) -> tuple[list[np.ndarray], list[str | None]]:
+    """The usable trajectories and their drive ids (unusable ones are reported in ``skipped``)."""
+    out, ids = [], []
     for i, d in enumerate(drives):
         xy = np.asarray(getattr(d, "xy", None), dtype=float)
         name = getattr(d, "drive_id", f"#{i}")
@@ -427,7 +428,24 @@ def _valid_trajectories(drives: Sequence[Drive], skipped: list[str]) -> list[np.
             skipped.append(f"drive {name!r}: trajectory unusable (shape {xy.shape} or non-finite), not counted")
             continue
         out.append(xy)
-    return out
+        ids.append(getattr(d, "drive_id", None))
+    return out, ids
+
+
+@dataclass(frozen=True)
+class _Crossings:
+    """Which drive crosses which cut in its direction, each (cut, drive) pair once."""
+
+    cut: np.ndarray
+    owner: np.ndarray  # index into drive_ids
+    drive_ids: list[str | None]
+
+
+def _crossings(cuts: Cuts, drives: Sequence[Drive], cos_min: float, skipped: list[str]) -> _Crossings:
+    trajs, ids = _valid_trajectories(drives, skipped)
+    tp = points_on_cuts(cuts, trajs, cos_min=cos_min)
+    pairs = np.unique(tp.cut * (len(trajs) + 1) + tp.owner)
+    return _Crossings(pairs // (len(trajs) + 1), pairs % (len(trajs) + 1), ids)
 
 
 # --------------------------------------------------------------------------------------------
@@ -530,9 +548,10 @@ def evaluate_map(
     n_gt_cut = np.bincount(gp.cut, minlength=k)
     n_map_cut = np.bincount(mp.cut, minlength=k)
 
-    drive_count, floor_source = _cut_drive_counts(cuts, drives, mp, matched, m_dc, cos_feat, skipped)
+    crossings = _crossings(cuts, drives, cos_feat, skipped) if drives is not None else None
+    drive_count, floor_source = _cut_drive_counts(k, crossings, mp, matched, m_dc)
     floor = np.where(drive_count >= 1, sigma / np.sqrt(np.maximum(drive_count, 1.0)), np.nan)
-    fleet_err = _cut_fleet_error(cuts, drives, drive_errors, cos_feat) if drives is not None and drive_errors else None
+    fleet_err = _cut_fleet_error(k, crossings, drive_errors) if crossings is not None and drive_errors else None
 
     per_type = {}
     for t in EVAL_TYPES:
@@ -620,25 +639,19 @@ def _map_point_drive_counts(feats: list[MapFeature], mp: CutPoints, skipped: lis
 
 
 def _cut_drive_counts(
-    cuts: Cuts,
-    drives: Sequence[Drive] | None,
+    k: int,
+    crossings: _Crossings | None,
     mp: CutPoints,
     matched: np.ndarray,
     m_dc: np.ndarray,
-    cos_min: float,
-    skipped: list[str],
 ) -> tuple[np.ndarray, str]:
     """(K,) drives covering each cut (NaN unknown) and where the number comes from.
 
     With drives: trajectories crossing the cut in its direction, each drive once. Without: the
     largest drive_count among the cut's matched map points (0 -> unknown).
     """
-    k = len(cuts)
-    if drives is not None:
-        trajs = _valid_trajectories(drives, skipped)
-        tp = points_on_cuts(cuts, trajs, cos_min=cos_min)
-        pairs = np.unique(tp.cut * (len(trajs) + 1) + tp.owner)
-        return np.bincount(pairs // (len(trajs) + 1), minlength=k).astype(float), "drives"
+    if crossings is not None:
+        return np.bincount(crossings.cut, minlength=k).astype(float), "drives"
     dc = np.zeros(k)
     if matched.any():
         np.maximum.at(dc, mp.cut[matched], m_dc[matched])
@@ -647,27 +660,14 @@ def _cut_drive_counts(
     return np.where(dc > 0, dc, np.nan), "map"
 
 
-def _cut_fleet_error(
-    cuts: Cuts, drives: Sequence[Drive], drive_errors: Mapping[str, float], cos_min: float
-) -> np.ndarray:
+def _cut_fleet_error(k: int, crossings: _Crossings, drive_errors: Mapping[str, float]) -> np.ndarray:
     """(K,) mean of the known lateral errors of the drives crossing each cut in its direction
     (NaN where none is known). Crossing drives share the cut's left normal, so their errors add."""
-    ids, trajs = [], []
-    for d in drives:
-        xy = np.asarray(getattr(d, "xy", None), dtype=float)
-        e = drive_errors.get(getattr(d, "drive_id", None))
-        if e is None or not math.isfinite(float(e)) or xy.ndim != 2 or len(xy) < 2 or not np.all(np.isfinite(xy)):
-            continue
-        ids.append(float(e))
-        trajs.append(xy)
-    k = len(cuts)
-    if not trajs:
-        return np.full(k, np.nan)
-    tp = points_on_cuts(cuts, trajs, cos_min=cos_min)
-    pairs = np.unique(tp.cut * (len(trajs) + 1) + tp.owner)
-    cut, owner = pairs // (len(trajs) + 1), pairs % (len(trajs) + 1)
-    n = np.bincount(cut, minlength=k).astype(float)
-    total = np.bincount(cut, weights=np.asarray(ids)[owner], minlength=k)
+    err = np.array([float(drive_errors.get(i, math.nan)) if i is not None else math.nan for i in crossings.drive_ids])
+    e = err[crossings.owner] if len(err) else np.zeros(0)
+    known = np.isfinite(e)
+    n = np.bincount(crossings.cut[known], minlength=k).astype(float)
+    total = np.bincount(crossings.cut[known], weights=e[known], minlength=k)
     return np.where(n > 0, total / np.maximum(n, 1.0), np.nan)
 
 
