@@ -112,6 +112,24 @@ def test_unmarked_overlap_is_trimmed_to_one_copy(order):
     assert_one_continuous(m, 0.0, 158.0)
 
 
+@pytest.mark.parametrize("order", ["together", "long_then_short", "short_then_long"])
+def test_trim_keeps_the_longer_piece_at_an_overlap(order):
+    r"""  a: x 0..98 (50 steps)      b: x 97 (one step: the last metres a second pivot saw)
+    RULE trim_keep_longer: b gives way, so every line still reaches x 98; trimming a's end for b
+    instead leaves b as a one-step speck (no polyline), and the lines end short of the road's end."""
+    ga, gb = conn(road("a", 0.0, 50)), conn(road("b", 97.0, 1, y_mid=0.4))
+    if order == "together":
+        m = stitch([ga, gb])
+    else:
+        first, second = (ga, gb) if order == "long_then_short" else (gb, ga)
+        mg = MapGraph([first])
+        mg.integrate([second])
+        m = mg.to_hdmap()
+    assert_one_continuous(m, 0.0, 98.0)
+    old = stitch([ga, gb], config=StitchConfig(trim_keep_longer=False))
+    assert max(f.points[-1, 0] for f in old.features) < 98.0
+
+
 def test_stitch_joins_same_type_only():
     """a ends with a dashed line, b starts with a solid one at the same place: not joined; the
     border and the solid line continue."""

@@ -86,6 +86,10 @@ class StitchConfig:
         duplicate_m: a join is skipped when the feature already continues within this distance of
             the new partner (it would duplicate a polyline) [m].
         trim_overlap: drop component end nodes that lie on a place already in the map.
+        trim_keep_longer: ... but only where the other graph's piece there is at least as long
+            (in topology nodes) as the trimmed one; a shorter piece is trimmed instead (a pivot
+            that sees only the last metres of a road must not cut a long pivot's end off and
+            then be dropped as an isolated piece). False: every overlap trims the new graph.
         overlap_radius_m: a topology node this close to another graph's node with a similar
             heading is the same place [m] ...
         overlap_search_m: ... as is one up to this far away (midpoints of two pivots differ with
@@ -170,6 +174,7 @@ class StitchConfig:
     type_mismatch_cost_m: float = 0.3
     duplicate_m: float = 0.25
     trim_overlap: bool = True
+    trim_keep_longer: bool = True
     overlap_radius_m: float = 1.2
     overlap_search_m: float = 8.0
     overlap_along_m: float = 1.2
@@ -606,17 +611,34 @@ class MapGraph:
         )
 
     def _trim(self, new_keys: Sequence[str]) -> int:
-        """Kill component end nodes of new graphs that lie on a place another graph already maps."""
+        """Kill component end nodes of new graphs that lie on a place another graph already maps.
+
+        With ``trim_keep_longer`` a node is not killed for overlapping a shorter piece (fewer
+        topology nodes in its component) of another graph; that graph is walked after the new
+        ones instead, so its shorter piece gives way (RULE: the longer estimate of a place stays).
+        """
         cfg = self.config
         flat = self._flat()
         if flat.n_topo == 0:
             return 0
         tree = cKDTree(flat.t_xy)
         cos_max = math.cos(math.radians(cfg.max_heading_diff_deg))
-        killed = 0
-        for k in new_keys:
+        sizes: dict[str, np.ndarray] = {}
+        spared: set[str] = set()
+
+        def size_of(key: str) -> np.ndarray:
+            if key not in sizes:
+                g = self._graphs[key]
+                out = np.zeros(g.n_topo, dtype=np.int64)
+                for comp in g.components():
+                    out[comp] = len(comp)
+                sizes[key] = out
+            return sizes[key]
+
+        def walk(k: str) -> int:
             g, alive = self._graphs[k], self._alive[k]
             gi = flat.keys.index(k)
+            own = size_of(k)
 
             def overlaps(t: int) -> bool:
                 u, n = _unit(float(g.topo_heading[t]))
@@ -633,26 +655,36 @@ class MapGraph:
                         continue
                     d = flat.t_xy[j] - g.topo_xy[t]
                     if math.hypot(*d) <= cfg.overlap_radius_m:
-                        return True  # the same road midpoint
-                    if abs(float(d @ u)) > cfg.overlap_along_m or len(fl) == 0:
+                        same = True  # the same road midpoint
+                    elif abs(float(d @ u)) > cfg.overlap_along_m or len(fl) == 0:
                         continue
-                    # the same features: most of this step's maxima have a twin of the same type
-                    other = slice(flat.t_start[j], flat.t_start[j + 1])
-                    gl, gt = flat.n_xy[other] @ n, flat.n_type[other]
-                    twin = (np.abs(fl[:, None] - gl[None, :]) <= cfg.overlap_feature_m) & (ft[:, None] == gt[None, :])
-                    matched = int(twin.any(axis=1).sum())
-                    if matched >= max(min(2, len(fl)), cfg.overlap_share * len(fl)):
-                        return True
+                    else:
+                        # the same features: most of this step's maxima have a twin of the same type
+                        other = slice(flat.t_start[j], flat.t_start[j + 1])
+                        gl, gt = flat.n_xy[other] @ n, flat.n_type[other]
+                        twin = (np.abs(fl[:, None] - gl[None, :]) <= cfg.overlap_feature_m) & (ft[:, None] == gt[None, :])
+                        same = int(twin.any(axis=1).sum()) >= max(min(2, len(fl)), cfg.overlap_share * len(fl))
+                    if not same:
+                        continue
+                    if cfg.trim_keep_longer and size_of(kj)[flat.t_local[j]] < own[t]:
+                        spared.add(kj)
+                        continue
+                    return True
                 return False
 
+            killed = 0
             for comp in g.components():
                 order = comp.tolist()
-                for walk in (order, order[::-1]):
-                    for t in walk:
+                for walk_order in (order, order[::-1]):
+                    for t in walk_order:
                         if not alive[t] or not overlaps(t):
                             break
                         alive[t] = False
                         killed += 1
+            return killed
+
+        killed = sum(walk(k) for k in new_keys)
+        killed += sum(walk(k) for k in sorted(spared - set(new_keys)))
         return killed
 
     def _stitch(self, rep: IntegrateReport) -> None:
