@@ -14,7 +14,7 @@ from bag_samples import install_fake_pipeline
 from hdmap_core.evaluate import hdmap_from_ground_truth
 from hdmap_core.groundtruth import load_ground_truth
 from hdmap_ros import cli
-from hdmap_ros.commands.bench import format_table
+from hdmap_ros.commands.bench import format_table, summarize_seeds
 
 
 @pytest.fixture
@@ -27,7 +27,7 @@ def gt_pipeline(monkeypatch, tmp_path):
         report: object
 
     def build_map(drives, *, config, seed=0, progress=None):
-        (gt,) = tmp_path.glob("*.gt.json")
+        gt = sorted(tmp_path.glob("*.gt.json"))[0]  # every scenario here is of one map
         return Result(hdmap_from_ground_truth(load_ground_truth(gt)), types.SimpleNamespace(stage_seconds={"x": 0.0}))
 
     install_fake_pipeline(monkeypatch, build_map)
@@ -53,6 +53,37 @@ def test_inline_bench_on_a_simulated_scenario(gt_pipeline, capsys):
     assert out_md.read_text().count("\n") == 4  # header, rule, two rows
 
 
+def test_seed_range_runs_each_seed_and_adds_the_mean_over_seeds(gt_pipeline, capsys):
+    work = gt_pipeline
+    out_json, out_md = work / "bench.json", work / "bench.md"
+    assert cli.main(["bench", "motorway:3:1-2", "--presets", "naive", "--inline", "--work-dir", str(work),
+                     "--json", str(out_json), "--markdown", str(out_md)]) == 0
+    rows = json.loads(out_json.read_text())
+    runs = [r for r in rows if not r.get("summary")]
+    (mean,) = [r for r in rows if r.get("summary")]
+    assert [r["scenario"] for r in runs] == ["motorway_3_s1", "motorway_3_s2"]
+    assert mean["scenario"] == "motorway_3" and mean["seeds"] == "1,2" and mean["preset"] == "naive"
+    assert mean["floor_m"] == pytest.approx((runs[0]["floor_m"] + runs[1]["floor_m"]) / 2)
+    assert "mean over seeds" in capsys.readouterr().out
+    assert "Mean over seeds" in out_md.read_text()
+
+
+def test_summarize_seeds_means_and_ratios_of_means():
+    rows = [
+        {"scenario": "m_40_s1", "preset": "default", "mean_m": 0.4, "floor_m": 0.2, "fleet_floor_m": 0.4, "coverage": 1.0},
+        {"scenario": "m_40_s2", "preset": "default", "mean_m": 0.1, "floor_m": 0.2, "fleet_floor_m": 0.1, "coverage": 0.9},
+        {"scenario": "m_40_s1", "preset": "naive", "mean_m": 0.5, "floor_m": 0.2, "fleet_floor_m": math.nan},
+        {"scenario": "other_30_s1", "preset": "default", "mean_m": 0.3, "floor_m": 0.3},
+    ]
+    (row,) = summarize_seeds(rows)  # one seed of naive / of "other": no mean row
+    assert (row["scenario"], row["preset"], row["seeds"]) == ("m_40", "default", "1,2")
+    assert row["mean_m"] == pytest.approx(0.25) and row["coverage"] == pytest.approx(0.95)
+    assert row["mean_over_floor"] == pytest.approx(1.25)  # 0.25 / 0.2, not the mean of 2.0 and 0.5
+    assert row["mean_over_floor_max"] == pytest.approx(2.0)
+    assert row["mean_over_fleet"] == pytest.approx(1.0)
+    assert math.isnan(row["recall"])
+
+
 def test_table_prints_missing_figures_as_dash():
     text = format_table([{"scenario": "s", "preset": "p", "drives": 2, "mean_m": math.nan, "coverage": 0.5}])
     assert "50.0%" in text and " -" in text
@@ -64,6 +95,8 @@ def test_table_prints_missing_figures_as_dash():
         (["bench", "motorway:3", "--presets", "fancy"], "--presets"),
         (["bench", "no/such/bag"], "neither an existing bag"),
         (["bench", "motorway:x"], "integers"),
+        (["bench", "motorway:3:5-2"], "integers"),
+        (["bench", "motorway:3:1,1"], "distinct"),
         (["bench", "motorway:3", "--scale", "0"], "--scale"),
     ],
 )

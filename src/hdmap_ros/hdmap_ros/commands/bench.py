@@ -1,8 +1,11 @@
 """``hdmap bench``: the pipeline presets side by side on the same fleet bags, scored and timed.
 
 Each scenario is a fleet bag with its ground truth: either an existing bag (``BAG`` with
-``BAG.gt.json`` beside it, as ``hdmap simulate`` writes) or ``MAP:DRIVES[:SEED]``, simulated here
+``BAG.gt.json`` beside it, as ``hdmap simulate`` writes) or ``MAP:DRIVES[:SEEDS]``, simulated here
 with the simulator's default configuration (e.g. ``motorway_ramps:134``, the paper-like scenario).
+SEEDS is one seed, a range ``1-8`` or a list ``1,4,7``: one fleet per seed, and a second table
+with each figure's mean over the seeds (one fleet can be unlucky: its drives' errors need not
+average out, see the realized floor in docs/evaluation.md).
 Every (scenario, preset) run happens in a fresh process, one after the other, so that wall time
 and peak memory (peak RSS of that process: imports, bag reading, map building and evaluation) are
 its own. The table has the evaluator's figures (``hdmap_core.evaluate``), the floor
@@ -25,7 +28,7 @@ from typing import Any
 
 from hdmap_core.errors import ConfigError
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "Scenario", "run_one", "format_table"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "Scenario", "run_one", "format_table", "summarize_seeds"]
 
 NAME = "bench"
 HELP = "compare the pipeline presets on the same fleet bags: evaluator figures, floor, time, peak memory"
@@ -54,6 +57,29 @@ COLUMNS = (
     ("peak_rss_mb", "peak RSS MB", "{:.0f}"),
 )
 
+# Columns of the table over seeds: means of the runs' figures; the ratios are of the means.
+SEED_COLUMNS = (
+    ("scenario", "scenario", "{}"),
+    ("preset", "preset", "{}"),
+    ("seeds", "seeds", "{}"),
+    ("drives", "drives", "{:.0f}"),
+    ("mean_m", "mean m", "{:.3f}"),
+    ("corrected_mean_m", "corr. mean m", "{:.3f}"),
+    ("floor_m", "floor m", "{:.3f}"),
+    ("mean_over_floor", "mean/floor", "{:.2f}"),
+    ("mean_over_floor_max", "max seed mean/floor", "{:.2f}"),
+    ("fleet_floor_m", "fleet err m", "{:.3f}"),
+    ("mean_over_fleet", "mean/fleet err", "{:.2f}"),
+    ("coverage", "coverage", "{:.1%}"),
+    ("recall", "recall", "{:.1%}"),
+    ("precision", "precision", "{:.1%}"),
+    ("type_accuracy", "type acc.", "{:.1%}"),
+    ("fragmentation", "fragm.", "{:.2f}"),
+    ("build_s", "build s", "{:.1f}"),
+)
+_SEED_MEANS = ("drives", "mean_m", "corrected_mean_m", "floor_m", "fleet_floor_m", "coverage", "recall",
+               "precision", "type_accuracy", "fragmentation", "build_s")
+
 
 @dataclass(frozen=True)
 class Scenario:
@@ -77,8 +103,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "scenarios",
         nargs="*",
         metavar="SCENARIO",
-        help="fleet bag (with BAG.gt.json beside it), MAP:DRIVES[:SEED] to simulate, or a named "
-        "scenario NAME[:DRIVES[:SEED]] (paper_like) "
+        help="fleet bag (with BAG.gt.json beside it), MAP:DRIVES[:SEEDS] to simulate, or a named "
+        "scenario NAME[:DRIVES[:SEEDS]] (paper_like); SEEDS: 1, 1-8 or 1,4,7 (several: also a "
+        "table of the means over the seeds) "
         f"(default: {' '.join(DEFAULT_SCENARIOS)})",
     )
     parser.add_argument(
@@ -141,27 +168,38 @@ def prepare_scenarios(specs: list[str], *, scales: list[float], work_dir: Path) 
             sigma = sigma_from_sim_json(sim) if sim.exists() else None
             out.append(Scenario(path.name, str(path), str(gt), sigma))
             continue
-        name, drives, seed, named = _parse_simulated(spec)
+        name, drives, seeds, named = _parse_simulated(spec)
         map_name, kw = name, {}
         if named is not None:
             map_name, kw = named["map"], {"label": name, "length_m": named["length_m"], "sim": named["sim"]}
-        out.extend(_simulate(map_name, max(1, round(drives * s)), seed, work_dir, **kw) for s in scales)
+        out.extend(_simulate(map_name, max(1, round(drives * s)), seed, work_dir, **kw) for s in scales for seed in seeds)
     return out
 
 
-def _parse_simulated(spec: str) -> tuple[str, int, int, dict[str, Any] | None]:
-    """``MAP:DRIVES[:SEED]`` or ``NAME[:DRIVES[:SEED]]`` of a named scenario -> (map or scenario
-    name, drives, seed, the named scenario or None)."""
+def _parse_simulated(spec: str) -> tuple[str, int, list[int], dict[str, Any] | None]:
+    """``MAP:DRIVES[:SEEDS]`` or ``NAME[:DRIVES[:SEEDS]]`` of a named scenario -> (map or scenario
+    name, drives, seeds, the named scenario or None); SEEDS is ``3``, ``1-8`` or ``1,4,7``."""
     parts = spec.split(":")
     named = NAMED_SCENARIOS.get(parts[0])
     if len(parts) > 3 or (named is None and len(parts) < 2):
-        raise ConfigError(f"scenario {spec!r}: neither an existing bag nor MAP:DRIVES[:SEED]")
+        raise ConfigError(f"scenario {spec!r}: neither an existing bag nor MAP:DRIVES[:SEEDS]")
     try:
         drives = int(parts[1]) if len(parts) > 1 and parts[1] else named["drives"]
-        seed = int(parts[2]) if len(parts) > 2 else 0
+        seeds = _parse_seeds(parts[2]) if len(parts) > 2 else [0]
     except ValueError:
-        raise ConfigError(f"scenario {spec!r}: DRIVES and SEED must be integers") from None
-    return parts[0], drives, seed, named
+        raise ConfigError(f"scenario {spec!r}: DRIVES and SEEDS must be integers (SEEDS: 3, 1-8 or 1,4,7)") from None
+    if any(x < 0 for x in seeds) or len(set(seeds)) != len(seeds):
+        raise ConfigError(f"scenario {spec!r}: seeds must be distinct and >= 0")
+    return parts[0], drives, seeds, named
+
+
+def _parse_seeds(text: str) -> list[int]:
+    if "-" in text.strip("-"):
+        lo, hi = (int(x) for x in text.split("-"))
+        if hi < lo:
+            raise ValueError(text)
+        return list(range(lo, hi + 1))
+    return [int(x) for x in text.split(",")]
 
 
 def _simulate(
@@ -237,7 +275,7 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
         "corrected_mean_m": o.corrected_mean_m,
         "floor_m": floor,
         "fleet_floor_m": rep.fleet_floor_mean_m,
-        "mean_over_floor": o.mean_m / floor if floor and math.isfinite(floor) and floor > 0 else math.nan,
+        "mean_over_floor": _ratio(o.mean_m, floor),
         "coverage": rep.coverage,
         "recall": o.recall,
         "precision": o.precision,
@@ -264,10 +302,10 @@ def _cell(value: Any, fmt: str) -> str:
         return str(value)
 
 
-def format_table(rows: list[dict[str, Any]], *, markdown: bool = False) -> str:
-    """The runs as an aligned text table (or a Markdown table)."""
-    header = [h for _, h, _ in COLUMNS]
-    body = [[_cell(r.get(k), f) for k, _, f in COLUMNS] for r in rows]
+def format_table(rows: list[dict[str, Any]], *, markdown: bool = False, columns: tuple = COLUMNS) -> str:
+    """The runs as an aligned text table (or a Markdown table) of ``columns`` (key, header, format)."""
+    header = [h for _, h, _ in columns]
+    body = [[_cell(r.get(k), f) for k, _, f in columns] for r in rows]
     if markdown:
         lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
         return "\n".join(lines + ["| " + " | ".join(b) + " |" for b in body])
@@ -290,13 +328,50 @@ def run(args: argparse.Namespace) -> int:
             for preset in presets:
                 print(f"hdmap bench: {sc.name} / {preset} ...", file=sys.stderr, flush=True)
                 rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline))
-    table = format_table(rows)
-    print(table)
+    summary = summarize_seeds(rows)
+    print(format_table(rows))
+    if summary:
+        print("\nmean over seeds:\n" + format_table(summary, columns=SEED_COLUMNS))
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1, default=_json_default))
+        Path(args.json).write_text(json.dumps(rows + summary, indent=1, default=_json_default))
     if args.markdown:
-        Path(args.markdown).write_text(format_table(rows, markdown=True) + "\n")
+        text = format_table(rows, markdown=True) + "\n"
+        if summary:
+            text += "\nMean over seeds:\n\n" + format_table(summary, columns=SEED_COLUMNS, markdown=True) + "\n"
+        Path(args.markdown).write_text(text)
     return 0
+
+
+def summarize_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Rows of one scenario simulated with several seeds (names ``..._s<seed>``), per preset:
+    the mean of each figure over the seeds, ``mean_over_floor`` and ``mean_over_fleet`` as ratios
+    of the means, ``mean_over_floor_max`` the worst seed's ratio. Marked ``"summary": True``;
+    groups of one seed give no row."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        base, sep, seed = str(r["scenario"]).rpartition("_s")
+        if sep and seed.isdigit():
+            groups.setdefault((base, str(r["preset"])), []).append(r)
+    out = []
+    for (base, preset), runs in groups.items():
+        if len(runs) < 2:
+            continue
+        row: dict[str, Any] = {"scenario": base, "preset": preset, "summary": True,
+                               "seeds": ",".join(str(r["scenario"]).rpartition("_s")[2] for r in runs)}
+        for key in _SEED_MEANS:
+            vals = [float(r[key]) for r in runs if isinstance(r.get(key), (int, float)) and math.isfinite(r[key])]
+            row[key] = sum(vals) / len(vals) if vals else math.nan
+        row["mean_over_floor"] = _ratio(row["mean_m"], row["floor_m"])
+        row["mean_over_fleet"] = _ratio(row["mean_m"], row["fleet_floor_m"])
+        ratios = [_ratio(r.get("mean_m"), r.get("floor_m")) for r in runs]
+        row["mean_over_floor_max"] = max((x for x in ratios if math.isfinite(x)), default=math.nan)
+        out.append(row)
+    return out
+
+
+def _ratio(a: Any, b: Any) -> float:
+    ok = all(isinstance(x, (int, float)) and math.isfinite(x) for x in (a, b))
+    return float(a) / float(b) if ok and b > 0 else math.nan
 
 
 def _json_default(value: Any) -> Any:
