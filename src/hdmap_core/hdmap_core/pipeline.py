@@ -332,7 +332,18 @@ class _Tracks:
         return out
 
 
-def _placeholder(pivot_id: str, q: int, ps: PivotSamples, *, processed: bool, drive_ids: tuple[str, ...] = ()) -> StepResult:
+def _step(
+    pivot_id: str,
+    q: int,
+    ps: PivotSamples,
+    *,
+    drive_ids: tuple[str, ...] = (),
+    processed: bool = False,
+    maxima: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> StepResult:
+    """Step ``q`` of a pivot: valid with ``maxima`` (lateral_m, types, counts, std_m), else a
+    placeholder (rejected, or ``processed`` before) that carries only the step's geometry."""
+    lateral_m, types, counts, std_m = maxima if maxima is not None else (_EMPTY_F, _EMPTY_I, _EMPTY_I, _EMPTY_F)
     return StepResult(
         pivot_id=pivot_id,
         index=q,
@@ -340,12 +351,12 @@ def _placeholder(pivot_id: str, q: int, ps: PivotSamples, *, processed: bool, dr
         midpoint=ps.midpoint[q],
         heading=float(ps.heading[q]),
         width_m=float(ps.width_m[q]),
-        valid=False,
+        valid=maxima is not None,
         processed_before=processed,
-        lateral_m=_EMPTY_F,
-        types=_EMPTY_I,
-        counts=_EMPTY_I,
-        std_m=_EMPTY_F,
+        lateral_m=lateral_m,
+        types=types,
+        counts=counts,
+        std_m=std_m,
         drive_ids=drive_ids,
     )
 
@@ -457,26 +468,11 @@ def _run_pivot(
         if inner[q]:
             continue
         if status[q] != 2:
-            steps.append(_placeholder(pid, q, ps, processed=bool(status[q] == 1), drive_ids=step_ids[q]))
+            steps.append(_step(pid, q, ps, processed=bool(status[q] == 1), drive_ids=step_ids[q]))
             continue
         a, b = ptr[q], ptr[q + 1]
-        steps.append(
-            StepResult(
-                pivot_id=pid,
-                index=q,
-                s_m=float(ps.s_m[q]),
-                midpoint=ps.midpoint[q],
-                heading=float(ps.heading[q]),
-                width_m=float(ps.width_m[q]),
-                valid=True,
-                processed_before=False,
-                lateral_m=agg.lateral_m[a:b],
-                types=agg.types[a:b],
-                counts=agg.counts[a:b],
-                std_m=agg.std_m[a:b],
-                drive_ids=step_ids[q],
-            )
-        )
+        maxima = (agg.lateral_m[a:b], agg.types[a:b], agg.counts[a:b], agg.std_m[a:b])
+        steps.append(_step(pid, q, ps, drive_ids=step_ids[q], maxima=maxima))
     counters.total += ps.n_steps
     counters.skipped += int((status == 1).sum())
     counters.valid += int((status == 2).sum())
