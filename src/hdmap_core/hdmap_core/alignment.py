@@ -447,6 +447,26 @@ def solve_offsets(
 # ----------------------------------------------------------------------------- EM
 
 
+def _gap_clusters(y: np.ndarray, types: np.ndarray, gap_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Corrected positions ``y`` (M,) split into per-type clusters at gaps > ``gap_m``:
+    labels (M,), cluster centres (K,) [m] and cluster types (K,)."""
+    lab = gap_labels(y, types, gap_m)
+    k = int(lab.max()) + 1
+    centre = np.bincount(lab, weights=y, minlength=k) / np.bincount(lab, minlength=k)
+    ctype = np.zeros(k, dtype=types.dtype)
+    ctype[lab] = types
+    return lab, centre, ctype
+
+
+def _grid_scores(x: np.ndarray, cand: np.ndarray, centre: np.ndarray, allowed: np.ndarray, capture_m: float) -> np.ndarray:
+    """(G, M) score of each sample ``x`` (M,) shifted by each candidate offset ``cand`` (G,):
+    max(0, 1 - distance to the nearest allowed cluster centre / ``capture_m``); ``allowed``
+    (M, K) marks the clusters a sample may land on."""
+    d = np.abs((x[None, :] + cand[:, None])[:, :, None] - centre[None, None, :])  # (G, M, K)
+    d = np.where(allowed[None, :, :], d, np.inf).min(axis=2)
+    return np.maximum(0.0, 1.0 - d / capture_m)
+
+
 def match_new_drives(
     x: np.ndarray,
     types: np.ndarray,
@@ -474,13 +494,8 @@ def match_new_drives(
     ks = known[drive]
     if not ks.any():
         return out
-    y = x[ks] + offsets[drive[ks]]
-    lab = gap_labels(y, types[ks], gap_m)
-    k = int(lab.max()) + 1
-    cnt = np.bincount(lab, minlength=k)
-    centre = np.bincount(lab, weights=y, minlength=k) / cnt
-    ctype = np.zeros(k, dtype=types.dtype)
-    ctype[lab] = types[ks]
+    lab, centre, ctype = _gap_clusters(x[ks] + offsets[drive[ks]], types[ks], gap_m)
+    k = len(centre)
     n_known = int(known.sum())
     if n_known >= 5:  # clusters of one known drive only (e.g. its misclassified line) do not attract
         nd = int(drive.max()) + 1
@@ -488,11 +503,7 @@ def match_new_drives(
         ctype = np.where(n_dr >= 2, ctype, -1)
     us = np.flatnonzero(~ks)
     cand = np.arange(-max_offset_m, max_offset_m + 1e-9, grid_m)
-    pos = x[us][None, :] + cand[:, None]  # (G, U)
-    same = types[us][:, None] == ctype[None, :]  # (U, K)
-    d = np.abs(pos[:, :, None] - centre[None, None, :])  # (G, U, K)
-    d = np.where(same[None, :, :], d, np.inf).min(axis=2)
-    score = np.maximum(0.0, 1.0 - d / capture_m)  # (G, U)
+    score = _grid_scores(x[us], cand, centre, types[us][:, None] == ctype[None, :], capture_m)  # (G, U)
     ud, inv = np.unique(drive[us], return_inverse=True)
     per = score @ (inv[:, None] == np.arange(len(ud))[None, :]).astype(float)  # (G, Du)
     # Prefer small offsets (localization errors are small more often): a 3 m shift costs less
@@ -528,13 +539,8 @@ def recheck_offsets(
         (D,) offsets.
     """
     n_drives = len(offsets)
-    y = x + offsets[drive]
-    lab = gap_labels(y, types, gap_m)
-    k = int(lab.max()) + 1
-    centre = np.bincount(lab, weights=y, minlength=k) / np.bincount(lab, minlength=k)
-    ctype = np.zeros(k, dtype=types.dtype)
-    ctype[lab] = types
-    member = np.zeros((n_drives, k), dtype=bool)
+    lab, centre, ctype = _gap_clusters(x + offsets[drive], types, gap_m)
+    member = np.zeros((n_drives, len(centre)), dtype=bool)
     member[drive, lab] = True
     support = member.sum(axis=0)
     # (M, K): clusters a sample may land on: same type and supported by other drives (two when
@@ -542,10 +548,7 @@ def recheck_offsets(
     need = 2 if n_drives >= 6 else 1
     ok = (types[:, None] == ctype[None, :]) & ((support[None, :] - member[drive]) >= need)
     cand = np.arange(-max_offset_m, max_offset_m + 1e-9, grid_m)
-    pos = x[None, :] + cand[:, None]  # (G, M) absolute candidate offsets
-    d = np.abs(pos[:, :, None] - centre[None, None, :])
-    d = np.where(ok[None, :, :], d, np.inf).min(axis=2)
-    score = np.maximum(0.0, 1.0 - d / capture_m)  # (G, M)
+    score = _grid_scores(x, cand, centre, ok, capture_m)  # (G, M)
     onehot = (drive[:, None] == np.arange(n_drives)[None, :]).astype(float)
     per = score @ onehot - prior_per_m2 * (cand * cand)[:, None]  # (G, D)
     best = np.argmax(per, axis=0)
