@@ -22,7 +22,7 @@ from scipy.special import ndtr
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 
-__all__ = ["AggregationConfig", "StepAggregate", "ManyAggregates", "aggregate_many", "kde_maxima", "overlap_coefficients", "gaussian_overlap", "aggregate_step", "ProcessedStore"]
+__all__ = ["AggregationConfig", "ManyAggregates", "aggregate_many", "kde_maxima", "overlap_coefficients", "gaussian_overlap", "aggregate_step", "ProcessedStore"]
 
 _SQRT2PI = np.sqrt(2.0 * np.pi)
 
@@ -64,23 +64,6 @@ class AggregationConfig:
             raise ConfigError(f"AggregationConfig.overlap_threshold must be in [0, 1], got {self.overlap_threshold!r}")
         if self.grid_points < 8:
             raise ConfigError("AggregationConfig.grid_points must be >= 8")
-
-
-@dataclass(frozen=True)
-class StepAggregate:
-    """The aggregated maxima of one step, sorted by lateral position.
-
-    Attributes:
-        lateral_m: (K,) maxima [m]; types: (K,); counts: (K,) distinct drives; std_m: (K,) 1-sigma
-        of each maximum [m]; n_samples: (K,); kept_labels: (K,) the input cluster label of each.
-    """
-
-    lateral_m: np.ndarray
-    types: np.ndarray
-    counts: np.ndarray
-    std_m: np.ndarray
-    n_samples: np.ndarray
-    kept_labels: np.ndarray
 
 
 def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 16, n_shift: int = 50) -> np.ndarray:
@@ -148,7 +131,9 @@ class ManyAggregates:
     """Aggregated maxima of many steps at once, sorted by (step, lateral position).
 
     Attributes:
-        step: (K,) step of each maximum; the other fields as in ``StepAggregate``.
+        step: (K,) step of each maximum; lateral_m: (K,) maxima [m]; types: (K,); counts: (K,)
+        distinct drives; std_m: (K,) 1-sigma of each maximum [m]; n_samples: (K,); kept_labels:
+        (K,) the input cluster label of each.
     """
 
     step: np.ndarray
@@ -264,7 +249,7 @@ def aggregate_many(
 
 def aggregate_step(
     x: np.ndarray, labels: np.ndarray, types: np.ndarray, drive: np.ndarray, *, config: AggregationConfig
-) -> StepAggregate:
+) -> ManyAggregates:
     """Replace each cluster of one step by its KDE maximum and filter overlapping clusters.
 
     Args:
@@ -272,10 +257,9 @@ def aggregate_step(
         types: (M,) FeatureType codes; drive: (M,) drive codes.
 
     Returns:
-        The maxima of the surviving clusters, sorted by position.
+        The maxima of the surviving clusters, sorted by position (all of step 0).
     """
-    m = aggregate_many(x, np.zeros(len(x), np.int64), labels, types, drive, config=config)
-    return StepAggregate(m.lateral_m, m.types, m.counts, m.std_m, m.n_samples, m.kept_labels)
+    return aggregate_many(x, np.zeros(len(x), np.int64), labels, types, drive, config=config)
 
 
 @dataclass
