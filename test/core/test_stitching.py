@@ -419,6 +419,15 @@ def test_loose_end_running_on_another_line_deduplicated():
     assert len(by_type(m0, D)) == 2
 
 
+def test_loose_end_is_no_twin_of_the_link_into_itself():
+    r"""  a: x 0..98      b: one step at x 99.5 (the last metres of the road another pivot saw)
+    The stitcher links a's end to b's node; b's lines then end there, and the edge into that end
+    is no other line running on top of it: the lines reach x 99.5 (they stopped at 98 when the
+    de-duplication took the link for a twin)."""
+    m = stitch([conn(road("a", 0.0, 50)), conn(road("b", 99.5, 1))])
+    assert_one_continuous(m, 0.0, 99.5)
+
+
 def test_rebuild_makes_the_map_independent_of_integration_order():
     ga, gb = conn(road("a", 0.0, 50)), conn(road("b", 60.0, 50, y_mid=0.4))
     gc = conn(_ramp("c", 100.0, 20, converging=False))

@@ -834,8 +834,8 @@ class MapGraph:
             if abs(float(d @ n)) <= cfg.twin_lateral_m and abs(float(d @ u)) <= cfg.twin_along_m:
                 return True
             for k2 in out_adj.get(k):
-                if not alive[k2]:
-                    continue
+                if not alive[k2] or k2 == j:
+                    continue  # the edge into j itself (a stitch link) is no other line
                 seg = flat.n_xy[k2] - flat.n_xy[k]
                 length = float(math.hypot(*seg))
                 if length < 1e-9:
