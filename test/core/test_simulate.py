@@ -522,6 +522,23 @@ def _covered_by_type(lines: _Lines, pts: np.ndarray, ftype: np.ndarray) -> np.nd
     return out
 
 
+def test_seen_counts_are_split_back_into_the_features(motorway):
+    from dataclasses import replace
+
+    from hdmap_core.groundtruth import GTFeature
+    from hdmap_core.sim_sensor import feature_index, seen_per_feature
+
+    line = np.stack([np.arange(4.0), np.zeros(4)], axis=1)
+    feats = (GTFeature(1, FeatureType.SOLID, line), GTFeature(2, FeatureType.DASHED, line[:1]),
+             GTFeature(3, FeatureType.SOLID, line[:3] + 1), GTFeature(4, FeatureType.SOLID, line[:2] + 2),
+             GTFeature(3, FeatureType.SOLID, line + 3))
+    gt = replace(motorway, features=feats)
+    idx = feature_index(gt)  # indexes features 1, 3, 4, 3 (2 has a single point)
+    got = seen_per_feature(gt, idx, np.arange(len(idx.xy)))
+    assert set(got) == {1, 2, 4}  # id 3 is not unique
+    assert got[1].tolist() == [0, 1, 2, 3] and got[2].tolist() == [0] and got[4].tolist() == [7, 8]
+
+
 def test_pieces_too_short_to_report_are_not_seen(motorway):
     cfg = SimConfig.noise_free(n_drives=3, min_detection_length_m=5000.0, **SHORT)
     fleet = simulate_fleet(motorway, config=cfg, seed=0)

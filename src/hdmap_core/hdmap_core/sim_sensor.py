@@ -113,15 +113,17 @@ def seen_per_feature(gt: GroundTruth, idx: FeatureIndex, count: np.ndarray) -> d
     """Per ground-truth feature id, (N_f,) int64: ``count`` (P,), one value per point of
     ``idx``, split back into the features' points (in their order). Features left out of the
     index (fewer than 2 points) get zeros; ids that occur more than once are left out."""
-    feats = [f for f in gt.features if len(f.points) >= 2]
-    bounds = np.searchsorted(idx.fid, np.arange(len(feats) + 1))
-    per_index = {id(f): count[bounds[i] : bounds[i + 1]] for i, f in enumerate(feats)}
+    n_indexed = sum(len(f.points) >= 2 for f in gt.features)
+    bounds = np.searchsorted(idx.fid, np.arange(n_indexed + 1))  # idx.fid counts the indexed features
     n_of = Counter(int(f.id) for f in gt.features)
-    return {
-        int(f.id): np.asarray(per_index.get(id(f), np.zeros(len(f.points))), dtype=np.int64)
-        for f in gt.features
-        if n_of[int(f.id)] == 1
-    }
+    out, j = {}, 0
+    for f in gt.features:
+        values = np.zeros(len(f.points), dtype=np.int64)
+        if len(f.points) >= 2:
+            values, j = np.asarray(count[bounds[j] : bounds[j + 1]], dtype=np.int64), j + 1
+        if n_of[int(f.id)] == 1:
+            out[int(f.id)] = values
+    return out
 
 
 def _block_uniform(s: np.ndarray, group: np.ndarray, bmin: float, bmax: float, rng: np.random.Generator) -> np.ndarray:
