@@ -289,11 +289,14 @@ def test_missing_or_mismatched_seen_counts_are_left_out_and_named(road: GroundTr
     del seen[1]
     seen[2] = np.zeros(7, dtype=int)
     seen[3] = np.zeros(201, dtype=int)  # a line no drive saw, but the map has it
+    seen[4] = ["many"] * 201  # not numbers: left out like a wrong length
+    seen[6] = np.ones(3)  # no such feature: ignored
     report = evaluate_map(hdmap_from_ground_truth(road), road, seen_counts=seen)
     text = "\n".join(report.skipped)
     assert "feature 1: no seen counts" in text and "feature 2: 7 seen counts for 201 points" in text
-    assert report.observed_share == pytest.approx(2 / 3)  # of ids 3, 4, 5
-    assert report.recall_observed == 1.0 and report.n_observed == 2 * 100
+    assert "feature 4: seen counts that are not numbers" in text
+    assert report.observed_share == pytest.approx(1 / 2)  # of ids 3 and 5
+    assert report.recall_observed == 1.0 and report.n_observed == 100
     plain = evaluate_map(hdmap_from_ground_truth(road), road)
     assert math.isnan(plain.observed_share) and math.isnan(plain.recall_observed) and plain.n_observed == 0
     assert "observed GT points" not in plain.summary()

@@ -237,8 +237,8 @@ class EvalReport:
             each ground-truth feature point): share of the ground-truth points on the cuts whose
             ground-truth segment has an end seen by >= 1 drive ("observed"); over the points whose
             feature has seen counts. NaN without seen counts.
-        recall_observed: recall (RULE 3) over the observed ground-truth points only: the recall
-            a map could reach from what the fleet saw is 1; NaN without seen counts.
+        recall_observed: recall (RULE 3) over the observed ground-truth points only; 1 when the
+            map has everything the fleet saw. NaN without seen counts.
         n_observed: the observed ground-truth points (the denominator of recall_observed).
         n_cuts, n_reference_cuts, n_evaluable_cuts: all cuts, cuts holding a ground-truth point,
             cuts with a matched map point.
@@ -699,10 +699,13 @@ def _observed_gt_points(
     per_feature = []
     for i, f in enumerate(gt_feats):
         raw = seen_counts.get(int(f.id))
-        seen = np.asarray(raw if raw is not None else [], dtype=float).reshape(-1)
+        try:
+            seen = np.asarray(raw if raw is not None else [], dtype=float).reshape(-1)
+            what = "no seen counts" if raw is None else f"{len(seen)} seen counts for {len(f.points)} points"
+        except (TypeError, ValueError):
+            seen, what = np.zeros(0), "seen counts that are not numbers"
         if len(seen) != len(f.points):
             if i in on_cuts:
-                what = "no seen counts" if raw is None else f"{len(seen)} seen counts for {len(f.points)} points"
                 skipped.append(f"ground-truth feature {f.id}: {what}, left out of observed_share / recall_observed")
             seen = np.full(len(f.points), np.nan)
         per_feature.append(seen)
