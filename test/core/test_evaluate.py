@@ -228,6 +228,103 @@ def test_realized_floor_is_the_mean_error_of_the_crossing_drives(road: GroundTru
     assert math.isnan(evaluate_map(hdmap_from_ground_truth(road), road, drives=drives).fleet_floor_mean_m)
 
 
+def _seen_all(gt: GroundTruth, count: int = 1) -> dict[int, np.ndarray]:
+    return {f.id: np.full(len(f.points), count) for f in gt.features}
+
+
+def test_recall_over_observed_points_ignores_what_no_drive_saw(road: GroundTruth) -> None:
+    perfect = hdmap_from_ground_truth(road)
+    without_outer_border = _with_features(perfect, [f for f in perfect.features if f.id != 5])
+    seen = {**_seen_all(road, 3), 5: np.zeros(len(road.features[4].points))}
+    report = evaluate_map(without_outer_border, road, seen_counts=seen)
+    assert report.overall.recall == pytest.approx(4 / 5)  # unchanged by the seen counts
+    assert report.observed_share == pytest.approx(4 / 5)
+    assert report.recall_observed == 1.0
+    assert report.n_observed == 4 * report.n_cuts
+    text = report.summary()
+    assert "observed GT points" in text and "80.0%" in text and "100.0%" in text
+    doc = json.loads(json.dumps(report.to_dict(), allow_nan=False))
+    assert doc["observed_share"] == pytest.approx(0.8) and doc["recall_observed"] == 1.0
+
+
+def test_observed_and_missed_stretches_of_one_line(road: GroundTruth) -> None:
+    # The outer solid line (id 4) seen up to x = 100 only; the map has the dashed line (id 3)
+    # up to x = 150 only and no outer border. Cuts are at x = 1, 3, ..., 199, on GT vertices; a
+    # vertex belongs to the segment starting there, so the cut at x = 101 (segment 101-102) is
+    # not observed and the one at x = 99 (segment 99-100) is.
+    perfect = hdmap_from_ground_truth(road)
+    feats = []
+    for f in perfect.features:
+        keep = {1: 201, 2: 201, 3: 151, 4: 101, 5: 0}[f.id]
+        if keep:
+            feats.append(replace(f, points=f.points[:keep], drive_count=f.drive_count[:keep],
+                                 lateral_std=f.lateral_std[:keep]))
+    seen = _seen_all(road)
+    seen[4] = (np.arange(201) <= 100).astype(int)
+    report = evaluate_map(_with_features(perfect, feats), road, seen_counts=seen)
+    assert report.n_cuts == 100
+    # observed: 3 full features + 50 cuts of line 4 (x = 1 ... 99) + all of border 5
+    assert report.n_observed == 4 * 100 + 50
+    assert report.observed_share == pytest.approx(450 / 500)
+    # hits: 200 (ids 1, 2) + 75 (dashed, x <= 149) + 50 (line 4); border 5 missed everywhere
+    assert report.overall.recall == pytest.approx(325 / 500)
+    assert report.recall_observed == pytest.approx(325 / 450)
+
+
+def test_a_point_is_observed_when_either_end_of_its_segment_was_seen(road: GroundTruth) -> None:
+    # The inner solid line with a vertex every 10 m; only the vertex at x = 50 was seen: the
+    # segments 40-50 and 50-60 are observed, i.e. the cuts at x = 41, 43, ..., 59.
+    coarse = _line(0.0)[::10]
+    gt = replace(road, features=tuple(replace(f, points=coarse) if f.id == 2 else f for f in road.features))
+    seen = _seen_all(gt)
+    seen[2] = (np.arange(len(coarse)) == 5).astype(int)
+    report = evaluate_map(hdmap_from_ground_truth(gt), gt, seen_counts=seen)
+    assert report.n_observed == 4 * 100 + 10
+    assert report.observed_share == pytest.approx(410 / 500)
+    assert report.recall_observed == 1.0 and report.overall.recall == 1.0
+
+
+def test_missing_or_mismatched_seen_counts_are_left_out_and_named(road: GroundTruth) -> None:
+    seen = _seen_all(road, 2)
+    del seen[1]
+    seen[2] = np.zeros(7, dtype=int)
+    seen[3] = np.zeros(201, dtype=int)  # a line no drive saw, but the map has it
+    seen[4] = ["many"] * 201  # not numbers: left out like a wrong length
+    seen[6] = np.ones(3)  # no such feature: ignored
+    report = evaluate_map(hdmap_from_ground_truth(road), road, seen_counts=seen)
+    text = "\n".join(report.skipped)
+    assert "feature 1: no seen counts" in text and "feature 2: 7 seen counts for 201 points" in text
+    assert "feature 4: seen counts that are not numbers" in text
+    assert report.observed_share == pytest.approx(1 / 2)  # of ids 3 and 5
+    assert report.recall_observed == 1.0 and report.n_observed == 100
+    plain = evaluate_map(hdmap_from_ground_truth(road), road)
+    assert math.isnan(plain.observed_share) and math.isnan(plain.recall_observed) and plain.n_observed == 0
+    assert "observed GT points" not in plain.summary()
+    assert json.loads(json.dumps(plain.to_dict(), allow_nan=False))["recall_observed"] is None
+
+
+def test_simulated_seen_counts_bound_a_map_of_the_drives_own_detections() -> None:
+    # The noise-free detections of a few drives, taken as the map: everything the fleet observed
+    # is in it, except at the open ends of the detected pieces (a segment with one seen end).
+    # The opposite median barrier is reported in the seeing drive's direction, while the cuts of
+    # its own carriageway count only lines running their way: so each detection is also put in
+    # reversed (6 short drives leave stretches of a barrier seen from the other side only).
+    from hdmap_core.simulate import SimConfig, simulate_fleet
+    from hdmap_core.synthetic import synthetic_highway
+
+    gt = synthetic_highway("motorway", length_m=1500.0)
+    cfg = SimConfig.noise_free(n_drives=6, snippet_length_min_m=400.0, snippet_length_max_m=800.0,
+                               visibility_next_marking=0.7, visibility_far_marking=0.25, visibility_border=0.6)
+    fleet = simulate_fleet(gt, config=cfg, seed=2)
+    lines = [(x.type, p) for d in fleet.drives for x in d.detections for p in (x.points, x.points[::-1])]
+    feats = [MapFeature(i, t, p, np.ones(len(p), int), np.zeros(len(p))) for i, (t, p) in enumerate(lines)]
+    report = evaluate_map(HDMap(features=tuple(feats)), gt, seen_counts=fleet.seen_count)
+    assert 0.3 < report.observed_share < 0.9
+    assert report.overall.recall < 0.9 * report.recall_observed
+    assert report.recall_observed > 0.98
+    assert report.overall.recall == pytest.approx(report.observed_share * report.recall_observed, abs=1e-12)
+
+
 def test_floor_from_map_drive_counts_and_default_sigma(road: GroundTruth) -> None:
     report = evaluate_map(hdmap_from_ground_truth(road, drive_count=9), road)
     assert report.floor_source == "map"

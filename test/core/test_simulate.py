@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 import numpy as np
@@ -14,11 +15,14 @@ from hdmap_core.model import FeatureType, validate_drive
 from hdmap_core.simulate import (
     DEFAULT_ORIGIN,
     SimConfig,
+    decode_runs,
+    encode_runs,
     fleet_to_dict,
     load_map,
     route_directions,
     shared_maps_dirs,
     simulate_fleet,
+    write_sim_json,
 )
 from hdmap_core.synthetic import synthetic_highway
 
@@ -106,6 +110,31 @@ def test_drive_i_does_not_depend_on_the_number_of_drives(ramps):
     more = simulate_fleet(ramps, config=SimConfig(n_drives=6, **SHORT), seed=2)
     more.drives[:] = more.drives[:3]
     assert _same_fleet(few, more)
+
+
+def _digest(fleet) -> str:
+    """A fingerprint of everything a fleet reports (coordinates rounded to 1e-6 m, so that it
+    does not hinge on the last bit of a float)."""
+    h = hashlib.sha256()
+    for d in fleet.drives:
+        h.update(f"{d.drive_id}|{d.vehicle_id}|{len(d.xy)}|{len(d.detections)}".encode())
+        h.update(np.asarray(d.stamps_ns, dtype="<i8").tobytes())
+        h.update(np.round(np.asarray(d.xy, dtype=float), 6).astype("<f8").tobytes())
+        h.update(np.round(np.asarray(d.yaw, dtype=float), 9).astype("<f8").tobytes())
+        for det in d.detections:
+            h.update(f"{int(det.type)}|{len(det.points)}".encode())
+            h.update(np.round(np.asarray(det.points, dtype=float), 6).astype("<f8").tobytes())
+    return h.hexdigest()[:16]
+
+
+def test_fleets_are_those_of_the_simulator_before_the_seen_count(ramps):
+    # Computed with the simulator of commit a20e467, before it recorded what each drive saw:
+    # recording it must not change a single draw (same drives, detections, time stamps).
+    assert _digest(simulate_fleet(ramps, config=SimConfig(n_drives=6, **SHORT), seed=5)) == "93251ca3690b6925"
+    if not any((d / "carla_town04.gt.json").is_file() for d in shared_maps_dirs()):
+        pytest.skip("shared maps not available")
+    town04 = load_map("carla_town04")
+    assert _digest(simulate_fleet(town04, config=SimConfig(n_drives=5, **SHORT), seed=0)) == "368fe38e05a0e939"
 
 
 # ---------------------------------------------------------------------------- drives
@@ -418,6 +447,105 @@ def test_false_positives_are_the_only_detections_off_the_ground_truth(ramps):
     assert abs(expected - 5.0 * km) < 4.0 * np.sqrt(5.0 * km)
 
 
+def _gt_points(gt: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All GT feature points (P, 2), their unit tangents (P, 2) and types (P,), in feature order."""
+    pts = np.concatenate([f.points for f in gt.features])
+    tan = np.concatenate([np.gradient(f.points, axis=0) for f in gt.features])
+    ftype = np.concatenate([np.full(len(f.points), int(f.type)) for f in gt.features])
+    return pts, tan / np.linalg.norm(tan, axis=1, keepdims=True), ftype
+
+
+def _seen(gt: GroundTruth, fleet) -> np.ndarray:
+    return np.concatenate([fleet.seen_count[f.id] for f in gt.features])
+
+
+def test_full_visibility_sees_every_point_within_the_bands_and_none_beyond(motorway):
+    # Narrow marking bands, so that the lines two lanes away lie beyond the far band.
+    cfg = SimConfig.noise_free(n_drives=1, next_marking_max_lateral_m=5.0, far_marking_max_lateral_m=6.5, **SHORT)
+    pts, tan, ftype = _gt_points(motorway)
+    h = cfg.visibility_edge_m / 2 + 0.05  # the visibility ramps across the band edges
+    marking, border = ftype != int(FeatureType.ROAD_BORDER), ftype == int(FeatureType.ROAD_BORDER)
+    n_checked: dict[str, int] = {}
+    for seed in range(6):
+        fleet = simulate_fleet(motorway, config=cfg, seed=seed)
+        seen = _seen(motorway, fleet)
+        d = fleet.drives[0]
+        _, k = cKDTree(d.xy).query(pts)
+        v = pts - d.xy[k]
+        along, lat = np.sum(v * _head(d.yaw[k]), axis=1), np.sum(v * _left(d.yaw[k]), axis=1)
+        cos = np.sum(tan * _head(d.yaw[k]), axis=1)
+        beside = (np.abs(along) <= 0.5) & (k >= 2) & (k <= len(d.xy) - 3)
+        same, opp = beside & (cos > 0.9), beside & (cos < -0.9)
+        groups = {
+            "markings within the far band": (same & marking & (np.abs(lat) < cfg.far_marking_max_lateral_m - h), 1),
+            "markings beyond it": (same & marking & (np.abs(lat) > cfg.far_marking_max_lateral_m + h), 0),
+            "borders within their band": (same & border & (np.abs(lat) < cfg.border_max_lateral_m - h), 1),
+            "opposite barrier on the left": (opp & border & (lat > 0) & (lat < cfg.border_max_lateral_m - h), 1),
+            "other opposite features": (opp & (marking | (lat < 0) | (lat > cfg.border_max_lateral_m + h)), 0),
+            "far from the path": (np.linalg.norm(v, axis=1) > cfg.range_ahead_m + 15.0, 0),
+        }
+        for name, (sel, want) in groups.items():
+            assert np.all(seen[sel] == want), (seed, name)
+            n_checked[name] = n_checked.get(name, 0) + int(np.count_nonzero(sel))
+        assert set(np.unique(seen)) == {0, 1}
+    assert min(n_checked.values()) > 100, n_checked
+
+
+def test_seen_count_is_the_number_of_drives_whose_detections_cover_the_point(motorway):
+    # Dropouts, and many stretches reported with the wrong type: a misclassified point was still
+    # seen. Noise-free otherwise, so a seen point lies on a detection of each drive that saw it.
+    cfg = SimConfig.noise_free(
+        n_drives=5, visibility_next_marking=0.7, visibility_far_marking=0.3, visibility_border=0.6,
+        misclass_rate=0.3, marking_to_border_rate=0.1, **SHORT,
+    )
+    fleet = simulate_fleet(motorway, config=cfg, seed=4)
+    pts, _, ftype = _gt_points(motorway)
+    covered = np.zeros(len(pts), dtype=int)
+    wrong_type = 0  # points a drive reported only with a type other than their own
+    for d in fleet.drives:
+        lines = _Lines([x.points for x in d.detections], [int(x.type) for x in d.detections])
+        on = lines.distance(pts, k=4) < 0.01
+        covered += on
+        wrong_type += int(np.count_nonzero(on & ~_covered_by_type(lines, pts, ftype)))
+    np.testing.assert_array_equal(_seen(motorway, fleet), covered)
+    assert covered.max() >= 2 and 0.05 < np.mean(covered > 0) < 0.95
+    assert wrong_type > 1000
+
+
+def _covered_by_type(lines: _Lines, pts: np.ndarray, ftype: np.ndarray) -> np.ndarray:
+    """(P,) the point lies on a detection reported with the point's own type."""
+    out = np.zeros(len(pts), dtype=bool)
+    for t in np.unique(ftype):
+        m = ftype == t
+        if np.any(lines.type == t):
+            out[m] = lines.distance(pts[m], int(t), k=4) < 0.01
+    return out
+
+
+def test_seen_counts_are_split_back_into_the_features(motorway):
+    from dataclasses import replace
+
+    from hdmap_core.groundtruth import GTFeature
+    from hdmap_core.sim_sensor import feature_index, seen_per_feature
+
+    line = np.stack([np.arange(4.0), np.zeros(4)], axis=1)
+    feats = (GTFeature(1, FeatureType.SOLID, line), GTFeature(2, FeatureType.DASHED, line[:1]),
+             GTFeature(3, FeatureType.SOLID, line[:3] + 1), GTFeature(4, FeatureType.SOLID, line[:2] + 2),
+             GTFeature(3, FeatureType.SOLID, line + 3))
+    gt = replace(motorway, features=feats)
+    idx = feature_index(gt)  # indexes features 1, 3, 4, 3 (2 has a single point)
+    got = seen_per_feature(gt, idx, np.arange(len(idx.xy)))
+    assert set(got) == {1, 2, 4}  # id 3 is not unique
+    assert got[1].tolist() == [0, 1, 2, 3] and got[2].tolist() == [0] and got[4].tolist() == [7, 8]
+
+
+def test_pieces_too_short_to_report_are_not_seen(motorway):
+    cfg = SimConfig.noise_free(n_drives=3, min_detection_length_m=5000.0, **SHORT)
+    fleet = simulate_fleet(motorway, config=cfg, seed=0)
+    assert sum(len(d.detections) for d in fleet.drives) == 0
+    assert not _seen(motorway, fleet).any()
+
+
 def test_measurement_noise_matches_sigma(motorway):
     cfg = SimConfig.noise_free(n_drives=10, noise_sigma_m=0.1, noise_growth_per_m=0.0, noise_corr_length_m=0.0, **SHORT)
     fleet = simulate_fleet(motorway, config=cfg, seed=15)
@@ -444,6 +572,9 @@ def test_runs_on_every_shared_map(name):
         validate_drive(d)
     assert sum(len(d.detections) for d in fleet.drives) > 0
     json.dumps(fleet_to_dict(fleet))
+    assert {f.id: len(f.points) for f in gt.features} == {i: len(n) for i, n in fleet.seen_count.items()}
+    counts = np.concatenate(list(fleet.seen_count.values()))
+    assert 0 < np.count_nonzero(counts) < len(counts) and counts.max() <= 6
 
 
 def test_fleet_json_document(ramps):
@@ -454,6 +585,28 @@ def test_fleet_json_document(ramps):
     assert one["bias_lateral_m"] == pytest.approx(fleet.truth[fleet.drives[0].drive_id]["bias_lateral_m"])
     assert len(one["true_xy"]) == len(fleet.drives[0].xy)
     assert "true_xy" not in json.loads(json.dumps(fleet_to_dict(fleet)))["truth"][fleet.drives[0].drive_id]
+    assert {int(k): decode_runs(v).tolist() for k, v in doc["seen_count"].items()} == {
+        k: v.tolist() for k, v in fleet.seen_count.items()
+    }
+
+
+def test_sim_json_file_is_the_fleet_document(ramps, tmp_path):
+    fleet = simulate_fleet(ramps, config=SimConfig(n_drives=3, **SHORT), seed=0)
+    write_sim_json(fleet, tmp_path / "f.sim.json")
+    text = (tmp_path / "f.sim.json").read_text()
+    assert json.loads(text) == json.loads(json.dumps(fleet_to_dict(fleet)))
+    # one line per feature's run-length code, not one per number
+    assert text.count("\n") < 200 + len(ramps.features)
+
+
+def test_run_length_code_round_trips_and_rejects_garbage():
+    v = np.array([0, 0, 0, 2, 2, 1, 0, 0])
+    assert encode_runs(v) == [0, 3, 2, 2, 1, 1, 0, 2]
+    np.testing.assert_array_equal(decode_runs(encode_runs(v)), v)
+    assert encode_runs(np.zeros(0, dtype=int)) == [] and len(decode_runs([])) == 0
+    for bad in ([1, 2, 3], [1, 0], [1.5, 2], ["a", 1]):
+        with pytest.raises(ValueError):
+            decode_runs(bad)
 
 
 @pytest.mark.parametrize(

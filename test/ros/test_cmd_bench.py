@@ -48,8 +48,10 @@ def test_inline_bench_on_a_simulated_scenario(gt_pipeline, capsys):
         assert r["drives"] == 3 and r["drive_km"] > 0
         assert r["mean_m"] < 0.01 and r["coverage"] > 0.9  # the ground truth scored against itself
         assert r["floor_m"] > 0 and r["peak_rss_mb"] > 10
+        # 3 short drives see part of the road; the ground truth as map has all of that
+        assert 0.05 < r["observed_share"] < 0.9 and r["recall_observed"] == 1.0
     table = capsys.readouterr().out
-    assert "motorway_3_s0" in table and "mean/floor" in table
+    assert "motorway_3_s0" in table and "mean/floor" in table and "recall obs." in table
     assert out_md.read_text().count("\n") == 4  # header, rule, two rows
 
 
@@ -141,3 +143,8 @@ def test_simulated_fleet_is_reused_only_when_made_with_the_same_config(tmp_path)
     sim.write_text(json.dumps(doc))
     prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
     assert json.loads(sim.read_text())["config"]["route_weighting"] == "coverage"  # simulated anew
+    doc = json.loads(sim.read_text())
+    del doc["seen_count"]  # as written before the simulator recorded seen counts
+    sim.write_text(json.dumps(doc))
+    prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
+    assert "seen_count" in json.loads(sim.read_text())  # simulated anew

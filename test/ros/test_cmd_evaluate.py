@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,9 @@ from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute, save
 from hdmap_core.model import Drive, FeatureType, GeoOrigin
 from hdmap_ros import cli
 from hdmap_ros.bagio import write_fleet_bag, write_map_bag
-from hdmap_ros.commands.evaluate import resolve_ground_truth, sigma_from_sim_json
+from hdmap_ros.commands.evaluate import resolve_ground_truth, seen_counts_from_sim_json, sigma_from_sim_json
+
+BAGS = Path(__file__).resolve().parents[2] / "bags"
 
 ORIGIN = GeoOrigin(48.78, 9.18, 250.0)
 
@@ -83,6 +86,54 @@ def test_map_bag_with_fleet_and_sim_json(road_path: Path, tmp_path: Path, capsys
     rc = cli.main(["evaluate", str(map_bag), str(road_path), "--fleet", str(fleet), "--sigma-loc", "2",
                    "--json", str(out_json)])
     assert rc == 0 and json.loads(out_json.read_text())["floor_mean_m"] == pytest.approx(1.0)
+
+
+def test_seen_counts_in_the_sim_json_give_recall_over_the_observed_ground_truth(
+    road_path: Path, tmp_path: Path, capsys
+) -> None:
+    gt = _gt(road_path)
+    perfect = hdmap_from_ground_truth(gt)
+    without_outer_border = replace(perfect, features=tuple(f for f in perfect.features if f.id != 5))
+    map_bag = write_map_bag(tmp_path / "map", without_outer_border, ORIGIN)
+    drives = [Drive("d0", _line(1.75), np.zeros(121), (np.arange(121) * 10**8).astype(np.int64))]
+    fleet = write_fleet_bag(tmp_path / "fleet", drives, ORIGIN)
+    # as hdmap simulate writes it: run-length coded per feature id; the outer border never seen
+    seen = {str(i): [2, 121] for i in (1, 2, 3, 4)} | {"5": [0, 121]}
+    sim = {"config": {"bias_lateral_sigma_m": 0.3}, "truth": {"d0": {"lateral_error_mean_m": 0.1}}, "seen_count": seen}
+    (tmp_path / "fleet.sim.json").write_text(json.dumps(sim))
+    out_json = tmp_path / "r.json"
+    assert cli.main(["evaluate", str(map_bag), str(road_path), "--fleet", str(fleet), "--json", str(out_json)]) == 0
+    assert "observed GT points" in capsys.readouterr().out
+    doc = json.loads(out_json.read_text())
+    assert doc["overall"]["recall"] == pytest.approx(0.8)
+    assert doc["observed_share"] == pytest.approx(0.8) and doc["recall_observed"] == 1.0
+    assert doc["fleet_floor_mean_m"] == pytest.approx(0.1)
+
+
+def test_sim_json_from_before_the_seen_count_still_evaluates(tmp_path: Path, capsys) -> None:
+    # bags/e6mini_20.sim.json was written by the simulator before it recorded seen counts.
+    assert "seen_count" not in json.loads((BAGS / "e6mini_20.sim.json").read_text())
+    gt = str(BAGS / "e6mini_20.gt.json")
+    out_json = tmp_path / "r.json"
+    assert cli.main(["evaluate", gt, gt, "--fleet", str(BAGS / "e6mini_20"), "--json", str(out_json)]) == 0
+    text = capsys.readouterr().out
+    assert "realized floor" in text and "observed GT points" not in text
+    doc = json.loads(out_json.read_text())
+    assert doc["overall"]["recall"] == 1.0 and doc["fleet_floor_mean_m"] > 0
+    assert doc["observed_share"] is None and doc["recall_observed"] is None and doc["n_observed"] == 0
+
+
+def test_seen_counts_from_sim_json(tmp_path: Path) -> None:
+    path = tmp_path / "x.sim.json"
+    path.write_text(json.dumps({"seen_count": {"7": [0, 2, 3, 1], "8": [1, 2, 3], "x": [1, 1], "9": []}}))
+    got = seen_counts_from_sim_json(path)
+    assert set(got) == {7, 9}
+    assert got[7].tolist() == [0, 0, 3] and got[9].tolist() == []
+    path.write_text(json.dumps({"truth": {}}))
+    assert seen_counts_from_sim_json(path) is None
+    path.write_text("{not json")
+    assert seen_counts_from_sim_json(path) is None
+    assert seen_counts_from_sim_json(None) is None
 
 
 def test_unknown_ground_truth_and_missing_map_are_clear_errors(road_path: Path, tmp_path: Path, capsys) -> None:

@@ -4,7 +4,8 @@ Along the ground truth's route centerlines a lateral cut line is placed every 2 
 the carriageway; map and ground-truth polylines are intersected with it; each map point is matched
 to the nearest ground-truth point of the same type on that cut; the signed distance along the cut
 is the lateral error. From these matches come the total and offset-corrected error, coverage,
-recall, precision, type accuracy, fragmentation and the localization floor sigma/sqrt(n).
+recall, precision, type accuracy, fragmentation and the localization floor sigma/sqrt(n); with
+the simulator's truth also the realized floor and recall over the ground truth the fleet observed.
 ``docs/evaluation.md`` defines every figure exactly.
 
 Typical use::
@@ -232,6 +233,13 @@ class EvalReport:
             made from these drives alone (no absolute reference) inherits their common error, so a
             fleet whose mean error is unluckily large bounds the mean from below, whatever sigma/sqrt(n)
             says. NaN when the drive errors are not given.
+        observed_share: with seen counts (the simulator's per-point count of drives that detected
+            each ground-truth feature point): share of the ground-truth points on the cuts whose
+            ground-truth segment has an end seen by >= 1 drive ("observed"); over the points whose
+            feature has seen counts. NaN without seen counts.
+        recall_observed: recall (RULE 3) over the observed ground-truth points only; 1 when the
+            map has everything the fleet saw. NaN without seen counts.
+        n_observed: the observed ground-truth points (the denominator of recall_observed).
         n_cuts, n_reference_cuts, n_evaluable_cuts: all cuts, cuts holding a ground-truth point,
             cuts with a matched map point.
         reference_length_m, evaluable_length_m: the latter two times step_m.
@@ -278,6 +286,9 @@ class EvalReport:
     skipped: tuple[str, ...] = ()
     runtime_s: float = 0.0
     fleet_floor_mean_m: float = math.nan
+    observed_share: float = math.nan
+    recall_observed: float = math.nan
+    n_observed: int = 0
 
     @property
     def coverage(self) -> float:
@@ -460,6 +471,7 @@ def evaluate_map(
     drives: Sequence[Drive] | None = None,
     sigma_loc_m: float | None = None,
     drive_errors: Mapping[str, float] | None = None,
+    seen_counts: Mapping[int, Sequence[int] | np.ndarray] | None = None,
 ) -> EvalReport:
     """Evaluate ``hdmap`` against ``gt`` with the paper's lateral metric (Sec. VII).
 
@@ -473,6 +485,10 @@ def evaluate_map(
         drive_errors: per drive id, its mean lateral localization error [m, left of its heading]
             (the simulator's truth); with ``drives`` it gives the realized floor
             ``fleet_floor_mean_m``.
+        seen_counts: per ground-truth feature id, (N_f,) for each of its points the number of
+            drives that detected it (the simulator's ``Fleet.seen_count``); gives
+            ``observed_share`` and ``recall_observed``. A feature missing here or with another
+            number of points is left out of both (named in ``skipped``).
 
     Returns:
         The report. An empty map gives coverage 0 and NaN errors.
@@ -537,6 +553,7 @@ def evaluate_map(
     _, g_to_m = nearest_same_type(gp.cut, gp.s, g_type, mp.cut, mp.s, m_type, width=width)
     gt_hit = g_to_m <= config.recall_radius_m
     map_hit = gd <= config.recall_radius_m
+    observed = _observed_gt_points(gt_feats, gp, seen_counts, skipped) if seen_counts is not None else None
 
     # RULE 4: type accuracy over map points with any ground-truth point within the gate.
     _, any_d = nearest_on_same_cut(mp.cut, mp.s, gp.cut, gp.s, width=width)
@@ -602,6 +619,7 @@ def evaluate_map(
         floor_mean_m=float(np.mean(floor[floor_ok])) if floor_ok.any() else math.nan,
         drive_count_mean=float(np.mean(drive_count[floor_ok])) if floor_ok.any() else math.nan,
         fleet_floor_mean_m=_mean_abs(fleet_err, floor_ok),
+        **_observed_figures(observed, gt_hit),
         n_cuts=k,
         n_reference_cuts=n_ref,
         n_evaluable_cuts=n_eval,
@@ -669,6 +687,48 @@ def _cut_fleet_error(k: int, crossings: _Crossings, drive_errors: Mapping[str, f
     n = np.bincount(crossings.cut[known], minlength=k).astype(float)
     total = np.bincount(crossings.cut[known], weights=e[known], minlength=k)
     return np.where(n > 0, total / np.maximum(n, 1.0), np.nan)
+
+
+def _observed_gt_points(
+    gt_feats: list, gp: CutPoints, seen_counts: Mapping[int, Sequence[int] | np.ndarray], skipped: list[str]
+) -> np.ndarray:
+    """(P,) per ground-truth point on a cut: 1.0 when an end of the GT segment it lies on was seen
+    by >= 1 drive, 0.0 when neither was, NaN when its feature's seen counts are missing or do not
+    have one value per point."""
+    on_cuts = set(np.unique(gp.owner).tolist())
+    per_feature = []
+    for i, f in enumerate(gt_feats):
+        raw = seen_counts.get(int(f.id))
+        try:
+            seen = np.asarray(raw if raw is not None else [], dtype=float).reshape(-1)
+            what = "no seen counts" if raw is None else f"{len(seen)} seen counts for {len(f.points)} points"
+        except (TypeError, ValueError):
+            seen, what = np.zeros(0), "seen counts that are not numbers"
+        if len(seen) != len(f.points):
+            if i in on_cuts:
+                skipped.append(f"ground-truth feature {f.id}: {what}, left out of observed_share / recall_observed")
+            seen = np.full(len(f.points), np.nan)
+        per_feature.append(seen)
+    flat = np.concatenate(per_feature) if per_feature else np.zeros(0)
+    start = np.concatenate([[0], np.cumsum([len(a) for a in per_feature])]).astype(np.int64)
+    a = flat[start[gp.owner] + gp.vertex] if len(gp.owner) else np.zeros(0)
+    b = flat[start[gp.owner] + gp.vertex + 1] if len(gp.owner) else np.zeros(0)
+    return np.where(np.isfinite(a) & np.isfinite(b), ((a >= 1) | (b >= 1)).astype(float), np.nan)
+
+
+def _observed_figures(observed: np.ndarray | None, gt_hit: np.ndarray) -> dict[str, float | int]:
+    """``observed_share``, ``recall_observed`` and ``n_observed`` of the report (NaN, 0 without
+    seen counts)."""
+    if observed is None:
+        return {"observed_share": math.nan, "recall_observed": math.nan, "n_observed": 0}
+    known = np.isfinite(observed)
+    obs = known & (observed > 0)
+    n_obs = int(np.count_nonzero(obs))
+    return {
+        "observed_share": _share(n_obs, int(np.count_nonzero(known))),
+        "recall_observed": _share(int(np.count_nonzero(obs & gt_hit)), n_obs),
+        "n_observed": n_obs,
+    }
 
 
 def _mean_abs(values: np.ndarray | None, sel: np.ndarray) -> float:

@@ -82,6 +82,12 @@ def format_summary(report: EvalReport) -> str:
             f"realized floor |mean error of the crossing drives|: {report.fleet_floor_mean_m:.3f} m mean over "
             "evaluable cuts (the fleet's own common error, from its simulator truth)"
         )
+    if math.isfinite(report.observed_share):
+        lines.append(
+            f"observed GT points (an end of their GT segment detected by >= 1 drive, simulator truth): "
+            f"{_pct(report.observed_share).strip()}; recall over them {_pct(report.recall_observed).strip()} "
+            f"of {report.n_observed} (recall over all {_pct(report.overall.recall).strip()})"
+        )
     if report.skipped:
         lines.append(f"skipped {len(report.skipped)} input part(s):")
         lines += [f"  {s}" for s in report.skipped[:10]]
@@ -179,7 +185,9 @@ def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str
     ax_map.add_patch(Rectangle(zc - half, 2 * half, 2 * half, fill=False, ec="k", lw=1.0, zorder=4))
     fig.suptitle(
         f"map over ground truth {report.gt_name!r}: total {report.overall.mean_m:.3f} m, "
-        f"offset-corrected {report.overall.corrected_mean_m:.3f} m, coverage {100 * report.coverage:.1f} %"
+        f"offset-corrected {report.overall.corrected_mean_m:.3f} m, coverage {100 * report.coverage:.1f} %, "
+        f"recall {100 * report.overall.recall:.1f} %"
+        + (f" ({100 * report.recall_observed:.1f} % of the observed GT points)" if math.isfinite(report.recall_observed) else "")
         if math.isfinite(report.overall.mean_m)
         else f"map over ground truth {report.gt_name!r}: nothing evaluable"
     )

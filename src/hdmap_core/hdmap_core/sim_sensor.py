@@ -10,6 +10,7 @@ drive's points; ``docs/simulator.md`` describes the model and every parameter.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -25,10 +26,20 @@ from hdmap_core.model import Detection, FeatureType
 if TYPE_CHECKING:  # the config lives in simulate.py, which imports this module
     from hdmap_core.simulate import SimConfig
 
-__all__ = ["FeatureIndex", "feature_index", "detections", "false_positives", "unit_tangents", "smoothstep", "gauss_markov"]
+__all__ = [
+    "FeatureIndex",
+    "feature_index",
+    "detections",
+    "seen_per_feature",
+    "false_positives",
+    "unit_tangents",
+    "smoothstep",
+    "gauss_markov",
+]
 
 _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 _BORDER = int(FeatureType.ROAD_BORDER)
+_NONE_SEEN = np.zeros(0, dtype=np.int64)
 
 
 def unit_tangents(xy: np.ndarray) -> np.ndarray:
@@ -98,6 +109,23 @@ def feature_index(gt: GroundTruth) -> FeatureIndex:
     return FeatureIndex(xy, fid, pid, s, tan, typ, order, cells[order])
 
 
+def seen_per_feature(gt: GroundTruth, idx: FeatureIndex, count: np.ndarray) -> dict[int, np.ndarray]:
+    """Per ground-truth feature id, (N_f,) int64: ``count`` (P,), one value per point of
+    ``idx``, split back into the features' points (in their order). Features left out of the
+    index (fewer than 2 points) get zeros; ids that occur more than once are left out."""
+    n_indexed = sum(len(f.points) >= 2 for f in gt.features)
+    bounds = np.searchsorted(idx.fid, np.arange(n_indexed + 1))  # idx.fid counts the indexed features
+    n_of = Counter(int(f.id) for f in gt.features)
+    out, j = {}, 0
+    for f in gt.features:
+        values = np.zeros(len(f.points), dtype=np.int64)
+        if len(f.points) >= 2:
+            values, j = np.asarray(count[bounds[j] : bounds[j + 1]], dtype=np.int64), j + 1
+        if n_of[int(f.id)] == 1:
+            out[int(f.id)] = values
+    return out
+
+
 def _block_uniform(s: np.ndarray, group: np.ndarray, bmin: float, bmax: float, rng: np.random.Generator) -> np.ndarray:
     """(P,) a uniform value per point, constant over blocks of length ~U(bmin, bmax) along ``s``,
     independent per ``group`` (one feature): the latent variable of on/off processes."""
@@ -161,15 +189,21 @@ def detections(
     disp: np.ndarray,
     cfg: SimConfig,
     rng: np.random.Generator,
-) -> list[Detection]:
+) -> tuple[list[Detection], np.ndarray]:
     """The drive's detections of ground-truth features (true poses ``xy``/``yaw``; every reported
-    point is moved by ``disp`` (M, 2) of the pose it was seen from)."""
+    point is moved by ``disp`` (M, 2) of the pose it was seen from).
+
+    Returns:
+        the detections, and (S,) the indices into ``idx`` of the ground-truth feature points they
+        were made of (visible and in a reported piece, whatever type they were reported as; each
+        point once, sorted).
+    """
     reach = max(cfg.far_marking_max_lateral_m, cfg.border_max_lateral_m) + 1.0
     c = _candidates(idx, xy, float(yaw[-1]), reach, cfg)
     dist, k = cKDTree(xy).query(idx.xy[c], distance_upper_bound=max(reach, cfg.range_ahead_m + 1.0))
     c, k = c[np.isfinite(dist)], k[np.isfinite(dist)]
     if len(c) == 0:
-        return []
+        return [], _NONE_SEEN
     m = len(xy)
     head = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
     left = np.stack([-head[:, 1], head[:, 0]], axis=1)
@@ -199,7 +233,7 @@ def detections(
     u_vis[live] = _block_uniform(idx.s[c][live], fid[live], cfg.visibility_block_min_m, cfg.visibility_block_max_m, rng)
     vis = live & (u_vis < p)
     if not vis.any():
-        return []
+        return [], _NONE_SEEN
     c, k, lat, typ, fid, reverse = c[vis], k[vis], lat[vis], typ[vis], fid[vis], (cos[vis] < 0)
     u_cls = _block_uniform(idx.s[c], fid, cfg.misclass_block_min_m, cfg.misclass_block_max_m, rng)
     marking = np.isin(typ, _MARKINGS)
@@ -228,9 +262,10 @@ def _pieces(
     disp: np.ndarray,
     cfg: SimConfig,
     rng: np.random.Generator,
-) -> list[Detection]:
+) -> tuple[list[Detection], np.ndarray]:
     """Connected visible runs -> resampled, noisy, displaced detection polylines (vectorised over
-    all pieces of the drive)."""
+    all pieces of the drive), and (S,) the sorted indices into ``idx`` of the ground-truth points
+    of the reported pieces."""
     key = np.where(reverse, -idx.pid[c], idx.pid[c])
     order = np.lexsort((key, fid))
     c, k, lat, typ, fid, reverse, key = (a[order] for a in (c, k, lat, typ, fid, reverse, key))
@@ -247,13 +282,14 @@ def _pieces(
     length = np.zeros(len(start))
     np.maximum.at(length, piece, s_in)
     ok = length >= max(cfg.min_detection_length_m, 1e-6)
+    seen = np.unique(c[ok[piece]])
     # One increasing coordinate over all pieces (1 m apart) lets np.interp resample them at once.
     offset = np.concatenate([[0.0], np.cumsum(length + 1.0)[:-1]])
     g = s_in + offset[piece]
     n_out = np.where(ok, np.maximum(2, np.ceil(length / cfg.detection_spacing_m).astype(int) + 1), 0)
     out_piece = np.repeat(np.arange(len(start)), n_out)
     if len(out_piece) == 0:
-        return []
+        return [], seen
     first = np.concatenate([[0], np.cumsum(n_out)[:-1]])
     j = np.arange(len(out_piece)) - first[out_piece]
     q = offset[out_piece] + length[out_piece] * j / np.maximum(n_out[out_piece] - 1, 1)
@@ -269,7 +305,7 @@ def _pieces(
     dets = []
     for p in np.flatnonzero(ok):
         dets.append(Detection(FeatureType(int(piece_type[p])), xy[bounds[p] : bounds[p] + n_out[p]]))
-    return dets
+    return dets, seen
 
 
 def _piecewise_gauss_markov(piece: np.ndarray, first: np.ndarray, cfg: SimConfig, rng: np.random.Generator) -> np.ndarray:

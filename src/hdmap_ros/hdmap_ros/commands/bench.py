@@ -9,7 +9,8 @@ average out, see the realized floor in docs/evaluation.md).
 Every (scenario, preset) run happens in a fresh process, one after the other, so that wall time
 and peak memory (peak RSS of that process: imports, bag reading, map building and evaluation) are
 its own. The table has the evaluator's figures (``hdmap_core.evaluate``), the floor
-sigma_loc / sqrt(drives), build time and peak RSS.
+sigma_loc / sqrt(drives), and from the simulator's truth (``BAG.sim.json``) the realized floor, the
+share of the ground truth the fleet observed and recall over it; build time and peak RSS.
 """
 
 from __future__ import annotations
@@ -49,6 +50,8 @@ COLUMNS = (
     ("fleet_floor_m", "fleet err m", "{:.3f}"),
     ("coverage", "coverage", "{:.1%}"),
     ("recall", "recall", "{:.1%}"),
+    ("observed_share", "observed", "{:.1%}"),
+    ("recall_observed", "recall obs.", "{:.1%}"),
     ("precision", "precision", "{:.1%}"),
     ("type_accuracy", "type acc.", "{:.1%}"),
     ("fragmentation", "fragm.", "{:.2f}"),
@@ -232,7 +235,8 @@ def _simulate(
 def _cached(bag: Path, gt_path: Path, config: Any, seed: int) -> bool:
     """A bag simulated earlier into the work dir is reused only when its ``.sim.json`` says it was
     made with this very simulator config and seed (a changed scenario or simulator default, e.g.
-    the route choice, simulates it anew instead of silently reusing a stale fleet)."""
+    the route choice, simulates it anew instead of silently reusing a stale fleet), and only when it
+    has the seen counts (a file from before them is simulated anew: the same drives, plus them)."""
     sim_path = bag.with_name(bag.name + ".sim.json")
     if not ((bag / "metadata.yaml").exists() and gt_path.exists() and sim_path.exists()):
         return False
@@ -240,7 +244,8 @@ def _cached(bag: Path, gt_path: Path, config: Any, seed: int) -> bool:
         doc = json.loads(sim_path.read_text())
     except (OSError, ValueError):
         return False
-    return doc.get("seed") == seed and doc.get("config") == json.loads(json.dumps(config.to_dict()))
+    same = doc.get("seed") == seed and doc.get("config") == json.loads(json.dumps(config.to_dict()))
+    return same and isinstance(doc.get("seen_count"), dict)
 
 
 def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
@@ -251,7 +256,7 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
     from hdmap_core.evaluate import evaluate_map  # noqa: PLC0415
     from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
     from hdmap_ros.bagio import read_fleet_bag  # noqa: PLC0415
-    from hdmap_ros.commands.evaluate import drive_errors_from_sim_json  # noqa: PLC0415
+    from hdmap_ros.commands.evaluate import drive_errors_from_sim_json, seen_counts_from_sim_json  # noqa: PLC0415
 
     fleet = read_fleet_bag(scenario.bag)
     t0 = time.perf_counter()
@@ -261,6 +266,7 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
     rep = evaluate_map(
         result.map, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m,
         drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
+        seen_counts=seen_counts_from_sim_json(sim) if sim.exists() else None,
     )
     o = rep.overall
     floor = rep.floor_mean_m
@@ -278,6 +284,8 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
         "mean_over_floor": _ratio(o.mean_m, floor),
         "coverage": rep.coverage,
         "recall": o.recall,
+        "observed_share": rep.observed_share,
+        "recall_observed": rep.recall_observed,
         "precision": o.precision,
         "type_accuracy": rep.type_accuracy,
         "fragmentation": rep.fragmentation_mean,

@@ -9,7 +9,10 @@ synthetic highway (``motorway``, ...).
 
 ``--fleet BAG`` gives the drives for the floor sigma_loc / sqrt(n); sigma_loc comes from
 ``--sigma-loc``, else from ``BAG.sim.json`` beside the fleet bag (written by ``hdmap simulate``:
-sqrt(bias_lateral_sigma_m^2 + drift_sigma_m^2)), else 1.0 m. Prints the summary; ``--json`` and ``--plot`` write the full report and the figure.
+sqrt(bias_lateral_sigma_m^2 + drift_sigma_m^2)), else 1.0 m. The same ``BAG.sim.json`` gives the
+drives' true errors (the realized floor) and the per-point seen counts (the share of the ground truth
+the fleet observed, and recall over it); files without them leave those figures n/a.
+Prints the summary; ``--json`` and ``--plot`` write the full report and the figure.
 Exit status: 0 done, 1 an error (unreadable input), 2 usage.
 """
 
@@ -21,12 +24,23 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from hdmap_core.errors import HdmapError
 from hdmap_core.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth, plot_evaluation
 from hdmap_core.groundtruth import GroundTruth, load_ground_truth
 from hdmap_core.model import HDMap
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "resolve_ground_truth", "sigma_from_sim_json", "drive_errors_from_sim_json"]
+__all__ = [
+    "NAME",
+    "HELP",
+    "add_arguments",
+    "run",
+    "resolve_ground_truth",
+    "sigma_from_sim_json",
+    "drive_errors_from_sim_json",
+    "seen_counts_from_sim_json",
+]
 
 NAME = "evaluate"
 HELP = "score a map (map bag or .gt.json) against ground truth: lateral error, coverage, recall, floor"
@@ -118,21 +132,46 @@ def _sim_json_beside(bag: str) -> Path | None:
     return None
 
 
-def drive_errors_from_sim_json(path: str | Path | None) -> dict[str, float] | None:
-    """Per drive id, its mean lateral localization error [m] as ``hdmap simulate`` recorded it
-    (``truth.<id>.lateral_error_mean_m``), or None when the file has none."""
+def _read_json(path: str | Path | None) -> object:
+    """The parsed document, or None when there is no path or it cannot be read as JSON."""
     if path is None:
         return None
     try:
-        doc = json.loads(Path(path).read_text())
+        return json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
+
+
+def drive_errors_from_sim_json(path: str | Path | None) -> dict[str, float] | None:
+    """Per drive id, its mean lateral localization error [m] as ``hdmap simulate`` recorded it
+    (``truth.<id>.lateral_error_mean_m``), or None when the file has none."""
+    doc = _read_json(path)
     truth = doc.get("truth") if isinstance(doc, dict) else None
     if not isinstance(truth, dict):
         return None
     out = {str(k): float(v["lateral_error_mean_m"]) for k, v in truth.items()
            if isinstance(v, dict) and _number(v.get("lateral_error_mean_m")) is not None}
     return out or None
+
+
+def seen_counts_from_sim_json(path: str | Path | None) -> dict[int, np.ndarray] | None:
+    """Per ground-truth feature id, (N,) int64 the number of drives that detected each of its
+    points, as ``hdmap simulate`` recorded it (``seen_count``, run-length coded); None when the
+    file has none (written before the seen count existed) or it is not readable. Entries that do
+    not decode are left out (the evaluator then names those features as skipped)."""
+    from hdmap_core.simulate import decode_runs
+
+    doc = _read_json(path)
+    seen = doc.get("seen_count") if isinstance(doc, dict) else None
+    if not isinstance(seen, dict):
+        return None
+    out = {}
+    for key, code in seen.items():
+        try:
+            out[int(key)] = decode_runs(code)
+        except (TypeError, ValueError):
+            continue
+    return out
 
 
 def sigma_from_sim_json(path: str | Path) -> float | None:
@@ -194,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"map: {map_note}")
     print(f"ground truth: {gt.name} ({len(gt.features)} features, {len(gt.lanes)} lanes, {len(gt.routes)} routes)")
 
-    drives, errors = None, None
+    drives, errors, seen = None, None, None
     sigma, sigma_note = args.sigma_loc, "--sigma-loc"
     if args.fleet:
         from hdmap_ros.bagio import read_fleet_bag
@@ -211,6 +250,7 @@ def run(args: argparse.Namespace) -> int:
         print(note)
         sim = _sim_json_beside(args.fleet)
         errors = drive_errors_from_sim_json(sim)
+        seen = seen_counts_from_sim_json(sim)
         if sigma is None:
             sigma = sigma_from_sim_json(sim) if sim else None
             sigma_note = f"{sim.name}" if sigma is not None else "default"
@@ -220,7 +260,9 @@ def run(args: argparse.Namespace) -> int:
 
     config = EvalConfig(step_m=args.step, gate_m=args.gate,
                         highway_only=not args.all_lanes)
-    report = evaluate_map(hdmap, gt, config=config, drives=drives, sigma_loc_m=sigma, drive_errors=errors)
+    report = evaluate_map(
+        hdmap, gt, config=config, drives=drives, sigma_loc_m=sigma, drive_errors=errors, seen_counts=seen
+    )
     print()
     print(report.summary())
     if args.json:
