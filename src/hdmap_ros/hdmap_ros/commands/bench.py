@@ -75,13 +75,15 @@ SEED_COLUMNS = (
     ("mean_over_fleet", "mean/fleet err", "{:.2f}"),
     ("coverage", "coverage", "{:.1%}"),
     ("recall", "recall", "{:.1%}"),
+    ("observed_share", "observed", "{:.1%}"),
+    ("recall_observed", "recall obs.", "{:.1%}"),
     ("precision", "precision", "{:.1%}"),
     ("type_accuracy", "type acc.", "{:.1%}"),
     ("fragmentation", "fragm.", "{:.2f}"),
     ("build_s", "build s", "{:.1f}"),
 )
 _SEED_MEANS = ("drives", "mean_m", "corrected_mean_m", "floor_m", "fleet_floor_m", "coverage", "recall",
-               "precision", "type_accuracy", "fragmentation", "build_s")
+               "observed_share", "recall_observed", "precision", "type_accuracy", "fragmentation", "build_s")
 
 
 @dataclass(frozen=True)
