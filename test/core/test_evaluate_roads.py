@@ -101,7 +101,8 @@ def test_a_ramp_pivot_linked_to_the_main_road_is_found() -> None:
     first = len(main) + 1
     ramp = [TopologyNode(id=first + k, position=np.array([x, _exit_y(np.array([x]))[0]]), heading=0.0, width=4.0,
                          successors=(first + k + 1,) if k + 1 < len(xs) else ()) for k, x in enumerate(xs)]
-    linked = HDMap(topology=tuple(main[:149] + [dataclasses.replace(main[149], successors=(151, first))] + main[150:] + ramp))
+    fork = dataclasses.replace(main[149], successors=(151, first))
+    linked = HDMap(topology=tuple(main[:149] + [fork] + main[150:] + ramp))
     rep = evaluate_map(linked, gt)
     assert rep.found_road_splits == rep.gt_road_splits == 1
     (b,) = rep.road_branch_points
@@ -139,7 +140,8 @@ def test_motorway_ramps_has_its_exits_and_entries() -> None:
     gt = synthetic_highway("motorway_ramps")
     rep = evaluate_map(hdmap_from_ground_truth(gt), gt)
     assert (rep.gt_road_splits, rep.gt_road_merges, rep.found_road_splits, rep.found_road_merges) == (2, 2, 2, 2)
-    assert sorted(b.gt_lanes[0] for b in rep.road_branch_points) == sorted(["bwd:1:3", "bwd:11:3", "fwd:1:3", "fwd:11:3"])
+    lanes = sorted(b.gt_lanes[0] for b in rep.road_branch_points)
+    assert lanes == sorted(["bwd:1:3", "bwd:11:3", "fwd:1:3", "fwd:11:3"])
     exit_fwd = next(b for b in rep.road_branch_points if b.gt_lanes == ("fwd:1:3",))
     exit_lane = gt.lanes["fwd:2:x0"].centerline
     cut = _without_link(hdmap_from_ground_truth(gt), gt.lanes["fwd:1:3"].centerline[-1], exit_lane[-1], steps=40)

@@ -309,7 +309,9 @@ def _crossed(topo: TopologyArrays, cand: np.ndarray, path: _Path, cos_min: float
     return out
 
 
-def _reached(topo: TopologyArrays, sources: np.ndarray, targets: list[np.ndarray], path_m: float, *, reverse: bool) -> list[bool]:
+def _reached(
+    topo: TopologyArrays, sources: np.ndarray, targets: list[np.ndarray], path_m: float, *, reverse: bool
+) -> list[bool]:
     """Per target set: is one of its nodes reached from a source along successors (predecessors
     when ``reverse``) within ``path_m``? (RULE R5)"""
     if len(sources) == 0:
@@ -346,7 +348,10 @@ def _check_one(p: RoadPoint, topo: TopologyArrays, cfg: RoadCheckConfig) -> Road
     mapped = sum(n > 0 for n in n_nodes)
     # RULE R6: evaluable when the single side and at least two branches have nodes.
     if len(single) == 0 or mapped < 2:
-        why = f"no topology node on the {side} road" if len(single) == 0 else f"topology nodes on {mapped} of {len(n_nodes)} branches"
+        why = (
+            f"no topology node on the {side} road" if len(single) == 0
+            else f"topology nodes on {mapped} of {len(n_nodes)} branches"
+        )
         return RoadBranchPoint(**common, evaluable=False, found=False, reason=f"not evaluable: {why}")
     missing = sum(n > 0 and not c for n, c in zip(n_nodes, connected))
     if missing:
@@ -355,7 +360,9 @@ def _check_one(p: RoadPoint, topo: TopologyArrays, cfg: RoadCheckConfig) -> Road
     return RoadBranchPoint(**common, evaluable=True, found=True)
 
 
-def topology_from_lanes(lanes: Mapping[str, GTLane], *, step_m: float = 2.0, width_m: float = DEFAULT_NODE_WIDTH_M) -> tuple[TopologyNode, ...]:
+def topology_from_lanes(
+    lanes: Mapping[str, GTLane], *, step_m: float = 2.0, width_m: float = DEFAULT_NODE_WIDTH_M
+) -> tuple[TopologyNode, ...]:
     """A lane-level topology graph of a ground truth (for the ground truth used as a map).
 
     One node every ``step_m`` along each lane centerline (at ``step_m / 2``, ``3 step_m / 2``, ...;

@@ -171,7 +171,9 @@ def on_cuts(nodes: list[_Node], cuts: Cuts, *, half_step_m: float, cos_min: floa
     return [nd for nd, ok in zip(nodes, inside) if ok]
 
 
-def inside_cuts(xy: np.ndarray, heading_rad: np.ndarray, cuts: Cuts, *, half_step_m: float, cos_min: float) -> np.ndarray:
+def inside_cuts(
+    xy: np.ndarray, heading_rad: np.ndarray, cuts: Cuts, *, half_step_m: float, cos_min: float
+) -> np.ndarray:
     """(N,) bool: the points (N, 2) [m] lie in the rectangle of a cut (``half_step_m`` along, within
     its extent across) whose direction is within ``arccos(cos_min)`` of their heading (N,) [rad]."""
     keep = np.zeros(len(xy), dtype=bool)

@@ -769,7 +769,9 @@ class MapGraph:
             if best < 0 and cfg.link_within_component:
                 # RULE: a start (end) with no partner in another component may link inside its own
                 # component (topology only) unless the link closes a short cycle.
-                best = _partner(flat, tree, i, is_end, cfg, lambda j: j != i and not _closes_cycle(existing, i, j, is_end))
+                best = _partner(
+                    flat, tree, i, is_end, cfg, lambda j: j != i and not _closes_cycle(existing, i, j, is_end)
+                )
                 join = False
             if best < 0:
                 continue
