@@ -689,3 +689,53 @@ def test_long_join_made_where_neighbour_lines_are_mapped_through_the_gap():
             assert f.points[-1, 0] == pytest.approx(40.0 if f.points[0, 1] == 0.0 else 120.0)
     with pytest.raises(ConfigError):
         StitchConfig(join_gap_coverage=1.5)
+
+
+def _topo_chain(first_id: int, xs: np.ndarray, ys: np.ndarray, nxt: int | None = None) -> list:
+    from hdmap_core.model import TopologyNode  # noqa: PLC0415
+
+    return [
+        TopologyNode(id=first_id + k, position=np.array([x, y]), heading=0.0, width=10.0,
+                     successors=(first_id + k + 1,) if k + 1 < len(xs) else (() if nxt is None else (nxt,)))
+        for k, (x, y) in enumerate(zip(xs, ys))
+    ]
+
+
+def _successor_positions(m: HDMap, xy) -> list:
+    pos = {t.id: t.position for t in m.topology}
+    (node,) = [t for t in m.topology if np.allclose(t.position, xy)]
+    return [pos[s].tolist() for s in node.successors]
+
+
+def test_end_linked_inside_its_own_component_when_asked():
+    r"""Main road piece P (x 0..98) and Q (x 104..298), already joined through a bypass R that leaves
+    P at x 48 and enters Q at x 152: P's end and Q's start are in one weakly connected component, so
+    the paper's rule leaves the 6 m gap unlinked (no path P -> Q along the main road)."""
+    p = _topo_chain(1, np.arange(0, 99, 2.0), np.zeros(50))
+    q = _topo_chain(100, np.arange(104, 300, 2.0), np.zeros(98))
+    xr = np.arange(50, 151, 2.0)
+    r = _topo_chain(300, xr, -4 - 26 * np.sin(np.pi * (xr - 50) / 100), nxt=124)
+    p[24] = dataclasses.replace(p[24], successors=(p[25].id, 300))
+    base = HDMap(topology=tuple(p + q + r))
+    assert _successor_positions(stitch([], base=base, config=StitchConfig()), [98, 0]) == []
+    m = stitch([], base=base, config=StitchConfig(link_within_component=True))
+    assert _successor_positions(m, [98, 0]) == [[104.0, 0.0]]
+    assert _successor_positions(m, [48, 0]) == [[50.0, 0.0], [50.0, -4.0]]  # nothing else changed
+
+
+def test_link_inside_a_component_never_closes_a_short_cycle():
+    """Chain A (x 10..98) continues into chain B whose last nodes lie just behind A's start: linking
+    B's end to A's start would make a 100-node loop, so it is not made."""
+    a = _topo_chain(1, np.arange(10, 99, 2.0), np.zeros(45), nxt=100)
+    b = _topo_chain(100, np.concatenate([np.arange(100, 200, 2.0), np.arange(0, 9, 2.0)]), np.zeros(55))
+    m = stitch([], base=HDMap(topology=tuple(a + b)), config=StitchConfig(link_within_component=True))
+    assert _successor_positions(m, [8, 0]) == []
+
+
+def test_link_within_component_only_in_the_default_preset():
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+
+    assert PipelineConfig.preset("default").stitching.link_within_component
+    for name in ("naive", "paper"):
+        assert not getattr(PipelineConfig.preset(name).stitching, "link_within_component", False)
+    assert not StitchConfig.paper().link_within_component and not StitchConfig().link_within_component

@@ -41,7 +41,16 @@ from hdmap_core.evaluate_topology import (
     check_branch_points,
     ground_truth_branch_points,
     map_feature_graph,
+    inside_cuts,
     on_cuts,
+)
+from hdmap_core.evaluate_roads import (
+    RoadBranchPoint,
+    RoadCheckConfig,
+    TopologyArrays,
+    check_road_points,
+    road_branch_points,
+    topology_from_lanes,
 )
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
@@ -52,6 +61,7 @@ __all__ = [
     "CutProfile",
     "EvalReport",
     "BranchPoint",
+    "RoadBranchPoint",
     "evaluate_map",
     "hdmap_from_ground_truth",
     "plot_evaluation",
@@ -93,6 +103,16 @@ class EvalConfig:
             the branch) of the point; map joints count within reach + window of it [m].
         topology_attach_m: splits/merges: a map feature starting (ending) within this distance of
             another map feature running the same way counts as connected to it without a link.
+        road_follow_m: road splits/merges: length of the ground-truth lane paths followed from a
+            lane branch point on each side [m].
+        road_apart_m: road splits/merges: two successor (predecessor) paths that part by more than
+            this are different roads; closer ones are lanes of one carriageway [m].
+        road_cluster_m: road splits/merges: lane branch points of one kind closer than this are one
+            road point (the lanes of one junction) [m].
+        road_node_margin_m: road splits/merges: a map topology node's cross-section reaches this
+            far beyond half its width to each side [m].
+        road_path_m: road splits/merges: longest path along the map's topology successors from the
+            single side to a branch [m].
     """
 
     step_m: float = 2.0
@@ -109,17 +129,23 @@ class EvalConfig:
     topology_window_m: float = 20.0
     topology_reach_m: float = 100.0
     topology_attach_m: float = 0.1
+    road_follow_m: float = 600.0
+    road_apart_m: float = 10.0
+    road_cluster_m: float = 30.0
+    road_node_margin_m: float = 1.0
+    road_path_m: float = 1300.0
 
     def __post_init__(self) -> None:
         positive = (
             "step_m", "recall_radius_m", "gate_m", "max_half_length_m", "default_sigma_loc_m",
             "topology_separation_m", "topology_window_m", "topology_reach_m", "topology_attach_m",
+            "road_follow_m", "road_apart_m", "road_cluster_m", "road_path_m",
         )
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"EvalConfig.{name} must be a finite number > 0, got {value!r}")
-        for name in ("border_margin_m", "type_tie_m"):
+        for name in ("border_margin_m", "type_tie_m", "road_node_margin_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"EvalConfig.{name} must be a finite number >= 0, got {value!r}")
@@ -250,6 +276,11 @@ class EvalReport:
         found_splits, found_merges: those connected in the map.
         branch_points: every ground-truth branch point in the evaluated area, evaluable or not,
             with its verdict.
+        gt_road_splits, gt_road_merges: evaluable road splits / merges of the ground-truth lane graph
+            in the evaluated area (lane branch points whose branches part into different roads).
+        found_road_splits, found_road_merges: those the map's topology graph connects.
+        road_branch_points: every ground-truth road split / merge in the evaluated area, evaluable
+            or not, with its verdict.
         gt_lane_splits, gt_lane_merges: for context, ground-truth lanes (highway lanes unless
             highway_only is False) with >= 2 successors / >= 2 predecessors. Where the ground-truth
             markings stop at junctions these have no branch point of the features.
@@ -280,6 +311,11 @@ class EvalReport:
     found_splits: int
     found_merges: int
     branch_points: tuple[BranchPoint, ...]
+    gt_road_splits: int
+    gt_road_merges: int
+    found_road_splits: int
+    found_road_merges: int
+    road_branch_points: tuple[RoadBranchPoint, ...]
     gt_lane_splits: int
     gt_lane_merges: int
     cuts: CutProfile = field(repr=False)
@@ -300,6 +336,11 @@ class EvalReport:
         """Evaluable ground-truth splits and merges that the map does not have connected."""
         return tuple(b for b in self.branch_points if b.evaluable and not b.found)
 
+    @property
+    def missing_road_branch_points(self) -> tuple[RoadBranchPoint, ...]:
+        """Evaluable ground-truth road splits and merges that the map's topology does not connect."""
+        return tuple(b for b in self.road_branch_points if b.evaluable and not b.found)
+
     def to_dict(self, *, include_cuts: bool = False) -> dict:
         """A JSON-able dict (NaN -> None); ``include_cuts`` adds the per-cut profile arrays."""
         out = {
@@ -309,11 +350,13 @@ class EvalReport:
             "per_type": {k: _jsonable(v.__dict__) for k, v in self.per_type.items()},
         }
         for name in self.__dataclass_fields__:
-            if name in ("gt_name", "config", "overall", "per_type", "cuts", "branch_points"):
+            if name in ("gt_name", "config", "overall", "per_type", "cuts", "branch_points", "road_branch_points"):
                 continue
             out[name] = _jsonable(getattr(self, name))
         out["missing_branch_points"] = [b.to_dict() for b in self.missing_branch_points]
         out["branch_points"] = [b.to_dict() for b in self.branch_points]
+        out["missing_road_branch_points"] = [b.to_dict() for b in self.missing_road_branch_points]
+        out["road_branch_points"] = [b.to_dict() for b in self.road_branch_points]
         out["coverage"] = _jsonable(self.coverage)
         if include_cuts:
             out["cuts"] = self.cuts.to_dict()
@@ -584,6 +627,8 @@ def evaluate_map(
     frag_mean, frag_max, n_frag = _fragmentation(gp, gi, matched, map_feats, mp)
     branch_points = _branch_points(gt_feats, cuts, gp, gi, gd, mp, map_feats, config, cos_feat)
     evaluable_bp = [b for b in branch_points if b.evaluable]
+    road_points = _road_branch_points(gt, cuts, hdmap, config, cos_feat)
+    evaluable_rp = [b for b in road_points if b.evaluable]
     evaluable = (n_match > 0) & (n_gt_cut > 0)
     floor_ok = evaluable & np.isfinite(floor)
     profile = CutProfile(
@@ -630,6 +675,11 @@ def evaluate_map(
         found_splits=sum(b.kind == "split" and b.found for b in evaluable_bp),
         found_merges=sum(b.kind == "merge" and b.found for b in evaluable_bp),
         branch_points=tuple(branch_points),
+        gt_road_splits=sum(b.kind == "split" for b in evaluable_rp),
+        gt_road_merges=sum(b.kind == "merge" for b in evaluable_rp),
+        found_road_splits=sum(b.kind == "split" and b.found for b in evaluable_rp),
+        found_road_merges=sum(b.kind == "merge" and b.found for b in evaluable_rp),
+        road_branch_points=tuple(road_points),
         gt_lane_splits=sum(len(ln.successors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()),
         gt_lane_merges=sum(len(ln.predecessors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()),
         cuts=profile,
@@ -820,11 +870,44 @@ def _branch_points(
     )
 
 
+def road_check_config(config: EvalConfig) -> RoadCheckConfig:
+    """The road-level check's settings from ``config``."""
+    return RoadCheckConfig(
+        follow_m=config.road_follow_m,
+        apart_m=config.road_apart_m,
+        cluster_m=config.road_cluster_m,
+        node_margin_m=config.road_node_margin_m,
+        path_m=config.road_path_m,
+        cos_min=math.cos(math.radians(config.max_feature_angle_deg)),
+    )
+
+
+def _road_branch_points(
+    gt: GroundTruth, cuts: Cuts, hdmap: HDMap, config: EvalConfig, cos_feat: float
+) -> list[RoadBranchPoint]:
+    """Road splits and merges of the ground-truth lane graph in the evaluated area and whether the
+    map's topology graph connects them (``hdmap_core.evaluate_roads``)."""
+    cfg = road_check_config(config)
+    points = road_branch_points(gt.lanes, highway_only=config.highway_only, cfg=cfg)
+    if not points:
+        return []
+    xy = np.array([p.xy for p in points])
+    heading = np.array([p.heading for p in points])
+    # RULE R0: only points in the evaluated area (inside a cut running their way), as for features.
+    inside = inside_cuts(xy, heading, cuts, half_step_m=config.step_m / 2, cos_min=cos_feat)
+    points = [p for p, ok in zip(points, inside) if ok]
+    if not points:
+        return []
+    return check_road_points(points, TopologyArrays.build(hdmap.topology, config.road_node_margin_m), cfg)
+
+
 # --------------------------------------------------------------------------------------------
 # Ground truth as a map; plotting
 
 
-def hdmap_from_ground_truth(gt: GroundTruth, *, lateral_shift_m: float = 0.0, drive_count: int = 0) -> HDMap:
+def hdmap_from_ground_truth(
+    gt: GroundTruth, *, lateral_shift_m: float = 0.0, drive_count: int = 0, with_topology: bool = True
+) -> HDMap:
     """The ground-truth features as an ``HDMap`` ("perfect map"), optionally shifted sideways.
 
     Args:
@@ -832,6 +915,9 @@ def hdmap_from_ground_truth(gt: GroundTruth, *, lateral_shift_m: float = 0.0, dr
         lateral_shift_m: every point moves this far along its feature's left normal (from central
             differences of the points) [m]; + = left of the feature's direction.
         drive_count: value of every point's ``drive_count``.
+        with_topology: add a lane-level topology graph (``evaluate_roads.topology_from_lanes``: a
+            node every 2 m along each lane centerline, 3.5 m wide, linked along the lane graph),
+            so that the road-level splits/merges check has a perfect topology too.
 
     Returns:
         A map whose feature ids are the ground-truth ids; ``lateral_std`` is 0; features whose
@@ -866,7 +952,11 @@ def hdmap_from_ground_truth(gt: GroundTruth, *, lateral_shift_m: float = 0.0, dr
                 successors=tuple(int(feats[j].id) for j in sorted(succ[i])),
             )
         )
-    return HDMap(features=tuple(out), extra={"source": f"ground truth {gt.name}", "lateral_shift_m": lateral_shift_m})
+    topology = topology_from_lanes(gt.lanes) if with_topology else ()
+    return HDMap(
+        features=tuple(out), topology=topology,
+        extra={"source": f"ground truth {gt.name}", "lateral_shift_m": lateral_shift_m},
+    )
 
 
 def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str | Path) -> Path:

@@ -69,6 +69,7 @@ def format_summary(report: EvalReport) -> str:
         ),
     ]
     lines.append(_topology_line(report))
+    lines.append(_road_line(report))
     if report.floor_source == "none":
         lines.append(f"floor sigma/sqrt(n): n/a (no drive counts; sigma_loc {report.sigma_loc_m:g} m)")
     else:
@@ -110,6 +111,23 @@ def _topology_line(report: EvalReport) -> str:
     missing = report.missing_branch_points
     for b in missing[:5]:
         line += f"\n  missing {b.kind} at ({b.x:.1f}, {b.y:.1f}): {b.reason}"
+    if len(missing) > 5:
+        line += f"\n  ... and {len(missing) - 5} more"
+    return line
+
+
+def _road_line(report: EvalReport) -> str:
+    """Road-level splits and merges (GT lane graph vs the map's topology), the missing ones listed."""
+    line = (
+        f"road splits/merges connected in the map's topology: splits {report.found_road_splits}/"
+        f"{report.gt_road_splits}, merges {report.found_road_merges}/{report.gt_road_merges}"
+    )
+    n_unevaluable = sum(not b.evaluable for b in report.road_branch_points)
+    if n_unevaluable:
+        line += f" ({n_unevaluable} more not evaluable)"
+    missing = report.missing_road_branch_points
+    for b in missing[:5]:
+        line += f"\n  missing road {b.kind} at ({b.x:.1f}, {b.y:.1f}), GT lanes {', '.join(b.gt_lanes)}: {b.reason}"
     if len(missing) > 5:
         line += f"\n  ... and {len(missing) - 5} more"
     return line

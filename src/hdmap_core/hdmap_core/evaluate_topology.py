@@ -30,7 +30,10 @@ from hdmap_core.evaluate_cuts import CutPoints, Cuts
 from hdmap_core.groundtruth import GTFeature
 from hdmap_core.model import FeatureType, MapFeature
 
-__all__ = ["BranchPoint", "JOIN_TOL_M", "ground_truth_branch_points", "map_feature_graph", "check_branch_points"]
+__all__ = [
+    "BranchPoint", "JOIN_TOL_M", "ground_truth_branch_points", "map_feature_graph", "check_branch_points", "on_cuts",
+    "inside_cuts",
+]
 
 #: Feature ends closer than this are one point (the shared maps' joints are <= 0.002 m apart).
 JOIN_TOL_M = 0.05
@@ -160,13 +163,25 @@ def ground_truth_branch_points(features: Sequence[GTFeature], *, cos_min: float)
 
 def on_cuts(nodes: list[_Node], cuts: Cuts, *, half_step_m: float, cos_min: float) -> list[_Node]:
     """The nodes inside the rectangle of a cut running their way (the evaluated carriageways)."""
-    if not nodes or len(cuts) == 0:
+    if not nodes:
         return []
     xy = np.array([nd.xy for nd in nodes])
-    heading = np.array([[np.cos(nd.heading), np.sin(nd.heading)] for nd in nodes])
+    heading = np.array([nd.heading for nd in nodes])
+    inside = inside_cuts(xy, heading, cuts, half_step_m=half_step_m, cos_min=cos_min)
+    return [nd for nd, ok in zip(nodes, inside) if ok]
+
+
+def inside_cuts(
+    xy: np.ndarray, heading_rad: np.ndarray, cuts: Cuts, *, half_step_m: float, cos_min: float
+) -> np.ndarray:
+    """(N,) bool: the points (N, 2) [m] lie in the rectangle of a cut (``half_step_m`` along, within
+    its extent across) whose direction is within ``arccos(cos_min)`` of their heading (N,) [rad]."""
+    keep = np.zeros(len(xy), dtype=bool)
+    if len(xy) == 0 or len(cuts) == 0:
+        return keep
+    heading = np.stack([np.cos(heading_rad), np.sin(heading_rad)], axis=1)
     tree = cKDTree(cuts.center)
     reach = half_step_m + float(np.max(np.maximum(-cuts.lo, cuts.hi)))
-    keep = []
     for i, cand in enumerate(tree.query_ball_point(xy, r=reach)):
         c = np.asarray(cand, dtype=np.int64)
         if len(c) == 0:
@@ -176,8 +191,7 @@ def on_cuts(nodes: list[_Node], cuts: Cuts, *, half_step_m: float, cos_min: floa
         across = (d * cuts.normal[c]).sum(axis=1)
         inside = (along <= half_step_m + 1e-6) & (across >= cuts.lo[c]) & (across <= cuts.hi[c])
         inside &= (cuts.tangent[c] @ heading[i]) >= cos_min
-        if inside.any():
-            keep.append(nodes[i])
+        keep[i] = bool(inside.any())
     return keep
 
 

@@ -129,6 +129,7 @@ class PipelineConfig:
             )
             final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage module, loaded on use)
+            from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
 
             return cls(
                 sampling=SamplingConfig(min_border_support_fraction=0.05, open_side_gap_m=4.0),
@@ -138,6 +139,8 @@ class PipelineConfig:
                 final_alignment=final,
                 mark_on_cut_only=True,
                 connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
+                # Junction pieces already joined to the map through one end get their other end linked too.
+                stitching=StitchConfig(link_within_component=True),
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")

@@ -29,7 +29,7 @@ slot), so the same input gives the same ids and adding an unrelated segment chan
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -162,6 +162,13 @@ class StitchConfig:
             predecessor, of the same type, is one polyline with it (what closed them, e.g. a
             leftover edge whose sibling branch was pruned or a one-point piece between them, is
             gone). False: the paper.
+        link_within_component: a component start (end) that finds no partner in *another* weakly
+            connected component may take one in its own (same geometric tests), as a topology link
+            only (no feature join), unless that closes a cycle of fewer than ``_CYCLE_NODES``
+            nodes. At a junction the main road's piece after a ramp is often joined to the map
+            already through its other end, so its start stayed unlinked: the map's topology had
+            no path from the incoming road to that branch (docs/evaluation.md, road-level splits
+            and merges). On in the default preset only.
     """
 
     max_distance_m: float = 12.0
@@ -208,6 +215,7 @@ class StitchConfig:
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
     merge_continuations: bool = True
+    link_within_component: bool = False
     through_lines: bool = True
 
     def __post_init__(self) -> None:
@@ -359,6 +367,51 @@ def _line_heading(xy: np.ndarray, walk: np.ndarray, i: int, sign: float, min_m: 
         if math.hypot(d[0], d[1]) >= min_m:
             return math.atan2(d[1], d[0])
     return None
+
+
+#: A within-component link is refused when it would close a cycle of fewer topology nodes (~1 km).
+_CYCLE_NODES = 500
+
+
+def _partner(
+    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, cfg: StitchConfig, allowed: Callable[[int], bool]
+) -> int:
+    """The nearest topology node within ``max_distance_m`` that may continue the component end
+    (start) node i (steps 2-3 of ``_stitch``: heading, behind/ahead, connection angle), among
+    those ``allowed``; -1 if none."""
+    cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
+    tan_c = math.tan(math.radians(min(cfg.max_connection_angle_deg, 89.999)))
+    u, n = _unit(float(flat.t_heading[i]))
+    best, best_d = -1, math.inf
+    # 2. nearest neighbours in the complete topology graph (kd-tree)
+    for j in tree.query_ball_point(flat.t_xy[i], cfg.max_distance_m):
+        if math.cos(flat.t_heading[j] - flat.t_heading[i]) < cos_h or not allowed(j):
+            continue
+        d = flat.t_xy[j] - flat.t_xy[i] if is_end else flat.t_xy[i] - flat.t_xy[j]
+        along, lat, dist = float(d @ u), abs(float(d @ n)), float(math.hypot(*d))
+        # 3. distance and connection-angle check
+        if along < -cfg.behind_tol_m:
+            continue
+        if dist > cfg.angle_free_m and lat > max(along, 0.0) * tan_c:
+            continue
+        if dist < best_d:
+            best, best_d = int(j), dist
+    return best
+
+
+def _closes_cycle(successors: _Adjacency, i: int, j: int, is_end: bool) -> bool:
+    """Would the link i -> j (``is_end``) or j -> i close a cycle of fewer than ``_CYCLE_NODES``
+    nodes? (The link's head must not reach its tail already.)"""
+    head, tail = (j, i) if is_end else (i, j)
+    seen, todo = {head}, [head]
+    while todo and len(seen) < _CYCLE_NODES:
+        for k in successors.get(todo.pop()):
+            if k == tail:
+                return True
+            if k not in seen:
+                seen.add(k)
+                todo.append(k)
+    return False
 
 
 class _UnionFind:
@@ -704,9 +757,6 @@ class MapGraph:
         out_adj = _Adjacency(flat.edges[:, 0], flat.edges[:, 1], flat.n_nodes)
         in_adj = _Adjacency(flat.edges[:, 1], flat.edges[:, 0], flat.n_nodes)
         existing = _Adjacency(te[:, 0], te[:, 1], nt)
-        cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
-        tan_c = math.tan(math.radians(min(cfg.max_connection_angle_deg, 89.999)))
-
         # 1. components' start (no predecessor) and end (no successor) nodes, in a fixed order
         ends = [(int(i), True) for i in np.flatnonzero(outdeg == 0)]
         starts = [(int(i), False) for i in np.flatnonzero(indeg == 0)]
@@ -714,23 +764,15 @@ class MapGraph:
         for i, is_end in todo:
             if (is_end and outdeg[i]) or (not is_end and indeg[i]):
                 continue
-            u, n = _unit(float(flat.t_heading[i]))
-            best, best_d = -1, math.inf
-            # 2. nearest neighbours in the complete topology graph (kd-tree)
-            for j in tree.query_ball_point(flat.t_xy[i], cfg.max_distance_m):
-                if uf.find(j) == uf.find(i):
-                    continue
-                if math.cos(flat.t_heading[j] - flat.t_heading[i]) < cos_h:
-                    continue
-                d = flat.t_xy[j] - flat.t_xy[i] if is_end else flat.t_xy[i] - flat.t_xy[j]
-                along, lat, dist = float(d @ u), abs(float(d @ n)), float(math.hypot(*d))
-                # 3. distance and connection-angle check
-                if along < -cfg.behind_tol_m:
-                    continue
-                if dist > cfg.angle_free_m and lat > max(along, 0.0) * tan_c:
-                    continue
-                if dist < best_d:
-                    best, best_d = int(j), dist
+            best = _partner(flat, tree, i, is_end, cfg, lambda j: uf.find(j) != uf.find(i))
+            join = True
+            if best < 0 and cfg.link_within_component:
+                # RULE: a start (end) with no partner in another component may link inside its own
+                # component (topology only) unless the link closes a short cycle.
+                best = _partner(
+                    flat, tree, i, is_end, cfg, lambda j: j != i and not _closes_cycle(existing, i, j, is_end)
+                )
+                join = False
             if best < 0:
                 continue
             a, b = (i, best) if is_end else (best, i)
@@ -743,7 +785,8 @@ class MapGraph:
             uf.union(a, b)
             self._topo_links.add(self._link(flat, a, b, topo=True))
             rep.topology_links += 1
-            rep.feature_links += self._join_features(flat, a, b, out_adj, in_adj)
+            if join:
+                rep.feature_links += self._join_features(flat, a, b, out_adj, in_adj)
 
     @staticmethod
     def _link(flat: FlatGraph, a: int, b: int, *, topo: bool) -> Link:
