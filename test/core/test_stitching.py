@@ -739,3 +739,81 @@ def test_link_within_component_only_in_the_default_preset():
     for name in ("naive", "paper"):
         assert not getattr(PipelineConfig.preset(name).stitching, "link_within_component", False)
     assert not StitchConfig.paper().link_within_component and not StitchConfig().link_within_component
+
+
+def _arc_chain(first_id: int, center, radius: float, headings: np.ndarray, *, left: bool, width: float = 7.0) -> list:
+    """Topology nodes on a circle around ``center`` with the given headings (driving order),
+    turning left (centre on the left) or right, as ``_topo_chain``."""
+    from hdmap_core.model import TopologyNode  # noqa: PLC0415
+
+    cx, cy = center
+    side = 1.0 if left else -1.0
+    out = []
+    for k, h in enumerate(headings):
+        xy = np.array([cx + side * radius * math.sin(h), cy - side * radius * math.cos(h)])
+        out.append(TopologyNode(id=first_id + k, position=xy, heading=float(h), width=width,
+                                successors=(first_id + k + 1,) if k + 1 < len(headings) else ()))
+    return out
+
+
+def _main_road(first_id: int = 1) -> list:
+    """A straight road along +x, x 0..298, midpoints at y 0, 14 m wide (four lanes)."""
+    return [dataclasses.replace(t, width=14.0) for t in _topo_chain(first_id, np.arange(0, 299, 2.0), np.zeros(150))]
+
+
+def _predecessors(m: HDMap, node_id: int) -> list:
+    return [t for t in m.topology if node_id in t.successors]
+
+
+def test_ramp_end_turning_onto_the_road_follows_its_arc():
+    r"""An entry ramp (radius 50 m, turning right) meets the main road's right lanes tangentially at
+    x 100 but its chain ends 30 m before, heading 35 deg: the main-road nodes within 12 m run 35 deg
+    off it (over ``max_heading_diff_deg``), so the ordinary rule leaves it unlinked. Its own arc,
+    turning at its heading rate, enters the main road's cross-section: linked there."""
+    main = _main_road()
+    heads = np.arange(1.2, 0.60, -0.04)  # heading 69 -> 35 deg, turning right, ending 30 m before x 100
+    ramp = _arc_chain(1000, (100.0, -52.0), 50.0, heads, left=False)
+    end = ramp[-1]
+    assert 10.0 < -end.position[1] < 12.0 and math.degrees(end.heading) > 34.0
+    base = HDMap(topology=tuple(main + ramp))
+    assert _successor_positions(stitch([], base=base, config=StitchConfig()), end.position) == []
+    m = stitch([], base=base, config=StitchConfig(path_search_m=40.0))
+    ((x, y),) = _successor_positions(m, end.position)
+    assert y == 0.0 and end.position[0] < x < 100.0
+    assert _successor_positions(m, [50.0, 0.0]) == [[52.0, 0.0]]  # nothing else changed
+    # too short a search, or a chain turning away from the road: no link
+    assert _successor_positions(stitch([], base=base, config=StitchConfig(path_search_m=6.0)), end.position) == []
+    he, (ex, ey) = end.heading, end.position  # the same end, reached turning left
+    away = _arc_chain(1000, (ex - 50.0 * math.sin(he), ey + 50.0 * math.cos(he)), 50.0,
+                      he - np.arange(0.8, -1e-9, -0.04), left=True)
+    assert np.allclose(away[-1].position, end.position)
+    m = stitch([], base=HDMap(topology=tuple(main + away)), config=StitchConfig(path_search_m=40.0))
+    assert _successor_positions(m, away[-1].position) == []
+
+
+def test_exit_start_beyond_the_stitch_radius_follows_its_arc_back():
+    r"""An exit (radius 80 m, turning left) leaves the main road's left lanes at x 100; its chain
+    starts 36 m later, 13 m from the main road's midpoints (beyond ``max_distance_m``). Followed
+    back along its arc it enters the main road's cross-section: a main-road node behind gets it as
+    a second successor (the split)."""
+    main = _main_road()
+    exit_ = _arc_chain(1000, (100.0, 85.0), 80.0, np.arange(0.45, 1.2, 0.025), left=True)
+    start = exit_[0]
+    assert 12.0 < start.position[1] < 14.0
+    base = HDMap(topology=tuple(main + exit_))
+    assert _predecessors(stitch([], base=base, config=StitchConfig()), start.id) == []
+    m = stitch([], base=base, config=StitchConfig(path_search_m=40.0))
+    (pred,) = _predecessors(m, start.id)
+    assert pred.position[1] == 0.0 and 100.0 < pred.position[0] < start.position[0]
+    assert len(pred.successors) == 2
+
+
+def test_path_search_only_in_the_default_preset():
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+
+    assert PipelineConfig.preset("default").stitching.path_search_m > 0
+    for name in ("naive", "paper"):
+        assert getattr(PipelineConfig.preset(name).stitching, "path_search_m", 0.0) == 0.0
+    assert StitchConfig.paper().path_search_m == 0.0 and StitchConfig().path_search_m == 0.0
+    with pytest.raises(ConfigError):
+        StitchConfig(path_search_m=-1.0)

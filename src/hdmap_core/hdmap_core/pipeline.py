@@ -139,8 +139,9 @@ class PipelineConfig:
                 final_alignment=final,
                 mark_on_cut_only=True,
                 connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
-                # Junction pieces already joined to the map through one end get their other end linked too.
-                stitching=StitchConfig(link_within_component=True),
+                # Junction pieces already joined to the map through one end get their other end linked
+                # too; a ramp chain ending (starting) short of the gore follows its own arc onto the road.
+                stitching=StitchConfig(link_within_component=True, path_search_m=40.0),
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")

@@ -169,6 +169,20 @@ class StitchConfig:
             already through its other end, so its start stayed unlinked: the map's topology had
             no path from the incoming road to that branch (docs/evaluation.md, road-level splits
             and merges). On in the default preset only.
+        path_search_m: a component start (end) still without a partner after every other
+            component start/end had its turn follows its chain's own path backward (forward) up
+            to this far: an arc from the node along its heading, turning at the chain's heading
+            rate (over ``path_curvature_m`` of the chain). The first node whose cross-section
+            (``topo_width`` / 2 across, one step along) the arc enters, with a heading within
+            ``max_heading_diff_deg`` of the arc's there, in another component (or, with
+            ``link_within_component``, in its own without closing a short cycle), is linked, as a
+            topology link only (no feature join). A ramp's chain ends (an exit's starts) where
+            its pivot's steps fail or reach a place mapped before, often still turning, 24-38 m
+            from the gore: the main road within ``max_distance_m`` is 33-39 deg off the ramp's
+            heading there, or the main road is beyond that radius (docs/graph.md). 0 disables
+            (the paper; the plain default) [m].
+        path_curvature_m: the chain's heading rate is taken over this much of it (chord from
+            the node to the first chain node at least this far; shorter chains: straight) [m].
     """
 
     max_distance_m: float = 12.0
@@ -216,6 +230,8 @@ class StitchConfig:
     gore_max_m: float = 100.0
     merge_continuations: bool = True
     link_within_component: bool = False
+    path_search_m: float = 0.0
+    path_curvature_m: float = 20.0
     through_lines: bool = True
 
     def __post_init__(self) -> None:
@@ -252,6 +268,8 @@ class StitchConfig:
             "spur_max_m",
             "bubble_max_m",
             "gore_max_m",
+            "path_search_m",
+            "path_curvature_m",
         ):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
@@ -414,6 +432,70 @@ def _closes_cycle(successors: _Adjacency, i: int, j: int, is_end: bool) -> bool:
     return False
 
 
+#: Arc step of the path search (the step spacing) [m] and the shortest chord a heading rate is taken over [m].
+_PATH_STEP_M = 2.0
+_PATH_MIN_CHORD_M = 4.0
+
+
+def _heading_rate(flat: FlatGraph, walk: _Adjacency, i: int, base_m: float) -> float:
+    """Heading change per metre of the chain at its end (``walk`` = predecessors) or start
+    (``walk`` = successors) node i: the heading difference to the first node of the chain at
+    least ``base_m`` away (chord), or to the farthest one within 4 * base_m / step nodes; 0 when the
+    chain is shorter than ``_PATH_MIN_CHORD_M`` [rad/m, sign of the driving direction]."""
+    k, far, far_d = i, -1, 0.0
+    for _ in range(max(1, int(4 * base_m / _PATH_STEP_M))):
+        nxt = walk.get(k)
+        if not nxt:
+            break
+        k = int(nxt[0])
+        d = float(np.hypot(*(flat.t_xy[k] - flat.t_xy[i])))
+        if d > far_d:
+            far, far_d = k, d
+        if d >= base_m:
+            break
+    if far < 0 or far_d < _PATH_MIN_CHORD_M:
+        return 0.0
+    return float(_wrap(flat.t_heading[i] - flat.t_heading[far])) / far_d
+
+
+def _path_partner(
+    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, rate: float, cfg: StitchConfig, reach_m: float,
+    allowed: Callable[[int], bool],
+) -> int:
+    """The first topology node along the arc that continues the chain of end (start) node i
+    forward (backward) with heading rate ``rate`` [rad/m] up to ``path_search_m``: the arc point
+    lies in its cross-section (half its width across, one step along) and its heading is within
+    ``max_heading_diff_deg`` of the arc's; among several at that point the nearest, among those
+    ``allowed``; -1 if none (``StitchConfig.path_search_m``)."""
+    cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
+    sign = 1.0 if is_end else -1.0
+    p = flat.t_xy[i].astype(float).copy()
+    h = float(flat.t_heading[i])
+    u0, _ = _unit(h)
+    n_steps = int(cfg.path_search_m / _PATH_STEP_M + 1e-9)
+    for _ in range(n_steps):
+        hm = h + sign * 0.5 * rate * _PATH_STEP_M  # heading in the middle of the arc step
+        p = p + sign * _PATH_STEP_M * np.array([math.cos(hm), math.sin(hm)])
+        h = h + sign * rate * _PATH_STEP_M
+        best, best_d = -1, math.inf
+        for j in tree.query_ball_point(p, reach_m):
+            if j == i or math.cos(flat.t_heading[j] - h) < cos_h:
+                continue
+            if sign * float((flat.t_xy[j] - flat.t_xy[i]) @ u0) <= 0.0:
+                continue  # behind an end (ahead of a start): the chain itself
+            uj, nj = _unit(float(flat.t_heading[j]))
+            rel = p - flat.t_xy[j]
+            half = float(flat.t_width[j]) / 2.0 if math.isfinite(flat.t_width[j]) and flat.t_width[j] > 0 else 1.75
+            if abs(float(rel @ uj)) > _PATH_STEP_M or abs(float(rel @ nj)) > half:
+                continue
+            d = float(np.hypot(*rel))
+            if d < best_d and allowed(j):
+                best, best_d = int(j), d
+        if best >= 0:
+            return best
+    return -1
+
+
 class _UnionFind:
     def __init__(self, labels: np.ndarray) -> None:
         self.parent = list(range(int(labels.max()) + 1 if len(labels) else 0))
@@ -448,6 +530,7 @@ class IntegrateReport:
     deduplicated_nodes: int = 0
     loose_ends_joined: int = 0
     branches_joined: int = 0
+    path_links: int = 0
 
 
 class MapGraph:
@@ -787,6 +870,47 @@ class MapGraph:
             rep.topology_links += 1
             if join:
                 rep.feature_links += self._join_features(flat, a, b, out_adj, in_adj)
+        if cfg.path_search_m > 0:
+            self._path_links(flat, tree, todo, existing, indeg, outdeg, uf, rep)
+
+    def _path_links(
+        self, flat: FlatGraph, tree: cKDTree, todo: list[tuple[int, bool]], existing: _Adjacency,
+        indeg: np.ndarray, outdeg: np.ndarray, uf: _UnionFind, rep: IntegrateReport,
+    ) -> None:
+        """RULE: a start (end) still without a partner follows its chain's own arc backward
+        (forward) for ``path_search_m`` and links, topology only, to the first node it enters
+        (``_path_partner``). Run after every start/end had its ordinary turn, so it takes no
+        partner away from another's ordinary (feature-joining) link."""
+        cfg = self.config
+        te = flat.topo_edges
+        pred = _Adjacency(te[:, 1], te[:, 0], flat.n_topo)
+        succ = existing
+        reach = math.hypot(_PATH_STEP_M, float(np.nanmax(np.where(flat.t_width > 0, flat.t_width, 3.5))) / 2.0)
+        for i, is_end in todo:
+            if (is_end and outdeg[i]) or (not is_end and indeg[i]):
+                continue
+            rate = _heading_rate(flat, pred if is_end else succ, i, cfg.path_curvature_m)
+            if not is_end:
+                rate = -rate  # measured from a later node back to the start: flip to driving sense
+
+            def allowed(j: int, i: int = i, is_end: bool = is_end) -> bool:
+                if uf.find(j) != uf.find(i):
+                    return True
+                return cfg.link_within_component and not _closes_cycle(existing, i, j, is_end)
+
+            best = _path_partner(flat, tree, i, is_end, rate, cfg, reach, allowed)
+            if best < 0:
+                continue
+            a, b = (i, best) if is_end else (best, i)
+            if b in existing.get(a):
+                continue
+            existing.add(a, b)
+            outdeg[a] += 1
+            indeg[b] += 1
+            uf.union(a, b)
+            self._topo_links.add(self._link(flat, a, b, topo=True))
+            rep.topology_links += 1
+            rep.path_links += 1
 
     @staticmethod
     def _link(flat: FlatGraph, a: int, b: int, *, topo: bool) -> Link:
