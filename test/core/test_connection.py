@@ -10,7 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from hdmap_core.connection import ConnectionConfig, connect_segment, feature_chains, stable_uid
+from hdmap_core.connection import ConnectionConfig, connect_segment
+from hdmap_core.segment_graph import feature_chains, stable_uid
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult
@@ -463,7 +464,7 @@ def test_chain_links_through_keeps_the_regular_continuation():
     """Node 1 splits into 2 (regular, same type) and 3 (leftover); node 4 merges into 2 by an
     edge of another type. Through: 0-1-2 stays one chain, 3 and 4 are branches. Without: every
     junction closes the chains."""
-    from hdmap_core.connection import chain_links
+    from hdmap_core.segment_graph import chain_links
 
     edges = np.array([[0, 1], [1, 2], [1, 3], [4, 2]])
     leftover = np.array([False, False, True, False])
@@ -479,7 +480,7 @@ def test_chain_links_through_takes_a_lone_leftover_of_its_type():
     """An entry: the solid tip 0 merged into solid node 1 by a leftover edge while the dashed tip 2
     took node 1 by the regular assignment (dashed -> solid). The solid line continues through
     the leftover edge (its only edge of its type); two leftover edges of one type do not."""
-    from hdmap_core.connection import chain_links
+    from hdmap_core.segment_graph import chain_links
 
     edges = np.array([[0, 1], [2, 1], [1, 3]])
     types = np.array([S, S, D, S])

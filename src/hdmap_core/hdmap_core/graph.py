@@ -4,7 +4,7 @@
 indices: the topology graph (one node per used step) and the road-feature graph (one node per
 aggregated maximum), with cross references (the feature nodes of topology node ``t`` are
 ``t_start[t]:t_start[t + 1]``). ``export_map`` cuts the feature graph into polylines
-(``connection.feature_chains``, closing rules RULE 1-4), cleans it up (spurs, bubbles, type
+(``segment_graph.feature_chains``, closing rules RULE 1-4), cleans it up (spurs, bubbles, type
 flicker, gores) and fills ``MapFeature`` / ``TopologyNode``. ``graph_from_hdmap`` goes the other
 way, so that an existing map can be updated.
 """
@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hdmap_core.connection import ConnectionStats, SegmentGraph, chain_links, feature_chains, stable_uid
+from hdmap_core.segment_graph import ConnectionStats, SegmentGraph, chain_links, feature_chains, stable_uid
 from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
 
 if TYPE_CHECKING:

@@ -2,7 +2,7 @@
 
 Immel et al. 2023 keep the map as a hierarchical graph: a topology graph with one node per sampling
 step (road midpoint, heading, width) and a road-feature graph of polylines, each referring to the
-other. Every segment (one pivot drive, :class:`~hdmap_core.connection.SegmentGraph`) carries such a
+other. Every segment (one pivot drive, :class:`~hdmap_core.segment_graph.SegmentGraph`) carries such a
 graph; :class:`MapGraph` holds the complete one and inserts segments as the paper describes:
 
 1. the segment's topology graph is split into connected components (breaks come from RULE 3/4);
@@ -38,7 +38,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from hdmap_core.connection import SegmentGraph
+from hdmap_core.segment_graph import SegmentGraph
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.graph import (
     FlatGraph,
