@@ -14,10 +14,12 @@ import pytest
 from hdmap_core.connection import ConnectionConfig, connect_segment
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType, HDMap
+from hdmap_core.pipeline import PipelineConfig
 from hdmap_core.steps import Segment, StepResult
 from hdmap_core.stitching import MapGraph, StitchConfig, graph_from_hdmap, stitch, to_hdmap
 
 B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+DEFAULT = PipelineConfig.preset("default").stitching  # the default preset's stitching options
 LINES = ([-3.5, 0.0, 3.5], [S, D, B])
 
 
@@ -356,19 +358,60 @@ def test_short_type_flicker_smoothed_long_change_kept():
 
 
 def test_sparse_flicker_between_one_type_relabelled_up_to_100_m():
-    """dashed 60 m, solid 40 m, dashed 60 m, solid 40 m (to the end). Seen by 2 drives the inner
-    solid run (between two dashed runs) is one drive's misclassification and takes the dashed
-    type; the last solid run (no dashed after it) stays. Seen by 10 drives (or with
-    sparse_type_run_m 0) the inner run stays: three type changes, four polylines."""
+    """dashed 60 m, solid 40 m, dashed 60 m, solid 40 m (to the end). Seen by 2 drives where the
+    dashed runs have 3, the inner solid run (between two dashed runs) is one drive's
+    misclassification and takes the dashed type; the last solid run (no dashed after it) stays.
+    Seen by 10 drives (or with sparse_type_run_m 0) the inner run stays: three type changes,
+    four polylines."""
     types = [D] * 30 + [S] * 20 + [D] * 30 + [S] * 20
+
+    def seg(count: int, inner: int | None = None) -> Segment:
+        cnt = [inner if (inner is not None and 30 <= i < 50) else count for i in range(len(types))]
+        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt))))
+
+    for cfg in (StitchConfig(), DEFAULT):
+        m = stitch([conn(seg(3, inner=2))], config=cfg)
+        assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [FeatureType.DASHED, FeatureType.SOLID]
+        assert len(stitch([conn(seg(10))], config=cfg).features) == 4
+        assert len(stitch([conn(seg(3, inner=2))], config=dataclasses.replace(cfg, sparse_type_run_m=0.0)).features) == 4
+
+
+def test_sparse_flicker_of_as_many_drives_as_its_neighbours_kept():
+    """dashed 60 m, solid 40 m, dashed 60 m, all seen by 3 drives: the solid run is not a
+    minority (its drives saw solid where as many saw dashed beside it) and stays: three
+    polylines. Without sparse_minority_only (the old rule: any run of <= 5 drives) it is
+    relabelled; seen by one drive throughout it is relabelled too (one drive's type). Options of
+    the default pipeline preset (the dataclass defaults keep the old rule)."""
+    types = [D] * 30 + [S] * 20 + [D] * 30
 
     def seg(count: int) -> Segment:
         return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[count]) for i, t in enumerate(types)))
 
-    m = stitch([conn(seg(2))])
-    assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [FeatureType.DASHED, FeatureType.SOLID]
-    assert len(stitch([conn(seg(10))]).features) == 4
-    assert len(stitch([conn(seg(2))], config=StitchConfig(sparse_type_run_m=0.0)).features) == 4
+    assert DEFAULT.sparse_minority_only and not StitchConfig().sparse_minority_only
+    assert [f.type for f in sorted(stitch([conn(seg(3))], config=DEFAULT).features, key=lambda f: f.points[0, 0])] == [
+        FeatureType.DASHED, FeatureType.SOLID, FeatureType.DASHED]
+    old = dataclasses.replace(DEFAULT, sparse_minority_only=False)
+    assert [f.type for f in stitch([conn(seg(3))], config=old).features] == [FeatureType.DASHED]
+    assert [f.type for f in stitch([conn(seg(1))], config=DEFAULT).features] == [FeatureType.DASHED]
+
+
+def test_one_drive_flicker_relabelled_up_to_250_m():
+    """One drive: dashed 100 m, solid 160 m (its misclassified stretch), dashed 100 m: one dashed
+    polyline (the 100 m sparse limit alone would keep the solid run). A 300 m solid run, or
+    single_drive_run_m 0, stays: three polylines. Two drives on the solid run (the dashed runs
+    have 3): the single-drive rule does not apply, the 100 m limit does: three polylines.
+    Options of the default pipeline preset; the dataclass default (0, off) keeps the run."""
+
+    def seg(n_solid: int, solid_count: int = 1, count: int = 1) -> Segment:
+        types = [D] * 50 + [S] * n_solid + [D] * 50
+        cnt = [solid_count if t == S else count for t in types]
+        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt))))
+
+    assert DEFAULT.single_drive_run_m == 250.0
+    assert [f.type for f in stitch([conn(seg(80))], config=DEFAULT).features] == [FeatureType.DASHED]
+    assert len(stitch([conn(seg(150))], config=DEFAULT).features) == 3
+    assert len(stitch([conn(seg(80))], config=StitchConfig()).features) == 3
+    assert len(stitch([conn(seg(80, solid_count=2, count=3))], config=DEFAULT).features) == 3
 
 
 def test_spur_at_a_flicker_split_pruned():

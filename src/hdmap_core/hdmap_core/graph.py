@@ -117,8 +117,11 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
     nn = flat.n_nodes
     e = flat.edges
     if cfg.min_type_run_m > 0 and nn:
-        flat.n_type = _smooth_types(flat, uid, cfg.min_type_run_m, getattr(cfg, "sparse_type_run_m", 0.0),
-                                    getattr(cfg, "sparse_drive_count", 0))
+        flat.n_type = _smooth_types(
+            flat, uid, cfg.min_type_run_m, getattr(cfg, "sparse_type_run_m", 0.0), getattr(cfg, "sparse_drive_count", 0),
+            minority_only=getattr(cfg, "sparse_minority_only", False),
+            single_run_m=getattr(cfg, "single_drive_run_m", 0.0),
+        )
     through = getattr(cfg, "through_lines", False)
     chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid, through=through)
     link = chain_links(nn, e, flat.leftover, flat.n_type, through=through)
@@ -533,7 +536,14 @@ def _subset_nodes(flat: FlatGraph, keep: np.ndarray) -> FlatGraph:
 
 
 def _smooth_types(
-    flat: FlatGraph, uid: np.ndarray, min_run_m: float, sparse_run_m: float = 0.0, sparse_count: int = 0
+    flat: FlatGraph,
+    uid: np.ndarray,
+    min_run_m: float,
+    sparse_run_m: float = 0.0,
+    sparse_count: int = 0,
+    *,
+    minority_only: bool = False,
+    single_run_m: float = 0.0,
 ) -> np.ndarray:
     """Marking types with short runs along a polyline relabelled to their neighbours' type.
 
@@ -543,7 +553,9 @@ def _smooth_types(
     shortest first. Road borders and markings are never relabelled into each other. A run between
     two runs of one other type (a flicker: A B A) seen by at most ``sparse_count`` drives (median
     over its nodes) is relabelled up to ``sparse_run_m``: with 1-3 drives one drive's
-    misclassification decides the type for tens of metres.
+    misclassification decides the type for tens of metres. With ``minority_only`` such a run of
+    two or more drives is relabelled only when the better supported of its neighbour runs has
+    more drives (median); a flicker run of one drive is relabelled up to ``single_run_m``.
 
     Returns:
         (N,) int type codes.
@@ -567,14 +579,38 @@ def _smooth_types(
 
         cnt = flat.n_count[c]
 
+        def med(r: list[int]) -> float:
+            return float(np.median(cnt[r[0] : r[1]]))
+
         def short(i: int) -> bool:
             r = runs[i]
             if length(r) < min_run_m:
                 return True
-            return (
-                length(r) < sparse_run_m and 0 < i < len(runs) - 1 and runs[i - 1][2] == runs[i + 1][2]
-                and float(np.median(cnt[r[0] : r[1]])) <= sparse_count
-            )
+            # RULE flicker: only a run between two runs of one other type (A B A)
+            if not (0 < i < len(runs) - 1 and runs[i - 1][2] == runs[i + 1][2]):
+                return False
+            m = med(r)
+            if length(r) < sparse_run_m and m <= sparse_count:
+                # RULE minority: a run of >= 2 drives is one drive's misclassification only when
+                # the runs beside it were seen by more drives (on 30-drive CARLA fleets 3-drive
+                # solid runs between 2-3-drive dashed runs are real: the lines before junctions)
+                if not minority_only or m <= 1 or m < max(med(runs[i - 1]), med(runs[i + 1])):
+                    return True
+            # RULE single drive: one drive's type is no evidence against the line's type before
+            # and after it, over a whole misclassified stretch (20-200 m in the simulator)
+            return length(r) < single_run_m and m <= 1
+            m = med(r)
+            nb = max(med(runs[i - 1]), med(runs[i + 1]))
+            import os
+            X = os.environ
+            if length(r) < sparse_run_m and m <= sparse_count:
+                if not X.get("MINOR") or m <= float(X.get("MINOR_FREE", "1")) or m < nb:
+                    return True
+            if X.get("LONG"):
+                L, C = X["LONG"].split(",")
+                if length(r) < float(L) and m <= float(C) and (not X.get("LONG_MINOR") or m <= nb):
+                    return True
+            return False
 
         while len(runs) > 1:
             cand = [i for i in range(len(runs)) if short(i)]

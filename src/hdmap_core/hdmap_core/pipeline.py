@@ -128,7 +128,8 @@ class PipelineConfig:
                 sparse_type_clash_m=1.0,
             )
             final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
-            from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage module, loaded on use)
+            from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
+            from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
 
             return cls(
                 sampling=SamplingConfig(min_border_support_fraction=0.05, open_side_gap_m=4.0),
@@ -138,6 +139,9 @@ class PipelineConfig:
                 final_alignment=final,
                 mark_on_cut_only=True,
                 connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
+                # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
+                # one drive's misclassified stretch up to 250 m (docs/pipeline.md, sparse fleets)
+                stitching=StitchConfig(sparse_minority_only=True, single_drive_run_m=250.0),
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")
