@@ -127,7 +127,9 @@ class PipelineConfig:
                 sparse_step_max_std_m=0.3,
                 sparse_type_clash_m=1.0,
             )
-            final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
+            # final pass: a sparse step of singletons and one shared cluster is accepted when tight
+            # (docs/pipeline.md, sparse fleets); the first pass, whose steps feed the adjustment, not
+            final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False, sparse_singletons_accept=True)
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
             from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
 
