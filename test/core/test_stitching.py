@@ -396,14 +396,15 @@ def test_sparse_flicker_of_as_many_drives_as_its_neighbours_kept():
 
 
 def test_one_drive_flicker_relabelled_up_to_250_m():
-    """One drive: dashed 100 m, solid 160 m (its misclassified stretch), dashed 100 m: one dashed
+    """One drive: dashed 200 m, solid 160 m (its misclassified stretch), dashed 200 m: one dashed
     polyline (the 100 m sparse limit alone would keep the solid run). A 300 m solid run, or
     single_drive_run_m 0, stays: three polylines. Two drives on the solid run (the dashed runs
-    have 3): the single-drive rule does not apply, the 100 m limit does: three polylines.
+    have 3): the single-drive rule does not apply, the 100 m limit does: three polylines. A run
+    longer than both of its neighbours stays.
     Options of the default pipeline preset; the dataclass default (0, off) keeps the run."""
 
     def seg(n_solid: int, solid_count: int = 1, count: int = 1) -> Segment:
-        types = [D] * 50 + [S] * n_solid + [D] * 50
+        types = [D] * 100 + [S] * n_solid + [D] * 100
         cnt = [solid_count if t == S else count for t in types]
         return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt))))
 
@@ -412,6 +413,13 @@ def test_one_drive_flicker_relabelled_up_to_250_m():
     assert len(stitch([conn(seg(150))], config=DEFAULT).features) == 3
     assert len(stitch([conn(seg(80))], config=StitchConfig()).features) == 3
     assert len(stitch([conn(seg(80, solid_count=2, count=3))], config=DEFAULT).features) == 3
+    # One drive, solid 78 m, dashed 146 m, solid 78 m: the dashed run is longer than both solid
+    # runs beside it, so it is not taken for the misclassified one: three polylines S, D, S.
+    types = [S] * 40 + [D] * 73 + [S] * 40
+    m = stitch([conn(Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[1]) for i, t in enumerate(types))))],
+               config=DEFAULT)
+    assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [
+        FeatureType.SOLID, FeatureType.DASHED, FeatureType.SOLID]
 
 
 def test_spur_at_a_flicker_split_pruned():

@@ -555,7 +555,8 @@ def _smooth_types(
     over its nodes) is relabelled up to ``sparse_run_m``: with 1-3 drives one drive's
     misclassification decides the type for tens of metres. With ``minority_only`` such a run of
     two or more drives is relabelled only when the better supported of its neighbour runs has
-    more drives (median); a flicker run of one drive is relabelled up to ``single_run_m``.
+    more drives (median); a flicker run of one drive is relabelled up to ``single_run_m`` when it
+    is not longer than both of its neighbour runs.
 
     Returns:
         (N,) int type codes.
@@ -597,8 +598,11 @@ def _smooth_types(
                 if not minority_only or m <= 1 or m < max(med(runs[i - 1]), med(runs[i + 1])):
                     return True
             # RULE single drive: one drive's type is no evidence against the line's type before
-            # and after it, over a whole misclassified stretch (20-200 m in the simulator)
-            return length(r) < single_run_m and m <= 1
+            # and after it, over a whole misclassified stretch (20-200 m in the simulator) --
+            # unless the run is longer than both neighbours (S 78 m, D 145 m, S 77 m of one
+            # drive: the two short runs are the likelier misclassification)
+            longest = length(r) > max(length(runs[i - 1]), length(runs[i + 1]))
+            return length(r) < single_run_m and m <= 1 and not longest
             m = med(r)
             nb = max(med(runs[i - 1]), med(runs[i + 1]))
             import os
