@@ -667,6 +667,46 @@ def test_loose_ends_joined_where_the_pivot_heading_leaves_the_line():
         StitchConfig(join_line_heading_deg=-1.0)
 
 
+def _turning_pivots(cross: bool):
+    """One dashed line along x, mapped by pivots a (x 0..40) and b (x 72..120) with a 32 m gap;
+    both pivots head 6 deg off the line (topology heading 0.1 rad), so compared by their
+    topology headings the start lies 3.2 m beside the end and the join fails; compared by the
+    line's own direction it passes (from ``join_line_heading_deg`` 3, the default preset's).
+    ``cross``: pivot c drives north through the middle of the gap (x 56), as a pivot turning
+    through a junction."""
+    def seg(name: str, x0: float, n: int) -> Segment:
+        return Segment(name, tuple(dataclasses.replace(step(name, i, x0 + 2.0 * i, [0.0], [D]), heading=0.1) for i in range(n)))
+
+    graphs = [conn(seg("a", 0.0, 21)), conn(seg("b", 72.0, 25))]
+    if cross:
+        c = Segment("c", tuple(
+            dataclasses.replace(step("c", i, 56.0, [-6.0, 6.0], [B, B], y_mid=-20.0 + 2.0 * i), heading=math.pi / 2)
+            for i in range(21)))
+        graphs.append(conn(c))
+    return graphs
+
+
+def test_join_in_the_lines_frame_refused_where_a_pivot_turned_through_the_gap():
+    """The loose end and start of one line, 32 m apart, pass the join only in the line's own
+    frame. With no other drive in the gap they are joined (default preset); where another
+    pivot's topology nodes cross the gap's middle (heading 90 deg off, > join_line_cross_deg),
+    the join is refused: the pivots turned through a junction and the lines end at its mouths
+    (Town06). With the dataclass defaults (line frame from 10 deg only, the check off) the
+    line stays in two pieces either way."""
+    def pieces(m: HDMap) -> list:
+        return [f for f in m.features if f.type == FeatureType.DASHED]
+
+    assert DEFAULT.join_line_cross_deg == 30.0 and DEFAULT.join_line_heading_deg == 3.0
+    joined = pieces(stitch(_turning_pivots(cross=False), config=DEFAULT))
+    assert len(joined) == 1 and joined[0].points[-1, 0] == pytest.approx(120.0)
+    assert len(pieces(stitch(_turning_pivots(cross=True), config=DEFAULT))) == 2
+    off = dataclasses.replace(DEFAULT, join_line_cross_deg=0.0)
+    assert len(pieces(stitch(_turning_pivots(cross=True), config=off))) == 1
+    assert len(pieces(stitch(_turning_pivots(cross=False), config=StitchConfig()))) == 2
+    with pytest.raises(ConfigError):
+        StitchConfig(join_line_cross_deg=-1.0)
+
+
 def _gap_roads(through_lines):
     """Pivots a (x 0..40) and b (x 80..120) map the three lines of one road, which all end at
     the same 40 m gap; pivot c drove through the gap (x 42..78) mapping ``through_lines``

@@ -143,7 +143,13 @@ class PipelineConfig:
                 connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
                 # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
                 # one drive's misclassified stretch up to 250 m (docs/pipeline.md, sparse fleets)
-                stitching=StitchConfig(sparse_minority_only=True, single_drive_run_m=250.0),
+                stitching=StitchConfig(
+                    sparse_minority_only=True, single_drive_run_m=250.0,
+                    # loose ends also compared in their lines' frame from 3 deg off the pivot's
+                    # heading (10 in the dataclass), such joins refused where a pivot turned
+                    # through the gap (docs/pipeline.md, sparse fleets)
+                    join_line_heading_deg=3.0, join_line_cross_deg=30.0, join_line_cross_lateral_m=12.0,
+                ),
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")

@@ -133,6 +133,13 @@ class StitchConfig:
         join_gap_lateral_m: see ``join_gap_check_m`` [m].
         join_gap_heading_deg: see ``join_gap_check_m`` [deg].
         join_gap_coverage: see ``join_gap_check_m`` (share of bins, 0..1).
+        join_line_cross_deg: a join longer than ``join_gap_check_m`` that passes only in its
+            lines' direction (``join_line_heading_m``: where the pivot turned) is refused when a
+            topology node in the middle half of the gap, within ``join_line_cross_lateral_m``
+            across, heads more than this off the join: a pivot turning through a junction, whose
+            lines all end at its mouth (carla_town06_30: three dashed lines filled straight
+            across a junction, 30 false points each). 0 disables [deg].
+        join_line_cross_lateral_m: see ``join_line_cross_deg`` [m].
         fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
             with points on a cubic Hermite curve through the end tangents, this far apart; the
             filled points carry drive_count 0 (no drive saw them). 0 disables [m].
@@ -206,6 +213,8 @@ class StitchConfig:
     join_gap_lateral_m: float = 12.0
     join_gap_heading_deg: float = 10.0
     join_gap_coverage: float = 0.8
+    join_line_cross_deg: float = 0.0
+    join_line_cross_lateral_m: float = 12.0
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
     min_type_run_m: float = 20.0
@@ -246,6 +255,8 @@ class StitchConfig:
             "join_gap_check_m",
             "join_gap_lateral_m",
             "join_gap_heading_deg",
+            "join_line_cross_deg",
+            "join_line_cross_lateral_m",
             "fill_spacing_m",
             "min_isolated_length_m",
             "min_type_run_m",
@@ -277,6 +288,7 @@ class StitchConfig:
             fill_spacing_m=0.0,
             join_line_heading_m=0.0,
             join_gap_check_m=0.0,
+            join_line_cross_deg=0.0,
             min_type_run_m=0.0,
             sparse_type_run_m=0.0,
             sparse_minority_only=False,
@@ -302,39 +314,60 @@ class _GapCheck:
         self._lat = cfg.join_gap_lateral_m
         self._cos = math.cos(math.radians(cfg.join_gap_heading_deg))
         self._cover = cfg.join_gap_coverage
+        self._cross_cos = math.cos(math.radians(cfg.join_line_cross_deg)) if cfg.join_line_cross_deg > 0 else None
+        self._cross_lat = cfg.join_line_cross_lateral_m
         self._ttree: cKDTree | None = None
         self._ntree: cKDTree | None = None
         self._nsup = np.zeros(0, dtype=np.int64)
 
-    def _near(self, tree: cKDTree, xy: np.ndarray, p: np.ndarray, along: float, u: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Points of ``tree`` in the middle half of the gap within the lateral band: (index, along)."""
+    def _near(
+        self, tree: cKDTree, xy: np.ndarray, p: np.ndarray, along: float, u: np.ndarray, n: np.ndarray, lat_m: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Points of ``tree`` in the middle half of the gap within ``lat_m`` across: (index, along)."""
         mid = p + 0.5 * (self.LO + self.HI) * along * u
-        r = math.hypot(0.5 * (self.HI - self.LO) * along, self._lat)
+        r = math.hypot(0.5 * (self.HI - self.LO) * along, lat_m)
         k = np.asarray(tree.query_ball_point(mid, r), dtype=np.int64)
         if len(k) == 0:
             return k, np.zeros(0)
         rel = xy[k] - p
         ra, rl = rel @ u, rel @ n
-        ok = (ra > self.LO * along) & (ra < self.HI * along) & (np.abs(rl) < self._lat)
+        ok = (ra > self.LO * along) & (ra < self.HI * along) & (np.abs(rl) < lat_m)
         return k[ok], ra[ok]
+
+    def _trees(self) -> None:
+        fl = self._flat
+        if self._ttree is None:
+            self._ttree = cKDTree(fl.t_xy) if len(fl.t_xy) else None
+            self._nsup = np.flatnonzero(fl.n_count > 0)
+            self._ntree = cKDTree(fl.n_xy[self._nsup]) if len(self._nsup) else None
+
+    def crossed(self, p: np.ndarray, along: float, h: float, u: np.ndarray, n: np.ndarray) -> bool:
+        """A topology node in the middle half of the join from ``p`` (``along`` m in direction
+        ``h``), within ``join_line_cross_lateral_m`` across, heads more than
+        ``join_line_cross_deg`` off it (False when the check is off)."""
+        if self._cross_cos is None:
+            return False
+        self._trees()
+        if self._ttree is None:
+            return False
+        fl = self._flat
+        k, _ = self._near(self._ttree, fl.t_xy, p, along, u, n, self._cross_lat)
+        return bool(np.any(np.cos(fl.t_heading[k] - h) < self._cross_cos))
 
     def unmapped(self, p: np.ndarray, along: float, h: float, u: np.ndarray, n: np.ndarray) -> bool:
         """A join from ``p`` ``along`` m in direction ``h`` (unit ``u``, normal ``n``) crosses a
         stretch drives passed (topology nodes in its middle half) whose lines beside it are missing
         too (drive-supported nodes cover < ``join_gap_coverage`` of its 2 m bins)."""
         fl = self._flat
-        if self._ttree is None:
-            self._ttree = cKDTree(fl.t_xy) if len(fl.t_xy) else None
-            self._nsup = np.flatnonzero(fl.n_count > 0)
-            self._ntree = cKDTree(fl.n_xy[self._nsup]) if len(self._nsup) else None
+        self._trees()
         if self._ttree is None:
             return False
-        k, _ = self._near(self._ttree, fl.t_xy, p, along, u, n)
+        k, _ = self._near(self._ttree, fl.t_xy, p, along, u, n, self._lat)
         if not np.any(np.cos(fl.t_heading[k] - h) > self._cos):
             return False  # no drive went through the middle of the gap: nothing to hold against it
         if self._ntree is None:
             return True
-        k, ra = self._near(self._ntree, fl.n_xy[self._nsup], p, along, u, n)
+        k, ra = self._near(self._ntree, fl.n_xy[self._nsup], p, along, u, n, self._lat)
         ra = ra[np.cos(self._node_heading[self._nsup[k]] - h) > self._cos]
         nb = max(1, int((self.HI - self.LO) * along / self.BIN_M))
         b = np.floor((ra / along - self.LO) / (self.HI - self.LO) * nb).astype(np.int64)
@@ -915,6 +948,10 @@ class MapGraph:
                     if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
                         continue
                     if 0 < cfg.join_gap_check_m < along and gap.unmapped(flat.n_xy[i], along, mean_h, u, n):
+                        continue
+                    # RULE turning join: passing in the lines' frame only where a pivot turned
+                    # through the gap (a junction) is no continuation
+                    if 0 < cfg.join_gap_check_m < along and hh is line_h and gap.crossed(flat.n_xy[i], along, mean_h, u, n):
                         continue
                     src, dropped = i, []
                     while along <= 0.0:  # the start lies beside the end: drop the end's overlap
