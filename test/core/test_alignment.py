@@ -295,6 +295,33 @@ def test_sparse_step_of_singletons_and_one_shared_cluster_accepted_with_the_opti
     assert not align_step(far, types, drive, config=replace(cfg, sparse_singletons_accept=True)).valid
 
 
+def test_four_drive_step_judged_by_the_sparse_rule_clash_drop_only_up_to_three():
+    """Four drives (carla_town06_30_s1, x -86 m, final pass, samples shifted): every line is
+    tight (pairs within 0.2 m), but drive 0 takes the second line for solid, drive 3 the fourth,
+    and drive 1 alone sees the right edge line: five singletons pull the silhouette to 0.64 and
+    the step was rejected (50 m of a road with 4 drives unmapped). Judged by the sparse-step
+    rule (sparse_step_max_drives 4) it is accepted. The type-clash drop, limited to steps of <= 3
+    drives (sparse_type_clash_max_drives), keeps the clashing singletons here; without the limit
+    they are dropped."""
+    B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+    lat = np.array([-7.55, -6.46, -6.38, -6.28, -2.95, -2.84, -2.78, 0.50, 0.69, 0.70, 4.08, 4.09, 7.50])
+    types = np.array([B, S, S, S, D, D, S, D, D, D, S, D, S])
+    drive = np.array([0, 2, 0, 3, 2, 3, 0, 3, 2, 0, 3, 1, 1])
+    cfg = AlignmentConfig(
+        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3, sparse_singletons_accept=True,
+    )
+    old = align_step(lat, types, drive, config=cfg)
+    assert not old.valid and 0.6 < old.silhouette < 0.67
+    four = replace(cfg, sparse_step_max_drives=4, sparse_type_clash_max_drives=3)
+    res = align_step(lat, types, drive, config=four)
+    assert res.valid and np.all(res.labels >= 0)
+    dropped = align_step(lat, types, drive, config=replace(four, sparse_type_clash_max_drives=0))
+    assert dropped.labels[6] == -1 and dropped.labels[10] == -1 and dropped.labels[11] == -1
+    with pytest.raises(ConfigError):
+        AlignmentConfig(sparse_type_clash_max_drives=-1)
+
+
 def test_sparse_step_rule_rejects_loose_clusters():
     # Same layout, but the drives disagree on the dashed lines by 0.7 m in opposite directions:
     # no offset makes both pairs tight (std 0.35 m), though they are far apart (silhouette > 0.67).
@@ -344,10 +371,12 @@ def test_sparse_step_config_checks():
         AlignmentConfig(sparse_step_max_drives=-1)
     with pytest.raises(ConfigError):
         AlignmentConfig(sparse_step_max_std_m=0.0)
-    # The paper preset stays faithful; the default preset uses the rule in both passes.
+    # The paper preset stays faithful; the default preset uses the rule in both passes, in the
+    # final pass for steps of up to 4 drives (type-clash drop up to 3, as in the first pass).
     from hdmap_core.pipeline import PipelineConfig
 
     assert PipelineConfig.preset("paper").alignment.sparse_step_max_drives == 0
     default = PipelineConfig.preset("default")
-    assert default.alignment.sparse_step_max_drives > 0
-    assert default.final_alignment.sparse_step_max_drives == default.alignment.sparse_step_max_drives
+    assert default.alignment.sparse_step_max_drives == 3
+    assert default.final_alignment.sparse_step_max_drives == 4
+    assert default.final_alignment.sparse_type_clash_max_drives == default.alignment.sparse_step_max_drives

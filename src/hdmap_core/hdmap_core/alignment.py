@@ -93,6 +93,11 @@ class AlignmentConfig:
             (the drives agree somewhere). Two drives that see different lines, or disagree on
             the type where both see one, left whole stretches unmapped (carla_town06_30_s2: 40
             steps in a row, 80 m). False: such a step is rejected.
+        sparse_type_clash_max_drives: the type-clash drop applies to steps of at most this many
+            drives; 0: to every step of the sparse-step rule. (With 4 drives a one-sample cluster
+            beside another drive's line of the other type can be a real line; the default
+            preset's final pass judges steps of <= 4 drives by the sparse-step rule but drops
+            clashing singletons only in steps of <= 3.)
         min_cluster_drives: clusters supported by fewer distinct drives are dropped (label -1).
         max_offset_m: offsets are clipped to +-this [m].
     """
@@ -118,6 +123,7 @@ class AlignmentConfig:
     sparse_step_max_std_m: float = 0.3
     sparse_type_clash_m: float = 0.0
     sparse_singletons_accept: bool = False
+    sparse_type_clash_max_drives: int = 0
     min_cluster_drives: int = 1
     max_offset_m: float = 5.0
 
@@ -130,9 +136,11 @@ class AlignmentConfig:
             raise ConfigError("AlignmentConfig.k_max, n_iterations, min_cluster_drives must be >= 1")
         if self.gap_split_m <= 0 or self.huber_delta_m <= 0 or self.ridge < 0 or self.prior_weight < 0:
             raise ConfigError("AlignmentConfig: gap_split_m, huber_delta_m > 0 and ridge, prior_weight >= 0 required")
-        if self.sparse_step_max_drives < 0 or self.sparse_step_max_std_m <= 0 or self.sparse_type_clash_m < 0:
+        if (self.sparse_step_max_drives < 0 or self.sparse_step_max_std_m <= 0 or self.sparse_type_clash_m < 0
+                or self.sparse_type_clash_max_drives < 0):
             raise ConfigError(
-                "AlignmentConfig: sparse_step_max_drives, sparse_type_clash_m >= 0 and sparse_step_max_std_m > 0 required"
+                "AlignmentConfig: sparse_step_max_drives, sparse_type_clash_m, sparse_type_clash_max_drives >= 0 and "
+                "sparse_step_max_std_m > 0 required"
             )
 
 
@@ -789,7 +797,8 @@ def _em(
         o = solve_offsets(x, labels, types, drive, n_drives, config=config, prior=prior, init=o)
     y = x + o[drive]
     sparse = 0 < len(np.unique(drive)) <= config.sparse_step_max_drives
-    if sparse and config.sparse_type_clash_m > 0:
+    clash_max = config.sparse_type_clash_max_drives or config.sparse_step_max_drives
+    if sparse and config.sparse_type_clash_m > 0 and len(np.unique(drive)) <= clash_max:
         labels = _drop_type_clashing_singletons(y, labels, types, drive, config.sparse_type_clash_m)
     score = step_silhouette(y, labels, types)
     valid = score >= config.silhouette_gate

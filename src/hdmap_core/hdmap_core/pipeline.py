@@ -127,9 +127,14 @@ class PipelineConfig:
                 sparse_step_max_std_m=0.3,
                 sparse_type_clash_m=1.0,
             )
-            # final pass: a sparse step of singletons and one shared cluster is accepted when tight
-            # (docs/pipeline.md, sparse fleets); the first pass, whose steps feed the adjustment, not
-            final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False, sparse_singletons_accept=True)
+            # final pass (docs/pipeline.md, sparse fleets; the first pass, whose steps feed the
+            # adjustment, keeps its rules): a sparse step of singletons and one shared cluster is
+            # accepted when tight, and steps of 4 drives are judged by the sparse-step rule too
+            # (type-clashing singletons still dropped only with <= 3)
+            final = replace(
+                fast, clustering="gap", prior_weight=0.0, estimate_offsets=False, sparse_singletons_accept=True,
+                sparse_step_max_drives=4, sparse_type_clash_max_drives=3,
+            )
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
             from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
 
