@@ -707,6 +707,30 @@ def test_join_in_the_lines_frame_refused_where_a_pivot_turned_through_the_gap():
         StitchConfig(join_line_cross_deg=-1.0)
 
 
+def test_one_drive_border_between_lane_lines_dropped():
+    """Pivot a maps a road (solid -3.5, dashed 0, solid 3.5 m, 4 drives); pivot b (its cuts
+    centred 3 m over, so it is no overlap to trim) alone reports
+    a road border at 1.75 m over 60 m (a marking taken for a border) and another
+    at 5.5 m, beyond the outer line. The inner one has lane markings on both sides within 5 m:
+    with inner_border_max_m (default preset) it is dropped, the outer one stays. With 3 drives
+    on b (above inner_border_max_drives 2), or with the dataclass default (0, off), both stay."""
+    a = conn(road("a", 0.0, 50, ([-3.5, 0.0, 3.5], [S, D, S])))
+
+    def b(count: int):
+        steps = [step("b", i, 20.0 + 2.0 * i, [1.75, 5.5], [B, B], y_mid=3.0, counts=[count, count]) for i in range(30)]
+        return conn(Segment("b", tuple(steps)))
+
+    def borders(m: HDMap) -> list[float]:
+        return sorted(round(float(f.points[0, 1]), 2) for f in m.features if f.type == FeatureType.ROAD_BORDER)
+
+    assert DEFAULT.inner_border_max_m == 5.0
+    assert borders(stitch([a, b(1)], config=DEFAULT)) == [5.5]
+    assert borders(stitch([a, b(3)], config=DEFAULT)) == [1.75, 5.5]
+    assert borders(stitch([a, b(1)], config=StitchConfig())) == [1.75, 5.5]
+    with pytest.raises(ConfigError):
+        StitchConfig(inner_border_max_drives=0)
+
+
 def _gap_roads(through_lines):
     """Pivots a (x 0..40) and b (x 80..120) map the three lines of one road, which all end at
     the same 40 m gap; pivot c drove through the gap (x 42..78) mapping ``through_lines``

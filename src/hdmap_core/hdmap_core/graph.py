@@ -203,6 +203,9 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
         length = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
         if isolated and (len(xy) < 2 or length < cfg.min_isolated_length_m):
             keep[k] = False
+    inner_m = getattr(cfg, "inner_border_max_m", 0.0)
+    if inner_m > 0:
+        keep &= ~_inner_borders(flat, chains, succ, pred, on_through, inner_m, getattr(cfg, "inner_border_max_drives", 1))
     fid = np.array([int(uid[c[0]]) for c in chains], dtype=np.uint64)
     ctype = [int(flat.n_type[c[0]]) for c in chains]
     runs = _continuation_runs(keep, succ, pred, ctype, fid) if cfg.merge_continuations else [[k] for k in np.flatnonzero(keep).tolist()]
@@ -261,6 +264,47 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
     features.sort(key=lambda f: f.id)
     topology.sort(key=lambda t: t.id)
     return tuple(features), tuple(topology)
+
+
+def _inner_borders(
+    flat: FlatGraph,
+    chains: list[np.ndarray],
+    succ: dict[int, set[int]],
+    pred: dict[int, set[int]],
+    on_through: set[int],
+    reach_m: float,
+    max_drives: int,
+) -> np.ndarray:
+    """(C,) bool: isolated road-border chains of at most ``max_drives`` drives (max over their
+    nodes) that run inside the road: at most of their drive-supported nodes a lane marking of
+    the same direction lies within ``reach_m`` on both sides. A road border has the road on one
+    side only; one drive's marking reported as a border (the simulator's marking_to_border, 1 %
+    of marking stretches) lies between two lane lines."""
+    out = np.zeros(len(chains), dtype=bool)
+    mark = np.flatnonzero(flat.n_type != _BORDER_CODE)
+    if len(mark) == 0:
+        return out
+    heading = flat.t_heading[flat.node_topo()]
+    tree = cKDTree(flat.n_xy[mark])
+    cos_h = math.cos(math.radians(30.0))
+    for k, c in enumerate(chains):
+        if int(flat.n_type[c[0]]) != _BORDER_CODE or succ.get(k) or pred.get(k) or k in on_through:
+            continue
+        if int(flat.n_count[c].max()) > max_drives:
+            continue
+        nodes = c[flat.n_count[c] > 0]
+        if len(nodes) == 0:
+            continue
+        inside = 0
+        for i, near in zip(nodes.tolist(), tree.query_ball_point(flat.n_xy[nodes], reach_m)):
+            j = mark[np.asarray(near, dtype=np.int64)]
+            j = j[np.cos(heading[j] - heading[i]) > cos_h]
+            if len(j) == 0:
+                continue
+            lat = (flat.n_xy[j] - flat.n_xy[i]) @ np.array([-math.sin(heading[i]), math.cos(heading[i])])
+            inside += bool((lat > 0.5).any() and (lat < -0.5).any())
+        out[k] = inside > 0.5 * len(nodes)
+    return out
 
 
 def _continuation_runs(

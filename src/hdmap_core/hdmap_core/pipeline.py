@@ -154,6 +154,8 @@ class PipelineConfig:
                     # heading (10 in the dataclass), such joins refused where a pivot turned
                     # through the gap (docs/pipeline.md, sparse fleets)
                     join_line_heading_deg=3.0, join_line_cross_deg=30.0, join_line_cross_lateral_m=12.0,
+                    # an isolated 1-2-drive border between lane lines is a misclassified marking
+                    inner_border_max_m=5.0, inner_border_max_drives=2,
                 ),
                 name="default",
             )
