@@ -647,18 +647,6 @@ def _smooth_types(
             # drive: the two short runs are the likelier misclassification)
             longest = length(r) > max(length(runs[i - 1]), length(runs[i + 1]))
             return length(r) < single_run_m and m <= 1 and not longest
-            m = med(r)
-            nb = max(med(runs[i - 1]), med(runs[i + 1]))
-            import os
-            X = os.environ
-            if length(r) < sparse_run_m and m <= sparse_count:
-                if not X.get("MINOR") or m <= float(X.get("MINOR_FREE", "1")) or m < nb:
-                    return True
-            if X.get("LONG"):
-                L, C = X["LONG"].split(",")
-                if length(r) < float(L) and m <= float(C) and (not X.get("LONG_MINOR") or m <= nb):
-                    return True
-            return False
 
         while len(runs) > 1:
             cand = [i for i in range(len(runs)) if short(i)]
