@@ -262,6 +262,66 @@ def test_sparse_step_with_lines_one_drive_misses_accepted_only_with_the_rule():
     assert align_step(lat3, types3, drive3, config=replace(_SPARSE, sparse_step_max_drives=3)).valid
 
 
+def test_sparse_step_of_singletons_and_one_shared_cluster_accepted_with_the_option():
+    """Two drives (carla_town06_30_s2, x 360 m, final pass, samples already shifted): both see
+    the border 0.2 m apart; drive 0 sees a solid line at -6.3 m, drive 1 dashed lines at -2.9
+    and 7.5 m; at 0.5 m and 4.1 m they disagree on the type (solid/dashed side by side, dropped
+    as type clashes). Every type with two clusters holds only singletons, so the silhouette
+    without singletons is undefined (-1) and the sparse-step rule rejected the step: 40 such
+    steps in a row left 80 m of road unmapped. With ``sparse_singletons_accept`` it is judged like
+    a lone-cluster step (every cluster tight) when some cluster is shared by both drives."""
+    lat = np.array([-7.69, -7.47, -6.33, -2.94, 0.43, 0.54, 4.08, 4.12, 7.52])
+    B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+    types = np.array([B, B, S, D, S, D, D, S, D])
+    drive = np.array([1, 0, 0, 1, 1, 0, 1, 0, 1])
+    cfg = AlignmentConfig(
+        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3,
+    )
+    old = align_step(lat, types, drive, config=cfg)
+    assert not old.valid and old.silhouette == pytest.approx(0.0)
+    res = align_step(lat, types, drive, config=replace(cfg, sparse_singletons_accept=True))
+    assert res.valid
+    assert np.all(res.labels[[4, 5, 6, 7]] == -1)  # the clashing pairs stay dropped
+    assert res.labels[0] == res.labels[1] >= 0 and np.all(res.labels[[2, 3, 8]] >= 0)
+    # No cluster shared by the two drives (the border seen by drive 0 only): nothing ties them,
+    # the step stays rejected.
+    lone = np.ones(len(lat), dtype=bool)
+    lone[0] = False
+    assert not align_step(lat[lone], types[lone], drive[lone], config=replace(cfg, sparse_singletons_accept=True)).valid
+    # A loose shared cluster (border 0.8 m apart) is no agreement either.
+    far = lat.copy()
+    far[0] = -8.27
+    assert not align_step(far, types, drive, config=replace(cfg, sparse_singletons_accept=True)).valid
+
+
+def test_four_drive_step_judged_by_the_sparse_rule_clash_drop_only_up_to_three():
+    """Four drives (carla_town06_30_s1, x -86 m, final pass, samples shifted): every line is
+    tight (pairs within 0.2 m), but drive 0 takes the second line for solid, drive 3 the fourth,
+    and drive 1 alone sees the right edge line: five singletons pull the silhouette to 0.64 and
+    the step was rejected (50 m of a road with 4 drives unmapped). Judged by the sparse-step
+    rule (sparse_step_max_drives 4) it is accepted. The type-clash drop, limited to steps of <= 3
+    drives (sparse_type_clash_max_drives), keeps the clashing singletons here; without the limit
+    they are dropped."""
+    B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+    lat = np.array([-7.55, -6.46, -6.38, -6.28, -2.95, -2.84, -2.78, 0.50, 0.69, 0.70, 4.08, 4.09, 7.50])
+    types = np.array([B, S, S, S, D, D, S, D, D, D, S, D, S])
+    drive = np.array([0, 2, 0, 3, 2, 3, 0, 3, 2, 0, 3, 1, 1])
+    cfg = AlignmentConfig(
+        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3, sparse_singletons_accept=True,
+    )
+    old = align_step(lat, types, drive, config=cfg)
+    assert not old.valid and 0.6 < old.silhouette < 0.67
+    four = replace(cfg, sparse_step_max_drives=4, sparse_type_clash_max_drives=3)
+    res = align_step(lat, types, drive, config=four)
+    assert res.valid and np.all(res.labels >= 0)
+    dropped = align_step(lat, types, drive, config=replace(four, sparse_type_clash_max_drives=0))
+    assert dropped.labels[6] == -1 and dropped.labels[10] == -1 and dropped.labels[11] == -1
+    with pytest.raises(ConfigError):
+        AlignmentConfig(sparse_type_clash_max_drives=-1)
+
+
 def test_sparse_step_rule_rejects_loose_clusters():
     # Same layout, but the drives disagree on the dashed lines by 0.7 m in opposite directions:
     # no offset makes both pairs tight (std 0.35 m), though they are far apart (silhouette > 0.67).
@@ -311,10 +371,12 @@ def test_sparse_step_config_checks():
         AlignmentConfig(sparse_step_max_drives=-1)
     with pytest.raises(ConfigError):
         AlignmentConfig(sparse_step_max_std_m=0.0)
-    # The paper preset stays faithful; the default preset uses the rule in both passes.
+    # The paper preset stays faithful; the default preset uses the rule in both passes, in the
+    # final pass for steps of up to 4 drives (type-clash drop up to 3, as in the first pass).
     from hdmap_core.pipeline import PipelineConfig
 
     assert PipelineConfig.preset("paper").alignment.sparse_step_max_drives == 0
     default = PipelineConfig.preset("default")
-    assert default.alignment.sparse_step_max_drives > 0
-    assert default.final_alignment.sparse_step_max_drives == default.alignment.sparse_step_max_drives
+    assert default.alignment.sparse_step_max_drives == 3
+    assert default.final_alignment.sparse_step_max_drives == 4
+    assert default.final_alignment.sparse_type_clash_max_drives == default.alignment.sparse_step_max_drives

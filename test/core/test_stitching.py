@@ -14,10 +14,12 @@ import pytest
 from hdmap_core.connection import ConnectionConfig, connect_segment
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType, HDMap
+from hdmap_core.pipeline import PipelineConfig
 from hdmap_core.steps import Segment, StepResult
 from hdmap_core.stitching import MapGraph, StitchConfig, graph_from_hdmap, stitch, to_hdmap
 
 B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+DEFAULT = PipelineConfig.preset("default").stitching  # the default preset's stitching options
 LINES = ([-3.5, 0.0, 3.5], [S, D, B])
 
 
@@ -374,19 +376,68 @@ def test_short_type_flicker_smoothed_long_change_kept():
 
 
 def test_sparse_flicker_between_one_type_relabelled_up_to_100_m():
-    """dashed 60 m, solid 40 m, dashed 60 m, solid 40 m (to the end). Seen by 2 drives the inner
-    solid run (between two dashed runs) is one drive's misclassification and takes the dashed
-    type; the last solid run (no dashed after it) stays. Seen by 10 drives (or with
-    sparse_type_run_m 0) the inner run stays: three type changes, four polylines."""
+    """dashed 60 m, solid 40 m, dashed 60 m, solid 40 m (to the end). Seen by 2 drives where the
+    dashed runs have 3, the inner solid run (between two dashed runs) is one drive's
+    misclassification and takes the dashed type; the last solid run (no dashed after it) stays.
+    Seen by 10 drives (or with sparse_type_run_m 0) the inner run stays: three type changes,
+    four polylines."""
     types = [D] * 30 + [S] * 20 + [D] * 30 + [S] * 20
+
+    def seg(count: int, inner: int | None = None) -> Segment:
+        cnt = [inner if (inner is not None and 30 <= i < 50) else count for i in range(len(types))]
+        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt))))
+
+    for cfg in (StitchConfig(), DEFAULT):
+        m = stitch([conn(seg(3, inner=2))], config=cfg)
+        assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [FeatureType.DASHED, FeatureType.SOLID]
+        assert len(stitch([conn(seg(10))], config=cfg).features) == 4
+        assert len(stitch([conn(seg(3, inner=2))], config=dataclasses.replace(cfg, sparse_type_run_m=0.0)).features) == 4
+
+
+def test_sparse_flicker_of_as_many_drives_as_its_neighbours_kept():
+    """dashed 60 m, solid 40 m, dashed 60 m, all seen by 3 drives: the solid run is not a
+    minority (its drives saw solid where as many saw dashed beside it) and stays: three
+    polylines. Without sparse_minority_only (the old rule: any run of <= 5 drives) it is
+    relabelled; seen by one drive throughout it is relabelled too (one drive's type). Options of
+    the default pipeline preset (the dataclass defaults keep the old rule)."""
+    types = [D] * 30 + [S] * 20 + [D] * 30
 
     def seg(count: int) -> Segment:
         return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[count]) for i, t in enumerate(types)))
 
-    m = stitch([conn(seg(2))])
-    assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [FeatureType.DASHED, FeatureType.SOLID]
-    assert len(stitch([conn(seg(10))]).features) == 4
-    assert len(stitch([conn(seg(2))], config=StitchConfig(sparse_type_run_m=0.0)).features) == 4
+    assert DEFAULT.sparse_minority_only and not StitchConfig().sparse_minority_only
+    assert [f.type for f in sorted(stitch([conn(seg(3))], config=DEFAULT).features, key=lambda f: f.points[0, 0])] == [
+        FeatureType.DASHED, FeatureType.SOLID, FeatureType.DASHED]
+    old = dataclasses.replace(DEFAULT, sparse_minority_only=False)
+    assert [f.type for f in stitch([conn(seg(3))], config=old).features] == [FeatureType.DASHED]
+    assert [f.type for f in stitch([conn(seg(1))], config=DEFAULT).features] == [FeatureType.DASHED]
+
+
+def test_one_drive_flicker_relabelled_up_to_250_m():
+    """One drive: dashed 200 m, solid 160 m (its misclassified stretch), dashed 200 m: one dashed
+    polyline (the 100 m sparse limit alone would keep the solid run). A 300 m solid run, or
+    single_drive_run_m 0, stays: three polylines. Two drives on the solid run (the dashed runs
+    have 3): the single-drive rule does not apply, the 100 m limit does: three polylines. A run
+    longer than both of its neighbours stays.
+    Options of the default pipeline preset; the dataclass default (0, off) keeps the run."""
+
+    def seg(n_solid: int, solid_count: int = 1, count: int = 1) -> Segment:
+        types = [D] * 100 + [S] * n_solid + [D] * 100
+        cnt = [solid_count if t == S else count for t in types]
+        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt))))
+
+    assert DEFAULT.single_drive_run_m == 250.0
+    assert [f.type for f in stitch([conn(seg(80))], config=DEFAULT).features] == [FeatureType.DASHED]
+    assert len(stitch([conn(seg(150))], config=DEFAULT).features) == 3
+    assert len(stitch([conn(seg(80))], config=StitchConfig()).features) == 3
+    assert len(stitch([conn(seg(80, solid_count=2, count=3))], config=DEFAULT).features) == 3
+    # One drive, solid 78 m, dashed 146 m, solid 78 m: the dashed run is longer than both solid
+    # runs beside it, so it is not taken for the misclassified one: three polylines S, D, S.
+    types = [S] * 40 + [D] * 73 + [S] * 40
+    m = stitch([conn(Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[1]) for i, t in enumerate(types))))],
+               config=DEFAULT)
+    assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [
+        FeatureType.SOLID, FeatureType.DASHED, FeatureType.SOLID]
 
 
 def test_spur_at_a_flicker_split_pruned():
@@ -641,6 +692,70 @@ def test_loose_ends_joined_where_the_pivot_heading_leaves_the_line():
     assert len(stitch([a, b], config=StitchConfig(join_line_heading_m=0.0)).features) == 2
     with pytest.raises(ConfigError):
         StitchConfig(join_line_heading_deg=-1.0)
+
+
+def _turning_pivots(cross: bool):
+    """One dashed line along x, mapped by pivots a (x 0..40) and b (x 72..120) with a 32 m gap;
+    both pivots head 6 deg off the line (topology heading 0.1 rad), so compared by their
+    topology headings the start lies 3.2 m beside the end and the join fails; compared by the
+    line's own direction it passes (from ``join_line_heading_deg`` 3, the default preset's).
+    ``cross``: pivot c drives north through the middle of the gap (x 56), as a pivot turning
+    through a junction."""
+    def seg(name: str, x0: float, n: int) -> Segment:
+        return Segment(name, tuple(dataclasses.replace(step(name, i, x0 + 2.0 * i, [0.0], [D]), heading=0.1) for i in range(n)))
+
+    graphs = [conn(seg("a", 0.0, 21)), conn(seg("b", 72.0, 25))]
+    if cross:
+        c = Segment("c", tuple(
+            dataclasses.replace(step("c", i, 56.0, [-6.0, 6.0], [B, B], y_mid=-20.0 + 2.0 * i), heading=math.pi / 2)
+            for i in range(21)))
+        graphs.append(conn(c))
+    return graphs
+
+
+def test_join_in_the_lines_frame_refused_where_a_pivot_turned_through_the_gap():
+    """The loose end and start of one line, 32 m apart, pass the join only in the line's own
+    frame. With no other drive in the gap they are joined (default preset); where another
+    pivot's topology nodes cross the gap's middle (heading 90 deg off, > join_line_cross_deg),
+    the join is refused: the pivots turned through a junction and the lines end at its mouths
+    (Town06). With the dataclass defaults (line frame from 10 deg only, the check off) the
+    line stays in two pieces either way."""
+    def pieces(m: HDMap) -> list:
+        return [f for f in m.features if f.type == FeatureType.DASHED]
+
+    assert DEFAULT.join_line_cross_deg == 30.0 and DEFAULT.join_line_heading_deg == 3.0
+    joined = pieces(stitch(_turning_pivots(cross=False), config=DEFAULT))
+    assert len(joined) == 1 and joined[0].points[-1, 0] == pytest.approx(120.0)
+    assert len(pieces(stitch(_turning_pivots(cross=True), config=DEFAULT))) == 2
+    off = dataclasses.replace(DEFAULT, join_line_cross_deg=0.0)
+    assert len(pieces(stitch(_turning_pivots(cross=True), config=off))) == 1
+    assert len(pieces(stitch(_turning_pivots(cross=False), config=StitchConfig()))) == 2
+    with pytest.raises(ConfigError):
+        StitchConfig(join_line_cross_deg=-1.0)
+
+
+def test_one_drive_border_between_lane_lines_dropped():
+    """Pivot a maps a road (solid -3.5, dashed 0, solid 3.5 m, 4 drives); pivot b (its cuts
+    centred 3 m over, so it is no overlap to trim) alone reports
+    a road border at 1.75 m over 60 m (a marking taken for a border) and another
+    at 5.5 m, beyond the outer line. The inner one has lane markings on both sides within 5 m:
+    with inner_border_max_m (default preset) it is dropped, the outer one stays. With 3 drives
+    on b (above inner_border_max_drives 2), or with the dataclass default (0, off), both stay."""
+    a = conn(road("a", 0.0, 50, ([-3.5, 0.0, 3.5], [S, D, S])))
+
+    def b(count: int):
+        steps = [step("b", i, 20.0 + 2.0 * i, [1.75, 5.5], [B, B], y_mid=3.0, counts=[count, count]) for i in range(30)]
+        return conn(Segment("b", tuple(steps)))
+
+    def borders(m: HDMap) -> list[float]:
+        return sorted(round(float(f.points[0, 1]), 2) for f in m.features if f.type == FeatureType.ROAD_BORDER)
+
+    assert DEFAULT.inner_border_max_m == 5.0
+    assert borders(stitch([a, b(1)], config=DEFAULT)) == [5.5]
+    assert borders(stitch([a, b(3)], config=DEFAULT)) == [1.75, 5.5]
+    assert borders(stitch([a, b(1)], config=StitchConfig())) == [1.75, 5.5]
+    with pytest.raises(ConfigError):
+        StitchConfig(inner_border_max_drives=0)
 
 
 def _gap_roads(through_lines):

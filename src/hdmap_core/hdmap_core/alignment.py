@@ -86,6 +86,18 @@ class AlignmentConfig:
         sparse_type_clash_m: with the sparse-step rule, a one-sample cluster is dropped (label -1)
             when another drive's sample of another type lies within this distance [m] (two
             drives disagreeing on the type of one line); 0 = no drop.
+        sparse_singletons_accept: with the sparse-step rule, a step in which every type with two
+            clusters holds only one-sample clusters (nothing is left to score once they are left
+            out: the silhouette without them is undefined) is accepted when every cluster is
+            tight, as a lone-cluster step, provided some cluster holds samples of two drives
+            (the drives agree somewhere). Two drives that see different lines, or disagree on
+            the type where both see one, left whole stretches unmapped (carla_town06_30_s2: 40
+            steps in a row, 80 m). False: such a step is rejected.
+        sparse_type_clash_max_drives: the type-clash drop applies to steps of at most this many
+            drives; 0: to every step of the sparse-step rule. (With 4 drives a one-sample cluster
+            beside another drive's line of the other type can be a real line; the default
+            preset's final pass judges steps of <= 4 drives by the sparse-step rule but drops
+            clashing singletons only in steps of <= 3.)
         min_cluster_drives: clusters supported by fewer distinct drives are dropped (label -1).
         max_offset_m: offsets are clipped to +-this [m].
     """
@@ -110,6 +122,8 @@ class AlignmentConfig:
     sparse_step_max_drives: int = 0
     sparse_step_max_std_m: float = 0.3
     sparse_type_clash_m: float = 0.0
+    sparse_singletons_accept: bool = False
+    sparse_type_clash_max_drives: int = 0
     min_cluster_drives: int = 1
     max_offset_m: float = 5.0
 
@@ -122,9 +136,11 @@ class AlignmentConfig:
             raise ConfigError("AlignmentConfig.k_max, n_iterations, min_cluster_drives must be >= 1")
         if self.gap_split_m <= 0 or self.huber_delta_m <= 0 or self.ridge < 0 or self.prior_weight < 0:
             raise ConfigError("AlignmentConfig: gap_split_m, huber_delta_m > 0 and ridge, prior_weight >= 0 required")
-        if self.sparse_step_max_drives < 0 or self.sparse_step_max_std_m <= 0 or self.sparse_type_clash_m < 0:
+        if (self.sparse_step_max_drives < 0 or self.sparse_step_max_std_m <= 0 or self.sparse_type_clash_m < 0
+                or self.sparse_type_clash_max_drives < 0):
             raise ConfigError(
-                "AlignmentConfig: sparse_step_max_drives, sparse_type_clash_m >= 0 and sparse_step_max_std_m > 0 required"
+                "AlignmentConfig: sparse_step_max_drives, sparse_type_clash_m, sparse_type_clash_max_drives >= 0 and "
+                "sparse_step_max_std_m > 0 required"
             )
 
 
@@ -784,16 +800,20 @@ def _em(
         o = solve_offsets(x, labels, types, drive, n_drives, config=config, prior=prior, init=o)
     y = x + o[drive]
     sparse = 0 < len(np.unique(drive)) <= config.sparse_step_max_drives
-    if sparse and config.sparse_type_clash_m > 0:
+    clash_max = config.sparse_type_clash_max_drives or config.sparse_step_max_drives
+    if sparse and config.sparse_type_clash_m > 0 and len(np.unique(drive)) <= clash_max:
         labels = _drop_type_clashing_singletons(y, labels, types, drive, config.sparse_type_clash_m)
     score = step_silhouette(y, labels, types)
     valid = score >= config.silhouette_gate
     if sparse and not valid and score != -1.0:
         # Few drives: lines one drive sees and the other misses are singletons (silhouette 0);
         # judge the step by the clusters both see, and by every cluster being tight.
-        valid = (
-            _max_cluster_std(y, labels) <= config.sparse_step_max_std_m
-            and step_silhouette(y, labels, types, skip_singletons=True) >= config.silhouette_gate
+        paired = step_silhouette(y, labels, types, skip_singletons=True)
+        valid = _max_cluster_std(y, labels) <= config.sparse_step_max_std_m and (
+            paired >= config.silhouette_gate
+            # RULE sparse singletons: no cluster of two or more samples in a type with two
+            # clusters, so nothing is left to score: judged like a lone-cluster step
+            or (config.sparse_singletons_accept and paired == -1.0 and _shared_cluster(labels, drive))
         )
     use = labels >= 0
     one_drive = bool(use.any()) and bool(np.all(drive[use] == drive[use][0]))
@@ -804,6 +824,15 @@ def _em(
         if use.any():
             valid = _max_cluster_std(y, labels) <= config.lone_cluster_max_std_m
     return StepAlignment(offsets_m=o, labels=labels, silhouette=score, valid=bool(valid), n_iterations=it)
+
+
+def _shared_cluster(labels: np.ndarray, drive: np.ndarray) -> bool:
+    """Whether some cluster holds samples of two or more drives (the drives agree somewhere)."""
+    use = labels >= 0
+    if not use.any():
+        return False
+    pairs = np.unique(np.stack([labels[use], drive[use]], axis=1), axis=0)
+    return bool((np.bincount(pairs[:, 0]) >= 2).any())
 
 
 def _max_cluster_std(y: np.ndarray, labels: np.ndarray) -> float:

@@ -127,8 +127,15 @@ class PipelineConfig:
                 sparse_step_max_std_m=0.3,
                 sparse_type_clash_m=1.0,
             )
-            final = replace(fast, clustering="gap", prior_weight=0.0, estimate_offsets=False)
-            from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage module, loaded on use)
+            # final pass (docs/pipeline.md, sparse fleets; the first pass, whose steps feed the
+            # adjustment, keeps its rules): a sparse step of singletons and one shared cluster is
+            # accepted when tight, and steps of 4 drives are judged by the sparse-step rule too
+            # (type-clashing singletons still dropped only with <= 3)
+            final = replace(
+                fast, clustering="gap", prior_weight=0.0, estimate_offsets=False, sparse_singletons_accept=True,
+                sparse_step_max_drives=4, sparse_type_clash_max_drives=3,
+            )
+            from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
             from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
 
             return cls(
@@ -139,9 +146,21 @@ class PipelineConfig:
                 final_alignment=final,
                 mark_on_cut_only=True,
                 connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
-                # Junction pieces already joined to the map through one end get their other end linked
-                # too; a ramp chain ending (starting) short of the gore follows its own arc onto the road.
-                stitching=StitchConfig(link_within_component=True, path_search_m=40.0),
+                stitching=StitchConfig(
+                    # junction pieces already joined to the map through one end get their other end
+                    # linked too; a ramp chain ending (starting) short of the gore follows its own
+                    # arc onto the road (docs/graph.md)
+                    link_within_component=True, path_search_m=40.0,
+                    # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
+                    # one drive's misclassified stretch up to 250 m (docs/pipeline.md, sparse fleets)
+                    sparse_minority_only=True, single_drive_run_m=250.0,
+                    # loose ends also compared in their lines' frame from 3 deg off the pivot's
+                    # heading (10 in the dataclass), such joins refused where a pivot turned
+                    # through the gap (docs/pipeline.md, sparse fleets)
+                    join_line_heading_deg=3.0, join_line_cross_deg=30.0, join_line_cross_lateral_m=12.0,
+                    # an isolated 1-2-drive border between lane lines is a misclassified marking
+                    inner_border_max_m=5.0, inner_border_max_drives=2,
+                ),
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")

@@ -137,16 +137,43 @@ class StitchConfig:
         join_gap_lateral_m: see ``join_gap_check_m`` [m].
         join_gap_heading_deg: see ``join_gap_check_m`` [deg].
         join_gap_coverage: see ``join_gap_check_m`` (share of bins, 0..1).
+        join_line_cross_deg: a join longer than ``join_gap_check_m`` that passes only in its
+            lines' direction (``join_line_heading_m``: where the pivot turned) is refused when a
+            topology node in the middle half of the gap, within ``join_line_cross_lateral_m``
+            across, heads more than this off the join: a pivot turning through a junction, whose
+            lines all end at its mouth (carla_town06_30: three dashed lines filled straight
+            across a junction, 30 false points each). 0 disables [deg].
+        join_line_cross_lateral_m: see ``join_line_cross_deg`` [m].
         fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
             with points on a cubic Hermite curve through the end tangents, this far apart; the
             filled points carry drive_count 0 (no drive saw them). 0 disables [m].
         min_isolated_length_m: polylines without any link and shorter than this are dropped
             (single-step specks, false positives) [m].
+        inner_border_max_m: a road border polyline without any link, seen by at most
+            ``inner_border_max_drives`` drives, is dropped when at most of its drive-supported
+            nodes lane markings of its direction lie within this distance on both sides: a
+            border has the road on one side only, and one drive's marking reported as a border
+            (1 % of marking stretches in the simulator) lies between two lane lines
+            (carla_town04_30_s2: three such borders of 44-104 m, 115 false map points). 0
+            disables (5 in the default pipeline preset) [m].
+        inner_border_max_drives: see ``inner_border_max_m`` (max drive count over its nodes).
         sparse_type_run_m: a flicker run (between two runs of one other type) seen by at most
             ``sparse_drive_count`` drives (median) is relabelled when shorter than this (with
             1-3 drives one drive's misclassification sets the type for tens of metres). 0
             disables [m].
         sparse_drive_count: see ``sparse_type_run_m``.
+        sparse_minority_only: ... and such a run of two or more drives only when the better
+            supported run beside it has more drives (median): on the 30-drive CARLA fleets
+            solid runs of 3 drives between dashed runs of 2-3 drives were real and relabelling
+            them cost precision. False: any run of <= ``sparse_drive_count`` (True in the
+            default pipeline preset).
+        single_drive_run_m: a flicker run seen by one drive (median) is relabelled when shorter
+            than this: one drive's type is no evidence against the type the line has before
+            and after it, and a misclassified stretch is 20-200 m long (the simulator's blocks;
+            on carla_town04_30_s1 two one-drive solid runs of 160-175 m between dashed runs
+            held 171 of the 642 false map points); not when the run is longer than both runs
+            beside it (one drive's solid 78 m, dashed 145 m, solid 77 m: the short runs are the
+            likelier misclassification). 0 disables (250 in the default pipeline preset) [m].
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
             runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
         bubble_max_m: of two branches from one split node to one merge node (or a branch beside
@@ -220,11 +247,17 @@ class StitchConfig:
     join_gap_lateral_m: float = 12.0
     join_gap_heading_deg: float = 10.0
     join_gap_coverage: float = 0.8
+    join_line_cross_deg: float = 0.0
+    join_line_cross_lateral_m: float = 12.0
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
+    inner_border_max_m: float = 0.0
+    inner_border_max_drives: int = 1
     min_type_run_m: float = 20.0
     sparse_type_run_m: float = 100.0
     sparse_drive_count: int = 5
+    sparse_minority_only: bool = False
+    single_drive_run_m: float = 0.0
     spur_max_m: float = 12.0
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
@@ -261,10 +294,14 @@ class StitchConfig:
             "join_gap_check_m",
             "join_gap_lateral_m",
             "join_gap_heading_deg",
+            "join_line_cross_deg",
+            "join_line_cross_lateral_m",
             "fill_spacing_m",
             "min_isolated_length_m",
+            "inner_border_max_m",
             "min_type_run_m",
             "sparse_type_run_m",
+            "single_drive_run_m",
             "spur_max_m",
             "bubble_max_m",
             "gore_max_m",
@@ -280,6 +317,8 @@ class StitchConfig:
                 raise ConfigError(f"{name} must be in (0, 180], got {v}")
         if not 0.0 <= self.join_gap_coverage <= 1.0:
             raise ConfigError(f"join_gap_coverage must be in [0, 1], got {self.join_gap_coverage}")
+        if self.inner_border_max_drives < 1:
+            raise ConfigError(f"inner_border_max_drives must be >= 1, got {self.inner_border_max_drives}")
 
     @classmethod
     def paper(cls) -> StitchConfig:
@@ -290,11 +329,15 @@ class StitchConfig:
             dedupe_loose_ends=False,
             join_loose_ends=False,
             min_isolated_length_m=0.0,
+            inner_border_max_m=0.0,
             fill_spacing_m=0.0,
             join_line_heading_m=0.0,
             join_gap_check_m=0.0,
+            join_line_cross_deg=0.0,
             min_type_run_m=0.0,
             sparse_type_run_m=0.0,
+            sparse_minority_only=False,
+            single_drive_run_m=0.0,
             spur_max_m=0.0,
             bubble_max_m=0.0,
             gore_max_m=0.0,
@@ -316,39 +359,60 @@ class _GapCheck:
         self._lat = cfg.join_gap_lateral_m
         self._cos = math.cos(math.radians(cfg.join_gap_heading_deg))
         self._cover = cfg.join_gap_coverage
+        self._cross_cos = math.cos(math.radians(cfg.join_line_cross_deg)) if cfg.join_line_cross_deg > 0 else None
+        self._cross_lat = cfg.join_line_cross_lateral_m
         self._ttree: cKDTree | None = None
         self._ntree: cKDTree | None = None
         self._nsup = np.zeros(0, dtype=np.int64)
 
-    def _near(self, tree: cKDTree, xy: np.ndarray, p: np.ndarray, along: float, u: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Points of ``tree`` in the middle half of the gap within the lateral band: (index, along)."""
+    def _near(
+        self, tree: cKDTree, xy: np.ndarray, p: np.ndarray, along: float, u: np.ndarray, n: np.ndarray, lat_m: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Points of ``tree`` in the middle half of the gap within ``lat_m`` across: (index, along)."""
         mid = p + 0.5 * (self.LO + self.HI) * along * u
-        r = math.hypot(0.5 * (self.HI - self.LO) * along, self._lat)
+        r = math.hypot(0.5 * (self.HI - self.LO) * along, lat_m)
         k = np.asarray(tree.query_ball_point(mid, r), dtype=np.int64)
         if len(k) == 0:
             return k, np.zeros(0)
         rel = xy[k] - p
         ra, rl = rel @ u, rel @ n
-        ok = (ra > self.LO * along) & (ra < self.HI * along) & (np.abs(rl) < self._lat)
+        ok = (ra > self.LO * along) & (ra < self.HI * along) & (np.abs(rl) < lat_m)
         return k[ok], ra[ok]
+
+    def _trees(self) -> None:
+        fl = self._flat
+        if self._ttree is None:
+            self._ttree = cKDTree(fl.t_xy) if len(fl.t_xy) else None
+            self._nsup = np.flatnonzero(fl.n_count > 0)
+            self._ntree = cKDTree(fl.n_xy[self._nsup]) if len(self._nsup) else None
+
+    def crossed(self, p: np.ndarray, along: float, h: float, u: np.ndarray, n: np.ndarray) -> bool:
+        """A topology node in the middle half of the join from ``p`` (``along`` m in direction
+        ``h``), within ``join_line_cross_lateral_m`` across, heads more than
+        ``join_line_cross_deg`` off it (False when the check is off)."""
+        if self._cross_cos is None:
+            return False
+        self._trees()
+        if self._ttree is None:
+            return False
+        fl = self._flat
+        k, _ = self._near(self._ttree, fl.t_xy, p, along, u, n, self._cross_lat)
+        return bool(np.any(np.cos(fl.t_heading[k] - h) < self._cross_cos))
 
     def unmapped(self, p: np.ndarray, along: float, h: float, u: np.ndarray, n: np.ndarray) -> bool:
         """A join from ``p`` ``along`` m in direction ``h`` (unit ``u``, normal ``n``) crosses a
         stretch drives passed (topology nodes in its middle half) whose lines beside it are missing
         too (drive-supported nodes cover < ``join_gap_coverage`` of its 2 m bins)."""
         fl = self._flat
-        if self._ttree is None:
-            self._ttree = cKDTree(fl.t_xy) if len(fl.t_xy) else None
-            self._nsup = np.flatnonzero(fl.n_count > 0)
-            self._ntree = cKDTree(fl.n_xy[self._nsup]) if len(self._nsup) else None
+        self._trees()
         if self._ttree is None:
             return False
-        k, _ = self._near(self._ttree, fl.t_xy, p, along, u, n)
+        k, _ = self._near(self._ttree, fl.t_xy, p, along, u, n, self._lat)
         if not np.any(np.cos(fl.t_heading[k] - h) > self._cos):
             return False  # no drive went through the middle of the gap: nothing to hold against it
         if self._ntree is None:
             return True
-        k, ra = self._near(self._ntree, fl.n_xy[self._nsup], p, along, u, n)
+        k, ra = self._near(self._ntree, fl.n_xy[self._nsup], p, along, u, n, self._lat)
         ra = ra[np.cos(self._node_heading[self._nsup[k]] - h) > self._cos]
         nb = max(1, int((self.HI - self.LO) * along / self.BIN_M))
         b = np.floor((ra / along - self.LO) / (self.HI - self.LO) * nb).astype(np.int64)
@@ -1097,6 +1161,10 @@ class MapGraph:
                     if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
                         continue
                     if 0 < cfg.join_gap_check_m < along and gap.unmapped(flat.n_xy[i], along, mean_h, u, n):
+                        continue
+                    # RULE turning join: passing in the lines' frame only where a pivot turned
+                    # through the gap (a junction) is no continuation
+                    if 0 < cfg.join_gap_check_m < along and hh is line_h and gap.crossed(flat.n_xy[i], along, mean_h, u, n):
                         continue
                     src, dropped = i, []
                     while along <= 0.0:  # the start lies beside the end: drop the end's overlap
