@@ -22,7 +22,7 @@ from hdmap_core.segment_graph import ConnectionStats, SegmentGraph, chain_links,
 from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
 
 if TYPE_CHECKING:
-    from hdmap_core.stitching import StitchConfig
+    from hdmap_core.stitching_config import StitchConfig
 
 __all__ = ["FlatGraph", "export_map", "graph_from_hdmap"]
 

@@ -1,0 +1,293 @@
+"""Parameters of the inter-segment connection (``stitching.py``, Sec. VI of Immel et al. 2023)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from hdmap_core.errors import ConfigError
+
+__all__ = ["StitchConfig"]
+
+
+@dataclass(frozen=True)
+class StitchConfig:
+    """Parameters of the inter-segment connection (the paper gives no numbers).
+
+    Attributes:
+        max_distance_m: kd-tree search radius for a component end's neighbour [m].
+        max_heading_diff_deg: the two topology nodes' headings differ at most this much [deg].
+        max_connection_angle_deg: the link from one node to the other deviates at most this much
+            from the driving direction (checked for links longer than ``angle_free_m``) [deg].
+        angle_free_m: links shorter than this skip the connection-angle check [m].
+        behind_tol_m: a predecessor may lie at most this far ahead of the start it links to
+            (and a successor this far behind the end) [m].
+        feature_max_m: features are joined across a link only when at most this far apart
+            across the cut [m].
+        same_type_only: join features of the same type only (the paper; default). False: a solid
+            and a dashed marking may be joined too (at ``type_mismatch_cost_m`` extra cost), since
+            their types flicker with misclassification; a road border still joins only a border.
+            The polyline closes there (RULE 1) unless ``min_type_run_m`` relabels the short run.
+            (Measured on one motorway_ramps run: no gain, so the paper's rule stays default.)
+        type_mismatch_cost_m: assignment cost added to a solid-dashed pair [m].
+        duplicate_m: a join is skipped when the feature already continues within this distance of
+            the new partner (it would duplicate a polyline) [m].
+        trim_overlap: drop component end nodes that lie on a place already in the map.
+        trim_keep_longer: ... but only where the other graph's piece there is at least as long
+            (in topology nodes) as the trimmed one; a shorter piece is trimmed instead (a pivot
+            that sees only the last metres of a road must not cut a long pivot's end off and
+            then be dropped as an isolated piece). False: every overlap trims the new graph.
+        overlap_radius_m: a topology node this close to another graph's node with a similar
+            heading is the same place [m] ...
+        overlap_search_m: ... as is one up to this far away (midpoints of two pivots differ with
+            their cut lines) at most ``overlap_along_m`` along the road, when at least
+            ``overlap_share`` of its maxima (and 2) have a same-type twin within
+            ``overlap_feature_m`` across the road [m].
+        dedupe_loose_ends: drop dangling polyline ends/starts that run on top of another
+            segment's polyline of the same class (``twin_lateral_m`` / ``twin_along_m``) [see
+            ``MapGraph._dedupe_loose_ends``].
+        twin_lateral_m: two feature nodes of different segments at most this far apart across
+            the road ...
+        twin_along_m: ... and this far along it (steps are 2 m apart) are one place [m].
+        join_loose_ends: join polyline ends and starts of different segments that continue each
+            other (same type, close across the cut) even where topology found no link.
+        join_overlap_m: a loose start up to this far behind a loose end (the two overlap) is
+            joined too, the end's overlapping nodes dropped [m].
+        join_same_segment: also join loose ends of one segment (split there by a gap longer
+            than the connection's ``max_gap_m``, RULE 3).
+        join_radius_m: how far ahead of a loose end a loose start may begin [m].
+        branch_lateral_m: a loose start (end) still unjoined then joins the nearest node of
+            another segment's polyline of its type up to ``branch_radius_m`` behind (ahead) and
+            this far across the road: a split (merge) across segments. 0 disables [m].
+        branch_radius_m: see ``branch_lateral_m`` [m].
+        branch_divergence_m: ... only when the branch moves away from the line: ~10 m on, its
+            offset grew by at least this (a copy running beside the line is no branch) [m].
+        branch_any_marking: a branch may join a lane marking of the other type (an exit's
+            dashed line starts on the solid edge line; an entry's solid line ends on the dashed
+            one); a road border joins only a border. False: same type only.
+        join_lateral_m: how far across the road a loose start may lie from the end's arc [m] ...
+        join_angle_deg: ... plus this angle's share of the distance [deg].
+        join_line_heading_m: a loose end (start) is compared by its own polyline's direction,
+            from the node at least this far back (on), instead of its topology node's heading (the
+            pivot's, which leaves the lines where the pivot turns onto or off a ramp), when the
+            two differ by more than ``join_line_heading_deg`` (a few metres of noisy nodes are a
+            worse direction than the pivot's on an ordinary road). 0: the topology heading [m].
+        join_line_heading_deg: see ``join_line_heading_m`` [deg].
+        join_gap_check_m: a loose-end join longer than this is refused where drives passed
+            through the gap but its neighbour lines were not mapped there either: some topology
+            node (a pivot's step) lies in the middle half of the gap, within
+            ``join_gap_lateral_m`` across the join and ``join_gap_heading_deg`` of its direction,
+            while drive-supported feature nodes of that direction within ``join_gap_lateral_m``
+            cover less than ``join_gap_coverage`` of the 2 m bins of the middle half. Every line of
+            a road then ends at the same gap (a junction's mouth, where the steps failed): the
+            straight fill across it is no drive's line. 0 disables (the paper) [m].
+        join_gap_lateral_m: see ``join_gap_check_m`` [m].
+        join_gap_heading_deg: see ``join_gap_check_m`` [deg].
+        join_gap_coverage: see ``join_gap_check_m`` (share of bins, 0..1).
+        join_line_cross_deg: a join longer than ``join_gap_check_m`` that passes only in its
+            lines' direction (``join_line_heading_m``: where the pivot turned) is refused when a
+            topology node in the middle half of the gap, within ``join_line_cross_lateral_m``
+            across, heads more than this off the join: a pivot turning through a junction, whose
+            lines all end at its mouth (carla_town06_30: three dashed lines filled straight
+            across a junction, 30 false points each). 0 disables [deg].
+        join_line_cross_lateral_m: see ``join_line_cross_deg`` [m].
+        fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
+            with points on a cubic Hermite curve through the end tangents, this far apart; the
+            filled points carry drive_count 0 (no drive saw them). 0 disables [m].
+        min_isolated_length_m: polylines without any link and shorter than this are dropped
+            (single-step specks, false positives) [m].
+        inner_border_max_m: a road border polyline without any link, seen by at most
+            ``inner_border_max_drives`` drives, is dropped when at most of its drive-supported
+            nodes lane markings of its direction lie within this distance on both sides: a
+            border has the road on one side only, and one drive's marking reported as a border
+            (1 % of marking stretches in the simulator) lies between two lane lines
+            (carla_town04_30_s2: three such borders of 44-104 m, 115 false map points). 0
+            disables (5 in the default pipeline preset) [m].
+        inner_border_max_drives: see ``inner_border_max_m`` (max drive count over its nodes).
+        sparse_type_run_m: a flicker run (between two runs of one other type) seen by at most
+            ``sparse_drive_count`` drives (median) is relabelled when shorter than this (with
+            1-3 drives one drive's misclassification sets the type for tens of metres). 0
+            disables [m].
+        sparse_drive_count: see ``sparse_type_run_m``.
+        sparse_minority_only: ... and such a run of two or more drives only when the better
+            supported run beside it has more drives (median): on the 30-drive CARLA fleets
+            solid runs of 3 drives between dashed runs of 2-3 drives were real and relabelling
+            them cost precision. False: any run of <= ``sparse_drive_count`` (True in the
+            default pipeline preset).
+        single_drive_run_m: a flicker run seen by one drive (median) is relabelled when shorter
+            than this: one drive's type is no evidence against the type the line has before
+            and after it, and a misclassified stretch is 20-200 m long (the simulator's blocks;
+            on carla_town04_30_s1 two one-drive solid runs of 160-175 m between dashed runs
+            held 171 of the 642 false map points); not when the run is longer than both runs
+            beside it (one drive's solid 78 m, dashed 145 m, solid 77 m: the short runs are the
+            likelier misclassification). 0 disables (250 in the default pipeline preset) [m].
+        spur_max_m: a polyline shorter than this that hangs off a split without successor (or
+            runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
+        bubble_max_m: of two branches from one split node to one merge node (or a branch beside
+            a direct edge between them) the one with fewer drives is dropped when shorter than
+            this: lanes do not split and rejoin within it [m].
+        gore_max_m: a common piece at most this long between a type change and a split into two
+            polylines of its type (a gore's lines before they are resolved) is given to both
+            branches, so the split sits where the lane line ends (merges alike). 0 disables [m].
+        min_type_run_m: along a polyline, a run of one marking type (solid/dashed) shorter than
+            this takes its neighbours' type instead of closing the polyline twice (RULE 1 on
+            misclassification flicker). 0 disables (the paper) [m].
+        merge_continuations: at export, a polyline whose only successor has it as its only
+            predecessor, of the same type, is one polyline with it (what closed them, e.g. a
+            leftover edge whose sibling branch was pruned or a one-point piece between them, is
+            gone). False: the paper.
+        link_within_component: a component start (end) that finds no partner in *another* weakly
+            connected component may take one in its own (same geometric tests), as a topology link
+            only (no feature join), unless that closes a cycle of fewer than ``stitching_links._CYCLE_NODES``
+            nodes. At a junction the main road's piece after a ramp is often joined to the map
+            already through its other end, so its start stayed unlinked: the map's topology had
+            no path from the incoming road to that branch (docs/evaluation.md, road-level splits
+            and merges). On in the default preset only.
+        path_search_m: a component start (end) still without a partner after every other
+            component start/end had its turn follows its chain's own path backward (forward) up
+            to this far: an arc from the node along its heading, turning at the chain's heading
+            rate (over ``path_curvature_m`` of the chain). The first node whose cross-section
+            (``topo_width`` / 2 across, one step along) the arc enters, with a heading within
+            ``max_heading_diff_deg`` of the arc's there, in another component (or, with
+            ``link_within_component``, in its own without closing a short cycle), is linked, as a
+            topology link only (no feature join). A ramp's chain ends (an exit's starts) where
+            its pivot's steps fail or reach a place mapped before, often still turning, 24-38 m
+            from the gore: the main road within ``max_distance_m`` is 33-39 deg off the ramp's
+            heading there, or the main road is beyond that radius (docs/graph.md). 0 disables
+            (the paper; the plain default) [m].
+        path_curvature_m: the chain's heading rate is taken over this much of it (chord from
+            the node to the first chain node at least this far; shorter chains: straight) [m].
+    """
+
+    max_distance_m: float = 12.0
+    max_heading_diff_deg: float = 30.0
+    max_connection_angle_deg: float = 80.0
+    angle_free_m: float = 3.0
+    behind_tol_m: float = 1.0
+    feature_max_m: float = 2.0
+    same_type_only: bool = True
+    type_mismatch_cost_m: float = 0.3
+    duplicate_m: float = 0.25
+    trim_overlap: bool = True
+    trim_keep_longer: bool = True
+    overlap_radius_m: float = 1.2
+    overlap_search_m: float = 8.0
+    overlap_along_m: float = 1.2
+    overlap_feature_m: float = 0.5
+    overlap_share: float = 0.6
+    dedupe_loose_ends: bool = True
+    twin_lateral_m: float = 0.5
+    twin_along_m: float = 1.2
+    join_loose_ends: bool = True
+    join_same_segment: bool = True
+    join_overlap_m: float = 8.0
+    branch_lateral_m: float = 0.0
+    branch_radius_m: float = 8.0
+    branch_divergence_m: float = 0.3
+    branch_any_marking: bool = True
+    join_radius_m: float = 60.0
+    join_lateral_m: float = 0.5
+    join_angle_deg: float = 1.0
+    join_line_heading_m: float = 4.0
+    join_line_heading_deg: float = 10.0
+    join_gap_check_m: float = 20.0
+    join_gap_lateral_m: float = 12.0
+    join_gap_heading_deg: float = 10.0
+    join_gap_coverage: float = 0.8
+    join_line_cross_deg: float = 0.0
+    join_line_cross_lateral_m: float = 12.0
+    fill_spacing_m: float = 2.0
+    min_isolated_length_m: float = 20.0
+    inner_border_max_m: float = 0.0
+    inner_border_max_drives: int = 1
+    min_type_run_m: float = 20.0
+    sparse_type_run_m: float = 100.0
+    sparse_drive_count: int = 5
+    sparse_minority_only: bool = False
+    single_drive_run_m: float = 0.0
+    spur_max_m: float = 12.0
+    bubble_max_m: float = 60.0
+    gore_max_m: float = 100.0
+    merge_continuations: bool = True
+    link_within_component: bool = False
+    path_search_m: float = 0.0
+    path_curvature_m: float = 20.0
+    through_lines: bool = True
+
+    def __post_init__(self) -> None:
+        for name in (
+            "max_distance_m",
+            "angle_free_m",
+            "behind_tol_m",
+            "feature_max_m",
+            "type_mismatch_cost_m",
+            "duplicate_m",
+            "overlap_radius_m",
+            "overlap_search_m",
+            "overlap_along_m",
+            "overlap_feature_m",
+            "overlap_share",
+            "join_radius_m",
+            "join_overlap_m",
+            "branch_lateral_m",
+            "branch_radius_m",
+            "branch_divergence_m",
+            "twin_lateral_m",
+            "twin_along_m",
+            "join_lateral_m",
+            "join_angle_deg",
+            "join_line_heading_m",
+            "join_line_heading_deg",
+            "join_gap_check_m",
+            "join_gap_lateral_m",
+            "join_gap_heading_deg",
+            "join_line_cross_deg",
+            "join_line_cross_lateral_m",
+            "fill_spacing_m",
+            "min_isolated_length_m",
+            "inner_border_max_m",
+            "min_type_run_m",
+            "sparse_type_run_m",
+            "single_drive_run_m",
+            "spur_max_m",
+            "bubble_max_m",
+            "gore_max_m",
+            "path_search_m",
+            "path_curvature_m",
+        ):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"{name} must be finite and >= 0, got {v}")
+        for name in ("max_heading_diff_deg", "max_connection_angle_deg"):
+            v = getattr(self, name)
+            if not 0 < v <= 180:
+                raise ConfigError(f"{name} must be in (0, 180], got {v}")
+        if not 0.0 <= self.join_gap_coverage <= 1.0:
+            raise ConfigError(f"join_gap_coverage must be in [0, 1], got {self.join_gap_coverage}")
+        if self.inner_border_max_drives < 1:
+            raise ConfigError(f"inner_border_max_drives must be >= 1, got {self.inner_border_max_drives}")
+
+    @classmethod
+    def paper(cls) -> StitchConfig:
+        """The paper's variant: topology links and same-type unmodified assignment only."""
+        return cls(
+            same_type_only=True,
+            trim_overlap=False,
+            dedupe_loose_ends=False,
+            join_loose_ends=False,
+            min_isolated_length_m=0.0,
+            inner_border_max_m=0.0,
+            fill_spacing_m=0.0,
+            join_line_heading_m=0.0,
+            join_gap_check_m=0.0,
+            join_line_cross_deg=0.0,
+            min_type_run_m=0.0,
+            sparse_type_run_m=0.0,
+            sparse_minority_only=False,
+            single_drive_run_m=0.0,
+            spur_max_m=0.0,
+            bubble_max_m=0.0,
+            gore_max_m=0.0,
+            merge_continuations=False,
+            through_lines=False,
+        )

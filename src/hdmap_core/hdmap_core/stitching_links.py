@@ -1,0 +1,160 @@
+"""Links between the topology graphs of segments (``stitching.py``, Sec. VI): the nearest valid
+partner of a component start/end (kd-tree, distance, heading and connection-angle checks), the
+short-cycle guard of links inside one component, and the search along a chain's own arc for an
+end that stops short of a junction. Private helpers of ``MapGraph``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from hdmap_core.graph import FlatGraph, _unit, _wrap
+from hdmap_core.stitching_config import StitchConfig
+
+
+class _Adjacency:
+    """Neighbour lookup over a fixed edge list (sorted, searched on demand) plus added edges."""
+
+    def __init__(self, src: np.ndarray, dst: np.ndarray, n: int) -> None:
+        order = np.argsort(src, kind="stable")
+        self._dst = dst[order]
+        self._ptr = np.searchsorted(src[order], np.arange(n + 1))
+        self._extra: dict[int, list[int]] = {}
+
+    def get(self, i: int) -> list[int]:
+        out = self._dst[self._ptr[i] : self._ptr[i + 1]].tolist()
+        return out + self._extra.get(i, [])
+
+    def add(self, i: int, j: int) -> None:
+        self._extra.setdefault(i, []).append(j)
+
+
+#: A within-component link is refused when it would close a cycle of fewer topology nodes (~1 km).
+_CYCLE_NODES = 500
+
+
+def _partner(
+    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, cfg: StitchConfig, allowed: Callable[[int], bool]
+) -> int:
+    """The nearest topology node within ``max_distance_m`` that may continue the component end
+    (start) node i (steps 2-3 of ``_stitch``: heading, behind/ahead, connection angle), among
+    those ``allowed``; -1 if none."""
+    cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
+    tan_c = math.tan(math.radians(min(cfg.max_connection_angle_deg, 89.999)))
+    u, n = _unit(float(flat.t_heading[i]))
+    best, best_d = -1, math.inf
+    # 2. nearest neighbours in the complete topology graph (kd-tree)
+    for j in tree.query_ball_point(flat.t_xy[i], cfg.max_distance_m):
+        if math.cos(flat.t_heading[j] - flat.t_heading[i]) < cos_h or not allowed(j):
+            continue
+        d = flat.t_xy[j] - flat.t_xy[i] if is_end else flat.t_xy[i] - flat.t_xy[j]
+        along, lat, dist = float(d @ u), abs(float(d @ n)), float(math.hypot(*d))
+        # 3. distance and connection-angle check
+        if along < -cfg.behind_tol_m:
+            continue
+        if dist > cfg.angle_free_m and lat > max(along, 0.0) * tan_c:
+            continue
+        if dist < best_d:
+            best, best_d = int(j), dist
+    return best
+
+
+def _closes_cycle(successors: _Adjacency, i: int, j: int, is_end: bool) -> bool:
+    """Would the link i -> j (``is_end``) or j -> i close a cycle of fewer than ``_CYCLE_NODES``
+    nodes? (The link's head must not reach its tail already.)"""
+    head, tail = (j, i) if is_end else (i, j)
+    seen, todo = {head}, [head]
+    while todo and len(seen) < _CYCLE_NODES:
+        for k in successors.get(todo.pop()):
+            if k == tail:
+                return True
+            if k not in seen:
+                seen.add(k)
+                todo.append(k)
+    return False
+
+
+#: Arc step of the path search (the step spacing) [m] and the shortest chord a heading rate is taken over [m].
+_PATH_STEP_M = 2.0
+_PATH_MIN_CHORD_M = 4.0
+
+
+def _heading_rate(flat: FlatGraph, walk: _Adjacency, i: int, base_m: float) -> float:
+    """Heading change per metre of the chain at its end (``walk`` = predecessors) or start
+    (``walk`` = successors) node i: the heading difference to the first node of the chain at
+    least ``base_m`` away (chord), or to the farthest one within 4 * base_m / step nodes; 0 when the
+    chain is shorter than ``_PATH_MIN_CHORD_M`` [rad/m, sign of the driving direction]."""
+    k, far, far_d = i, -1, 0.0
+    for _ in range(max(1, int(4 * base_m / _PATH_STEP_M))):
+        nxt = walk.get(k)
+        if not nxt:
+            break
+        k = int(nxt[0])
+        d = float(np.hypot(*(flat.t_xy[k] - flat.t_xy[i])))
+        if d > far_d:
+            far, far_d = k, d
+        if d >= base_m:
+            break
+    if far < 0 or far_d < _PATH_MIN_CHORD_M:
+        return 0.0
+    return float(_wrap(flat.t_heading[i] - flat.t_heading[far])) / far_d
+
+
+def _path_partner(
+    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, rate: float, cfg: StitchConfig, reach_m: float,
+    allowed: Callable[[int], bool],
+) -> int:
+    """The first topology node along the arc that continues the chain of end (start) node i
+    forward (backward) with heading rate ``rate`` [rad/m] up to ``path_search_m``: the arc point
+    lies in its cross-section (half its width across, one step along) and its heading is within
+    ``max_heading_diff_deg`` of the arc's; among several at that point the nearest, among those
+    ``allowed``; -1 if none (``StitchConfig.path_search_m``)."""
+    cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
+    sign = 1.0 if is_end else -1.0
+    p = flat.t_xy[i].astype(float).copy()
+    h = float(flat.t_heading[i])
+    u0, _ = _unit(h)
+    n_steps = int(cfg.path_search_m / _PATH_STEP_M + 1e-9)
+    for _ in range(n_steps):
+        hm = h + sign * 0.5 * rate * _PATH_STEP_M  # heading in the middle of the arc step
+        p = p + sign * _PATH_STEP_M * np.array([math.cos(hm), math.sin(hm)])
+        h = h + sign * rate * _PATH_STEP_M
+        best, best_d = -1, math.inf
+        for j in tree.query_ball_point(p, reach_m):
+            if j == i or math.cos(flat.t_heading[j] - h) < cos_h:
+                continue
+            if sign * float((flat.t_xy[j] - flat.t_xy[i]) @ u0) <= 0.0:
+                continue  # behind an end (ahead of a start): the chain itself
+            uj, nj = _unit(float(flat.t_heading[j]))
+            rel = p - flat.t_xy[j]
+            half = float(flat.t_width[j]) / 2.0 if math.isfinite(flat.t_width[j]) and flat.t_width[j] > 0 else 1.75
+            if abs(float(rel @ uj)) > _PATH_STEP_M or abs(float(rel @ nj)) > half:
+                continue
+            d = float(np.hypot(*rel))
+            if d < best_d and allowed(j):
+                best, best_d = int(j), d
+        if best >= 0:
+            return best
+    return -1
+
+
+class _UnionFind:
+    def __init__(self, labels: np.ndarray) -> None:
+        self.parent = list(range(int(labels.max()) + 1 if len(labels) else 0))
+        self.labels = labels
+
+    def find(self, node: int) -> int:
+        x = int(self.labels[node])
+        while self.parent[x] != x:
+            self.parent[x] = self.parent[self.parent[x]]
+            x = self.parent[x]
+        return x
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            self.parent[max(ra, rb)] = min(ra, rb)
