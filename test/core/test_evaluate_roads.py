@@ -170,3 +170,91 @@ def test_road_config_must_be_positive(field: str) -> None:
         EvalConfig(**{field: 0.0})
     with pytest.raises(ConfigError, match="road_node_margin_m"):
         EvalConfig(road_node_margin_m=-1.0)
+
+
+# ------------------------------------------------------------------------------ topology link precision
+
+
+def _two_carriageways() -> GroundTruth:
+    """The exit junction plus the opposite carriageway ("O", x 900 -> 0 at y = 10) and an entry
+    ramp ("E", starting at (600, -30), merging nowhere near: a separate road beside the main one)."""
+    gt = _junction(exit_=True)
+    lanes = dict(gt.lanes)
+    lanes["O"] = GTLane("O", _lane_xy(0, 900, lambda x: np.full_like(x, 10.0))[::-1])
+    lanes["E"] = GTLane("E", _lane_xy(600, 900, lambda x: np.full_like(x, -30.0)))
+    routes = gt.routes + (GTRoute("opposite", ("O",)), GTRoute("entry", ("E",)))
+    return GroundTruth("junction2", (), lanes, routes)
+
+
+def _with_link(hdmap: HDMap, from_xy, to_xy) -> HDMap:
+    """The map with one more topology link, from the node nearest ``from_xy`` to the one nearest ``to_xy``."""
+    nodes = list(hdmap.topology)
+    pos = np.array([n.position for n in nodes])
+    i = int(np.argmin(np.linalg.norm(pos - np.asarray(from_xy), axis=1)))
+    j = int(np.argmin(np.linalg.norm(pos - np.asarray(to_xy), axis=1)))
+    nodes[i] = dataclasses.replace(nodes[i], successors=nodes[i].successors + (nodes[j].id,))
+    return dataclasses.replace(hdmap, topology=tuple(nodes))
+
+
+def test_ground_truth_topology_has_link_precision_one() -> None:
+    for gt in (_two_carriageways(), synthetic_highway("motorway_ramps")):
+        rep = evaluate_map(hdmap_from_ground_truth(gt), gt)
+        assert rep.n_topology_links_evaluable > 0.9 * rep.n_topology_links
+        assert rep.topology_link_precision == 1.0 and rep.false_topology_links == ()
+        # The lane-to-lane joints (2 m or less) are no long links; the GT map has none.
+        assert rep.n_long_links == 0 and math.isnan(rep.long_link_precision)
+
+
+def test_links_to_the_opposite_carriageway_or_an_unconnected_ramp_are_false() -> None:
+    gt = _two_carriageways()
+    base = hdmap_from_ground_truth(gt)
+    # The opposite carriageway 10 m beside; the entry ramp 30 m beside, which joins nothing here.
+    for from_xy, to_xy in (([200.0, 0.0], [205.0, 10.0]), ([600.0, 0.0], [611.0, -30.0])):
+        rep = evaluate_map(_with_link(base, from_xy, to_xy), gt)
+        assert (rep.n_long_links, rep.n_long_links_evaluable, rep.n_long_links_supported) == (1, 1, 0)
+        assert rep.long_link_precision == 0.0
+        (t,) = rep.false_topology_links
+        assert t.verdict == "false" and (t.x, t.y) == pytest.approx((from_xy[0] - 1.0, 0.0))
+        assert t.length_m == pytest.approx(np.hypot(*(np.array(to_xy) - from_xy)), abs=1.5)
+        doc = rep.to_dict()
+        assert doc["false_topology_links"][0]["length_m"] == pytest.approx(t.length_m)
+        assert "false link" in rep.summary() and "long (> 3 m) 0/1" in rep.summary()
+
+
+def test_a_link_across_the_exit_is_supported() -> None:
+    """Main road before the split -> exit ramp 60 m later: a lane path (A, then X) exists."""
+    gt = _junction(exit_=True)
+    exit_xy = [360.0, float(_exit_y(np.array([360.0]))[0])]
+    rep = evaluate_map(_with_link(hdmap_from_ground_truth(gt), [299.0, 0.0], exit_xy), gt)
+    assert (rep.n_long_links_evaluable, rep.n_long_links_supported) == (1, 1)
+    assert rep.false_topology_links == ()
+    # ... but not backwards: exit ramp -> main road before the split.
+    rep = evaluate_map(_with_link(hdmap_from_ground_truth(gt), exit_xy, [299.0, 0.0]), gt)
+    assert (rep.n_long_links_evaluable, rep.n_long_links_supported) == (1, 0)
+    # The path bound: 2 x |AB| + 20 m (config), here 61 m of lane path for a 61 m link.
+    rep = evaluate_map(_with_link(hdmap_from_ground_truth(gt), [199.0, 0.0], [299.0, 0.0]), gt,
+                       config=EvalConfig(link_path_factor=0.5, link_path_slack_m=0.0))
+    assert rep.n_long_links_supported == 0
+
+
+def test_nodes_off_every_lane_are_unevaluable() -> None:
+    gt = _junction(exit_=True)
+    base = hdmap_from_ground_truth(gt)
+    off = TopologyNode(id=10**6, position=np.array([200.0, 40.0]), heading=0.0, width=3.5, successors=())
+    hdmap = _with_link(dataclasses.replace(base, topology=base.topology + (off,)), [150.0, 0.0], [200.0, 40.0])
+    rep = evaluate_map(hdmap, gt)
+    assert rep.n_long_links == 1 and rep.n_long_links_evaluable == 0 and rep.false_topology_links == ()
+    (t,) = rep.unevaluable_long_links
+    assert t.verdict == "unevaluable" and "to node on no ground-truth lane" in t.reason
+    assert rep.topology_link_precision == 1.0
+    # A map without topology: nothing to judge.
+    rep = evaluate_map(hdmap_from_ground_truth(gt, with_topology=False), gt)
+    assert rep.n_topology_links == 0 and math.isnan(rep.topology_link_precision)
+
+
+@pytest.mark.parametrize("field", ["link_path_factor", "link_long_m"])
+def test_link_config_must_be_positive(field: str) -> None:
+    with pytest.raises(ConfigError, match=field):
+        EvalConfig(**{field: 0.0})
+    with pytest.raises(ConfigError, match="link_back_m"):
+        EvalConfig(link_back_m=-1.0)

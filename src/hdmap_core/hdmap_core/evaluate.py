@@ -36,6 +36,7 @@ from hdmap_core.evaluate_cuts import (
     points_on_cuts,
     reference_cuts,
 )
+from hdmap_core.evaluate_links import LinkCheckConfig, LinkPrecision, TopologyLink, check_topology_links
 from hdmap_core.evaluate_topology import (
     BranchPoint,
     check_branch_points,
@@ -62,6 +63,7 @@ __all__ = [
     "EvalReport",
     "BranchPoint",
     "RoadBranchPoint",
+    "TopologyLink",
     "evaluate_map",
     "hdmap_from_ground_truth",
     "plot_evaluation",
@@ -113,6 +115,12 @@ class EvalConfig:
             far beyond half its width to each side [m].
         road_path_m: road splits/merges: longest path along the map's topology successors from the
             single side to a branch [m].
+        link_path_factor: topology link precision: a map topology edge A -> B is supported when a
+            ground-truth lane path from A to B is at most this times |AB| ...
+        link_path_slack_m: ... plus this long [m] (cross-sections as for road_node_margin_m).
+        link_back_m: topology link precision: on one lane, B up to this far behind A counts [m].
+        link_long_m: topology link precision: edges longer than this are the "long" ones (the
+            stitcher's links; consecutive steps are 2 m apart) [m].
     """
 
     step_m: float = 2.0
@@ -134,18 +142,22 @@ class EvalConfig:
     road_cluster_m: float = 30.0
     road_node_margin_m: float = 1.0
     road_path_m: float = 1300.0
+    link_path_factor: float = 2.0
+    link_path_slack_m: float = 20.0
+    link_back_m: float = 2.0
+    link_long_m: float = 3.0
 
     def __post_init__(self) -> None:
         positive = (
             "step_m", "recall_radius_m", "gate_m", "max_half_length_m", "default_sigma_loc_m",
             "topology_separation_m", "topology_window_m", "topology_reach_m", "topology_attach_m",
-            "road_follow_m", "road_apart_m", "road_cluster_m", "road_path_m",
+            "road_follow_m", "road_apart_m", "road_cluster_m", "road_path_m", "link_path_factor", "link_long_m",
         )
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"EvalConfig.{name} must be a finite number > 0, got {value!r}")
-        for name in ("border_margin_m", "type_tie_m", "road_node_margin_m"):
+        for name in ("border_margin_m", "type_tie_m", "road_node_margin_m", "link_path_slack_m", "link_back_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"EvalConfig.{name} must be a finite number >= 0, got {value!r}")
@@ -281,6 +293,15 @@ class EvalReport:
         found_road_splits, found_road_merges: those the map's topology graph connects.
         road_branch_points: every ground-truth road split / merge in the evaluated area, evaluable
             or not, with its verdict.
+        topology_link_precision: map topology edges (A -> successor B) that the ground-truth lane
+            graph supports (both nodes on ground-truth lanes running their way, a lane path from A
+            to B within link_path_factor * |AB| + link_path_slack_m) / evaluable edges (both nodes
+            on ground-truth lanes in the evaluated area). NaN when none is evaluable.
+        n_topology_links, n_topology_links_evaluable, n_topology_links_supported: the edge counts.
+        long_link_precision, n_long_links, n_long_links_evaluable, n_long_links_supported: the same
+            for edges longer than link_long_m (the stitcher's links).
+        false_topology_links: every unsupported evaluable edge, longest first.
+        unevaluable_long_links: the long edges with a node on no ground-truth lane, longest first.
         gt_lane_splits, gt_lane_merges: for context, ground-truth lanes (highway lanes unless
             highway_only is False) with >= 2 successors / >= 2 predecessors. Where the ground-truth
             markings stop at junctions these have no branch point of the features.
@@ -325,6 +346,16 @@ class EvalReport:
     observed_share: float = math.nan
     recall_observed: float = math.nan
     n_observed: int = 0
+    topology_link_precision: float = math.nan
+    n_topology_links: int = 0
+    n_topology_links_evaluable: int = 0
+    n_topology_links_supported: int = 0
+    long_link_precision: float = math.nan
+    n_long_links: int = 0
+    n_long_links_evaluable: int = 0
+    n_long_links_supported: int = 0
+    false_topology_links: tuple[TopologyLink, ...] = ()
+    unevaluable_long_links: tuple[TopologyLink, ...] = ()
 
     @property
     def coverage(self) -> float:
@@ -350,13 +381,16 @@ class EvalReport:
             "per_type": {k: _jsonable(v.__dict__) for k, v in self.per_type.items()},
         }
         for name in self.__dataclass_fields__:
-            if name in ("gt_name", "config", "overall", "per_type", "cuts", "branch_points", "road_branch_points"):
+            if name in ("gt_name", "config", "overall", "per_type", "cuts", "branch_points", "road_branch_points",
+                        "false_topology_links", "unevaluable_long_links"):
                 continue
             out[name] = _jsonable(getattr(self, name))
         out["missing_branch_points"] = [b.to_dict() for b in self.missing_branch_points]
         out["branch_points"] = [b.to_dict() for b in self.branch_points]
         out["missing_road_branch_points"] = [b.to_dict() for b in self.missing_road_branch_points]
         out["road_branch_points"] = [b.to_dict() for b in self.road_branch_points]
+        out["false_topology_links"] = [_jsonable(t.to_dict()) for t in self.false_topology_links]
+        out["unevaluable_long_links"] = [_jsonable(t.to_dict()) for t in self.unevaluable_long_links]
         out["coverage"] = _jsonable(self.coverage)
         if include_cuts:
             out["cuts"] = self.cuts.to_dict()
@@ -627,7 +661,9 @@ def evaluate_map(
     frag_mean, frag_max, n_frag = _fragmentation(gp, gi, matched, map_feats, mp)
     branch_points = _branch_points(gt_feats, cuts, gp, gi, gd, mp, map_feats, config, cos_feat)
     evaluable_bp = [b for b in branch_points if b.evaluable]
-    road_points = _road_branch_points(gt, cuts, hdmap, config, cos_feat)
+    topo = TopologyArrays.build(hdmap.topology, config.road_node_margin_m)
+    road_points = _road_branch_points(gt, cuts, topo, config, cos_feat)
+    links = _topology_links(gt, cuts, topo, config, cos_feat)
     evaluable_rp = [b for b in road_points if b.evaluable]
     evaluable = (n_match > 0) & (n_gt_cut > 0)
     floor_ok = evaluable & np.isfinite(floor)
@@ -682,6 +718,16 @@ def evaluate_map(
         road_branch_points=tuple(road_points),
         gt_lane_splits=sum(len(ln.successors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()),
         gt_lane_merges=sum(len(ln.predecessors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()),
+        topology_link_precision=links.precision,
+        n_topology_links=links.n_links,
+        n_topology_links_evaluable=links.n_evaluable,
+        n_topology_links_supported=links.n_supported,
+        long_link_precision=links.long_precision,
+        n_long_links=links.n_long,
+        n_long_links_evaluable=links.n_long_evaluable,
+        n_long_links_supported=links.n_long_supported,
+        false_topology_links=links.false_links,
+        unevaluable_long_links=links.unevaluable_long,
         cuts=profile,
         skipped=tuple(skipped),
         runtime_s=time.perf_counter() - t0,
@@ -883,7 +929,7 @@ def road_check_config(config: EvalConfig) -> RoadCheckConfig:
 
 
 def _road_branch_points(
-    gt: GroundTruth, cuts: Cuts, hdmap: HDMap, config: EvalConfig, cos_feat: float
+    gt: GroundTruth, cuts: Cuts, topo: TopologyArrays, config: EvalConfig, cos_feat: float
 ) -> list[RoadBranchPoint]:
     """Road splits and merges of the ground-truth lane graph in the evaluated area and whether the
     map's topology graph connects them (``hdmap_core.evaluate_roads``)."""
@@ -898,7 +944,25 @@ def _road_branch_points(
     points = [p for p, ok in zip(points, inside) if ok]
     if not points:
         return []
-    return check_road_points(points, TopologyArrays.build(hdmap.topology, config.road_node_margin_m), cfg)
+    return check_road_points(points, topo, cfg)
+
+
+def _topology_links(
+    gt: GroundTruth, cuts: Cuts, topo: TopologyArrays, config: EvalConfig, cos_feat: float
+) -> LinkPrecision:
+    """Each edge of the map's topology graph judged against the ground-truth lane graph
+    (``hdmap_core.evaluate_links``); nodes count only in the evaluated area, as road points do."""
+    cfg = LinkCheckConfig(
+        node_margin_m=config.road_node_margin_m,
+        cos_min=cos_feat,
+        path_factor=config.link_path_factor,
+        path_slack_m=config.link_path_slack_m,
+        back_m=config.link_back_m,
+        long_m=config.link_long_m,
+    )
+    heading = np.arctan2(topo.tangent[:, 1], topo.tangent[:, 0])
+    in_area = inside_cuts(topo.xy, heading, cuts, half_step_m=config.step_m / 2, cos_min=cos_feat)
+    return check_topology_links(gt.lanes, topo, in_area, cfg)
 
 
 # --------------------------------------------------------------------------------------------

@@ -70,6 +70,7 @@ def format_summary(report: EvalReport) -> str:
     ]
     lines.append(_topology_line(report))
     lines.append(_road_line(report))
+    lines.append(_link_line(report))
     if report.floor_source == "none":
         lines.append(f"floor sigma/sqrt(n): n/a (no drive counts; sigma_loc {report.sigma_loc_m:g} m)")
     else:
@@ -130,6 +131,27 @@ def _road_line(report: EvalReport) -> str:
         line += f"\n  missing road {b.kind} at ({b.x:.1f}, {b.y:.1f}), GT lanes {', '.join(b.gt_lanes)}: {b.reason}"
     if len(missing) > 5:
         line += f"\n  ... and {len(missing) - 5} more"
+    return line
+
+
+def _link_line(report: EvalReport) -> str:
+    """Topology link precision against the GT lane graph, the false long links listed (at most 5)."""
+    cfg = report.config
+    line = (
+        f"topology links supported by the GT lane graph: {report.n_topology_links_supported}/"
+        f"{report.n_topology_links_evaluable} ({_pct(report.topology_link_precision).strip()}), long (> "
+        f"{cfg.link_long_m:g} m) {report.n_long_links_supported}/{report.n_long_links_evaluable} "
+        f"({_pct(report.long_link_precision).strip()}); not evaluable "
+        f"{report.n_topology_links - report.n_topology_links_evaluable} of {report.n_topology_links} "
+        f"({report.n_long_links - report.n_long_links_evaluable} long)"
+    )
+    false_long = [t for t in report.false_topology_links if t.length_m > cfg.link_long_m]
+    for t in false_long[:5]:
+        line += (
+            f"\n  false link {t.length_m:.1f} m from ({t.x:.1f}, {t.y:.1f}) to ({t.to_x:.1f}, {t.to_y:.1f}): {t.reason}"
+        )
+    if len(false_long) > 5:
+        line += f"\n  ... and {len(false_long) - 5} more long"
     return line
 
 

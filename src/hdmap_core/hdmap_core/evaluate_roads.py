@@ -260,14 +260,18 @@ def _road_point(members: list[_Candidate], cfg: RoadCheckConfig) -> RoadPoint:
 @dataclass(frozen=True)
 class TopologyArrays:
     """The map's topology graph as arrays: (N, 2) positions, (N, 2) unit headings, (N,) half
-    widths of the cross-sections (with the margin) [m], and the successor graph (N x N sparse,
-    weight = distance between the linked nodes [m])."""
+    widths of the cross-sections (with the margin) [m], the successor graph (N x N sparse,
+    weight = distance between the linked nodes [m]), (N,) node ids, and the (E,) edges
+    ``src -> dst`` (node indices, each distinct linked pair once)."""
 
     xy: np.ndarray
     tangent: np.ndarray
     half_m: np.ndarray
     graph: csr_matrix
     tree: cKDTree | None
+    ids: np.ndarray
+    src: np.ndarray
+    dst: np.ndarray
 
     @staticmethod
     def build(nodes: Sequence[TopologyNode], margin_m: float) -> TopologyArrays:
@@ -276,7 +280,7 @@ class TopologyArrays:
         width = np.array([float(n.width) for n in nodes])
         width = np.where(np.isfinite(width) & (width > 0), width, DEFAULT_NODE_WIDTH_M)
         index = {int(n.id): i for i, n in enumerate(nodes)}
-        pairs = [(i, index[int(s)]) for i, n in enumerate(nodes) for s in n.successors if int(s) in index]
+        pairs = sorted({(i, index[int(s)]) for i, n in enumerate(nodes) for s in n.successors if int(s) in index})
         src, dst = (np.array(p, dtype=np.int64) for p in zip(*pairs)) if pairs else (np.zeros(0, np.int64),) * 2
         # Zero weights would drop an edge from the sparse graph: coincident nodes are 1 mm apart.
         w = np.maximum(np.linalg.norm(xy[dst] - xy[src], axis=1), 1e-3)
@@ -285,7 +289,7 @@ class TopologyArrays:
         xy = np.where(ok[:, None], xy, 1e12)
         return TopologyArrays(
             xy, np.stack([np.cos(yaw), np.sin(yaw)], axis=1), width / 2 + margin_m, graph,
-            cKDTree(xy) if len(xy) else None,
+            cKDTree(xy) if len(xy) else None, np.array([int(n.id) for n in nodes], dtype=np.int64), src, dst,
         )
 
 

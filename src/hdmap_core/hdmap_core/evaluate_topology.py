@@ -182,16 +182,18 @@ def inside_cuts(
     heading = np.stack([np.cos(heading_rad), np.sin(heading_rad)], axis=1)
     tree = cKDTree(cuts.center)
     reach = half_step_m + float(np.max(np.maximum(-cuts.lo, cuts.hi)))
-    for i, cand in enumerate(tree.query_ball_point(xy, r=reach)):
-        c = np.asarray(cand, dtype=np.int64)
-        if len(c) == 0:
-            continue
-        d = xy[i] - cuts.center[c]
-        along = np.abs((d * cuts.tangent[c]).sum(axis=1))
-        across = (d * cuts.normal[c]).sum(axis=1)
-        inside = (along <= half_step_m + 1e-6) & (across >= cuts.lo[c]) & (across <= cuts.hi[c])
-        inside &= (cuts.tangent[c] @ heading[i]) >= cos_min
-        keep[i] = bool(inside.any())
+    # All (point, cut) pairs within reach at once (maps have thousands of topology nodes).
+    hits = tree.query_ball_point(xy, r=reach)
+    owner = np.repeat(np.arange(len(xy)), [len(h) for h in hits])
+    if len(owner) == 0:
+        return keep
+    c = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits])
+    d = xy[owner] - cuts.center[c]
+    along = np.abs((d * cuts.tangent[c]).sum(axis=1))
+    across = (d * cuts.normal[c]).sum(axis=1)
+    inside = (along <= half_step_m + 1e-6) & (across >= cuts.lo[c]) & (across <= cuts.hi[c])
+    inside &= (cuts.tangent[c] * heading[owner]).sum(axis=1) >= cos_min
+    keep[owner[inside]] = True
     return keep
 
 

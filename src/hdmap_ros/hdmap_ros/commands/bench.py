@@ -57,6 +57,7 @@ COLUMNS = (
     ("fragmentation", "fragm.", "{:.2f}"),
     ("splits_merges", "splits/merges found", "{}"),
     ("road_splits_merges", "road splits/merges", "{}"),
+    ("long_links", "topo link prec. (long)", "{}"),
     ("build_s", "build s", "{:.1f}"),
     ("peak_rss_mb", "peak RSS MB", "{:.0f}"),
 )
@@ -292,11 +293,23 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
         "gt_road_merges": rep.gt_road_merges,
         "found_road_splits": rep.found_road_splits,
         "found_road_merges": rep.found_road_merges,
+        # Long topology links (> link_long_m: the stitcher's) that the GT lane graph supports.
+        "long_links": _link_cell(rep.long_link_precision, rep.n_long_links_supported, rep.n_long_links_evaluable),
+        "long_link_precision": rep.long_link_precision,
+        "n_long_links_evaluable": rep.n_long_links_evaluable,
+        "n_long_links_supported": rep.n_long_links_supported,
+        "topology_link_precision": rep.topology_link_precision,
+        "false_long_links": [t.to_dict() for t in rep.false_topology_links if t.length_m > rep.config.link_long_m],
         "n_features": len(result.map.features),
         "build_s": build_s,
         "stage_seconds": dict(getattr(result.report, "stage_seconds", {}) or {}),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
+
+
+def _link_cell(precision: float, supported: int, evaluable: int) -> str:
+    """``"97.1% 68/70"``: precision and counts of the long topology links ("-" when none is evaluable)."""
+    return f"{precision:.1%} {supported}/{evaluable}" if evaluable else "-"
 
 
 def _cell(value: Any, fmt: str) -> str:
