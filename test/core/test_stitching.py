@@ -898,6 +898,11 @@ def test_ramp_end_turning_onto_the_road_follows_its_arc():
     assert _successor_positions(m, [50.0, 0.0]) == [[52.0, 0.0]]  # nothing else changed
     # too short a search, or a chain turning away from the road: no link
     assert _successor_positions(stitch([], base=base, config=StitchConfig(path_search_m=6.0)), end.position) == []
+    # the arc turns ~8 deg before it enters the road's cross-section: a 4 deg cap stops it short
+    capped = StitchConfig(path_search_m=40.0, path_max_turn_deg=4.0)
+    assert _successor_positions(stitch([], base=base, config=capped), end.position) == []
+    assert _successor_positions(stitch([], base=base, config=dataclasses.replace(capped, path_max_turn_deg=60.0)),
+                                end.position) == [[x, y]]
     he, (ex, ey) = end.heading, end.position  # the same end, reached turning left
     away = _arc_chain(1000, (ex - 50.0 * math.sin(he), ey + 50.0 * math.cos(he)), 50.0,
                       he - np.arange(0.8, -1e-9, -0.04), left=True)
@@ -932,3 +937,5 @@ def test_path_search_only_in_the_default_preset():
     assert StitchConfig.paper().path_search_m == 0.0 and StitchConfig().path_search_m == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(path_search_m=-1.0)
+    with pytest.raises(ConfigError):
+        StitchConfig(path_max_turn_deg=0.0)

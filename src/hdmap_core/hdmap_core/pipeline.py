@@ -150,7 +150,7 @@ class PipelineConfig:
                     # junction pieces already joined to the map through one end get their other end
                     # linked too; a ramp chain ending (starting) short of the gore follows its own
                     # arc onto the road (docs/graph.md)
-                    link_within_component=True, path_search_m=40.0,
+                    link_within_component=True, path_search_m=36.0, path_max_turn_deg=60.0,
                     # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
                     # one drive's misclassified stretch up to 250 m (docs/pipeline.md, sparse fleets)
                     sparse_minority_only=True, single_drive_run_m=250.0,

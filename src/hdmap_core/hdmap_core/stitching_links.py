@@ -119,6 +119,8 @@ def _path_partner(
     h = float(flat.t_heading[i])
     u0, _ = _unit(h)
     n_steps = int(cfg.path_search_m / _PATH_STEP_M + 1e-9)
+    if rate != 0.0:  # RULE: no further than the arc turns path_max_turn_deg
+        n_steps = min(n_steps, int(math.radians(cfg.path_max_turn_deg) / (abs(rate) * _PATH_STEP_M) + 1e-9))
     for _ in range(n_steps):
         hm = h + sign * 0.5 * rate * _PATH_STEP_M  # heading in the middle of the arc step
         p = p + sign * _PATH_STEP_M * np.array([math.cos(hm), math.sin(hm)])
