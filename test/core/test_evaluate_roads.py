@@ -258,3 +258,21 @@ def test_link_config_must_be_positive(field: str) -> None:
         EvalConfig(**{field: 0.0})
     with pytest.raises(ConfigError, match="link_back_m"):
         EvalConfig(link_back_m=-1.0)
+
+
+def test_a_link_that_changes_lanes_is_supported() -> None:
+    r"""Two lanes side by side (R at y 0, L at y 3.5, neighbours), one carriageway: a link from the
+    node on R at x 100 to the node on L at x 110 is a lane change, which a carriageway's topology
+    may make; with the lanes not marked as neighbours (two separate roads) it is false."""
+
+    def road(neighbours: bool) -> GroundTruth:
+        lanes = {
+            "R": GTLane("R", _lane_xy(0, 300, np.zeros_like), left="L" if neighbours else None),
+            "L": GTLane("L", _lane_xy(0, 300, lambda x: np.full_like(x, 3.5)), right="R" if neighbours else None),
+        }
+        return GroundTruth("two_lanes", (), lanes, (GTRoute("r", ("R",)), GTRoute("l", ("L",))))
+
+    for neighbours, supported in ((True, 1), (False, 0)):
+        gt = road(neighbours)
+        rep = evaluate_map(_with_link(hdmap_from_ground_truth(gt), [100.0, 0.0], [110.0, 3.5]), gt)
+        assert (rep.n_long_links, rep.n_long_links_evaluable, rep.n_long_links_supported) == (1, 1, supported)

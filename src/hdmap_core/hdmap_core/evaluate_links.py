@@ -15,8 +15,10 @@ whether a vehicle can drive from A to B on the ground truth's lanes, see ``docs/
    lies in the evaluated area (inside a cut running its way): a link from the highway onto a ramp
    whose lanes have no cuts of their own is judged, a link between two city streets is not. The
    others are *unevaluable* (counted and listed apart, not false);
-3. an evaluable edge is *supported* when from a lane under A at A's station some lane under B at
-   B's station is reached along ground-truth successors with a path of at most
+3. an evaluable edge is *supported* when from a lane under A at A's station, or a lane reached
+   from one by lane changes there (``left`` / ``right`` neighbours: a node is a carriageway
+   midpoint, not a lane), some lane under B at B's station is reached along ground-truth
+   successors with a path of at most
    ``path_factor * |AB| + path_slack_m`` (on one lane: B's station minus A's, B up to ``back_m``
    behind A counting as 0; else the rest of A's lane, whole lanes between, B's station on its
    lane); else it is *false*;
@@ -186,6 +188,39 @@ def _lanes_under(topo: TopologyArrays, nodes: np.ndarray, lp: _LanePoints, cos_m
     return node[first], lane[first], lp.station_m[q[first]]
 
 
+def _with_lane_changes(
+    node: np.ndarray, lane: np.ndarray, station: np.ndarray, lanes: Mapping[str, GTLane], index: Mapping[str, int],
+    length_m: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(node, lane, station) rows plus, for each, the lanes a vehicle reaches from its lane by lane
+    changes (``GTLane.left`` / ``right``, same direction, repeated) at the same share of the lane's
+    length (RULE L3: a topology node is a carriageway midpoint, so a link may change lanes at its
+    start); sorted by node then lane, one row per (node, lane)."""
+    ids = list(index)
+    side = [[index[x] for x in (lanes[lid].left, lanes[lid].right) if x is not None and x in index] for lid in ids]
+    reach: list[list[int]] = []
+    for k in range(len(ids)):
+        seen, todo = {k}, [k]
+        while todo:
+            for m in side[todo.pop()]:
+                if m not in seen:
+                    seen.add(m)
+                    todo.append(m)
+        reach.append(sorted(seen))
+    n_r = np.array([len(reach[k]) for k in lane.tolist()], dtype=np.int64)
+    rep = np.repeat(np.arange(len(lane)), n_r)
+    to = np.array([m for k in lane.tolist() for m in reach[k]], dtype=np.int64)
+    share = station / np.maximum(length_m[lane], 1e-9)
+    out_node, out_lane, out_s = node[rep], to, share[rep] * length_m[to]
+    own = to == lane[rep]
+    out_s[own] = station[rep[own]]
+    order = np.lexsort((~own, out_lane, out_node))  # a lane's own row first where it is also a neighbour's
+    out_node, out_lane, out_s = out_node[order], out_lane[order], out_s[order]
+    first = np.ones(len(out_node), dtype=bool)
+    first[1:] = (out_node[1:] != out_node[:-1]) | (out_lane[1:] != out_lane[:-1])
+    return out_node[first], out_lane[first], out_s[first]
+
+
 def _lane_graph(lanes: Mapping[str, GTLane], index: Mapping[str, int], length_m: np.ndarray) -> csr_matrix:
     """Lane graph with a start node (0..L-1) and an end node (L..2L-1) per lane: start -> end
     weighted with the lane's length, end -> start of each successor ~0 [m]."""
@@ -223,6 +258,9 @@ def check_topology_links(
     row_node, row_lane, row_s = _lanes_under(topo, np.arange(n_nodes), lp, cfg.cos_min)
     start = np.searchsorted(row_node, np.arange(n_nodes))
     count = np.searchsorted(row_node, np.arange(n_nodes), side="right") - start
+    a_node, a_lane, a_s = _with_lane_changes(row_node, row_lane, row_s, lanes, index, lp.length_m)
+    a_start = np.searchsorted(a_node, np.arange(n_nodes))
+    a_count = np.searchsorted(a_node, np.arange(n_nodes), side="right") - a_start
     # RULE L2: an edge is evaluable when both its nodes are on ground-truth lanes and one of them
     # lies in the evaluated area.
     on = count > 0
@@ -232,13 +270,13 @@ def check_topology_links(
     ev = np.flatnonzero(evaluable)
     if len(ev):
         # Every (lane under A, lane under B) pair of every evaluable edge, edge by edge.
-        na, nb = count[src[ev]], count[dst[ev]]
+        na, nb = a_count[src[ev]], count[dst[ev]]
         reps = na * nb
         first = np.concatenate([[0], np.cumsum(reps)[:-1]])
         k = np.arange(int(reps.sum())) - np.repeat(first, reps)
-        ra = np.repeat(start[src[ev]], reps) + k // np.repeat(nb, reps)
+        ra = np.repeat(a_start[src[ev]], reps) + k // np.repeat(nb, reps)
         rb = np.repeat(start[dst[ev]], reps) + k % np.repeat(nb, reps)
-        la, lb, sa, sb = row_lane[ra], row_lane[rb], row_s[ra], row_s[rb]
+        la, lb, sa, sb = a_lane[ra], row_lane[rb], a_s[ra], row_s[rb]
         # RULE L3: the shortest lane path from A's station on a lane under A to B's on a lane under B.
         ahead = sb - sa
         same = np.where((la == lb) & (ahead >= -cfg.back_m), np.maximum(ahead, 0.0), np.inf)
