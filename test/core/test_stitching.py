@@ -939,3 +939,28 @@ def test_path_search_only_in_the_default_preset():
         StitchConfig(path_search_m=-1.0)
     with pytest.raises(ConfigError):
         StitchConfig(path_max_turn_deg=0.0)
+
+
+def test_roads_side_by_side_join_only_at_a_shallow_angle():
+    r"""  a: x 0..98 at y 0     b: x 100..198 at y 11 (10 m wide each: their cross-sections lie
+    apart). a's end and b's start are 11.2 m apart at 80 deg to a's heading, inside
+    ``max_connection_angle_deg`` (80.5 deg here): linked by default, not with a 30 deg
+    ``side_link_angle_deg``; the same pair 1 m apart across (one road) is linked either way."""
+    a = _topo_chain(1, np.arange(0, 99, 2.0), np.zeros(50))
+    b = _topo_chain(100, np.arange(100, 199, 2.0), np.full(50, 11.0))
+    cfg = StitchConfig(max_connection_angle_deg=80.5)
+    base = HDMap(topology=tuple(a + b))
+    assert _successor_positions(stitch([], base=base, config=cfg), [98.0, 0.0]) == [[100.0, 11.0]]
+    side = dataclasses.replace(cfg, side_link_angle_deg=30.0)
+    assert _successor_positions(stitch([], base=base, config=side), [98.0, 0.0]) == []
+    near = HDMap(topology=tuple(a + _topo_chain(100, np.arange(100, 199, 2.0), np.full(50, 1.0))))
+    assert _successor_positions(stitch([], base=near, config=side), [98.0, 0.0]) == [[100.0, 1.0]]
+    with pytest.raises(ConfigError):
+        StitchConfig(side_link_angle_deg=0.0)
+
+
+def test_side_link_angle_only_in_the_default_preset():
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+
+    assert PipelineConfig.preset("default").stitching.side_link_angle_deg == 30.0
+    assert StitchConfig().side_link_angle_deg == 90.0 and StitchConfig.paper().side_link_angle_deg == 90.0

@@ -151,6 +151,8 @@ class PipelineConfig:
                     # linked too; a ramp chain ending (starting) short of the gore follows its own
                     # arc onto the road (docs/graph.md)
                     link_within_component=True, path_search_m=36.0, path_max_turn_deg=60.0,
+                    # two roads side by side join only at a shallow angle (docs/graph.md)
+                    side_link_angle_deg=30.0,
                     # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
                     # one drive's misclassified stretch up to 250 m (docs/pipeline.md, sparse fleets)
                     sparse_minority_only=True, single_drive_run_m=250.0,

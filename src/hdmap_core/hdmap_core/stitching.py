@@ -421,15 +421,9 @@ class MapGraph(LooseEnds):
             if best < 0:
                 continue
             a, b = (i, best) if is_end else (best, i)
-            if b in existing.get(a):
-                continue
             # 4. link the topology nodes and join their features
-            existing.add(a, b)
-            outdeg[a] += 1
-            indeg[b] += 1
-            uf.union(a, b)
-            self._topo_links.add(self._link(flat, a, b, topo=True))
-            rep.topology_links += 1
+            if not self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
+                continue
             if join:
                 rep.feature_links += self._join_features(flat, a, b, out_adj, in_adj)
         if cfg.path_search_m > 0:
@@ -464,15 +458,23 @@ class MapGraph(LooseEnds):
             if best < 0:
                 continue
             a, b = (i, best) if is_end else (best, i)
-            if b in existing.get(a):
-                continue
-            existing.add(a, b)
-            outdeg[a] += 1
-            indeg[b] += 1
-            uf.union(a, b)
-            self._topo_links.add(self._link(flat, a, b, topo=True))
-            rep.topology_links += 1
-            rep.path_links += 1
+            if self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
+                rep.path_links += 1
+
+    def _add_topo_link(
+        self, flat: FlatGraph, a: int, b: int, existing: _Adjacency, outdeg: np.ndarray, indeg: np.ndarray,
+        uf: _UnionFind, rep: IntegrateReport,
+    ) -> bool:
+        """Link topology node a -> b (and book it); False when the link exists already."""
+        if b in existing.get(a):
+            return False
+        existing.add(a, b)
+        outdeg[a] += 1
+        indeg[b] += 1
+        uf.union(a, b)
+        self._topo_links.add(self._link(flat, a, b, topo=True))
+        rep.topology_links += 1
+        return True
 
     @staticmethod
     def _link(flat: FlatGraph, a: int, b: int, *, topo: bool) -> Link:

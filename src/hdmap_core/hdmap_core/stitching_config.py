@@ -160,6 +160,11 @@ class StitchConfig:
         path_max_turn_deg: the arc search stops once the arc has turned this much from the
             node's heading: an arc still turning past it has left the road the chain was on
             (a chain start turning 92 deg in 30 m hit the opposite carriageway) [deg].
+        side_link_angle_deg: a component start/end and a partner whose cross-sections lie apart
+            (lateral offset > the sum of their half widths: two roads side by side) are linked
+            only within this angle of the end's heading: esmini_soderleden's on-ramp, still a
+            separate road 10 m beside the main road, was joined to it at 74 deg (under
+            ``max_connection_angle_deg``). 90 = off (the paper, the plain default) [deg].
     """
 
     max_distance_m: float = 12.0
@@ -216,6 +221,7 @@ class StitchConfig:
     path_search_m: float = 0.0
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
+    side_link_angle_deg: float = 90.0
     through_lines: bool = True
 
     def __post_init__(self) -> None:
@@ -262,7 +268,7 @@ class StitchConfig:
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ConfigError(f"{name} must be finite and >= 0, got {v}")
-        for name in ("max_heading_diff_deg", "max_connection_angle_deg", "path_max_turn_deg"):
+        for name in ("max_heading_diff_deg", "max_connection_angle_deg", "path_max_turn_deg", "side_link_angle_deg"):
             v = getattr(self, name)
             if not 0 < v <= 180:
                 raise ConfigError(f"{name} must be in (0, 180], got {v}")

@@ -113,6 +113,21 @@ def _line_heading(xy: np.ndarray, walk: np.ndarray, i: int, sign: float, min_m: 
     return None
 
 
+def _chain_steps(e: np.ndarray, nn: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Out- and in-degree (nn,) of the feature graph with edges ``e`` (E, 2), and each node's next
+    / previous node along an edge that is the only one out of its start and into its end (-1
+    where there is none)."""
+    outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+    indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+    nxt = np.full(nn, -1, dtype=np.int64)
+    prv = np.full(nn, -1, dtype=np.int64)
+    if len(e):
+        one = (outdeg[e[:, 0]] == 1) & (indeg[e[:, 1]] == 1)
+        nxt[e[one, 0]] = e[one, 1]
+        prv[e[one, 1]] = e[one, 0]
+    return outdeg, indeg, nxt, prv
+
+
 class LooseEnds:
     """Loose-end clean-up of ``MapGraph`` (see the module docstring)."""
 
@@ -131,14 +146,7 @@ class LooseEnds:
         if nn < 2:
             return 0
         e = flat.edges
-        outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-        indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-        nxt = np.full(nn, -1, dtype=np.int64)
-        prv = np.full(nn, -1, dtype=np.int64)
-        if len(e):
-            one = (outdeg[e[:, 0]] == 1) & (indeg[e[:, 1]] == 1)
-            nxt[e[one, 0]] = e[one, 1]
-            prv[e[one, 1]] = e[one, 0]
+        outdeg, indeg, nxt, prv = _chain_steps(e, nn)
         border = flat.n_type == _BORDER_CODE
         tree = cKDTree(flat.n_xy)
         alive = np.ones(nn, dtype=bool)
@@ -311,14 +319,7 @@ class LooseEnds:
             return 0
         tree = cKDTree(flat.n_xy)
         nn = flat.n_nodes
-        outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-        indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-        nxt = np.full(nn, -1, dtype=np.int64)
-        prv = np.full(nn, -1, dtype=np.int64)
-        if len(e):
-            one = (outdeg[e[:, 0]] == 1) & (indeg[e[:, 1]] == 1)
-            nxt[e[one, 0]] = e[one, 1]
-            prv[e[one, 1]] = e[one, 0]
+        outdeg, indeg, nxt, prv = _chain_steps(e, nn)
 
         def diverges(i: int, j: int, lat0: float, walk: np.ndarray) -> bool:
             """Whether the branch through i moves away from the line through j (not a twin

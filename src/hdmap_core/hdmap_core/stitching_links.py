@@ -37,6 +37,12 @@ class _Adjacency:
 _CYCLE_NODES = 500
 
 
+def _half_widths(flat: FlatGraph, i: int, j: int) -> float:
+    """Sum of the half road widths of topology nodes i and j (3.5 m for a width not known) [m]."""
+    w = [float(flat.t_width[k]) if math.isfinite(flat.t_width[k]) and flat.t_width[k] > 0 else 3.5 for k in (i, j)]
+    return 0.5 * (w[0] + w[1])
+
+
 def _partner(
     flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, cfg: StitchConfig, allowed: Callable[[int], bool]
 ) -> int:
@@ -45,6 +51,7 @@ def _partner(
     those ``allowed``; -1 if none."""
     cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
     tan_c = math.tan(math.radians(min(cfg.max_connection_angle_deg, 89.999)))
+    tan_s = math.tan(math.radians(min(cfg.side_link_angle_deg, 89.999)))
     u, n = _unit(float(flat.t_heading[i]))
     best, best_d = -1, math.inf
     # 2. nearest neighbours in the complete topology graph (kd-tree)
@@ -58,6 +65,8 @@ def _partner(
             continue
         if dist > cfg.angle_free_m and lat > max(along, 0.0) * tan_c:
             continue
+        if cfg.side_link_angle_deg < 90.0 and lat > _half_widths(flat, i, j) and lat > max(along, 0.0) * tan_s:
+            continue  # RULE: two roads side by side (cross-sections apart) join only at a shallow angle
         if dist < best_d:
             best, best_d = int(j), dist
     return best
