@@ -206,8 +206,7 @@ class LooseEnds:
         if nn < 2:
             return
         e = flat.edges
-        outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
-        indeg = np.bincount(e[:, 1], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
+        outdeg, indeg, nxt, prv = _chain_steps(e, nn)
         ends = np.flatnonzero(outdeg == 0)
         starts = np.flatnonzero(indeg == 0)
         if len(ends) == 0 and len(starts) == 0:
@@ -216,12 +215,6 @@ class LooseEnds:
         tree = cKDTree(flat.n_xy[starts])
         cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
         tan_j = math.tan(math.radians(cfg.join_angle_deg))
-        prv = np.full(nn, -1, dtype=np.int64)
-        nxt = np.full(nn, -1, dtype=np.int64)
-        if len(e):
-            one = (outdeg[e[:, 0]] == 1) & (indeg[e[:, 1]] == 1)
-            prv[e[one, 1]] = e[one, 0]
-            nxt[e[one, 0]] = e[one, 1]
         # the pivot's heading is no direction for a line it sees while turning onto or off a ramp
         # (a line's loose end beside an entry ramp's pivot, heading 35 deg off the line): ends and
         # starts whose own line leaves it are also compared in their lines' direction
