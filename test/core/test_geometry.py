@@ -92,3 +92,11 @@ def test_resample_and_wrap():
     np.testing.assert_allclose(s, [0, 2, 4])
     np.testing.assert_allclose(pts[:, 0], [0, 2, 4])
     np.testing.assert_allclose(wrap_angle(np.array([3 * np.pi, -np.pi / 2])), [-np.pi, -np.pi / 2])
+
+
+def test_rdp_closed_polyline_measures_from_the_end_point():
+    # start == end: the chord has length 0, so distances are to that point; the far corner stays
+    pts = np.array([[0, 0], [4, 0.01], [4, 4], [0, 4], [0, 0]], float)
+    keep = rdp_mask_many(pts, np.array([0]), 0.05)
+    assert keep[0] and keep[-1] and keep[2]
+    assert keep.sum() >= 4  # a square needs its corners

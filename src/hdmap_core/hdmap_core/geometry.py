@@ -116,21 +116,29 @@ def rdp_mask_many(xy: np.ndarray, starts: np.ndarray, epsilon_m: float) -> np.nd
         owner = np.repeat(np.arange(len(lo)), inner)
         first = np.concatenate([[0], np.cumsum(inner)[:-1]])
         idx = lo[owner] + 1 + (np.arange(len(owner)) - first[owner])
-        a, b = xy[lo[owner]], xy[hi[owner]]
-        ab = b - a
-        ap = xy[idx] - a
-        lab = np.hypot(ab[:, 0], ab[:, 1])
-        cross = np.abs(ab[:, 0] * ap[:, 1] - ab[:, 1] * ap[:, 0])
-        dist = np.where(lab > 1e-12, cross / np.maximum(lab, 1e-12), np.hypot(ap[:, 0], ap[:, 1]))
+        # Distance to the chord = |cross| / chord length; the length is one per interval, so the
+        # farthest point is the largest |cross| and the test is |cross| > eps * length. A chord of
+        # length 0 (a closed polyline) measures the distance to its end point instead.
+        ab_i = xy[hi] - xy[lo]
+        lab = np.hypot(ab_i[:, 0], ab_i[:, 1])
+        ab = ab_i[owner]
+        ap = xy[idx] - xy[lo[owner]]
+        dist = np.abs(ab[:, 0] * ap[:, 1] - ab[:, 1] * ap[:, 0])
+        flat = lab <= 1e-12
+        if flat.any():
+            on = flat[owner]
+            dist[on] = np.hypot(ap[on, 0], ap[on, 1])
         # Per interval (its inner points are contiguous here): the farthest one, first on ties.
         dmax = np.maximum.reduceat(dist, first)
         pos = np.arange(len(dist))
         firsts = np.minimum.reduceat(np.where(dist == dmax[owner], pos, len(dist)), first)
-        split = dmax > epsilon_m
+        split = dmax > epsilon_m * np.where(flat, 1.0, lab)
         mid = idx[firsts][split]
         keep[mid] = True
-        lo = np.concatenate([lo[split], mid])
-        hi = np.concatenate([mid, hi[split]])
+        # interleaved, so the intervals stay in point order and the gathers above run through
+        # memory in order
+        lo = np.stack([lo[split], mid], axis=1).ravel()
+        hi = np.stack([mid, hi[split]], axis=1).ravel()
 
 
 def split_long_segments(xy: np.ndarray, starts: np.ndarray, max_len_m: float) -> tuple[np.ndarray, np.ndarray]:
