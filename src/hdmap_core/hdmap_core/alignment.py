@@ -419,7 +419,10 @@ def solve_offsets(
         if config.robust_loss and it < 3:
             y = x + o[drive]
             mu = np.bincount(labels, weights=w * y, minlength=k) / np.maximum(np.bincount(labels, weights=w, minlength=k), 1e-300)
-            w = np.minimum(1.0, config.huber_delta_m / np.maximum(np.abs(y - mu[labels]), 1e-12))
+            w_new = np.minimum(1.0, config.huber_delta_m / np.maximum(np.abs(y - mu[labels]), 1e-12))
+            if np.array_equal(w_new, w):  # the weights are a fixed point: the next solve is this one
+                break
+            w = w_new
     s = config.penalty_s_per_m2
     centres = np.bincount(labels, weights=x + o[drive], minlength=k) / n_c
     # The penalty only acts when two same-type clusters come close; the closed form already
