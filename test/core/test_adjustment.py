@@ -392,6 +392,7 @@ def test_inputs_are_not_mutated():
         {"noise_sigma_m": float("nan")},
         {"loss": "tukey"},
         {"iterations": 0},
+        {"thin_drives": -1},
     ],
 )
 def test_config_rejects_bad_values(kwargs):
@@ -407,3 +408,20 @@ def test_std_skipped_above_limit(small_model):
     assert np.isnan(model.std(d, np.array([1000.0]))).all()
     assert np.isfinite(model.offset(d, np.array([1000.0]))).all()
     json.dumps(model.to_dict())  # NaN variances are written as null
+
+
+def test_dense_steps_are_thinned_for_the_fit():
+    from hdmap_core import adjustment_assoc as assoc
+
+    def step(idx, n):
+        ids = [f"d{i}" for i in range(n)]
+        return _step(idx, ids, np.full(n, 10.0 * idx), np.zeros(n), np.zeros(n, dtype=np.int64))
+
+    # steps 0-3 seen by 3 drives, steps 4-9 by 8: with thin_drives=4 the dense ones are used
+    # every ceil(8 / 4) = 2nd step
+    obs = [step(i, 3) for i in range(4)] + [step(i, 8) for i in range(4, 10)]
+    pool = assoc.gather(obs, {})
+    used = np.unique(pool.step[assoc.select(pool, pool.label, thin_drives=4).pool_index])
+    np.testing.assert_array_equal(used, [0, 1, 2, 3, 4, 6, 8])
+    every = np.unique(pool.step[assoc.select(pool, pool.label).pool_index])
+    np.testing.assert_array_equal(every, np.arange(10))

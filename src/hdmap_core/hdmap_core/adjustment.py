@@ -86,6 +86,11 @@ class AdjustConfig:
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
             normal matrix; O(p^3) in the number of unknowns p).
         std_max_unknowns: above this many unknowns the std is not computed (left NaN).
+        thin_drives: the fit uses every step seen by at most this many drives, and every
+            ceil(d / thin_drives)-th step of those seen by d more (0 = every step). The cost of a
+            step grows with d^2 (its cluster positions couple all its drives); thinned, the fit
+            grows linearly with the fleet while a drive still has dozens of steps per knot.
+            (Re-association and the lane-shift search still use every step.)
     """
 
     knot_spacing_m: float = 200.0
@@ -104,6 +109,7 @@ class AdjustConfig:
     shift_search_m: float = 4.5
     compute_std: bool = True
     std_max_unknowns: int = 4000
+    thin_drives: int = 16
 
     def __post_init__(self) -> None:
         positive = ("knot_spacing_m", "bias_sigma_m", "correlation_length_m", "noise_sigma_m", "robust_k", "tol_m")
@@ -123,6 +129,8 @@ class AdjustConfig:
             raise ConfigError(
                 "AdjustConfig.iterations must be >= 1, huber_warmup_iterations and std_max_unknowns >= 0"
             )
+        if self.thin_drives < 0:
+            raise ConfigError(f"AdjustConfig.thin_drives must be >= 0, got {self.thin_drives!r}")
 
 
 @dataclass(frozen=True)
@@ -398,7 +406,7 @@ def _update_normal(h: sp.csr_matrix, rhs: np.ndarray, a: sp.csr_matrix, samples:
 class _Solver:
     """Solves the SPD systems of the IRLS loop.
 
-    The first system is factorised (SuperLU, COLAMD ordering); the re-weighted ones differ little,
+    The first system is factorised (SuperLU in symmetric mode); the re-weighted ones differ little,
     so they are solved by conjugate gradients preconditioned with that first factorisation and
     warm-started at the previous solution (a handful of iterations), with a fresh factorisation
     as the fallback.
@@ -413,7 +421,11 @@ class _Solver:
             x, info = spla.cg(h, rhs, x0=x0, M=pre, rtol=1e-10, atol=0.0, maxiter=200)
             if info == 0:
                 return x
-        self._lu = spla.splu(h.tocsc(), permc_spec="COLAMD")
+        # H is symmetric positive definite: no pivoting needed, and a symmetric ordering keeps the
+        # factors sparse (measured on paper_like 4x, 8217 unknowns: L+U 3.1 M entries in 0.8 s,
+        # against 15 M in 1.9 s with COLAMD and partial pivoting)
+        self._lu = spla.splu(h.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                             options=dict(SymmetricMode=True))
         return self._lu.solve(rhs)
 
 
@@ -464,7 +476,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         # per drive fitted on it is then enough to re-associate at the gate.
         label = assoc.reassociate(pool, label, np.zeros(pool.s_m.size), assoc.centres(pool, label, pool.lateral_m),
                              gate_m=np.inf)
-        samples = assoc.select(pool, label)
+        samples = assoc.select(pool, label, cfg.thin_drives)
         if samples.s_m.size:
             coarse = _coarse_config(cfg)
             fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
@@ -526,7 +538,7 @@ def _shift_and_reassociate(pool: assoc.Pool, label: np.ndarray, model: OffsetMod
 
 def _fit_all(pool: assoc.Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[assoc.Samples, _Fit | None, np.ndarray]:
     """Select the informative samples of ``label`` and fit them (coarse stage, then curves)."""
-    samples = assoc.select(pool, label)
+    samples = assoc.select(pool, label, cfg.thin_drives)
     keep = np.ones(samples.s_m.size, dtype=bool)
     if samples.s_m.size == 0:
         return samples, None, keep

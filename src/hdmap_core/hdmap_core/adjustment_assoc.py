@@ -30,6 +30,7 @@ class Pool:
     step: np.ndarray  # (n,) int step number (position in the observation sequence)
     ftype: np.ndarray  # (n,) int FeatureType code
     label: np.ndarray  # (n,) int cluster label from the observations (-1 = none)
+    step_drives: np.ndarray  # (number of observations,) distinct drives of each step (0 if skipped)
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,7 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
     s_list, lat_list, cl_list, type_list, step_list = [], [], [], [], []
     problems: list[str] = []
     n_bad_steps = 0
+    step_drives = np.zeros(len(observations), dtype=np.int64)
     for j, obs in enumerate(observations):
         try:
             ids = tuple(obs.drive_ids)
@@ -77,6 +79,7 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
                 problems.append(f"step {getattr(obs, 'pivot_id', '?')}#{getattr(obs, 'index', j)}: {reason}")
             continue
         drive_lists.append(ids)
+        step_drives[j] = len(set(ids))
         s_list.append(s)
         lat_list.append(lat)
         cl_list.append(cl)
@@ -88,7 +91,7 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
     if not s_list:
         stats["n_samples"] = stats["n_nonfinite_dropped"] = 0
         e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
-        return Pool(e_i, (), e_f, e_f, e_i, e_i, e_i)
+        return Pool(e_i, (), e_f, e_f, e_i, e_i, e_i, np.zeros(len(observations), np.int64))
     s = np.concatenate(s_list)
     lat = np.concatenate(lat_list)
     label = np.concatenate(cl_list).astype(np.int64)
@@ -103,12 +106,22 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
     stats["n_nonfinite_dropped"] = int((~finite).sum())
     drive, firsts = compact(first[finite], return_values=True)
     return Pool(drive, tuple(all_ids[i] for i in firsts), s[finite], lat[finite], step[finite], ftype[finite],
-                 label[finite])
+                 label[finite], step_drives)
 
 
-def select(pool: Pool, label: np.ndarray) -> Samples:
-    """The samples with a label, in clusters seen by >= 2 different drives (others carry no information)."""
+def select(pool: Pool, label: np.ndarray, thin_drives: int = 0) -> Samples:
+    """The samples with a label, in clusters seen by >= 2 different drives (others carry no information).
+
+    ``thin_drives`` > 0: a step seen by d drives is used only when its number is a multiple of
+    ceil(d / thin_drives). Eliminating a cluster's position couples every pair of its drives, so
+    the work per step grows with d^2; thinned, it grows with d, and a drive's offset curve (knots
+    every 200 m) is still fitted from dozens of steps per knot.
+    """
     keep = np.flatnonzero(label >= 0)
+    if thin_drives > 0 and keep.size:
+        stride = np.maximum(1, -(-pool.step_drives // thin_drives))
+        st = pool.step[keep]
+        keep = keep[st % stride[st] == 0]
     cl, n_cl = compact(pool.step[keep] * (int(label[keep].max(initial=0)) + 1) + label[keep])
     _, first_of_pair = np.unique(cl * max(len(pool.drive_ids), 1) + pool.drive[keep], return_index=True)
     n_drives_in = np.bincount(cl[first_of_pair], minlength=n_cl)
