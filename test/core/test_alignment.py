@@ -14,6 +14,7 @@ from sklearn.metrics import silhouette_samples
 from hdmap_core.alignment import (
     AlignmentConfig,
     align_step,
+    align_steps_gap,
     cluster_type,
     kmeans_1d_all_k,
     recheck_offsets,
@@ -380,3 +381,56 @@ def test_sparse_step_config_checks():
     assert default.alignment.sparse_step_max_drives == 3
     assert default.final_alignment.sparse_step_max_drives == 4
     assert default.final_alignment.sparse_type_clash_max_drives == default.alignment.sparse_step_max_drives
+
+
+def _gap_final_config(**kw):
+    return AlignmentConfig(clustering="gap", estimate_offsets=False, lone_cluster_max_std_m=0.3,
+                           sparse_step_max_drives=4, sparse_step_max_std_m=0.3, **kw)
+
+
+def test_align_steps_gap_equals_align_step_and_leaves_special_steps_out():
+    rng = np.random.default_rng(11)
+    cfg = _gap_final_config()
+    steps, kinds = [], []
+    for q in range(40):
+        kind = q % 4
+        if kind == 0:  # many drives, tight: valid
+            lat, ty, dr = _step(rng.normal(0, 0.05, 8), noise=0.03, seed=q)
+        elif kind == 1:  # many drives, noise: mostly rejected by the gate
+            lat = rng.uniform(-6, 6, 40)
+            ty, dr = rng.choice(LINE_TYPES, 40), rng.integers(0, 8, 40)
+        elif kind == 2:  # sparse: left to align_step
+            lat, ty, dr = _step(rng.normal(0, 0.05, 3), noise=0.03, seed=q)
+        else:  # one cluster per type: silhouette undefined, left to align_step
+            lat, ty, dr = _step(np.zeros(6), lines=LINES[:2], types=LINE_TYPES[:2], noise=0.02, seed=q)
+        steps.append((lat, ty, dr + 100 * q))  # pivot-wide drive codes
+        kinds.append(kind)
+    ptr = np.concatenate([[0], np.cumsum([len(s[0]) for s in steps])])
+    lat, ty, dr = (np.concatenate(v) for v in zip(*steps))
+    out = align_steps_gap(lat, ty, dr, ptr, np.arange(len(steps)), config=cfg)
+    assert set(out) == {q for q, k in enumerate(kinds) if k in (0, 1)}
+    for q, al in out.items():
+        x, t, d = steps[q]
+        _, local = np.unique(d, return_inverse=True)
+        ref = align_step(x, t, local, config=cfg)
+        np.testing.assert_array_equal(al.labels, ref.labels)
+        assert al.silhouette == pytest.approx(ref.silhouette, abs=1e-9)
+        assert al.valid == ref.valid
+        assert al.valid or kinds[q] == 1
+        np.testing.assert_array_equal(al.offsets_m, np.zeros(len(np.unique(d))))
+    assert not all(al.valid for al in out.values())  # the gate rejects noise here too
+
+
+def test_align_steps_gap_needs_a_fixed_offset_config():
+    with pytest.raises(ConfigError):
+        align_steps_gap(np.zeros(2), np.zeros(2, int), np.zeros(2, int), np.array([0, 2]), np.array([0]),
+                        config=AlignmentConfig(clustering="gap"))
+
+
+def test_robust_loss_changes_nothing_without_outliers():
+    # residuals within the Huber threshold: the weights stay 1, the robust solve is the plain one
+    lat, ty, dr = _step([0.3, -0.2, 0.1], noise=0.02)
+    labels = np.tile(np.arange(4), 3)
+    plain = solve_offsets(lat, labels, ty, dr, 3, config=AlignmentConfig(solver="closed_form"))
+    robust = solve_offsets(lat, labels, ty, dr, 3, config=AlignmentConfig(solver="closed_form", robust_loss=True))
+    np.testing.assert_allclose(robust, plain, atol=1e-12)

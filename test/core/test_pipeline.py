@@ -138,6 +138,20 @@ def test_observations_for_the_adjustment(fleet):
     np.testing.assert_allclose(ob.drive_s_m, pivot_steps[ob.index], atol=2.0)
 
 
+def test_observation_pass_runs_the_em_at_every_stride_th_step(fleet):
+    base = dataclasses.replace(PipelineConfig.preset("paper"), use_global_adjustment=False)
+    every = map_stretches(fleet, config=base, seed=0, collect_observations=True, observations_only=True).observations
+    strided = map_stretches(fleet, config=dataclasses.replace(base, observation_stride=2), seed=0,
+                            collect_observations=True, observations_only=True).observations
+    assert any(ob.index % 2 for ob in every)
+    assert strided and all(ob.index % 2 == 0 for ob in strided)
+    # a pass whose segments are the map's (no adjustment after it) runs at every step
+    full = map_stretches(fleet, config=dataclasses.replace(base, observation_stride=2), seed=0, collect_observations=True)
+    assert any(ob.index % 2 for ob in full.observations)
+    with pytest.raises(ConfigError, match="observation_stride"):
+        PipelineConfig(observation_stride=0)
+
+
 def test_prepare_drives_rejects_with_reasons(fleet):
     dup = fleet[0]
     usable, rejected = prepare_drives([*fleet[:2], _bad_drive(), dup])

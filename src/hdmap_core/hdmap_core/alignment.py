@@ -33,6 +33,8 @@ __all__ = [
     "cluster_step",
     "solve_offsets",
     "align_step",
+    "align_steps_gap",
+    "gap_batchable",
 ]
 
 _CLUSTERINGS = ("silhouette", "gap", "auto")
@@ -776,6 +778,79 @@ def align_step(
     if res is None or fresh.silhouette > res.silhouette:
         return fresh
     return res
+
+
+def align_steps_gap(
+    lateral_m: np.ndarray,
+    types: np.ndarray,
+    drive: np.ndarray,
+    ptr: np.ndarray,
+    steps: np.ndarray,
+    *,
+    config: AlignmentConfig,
+) -> dict[int, StepAlignment]:
+    """``align_step`` without offset estimation ("gap" clustering), for many steps at once.
+
+    With ``estimate_offsets=False`` a step is its samples split at gaps and scored by silhouette,
+    independent of every other step, so all steps of a pivot are clustered and scored in one
+    sorted pass (groups = (step, type)). Steps that a special rule judges (few drives: the
+    sparse-step rule; no type with two clusters: the lone-cluster rule) are left out of the
+    result; the caller runs ``align_step`` on those.
+
+    Args:
+        lateral_m, types, drive: samples of all steps back to back; ``drive`` may be any codes
+            (only whether two samples share a drive matters).
+        ptr: (Q + 1,) step q's samples are ``ptr[q]:ptr[q + 1]``.
+        steps: the step indices to align.
+
+    Returns:
+        {step: StepAlignment} for the steps decided here (offsets are zeros of the step's
+        number of distinct drives).
+    """
+    if not gap_batchable(config):
+        raise ConfigError("align_steps_gap needs estimate_offsets=False, clustering='gap', min_cluster_drives <= 1")
+    steps = np.asarray(steps, dtype=np.int64)
+    n_in = ptr[steps + 1] - ptr[steps]
+    steps = steps[n_in >= 2]
+    if len(steps) == 0:
+        return {}
+    n_in = ptr[steps + 1] - ptr[steps]
+    idx = np.repeat(ptr[steps] - np.concatenate([[0], np.cumsum(n_in)[:-1]]), n_in) + np.arange(int(n_in.sum()))
+    owner = np.repeat(np.arange(len(steps)), n_in)
+    x, ty, dv = lateral_m[idx], types[idx].astype(np.int64), drive[idx]
+    order = np.lexsort((x, ty, owner))
+    xs, ts, os_ = x[order], ty[order], owner[order]
+    n = len(xs)
+    new_group = np.ones(n, dtype=bool)
+    new_group[1:] = (ts[1:] != ts[:-1]) | (os_[1:] != os_[:-1])
+    brk = new_group.copy()
+    brk[1:] |= np.diff(xs) > config.gap_split_m
+    run = np.cumsum(brk) - 1
+    group = np.cumsum(new_group) - 1
+    sil = silhouette_sorted(xs, run, group)
+    ok = np.isfinite(sil)
+    cnt = np.bincount(os_[ok], minlength=len(steps))
+    score = np.where(cnt > 0, np.bincount(os_[ok], weights=sil[ok], minlength=len(steps)) / np.maximum(cnt, 1), -1.0)
+    # distinct drives per step
+    pair = np.unique(owner * np.int64(int(dv.max()) + 1) + dv)
+    n_drv = np.bincount(pair // (int(dv.max()) + 1), minlength=len(steps))
+    special = (score == -1.0) | (n_drv <= max(config.sparse_step_max_drives, 1))
+    labels_sorted = run - np.repeat(run[np.searchsorted(os_, np.arange(len(steps)))], np.bincount(os_, minlength=len(steps)))
+    labels = np.empty(n, dtype=np.int64)
+    labels[order] = labels_sorted
+    first = np.concatenate([[0], np.cumsum(n_in)])
+    out: dict[int, StepAlignment] = {}
+    for j in np.flatnonzero(~special):
+        out[int(steps[j])] = StepAlignment(
+            offsets_m=np.zeros(int(n_drv[j])), labels=labels[first[j]:first[j + 1]],
+            silhouette=float(score[j]), valid=bool(score[j] >= config.silhouette_gate), n_iterations=1,
+        )
+    return out
+
+
+def gap_batchable(config: AlignmentConfig) -> bool:
+    """Whether ``align_steps_gap`` can align steps under ``config`` (no offsets, gap clustering)."""
+    return not config.estimate_offsets and config.clustering == "gap" and config.min_cluster_drives <= 1
 
 
 def _em(

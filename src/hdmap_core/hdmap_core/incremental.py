@@ -403,7 +403,7 @@ def _first_pass(inp: _TileInput, pipeline_config: object) -> list:
 
     first_only = replace(pipeline_config, use_global_adjustment=False)
     return map_stretches(inp.clipped, config=first_only, seed=inp.seed, processed=inp.processed,
-                         collect_observations=True, validated=True).observations
+                         collect_observations=True, validated=True, observations_only=True).observations
 
 
 def _final_pass(inp: _TileInput, pipeline_config: object, model: object) -> list[Segment]:

@@ -31,7 +31,7 @@ except ImportError:  # pragma: no cover
     threadpool_limits = None
 
 from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_many
-from hdmap_core.alignment import AlignmentConfig, align_step
+from hdmap_core.alignment import AlignmentConfig, align_step, align_steps_gap, gap_batchable
 from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
 from hdmap_core.model import Drive, HDMap, validate_drive
 from hdmap_core.preprocess import DetectionIndex, PreprocessConfig, preprocess
@@ -70,6 +70,11 @@ class PipelineConfig:
         adjustment: ``hdmap_core.adjustment.AdjustConfig`` (None: its defaults).
         final_alignment: EM options of the second pass (samples already shifted by the offset
             model); None = ``alignment``.
+        observation_stride: with ``use_global_adjustment``, the first pass, which only collects
+            step observations for the adjustment (its segments are replaced by the final pass),
+            runs the EM at every this-th step of a pivot. The adjustment fits curves with knots
+            every 200 m, so steps 4 m apart inform it as well as steps 2 m apart; the EM, the
+            largest cost of a build, halves. 1 = every step.
         connection: ``hdmap_core.connection.ConnectionConfig`` (None: its defaults).
         stitching: ``hdmap_core.stitching`` config (None: its defaults).
         mark_on_cut_only: a drive's stretch is stored as processed at an accepted step only when
@@ -87,10 +92,15 @@ class PipelineConfig:
     use_global_adjustment: bool = False
     adjustment: Any = None
     final_alignment: AlignmentConfig | None = None
+    observation_stride: int = 1
     connection: Any = None
     stitching: Any = None
     mark_on_cut_only: bool = False
     name: str = ""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.observation_stride, int) and self.observation_stride >= 1):
+            raise ConfigError(f"PipelineConfig.observation_stride must be an int >= 1, got {self.observation_stride!r}")
 
     @classmethod
     def preset(cls, name: str) -> PipelineConfig:  # type: ignore[override]
@@ -144,6 +154,8 @@ class PipelineConfig:
                 aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15),
                 use_global_adjustment=True,
                 final_alignment=final,
+                # the first pass only feeds the adjustment (knots every 200 m): EM every 4 m
+                observation_stride=2,
                 mark_on_cut_only=True,
                 connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
                 stitching=StitchConfig(
@@ -399,11 +411,13 @@ def _run_pivot(
     memory: _OffsetMemory | None = None,
     hit_cache: dict | None = None,
     tracks: _Tracks | None = None,
+    stride: int = 1,
 ) -> tuple[Segment, np.ndarray, np.ndarray]:
     """Stages 2-4 along one pivot. Returns (segment, marked drive indices, their s [m]).
 
     The EM runs step by step (offsets are carried along the pivot); sampling before it and the
-    aggregation after it run on all steps of the pivot at once.
+    aggregation after it run on all steps of the pivot at once. ``stride`` > 1: the EM runs only
+    at steps whose index is a multiple of it (the others count as rejected).
     """
     ps = sample_pivot(index, pivot, config=config.sampling, skip=skip, shift=shift, cache=hit_cache)
     pid = pivot.drive_id
@@ -424,17 +438,25 @@ def _run_pivot(
     mem_d: list[np.ndarray] = []
     mem_s: list[np.ndarray] = []
     mem_o: list[np.ndarray] = []
-    for q in np.flatnonzero(~ps.skipped):
+    todo = np.flatnonzero(~ps.skipped)
+    if stride > 1:
+        todo = todo[todo % stride == 0]
+    # Without offset estimation the steps are independent: all of them clustered and scored at
+    # once; the ones a special rule judges are left to align_step.
+    batch = align_steps_gap(ps.lateral_m, ps.types, ps.drive, ps.ptr, todo, config=alignment) if gap_batchable(alignment) else {}
+    for q in todo:
         a, b = int(ps.ptr[q]), int(ps.ptr[q + 1])
         if b - a < 2:
             continue
         x, ty, dg = ps.lateral_m[a:b], ps.types[a:b], ps.drive[a:b]
         uniq, local = np.unique(dg, return_inverse=True)
-        prior = prev[uniq] if use_prior else None
-        init = None
-        if memory is not None and prior is not None and np.isnan(prior).any():
-            init = memory.lookup(uniq, ps.drive_s_m[a:b], local)
-        al = align_step(x, ty, local, config=alignment, prior=prior, init=init, recheck=bool(q % _RECHECK_EVERY_STEPS == 0))
+        al = batch.get(int(q))
+        if al is None:
+            prior = prev[uniq] if use_prior else None
+            init = None
+            if memory is not None and prior is not None and np.isnan(prior).any():
+                init = memory.lookup(uniq, ps.drive_s_m[a:b], local)
+            al = align_step(x, ty, local, config=alignment, prior=prior, init=init, recheck=bool(q % _RECHECK_EVERY_STEPS < stride))
         step_ids[q] = tuple(ids[uniq])
         if not al.valid:
             continue
@@ -538,6 +560,7 @@ def _run_pass(
     progress: ProgressFn | None,
     hit_cache: dict | None = None,
     tracks: _Tracks | None = None,
+    stride: int = 1,
 ) -> tuple[list[Segment], ProcessedStore]:
     segments: list[Segment] = []
     step_m = config.sampling.step_m
@@ -548,7 +571,7 @@ def _run_pass(
         skip = processed.contains(pivot.drive_id, s)
         seg, md, ms = _run_pivot(
             index, pivot, skip, config=config, alignment=alignment, shift=shift, observations=observations, counters=counters,
-            memory=memory, hit_cache=hit_cache, tracks=tracks,
+            memory=memory, hit_cache=hit_cache, tracks=tracks, stride=stride,
         )
         segments.append(seg)
         if len(md):
@@ -589,6 +612,7 @@ def map_stretches(
     progress: ProgressFn | None = None,
     validated: bool = False,
     offset_model: Any = None,
+    observations_only: bool = False,
 ) -> MappingResult:
     """Stages 1-4 on valid drives, with the processed-stretch store in and out.
 
@@ -603,6 +627,10 @@ def map_stretches(
         offset_model: a fleet-wide ``adjustment.OffsetModel`` estimated elsewhere (e.g. from the
             observations of every tile of a live map): only the final pass runs, with the drives
             shifted by it (``config.final_alignment``); no first pass, no adjustment here.
+        observations_only: the caller uses only the observations (e.g. a live tile's
+            observation pass feeding a fleet-wide adjustment): the EM runs at
+            ``config.observation_stride`` as in the first pass of an adjusted build, and the
+            segments are those of that pass.
 
     Returns:
         The segments, the updated store, observations and counters.
@@ -621,7 +649,7 @@ def map_stretches(
     with limit:
         return _map_stretches(drives, config=config, seed=seed, processed=processed,
                               collect_observations=collect_observations, progress=progress,
-                              offset_model=offset_model)
+                              offset_model=offset_model, observations_only=observations_only)
 
 
 def _map_stretches(
@@ -633,6 +661,7 @@ def _map_stretches(
     collect_observations: bool,
     progress: ProgressFn | None,
     offset_model: Any = None,
+    observations_only: bool = False,
 ) -> MappingResult:
     store_in = processed if processed is not None else ProcessedStore()
     seconds: dict[str, float] = {}
@@ -650,7 +679,7 @@ def _map_stretches(
         segments, store = _run_pass(
             drives, index, order, store_in, config=config, alignment=config.alignment, shift=None,
             observations=obs, counters=counters, progress=progress, hit_cache=hit_cache,
-            tracks=tracks,
+            tracks=tracks, stride=config.observation_stride if (config.use_global_adjustment or observations_only) else 1,
         )
         seconds["sampling_em"] = time.perf_counter() - t0
     if model is None and config.use_global_adjustment:
