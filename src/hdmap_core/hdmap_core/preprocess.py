@@ -22,7 +22,6 @@ from scipy.spatial import cKDTree
 from hdmap_core.errors import ConfigError
 from hdmap_core.geometry import (
     arc_length,
-    cut_segment_intersections,
     interp_angle,
     rdp_mask_many,
     split_long_segments,
@@ -167,7 +166,22 @@ class DetectionIndex:
         direction = np.asarray(direction, dtype=float).reshape(-1, 2)
         half_len_m = np.broadcast_to(np.asarray(half_len_m, dtype=float), (len(origin),))
         cut, seg = self.candidates(origin, direction, half_len_m)
-        hit, t, u = cut_segment_intersections(origin[cut], direction[cut], half_len_m[cut], self.seg_a[seg], self.seg_b[seg])
+        # Signed distance of both end points from the cut line (left of its direction > 0): a
+        # segment crosses where they differ in sign; an end point on the line counts for the
+        # segment starting there (u in [0, 1), as ``cut_segment_intersections``). Most candidate
+        # pairs (a segment in a cell the cut passes through) fail this test, so the crossing
+        # itself is computed for the few that pass.
+        c0 = direction[:, 0] * origin[:, 1] - direction[:, 1] * origin[:, 0]
+        dx, dy, cc = direction[cut, 0], direction[cut, 1], c0[cut]
+        sa = dx * self.seg_a[seg, 1] - dy * self.seg_a[seg, 0] - cc
+        sb = dx * self.seg_b[seg, 1] - dy * self.seg_b[seg, 0] - cc
+        cross = ((sa <= 0.0) & (sb > 0.0)) | ((sa >= 0.0) & (sb < 0.0))
+        cut, seg, sa, sb = cut[cross], seg[cross], sa[cross], sb[cross]
+        u = sa / (sa - sb)
+        a = self.seg_a[seg]
+        p = a + u[:, None] * (self.seg_b[seg] - a) - origin[cut]
+        t = p[:, 0] * direction[cut, 0] + p[:, 1] * direction[cut, 1]
+        hit = np.abs(t) <= half_len_m[cut]
         cut, seg, t, u = cut[hit], seg[hit], t[hit], u[hit]
         if len(cut):
             # A segment spans several cells: keep one hit per (cut, segment).
@@ -258,8 +272,10 @@ def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConf
     v_drive = np.repeat(pdrive_a, counts)
     v_s = np.zeros(len(xy))
     v_yaw = np.zeros(len(xy))
-    for di in np.unique(v_drive):
-        sel = np.flatnonzero(v_drive == di)
+    # vertices are grouped by drive (appended drive by drive): one slice per drive, not a scan
+    bounds = np.searchsorted(v_drive, np.arange(len(drives) + 1))
+    for di in np.flatnonzero(np.diff(bounds)):
+        sel = slice(bounds[di], bounds[di + 1])
         v_s[sel], v_yaw[sel] = _project_on_trajectory(drives[di], xy[sel])
     # Segments: consecutive vertices inside one polyline.
     is_last = np.zeros(len(xy), dtype=bool)
