@@ -20,9 +20,12 @@ fi
 "$HDMAP" bench paper_like:134:1 esmini_e6mini:40:1 esmini_soderleden:40:1 carla_town04:100:1 carla_town06:100:1 \
     --work-dir "$OUT/fleets" --markdown "$OUT/presets.md" --json "$OUT/presets.json"
 # One fleet can be unlucky (its drives' errors need not average out): the esmini maps over 8 seeds,
-# with the means over the seeds; the CARLA maps with a sparse fleet of 30 drives over 3 seeds.
+# with the means over the seeds; the CARLA maps with 100 drives and with a sparse fleet of 30 drives,
+# over 3 seeds each.
 "$HDMAP" bench esmini_soderleden:40:1-8 esmini_e6mini:40:1-8 \
     --work-dir "$OUT/fleets" --markdown "$OUT/seeds.md" --json "$OUT/seeds.json"
+"$HDMAP" bench carla_town04:100:1-3 carla_town06:100:1-3 --presets default \
+    --work-dir "$OUT/fleets" --markdown "$OUT/carla100.md" --json "$OUT/carla100.json"
 "$HDMAP" bench carla_town04:30:1-3 carla_town06:30:1-3 --presets default,naive \
     --work-dir "$OUT/fleets" --markdown "$OUT/sparse.md" --json "$OUT/sparse.json"
 "$HDMAP" bench paper_like:134:1 --presets default --scale 0.25 --scale 1 --scale 4 \
