@@ -6,8 +6,9 @@ matplotlib is imported only when a figure is drawn, with the non-interactive Agg
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -99,39 +100,39 @@ def format_summary(report: EvalReport) -> str:
     return "\n".join(lines)
 
 
-def _topology_line(report: EvalReport) -> str:
-    """Splits and merges found, and the missing ones with their positions (at most 5 listed)."""
-    line = (
-        f"splits/merges connected in the map: splits {report.found_splits}/{report.gt_splits}, "
-        f"merges {report.found_merges}/{report.gt_merges}"
-    )
-    n_unevaluable = sum(not b.evaluable for b in report.branch_points)
-    if n_unevaluable:
-        line += f" ({n_unevaluable} more not evaluable)"
-    line += f"; GT lane graph: {report.gt_lane_splits} lane splits, {report.gt_lane_merges} lane merges"
-    missing = report.missing_branch_points
+def _branch_summary(head: str, points: Sequence[Any], missing: Sequence[Any], describe: Callable[[Any], str],
+                    extra: str = "") -> str:
+    """``head``, how many ``points`` were not evaluable, ``extra``, then the ``missing`` ones (at most 5)."""
+    n_unevaluable = sum(not b.evaluable for b in points)
+    line = head + (f" ({n_unevaluable} more not evaluable)" if n_unevaluable else "") + extra
     for b in missing[:5]:
-        line += f"\n  missing {b.kind} at ({b.x:.1f}, {b.y:.1f}): {b.reason}"
+        line += f"\n  {describe(b)}"
     if len(missing) > 5:
         line += f"\n  ... and {len(missing) - 5} more"
     return line
+
+
+def _topology_line(report: EvalReport) -> str:
+    """Splits and merges found, and the missing ones with their positions (at most 5 listed)."""
+    return _branch_summary(
+        f"splits/merges connected in the map: splits {report.found_splits}/{report.gt_splits}, "
+        f"merges {report.found_merges}/{report.gt_merges}",
+        report.branch_points,
+        report.missing_branch_points,
+        lambda b: f"missing {b.kind} at ({b.x:.1f}, {b.y:.1f}): {b.reason}",
+        extra=f"; GT lane graph: {report.gt_lane_splits} lane splits, {report.gt_lane_merges} lane merges",
+    )
 
 
 def _road_line(report: EvalReport) -> str:
     """Road-level splits and merges (GT lane graph vs the map's topology), the missing ones listed."""
-    line = (
+    return _branch_summary(
         f"road splits/merges connected in the map's topology: splits {report.found_road_splits}/"
-        f"{report.gt_road_splits}, merges {report.found_road_merges}/{report.gt_road_merges}"
+        f"{report.gt_road_splits}, merges {report.found_road_merges}/{report.gt_road_merges}",
+        report.road_branch_points,
+        report.missing_road_branch_points,
+        lambda b: f"missing road {b.kind} at ({b.x:.1f}, {b.y:.1f}), GT lanes {', '.join(b.gt_lanes)}: {b.reason}",
     )
-    n_unevaluable = sum(not b.evaluable for b in report.road_branch_points)
-    if n_unevaluable:
-        line += f" ({n_unevaluable} more not evaluable)"
-    missing = report.missing_road_branch_points
-    for b in missing[:5]:
-        line += f"\n  missing road {b.kind} at ({b.x:.1f}, {b.y:.1f}), GT lanes {', '.join(b.gt_lanes)}: {b.reason}"
-    if len(missing) > 5:
-        line += f"\n  ... and {len(missing) - 5} more"
-    return line
 
 
 def _link_line(report: EvalReport) -> str:
