@@ -74,7 +74,10 @@ class PipelineConfig:
             step observations for the adjustment (its segments are replaced by the final pass),
             runs the EM at every this-th step of a pivot. The adjustment fits curves with knots
             every 200 m, so steps 4 m apart inform it as well as steps 2 m apart; the EM, the
-            largest cost of a build, halves. 1 = every step.
+            largest cost of a build, halves. 1 = every step. Above 2 the accepted steps lie
+            further apart than the processed-stretch marks' merge gap (3 steps), so the marks
+            fall apart and later pivots redo those stretches (paper_like_134 at 4: 47.9 s against
+            ~15-20 s at 2, same accuracy): the merge gap would have to grow with the stride.
         connection: ``hdmap_core.connection.ConnectionConfig`` (None: its defaults).
         stitching: ``hdmap_core.stitching`` config (None: its defaults).
         mark_on_cut_only: a drive's stretch is stored as processed at an accepted step only when
