@@ -831,9 +831,8 @@ def align_steps_gap(
     ok = np.isfinite(sil)
     cnt = np.bincount(os_[ok], minlength=len(steps))
     score = np.where(cnt > 0, np.bincount(os_[ok], weights=sil[ok], minlength=len(steps)) / np.maximum(cnt, 1), -1.0)
-    # distinct drives per step
-    pair = np.unique(owner * np.int64(int(dv.max()) + 1) + dv)
-    n_drv = np.bincount(pair // (int(dv.max()) + 1), minlength=len(steps))
+    nd = int(dv.max()) + 1
+    n_drv = np.bincount(np.unique(owner * np.int64(nd) + dv) // nd, minlength=len(steps))  # distinct drives per step
     special = (score == -1.0) | (n_drv <= max(config.sparse_step_max_drives, 1))
     labels_sorted = run - np.repeat(run[np.searchsorted(os_, np.arange(len(steps)))], np.bincount(os_, minlength=len(steps)))
     labels = np.empty(n, dtype=np.int64)

@@ -75,13 +75,8 @@ class PipelineConfig:
             runs the EM at every this-th step of a pivot. The adjustment fits curves with knots
             every 200 m, so steps 4 m apart inform it as well as steps 2 m apart; the EM, the
             largest cost of a build, halves. 1 = every step. Above 2 the accepted steps lie
-            further apart than the processed-stretch marks' merge gap (3 steps), so the marks
-            fall apart and later pivots redo those stretches (paper_like_134 at 4: 47.9 s against
-            ~15-20 s at 2, same accuracy): the merge gap would have to grow with the stride.
-            (Tried, 2026-12-01: with pad and merge gap in EM steps, stride 4 built paper_like_134
-            in 17.6 s against 24.3 s for 2 in the same load, mean 0.170 against 0.175 m, but
-            carla_town06_30_s1 lost 0.56 points of precision and a road merge, and
-            esmini_e6mini_40_s1 went 0.299 -> 0.303 m; not adopted.)
+            further apart than the processed-stretch marks' merge gap (3 steps) and later pivots
+            redo those stretches (measured: docs/pipeline.md, "Two passes").
         connection: ``hdmap_core.connection.ConnectionConfig`` (None: its defaults).
         stitching: ``hdmap_core.stitching`` config (None: its defaults).
         mark_on_cut_only: a drive's stretch is stored as processed at an accepted step only when
