@@ -964,3 +964,98 @@ def test_side_link_angle_only_in_the_default_preset():
 
     assert PipelineConfig.preset("default").stitching.side_link_angle_deg == 30.0
     assert StitchConfig().side_link_angle_deg == 90.0 and StitchConfig.paper().side_link_angle_deg == 90.0
+
+
+def _pose_step(pivot: str, i: int, xy, heading: float, *, valid: bool = True, processed_before: bool = False):
+    """Step i of ``pivot`` at midpoint ``xy`` heading ``heading``, 10 m wide, with the lines
+    ``LINES`` (lateral from the midpoint) when valid, else a geometry-only placeholder."""
+    lat, typ = (LINES if valid and not processed_before else ([], []))
+    return StepResult(
+        pivot_id=pivot, index=i, s_m=2.0 * i, midpoint=np.asarray(xy, float), heading=float(heading), width_m=10.0,
+        valid=valid, processed_before=processed_before, lateral_m=np.asarray(lat, float), types=np.asarray(typ, int),
+        counts=np.full(len(lat), 4), std_m=np.full(len(lat), 0.15), drive_ids=(pivot, f"{pivot}-other"),
+    )
+
+
+def _junction(turn: bool) -> list:
+    r"""Pivot p drives south on x = 0 (y 100 -> 30), then (``turn``) left through a 20 m-radius
+    junction whose steps all failed onto the road q maps eastwards at y = 10 (x 20 -> 118; p's
+    steps there were processed before through q), or (not ``turn``) straight on with failed steps.
+
+        p |
+          |
+          (0, 30)  end of p's chain, heading -90 deg
+           \_ _ _ q ->  (20, 10), heading 0
+    """
+    south = -math.pi / 2
+    steps = [_pose_step("p", i, (0.0, 100.0 - 2.0 * i), south) for i in range(36)]
+    if turn:
+        thetas = math.pi + 0.1 * np.arange(1, 16)  # centre (20, 30), 2 m steps, to heading 0
+        steps += [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
+                             valid=False) for k, t in enumerate(thetas, start=1)]
+        steps += [_pose_step("p", 51, (22.0, 10.0), 0.0, processed_before=True),
+                  _pose_step("p", 70, (60.0, 10.0), 0.0, processed_before=True)]
+    else:
+        steps += [_pose_step("p", 35 + k, (0.0, 30.0 - 2.0 * k), south, valid=False) for k in range(1, 16)]
+    q = Segment("q", tuple(_pose_step("q", i, (20.0 + 2.0 * i, 10.0), 0.0) for i in range(50)))
+    return [connect_segment(Segment("p", tuple(steps))), connect_segment(q)]
+
+
+def test_segment_graph_keeps_the_pivots_whole_track():
+    p, _ = _junction(turn=True)
+    used = set(p.topo_step.tolist())
+    assert used == set(range(36))  # the turn failed, the rest was processed through q
+    assert p.track_step.tolist() == list(range(52)) + [70]  # every step with a pose, in order
+    assert np.allclose(p.track_xy[36], [20.0 + 20.0 * math.cos(math.pi + 0.1), 30.0 + 20.0 * math.sin(math.pi + 0.1)])
+    assert math.isclose(p.track_heading[-1], 0.0)
+    # a step without a finite pose is left out of the track (and reported as before, not a crash)
+    bad = dataclasses.replace(_pose_step("p", 36, (0.0, 28.0), 0.0, valid=False), midpoint=np.array([np.nan, 0.0]))
+    g = connect_segment(Segment("p", (_pose_step("p", 35, (0.0, 30.0), 0.0), bad)))
+    assert g.track_step.tolist() == [35]
+
+
+def test_end_follows_its_pivots_track_through_a_junction_turn():
+    """p's chain ends heading south 28 m from q's start heading east: too far and too far turned for
+    the ordinary link, and its own (straight) arc runs south past q. The path p drove (its failed
+    steps' midpoints) enters q's cross-section: a topology link p -> q."""
+    graphs = _junction(turn=True)
+    end = [0.0, 30.0]
+    for cfg in (StitchConfig(), StitchConfig(path_search_m=36.0, path_max_turn_deg=60.0)):
+        assert _successor_positions(stitch(graphs, config=cfg), end) == []
+    m = stitch(graphs, config=StitchConfig(track_search_m=60.0))
+    ((x, y),) = _successor_positions(m, end)
+    assert y == 10.0 and 20.0 <= x <= 24.0
+    assert m.extra["last_integrate"]["track_links"] == 1
+    # the turn is ~31 m of track: a shorter search, or a pivot that drove straight on, links nothing
+    assert _successor_positions(stitch(graphs, config=StitchConfig(track_search_m=20.0)), end) == []
+    assert _successor_positions(stitch(_junction(turn=False), config=StitchConfig(track_search_m=60.0)), end) == []
+
+
+def test_linked_end_gets_the_turn_its_pivot_took_as_a_second_successor():
+    """As above, with a road c going on south from p's end: the ordinary link takes c. With
+    ``track_linked_ends`` the end also gets q (the split p's pivot drove); c keeps its link."""
+    c = connect_segment(Segment("c", tuple(_pose_step("c", i, (0.0, 28.0 - 2.0 * i), -math.pi / 2) for i in range(40))))
+    graphs = _junction(turn=True) + [c]
+    end = [0.0, 30.0]
+    assert _successor_positions(stitch(graphs, config=StitchConfig(track_search_m=60.0)), end) == [[0.0, 28.0]]
+    m = stitch(graphs, config=StitchConfig(track_search_m=60.0, track_linked_ends=True))
+    succ = _successor_positions(m, end)
+    assert len(succ) == 2 and [0.0, 28.0] in succ
+    ((x, y),) = [s for s in succ if s != [0.0, 28.0]]
+    assert y == 10.0 and 20.0 <= x <= 24.0
+    # a pivot that drove on south along c adds nothing: c is reached from the end already
+    graphs = _junction(turn=False) + [c]
+    m = stitch(graphs, config=StitchConfig(track_search_m=60.0, track_linked_ends=True))
+    assert _successor_positions(m, end) == [[0.0, 28.0]]
+
+
+def test_track_links_only_in_the_default_preset():
+    d = PipelineConfig.preset("default").stitching
+    assert d.track_search_m > 0 and d.track_linked_ends
+    for name in ("naive", "paper"):
+        assert getattr(PipelineConfig.preset(name).stitching, "track_search_m", 0.0) == 0.0
+    assert StitchConfig().track_search_m == 0.0 and StitchConfig.paper().track_search_m == 0.0
+    with pytest.raises(ConfigError):
+        StitchConfig(track_search_m=-1.0)
+    with pytest.raises(ConfigError):
+        StitchConfig(track_max_gap_m=math.nan)

@@ -528,6 +528,15 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
     return _finish(segment, b, stats, drive_ids, config)
 
 
+def _pose_ok(st: StepResult) -> bool:
+    """Does step ``st`` carry a finite 2-D midpoint, heading and travelled distance?"""
+    try:
+        mid = np.asarray(st.midpoint, dtype=float)
+        return mid.shape == (2,) and bool(np.isfinite(mid).all()) and math.isfinite(st.heading) and math.isfinite(st.s_m)
+    except (TypeError, ValueError):
+        return False
+
+
 def _finish(
     segment: Segment, b: _Builder | None, stats: ConnectionStats, drive_ids: set[str], config: ConnectionConfig
 ) -> SegmentGraph:
@@ -565,6 +574,9 @@ def _finish(
     def pick(a: np.ndarray | None, empty: np.ndarray) -> np.ndarray:
         return a[rows] if a is not None else empty
 
+    # the pivot's driven path: every step with a finite pose, used or not, in order of s_m
+    track = sorted((st for st in segment.steps if _pose_ok(st)), key=lambda st: st.index)
+
     return SegmentGraph(
         key=f"{segment.pivot_id}@{first}",
         pivot_id=segment.pivot_id,
@@ -585,4 +597,7 @@ def _finish(
         drive_ids=tuple(sorted(drive_ids)),
         stats=stats,
         tile_size_m=config.tile_size_m,
+        track_step=np.array([int(st.index) for st in track], dtype=np.int64),
+        track_xy=np.array([np.asarray(st.midpoint, dtype=float) for st in track]).reshape(-1, 2),
+        track_heading=np.array([float(st.heading) for st in track]),
     )

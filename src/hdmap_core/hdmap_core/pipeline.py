@@ -165,6 +165,9 @@ class PipelineConfig:
                     # linked too; a ramp chain ending (starting) short of the gore follows its own
                     # arc onto the road (docs/graph.md)
                     link_within_component=True, path_search_m=36.0, path_max_turn_deg=60.0,
+                    # an end (linked or not) follows the path its pivot drove through a junction
+                    # whose steps failed, onto the road it entered (docs/pipeline.md, track links)
+                    track_search_m=60.0, track_linked_ends=True,
                     # two roads side by side join only at a shallow angle (docs/graph.md)
                     side_link_angle_deg=30.0,
                     # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,

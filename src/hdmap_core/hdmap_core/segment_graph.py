@@ -71,6 +71,11 @@ class SegmentGraph:
         edge_leftover: (E,) bool, edge made by the leftover assignment (RULE 2).
         drive_ids: drives that took part in any used step.
         stats: what happened to the steps.
+        track_step: (S,) int, every step of the pivot with a finite pose, used or not (rejected
+            steps and the ends of runs processed before included), increasing: the path the
+            pivot drove, which the stitcher's track links follow (empty: not known).
+        track_xy: (S, 2) the steps' cut-line midpoints [m].
+        track_heading: (S,) the steps' ENU yaw [rad].
     """
 
     key: str
@@ -92,6 +97,9 @@ class SegmentGraph:
     drive_ids: tuple[str, ...] = ()
     stats: ConnectionStats = field(default_factory=ConnectionStats, compare=False)
     tile_size_m: float = 256.0
+    track_step: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), compare=False)
+    track_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), compare=False)
+    track_heading: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False)
 
     @property
     def n_topo(self) -> int:

@@ -33,7 +33,7 @@ slot), so the same input gives the same ids and adding an unrelated segment chan
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,6 +64,8 @@ from hdmap_core.stitching_links import (
     _heading_rate,
     _partner,
     _path_partner,
+    _reached_within,
+    _track_partner,
     _UnionFind,
 )
 
@@ -93,6 +95,7 @@ class IntegrateReport:
     loose_ends_joined: int = 0
     branches_joined: int = 0
     path_links: int = 0
+    track_links: int = 0
 
 
 class MapGraph(LooseEnds):
@@ -426,8 +429,67 @@ class MapGraph(LooseEnds):
                 continue
             if join:
                 rep.feature_links += self._join_features(flat, a, b, out_adj, in_adj)
+        if cfg.track_search_m > 0:
+            self._track_links(flat, tree, todo, existing, indeg, outdeg, uf, rep)
         if cfg.path_search_m > 0:
             self._path_links(flat, tree, todo, existing, indeg, outdeg, uf, rep)
+
+    def _allowed(self, existing: _Adjacency, uf: _UnionFind, i: int, is_end: bool) -> Callable[[int], bool]:
+        """Partners a late (track or arc) link of start/end i may take: another component, or
+        with ``link_within_component`` its own without closing a short cycle."""
+        within = self.config.link_within_component
+
+        def allowed(j: int) -> bool:
+            if uf.find(j) != uf.find(i):
+                return True
+            return within and not _closes_cycle(existing, i, j, is_end)
+
+        return allowed
+
+    @staticmethod
+    def _reach(flat: FlatGraph) -> float:
+        """Search radius of a late link's point queries: one step along, the widest half road across [m]."""
+        return math.hypot(_PATH_STEP_M, float(np.nanmax(np.where(flat.t_width > 0, flat.t_width, 3.5))) / 2.0)
+
+    def _track_links(
+        self, flat: FlatGraph, tree: cKDTree, todo: list[tuple[int, bool]], existing: _Adjacency,
+        indeg: np.ndarray, outdeg: np.ndarray, uf: _UnionFind, rep: IntegrateReport,
+    ) -> None:
+        """RULE: a start (end) still without a partner follows the path its pivot drove
+        backward (forward) for ``track_search_m`` and links, topology only, to the first node
+        that path enters (``_track_partner``): a drive went there from the end."""
+        cfg = self.config
+        reach = self._reach(flat)
+        te = flat.topo_edges
+        pred = _Adjacency(te[:, 1], te[:, 0], flat.n_topo)
+        for a, outs in existing._extra.items():
+            for b in outs:
+                pred.add(b, a)
+        for i, is_end in todo:
+            linked = bool(outdeg[i]) if is_end else bool(indeg[i])
+            if linked and not cfg.track_linked_ends:
+                continue
+            g = self._graphs[flat.keys[flat.t_graph[i]]]
+            if len(g.track_step) < 2:
+                continue
+            step = int(g.topo_step[flat.t_local[i]])
+            if linked:
+                # RULE: a linked end still follows its pivot: a node its track enters that the map
+                # does not reach from it within 2 track searches + 30 m gets a link too
+                near = _reached_within(flat, existing if is_end else pred, i, 2.0 * cfg.track_search_m + 30.0)
+
+                def allowed(j: int, i: int = i, is_end: bool = is_end, near: set[int] = near) -> bool:
+                    return j not in near and not _closes_cycle(existing, i, j, is_end)
+            else:
+                allowed = self._allowed(existing, uf, i, is_end)
+            best = _track_partner(flat, tree, i, is_end, (g.track_step, g.track_xy, g.track_heading), step,
+                                  cfg, reach, allowed)
+            if best < 0:
+                continue
+            a, b = (i, best) if is_end else (best, i)
+            if self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
+                pred.add(b, a)
+                rep.track_links += 1
 
     def _path_links(
         self, flat: FlatGraph, tree: cKDTree, todo: list[tuple[int, bool]], existing: _Adjacency,
@@ -441,20 +503,14 @@ class MapGraph(LooseEnds):
         te = flat.topo_edges
         pred = _Adjacency(te[:, 1], te[:, 0], flat.n_topo)
         succ = existing
-        reach = math.hypot(_PATH_STEP_M, float(np.nanmax(np.where(flat.t_width > 0, flat.t_width, 3.5))) / 2.0)
+        reach = self._reach(flat)
         for i, is_end in todo:
             if (is_end and outdeg[i]) or (not is_end and indeg[i]):
                 continue
             rate = _heading_rate(flat, pred if is_end else succ, i, cfg.path_curvature_m)
             if not is_end:
                 rate = -rate  # measured from a later node back to the start: flip to driving sense
-
-            def allowed(j: int, i: int = i, is_end: bool = is_end) -> bool:
-                if uf.find(j) != uf.find(i):
-                    return True
-                return cfg.link_within_component and not _closes_cycle(existing, i, j, is_end)
-
-            best = _path_partner(flat, tree, i, is_end, rate, cfg, reach, allowed)
+            best = _path_partner(flat, tree, i, is_end, rate, cfg, reach, self._allowed(existing, uf, i, is_end))
             if best < 0:
                 continue
             a, b = (i, best) if is_end else (best, i)

@@ -155,6 +155,23 @@ class StitchConfig:
             from the gore: the main road within ``max_distance_m`` is 33-39 deg off the ramp's
             heading there, or the main road is beyond that radius (docs/graph.md). 0 disables
             (the paper; the plain default) [m].
+        track_search_m: a component start (end) still without a partner after the ordinary
+            links follows the path its own pivot drove (``SegmentGraph.track_xy``: every step's
+            cut midpoint, rejected steps included) backward (forward) up to this far and links,
+            topology only, to the first node whose cross-section (``topo_width`` / 2 across, one
+            step along) a track point lies in, with a heading within ``max_heading_diff_deg`` of
+            the track's there (another component, or with ``link_within_component`` its own
+            without closing a short cycle). The link is drive-supported: the pivot went from the
+            end to that node. Run before the arc search (``path_search_m``), whose extrapolated
+            arc misses junction turns past ``path_max_turn_deg`` (docs/pipeline.md, Town04's
+            exit). The walk stops at a gap of more than ``track_max_gap_m`` between track points
+            (a run processed before keeps only its first and last step). 0 disables (the paper,
+            the plain default) [m].
+        track_max_gap_m: see ``track_search_m`` [m].
+        track_linked_ends: the track search also runs from starts (ends) that have a partner
+            already; it then links to a node its pivot's track enters only when the map does
+            not reach that node from the start (end) within 2 * ``track_search_m`` + 30 m (the
+            pivot took a turn at a junction that the ordinary link went straight through).
         path_curvature_m: the chain's heading rate is taken over this much of it (chord from
             the node to the first chain node at least this far; shorter chains: straight) [m].
         path_max_turn_deg: the arc search stops once the arc has turned this much from the
@@ -219,6 +236,9 @@ class StitchConfig:
     merge_continuations: bool = True
     link_within_component: bool = False
     path_search_m: float = 0.0
+    track_search_m: float = 0.0
+    track_max_gap_m: float = 6.0
+    track_linked_ends: bool = False
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
     side_link_angle_deg: float = 90.0
@@ -263,6 +283,8 @@ class StitchConfig:
             "bubble_max_m",
             "gore_max_m",
             "path_search_m",
+            "track_search_m",
+            "track_max_gap_m",
             "path_curvature_m",
         ):
             v = getattr(self, name)

@@ -72,6 +72,25 @@ def _partner(
     return best
 
 
+def _reached_within(flat: FlatGraph, walk: _Adjacency, i: int, limit_m: float) -> set[int]:
+    """Topology nodes reached from node i along ``walk`` (successors or predecessors) within
+    ``limit_m`` of path (straight edges between node positions), i included."""
+    import heapq
+
+    best = {i: 0.0}
+    heap = [(0.0, i)]
+    while heap:
+        d, k = heapq.heappop(heap)
+        if d > best.get(k, math.inf):
+            continue
+        for nxt in walk.get(k):
+            dn = d + float(np.hypot(*(flat.t_xy[nxt] - flat.t_xy[k])))
+            if dn <= limit_m and dn < best.get(nxt, math.inf):
+                best[nxt] = dn
+                heapq.heappush(heap, (dn, nxt))
+    return set(best)
+
+
 def _closes_cycle(successors: _Adjacency, i: int, j: int, is_end: bool) -> bool:
     """Would the link i -> j (``is_end``) or j -> i close a cycle of fewer than ``_CYCLE_NODES``
     nodes? (The link's head must not reach its tail already.)"""
@@ -140,12 +159,57 @@ def _path_partner(
                 continue
             if sign * float((flat.t_xy[j] - flat.t_xy[i]) @ u0) <= 0.0:
                 continue  # behind an end (ahead of a start): the chain itself
-            uj, nj = _unit(float(flat.t_heading[j]))
-            rel = p - flat.t_xy[j]
-            half = float(flat.t_width[j]) / 2.0 if math.isfinite(flat.t_width[j]) and flat.t_width[j] > 0 else 1.75
-            if abs(float(rel @ uj)) > _PATH_STEP_M or abs(float(rel @ nj)) > half:
+            d = _in_cross_section(flat, j, p)
+            if d < best_d and allowed(j):
+                best, best_d = int(j), d
+        if best >= 0:
+            return best
+    return -1
+
+
+def _in_cross_section(flat: FlatGraph, j: int, p: np.ndarray) -> float:
+    """Distance from topology node j to point p when p lies in j's cross-section (half its width
+    across, 1.75 m for a width not known; one step along), else inf [m]."""
+    uj, nj = _unit(float(flat.t_heading[j]))
+    rel = p - flat.t_xy[j]
+    half = float(flat.t_width[j]) / 2.0 if math.isfinite(flat.t_width[j]) and flat.t_width[j] > 0 else 1.75
+    if abs(float(rel @ uj)) > _PATH_STEP_M or abs(float(rel @ nj)) > half:
+        return math.inf
+    return float(np.hypot(*rel))
+
+
+def _track_partner(
+    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, track: tuple[np.ndarray, np.ndarray, np.ndarray],
+    step: int, cfg: StitchConfig, reach_m: float, allowed: Callable[[int], bool],
+) -> int:
+    """The first topology node on the path the pivot of end (start) node i drove on from it
+    (back to it): ``track`` = (steps, xy, heading) of the pivot, ``step`` = node i's step. A
+    track point within ``track_search_m`` (walked along the track, which stops at a gap over
+    ``track_max_gap_m``) lies in the node's cross-section and the node heads within
+    ``max_heading_diff_deg`` of the track there; among several at that point the nearest, among
+    those ``allowed``; -1 if none (``StitchConfig.track_search_m``)."""
+    steps, xy, heading = track
+    k = int(np.searchsorted(steps, step))
+    if k >= len(steps) or int(steps[k]) != step:
+        return -1
+    cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
+    sign = 1 if is_end else -1
+    u0, _ = _unit(float(flat.t_heading[i]))
+    walked, prev = 0.0, xy[k]
+    for m in range(k + sign, len(steps) if is_end else -1, sign):
+        p = xy[m]
+        gap = float(np.hypot(*(p - prev)))
+        walked += gap
+        if gap > cfg.track_max_gap_m or walked > cfg.track_search_m:
+            break
+        prev = p
+        best, best_d = -1, math.inf
+        for j in tree.query_ball_point(p, reach_m):
+            if j == i or math.cos(flat.t_heading[j] - heading[m]) < cos_h:
                 continue
-            d = float(np.hypot(*rel))
+            if sign * float((flat.t_xy[j] - flat.t_xy[i]) @ u0) <= 0.0:
+                continue  # behind an end (ahead of a start): the chain itself
+            d = _in_cross_section(flat, j, p)
             if d < best_d and allowed(j):
                 best, best_d = int(j), d
         if best >= 0:
