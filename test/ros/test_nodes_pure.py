@@ -85,6 +85,7 @@ def _segments():
             width_m=12.5, valid=i != 1, processed_before=i == 2, lateral_m=np.linspace(-6, 6, k),
             types=np.array([1, 2, 3, 1, 2][:k]), counts=np.arange(k) + 1, std_m=np.full(k, 0.05),
             drive_ids=("a", "b")[: i + 1],
+            empty_m=[np.array([[-3.25, -1.0], [4.5, 6.0]]), None, np.zeros((0, 2))][i],
         )
 
     return [Segment("piv", tuple(st(i, k) for i, k in enumerate([5, 0, 3]))), Segment("other", ())]
@@ -109,6 +110,10 @@ def test_tile_msg_round_trip_through_cdr():
             b.index, b.s_m, b.heading, b.width_m, b.valid, b.processed_before, b.drive_ids)
         for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
             np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
+        assert (a.empty_m is None) == (b.empty_m is None)
+        if a.empty_m is not None:
+            np.testing.assert_array_equal(a.empty_m, b.empty_m)
+    assert back.segments[0].steps[0].empty_m.shape == (2, 2)
 
 
 def test_launch_file_compiles_and_names_every_node():

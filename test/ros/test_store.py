@@ -64,6 +64,8 @@ def _segments():
             width_m=11.5, valid=bool(i % 2 == 0), processed_before=bool(i == 1),
             lateral_m=np.linspace(-5, 5, k), types=np.arange(k) % 4, counts=np.arange(k) + 2,
             std_m=np.full(k, 0.07), drive_ids=tuple(f"x{j}" for j in range(i + 1)),
+            # negative evidence: judged with two intervals, not judged, judged with none
+            empty_m=[np.array([[-3.25, -1.0], [4.5, 6.0]]), None, np.zeros((0, 2))][i],
         )
 
     return [Segment("p1", tuple(step("p1", i, k) for i, k in enumerate([3, 0, 5]))), Segment("p2", ())]
@@ -80,6 +82,10 @@ def test_segments_blob_round_trip_is_exact():
         )
         for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
             np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
+        assert (a.empty_m is None) == (b.empty_m is None)
+        if a.empty_m is not None:
+            np.testing.assert_array_equal(a.empty_m, b.empty_m)
+    assert back[0].steps[0].empty_m.shape == (2, 2)
     assert blob_to_segments(segments_to_blob([])) == []
 
 

@@ -537,6 +537,19 @@ def _pose_ok(st: StepResult) -> bool:
         return False
 
 
+def _empty_of(st: StepResult) -> np.ndarray | None:
+    """The step's empty intervals as a finite (M, 2) array with lo <= hi; None when not judged
+    (or malformed: then not used, rather than failing the segment)."""
+    if st.empty_m is None:
+        return None
+    try:
+        e = np.asarray(st.empty_m, dtype=float).reshape(-1, 2)
+    except (TypeError, ValueError):
+        return None
+    e = e[np.isfinite(e).all(axis=1)]
+    return np.sort(e, axis=1)
+
+
 def _finish(
     segment: Segment, b: _Builder | None, stats: ConnectionStats, drive_ids: set[str], config: ConnectionConfig
 ) -> SegmentGraph:
@@ -576,6 +589,7 @@ def _finish(
 
     # the pivot's driven path: every step with a finite pose, used or not, in order of s_m
     track = sorted((st for st in segment.steps if _pose_ok(st)), key=lambda st: st.index)
+    empties = [_empty_of(st) for st in track]
 
     return SegmentGraph(
         key=f"{segment.pivot_id}@{first}",
@@ -600,4 +614,7 @@ def _finish(
         track_step=np.array([int(st.index) for st in track], dtype=np.int64),
         track_xy=np.array([np.asarray(st.midpoint, dtype=float) for st in track]).reshape(-1, 2),
         track_heading=np.array([float(st.heading) for st in track]),
+        track_judged=np.array([e is not None for e in empties], dtype=bool),
+        track_empty_start=np.concatenate([[0], np.cumsum([0 if e is None else len(e) for e in empties])]).astype(np.int64),
+        track_empty=np.concatenate([np.zeros((0, 2))] + [e for e in empties if e is not None]).reshape(-1, 2),
     )

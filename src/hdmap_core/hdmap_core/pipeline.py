@@ -34,9 +34,10 @@ from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_
 from hdmap_core.alignment import AlignmentConfig, align_step, align_steps_gap, gap_batchable
 from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
 from hdmap_core.model import Drive, HDMap, validate_drive
-from hdmap_core.preprocess import DetectionIndex, PreprocessConfig, preprocess
+from hdmap_core.evidence import EvidenceConfig, step_profiles
+from hdmap_core.preprocess import DetectionIndex, PreprocessConfig, preprocess, trajectory_index
 from hdmap_core.sampling import PivotSamples, SamplingConfig, pivot_walk, sample_pivot
-from hdmap_core.geometry import arc_length
+from hdmap_core.geometry import arc_length, wrap_angle
 from hdmap_core.steps import Segment, StepObservations, StepResult, left_normal
 
 __all__ = [
@@ -84,6 +85,10 @@ class PipelineConfig:
             length of the midpoint). Off (the paper's reading): every drive whose samples took
             part is marked, so a drive on a ramp beside the ego road, which sees the ego road's
             lines, never becomes a pivot there and the ramp's outer features are not mapped.
+        evidence: negative evidence per step of the pass whose segments are returned
+            (``hdmap_core.evidence``: where the drives that passed saw nothing, carried as
+            ``StepResult.empty_m``; the stitcher drops fills through such places when its
+            ``fill_evidence`` is set). None: no profiles (the paper, the plain default).
         name: the preset this config came from ("" when built by hand).
     """
 
@@ -98,6 +103,7 @@ class PipelineConfig:
     connection: Any = None
     stitching: Any = None
     mark_on_cut_only: bool = False
+    evidence: EvidenceConfig | None = None
     name: str = ""
 
     def __post_init__(self) -> None:
@@ -159,6 +165,9 @@ class PipelineConfig:
                 # the first pass only feeds the adjustment (knots every 200 m): EM every 4 m
                 observation_stride=2,
                 mark_on_cut_only=True,
+                # where drives passed and saw nothing: fills through such places are dropped
+                # (docs/pipeline.md, "Negative evidence")
+                evidence=EvidenceConfig(),
                 connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
                 stitching=StitchConfig(
                     # junction pieces already joined to the map through one end get their other end
@@ -168,6 +177,9 @@ class PipelineConfig:
                     # an end (linked or not) follows the path its pivot drove through a junction
                     # whose steps failed, onto the road it entered (docs/pipeline.md, track links)
                     track_search_m=60.0, track_linked_ends=True,
+                    # fills through stretches the drives saw empty are dropped (the profiles:
+                    # ``evidence`` below; docs/pipeline.md, "Negative evidence")
+                    fill_evidence=EvidenceConfig(),
                     # two roads side by side join only at a shallow angle (docs/graph.md)
                     side_link_angle_deg=30.0,
                     # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
@@ -382,6 +394,7 @@ def _step(
     drive_ids: tuple[str, ...] = (),
     processed: bool = False,
     maxima: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    empty: np.ndarray | None = None,
 ) -> StepResult:
     """Step ``q`` of a pivot: valid with ``maxima`` (lateral_m, types, counts, std_m), else a
     placeholder (rejected, or ``processed`` before) that carries only the step's geometry."""
@@ -400,7 +413,43 @@ def _step(
         counts=counts,
         std_m=std_m,
         drive_ids=drive_ids,
+        empty_m=empty,
     )
+
+
+def _profiles(
+    index: DetectionIndex, evidence: tuple[DetectionIndex, EvidenceConfig], ps: PivotSamples, steps: np.ndarray,
+    shift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None, hits: tuple[np.ndarray, ...] | None,
+    max_heading_diff_deg: float,
+) -> dict[int, np.ndarray]:
+    """Empty intervals (``hdmap_core.evidence.step_profiles``) of the pivot's ``steps``, from
+    the step's midpoint. ``hits``: the pivot's raw same-direction detection crossings (step, t,
+    type, drive, drive s) when cached, else intersected here."""
+    tindex, cfg = evidence
+    if len(steps) == 0:
+        return {}
+    normal = left_normal(ps.heading).reshape(-1, 2)
+    max_diff = np.deg2rad(max_heading_diff_deg)
+    cr = tindex.intersect(ps.point[steps], normal[steps], np.full(len(steps), cfg.half_length_m))
+    same = np.abs(wrap_angle(cr.drive_yaw - ps.heading[steps[cr.cut]])) <= max_diff
+    cq, ct, cd, cs = steps[cr.cut[same]], cr.t_m[same], cr.drive[same], cr.drive_s_m[same]
+    if hits is None:
+        h = index.intersect(ps.point[steps], normal[steps], np.full(len(steps), cfg.half_length_m))
+        ok = np.abs(wrap_angle(h.drive_yaw - ps.heading[steps[h.cut]])) <= max_diff
+        hq, ht, hd, hs = steps[h.cut[ok]], h.t_m[ok], h.drive[ok], h.drive_s_m[ok]
+    else:
+        want = np.zeros(ps.n_steps, dtype=bool)
+        want[steps] = True
+        ok = want[hits[0]]
+        hq, ht, hd, hs = hits[0][ok], hits[1][ok], hits[3][ok], hits[4][ok]
+    if shift is not None:
+        if len(ct):
+            ct = ct + np.asarray(shift(cd.astype(np.int64), cs), dtype=float)
+        if len(ht):
+            ht = ht + np.asarray(shift(hd.astype(np.int64), hs), dtype=float)
+    prof = step_profiles(ps.n_steps, cq, ct, cd, hq, ht, hd, config=cfg)
+    mid = np.einsum("ij,ij->i", ps.midpoint - ps.point, normal)
+    return {int(q): prof[q] - mid[q] for q in steps.tolist()}
 
 
 def _run_pivot(
@@ -417,6 +466,7 @@ def _run_pivot(
     hit_cache: dict | None = None,
     tracks: _Tracks | None = None,
     stride: int = 1,
+    evidence: tuple[DetectionIndex, EvidenceConfig] | None = None,
 ) -> tuple[Segment, np.ndarray, np.ndarray]:
     """Stages 2-4 along one pivot. Returns (segment, marked drive indices, their s [m]).
 
@@ -516,15 +566,20 @@ def _run_pivot(
     inner[1:] &= sk[:-1]
     if len(inner):
         inner[0] = inner[-1] = False
+    empty: dict[int, np.ndarray] = {}
+    if evidence is not None:
+        cached = hit_cache.get(pid, (None, None))[1] if hit_cache is not None else None
+        empty = _profiles(index, evidence, ps, np.flatnonzero(status != 1), shift, cached,
+                          config.sampling.max_heading_diff_deg)
     for q in range(ps.n_steps):
         if inner[q]:
             continue
         if status[q] != 2:
-            steps.append(_step(pid, q, ps, processed=bool(status[q] == 1), drive_ids=step_ids[q]))
+            steps.append(_step(pid, q, ps, processed=bool(status[q] == 1), drive_ids=step_ids[q], empty=empty.get(q)))
             continue
         a, b = ptr[q], ptr[q + 1]
         maxima = (agg.lateral_m[a:b], agg.types[a:b], agg.counts[a:b], agg.std_m[a:b])
-        steps.append(_step(pid, q, ps, drive_ids=step_ids[q], maxima=maxima))
+        steps.append(_step(pid, q, ps, drive_ids=step_ids[q], maxima=maxima, empty=empty.get(q)))
     counters.total += ps.n_steps
     counters.skipped += int((status == 1).sum())
     counters.valid += int((status == 2).sum())
@@ -566,6 +621,7 @@ def _run_pass(
     hit_cache: dict | None = None,
     tracks: _Tracks | None = None,
     stride: int = 1,
+    evidence: tuple[DetectionIndex, EvidenceConfig] | None = None,
 ) -> tuple[list[Segment], ProcessedStore]:
     segments: list[Segment] = []
     step_m = config.sampling.step_m
@@ -576,7 +632,7 @@ def _run_pass(
         skip = processed.contains(pivot.drive_id, s)
         seg, md, ms = _run_pivot(
             index, pivot, skip, config=config, alignment=alignment, shift=shift, observations=observations, counters=counters,
-            memory=memory, hit_cache=hit_cache, tracks=tracks, stride=stride,
+            memory=memory, hit_cache=hit_cache, tracks=tracks, stride=stride, evidence=evidence,
         )
         segments.append(seg)
         if len(md):
@@ -679,12 +735,19 @@ def _map_stretches(
     hit_cache: dict | None = {} if config.use_global_adjustment else None
     tracks = _Tracks(drives) if config.mark_on_cut_only else None
     model = offset_model
+    final = model is not None or (config.use_global_adjustment and not observations_only)
+    evidence = None
+    if config.evidence is not None and not observations_only:
+        t0 = time.perf_counter()
+        evidence = (trajectory_index(drives, cell_m=config.preprocess.grid_cell_m), config.evidence)
+        seconds["preprocess"] += time.perf_counter() - t0
     if model is None:
         t0 = time.perf_counter()
         segments, store = _run_pass(
             drives, index, order, store_in, config=config, alignment=config.alignment, shift=None,
             observations=obs, counters=counters, progress=progress, hit_cache=hit_cache,
             tracks=tracks, stride=config.observation_stride if (config.use_global_adjustment or observations_only) else 1,
+            evidence=None if final else evidence,
         )
         seconds["sampling_em"] = time.perf_counter() - t0
     if model is None and config.use_global_adjustment:
@@ -702,7 +765,7 @@ def _map_stretches(
             drives, index, order, store_in, config=config,
             alignment=config.final_alignment or config.alignment, shift=_shift_fn(model, index.drive_ids),
             observations=None, counters=counters, progress=progress, hit_cache=hit_cache,
-            tracks=tracks,
+            tracks=tracks, evidence=evidence,
         )
         seconds["final_pass"] = time.perf_counter() - t0
     return MappingResult(

@@ -76,6 +76,10 @@ class SegmentGraph:
             pivot drove, which the stitcher's track links follow (empty: not known).
         track_xy: (S, 2) the steps' cut-line midpoints [m].
         track_heading: (S,) the steps' ENU yaw [rad].
+        track_judged: (S,) bool, the step carries a negative-evidence profile (``StepResult.empty_m``).
+        track_empty_start: (S + 1,) offsets into ``track_empty``.
+        track_empty: (M, 2) the steps' empty intervals [lo, hi] along their cuts, from the
+            midpoint [m] (``hdmap_core.evidence``).
     """
 
     key: str
@@ -100,6 +104,9 @@ class SegmentGraph:
     track_step: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), compare=False)
     track_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), compare=False)
     track_heading: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False)
+    track_judged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool), compare=False)
+    track_empty_start: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64), compare=False)
+    track_empty: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), compare=False)
 
     @property
     def n_topo(self) -> int:

@@ -49,6 +49,9 @@ class StepResult:
         counts: (K,) number of drives supporting each maximum.
         std_m: (K,) 1-sigma lateral uncertainty of each maximum [m].
         drive_ids: drives that took part in this step.
+        empty_m: (M, 2) intervals [lo, hi] along the cut, from the midpoint (+ = left) [m], where
+            the drives that passed saw nothing though a line there would have been detected
+            (``hdmap_core.evidence``); None: not judged (no profile made for this step).
     """
 
     pivot_id: str
@@ -64,6 +67,7 @@ class StepResult:
     counts: np.ndarray
     std_m: np.ndarray
     drive_ids: tuple[str, ...] = ()
+    empty_m: np.ndarray | None = None
 
     def points(self) -> np.ndarray:
         """(K, 2) world points of the maxima [m]."""

@@ -43,6 +43,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from hdmap_core.errors import HdmapError
+from hdmap_core.evidence import refuted_edges
 from hdmap_core.graph import (
     FlatGraph,
     _dedupe_uids,
@@ -583,6 +584,32 @@ class MapGraph(LooseEnds):
             self._node_dead[k][flat.n_local[j]] = True
         return len(dead)
 
+    def _refuted(self, flat: FlatGraph) -> np.ndarray:
+        """(E,) bool: feature edges of ``flat`` through stretches the drives saw empty
+        (``StitchConfig.fill_evidence``, ``evidence.refuted_edges``), from every segment's judged
+        steps."""
+        xy, hd, starts, iv = [], [], [], []
+        off = 0
+        for k in self.keys:
+            g = self._graphs[k]
+            j = np.flatnonzero(g.track_judged) if len(g.track_judged) == len(g.track_step) else np.zeros(0, np.int64)
+            if len(j) == 0:
+                continue
+            xy.append(g.track_xy[j])
+            hd.append(g.track_heading[j])
+            lo, hi = g.track_empty_start[j], g.track_empty_start[j + 1]
+            n = hi - lo
+            rows = np.repeat(lo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+            iv.append(g.track_empty[rows].reshape(-1, 2))
+            starts.append(off + np.cumsum(n))
+            off += int(n.sum())
+        if not xy:
+            return np.zeros(len(flat.edges), dtype=bool)
+        return refuted_edges(
+            flat.n_xy, flat.edges, np.concatenate(xy), np.concatenate(hd),
+            np.concatenate([[0]] + starts).astype(np.int64), np.concatenate(iv), config=self.config.fill_evidence,
+        )
+
     # -- export --
     def to_hdmap(
         self, *, version: int | None = None, stamp_ns: int = 0, drive_ids: Sequence[str] | None = None
@@ -591,6 +618,11 @@ class MapGraph(LooseEnds):
         flat = self._flat()
         if drive_ids is None:
             drive_ids = sorted({d for g in self._graphs.values() for d in g.drive_ids})
+        refuted = 0
+        if self.config.fill_evidence is not None and len(flat.edges):
+            drop = self._refuted(flat)
+            refuted = int(drop.sum())
+            flat.edges, flat.leftover = flat.edges[~drop], flat.leftover[~drop]
         features, topology = export_map(flat, self.config)
         return HDMap(
             features=features,
@@ -603,6 +635,7 @@ class MapGraph(LooseEnds):
                 "topology_links": len(self._topo_links),
                 "feature_links": len(self._feature_links) + len(self._branch_links),
                 "last_integrate": dict(self.last_report.__dict__),
+                "fills_refuted": refuted,
             },
         )
 

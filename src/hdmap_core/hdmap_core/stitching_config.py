@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 from hdmap_core.errors import ConfigError
+from hdmap_core.evidence import EvidenceConfig
 
 __all__ = ["StitchConfig"]
 
@@ -172,6 +173,10 @@ class StitchConfig:
             already; it then links to a node its pivot's track enters only when the map does
             not reach that node from the start (end) within 2 * ``track_search_m`` + 30 m (the
             pivot took a turn at a junction that the ordinary link went straight through).
+        fill_evidence: at export, a feature edge long enough to be filled is dropped when most of
+            it runs where the drives that passed saw nothing (``hdmap_core.evidence``, from the
+            segments' ``StepResult.empty_m``): its ends stay loose ends. None: off (the paper,
+            the plain default).
         path_curvature_m: the chain's heading rate is taken over this much of it (chord from
             the node to the first chain node at least this far; shorter chains: straight) [m].
         path_max_turn_deg: the arc search stops once the arc has turned this much from the
@@ -239,6 +244,7 @@ class StitchConfig:
     track_search_m: float = 0.0
     track_max_gap_m: float = 6.0
     track_linked_ends: bool = False
+    fill_evidence: EvidenceConfig | None = None
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
     side_link_angle_deg: float = 90.0

@@ -122,6 +122,11 @@ def segments_to_blob(segments: Sequence[Segment]) -> bytes:
             "types": cat("types", np.int64),
             "counts": cat("counts", np.int64),
             "std_m": cat("std_m", np.float64),
+            "judged": np.array([st.empty_m is not None for st in steps], dtype=bool),
+            "n_empty": np.array([0 if st.empty_m is None else len(np.asarray(st.empty_m).reshape(-1, 2)) for st in steps],
+                                dtype=np.int64),
+            "empty_m": np.concatenate([np.zeros((0, 2))] + [np.asarray(st.empty_m, dtype=np.float64).reshape(-1, 2)
+                                                           for st in steps if st.empty_m is not None]),
         },
         {"pivots": [s.pivot_id for s in segments], "drive_ids": [list(st.drive_ids) for st in steps]},
     )
@@ -131,12 +136,15 @@ def blob_to_segments(blob: bytes) -> list[Segment]:
     a, m = _unpack(blob)
     k = a["k"]
     lat, typ, cnt, std = (_split(a[n], k) for n in ("lateral_m", "types", "counts", "std_m"))
+    judged = a["judged"] if "judged" in a else np.zeros(len(k), dtype=bool)  # blobs written before evidence
+    empty = _split(a["empty_m"].reshape(-1, 2), a["n_empty"]) if "empty_m" in a else [None] * len(k)
     steps = [
         StepResult(
             pivot_id="", index=int(a["index"][i]), s_m=float(a["s_m"][i]), midpoint=a["midpoint"][i],
             heading=float(a["heading"][i]), width_m=float(a["width_m"][i]), valid=bool(a["valid"][i]),
             processed_before=bool(a["processed_before"][i]), lateral_m=lat[i], types=typ[i],
             counts=cnt[i], std_m=std[i], drive_ids=tuple(m["drive_ids"][i]),
+            empty_m=empty[i] if judged[i] else None,
         )
         for i in range(len(k))
     ]

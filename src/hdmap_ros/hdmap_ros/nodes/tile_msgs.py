@@ -56,7 +56,7 @@ _ARRAY_CODES = {np.float64: "d", np.uint8: "B", np.uint32: "I"}
 
 
 def _prim(types: TileTypes, values: Any, dtype) -> Any:
-    arr = np.asarray(values, dtype=dtype).reshape(-1)
+    arr = np.ascontiguousarray(np.asarray(values, dtype=dtype).reshape(-1))
     if types.numpy_arrays:
         return arr
     return array.array(_ARRAY_CODES[dtype], arr.tobytes())
@@ -78,6 +78,9 @@ def _step_to_msg(t: TileTypes, st: StepResult) -> Any:
         std_m=_prim(t, st.std_m, np.float64),
         drive_ids=[str(d) for d in st.drive_ids],
     )
+    empty = np.zeros((0, 2)) if st.empty_m is None else np.asarray(st.empty_m, dtype=float).reshape(-1, 2)
+    kw.update(judged=st.empty_m is not None, empty_lo_m=_prim(t, empty[:, 0], np.float64),
+              empty_hi_m=_prim(t, empty[:, 1], np.float64))
     return t.SegmentStep(**kw)
 
 
@@ -120,6 +123,16 @@ def _np(values: Any, dtype) -> np.ndarray:
     return np.array(values, dtype=dtype)
 
 
+def _empty_from_msg(s: Any) -> np.ndarray | None:
+    """A SegmentStep's empty intervals as (M, 2), None when not judged; unequal lo/hi lengths are
+    cut to the shorter (a malformed message loses that evidence, not the step)."""
+    if not bool(getattr(s, "judged", False)):
+        return None
+    lo, hi = _np(s.empty_lo_m, np.float64), _np(s.empty_hi_m, np.float64)
+    n = min(len(lo), len(hi))
+    return np.stack([lo[:n], hi[:n]], axis=1)
+
+
 def msg_to_tile(msg: Any) -> TileMessage:
     """hdmap_msgs/msg/TileSegments (rosbags or rclpy) -> :class:`TileMessage`."""
     segments = []
@@ -132,7 +145,7 @@ def msg_to_tile(msg: Any) -> TileMessage:
                 width_m=float(s.width_m), valid=bool(s.valid), processed_before=bool(s.processed_before),
                 lateral_m=_np(s.lateral_m, np.float64), types=_np(s.types, np.int64),
                 counts=_np(s.counts, np.int64), std_m=_np(s.std_m, np.float64),
-                drive_ids=tuple(str(d) for d in s.drive_ids),
+                drive_ids=tuple(str(d) for d in s.drive_ids), empty_m=_empty_from_msg(s),
             )
             for s in sm.steps
         )

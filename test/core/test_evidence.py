@@ -1,0 +1,137 @@
+"""Negative evidence (hdmap_core.evidence): empty stretches per step, and fills through them dropped."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hdmap_core.errors import ConfigError
+from hdmap_core.evidence import EvidenceConfig, refuted_edges, step_profiles
+from hdmap_core.model import Detection, Drive, FeatureType
+from hdmap_core.pipeline import PipelineConfig, build_map, map_stretches, prepare_drives
+from pipeline_fleet import LINES, offset_line
+
+CFG = EvidenceConfig()
+
+
+def _inside(intervals: np.ndarray, x: float) -> bool:
+    return bool(((intervals[:, 0] <= x) & (x <= intervals[:, 1])).any()) if len(intervals) else False
+
+
+def test_profile_empty_where_passing_drives_saw_nothing():
+    """Six drives cross one cut, two in each lane (t = -3.5, 0, 3.5); all detect lines at
+    t = -1.75 and 1.75, none at t = 5.25: expected there 2 x 0.9 + 2 x 0.6 + 2 x 0.2 = 3.4."""
+    cross_t = np.array([-3.5, -3.5, 0.0, 0.0, 3.5, 3.5])
+    drives = np.arange(6)
+    hit_t = np.tile([-1.75, 1.75], 6)
+    hit_d = np.repeat(drives, 2)
+    (prof,) = step_profiles(1, np.zeros(6), cross_t, drives, np.zeros(12), hit_t, hit_d)
+    assert _inside(prof, 5.25) and not _inside(prof, 1.75) and not _inside(prof, -1.75)
+    assert not _inside(prof, 14.0)  # too far from every drive to expect anything
+    # one drive of six seeing a line there (1 of 3.4 expected, > 20 %): not empty
+    (prof,) = step_profiles(1, np.zeros(6), cross_t, drives, np.zeros(13), np.r_[hit_t, 5.3], np.r_[hit_d, 4])
+    assert not _inside(prof, 5.25)
+    # two drives passing expect too little to judge anything
+    (prof,) = step_profiles(1, np.zeros(2), cross_t[4:], drives[4:], np.zeros(4), hit_t[8:], hit_d[8:])
+    assert len(prof) == 0
+    # a drive crossing twice counts once
+    (prof,) = step_profiles(1, np.zeros(7), np.r_[cross_t, 3.4], np.r_[drives, 5], np.zeros(12), hit_t, hit_d)
+    assert _inside(prof, 5.25)
+    assert step_profiles(0, [], [], [], [], [], []) == []
+
+
+def test_edges_through_an_empty_stretch_refuted():
+    """Steps every 2 m along x (heading 0) with the stretch y in [4, 6] empty for x in 20..40: a
+    line node pair (18, 5) -> (42, 5) bridging it is refuted, one at y = 1.75 and a 2 m edge are not."""
+    xs = np.arange(0.0, 61.0, 2.0)
+    step_xy = np.stack([xs, np.zeros_like(xs)], axis=1)
+    empty_rows = [np.array([[4.0, 6.0]]) if 20 <= x <= 40 else np.zeros((0, 2)) for x in xs]
+    start = np.concatenate([[0], np.cumsum([len(e) for e in empty_rows])])
+    empty = np.concatenate(empty_rows)
+    nodes = np.array([[18.0, 5.0], [42.0, 5.0], [18.0, 1.75], [42.0, 1.75], [10.0, 5.0], [12.0, 5.0]])
+    edges = np.array([[0, 1], [2, 3], [4, 5]])
+    out = refuted_edges(nodes, edges, step_xy, np.zeros(len(xs)), start, empty)
+    assert out.tolist() == [True, False, False]
+    # steps heading the other way do not judge it; with half the gap empty, the share decides
+    assert not refuted_edges(nodes, edges, step_xy, np.full(len(xs), np.pi), start, empty).any()
+    nodes2 = nodes.copy()
+    nodes2[1] = [66.0, 5.0]  # 48 m edge, 20 m of it empty (~42 %)
+    assert refuted_edges(nodes2, edges, step_xy, np.zeros(len(xs)), start, empty).tolist() == [False, False, False]
+    lax = dataclasses.replace(CFG, refute_share=0.4)
+    assert refuted_edges(nodes2, edges, step_xy, np.zeros(len(xs)), start, empty, config=lax).tolist() == [True, False, False]
+    assert refuted_edges(nodes, edges, np.zeros((0, 2)), np.zeros(0), np.zeros(1, np.int64), np.zeros((0, 2))).tolist() == [False] * 3
+
+
+def _drive(i: int, lane: float, gap: tuple[float, float] | None) -> Drive:
+    """A drive on the tiny fleet's road (pipeline_fleet); the solid line at +5.25 is not
+    detected over ``gap`` (s from, to), every other line everywhere."""
+    s = np.arange(0.0, 300.0 + 1e-9, 1.0)
+    xy, h = offset_line(s, lane)
+    dets = []
+    for lat, ftype in LINES:
+        p, _ = offset_line(s, lat)
+        if gap is not None and lat == 5.25:
+            dets += [Detection(type=ftype, points=p[s <= gap[0]]), Detection(type=ftype, points=p[s >= gap[1]])]
+        else:
+            dets.append(Detection(type=ftype, points=p))
+    return Drive(drive_id=f"d{i}", xy=xy, yaw=h, stamps_ns=(np.arange(len(s)) * 50_000_000).astype(np.int64),
+                 detections=tuple(dets))
+
+
+def _solid_left(hdmap) -> list[np.ndarray]:
+    """The map's solid-line points near lateral +5.25 (the road's centre runs near y = 0)."""
+    out = []
+    for f in hdmap.features:
+        if f.type == FeatureType.SOLID and np.median(f.points[:, 1] - offset_line(f.points[:, 0], 0.0)[0][:, 1]) > 3:
+            out.append(f)
+    return out
+
+
+def _gap_points(feats, lo: float, hi: float) -> int:
+    return sum(int(((f.points[:, 0] > lo) & (f.points[:, 0] < hi)).sum()) for f in feats)
+
+
+@pytest.mark.parametrize("n_missing", [6, 1])
+def test_fill_dropped_only_where_every_passing_drive_missed_the_line(n_missing):
+    """A 16 m stretch of the left solid line (s 120..136) is missing for ``n_missing`` of six drives.
+    Missing for all (a junction mouth): the connection bridges the gap with filled points, and the
+    evidence drops them (two pieces). Missing for one (a dropout): the others map it, no gap."""
+    lanes = (-3.5, -3.5, 0.0, 0.0, 3.5, 3.5)
+    drives = [_drive(i, lane, (120.0, 136.0) if i < n_missing else None) for i, lane in enumerate(lanes)]
+    default = PipelineConfig.preset("default")
+    off = dataclasses.replace(default, evidence=None,
+                              stitching=dataclasses.replace(default.stitching, fill_evidence=None))
+    with_ev, without = build_map(drives, config=default), build_map(drives, config=off)
+    a, b = _solid_left(with_ev.map), _solid_left(without.map)
+    if n_missing == 6:
+        assert _gap_points(b, 124.0, 132.0) >= 3 and all(
+            (f.drive_count[(f.points[:, 0] > 124) & (f.points[:, 0] < 132)] == 0).all() for f in b)
+        assert _gap_points(a, 124.0, 132.0) == 0 and len(a) == 2
+        assert with_ev.map.extra["fills_refuted"] >= 1
+    else:
+        assert _gap_points(a, 124.0, 132.0) >= 3 and len(a) == 1
+        assert with_ev.map.extra["fills_refuted"] == 0
+    # the rest of the map is the same
+    assert len(with_ev.map.features) - len(a) == len(without.map.features) - len(b)
+
+
+def test_steps_of_the_returned_pass_carry_profiles():
+    drives, _ = prepare_drives([_drive(i, lane, (120.0, 136.0)) for i, lane in enumerate((-3.5, 0.0, 3.5) * 2)])
+    res = map_stretches(drives, config=PipelineConfig.preset("default"))
+    judged = [st for seg in res.segments for st in seg.steps if st.empty_m is not None]
+    assert judged and all(st.empty_m.shape[1] == 2 for st in judged)
+    at_gap = [st for st in judged if 122.0 < st.s_m < 134.0 and not st.processed_before]
+    assert at_gap and all(_inside(st.empty_m, 5.25) for st in at_gap)  # from the midpoint, the road's centre
+    for name in ("paper", "naive"):
+        res = map_stretches(drives, config=PipelineConfig.preset(name))
+        assert all(st.empty_m is None for seg in res.segments for st in seg.steps)
+
+
+def test_evidence_config_checked():
+    for bad in (dict(bands_m=(3.0,), rates=(0.9, 0.5)), dict(bands_m=(6.0, 3.0), rates=(0.9, 0.5)),
+                dict(rates=(1.2, 0.5, 0.1)), dict(window_m=0.0), dict(max_seen_ratio=0.0), dict(heading_deg=120.0),
+                dict(min_expected=-1.0)):
+        with pytest.raises(ConfigError):
+            EvidenceConfig(**bad)
