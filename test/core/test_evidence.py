@@ -64,16 +64,20 @@ def test_edges_through_an_empty_stretch_refuted():
     assert refuted_edges(nodes, edges, np.zeros((0, 2)), np.zeros(0), np.zeros(1, np.int64), np.zeros((0, 2))).tolist() == [False] * 3
 
 
-def _drive(i: int, lane: float, gap: tuple[float, float] | None) -> Drive:
+def _drive(i: int, lane: float, gap: tuple[float, ...] | None) -> Drive:
     """A drive on the tiny fleet's road (pipeline_fleet); the solid line at +5.25 is not
-    detected over ``gap`` (s from, to), every other line everywhere."""
+    detected over ``gap`` (pairs of s from, to), every other line everywhere."""
     s = np.arange(0.0, 300.0 + 1e-9, 1.0)
     xy, h = offset_line(s, lane)
     dets = []
     for lat, ftype in LINES:
         p, _ = offset_line(s, lat)
         if gap is not None and lat == 5.25:
-            dets += [Detection(type=ftype, points=p[s <= gap[0]]), Detection(type=ftype, points=p[s >= gap[1]])]
+            seen = np.ones(len(s), dtype=bool)
+            for a, b in zip(gap[::2], gap[1::2]):
+                seen &= (s <= a) | (s >= b)
+            cut = np.flatnonzero(np.diff(seen.astype(np.int8))) + 1
+            dets += [Detection(type=ftype, points=p[idx]) for idx in np.split(np.arange(len(s)), cut) if seen[idx[0]]]
         else:
             dets.append(Detection(type=ftype, points=p))
     return Drive(drive_id=f"d{i}", xy=xy, yaw=h, stamps_ns=(np.arange(len(s)) * 50_000_000).astype(np.int64),
@@ -115,6 +119,19 @@ def test_fill_dropped_only_where_every_passing_drive_missed_the_line(n_missing):
         assert with_ev.map.extra["fills_refuted"] == 0
     # the rest of the map is the same
     assert len(with_ev.map.features) - len(a) == len(without.map.features) - len(b)
+
+
+def test_piece_between_two_refuted_fills_is_kept():
+    """Two 16 m stretches missing for every drive (s 120..136 and 150..166) leave a 14 m piece of
+    the line between them, seen by all: shorter than the speck rule's 20 m, but drive-supported
+    and only isolated by the refuted fills, so it stays (three pieces, none in the gaps)."""
+    lanes = (-3.5, -3.5, 0.0, 0.0, 3.5, 3.5)
+    drives = [_drive(i, lane, (120.0, 136.0, 150.0, 166.0)) for i, lane in enumerate(lanes)]
+    res = build_map(drives, config=PipelineConfig.preset("default"))
+    solid = _solid_left(res.map)
+    assert len(solid) == 3 and res.map.extra["fills_refuted"] >= 2
+    assert _gap_points(solid, 124.0, 132.0) == 0 and _gap_points(solid, 154.0, 162.0) == 0
+    assert _gap_points(solid, 138.0, 148.0) >= 4
 
 
 def test_steps_of_the_returned_pass_carry_profiles():

@@ -347,3 +347,8 @@ def test_the_tiles_final_pass_is_the_pipelines_final_pass():
             assert (x.index, x.valid, x.drive_ids) == (y.index, y.valid, y.drive_ids)
             np.testing.assert_array_equal(x.lateral_m, y.lateral_m)
             np.testing.assert_array_equal(x.midpoint, y.midpoint)
+            # the negative evidence too (the live stitcher drops fills by it as offline)
+            assert (x.empty_m is None) == (y.empty_m is None)
+            if x.empty_m is not None:
+                np.testing.assert_array_equal(x.empty_m, y.empty_m)
+    assert any(st.empty_m is not None for sg in mine for st in sg.steps)

@@ -108,12 +108,18 @@ def _dedupe_uids(flat: FlatGraph) -> np.ndarray:
     return uid
 
 
-def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
+def export_map(
+    flat: FlatGraph, cfg: StitchConfig, *, protect: np.ndarray | None = None
+) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
+    """The polylines and topology nodes of ``flat`` (module docstring). ``protect``: (N,) bool,
+    feature nodes whose polylines are not dropped as isolated specks (the ends of fills refuted
+    by the negative evidence: a short piece between two junction mouths is drive-supported)."""
     uid = _dedupe_uids(flat)
+    protect = np.zeros(flat.n_nodes, dtype=bool) if protect is None else np.asarray(protect, dtype=bool)
     if (cfg.spur_max_m > 0 or cfg.bubble_max_m > 0) and flat.n_nodes:
         keep = _spur_free(flat, uid, cfg.spur_max_m, cfg.bubble_max_m)
         if not keep.all():
-            flat, uid = _subset_nodes(flat, keep), uid[keep]
+            flat, uid, protect = _subset_nodes(flat, keep), uid[keep], protect[keep]
     nn = flat.n_nodes
     e = flat.edges
     if cfg.min_type_run_m > 0 and nn:
@@ -201,7 +207,7 @@ def export_map(flat: FlatGraph, cfg: StitchConfig) -> tuple[tuple[MapFeature, ..
             continue
         isolated = not succ.get(k) and not pred.get(k) and k not in on_through
         length = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
-        if isolated and (len(xy) < 2 or length < cfg.min_isolated_length_m):
+        if isolated and (len(xy) < 2 or (length < cfg.min_isolated_length_m and not protect[chains[k]].any())):
             keep[k] = False
     inner_m = getattr(cfg, "inner_border_max_m", 0.0)
     if inner_m > 0:

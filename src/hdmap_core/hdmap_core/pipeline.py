@@ -175,10 +175,10 @@ class PipelineConfig:
                     # arc onto the road (docs/graph.md)
                     link_within_component=True, path_search_m=36.0, path_max_turn_deg=60.0,
                     # an end (linked or not) follows the path its pivot drove through a junction
-                    # whose steps failed, onto the road it entered (docs/pipeline.md, track links)
+                    # whose steps failed, onto the road it entered (docs/graph.md, "Track links")
                     track_search_m=60.0, track_linked_ends=True,
-                    # fills through stretches the drives saw empty are dropped (the profiles:
-                    # ``evidence`` below; docs/pipeline.md, "Negative evidence")
+                    # fills through stretches the drives saw empty are dropped (the profiles come
+                    # from ``evidence`` above; docs/pipeline.md, "Negative evidence")
                     fill_evidence=EvidenceConfig(),
                     # two roads side by side join only at a shallow angle (docs/graph.md)
                     side_link_angle_deg=30.0,
@@ -434,7 +434,7 @@ def _profiles(
     same = np.abs(wrap_angle(cr.drive_yaw - ps.heading[steps[cr.cut]])) <= max_diff
     cq, ct, cd, cs = steps[cr.cut[same]], cr.t_m[same], cr.drive[same], cr.drive_s_m[same]
     if hits is None:
-        h = index.intersect(ps.point[steps], normal[steps], np.full(len(steps), cfg.half_length_m))
+        h = index.intersect(ps.point[steps], normal[steps], np.full(len(steps), cfg.half_length_m + cfg.window_m))
         ok = np.abs(wrap_angle(h.drive_yaw - ps.heading[steps[h.cut]])) <= max_diff
         hq, ht, hd, hs = steps[h.cut[ok]], h.t_m[ok], h.drive[ok], h.drive_s_m[ok]
     else:

@@ -619,11 +619,15 @@ class MapGraph(LooseEnds):
         if drive_ids is None:
             drive_ids = sorted({d for g in self._graphs.values() for d in g.drive_ids})
         refuted = 0
+        protect = None
         if self.config.fill_evidence is not None and len(flat.edges):
             drop = self._refuted(flat)
             refuted = int(drop.sum())
+            # the pieces a refuted fill leaves are drive-supported: no speck rule for them
+            protect = np.zeros(flat.n_nodes, dtype=bool)
+            protect[flat.edges[drop].reshape(-1)] = True
             flat.edges, flat.leftover = flat.edges[~drop], flat.leftover[~drop]
-        features, topology = export_map(flat, self.config)
+        features, topology = export_map(flat, self.config, protect=protect)
         return HDMap(
             features=features,
             topology=topology,

@@ -164,10 +164,10 @@ class StitchConfig:
             the track's there (another component, or with ``link_within_component`` its own
             without closing a short cycle). The link is drive-supported: the pivot went from the
             end to that node. Run before the arc search (``path_search_m``), whose extrapolated
-            arc misses junction turns past ``path_max_turn_deg`` (docs/pipeline.md, Town04's
-            exit). The walk stops at a gap of more than ``track_max_gap_m`` between track points
-            (a run processed before keeps only its first and last step). 0 disables (the paper,
-            the plain default) [m].
+            arc misses junction turns past ``path_max_turn_deg`` (Town04's exit, docs/graph.md
+            "Track links"). The walk stops at a gap of more than ``track_max_gap_m`` between
+            track points (a run processed before keeps only its first and last step). 0
+            disables (the paper, the plain default) [m].
         track_max_gap_m: see ``track_search_m`` [m].
         track_linked_ends: the track search also runs from starts (ends) that have a partner
             already; it then links to a node its pivot's track enters only when the map does
@@ -175,8 +175,10 @@ class StitchConfig:
             pivot took a turn at a junction that the ordinary link went straight through).
         fill_evidence: at export, a feature edge long enough to be filled is dropped when most of
             it runs where the drives that passed saw nothing (``hdmap_core.evidence``, from the
-            segments' ``StepResult.empty_m``): its ends stay loose ends. None: off (the paper,
-            the plain default).
+            segments' ``StepResult.empty_m``, made by ``PipelineConfig.evidence``; of this config
+            only the export's fields are used: ``refute_share``, ``sample_m``, ``min_edge_m``,
+            ``along_m``, ``heading_deg``, ``half_length_m``): its ends stay loose ends. None: off
+            (the paper, the plain default).
         path_curvature_m: the chain's heading rate is taken over this much of it (chord from
             the node to the first chain node at least this far; shorter chains: straight) [m].
         path_max_turn_deg: the arc search stops once the arc has turned this much from the
