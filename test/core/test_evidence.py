@@ -42,6 +42,26 @@ def test_profile_empty_where_passing_drives_saw_nothing():
     assert step_profiles(0, [], [], [], [], [], []) == []
 
 
+def test_profiles_of_many_steps_equal_those_of_each_step_alone():
+    """Many steps at once (the matrices are built a chunk of steps at a time) give what each step
+    gives alone."""
+    rng = np.random.default_rng(4)
+    n = 400
+    cq = np.repeat(np.arange(n), 8)
+    cd = np.tile(np.arange(8), n)
+    ct = rng.uniform(-6, 6, len(cq))
+    hq = np.repeat(np.arange(n), 24)
+    hd = np.tile(np.repeat(np.arange(8), 3), n)
+    ht = rng.choice([-5.25, -1.75, 1.75, 5.25], len(hq)) + rng.normal(0, 0.1, len(hq))
+    ht[rng.random(len(hq)) < 0.5] = 20.0  # half the detections elsewhere: some bins go empty
+    allp = step_profiles(n, cq, ct, cd, hq, ht, hd)
+    assert sum(len(p) for p in allp) > 50
+    for q in range(0, n, 37):
+        c, h = cq == q, hq == q
+        (one,) = step_profiles(1, cq[c] * 0, ct[c], cd[c], hq[h] * 0, ht[h], hd[h])
+        np.testing.assert_array_equal(allp[q], one)
+
+
 def test_edges_through_an_empty_stretch_refuted():
     """Steps every 2 m along x (heading 0) with the stretch y in [4, 6] empty for x in 20..40: a
     line node pair (18, 5) -> (42, 5) bridging it is refuted, one at y = 1.75 and a 2 m edge are not."""

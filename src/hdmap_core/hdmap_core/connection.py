@@ -546,6 +546,8 @@ def _empty_of(st: StepResult) -> np.ndarray | None:
         e = np.asarray(st.empty_m, dtype=float).reshape(-1, 2)
     except (TypeError, ValueError):
         return None
+    if e.size == 0:
+        return e
     e = e[np.isfinite(e).all(axis=1)]
     return np.sort(e, axis=1)
 

@@ -35,6 +35,10 @@ from hdmap_core.errors import ConfigError
 
 __all__ = ["EvidenceConfig", "step_profiles", "refuted_edges"]
 
+#: The intervals of a judged step without any (shared, read-only).
+_NO_INTERVALS = np.zeros((0, 2))
+_NO_INTERVALS.flags.writeable = False
+
 
 @dataclass(frozen=True)
 class EvidenceConfig:
@@ -51,6 +55,9 @@ class EvidenceConfig:
             detections were seen.
         bin_m: bin size along the cut [m].
         half_length_m: the profile spans this far either side of the pivot [m].
+        min_interval_m: narrower empty intervals are not kept: between two lines seen 3.5 m apart
+            the lane's middle is empty too (3.5 - 2 ``window_m``), a missing line makes its two
+            lanes' middles one interval of >= 2 lane widths minus the windows [m].
         refute_share: an edge is dropped when at least this share of its sample points are empty
             (each point: most of the steps crossing it say empty).
         sample_m: sample spacing along an edge [m]; the ends' first and last ``sample_m`` / 2 are
@@ -68,6 +75,7 @@ class EvidenceConfig:
     max_seen_ratio: float = 0.2
     bin_m: float = 0.5
     half_length_m: float = 15.0
+    min_interval_m: float = 2.5
     refute_share: float = 0.5
     sample_m: float = 2.0
     min_edge_m: float = 3.0
@@ -85,7 +93,7 @@ class EvidenceConfig:
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise ConfigError(f"EvidenceConfig: {name} must be finite and > 0, got {v}")
-        for name in ("min_expected", "min_edge_m"):
+        for name in ("min_expected", "min_edge_m", "min_interval_m"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ConfigError(f"EvidenceConfig: {name} must be finite and >= 0, got {v}")
@@ -125,11 +133,12 @@ def step_profiles(
         hit_q, hit_t, hit_drive: (H,) the same-direction detections' crossings, likewise (any type).
 
     Returns:
-        Per step a (K, 2) array of empty intervals [lo, hi] along the cut, from the pivot point [m].
+        Per step a (K, 2) array of empty intervals [lo, hi] along the cut, from the pivot point
+        [m], each at least ``min_interval_m`` wide (steps without one share one empty array).
     """
     x = np.arange(-config.half_length_m, config.half_length_m + 1e-9, config.bin_m)
     nb = len(x)
-    out = [np.zeros((0, 2)) for _ in range(n_steps)]
+    out = [_NO_INTERVALS] * n_steps
     cross_q = np.asarray(cross_q, dtype=np.int64)
     if n_steps == 0 or len(cross_q) == 0:
         return out
@@ -142,7 +151,9 @@ def step_profiles(
     first[1:] = (cq[1:] != cq[:-1]) | (cd[1:] != cd[:-1])
     cq, ct = cq[first], ct[first]
     expected = np.zeros((n_steps, nb))
-    np.add.at(expected, cq, _rate(x[None, :] - ct[:, None], config))
+    for a, b in _chunks(cq):  # (rows x bins) matrices a chunk of steps at a time: bounded memory
+        uq, at = np.unique(cq[a:b], return_index=True)  # cq is sorted
+        expected[uq] += np.add.reduceat(_rate(x[None, :] - ct[a:b, None], config), at, axis=0)
     seen = np.zeros((n_steps, nb))
     hit_q = np.asarray(hit_q, dtype=np.int64)
     if len(hit_q):
@@ -150,17 +161,41 @@ def step_profiles(
         hit_drive = np.asarray(hit_drive, dtype=np.int64)
         n_drv = int(max(hit_drive.max(), cross_drive.max())) + 1
         key = hit_q * n_drv + hit_drive
-        ukey, inv = np.unique(key, return_inverse=True)
-        near = np.abs(x[None, :] - hit_t[:, None]) <= config.window_m
-        by_pair = np.zeros((len(ukey), nb), dtype=bool)
-        np.logical_or.at(by_pair, inv, near)
-        np.add.at(seen, ukey // n_drv, by_pair.astype(float))
+        order = np.argsort(key, kind="stable")
+        key, ht = key[order], hit_t[order]
+        for a, b in _chunks(key // n_drv):
+            near = (np.abs(x[None, :] - ht[a:b, None]) <= config.window_m).astype(np.int8)
+            ukey, at = np.unique(key[a:b], return_index=True)
+            by_pair = np.maximum.reduceat(near, at, axis=0)  # per (step, drive): anything seen there
+            uq, at = np.unique(ukey // n_drv, return_index=True)  # sorted with the keys
+            seen[uq] += np.add.reduceat(by_pair, at, axis=0, dtype=np.float64)
     empty = (expected >= config.min_expected) & (seen < config.max_seen_ratio * expected)
-    for q in np.flatnonzero(empty.any(axis=1)).tolist():
-        row = np.concatenate([[False], empty[q], [False]])
-        d = np.diff(row.astype(np.int8))
-        lo, hi = np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1
-        out[q] = np.stack([x[lo] - 0.5 * config.bin_m, x[hi] + 0.5 * config.bin_m], axis=1)
+    pad = np.zeros((n_steps, nb + 2), dtype=np.int8)
+    pad[:, 1:-1] = empty
+    d = np.diff(pad, axis=1)
+    rows, lo_i = np.nonzero(d == 1)  # row-major: the i-th start pairs with the i-th end
+    _, hi_i = np.nonzero(d == -1)
+    lo, hi = x[lo_i] - 0.5 * config.bin_m, x[hi_i - 1] + 0.5 * config.bin_m
+    wide = hi - lo >= config.min_interval_m
+    rows, iv = rows[wide], np.stack([lo[wide], hi[wide]], axis=1)
+    bounds = np.searchsorted(rows, np.arange(n_steps + 1))
+    for q in np.flatnonzero(np.diff(bounds)).tolist():
+        out[q] = iv[bounds[q] : bounds[q + 1]]
+    return out
+
+
+def _chunks(group: np.ndarray, rows: int = 4096) -> list[tuple[int, int]]:
+    """Row ranges of about ``rows`` rows of a sorted group-id array, each ending at a group's end."""
+    n = len(group)
+    out, a = [], 0
+    while a < n:
+        b = min(a + rows, n)
+        if b < n:
+            b = int(np.searchsorted(group, group[b], side="left"))
+            if b <= a:  # one group longer than ``rows``: take all of it
+                b = int(np.searchsorted(group, group[a], side="right"))
+        out.append((a, b))
+        a = b
     return out
 
 

@@ -449,7 +449,7 @@ def _profiles(
             ht = ht + np.asarray(shift(hd.astype(np.int64), hs), dtype=float)
     prof = step_profiles(ps.n_steps, cq, ct, cd, hq, ht, hd, config=cfg)
     mid = np.einsum("ij,ij->i", ps.midpoint - ps.point, normal)
-    return {int(q): prof[q] - mid[q] for q in steps.tolist()}
+    return {int(q): prof[q] - mid[q] if len(prof[q]) else prof[q] for q in steps.tolist()}
 
 
 def _run_pivot(
