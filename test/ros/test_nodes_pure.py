@@ -116,6 +116,17 @@ def test_tile_msg_round_trip_through_cdr():
     assert back.segments[0].steps[0].empty_m.shape == (2, 2)
 
 
+def test_step_evidence_from_a_malformed_message_is_cut_not_fatal():
+    from types import SimpleNamespace
+
+    from hdmap_ros.nodes.tile_msgs import _empty_from_msg
+
+    assert _empty_from_msg(SimpleNamespace(judged=False, empty_lo_m=[1.0], empty_hi_m=[2.0])) is None
+    got = _empty_from_msg(SimpleNamespace(judged=True, empty_lo_m=[1.0, 4.0], empty_hi_m=[2.0]))
+    np.testing.assert_array_equal(got, [[1.0, 2.0]])
+    assert _empty_from_msg(SimpleNamespace(judged=True, empty_lo_m=[], empty_hi_m=[])).shape == (0, 2)
+
+
 def test_launch_file_compiles_and_names_every_node():
     from pathlib import Path
 

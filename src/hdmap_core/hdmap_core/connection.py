@@ -589,7 +589,7 @@ def _finish(
     def pick(a: np.ndarray | None, empty: np.ndarray) -> np.ndarray:
         return a[rows] if a is not None else empty
 
-    # the pivot's driven path: every step with a finite pose, used or not, in order of s_m
+    # the pivot's driven path: every step with a finite pose, used or not, in step order
     track = sorted((st for st in segment.steps if _pose_ok(st)), key=lambda st: st.index)
     empties = [_empty_of(st) for st in track]
 

@@ -463,9 +463,8 @@ class MapGraph(LooseEnds):
         reach = self._reach(flat)
         te = flat.topo_edges
         pred = _Adjacency(te[:, 1], te[:, 0], flat.n_topo)
-        for a, outs in existing._extra.items():
-            for b in outs:
-                pred.add(b, a)
+        for a, b in existing.added():
+            pred.add(b, a)
         for i, is_end in todo:
             linked = bool(outdeg[i]) if is_end else bool(indeg[i])
             if linked and not cfg.track_linked_ends:

@@ -32,6 +32,10 @@ class _Adjacency:
     def add(self, i: int, j: int) -> None:
         self._extra.setdefault(i, []).append(j)
 
+    def added(self) -> list[tuple[int, int]]:
+        """The edges added after construction, (i, j) pairs."""
+        return [(i, j) for i, js in self._extra.items() for j in js]
+
 
 #: A within-component link is refused when it would close a cycle of fewer topology nodes (~1 km).
 _CYCLE_NODES = 500
