@@ -1059,3 +1059,20 @@ def test_track_links_only_in_the_default_preset():
         StitchConfig(track_search_m=-1.0)
     with pytest.raises(ConfigError):
         StitchConfig(track_max_gap_m=math.nan)
+
+
+def test_track_of_a_pivot_split_over_tiles_is_followed_across_them():
+    """Live, one pivot's steps come in one segment per tile: p's chain (steps 0-35) in one, its
+    failed turn and the steps processed through q in the next. The end still follows the pivot's
+    whole track onto q."""
+    p, q = _junction(turn=True)
+    steps = [_pose_step("p", i, (0.0, 100.0 - 2.0 * i), -math.pi / 2) for i in range(36)]
+    thetas = math.pi + 0.1 * np.arange(1, 16)
+    turn = [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
+                       valid=False) for k, t in enumerate(thetas, start=1)]
+    turn += [_pose_step("p", 51, (22.0, 10.0), 0.0, processed_before=True)]
+    tile_a, tile_b = connect_segment(Segment("p", tuple(steps))), connect_segment(Segment("p", tuple(turn)))
+    assert tile_a.key != tile_b.key and tile_a.track_step.max() == 35
+    m = stitch([tile_a, tile_b, q], config=StitchConfig(track_search_m=60.0))
+    ((x, y),) = _successor_positions(m, [0.0, 30.0])
+    assert y == 10.0 and 20.0 <= x <= 24.0

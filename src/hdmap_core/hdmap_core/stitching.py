@@ -465,12 +465,14 @@ class MapGraph(LooseEnds):
         pred = _Adjacency(te[:, 1], te[:, 0], flat.n_topo)
         for a, b in existing.added():
             pred.add(b, a)
+        tracks = self._pivot_tracks()
         for i, is_end in todo:
             linked = bool(outdeg[i]) if is_end else bool(indeg[i])
             if linked and not cfg.track_linked_ends:
                 continue
             g = self._graphs[flat.keys[flat.t_graph[i]]]
-            if len(g.track_step) < 2:
+            track = tracks.get(g.pivot_id)
+            if track is None or len(track[0]) < 2:
                 continue
             step = int(g.topo_step[flat.t_local[i]])
             if linked:
@@ -482,14 +484,32 @@ class MapGraph(LooseEnds):
                     return j not in near and not _closes_cycle(existing, i, j, is_end)
             else:
                 allowed = self._allowed(existing, uf, i, is_end)
-            best = _track_partner(flat, tree, i, is_end, (g.track_step, g.track_xy, g.track_heading), step,
-                                  cfg, reach, allowed)
+            best = _track_partner(flat, tree, i, is_end, track, step, cfg, reach, allowed)
             if best < 0:
                 continue
             a, b = (i, best) if is_end else (best, i)
             if self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
                 pred.add(b, a)
                 rep.track_links += 1
+
+    def _pivot_tracks(self) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per pivot, its track over all its segment graphs (steps, xy, heading; by step, each step
+        once): live, one pivot's steps come in one graph per tile, each with that tile's part."""
+        parts: dict[str, list[SegmentGraph]] = {}
+        for k in self.keys:
+            g = self._graphs[k]
+            if len(g.track_step):
+                parts.setdefault(g.pivot_id, []).append(g)
+        out = {}
+        for pid, gs in parts.items():
+            if len(gs) == 1:
+                out[pid] = (gs[0].track_step, gs[0].track_xy, gs[0].track_heading)
+                continue
+            steps = np.concatenate([g.track_step for g in gs])
+            steps, first = np.unique(steps, return_index=True)
+            out[pid] = (steps, np.concatenate([g.track_xy for g in gs])[first],
+                        np.concatenate([g.track_heading for g in gs])[first])
+        return out
 
     def _path_links(
         self, flat: FlatGraph, tree: cKDTree, todo: list[tuple[int, bool]], existing: _Adjacency,
