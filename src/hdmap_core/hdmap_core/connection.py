@@ -176,8 +176,7 @@ def _check_step(st: StepResult) -> None:
                 f"step {st.index} of pivot {st.pivot_id!r}: {name} has shape {np.shape(getattr(st, name))}, "
                 f"lateral_m has {k}"
             )
-    mid = np.asarray(st.midpoint, dtype=float)
-    if mid.shape != (2,) or not (math.isfinite(mid[0]) and math.isfinite(mid[1]) and math.isfinite(st.heading)):
+    if not _pose_ok(st):
         raise HdmapError(f"step {st.index} of pivot {st.pivot_id!r}: midpoint/heading missing or not finite")
 
 
@@ -529,10 +528,10 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
 
 
 def _pose_ok(st: StepResult) -> bool:
-    """Does step ``st`` carry a finite 2-D midpoint, heading and travelled distance?"""
+    """Does step ``st`` carry a finite 2-D midpoint and heading?"""
     try:
         mid = np.asarray(st.midpoint, dtype=float)
-        return mid.shape == (2,) and bool(np.isfinite(mid).all()) and math.isfinite(st.heading) and math.isfinite(st.s_m)
+        return mid.shape == (2,) and bool(np.isfinite(mid).all()) and math.isfinite(st.heading)
     except (TypeError, ValueError):
         return False
 

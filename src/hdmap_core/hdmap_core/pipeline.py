@@ -430,13 +430,16 @@ def _profiles(
         return {}
     normal = left_normal(ps.heading).reshape(-1, 2)
     max_diff = np.deg2rad(max_heading_diff_deg)
-    cr = tindex.intersect(ps.point[steps], normal[steps], np.full(len(steps), cfg.half_length_m))
-    same = np.abs(wrap_angle(cr.drive_yaw - ps.heading[steps[cr.cut]])) <= max_diff
-    cq, ct, cd, cs = steps[cr.cut[same]], cr.t_m[same], cr.drive[same], cr.drive_s_m[same]
+
+    def crossings(idx: DetectionIndex, half_m: float) -> tuple[np.ndarray, ...]:
+        # same-direction crossings of the steps' cuts: (step, t, drive, drive s)
+        c = idx.intersect(ps.point[steps], normal[steps], np.full(len(steps), half_m))
+        ok = np.abs(wrap_angle(c.drive_yaw - ps.heading[steps[c.cut]])) <= max_diff
+        return steps[c.cut[ok]], c.t_m[ok], c.drive[ok], c.drive_s_m[ok]
+
+    cq, ct, cd, cs = crossings(tindex, cfg.half_length_m)
     if hits is None:
-        h = index.intersect(ps.point[steps], normal[steps], np.full(len(steps), cfg.half_length_m + cfg.window_m))
-        ok = np.abs(wrap_angle(h.drive_yaw - ps.heading[steps[h.cut]])) <= max_diff
-        hq, ht, hd, hs = steps[h.cut[ok]], h.t_m[ok], h.drive[ok], h.drive_s_m[ok]
+        hq, ht, hd, hs = crossings(index, cfg.half_length_m + cfg.window_m)
     else:
         want = np.zeros(ps.n_steps, dtype=bool)
         want[steps] = True

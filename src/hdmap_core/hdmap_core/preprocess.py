@@ -310,20 +310,21 @@ def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConf
 
 def trajectory_index(drives: list[Drive], *, cell_m: float = PreprocessConfig().grid_cell_m) -> DetectionIndex:
     """The drives' own trajectories as a segment index (type UNKNOWN), for cut-line crossings:
-    where each drive passed a cut (``hdmap_core.evidence``). Drive index i is ``drives[i]``."""
+    where each drive passed a cut (``hdmap_core.evidence``). Drive index i is ``drives[i]``;
+    validated drives (``model.validate_drive``: one finite yaw per pose)."""
     a_parts, b_parts, d_parts, sa_parts, sb_parts, y_parts = [], [], [], [], [], []
     for di, drive in enumerate(drives):
         xy = np.asarray(drive.xy, dtype=float).reshape(-1, 2)
         if len(xy) < 2:
             continue
-        s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        s = arc_length(xy)
         yaw = np.asarray(drive.yaw, dtype=float).reshape(-1)
         a_parts.append(xy[:-1])
         b_parts.append(xy[1:])
         d_parts.append(np.full(len(xy) - 1, di, dtype=np.int32))
         sa_parts.append(s[:-1])
         sb_parts.append(s[1:])
-        y_parts.append(yaw[:-1] if len(yaw) == len(xy) else np.arctan2(*(xy[1:] - xy[:-1]).T[::-1]))
+        y_parts.append(yaw[:-1])
     cat = lambda parts, empty: np.concatenate(parts) if parts else empty  # noqa: E731
     seg_a, seg_b = cat(a_parts, np.zeros((0, 2))), cat(b_parts, np.zeros((0, 2)))
     keys, start, segs = _build_grid(seg_a, seg_b, cell_m)

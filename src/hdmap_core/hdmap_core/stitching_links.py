@@ -157,15 +157,7 @@ def _path_partner(
         hm = h + sign * 0.5 * rate * _PATH_STEP_M  # heading in the middle of the arc step
         p = p + sign * _PATH_STEP_M * np.array([math.cos(hm), math.sin(hm)])
         h = h + sign * rate * _PATH_STEP_M
-        best, best_d = -1, math.inf
-        for j in tree.query_ball_point(p, reach_m):
-            if j == i or math.cos(flat.t_heading[j] - h) < cos_h:
-                continue
-            if sign * float((flat.t_xy[j] - flat.t_xy[i]) @ u0) <= 0.0:
-                continue  # behind an end (ahead of a start): the chain itself
-            d = _in_cross_section(flat, j, p)
-            if d < best_d and allowed(j):
-                best, best_d = int(j), d
+        best = _entered(flat, tree, i, sign, u0, p, h, cos_h, reach_m, allowed)
         if best >= 0:
             return best
     return -1
@@ -180,6 +172,26 @@ def _in_cross_section(flat: FlatGraph, j: int, p: np.ndarray) -> float:
     if abs(float(rel @ uj)) > _PATH_STEP_M or abs(float(rel @ nj)) > half:
         return math.inf
     return float(np.hypot(*rel))
+
+
+def _entered(
+    flat: FlatGraph, tree: cKDTree, i: int, sign: float, u0: np.ndarray, p: np.ndarray, h: float, cos_h: float,
+    reach_m: float, allowed: Callable[[int], bool],
+) -> int:
+    """The nearest node (among those ``allowed``) whose cross-section point p, heading h, enters
+    for the walk from end (``sign`` +1) or start (-1) node i with heading vector ``u0``; nodes
+    heading more than acos(``cos_h``) off h and nodes behind an end (ahead of a start), the chain
+    itself, do not count; -1 if none."""
+    best, best_d = -1, math.inf
+    for j in tree.query_ball_point(p, reach_m):
+        if j == i or math.cos(flat.t_heading[j] - h) < cos_h:
+            continue
+        if sign * float((flat.t_xy[j] - flat.t_xy[i]) @ u0) <= 0.0:
+            continue  # behind an end (ahead of a start): the chain itself
+        d = _in_cross_section(flat, j, p)
+        if d < best_d and allowed(j):
+            best, best_d = int(j), d
+    return best
 
 
 def _track_partner(
@@ -207,15 +219,7 @@ def _track_partner(
         if gap > cfg.track_max_gap_m or walked > cfg.track_search_m:
             break
         prev = p
-        best, best_d = -1, math.inf
-        for j in tree.query_ball_point(p, reach_m):
-            if j == i or math.cos(flat.t_heading[j] - heading[m]) < cos_h:
-                continue
-            if sign * float((flat.t_xy[j] - flat.t_xy[i]) @ u0) <= 0.0:
-                continue  # behind an end (ahead of a start): the chain itself
-            d = _in_cross_section(flat, j, p)
-            if d < best_d and allowed(j):
-                best, best_d = int(j), d
+        best = _entered(flat, tree, i, sign, u0, p, float(heading[m]), cos_h, reach_m, allowed)
         if best >= 0:
             return best
     return -1
