@@ -211,6 +211,27 @@ def test_floor_from_drive_trajectories(road: GroundTruth) -> None:
     assert report.sigma_loc_m == sigma
 
 
+def test_fleet_density_against_the_papers_drives_per_place(road: GroundTruth) -> None:
+    # 13 drives over the first 100 m, 4 beyond: with the paper's 5-25 range, about half the
+    # reference cuts are in it and half below; the map plays no part (an empty map: same figures)
+    drives = [_drive(f"a{i}", 1.75, 0.0, LENGTH_M) for i in range(4)]
+    drives += [_drive(f"b{i}", 5.25, 0.0, 100.0) for i in range(9)]
+    for hdmap in (hdmap_from_ground_truth(road), HDMap()):
+        report = evaluate_map(hdmap, road, drives=drives)
+        n = report.cuts.drive_count[report.cuts.n_gt > 0]
+        assert report.density_share == pytest.approx(np.mean(n == 13))
+        assert report.sparse_share == pytest.approx(np.mean(n == 4))
+        assert 0.4 < report.density_share < 0.6
+        assert report.density_share + report.sparse_share == pytest.approx(1.0)
+        assert report.drive_count_median in (4.0, 8.5, 13.0)
+    assert "at 5-25 drives" in report.summary()
+    wide = evaluate_map(hdmap_from_ground_truth(road), road, drives=drives, config=EvalConfig(density_drives=(1, 30)))
+    assert wide.density_share == pytest.approx(1.0) and wide.sparse_share == 0.0
+    # without drives there is no density (the map's drive counts are not the fleet's)
+    bare = evaluate_map(hdmap_from_ground_truth(road), road)
+    assert math.isnan(bare.density_share) and "fleet density" not in bare.summary()
+
+
 def test_realized_floor_is_the_mean_error_of_the_crossing_drives(road: GroundTruth) -> None:
     drives = [_drive(f"a{i}", 1.75, 0.0, LENGTH_M) for i in range(4)]
     drives += [_drive(f"b{i}", 5.25, 0.0, 100.0) for i in range(2)]
@@ -376,7 +397,7 @@ def test_no_highway_lane_is_a_clear_error(road: GroundTruth) -> None:
 @pytest.mark.parametrize(
     "kwargs",
     [{"step_m": 0.0}, {"gate_m": -1.0}, {"recall_radius_m": 3.0}, {"max_feature_angle_deg": 95.0},
-     {"border_margin_m": float("nan")}],
+     {"border_margin_m": float("nan")}, {"density_drives": (5, 2)}, {"density_drives": (-1, 5)}],
 )
 def test_bad_config_is_rejected(kwargs: dict) -> None:
     with pytest.raises(ConfigError):

@@ -152,6 +152,17 @@ def test_observation_pass_runs_the_em_at_every_stride_th_step(fleet):
         PipelineConfig(observation_stride=0)
 
 
+def test_fill_evidence_without_profiles_is_a_config_error():
+    default = PipelineConfig.preset("default")
+    assert default.evidence is not None and default.stitching.fill_evidence is not None
+    # the stitcher's fill test without the profiles it reads would silently test nothing
+    with pytest.raises(ConfigError, match="fill_evidence.*evidence"):
+        dataclasses.replace(default, evidence=None)
+    # both off, or profiles without the test (e.g. for a stitcher configured elsewhere), are fine
+    dataclasses.replace(default, evidence=None, stitching=dataclasses.replace(default.stitching, fill_evidence=None))
+    dataclasses.replace(default, stitching=dataclasses.replace(default.stitching, fill_evidence=None))
+
+
 def test_prepare_drives_rejects_with_reasons(fleet):
     dup = fleet[0]
     usable, rejected = prepare_drives([*fleet[:2], _bad_drive(), dup])

@@ -121,6 +121,9 @@ class EvalConfig:
         link_back_m: topology link precision: on one lane, B up to this far behind A counts [m].
         link_long_m: topology link precision: edges longer than this are the "long" ones (the
             stitcher's links; consecutive steps are 2 m apart) [m].
+        density_drives: (lo, hi) drives per place of the paper's data set (Sec. VII: 5-25); the
+            report gives the share of the reference cuts whose drive count lies in this range,
+            so a fleet can be placed against the density the paper's figures hold for.
     """
 
     step_m: float = 2.0
@@ -146,8 +149,12 @@ class EvalConfig:
     link_path_slack_m: float = 20.0
     link_back_m: float = 2.0
     link_long_m: float = 3.0
+    density_drives: tuple[int, int] = (5, 25)
 
     def __post_init__(self) -> None:
+        lo, hi = self.density_drives
+        if not (0 <= lo <= hi):
+            raise ConfigError(f"EvalConfig.density_drives must be (lo, hi) with 0 <= lo <= hi, got {self.density_drives!r}")
         positive = (
             "step_m", "recall_radius_m", "gate_m", "max_half_length_m", "default_sigma_loc_m",
             "topology_separation_m", "topology_window_m", "topology_reach_m", "topology_attach_m",
@@ -266,6 +273,11 @@ class EvalReport:
             drive_count) or "none" (no drive information).
         floor_mean_m: mean over evaluable cuts with a known drive count of sigma_loc / sqrt(n).
         drive_count_mean: mean drive count over the same cuts.
+        drive_count_median: median drive count over the reference cuts (cuts holding a
+            ground-truth point, mapped or not), from the drives' trajectories; NaN without drives.
+        density_share: share of those reference cuts whose drive count lies in
+            ``config.density_drives`` (the paper's 5-25 drives per place); NaN without drives.
+        sparse_share: share of them crossed by fewer than ``config.density_drives[0]`` drives.
         fleet_floor_mean_m: mean over the same cuts of |mean lateral error of the drives crossing
             the cut| when their errors are known (simulated fleets): the realized floor. Any map
             made from these drives alone (no absolute reference) inherits their common error, so a
@@ -346,6 +358,9 @@ class EvalReport:
     observed_share: float = math.nan
     recall_observed: float = math.nan
     n_observed: int = 0
+    drive_count_median: float = math.nan
+    density_share: float = math.nan
+    sparse_share: float = math.nan
     topology_link_precision: float = math.nan
     n_topology_links: int = 0
     n_topology_links_evaluable: int = 0
@@ -700,6 +715,7 @@ def evaluate_map(
         floor_mean_m=float(np.mean(floor[floor_ok])) if floor_ok.any() else math.nan,
         drive_count_mean=float(np.mean(drive_count[floor_ok])) if floor_ok.any() else math.nan,
         fleet_floor_mean_m=_mean_abs(fleet_err, floor_ok),
+        **_density_figures(drive_count, n_gt_cut > 0, config.density_drives, floor_source),
         **_observed_figures(observed, gt_hit),
         n_cuts=k,
         n_reference_cuts=n_ref,
@@ -772,6 +788,21 @@ def _cut_drive_counts(
     if not (dc > 0).any():
         return np.full(k, np.nan), "none"
     return np.where(dc > 0, dc, np.nan), "map"
+
+
+def _density_figures(drive_count: np.ndarray, reference: np.ndarray, rng: tuple[int, int], source: str) -> dict:
+    """Median drive count over the ``reference`` cuts and the shares of them in ``rng`` and below
+    it (only where the counts come from the drives' trajectories: map drive counts are not the
+    fleet's density where the map has nothing)."""
+    n = drive_count[reference]
+    if source != "drives" or len(n) == 0:
+        return {}
+    lo, hi = rng
+    return {
+        "drive_count_median": float(np.median(n)),
+        "density_share": float(np.mean((n >= lo) & (n <= hi))),
+        "sparse_share": float(np.mean(n < lo)),
+    }
 
 
 def _cut_fleet_error(k: int, crossings: _Crossings, drive_errors: Mapping[str, float]) -> np.ndarray:

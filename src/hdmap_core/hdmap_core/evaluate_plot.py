@@ -80,6 +80,13 @@ def format_summary(report: EvalReport) -> str:
             f"floor sigma/sqrt(n): {_m(report.floor_mean_m).strip()} m mean over evaluable cuts "
             f"(sigma_loc {report.sigma_loc_m:g} m, n from {src}: mean {report.drive_count_mean:.1f} drives)"
         )
+    if math.isfinite(report.density_share):
+        lo, hi = report.config.density_drives
+        lines.append(
+            f"fleet density over the reference cuts: median {report.drive_count_median:.0f} drives; "
+            f"{_pct(report.density_share).strip()} at {lo}-{hi} drives (the paper's data), "
+            f"{_pct(report.sparse_share).strip()} below {lo}"
+        )
     if math.isfinite(report.fleet_floor_mean_m):
         lines.append(
             f"realized floor |mean error of the crossing drives|: {report.fleet_floor_mean_m:.3f} m mean over "

@@ -109,6 +109,13 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.observation_stride, int) and self.observation_stride >= 1):
             raise ConfigError(f"PipelineConfig.observation_stride must be an int >= 1, got {self.observation_stride!r}")
+        # The stitcher's fill test reads the profiles this config's ``evidence`` makes; without
+        # them it would silently test nothing.
+        if getattr(self.stitching, "fill_evidence", None) is not None and self.evidence is None:
+            raise ConfigError(
+                "PipelineConfig.stitching.fill_evidence needs the negative-evidence profiles of "
+                "PipelineConfig.evidence, which is None: set both (or neither)"
+            )
 
     @classmethod
     def preset(cls, name: str) -> PipelineConfig:  # type: ignore[override]
