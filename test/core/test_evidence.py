@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.evidence import EvidenceConfig, refuted_edges, step_profiles
+from hdmap_core.evidence import _in_intervals, EvidenceConfig, refuted_edges, step_profiles
 from hdmap_core.model import Detection, Drive, FeatureType
 from hdmap_core.pipeline import PipelineConfig, build_map, map_stretches, prepare_drives
 from pipeline_fleet import LINES, offset_line
@@ -82,6 +82,25 @@ def test_edges_through_an_empty_stretch_refuted():
     lax = dataclasses.replace(CFG, refute_share=0.4)
     assert refuted_edges(nodes2, edges, step_xy, np.zeros(len(xs)), start, empty, config=lax).tolist() == [True, False, False]
     assert refuted_edges(nodes, edges, np.zeros((0, 2)), np.zeros(0), np.zeros(1, np.int64), np.zeros((0, 2))).tolist() == [False] * 3
+
+
+def test_interval_lookup_matches_a_scan_of_each_steps_intervals():
+    """Several disjoint intervals per step, steps without any, points on the bounds, between
+    intervals and on another step's interval: the sorted lookup answers as a per-step scan."""
+    rng = np.random.default_rng(3)
+    rows = []
+    for _ in range(40):
+        cuts = np.sort(rng.choice(np.arange(-15.0, 15.5, 0.5), size=2 * rng.integers(0, 4), replace=False))
+        rows.append(cuts.reshape(-1, 2)[::-1])  # out of order within a step on purpose
+    start = np.concatenate([[0], np.cumsum([len(r) for r in rows])])
+    empty = np.concatenate(rows)
+    step = rng.integers(0, 40, size=2000)
+    lat = np.concatenate([rng.uniform(-16, 16, 1500), empty[rng.integers(0, len(empty), 500)].ravel()[:500]])
+    got = _in_intervals(step, lat, start, empty)
+    want = [bool(((rows[q][:, 0] <= t) & (t <= rows[q][:, 1])).any()) for q, t in zip(step.tolist(), lat.tolist())]
+    assert got.tolist() == want
+    assert 100 < sum(want) < 1900
+    assert _in_intervals(step[:0], lat[:0], start, empty).tolist() == []
 
 
 def _drive(i: int, lane: float, gap: tuple[float, ...] | None) -> Drive:

@@ -235,28 +235,39 @@ def refuted_edges(
     frac = (k + 0.5) / n_s[owner]
     p = a[cand][owner] + frac[:, None] * (b[cand] - a[cand])[owner]
     u = (b[cand] - a[cand])[owner] / length[cand][owner][:, None]
-    tree = cKDTree(step_xy)
+    # every (sample point, step) pair within reach, then the steps whose cut crosses the point
     reach = config.half_length_m + config.along_m
-    cos_min = math.cos(math.radians(config.heading_deg))
-    votes = np.zeros(len(p))
-    judged = np.zeros(len(p))
-    for i, near in enumerate(tree.query_ball_point(p, reach)):
-        if not near:
-            continue
-        j = np.asarray(near, dtype=np.int64)
-        h = step_heading[j]
-        su = np.stack([np.cos(h), np.sin(h)], axis=1)
-        ok = su @ u[i] >= cos_min
-        rel = p[i] - step_xy[j]
-        along = np.einsum("ij,ij->i", rel, su)
-        lat = rel[:, 1] * su[:, 0] - rel[:, 0] * su[:, 1]  # + = left of the step's heading
-        ok &= (np.abs(along) <= config.along_m) & (np.abs(lat) <= config.half_length_m)
-        for jj, ll in zip(j[ok].tolist(), lat[ok].tolist()):
-            iv = empty[empty_start[jj] : empty_start[jj + 1]]
-            judged[i] += 1
-            if len(iv) and bool(((iv[:, 0] <= ll) & (ll <= iv[:, 1])).any()):
-                votes[i] += 1
+    pairs = cKDTree(p).sparse_distance_matrix(cKDTree(step_xy), reach, output_type="ndarray")
+    i, j = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    su = np.stack([np.cos(step_heading[j]), np.sin(step_heading[j])], axis=1)
+    rel = p[i] - step_xy[j]
+    along = np.einsum("ij,ij->i", rel, su)
+    lat = rel[:, 1] * su[:, 0] - rel[:, 0] * su[:, 1]  # + = left of the step's heading
+    ok = np.einsum("ij,ij->i", su, u[i]) >= math.cos(math.radians(config.heading_deg))
+    ok &= (np.abs(along) <= config.along_m) & (np.abs(lat) <= config.half_length_m)
+    i, j, lat = i[ok], j[ok], lat[ok]
+    judged = np.bincount(i, minlength=len(p)).astype(float)
+    votes = np.bincount(i[_in_intervals(j, lat, empty_start, empty)], minlength=len(p)).astype(float)
     point_empty = (judged > 0) & (votes > 0.5 * judged)
     share = np.bincount(owner, weights=point_empty.astype(float), minlength=len(cand)) / n_s
     out[cand[share >= config.refute_share]] = True
     return out
+
+
+def _in_intervals(step: np.ndarray, lat: np.ndarray, empty_start: np.ndarray, empty: np.ndarray) -> np.ndarray:
+    """(P,) bool: whether ``lat[k]`` lies in one of the empty intervals of step ``step[k]``
+    (``empty[empty_start[s]:empty_start[s + 1]]``, disjoint [lo, hi] along the cut)."""
+    n_iv = np.diff(np.asarray(empty_start, dtype=np.int64))
+    if len(step) == 0 or not n_iv.any():
+        return np.zeros(len(step), dtype=bool)
+    iv_step = np.repeat(np.arange(len(n_iv)), n_iv)
+    lo, hi = empty[: len(iv_step), 0], empty[: len(iv_step), 1]
+    # one sorted key per interval, (step, lo) in lexicographic order: steps ``width`` apart
+    base = min(float(lo.min()), float(lat.min()))
+    width = max(float(hi.max()), float(lat.max())) - base + 1.0
+    key = iv_step * width + (lo - base)
+    order = np.argsort(key, kind="stable")
+    key, iv_step, lo, hi = key[order], iv_step[order], lo[order], hi[order]
+    # the last interval starting at or before the point, on the point's own step or not
+    k = np.maximum(np.searchsorted(key, step * width + (lat - base), side="right") - 1, 0)
+    return (iv_step[k] == step) & (lo[k] <= lat) & (lat <= hi[k])

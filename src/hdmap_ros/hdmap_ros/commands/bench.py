@@ -49,7 +49,7 @@ COLUMNS = (
     ("mean_over_floor", "mean/floor", "{:.2f}"),
     ("fleet_floor_m", "fleet err m", "{:.3f}"),
     ("drives_per_cut", "drives/cut med.", "{:.0f}"),
-    ("density_share", "5-25 drives", "{:.0%}"),
+    ("sparse_share", "< 5 drives", "{:.0%}"),
     ("coverage", "coverage", "{:.1%}"),
     ("recall", "recall", "{:.1%}"),
     ("observed_share", "observed", "{:.1%}"),
@@ -65,7 +65,7 @@ COLUMNS = (
 )
 
 # The table over seeds: the mean over the seeds of each of these figures (formats as in COLUMNS) ...
-_SEED_MEANS = ("drives", "mean_m", "corrected_mean_m", "floor_m", "fleet_floor_m", "density_share", "coverage", "recall",
+_SEED_MEANS = ("drives", "mean_m", "corrected_mean_m", "floor_m", "fleet_floor_m", "sparse_share", "coverage", "recall",
                "observed_share", "recall_observed", "precision", "type_accuracy", "fragmentation", "build_s")
 # ... and ratios of those means, the worst seed's ratio, the seeds.
 _SEED_EXTRA = {
@@ -75,7 +75,7 @@ _SEED_EXTRA = {
     "mean_over_fleet": ("mean_over_fleet", "mean/fleet err", "{:.2f}"),
 }
 _SEED_ORDER = ("scenario", "preset", "seeds", "drives", "mean_m", "corrected_mean_m", "floor_m", "mean_over_floor",
-               "mean_over_floor_max", "fleet_floor_m", "mean_over_fleet", "density_share", "coverage", "recall", "observed_share",
+               "mean_over_floor_max", "fleet_floor_m", "mean_over_fleet", "sparse_share", "coverage", "recall", "observed_share",
                "recall_observed", "precision", "type_accuracy", "fragmentation", "build_s")
 SEED_COLUMNS = tuple(_SEED_EXTRA.get(k) or next(c for c in COLUMNS if c[0] == k) for k in _SEED_ORDER)
 
@@ -280,6 +280,7 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
         "mean_over_floor": _ratio(o.mean_m, floor),
         "drives_per_cut": rep.drive_count_median,
         "density_share": rep.density_share,
+        "sparse_share": rep.sparse_share,
         "coverage": rep.coverage,
         "recall": o.recall,
         "observed_share": rep.observed_share,
