@@ -1031,6 +1031,22 @@ def test_end_follows_its_pivots_track_through_a_junction_turn():
     assert _successor_positions(stitch(_junction(turn=False), config=StitchConfig(track_search_m=60.0)), end) == []
 
 
+@pytest.mark.parametrize("across_m, linked", [(0.0, True), (4.5, True), (7.0, False)])
+def test_track_walk_passes_failed_midpoints_thrown_across_the_road(across_m: float, linked: bool):
+    """As above, with two failed steps' cut midpoints thrown across the road (refined to other
+    borders), +across_m and -across_m off the pivot's arc: 2 * across_m apart, 2 m along. The
+    pivot drove on: up to ``track_max_jump_m`` (12 m) the walk goes on, beyond it that is no path."""
+    p, q = _junction(turn=True)
+    xy = p.track_xy.copy()
+    for step, sign in ((37, 1.0), (38, -1.0)):
+        h = p.track_heading[step]
+        xy[step] += sign * across_m * np.array([-math.sin(h), math.cos(h)])
+    p = dataclasses.replace(p, track_xy=xy)
+    end = [0.0, 30.0]
+    succ = _successor_positions(stitch([p, q], config=StitchConfig(track_search_m=60.0)), end)
+    assert (len(succ) == 1 and succ[0][1] == 10.0) if linked else succ == []
+
+
 def test_linked_end_gets_the_turn_its_pivot_took_as_a_second_successor():
     """As above, with a road c going on south from p's end: the ordinary link takes c. With
     ``track_linked_ends`` the end also gets q (the split p's pivot drove); c keeps its link."""

@@ -168,7 +168,11 @@ class StitchConfig:
             "Track links"). The walk stops at a gap of more than ``track_max_gap_m`` between
             track points (a run processed before keeps only its first and last step). 0
             disables (the paper, the plain default) [m].
-        track_max_gap_m: see ``track_search_m`` [m].
+        track_max_gap_m: see ``track_search_m``; measured along the track's heading [m].
+        track_max_jump_m: ... and two track points further apart than this (in any direction)
+            are a gap too: a failed step's cut midpoint may lie across the road from the last
+            (carla_town06_30_s1: 8.96 m, 2 m along), but a cut refined onto another road is no
+            path the pivot drove [m].
         track_linked_ends: the track search also runs from starts (ends) that have a partner
             already; it then links to a node its pivot's track enters only when the map does
             not reach that node from the start (end) within 2 * ``track_search_m`` + 30 m (the
@@ -245,6 +249,7 @@ class StitchConfig:
     path_search_m: float = 0.0
     track_search_m: float = 0.0
     track_max_gap_m: float = 6.0
+    track_max_jump_m: float = 12.0
     track_linked_ends: bool = False
     fill_evidence: EvidenceConfig | None = None
     path_curvature_m: float = 20.0
@@ -293,6 +298,7 @@ class StitchConfig:
             "path_search_m",
             "track_search_m",
             "track_max_gap_m",
+            "track_max_jump_m",
             "path_curvature_m",
         ):
             v = getattr(self, name)

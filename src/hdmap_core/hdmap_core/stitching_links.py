@@ -214,9 +214,12 @@ def _track_partner(
     walked, prev = 0.0, xy[k]
     for m in range(k + sign, len(steps) if is_end else -1, sign):
         p = xy[m]
-        gap = float(np.hypot(*(p - prev)))
+        # along the pivot's heading: a failed step's cut midpoint may jump across the road (its
+        # cut refined to other borders) though the pivot drove on; a run processed before keeps
+        # only its first and last step: a gap along the way
+        gap = abs(float(np.dot(p - prev, _unit(float(heading[m]))[0])))
         walked += gap
-        if gap > cfg.track_max_gap_m or walked > cfg.track_search_m:
+        if gap > cfg.track_max_gap_m or walked > cfg.track_search_m or float(np.hypot(*(p - prev))) > cfg.track_max_jump_m:
             break
         prev = p
         best = _entered(flat, tree, i, sign, u0, p, float(heading[m]), cos_h, reach_m, allowed)
