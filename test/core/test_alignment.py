@@ -434,3 +434,57 @@ def test_robust_loss_changes_nothing_without_outliers():
     plain = solve_offsets(lat, labels, ty, dr, 3, config=AlignmentConfig(solver="closed_form"))
     robust = solve_offsets(lat, labels, ty, dr, 3, config=AlignmentConfig(solver="closed_form", robust_loss=True))
     np.testing.assert_allclose(robust, plain, atol=1e-12)
+
+
+def test_sparse_step_of_two_drives_sharing_no_line_accepted_when_apart():
+    """Two drives (carla_town04_30_s3, x 180-250 m, final pass, samples shifted) in different
+    lanes: drive 1 sees the border and three lines on the right, drive 0 two lines on the left,
+    none seen by both. Every cluster is a singleton and none is shared, so the step was rejected
+    (35 steps in a row, 70 m unmapped) although each drive alone would pass the one-drive rule.
+    With ``sparse_disjoint_apart_m`` it is accepted when no two samples of different drives lie
+    closer than that (different lines, not one line the drives placed apart)."""
+    B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+    lat = np.array([-9.05, -5.42, -1.97, 1.48, 4.99, 8.71])
+    types = np.array([B, S, D, D, D, S])
+    drive = np.array([1, 1, 1, 1, 0, 0])
+    cfg = AlignmentConfig(
+        clustering="gap", estimate_offsets=False, sparse_step_max_drives=4, sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0, sparse_type_clash_max_drives=3, lone_cluster_max_std_m=0.3,
+        sparse_singletons_accept=True,
+    )
+    assert AlignmentConfig().sparse_disjoint_apart_m == 0.0
+    assert not align_step(lat, types, drive, config=cfg).valid
+    on = replace(cfg, sparse_disjoint_apart_m=2.0)
+    res = align_step(lat, types, drive, config=on)
+    assert res.valid and np.all(res.labels >= 0) and len(np.unique(res.labels)) == 6
+    # Each drive alone passes the one-drive rule either way.
+    for d in (0, 1):
+        assert align_step(lat[drive == d], types[drive == d], drive[drive == d] * 0, config=cfg).valid
+    # The two drives disagree on the type of the one line both see (dropped as a clash): the
+    # rest, 2+ m apart between the drives, is accepted (x -276 m: drive 0 border, dashed, solid,
+    # dashed; drive 1 solid and the clashing solid).
+    lat2 = np.array([-8.38, -4.87, -1.49, -1.37, 2.27, 5.57])
+    types2 = np.array([B, S, D, S, S, D])
+    drive2 = np.array([0, 1, 0, 1, 0, 0])
+    assert not align_step(lat2, types2, drive2, config=cfg).valid
+    res2 = align_step(lat2, types2, drive2, config=on)
+    assert res2.valid and np.all(res2.labels[[2, 3]] == -1) and np.all(res2.labels[[0, 1, 4, 5]] >= 0)
+    # Drive 0's line 1.5 m from drive 1's: one line placed apart (or a contradiction), rejected.
+    near = lat.copy()
+    near[4] = 2.98
+    assert not align_step(near, types, drive, config=on).valid
+    # A loose cluster (std > 0.3 m) is not accepted by the rule either.
+    loose = np.r_[lat, 4.99 + 0.9]
+    assert not align_step(loose, np.r_[types, D], np.r_[drive, 0], config=on).valid
+    with pytest.raises(ConfigError):
+        AlignmentConfig(sparse_disjoint_apart_m=-1.0)
+    # Only the default preset's final pass uses the rule.
+    from hdmap_core.pipeline import PipelineConfig
+
+    default = PipelineConfig.preset("default")
+    assert default.final_alignment.sparse_disjoint_apart_m == 2.0
+    assert default.alignment.sparse_disjoint_apart_m == 0.0
+    for name in ("paper", "naive"):
+        p = PipelineConfig.preset(name)
+        assert p.alignment.sparse_disjoint_apart_m == 0.0
+        assert p.final_alignment is None or p.final_alignment.sparse_disjoint_apart_m == 0.0

@@ -95,6 +95,13 @@ class AlignmentConfig:
             (the drives agree somewhere). Two drives that see different lines, or disagree on
             the type where both see one, left whole stretches unmapped (carla_town06_30_s2: 40
             steps in a row, 80 m). False: such a step is rejected.
+        sparse_disjoint_apart_m: with ``sparse_singletons_accept``, a step whose drives share no
+            cluster (each saw lines the others did not, or they disagreed on the type of the one
+            line they shared, dropped as a clash) is accepted too when every cluster is tight and
+            no two kept samples of different drives lie closer than this [m] (so they are
+            different lines, not one line the drives placed apart): each drive alone would pass
+            the one-drive rule (``lone_cluster_max_std_m``), and two drives that do not contradict
+            each other are no weaker evidence than one. 0 = off (a shared cluster is required).
         sparse_type_clash_max_drives: the type-clash drop applies to steps of at most this many
             drives; 0: to every step of the sparse-step rule. (With 4 drives a one-sample cluster
             beside another drive's line of the other type can be a real line; the default
@@ -126,6 +133,7 @@ class AlignmentConfig:
     sparse_type_clash_m: float = 0.0
     sparse_singletons_accept: bool = False
     sparse_type_clash_max_drives: int = 0
+    sparse_disjoint_apart_m: float = 0.0
     min_cluster_drives: int = 1
     max_offset_m: float = 5.0
 
@@ -139,10 +147,10 @@ class AlignmentConfig:
         if self.gap_split_m <= 0 or self.huber_delta_m <= 0 or self.ridge < 0 or self.prior_weight < 0:
             raise ConfigError("AlignmentConfig: gap_split_m, huber_delta_m > 0 and ridge, prior_weight >= 0 required")
         if (self.sparse_step_max_drives < 0 or self.sparse_step_max_std_m <= 0 or self.sparse_type_clash_m < 0
-                or self.sparse_type_clash_max_drives < 0):
+                or self.sparse_type_clash_max_drives < 0 or self.sparse_disjoint_apart_m < 0):
             raise ConfigError(
                 "AlignmentConfig: sparse_step_max_drives, sparse_type_clash_m, sparse_type_clash_max_drives >= 0 and "
-                "sparse_step_max_std_m > 0 required"
+                "sparse_step_max_std_m > 0, sparse_disjoint_apart_m >= 0 required"
             )
 
 
@@ -886,12 +894,17 @@ def _em(
         # Few drives: lines one drive sees and the other misses are singletons (silhouette 0);
         # judge the step by the clusters both see, and by every cluster being tight.
         paired = step_silhouette(y, labels, types, skip_singletons=True)
-        valid = _max_cluster_std(y, labels) <= config.sparse_step_max_std_m and (
+        tight = _max_cluster_std(y, labels) <= config.sparse_step_max_std_m
+        valid = tight and (
             paired >= config.silhouette_gate
             # RULE sparse singletons: no cluster of two or more samples in a type with two
             # clusters, so nothing is left to score: judged like a lone-cluster step
             or (config.sparse_singletons_accept and paired == -1.0 and _shared_cluster(labels, drive))
         )
+        # RULE disjoint drives: no line shared and none contradicted (docs/pipeline.md)
+        if (not valid and tight and config.sparse_singletons_accept and paired == -1.0
+                and config.sparse_disjoint_apart_m > 0 and _drives_apart(y, labels, drive, config.sparse_disjoint_apart_m)):
+            valid = True
     use = labels >= 0
     one_drive = bool(use.any()) and bool(np.all(drive[use] == drive[use][0]))
     if (score == -1.0 or (one_drive and not valid)) and config.lone_cluster_max_std_m > 0:
@@ -910,6 +923,17 @@ def _shared_cluster(labels: np.ndarray, drive: np.ndarray) -> bool:
         return False
     pairs = np.unique(np.stack([labels[use], drive[use]], axis=1), axis=0)
     return bool((np.bincount(pairs[:, 0]) >= 2).any())
+
+
+def _drives_apart(y: np.ndarray, labels: np.ndarray, drive: np.ndarray, apart_m: float) -> bool:
+    """Whether the kept samples (labels >= 0) of two or more drives are, between any two
+    different drives, at least ``apart_m`` apart."""
+    use = labels >= 0
+    if len(np.unique(drive[use])) < 2:
+        return False  # one drive's samples alone: the one-drive rule judges them
+    yy, dd = y[use], drive[use]
+    near = (np.abs(yy[:, None] - yy[None, :]) < apart_m) & (dd[:, None] != dd[None, :])
+    return not bool(near.any())
 
 
 def _max_cluster_std(y: np.ndarray, labels: np.ndarray) -> float:

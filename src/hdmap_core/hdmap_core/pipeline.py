@@ -159,6 +159,9 @@ class PipelineConfig:
             final = replace(
                 fast, clustering="gap", prior_weight=0.0, estimate_offsets=False, sparse_singletons_accept=True,
                 sparse_step_max_drives=4, sparse_type_clash_max_drives=3,
+                # two drives that share no line but contradict none (each sees lines the other
+                # misses, 2+ m apart) are accepted as one drive alone would be
+                sparse_disjoint_apart_m=2.0,
             )
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
             from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
