@@ -1092,3 +1092,28 @@ def test_track_of_a_pivot_split_over_tiles_is_followed_across_them():
     m = stitch([tile_a, tile_b, q], config=StitchConfig(track_search_m=60.0))
     ((x, y),) = _successor_positions(m, [0.0, 30.0])
     assert y == 10.0 and 20.0 <= x <= 24.0
+
+
+def test_track_of_a_pivot_is_followed_across_live_tiles():
+    """Live (``incremental.connect_tile``) each tile's graph of p has its own pivot id
+    (``p#ix,iy``) and counts its steps from the tile's clip of the drive: p's chain (steps 0-35)
+    in tile (0, 0); its failed turn and the steps processed through q in tile (0, -1), steps
+    counted from 0 again, ``s_m`` the travelled distance of the whole drive (``map_tile``). The
+    end still follows p's whole track onto q: the pieces are one track by drive and ``s_m``."""
+    from hdmap_core.incremental import connect_tile  # noqa: PLC0415
+
+    p, q = _junction(turn=True)
+    steps = [_pose_step("p", i, (0.0, 100.0 - 2.0 * i), -math.pi / 2) for i in range(36)]
+    thetas = math.pi + 0.1 * np.arange(1, 16)
+    turn = [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
+                       valid=False) for k, t in enumerate(thetas, start=1)]
+    turn += [_pose_step("p", 51, (22.0, 10.0), 0.0, processed_before=True)]
+    clip = [dataclasses.replace(st, index=st.index - 30) for st in turn]  # the tile's clip starts 60 m on
+    cfg = PipelineConfig.preset("default")
+    (tile_a,) = connect_tile([Segment("p", tuple(steps))], (0, 0), pipeline_config=cfg)
+    (tile_b,) = connect_tile([Segment("p", tuple(clip))], (0, -1), pipeline_config=cfg)
+    assert tile_a.pivot_id != tile_b.pivot_id and tile_a.pivot_drive == tile_b.pivot_drive == "p"
+    assert set(tile_a.track_step.tolist()) & set(tile_b.track_step.tolist())  # the step numbers overlap
+    m = stitch([tile_a, tile_b, q], config=StitchConfig(track_search_m=60.0))
+    ((x, y),) = _successor_positions(m, [0.0, 30.0])
+    assert y == 10.0 and 20.0 <= x <= 24.0

@@ -613,6 +613,7 @@ def _finish(
         stats=stats,
         tile_size_m=config.tile_size_m,
         track_step=np.array([int(st.index) for st in track], dtype=np.int64),
+        track_s=np.array([float(st.s_m) for st in track]),
         track_xy=np.array([np.asarray(st.midpoint, dtype=float) for st in track]).reshape(-1, 2),
         track_heading=np.array([float(st.heading) for st in track]),
         track_judged=np.array([e is not None for e in empties], dtype=bool),

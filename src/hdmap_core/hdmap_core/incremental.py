@@ -305,6 +305,25 @@ def _core_observations(observations: Sequence, inp: _TileInput, key: TileKey) ->
     return out
 
 
+def _whole_drive_s(segments: list[Segment], s0: dict[str, float]) -> list[Segment]:
+    """The segments with each step's ``s_m`` counted from the start of the whole pivot drive,
+    not of its clip to the tile (``s0``: where each clip starts on its drive).
+
+    So the pieces of one pivot's path in the tiles it crosses share one order (the stitcher
+    follows a pivot's track across tiles by it). The shift is rounded to 1/1024 m: the steps'
+    distances are multiples of the step length, so their differences (the connection's gap
+    tests) stay exactly what they were.
+    """
+    out = []
+    for seg in segments:
+        shift = round(float(s0.get(seg.pivot_id, 0.0)) * 1024.0) / 1024.0
+        if shift == 0.0:
+            out.append(seg)
+            continue
+        out.append(Segment(pivot_id=seg.pivot_id, steps=tuple(replace(st, s_m=float(st.s_m) + shift) for st in seg.steps)))
+    return out
+
+
 def map_tile(
     drives: Sequence[Drive],
     key: TileKey,
@@ -330,14 +349,15 @@ def map_tile(
             instead of the observation pass plus an adjustment over the tile's own steps.
 
     Returns:
-        Segments of the steps inside the tile proper (may be empty).
+        Segments of the steps inside the tile proper (may be empty); the steps' ``s_m`` are
+        travelled distances of the whole pivot drives (not of their clips).
     """
     if offset_model is not None and getattr(pipeline_config, "use_global_adjustment", False):
         inp = _tile_input(drives, key, tile_config, pipeline_config)
         if not inp.clipped:
             return []
         segments = _final_pass(inp, pipeline_config, _ClippedOffsets(offset_model, inp.s0))
-        return select_steps(segments, inp.core)
+        return _whole_drive_s(select_steps(segments, inp.core), inp.s0)
     return map_tile_observed(drives, key, tile_config=tile_config, pipeline_config=pipeline_config)[0]
 
 
@@ -357,7 +377,7 @@ def map_tile_observed(
         return [], []
     res = map_stretches(inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed,
                         collect_observations=True, validated=True)
-    return select_steps(res.segments, inp.core), _core_observations(res.observations, inp, key)
+    return _whole_drive_s(select_steps(res.segments, inp.core), inp.s0), _core_observations(res.observations, inp, key)
 
 
 def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: object) -> list:
@@ -482,7 +502,10 @@ def connect_tile(segments: Sequence[Segment], key: TileKey, *, pipeline_config: 
     The same pivot drive is mapped in every tile it crosses, and its step indices count from where
     the drive was clipped to each tile; the segment graphs' keys (and the stable ids derived from
     them) would collide across tiles. So each pivot id is suffixed with the tile key here
-    (``"<pivot>#<ix>,<iy>"``); drive ids of the steps stay as they are.
+    (``"<pivot>#<ix>,<iy>"``); drive ids of the steps stay as they are, and the graph's
+    ``pivot_drive`` names the pivot's drive, so the stitcher follows one pivot's track over all
+    the tiles it crosses (ordered by the steps' ``s_m``, travelled distances of the whole drive:
+    :func:`map_tile`).
 
     Returns:
         One ``SegmentGraph`` per segment with at least one step, in input order.
@@ -495,8 +518,8 @@ def connect_tile(segments: Sequence[Segment], key: TileKey, *, pipeline_config: 
         if not seg.steps:
             continue
         pivot = f"{seg.pivot_id}#{int(key[0])},{int(key[1])}"
-        seg = Segment(pivot_id=pivot, steps=tuple(replace(st, pivot_id=pivot) for st in seg.steps))
-        out.append(connect_segment(seg, **kw))
+        renamed = Segment(pivot_id=pivot, steps=tuple(replace(st, pivot_id=pivot) for st in seg.steps))
+        out.append(replace(connect_segment(renamed, **kw), pivot_drive=seg.pivot_id))
     return out
 
 

@@ -74,12 +74,17 @@ class SegmentGraph:
         track_step: (S,) int, every step of the pivot with a finite pose, used or not (rejected
             steps and the ends of runs processed before included), increasing: the path the
             pivot drove, which the stitcher's track links follow (empty: not known).
+        track_s: (S,) the steps' travelled distances of the pivot (``StepResult.s_m``) [m]; the
+            order of the pivot's track over all its graphs (empty: not known, step order).
         track_xy: (S, 2) the steps' cut-line midpoints [m].
         track_heading: (S,) the steps' ENU yaw [rad].
         track_judged: (S,) bool, the step carries a negative-evidence profile (``StepResult.empty_m``).
         track_empty_start: (S + 1,) offsets into ``track_empty``.
         track_empty: (M, 2) the steps' empty intervals [lo, hi] along their cuts, from the
             midpoint [m] (``hdmap_core.evidence``).
+        pivot_drive: the drive the pivot is, when ``pivot_id`` is a per-tile name of it (live:
+            ``"<drive>#<ix>,<iy>"``, ``incremental.connect_tile``); '' = ``pivot_id``. The graphs
+            of one pivot drive hold pieces of one track, ordered by ``track_s``.
     """
 
     key: str
@@ -107,6 +112,8 @@ class SegmentGraph:
     track_judged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool), compare=False)
     track_empty_start: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64), compare=False)
     track_empty: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), compare=False)
+    track_s: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False)
+    pivot_drive: str = field(default="", compare=False)
 
     @property
     def n_topo(self) -> int:

@@ -465,16 +465,19 @@ class MapGraph(LooseEnds):
         pred = _Adjacency(te[:, 1], te[:, 0], flat.n_topo)
         for a, b in existing.added():
             pred.add(b, a)
-        tracks = self._pivot_tracks()
+        tracks, rows = self._pivot_tracks()
         for i, is_end in todo:
             linked = bool(outdeg[i]) if is_end else bool(indeg[i])
             if linked and not cfg.track_linked_ends:
                 continue
             g = self._graphs[flat.keys[flat.t_graph[i]]]
-            track = tracks.get(g.pivot_id)
+            track = tracks.get(g.pivot_drive or g.pivot_id)
             if track is None or len(track[0]) < 2:
                 continue
             step = int(g.topo_step[flat.t_local[i]])
+            r = int(np.searchsorted(g.track_step, step))
+            if r >= len(g.track_step) or int(g.track_step[r]) != step:
+                continue
             if linked:
                 # RULE: a linked end still follows its pivot: a node its track enters that the map
                 # does not reach from it within 2 track searches + 30 m gets a link too
@@ -484,7 +487,7 @@ class MapGraph(LooseEnds):
                     return j not in near and not _closes_cycle(existing, i, j, is_end)
             else:
                 allowed = self._allowed(existing, uf, i, is_end)
-            best = _track_partner(flat, tree, i, is_end, track, step, cfg, reach, allowed)
+            best = _track_partner(flat, tree, i, is_end, track, int(rows[g.key][r]), cfg, reach, allowed)
             if best < 0:
                 continue
             a, b = (i, best) if is_end else (best, i)
@@ -492,24 +495,34 @@ class MapGraph(LooseEnds):
                 pred.add(b, a)
                 rep.track_links += 1
 
-    def _pivot_tracks(self) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Per pivot, its track over all its segment graphs (steps, xy, heading; by step, each step
-        once): live, one pivot's steps come in one graph per tile, each with that tile's part."""
+    def _pivot_tracks(self) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, np.ndarray]]:
+        """Per pivot drive, its track over all its segment graphs (xy, heading; in order of
+        travelled distance, each step once), and per graph the row of each of its track steps
+        in that track. Live, one pivot's steps come in one graph per tile: the graphs' pivot ids
+        are per tile (``SegmentGraph.pivot_drive`` names the drive) and their step indices count
+        from each tile's clip of the drive, so the pieces are ordered by ``track_s`` (the
+        travelled distance on the whole drive); graphs without it are ordered by step."""
         parts: dict[str, list[SegmentGraph]] = {}
         for k in self.keys:
             g = self._graphs[k]
             if len(g.track_step):
-                parts.setdefault(g.pivot_id, []).append(g)
-        out = {}
+                parts.setdefault(g.pivot_drive or g.pivot_id, []).append(g)
+        tracks, rows = {}, {}
         for pid, gs in parts.items():
             if len(gs) == 1:
-                out[pid] = (gs[0].track_step, gs[0].track_xy, gs[0].track_heading)
+                g = gs[0]
+                tracks[pid] = (g.track_xy, g.track_heading)
+                rows[g.key] = np.arange(len(g.track_step))
                 continue
-            steps = np.concatenate([g.track_step for g in gs])
-            steps, first = np.unique(steps, return_index=True)
-            out[pid] = (steps, np.concatenate([g.track_xy for g in gs])[first],
-                        np.concatenate([g.track_heading for g in gs])[first])
-        return out
+            by_s = all(len(g.track_s) == len(g.track_step) for g in gs)
+            order = [np.asarray(g.track_s if by_s else g.track_step, dtype=float) for g in gs]
+            _, first, inverse = np.unique(np.concatenate(order), return_index=True, return_inverse=True)
+            tracks[pid] = (np.concatenate([g.track_xy for g in gs])[first],
+                           np.concatenate([g.track_heading for g in gs])[first])
+            at = np.cumsum([0] + [len(o) for o in order])
+            for g, a, b in zip(gs, at[:-1], at[1:]):
+                rows[g.key] = inverse[a:b]
+        return tracks, rows
 
     def _path_links(
         self, flat: FlatGraph, tree: cKDTree, todo: list[tuple[int, bool]], existing: _Adjacency,

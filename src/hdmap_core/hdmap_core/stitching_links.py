@@ -195,24 +195,23 @@ def _entered(
 
 
 def _track_partner(
-    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, track: tuple[np.ndarray, np.ndarray, np.ndarray],
-    step: int, cfg: StitchConfig, reach_m: float, allowed: Callable[[int], bool],
+    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, track: tuple[np.ndarray, np.ndarray],
+    k: int, cfg: StitchConfig, reach_m: float, allowed: Callable[[int], bool],
 ) -> int:
     """The first topology node on the path the pivot of end (start) node i drove on from it
-    (back to it): ``track`` = (steps, xy, heading) of the pivot, ``step`` = node i's step. A
-    track point within ``track_search_m`` (walked along the track, which stops at a gap over
-    ``track_max_gap_m``) lies in the node's cross-section and the node heads within
-    ``max_heading_diff_deg`` of the track there; among several at that point the nearest, among
-    those ``allowed``; -1 if none (``StitchConfig.track_search_m``)."""
-    steps, xy, heading = track
-    k = int(np.searchsorted(steps, step))
-    if k >= len(steps) or int(steps[k]) != step:
+    (back to it): ``track`` = (xy, heading) of the pivot's steps in driving order, ``k`` = the
+    row of node i's step. A track point within ``track_search_m`` (walked along the track, which
+    stops at a gap over ``track_max_gap_m``) lies in the node's cross-section and the node heads
+    within ``max_heading_diff_deg`` of the track there; among several at that point the nearest,
+    among those ``allowed``; -1 if none (``StitchConfig.track_search_m``)."""
+    xy, heading = track
+    if not 0 <= k < len(xy):
         return -1
     cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
     sign = 1 if is_end else -1
     u0, _ = _unit(float(flat.t_heading[i]))
     walked, prev = 0.0, xy[k]
-    for m in range(k + sign, len(steps) if is_end else -1, sign):
+    for m in range(k + sign, len(xy) if is_end else -1, sign):
         p = xy[m]
         # along the pivot's heading: a failed step's cut midpoint may jump across the road (its
         # cut refined to other borders) though the pivot drove on; a run processed before keeps
