@@ -77,16 +77,18 @@ def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, gr
         (K,) arg max of each cluster's KDE [m].
     """
     k = int(labels.max()) + 1
-    lo = np.full(k, np.inf)
-    hi = np.full(k, -np.inf)
-    np.minimum.at(lo, labels, x)
-    np.maximum.at(hi, labels, x)
+    # per-cluster extent and grid densities without ufunc.at (slow): min/max over the clusters'
+    # sorted runs, the sums by bincount per grid column (same summation order as add.at)
+    order = np.argsort(labels, kind="stable")
+    starts = np.searchsorted(labels[order], np.arange(k))
+    lo = np.minimum.reduceat(x[order], starts)
+    hi = np.maximum.reduceat(x[order], starts)
     g = np.linspace(0.0, 1.0, grid_points)
     grid = lo[:, None] + (hi - lo)[:, None] * g[None, :]  # (K, G)
     h = bandwidth_m[labels]
     z = (grid[labels] - x[:, None]) / h[:, None]  # (M, G)
-    dens = np.zeros((k, grid_points))
-    np.add.at(dens, labels, np.exp(-0.5 * z * z))
+    e = np.exp(-0.5 * z * z)
+    dens = np.stack([np.bincount(labels, weights=e[:, j], minlength=k) for j in range(grid_points)], axis=1)
     m = grid[np.arange(k), np.argmax(dens, axis=1)]
     for _ in range(n_shift):
         w = np.exp(-0.5 * ((m[labels] - x) / h) ** 2)

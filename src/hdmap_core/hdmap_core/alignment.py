@@ -334,6 +334,13 @@ def cluster_step(x: np.ndarray, types: np.ndarray, *, method: str, config: Align
 # ----------------------------------------------------------------------------- M-step
 
 
+def _dense(labels: np.ndarray) -> tuple[np.ndarray, int]:
+    """Non-negative labels (M,) renumbered 0..K-1 in their order (``np.unique``'s inverse,
+    without the sort: a step has few, small labels) and K."""
+    present = np.bincount(labels) > 0
+    return (np.cumsum(present) - 1)[labels], int(present.sum())
+
+
 def _variance_system(x: np.ndarray, labels: np.ndarray, drive: np.ndarray, n_drives: int):
     """Linear residuals r(o) = A o + b of the variance term over labelled samples.
 
@@ -412,8 +419,7 @@ def solve_offsets(
     if not use.any():
         return np.zeros(n_drives)
     x, labels, types, drive = x[use], labels[use], types[use], drive[use]
-    uniq, labels = np.unique(labels, return_inverse=True)
-    k = len(uniq)
+    labels, k = _dense(labels)
     ctype = np.zeros(k, dtype=types.dtype)
     ctype[labels] = types
     reg_w = np.full(n_drives, config.ridge)
@@ -421,7 +427,7 @@ def solve_offsets(
     if prior is not None and config.prior_weight > 0:
         has = np.isfinite(prior)
         reg_w = reg_w + np.where(has, config.prior_weight, 0.0)
-        reg_t = np.where(has, config.prior_weight * np.nan_to_num(prior) / np.maximum(reg_w, 1e-300), 0.0)
+        reg_t = np.where(has, config.prior_weight * np.where(has, prior, 0.0) / np.maximum(reg_w, 1e-300), 0.0)
     w = np.ones(len(x))
     n_c = np.bincount(labels, minlength=k).astype(float)
     for it in range(4 if config.robust_loss else 1):
@@ -682,7 +688,7 @@ def silhouette_sorted(xs: np.ndarray, run: np.ndarray, group: np.ndarray) -> np.
     b = np.minimum(dl, dr)
     with np.errstate(invalid="ignore", divide="ignore"):
         sil = (b - a) / np.maximum(a, b)
-    sil = np.where(cnt > 1, np.nan_to_num(sil, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    sil = np.where((cnt > 1) & np.isfinite(sil), sil, 0.0)
     return np.where(np.isfinite(b), sil, np.nan)
 
 
@@ -713,7 +719,7 @@ def _silhouette_values(x: np.ndarray, labels: np.ndarray, types: np.ndarray) -> 
     change = np.ones(len(xs), dtype=bool)
     change[1:] = (ls[1:] != ls[:-1]) | (ts[1:] != ts[:-1])
     run = np.cumsum(change) - 1
-    if run[-1] + 1 == len(np.unique(ls)):
+    if run[-1] + 1 == np.count_nonzero(np.bincount(ls)):
         sil = silhouette_sorted(xs, run, ts)
     else:  # clusters interleave (not contiguous): general per-type silhouette
         sil = np.full(len(xs), np.nan)
@@ -884,9 +890,10 @@ def _em(
             break
         o = solve_offsets(x, labels, types, drive, n_drives, config=config, prior=prior, init=o)
     y = x + o[drive]
-    sparse = 0 < len(np.unique(drive)) <= config.sparse_step_max_drives
+    n_present = np.count_nonzero(np.bincount(drive))
+    sparse = 0 < n_present <= config.sparse_step_max_drives
     clash_max = config.sparse_type_clash_max_drives or config.sparse_step_max_drives
-    if sparse and config.sparse_type_clash_m > 0 and len(np.unique(drive)) <= clash_max:
+    if sparse and config.sparse_type_clash_m > 0 and n_present <= clash_max:
         labels = _drop_type_clashing_singletons(y, labels, types, drive, config.sparse_type_clash_m)
     score = step_silhouette(y, labels, types)
     valid = score >= config.silhouette_gate

@@ -512,12 +512,18 @@ def _run_pivot(
     # Without offset estimation the steps are independent: all of them clustered and scored at
     # once; the ones a special rule judges are left to align_step.
     batch = align_steps_gap(ps.lateral_m, ps.types, ps.drive, ps.ptr, todo, config=alignment) if gap_batchable(alignment) else {}
+    # every step's distinct drives and local drive codes at once (a per-step np.unique each)
+    owner = np.repeat(np.arange(ps.n_steps, dtype=np.int64), np.diff(ps.ptr))
+    step_drive, sample_code = np.unique(owner * np.int64(n_all) + ps.drive, return_inverse=True)
+    code_ptr = np.searchsorted(step_drive, np.arange(ps.n_steps + 1, dtype=np.int64) * n_all)
+    step_drive %= n_all
     for q in todo:
         a, b = int(ps.ptr[q]), int(ps.ptr[q + 1])
         if b - a < 2:
             continue
         x, ty, dg = ps.lateral_m[a:b], ps.types[a:b], ps.drive[a:b]
-        uniq, local = np.unique(dg, return_inverse=True)
+        c0 = int(code_ptr[q])
+        uniq, local = step_drive[c0 : int(code_ptr[q + 1])], sample_code[a:b] - c0
         al = batch.get(int(q))
         if al is None:
             prior = prev[uniq] if use_prior else None
