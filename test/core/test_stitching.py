@@ -1077,16 +1077,23 @@ def test_track_links_only_in_the_default_preset():
         StitchConfig(track_max_gap_m=math.nan)
 
 
-def test_track_of_a_pivot_split_over_tiles_is_followed_across_them():
-    """Live, one pivot's steps come in one segment per tile: p's chain (steps 0-35) in one, its
-    failed turn and the steps processed through q in the next. The end still follows the pivot's
-    whole track onto q."""
-    p, q = _junction(turn=True)
+def _junction_turn_split() -> tuple[list, list]:
+    """``_junction(turn=True)``'s pivot p in two pieces, as two tiles hold it live: its chain
+    (steps 0-35) and its failed turn with the step processed through q."""
     steps = [_pose_step("p", i, (0.0, 100.0 - 2.0 * i), -math.pi / 2) for i in range(36)]
     thetas = math.pi + 0.1 * np.arange(1, 16)
     turn = [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
                        valid=False) for k, t in enumerate(thetas, start=1)]
     turn += [_pose_step("p", 51, (22.0, 10.0), 0.0, processed_before=True)]
+    return steps, turn
+
+
+def test_track_of_a_pivot_split_over_tiles_is_followed_across_them():
+    """Live, one pivot's steps come in one segment per tile: p's chain (steps 0-35) in one, its
+    failed turn and the steps processed through q in the next. The end still follows the pivot's
+    whole track onto q."""
+    p, q = _junction(turn=True)
+    steps, turn = _junction_turn_split()
     tile_a, tile_b = connect_segment(Segment("p", tuple(steps))), connect_segment(Segment("p", tuple(turn)))
     assert tile_a.key != tile_b.key and tile_a.track_step.max() == 35
     m = stitch([tile_a, tile_b, q], config=StitchConfig(track_search_m=60.0))
@@ -1103,11 +1110,7 @@ def test_track_of_a_pivot_is_followed_across_live_tiles():
     from hdmap_core.incremental import connect_tile  # noqa: PLC0415
 
     p, q = _junction(turn=True)
-    steps = [_pose_step("p", i, (0.0, 100.0 - 2.0 * i), -math.pi / 2) for i in range(36)]
-    thetas = math.pi + 0.1 * np.arange(1, 16)
-    turn = [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
-                       valid=False) for k, t in enumerate(thetas, start=1)]
-    turn += [_pose_step("p", 51, (22.0, 10.0), 0.0, processed_before=True)]
+    steps, turn = _junction_turn_split()
     clip = [dataclasses.replace(st, index=st.index - 30) for st in turn]  # the tile's clip starts 60 m on
     cfg = PipelineConfig.preset("default")
     (tile_a,) = connect_tile([Segment("p", tuple(steps))], (0, 0), pipeline_config=cfg)
