@@ -440,6 +440,31 @@ def test_one_drive_flicker_relabelled_up_to_250_m():
         FeatureType.SOLID, FeatureType.DASHED, FeatureType.SOLID]
 
 
+def test_one_drive_end_run_takes_the_better_supported_type():
+    """Solid 200 m seen by 2 drives, then the line's last 80 m seen by one drive as dashed (its
+    misclassified stretch; no run after it, so the flicker rules do not apply): one solid
+    polyline. Kept (two polylines) when the end run has 2 drives too, when its neighbour has only
+    one drive, when it is longer than its neighbour, or with single_drive_end_run_m 0 (the
+    dataclass default). At the line's start alike (the end run first)."""
+
+    def seg(types: list[int], counts: list[int]) -> Segment:
+        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, counts))))
+
+    def kinds(m) -> list:
+        return [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])]
+
+    assert DEFAULT.single_drive_end_run_m == 250.0 and StitchConfig().single_drive_end_run_m == 0.0
+    types, counts = [S] * 100 + [D] * 40, [2] * 100 + [1] * 40
+    assert kinds(stitch([conn(seg(types, counts))], config=DEFAULT)) == [FeatureType.SOLID]
+    assert kinds(stitch([conn(seg(types[::-1], counts[::-1]))], config=DEFAULT)) == [FeatureType.SOLID]
+    assert len(stitch([conn(seg(types, counts))], config=StitchConfig()).features) == 2
+    assert len(stitch([conn(seg(types, counts))], config=dataclasses.replace(DEFAULT, single_drive_end_run_m=0.0)).features) == 2
+    assert len(stitch([conn(seg(types, [2] * 140))], config=DEFAULT).features) == 2  # 2 drives: kept
+    assert len(stitch([conn(seg(types, [1] * 140))], config=DEFAULT).features) == 2  # neighbour 1 drive
+    long_end = [S] * 40 + [D] * 60
+    assert len(stitch([conn(seg(long_end, [2] * 40 + [1] * 60))], config=DEFAULT).features) == 2  # longer
+
+
 def test_spur_at_a_flicker_split_pruned():
     """A second line appears for 3 steps 1 m beside the dashed line (a leftover split) and dies:
     the spur is dropped, the dashed line stays one polyline."""

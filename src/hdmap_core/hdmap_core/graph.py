@@ -127,6 +127,7 @@ def export_map(
             flat, uid, cfg.min_type_run_m, getattr(cfg, "sparse_type_run_m", 0.0), getattr(cfg, "sparse_drive_count", 0),
             minority_only=getattr(cfg, "sparse_minority_only", False),
             single_run_m=getattr(cfg, "single_drive_run_m", 0.0),
+            end_run_m=getattr(cfg, "single_drive_end_run_m", 0.0),
         )
     through = getattr(cfg, "through_lines", False)
     chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid, through=through)
@@ -594,6 +595,7 @@ def _smooth_types(
     *,
     minority_only: bool = False,
     single_run_m: float = 0.0,
+    end_run_m: float = 0.0,
 ) -> np.ndarray:
     """Marking types with short runs along a polyline relabelled to their neighbours' type.
 
@@ -606,7 +608,9 @@ def _smooth_types(
     misclassification decides the type for tens of metres. With ``minority_only`` such a run of
     two or more drives is relabelled only when the better supported of its neighbour runs has
     more drives (median); a flicker run of one drive is relabelled up to ``single_run_m`` when it
-    is not longer than both of its neighbour runs.
+    is not longer than both of its neighbour runs. A run at the polyline's end seen by one drive
+    is relabelled up to ``end_run_m`` when it is not longer than its one neighbour run and that
+    run was seen by more drives.
 
     Returns:
         (N,) int type codes.
@@ -654,8 +658,21 @@ def _smooth_types(
             longest = length(r) > max(length(runs[i - 1]), length(runs[i + 1]))
             return length(r) < single_run_m and m <= 1 and not longest
 
+        def end_short(i: int) -> bool:
+            # RULE single-drive end: one drive's type at a polyline's end is no evidence against
+            # the type better supported drives gave the line before it (the flicker rules want a
+            # neighbour on both sides). Judged last, when no other run is to be merged: a
+            # neighbour that is itself short or a flicker is no run of its own yet.
+            if not (i == 0 or i == len(runs) - 1):
+                return False
+            r, nb = runs[i], (runs[1] if i == 0 else runs[-2])
+            m = med(r)
+            return m <= 1 and med(nb) > m and length(r) < end_run_m and length(r) <= length(nb)
+
         while len(runs) > 1:
             cand = [i for i in range(len(runs)) if short(i)]
+            if not cand and end_run_m > 0:
+                cand = [i for i in range(len(runs)) if end_short(i)]
             if not cand:
                 break
             k = min(cand, key=lambda i: (length(runs[i]), i))

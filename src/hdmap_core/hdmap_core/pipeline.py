@@ -195,6 +195,9 @@ class PipelineConfig:
                     # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
                     # one drive's misclassified stretch up to 250 m (docs/pipeline.md, sparse fleets)
                     sparse_minority_only=True, single_drive_run_m=250.0,
+                    # ... and a one-drive run at a line's end after a better supported run of the
+                    # other type (docs/pipeline.md, sparse fleets)
+                    single_drive_end_run_m=250.0,
                     # loose ends also compared in their lines' frame from 3 deg off the pivot's
                     # heading (10 in the dataclass), such joins refused where a pivot turned
                     # through the gap (docs/pipeline.md, sparse fleets)

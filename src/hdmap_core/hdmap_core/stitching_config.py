@@ -122,6 +122,14 @@ class StitchConfig:
             held 171 of the 642 false map points); not when the run is longer than both runs
             beside it (one drive's solid 78 m, dashed 145 m, solid 77 m: the short runs are the
             likelier misclassification). 0 disables (250 in the default pipeline preset) [m].
+        single_drive_end_run_m: the same for a run at a polyline's end (one neighbour run): seen
+            by one drive (median), shorter than this and not longer than its neighbour run, takes the
+            neighbour's type when that run was seen by more drives (median); judged once no
+            other run is to be merged. A sparse line's
+            last metres before a junction or a gap are often one drive's, and its
+            misclassified stretch (or its flicker, merged into one run shortest first) was kept
+            as a line of the other type (carla_town06_30_s3: one-drive tails of 46-135 m after
+            2-drive runs). 0 disables (250 in the default pipeline preset) [m].
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
             runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
         bubble_max_m: of two branches from one split node to one merge node (or a branch beside
@@ -241,6 +249,7 @@ class StitchConfig:
     sparse_drive_count: int = 5
     sparse_minority_only: bool = False
     single_drive_run_m: float = 0.0
+    single_drive_end_run_m: float = 0.0
     spur_max_m: float = 12.0
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
@@ -292,6 +301,7 @@ class StitchConfig:
             "min_type_run_m",
             "sparse_type_run_m",
             "single_drive_run_m",
+            "single_drive_end_run_m",
             "spur_max_m",
             "bubble_max_m",
             "gore_max_m",
@@ -331,6 +341,7 @@ class StitchConfig:
             sparse_type_run_m=0.0,
             sparse_minority_only=False,
             single_drive_run_m=0.0,
+            single_drive_end_run_m=0.0,
             spur_max_m=0.0,
             bubble_max_m=0.0,
             gore_max_m=0.0,
