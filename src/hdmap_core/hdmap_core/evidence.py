@@ -257,11 +257,13 @@ def refuted_edges(
 def _in_intervals(step: np.ndarray, lat: np.ndarray, empty_start: np.ndarray, empty: np.ndarray) -> np.ndarray:
     """(P,) bool: whether ``lat[k]`` lies in one of the empty intervals of step ``step[k]``
     (``empty[empty_start[s]:empty_start[s + 1]]``, disjoint [lo, hi] along the cut)."""
-    n_iv = np.diff(np.asarray(empty_start, dtype=np.int64))
+    empty_start = np.asarray(empty_start, dtype=np.int64)
+    n_iv = np.diff(empty_start)
     if len(step) == 0 or not n_iv.any():
         return np.zeros(len(step), dtype=bool)
     iv_step = np.repeat(np.arange(len(n_iv)), n_iv)
-    lo, hi = empty[: len(iv_step), 0], empty[: len(iv_step), 1]
+    rows = empty[empty_start[0] : empty_start[-1]]
+    lo, hi = rows[:, 0], rows[:, 1]
     # one sorted key per interval, (step, lo) in lexicographic order: steps ``width`` apart
     base = min(float(lo.min()), float(lat.min()))
     width = max(float(hi.max()), float(lat.max())) - base + 1.0
