@@ -901,17 +901,17 @@ def _em(
         # Few drives: lines one drive sees and the other misses are singletons (silhouette 0);
         # judge the step by the clusters both see, and by every cluster being tight.
         paired = step_silhouette(y, labels, types, skip_singletons=True)
-        tight = _max_cluster_std(y, labels) <= config.sparse_step_max_std_m
-        valid = tight and (
+        valid = _max_cluster_std(y, labels) <= config.sparse_step_max_std_m and (
             paired >= config.silhouette_gate
             # RULE sparse singletons: no cluster of two or more samples in a type with two
-            # clusters, so nothing is left to score: judged like a lone-cluster step
-            or (config.sparse_singletons_accept and paired == -1.0 and _shared_cluster(labels, drive))
+            # clusters, so nothing is left to score: judged like a lone-cluster step when the
+            # drives agree somewhere, or (RULE disjoint drives) share no line and contradict
+            # none (docs/pipeline.md)
+            or (config.sparse_singletons_accept and paired == -1.0 and (
+                _shared_cluster(labels, drive)
+                or (config.sparse_disjoint_apart_m > 0 and _drives_apart(y, labels, drive, config.sparse_disjoint_apart_m))
+            ))
         )
-        # RULE disjoint drives: no line shared and none contradicted (docs/pipeline.md)
-        if (not valid and tight and config.sparse_singletons_accept and paired == -1.0
-                and config.sparse_disjoint_apart_m > 0 and _drives_apart(y, labels, drive, config.sparse_disjoint_apart_m)):
-            valid = True
     use = labels >= 0
     one_drive = bool(use.any()) and bool(np.all(drive[use] == drive[use][0]))
     if (score == -1.0 or (one_drive and not valid)) and config.lone_cluster_max_std_m > 0:

@@ -123,13 +123,13 @@ class StitchConfig:
             beside it (one drive's solid 78 m, dashed 145 m, solid 77 m: the short runs are the
             likelier misclassification). 0 disables (250 in the default pipeline preset) [m].
         single_drive_end_run_m: the same for a run at a polyline's end (one neighbour run): seen
-            by one drive (median), shorter than this and not longer than its neighbour run, takes the
-            neighbour's type when that run was seen by more drives (median); judged once no
-            other run is to be merged. A sparse line's
-            last metres before a junction or a gap are often one drive's, and its
-            misclassified stretch (or its flicker, merged into one run shortest first) was kept
-            as a line of the other type (carla_town06_30_s3: one-drive tails of 46-135 m after
-            2-drive runs). 0 disables (250 in the default pipeline preset) [m].
+            by one drive (median), shorter than this and not longer than its neighbour run, it
+            takes the neighbour's type when that run was seen by more drives (median); judged
+            once no other run is to be merged. A sparse line's last metres before a junction or
+            a gap are often one drive's, and its misclassified stretch (or its flicker, merged
+            into one run shortest first) was kept as a line of the other type
+            (carla_town06_30_s3, docs/pipeline.md "One drive's type at a line's end"). 0
+            disables (250 in the default pipeline preset) [m].
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
             runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
         bubble_max_m: of two branches from one split node to one merge node (or a branch beside

@@ -200,8 +200,9 @@ def _track_partner(
 ) -> int:
     """The first topology node on the path the pivot of end (start) node i drove on from it
     (back to it): ``track`` = (xy, heading) of the pivot's steps in driving order, ``k`` = the
-    row of node i's step. A track point within ``track_search_m`` (walked along the track, which
-    stops at a gap over ``track_max_gap_m``) lies in the node's cross-section and the node heads
+    row of node i's step. A track point within ``track_search_m`` (walked along the track's
+    heading; the walk stops at a gap over ``track_max_gap_m`` along it or a jump over
+    ``track_max_jump_m`` in any direction) lies in the node's cross-section and the node heads
     within ``max_heading_diff_deg`` of the track there; among several at that point the nearest,
     among those ``allowed``; -1 if none (``StitchConfig.track_search_m``)."""
     xy, heading = track
