@@ -34,8 +34,8 @@ def fake_pipeline(monkeypatch):
         map: object
         report: BuildReport
 
-    def build_map(drives, *, config, seed=0, progress=None):
-        calls.update(drives=list(drives), config=config, seed=seed)
+    def build_map(drives, *, config, seed=0, progress=None, workers=1):
+        calls.update(drives=list(drives), config=config, seed=seed, workers=workers)
         if progress is not None:
             progress("pivots", 1, 2)
             progress("pivots", 2, 2)
@@ -57,9 +57,10 @@ def test_wiring_writes_map_bag_and_geojson(tmp_path, fake_pipeline, capsys):
     rep = tmp_path / "report.json"
     code = cli.main([
         "bag2map", str(bag), "-o", str(out), "--geojson", str(gj), "--preset", "paper", "--seed", "7",
-        "--report", str(rep),
+        "--report", str(rep), "--workers", "3",
     ])
     assert code == 0
+    assert fake_pipeline["workers"] == 3
     doc = json.loads(rep.read_text())
     assert doc["drives"] == 3 and doc["rejected"][0]["drive_id"] == "broken" and doc["build"]["n_drives_used"] == 3
     assert [d.drive_id for d in fake_pipeline["drives"]] == ["d0", "d1", "d2"]
@@ -112,6 +113,8 @@ def test_geojson_without_origin(tmp_path, fake_pipeline, capsys):
         ["bag2map", "in", "-o", "out", "--preset", "fancy"],
         ["bag2map", "in", "-o", "out", "--seed", "x"],
         ["bag2map", "in", "-o", "out", "--origin", "95,1"],
+        ["bag2map", "in", "-o", "out", "--workers", "0"],
+        ["bag2map", "in", "-o", "out", "--workers", "two"],
     ],
 )
 def test_bad_arguments_are_usage_errors(argv, capsys):
@@ -147,6 +150,9 @@ def test_end_to_end_on_sample_bag(tmp_path, capsys):
     # the e6mini map spans < 2 km: every point within ~0.03 deg of the origin
     assert np.all(np.abs(lat - origin.latitude_deg) < 0.03) and np.all(np.abs(lon - origin.longitude_deg) < 0.05)
     assert "pipeline report:" in capsys.readouterr().out
+    # one process builds the very same map (the default uses every CPU available)
+    assert cli.main(["bag2map", str(bag), "-o", str(tmp_path / "map1"), "--workers", "1", "--no-progress"]) == 0
+    assert_maps_equal(hdmap, read_map_bag(tmp_path / "map1"))
 
 
 @pytest.mark.slow

@@ -26,7 +26,8 @@ def gt_pipeline(monkeypatch, tmp_path):
         map: object
         report: object
 
-    def build_map(drives, *, config, seed=0, progress=None):
+    def build_map(drives, *, config, seed=0, progress=None, workers=1):
+        assert workers >= 1
         gt = sorted(tmp_path.glob("*.gt.json"))[0]  # every scenario here is of one map
         return Result(hdmap_from_ground_truth(load_ground_truth(gt)), types.SimpleNamespace(stage_seconds={"x": 0.0}))
 
@@ -100,6 +101,7 @@ def test_table_prints_missing_figures_as_dash():
         (["bench", "motorway:3:5-2"], "integers"),
         (["bench", "motorway:3:1,1"], "distinct"),
         (["bench", "motorway:3", "--scale", "0"], "--scale"),
+        (["bench", "motorway:3", "--workers", "0"], "--workers"),
     ],
 )
 def test_bad_arguments(argv, message, capsys, tmp_path):

@@ -34,6 +34,7 @@ from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_
 from hdmap_core.alignment import AlignmentConfig, align_step, align_steps_gap, gap_batchable
 from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
 from hdmap_core.model import Drive, HDMap, validate_drive
+from hdmap_core.parallel import ForkWorker, can_fork, pivot_groups, split_order
 from hdmap_core.evidence import EvidenceConfig, step_profiles
 from hdmap_core.preprocess import DetectionIndex, PreprocessConfig, preprocess, trajectory_index
 from hdmap_core.sampling import PivotSamples, SamplingConfig, pivot_walk, sample_pivot
@@ -670,6 +671,45 @@ def _run_pass(
     return segments, processed
 
 
+def _check_workers(workers: int) -> int:
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
+    return int(workers)
+
+
+def _merge_parts(
+    parts: list[tuple[list[Segment], ProcessedStore, list | None, _Counters]],
+    shares: list[np.ndarray],
+    order: np.ndarray,
+    drives: list[Drive],
+    store_in: ProcessedStore,
+) -> tuple[list[Segment], ProcessedStore, list | None, _Counters]:
+    """One pass's results of independent pivot shares, as one process in ``order`` gives them.
+
+    A share's pivots only mark drives of its own groups, so each drive's intervals come from the
+    share that owns it (from the input store when no share has its pivots' groups: unchanged).
+    """
+    if len(parts) == 1:
+        return parts[0]
+    rank = np.empty(len(order), dtype=np.int64)
+    rank[order] = np.arange(len(order))
+    pos = {d.drive_id: int(rank[i]) for i, d in enumerate(drives)}
+    segments = sorted((seg for p in parts for seg in p[0]), key=lambda seg: pos[seg.pivot_id])
+    obs = None
+    if parts[0][2] is not None:
+        obs = sorted((o for p in parts for o in p[2] or []), key=lambda o: pos[o.pivot_id])
+    counters = _Counters()
+    for p in parts:
+        for f in ("total", "rejected", "skipped", "valid"):
+            setattr(counters, f, getattr(counters, f) + getattr(p[3], f))
+    intervals = dict(store_in.intervals)
+    for p in parts:
+        for did, iv in p[1].intervals.items():
+            if iv != store_in.intervals.get(did):
+                intervals[did] = iv
+    return segments, ProcessedStore(intervals), obs, counters
+
+
 def _shift_fn(model: Any, drive_ids: tuple[str, ...]) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     def shift(drive_idx: np.ndarray, s_m: np.ndarray) -> np.ndarray:
         out = np.zeros(len(drive_idx))
@@ -696,6 +736,7 @@ def map_stretches(
     validated: bool = False,
     offset_model: Any = None,
     observations_only: bool = False,
+    workers: int = 1,
 ) -> MappingResult:
     """Stages 1-4 on valid drives, with the processed-stretch store in and out.
 
@@ -714,6 +755,10 @@ def map_stretches(
             observation pass feeding a fleet-wide adjustment): the EM runs at
             ``config.observation_stride`` as in the first pass of an adjusted build, and the
             segments are those of that pass.
+        workers: processes for the pivot passes (this one plus forked children, on systems with
+            ``fork``). Only independent pivot groups (``parallel.pivot_groups``, e.g. the two
+            carriageways of a highway) run apart, so the result is the one-process result. Do not
+            fork from a process with native threads of its own (a ROS node): keep 1 there.
 
     Returns:
         The segments, the updated store, observations and counters.
@@ -732,7 +777,8 @@ def map_stretches(
     with limit:
         return _map_stretches(drives, config=config, seed=seed, processed=processed,
                               collect_observations=collect_observations, progress=progress,
-                              offset_model=offset_model, observations_only=observations_only)
+                              offset_model=offset_model, observations_only=observations_only,
+                              workers=_check_workers(workers))
 
 
 def _map_stretches(
@@ -745,6 +791,7 @@ def _map_stretches(
     progress: ProgressFn | None,
     offset_model: Any = None,
     observations_only: bool = False,
+    workers: int = 1,
 ) -> MappingResult:
     store_in = processed if processed is not None else ProcessedStore()
     seconds: dict[str, float] = {}
@@ -752,7 +799,6 @@ def _map_stretches(
     index = preprocess(drives, config=config.preprocess)
     seconds["preprocess"] = time.perf_counter() - t0
     order = np.random.default_rng(seed).permutation(len(drives))
-    counters = _Counters()
     obs: list[StepObservations] | None = [] if (collect_observations or config.use_global_adjustment) else None
     hit_cache: dict | None = {} if config.use_global_adjustment else None
     tracks = _Tracks(drives) if config.mark_on_cut_only else None
@@ -763,33 +809,86 @@ def _map_stretches(
         t0 = time.perf_counter()
         evidence = (trajectory_index(drives, cell_m=config.preprocess.grid_cell_m), config.evidence)
         seconds["preprocess"] += time.perf_counter() - t0
-    if model is None:
+    shares = [order]
+    if workers > 1 and len(drives) > 1 and can_fork():
         t0 = time.perf_counter()
-        segments, store = _run_pass(
-            drives, index, order, store_in, config=config, alignment=config.alignment, shift=None,
-            observations=obs, counters=counters, progress=progress, hit_cache=hit_cache,
-            tracks=tracks, stride=config.observation_stride if (config.use_global_adjustment or observations_only) else 1,
-            evidence=None if final else evidence,
+        group = pivot_groups(index, drives, config=config.sampling)
+        shares = split_order(order, group, np.array([d.length_m for d in drives]), workers)
+        seconds["grouping"] = time.perf_counter() - t0
+    first_stride = config.observation_stride if (config.use_global_adjustment or observations_only) else 1
+    adjust = model is None and config.use_global_adjustment
+
+    def first(share: np.ndarray, report: ProgressFn | None) -> tuple[list[Segment], ProcessedStore, list | None, _Counters]:
+        c = _Counters()
+        o: list[StepObservations] | None = [] if obs is not None else None
+        segs, st = _run_pass(
+            drives, index, share, store_in, config=config, alignment=config.alignment, shift=None,
+            observations=o, counters=c, progress=report, hit_cache=hit_cache,
+            tracks=tracks, stride=first_stride, evidence=None if final else evidence,
         )
-        seconds["sampling_em"] = time.perf_counter() - t0
-    if model is None and config.use_global_adjustment:
-        try:
-            from hdmap_core.adjustment import AdjustConfig, adjust_offsets
-        except ImportError as err:  # the module is part of the package; say so clearly if absent
-            raise ConfigError(f"use_global_adjustment needs hdmap_core.adjustment: {err}") from err
-        t0 = time.perf_counter()
-        model = adjust_offsets(obs or [], config=config.adjustment if config.adjustment is not None else AdjustConfig())
-        seconds["adjustment"] = time.perf_counter() - t0
-    if model is not None:
-        t0 = time.perf_counter()
-        counters = _Counters()
-        segments, store = _run_pass(
-            drives, index, order, store_in, config=config,
-            alignment=config.final_alignment or config.alignment, shift=_shift_fn(model, index.drive_ids),
-            observations=None, counters=counters, progress=progress, hit_cache=hit_cache,
+        return segs, st, o, c
+
+    def second(share: np.ndarray, m: Any, report: ProgressFn | None) -> tuple[list[Segment], ProcessedStore, None, _Counters]:
+        c = _Counters()
+        segs, st = _run_pass(
+            drives, index, share, store_in, config=config,
+            alignment=config.final_alignment or config.alignment, shift=_shift_fn(m, index.drive_ids),
+            observations=None, counters=c, progress=report, hit_cache=hit_cache,
             tracks=tracks, evidence=evidence,
         )
-        seconds["final_pass"] = time.perf_counter() - t0
+        return segs, st, None, c
+
+    def job(channel: Any, share: np.ndarray) -> None:
+        # runs in a worker process: the same passes on its share, results sent back
+        m = model
+        if m is None:
+            segs, st, o, c = first(share, None)
+            channel.send((segs if not adjust else [], st, o, c))
+            if not adjust:
+                return
+            m = channel.recv()
+        channel.send(second(share, m, None))
+
+    report = None
+    if progress is not None:
+        total = len(order)
+        report = lambda stage, done, _n: progress(stage, done, total)  # noqa: E731
+    workers_ = [ForkWorker(lambda ch, sh=sh: job(ch, sh)) for sh in shares[1:]]
+    try:
+        if model is None:
+            t0 = time.perf_counter()
+            parts = [first(shares[0], report)]
+            for w, sh in zip(workers_, shares[1:]):
+                got = w.result()
+                parts.append(got if got is not None else first(sh, None))
+            segments, store, obs, counters = _merge_parts(parts, shares, order, drives, store_in)
+            if progress is not None and len(shares) > 1:
+                progress("pivots", len(order), len(order))
+            seconds["sampling_em"] = time.perf_counter() - t0
+        if adjust:
+            try:
+                from hdmap_core.adjustment import AdjustConfig, adjust_offsets
+            except ImportError as err:  # the module is part of the package; say so clearly if absent
+                raise ConfigError(f"use_global_adjustment needs hdmap_core.adjustment: {err}") from err
+            t0 = time.perf_counter()
+            model = adjust_offsets(obs or [], config=config.adjustment if config.adjustment is not None else AdjustConfig())
+            seconds["adjustment"] = time.perf_counter() - t0
+        if model is not None:
+            t0 = time.perf_counter()
+            if adjust:
+                for w in workers_:
+                    w.send(model)
+            parts = [second(shares[0], model, report)]
+            for w, sh in zip(workers_, shares[1:]):
+                got = w.result()
+                parts.append(got if got is not None else second(sh, model, None))
+            segments, store, _, counters = _merge_parts(parts, shares, order, drives, store_in)
+            if progress is not None and len(shares) > 1:
+                progress("pivots", len(order), len(order))
+            seconds["final_pass"] = time.perf_counter() - t0
+    finally:
+        for w in workers_:
+            w.close()
     return MappingResult(
         segments=segments,
         processed=store,
@@ -822,6 +921,7 @@ def build_map(
     config: PipelineConfig = PipelineConfig.preset("default"),
     seed: int = 0,
     progress: ProgressFn | None = None,
+    workers: int = 1,
 ) -> BuildResult:
     """Build the hierarchical map from fleet drives (the whole method).
 
@@ -833,6 +933,7 @@ def build_map(
         config: pipeline options (default: the "default" preset).
         seed: seeds the random pivot order.
         progress: optional callback(stage, done, total).
+        workers: processes for the pivot passes (see ``map_stretches``); the map is the same.
 
     Returns:
         The map, the per-pivot segments and the report.
@@ -848,7 +949,7 @@ def build_map(
     usable, rejected = prepare_drives(drives_in)
     if not usable:
         raise NoUsableDataError(f"none of the {len(drives_in)} drive(s) is usable: " + "; ".join(f"{d!r}: {r}" for d, r in rejected[:5]))
-    res = map_stretches(usable, config=config, seed=seed, progress=progress, validated=True)
+    res = map_stretches(usable, config=config, seed=seed, progress=progress, validated=True, workers=workers)
     seconds = dict(res.stage_seconds)
     t0 = time.perf_counter()
     ccfg = config.connection if config.connection is not None else ConnectionConfig()

@@ -42,6 +42,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=_parse_origin,
         help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
     )
+    parser.add_argument(
+        "--workers",
+        type=_parse_workers,
+        default=None,
+        metavar="N",
+        help="processes for the pivot passes; independent parts of the map (e.g. the two carriageways) "
+        "run apart and the map is the same as with 1 (default: the CPUs available)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
     parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
@@ -55,6 +63,16 @@ def _parse_origin(text: str) -> GeoOrigin:
     if len(values) not in (2, 3) or not np.all(np.isfinite(values)) or abs(values[0]) > 90 or abs(values[1]) > 180:
         raise argparse.ArgumentTypeError(f"{text!r} is not a WGS84 LAT,LON[,ALT]")
     return GeoOrigin(*values)
+
+
+def _parse_workers(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number >= 1")
+    return n
 
 
 def _fail(message: str) -> int:
@@ -85,10 +103,12 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--geojson needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
 
     from hdmap_core import pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
+    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
 
     config = pipeline.PipelineConfig.preset(args.preset)
     with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
-        result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress)
+        result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress,
+                                    workers=args.workers or available_cpus())
     hdmap: HDMap = result.map
 
     write_map_bag(out, hdmap, origin, overwrite=args.overwrite)

@@ -122,6 +122,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="FILE", help="write every run's figures as JSON")
     parser.add_argument("--markdown", metavar="FILE", help="write the table as Markdown")
     parser.add_argument("--inline", action="store_true", help="run in this process (peak RSS then not per run)")
+    parser.add_argument(
+        "--workers", type=int, default=None, metavar="N",
+        help="processes per build, as hdmap bag2map --workers (default: the CPUs available)",
+    )
 
 
 def _presets(text: str) -> list[str]:
@@ -244,8 +248,11 @@ def _cached(bag: Path, gt_path: Path, config: Any, seed: int) -> bool:
     return same and isinstance(doc.get("seen_count"), dict)
 
 
-def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
-    """Read the bag, build the map with ``preset``, evaluate it; figures as a flat dict."""
+def run_one(scenario: Scenario, preset: str, seed: int, workers: int | None = None) -> dict[str, Any]:
+    """Read the bag, build the map with ``preset``, evaluate it; figures as a flat dict.
+
+    ``workers``: processes for the build (None: the CPUs available). The peak RSS is this
+    process's plus its largest worker's (an upper bound: pages they share count twice)."""
     import resource  # noqa: PLC0415
 
     from hdmap_core import pipeline  # noqa: PLC0415
@@ -256,7 +263,10 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
 
     fleet = read_fleet_bag(scenario.bag)
     t0 = time.perf_counter()
-    result = pipeline.build_map(fleet.drives, config=pipeline.PipelineConfig.preset(preset), seed=seed)
+    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
+
+    n_workers = workers or available_cpus()
+    result = pipeline.build_map(fleet.drives, config=pipeline.PipelineConfig.preset(preset), seed=seed, workers=n_workers)
     build_s = time.perf_counter() - t0
     sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
     rep = evaluate_map(
@@ -308,7 +318,9 @@ def run_one(scenario: Scenario, preset: str, seed: int) -> dict[str, Any]:
         "n_features": len(result.map.features),
         "build_s": build_s,
         "stage_seconds": dict(getattr(result.report, "stage_seconds", {}) or {}),
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "workers": n_workers,
+        "peak_rss_mb": (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+                        + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024.0,
     }
 
 
@@ -343,6 +355,8 @@ def run(args: argparse.Namespace) -> int:
     scales = args.scale or [1.0]
     if any(s <= 0 for s in scales):
         raise ConfigError("--scale must be > 0")
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     with tempfile.TemporaryDirectory(prefix="hdmap-bench-") as tmp:
         work_dir = Path(args.work_dir) if args.work_dir else Path(tmp)
         work_dir.mkdir(parents=True, exist_ok=True)
@@ -351,7 +365,7 @@ def run(args: argparse.Namespace) -> int:
         for sc in scenarios:
             for preset in presets:
                 print(f"hdmap bench: {sc.name} / {preset} ...", file=sys.stderr, flush=True)
-                rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline))
+                rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline, workers=args.workers))
     summary = summarize_seeds(rows)
     print(format_table(rows))
     if summary:
@@ -402,9 +416,9 @@ def _json_default(value: Any) -> Any:
     return None if isinstance(value, float) and not math.isfinite(value) else str(value)
 
 
-def _run_isolated(scenario: Scenario, preset: str, seed: int, *, inline: bool) -> dict[str, Any]:
+def _run_isolated(scenario: Scenario, preset: str, seed: int, *, inline: bool, workers: int | None = None) -> dict[str, Any]:
     if inline:
-        return run_one(scenario, preset, seed)
+        return run_one(scenario, preset, seed, workers)
     # A fresh process per run: its peak RSS and time are this run's alone.
     with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"), max_tasks_per_child=1) as pool:
-        return pool.submit(run_one, scenario, preset, seed).result()
+        return pool.submit(run_one, scenario, preset, seed, workers).result()

@@ -1,0 +1,138 @@
+"""Pivot passes on several processes: independent groups, exactly the one-process result."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+import pytest
+
+from hdmap_core import pipeline
+from hdmap_core.errors import ConfigError
+from hdmap_core.parallel import ForkWorker, can_fork, pivot_groups, split_order
+from hdmap_core.pipeline import PipelineConfig, build_map, map_stretches, prepare_drives
+from hdmap_core.preprocess import preprocess
+from hdmap_core.sampling import sample_pivot
+from pipeline_fleet import make_drive
+
+needs_fork = pytest.mark.skipif(not can_fork(), reason="no fork start method on this platform")
+
+
+@pytest.fixture(scope="module")
+def two_way_fleet():
+    """A simulated two-carriageway motorway with ramps: drives both ways, exits and entries."""
+    from hdmap_core.simulate import SimConfig, simulate_fleet
+    from hdmap_core.synthetic import synthetic_highway
+
+    gt = synthetic_highway("motorway_ramps", length_m=2000.0, seed=1)
+    fleet = simulate_fleet(gt, config=SimConfig(n_drives=16, snippet_length_min_m=400.0, snippet_length_max_m=900.0), seed=3)
+    drives, rejected = prepare_drives(fleet.drives)
+    assert not rejected
+    return drives
+
+
+def test_opposite_directions_and_distant_stretches_are_separate_groups():
+    drives = [
+        make_drive("a", lane=0.0, bias=0.0, s0=0.0, s1=300.0),
+        make_drive("b", lane=3.5, bias=0.3, s0=100.0, s1=400.0),  # overlaps a, same way
+        make_drive("c", lane=0.0, bias=0.0, s0=0.0, s1=300.0, reverse=True),  # a's road, other way
+        make_drive("d", lane=0.0, bias=0.0, s0=900.0, s1=1200.0),  # same way, 500 m further on
+    ]
+    cfg = PipelineConfig.preset("default")
+    group = pivot_groups(preprocess(drives, config=cfg.preprocess), drives, config=cfg.sampling)
+    assert group[0] == group[1]
+    assert len({group[0], group[2], group[3]}) == 3
+
+
+def test_no_pivot_samples_a_drive_of_another_group(two_way_fleet):
+    """The grouping is conservative: every drive a pivot's cut lines sample is in its group."""
+    cfg = PipelineConfig.preset("default")
+    index = preprocess(two_way_fleet, config=cfg.preprocess)
+    group = pivot_groups(index, two_way_fleet, config=cfg.sampling)
+    assert group.max() >= 1  # the two carriageways at least
+    for i, pivot in enumerate(two_way_fleet):
+        ps = sample_pivot(index, pivot, config=cfg.sampling)
+        assert len(ps.drive) > 0
+        assert set(group[np.unique(ps.drive)].tolist()) == {group[i]}
+
+
+def test_split_order_keeps_the_global_order_and_balances_whole_groups():
+    order = np.array([5, 0, 3, 1, 4, 2])
+    group = np.array([0, 1, 0, 2, 1, 2])
+    weight = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 5.0])  # group 2 weighs 6, groups 0 and 1 two each
+    shares = split_order(order, group, weight, 2)
+    assert [s.tolist() for s in shares] == [[5, 3], [0, 1, 4, 2]]
+    assert len(split_order(order, np.zeros(6, np.int64), weight, 2)) == 1  # one group: one share
+    assert [s.tolist() for s in split_order(order, group, weight, 1)] == [order.tolist()]
+
+
+def _same_segments(a, b):
+    assert [s.pivot_id for s in a] == [s.pivot_id for s in b]
+    for sa, sb in zip(a, b):
+        assert len(sa.steps) == len(sb.steps)
+        for x, y in zip(sa.steps, sb.steps):
+            assert x.index == y.index and x.processed_before == y.processed_before
+            np.testing.assert_array_equal(x.lateral_m, y.lateral_m)
+            np.testing.assert_array_equal(x.types, y.types)
+
+
+@needs_fork
+@pytest.mark.parametrize("preset", ["default", "naive"])  # two passes with the adjustment; one pass
+def test_two_workers_give_exactly_the_one_process_result(two_way_fleet, preset):
+    cfg = PipelineConfig.preset(preset)
+    group = pivot_groups(preprocess(two_way_fleet, config=cfg.preprocess), two_way_fleet, config=cfg.sampling)
+    assert group.max() >= 1  # more than one group: the pivots really run in two processes
+    one = map_stretches(two_way_fleet, config=cfg, seed=2, collect_observations=True, workers=1)
+    two = map_stretches(two_way_fleet, config=cfg, seed=2, collect_observations=True, workers=2)
+    assert "grouping" in two.stage_seconds and "grouping" not in one.stage_seconds
+    _same_segments(one.segments, two.segments)
+    assert one.counters == two.counters
+    assert one.processed.intervals == two.processed.intervals
+    assert [(o.pivot_id, o.index) for o in one.observations] == [(o.pivot_id, o.index) for o in two.observations]
+    for x, y in zip(one.observations, two.observations):
+        np.testing.assert_array_equal(x.offsets_m, y.offsets_m)
+    m1 = build_map(two_way_fleet, config=cfg, seed=2, workers=1).map
+    m2 = build_map(two_way_fleet, config=cfg, seed=2, workers=2).map
+    assert [(f.id, f.type, f.predecessors, f.successors) for f in m1.features] == [
+        (f.id, f.type, f.predecessors, f.successors) for f in m2.features
+    ]
+    for f1, f2 in zip(m1.features, m2.features):
+        np.testing.assert_array_equal(f1.points, f2.points)
+        np.testing.assert_array_equal(f1.lateral_std, f2.lateral_std)
+
+
+@needs_fork
+def test_a_failing_worker_is_taken_over_with_the_same_result(two_way_fleet, monkeypatch, caplog):
+    cfg = PipelineConfig.preset("default")
+    want = map_stretches(two_way_fleet, config=cfg, seed=2, workers=1)
+    parent = os.getpid()
+    real = pipeline._run_pass
+
+    def fails_in_child(*args, **kwargs):
+        if os.getpid() != parent:
+            raise RuntimeError("boom in the worker")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "_run_pass", fails_in_child)
+    with caplog.at_level(logging.WARNING, logger="hdmap_core.parallel"):
+        got = map_stretches(two_way_fleet, config=cfg, seed=2, workers=2)
+    assert "boom in the worker" in caplog.text and "in this process instead" in caplog.text
+    _same_segments(want.segments, got.segments)
+    assert want.counters == got.counters
+
+
+@needs_fork
+def test_fork_worker_reports_a_dead_child_as_failed(caplog):
+    def job(channel):
+        os._exit(3)
+
+    with caplog.at_level(logging.WARNING, logger="hdmap_core.parallel"), ForkWorker(job) as w:
+        assert w.result() is None
+    assert w.failed and "exit code 3" in caplog.text
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_workers_must_be_a_positive_integer(two_way_fleet, bad):
+    with pytest.raises(ConfigError, match="workers"):
+        map_stretches(two_way_fleet[:2], config=PipelineConfig.preset("paper"), workers=bad)
