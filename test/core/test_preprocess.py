@@ -75,3 +75,42 @@ def test_config_rejects_bad_values():
         PreprocessConfig(grid_cell_m=0.0)
     with pytest.raises(ConfigError):
         PreprocessConfig(min_length_m=-1.0)
+
+
+def _random_fleet(n_drives: int, seed: int) -> list[Drive]:
+    rng = np.random.default_rng(seed)
+    drives = []
+    for i in range(n_drives):
+        dets = []
+        for _ in range(int(rng.integers(0, 8))):
+            start = rng.uniform(-80, 80, 2)
+            steps = rng.normal(0, 2.0, (rng.integers(2, 60), 2))
+            dets.append(Detection(FeatureType(int(rng.integers(1, 4))), start + np.cumsum(steps, axis=0)))
+        drives.append(_drive(dets, drive_id=f"d{i}", length_m=float(rng.uniform(20, 150))))
+    return drives
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_index_is_the_same_in_chunks_and_processes(monkeypatch, workers):
+    """Drives are thinned in chunks (and on several processes): every step is per polyline and
+    the chunks are joined in drive order, so the index equals the one made in one piece."""
+    import hdmap_core.preprocess as pre
+
+    drives = _random_fleet(40, seed=3)
+    cfg = PreprocessConfig(max_segment_m=6.0)
+    whole = preprocess(drives, config=cfg)
+    monkeypatch.setattr(pre, "_CHUNK_POINTS", 300)
+    assert len(pre._drive_chunks(drives)) > 4
+    chunked = preprocess(drives, config=cfg, workers=workers)
+    for f in ("seg_a", "seg_b", "seg_type", "seg_drive", "seg_s_a", "seg_s_b", "seg_yaw", "cell_keys", "cell_start"):
+        np.testing.assert_array_equal(getattr(whole, f), getattr(chunked, f), err_msg=f)
+    assert (whole.n_polylines_in, whole.n_polylines_kept, whole.n_points_in, whole.n_points_kept) == (
+        chunked.n_polylines_in, chunked.n_polylines_kept, chunked.n_points_in, chunked.n_points_kept)
+    for c in range(len(whole.cell_keys)):  # the same segments in every cell (their order is free)
+        lo, hi = whole.cell_start[c], whole.cell_start[c + 1]
+        assert sorted(whole.cell_segs[lo:hi]) == sorted(chunked.cell_segs[lo:hi])
+
+
+def test_no_drives_no_segments():
+    idx = preprocess([])
+    assert idx.n_segments == 0 and len(idx.cell_keys) == 0 and idx.n_polylines_in == 0

@@ -32,7 +32,7 @@ from hdmap_core.model import Drive
 from hdmap_core.preprocess import DetectionIndex
 from hdmap_core.sampling import SamplingConfig, pivot_walk
 
-__all__ = ["ForkWorker", "available_cpus", "can_fork", "pivot_groups", "split_order"]
+__all__ = ["ForkWorker", "available_cpus", "can_fork", "pivot_groups", "run_shares", "split_order"]
 
 _LOG = logging.getLogger(__name__)
 _HEADING_BINS = 12  # 30 deg each
@@ -138,6 +138,27 @@ def split_order(order: np.ndarray, group: np.ndarray, weight: np.ndarray, parts:
         load[p] += gw[g]
     shares = [order[share_of[group[order]] == p] for p in np.argsort(-load, kind="stable")]
     return [s for s in shares if len(s)]
+
+
+def run_shares(fn: Callable[[Any], Any], shares: Sequence[Any]) -> list[Any]:
+    """``[fn(share) for share in shares]``, the first share here, the others in forked workers
+    (where ``fork`` exists); a failed worker's share is computed here instead."""
+    if len(shares) < 2 or not can_fork():
+        return [fn(share) for share in shares]
+
+    def job(channel: Any, share: Any) -> None:
+        channel.send(fn(share))
+
+    workers = [ForkWorker(lambda ch, sh=sh: job(ch, sh)) for sh in shares[1:]]
+    try:
+        out = [fn(shares[0])]
+        for w, share in zip(workers, shares[1:]):
+            got = w.result()
+            out.append(fn(share) if w.failed else got)
+        return out
+    finally:
+        for w in workers:
+            w.close()
 
 
 class ForkWorker:

@@ -34,7 +34,7 @@ from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_
 from hdmap_core.alignment import AlignmentConfig, align_step, align_steps_gap, gap_batchable
 from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
 from hdmap_core.model import Drive, HDMap, validate_drive
-from hdmap_core.parallel import ForkWorker, can_fork, pivot_groups, split_order
+from hdmap_core.parallel import ForkWorker, can_fork, pivot_groups, run_shares, split_order
 from hdmap_core.evidence import EvidenceConfig, step_profiles
 from hdmap_core.preprocess import DetectionIndex, PreprocessConfig, preprocess, trajectory_index
 from hdmap_core.sampling import PivotSamples, SamplingConfig, pivot_walk, sample_pivot
@@ -796,7 +796,7 @@ def _map_stretches(
     store_in = processed if processed is not None else ProcessedStore()
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
-    index = preprocess(drives, config=config.preprocess)
+    index = preprocess(drives, config=config.preprocess, workers=workers)
     seconds["preprocess"] = time.perf_counter() - t0
     order = np.random.default_rng(seed).permutation(len(drives))
     obs: list[StepObservations] | None = [] if (collect_observations or config.use_global_adjustment) else None
@@ -953,7 +953,23 @@ def build_map(
     seconds = dict(res.stage_seconds)
     t0 = time.perf_counter()
     ccfg = config.connection if config.connection is not None else ConnectionConfig()
-    graphs = [connect_segment(seg, config=ccfg) for seg in res.segments]
+    segs = res.segments
+    if workers > 1 and len(segs) > 1:
+        # Segments are connected one by one: shares of about equal step counts (heaviest first,
+        # each to the lightest share), put back in pivot order.
+        load = np.zeros(min(workers, len(segs)))
+        shares: list[list[int]] = [[] for _ in load]
+        for i in sorted(range(len(segs)), key=lambda i: -len(segs[i].steps)):
+            k = int(np.argmin(load))
+            shares[k].append(i)
+            load[k] += len(segs[i].steps)
+        done = run_shares(lambda share: [connect_segment(segs[i], config=ccfg) for i in share], shares)
+        graphs = [None] * len(segs)
+        for share, out in zip(shares, done):
+            for i, g in zip(share, out):
+                graphs[i] = g
+    else:
+        graphs = [connect_segment(seg, config=ccfg) for seg in segs]
     seconds["connection"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     hdmap = stitch(graphs, config=config.stitching) if config.stitching is not None else stitch(graphs)

@@ -214,24 +214,111 @@ def _project_on_trajectory(drive: Drive, pts: np.ndarray) -> tuple[np.ndarray, n
     return s, yaw
 
 
-def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConfig()) -> DetectionIndex:
+# Drives are thinned in chunks of about this many detection points: the per-level RDP arrays
+# then stay in cache (measured: 4.8 -> 3.2 s for 4.2 M points), and the chunks can go to
+# several processes.
+_CHUNK_POINTS = 100_000
+
+
+@dataclass
+class _Thinned:
+    """The detection segments of a run of drives after filtering, RDP and segment splitting,
+    with their grid cells (segment numbers local to the run)."""
+
+    seg_a: np.ndarray  # (S, 2)
+    seg_b: np.ndarray  # (S, 2)
+    seg_type: np.ndarray  # (S,) int8
+    seg_drive: np.ndarray  # (S,) int32, index into the full drive list
+    seg_s_a: np.ndarray  # (S,) own drive's travelled distance at the ends
+    seg_s_b: np.ndarray
+    seg_yaw: np.ndarray  # (S,) own drive's heading at the segment start
+    cell_key: np.ndarray  # (K,) a cell each segment touches ...
+    cell_seg: np.ndarray  # (K,) ... and the segment (local number)
+    n_polylines_kept: int
+    n_points_in: int
+    n_points_kept: int
+
+
+def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConfig(), workers: int = 1) -> DetectionIndex:
     """Filter, thin and index the detections of valid drives (Sec. III).
 
     Args:
         drives: validated drives (see ``model.validate_drive``); detections of type UNKNOWN are
             ignored.
         config: preprocessing options.
+        workers: processes for the thinning (forked children; see ``hdmap_core.parallel``). Every
+            step is per polyline, so the index is the same for any number.
 
     Returns:
         The detection index; drive index i is ``drives[i]``.
     """
+    chunks = _drive_chunks(drives)
+    parts: list[_Thinned] = []
+    if workers > 1 and len(chunks) > 1:
+        from hdmap_core.parallel import run_shares  # noqa: PLC0415 - parallel imports this module
+
+        parts = [t for share in run_shares(
+            lambda share: [_thin(drives, lo, hi, config) for lo, hi in share],
+            _interleave(chunks, workers),
+        ) for t in share]
+        parts.sort(key=lambda t: int(t.seg_drive[0]) if len(t.seg_drive) else -1)
+    else:
+        parts = [_thin(drives, lo, hi, config) for lo, hi in chunks]
+    n_points_in = sum(t.n_points_in for t in parts)
+    n_points_kept = sum(t.n_points_kept for t in parts)
+    n_kept = sum(t.n_polylines_kept for t in parts)
+    cat = {f: np.concatenate([getattr(t, f) for t in parts]) for f in (
+        "seg_a", "seg_b", "seg_type", "seg_drive", "seg_s_a", "seg_s_b", "seg_yaw", "cell_key")}
+    offset = np.cumsum([0] + [len(t.seg_type) for t in parts[:-1]]) if parts else []
+    cell_seg = np.concatenate([t.cell_seg + off for t, off in zip(parts, offset)]) if parts else np.zeros(0, np.int64)
+    keys, start, segs = _grid_csr(cat["cell_key"], cell_seg)
+    n_in = sum(len(d.detections) for d in drives)
+    return DetectionIndex(
+        drive_ids=tuple(d.drive_id for d in drives),
+        seg_a=cat["seg_a"],
+        seg_b=cat["seg_b"],
+        seg_type=cat["seg_type"],
+        seg_drive=cat["seg_drive"],
+        seg_s_a=cat["seg_s_a"],
+        seg_s_b=cat["seg_s_b"],
+        seg_yaw=cat["seg_yaw"],
+        cell_m=config.grid_cell_m,
+        cell_keys=keys,
+        cell_start=start,
+        cell_segs=segs,
+        n_polylines_in=n_in,
+        n_polylines_kept=n_kept,
+        n_points_in=n_points_in,
+        n_points_kept=n_points_kept,
+    )
+
+
+def _drive_chunks(drives: list[Drive]) -> list[tuple[int, int]]:
+    """Runs [lo, hi) of drives with about ``_CHUNK_POINTS`` detection points each."""
+    out: list[tuple[int, int]] = []
+    lo, acc = 0, 0
+    for di, drive in enumerate(drives):
+        acc += sum(len(det.points) for det in drive.detections)
+        if acc >= _CHUNK_POINTS:
+            out.append((lo, di + 1))
+            lo, acc = di + 1, 0
+    if lo < len(drives) or not out:
+        out.append((lo, len(drives)))
+    return out
+
+
+def _interleave(chunks: list[tuple[int, int]], parts: int) -> list[list[tuple[int, int]]]:
+    """Chunks dealt out round-robin (similar sizes, so similar loads)."""
+    return [chunks[i::parts] for i in range(min(parts, len(chunks)))]
+
+
+def _thin(drives: list[Drive], lo: int, hi: int, config: PreprocessConfig) -> _Thinned:
+    """Drop short and UNKNOWN polylines, RDP, split long segments, project on the own drive."""
     chunks: list[np.ndarray] = []
     ptypes: list[int] = []
     pdrive: list[int] = []
-    n_in = 0
-    for di, drive in enumerate(drives):
-        for det in drive.detections:
-            n_in += 1
+    for di in range(lo, hi):
+        for det in drives[di].detections:
             if int(det.type) == FeatureType.UNKNOWN:
                 continue
             pts = np.asarray(det.points, dtype=float)
@@ -241,70 +328,55 @@ def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConf
             ptypes.append(int(det.type))
             pdrive.append(di)
     n_points_in = int(sum(len(c) for c in chunks))
-    if chunks:
-        counts = np.array([len(c) for c in chunks])
-        xy = np.concatenate(chunks)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        seg_len = np.hypot(*np.diff(xy, axis=0).T)
-        # Polyline length = sum of its own segments (the one bridging to the next is excluded).
-        cum = np.concatenate([[0.0], np.cumsum(seg_len)])
-        ends = starts + counts - 1
-        lengths = cum[ends] - cum[starts]
-        good = lengths >= config.min_length_m
-        xy, starts, counts = _select_polylines(xy, starts, counts, good)
-        ptypes_a = np.asarray(ptypes, dtype=np.int8)[good]
-        pdrive_a = np.asarray(pdrive, dtype=np.int32)[good]
-        mask = rdp_mask_many(xy, starts, config.rdp_epsilon_m) if len(xy) else np.zeros(0, bool)
-        kept_counts = np.add.reduceat(mask, starts) if len(starts) else np.zeros(0, np.int64)
-        xy = xy[mask]
-        starts = np.concatenate([[0], np.cumsum(kept_counts)[:-1]]).astype(np.int64) if len(starts) else starts
-        n_points_kept = len(xy)
-        xy, starts = split_long_segments(xy, starts, config.max_segment_m)
-        counts = np.diff(np.concatenate([starts, [len(xy)]]))
-    else:
-        xy = np.zeros((0, 2))
-        starts = counts = np.zeros(0, np.int64)
-        ptypes_a = np.zeros(0, np.int8)
-        pdrive_a = np.zeros(0, np.int32)
-        n_points_kept = 0
-    n_kept = len(starts)
-    # Per-vertex own-drive distance and heading.
-    v_drive = np.repeat(pdrive_a, counts)
+    if not chunks:
+        return _segments(drives, lo, hi, np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0, np.int8),
+                         np.zeros(0, np.int32), config, n_points_in, 0)
+    counts = np.array([len(c) for c in chunks])
+    xy = np.concatenate(chunks)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    seg_len = np.hypot(*np.diff(xy, axis=0).T)
+    # Polyline length = sum of its own segments (the one bridging to the next is excluded).
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    ends = starts + counts - 1
+    lengths = cum[ends] - cum[starts]
+    good = lengths >= config.min_length_m
+    xy, starts, counts = _select_polylines(xy, starts, counts, good)
+    ptypes_a = np.asarray(ptypes, dtype=np.int8)[good]
+    pdrive_a = np.asarray(pdrive, dtype=np.int32)[good]
+    mask = rdp_mask_many(xy, starts, config.rdp_epsilon_m) if len(xy) else np.zeros(0, bool)
+    kept_counts = np.add.reduceat(mask, starts) if len(starts) else np.zeros(0, np.int64)
+    xy = xy[mask]
+    starts = np.concatenate([[0], np.cumsum(kept_counts)[:-1]]).astype(np.int64) if len(starts) else starts
+    n_points_kept = len(xy)
+    xy, starts = split_long_segments(xy, starts, config.max_segment_m)
+    counts = np.diff(np.concatenate([starts, [len(xy)]])).astype(np.int64)
+    return _segments(drives, lo, hi, xy, counts, ptypes_a, pdrive_a, config, n_points_in, n_points_kept)
+
+
+def _segments(drives: list[Drive], lo: int, hi: int, xy: np.ndarray, counts: np.ndarray, ptypes: np.ndarray,
+              pdrive: np.ndarray, config: PreprocessConfig, n_points_in: int, n_points_kept: int) -> _Thinned:
+    """Segments of back-to-back polylines (drive by drive) with their own drive's distance and
+    heading, and the grid cells they touch."""
+    # Per-vertex own-drive distance and heading; vertices come drive by drive.
+    v_drive = np.repeat(pdrive, counts)
     v_s = np.zeros(len(xy))
     v_yaw = np.zeros(len(xy))
-    # vertices are grouped by drive (appended drive by drive): one slice per drive, not a scan
-    bounds = np.searchsorted(v_drive, np.arange(len(drives) + 1))
-    for di in np.flatnonzero(np.diff(bounds)):
-        sel = slice(bounds[di], bounds[di + 1])
-        v_s[sel], v_yaw[sel] = _project_on_trajectory(drives[di], xy[sel])
+    bounds = np.searchsorted(v_drive, np.arange(lo, hi + 1))
+    for k in np.flatnonzero(np.diff(bounds)):
+        sel = slice(bounds[k], bounds[k + 1])
+        v_s[sel], v_yaw[sel] = _project_on_trajectory(drives[lo + k], xy[sel])
     # Segments: consecutive vertices inside one polyline.
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64) if len(counts) else np.zeros(0, np.int64)
     is_last = np.zeros(len(xy), dtype=bool)
     if len(xy):
         is_last[starts + counts - 1] = True
     a_idx = np.flatnonzero(~is_last)
     seg_a, seg_b = xy[a_idx], xy[a_idx + 1]
-    seg_type = np.repeat(ptypes_a, counts)[a_idx]
-    seg_drive = v_drive[a_idx]
-    seg_s_a, seg_s_b = v_s[a_idx], v_s[a_idx + 1]
-    seg_yaw = v_yaw[a_idx]
-    keys, start, segs = _build_grid(seg_a, seg_b, config.grid_cell_m)
-    return DetectionIndex(
-        drive_ids=tuple(d.drive_id for d in drives),
-        seg_a=seg_a,
-        seg_b=seg_b,
-        seg_type=seg_type,
-        seg_drive=seg_drive,
-        seg_s_a=seg_s_a,
-        seg_s_b=seg_s_b,
-        seg_yaw=seg_yaw,
-        cell_m=config.grid_cell_m,
-        cell_keys=keys,
-        cell_start=start,
-        cell_segs=segs,
-        n_polylines_in=n_in,
-        n_polylines_kept=n_kept,
-        n_points_in=n_points_in,
-        n_points_kept=n_points_kept,
+    cell_key, cell_seg = _grid_pairs(seg_a, seg_b, config.grid_cell_m)
+    return _Thinned(
+        seg_a=seg_a, seg_b=seg_b, seg_type=np.repeat(ptypes, counts)[a_idx], seg_drive=v_drive[a_idx],
+        seg_s_a=v_s[a_idx], seg_s_b=v_s[a_idx + 1], seg_yaw=v_yaw[a_idx], cell_key=cell_key, cell_seg=cell_seg,
+        n_polylines_kept=len(counts), n_points_in=n_points_in, n_points_kept=n_points_kept,
     )
 
 
@@ -344,8 +416,13 @@ def _select_polylines(xy: np.ndarray, starts: np.ndarray, counts: np.ndarray, go
 
 def _build_grid(seg_a: np.ndarray, seg_b: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CSR grid hash: every segment in all cells its bounding box (grown by cell/4) touches."""
+    return _grid_csr(*_grid_pairs(seg_a, seg_b, cell_m))
+
+
+def _grid_pairs(seg_a: np.ndarray, seg_b: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(cell key (K,), segment (K,)): every cell a segment's bounding box grown by cell/4 touches."""
     if len(seg_a) == 0:
-        return np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64)
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     pad = 0.25 * cell_m
     lo = np.floor((np.minimum(seg_a, seg_b) - pad) / cell_m).astype(np.int64)
     hi = np.floor((np.maximum(seg_a, seg_b) + pad) / cell_m).astype(np.int64)
@@ -356,9 +433,18 @@ def _build_grid(seg_a: np.ndarray, seg_b: np.ndarray, cell_m: float) -> tuple[np
     k = np.arange(len(seg)) - first[seg]
     ix = lo[seg, 0] + k % nx[seg]
     iy = lo[seg, 1] + k // nx[seg]
-    keys = _cell_key(ix, iy)
-    order = np.argsort(keys, kind="stable")
+    return _cell_key(ix, iy), seg.astype(np.int64)
+
+
+def _grid_csr(keys: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(sorted distinct cell keys, CSR starts, segments per cell) of (cell, segment) pairs."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64)
+    # The order of the segments within a cell is free (``intersect`` sorts its hits by cut and
+    # segment), so an unstable sort does (twice as fast as a stable one on millions of keys).
+    order = np.argsort(keys)
     keys, seg = keys[order], seg[order]
-    ukeys, ustart = np.unique(keys, return_index=True)
+    ustart = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
     start = np.concatenate([ustart, [len(keys)]]).astype(np.int64)
-    return ukeys, start, seg.astype(np.int64)
+    return keys[ustart], start, seg
+
