@@ -136,3 +136,23 @@ def test_fork_worker_reports_a_dead_child_as_failed(caplog):
 def test_workers_must_be_a_positive_integer(two_way_fleet, bad):
     with pytest.raises(ConfigError, match="workers"):
         map_stretches(two_way_fleet[:2], config=PipelineConfig.preset("paper"), workers=bad)
+
+
+@needs_fork
+def test_no_worker_process_possible_runs_everything_here(two_way_fleet, monkeypatch, caplog):
+    """E.g. inside a daemonic multiprocessing worker, which may not start children."""
+    import multiprocessing.context
+
+    cfg = PipelineConfig.preset("naive")
+    want = build_map(two_way_fleet, config=cfg, seed=2, workers=1).map
+
+    def refuse(self):
+        raise AssertionError("daemonic processes are not allowed to have children")
+
+    monkeypatch.setattr(multiprocessing.context.ForkProcess, "start", refuse)
+    with caplog.at_level(logging.WARNING, logger="hdmap_core.parallel"):
+        got = build_map(two_way_fleet, config=cfg, seed=2, workers=2).map
+    assert "cannot start a worker process" in caplog.text
+    assert [(f.id, f.predecessors, f.successors) for f in want.features] == [(f.id, f.predecessors, f.successors) for f in got.features]
+    for a, b in zip(want.features, got.features):
+        np.testing.assert_array_equal(a.points, b.points)

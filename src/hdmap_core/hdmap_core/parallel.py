@@ -175,8 +175,13 @@ class ForkWorker:
         self._conn, child_conn = ctx.Pipe(duplex=True)
         self.failed = False
         self._proc = ctx.Process(target=_child_main, args=(job, child_conn), daemon=True)
-        self._proc.start()
-        child_conn.close()
+        try:
+            self._proc.start()
+        except (AssertionError, OSError) as err:  # e.g. a daemonic process may not have children
+            self._proc = None
+            self._fail(f"cannot start a worker process: {err!r}")
+        finally:
+            child_conn.close()
 
     def send(self, obj: Any) -> None:
         if self.failed:
@@ -193,6 +198,7 @@ class ForkWorker:
         try:
             kind, payload = self._conn.recv()
         except (EOFError, OSError) as err:
+            self._proc.join(timeout=1)
             self._fail(f"the worker process ended without a result (exit code {self._proc.exitcode}): {err!r}")
             return None
         if kind == "error":
@@ -201,13 +207,16 @@ class ForkWorker:
         return payload
 
     def close(self) -> None:
+        """Close the pipe and reap the child (killed if it has not ended within 2 s, e.g. when
+        the parent gave up on it after an error of its own)."""
         try:
             self._conn.close()
         finally:
-            self._proc.join(timeout=10)
-            if self._proc.is_alive():
-                self._proc.kill()
-                self._proc.join()
+            if self._proc is not None:
+                self._proc.join(timeout=2)
+                if self._proc.is_alive():
+                    self._proc.kill()
+                    self._proc.join()
 
     def __enter__(self) -> ForkWorker:
         return self
