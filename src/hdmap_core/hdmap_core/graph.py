@@ -130,6 +130,12 @@ def export_map(
             end_run_m=getattr(cfg, "single_drive_end_run_m", 0.0),
         )
     through = getattr(cfg, "through_lines", False)
+    if getattr(cfg, "end_stub_max_m", 0.0) > 0 and len(e):
+        drop = _end_stubs(flat, uid, cfg, through=through)
+        if drop.any():
+            keep_n = ~drop
+            flat, uid, protect = _subset_nodes(flat, keep_n), uid[keep_n], protect[keep_n]
+            nn, e = flat.n_nodes, flat.edges
     chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid, through=through)
     link = chain_links(nn, e, flat.leftover, flat.n_type, through=through)
     outdeg = np.bincount(e[:, 0], minlength=nn) if len(e) else np.zeros(nn, dtype=np.int64)
@@ -312,6 +318,100 @@ def _inner_borders(
             inside += bool((lat > 0.5).any() and (lat < -0.5).any())
         out[k] = inside > 0.5 * len(nodes)
     return out
+
+
+_STUB_COVER_ALONG_M = 2.0  # a stub node's cross-section: this far along its heading (steps are 2 m apart)
+
+
+def _end_stubs(flat: FlatGraph, uid: np.ndarray, cfg: StitchConfig, *, through: bool) -> np.ndarray:
+    """(N,) bool: feature nodes of end stubs to drop (``StitchConfig.end_stub_max_m``).
+
+    A stub is the run of drive-supported nodes at a loose end (no edge beyond it, none branching
+    off it) up to ``end_stub_max_m`` long, joined to the rest of its line by an edge long enough
+    to be filled (> 1.5 ``fill_spacing_m``) whose far end lies at least ``end_stub_side_m`` and
+    ``end_stub_slope`` of the edge's length to the side, measured across the heading of the
+    rest's last topology node (the pivot's, not the line's: a line curving away from its pivot,
+    e.g. a border bending into a junction, is no jump). The stub and that edge are dropped. With
+    ``end_stub_cover_m`` > 0 only where every stub node has a node of another polyline within
+    that far across and ``_STUB_COVER_ALONG_M`` along (the road is mapped there; a stub that is
+    the only map line on its cross-section stays)."""
+    nn = flat.n_nodes
+    drop = np.zeros(nn, dtype=bool)
+    e = flat.edges
+    fill_m = 1.5 * cfg.fill_spacing_m if cfg.fill_spacing_m > 0 else 3.0
+    outdeg = np.bincount(e[:, 0], minlength=nn)
+    indeg = np.bincount(e[:, 1], minlength=nn)
+    nxt = np.full(nn, -1, dtype=np.int64)
+    prv = np.full(nn, -1, dtype=np.int64)
+    one_out = outdeg[e[:, 0]] == 1
+    one_in = indeg[e[:, 1]] == 1
+    nxt[e[one_out, 0]] = e[one_out, 1]
+    prv[e[one_in, 1]] = e[one_in, 0]
+    node_topo = flat.node_topo()
+    heading = flat.t_heading[node_topo]
+    xy = flat.n_xy
+    cover_m = float(getattr(cfg, "end_stub_cover_m", 0.0))
+    tree = None
+    stubs: list[tuple[list[int], int]] = []
+    for tail in (True, False):
+        # loose ends: a tail has no out edge and one in edge; a head the other way round
+        ends = np.flatnonzero((outdeg == 0) & (indeg == 1)) if tail else np.flatnonzero((indeg == 0) & (outdeg == 1))
+        back = prv if tail else nxt
+        for i in ends.tolist():
+            run = [i]
+            length = 0.0
+            j = i
+            ok = False
+            while True:
+                k = int(back[j])
+                if k < 0:
+                    break
+                d = float(np.hypot(*(xy[j] - xy[k])))
+                if d > fill_m:  # the jumping edge (the rest's end node may also split or merge)
+                    ok = True
+                    break
+                # the stub continues through nodes with no other edge
+                if outdeg[k] != 1 or indeg[k] != 1 or flat.n_count[k] <= 0:
+                    break
+                length += d
+                if length > cfg.end_stub_max_m:
+                    break
+                run.append(k)
+                j = k
+            if not ok or (flat.n_count[run] <= 0).any():  # a stub is drive-supported
+                continue
+            p0, p1 = xy[k], xy[j]
+            h = float(heading[k])
+            v = p1 - p0
+            lat = abs(math.cos(h) * v[1] - math.sin(h) * v[0])
+            if lat < cfg.end_stub_side_m or lat < cfg.end_stub_slope * float(np.hypot(*v)):
+                continue
+            stubs.append((run, k))
+    if not stubs:
+        return drop
+    if cover_m > 0:
+        chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid, through=through)
+        chain_of = np.full(nn, -1, dtype=np.int64)
+        for c_i, c in enumerate(chains):
+            chain_of[c] = c_i
+        tree = cKDTree(xy)
+        reach = math.hypot(cover_m, _STUB_COVER_ALONG_M)
+    for run, k in stubs:
+        if tree is not None:
+            own = {int(chain_of[run[0]]), int(chain_of[k])}
+            covered = True
+            for i in run:
+                u, n = _unit(float(heading[i]))
+                near = np.asarray(tree.query_ball_point(xy[i], reach), dtype=np.int64)
+                near = near[~np.isin(chain_of[near], list(own))]
+                d = xy[near] - xy[i]
+                if not ((np.abs(d @ u) <= _STUB_COVER_ALONG_M) & (np.abs(d @ n) <= cover_m)).any():
+                    covered = False
+                    break
+            if not covered:
+                continue
+        drop[run] = True
+    return drop
 
 
 def _continuation_runs(

@@ -130,6 +130,20 @@ class StitchConfig:
             into one run shortest first) was kept as a line of the other type
             (carla_town06_30_s3, docs/pipeline.md "One drive's type at a line's end"). 0
             disables (250 in the default pipeline preset) [m].
+        end_stub_max_m: at a polyline's loose end (no edge beyond it), a run of drive-supported
+            nodes up to this long that the rest of the line reaches only through an edge long
+            enough to be filled, whose far end lies ``end_stub_side_m`` (and ``end_stub_slope`` of
+            the edge's length) to the side of the rest's topology heading, is dropped with that
+            edge: a loose-end join or bridged gap onto the neighbouring lane's line at a ramp or
+            junction end, a stray piece of another line (docs/pipeline.md, "Town04's stray
+            pieces"). Only where every stub node has another polyline's node within
+            ``end_stub_cover_m`` across (and 2 m along): a stub that is the only map line on its
+            cross-section stays. 0 disables (the dataclass default; 12 in the default pipeline
+            preset) [m].
+        end_stub_side_m: see ``end_stub_max_m`` [m].
+        end_stub_slope: see ``end_stub_max_m`` (lateral offset / edge length).
+        end_stub_cover_m: see ``end_stub_max_m``; 0: no coverage check (every such stub is
+            dropped) [m].
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
             runs into a merge without predecessor) is a spur and is dropped. 0 disables [m].
         bubble_max_m: of two branches from one split node to one merge node (or a branch beside
@@ -251,6 +265,10 @@ class StitchConfig:
     single_drive_run_m: float = 0.0
     single_drive_end_run_m: float = 0.0
     spur_max_m: float = 12.0
+    end_stub_max_m: float = 0.0
+    end_stub_side_m: float = 2.0
+    end_stub_slope: float = 0.1
+    end_stub_cover_m: float = 8.0
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
     merge_continuations: bool = True
@@ -303,6 +321,10 @@ class StitchConfig:
             "single_drive_run_m",
             "single_drive_end_run_m",
             "spur_max_m",
+            "end_stub_max_m",
+            "end_stub_side_m",
+            "end_stub_slope",
+            "end_stub_cover_m",
             "bubble_max_m",
             "gore_max_m",
             "path_search_m",
