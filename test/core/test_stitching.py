@@ -1145,3 +1145,43 @@ def test_track_of_a_pivot_is_followed_across_live_tiles():
     m = stitch([tile_a, tile_b, q], config=StitchConfig(track_search_m=60.0))
     ((x, y),) = _successor_positions(m, [0.0, 30.0])
     assert y == 10.0 and 20.0 <= x <= 24.0
+
+
+def _stub_road(others_on: bool):
+    """One pivot: solid -3.5 and border 7 m (through x 0..98 if ``others_on``, else up to x 58),
+    a dashed line at 0 m up to x 58, another at 3.5 m up to x 40, and two steps of a dashed line
+    at 3.5 m at x 74-76 (the neighbouring lane's line past a junction mouth)."""
+
+    def lines(i: int):
+        ys, ts = ([-3.5, 7.0], [S, B]) if others_on or i <= 29 else ([], [])
+        if i <= 29:
+            ys, ts = ys + [0.0], ts + [D]
+        if i <= 20 or i in (37, 38):
+            ys, ts = ys + [3.5], ts + [D]
+        o = np.argsort(ys)
+        return [ys[k] for k in o], [ts[k] for k in o]
+
+    steps = [step("a", i, 2.0 * i, *lines(i)) for i in range(50) if lines(i)[0]]
+    return conn(Segment("a", tuple(steps)))
+
+
+def test_end_stub_reached_by_a_sideways_fill_dropped_where_other_lines_map_the_place():
+    """The dashed line at 0 m ends at x 58; the connection bridges it 3.5 m sideways onto the
+    two-step stub of the neighbouring line at x 74-76 (a filled edge, no drive's line). With
+    end_stub_max_m (default preset) the stub and the fill are dropped: the line ends at x 58.
+    Where no other map line lies on the stub's cross-section (the solid line and the border end
+    at x 58 too), the stub is the only map point there and stays; with the dataclass default
+    (0, off) it stays too."""
+    g = _stub_road(others_on=True)
+
+    def dashed_ends(m: HDMap) -> list[tuple[float, float]]:
+        return sorted((round(float(f.points[-1, 0]), 1), round(float(f.points[-1, 1]), 1)) for f in by_type(m, D))
+
+    assert DEFAULT.end_stub_max_m == 12.0 and StitchConfig().end_stub_max_m == 0.0
+    assert dashed_ends(stitch([g], config=dataclasses.replace(DEFAULT, end_stub_max_m=0.0))) == [(40.0, 3.5), (76.0, 3.5)]
+    assert dashed_ends(stitch([g], config=DEFAULT)) == [(40.0, 3.5), (58.0, 0.0)]
+    lone = _stub_road(others_on=False)
+    assert (76.0, 3.5) in dashed_ends(stitch([lone], config=DEFAULT))
+    assert (76.0, 3.5) not in dashed_ends(stitch([lone], config=dataclasses.replace(DEFAULT, end_stub_cover_m=0.0)))
+    with pytest.raises(ConfigError):
+        StitchConfig(end_stub_side_m=-1.0)

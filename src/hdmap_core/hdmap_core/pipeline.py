@@ -205,6 +205,10 @@ class PipelineConfig:
                     join_line_heading_deg=3.0, join_line_cross_deg=30.0, join_line_cross_lateral_m=12.0,
                     # an isolated 1-2-drive border between lane lines is a misclassified marking
                     inner_border_max_m=5.0, inner_border_max_drives=2,
+                    # a loose end's stub of <= 12 m reached by a fill jumping >= 2 m sideways of the
+                    # pivot's heading (onto the neighbouring lane's line) is dropped where other
+                    # lines map its cross-section (docs/pipeline.md, "Town04's stray pieces")
+                    end_stub_max_m=12.0,
                 ),
                 name="default",
             )
