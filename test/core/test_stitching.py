@@ -465,6 +465,27 @@ def test_one_drive_end_run_takes_the_better_supported_type():
     assert len(stitch([conn(seg(long_end, [2] * 40 + [1] * 60))], config=DEFAULT).features) == 2  # longer
 
 
+def test_one_drive_end_run_judged_across_a_leftover_edge():
+    """Solid 200 m seen by 2 drives, then the line's last 80 m seen by one drive as dashed, with
+    a leftover edge (1:1) 60 m before the dashed run: the smoothing's chain ends there while the
+    exported polyline goes on, so the end run's neighbour in its chain is only 60 m long and the
+    end rule (not longer than its neighbour) kept it (two polylines). Judged along chains that go
+    on through leftover edges (single_drive_end_through_leftover, default preset) it takes the
+    solid type: one polyline. Off in the dataclass."""
+    types, counts = [S] * 100 + [D] * 40, [2] * 100 + [1] * 40
+    seg = Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, counts))))
+    g = conn(seg)
+    (k,) = np.flatnonzero(np.abs(g.node_xy[g.edges[:, 0], 0] - 138.0) < 0.5)  # the edge 138 -> 140 m
+    g.edge_leftover[k] = True
+
+    def kinds(cfg) -> list:
+        return [f.type for f in sorted(stitch([g], config=cfg).features, key=lambda f: f.points[0, 0])]
+
+    assert DEFAULT.single_drive_end_through_leftover and not StitchConfig().single_drive_end_through_leftover
+    assert kinds(DEFAULT) == [FeatureType.SOLID]
+    assert kinds(dataclasses.replace(DEFAULT, single_drive_end_through_leftover=False)) == [FeatureType.SOLID, FeatureType.DASHED]
+
+
 def test_spur_at_a_flicker_split_pruned():
     """A second line appears for 3 steps 1 m beside the dashed line (a leftover split) and dies:
     the spur is dropped, the dashed line stays one polyline."""

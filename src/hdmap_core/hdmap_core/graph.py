@@ -11,6 +11,7 @@ way, so that an existing map can be updated.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -128,6 +129,7 @@ def export_map(
             minority_only=getattr(cfg, "sparse_minority_only", False),
             single_run_m=getattr(cfg, "single_drive_run_m", 0.0),
             end_run_m=getattr(cfg, "single_drive_end_run_m", 0.0),
+            end_run_through=getattr(cfg, "single_drive_end_through_leftover", False),
         )
     through = getattr(cfg, "through_lines", False)
     if getattr(cfg, "end_stub_max_m", 0.0) > 0 and len(e):
@@ -696,6 +698,7 @@ def _smooth_types(
     minority_only: bool = False,
     single_run_m: float = 0.0,
     end_run_m: float = 0.0,
+    end_run_through: bool = False,
 ) -> np.ndarray:
     """Marking types with short runs along a polyline relabelled to their neighbours' type.
 
@@ -710,7 +713,9 @@ def _smooth_types(
     more drives (median); a flicker run of one drive is relabelled up to ``single_run_m`` when it
     is not longer than both of its neighbour runs. A run at the polyline's end seen by one drive
     is relabelled up to ``end_run_m`` when it is not longer than its one neighbour run and that
-    run was seen by more drives.
+    run was seen by more drives. With ``end_run_through`` that end rule alone is judged once more
+    afterwards, along chains that go on through leftover edges (1:1): the exported polyline goes
+    on there, so the chain's end is no line's end and its neighbour run lies beyond the edge.
 
     Returns:
         (N,) int type codes.
@@ -790,6 +795,13 @@ def _smooth_types(
         for a, b, ty in runs:
             t[a:b] = ty
         types[c] = t
+    if end_run_through and end_run_m > 0:
+        # RULE single-drive end across leftover edges: only the end rule (no min run, no flicker:
+        # along the longer chains the single-drive flicker rule relabelled true runs)
+        g = copy.copy(flat)
+        g.n_type = types
+        g.leftover = np.zeros_like(flat.leftover)
+        types = _smooth_types(g, uid, 0.0, end_run_m=end_run_m)
     return types
 
 

@@ -199,6 +199,9 @@ class PipelineConfig:
                     # ... and a one-drive run at a line's end after a better supported run of the
                     # other type (docs/pipeline.md, sparse fleets)
                     single_drive_end_run_m=250.0,
+                    # ... also where its neighbour run lies beyond a leftover edge the polyline
+                    # goes on through (docs/pipeline.md, "Type runs across leftover edges")
+                    single_drive_end_through_leftover=True,
                     # loose ends also compared in their lines' frame from 3 deg off the pivot's
                     # heading (10 in the dataclass), such joins refused where a pivot turned
                     # through the gap (docs/pipeline.md, sparse fleets)

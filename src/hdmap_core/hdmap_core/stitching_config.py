@@ -130,6 +130,15 @@ class StitchConfig:
             into one run shortest first) was kept as a line of the other type
             (carla_town06_30_s3, docs/pipeline.md "One drive's type at a line's end"). 0
             disables (250 in the default pipeline preset) [m].
+        single_drive_end_through_leftover: the ``single_drive_end_run_m`` rule judged once more
+            after the other type rules, along chains that go on through edges made by the
+            leftover assignment (a 1:1 edge, no split or merge): the smoothing's chains end at
+            such an edge while the exported polyline goes on through it, so a one-drive run at
+            a chain's end was compared with nothing (its better supported neighbour run lay in
+            the next chain) and a chain's inner run looked like an end run. Only the end rule
+            is judged along the longer chains (the flicker rules there relabelled a true 90 m
+            dashed run on carla_town06_30_s1). False in the dataclass (True in the default
+            pipeline preset; docs/pipeline.md "Type runs across leftover edges").
         end_stub_max_m: at a polyline's loose end (no edge beyond it), a run of drive-supported
             nodes up to this long that the rest of the line reaches only through an edge long
             enough to be filled, whose far end lies ``end_stub_side_m`` (and ``end_stub_slope`` of
@@ -264,6 +273,7 @@ class StitchConfig:
     sparse_minority_only: bool = False
     single_drive_run_m: float = 0.0
     single_drive_end_run_m: float = 0.0
+    single_drive_end_through_leftover: bool = False
     spur_max_m: float = 12.0
     end_stub_max_m: float = 0.0
     end_stub_side_m: float = 2.0
