@@ -42,6 +42,24 @@ def test_profile_empty_where_passing_drives_saw_nothing():
     assert step_profiles(0, [], [], [], [], [], []) == []
 
 
+def test_sparse_cut_judged_with_the_default_presets_min_expected():
+    """Four drives cross one cut (t = -3.5, 0, 3.5, 3.5); all detect lines at t = -1.75 and
+    1.75, none at t = 5.25: expected there 2 x 0.9 + 0.6 + 0.2 = 2.6 detections. The dataclass
+    (min_expected 3) does not judge it; the default preset judges from 2 expected detections
+    (the 30-drive fleets' junction mouths, docs/pipeline.md) and finds it empty."""
+    cross_t = np.array([-3.5, 0.0, 3.5, 3.5])
+    drives = np.arange(4)
+    hit_t = np.tile([-1.75, 1.75], 4)
+    hit_d = np.repeat(drives, 2)
+    preset = PipelineConfig.preset("default")
+    assert preset.evidence.min_expected == 2.0 and preset.stitching.fill_evidence.min_expected == 2.0
+    assert CFG.min_expected == 3.0
+    (prof,) = step_profiles(1, np.zeros(4), cross_t, drives, np.zeros(8), hit_t, hit_d, config=preset.evidence)
+    assert _inside(prof, 5.25) and not _inside(prof, 1.75)
+    (prof,) = step_profiles(1, np.zeros(4), cross_t, drives, np.zeros(8), hit_t, hit_d, config=CFG)
+    assert not _inside(prof, 5.25)
+
+
 def test_profiles_of_many_steps_equal_those_of_each_step_alone():
     """Many steps at once (the matrices are built a chunk of steps at a time) give what each step
     gives alone."""

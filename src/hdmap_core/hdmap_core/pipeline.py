@@ -178,7 +178,10 @@ class PipelineConfig:
                 mark_on_cut_only=True,
                 # where drives passed and saw nothing: fills through such places are dropped
                 # (docs/pipeline.md, "Negative evidence")
-                evidence=EvidenceConfig(),
+                # judged where >= 2 detections are expected (3 in the dataclass): the 30-drive
+                # fleets' false fills lie where 1-4 drives pass (docs/pipeline.md, "Type runs
+                # across leftover edges; negative evidence at 30 drives")
+                evidence=EvidenceConfig(min_expected=2.0),
                 connection=ConnectionConfig(support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5),
                 stitching=StitchConfig(
                     # junction pieces already joined to the map through one end get their other end
@@ -190,7 +193,7 @@ class PipelineConfig:
                     track_search_m=60.0, track_linked_ends=True,
                     # fills through stretches the drives saw empty are dropped (the profiles come
                     # from ``evidence`` above; docs/pipeline.md, "Negative evidence")
-                    fill_evidence=EvidenceConfig(),
+                    fill_evidence=EvidenceConfig(min_expected=2.0),
                     # two roads side by side join only at a shallow angle (docs/graph.md)
                     side_link_angle_deg=30.0,
                     # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
