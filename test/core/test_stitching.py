@@ -1123,6 +1123,97 @@ def test_track_links_only_in_the_default_preset():
         StitchConfig(track_max_gap_m=math.nan)
 
 
+def _bridged_turn(turn: bool = True, landing_deg: float = 0.0) -> list:
+    r"""Road e mapped southwards on x = 0 (y 100 -> -38) and road q eastwards on y = 10 (x -60 ->
+    118), by their own pivots; both go on through the junction (no chain ends there), crossing at
+    90 deg (no link). Pivot p drove south on e (processed before through e), then (``turn``) left
+    through a 20 m-radius turn whose steps all failed, onto q (processed before through q; the
+    first such step heading ``landing_deg``), or straight on with failed steps. p has no chain of
+    its own: no start or end for the track search to walk from.
+
+        e |   p
+          |  (0, 30)
+          |   \_ _ _ q -> (22, 10)
+    """
+    south = -math.pi / 2
+    steps = [_pose_step("p", 0, (0.0, 100.0), south, valid=False, processed_before=True),
+             _pose_step("p", 35, (0.0, 30.0), south, valid=False, processed_before=True)]
+    if turn:
+        thetas = math.pi + 0.1 * np.arange(1, 16)  # centre (20, 30), 2 m steps, to heading 0
+        steps += [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
+                             valid=False) for k, t in enumerate(thetas, start=1)]
+        steps += [_pose_step("p", 51, (22.0, 10.0), math.radians(landing_deg), valid=False, processed_before=True),
+                  _pose_step("p", 70, (60.0, 10.0), 0.0, valid=False, processed_before=True)]
+    else:
+        steps += [_pose_step("p", 35 + k, (0.0, 30.0 - 2.0 * k), south, valid=False) for k in range(1, 16)]
+    e = Segment("e", tuple(_pose_step("e", i, (0.0, 100.0 - 2.0 * i), south) for i in range(70)))
+    q = Segment("q", tuple(_pose_step("q", i, (-60.0 + 2.0 * i, 10.0), 0.0) for i in range(90)))
+    return [connect_segment(Segment("p", tuple(steps))), connect_segment(e), connect_segment(q)]
+
+
+def _reaches(m: HDMap, src, dst, limit: int = 200) -> bool:
+    """Does topology node at ``src`` reach the node at ``dst`` along successors (BFS, ``limit`` nodes)?"""
+    by_id = {t.id: t for t in m.topology}
+    (a,) = [t.id for t in m.topology if np.allclose(t.position, src)]
+    (b,) = [t.id for t in m.topology if np.allclose(t.position, dst)]
+    seen, todo = {a}, [a]
+    while todo and len(seen) < limit:
+        for s in by_id[todo.pop()].successors:
+            if s == b:
+                return True
+            if s not in seen:
+                seen.add(s)
+                todo.append(s)
+    return False
+
+
+def test_track_bridge_links_two_mapped_roads_a_pivot_turned_between():
+    """carla_town04_30_s1's missed exit (docs/graph.md, "Track bridges"): the pivot's track leaves
+    e, runs through failed steps and enters q, but no chain ends there, so the ordinary links,
+    the arc search and the track search (default preset) give no path e -> q. The bridge links
+    the node of e the track left to the node of q it entered."""
+    graphs = _bridged_turn()
+    assert graphs[0].n_topo == 0 and len(graphs[0].track_step) == 19
+    d = PipelineConfig.preset("default").stitching
+    without = dataclasses.replace(d, track_bridge_m=0.0)
+    assert not _reaches(stitch(graphs, config=without), [0.0, 30.0], [40.0, 10.0])
+    m = stitch(graphs, config=d)
+    assert m.extra["last_integrate"]["bridge_links"] == 1
+    (src,) = [t for t in m.topology if len(t.successors) == 2]  # e's node that got the turn
+    assert src.position[0] == 0.0 and 18.0 <= src.position[1] <= 30.0  # where the track still ran along e
+    assert _reaches(m, [0.0, 30.0], [40.0, 10.0])
+    # a pivot that drove straight on along e bridges nothing
+    assert stitch(_bridged_turn(turn=False), config=d).extra["last_integrate"]["bridge_links"] == 0
+
+
+@pytest.mark.parametrize("landing_deg, linked", [(-35.0, True), (-50.0, False)])
+def test_track_bridge_enters_a_road_at_a_merge_angle(landing_deg: float, linked: bool):
+    """The track enters q's cross-section while still turning: its last failed steps lie outside
+    it, the step processed through q heads ``landing_deg``. Entering is accepted within
+    ``track_bridge_heading_deg`` (45 deg), wider than the 30 deg of leaving a road."""
+    graphs = _bridged_turn(landing_deg=landing_deg)
+    # the arc's last points lie in q's cross-section already: move them out (the pivot cut the corner)
+    p = graphs[0]
+    xy = p.track_xy.copy()
+    late = (xy[:, 1] < 15.1) & (np.arange(len(xy)) < len(xy) - 2)
+    xy[late, 1] = 15.1  # q's cross-section reaches 5 m across
+    xy[-2] = [20.0, 11.0]  # the step processed through q
+    graphs[0] = dataclasses.replace(p, track_xy=xy)
+    m = stitch(graphs, config=PipelineConfig.preset("default").stitching)
+    assert (m.extra["last_integrate"]["bridge_links"] == 1) is linked
+
+
+def test_track_bridges_only_in_the_default_preset():
+    assert PipelineConfig.preset("default").stitching.track_bridge_m == 60.0
+    for name in ("naive", "paper"):
+        assert getattr(PipelineConfig.preset(name).stitching, "track_bridge_m", 0.0) == 0.0
+    assert StitchConfig().track_bridge_m == 0.0 and StitchConfig.paper().track_bridge_m == 0.0
+    with pytest.raises(ConfigError):
+        StitchConfig(track_bridge_m=-1.0)
+    with pytest.raises(ConfigError):
+        StitchConfig(track_bridge_heading_deg=0.0)
+
+
 def _junction_turn_split() -> tuple[list, list]:
     """``_junction(turn=True)``'s pivot p in two pieces, as two tiles hold it live: its chain
     (steps 0-35) and its failed turn with the step processed through q."""

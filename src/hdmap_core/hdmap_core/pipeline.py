@@ -191,6 +191,9 @@ class PipelineConfig:
                     # an end (linked or not) follows the path its pivot drove through a junction
                     # whose steps failed, onto the road it entered (docs/graph.md, "Track links")
                     track_search_m=60.0, track_linked_ends=True,
+                    # ... and a pivot's track leaving one mapped road through failed steps onto
+                    # another links the two where no chain ends there (docs/graph.md, "Track bridges")
+                    track_bridge_m=60.0,
                     # fills through stretches the drives saw empty are dropped (the profiles come
                     # from ``evidence`` above; docs/pipeline.md, "Negative evidence")
                     fill_evidence=EvidenceConfig(min_expected=2.0),

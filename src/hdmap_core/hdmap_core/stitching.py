@@ -66,6 +66,7 @@ from hdmap_core.stitching_links import (
     _partner,
     _path_partner,
     _reached_within,
+    _track_bridges,
     _track_partner,
     _UnionFind,
 )
@@ -97,6 +98,7 @@ class IntegrateReport:
     branches_joined: int = 0
     path_links: int = 0
     track_links: int = 0
+    bridge_links: int = 0
 
 
 class MapGraph(LooseEnds):
@@ -434,6 +436,8 @@ class MapGraph(LooseEnds):
             self._track_links(flat, tree, todo, existing, indeg, outdeg, uf, rep)
         if cfg.path_search_m > 0:
             self._path_links(flat, tree, todo, existing, indeg, outdeg, uf, rep)
+        if cfg.track_bridge_m > 0:
+            self._bridge_links(flat, tree, existing, indeg, outdeg, uf, rep)
 
     def _allowed(self, existing: _Adjacency, uf: _UnionFind, i: int, is_end: bool) -> Callable[[int], bool]:
         """Partners a late (track or arc) link of start/end i may take: another component, or
@@ -494,6 +498,44 @@ class MapGraph(LooseEnds):
             if self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
                 pred.add(b, a)
                 rep.track_links += 1
+
+    def _bridge_links(
+        self, flat: FlatGraph, tree: cKDTree, existing: _Adjacency, indeg: np.ndarray, outdeg: np.ndarray,
+        uf: _UnionFind, rep: IntegrateReport,
+    ) -> None:
+        """RULE track bridge: where a pivot's track leaves the map's node A, runs through steps that
+        no node covers (failed steps at a junction, the road on both sides mapped by other pivots)
+        and enters node B within ``track_bridge_m``, A is linked to B (topology only) unless the
+        map reaches B from A within 2 * ``track_bridge_m`` + 30 m already or the link closes a
+        short cycle: the pivot drove from A to B (``_track_bridges``). Unlike the track search it
+        needs no component start/end: the pivot's own chain may not exist there at all."""
+        cfg = self.config
+        reach = self._reach(flat)
+        limit = 2.0 * cfg.track_bridge_m + 30.0
+        reached: dict[int, set[int]] = {}
+
+        def near(a: int) -> set[int]:
+            if a not in reached:
+                reached[a] = _reached_within(flat, existing, a, limit)
+            return reached[a]
+
+        tracks, _ = self._pivot_tracks()
+        for pid in sorted(tracks):
+            xy, heading = tracks[pid]
+            if len(xy) < 3:
+                continue
+            bridges = _track_bridges(
+                flat, tree, np.asarray(xy, dtype=float), np.asarray(heading, dtype=float), cfg, reach,
+                lambda a, j: j in near(a),
+            )
+            for a, b in bridges:
+                if b in near(a):
+                    continue
+                if _closes_cycle(existing, a, b, True):
+                    continue
+                if self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
+                    rep.bridge_links += 1
+                    reached.clear()  # the map reaches more now
 
     def _pivot_tracks(self) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, np.ndarray]]:
         """Per pivot drive, its track over all its segment graphs (xy, heading; in order of

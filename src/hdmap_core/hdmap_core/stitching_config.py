@@ -208,6 +208,21 @@ class StitchConfig:
             already; it then links to a node its pivot's track enters only when the map does
             not reach that node from the start (end) within 2 * ``track_search_m`` + 30 m (the
             pivot took a turn at a junction that the ordinary link went straight through).
+        track_bridge_m: where a pivot's track leaves a topology node A (a track point in its
+            cross-section, heading within ``track_bridge_heading_deg``), runs through at least one
+            point in no node's cross-section for at most this far, and enters a node B, A is
+            linked to B (topology only) unless the map reaches B from A within 2 * this + 30 m or
+            the link closes a short cycle: the pivot drove from A to B. Needs no component
+            start/end: at a junction turn whose steps failed while the roads on both sides were
+            mapped by other pivots (the pivot's steps there processed before), no chain ends
+            where the pivot turned, so the track search never starts (carla_town04_30_s1's exit,
+            docs/graph.md "Track bridges"). 0 disables (the paper, the plain default) [m].
+        track_bridge_heading_deg: see ``track_bridge_m``: the track enters node B (and stays on
+            the road of A while turning off it) with a heading this close to the node's; it
+            leaves A within ``max_heading_diff_deg``. Wider than that: a pivot entering a road
+            at a merge is still turning when its track reaches the road's cross-section (35 deg
+            on Town04). Consecutive track points more than ``track_max_gap_m`` apart in any
+            direction end a bridge's walk [deg].
         fill_evidence: at export, a feature edge long enough to be filled is dropped when most of
             it runs where the drives that passed saw nothing (``hdmap_core.evidence``, from the
             segments' ``StepResult.empty_m``, made by ``PipelineConfig.evidence``; of this config
@@ -288,6 +303,8 @@ class StitchConfig:
     track_max_gap_m: float = 6.0
     track_max_jump_m: float = 12.0
     track_linked_ends: bool = False
+    track_bridge_m: float = 0.0
+    track_bridge_heading_deg: float = 45.0
     fill_evidence: EvidenceConfig | None = None
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
@@ -341,12 +358,16 @@ class StitchConfig:
             "track_search_m",
             "track_max_gap_m",
             "track_max_jump_m",
+            "track_bridge_m",
             "path_curvature_m",
         ):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ConfigError(f"{name} must be finite and >= 0, got {v}")
-        for name in ("max_heading_diff_deg", "max_connection_angle_deg", "path_max_turn_deg", "side_link_angle_deg"):
+        for name in (
+            "max_heading_diff_deg", "max_connection_angle_deg", "path_max_turn_deg", "side_link_angle_deg",
+            "track_bridge_heading_deg",
+        ):
             v = getattr(self, name)
             if not 0 < v <= 180:
                 raise ConfigError(f"{name} must be in (0, 180], got {v}")

@@ -228,6 +228,81 @@ def _track_partner(
     return -1
 
 
+def _entered_by_points(
+    flat: FlatGraph, tree: cKDTree, xy: np.ndarray, heading: np.ndarray, cos_h: tuple[float, ...], reach_m: float
+) -> list[np.ndarray]:
+    """Per heading limit in ``cos_h``: (K,) per track point (``xy`` (K, 2), ``heading`` (K,)) the
+    nearest topology node whose cross-section (``_in_cross_section``) it lies in with a heading
+    within acos(limit) of the point's; -1 where none."""
+    outs = [np.full(len(xy), -1, dtype=np.int64) for _ in cos_h]
+    if len(xy) == 0 or flat.n_topo == 0:
+        return outs
+    hits = tree.query_ball_point(xy, reach_m)
+    owner = np.repeat(np.arange(len(xy)), [len(h) for h in hits])
+    if len(owner) == 0:
+        return outs
+    j = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits])
+    hj = flat.t_heading[j]
+    u = np.stack([np.cos(hj), np.sin(hj)], axis=1)
+    rel = xy[owner] - flat.t_xy[j]
+    along = np.abs((rel * u).sum(axis=1))
+    across = np.abs(rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0])
+    w = flat.t_width[j]
+    half = np.where(np.isfinite(w) & (w > 0), w / 2.0, 1.75)
+    inside = (along <= _PATH_STEP_M) & (across <= half)
+    owner, j, d, c = owner[inside], j[inside], np.hypot(rel[inside, 0], rel[inside, 1]), np.cos(hj - heading[owner])[inside]
+    order = np.lexsort((j, d, owner))  # per point the nearest first (ties: lowest index)
+    owner, j, c = owner[order], j[order], c[order]
+    for out, lim in zip(outs, cos_h):
+        ok = c >= lim
+        o, jj = owner[ok], j[ok]
+        first = np.r_[True, o[1:] != o[:-1]] if len(o) else np.zeros(0, dtype=bool)
+        out[o[first]] = jj[first]
+    return outs
+
+
+def _track_bridges(
+    flat: FlatGraph, tree: cKDTree, xy: np.ndarray, heading: np.ndarray, cfg: StitchConfig, reach_m: float,
+    on_road: Callable[[int, int], bool],
+) -> list[tuple[int, int]]:
+    """(A, B) topology node pairs a pivot's track (``xy``, ``heading`` in driving order) bridges:
+    the track leaves node A's cross-section, runs through at least one point that lies in no
+    node's cross-section (within ``track_bridge_heading_deg``) for at most ``track_bridge_m``
+    (two points further apart than ``track_max_gap_m`` end the walk), and enters node B's
+    (``StitchConfig.track_bridge_m``). A is left running along it (within
+    ``max_heading_diff_deg``); points turning off it within ``track_bridge_heading_deg`` while
+    still in the cross-section of a node A's road leads to (``on_road(A, node)``) keep A."""
+    # leaving a road the track runs along it (within max_heading_diff_deg); entering one at a
+    # merge it may still be turning (within track_bridge_heading_deg)
+    leave, enter = _entered_by_points(
+        flat, tree, xy, heading,
+        (math.cos(math.radians(cfg.max_heading_diff_deg)), math.cos(math.radians(cfg.track_bridge_heading_deg))), reach_m,
+    )
+    out: list[tuple[int, int]] = []
+    last, unmapped, walked = -1, 0, 0.0
+    for m in range(len(xy)):
+        if m > 0:
+            # a bridge claims the pivot drove the track: consecutive points no further apart than
+            # track_max_gap_m in any direction (the track search's jumps of failed steps' cut
+            # midpoints, up to track_max_jump_m across, land on other roads at junctions)
+            gap = float(np.hypot(*(xy[m] - xy[m - 1])))
+            walked += gap
+            if gap > cfg.track_max_gap_m:
+                last, unmapped, walked = -1, 0, 0.0
+        if enter[m] < 0:
+            unmapped += 1
+            continue
+        if last >= 0 and unmapped > 0 and walked <= cfg.track_bridge_m and leave[last] != enter[m]:
+            out.append((int(leave[last]), int(enter[m])))
+        if leave[m] >= 0:
+            last, unmapped, walked = m, 0, 0.0
+        elif unmapped > 0 or last < 0 or not on_road(int(leave[last]), int(enter[m])):
+            last, unmapped, walked = -1, 0, 0.0  # entered at a merge angle: no road to leave from
+        # else still on the road it left last (a node the map reaches from there), turning off
+        # it: the bridge starts at the last point that ran along it
+    return out
+
+
 class _UnionFind:
     def __init__(self, labels: np.ndarray) -> None:
         self.parent = list(range(int(labels.max()) + 1 if len(labels) else 0))
