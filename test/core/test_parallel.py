@@ -156,3 +156,19 @@ def test_no_worker_process_possible_runs_everything_here(two_way_fleet, monkeypa
     assert [(f.id, f.predecessors, f.successors) for f in want.features] == [(f.id, f.predecessors, f.successors) for f in got.features]
     for a, b in zip(want.features, got.features):
         np.testing.assert_array_equal(a.points, b.points)
+
+
+def test_balance_gives_the_heaviest_first_to_the_least_loaded_share():
+    from hdmap_core.parallel import balance
+
+    assert balance(np.array([1.0, 5.0, 2.0, 2.0]), 2).tolist() == [1, 0, 1, 1]
+    assert balance(np.array([3.0]), 4).tolist() == [0]
+
+
+@needs_fork
+def test_map_balanced_returns_results_in_item_order_from_two_processes():
+    from hdmap_core.parallel import map_balanced
+
+    got = map_balanced(lambda i: (i * i, os.getpid()), [1.0, 4.0, 1.0, 2.0, 3.0], 2)
+    assert [v for v, _ in got] == [0, 1, 4, 9, 16]
+    assert len({pid for _, pid in got}) == 2 and os.getpid() in {pid for _, pid in got}

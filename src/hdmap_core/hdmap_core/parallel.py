@@ -32,7 +32,7 @@ from hdmap_core.model import Drive
 from hdmap_core.preprocess import DetectionIndex
 from hdmap_core.sampling import SamplingConfig, pivot_walk
 
-__all__ = ["ForkWorker", "available_cpus", "can_fork", "pivot_groups", "run_shares", "split_order"]
+__all__ = ["ForkWorker", "available_cpus", "balance", "can_fork", "map_balanced", "pivot_groups", "run_shares", "split_order"]
 
 _LOG = logging.getLogger(__name__)
 _HEADING_BINS = 12  # 30 deg each
@@ -120,24 +120,47 @@ def pivot_groups(index: DetectionIndex, drives: Sequence[Drive], *, config: Samp
     return group.astype(np.int64)
 
 
+def balance(weight: np.ndarray, parts: int) -> np.ndarray:
+    """(N,) share (0..parts-1) per item: heaviest item first, each to the least loaded share
+    (ties: the lower share). Share 0 carries the heaviest first item."""
+    weight = np.asarray(weight, dtype=float)
+    load = np.zeros(max(1, min(parts, len(weight))))
+    share = np.zeros(len(weight), dtype=np.int64)
+    for i in np.argsort(-weight, kind="stable"):
+        k = int(np.argmin(load))
+        share[i] = k
+        load[k] += weight[i]
+    return share
+
+
 def split_order(order: np.ndarray, group: np.ndarray, weight: np.ndarray, parts: int) -> list[np.ndarray]:
     """The pivot order split into at most ``parts`` shares of whole groups, each in global order.
 
-    Groups go to the lightest share, heaviest group first (weight: e.g. a drive's length). Empty
-    shares are dropped; the first share is the heaviest.
+    Groups are ``balance``d by their summed weight (e.g. the drives' lengths). Empty shares are
+    dropped; the first share is the heaviest.
     """
     order = np.asarray(order, dtype=np.int64)
     n_groups = int(group.max()) + 1 if len(group) else 0
-    parts = max(1, min(parts, n_groups))
     gw = np.bincount(group, weights=weight, minlength=n_groups)
-    load = np.zeros(parts)
-    share_of = np.zeros(n_groups, dtype=np.int64)
-    for g in np.argsort(-gw, kind="stable"):
-        p = int(np.argmin(load))
-        share_of[g] = p
-        load[p] += gw[g]
+    share_of = balance(gw, parts)
+    load = np.bincount(share_of, weights=gw, minlength=int(share_of.max()) + 1 if n_groups else 0)
     shares = [order[share_of[group[order]] == p] for p in np.argsort(-load, kind="stable")]
     return [s for s in shares if len(s)]
+
+
+def map_balanced(fn: Callable[[int], Any], weight: Sequence[float], workers: int) -> list[Any]:
+    """``[fn(i) for i in range(len(weight))]``, the items ``balance``d by ``weight`` over
+    ``workers`` processes (``run_shares``); the results in item order."""
+    n = len(weight)
+    if workers < 2 or n < 2:
+        return [fn(i) for i in range(n)]
+    share_of = balance(np.asarray(weight, dtype=float), workers)
+    shares = [np.flatnonzero(share_of == k) for k in range(int(share_of.max()) + 1)]
+    out: list[Any] = [None] * n
+    for items, results in zip(shares, run_shares(lambda items: [fn(int(i)) for i in items], shares)):
+        for i, r in zip(items, results):
+            out[int(i)] = r
+    return out
 
 
 def run_shares(fn: Callable[[Any], Any], shares: Sequence[Any]) -> list[Any]:

@@ -34,7 +34,7 @@ from hdmap_core.aggregation import AggregationConfig, ProcessedStore, aggregate_
 from hdmap_core.alignment import AlignmentConfig, align_step, align_steps_gap, gap_batchable
 from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
 from hdmap_core.model import Drive, HDMap, validate_drive
-from hdmap_core.parallel import ForkWorker, can_fork, pivot_groups, run_shares, split_order
+from hdmap_core.parallel import ForkWorker, can_fork, map_balanced, pivot_groups, split_order
 from hdmap_core.evidence import EvidenceConfig, step_profiles
 from hdmap_core.preprocess import DetectionIndex, PreprocessConfig, preprocess, trajectory_index
 from hdmap_core.sampling import PivotSamples, SamplingConfig, pivot_walk, sample_pivot
@@ -692,7 +692,6 @@ def _check_workers(workers: int) -> int:
 
 def _merge_parts(
     parts: list[tuple[list[Segment], ProcessedStore, list | None, _Counters]],
-    shares: list[np.ndarray],
     order: np.ndarray,
     drives: list[Drive],
     store_in: ProcessedStore,
@@ -866,17 +865,21 @@ def _map_stretches(
     if progress is not None:
         total = len(order)
         report = lambda stage, done, _n: progress(stage, done, total)  # noqa: E731
+    def run(pass_: Callable[..., tuple]) -> tuple[list[Segment], ProcessedStore, list | None, _Counters]:
+        # this process's share here, the others' from their workers (or here, if one failed)
+        parts = [pass_(shares[0], report)]
+        for w, sh in zip(workers_, shares[1:]):
+            got = w.result()
+            parts.append(pass_(sh, None) if w.failed else got)
+        if progress is not None and len(shares) > 1:
+            progress("pivots", len(order), len(order))
+        return _merge_parts(parts, order, drives, store_in)
+
     workers_ = [ForkWorker(lambda ch, sh=sh: job(ch, sh)) for sh in shares[1:]]
     try:
         if model is None:
             t0 = time.perf_counter()
-            parts = [first(shares[0], report)]
-            for w, sh in zip(workers_, shares[1:]):
-                got = w.result()
-                parts.append(got if got is not None else first(sh, None))
-            segments, store, obs, counters = _merge_parts(parts, shares, order, drives, store_in)
-            if progress is not None and len(shares) > 1:
-                progress("pivots", len(order), len(order))
+            segments, store, obs, counters = run(first)
             seconds["sampling_em"] = time.perf_counter() - t0
         if adjust:
             try:
@@ -891,13 +894,7 @@ def _map_stretches(
             if adjust:
                 for w in workers_:
                     w.send(model)
-            parts = [second(shares[0], model, report)]
-            for w, sh in zip(workers_, shares[1:]):
-                got = w.result()
-                parts.append(got if got is not None else second(sh, model, None))
-            segments, store, _, counters = _merge_parts(parts, shares, order, drives, store_in)
-            if progress is not None and len(shares) > 1:
-                progress("pivots", len(order), len(order))
+            segments, store, _, counters = run(lambda sh, rep: second(sh, model, rep))
             seconds["final_pass"] = time.perf_counter() - t0
     finally:
         for w in workers_:
@@ -967,22 +964,8 @@ def build_map(
     t0 = time.perf_counter()
     ccfg = config.connection if config.connection is not None else ConnectionConfig()
     segs = res.segments
-    if workers > 1 and len(segs) > 1:
-        # Segments are connected one by one: shares of about equal step counts (heaviest first,
-        # each to the lightest share), put back in pivot order.
-        load = np.zeros(min(workers, len(segs)))
-        shares: list[list[int]] = [[] for _ in load]
-        for i in sorted(range(len(segs)), key=lambda i: -len(segs[i].steps)):
-            k = int(np.argmin(load))
-            shares[k].append(i)
-            load[k] += len(segs[i].steps)
-        done = run_shares(lambda share: [connect_segment(segs[i], config=ccfg) for i in share], shares)
-        graphs = [None] * len(segs)
-        for share, out in zip(shares, done):
-            for i, g in zip(share, out):
-                graphs[i] = g
-    else:
-        graphs = [connect_segment(seg, config=ccfg) for seg in segs]
+    # segments are connected one by one: over the workers by their step counts
+    graphs = map_balanced(lambda i: connect_segment(segs[i], config=ccfg), [len(g.steps) for g in segs], workers)
     seconds["connection"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     hdmap = stitch(graphs, config=config.stitching) if config.stitching is not None else stitch(graphs)

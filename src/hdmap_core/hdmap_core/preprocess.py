@@ -252,18 +252,10 @@ def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConf
     Returns:
         The detection index; drive index i is ``drives[i]``.
     """
-    chunks = _drive_chunks(drives)
-    parts: list[_Thinned] = []
-    if workers > 1 and len(chunks) > 1:
-        from hdmap_core.parallel import run_shares  # noqa: PLC0415 - parallel imports this module
+    from hdmap_core.parallel import map_balanced  # noqa: PLC0415 - parallel imports this module
 
-        parts = [t for share in run_shares(
-            lambda share: [_thin(drives, lo, hi, config) for lo, hi in share],
-            _interleave(chunks, workers),
-        ) for t in share]
-        parts.sort(key=lambda t: int(t.seg_drive[0]) if len(t.seg_drive) else -1)
-    else:
-        parts = [_thin(drives, lo, hi, config) for lo, hi in chunks]
+    chunks = _drive_chunks(drives)  # of about equal size
+    parts = map_balanced(lambda i: _thin(drives, *chunks[i], config), [1.0] * len(chunks), workers)
     n_points_in = sum(t.n_points_in for t in parts)
     n_points_kept = sum(t.n_points_kept for t in parts)
     n_kept = sum(t.n_polylines_kept for t in parts)
@@ -305,11 +297,6 @@ def _drive_chunks(drives: list[Drive]) -> list[tuple[int, int]]:
     if lo < len(drives) or not out:
         out.append((lo, len(drives)))
     return out
-
-
-def _interleave(chunks: list[tuple[int, int]], parts: int) -> list[list[tuple[int, int]]]:
-    """Chunks dealt out round-robin (similar sizes, so similar loads)."""
-    return [chunks[i::parts] for i in range(min(parts, len(chunks)))]
 
 
 def _thin(drives: list[Drive], lo: int, hi: int, config: PreprocessConfig) -> _Thinned:

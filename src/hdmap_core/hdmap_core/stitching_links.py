@@ -163,12 +163,18 @@ def _path_partner(
     return -1
 
 
+#: Half the cross-section of a topology node whose width is not known [m].
+_HALF_WIDTH_UNKNOWN_M = 1.75
+
+
 def _in_cross_section(flat: FlatGraph, j: int, p: np.ndarray) -> float:
     """Distance from topology node j to point p when p lies in j's cross-section (half its width
-    across, 1.75 m for a width not known; one step along), else inf [m]."""
+    across, ``_HALF_WIDTH_UNKNOWN_M`` for a width not known; one step along), else inf [m].
+    ``_entered_by_points`` applies the same test to many points at once."""
     uj, nj = _unit(float(flat.t_heading[j]))
     rel = p - flat.t_xy[j]
-    half = float(flat.t_width[j]) / 2.0 if math.isfinite(flat.t_width[j]) and flat.t_width[j] > 0 else 1.75
+    w = float(flat.t_width[j])
+    half = w / 2.0 if math.isfinite(w) and w > 0 else _HALF_WIDTH_UNKNOWN_M
     if abs(float(rel @ uj)) > _PATH_STEP_M or abs(float(rel @ nj)) > half:
         return math.inf
     return float(np.hypot(*rel))
@@ -248,7 +254,7 @@ def _entered_by_points(
     along = np.abs((rel * u).sum(axis=1))
     across = np.abs(rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0])
     w = flat.t_width[j]
-    half = np.where(np.isfinite(w) & (w > 0), w / 2.0, 1.75)
+    half = np.where(np.isfinite(w) & (w > 0), w / 2.0, _HALF_WIDTH_UNKNOWN_M)
     inside = (along <= _PATH_STEP_M) & (across <= half)
     owner, j, d, c = owner[inside], j[inside], np.hypot(rel[inside, 0], rel[inside, 1]), np.cos(hj - heading[owner])[inside]
     order = np.lexsort((j, d, owner))  # per point the nearest first (ties: lowest index)
