@@ -1297,3 +1297,39 @@ def test_end_stub_reached_by_a_sideways_fill_dropped_where_other_lines_map_the_p
     assert (76.0, 3.5) not in dashed_ends(stitch([lone], config=dataclasses.replace(DEFAULT, end_stub_cover_m=0.0)))
     with pytest.raises(ConfigError):
         StitchConfig(end_stub_side_m=-1.0)
+
+
+def _flicker_end(pivot: str, n: int, tail_type: int, tail: int = 5) -> Segment:
+    """A solid line x 0..2(n-1) whose last ``tail`` steps were classified ``tail_type``."""
+    return Segment(pivot, tuple(step(pivot, i, 2.0 * i, [0.0], [S if i < n - tail else tail_type]) for i in range(n)))
+
+
+@pytest.mark.parametrize("gap_m, joined", [(2.0, True), (9.0, True), (16.0, False)])
+def test_loose_ends_of_the_other_marking_type_joined_up_to_the_limit(gap_m, joined):
+    """a's solid line ends in a 10 m dashed run (type flicker), b's solid line starts gap_m ahead
+    (no topology link: max_distance_m 0). With join_other_marking_m 10 the end and the start are
+    joined and the export's type runs make one solid polyline; without it (the dataclass, the
+    paper) or beyond the limit, two polylines."""
+    a = _flicker_end("a", 50, D)
+    b = road("b", 98.0 + gap_m, 40, ([0.0], [S]))
+    base = StitchConfig(max_distance_m=0.0)
+    m = stitch([conn(a), conn(b)], config=dataclasses.replace(base, join_other_marking_m=10.0))
+    if joined:
+        assert len(m.features) == 1
+        f = m.features[0]
+        assert f.type == FeatureType.SOLID
+        assert f.points[0, 0] == 0.0 and f.points[-1, 0] == pytest.approx(98.0 + gap_m + 78.0)
+    else:
+        assert len(m.features) == 2
+    assert len(stitch([conn(a), conn(b)], config=base).features) == 2
+    assert StitchConfig.paper().join_other_marking_m == 0.0 and DEFAULT.join_other_marking_m == 10.0
+
+
+def test_loose_end_of_a_marking_not_joined_to_a_border_start():
+    """The other-marking join is for solid / dashed only: a marking's end and a road border's
+    start 2 m ahead stay apart."""
+    a = _flicker_end("a", 50, D)
+    b = road("b", 100.0, 40, ([0.0], [B]))
+    m = stitch([conn(a), conn(b)], config=StitchConfig(max_distance_m=0.0, join_other_marking_m=10.0))
+    assert len(m.features) == 2
+    assert sum(int(f.type) == B for f in m.features) == 1

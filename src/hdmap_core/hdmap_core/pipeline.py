@@ -212,6 +212,10 @@ class PipelineConfig:
                     # heading (10 in the dataclass), such joins refused where a pivot turned
                     # through the gap (docs/pipeline.md, sparse fleets)
                     join_line_heading_deg=3.0, join_line_cross_deg=30.0, join_line_cross_lateral_m=12.0,
+                    # ... and a solid end joins a dashed start (or the reverse) up to 10 m ahead: one
+                    # line whose type flickered where a segment ended (docs/pipeline.md, "Loose ends of
+                    # the other marking type")
+                    join_other_marking_m=10.0,
                     # an isolated 1-2-drive border between lane lines is a misclassified marking
                     inner_border_max_m=5.0, inner_border_max_drives=2,
                     # a loose end's stub of <= 12 m reached by a fill jumping >= 2 m sideways of the

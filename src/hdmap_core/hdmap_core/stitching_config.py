@@ -92,6 +92,14 @@ class StitchConfig:
             lines all end at its mouth (carla_town06_30: three dashed lines filled straight
             across a junction, 30 false points each). 0 disables [deg].
         join_line_cross_lateral_m: see ``join_line_cross_deg`` [m].
+        join_other_marking_m: with ``same_type_only``, a loose end and a loose start of the other
+            lane-marking type (solid / dashed; a road border still joins only a border) are joined
+            too when the start lies at most this far ahead (the other tests as for any join, at
+            ``type_mismatch_cost_m`` extra cost): one line whose type flickered where a segment
+            ended (a one-drive misclassified run at the end; the export's type runs relabel it).
+            carla_town04_30_s1: a 3 km solid line, its end run dashed, the next segment's start
+            solid 1.7 m ahead, stayed two polylines. Longer cross-type joins made a false 48 m
+            fill there. 0 disables (the dataclass, ``paper``; 10 in the default preset) [m].
         fill_spacing_m: a polyline edge longer than 1.5 x this (a bridged gap or join) is filled
             with points on a cubic Hermite curve through the end tangents, this far apart; the
             filled points carry drive_count 0 (no drive saw them). 0 disables [m].
@@ -278,6 +286,7 @@ class StitchConfig:
     join_gap_coverage: float = 0.8
     join_line_cross_deg: float = 0.0
     join_line_cross_lateral_m: float = 12.0
+    join_other_marking_m: float = 0.0
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
     inner_border_max_m: float = 0.0
@@ -340,6 +349,7 @@ class StitchConfig:
             "join_gap_heading_deg",
             "join_line_cross_deg",
             "join_line_cross_lateral_m",
+            "join_other_marking_m",
             "fill_spacing_m",
             "min_isolated_length_m",
             "inner_border_max_m",

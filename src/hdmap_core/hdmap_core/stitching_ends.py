@@ -235,9 +235,13 @@ class LooseEnds:
                 if flat.n_graph[j] == flat.n_graph[i] and not cfg.join_same_segment:
                     continue
                 if flat.n_type[j] != flat.n_type[i] and (
-                    cfg.same_type_only or (flat.n_type[j] == _BORDER_CODE) != (flat.n_type[i] == _BORDER_CODE)
+                    (cfg.same_type_only and cfg.join_other_marking_m <= 0)
+                    or (flat.n_type[j] == _BORDER_CODE) != (flat.n_type[i] == _BORDER_CODE)
                 ):
                     continue
+                # RULE other marking: a solid end and a dashed start (or the reverse) close ahead
+                # are one line whose type flickered at the cut (``join_other_marking_m``)
+                other_marking = bool(flat.n_type[j] != flat.n_type[i]) and cfg.same_type_only
                 best: tuple[float, int, list[int]] | None = None
                 for hh in (heading, line_h) if (line_h[i] != heading[i] or line_h[j] != heading[j]) else (heading,):
                     if math.cos(hh[j] - hh[i]) < cos_h:
@@ -249,6 +253,8 @@ class LooseEnds:
                     d = flat.n_xy[j] - flat.n_xy[i]
                     along, lat = float(d @ u), abs(float(d @ n))
                     if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
+                        continue
+                    if other_marking and along > cfg.join_other_marking_m:
                         continue
                     if 0 < cfg.join_gap_check_m < along and gap.unmapped(flat.n_xy[i], along, mean_h, u, n):
                         continue
