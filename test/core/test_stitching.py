@@ -1111,6 +1111,40 @@ def test_linked_end_gets_the_turn_its_pivot_took_as_a_second_successor():
     assert _successor_positions(m, end) == [[0.0, 28.0]]
 
 
+@pytest.mark.parametrize(
+    "landing_deg, next_deg, settle_deg, x_linked",
+    [(-25.0, 0.0, 0.0, 20.0), (-25.0, 0.0, 8.0, 22.0), (-25.0, -20.0, 8.0, 20.0), (-12.0, 0.0, 8.0, 20.0)],
+)
+def test_track_link_lands_where_the_pivot_has_settled_onto_the_road(
+    landing_deg: float, next_deg: float, settle_deg: float, x_linked: float
+):
+    """carla_town06_100_s1's false link (docs/graph.md): p's track first lies in q's cross-section
+    at (18.6, 10.05), in the node at x = 20, heading ``landing_deg`` (within the 30 deg limit), and
+    one step on at (22, 10) heading ``next_deg``. With ``track_settle_deg`` (8) a point more than
+    16 deg off the node's heading whose next point is within 8 deg of it is still turning onto
+    the road: the link lands on the node at x = 22, where the track has settled. A track still
+    turning at the next point (-20 deg) or landing only 12 deg off keeps the node at x = 20."""
+    p, q = _junction(turn=True)
+    (row,) = np.flatnonzero(p.track_step == 50)
+    assert np.allclose(p.track_xy[row], [20.0 + 20.0 * math.cos(math.pi + 1.5), 30.0 + 20.0 * math.sin(math.pi + 1.5)])
+    assert p.track_step[row + 1] == 51 and np.allclose(p.track_xy[row + 1], [22.0, 10.0])
+    heading = p.track_heading.copy()
+    heading[row], heading[row + 1] = math.radians(landing_deg), math.radians(next_deg)
+    p = dataclasses.replace(p, track_heading=heading)
+    m = stitch([p, q], config=StitchConfig(track_search_m=60.0, track_settle_deg=settle_deg))
+    assert _successor_positions(m, [0.0, 30.0]) == [[x_linked, 10.0]]
+    assert m.extra["last_integrate"]["track_links"] == 1
+
+
+def test_track_settle_only_in_the_default_preset():
+    assert PipelineConfig.preset("default").stitching.track_settle_deg == 8.0
+    for name in ("naive", "paper"):
+        assert getattr(PipelineConfig.preset(name).stitching, "track_settle_deg", 0.0) == 0.0
+    assert StitchConfig().track_settle_deg == 0.0 and StitchConfig.paper().track_settle_deg == 0.0
+    with pytest.raises(ConfigError):
+        StitchConfig(track_settle_deg=-1.0)
+
+
 def test_track_links_only_in_the_default_preset():
     d = PipelineConfig.preset("default").stitching
     assert d.track_search_m > 0 and d.track_linked_ends

@@ -191,6 +191,9 @@ class PipelineConfig:
                     # an end (linked or not) follows the path its pivot drove through a junction
                     # whose steps failed, onto the road it entered (docs/graph.md, "Track links")
                     track_search_m=60.0, track_linked_ends=True,
+                    # ... landing where its pivot has settled onto the road, not where it still
+                    # turns into it (docs/graph.md, "The one false long link on carla_town06_100_s1")
+                    track_settle_deg=8.0,
                     # ... and a pivot's track leaving one mapped road through failed steps onto
                     # another links the two where no chain ends there (docs/graph.md, "Track bridges")
                     track_bridge_m=60.0,

@@ -216,6 +216,16 @@ class StitchConfig:
             already; it then links to a node its pivot's track enters only when the map does
             not reach that node from the start (end) within 2 * ``track_search_m`` + 30 m (the
             pivot took a turn at a junction that the ordinary link went straight through).
+        track_settle_deg: the track search (``track_search_m``) passes over a track point where
+            the pivot is still turning onto the node's road: the track's heading there lies more
+            than 2 x this off the node's and at the next track point of the walk (no gap)
+            within this of it. The walk goes on and lands where the track has settled, or
+            nowhere. A turn's track cuts the corner: on carla_town06_100_s1 an end's pivot,
+            turning right onto a road, lay in the cross-section of a node 22 deg off its heading
+            2 m before the turn lane joins that road (the node carries only the lanes from the
+            south; a false 14.5 m link), 4.5 deg off one step later (docs/graph.md, "The one
+            false long link on carla_town06_100_s1"). 0 disables (the paper, the plain
+            default) [deg].
         track_bridge_m: where a pivot's track leaves a topology node A (a track point in its
             cross-section, heading within ``track_bridge_heading_deg``), runs through at least one
             point in no node's cross-section for at most this far, and enters a node B, A is
@@ -314,6 +324,7 @@ class StitchConfig:
     track_linked_ends: bool = False
     track_bridge_m: float = 0.0
     track_bridge_heading_deg: float = 45.0
+    track_settle_deg: float = 0.0
     fill_evidence: EvidenceConfig | None = None
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
@@ -369,6 +380,7 @@ class StitchConfig:
             "track_max_gap_m",
             "track_max_jump_m",
             "track_bridge_m",
+            "track_settle_deg",
             "path_curvature_m",
         ):
             v = getattr(self, name)

@@ -210,7 +210,9 @@ def _track_partner(
     heading; the walk stops at a gap over ``track_max_gap_m`` along it or a jump over
     ``track_max_jump_m`` in any direction) lies in the node's cross-section and the node heads
     within ``max_heading_diff_deg`` of the track there; among several at that point the nearest,
-    among those ``allowed``; -1 if none (``StitchConfig.track_search_m``)."""
+    among those ``allowed``; -1 if none (``StitchConfig.track_search_m``). With
+    ``track_settle_deg`` a point where the track is still turning onto the node's heading
+    (``_still_turning``) lands nowhere: the walk goes on."""
     xy, heading = track
     if not 0 <= k < len(xy):
         return -1
@@ -229,9 +231,30 @@ def _track_partner(
             break
         prev = p
         best = _entered(flat, tree, i, sign, u0, p, float(heading[m]), cos_h, reach_m, allowed)
+        if best >= 0 and cfg.track_settle_deg > 0 and _still_turning(flat, best, xy, heading, m, sign, cfg):
+            continue  # RULE: the pivot is still turning onto the road here: land where it has settled
         if best >= 0:
             return best
     return -1
+
+
+def _still_turning(
+    flat: FlatGraph, j: int, xy: np.ndarray, heading: np.ndarray, m: int, sign: int, cfg: StitchConfig
+) -> bool:
+    """Is the track (``xy``, ``heading``) at row m, walked in direction ``sign``, still turning
+    onto node j's heading (``StitchConfig.track_settle_deg``)? Its heading there lies more than
+    2 * ``track_settle_deg`` off the node's and the next row of the walk (no gap: within
+    ``track_max_gap_m`` along its heading and ``track_max_jump_m`` in any direction) within
+    ``track_settle_deg`` of it: the pivot settles onto the road one step later."""
+    settle = math.radians(cfg.track_settle_deg)
+    hj = float(flat.t_heading[j])
+    n = m + sign
+    if abs(_wrap(float(heading[m]) - hj)) <= 2.0 * settle or not 0 <= n < len(xy):
+        return False
+    step = xy[n] - xy[m]
+    if abs(float(np.dot(step, _unit(float(heading[n]))[0]))) > cfg.track_max_gap_m or float(np.hypot(*step)) > cfg.track_max_jump_m:
+        return False
+    return abs(_wrap(float(heading[n]) - hj)) <= settle
 
 
 def _entered_by_points(
