@@ -28,6 +28,9 @@ fi
     --work-dir "$OUT/fleets" --markdown "$OUT/carla100.md" --json "$OUT/carla100.json"
 "$HDMAP" bench carla_town04:30:1-3 carla_town06:30:1-3 --presets default,naive \
     --work-dir "$OUT/fleets" --markdown "$OUT/sparse.md" --json "$OUT/sparse.json"
+# Between the two: 50 drives, where the paper's density (5-25 drives per place) begins to hold.
+"$HDMAP" bench carla_town04:50:1-3 carla_town06:50:1-3 --presets default \
+    --work-dir "$OUT/fleets" --markdown "$OUT/carla50.md" --json "$OUT/carla50.json"
 "$HDMAP" bench paper_like:134:1 --presets default --scale 0.25 --scale 1 --scale 4 \
     --work-dir "$OUT/fleets" --markdown "$OUT/scaling.md" --json "$OUT/scaling.json"
 .venv/bin/python scripts/bench_incremental.py --drives 100
