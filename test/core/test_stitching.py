@@ -1237,6 +1237,37 @@ def test_track_bridge_enters_a_road_at_a_merge_angle(landing_deg: float, linked:
     assert (m.extra["last_integrate"]["bridge_links"] == 1) is linked
 
 
+@pytest.mark.parametrize("margin_m, linked", [(0.0, False), (2.0, True)])
+def test_track_bridge_leaves_a_road_its_first_point_after_a_gap_just_misses(margin_m: float, linked: bool):
+    """carla_town04_50_s1's missed exit (docs/graph.md, "The exit missed on carla_town04_50_s1"):
+    the last step of p's run processed before through e (the track's first point after the run's
+    gap) has a cut midpoint pulled 5.6 m across e, whose cross-section reaches 5 m; the failed
+    turn lies beside e too. Without a road to leave no bridge starts; with
+    ``track_bridge_leave_margin_m`` (2 m in the default preset) that point leaves e."""
+    graphs = _bridged_turn()
+    p = graphs[0]
+    graphs[0] = dataclasses.replace(p, track_xy=p.track_xy + np.array([5.6, 0.0]))
+    d = dataclasses.replace(PipelineConfig.preset("default").stitching, track_bridge_leave_margin_m=margin_m)
+    m = stitch(graphs, config=d)
+    assert (m.extra["last_integrate"]["bridge_links"] == 1) is linked
+    assert _reaches(m, [0.0, 30.0], [40.0, 10.0]) is linked
+    if linked:
+        (src,) = [t for t in m.topology if len(t.successors) == 2]
+        assert src.position[0] == 0.0 and 28.0 <= src.position[1] <= 32.0  # the node beside that point
+    # 7.5 m across: beyond the margin too, no bridge
+    graphs[0] = dataclasses.replace(p, track_xy=p.track_xy + np.array([7.5, 0.0]))
+    assert stitch(graphs, config=d).extra["last_integrate"]["bridge_links"] == 0
+
+
+def test_track_bridge_leave_margin_only_in_the_default_preset():
+    assert PipelineConfig.preset("default").stitching.track_bridge_leave_margin_m == 2.0
+    for name in ("naive", "paper"):
+        assert getattr(PipelineConfig.preset(name).stitching, "track_bridge_leave_margin_m", 0.0) == 0.0
+    assert StitchConfig().track_bridge_leave_margin_m == 0.0 and StitchConfig.paper().track_bridge_leave_margin_m == 0.0
+    with pytest.raises(ConfigError):
+        StitchConfig(track_bridge_leave_margin_m=-0.5)
+
+
 def test_track_bridges_only_in_the_default_preset():
     assert PipelineConfig.preset("default").stitching.track_bridge_m == 60.0
     for name in ("naive", "paper"):

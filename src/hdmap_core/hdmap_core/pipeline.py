@@ -197,6 +197,9 @@ class PipelineConfig:
                     # ... and a pivot's track leaving one mapped road through failed steps onto
                     # another links the two where no chain ends there (docs/graph.md, "Track bridges")
                     track_bridge_m=60.0,
+                    # ... also from a road whose cross-section the track's first point after a gap
+                    # misses by up to 2 m (docs/graph.md, "The exit missed on carla_town04_50_s1")
+                    track_bridge_leave_margin_m=2.0,
                     # fills through stretches the drives saw empty are dropped (the profiles come
                     # from ``evidence`` above; docs/pipeline.md, "Negative evidence")
                     fill_evidence=EvidenceConfig(min_expected=2.0),

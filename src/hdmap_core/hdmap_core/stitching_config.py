@@ -241,6 +241,18 @@ class StitchConfig:
             at a merge is still turning when its track reaches the road's cross-section (35 deg
             on Town04). Consecutive track points more than ``track_max_gap_m`` apart in any
             direction end a bridge's walk [deg].
+        track_bridge_leave_margin_m: see ``track_bridge_m``: where the walk has no road to leave
+            yet (the track's first point, or the first after a gap: a run processed before keeps
+            only its first and last step), a point up to this far beyond a node's cross-section
+            (each side, heading within ``max_heading_diff_deg``) leaves that node. The last step
+            of a run processed before, just before a junction's failed steps, has a cut midpoint
+            already pulled off the road's middle: on carla_town04_50_s1 the only pivot through
+            the exit's left turn at (-381, 12) lay 5.5-5.6 m across the exit road's last nodes
+            (4.8-4.9 m half wide), so no bridge started and the exit's branch onto the road at
+            y = -33 was not connected (docs/graph.md, "The exit missed on carla_town04_50_s1").
+            Only for leaving, and only there: a bridge still ends in a node's own cross-section,
+            and a walk already off a road is not cut short. 0 disables (the paper, the plain
+            default) [m].
         fill_evidence: at export, a feature edge long enough to be filled is dropped when most of
             it runs where the drives that passed saw nothing (``hdmap_core.evidence``, from the
             segments' ``StepResult.empty_m``, made by ``PipelineConfig.evidence``; of this config
@@ -324,6 +336,7 @@ class StitchConfig:
     track_linked_ends: bool = False
     track_bridge_m: float = 0.0
     track_bridge_heading_deg: float = 45.0
+    track_bridge_leave_margin_m: float = 0.0
     track_settle_deg: float = 0.0
     fill_evidence: EvidenceConfig | None = None
     path_curvature_m: float = 20.0
@@ -380,6 +393,7 @@ class StitchConfig:
             "track_max_gap_m",
             "track_max_jump_m",
             "track_bridge_m",
+            "track_bridge_leave_margin_m",
             "track_settle_deg",
             "path_curvature_m",
         ):

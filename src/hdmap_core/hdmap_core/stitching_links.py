@@ -258,15 +258,16 @@ def _still_turning(
 
 
 def _entered_by_points(
-    flat: FlatGraph, tree: cKDTree, xy: np.ndarray, heading: np.ndarray, cos_h: tuple[float, ...], reach_m: float
+    flat: FlatGraph, tree: cKDTree, xy: np.ndarray, heading: np.ndarray, cos_h: tuple[float, ...], reach_m: float,
+    margin_m: float = 0.0,
 ) -> list[np.ndarray]:
     """Per heading limit in ``cos_h``: (K,) per track point (``xy`` (K, 2), ``heading`` (K,)) the
-    nearest topology node whose cross-section (``_in_cross_section``) it lies in with a heading
-    within acos(limit) of the point's; -1 where none."""
+    nearest topology node whose cross-section (``_in_cross_section``, widened by ``margin_m`` to
+    each side) it lies in with a heading within acos(limit) of the point's; -1 where none."""
     outs = [np.full(len(xy), -1, dtype=np.int64) for _ in cos_h]
     if len(xy) == 0 or flat.n_topo == 0:
         return outs
-    hits = tree.query_ball_point(xy, reach_m)
+    hits = tree.query_ball_point(xy, reach_m + margin_m)
     owner = np.repeat(np.arange(len(xy)), [len(h) for h in hits])
     if len(owner) == 0:
         return outs
@@ -277,7 +278,7 @@ def _entered_by_points(
     along = np.abs((rel * u).sum(axis=1))
     across = np.abs(rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0])
     w = flat.t_width[j]
-    half = np.where(np.isfinite(w) & (w > 0), w / 2.0, _HALF_WIDTH_UNKNOWN_M)
+    half = np.where(np.isfinite(w) & (w > 0), w / 2.0, _HALF_WIDTH_UNKNOWN_M) + margin_m
     inside = (along <= _PATH_STEP_M) & (across <= half)
     owner, j, d, c = owner[inside], j[inside], np.hypot(rel[inside, 0], rel[inside, 1]), np.cos(hj - heading[owner])[inside]
     order = np.lexsort((j, d, owner))  # per point the nearest first (ties: lowest index)
@@ -299,13 +300,24 @@ def _track_bridges(
     node's cross-section (within ``track_bridge_heading_deg``) for at most ``track_bridge_m``
     (two points further apart than ``track_max_gap_m`` end the walk), and enters node B's
     (``StitchConfig.track_bridge_m``). A is left running along it (within
-    ``max_heading_diff_deg``); points turning off it within ``track_bridge_heading_deg`` while
-    still in the cross-section of a node A's road leads to (``on_road(A, node)``) keep A."""
+    ``max_heading_diff_deg``; with ``track_bridge_leave_margin_m`` a point up to that far beyond
+    A's cross-section leaves it too where the walk has no road to leave yet); points turning off it within ``track_bridge_heading_deg``
+    while still in the cross-section of a node A's road leads to (``on_road(A, node)``) keep A."""
     # leaving a road the track runs along it (within max_heading_diff_deg); entering one at a
     # merge it may still be turning (within track_bridge_heading_deg)
+    cos_leave = math.cos(math.radians(cfg.max_heading_diff_deg))
     leave, enter = _entered_by_points(
-        flat, tree, xy, heading,
-        (math.cos(math.radians(cfg.max_heading_diff_deg)), math.cos(math.radians(cfg.track_bridge_heading_deg))), reach_m,
+        flat, tree, xy, heading, (cos_leave, math.cos(math.radians(cfg.track_bridge_heading_deg))), reach_m,
+    )
+    # RULE: with track_bridge_leave_margin_m a track that has no road to leave from (its start, or
+    # after a gap: a run processed before keeps only its first and last step) leaves the road
+    # whose cross-section, widened by the margin, its point lies in: the last point before a
+    # junction's failed steps is a cut midpoint already pulled off the road's middle
+    # (carla_town04_50_s1: 5.6 m across a node 4.8 m half wide). Only there: a bridge still ends
+    # in a node's own cross-section, and a walk off a road is not cut short by the margin.
+    wide = (
+        _entered_by_points(flat, tree, xy, heading, (cos_leave,), reach_m, cfg.track_bridge_leave_margin_m)[0]
+        if cfg.track_bridge_leave_margin_m > 0 else np.full(len(xy), -1, dtype=np.int64)
     )
     out: list[tuple[int, int]] = []
     last, unmapped, walked = -1, 0, 0.0
@@ -319,7 +331,11 @@ def _track_bridges(
             if gap > cfg.track_max_gap_m:
                 last, unmapped, walked = -1, 0, 0.0
         if enter[m] < 0:
-            unmapped += 1
+            if last < 0 and wide[m] >= 0:
+                leave[m] = wide[m]
+                last, unmapped, walked = m, 0, 0.0
+            else:
+                unmapped += 1
             continue
         if last >= 0 and unmapped > 0 and walked <= cfg.track_bridge_m and leave[last] != enter[m]:
             out.append((int(leave[last]), int(enter[m])))
