@@ -252,7 +252,8 @@ def _still_turning(
     if abs(_wrap(float(heading[m]) - hj)) <= 2.0 * settle or not 0 <= n < len(xy):
         return False
     step = xy[n] - xy[m]
-    if abs(float(np.dot(step, _unit(float(heading[n]))[0]))) > cfg.track_max_gap_m or float(np.hypot(*step)) > cfg.track_max_jump_m:
+    gap = abs(float(np.dot(step, _unit(float(heading[n]))[0])))
+    if gap > cfg.track_max_gap_m or float(np.hypot(*step)) > cfg.track_max_jump_m:
         return False
     return abs(_wrap(float(heading[n]) - hj)) <= settle
 
@@ -301,8 +302,9 @@ def _track_bridges(
     (two points further apart than ``track_max_gap_m`` end the walk), and enters node B's
     (``StitchConfig.track_bridge_m``). A is left running along it (within
     ``max_heading_diff_deg``; with ``track_bridge_leave_margin_m`` a point up to that far beyond
-    A's cross-section leaves it too where the walk has no road to leave yet); points turning off it within ``track_bridge_heading_deg``
-    while still in the cross-section of a node A's road leads to (``on_road(A, node)``) keep A."""
+    A's cross-section leaves it too where the walk has no road to leave yet); points turning off
+    it within ``track_bridge_heading_deg`` while still in the cross-section of a node A's road
+    leads to (``on_road(A, node)``) keep A."""
     # leaving a road the track runs along it (within max_heading_diff_deg); entering one at a
     # merge it may still be turning (within track_bridge_heading_deg)
     cos_leave = math.cos(math.radians(cfg.max_heading_diff_deg))
