@@ -595,3 +595,97 @@ def test_bridged_gap_does_not_join_a_line_to_its_neighbour_steeply():
     assert np.abs(g0.node_xy[g0.edges[:, 1], 1] - g0.node_xy[g0.edges[:, 0], 1]).max() > 5.0
     with pytest.raises(ConfigError):
         ConnectionConfig(bridge_edge_angle_deg=0.0)
+
+
+def _crossing_pivot_segment(angle_deg: float, *, turn_at: int | None = None, n: int = 30) -> Segment:
+    """Straight dashed lines along x at y = 0, 3.5, 7, 10.5 and a pivot crossing them at
+    ``angle_deg`` (2 m steps; its cut sees what lies within 12 m). Without ``turn_at`` the
+    pivot comes in from y = -14 (an entry ramp, its own solid lines +-1.75 m beside it up to
+    y = -4); with it the pivot drives along x at y = -1.75 and turns off at step ``turn_at``
+    (an exit). Steps whose cut sees nothing are invalid."""
+    lines = [0.0, 3.5, 7.0, 10.5]
+    h = math.radians(angle_deg)
+    u = np.array([math.cos(h), math.sin(h)])
+    steps = []
+    for i in range(n):
+        if turn_at is None:
+            mid, hd = np.array([0.0, -14.0]) + 2.0 * i * u, h
+        elif i < turn_at:
+            mid, hd = np.array([2.0 * i, -1.75]), 0.0
+        else:
+            mid, hd = np.array([2.0 * (turn_at - 1), -1.75]) + 2.0 * (i - turn_at + 1) * u, h
+        lat = [(c - mid[1]) / math.cos(hd) for c in lines]
+        lat = [v for v in lat if abs(v) <= 12.0]
+        typ = [D] * len(lat)
+        if turn_at is None and mid[1] + 1.75 < -4.0:
+            lat, typ = lat + [-1.75, 1.75], typ + [S, S]
+        order = np.argsort(lat)
+        steps.append(
+            StepResult(
+                pivot_id="p",
+                index=i,
+                s_m=2.0 * i,
+                midpoint=mid,
+                heading=hd,
+                width_m=24.0,
+                valid=bool(lat),
+                processed_before=False,
+                lateral_m=np.asarray(lat, dtype=float)[order],
+                types=np.asarray(typ, dtype=np.int64)[order],
+                counts=np.full(len(lat), 5, dtype=np.int64),
+                std_m=np.full(len(lat), 0.1),
+                drive_ids=("a", "b"),
+            )
+        )
+    return Segment("p", tuple(steps))
+
+
+def _line_hops(g) -> list[float]:
+    """How far across (in y) each edge between two nodes of the straight lines moves."""
+    a, b = g.node_xy[g.edges[:, 0]], g.node_xy[g.edges[:, 1]]
+    sel = (a[:, 1] > -0.5) & (b[:, 1] > -0.5) & (g.node_type[g.edges[:, 0]] == D)
+    return np.abs(b[sel, 1] - a[sel, 1]).tolist()
+
+
+def test_lines_crossed_by_an_entering_pivot_do_not_hop():
+    """A pivot entering at 20 deg: in its frame a line's true continuation moves 0.73 m across
+    per 2 m step (20 deg: the step is rejected by the angle check), and over a bridged 6 m
+    the next lane's line lay 1.5 m across (14 deg): every line joined the next one (Town04,
+    3.2 m over 6 m). Lines with a direction of their own that leaves the pivot's heading by more
+    than line_frame_deg are paired in it: each line continues on itself, across every step."""
+    seg = _crossing_pivot_segment(20.0)
+    cfg = ConnectionConfig(line_frame_deg=12.0)
+    g = connect_segment(seg, config=cfg)
+    hops = _line_hops(g)
+    assert len(hops) > 20 and max(hops) < 0.05
+    assert g.stats.rejected_angle == 0
+    # each straight line is one polyline of several steps (not pieces joined one lane over)
+    ys = [np.unique(np.round(g.node_xy[c, 1], 1)) for c in g.polylines() if len(c) > 3 and g.node_type[c[0]] == D]
+    assert len(ys) == 4 and all(len(y) == 1 for y in ys)
+    g0 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=0.0))
+    assert max(_line_hops(g0)) > 3.0  # the pivot's frame: lines joined one lane over
+
+
+def test_lines_left_by_a_pivot_turning_off_steeply_end():
+    """A pivot turning off at 50 deg (beyond line_frame_max_deg) keeps its own frame, where the
+    lines it leaves looked continued one or two lanes over; an edge implausible against the
+    line's own direction is not made (line_frame_check): no line joins its neighbour. (At 40 deg
+    one line still does: its tip's only predecessor edge is a leftover one, so it has no
+    direction to check against.)"""
+    seg = _crossing_pivot_segment(-50.0, turn_at=10)
+    g = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0))
+    assert max(_line_hops(g)) < 0.05
+    g1 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0, line_frame_check=False))
+    assert max(_line_hops(g1)) > 3.0
+
+
+def test_line_frame_is_off_in_the_paper_and_on_by_default():
+    from hdmap_core.pipeline import PipelineConfig
+
+    assert ConnectionConfig.paper().line_frame_deg == 0.0
+    assert ConnectionConfig().line_frame_deg == 0.0
+    assert PipelineConfig.preset("default").connection.line_frame_deg > 0.0
+    with pytest.raises(ConfigError):
+        ConnectionConfig(line_frame_deg=-1.0)
+    with pytest.raises(ConfigError):
+        ConnectionConfig(line_frame_max_deg=math.inf)

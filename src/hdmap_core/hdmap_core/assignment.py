@@ -54,6 +54,7 @@ def assign(
     heading: float,
     config: ConnectionConfig,
     tip_dir: np.ndarray | None = None,
+    tip_check: np.ndarray | None = None,
 ) -> Assignment:
     """Modified rectangular assignment between open polyline ends (tips) and a step's maxima.
 
@@ -61,6 +62,8 @@ def assign(
     pairs as the Euclidean distance does, and it stays comparable across bridged gaps).
     ``tip_dir`` (n, 2): unit direction of each tip's own line, NaN where the new step's heading
     is used; a tip with a direction is measured along / across its line instead.
+    ``tip_check`` (n, 2): unit direction of a tip's own line against which its edges must be
+    plausible too (the edge limits measured in that direction; NaN: no such check).
     """
     d = new_xy[None, :, :] - tip_xy[:, None, :]
     c, s_ = math.cos(heading), math.sin(heading)
@@ -82,6 +85,17 @@ def assign(
         # across a bridged gap a steep edge is a line joined to its neighbour, not the line
         tan_b = math.tan(math.radians(config.bridge_edge_angle_deg))
         plausible &= (along <= config.bridge_edge_min_m) | (lat <= config.edge_slack_m + along * tan_b)
+    if tip_check is not None and np.isfinite(tip_check[:, 0]).any():
+        chk = np.isfinite(tip_check[:, 0])
+        cu = tip_check[chk]
+        dc = d[chk]
+        al_c = np.einsum("ijk,ik->ij", dc, cu)
+        la_c = np.abs(np.einsum("ijk,ik->ij", dc, np.stack([-cu[:, 1], cu[:, 0]], axis=1)))
+        ok_c = (al_c > 0.0) & (la_c <= config.edge_slack_m + np.maximum(al_c, 0.0) * tan_max)
+        if config.bridge_edge_angle_deg < 90.0:
+            tan_c = math.tan(math.radians(config.bridge_edge_angle_deg))
+            ok_c &= (al_c <= config.bridge_edge_min_m) | (la_c <= config.edge_slack_m + al_c * tan_c)
+        plausible[chk] &= ok_c
     ok = plausible & ~forbidden
 
     n, m = lat.shape
