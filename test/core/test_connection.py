@@ -685,7 +685,57 @@ def test_line_frame_is_off_in_the_paper_and_on_by_default():
     assert ConnectionConfig.paper().line_frame_deg == 0.0
     assert ConnectionConfig().line_frame_deg == 0.0
     assert PipelineConfig.preset("default").connection.line_frame_deg > 0.0
+    assert PipelineConfig.preset("default").connection.line_frame_bend_deg > 0.0
+    assert ConnectionConfig.paper().line_frame_bend_deg == 0.0
     with pytest.raises(ConfigError):
         ConnectionConfig(line_frame_deg=-1.0)
     with pytest.raises(ConfigError):
         ConnectionConfig(line_frame_max_deg=math.inf)
+
+
+def _curve_segment(radius: float = 14.0, n: int = 30) -> Segment:
+    """A pivot driving a left-hand curve of ``radius`` (2 m steps; Town06's corners) with
+    dashed lines concentric to its path 1.75 and 5.25 m either side."""
+    offs = [-5.25, -1.75, 1.75, 5.25]
+    steps = []
+    for i in range(n):
+        a = 2.0 * i / radius
+        mid = np.array([radius * math.sin(a), radius * (1.0 - math.cos(a))])
+        steps.append(
+            StepResult(
+                pivot_id="p",
+                index=i,
+                s_m=2.0 * i,
+                midpoint=mid,
+                heading=a,
+                width_m=24.0,
+                valid=True,
+                processed_before=False,
+                lateral_m=np.asarray(offs, dtype=float),
+                types=np.full(len(offs), D, dtype=np.int64),
+                counts=np.full(len(offs), 5, dtype=np.int64),
+                std_m=np.full(len(offs), 0.1),
+                drive_ids=("a", "b"),
+            )
+        )
+    return Segment("p", tuple(steps))
+
+
+def test_lines_curving_with_the_pivot_keep_its_frame():
+    """On a tight curve a line's direction from 4 m back lags the pivot's heading by more than
+    line_frame_deg; paired in that lagging frame its true continuation looks steep (steps
+    rejected by the angle check). line_frame_bend_deg: a line whose history bends keeps the
+    pivot's frame, the graph is the one without the rule; straight lines (the entering pivot)
+    still get their own frame."""
+    seg = _curve_segment(8.0)
+    g0 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=0.0))
+    g1 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0))
+    g2 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0, line_frame_bend_deg=5.0))
+    assert g0.stats.rejected_angle == 0 and len(g0.polylines()) == 4
+    assert g1.stats.rejected_angle > 0 or len(g1.polylines()) > 4
+    assert g2.stats.rejected_angle == 0
+    assert sorted(map(tuple, g2.edges.tolist())) == sorted(map(tuple, g0.edges.tolist()))
+    g3 = connect_segment(_crossing_pivot_segment(20.0), config=ConnectionConfig(line_frame_deg=12.0, line_frame_bend_deg=5.0))
+    assert max(_line_hops(g3)) < 0.05 and g3.stats.rejected_angle == 0
+    with pytest.raises(ConfigError):
+        ConnectionConfig(line_frame_bend_deg=-1.0)

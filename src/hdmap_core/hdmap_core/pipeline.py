@@ -182,10 +182,15 @@ class PipelineConfig:
                 # fleets' false fills lie where 1-4 drives pass (docs/pipeline.md, "Type runs
                 # across leftover edges; negative evidence at 30 drives")
                 evidence=EvidenceConfig(min_expected=2.0),
-                # carriageway lines crossed at 12-30 deg paired in their own direction (an entry ramp's pivot;
-                # docs/pipeline.md, "Lines crossed by an entering pivot")
+                # straight carriageway lines crossed at 12-30 deg paired in their own direction (an
+                # entry ramp's pivot; not lines curving with the pivot: docs/pipeline.md, "Lines
+                # crossed by an entering pivot")
                 connection=ConnectionConfig(
-                    support_window_m=4.0, window_min_count=1, separation_count_ratio=0.5, line_frame_deg=12.0
+                    support_window_m=4.0,
+                    window_min_count=1,
+                    separation_count_ratio=0.5,
+                    line_frame_deg=12.0,
+                    line_frame_bend_deg=5.0,
                 ),
                 stitching=StitchConfig(
                     # junction pieces already joined to the map through one end get their other end
