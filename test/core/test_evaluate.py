@@ -290,6 +290,28 @@ def test_observed_and_missed_stretches_of_one_line(road: GroundTruth) -> None:
     # hits: 200 (ids 1, 2) + 75 (dashed, x <= 149) + 50 (line 4); border 5 missed everywhere
     assert report.overall.recall == pytest.approx(325 / 500)
     assert report.recall_observed == pytest.approx(325 / 450)
+    # by seen count: line 4's 50 unseen cuts (none mapped) in "0", the other 450 points in "1"
+    # (ids 1, 2: 200 hits; dashed 3: 75; line 4 seen half: 50; border 5: 0)
+    by = {label: (share, rec) for label, share, rec in report.recall_by_seen}
+    assert by["0"] == pytest.approx((50 / 500, 0.0))
+    assert by["1"] == pytest.approx((450 / 500, 325 / 450))
+    assert math.isnan(by["2"][1]) and by["2"][0] == 0.0 and by[">=3"][0] == 0.0
+    assert "GT points by drives that saw them" in report.summary()
+
+
+def test_recall_by_seen_count_buckets(road: GroundTruth) -> None:
+    # every feature seen by a different number of drives; the map lacks the outer border (id 5)
+    perfect = hdmap_from_ground_truth(road)
+    seen = {f.id: np.full(len(f.points), {1: 0, 2: 1, 3: 2, 4: 3, 5: 7}[f.id]) for f in road.features}
+    report = evaluate_map(_with_features(perfect, [f for f in perfect.features if f.id != 5]), road, seen_counts=seen)
+    by = {label: (share, rec) for label, share, rec in report.recall_by_seen}
+    assert [label for label, _, _ in report.recall_by_seen] == ["0", "1", "2", ">=3"]
+    assert by["0"] == pytest.approx((0.2, 1.0)) and by["1"] == pytest.approx((0.2, 1.0))
+    assert by["2"] == pytest.approx((0.2, 1.0))
+    assert by[">=3"] == pytest.approx((0.4, 0.5))  # line 4 hit, border 5 (seen by 7) missed
+    doc = json.loads(json.dumps(report.to_dict(), allow_nan=False))
+    assert doc["recall_by_seen"][3] == [">=3", pytest.approx(0.4), pytest.approx(0.5)]
+    assert evaluate_map(perfect, road).recall_by_seen == ()
 
 
 def test_a_point_is_observed_when_either_end_of_its_segment_was_seen(road: GroundTruth) -> None:

@@ -290,6 +290,10 @@ class EvalReport:
         recall_observed: recall (RULE 3) over the observed ground-truth points only; 1 when the
             map has everything the fleet saw. NaN without seen counts.
         n_observed: the observed ground-truth points (the denominator of recall_observed).
+        recall_by_seen: with seen counts, per number of drives that saw a ground-truth point
+            (the larger count of its segment's two ends; buckets "0", "1", "2", ">=3"): (bucket,
+            share of the points with seen counts, recall over them); recall NaN for an empty
+            bucket. Empty without seen counts. Tells a line no drive saw from one the map lost.
         n_cuts, n_reference_cuts, n_evaluable_cuts: all cuts, cuts holding a ground-truth point,
             cuts with a matched map point.
         reference_length_m, evaluable_length_m: the latter two times step_m.
@@ -358,6 +362,7 @@ class EvalReport:
     observed_share: float = math.nan
     recall_observed: float = math.nan
     n_observed: int = 0
+    recall_by_seen: tuple[tuple[str, float, float], ...] = ()
     drive_count_median: float = math.nan
     density_share: float = math.nan
     sparse_share: float = math.nan
@@ -819,9 +824,9 @@ def _cut_fleet_error(k: int, crossings: _Crossings, drive_errors: Mapping[str, f
 def _observed_gt_points(
     gt_feats: list, gp: CutPoints, seen_counts: Mapping[int, Sequence[int] | np.ndarray], skipped: list[str]
 ) -> np.ndarray:
-    """(P,) per ground-truth point on a cut: 1.0 when an end of the GT segment it lies on was seen
-    by >= 1 drive, 0.0 when neither was, NaN when its feature's seen counts are missing or do not
-    have one value per point."""
+    """(P,) per ground-truth point on a cut: the number of drives that saw the GT segment it lies on
+    (the larger of its two ends' seen counts; > 0: "observed"), NaN when its feature's seen counts
+    are missing or do not have one value per point."""
     on_cuts = set(np.unique(gp.owner).tolist())
     per_feature = []
     for i, f in enumerate(gt_feats):
@@ -840,21 +845,29 @@ def _observed_gt_points(
     start = np.concatenate([[0], np.cumsum([len(a) for a in per_feature])]).astype(np.int64)
     a = flat[start[gp.owner] + gp.vertex] if len(gp.owner) else np.zeros(0)
     b = flat[start[gp.owner] + gp.vertex + 1] if len(gp.owner) else np.zeros(0)
-    return np.where(np.isfinite(a) & np.isfinite(b), ((a >= 1) | (b >= 1)).astype(float), np.nan)
+    return np.where(np.isfinite(a) & np.isfinite(b), np.maximum(a, b), np.nan)
 
 
 def _observed_figures(observed: np.ndarray | None, gt_hit: np.ndarray) -> dict[str, float | int]:
     """``observed_share``, ``recall_observed`` and ``n_observed`` of the report (NaN, 0 without
     seen counts)."""
     if observed is None:
-        return {"observed_share": math.nan, "recall_observed": math.nan, "n_observed": 0}
+        return {"observed_share": math.nan, "recall_observed": math.nan, "n_observed": 0, "recall_by_seen": ()}
     known = np.isfinite(observed)
     obs = known & (observed > 0)
     n_obs = int(np.count_nonzero(obs))
+    n_known = int(np.count_nonzero(known))
+    seen = np.where(known, observed, -1.0)
+    by_seen = []
+    for label, lo, hi in (("0", 0, 0), ("1", 1, 1), ("2", 2, 2), (">=3", 3, math.inf)):
+        sel = known & (seen >= lo) & (seen <= hi)
+        n = int(np.count_nonzero(sel))
+        by_seen.append((label, _share(n, n_known), _share(int(np.count_nonzero(sel & gt_hit)), n)))
     return {
-        "observed_share": _share(n_obs, int(np.count_nonzero(known))),
+        "observed_share": _share(n_obs, n_known),
         "recall_observed": _share(int(np.count_nonzero(obs & gt_hit)), n_obs),
         "n_observed": n_obs,
+        "recall_by_seen": tuple(by_seen) if n_known else (),
     }
 
 

@@ -98,6 +98,12 @@ def format_summary(report: EvalReport) -> str:
             f"{_pct(report.observed_share).strip()}; recall over them {_pct(report.recall_observed).strip()} "
             f"of {report.n_observed} (recall over all {_pct(report.overall.recall).strip()})"
         )
+    if report.recall_by_seen:
+        parts = [
+            f"{label}: {_pct(share).strip()} of the points, recall {_pct(rec).strip() if math.isfinite(rec) else '-'}"
+            for label, share, rec in report.recall_by_seen
+        ]
+        lines.append("GT points by drives that saw them: " + "; ".join(parts))
     if report.skipped:
         lines.append(f"skipped {len(report.skipped)} input part(s):")
         lines += [f"  {s}" for s in report.skipped[:10]]

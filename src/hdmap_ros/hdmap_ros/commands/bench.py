@@ -295,6 +295,7 @@ def run_one(scenario: Scenario, preset: str, seed: int, workers: int | None = No
         "recall": o.recall,
         "observed_share": rep.observed_share,
         "recall_observed": rep.recall_observed,
+        "recall_by_seen": [list(b) for b in rep.recall_by_seen],
         "precision": o.precision,
         "type_accuracy": rep.type_accuracy,
         "fragmentation": rep.fragmentation_mean,
