@@ -22,7 +22,9 @@ cuts (:func:`~hdmap_core.segment_graph.feature_chains`):
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -376,7 +378,6 @@ class _Builder:
         self.leftover: list[bool] = []
         self.n = 0
         m = len(flat.lat)
-        self.xy_list = flat.xy.tolist()  # scalar access in line_directions
         self.flat_of = np.full(m, -1, dtype=np.int64)  # row of each node in the flattened steps
         self.pred = np.full(m, -1, dtype=np.int64)  # each node's predecessor on its line (-1: none yet)
 
@@ -388,84 +389,59 @@ class _Builder:
         self.n += b - a
         return len(self.used) - 1
 
-    def line_directions(
-        self, nodes: np.ndarray, min_m: float, far_m: float = 4.0, hops: int = 6, bend: bool = False
-    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    @functools.cached_property
+    def _xy_list(self) -> list[list[float]]:
+        """The steps' points as Python floats, for the per-line walks."""
+        return self.f.xy.tolist()
+
+    def _walk(self, node: int) -> Iterator[tuple[int, float, float]]:
+        """(predecessor, dx, dy from it to ``node``) along the line ending in ``node``, nearest first."""
+        xy, fo, pred = self._xy_list, self.flat_of, self.pred
+        px, py = xy[fo[node]]
+        q = node
+        while True:
+            q = int(pred[q])
+            if q < 0:
+                return
+            qx, qy = xy[fo[q]]
+            yield q, px - qx, py - qy
+
+    def line_directions(self, nodes: np.ndarray, min_m: float, far_m: float = 4.0, hops: int = 6) -> np.ndarray:
         """(n, 2) unit direction of the line ending in each node: from its first predecessor at
         least ``far_m`` back (at most ``hops`` edges), else from the farthest one at least
-        ``min_m`` back; NaN where there is none. ``bend``: also (n,) the largest angle [deg]
-        between that direction and the direction to any predecessor (at least ``min_m`` back,
-        within ``hops`` edges): how far the line's history bends (0 where there is none)."""
-        p = self.f.xy[self.flat_of[nodes]]
+        ``min_m`` back; NaN where there is none. (A walk per line in Python: a step has a handful
+        of lines, and an array walk's per-call cost was 10x this on the fast path.)"""
+        chosen = np.full(len(nodes), -1, dtype=np.int64)
+        for r, node in enumerate(nodes.tolist()):
+            best = 0.0
+            for _, (q, dx, dy) in zip(range(hops), self._walk(node)):
+                dist = math.hypot(dx, dy)
+                if dist >= min_m and dist > best:
+                    chosen[r], best = q, dist
+                if dist >= far_m:
+                    break
         out = np.full((len(nodes), 2), np.nan)
-        if not bend:
-            # per node a short walk in Python (a step has a handful of lines; the array walk's
-            # per-call cost was 10x this), then the directions from the chosen nodes in numpy
-            xy, fo, pred = self.xy_list, self.flat_of, self.pred
-            chosen = np.full(len(nodes), -1, dtype=np.int64)
-            for r, (q, (px, py)) in enumerate(zip(nodes.tolist(), p.tolist())):
-                best = 0.0
-                for _ in range(hops):
-                    q = int(pred[q])
-                    if q < 0:
-                        break
-                    qx, qy = xy[fo[q]]
-                    dist = math.hypot(px - qx, py - qy)
-                    if dist >= min_m and dist > best:
-                        chosen[r], best = q, dist
-                    if dist >= far_m:
-                        break
-            has = chosen >= 0
-            if has.any():
-                d = p[has] - self.f.xy[self.flat_of[chosen[has]]]
-                out[has] = d / np.hypot(d[:, 0], d[:, 1])[:, None]
-            return out
-        best = np.zeros(len(nodes))
-        done = np.zeros(len(nodes), dtype=bool)
-        dirs = []
-        q = nodes.astype(np.int64).copy()
-        for _ in range(hops):
-            live = (q >= 0) & ~(done & (not bend))
-            if not live.any():
-                break
-            q = np.where(live, self.pred[np.maximum(q, 0)], -1)
-            ok = q >= 0
-            if not ok.any():
-                break
-            d = p - self.f.xy[self.flat_of[np.maximum(q, 0)]]
-            dist = np.hypot(d[:, 0], d[:, 1])
-            if bend:
-                dk = np.full((len(nodes), 2), np.nan)
-                sk = ok & (dist >= min_m)
-                dk[sk] = d[sk] / dist[sk, None]
-                dirs.append(dk)
-            take = ok & ~done & (dist >= min_m) & (dist > best)
-            out[take] = d[take] / dist[take, None]
-            best[take] = dist[take]
-            done |= ok & (dist >= far_m)
-        if not bend:
-            return out
-        bd = np.zeros(len(nodes))
-        for dk in dirs:
-            c = np.einsum("ij,ij->i", dk, out)
-            a = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
-            bd = np.where(np.isfinite(a), np.maximum(bd, a), bd)
-        return out, bd
+        has = chosen >= 0
+        if has.any():
+            d = self.f.xy[self.flat_of[nodes[has]]] - self.f.xy[self.flat_of[chosen[has]]]
+            out[has] = d / np.hypot(d[:, 0], d[:, 1])[:, None]
+        return out
 
-    def direction(self, node: int, min_m: float, hops: int = 6) -> np.ndarray | None:
-        """Unit direction of the line ending in ``node``, from the first predecessor at least
-        ``min_m`` back (at most ``hops`` edges); None when there is none."""
-        p = self.f.xy[self.flat_of[node]]
-        q = node
-        for _ in range(hops):
-            q = self.pred[q]
-            if q < 0:
-                return None
-            d = p - self.f.xy[self.flat_of[q]]
-            dist = float(np.hypot(d[0], d[1]))
-            if dist >= min_m:
-                return d / dist
-        return None
+    def line_bends(self, nodes: np.ndarray, dirs: np.ndarray, min_m: float, hops: int = 6) -> np.ndarray:
+        """(n,) how far each line's history bends [deg]: the largest angle between its direction
+        ``dirs`` (from ``line_directions``) and the direction from any predecessor at least
+        ``min_m`` back (within ``hops`` edges) to its node; 0 where there is none."""
+        out = np.zeros(len(nodes))
+        for r, node in enumerate(nodes.tolist()):
+            ux, uy = dirs[r]
+            if not math.isfinite(ux):
+                continue
+            for _, (_, dx, dy) in zip(range(hops), self._walk(node)):
+                dist = math.hypot(dx, dy)
+                if dist >= min_m:
+                    c = min(1.0, max(-1.0, (dx * ux + dy * uy) / dist))
+                    out[r] = max(out[r], math.degrees(math.acos(c)))
+        return out
 
     def tips_of(self, t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Node indices, points and types of topology node t."""
@@ -482,17 +458,27 @@ def _tip_frames(
     the others); None when no tip does."""
     if config.tip_frame_deg <= 0 or len(tip_idx) == 0:
         return None
+    far = gap_m >= config.tip_frame_min_m
+    if not far.any():
+        return None
+    # the first predecessor at least tip_frame_min_m back
+    u = np.full((len(tip_idx), 2), np.nan)
+    u[far] = b.line_directions(tip_idx[far], config.tip_frame_min_m, far_m=config.tip_frame_min_m)
+    dev = _leaves_heading(u, heading, config.tip_frame_deg, config.tip_frame_max_deg)
+    if not dev.any():
+        return None
     out = np.full((len(tip_idx), 2), np.nan)
-    cos_max = math.cos(math.radians(config.tip_frame_deg))
-    cos_lim = math.cos(math.radians(max(config.tip_frame_max_deg, config.tip_frame_deg)))
-    h = np.array([math.cos(heading), math.sin(heading)])
-    for r, node in enumerate(tip_idx.tolist()):
-        if gap_m[r] < config.tip_frame_min_m:
-            continue
-        u = b.direction(int(node), config.tip_frame_min_m)
-        if u is not None and cos_lim <= float(u @ h) < cos_max:
-            out[r] = u
-    return out if np.isfinite(out[:, 0]).any() else None
+    out[dev] = u[dev]
+    return out
+
+
+def _leaves_heading(u: np.ndarray, heading: float, min_deg: float, max_deg: float) -> np.ndarray:
+    """(n,) bool: unit directions ``u`` (NaN rows: none) that leave ``heading`` by more than
+    ``min_deg`` and at most ``max(max_deg, min_deg)``."""
+    c = u @ np.array([math.cos(heading), math.sin(heading)])
+    cos_max = math.cos(math.radians(min_deg))
+    cos_lim = math.cos(math.radians(max(max_deg, min_deg)))
+    return np.isfinite(c) & (c < cos_max) & (c >= cos_lim)
 
 
 def _line_frames(b: _Builder, tip_idx: np.ndarray, heading: float, config: ConnectionConfig) -> tuple[np.ndarray, np.ndarray] | None:
@@ -506,21 +492,20 @@ def _line_frames(b: _Builder, tip_idx: np.ndarray, heading: float, config: Conne
     None when no tip's line leaves the heading by more than ``line_frame_deg``."""
     if config.line_frame_deg <= 0 or len(tip_idx) == 0:
         return None
-    # the directions alone first (a walk that stops once every line reaches 4 m back): on most
-    # steps no line leaves the heading and the history's bend, a walk over all 6 edges, is not
-    # needed (connection 0.8 -> 5-6 s on paper_like_134_s1 when every step walked it)
+    # the directions alone first: on most steps no line leaves the heading and the history's
+    # bend, a walk over all 6 edges, is not needed (connection 0.8 -> 5-6 s on paper_like_134_s1
+    # when every step walked it)
     u = b.line_directions(tip_idx, config.line_frame_min_m)
-    c = u @ np.array([math.cos(heading), math.sin(heading)])
-    cos_max = math.cos(math.radians(config.line_frame_deg))
-    cos_lim = math.cos(math.radians(max(config.line_frame_max_deg, config.line_frame_deg)))
-    has = np.isfinite(c)
-    dev = has & (c < cos_max) & (c >= cos_lim)
-    far = has & (c < cos_lim) & (c > 0.0) if config.line_frame_check else np.zeros(len(c), dtype=bool)
+    dev = _leaves_heading(u, heading, config.line_frame_deg, config.line_frame_max_deg)
+    # beyond line_frame_max_deg (below 90 deg): checked only
+    far = (
+        _leaves_heading(u, heading, max(config.line_frame_max_deg, config.line_frame_deg), 90.0)
+        if config.line_frame_check else np.zeros(len(u), dtype=bool)
+    )
     if not (dev.any() or far.any()):
         return None
     if config.line_frame_bend_deg > 0:
-        _, bend = b.line_directions(tip_idx, config.line_frame_min_m, bend=True)
-        straight = bend <= config.line_frame_bend_deg
+        straight = b.line_bends(tip_idx, u, config.line_frame_min_m) <= config.line_frame_bend_deg
         dev &= straight
         far &= straight
         if not (dev.any() or far.any()):
@@ -628,9 +613,10 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
             tip_check = None
             if lf is not None:
                 line_dir, tip_check = lf
-                tip_dir = line_dir if tip_dir is None else np.where(np.isfinite(tip_dir[:, :1]), tip_dir, line_dir)
-                if tip_dir is not None:
+                if tip_dir is not None:  # a bridged gap's tip frame comes first
+                    line_dir = np.where(np.isfinite(tip_dir[:, :1]), tip_dir, line_dir)
                     tip_check = np.where(np.isfinite(tip_dir[:, :1]), np.nan, tip_check)
+                tip_dir = line_dir
             res = assign(
                 tip_xy, tip_type, tip_s == last_s, flat.xy[a0:a1], flat.typ[a0:a1], st.heading, config, tip_dir, tip_check
             )
