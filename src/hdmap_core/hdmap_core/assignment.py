@@ -45,6 +45,19 @@ class Assignment:
     mean_angle_deg: float
 
 
+def _plausible(along: np.ndarray, lat: np.ndarray, config: ConnectionConfig) -> np.ndarray:
+    """Edges (``along`` / ``lat`` [m] from tip to maximum in some frame) within the edge angle
+    limits: ahead, at most ``max_edge_angle_deg`` steep (plus ``edge_slack_m``), and beyond
+    ``bridge_edge_min_m`` at most ``bridge_edge_angle_deg``."""
+    tan_max = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
+    ok = (along > 0.0) & (lat <= config.edge_slack_m + np.maximum(along, 0.0) * tan_max)
+    if config.bridge_edge_angle_deg < 90.0:
+        # across a bridged gap a steep edge is a line joined to its neighbour, not the line
+        tan_b = math.tan(math.radians(config.bridge_edge_angle_deg))
+        ok &= (along <= config.bridge_edge_min_m) | (lat <= config.edge_slack_m + along * tan_b)
+    return ok
+
+
 def assign(
     tip_xy: np.ndarray,
     tip_type: np.ndarray,
@@ -79,23 +92,15 @@ def assign(
         lat = np.abs(d @ nrm)
     # never connect a road border to another type
     forbidden = (tip_type[:, None] == _BORDER) != (new_type[None, :] == _BORDER)
-    tan_max = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
-    plausible = (along > 0.0) & (lat <= config.edge_slack_m + np.maximum(along, 0.0) * tan_max)
-    if config.bridge_edge_angle_deg < 90.0:
-        # across a bridged gap a steep edge is a line joined to its neighbour, not the line
-        tan_b = math.tan(math.radians(config.bridge_edge_angle_deg))
-        plausible &= (along <= config.bridge_edge_min_m) | (lat <= config.edge_slack_m + along * tan_b)
+    plausible = _plausible(along, lat, config)
     if tip_check is not None and np.isfinite(tip_check[:, 0]).any():
+        # the same limits measured along / across the tip's own line too
         chk = np.isfinite(tip_check[:, 0])
         cu = tip_check[chk]
         dc = d[chk]
         al_c = np.einsum("ijk,ik->ij", dc, cu)
         la_c = np.abs(np.einsum("ijk,ik->ij", dc, np.stack([-cu[:, 1], cu[:, 0]], axis=1)))
-        ok_c = (al_c > 0.0) & (la_c <= config.edge_slack_m + np.maximum(al_c, 0.0) * tan_max)
-        if config.bridge_edge_angle_deg < 90.0:
-            tan_c = math.tan(math.radians(config.bridge_edge_angle_deg))
-            ok_c &= (al_c <= config.bridge_edge_min_m) | (la_c <= config.edge_slack_m + al_c * tan_c)
-        plausible[chk] &= ok_c
+        plausible[chk] &= _plausible(al_c, la_c, config)
     ok = plausible & ~forbidden
 
     n, m = lat.shape
