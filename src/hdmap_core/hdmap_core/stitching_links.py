@@ -219,23 +219,33 @@ def _track_partner(
     cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
     sign = 1 if is_end else -1
     u0, _ = _unit(float(flat.t_heading[i]))
-    walked, prev = 0.0, xy[k]
+    walked = 0.0
     for m in range(k + sign, len(xy) if is_end else -1, sign):
-        p = xy[m]
-        # along the pivot's heading: a failed step's cut midpoint may jump across the road (its
-        # cut refined to other borders) though the pivot drove on; a run processed before keeps
-        # only its first and last step: a gap along the way
-        gap = abs(float(np.dot(p - prev, _unit(float(heading[m]))[0])))
-        walked += gap
-        if gap > cfg.track_max_gap_m or walked > cfg.track_search_m or float(np.hypot(*(p - prev))) > cfg.track_max_jump_m:
+        gap = _track_gap(xy, heading, m - sign, m, cfg)
+        if gap is None:
             break
-        prev = p
-        best = _entered(flat, tree, i, sign, u0, p, float(heading[m]), cos_h, reach_m, allowed)
+        walked += gap
+        if walked > cfg.track_search_m:
+            break
+        best = _entered(flat, tree, i, sign, u0, xy[m], float(heading[m]), cos_h, reach_m, allowed)
         if best >= 0 and cfg.track_settle_deg > 0 and _still_turning(flat, best, xy, heading, m, sign, cfg):
             continue  # RULE: the pivot is still turning onto the road here: land where it has settled
         if best >= 0:
             return best
     return -1
+
+
+def _track_gap(xy: np.ndarray, heading: np.ndarray, m: int, n: int, cfg: StitchConfig) -> float | None:
+    """How far the pivot drove from track row m to row n: the step along row n's heading [m];
+    None where the two are no consecutive places of one drive (a gap over ``track_max_gap_m``
+    along, or a jump over ``track_max_jump_m`` in any direction). Along the heading because a
+    failed step's cut midpoint may jump across the road (its cut refined to other borders) though
+    the pivot drove on; a run processed before keeps only its first and last step: a gap."""
+    step = xy[n] - xy[m]
+    gap = abs(float(np.dot(step, _unit(float(heading[n]))[0])))
+    if gap > cfg.track_max_gap_m or float(np.hypot(*step)) > cfg.track_max_jump_m:
+        return None
+    return gap
 
 
 def _still_turning(
@@ -251,9 +261,7 @@ def _still_turning(
     n = m + sign
     if abs(_wrap(float(heading[m]) - hj)) <= 2.0 * settle or not 0 <= n < len(xy):
         return False
-    step = xy[n] - xy[m]
-    gap = abs(float(np.dot(step, _unit(float(heading[n]))[0])))
-    if gap > cfg.track_max_gap_m or float(np.hypot(*step)) > cfg.track_max_jump_m:
+    if _track_gap(xy, heading, m, n, cfg) is None:
         return False
     return abs(_wrap(float(heading[n]) - hj)) <= settle
 
