@@ -33,17 +33,20 @@ def make_step(
     valid: bool = True,
     processed_before: bool = False,
     heading: float = 0.0,
+    midpoint: np.ndarray | None = None,
+    width_m: float = 12.0,
 ) -> StepResult:
+    """A step of a pivot driving straight along ``heading`` from (x0, y0), or at ``midpoint``."""
     k = len(lateral)
     s = index * step_m
-    mid = np.array([x0 + s * math.cos(heading), y0 + s * math.sin(heading)])
+    mid = np.array([x0 + s * math.cos(heading), y0 + s * math.sin(heading)]) if midpoint is None else midpoint
     return StepResult(
         pivot_id=pivot,
         index=index,
         s_m=s,
         midpoint=mid,
         heading=heading,
-        width_m=12.0,
+        width_m=width_m,
         valid=valid,
         processed_before=processed_before,
         lateral_m=np.asarray(lateral, dtype=float),
@@ -531,24 +534,7 @@ def _turning_pivot_segment() -> Segment:
             mid, h, own = np.array([18.0, -1.75]) + 2.0 * (i - 9) * np.array([math.cos(h1), math.sin(h1)]), h1, [-1.75, 1.75]
         valid = not 10 <= i < 14
         lat = sorted([(c - mid[1]) / math.cos(h) for c in lines] + own) if valid else []
-        k = len(lat)
-        steps.append(
-            StepResult(
-                pivot_id="p",
-                index=i,
-                s_m=2.0 * i,
-                midpoint=mid,
-                heading=h,
-                width_m=30.0,
-                valid=valid,
-                processed_before=False,
-                lateral_m=np.asarray(lat, dtype=float),
-                types=np.full(k, D, dtype=np.int64),
-                counts=np.full(k, 5, dtype=np.int64),
-                std_m=np.full(k, 0.1),
-                drive_ids=("a", "b"),
-            )
-        )
+        steps.append(make_step(i, lat, [D] * len(lat), midpoint=mid, heading=h, width_m=30.0, valid=valid))
     return Segment("p", tuple(steps))
 
 
@@ -620,23 +606,10 @@ def _crossing_pivot_segment(angle_deg: float, *, turn_at: int | None = None, n: 
         if turn_at is None and mid[1] + 1.75 < -4.0:
             lat, typ = lat + [-1.75, 1.75], typ + [S, S]
         order = np.argsort(lat)
-        steps.append(
-            StepResult(
-                pivot_id="p",
-                index=i,
-                s_m=2.0 * i,
-                midpoint=mid,
-                heading=hd,
-                width_m=24.0,
-                valid=bool(lat),
-                processed_before=False,
-                lateral_m=np.asarray(lat, dtype=float)[order],
-                types=np.asarray(typ, dtype=np.int64)[order],
-                counts=np.full(len(lat), 5, dtype=np.int64),
-                std_m=np.full(len(lat), 0.1),
-                drive_ids=("a", "b"),
-            )
-        )
+        steps.append(make_step(
+            i, np.asarray(lat, dtype=float)[order], np.asarray(typ, dtype=np.int64)[order],
+            midpoint=mid, heading=hd, width_m=24.0, valid=bool(lat),
+        ))
     return Segment("p", tuple(steps))
 
 
@@ -701,23 +674,7 @@ def _curve_segment(radius: float = 14.0, n: int = 30) -> Segment:
     for i in range(n):
         a = 2.0 * i / radius
         mid = np.array([radius * math.sin(a), radius * (1.0 - math.cos(a))])
-        steps.append(
-            StepResult(
-                pivot_id="p",
-                index=i,
-                s_m=2.0 * i,
-                midpoint=mid,
-                heading=a,
-                width_m=24.0,
-                valid=True,
-                processed_before=False,
-                lateral_m=np.asarray(offs, dtype=float),
-                types=np.full(len(offs), D, dtype=np.int64),
-                counts=np.full(len(offs), 5, dtype=np.int64),
-                std_m=np.full(len(offs), 0.1),
-                drive_ids=("a", "b"),
-            )
-        )
+        steps.append(make_step(i, offs, [D] * len(offs), midpoint=mid, heading=a, width_m=24.0))
     return Segment("p", tuple(steps))
 
 
