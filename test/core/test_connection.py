@@ -652,6 +652,52 @@ def test_lines_left_by_a_pivot_turning_off_steeply_end():
     assert max(_line_hops(g1)) > 3.0
 
 
+def _right_angle_turn_segment(turn_deg: float = -95.0) -> Segment:
+    """A pivot drives east along y = -1.75 (dashed lines at y = 0 and 3.5, a solid line at
+    y = -3.5), its steps fail for 4 steps while it turns ``turn_deg`` (an intersection, a side
+    road leaving the motorway), then it drives on with dashed lines 2 m right and 1.5 m left of
+    it. Its first cut after the turn holds the right line 6 m straight ahead of the y = 0 line's
+    end, in the pivot's new frame."""
+    h = math.radians(turn_deg)
+    u, n = np.array([math.cos(h), math.sin(h)]), np.array([-math.sin(h), math.cos(h)])
+    start = np.array([18.0, -6.0]) + 2.0 * n
+    steps = []
+    for i in range(24):
+        if i < 10:
+            steps.append(make_step(i, [-1.75, 1.75, 5.25], [S, D, D], midpoint=np.array([2.0 * i, -1.75])))
+        elif i < 14:
+            steps.append(make_step(i, [], [], valid=False))
+        else:
+            steps.append(make_step(i, [-2.0, 1.5], [D, D], midpoint=start + 2.0 * (i - 14) * u, heading=h))
+    return Segment("p", tuple(steps))
+
+
+def _corner_edges(g) -> int:
+    """Edges from a node of the east-going lines (x <= 18, y >= -4) to one after the turn."""
+    a, b = g.node_xy[g.edges[:, 0]], g.node_xy[g.edges[:, 1]]
+    return int(np.count_nonzero((a[:, 0] <= 18.0) & (a[:, 1] >= -4.0) & (b[:, 1] < -4.0)))
+
+
+def test_lines_do_not_turn_a_right_angle_with_the_pivot():
+    """Across a bridged gap where the pivot turned 95 deg, in its new frame the y = 0 line's end
+    lay straight behind the new road's right line, and the two were joined: a line turning a
+    corner no line has (Town04 50 s1: the median line continued 28 m across the carriageway
+    into the side road). Checked against its own direction (line_check_max_deg 180), the old
+    line ends; the new road's lines start anew."""
+    seg = _right_angle_turn_segment()
+    g = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0))
+    assert _corner_edges(g) == 0
+    assert len(g.polylines()) == 5  # three lines before the turn, two after it
+    g90 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0, line_check_max_deg=90.0))
+    assert _corner_edges(g90) >= 1  # the old bound: the lines left behind joined around the corner
+    from hdmap_core.pipeline import PipelineConfig
+
+    assert PipelineConfig.preset("default").connection.line_check_max_deg == 180.0
+    for bad in (0.0, 181.0, math.nan):
+        with pytest.raises(ConfigError):
+            ConnectionConfig(line_check_max_deg=bad)
+
+
 def test_line_frame_is_off_in_the_paper_and_on_by_default():
     from hdmap_core.pipeline import PipelineConfig
 
