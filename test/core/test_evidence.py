@@ -209,3 +209,29 @@ def test_evidence_config_checked():
                 dict(min_expected=-1.0)):
         with pytest.raises(ConfigError):
             EvidenceConfig(**bad)
+
+
+@pytest.mark.parametrize("seen_by", ["one", "all"])
+def test_one_drives_speck_between_refuted_fills_is_dropped(seen_by):
+    """Four drives; the solid line is missing for all of them over s 120..166 except a 4 m piece
+    (136..140) that one drive (or every drive) saw. Both fills beside the piece are refuted; the
+    piece of one drive is a speck (refuted_piece_min_m) and goes, the piece every drive saw
+    stays."""
+    lanes = (3.5, 3.5, 0.0, 0.0)
+    gaps = [(120.0, 136.0, 140.0, 166.0) if seen_by == "all" or i == 0 else (120.0, 166.0) for i in range(4)]
+    drives = [_drive(i, lane, gap) for i, (lane, gap) in enumerate(zip(lanes, gaps))]
+    default = PipelineConfig.preset("default")
+    res = build_map(drives, config=default)
+    solid = _solid_left(res.map)
+    assert res.map.extra["fills_refuted"] == 2
+    assert _gap_points(solid, 124.0, 132.0) == 0 and _gap_points(solid, 144.0, 162.0) == 0
+    kept = dataclasses.replace(default, stitching=dataclasses.replace(default.stitching, refuted_piece_min_m=0.0))
+    assert _gap_points(_solid_left(build_map(drives, config=kept).map), 134.0, 142.0) >= 2  # the piece exists
+    if seen_by == "one":
+        assert len(solid) == 2 and _gap_points(solid, 134.0, 142.0) == 0
+    else:
+        assert len(solid) == 3 and _gap_points(solid, 134.0, 142.0) >= 2
+    assert PipelineConfig.preset("paper").stitching.refuted_piece_min_m == 0.0
+    for bad in (dict(refuted_piece_min_m=-1.0), dict(refuted_piece_max_drives=0)):
+        with pytest.raises(ConfigError):
+            dataclasses.replace(default.stitching, **bad)

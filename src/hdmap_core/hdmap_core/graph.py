@@ -218,6 +218,9 @@ def export_map(
         length = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
         if isolated and (len(xy) < 2 or (length < cfg.min_isolated_length_m and not protect[chains[k]].any())):
             keep[k] = False
+        elif (isolated and length < cfg.refuted_piece_min_m and protect[chains[k]].any()
+              and int(np.max(geoms[k][1])) <= cfg.refuted_piece_max_drives):
+            keep[k] = False  # one drive's speck left between refuted fills
     inner_m = getattr(cfg, "inner_border_max_m", 0.0)
     if inner_m > 0:
         keep &= ~_inner_borders(flat, chains, succ, pred, on_through, inner_m, getattr(cfg, "inner_border_max_drives", 1))

@@ -105,6 +105,13 @@ class StitchConfig:
             filled points carry drive_count 0 (no drive saw them). 0 disables [m].
         min_isolated_length_m: polylines without any link and shorter than this are dropped
             (single-step specks, false positives) [m].
+        refuted_piece_min_m: a polyline isolated only because fills were refuted (``fill_evidence``)
+            is kept whatever its length (a short line between two junction mouths), unless it is
+            shorter than this and seen by at most ``refuted_piece_max_drives`` drives: one drive's
+            2-3 steps left between refuted fills are a speck (carla_town04_50_s1: 1-3 m pieces
+            of one drive at a gore and beside the ramps, each an extra piece of its line). 0
+            keeps every such piece [m].
+        refuted_piece_max_drives: see ``refuted_piece_min_m`` (max drive count over its points).
         inner_border_max_m: a road border polyline without any link, seen by at most
             ``inner_border_max_drives`` drives, is dropped when at most of its drive-supported
             nodes lane markings of its direction lie within this distance on both sides: a
@@ -311,6 +318,8 @@ class StitchConfig:
     join_other_marking_m: float = 0.0
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
+    refuted_piece_min_m: float = 6.0
+    refuted_piece_max_drives: int = 1
     inner_border_max_m: float = 0.0
     inner_border_max_drives: int = 1
     min_type_run_m: float = 20.0
@@ -376,6 +385,7 @@ class StitchConfig:
             "join_other_marking_m",
             "fill_spacing_m",
             "min_isolated_length_m",
+            "refuted_piece_min_m",
             "inner_border_max_m",
             "min_type_run_m",
             "sparse_type_run_m",
@@ -409,6 +419,8 @@ class StitchConfig:
                 raise ConfigError(f"{name} must be in (0, 180], got {v}")
         if not 0.0 <= self.join_gap_coverage <= 1.0:
             raise ConfigError(f"join_gap_coverage must be in [0, 1], got {self.join_gap_coverage}")
+        if self.refuted_piece_max_drives < 1:
+            raise ConfigError(f"refuted_piece_max_drives must be >= 1, got {self.refuted_piece_max_drives}")
         if self.inner_border_max_drives < 1:
             raise ConfigError(f"inner_border_max_drives must be >= 1, got {self.inner_border_max_drives}")
 
@@ -421,6 +433,7 @@ class StitchConfig:
             dedupe_loose_ends=False,
             join_loose_ends=False,
             min_isolated_length_m=0.0,
+            refuted_piece_min_m=0.0,
             inner_border_max_m=0.0,
             fill_spacing_m=0.0,
             join_line_heading_m=0.0,
