@@ -232,6 +232,34 @@ def test_fleet_density_against_the_papers_drives_per_place(road: GroundTruth) ->
     assert math.isnan(bare.density_share) and "fleet density" not in bare.summary()
 
 
+def test_coverage_over_the_driven_cuts(road: GroundTruth) -> None:
+    """Drives only over the first 100 m of the 200 m road: half the reference is driven. A map of
+    the whole road covers all of it; a map of the undriven half only has 50 % coverage overall and
+    none over the driven cuts; a map of the driven half only is complete where the fleet drove."""
+    drives = [_drive(f"b{i}", 5.25, 0.0, 100.0) for i in range(3)]
+    drives += [_drive("wrong_way", 3.0, 0.0, LENGTH_M, reverse=True)]  # the other direction counts for nothing
+
+    def part(lo: float, hi: float) -> HDMap:
+        full = hdmap_from_ground_truth(road)
+        feats = []
+        for f in full.features:
+            keep = (f.points[:, 0] >= lo) & (f.points[:, 0] <= hi)
+            feats.append(replace(f, points=f.points[keep], drive_count=f.drive_count[keep], lateral_std=f.lateral_std[keep]))
+        return _with_features(full, feats)
+
+    whole = evaluate_map(hdmap_from_ground_truth(road), road, drives=drives)
+    assert whole.driven_share == pytest.approx(0.5, abs=0.02)
+    assert whole.coverage == 1.0 and whole.coverage_driven == 1.0
+    undriven = evaluate_map(part(102.0, LENGTH_M), road, drives=drives)
+    assert undriven.coverage == pytest.approx(0.5, abs=0.03) and undriven.coverage_driven == 0.0
+    driven = evaluate_map(part(0.0, 100.0), road, drives=drives)
+    assert driven.coverage == pytest.approx(0.5, abs=0.03) and driven.coverage_driven == pytest.approx(1.0, abs=0.02)
+    assert "coverage over them" in driven.summary()
+    assert driven.to_dict()["coverage_driven"] == pytest.approx(driven.coverage_driven)
+    bare = evaluate_map(hdmap_from_ground_truth(road), road)  # no drives: unknown
+    assert math.isnan(bare.driven_share) and math.isnan(bare.coverage_driven) and "driven reference" not in bare.summary()
+
+
 def test_realized_floor_is_the_mean_error_of_the_crossing_drives(road: GroundTruth) -> None:
     drives = [_drive(f"a{i}", 1.75, 0.0, LENGTH_M) for i in range(4)]
     drives += [_drive(f"b{i}", 5.25, 0.0, 100.0) for i in range(2)]

@@ -278,6 +278,11 @@ class EvalReport:
         density_share: share of those reference cuts whose drive count lies in
             ``config.density_drives`` (the paper's 5-25 drives per place); NaN without drives.
         sparse_share: share of them crossed by fewer than ``config.density_drives[0]`` drives.
+        driven_share: share of the reference cuts crossed by >= 1 drive in their direction (from
+            the drives' trajectories); NaN without drives. A lane no drive of the fleet drove
+            cannot be in a map made from it: the realized ceiling of ``coverage``.
+        coverage_driven: coverage over the driven reference cuts only (evaluable and driven /
+            driven); NaN without drives.
         fleet_floor_mean_m: mean over the same cuts of |mean lateral error of the drives crossing
             the cut| when their errors are known (simulated fleets): the realized floor. Any map
             made from these drives alone (no absolute reference) inherits their common error, so a
@@ -366,6 +371,8 @@ class EvalReport:
     drive_count_median: float = math.nan
     density_share: float = math.nan
     sparse_share: float = math.nan
+    driven_share: float = math.nan
+    coverage_driven: float = math.nan
     topology_link_precision: float = math.nan
     n_topology_links: int = 0
     n_topology_links_evaluable: int = 0
@@ -720,7 +727,7 @@ def evaluate_map(
         floor_mean_m=float(np.mean(floor[floor_ok])) if floor_ok.any() else math.nan,
         drive_count_mean=float(np.mean(drive_count[floor_ok])) if floor_ok.any() else math.nan,
         fleet_floor_mean_m=_mean_abs(fleet_err, floor_ok),
-        **_density_figures(drive_count, n_gt_cut > 0, config.density_drives, floor_source),
+        **_density_figures(drive_count, n_gt_cut > 0, config.density_drives, floor_source, evaluable),
         **_observed_figures(observed, gt_hit),
         n_cuts=k,
         n_reference_cuts=n_ref,
@@ -795,18 +802,24 @@ def _cut_drive_counts(
     return np.where(dc > 0, dc, np.nan), "map"
 
 
-def _density_figures(drive_count: np.ndarray, reference: np.ndarray, rng: tuple[int, int], source: str) -> dict:
-    """Median drive count over the ``reference`` cuts and the shares of them in ``rng`` and below
-    it (only where the counts come from the drives' trajectories: map drive counts are not the
-    fleet's density where the map has nothing)."""
+def _density_figures(
+    drive_count: np.ndarray, reference: np.ndarray, rng: tuple[int, int], source: str, evaluable: np.ndarray
+) -> dict:
+    """Median drive count over the ``reference`` cuts, the shares of them in ``rng``, below it and
+    driven at all, and the coverage of the driven ones (only where the counts come from the
+    drives' trajectories: map drive counts are not the fleet's density where the map has
+    nothing)."""
     n = drive_count[reference]
     if source != "drives" or len(n) == 0:
         return {}
     lo, hi = rng
+    driven = n >= 1
     return {
         "drive_count_median": float(np.median(n)),
         "density_share": float(np.mean((n >= lo) & (n <= hi))),
         "sparse_share": float(np.mean(n < lo)),
+        "driven_share": float(np.mean(driven)),
+        "coverage_driven": _share(int(np.count_nonzero(evaluable[reference] & driven)), int(np.count_nonzero(driven))),
     }
 
 

@@ -87,6 +87,11 @@ def format_summary(report: EvalReport) -> str:
             f"{_pct(report.density_share).strip()} at {lo}-{hi} drives (the paper's data), "
             f"{_pct(report.sparse_share).strip()} below {lo}"
         )
+    if math.isfinite(report.driven_share):
+        lines.append(
+            f"driven reference cuts (crossed by >= 1 drive in their direction): {_pct(report.driven_share).strip()}; "
+            f"coverage over them {_pct(report.coverage_driven).strip()} (over all {_pct(report.coverage).strip()})"
+        )
     if math.isfinite(report.fleet_floor_mean_m):
         lines.append(
             f"realized floor |mean error of the crossing drives|: {report.fleet_floor_mean_m:.3f} m mean over "

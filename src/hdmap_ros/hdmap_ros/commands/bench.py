@@ -51,6 +51,8 @@ COLUMNS = (
     ("drives_per_cut", "drives/cut med.", "{:.0f}"),
     ("sparse_share", "< 5 drives", "{:.0%}"),
     ("coverage", "coverage", "{:.1%}"),
+    ("driven_share", "driven", "{:.1%}"),
+    ("coverage_driven", "cov. driven", "{:.1%}"),
     ("recall", "recall", "{:.1%}"),
     ("observed_share", "observed", "{:.1%}"),
     ("recall_observed", "recall obs.", "{:.1%}"),
@@ -65,7 +67,8 @@ COLUMNS = (
 )
 
 # The table over seeds: the mean over the seeds of each of these figures (formats as in COLUMNS) ...
-_SEED_MEANS = ("drives", "mean_m", "corrected_mean_m", "floor_m", "fleet_floor_m", "sparse_share", "coverage", "recall",
+_SEED_MEANS = ("drives", "mean_m", "corrected_mean_m", "floor_m", "fleet_floor_m", "sparse_share", "coverage", "driven_share",
+               "coverage_driven", "recall",
                "observed_share", "recall_observed", "precision", "type_accuracy", "fragmentation", "build_s")
 # ... and ratios of those means, the worst seed's ratio, the seeds.
 _SEED_EXTRA = {
@@ -75,7 +78,8 @@ _SEED_EXTRA = {
     "mean_over_fleet": ("mean_over_fleet", "mean/fleet err", "{:.2f}"),
 }
 _SEED_ORDER = ("scenario", "preset", "seeds", "drives", "mean_m", "corrected_mean_m", "floor_m", "mean_over_floor",
-               "mean_over_floor_max", "fleet_floor_m", "mean_over_fleet", "sparse_share", "coverage", "recall", "observed_share",
+               "mean_over_floor_max", "fleet_floor_m", "mean_over_fleet", "sparse_share", "coverage", "driven_share",
+               "coverage_driven", "recall", "observed_share",
                "recall_observed", "precision", "type_accuracy", "fragmentation", "build_s")
 SEED_COLUMNS = tuple(_SEED_EXTRA.get(k) or next(c for c in COLUMNS if c[0] == k) for k in _SEED_ORDER)
 
@@ -292,6 +296,8 @@ def run_one(scenario: Scenario, preset: str, seed: int, workers: int | None = No
         "density_share": rep.density_share,
         "sparse_share": rep.sparse_share,
         "coverage": rep.coverage,
+        "driven_share": rep.driven_share,
+        "coverage_driven": rep.coverage_driven,
         "recall": o.recall,
         "observed_share": rep.observed_share,
         "recall_observed": rep.recall_observed,
