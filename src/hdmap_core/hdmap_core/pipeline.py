@@ -217,6 +217,10 @@ class PipelineConfig:
                     # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
                     # one drive's misclassified stretch up to 250 m (docs/pipeline.md, sparse fleets)
                     sparse_minority_only=True, single_drive_run_m=250.0,
+                    # ... and only runs of <= 3 drives: 4-5 drives agreeing on a type are a real
+                    # stretch (a solid run before a gore), not a misclassification (docs/pipeline.md,
+                    # "Type runs of 4-5 drives")
+                    sparse_drive_count=3,
                     # ... and a one-drive run at a line's end after a better supported run of the
                     # other type (docs/pipeline.md, sparse fleets)
                     single_drive_end_run_m=250.0,
