@@ -133,6 +133,7 @@ def test_named_paper_like_scenario_is_simulated_with_its_overrides(tmp_path):
 
 
 def test_simulated_fleet_is_reused_only_when_made_with_the_same_config(tmp_path):
+    from hdmap_core.simulate import simulator_fingerprint
     from hdmap_ros.commands.bench import prepare_scenarios
 
     (first,) = prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
@@ -150,3 +151,11 @@ def test_simulated_fleet_is_reused_only_when_made_with_the_same_config(tmp_path)
     sim.write_text(json.dumps(doc))
     prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
     assert "seen_count" in json.loads(sim.read_text())  # simulated anew
+    doc = json.loads(sim.read_text())
+    assert doc["simulator"] == simulator_fingerprint()
+    doc["simulator"] = "0123456789abcdef"  # as if made by other simulator code, same config
+    sim.write_text(json.dumps(doc))
+    stamp = sim.stat().st_mtime_ns
+    prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
+    assert json.loads(sim.read_text())["simulator"] == simulator_fingerprint()  # simulated anew
+    assert sim.stat().st_mtime_ns != stamp

@@ -22,6 +22,8 @@ spawned from ``seed``, so it does not change when ``n_drives`` does.
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import os
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -291,6 +293,19 @@ class Fleet:
 _ARRAY_KEYS = ("true_xy", "lateral_error_m", "longitudinal_error_m")
 
 
+@functools.lru_cache(maxsize=1)
+def simulator_fingerprint() -> str:
+    """A hash of the source of the modules that turn a map, a config and a seed into a fleet
+    (this one, the sensor model, the synthetic maps, the ground-truth loader): written to
+    ``OUT.sim.json`` so that a fleet cached by an older simulator is recognised as stale."""
+    from hdmap_core import geometry, groundtruth, sim_sensor, synthetic  # noqa: PLC0415
+
+    h = hashlib.sha1()
+    for mod_file in (__file__, sim_sensor.__file__, synthetic.__file__, groundtruth.__file__, geometry.__file__):
+        h.update(Path(mod_file).read_bytes())
+    return h.hexdigest()[:16]
+
+
 def fleet_to_dict(fleet: Fleet, *, include_trajectories: bool = False) -> dict:
     """The JSON document of ``OUT.sim.json``: config, seed, origin, summary and per-drive truth.
 
@@ -305,6 +320,7 @@ def fleet_to_dict(fleet: Fleet, *, include_trajectories: bool = False) -> dict:
     return {
         "map": fleet.map_name,
         "seed": fleet.seed,
+        "simulator": simulator_fingerprint(),
         "origin": asdict(fleet.origin),
         "config": fleet.config.to_dict(),
         "summary": fleet.summary(),
