@@ -1418,3 +1418,30 @@ def test_loose_end_of_a_marking_not_joined_to_a_border_start():
     m = stitch([conn(a), conn(b)], config=StitchConfig(max_distance_m=0.0, join_other_marking_m=10.0))
     assert len(m.features) == 2
     assert sum(int(f.type) == B for f in m.features) == 1
+
+
+def test_cross_section_lookup_with_several_margins_equals_separate_lookups():
+    """``_entered_by_points`` with one margin per heading limit answers as one call per limit
+    (one tree query instead of several): random nodes and track points."""
+    from types import SimpleNamespace
+
+    from scipy.spatial import cKDTree
+
+    from hdmap_core.stitching_links import _entered_by_points
+
+    rng = np.random.default_rng(7)
+    n = 300
+    t_xy = rng.uniform(0, 200, (n, 2))
+    flat = SimpleNamespace(n_topo=n, t_xy=t_xy, t_heading=rng.uniform(-np.pi, np.pi, n),
+                           t_width=np.where(rng.random(n) < 0.1, np.nan, rng.uniform(4, 14, n)))
+    tree = cKDTree(t_xy)
+    xy = rng.uniform(0, 200, (500, 2))
+    heading = rng.uniform(-np.pi, np.pi, 500)
+    lims, margins = (0.9, 0.5, 0.9), (0.0, 0.0, 2.0)
+    together = _entered_by_points(flat, tree, xy, heading, lims, 12.0, margins)
+    for out, lim, mg in zip(together, lims, margins):
+        (alone,) = _entered_by_points(flat, tree, xy, heading, (lim,), 12.0, mg)
+        np.testing.assert_array_equal(out, alone)
+    assert (together[2] >= 0).sum() > (together[0] >= 0).sum() > 0  # the margin widens
+    with pytest.raises(ValueError):
+        _entered_by_points(flat, tree, xy, heading, lims, 12.0, (0.0, 1.0))

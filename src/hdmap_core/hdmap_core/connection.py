@@ -598,14 +598,14 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
             # RULE 3: the gap to the last valid step exceeds the threshold: close everything
             stats.gaps_closed += 1
             tips, last_topo = None, None
-        if (
-            last_topo is not None
-            and tips is None
-            and flat.fast[j]
-            and last_j == j - 1
-            and (config.line_frame_deg <= 0 or _line_frames(b, b.tips_of(last_topo)[0], float(st.heading), config) is None)
-        ):
-            # the common case: same features as the last step, every edge plausible
+        # the common case: same features as the last step, every edge plausible, no line leaving
+        # the heading (its line frames, once computed for this test, serve the assignment too)
+        lf_last = None
+        fast = last_topo is not None and tips is None and bool(flat.fast[j]) and last_j == j - 1
+        if fast and config.line_frame_deg > 0:
+            lf_last = _line_frames(b, b.tips_of(last_topo)[0], float(st.heading), config)
+            fast = lf_last is None
+        if fast:
             t = b.add(j)
             b.topo_edges.append((last_topo, t))
             b.fast_links.append(t)
@@ -619,7 +619,8 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
             live = (st.s_m - tip_s) <= config.max_gap_m  # RULE 3 per polyline (bridged features)
             tip_idx, tip_s, tip_xy, tip_type = tip_idx[live], tip_s[live], tip_xy[live], tip_type[live]
             tip_dir = _tip_frames(b, tip_idx, st.s_m - tip_s, float(st.heading), config)
-            lf = _line_frames(b, tip_idx, float(st.heading), config)
+            # lf_last is set only for last_topo's own nodes (tips was None); all live: the same ends
+            lf = lf_last if lf_last is not None and live.all() else _line_frames(b, tip_idx, float(st.heading), config)
             tip_check = None
             if lf is not None:
                 line_dir, tip_check = lf

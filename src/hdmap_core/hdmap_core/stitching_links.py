@@ -268,15 +268,19 @@ def _still_turning(
 
 def _entered_by_points(
     flat: FlatGraph, tree: cKDTree, xy: np.ndarray, heading: np.ndarray, cos_h: tuple[float, ...], reach_m: float,
-    margin_m: float = 0.0,
+    margin_m: float | tuple[float, ...] = 0.0,
 ) -> list[np.ndarray]:
     """Per heading limit in ``cos_h``: (K,) per track point (``xy`` (K, 2), ``heading`` (K,)) the
     nearest topology node whose cross-section (``_in_cross_section``, widened by ``margin_m`` to
-    each side) it lies in with a heading within acos(limit) of the point's; -1 where none."""
+    each side; a tuple: one margin per limit) it lies in with a heading within acos(limit) of the
+    point's; -1 where none. One tree query serves every limit."""
+    margins = tuple(float(m) for m in margin_m) if isinstance(margin_m, tuple) else (float(margin_m),) * len(cos_h)
+    if len(margins) != len(cos_h):
+        raise ValueError("one margin per heading limit")
     outs = [np.full(len(xy), -1, dtype=np.int64) for _ in cos_h]
     if len(xy) == 0 or flat.n_topo == 0:
         return outs
-    hits = tree.query_ball_point(xy, reach_m + margin_m)
+    hits = tree.query_ball_point(xy, reach_m + max(margins))
     owner = np.repeat(np.arange(len(xy)), [len(h) for h in hits])
     if len(owner) == 0:
         return outs
@@ -287,13 +291,14 @@ def _entered_by_points(
     along = np.abs((rel * u).sum(axis=1))
     across = np.abs(rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0])
     w = flat.t_width[j]
-    half = np.where(np.isfinite(w) & (w > 0), w / 2.0, _HALF_WIDTH_UNKNOWN_M) + margin_m
-    inside = (along <= _PATH_STEP_M) & (across <= half)
-    owner, j, d, c = owner[inside], j[inside], np.hypot(rel[inside, 0], rel[inside, 1]), np.cos(hj - heading[owner])[inside]
+    half = np.where(np.isfinite(w) & (w > 0), w / 2.0, _HALF_WIDTH_UNKNOWN_M)
+    near = along <= _PATH_STEP_M
+    owner, j, d, c = owner[near], j[near], np.hypot(rel[near, 0], rel[near, 1]), np.cos(hj - heading[owner])[near]
+    across, half = across[near], half[near]
     order = np.lexsort((j, d, owner))  # per point the nearest first (ties: lowest index)
-    owner, j, c = owner[order], j[order], c[order]
-    for out, lim in zip(outs, cos_h):
-        ok = c >= lim
+    owner, j, d, c, across, half = owner[order], j[order], d[order], c[order], across[order], half[order]
+    for out, lim, mg in zip(outs, cos_h, margins):
+        ok = (c >= lim) & (across <= half + mg) & (d <= reach_m + mg)
         o, jj = owner[ok], j[ok]
         first = np.r_[True, o[1:] != o[:-1]] if len(o) else np.zeros(0, dtype=bool)
         out[o[first]] = jj[first]
@@ -316,19 +321,20 @@ def _track_bridges(
     # leaving a road the track runs along it (within max_heading_diff_deg); entering one at a
     # merge it may still be turning (within track_bridge_heading_deg)
     cos_leave = math.cos(math.radians(cfg.max_heading_diff_deg))
-    leave, enter = _entered_by_points(
-        flat, tree, xy, heading, (cos_leave, math.cos(math.radians(cfg.track_bridge_heading_deg))), reach_m,
-    )
+    cos_enter = math.cos(math.radians(cfg.track_bridge_heading_deg))
     # RULE: with track_bridge_leave_margin_m a track that has no road to leave from (its start, or
     # after a gap: a run processed before keeps only its first and last step) leaves the road
     # whose cross-section, widened by the margin, its point lies in: the last point before a
     # junction's failed steps is a cut midpoint already pulled off the road's middle
     # (carla_town04_50_s1: 5.6 m across a node 4.8 m half wide). Only there: a bridge still ends
     # in a node's own cross-section, and a walk off a road is not cut short by the margin.
-    wide = (
-        _entered_by_points(flat, tree, xy, heading, (cos_leave,), reach_m, cfg.track_bridge_leave_margin_m)[0]
-        if cfg.track_bridge_leave_margin_m > 0 else np.full(len(xy), -1, dtype=np.int64)
-    )
+    if cfg.track_bridge_leave_margin_m > 0:
+        leave, enter, wide = _entered_by_points(
+            flat, tree, xy, heading, (cos_leave, cos_enter, cos_leave), reach_m, (0.0, 0.0, cfg.track_bridge_leave_margin_m),
+        )
+    else:
+        leave, enter = _entered_by_points(flat, tree, xy, heading, (cos_leave, cos_enter), reach_m)
+        wide = np.full(len(xy), -1, dtype=np.int64)
     out: list[tuple[int, int]] = []
     last, unmapped, walked = -1, 0, 0.0
     for m in range(len(xy)):
