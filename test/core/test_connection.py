@@ -652,19 +652,21 @@ def test_lines_left_by_a_pivot_turning_off_steeply_end():
     assert max(_line_hops(g1)) > 3.0
 
 
-def _right_angle_turn_segment(turn_deg: float = -95.0) -> Segment:
+def _right_angle_turn_segment(turn_deg: float = -95.0, *, fresh_line: bool = False) -> Segment:
     """A pivot drives east along y = -1.75 (dashed lines at y = 0 and 3.5, a solid line at
     y = -3.5), its steps fail for 4 steps while it turns ``turn_deg`` (an intersection, a side
     road leaving the motorway), then it drives on with dashed lines 2 m right and 1.5 m left of
     it. Its first cut after the turn holds the right line 6 m straight ahead of the y = 0 line's
-    end, in the pivot's new frame."""
+    end, in the pivot's new frame. ``fresh_line``: the y = 0 line is reached by the last cut
+    before the turn only (one node, no direction of its own: a crossing road's line)."""
     h = math.radians(turn_deg)
     u, n = np.array([math.cos(h), math.sin(h)]), np.array([-math.sin(h), math.cos(h)])
     start = np.array([18.0, -6.0]) + 2.0 * n
     steps = []
     for i in range(24):
         if i < 10:
-            steps.append(make_step(i, [-1.75, 1.75, 5.25], [S, D, D], midpoint=np.array([2.0 * i, -1.75])))
+            lat, typ = ([-1.75, 5.25], [S, D]) if fresh_line and i < 9 else ([-1.75, 1.75, 5.25], [S, D, D])
+            steps.append(make_step(i, lat, typ, midpoint=np.array([2.0 * i, -1.75])))
         elif i < 14:
             steps.append(make_step(i, [], [], valid=False))
         else:
@@ -696,6 +698,28 @@ def test_lines_do_not_turn_a_right_angle_with_the_pivot():
     for bad in (0.0, 181.0, math.nan):
         with pytest.raises(ConfigError):
             ConnectionConfig(line_check_max_deg=bad)
+
+
+def test_a_line_just_reached_does_not_turn_with_the_pivot():
+    """The y = 0 line is one node, reached by the last cut before the pivot turns 95 deg across a
+    bridged gap: no direction of its own, so neither its own frame nor the line check applied,
+    and in the pivot's new frame it was joined to the new road's line straight ahead of it (a
+    crossing line carried across an intersection). Checked against the pivot's heading at its
+    step (line_check_undirected), it ends there."""
+    seg = _right_angle_turn_segment(fresh_line=True)
+    g = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0))
+    assert _corner_edges(g) == 0
+    g0 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0, line_check_undirected=False))
+    assert _corner_edges(g0) >= 1
+    # a pivot that does not turn: the fresh line continues as before
+    straight = Segment("p", tuple(
+        make_step(i, [-1.75, 5.25] if i < 9 else [-1.75, 1.75, 5.25], [S, D] if i < 9 else [S, D, D],
+                  valid=not 10 <= i < 14) if not 10 <= i < 14 else make_step(i, [], [], valid=False)
+        for i in range(24)))
+    a = connect_segment(straight, config=ConnectionConfig(line_frame_deg=12.0))
+    b = connect_segment(straight, config=ConnectionConfig(line_frame_deg=12.0, line_check_undirected=False))
+    assert sorted(map(tuple, a.edges.tolist())) == sorted(map(tuple, b.edges.tolist()))
+    assert ConnectionConfig.paper().line_frame_deg == 0.0  # the paper: the rule is off with the line frames
 
 
 def test_line_frame_is_off_in_the_paper_and_on_by_default():

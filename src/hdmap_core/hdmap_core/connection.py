@@ -123,6 +123,12 @@ class ConnectionConfig:
             T-junction joining the motorway) paired the lines it left in its new frame: on every
             CARLA fleet 1-4 lines turned a corner that no line has (Town04 50 s1: the median
             solid line continued 28 m across the carriageway into the side road) [deg].
+        line_check_undirected: an end without a direction of its own (a line the cut has just
+            reached) left behind where the pivot has since turned by more than
+            ``line_frame_max_deg`` is checked against the pivot's heading at its step (the
+            only direction known for it): at an intersection one node of a crossing line was
+            joined across the turn to a line of the other road. Only with ``line_frame_deg`` and
+            ``line_frame_check``.
         line_frame_bend_deg: ... both only for a line whose history is straight: the directions to
             its predecessors (at least ``line_frame_min_m`` back, within 6 edges) all lie within
             this of the line's direction. Where the road curves (Town06's corners and junction
@@ -157,6 +163,7 @@ class ConnectionConfig:
     line_frame_max_deg: float = 30.0
     line_frame_check: bool = True
     line_check_max_deg: float = 180.0
+    line_check_undirected: bool = True
     line_frame_bend_deg: float = 0.0
 
     def __post_init__(self) -> None:
@@ -527,6 +534,44 @@ def _line_frames(b: _Builder, tip_idx: np.ndarray, heading: float, config: Conne
     return out, chk
 
 
+def _turned(h0: float, h1: float, config: ConnectionConfig) -> bool:
+    """The pivot's heading changed from ``h0`` to ``h1`` by more than ``line_frame_max_deg``
+    (only with ``line_check_undirected`` and the line-frame rule on)."""
+    if not (config.line_check_undirected and config.line_frame_deg > 0 and config.line_frame_check):
+        return False
+    return math.cos(h1 - h0) < math.cos(math.radians(max(config.line_frame_max_deg, config.line_frame_deg)))
+
+
+def _undirected_checks(
+    b: _Builder, tip_idx: np.ndarray, tip_s: np.ndarray, head_at: dict[float, float], heading: float,
+    config: ConnectionConfig, tip_dir: np.ndarray | None, tip_check: np.ndarray | None,
+) -> np.ndarray | None:
+    """``tip_check`` plus, for each end without a direction of its own (no frame, no check: a
+    line the cut had just reached) left behind where the pivot has since turned by more than
+    ``line_frame_max_deg`` (``line_check_undirected``), the pivot's heading at the end's step as
+    the direction its edges are checked against: at an intersection the one node of a crossing
+    line, seen as the pivot began to turn, was joined across the turn's bridged gap to a line of
+    the road it turned onto (carla_town06_50_s3: 14 m, x 8-22, y -136)."""
+    if len(tip_idx) == 0 or not config.line_check_undirected or config.line_frame_deg <= 0 or not config.line_frame_check:
+        return tip_check
+    h_tip = np.array([head_at.get(float(x), heading) for x in tip_s])
+    cos_lim = math.cos(math.radians(max(config.line_frame_max_deg, config.line_frame_deg)))
+    turned = np.cos(heading - h_tip) < cos_lim
+    if tip_dir is not None:
+        turned &= ~np.isfinite(tip_dir[:, 0])
+    if tip_check is not None:
+        turned &= ~np.isfinite(tip_check[:, 0])
+    if not turned.any():
+        return tip_check
+    u = b.line_directions(tip_idx[turned], config.line_frame_min_m)
+    rows = np.flatnonzero(turned)[~np.isfinite(u[:, 0])]
+    if len(rows) == 0:
+        return tip_check
+    out = np.full((len(tip_idx), 2), np.nan) if tip_check is None else tip_check.copy()
+    out[rows] = np.stack([np.cos(h_tip[rows]), np.sin(h_tip[rows])], axis=1)
+    return out
+
+
 def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionConfig()) -> SegmentGraph:
     """Connect the aggregated maxima of one pivot drive into polylines (Sec. V).
 
@@ -573,6 +618,7 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
     last_topo: int | None = None
     last_j = -1
     last_s = 0.0
+    head_at: dict[float, float] = {}  # pivot heading of each used step, by its pivot distance
     skipped = False
     drive_ids: set[str] = set()
     j = -1
@@ -602,6 +648,8 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
         # the heading (its line frames, once computed for this test, serve the assignment too)
         lf_last = None
         fast = last_topo is not None and tips is None and bool(flat.fast[j]) and last_j == j - 1
+        if fast and _turned(head_at[last_s], float(st.heading), config):
+            fast = False  # across a turn the ends without a direction of their own are checked
         if fast and config.line_frame_deg > 0:
             lf_last = _line_frames(b, b.tips_of(last_topo)[0], float(st.heading), config)
             fast = lf_last is None
@@ -628,6 +676,7 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
                     line_dir = np.where(np.isfinite(tip_dir[:, :1]), tip_dir, line_dir)
                     tip_check = np.where(np.isfinite(tip_dir[:, :1]), np.nan, tip_check)
                 tip_dir = line_dir
+            tip_check = _undirected_checks(b, tip_idx, tip_s, head_at, float(st.heading), config, tip_dir, tip_check)
             res = assign(
                 tip_xy, tip_type, tip_s == last_s, flat.xy[a0:a1], flat.typ[a0:a1], st.heading, config, tip_dir, tip_check
             )
@@ -665,6 +714,7 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
         if skipped and last_topo is not None:
             stats.gaps_bridged += 1
         last_topo, last_j, last_s, skipped = t, j, st.s_m, False
+        head_at[st.s_m] = float(st.heading)
         stats.used += 1
         drive_ids.update(st.drive_ids)
 
