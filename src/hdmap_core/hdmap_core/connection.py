@@ -534,12 +534,13 @@ def _line_frames(b: _Builder, tip_idx: np.ndarray, heading: float, config: Conne
     return out, chk
 
 
-def _turned(h0: float, h1: float, config: ConnectionConfig) -> bool:
-    """The pivot's heading changed from ``h0`` to ``h1`` by more than ``line_frame_max_deg``
-    (only with ``line_check_undirected`` and the line-frame rule on)."""
+def _turned(h0: float | np.ndarray, h1: float, config: ConnectionConfig) -> bool | np.ndarray:
+    """The pivot's heading changed from ``h0`` (one or per tip) to ``h1`` by more than
+    ``line_frame_max_deg``; always False unless ``line_check_undirected`` and the line-frame rule
+    with its check are on."""
     if not (config.line_check_undirected and config.line_frame_deg > 0 and config.line_frame_check):
-        return False
-    return math.cos(h1 - h0) < math.cos(math.radians(max(config.line_frame_max_deg, config.line_frame_deg)))
+        return np.zeros(np.shape(h0), dtype=bool) if np.ndim(h0) else False
+    return np.cos(h1 - h0) < math.cos(math.radians(max(config.line_frame_max_deg, config.line_frame_deg)))
 
 
 def _undirected_checks(
@@ -552,11 +553,10 @@ def _undirected_checks(
     the direction its edges are checked against: at an intersection the one node of a crossing
     line, seen as the pivot began to turn, was joined across the turn's bridged gap to a line of
     the road it turned onto (carla_town06_50_s3: 14 m, x 8-22, y -136)."""
-    if len(tip_idx) == 0 or not config.line_check_undirected or config.line_frame_deg <= 0 or not config.line_frame_check:
+    if len(tip_idx) == 0:
         return tip_check
-    h_tip = np.array([head_at.get(float(x), heading) for x in tip_s])
-    cos_lim = math.cos(math.radians(max(config.line_frame_max_deg, config.line_frame_deg)))
-    turned = np.cos(heading - h_tip) < cos_lim
+    h_tip = np.array([head_at[float(x)] for x in tip_s])
+    turned = _turned(h_tip, heading, config)
     if tip_dir is not None:
         turned &= ~np.isfinite(tip_dir[:, 0])
     if tip_check is not None:
