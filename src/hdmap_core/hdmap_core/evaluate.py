@@ -870,10 +870,9 @@ def _observed_figures(observed: np.ndarray | None, gt_hit: np.ndarray) -> dict[s
     obs = known & (observed > 0)
     n_obs = int(np.count_nonzero(obs))
     n_known = int(np.count_nonzero(known))
-    seen = np.where(known, observed, -1.0)
     by_seen = []
     for label, lo, hi in (("0", 0, 0), ("1", 1, 1), ("2", 2, 2), (">=3", 3, math.inf)):
-        sel = known & (seen >= lo) & (seen <= hi)
+        sel = known & (observed >= lo) & (observed <= hi)
         n = int(np.count_nonzero(sel))
         by_seen.append((label, _share(n, n_known), _share(int(np.count_nonzero(sel & gt_hit)), n)))
     return {
