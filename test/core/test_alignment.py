@@ -296,6 +296,55 @@ def test_sparse_step_of_singletons_and_one_shared_cluster_accepted_with_the_opti
     assert not align_step(far, types, drive, config=replace(cfg, sparse_singletons_accept=True)).valid
 
 
+def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
+    """The step above: the two drives place lines at 0.5 m and 4.1 m within 0.11 m but disagree
+    on solid/dashed. Dropping both samples left a hole in both lines wherever one drive
+    misclassified a stretch; with ``sparse_type_clash_keep`` each pair becomes one cluster of
+    type UNKNOWN (its type is decided along the polyline), everything else unchanged."""
+    lat = np.array([-7.69, -7.47, -6.33, -2.94, 0.43, 0.54, 4.08, 4.12, 7.52])
+    B, S, D, U = (int(t) for t in (FeatureType.ROAD_BORDER, FeatureType.SOLID, FeatureType.DASHED, FeatureType.UNKNOWN))
+    types = np.array([B, B, S, D, S, D, D, S, D])
+    drive = np.array([1, 0, 0, 1, 1, 0, 1, 0, 1])
+    cfg = AlignmentConfig(
+        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3, sparse_singletons_accept=True,
+    )
+    old = align_step(lat, types, drive, config=cfg)
+    assert old.types is None
+    res = align_step(lat, types, drive, config=replace(cfg, sparse_type_clash_keep=True))
+    assert res.valid == old.valid and res.silhouette == old.silhouette
+    kept = res.labels >= 0
+    assert np.array_equal(res.labels[old.labels >= 0], old.labels[old.labels >= 0])
+    assert res.labels[4] == res.labels[5] >= 0 and res.labels[6] == res.labels[7] >= 0 and res.labels[4] != res.labels[6]
+    assert not set(res.labels[[4, 6]].tolist()) & set(old.labels[old.labels >= 0].tolist())  # clusters of their own
+    assert np.array_equal(res.types[[4, 5, 6, 7]], [U, U, U, U])
+    assert np.array_equal(np.delete(res.types, [4, 5, 6, 7]), np.delete(types, [4, 5, 6, 7])) and kept.all()
+    # A third drive agreeing with drive 1 (solid at 0.35 m): the solid line has two drives,
+    # drive 0's dashed sample there is a dropped singleton of no unknown line; the other pair
+    # is still kept as unknown.
+    lat3, types3, drive3 = np.r_[lat, 0.35], np.r_[types, S], np.r_[drive, 2]
+    res3 = align_step(lat3, types3, drive3, config=replace(cfg, sparse_type_clash_keep=True))
+    assert res3.valid
+    assert res3.labels[5] == -1 and res3.labels[4] == res3.labels[9] >= 0
+    assert res3.types[4] == S and res3.types[6] == res3.types[7] == U
+    # A marking against a border is a clash too (drive 0 reports the line at 4.1 m as a border):
+    # kept as unknown, its type decided along the polyline (never a border there).
+    types4 = types.copy()
+    types4[7] = B
+    res4 = align_step(lat, types4, drive, config=replace(cfg, sparse_type_clash_keep=True))
+    assert res4.labels[6] == res4.labels[7] >= 0 and np.all(res4.types[[4, 5, 6, 7]] == U)
+    # Only the default preset's final pass keeps clashes (the first pass feeds the adjustment).
+    from hdmap_core.pipeline import PipelineConfig
+
+    default = PipelineConfig.preset("default")
+    assert default.final_alignment.sparse_type_clash_keep and not default.alignment.sparse_type_clash_keep
+    assert not AlignmentConfig().sparse_type_clash_keep
+    for name in ("paper", "naive"):
+        p = PipelineConfig.preset(name)
+        assert not p.alignment.sparse_type_clash_keep
+        assert p.final_alignment is None or not p.final_alignment.sparse_type_clash_keep
+
+
 def test_four_drive_step_judged_by_the_sparse_rule_clash_drop_only_up_to_three():
     """Four drives (carla_town06_30_s1, x -86 m, final pass, samples shifted): every line is
     tight (pairs within 0.2 m), but drive 0 takes the second line for solid, drive 3 the fourth,

@@ -460,6 +460,30 @@ def test_one_drive_flicker_relabelled_up_to_250_m():
         FeatureType.SOLID, FeatureType.DASHED, FeatureType.SOLID]
 
 
+def test_line_of_unknown_type_takes_the_type_of_the_line_it_continues():
+    """Two drives disagreed on solid/dashed over 40 m of a dashed line (a type clash kept as a
+    line of type UNKNOWN, ``AlignmentConfig.sparse_type_clash_keep``): the run takes the type of
+    the runs beside it, one dashed polyline without a hole; at the line's end it takes its one
+    neighbour's type. A polyline of unknown type alone, continuing no typed line, is dropped.
+    The same in the dataclass and the default preset (no option: UNKNOWN only comes from that
+    rule)."""
+    U = int(FeatureType.UNKNOWN)
+
+    def seg(types: list[int]) -> Segment:
+        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[2]) for i, t in enumerate(types)))
+
+    for cfg in (StitchConfig(), DEFAULT):
+        m = stitch([conn(seg([D] * 30 + [U] * 20 + [D] * 30))], config=cfg)
+        assert [f.type for f in m.features] == [FeatureType.DASHED]
+        assert len(m.features[0].points) == 80 and np.all(m.features[0].drive_count == 2)
+        m = stitch([conn(seg([S] * 30 + [U] * 20))], config=cfg)
+        assert [f.type for f in m.features] == [FeatureType.SOLID] and len(m.features[0].points) == 50
+        assert stitch([conn(seg([U] * 30))], config=cfg).features == ()
+        # beside a border line: the unknown line alone goes, the border stays
+        both = Segment("a", tuple(step("a", i, 2.0 * i, [0.0, 3.5], [U, B], counts=[2, 2]) for i in range(30)))
+        assert [f.type for f in stitch([conn(both)], config=cfg).features] == [FeatureType.ROAD_BORDER]
+
+
 def test_one_drive_end_run_takes_the_better_supported_type():
     """Solid 200 m seen by 2 drives, then the line's last 80 m seen by one drive as dashed (its
     misclassified stretch; no run after it, so the flicker rules do not apply): one solid

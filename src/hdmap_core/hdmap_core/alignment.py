@@ -21,6 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from hdmap_core.errors import ConfigError
+from hdmap_core.model import FeatureType
 
 __all__ = [
     "AlignmentConfig",
@@ -102,6 +103,14 @@ class AlignmentConfig:
             different lines, not one line the drives placed apart): each drive alone would pass
             the one-drive rule (``lone_cluster_max_std_m``), and two drives that do not contradict
             each other are no weaker evidence than one. 0 = off (a shared cluster is required).
+        sparse_type_clash_keep: the samples a type clash dropped are kept as one line of unknown
+            type (``FeatureType.UNKNOWN``, a cluster of its own) when the step is accepted: two
+            drives that place a line at one spot but disagree on its type still saw a line there,
+            and its type is decided along the polyline (the marking type of the runs beside it,
+            ``hdmap_core.graph``; a line of unknown type continuing no marking is dropped). Only
+            samples that are all clash-dropped singletons within ``sparse_type_clash_m`` of each
+            other, of two or more drives, form such a cluster. False: they are dropped (the
+            dataclass, paper, naive; the default preset's final pass keeps them).
         sparse_type_clash_max_drives: the type-clash drop applies to steps of at most this many
             drives; 0: to every step of the sparse-step rule. (With 4 drives a one-sample cluster
             beside another drive's line of the other type can be a real line; the default
@@ -133,6 +142,7 @@ class AlignmentConfig:
     sparse_type_clash_m: float = 0.0
     sparse_singletons_accept: bool = False
     sparse_type_clash_max_drives: int = 0
+    sparse_type_clash_keep: bool = False
     sparse_disjoint_apart_m: float = 0.0
     min_cluster_drives: int = 1
     max_offset_m: float = 5.0
@@ -164,6 +174,9 @@ class StepAlignment:
         silhouette: score of the final clustering (-1 when undefined).
         valid: silhouette >= gate and at least two clusters.
         n_iterations: EM iterations run.
+        types: (M,) the samples' types as aggregated, where a rule changed one (a type clash kept
+            as a line of unknown type, ``AlignmentConfig.sparse_type_clash_keep``); None: the
+            input types.
     """
 
     offsets_m: np.ndarray
@@ -171,6 +184,7 @@ class StepAlignment:
     silhouette: float
     valid: bool
     n_iterations: int
+    types: np.ndarray | None = None
 
 
 # ----------------------------------------------------------------------------- 1-D clustering
@@ -893,6 +907,7 @@ def _em(
     n_present = np.count_nonzero(np.bincount(drive))
     sparse = 0 < n_present <= config.sparse_step_max_drives
     clash_max = config.sparse_type_clash_max_drives or config.sparse_step_max_drives
+    before_clash = labels
     if sparse and config.sparse_type_clash_m > 0 and n_present <= clash_max:
         labels = _drop_type_clashing_singletons(y, labels, types, drive, config.sparse_type_clash_m)
     score = step_silhouette(y, labels, types)
@@ -920,7 +935,44 @@ def _em(
         # silhouette says nothing; accept when every cluster is tight.
         if use.any():
             valid = _max_cluster_std(y, labels) <= config.lone_cluster_max_std_m
-    return StepAlignment(offsets_m=o, labels=labels, silhouette=score, valid=bool(valid), n_iterations=it)
+    out_types = None
+    if valid and config.sparse_type_clash_keep and labels is not before_clash:
+        labels, out_types = _keep_clashes(y, before_clash, labels, types, drive, config.sparse_type_clash_m)
+    return StepAlignment(offsets_m=o, labels=labels, silhouette=score, valid=bool(valid), n_iterations=it, types=out_types)
+
+
+def _keep_clashes(
+    y: np.ndarray, before: np.ndarray, labels: np.ndarray, types: np.ndarray, drive: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """RULE type clash kept: the samples the clash drop removed (labelled before, -1 after) that
+    lie within ``radius_m`` of each other in a chain, and of no other sample, form one cluster of
+    type UNKNOWN per chain of two or more drives and two or more types. (Such a line becomes the
+    marking it continues; it never continues a road border, ``hdmap_core.graph``.) Returns
+    (labels, types or None)."""
+    gone = np.flatnonzero((before >= 0) & (labels < 0))
+    if len(gone) < 2:
+        return labels, None
+    gone = gone[np.argsort(y[gone], kind="stable")]
+    # a chain may not come near a sample that is kept (or was dropped by another rule): then the
+    # line is that sample's, of its type
+    others = np.flatnonzero(~np.isin(np.arange(len(y)), gone))
+    brk = np.r_[True, np.diff(y[gone]) > radius_m]
+    chain = np.cumsum(brk) - 1
+    out, out_t = labels.copy(), None
+    nxt = int(labels.max()) + 1
+    for c in range(int(chain[-1]) + 1):
+        mem = gone[chain == c]
+        if len(np.unique(drive[mem])) < 2 or len(np.unique(types[mem])) < 2:
+            continue
+        lo, hi = y[mem].min() - radius_m, y[mem].max() + radius_m
+        if len(others) and np.any((y[others] >= lo) & (y[others] <= hi)):
+            continue
+        if out_t is None:
+            out_t = np.asarray(types).copy()
+        out[mem] = nxt
+        out_t[mem] = int(FeatureType.UNKNOWN)
+        nxt += 1
+    return out, out_t
 
 
 def _shared_cluster(labels: np.ndarray, drive: np.ndarray) -> bool:

@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 __all__ = ["FlatGraph", "export_map", "graph_from_hdmap"]
 
 _BORDER_CODE = int(FeatureType.ROAD_BORDER)
+_UNKNOWN_CODE = int(FeatureType.UNKNOWN)
 
 
 # --- the flat view of all graphs (FlatGraph) --------------------------------------------------------------------
@@ -131,6 +132,12 @@ def export_map(
             end_run_m=getattr(cfg, "single_drive_end_run_m", 0.0),
             end_run_through=getattr(cfg, "single_drive_end_through_leftover", False),
         )
+    unknown = flat.n_type == _UNKNOWN_CODE
+    if unknown.any():
+        # RULE unknown type: a line of unknown type that continues no typed line is dropped
+        keep_n = ~unknown
+        flat, uid, protect = _subset_nodes(flat, keep_n), uid[keep_n], protect[keep_n]
+        nn, e = flat.n_nodes, flat.edges
     through = getattr(cfg, "through_lines", False)
     if getattr(cfg, "end_stub_max_m", 0.0) > 0 and len(e):
         drop = _end_stubs(flat, uid, cfg, through=through)
@@ -747,7 +754,9 @@ def _smooth_types(
 
         def short(i: int) -> bool:
             r = runs[i]
-            if length(r) < min_run_m:
+            if length(r) < min_run_m or r[2] == _UNKNOWN_CODE:
+                # RULE unknown type: a line whose drives disagreed on its type (a type clash kept,
+                # hdmap_core.alignment) takes the type of the line it continues
                 return True
             # RULE flicker: only a run between two runs of one other type (A B A)
             if not (0 < i < len(runs) - 1 and runs[i - 1][2] == runs[i + 1][2]):

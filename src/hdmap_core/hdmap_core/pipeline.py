@@ -163,6 +163,10 @@ class PipelineConfig:
                 # two drives that share no line but contradict none (each sees lines the other
                 # misses, 2+ m apart) are accepted as one drive alone would be
                 sparse_disjoint_apart_m=2.0,
+                # drives that place a line at one spot but disagree on solid/dashed saw a line:
+                # kept, of unknown type, typed along its polyline (docs/pipeline.md, "Type
+                # clashes kept")
+                sparse_type_clash_keep=True,
             )
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
             from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
@@ -587,7 +591,7 @@ def _run_pivot(
         cx.append(x + al.offsets_m[local])
         cstep.append(np.full(b - a, q))
         clab.append(lab)
-        ctyp.append(ty)
+        ctyp.append(ty if al.types is None else al.types)
         cdrv.append(dg)
         cds.append(ps.drive_s_m[a:b])
         if observations is not None:
@@ -601,7 +605,8 @@ def _run_pivot(
                     drive_s_m=ps.drive_s_m[a:b],
                     lateral_m=x,
                     types=ty,
-                    cluster=al.labels,
+                    # a type clash kept as a line of unknown type is no cluster of these types
+                    cluster=al.labels if al.types is None else np.where(al.types == ty, al.labels, -1),
                     offsets_m=al.offsets_m[local],
                 )
             )
