@@ -218,3 +218,33 @@ def test_progress_reports_every_pivot(fleet):
     map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=0, progress=lambda *a: calls.append(a))
     assert calls[-1] == ("pivots", len(fleet), len(fleet))
     assert [c[1] for c in calls] == list(range(1, len(fleet) + 1))
+
+
+def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
+    """The default preset's final pass keeps a side's samples up to a border only one drive saw
+    when nothing lies beyond it (``SamplingConfig.outer_border_reach``); the first pass, which
+    feeds the adjustment, samples as before. Two drives: the far left border at +8 m (the solid
+    line at +5.25 m before it unseen) is in the map with the option, not without it."""
+    B, S, D = FeatureType.ROAD_BORDER, FeatureType.SOLID, FeatureType.DASHED
+    a = make_drive("a", lane=-3.5, bias=0.0, lines=((-6.5, B), (-5.25, S), (-1.75, D), (1.75, D)))
+    b = make_drive("b", lane=0.0, bias=0.0, lines=((-6.5, B), (-1.75, D), (1.75, D), (8.0, B)))
+    default = PipelineConfig.preset("default")
+    assert default.final_sampling.outer_border_reach and not default.sampling.outer_border_reach
+    without = dataclasses.replace(default, final_sampling=None)
+
+    def far_border_points(config: PipelineConfig) -> int:
+        m = build_map([a, b], config=config, seed=0).map
+        n = 0
+        for f in m.features:
+            if f.type != FeatureType.ROAD_BORDER:
+                continue
+            r = np.hypot(f.points[:, 0], f.points[:, 1] - RADIUS_M)  # the road is an arc about (0, R)
+            n += int(np.count_nonzero(np.abs((RADIUS_M - r) - 8.0) < 0.5))
+        return n
+
+    assert far_border_points(without) == 0
+    assert far_border_points(default) > 50
+    for name in ("paper", "naive"):
+        assert PipelineConfig.preset(name).final_sampling is None
+    with pytest.raises(ConfigError, match="final_sampling"):
+        dataclasses.replace(default, final_sampling=dataclasses.replace(default.sampling, step_m=4.0))

@@ -144,3 +144,44 @@ def test_open_side_reaches_the_last_line_before_the_median():
     types2 = np.where(t == 16.5, int(FeatureType.ROAD_BORDER), types)
     mid, width = refine_cuts(q, t, types2, n_steps, config=SamplingConfig(spread_factor=0.0, margin_m=0.5, open_side_gap_m=4.0), drive=drive)
     np.testing.assert_allclose(mid + 0.5 * width, 17.0)
+
+
+def test_far_border_one_drive_saw_kept_with_outer_border_reach():
+    """Two drives (carla_town06_30_s2, y -135): both see the right border and the lines near
+    them; only drive b sees the far left border at +8 m, and nobody the solid line at +5.25 m
+    before it. One border sample cannot be the first border (support 2), and the open side's
+    chain stops at the 6 m gap after +1.75 m: the border is cut away. With
+    ``outer_border_reach`` the side keeps its samples up to that border (nothing lies beyond
+    it); the refined cut itself (midpoint, width: the topology) is unchanged."""
+    B, S, D = FeatureType.ROAD_BORDER, FeatureType.SOLID, FeatureType.DASHED
+    a = make_drive("a", lane=-3.5, bias=0.0, lines=((-6.5, B), (-5.25, S), (-1.75, D), (1.75, D)))
+    b = make_drive("b", lane=0.0, bias=0.0, lines=((-6.5, B), (-1.75, D), (1.75, D), (8.0, B)))
+    idx = preprocess([a, b])
+    base = SamplingConfig(open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5)
+    q = 40
+    plain = sample_pivot(idx, a, config=base)
+    reach = sample_pivot(idx, a, config=SamplingConfig(open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True))
+    lat0, lat1 = (ps.lateral_m[ps.ptr[q] : ps.ptr[q + 1]] for ps in (plain, reach))
+    ty1 = reach.types[reach.ptr[q] : reach.ptr[q + 1]]
+    centre, h = offset_line(np.array([plain.s_m[q]]), 0.0)
+    n = np.array([-np.sin(h[0]), np.cos(h[0])])
+    far0 = lat0 + (plain.midpoint[q] - centre[0]) @ n  # positions from the road centre
+    far1 = lat1 + (reach.midpoint[q] - centre[0]) @ n
+    assert not np.any(np.isclose(far0, 8.0, atol=0.3))
+    assert np.sum(np.isclose(far1, 8.0, atol=0.3) & (ty1 == B)) == 1
+    assert len(lat1) == len(lat0) + 1
+    np.testing.assert_array_equal(reach.width_m, plain.width_m)
+    np.testing.assert_array_equal(reach.midpoint, plain.midpoint)
+    # A sample beyond the lone border (a parallel road's line): it is no road edge, nothing added.
+    c = make_drive("c", lane=0.0, bias=0.0, lines=((12.0, S),))
+    idx3 = preprocess([a, b, c])
+    beyond = sample_pivot(idx3, a, config=SamplingConfig(open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True))
+    lat3 = beyond.lateral_m[beyond.ptr[q] : beyond.ptr[q + 1]] + (beyond.midpoint[q] - centre[0]) @ n
+    assert not np.any(np.isclose(lat3, 8.0, atol=0.3)) and not np.any(np.isclose(lat3, 12.0, atol=0.3))
+    # With a border of two drives on that side, the first border ends the cut as before.
+    d = make_drive("d", lane=0.0, bias=0.0, lines=((4.0, B),))
+    e = make_drive("e", lane=0.0, bias=0.0, lines=((4.0, B),))
+    idx4 = preprocess([a, b, d, e])
+    first = sample_pivot(idx4, a, config=SamplingConfig(open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True))
+    lat4 = first.lateral_m[first.ptr[q] : first.ptr[q + 1]] + (first.midpoint[q] - centre[0]) @ n
+    assert not np.any(np.isclose(lat4, 8.0, atol=0.3)) and np.sum(np.isclose(lat4, 4.0, atol=0.3)) == 2

@@ -72,6 +72,9 @@ class PipelineConfig:
         adjustment: ``hdmap_core.adjustment.AdjustConfig`` (None: its defaults).
         final_alignment: EM options of the second pass (samples already shifted by the offset
             model); None = ``alignment``.
+        final_sampling: sampling options of the second pass; None = ``sampling``. Its step,
+            initial cut and heading limit must be ``sampling``'s (the passes share the pivots'
+            steps and the cut-line intersections); the cut refinement may differ.
         observation_stride: with ``use_global_adjustment``, the first pass, which only collects
             step observations for the adjustment (its segments are replaced by the final pass),
             runs the EM at every this-th step of a pivot. The adjustment fits curves with knots
@@ -100,6 +103,7 @@ class PipelineConfig:
     use_global_adjustment: bool = False
     adjustment: Any = None
     final_alignment: AlignmentConfig | None = None
+    final_sampling: SamplingConfig | None = None
     observation_stride: int = 1
     connection: Any = None
     stitching: Any = None
@@ -108,6 +112,14 @@ class PipelineConfig:
     name: str = ""
 
     def __post_init__(self) -> None:
+        fs = self.final_sampling
+        if fs is not None and any(
+            getattr(fs, k) != getattr(self.sampling, k) for k in ("step_m", "initial_half_length_m", "max_heading_diff_deg")
+        ):
+            raise ConfigError(
+                "PipelineConfig.final_sampling must have the step_m, initial_half_length_m and "
+                "max_heading_diff_deg of PipelineConfig.sampling (the passes share the pivots' steps)"
+            )
         if not (isinstance(self.observation_stride, int) and self.observation_stride >= 1):
             raise ConfigError(f"PipelineConfig.observation_stride must be an int >= 1, got {self.observation_stride!r}")
         # The stitcher's fill test reads the profiles this config's ``evidence`` makes; without
@@ -171,12 +183,17 @@ class PipelineConfig:
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
             from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
 
+            sampling = SamplingConfig(min_border_support_fraction=0.05, open_side_gap_m=4.0)
             return cls(
-                sampling=SamplingConfig(min_border_support_fraction=0.05, open_side_gap_m=4.0),
+                sampling=sampling,
                 alignment=fast,
                 aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15),
                 use_global_adjustment=True,
                 final_alignment=final,
+                # final pass (samples corrected): a side without a first border keeps its samples
+                # up to a border only one drive saw when nothing lies beyond it (docs/pipeline.md,
+                # "Far borders one drive saw"); the first pass, which feeds the adjustment, does not
+                final_sampling=replace(sampling, outer_border_reach=True),
                 # the first pass only feeds the adjustment (knots every 200 m): EM every 4 m
                 observation_stride=2,
                 mark_on_cut_only=True,
@@ -524,6 +541,7 @@ def _run_pivot(
     tracks: _Tracks | None = None,
     stride: int = 1,
     evidence: tuple[DetectionIndex, EvidenceConfig] | None = None,
+    sampling: SamplingConfig | None = None,
 ) -> tuple[Segment, np.ndarray, np.ndarray]:
     """Stages 2-4 along one pivot. Returns (segment, marked drive indices, their s [m]).
 
@@ -531,7 +549,7 @@ def _run_pivot(
     aggregation after it run on all steps of the pivot at once. ``stride`` > 1: the EM runs only
     at steps whose index is a multiple of it (the others count as rejected).
     """
-    ps = sample_pivot(index, pivot, config=config.sampling, skip=skip, shift=shift, cache=hit_cache)
+    ps = sample_pivot(index, pivot, config=sampling or config.sampling, skip=skip, shift=shift, cache=hit_cache)
     pid = pivot.drive_id
     ids = np.asarray(index.drive_ids, dtype=object)
     n_all = len(index.drive_ids)
@@ -686,6 +704,7 @@ def _run_pass(
     tracks: _Tracks | None = None,
     stride: int = 1,
     evidence: tuple[DetectionIndex, EvidenceConfig] | None = None,
+    sampling: SamplingConfig | None = None,
 ) -> tuple[list[Segment], ProcessedStore]:
     segments: list[Segment] = []
     step_m = config.sampling.step_m
@@ -696,7 +715,7 @@ def _run_pass(
         skip = processed.contains(pivot.drive_id, s)
         seg, md, ms = _run_pivot(
             index, pivot, skip, config=config, alignment=alignment, shift=shift, observations=observations, counters=counters,
-            memory=memory, hit_cache=hit_cache, tracks=tracks, stride=stride, evidence=evidence,
+            memory=memory, hit_cache=hit_cache, tracks=tracks, stride=stride, evidence=evidence, sampling=sampling,
         )
         segments.append(seg)
         if len(md):
@@ -874,7 +893,7 @@ def _map_stretches(
             drives, index, share, store_in, config=config,
             alignment=config.final_alignment or config.alignment, shift=_shift_fn(m, index.drive_ids),
             observations=None, counters=c, progress=report, hit_cache=hit_cache,
-            tracks=tracks, evidence=evidence,
+            tracks=tracks, evidence=evidence, sampling=config.final_sampling,
         )
         return segs, st, None, c
 

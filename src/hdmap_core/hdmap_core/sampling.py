@@ -45,6 +45,13 @@ class SamplingConfig:
         min_border_support: a border sample only counts as the first border when at least this
             many border samples lie in its window (1 = the paper's literal first sample; more makes
             one badly localised drive unable to cut the road short).
+        outer_border_reach: on a side of a step where no border sample has the support to be the
+            first border, samples are also kept up to a border sample that is the outermost
+            sample of that side (``outer_border_reach``): one drive of the 1-3 passing a place
+            may be the only one to see the far border (carla_town06_30_s2: 9.9 m left of its
+            lane, the lane line between unseen, so the open side's chain stopped 4 m short of
+            it). The cut's midpoint and width (the topology) are not changed: widening the cut
+            itself moved the topology (docs/pipeline.md). False: the paper's reading.
         min_border_support_fraction: the support needed is also at least this share of the
             drives sampled at the step (dense fleets: a few misclassified or false border
             samples inside the road must not cut it short).
@@ -69,6 +76,7 @@ class SamplingConfig:
     border_window_m: float = 2.0
     min_border_support: int = 2
     min_border_support_fraction: float = 0.0
+    outer_border_reach: bool = False
     spread_factor: float = 2.0
     margin_m: float = 0.5
     width_smoothing_steps: int = 10
@@ -231,6 +239,55 @@ def _fill(values: np.ndarray, default: float) -> np.ndarray:
     return v[idx]
 
 
+def _border_support(step: np.ndarray, n_steps: int, config: SamplingConfig, drive: np.ndarray | None) -> np.ndarray:
+    """(n_steps,) border samples needed in the window for a first border, per step."""
+    support = np.full(n_steps, config.min_border_support, dtype=np.int64)
+    if drive is not None and config.min_border_support_fraction > 0 and len(step):
+        nd = int(drive.max()) + 1
+        n_drives = np.bincount(np.unique(step * nd + drive) // nd, minlength=n_steps)
+        support = np.maximum(support, np.ceil(config.min_border_support_fraction * n_drives).astype(np.int64))
+    return support
+
+
+def outer_border_reach(
+    step: np.ndarray,
+    t_m: np.ndarray,
+    types: np.ndarray,
+    n_steps: int,
+    *,
+    config: SamplingConfig,
+    drive: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far samples are kept beyond the refined cut where a side has no first road border
+    (``SamplingConfig.outer_border_reach``; arguments as ``refine_cuts``).
+
+    On a side where no border sample has the support to be the first border, a border sample
+    that is the outermost sample of the side (nothing of any type lies beyond it) is the road's
+    edge as far as any drive saw: it cannot cut the road short, which is what the support rule
+    guards against. Its group's end (spread and constant margins, as a first border's) is the
+    reach. The refined cut itself (midpoint, width: the topology) is left as it is.
+
+    Returns:
+        (lo_m (Q,), hi_m (Q,)): the reach on the right (lo, < 0 side) and left (hi) side along
+        the initial cut from the pivot point [m]; NaN where a side has no such border.
+    """
+    reach = []
+    border = types == FeatureType.ROAD_BORDER
+    support = _border_support(step, n_steps, config, drive)
+    for side, sign in ((t_m > 0, 1.0), (t_m < 0, -1.0)):
+        q, d = step[border & side], sign * t_m[border & side]
+        first = _side_first_border(q, d, n_steps, window_m=config.border_window_m, support=support)
+        outer = np.full(n_steps, -np.inf)
+        if side.any():
+            np.maximum.at(outer, step[side], sign * t_m[side])
+        # RULE outermost border: a border sample nothing lies beyond, on a side without a first border
+        lone = np.isnan(first[q]) & (d >= outer[q])
+        edge = np.full(n_steps, np.nan)
+        edge[q[lone]] = d[lone]
+        reach.append(sign * _side_end(q, d, edge, config=config))
+    return reach[1], reach[0]
+
+
 def refine_cuts(
     step: np.ndarray,
     t_m: np.ndarray,
@@ -252,11 +309,7 @@ def refine_cuts(
         (mid_m (Q,) midpoint offset from the pivot point along the cut [m], width_m (Q,) [m]).
     """
     border = types == FeatureType.ROAD_BORDER
-    support = np.full(n_steps, config.min_border_support, dtype=np.int64)
-    if drive is not None and config.min_border_support_fraction > 0 and len(step):
-        nd = int(drive.max()) + 1
-        n_drives = np.bincount(np.unique(step * nd + drive) // nd, minlength=n_steps)
-        support = np.maximum(support, np.ceil(config.min_border_support_fraction * n_drives).astype(np.int64))
+    support = _border_support(step, n_steps, config, drive)
     ends = []
     for side, sign in ((t_m > 0, 1.0), (t_m < 0, -1.0)):
         mask = border & side
@@ -341,6 +394,10 @@ def sample_pivot(
     mid, width = refine_cuts(q, t, types, n, config=config, drive=drv)
     lat = t - mid[q]
     keep = np.abs(lat) <= 0.5 * width[q]
+    if config.outer_border_reach and len(t):
+        lo, hi = outer_border_reach(q, t, types, n, config=config, drive=drv)
+        keep |= (lat > 0) & (t <= hi[q])  # NaN: no reach (the comparison is False)
+        keep |= (lat < 0) & (t >= lo[q])
     q, lat, types, drv, ds = q[keep], lat[keep], types[keep], drv[keep], ds[keep]
     order = np.lexsort((lat, q))
     q, lat, types, drv, ds = q[order], lat[order], types[order], drv[order], ds[order]
