@@ -24,7 +24,7 @@ from hdmap_core.model import Drive, FeatureType
 from hdmap_core.preprocess import DetectionIndex
 from hdmap_core.steps import left_normal
 
-__all__ = ["SamplingConfig", "PivotSamples", "pivot_walk", "sample_pivot", "refine_cuts"]
+__all__ = ["SamplingConfig", "PivotSamples", "pivot_walk", "sample_pivot", "refine_cuts", "outer_border_reach"]
 
 ShiftFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
