@@ -1469,3 +1469,27 @@ def test_cross_section_lookup_with_several_margins_equals_separate_lookups():
     assert (together[2] >= 0).sum() > (together[0] >= 0).sum() > 0  # the margin widens
     with pytest.raises(ValueError):
         _entered_by_points(flat, tree, xy, heading, lims, 12.0, (0.0, 1.0))
+
+
+def test_one_drive_marking_beside_the_border_is_the_solid_edge_line():
+    """A line 1.2 m inside the border seen by one drive, which reports it dashed over 120 m
+    between solid runs of 30 m (its misclassified stretch, longer than the runs beside it, so
+    the flicker rules keep it): with ``edge_line_solid_m`` (1.5 m in the default preset) the
+    marking beside the border is the road's solid edge line, one solid polyline. Seen by two
+    drives, or 2 m from the border (a lane line's place), or with the option off (the
+    dataclass), the drives' type stays: three polylines."""
+    types = [S] * 15 + [D] * 60 + [S] * 15
+    assert DEFAULT.edge_line_solid_m == 1.5 and StitchConfig().edge_line_solid_m == 0.0
+
+    def edge_types(cfg: StitchConfig, count: int = 1, gap: float = 1.2) -> list[FeatureType]:
+        segment = Segment("a", tuple(step("a", i, 2.0 * i, [-3.5 - gap, -3.5, 0.0], [B, t, D], counts=[3, count, 3])
+                                     for i, t in enumerate(types)))
+        m = stitch([conn(segment)], config=cfg)
+        return [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])
+                if f.type != FeatureType.ROAD_BORDER and abs(f.points[0, 1] + 3.5) < 0.1]
+
+    three = [FeatureType.SOLID, FeatureType.DASHED, FeatureType.SOLID]
+    assert edge_types(dataclasses.replace(DEFAULT, edge_line_solid_m=0.0)) == three
+    assert edge_types(DEFAULT) == [FeatureType.SOLID]
+    assert edge_types(DEFAULT, count=2) == three
+    assert edge_types(DEFAULT, gap=2.0) == three

@@ -124,6 +124,8 @@ def export_map(
             flat, uid, protect = _subset_nodes(flat, keep), uid[keep], protect[keep]
     nn = flat.n_nodes
     e = flat.edges
+    if getattr(cfg, "edge_line_solid_m", 0.0) > 0 and nn:
+        flat.n_type = _edge_lines_solid(flat, cfg.edge_line_solid_m, cfg.edge_line_max_drives)
     if cfg.min_type_run_m > 0 and nn:
         flat.n_type = _smooth_types(
             flat, uid, cfg.min_type_run_m, getattr(cfg, "sparse_type_run_m", 0.0), getattr(cfg, "sparse_drive_count", 0),
@@ -696,6 +698,36 @@ def _subset_nodes(flat: FlatGraph, keep: np.ndarray) -> FlatGraph:
         edges=e,
         leftover=leftover,
     )
+
+
+def _edge_lines_solid(flat: FlatGraph, within_m: float, max_drives: int) -> np.ndarray:
+    """(N,) node types with weakly supported (or unknown) markings beside a border of their
+    cross-section typed solid (``StitchConfig.edge_line_solid_m``)."""
+    types = flat.n_type.copy()
+    topo = flat.node_topo()
+    border = types == _BORDER_CODE
+    weak = ~border & ((types == _UNKNOWN_CODE) | (flat.n_count <= max_drives))
+    if not (weak.any() and border.any()):
+        return types
+    h = flat.t_heading[topo]
+    nrm = np.stack([-np.sin(h), np.cos(h)], axis=1)
+    lat = np.einsum("ij,ij->i", flat.n_xy - flat.t_xy[topo], nrm)
+    # nearest border of the same topology node, laterally: sort borders by (topo, lat)
+    bi = np.flatnonzero(border)
+    bi = bi[np.lexsort((lat[bi], topo[bi]))]
+    key_b = topo[bi] * 1e6 + lat[bi]
+    wi = np.flatnonzero(weak)
+    key_w = topo[wi] * 1e6 + lat[wi]
+    pos = np.searchsorted(key_b, key_w)
+    near = np.full(len(wi), np.inf)
+    for cand in (pos - 1, pos):
+        ok = (cand >= 0) & (cand < len(bi))
+        c = np.clip(cand, 0, len(bi) - 1)
+        d = np.where(ok & (topo[bi[c]] == topo[wi]), np.abs(lat[bi[c]] - lat[wi]), np.inf)
+        near = np.minimum(near, d)
+    # RULE edge line: the marking beside the road's border is its solid edge line
+    types[wi[near <= within_m]] = int(FeatureType.SOLID)
+    return types
 
 
 def _smooth_types(

@@ -258,6 +258,9 @@ class PipelineConfig:
                     join_other_marking_m=10.0,
                     # an isolated 1-2-drive border between lane lines is a misclassified marking
                     inner_border_max_m=5.0, inner_border_max_drives=2,
+                    # one drive's (or a disputed) marking within 1.5 m of the border is the solid
+                    # edge line (docs/pipeline.md, "Edge lines")
+                    edge_line_solid_m=1.5,
                     # a loose end's stub of <= 12 m reached by a fill jumping >= 2 m sideways of the
                     # pivot's heading (onto the neighbouring lane's line) is dropped where other
                     # lines map its cross-section (docs/pipeline.md, "Town04's stray pieces")
