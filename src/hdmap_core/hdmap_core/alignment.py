@@ -949,13 +949,14 @@ def _keep_clashes(
     type UNKNOWN per chain of two or more drives and two or more types. (Such a line becomes the
     marking it continues; it never continues a road border, ``hdmap_core.graph``.) Returns
     (labels, types or None)."""
-    gone = np.flatnonzero((before >= 0) & (labels < 0))
+    dropped = (before >= 0) & (labels < 0)
+    gone = np.flatnonzero(dropped)
     if len(gone) < 2:
         return labels, None
     gone = gone[np.argsort(y[gone], kind="stable")]
     # a chain may not come near a sample that is kept (or was dropped by another rule): then the
     # line is that sample's, of its type
-    others = np.flatnonzero(~np.isin(np.arange(len(y)), gone))
+    y_other = y[~dropped]
     brk = np.r_[True, np.diff(y[gone]) > radius_m]
     chain = np.cumsum(brk) - 1
     out, out_t = labels.copy(), None
@@ -965,7 +966,7 @@ def _keep_clashes(
         if len(np.unique(drive[mem])) < 2 or len(np.unique(types[mem])) < 2:
             continue
         lo, hi = y[mem].min() - radius_m, y[mem].max() + radius_m
-        if len(others) and np.any((y[others] >= lo) & (y[others] <= hi)):
+        if np.any((y_other >= lo) & (y_other <= hi)):
             continue
         if out_t is None:
             out_t = np.asarray(types).copy()

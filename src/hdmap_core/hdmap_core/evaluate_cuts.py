@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
+from hdmap_core.geometry import nearest_on_same_cut
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import FeatureType
 
@@ -375,33 +376,6 @@ def points_on_cuts(cuts: Cuts, polylines: Sequence[np.ndarray], *, cos_min: floa
     cos = (d * cuts.tangent[ci]).sum(axis=1) / np.linalg.norm(d, axis=1)
     ok = cos >= cos_min
     return CutPoints(ci[ok], s[ok], segs.owner[si][ok], segs.vertex[si][ok], u[ok])
-
-
-def nearest_on_same_cut(
-    q_cut: np.ndarray, q_s: np.ndarray, r_cut: np.ndarray, r_s: np.ndarray, *, width: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """For each query point, the nearest reference point on the same cut.
-
-    Both sets are keyed ``cut * width + s`` (``width`` > the longest cut) and searched by bisection.
-    Returns (Q,) index into the reference set (-1 if the cut has none) and (Q,) distance (inf).
-    """
-    idx = np.full(len(q_cut), -1, dtype=np.int64)
-    dist = np.full(len(q_cut), np.inf)
-    if len(q_cut) == 0 or len(r_cut) == 0:
-        return idx, dist
-    r_key = r_cut * width + r_s
-    order = np.argsort(r_key, kind="stable")
-    sorted_key = r_key[order]
-    pos = np.searchsorted(sorted_key, q_cut * width + q_s)
-    for cand in (pos - 1, pos):
-        valid = (cand >= 0) & (cand < len(order))
-        c = order[np.clip(cand, 0, len(order) - 1)]
-        valid &= r_cut[c] == q_cut
-        d = np.where(valid, np.abs(r_s[c] - q_s), np.inf)
-        better = d < dist
-        idx[better] = c[better]
-        dist[better] = d[better]
-    return idx, dist
 
 
 def nearest_same_type(

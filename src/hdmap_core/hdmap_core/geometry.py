@@ -18,6 +18,7 @@ __all__ = [
     "rdp_mask_many",
     "split_long_segments",
     "cut_segment_intersections",
+    "nearest_on_same_cut",
 ]
 
 
@@ -205,3 +206,30 @@ def cut_segment_intersections(
     u = (w[:, 0] * cut_dir[:, 1] - w[:, 1] * cut_dir[:, 0]) / den_s
     hit = ok & (u >= 0.0) & (u < 1.0) & (np.abs(t) <= half_len_m)
     return hit, t, u
+
+
+def nearest_on_same_cut(
+    q_cut: np.ndarray, q_s: np.ndarray, r_cut: np.ndarray, r_s: np.ndarray, *, width: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each query point, the nearest reference point on the same cut.
+
+    Both sets are keyed ``cut * width + s`` (``width`` > the longest cut) and searched by bisection.
+    Returns (Q,) index into the reference set (-1 if the cut has none) and (Q,) distance (inf).
+    """
+    idx = np.full(len(q_cut), -1, dtype=np.int64)
+    dist = np.full(len(q_cut), np.inf)
+    if len(q_cut) == 0 or len(r_cut) == 0:
+        return idx, dist
+    r_key = r_cut * width + r_s
+    order = np.argsort(r_key, kind="stable")
+    sorted_key = r_key[order]
+    pos = np.searchsorted(sorted_key, q_cut * width + q_s)
+    for cand in (pos - 1, pos):
+        valid = (cand >= 0) & (cand < len(order))
+        c = order[np.clip(cand, 0, len(order) - 1)]
+        valid &= r_cut[c] == q_cut
+        d = np.where(valid, np.abs(r_s[c] - q_s), np.inf)
+        better = d < dist
+        idx[better] = c[better]
+        dist[better] = d[better]
+    return idx, dist

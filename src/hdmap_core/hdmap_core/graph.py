@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
+from hdmap_core.geometry import nearest_on_same_cut
 from hdmap_core.segment_graph import ConnectionStats, SegmentGraph, chain_links, feature_chains, stable_uid
 from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
 
@@ -712,19 +713,9 @@ def _edge_lines_solid(flat: FlatGraph, within_m: float, max_drives: int) -> np.n
     h = flat.t_heading[topo]
     nrm = np.stack([-np.sin(h), np.cos(h)], axis=1)
     lat = np.einsum("ij,ij->i", flat.n_xy - flat.t_xy[topo], nrm)
-    # nearest border of the same topology node, laterally: sort borders by (topo, lat)
-    bi = np.flatnonzero(border)
-    bi = bi[np.lexsort((lat[bi], topo[bi]))]
-    key_b = topo[bi] * 1e6 + lat[bi]
-    wi = np.flatnonzero(weak)
-    key_w = topo[wi] * 1e6 + lat[wi]
-    pos = np.searchsorted(key_b, key_w)
-    near = np.full(len(wi), np.inf)
-    for cand in (pos - 1, pos):
-        ok = (cand >= 0) & (cand < len(bi))
-        c = np.clip(cand, 0, len(bi) - 1)
-        d = np.where(ok & (topo[bi[c]] == topo[wi]), np.abs(lat[bi[c]] - lat[wi]), np.inf)
-        near = np.minimum(near, d)
+    # the laterally nearest border of the same topology node (cut widths are < 1e3 m)
+    bi, wi = np.flatnonzero(border), np.flatnonzero(weak)
+    _, near = nearest_on_same_cut(topo[wi], lat[wi], topo[bi], lat[bi], width=1e3)
     # RULE edge line: the marking beside the road's border is its solid edge line
     types[wi[near <= within_m]] = int(FeatureType.SOLID)
     return types

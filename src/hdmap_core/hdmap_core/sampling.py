@@ -24,7 +24,7 @@ from hdmap_core.model import Drive, FeatureType
 from hdmap_core.preprocess import DetectionIndex
 from hdmap_core.steps import left_normal
 
-__all__ = ["SamplingConfig", "PivotSamples", "pivot_walk", "sample_pivot", "refine_cuts", "outer_border_reach"]
+__all__ = ["SamplingConfig", "PivotSamples", "pivot_walk", "sample_pivot", "refine_cuts"]
 
 ShiftFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -47,7 +47,7 @@ class SamplingConfig:
             one badly localised drive unable to cut the road short).
         outer_border_reach: on a side of a step where no border sample has the support to be the
             first border, samples are also kept up to a border sample that is the outermost
-            sample of that side (``outer_border_reach``): one drive of the 1-3 passing a place
+            sample of that side (``_side_reach``): one drive of the 1-3 passing a place
             may be the only one to see the far border (carla_town06_30_s2: 9.9 m left of its
             lane, the lane line between unseen, so the open side's chain stopped 4 m short of
             it). The cut's midpoint and width (the topology) are not changed: widening the cut
@@ -249,43 +249,24 @@ def _border_support(step: np.ndarray, n_steps: int, config: SamplingConfig, driv
     return support
 
 
-def outer_border_reach(
-    step: np.ndarray,
-    t_m: np.ndarray,
-    types: np.ndarray,
-    n_steps: int,
-    *,
-    config: SamplingConfig,
-    drive: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """How far samples are kept beyond the refined cut where a side has no first road border
-    (``SamplingConfig.outer_border_reach``; arguments as ``refine_cuts``).
+def _side_reach(q: np.ndarray, d: np.ndarray, first: np.ndarray, qa: np.ndarray, da: np.ndarray, *, config: SamplingConfig) -> np.ndarray:
+    """``SamplingConfig.outer_border_reach`` on one side: per step, how far (distance >= 0 from
+    the pivot) samples are kept beyond the refined cut, NaN where it adds nothing.
 
-    On a side where no border sample has the support to be the first border, a border sample
-    that is the outermost sample of the side (nothing of any type lies beyond it) is the road's
-    edge as far as any drive saw: it cannot cut the road short, which is what the support rule
-    guards against. Its group's end (spread and constant margins, as a first border's) is the
-    reach. The refined cut itself (midpoint, width: the topology) is left as it is.
-
-    Returns:
-        (lo_m (Q,), hi_m (Q,)): the reach on the right (lo, < 0 side) and left (hi) side along
-        the initial cut from the pivot point [m]; NaN where a side has no such border.
+    On a side where no border sample has the support to be the first border (``first`` NaN), a
+    border sample that is the outermost sample of the side (nothing of any type lies beyond it)
+    is the road's edge as far as any drive saw: it cannot cut the road short, which is what the
+    support rule guards against. Its group's end (spread and constant margins, as a first
+    border's) is the reach. q, d: the side's border samples; qa, da: all its samples.
     """
-    reach = []
-    border = types == FeatureType.ROAD_BORDER
-    support = _border_support(step, n_steps, config, drive)
-    for side, sign in ((t_m > 0, 1.0), (t_m < 0, -1.0)):
-        q, d = step[border & side], sign * t_m[border & side]
-        first = _side_first_border(q, d, n_steps, window_m=config.border_window_m, support=support)
-        outer = np.full(n_steps, -np.inf)
-        if side.any():
-            np.maximum.at(outer, step[side], sign * t_m[side])
-        # RULE outermost border: a border sample nothing lies beyond, on a side without a first border
-        lone = np.isnan(first[q]) & (d >= outer[q])
-        edge = np.full(n_steps, np.nan)
-        edge[q[lone]] = d[lone]
-        reach.append(sign * _side_end(q, d, edge, config=config))
-    return reach[1], reach[0]
+    n_steps = len(first)
+    outer = np.full(n_steps, -np.inf)
+    np.maximum.at(outer, qa, da)
+    # RULE outermost border: a border sample nothing lies beyond, on a side without a first border
+    lone = np.isnan(first[q]) & (d >= outer[q])
+    edge = np.full(n_steps, np.nan)
+    edge[q[lone]] = d[lone]
+    return _side_end(q, d, edge, config=config)
 
 
 def refine_cuts(
@@ -308,20 +289,38 @@ def refine_cuts(
     Returns:
         (mid_m (Q,) midpoint offset from the pivot point along the cut [m], width_m (Q,) [m]).
     """
+    mid, width, _, _ = _refine(step, t_m, types, n_steps, config=config, drive=drive)
+    return mid, width
+
+
+def _refine(
+    step: np.ndarray,
+    t_m: np.ndarray,
+    types: np.ndarray,
+    n_steps: int,
+    *,
+    config: SamplingConfig,
+    drive: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``refine_cuts`` plus, with ``SamplingConfig.outer_border_reach``, the reach of each side
+    along the initial cut from the pivot point (right < 0, left > 0; NaN: none, always NaN
+    without the option): (mid_m, width_m, reach_right_m, reach_left_m), each (Q,)."""
     border = types == FeatureType.ROAD_BORDER
     support = _border_support(step, n_steps, config, drive)
-    ends = []
+    ends, reach = [], []
     for side, sign in ((t_m > 0, 1.0), (t_m < 0, -1.0)):
         mask = border & side
         q, d = step[mask], sign * t_m[mask]
+        qa, da = step[side], sign * t_m[side]
         first = _side_first_border(q, d, n_steps, window_m=config.border_window_m, support=support)
         end = _side_end(q, d, first, config=config)
         if config.open_side_gap_m > 0 and np.isnan(end).any():
-            qa, da = step[side], sign * t_m[side]
             chain = _side_chain_end(qa, da, n_steps, gap_m=config.open_side_gap_m)
             open_end = _side_end(qa, da, chain, config=config)
             end = np.where(np.isnan(end), open_end, end)
         ends.append(end)
+        reach.append(sign * _side_reach(q, d, first, qa, da, config=config) if config.outer_border_reach
+                     else np.full(n_steps, np.nan))
     left_end, right_end = ends[0], -ends[1]
     width_raw = left_end - right_end
     width = _fill(_causal_weighted_mean(width_raw, config.width_smoothing_steps, config.width_decay), config.default_width_m)
@@ -332,7 +331,7 @@ def refine_cuts(
         np.where(np.isfinite(left_end), left_end - 0.5 * width, right_end + 0.5 * width),
     )
     mid = _fill(_causal_weighted_mean(mid_raw, config.midpoint_smoothing_steps, 1.0), 0.0)
-    return mid, width
+    return mid, width, reach[1], reach[0]
 
 
 def sample_pivot(
@@ -391,13 +390,12 @@ def sample_pivot(
     q, t, types, drv, ds = (v[sel] for v in merged)
     if shift is not None and len(t):
         t = t + np.asarray(shift(drv, ds), dtype=float)
-    mid, width = refine_cuts(q, t, types, n, config=config, drive=drv)
+    mid, width, lo, hi = _refine(q, t, types, n, config=config, drive=drv)
     lat = t - mid[q]
     keep = np.abs(lat) <= 0.5 * width[q]
-    if config.outer_border_reach and len(t):
-        lo, hi = outer_border_reach(q, t, types, n, config=config, drive=drv)
-        keep |= (lat > 0) & (t <= hi[q])  # NaN: no reach (the comparison is False)
-        keep |= (lat < 0) & (t >= lo[q])
+    if config.outer_border_reach:
+        # beyond the cut up to a far border one drive saw (NaN: no reach, the comparison is False)
+        keep |= ((lat > 0) & (t <= hi[q])) | ((lat < 0) & (t >= lo[q]))
     q, lat, types, drv, ds = q[keep], lat[keep], types[keep], drv[keep], ds[keep]
     order = np.lexsort((lat, q))
     q, lat, types, drv, ds = q[order], lat[order], types[order], drv[order], ds[order]
