@@ -143,6 +143,16 @@ def test_carry_over_ids_keeps_ids_of_persisting_features():
     np.testing.assert_array_equal(out.features[2].points, new.features[2].points)
 
 
+def test_carry_over_ids_never_gives_a_new_line_the_id_of_a_vanished_one():
+    # the stitcher names features by pivot/step/slot: a new line far from the old one can come out
+    # with the vanished line's id, which a consumer diffing versions would read as the same line
+    old = HDMap(features=(_feat(11, _line(0, 100, 0)), _feat(12, _line(0, 100, 3.5))))
+    new = HDMap(features=(_feat(11, _line(0, 100, 20.0)), _feat(12, _line(0, 100, 3.6))))
+    out = carry_over_ids(new, old)
+    assert out.features[1].id == 12  # continues the old line 12
+    assert out.features[0].id not in (11, 12)  # line 11 vanished; its id is not reused
+
+
 def test_carry_over_ids_type_must_match_and_no_old_map():
     old = HDMap(features=(_feat(5, _line(0, 100, 0), FeatureType.ROAD_BORDER),))
     new = HDMap(features=(_feat(9, _line(0, 100, 0)),))

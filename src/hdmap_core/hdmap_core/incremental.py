@@ -566,8 +566,10 @@ def carry_over_ids(
     shorter of the two (resampled every ``spacing_m``) lies within ``max_distance_m`` of the other.
     Pairs are taken greedily by overlap (largest first); every old id is used at most once. Ids of
     new features without a match stay as the stitcher made them unless that id is taken by a carried
-    one, in which case the next free id is used. Feature references (predecessors, successors,
-    topology ``features``) are rewritten accordingly.
+    one or named a feature of the old version (the stitcher's ids come from pivot, step and slot, so
+    a different line can get the id of one that vanished), in which case the next free id is used:
+    between two versions an id never names two different lines. Feature references (predecessors,
+    successors, topology ``features``) are rewritten accordingly.
 
     Args:
         new_map: the freshly stitched map (not modified).
@@ -614,7 +616,7 @@ def carry_over_ids(
             continue
         new_id[j] = int(old_map.features[i].id)
         used_old.add(i)
-    taken = set(new_id.values())
+    taken = set(new_id.values()) | {int(f.id) for f in old_map.features}
     for j, f in enumerate(new_map.features):
         if j in new_id:
             continue
