@@ -92,6 +92,27 @@ def test_overlap_filter_by_class_still_drops_a_misclassified_copy(copy_m):
     np.testing.assert_array_equal(agg.counts, [8, 10, 6])
 
 
+@pytest.mark.parametrize("first", [FeatureType.SOLID, FeatureType.DASHED])
+def test_tie_between_solid_and_dashed_goes_by_the_lines_place(first):
+    # Two drives saw the same line, one as solid, one as dashed (0.05 m apart: they overlap).
+    # Outermost marking of its side (only a border beyond it) -> solid; a marking with markings
+    # on both sides -> dashed. Without the option the tie goes by position order.
+    second = FeatureType.DASHED if first == FeatureType.SOLID else FeatureType.SOLID
+    cfg = AggregationConfig(tie_by_position=True, **_AGG)
+    outer = [(0.0, FeatureType.DASHED, 3), (3.50, first, 1), (3.55, second, 1), (4.6, FeatureType.ROAD_BORDER, 3)]
+    agg = aggregate_step(*_step(outer), config=cfg)
+    np.testing.assert_array_equal(agg.types, [FeatureType.DASHED, FeatureType.SOLID, FeatureType.ROAD_BORDER])
+    inner = [(0.0, FeatureType.SOLID, 3), (3.50, first, 1), (3.55, second, 1), (7.0, FeatureType.DASHED, 3)]
+    agg = aggregate_step(*_step(inner), config=cfg)
+    np.testing.assert_array_equal(agg.types, [FeatureType.SOLID, FeatureType.DASHED, FeatureType.DASHED])
+    paper = aggregate_step(*_step(inner), config=AggregationConfig(**_AGG))
+    np.testing.assert_array_equal(paper.types, [FeatureType.SOLID, first, FeatureType.DASHED])
+    # a majority is not overruled: two drives say solid, one dashed, in the inner place
+    major = [(0.0, FeatureType.SOLID, 3), (3.50, FeatureType.SOLID, 2), (3.55, FeatureType.DASHED, 1), (7.0, FeatureType.DASHED, 3)]
+    agg = aggregate_step(*_step(major), config=cfg)
+    np.testing.assert_array_equal(agg.types, [FeatureType.SOLID, FeatureType.SOLID, FeatureType.DASHED])
+
+
 def test_mean_method_and_uncertainty():
     x = np.array([0.9, 1.1, 1.0, 1.0])
     agg = aggregate_step(x, np.zeros(4, np.int64), np.ones(4, np.int64), np.array([0, 1, 2, 3]), config=AggregationConfig(method="mean"))

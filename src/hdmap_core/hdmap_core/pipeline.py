@@ -187,7 +187,7 @@ class PipelineConfig:
             return cls(
                 sampling=sampling,
                 alignment=fast,
-                aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15),
+                aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15, tie_by_position=True),
                 use_global_adjustment=True,
                 final_alignment=final,
                 # final pass (samples corrected): a side without a first border keeps its samples
