@@ -829,23 +829,34 @@ def test_one_drive_border_between_lane_lines_dropped():
     centred 3 m over, so it is no overlap to trim) alone reports
     a road border at 1.75 m over 60 m (a marking taken for a border) and another
     at 5.5 m, beyond the outer line. The inner one has lane markings on both sides within 5 m:
-    with inner_border_max_m (default preset) it is dropped, the outer one stays. With 3 drives
+    with inner_border_max_m (default preset) it is no border, the outer one stays; one drive's
+    is kept as a dashed lane line (inner_border_dashed_drives 1), two drives' is dropped, and so
+    is one drive's border lying on a mapped line (0.3 m from the dashed line at 0). With 3 drives
     on b (above inner_border_max_drives 2), or with the dataclass default (0, off), both stay."""
     a = conn(road("a", 0.0, 50, ([-3.5, 0.0, 3.5], [S, D, S])))
 
-    def b(count: int):
-        steps = [step("b", i, 20.0 + 2.0 * i, [1.75, 5.5], [B, B], y_mid=3.0, counts=[count, count]) for i in range(30)]
+    def b(count: int, inner: float = 1.75):
+        steps = [step("b", i, 20.0 + 2.0 * i, [inner, 5.5], [B, B], y_mid=3.0, counts=[count, count]) for i in range(30)]
         return conn(Segment("b", tuple(steps)))
 
-    def borders(m: HDMap) -> list[float]:
-        return sorted(round(float(f.points[0, 1]), 2) for f in m.features if f.type == FeatureType.ROAD_BORDER)
+    def lines(m: HDMap, t: FeatureType) -> list[float]:
+        return sorted(round(float(f.points[0, 1]), 2) for f in m.features if f.type == t)
 
-    assert DEFAULT.inner_border_max_m == 5.0
-    assert borders(stitch([a, b(1)], config=DEFAULT)) == [5.5]
-    assert borders(stitch([a, b(3)], config=DEFAULT)) == [1.75, 5.5]
-    assert borders(stitch([a, b(1)], config=StitchConfig())) == [1.75, 5.5]
+    assert DEFAULT.inner_border_max_m == 5.0 and DEFAULT.inner_border_dashed_drives == 1
+    one = stitch([a, b(1)], config=DEFAULT)
+    assert lines(one, B) == [5.5]
+    assert lines(one, D) == [0.0, 1.75]
+    two = stitch([a, b(2)], config=DEFAULT)
+    assert lines(two, B) == [5.5] and lines(two, D) == [0.0]
+    on_line = stitch([a, b(1, inner=0.3)], config=DEFAULT)
+    assert lines(on_line, B) == [5.5] and lines(on_line, D) == [0.0]
+    assert lines(stitch([a, b(1)], config=dataclasses.replace(DEFAULT, inner_border_dashed_drives=0)), D) == [0.0]
+    assert lines(stitch([a, b(3)], config=DEFAULT), B) == [1.75, 5.5]
+    assert lines(stitch([a, b(1)], config=StitchConfig()), B) == [1.75, 5.5]
     with pytest.raises(ConfigError):
         StitchConfig(inner_border_max_drives=0)
+    with pytest.raises(ConfigError):
+        StitchConfig(inner_border_dashed_drives=-1)
 
 
 def _gap_roads(through_lines):

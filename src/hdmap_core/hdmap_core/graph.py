@@ -232,10 +232,18 @@ def export_map(
               and int(np.max(geoms[k][1])) <= cfg.refuted_piece_max_drives):
             keep[k] = False  # one drive's speck left between refuted fills
     inner_m = getattr(cfg, "inner_border_max_m", 0.0)
-    if inner_m > 0:
-        keep &= ~_inner_borders(flat, chains, succ, pred, on_through, inner_m, getattr(cfg, "inner_border_max_drives", 1))
-    fid = np.array([int(uid[c[0]]) for c in chains], dtype=np.uint64)
     ctype = [int(flat.n_type[c[0]]) for c in chains]
+    if inner_m > 0:
+        inner, dup = _inner_borders(flat, chains, succ, pred, on_through, inner_m, getattr(cfg, "inner_border_max_drives", 1))
+        as_line = getattr(cfg, "inner_border_dashed_drives", 0)
+        for k in np.flatnonzero(inner & keep).tolist():
+            if not dup[k] and int(flat.n_count[chains[k]].max()) <= as_line:
+                # one drive's lane line reported as a border: a line between lane lines is
+                # dashed (98 % of such points in the shared ground-truth maps)
+                ctype[k] = int(FeatureType.DASHED)
+            else:
+                keep[k] = False
+    fid = np.array([int(uid[c[0]]) for c in chains], dtype=np.uint64)
     runs = _continuation_runs(keep, succ, pred, ctype, fid) if cfg.merge_continuations else [[k] for k in np.flatnonzero(keep).tolist()]
     head_of = np.arange(len(chains))
     for run in runs:
@@ -302,16 +310,18 @@ def _inner_borders(
     on_through: set[int],
     reach_m: float,
     max_drives: int,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """(C,) bool: isolated road-border chains of at most ``max_drives`` drives (max over their
     nodes) that run inside the road: at most of their drive-supported nodes a lane marking of
     the same direction lies within ``reach_m`` on both sides. A road border has the road on one
     side only; one drive's marking reported as a border (the simulator's marking_to_border, 1 %
-    of marking stretches) lies between two lane lines."""
+    of marking stretches) lies between two lane lines. Second (C,) bool: at most of those nodes
+    a marking also lies within ``_DUP_LINE_M`` across (the line is mapped already)."""
     out = np.zeros(len(chains), dtype=bool)
+    dup = np.zeros(len(chains), dtype=bool)
     mark = np.flatnonzero(flat.n_type != _BORDER_CODE)
     if len(mark) == 0:
-        return out
+        return out, dup
     heading = flat.t_heading[flat.node_topo()]
     tree = cKDTree(flat.n_xy[mark])
     cos_h = math.cos(math.radians(30.0))
@@ -323,7 +333,7 @@ def _inner_borders(
         nodes = c[flat.n_count[c] > 0]
         if len(nodes) == 0:
             continue
-        inside = 0
+        inside = on_line = 0
         for i, near in zip(nodes.tolist(), tree.query_ball_point(flat.n_xy[nodes], reach_m)):
             j = mark[np.asarray(near, dtype=np.int64)]
             j = j[np.cos(heading[j] - heading[i]) > cos_h]
@@ -331,8 +341,13 @@ def _inner_borders(
                 continue
             lat = (flat.n_xy[j] - flat.n_xy[i]) @ np.array([-math.sin(heading[i]), math.cos(heading[i])])
             inside += bool((lat > 0.5).any() and (lat < -0.5).any())
+            on_line += bool((np.abs(lat) <= _DUP_LINE_M).any())
         out[k] = inside > 0.5 * len(nodes)
-    return out
+        dup[k] = on_line > 0.5 * len(nodes)
+    return out, dup
+
+
+_DUP_LINE_M = 1.0  # a marking this close across an inner border is the line it copies
 
 
 _STUB_COVER_ALONG_M = 2.0  # a stub node's cross-section: this far along its heading (steps are 2 m apart)

@@ -256,8 +256,10 @@ class PipelineConfig:
                     # line whose type flickered where a segment ended (docs/pipeline.md, "Loose ends of
                     # the other marking type")
                     join_other_marking_m=10.0,
-                    # an isolated 1-2-drive border between lane lines is a misclassified marking
-                    inner_border_max_m=5.0, inner_border_max_drives=2,
+                    # an isolated 1-2-drive border between lane lines is a misclassified marking:
+                    # dropped, or kept as a dashed line where one drive saw it and no line is
+                    # mapped there (docs/pipeline.md, "Inner borders kept as lane lines")
+                    inner_border_max_m=5.0, inner_border_max_drives=2, inner_border_dashed_drives=1,
                     # one drive's (or a disputed) marking within 1.5 m of the border is the solid
                     # edge line (docs/pipeline.md, "Edge lines")
                     edge_line_solid_m=1.5,

@@ -120,6 +120,12 @@ class StitchConfig:
             (carla_town04_30_s2: three such borders of 44-104 m, 115 false map points). 0
             disables (5 in the default pipeline preset) [m].
         inner_border_max_drives: see ``inner_border_max_m`` (max drive count over its nodes).
+        inner_border_dashed_drives: such an inner border of at most this many drives is kept as
+            a dashed lane line instead of being dropped: the simulator's marking_to_border
+            stretches are lane lines the only drive there saw (carla_town04_30_s3 x 260 .. 398:
+            152 m of a dashed line one drive reported as a border), unless a marking lies
+            within 1 m across at most of its nodes (the line is mapped already). 0: dropped
+            (the dataclass default; 1 in the default pipeline preset).
         sparse_type_run_m: a flicker run (between two runs of one other type) seen by at most
             ``sparse_drive_count`` drives (median) is relabelled when shorter than this (with
             1-3 drives one drive's misclassification sets the type for tens of metres). 0
@@ -332,6 +338,7 @@ class StitchConfig:
     refuted_piece_max_drives: int = 1
     inner_border_max_m: float = 0.0
     inner_border_max_drives: int = 1
+    inner_border_dashed_drives: int = 0
     min_type_run_m: float = 20.0
     sparse_type_run_m: float = 100.0
     sparse_drive_count: int = 5
@@ -436,6 +443,8 @@ class StitchConfig:
             raise ConfigError(f"refuted_piece_max_drives must be >= 1, got {self.refuted_piece_max_drives}")
         if self.inner_border_max_drives < 1:
             raise ConfigError(f"inner_border_max_drives must be >= 1, got {self.inner_border_max_drives}")
+        if self.inner_border_dashed_drives < 0:
+            raise ConfigError(f"inner_border_dashed_drives must be >= 0, got {self.inner_border_dashed_drives}")
 
     @classmethod
     def paper(cls) -> StitchConfig:
