@@ -5,6 +5,7 @@ The synthetic roads run east (heading 0), so a maximum's lateral position is its
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -393,6 +394,34 @@ def test_support_window_keeps_far_lines_of_a_wide_cut():
     assert lat_win == [-12.0, -9.0, -6.5, -3.5, 0.0, 3.5]  # kept, and no weak copy
     assert all(len(c) == 30 for c in g_win.polylines())
     assert g_win.stats.splits == 0 and g_win.stats.merges == 0
+
+
+def test_lone_line_of_one_drive_kept_copies_and_lane_noise_dropped():
+    """One drive in the lane next to the right border sees the edge line at -3.5 that the
+    others (8 of 30, in the other lanes) do not: 1 < 0.25 x 8 within 4 m, so the support rules
+    drop it. It lies 3.5 m from the border and from the next line: with lone_line_gap_m 3 it is
+    kept. One drive's copy 1.2 m beside the dashed line at 3.5 and one drive's false positive
+    in the middle of a lane (1.75 m from the lines) are still dropped."""
+    def st(i):
+        lat = [-7.0, -3.5, 0.0, 1.75 + 3.5, 3.5, 4.7, 7.0]
+        typ = [B, S, D, S, D, D, B]
+        cnt = [8, 1, 8, 1, 8, 1, 8]
+        s = make_step(i, lat, typ, counts=cnt)
+        return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(30))})
+
+    seg = Segment("p", tuple(st(i) for i in range(30)))
+    base = ConnectionConfig(min_support_share=0.25, support_window_m=4.0)
+
+    def lines(cfg):
+        g = connect_segment(seg, config=cfg)
+        return sorted(round(float(np.median(g.node_xy[c][:, 1])), 2) for c in g.polylines())
+
+    assert lines(base) == [-7.0, 0.0, 3.5, 7.0]
+    assert lines(dataclasses.replace(base, lone_line_gap_m=3.0)) == [-7.0, -3.5, 0.0, 3.5, 7.0]
+    # window_min_count still applies to the lone line
+    assert lines(dataclasses.replace(base, lone_line_gap_m=3.0, window_min_count=2)) == [-7.0, 0.0, 3.5, 7.0]
+    with pytest.raises(ConfigError):
+        ConnectionConfig(lone_line_gap_m=-1.0)
 
 
 def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():

@@ -83,6 +83,14 @@ class ConnectionConfig:
             more drives saw [m].
         window_min_count: the window rule keeps only maxima of at least this many drives (a
             maximum of one drive flickers: one drive's false positive or misclassified stretch).
+        lone_line_gap_m: when > 0, a maximum whose neighbours in its step (next inward and
+            outward; none counts as far) are both at least this far away is kept with at least
+            ``window_min_count`` drives, whatever the support share: a line seen only by the
+            drives of the lane beside it lies a lane from the next line, while a misclassified
+            copy or a false positive lies beside a line or inside a lane (carla_town04_50_s1:
+            the inner edge line at a painted median, 3.5 m from a lane line of 7 drives, seen by
+            the one drive in the lane between over 136 m; the right edge line 3.5 m inside the
+            border, seen by one drive). 0 disables [m].
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
         tip_frame_deg: a polyline end at least ``tip_frame_min_m`` (pivot travel) behind the new
             step (a bridged gap) whose own direction (from its node ~3 edges back, at least
@@ -152,6 +160,7 @@ class ConnectionConfig:
     min_support_share: float = 0.25
     support_window_m: float = 0.0
     window_min_count: int = 1
+    lone_line_gap_m: float = 0.0
     tile_size_m: float = 256.0
     tip_frame_deg: float = 5.0
     tip_frame_min_m: float = 4.0
@@ -183,6 +192,8 @@ class ConnectionConfig:
             raise ConfigError(f"min_support_share must be in [0, 1], got {self.min_support_share}")
         if not (self.support_window_m >= 0 and math.isfinite(self.support_window_m)):
             raise ConfigError(f"support_window_m must be finite and >= 0, got {self.support_window_m}")
+        if not (self.lone_line_gap_m >= 0 and math.isfinite(self.lone_line_gap_m)):
+            raise ConfigError(f"lone_line_gap_m must be finite and >= 0, got {self.lone_line_gap_m}")
         if self.window_min_count < 1:
             raise ConfigError(f"window_min_count must be >= 1, got {self.window_min_count}")
         if not (self.leftover_other_type_m >= 0 and math.isfinite(self.leftover_other_type_m)):
@@ -294,6 +305,8 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
         if config.support_window_m > 0:
             ref = _local_max_count(j_of, lat, cnt, off, config.support_window_m)
             ok |= (cnt >= config.min_support_share * ref) & (cnt >= config.window_min_count)
+        if config.lone_line_gap_m > 0:
+            ok |= _lone_lines(j_of, lat, keep, config.lone_line_gap_m) & (cnt >= config.window_min_count)
         keep &= ok
     if config.min_separation_m > 0:
         keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m, config.separation_count_ratio)
@@ -307,6 +320,24 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     nrm = np.stack([-np.sin(hdg), np.cos(hdg)], axis=1)
     xy = mid[j_of] + lat[:, None] * nrm[j_of]
     return _Steps(valid, off, lat, xy, typ, cnt, std, slot, _fast_pairs(valid, off, xy, typ, hdg, config))
+
+
+def _lone_lines(j_of: np.ndarray, lat: np.ndarray, valid: np.ndarray, gap_m: float) -> np.ndarray:
+    """(M,) bool: valid maxima whose valid neighbours in their step (next lower and next higher
+    lateral position) are both at least ``gap_m`` away (a missing neighbour counts as far)."""
+    out = np.zeros(len(lat), dtype=bool)
+    idx = np.flatnonzero(valid)
+    if len(idx) == 0:
+        return out
+    order = idx[np.lexsort((lat[idx], j_of[idx]))]
+    j = j_of[order]
+    new = np.r_[True, j[1:] != j[:-1]]
+    end = np.r_[j[1:] != j[:-1], True]
+    x = lat[order]
+    gap_next = np.where(end, np.inf, np.r_[np.diff(x), np.inf])
+    gap_prev = np.where(new, np.inf, np.r_[np.inf, np.diff(x)])
+    out[order[(gap_prev >= gap_m) & (gap_next >= gap_m)]] = True
+    return out
 
 
 def _local_max_count(j_of: np.ndarray, lat: np.ndarray, cnt: np.ndarray, off: np.ndarray, window_m: float) -> np.ndarray:
