@@ -187,7 +187,12 @@ class PipelineConfig:
             return cls(
                 sampling=sampling,
                 alignment=fast,
-                aggregation=AggregationConfig(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15, tie_by_position=True),
+                aggregation=AggregationConfig(
+                    kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15, tie_by_position=True,
+                    # two drives' border on a line is a border there too (docs/pipeline.md,
+                    # "Borders on lines")
+                    border_beside_marking_drives=2,
+                ),
                 use_global_adjustment=True,
                 final_alignment=final,
                 # final pass (samples corrected): a side without a first border keeps its samples
