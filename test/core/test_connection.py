@@ -422,6 +422,30 @@ def test_lone_line_of_one_drive_kept_copies_and_lane_noise_dropped():
     assert lines(dataclasses.replace(base, lone_line_gap_m=3.0, window_min_count=2)) == [-7.0, 0.0, 3.5, 7.0]
     with pytest.raises(ConfigError):
         ConnectionConfig(lone_line_gap_m=-1.0)
+    with pytest.raises(ConfigError):
+        ConnectionConfig(lone_line_border_gap_m=math.inf)
+
+
+def test_lone_edge_line_beside_the_border():
+    """The edge line 1.0 m inside the right border (8 drives), seen by one drive, 3.5 m from the
+    next line inward: with lone_line_border_gap_m 0.5 a border neighbour need only be 0.5 m
+    away, so it is kept; with the lane gap alone (3 m) it is not. A one-drive marking 0.3 m
+    from the border stays dropped."""
+    def st(i, edge):
+        s = make_step(i, [-7.0 + edge, -7.0, -3.5 + edge, 0.0, 3.5, 7.0], [S, B, D, D, D, B], counts=[1, 8, 8, 8, 8, 8])
+        return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(30))})
+
+    base = ConnectionConfig(min_support_share=0.25, support_window_m=4.0, lone_line_gap_m=3.0)
+
+    def lines(edge, cfg):
+        g = connect_segment(Segment("p", tuple(st(i, edge) for i in range(30))), config=cfg)
+        return sorted(round(float(np.median(g.node_xy[c][:, 1])), 2) for c in g.polylines())
+
+    # the marking at -7 + edge, the lane line moved with it so the inward gap stays 3.5 m
+    assert lines(1.0, base) == [-7.0, -2.5, 0.0, 3.5, 7.0]
+    near = dataclasses.replace(base, lone_line_border_gap_m=0.5)
+    assert lines(1.0, near) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
+    assert lines(0.3, near) == [-7.0, -3.2, 0.0, 3.5, 7.0]
 
 
 def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():

@@ -91,6 +91,9 @@ class ConnectionConfig:
             the inner edge line at a painted median, 3.5 m from a lane line of 7 drives, seen by
             the one drive in the lane between over 136 m; the right edge line 3.5 m inside the
             border, seen by one drive). 0 disables [m].
+        lone_line_border_gap_m: for a marking, a road-border neighbour need only be this far
+            away (the edge line lies 0.2-1.5 m inside the border, carla_town06_30_s1 x 326 ..
+            476: 1.1 m, seen by one drive, the border by three). None: ``lone_line_gap_m`` [m].
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
         tip_frame_deg: a polyline end at least ``tip_frame_min_m`` (pivot travel) behind the new
             step (a bridged gap) whose own direction (from its node ~3 edges back, at least
@@ -161,6 +164,7 @@ class ConnectionConfig:
     support_window_m: float = 0.0
     window_min_count: int = 1
     lone_line_gap_m: float = 0.0
+    lone_line_border_gap_m: float | None = None
     tile_size_m: float = 256.0
     tip_frame_deg: float = 5.0
     tip_frame_min_m: float = 4.0
@@ -194,6 +198,10 @@ class ConnectionConfig:
             raise ConfigError(f"support_window_m must be finite and >= 0, got {self.support_window_m}")
         if not (self.lone_line_gap_m >= 0 and math.isfinite(self.lone_line_gap_m)):
             raise ConfigError(f"lone_line_gap_m must be finite and >= 0, got {self.lone_line_gap_m}")
+        if self.lone_line_border_gap_m is not None and not (
+            self.lone_line_border_gap_m >= 0 and math.isfinite(self.lone_line_border_gap_m)
+        ):
+            raise ConfigError(f"lone_line_border_gap_m must be None or finite and >= 0, got {self.lone_line_border_gap_m}")
         if self.window_min_count < 1:
             raise ConfigError(f"window_min_count must be >= 1, got {self.window_min_count}")
         if not (self.leftover_other_type_m >= 0 and math.isfinite(self.leftover_other_type_m)):
@@ -306,7 +314,8 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
             ref = _local_max_count(j_of, lat, cnt, off, config.support_window_m)
             ok |= (cnt >= config.min_support_share * ref) & (cnt >= config.window_min_count)
         if config.lone_line_gap_m > 0:
-            ok |= _lone_lines(j_of, lat, keep, config.lone_line_gap_m) & (cnt >= config.window_min_count)
+            bgap = config.lone_line_gap_m if config.lone_line_border_gap_m is None else config.lone_line_border_gap_m
+            ok |= _lone_lines(j_of, lat, typ, keep, config.lone_line_gap_m, bgap) & (cnt >= config.window_min_count)
         keep &= ok
     if config.min_separation_m > 0:
         keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m, config.separation_count_ratio)
@@ -322,9 +331,12 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     return _Steps(valid, off, lat, xy, typ, cnt, std, slot, _fast_pairs(valid, off, xy, typ, hdg, config))
 
 
-def _lone_lines(j_of: np.ndarray, lat: np.ndarray, valid: np.ndarray, gap_m: float) -> np.ndarray:
+def _lone_lines(
+    j_of: np.ndarray, lat: np.ndarray, typ: np.ndarray, valid: np.ndarray, gap_m: float, border_gap_m: float
+) -> np.ndarray:
     """(M,) bool: valid maxima whose valid neighbours in their step (next lower and next higher
-    lateral position) are both at least ``gap_m`` away (a missing neighbour counts as far)."""
+    lateral position) are both at least ``gap_m`` away (a missing neighbour counts as far); for
+    a marking, a road-border neighbour need only be ``border_gap_m`` away (an edge line)."""
     out = np.zeros(len(lat), dtype=bool)
     idx = np.flatnonzero(valid)
     if len(idx) == 0:
@@ -334,9 +346,12 @@ def _lone_lines(j_of: np.ndarray, lat: np.ndarray, valid: np.ndarray, gap_m: flo
     new = np.r_[True, j[1:] != j[:-1]]
     end = np.r_[j[1:] != j[:-1], True]
     x = lat[order]
+    border = typ[order] == _BORDER
     gap_next = np.where(end, np.inf, np.r_[np.diff(x), np.inf])
     gap_prev = np.where(new, np.inf, np.r_[np.inf, np.diff(x)])
-    out[order[(gap_prev >= gap_m) & (gap_next >= gap_m)]] = True
+    need_next = np.where(~border & np.r_[border[1:], False], border_gap_m, gap_m)
+    need_prev = np.where(~border & np.r_[False, border[:-1]], border_gap_m, gap_m)
+    out[order[(gap_prev >= need_prev) & (gap_next >= need_next)]] = True
     return out
 
 
