@@ -13,6 +13,7 @@ map_publisher by bag_player, with malformed drives published on /fleet/drives in
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -221,25 +222,36 @@ def _share_within(a: np.ndarray, b: np.ndarray, r: float) -> float:
 
 
 def test_feature_ids_name_the_same_line_across_versions(uninterrupted):
-    versions = uninterrupted[2]["versions"]
-    assert len(versions) >= 2 and [m.version for m in versions] == sorted({m.version for m in versions})
-    shared = 0
+    """The live map's ids through the nodes: a late subscriber gets the ids of the last version
+    published, and between consecutive versions an id names one line, and a line that goes on
+    one-to-one keeps its id. How many versions are published, and which lines go on between
+    them, depends on timing (the fleet-wide offsets move lines as drives arrive); the id rules
+    themselves are tested deterministically in test_incremental (carry_over_ids)."""
+    hdmap, _, diags, _ = uninterrupted
+    versions = diags["versions"]
+    assert versions and [m.version for m in versions] == sorted({m.version for m in versions})
+    assert sorted(f.id for f in hdmap.features) == sorted(f.id for f in versions[-1].features)
     for old, new in zip(versions, versions[1:]):
-        by_geometry = {(int(f.type), np.round(f.points, 6).tobytes()): f.id for f in old.features}
         old_by_id = {f.id: f for f in old.features}
         for f in new.features:
-            # a feature that persisted unchanged keeps its id
-            same = by_geometry.get((int(f.type), np.round(f.points, 6).tobytes()))
-            assert same is None or f.id == same
-            # an id found in both versions names the same line: same type, largely within 1 m
-            # (carry_over_ids pairs lines with >= half of the shorter within 0.75 m, on its own
-            # 2 m resampling, hence the slack); two different lines are >= 3 m apart
             o = old_by_id.get(f.id)
             if o is not None:
+                # an id found in both versions names the same line: same type, largely within 1 m
+                # (carry_over_ids pairs lines with >= half of the shorter within 0.75 m, on its
+                # own 2 m resampling, hence the slack); two different lines are >= 3 m apart
                 assert o.type == f.type, f.id
                 assert _share_within(o.points, f.points, 1.0) >= 0.4, f.id
-                shared += 1
-    assert shared > 0  # the lines of one version go on under their ids in the next
+        # twins: 90 % of the shorter line within 0.3 m of the other, same type; a line that has
+        # exactly one twin in the other version, which has no other twin, keeps its id
+        twins = [
+            (g, f) for g in old.features for f in new.features
+            if g.type == f.type and _share_within(g.points, f.points, 0.3) >= 0.9
+        ]
+        n_old = Counter(g.id for g, _ in twins)
+        n_new = Counter(f.id for _, f in twins)
+        for g, f in twins:
+            if n_old[g.id] == 1 and n_new[f.id] == 1:
+                assert f.id == g.id, (g.id, f.id)
 
 
 def test_malformed_drives_show_on_diagnostics_and_nodes_stay_up(uninterrupted):
