@@ -246,17 +246,19 @@ def aggregate_many(
             # whose overlap has a closed form; exact for the paper's wide kernels.
             sd = np.sqrt(var + bw * bw)
             ov = gaussian_overlap(mean[pairs[:, 0]], sd[pairs[:, 0]], mean[pairs[:, 1]], sd[pairs[:, 1]])
+            step_sorted = cstep[order]  # the clusters of a step are a run of ``order``
             for p in np.argsort(-ov):
                 if ov[p] <= config.overlap_threshold:
                     break
                 i, j = pairs[p]
                 if keep[i] and keep[j]:
                     if config.border_beside_marking_drives and (ctype[i] == _BORDER) != (ctype[j] == _BORDER):
-                        b = i if ctype[i] == _BORDER else j
-                        if n_drives[b] >= config.border_beside_marking_drives:
+                        border = i if ctype[i] == _BORDER else j
+                        if n_drives[border] >= config.border_beside_marking_drives:
                             continue  # two drives' border on a line: both there (a curb on an edge line)
                     if config.tie_by_position and n[i] == n[j] and {int(ctype[i]), int(ctype[j])} == _SOLID_DASHED:
-                        keep[i if int(ctype[i]) != _tie_type(i, j, cstep, pos, ctype) else j] = False
+                        members = order[np.searchsorted(step_sorted, cstep[i], "left"):np.searchsorted(step_sorted, cstep[i], "right")]
+                        keep[i if int(ctype[i]) != _tie_type(i, j, members, pos, ctype) else j] = False
                     else:
                         keep[i if n[i] < n[j] else j] = False
     idx = order[keep[order]]
@@ -276,13 +278,13 @@ _BORDER = int(FeatureType.ROAD_BORDER)
 _SOLID_DASHED = {int(FeatureType.SOLID), int(FeatureType.DASHED)}
 
 
-def _tie_type(i: int, j: int, cstep: np.ndarray, pos: np.ndarray, ctype: np.ndarray) -> int:
-    """The type a solid/dashed tie between clusters i and j takes from the line's place in its step:
-    dashed when other markings of the step lie on both sides of the pair, else solid."""
-    other = (cstep == cstep[i]) & (ctype != int(FeatureType.ROAD_BORDER))
-    other[[i, j]] = False
+def _tie_type(i: int, j: int, step_members: np.ndarray, pos: np.ndarray, ctype: np.ndarray) -> int:
+    """The type a solid/dashed tie between clusters i and j takes from the line's place in its step
+    (``step_members``: the clusters of that step): dashed when other markings of the step lie on
+    both sides of the pair, else solid."""
+    other = step_members[(ctype[step_members] != _BORDER) & (step_members != i) & (step_members != j)]
     lo, hi = min(pos[i], pos[j]), max(pos[i], pos[j])
-    inner = bool(np.any(other & (pos < lo))) and bool(np.any(other & (pos > hi)))
+    inner = bool(np.any(pos[other] < lo)) and bool(np.any(pos[other] > hi))
     return int(FeatureType.DASHED if inner else FeatureType.SOLID)
 
 
