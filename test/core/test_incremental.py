@@ -143,6 +143,18 @@ def test_carry_over_ids_keeps_ids_of_persisting_features():
     np.testing.assert_array_equal(out.features[2].points, new.features[2].points)
 
 
+@pytest.mark.parametrize("start", [1.0, 3.0, -1.0])
+def test_carry_over_ids_keeps_the_id_of_a_line_begun_elsewhere(start):
+    # the same line begun 1 or 3 m later (or earlier): resampled every 2 m its points fall between
+    # the old line's points (1 m off at start 1.0), yet it lies on the old line; 0.8 m to the side
+    # it is another line
+    old = HDMap(features=(_feat(11, _line(0, 100, 0, n=11)),))
+    on = HDMap(features=(_feat(7, _line(start, start + 100, 0.0, n=11)),))
+    beside = HDMap(features=(_feat(7, _line(start, start + 100, 0.8, n=11)),))
+    assert carry_over_ids(on, old).features[0].id == 11
+    assert carry_over_ids(beside, old).features[0].id != 11
+
+
 def test_carry_over_ids_never_gives_a_new_line_the_id_of_a_vanished_one():
     # the stitcher names features by pivot/step/slot: a new line far from the old one can come out
     # with the vanished line's id, which a consumer diffing versions would read as the same line

@@ -552,6 +552,14 @@ def _resample(points: np.ndarray, spacing_m: float) -> np.ndarray:
     return np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], axis=1)
 
 
+def _line(points: np.ndarray):
+    """A shapely geometry of a polyline (a point for a one-point line)."""
+    import shapely  # noqa: PLC0415
+
+    pts = np.asarray(points, dtype=float)
+    return shapely.LineString(pts) if len(pts) >= 2 else shapely.Point(pts[0])
+
+
 def carry_over_ids(
     new_map: HDMap,
     old_map: HDMap | None,
@@ -580,32 +588,34 @@ def carry_over_ids(
     """
     if old_map is None or not old_map.features or not new_map.features:
         return new_map
-    from scipy.spatial import cKDTree
+    import shapely  # noqa: PLC0415
+    from scipy.spatial import cKDTree  # noqa: PLC0415
 
     old_pts = [_resample(f.points, spacing_m) for f in old_map.features]
     new_pts = [_resample(f.points, spacing_m) for f in new_map.features]
     all_old = np.vstack(old_pts)
     owner = np.repeat(np.arange(len(old_pts)), [len(p) for p in old_pts])
     tree_all = cKDTree(all_old)
-    trees: dict[int, cKDTree] = {}
+    old_lines = [_line(f.points) for f in old_map.features]
 
     pairs: list[tuple[float, int, int]] = []
     for j, (nf, npnt) in enumerate(zip(new_map.features, new_pts)):
-        # candidate old features: those with a point near any of this feature's points
-        near = tree_all.query_ball_point(npnt, r=max_distance_m)
+        # candidate old features: a point within max_distance_m of an old line lies within
+        # max_distance_m + spacing_m / 2 of one of its resampled points
+        near = tree_all.query_ball_point(npnt, r=max_distance_m + 0.5 * spacing_m)
         cands = {int(owner[k]) for lst in near for k in lst}
-        new_tree = cKDTree(npnt) if cands else None
+        new_line = _line(nf.points) if cands else None
+        new_geom = shapely.points(npnt) if cands else None
         for i in sorted(cands):
             of = old_map.features[i]
             if of.type != nf.type:
                 continue
-            if i not in trees:
-                trees[i] = cKDTree(old_pts[i])
-            d_new, _ = trees[i].query(npnt)
-            d_old, _ = new_tree.query(old_pts[i])
-            frac_new = float(np.mean(d_new <= max_distance_m))
-            frac_old = float(np.mean(d_old <= max_distance_m))
-            ov = frac_new if len(npnt) <= len(old_pts[i]) else frac_old
+            # distances to the other polyline, not to its resampled points: the same line begun
+            # a metre further back is resampled a metre out of phase
+            if len(npnt) <= len(old_pts[i]):
+                ov = float(np.mean(shapely.distance(new_geom, old_lines[i]) <= max_distance_m))
+            else:
+                ov = float(np.mean(shapely.distance(shapely.points(old_pts[i]), new_line) <= max_distance_m))
             if ov >= min_overlap:
                 pairs.append((ov, j, i))
     pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
