@@ -1067,6 +1067,44 @@ def test_side_link_angle_only_in_the_default_preset():
     assert StitchConfig().side_link_angle_deg == 90.0 and StitchConfig.paper().side_link_angle_deg == 90.0
 
 
+def test_link_runs_within_the_partners_heading_too():
+    r"""carla_town04_100_s1: the last node of a ramp piece A (heading -20 deg, leaving the road)
+    lies at (98, -8.4); the main road's piece B starts at (100, 0), heading 0. Seen from B's
+    start, A's end lies 2 m behind and 8.4 m aside (77 deg off B's heading, inside
+    ``max_connection_angle_deg``), so the plain rule links A -> B. The link runs 97 deg off A's
+    own heading, backward for A: with ``partner_angle_deg`` 90 it is refused, while a
+    predecessor heading along the link's way (A turned to heading +20 deg, 57 deg off the link)
+    is still taken."""
+    from hdmap_core.model import TopologyNode  # noqa: PLC0415
+
+    def ramp(heading_deg: float) -> list:
+        h = math.radians(heading_deg)
+        k = np.array([0])
+        return [
+            TopologyNode(id=500 + i, position=np.array([98.0 - kk * 2.0 * math.cos(h), -8.4 - kk * 2.0 * math.sin(h)]),
+                         heading=h, width=9.0, successors=(501 + i,) if i + 1 < len(k) else ())
+            for i, kk in enumerate(k)
+        ]
+
+    b = _topo_chain(100, np.arange(100, 199, 2.0), np.zeros(50))
+    start = b[0]
+    away = HDMap(topology=tuple(ramp(-20.0) + b))
+    assert [t.id for t in _predecessors(stitch([], base=away, config=StitchConfig()), start.id)] == [500]
+    strict = StitchConfig(partner_angle_deg=90.0)
+    assert _predecessors(stitch([], base=away, config=strict), start.id) == []
+    toward = HDMap(topology=tuple(ramp(20.0) + b))
+    assert [t.id for t in _predecessors(stitch([], base=toward, config=strict), start.id)] == [500]
+    with pytest.raises(ConfigError):
+        StitchConfig(partner_angle_deg=0.0)
+
+
+def test_partner_angle_only_in_the_default_preset():
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+
+    assert PipelineConfig.preset("default").stitching.partner_angle_deg == 90.0
+    assert StitchConfig().partner_angle_deg == 180.0 and StitchConfig.paper().partner_angle_deg == 180.0
+
+
 def _pose_step(pivot: str, i: int, xy, heading: float, *, valid: bool = True, processed_before: bool = False):
     """Step i of ``pivot`` at midpoint ``xy`` heading ``heading``, 10 m wide, with the lines
     ``LINES`` (lateral from the midpoint) when valid, else a geometry-only placeholder."""

@@ -244,6 +244,9 @@ class PipelineConfig:
                     fill_evidence=EvidenceConfig(min_expected=2.0),
                     # two roads side by side join only at a shallow angle (docs/graph.md)
                     side_link_angle_deg=30.0,
+                    # ... and never backward for the partner: a ramp node leaving the road was linked
+                    # 97 deg off its own heading to a main-road start beside it (docs/graph.md)
+                    partner_angle_deg=90.0,
                     # type flicker on sparse lines: a run of >= 2 drives relabelled only as a minority,
                     # one drive's misclassified stretch up to 250 m (docs/pipeline.md, sparse fleets)
                     sparse_minority_only=True, single_drive_run_m=250.0,

@@ -292,6 +292,12 @@ class StitchConfig:
             only within this angle of the end's heading: esmini_soderleden's on-ramp, still a
             separate road 10 m beside the main road, was joined to it at 74 deg (under
             ``max_connection_angle_deg``). 90 = off (the paper, the plain default) [deg].
+        partner_angle_deg: the ordinary link of a component start/end must also deviate at
+            most this much from its partner's driving direction (links longer than
+            ``angle_free_m``), not only from the start's/end's own: a ramp node 20 deg off the
+            main road was taken as the predecessor of a main-road start 8.4 m beside it, a link
+            97 deg off the ramp's heading, backward for it (carla_town04_100_s1). 180 = off
+            (the paper, the plain default) [deg].
     """
 
     max_distance_m: float = 12.0
@@ -370,6 +376,7 @@ class StitchConfig:
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
     side_link_angle_deg: float = 90.0
+    partner_angle_deg: float = 180.0
     through_lines: bool = True
 
     def __post_init__(self) -> None:
@@ -432,7 +439,7 @@ class StitchConfig:
                 raise ConfigError(f"{name} must be finite and >= 0, got {v}")
         for name in (
             "max_heading_diff_deg", "max_connection_angle_deg", "path_max_turn_deg", "side_link_angle_deg",
-            "track_bridge_heading_deg",
+            "track_bridge_heading_deg", "partner_angle_deg",
         ):
             v = getattr(self, name)
             if not 0 < v <= 180:

@@ -56,6 +56,7 @@ def _partner(
     cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
     tan_c = math.tan(math.radians(min(cfg.max_connection_angle_deg, 89.999)))
     tan_s = math.tan(math.radians(min(cfg.side_link_angle_deg, 89.999)))
+    cos_p = math.cos(math.radians(cfg.partner_angle_deg))
     u, n = _unit(float(flat.t_heading[i]))
     best, best_d = -1, math.inf
     # 2. nearest neighbours in the complete topology graph (kd-tree)
@@ -71,6 +72,10 @@ def _partner(
             continue
         if cfg.side_link_angle_deg < 90.0 and lat > _half_widths(flat, i, j) and lat > max(along, 0.0) * tan_s:
             continue  # RULE: two roads side by side (cross-sections apart) join only at a shallow angle
+        if cfg.partner_angle_deg < 180.0 and dist > cfg.angle_free_m:
+            # RULE: the link also runs within partner_angle_deg of the partner's own heading
+            if float(d @ _unit(float(flat.t_heading[j]))[0]) < cos_p * dist:
+                continue
         if dist < best_d:
             best, best_d = int(j), dist
     return best
