@@ -430,7 +430,8 @@ def test_lone_edge_line_beside_the_border():
     """The edge line 1.0 m inside the right border (8 drives), seen by one drive, 3.5 m from the
     next line inward: with lone_line_border_gap_m 0.5 a border neighbour need only be 0.5 m
     away, so it is kept; with the lane gap alone (3 m) it is not. A one-drive marking 0.3 m
-    from the border stays dropped."""
+    from the border stays dropped; one 0.6 m from it is kept with 0.5 m, dropped with the
+    default preset's 0.8 m (esmini_soderleden: one drive's solid along the border)."""
     def st(i, edge):
         s = make_step(i, [-7.0 + edge, -7.0, -3.5 + edge, 0.0, 3.5, 7.0], [S, B, D, D, D, B], counts=[1, 8, 8, 8, 8, 8])
         return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(30))})
@@ -446,6 +447,14 @@ def test_lone_edge_line_beside_the_border():
     near = dataclasses.replace(base, lone_line_border_gap_m=0.5)
     assert lines(1.0, near) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
     assert lines(0.3, near) == [-7.0, -3.2, 0.0, 3.5, 7.0]
+    assert lines(0.6, near) == [-7.0, -6.4, -2.9, 0.0, 3.5, 7.0]
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+
+    preset = PipelineConfig.preset("default").connection.lone_line_border_gap_m
+    assert preset == 0.8
+    tight = dataclasses.replace(base, lone_line_border_gap_m=preset)
+    assert lines(0.6, tight) == [-7.0, -2.9, 0.0, 3.5, 7.0]
+    assert lines(1.0, tight) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
 
 
 def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():

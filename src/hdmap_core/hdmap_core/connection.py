@@ -93,7 +93,8 @@ class ConnectionConfig:
             border, seen by one drive). 0 disables [m].
         lone_line_border_gap_m: for a marking, a road-border neighbour need only be this far
             away (the edge line lies 0.2-1.5 m inside the border, carla_town06_30_s1 x 326 ..
-            476: 1.1 m, seen by one drive, the border by three). None: ``lone_line_gap_m`` [m].
+            476: 1.1 m, seen by one drive, the border by three; 0.5 m let one drive's solid
+            onto esmini_soderleden's border, 0.06-0.6 m from it). None: ``lone_line_gap_m`` [m].
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
         tip_frame_deg: a polyline end at least ``tip_frame_min_m`` (pivot travel) behind the new
             step (a bridged gap) whose own direction (from its node ~3 edges back, at least

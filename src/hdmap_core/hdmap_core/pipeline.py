@@ -217,7 +217,9 @@ class PipelineConfig:
                     # ... and a line a lane from both its neighbours, whatever its support (one
                     # drive's lane beside lines many saw; docs/pipeline.md "Lone lines")
                     lone_line_gap_m=3.0,
-                    lone_line_border_gap_m=0.5,
+                    # ... an edge line only 0.8 m from its border (not a marking on the border;
+                    # docs/pipeline.md "Lone edge lines")
+                    lone_line_border_gap_m=0.8,
                     separation_count_ratio=0.5,
                     line_frame_deg=12.0,
                     line_frame_bend_deg=5.0,
