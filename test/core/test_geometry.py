@@ -10,6 +10,7 @@ from hdmap_core.geometry import (
     cut_segment_intersections,
     rdp_mask_many,
     resample_by_distance,
+    resample_evenly,
     split_long_segments,
     wrap_angle,
 )
@@ -92,6 +93,18 @@ def test_resample_and_wrap():
     np.testing.assert_allclose(s, [0, 2, 4])
     np.testing.assert_allclose(pts[:, 0], [0, 2, 4])
     np.testing.assert_allclose(wrap_angle(np.array([3 * np.pi, -np.pi / 2])), [-np.pi, -np.pi / 2])
+
+
+def test_resample_evenly_keeps_both_ends():
+    # 5 m with at most 2 m steps: 3 steps of 5/3 m, the end point kept (resample_by_distance
+    # stops at 4 m); the duplicate point does not disturb the interpolation
+    pts = resample_evenly(np.array([[0, 0], [0, 0], [3, 0], [3, 2]], float), 2.0)
+    np.testing.assert_allclose(pts, [[0, 0], [5 / 3, 0], [3, 1 / 3], [3, 2]], atol=1e-12)
+    np.testing.assert_allclose(resample_evenly(np.array([[0, 0], [1, 0]], float), 2.0), [[0, 0], [1, 0]])
+    # degenerate lines: their first point alone
+    np.testing.assert_allclose(resample_evenly(np.array([[1, 2], [1, 2]], float), 2.0), [[1, 2]])
+    np.testing.assert_allclose(resample_evenly(np.array([[1, 2]], float), 2.0), [[1, 2]])
+    assert resample_evenly(np.zeros((0, 2)), 2.0).shape == (0, 2)
 
 
 def test_rdp_closed_polyline_measures_from_the_end_point():

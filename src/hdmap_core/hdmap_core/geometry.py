@@ -15,6 +15,7 @@ __all__ = [
     "interp_angle",
     "wrap_angle",
     "resample_by_distance",
+    "resample_evenly",
     "rdp_mask_many",
     "split_long_segments",
     "cut_segment_intersections",
@@ -81,6 +82,33 @@ def resample_by_distance(xy: np.ndarray, step_m: float) -> tuple[np.ndarray, np.
     q = np.arange(0.0, s[-1] + 1e-9, step_m)
     pts = np.stack([np.interp(q, s, xy[:, 0]), np.interp(q, s, xy[:, 1])], axis=1)
     return pts, q
+
+
+def resample_evenly(xy: np.ndarray, max_step_m: float) -> np.ndarray:
+    """Points spaced evenly along a polyline, both ends kept, at most ``max_step_m`` apart.
+
+    Unlike ``resample_by_distance`` (a fixed step from the start, the last point dropped unless
+    it falls on the grid) the spacing is the polyline's length over ceil(length / max_step_m).
+
+    Args:
+        xy: (N, 2) polyline [m].
+        max_step_m: largest spacing [m] > 0.
+
+    Returns:
+        (K, 2) points, K >= 2; a polyline of fewer than two distinct points gives its first
+        point alone (K = 1, or 0 for no points).
+    """
+    xy = np.asarray(xy, dtype=float)
+    if len(xy) < 2:
+        return xy.copy()
+    s = arc_length(xy)
+    # Duplicate points make s non-increasing; np.interp needs increasing xp.
+    keep = np.concatenate([[True], np.diff(s) > 1e-9])
+    s, xy = s[keep], xy[keep]
+    if len(s) < 2:
+        return xy[:1].copy()
+    q = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / max_step_m)) + 1))
+    return np.stack([np.interp(q, s, xy[:, 0]), np.interp(q, s, xy[:, 1])], axis=1)
 
 
 def rdp_mask_many(xy: np.ndarray, starts: np.ndarray, epsilon_m: float) -> np.ndarray:

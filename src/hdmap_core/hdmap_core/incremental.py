@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.geometry import arc_length
+from hdmap_core.geometry import arc_length, resample_evenly
 from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.steps import Segment
 
@@ -540,18 +540,6 @@ def stitch_graphs(graphs: Sequence, *, pipeline_config: object, drive_ids: Itera
 # --- feature ids -----------------------------------------------------------------------------------
 
 
-def _resample(points: np.ndarray, spacing_m: float) -> np.ndarray:
-    pts = np.asarray(points, dtype=float)
-    if len(pts) < 2:
-        return pts
-    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    if s[-1] <= 0:
-        return pts[:1]
-    t = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / spacing_m)) + 1))
-    return np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], axis=1)
-
-
 def _line(points: np.ndarray):
     """A shapely geometry of a polyline (a point for a one-point line)."""
     import shapely  # noqa: PLC0415
@@ -591,8 +579,8 @@ def carry_over_ids(
     import shapely  # noqa: PLC0415
     from scipy.spatial import cKDTree  # noqa: PLC0415
 
-    old_pts = [_resample(f.points, spacing_m) for f in old_map.features]
-    new_pts = [_resample(f.points, spacing_m) for f in new_map.features]
+    old_pts = [resample_evenly(f.points, spacing_m) for f in old_map.features]
+    new_pts = [resample_evenly(f.points, spacing_m) for f in new_map.features]
     all_old = np.vstack(old_pts)
     owner = np.repeat(np.arange(len(old_pts)), [len(p) for p in old_pts])
     tree_all = cKDTree(all_old)

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.errors import ConfigError, GroundTruthError, NoUsableDataError
-from hdmap_core.geometry import arc_length
+from hdmap_core.geometry import arc_length, resample_evenly
 from hdmap_core.groundtruth import GroundTruth, GTRoute, load_ground_truth
 from hdmap_core.model import Drive, GeoOrigin
 from hdmap_core.sim_sensor import (
@@ -416,7 +416,7 @@ def route_directions(gt: GroundTruth) -> dict[str, int]:
             if given[r.id] not in labels:
                 labels.append(given[r.id])
         return {r.id: min(labels.index(given[r.id]), 1) for r in gt.routes}
-    lines = {r.id: _resample(gt.route_centerline(r), 5.0) for r in gt.routes}
+    lines = {r.id: resample_evenly(gt.route_centerline(r), 5.0) for r in gt.routes}
     ref_id = max(lines, key=lambda k: len(lines[k]))
     ref = lines[ref_id]
     ref_t = unit_tangents(ref)
@@ -431,15 +431,6 @@ def route_directions(gt: GroundTruth) -> dict[str, int]:
             score = float(np.dot(pts[-1] - pts[0], ref[-1] - ref[0]))
         out[rid] = 0 if score >= 0 else 1
     return out
-
-
-def _resample(xy: np.ndarray, step_m: float) -> np.ndarray:
-    s = arc_length(xy)
-    keep = np.concatenate([[True], np.diff(s) > 1e-9])
-    s, xy = s[keep], xy[keep]
-    n = max(2, int(np.ceil(s[-1] / step_m)) + 1)
-    q = np.linspace(0.0, s[-1], n)
-    return np.stack([np.interp(q, s, xy[:, 0]), np.interp(q, s, xy[:, 1])], axis=1)
 
 
 @dataclass(frozen=True)
