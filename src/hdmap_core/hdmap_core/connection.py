@@ -94,7 +94,8 @@ class ConnectionConfig:
         lone_line_border_gap_m: for a marking, a road-border neighbour need only be this far
             away (the edge line lies 0.2-1.5 m inside the border, carla_town06_30_s1 x 326 ..
             476: 1.1 m, seen by one drive, the border by three; 0.5 m let one drive's solid
-            onto esmini_soderleden's border, 0.06-0.6 m from it). None: ``lone_line_gap_m`` [m].
+            lines 0.3-0.6 m from esmini_soderleden's border through). None: ``lone_line_gap_m``
+            [m].
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
         tip_frame_deg: a polyline end at least ``tip_frame_min_m`` (pivot travel) behind the new
             step (a bridged gap) whose own direction (from its node ~3 edges back, at least
@@ -308,6 +309,7 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     std = np.concatenate([np.asarray(st.std_m, dtype=float).reshape(-1) for st in valid])
     slot = np.arange(len(lat)) - off[j_of]
     keep = np.isfinite(lat)
+    by_place = np.lexsort((lat, j_of))  # the maxima by step, then lateral position
     if config.min_support_share > 0:
         n_drives = np.array([max(len(st.drive_ids), 1) for st in valid])[j_of]
         ok = cnt >= config.min_support_share * n_drives
@@ -316,12 +318,13 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
             ok |= (cnt >= config.min_support_share * ref) & (cnt >= config.window_min_count)
         if config.lone_line_gap_m > 0:
             bgap = config.lone_line_gap_m if config.lone_line_border_gap_m is None else config.lone_line_border_gap_m
-            ok |= _lone_lines(j_of, lat, typ, keep, config.lone_line_gap_m, bgap) & (cnt >= config.window_min_count)
+            ok |= _lone_lines(by_place[keep[by_place]], j_of, lat, typ, config.lone_line_gap_m, bgap) & (
+                cnt >= config.window_min_count
+            )
         keep &= ok
     if config.min_separation_m > 0:
         keep &= _separate_all(j_of, lat, typ, cnt, config.min_separation_m, config.separation_count_ratio)
-    order = np.lexsort((lat, j_of))
-    order = order[keep[order]]
+    order = by_place[keep[by_place]]
     j_of, lat, typ, cnt, std, slot = j_of[order], lat[order], typ[order], cnt[order], std[order], slot[order]
     k = np.bincount(j_of, minlength=len(valid))
     off = np.concatenate([[0], np.cumsum(k)]).astype(np.int64)
@@ -333,16 +336,15 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
 
 
 def _lone_lines(
-    j_of: np.ndarray, lat: np.ndarray, typ: np.ndarray, valid: np.ndarray, gap_m: float, border_gap_m: float
+    order: np.ndarray, j_of: np.ndarray, lat: np.ndarray, typ: np.ndarray, gap_m: float, border_gap_m: float
 ) -> np.ndarray:
-    """(M,) bool: valid maxima whose valid neighbours in their step (next lower and next higher
-    lateral position) are both at least ``gap_m`` away (a missing neighbour counts as far); for
-    a marking, a road-border neighbour need only be ``border_gap_m`` away (an edge line)."""
+    """(M,) bool: of the maxima ``order`` (the valid ones, sorted by step, then lateral position),
+    those whose neighbours among them in their step (next lower and next higher lateral position)
+    are both at least ``gap_m`` away (a missing neighbour counts as far); for a marking, a
+    road-border neighbour need only be ``border_gap_m`` away (an edge line)."""
     out = np.zeros(len(lat), dtype=bool)
-    idx = np.flatnonzero(valid)
-    if len(idx) == 0:
+    if len(order) == 0:
         return out
-    order = idx[np.lexsort((lat[idx], j_of[idx]))]
     j = j_of[order]
     new = np.r_[True, j[1:] != j[:-1]]
     end = np.r_[j[1:] != j[:-1], True]
