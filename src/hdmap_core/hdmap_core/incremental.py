@@ -584,7 +584,7 @@ def carry_over_ids(
     all_old = np.vstack(old_pts)
     owner = np.repeat(np.arange(len(old_pts)), [len(p) for p in old_pts])
     tree_all = cKDTree(all_old)
-    old_lines = [_line(f.points) for f in old_map.features]
+    old_geoms: dict[int, tuple] = {}  # (line, resampled points) of an old feature, made once when first a candidate
 
     pairs: list[tuple[float, int, int]] = []
     for j, (nf, npnt) in enumerate(zip(new_map.features, new_pts)):
@@ -598,12 +598,15 @@ def carry_over_ids(
             of = old_map.features[i]
             if of.type != nf.type:
                 continue
+            if i not in old_geoms:
+                old_geoms[i] = (_line(of.points), shapely.points(old_pts[i]))
+            old_line, old_geom = old_geoms[i]
             # distances to the other polyline, not to its resampled points: the same line begun
             # a metre further back is resampled a metre out of phase
             if len(npnt) <= len(old_pts[i]):
-                ov = float(np.mean(shapely.distance(new_geom, old_lines[i]) <= max_distance_m))
+                ov = float(np.mean(shapely.distance(new_geom, old_line) <= max_distance_m))
             else:
-                ov = float(np.mean(shapely.distance(shapely.points(old_pts[i]), new_line) <= max_distance_m))
+                ov = float(np.mean(shapely.distance(old_geom, new_line) <= max_distance_m))
             if ov >= min_overlap:
                 pairs.append((ov, j, i))
     pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
