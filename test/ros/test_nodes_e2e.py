@@ -220,9 +220,10 @@ def _share_within(a: np.ndarray, b: np.ndarray, r: float) -> float:
 def test_feature_ids_name_the_same_line_across_versions(uninterrupted):
     """The live map's ids through the nodes: a late subscriber gets the ids of the last version
     published, and between consecutive versions an id names one line, and a line that goes on
-    nearly unchanged, with no other line to be confused with, keeps its id. How many versions are published, and which lines go on between
-    them, depends on timing (the fleet-wide offsets move lines as drives arrive); the id rules
-    themselves are tested deterministically in test_incremental (carry_over_ids)."""
+    nearly unchanged, with no other line to be confused with, keeps its id. How many versions
+    are published, and which lines go on between them, depends on timing (the fleet-wide
+    offsets move lines as drives arrive); the id rules themselves are tested deterministically
+    in test_incremental (carry_over_ids)."""
     hdmap, _, diags, _ = uninterrupted
     versions = diags["versions"]
     assert versions and [m.version for m in versions] == sorted({m.version for m in versions})
@@ -233,8 +234,9 @@ def test_feature_ids_name_the_same_line_across_versions(uninterrupted):
             o = old_by_id.get(f.id)
             if o is not None:
                 # an id found in both versions names the same line: same type, largely within 1 m
-                # (carry_over_ids pairs lines with >= half of the shorter within 0.75 m, on its
-                # own 2 m resampling, hence the slack); two different lines are >= 3 m apart
+                # (carry_over_ids pairs lines with >= half of the shorter's 2 m resampled points
+                # within 0.75 m of the other line, hence the slack); two different lines are >= 3 m
+                # apart
                 assert o.type == f.type, f.id
                 assert _share_within(o.points, f.points, 1.0) >= 0.4, f.id
         # candidates as carry_over_ids sees them: same type, half the shorter line within 0.75 m
