@@ -132,6 +132,20 @@ def test_trim_keeps_the_longer_piece_at_an_overlap(order):
     assert max(f.points[-1, 0] for f in old.features) < 98.0
 
 
+def test_trim_does_not_give_way_to_a_place_trimmed_later():
+    r"""  b: x -2 (one step)   c: x -1.1 (one step)   a: x 0..98 (50 steps)
+    c lies on a's first place and b on c's, but b is 2 m before a: the map starts at x -2 only if
+    b is not trimmed for c, which gives way to a itself when its turn comes (RULE
+    trim_lookahead). Without the look ahead b gives way to c, then c to a, and x -2..0 is lost
+    (esmini_soderleden_40_s7's first cut)."""
+    gb, gc, ga = conn(road("b", -2.0, 1)), conn(road("c", -1.1, 1, y_mid=0.1)), conn(road("a", 0.0, 50))
+    for graphs in ([gb, gc, ga], [ga, gc, gb], [gc, gb, ga]):
+        m = stitch(graphs, config=DEFAULT)
+        assert_one_continuous(m, -2.0, 98.0)
+    old = stitch([gb, gc, ga], config=dataclasses.replace(DEFAULT, trim_lookahead=False))
+    assert min(f.points[0, 0] for f in old.features) == pytest.approx(0.0)
+
+
 def test_stitch_joins_same_type_only():
     """a ends with a dashed line, b starts with a solid one at the same place: not joined; the
     border and the solid line continue."""

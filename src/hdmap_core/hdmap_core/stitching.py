@@ -339,54 +339,65 @@ class MapGraph(LooseEnds):
                 sizes[key] = out
             return sizes[key]
 
-        def walk(k: str) -> int:
-            g, alive = self._graphs[k], self._alive[k]
+        # graph key -> its nodes not trimmed yet, for the new graphs while they are walked
+        pending: dict[str, np.ndarray] = {}
+
+        def overlaps(k: str, t: int, lookahead: bool, skip: int = -1) -> bool:
+            """Does node t of graph k lie on a place of another graph (not ``skip``) that it must
+            give way to?"""
+            g = self._graphs[k]
             gi = flat.keys.index(k)
-            own = size_of(k)
-
-            def overlaps(t: int) -> bool:
-                u, n = _unit(float(g.topo_heading[t]))
-                fl = g.node_xy[g.topo_start[t] : g.topo_start[t + 1]] @ n
-                ft = g.node_type[g.topo_start[t] : g.topo_start[t + 1]]
-                radius = max(cfg.overlap_radius_m, cfg.overlap_search_m)
-                for j in tree.query_ball_point(g.topo_xy[t], radius):
-                    if flat.t_graph[j] == gi:
-                        continue
-                    kj = flat.keys[flat.t_graph[j]]
-                    if not self._alive[kj][flat.t_local[j]]:
-                        continue
-                    if math.cos(g.topo_heading[t] - flat.t_heading[j]) < cos_max:
-                        continue
-                    d = flat.t_xy[j] - g.topo_xy[t]
-                    if math.hypot(*d) <= cfg.overlap_radius_m:
-                        same = True  # the same road midpoint
-                    elif abs(float(d @ u)) > cfg.overlap_along_m or len(fl) == 0:
-                        continue
-                    else:
-                        # the same features: most of this step's maxima have a twin of the same type
-                        other = slice(flat.t_start[j], flat.t_start[j + 1])
-                        gl, gt = flat.n_xy[other] @ n, flat.n_type[other]
-                        twin = (np.abs(fl[:, None] - gl[None, :]) <= cfg.overlap_feature_m) & (ft[:, None] == gt[None, :])
-                        same = int(twin.any(axis=1).sum()) >= max(min(2, len(fl)), cfg.overlap_share * len(fl))
-                    if not same:
-                        continue
-                    if cfg.trim_keep_longer and size_of(kj)[flat.t_local[j]] < own[t]:
+            own = size_of(k)[t]
+            u, n = _unit(float(g.topo_heading[t]))
+            fl = g.node_xy[g.topo_start[t] : g.topo_start[t + 1]] @ n
+            ft = g.node_type[g.topo_start[t] : g.topo_start[t + 1]]
+            radius = max(cfg.overlap_radius_m, cfg.overlap_search_m)
+            for j in tree.query_ball_point(g.topo_xy[t], radius):
+                if flat.t_graph[j] in (gi, skip):
+                    continue
+                kj = flat.keys[flat.t_graph[j]]
+                if not self._alive[kj][flat.t_local[j]]:
+                    continue
+                if math.cos(g.topo_heading[t] - flat.t_heading[j]) < cos_max:
+                    continue
+                d = flat.t_xy[j] - g.topo_xy[t]
+                if math.hypot(*d) <= cfg.overlap_radius_m:
+                    same = True  # the same road midpoint
+                elif abs(float(d @ u)) > cfg.overlap_along_m or len(fl) == 0:
+                    continue
+                else:
+                    # the same features: most of this step's maxima have a twin of the same type
+                    other = slice(flat.t_start[j], flat.t_start[j + 1])
+                    gl, gt = flat.n_xy[other] @ n, flat.n_type[other]
+                    twin = (np.abs(fl[:, None] - gl[None, :]) <= cfg.overlap_feature_m) & (ft[:, None] == gt[None, :])
+                    same = int(twin.any(axis=1).sum()) >= max(min(2, len(fl)), cfg.overlap_share * len(fl))
+                if not same:
+                    continue
+                if cfg.trim_keep_longer and size_of(kj)[flat.t_local[j]] < own:
+                    if lookahead:
                         spared.add(kj)
-                        continue
-                    return True
-                return False
+                    continue
+                if (lookahead and cfg.trim_lookahead and kj in pending and pending[kj][flat.t_local[j]]
+                        and overlaps(kj, int(flat.t_local[j]), False, skip=gi)):
+                    continue  # RULE: not for a place whose own walk will trim it (for a third)
+                return True
+            return False
 
+        def walk(k: str) -> int:
+            alive = self._alive[k]
             killed = 0
-            for comp in g.components():
+            for comp in self._graphs[k].components():
                 order = comp.tolist()
                 for walk_order in (order, order[::-1]):
                     for t in walk_order:
-                        if not alive[t] or not overlaps(t):
+                        if not alive[t] or not overlaps(k, t, True):
                             break
                         alive[t] = False
                         killed += 1
+            pending.pop(k, None)
             return killed
 
+        pending.update((k, np.ones(self._graphs[k].n_topo, dtype=bool)) for k in new_keys)
         killed = sum(walk(k) for k in new_keys)
         killed += sum(walk(k) for k in sorted(spared - set(new_keys)))
         return killed
