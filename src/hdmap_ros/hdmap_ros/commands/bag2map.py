@@ -153,7 +153,7 @@ def _reason_counts(fleet: FleetBag) -> str:
 def _report_input(fleet: FleetBag) -> None:
     for r in fleet.rejected:
         print(f"hdmap {NAME}: rejected {r}", file=sys.stderr)
-    if fleet.error:
+    if fleet.error and fleet.drives:  # with none, the error that ends the run names the bag's fault
         print(f"hdmap {NAME}: warning: {fleet.error}", file=sys.stderr)
         print(f"hdmap {NAME}: going on with the {len(fleet.drives)} intact drive(s)", file=sys.stderr)
 
