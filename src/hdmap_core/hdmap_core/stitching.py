@@ -339,14 +339,14 @@ class MapGraph(LooseEnds):
                 sizes[key] = out
             return sizes[key]
 
-        # graph key -> its nodes not trimmed yet, for the new graphs while they are walked
-        pending: dict[str, np.ndarray] = {}
+        graph_index = {k: i for i, k in enumerate(flat.keys)}
+        pending: set[str] = set()  # the new graphs not walked yet
 
         def overlaps(k: str, t: int, lookahead: bool, skip: int = -1) -> bool:
             """Does node t of graph k lie on a place of another graph (not ``skip``) that it must
             give way to?"""
             g = self._graphs[k]
-            gi = flat.keys.index(k)
+            gi = graph_index[k]
             own = size_of(k)[t]
             u, n = _unit(float(g.topo_heading[t]))
             fl = g.node_xy[g.topo_start[t] : g.topo_start[t + 1]] @ n
@@ -377,7 +377,7 @@ class MapGraph(LooseEnds):
                     if lookahead:
                         spared.add(kj)
                     continue
-                if (lookahead and cfg.trim_lookahead and kj in pending and pending[kj][flat.t_local[j]]
+                if (lookahead and cfg.trim_lookahead and kj in pending
                         and overlaps(kj, int(flat.t_local[j]), False, skip=gi)):
                     continue  # RULE: not for a place whose own walk will trim it (for a third)
                 return True
@@ -394,10 +394,10 @@ class MapGraph(LooseEnds):
                             break
                         alive[t] = False
                         killed += 1
-            pending.pop(k, None)
+            pending.discard(k)
             return killed
 
-        pending.update((k, np.ones(self._graphs[k].n_topo, dtype=bool)) for k in new_keys)
+        pending.update(new_keys)
         killed = sum(walk(k) for k in new_keys)
         killed += sum(walk(k) for k in sorted(spared - set(new_keys)))
         return killed
