@@ -1074,6 +1074,29 @@ def test_roads_side_by_side_join_only_at_a_shallow_angle():
         StitchConfig(side_link_angle_deg=0.0)
 
 
+def test_roads_whose_lines_barely_overlap_are_side_by_side():
+    r"""  a: x 0..98, lines at y -3.5 .. 3.5      b: x 100..198, lines at y 4.5 .. 8.5 (mid 6.5)
+    Both cuts are 10 m wide, so their half widths reach each other (6.5 m across < 10 m) and the
+    30 deg ``side_link_angle_deg`` does not apply to a's end and b's start (73 deg apart, inside
+    ``max_connection_angle_deg``): a ramp beside its main road (esmini_soderleden_40_s5). Their
+    lines overlap by -1 m across, under half the narrower span (4 m, + 1 m slack): with
+    ``side_link_overlap`` 0.5 they are side by side and not linked. b 2 m further in, its lines at
+    2.5 .. 6.5 overlapping a's by 1 m, is the same road: linked either way."""
+    lines_a = ([-3.5, 0.0, 3.5], [S, D, B])
+    cfg = StitchConfig(max_connection_angle_deg=80.0, side_link_angle_deg=30.0, join_loose_ends=False)
+    for y_mid, linked_by_default in ((6.5, False), (4.5, True)):
+        b_lines = ([y_mid - 2.0, y_mid, y_mid + 2.0], [B, D, B])
+        graphs = [conn(road("a", 0.0, 50, lines_a)), conn(road("b", 100.0, 50, b_lines, y_mid=y_mid))]
+        on = _successor_positions(stitch(graphs, config=dataclasses.replace(cfg, side_link_overlap=0.5)), [98.0, 0.0])
+        off = _successor_positions(stitch(graphs, config=cfg), [98.0, 0.0])
+        assert off == [[100.0, y_mid]]
+        assert on == ([[100.0, y_mid]] if linked_by_default else [])
+    assert PipelineConfig.preset("default").stitching.side_link_overlap == 0.5
+    assert StitchConfig().side_link_overlap == 0.0 and StitchConfig.paper().side_link_overlap == 0.0
+    with pytest.raises(ConfigError):
+        StitchConfig(side_link_overlap=1.5)
+
+
 def test_side_link_angle_only_in_the_default_preset():
     from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
 

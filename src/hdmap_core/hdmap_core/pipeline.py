@@ -244,8 +244,9 @@ class PipelineConfig:
                     # fills through stretches the drives saw empty are dropped (the profiles come
                     # from ``evidence`` above; docs/pipeline.md, "Negative evidence")
                     fill_evidence=EvidenceConfig(min_expected=2.0),
-                    # two roads side by side join only at a shallow angle (docs/graph.md)
-                    side_link_angle_deg=30.0,
+                    # two roads side by side join only at a shallow angle (docs/graph.md), side by
+                    # side also when their lines barely overlap across the road
+                    side_link_angle_deg=30.0, side_link_overlap=0.5,
                     # ... and never backward for the partner: a ramp node leaving the road was linked
                     # 97 deg off its own heading to a main-road start beside it (docs/graph.md)
                     partner_angle_deg=90.0,

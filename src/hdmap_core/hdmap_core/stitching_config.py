@@ -297,6 +297,12 @@ class StitchConfig:
             only within this angle of the end's heading: esmini_soderleden's on-ramp, still a
             separate road 10 m beside the main road, was joined to it at 74 deg (under
             ``max_connection_angle_deg``). 90 = off (the paper, the plain default) [deg].
+        side_link_overlap: with ``side_link_angle_deg``, two nodes whose half widths do reach
+            each other still count as side by side when the lateral spans of their features
+            overlap by less than this share of the narrower span (+ 1 m slack): the on-ramp of
+            esmini_soderleden_40_s5, its features 4.5 m across, the shared edge 0.4 m inside the
+            main road's lines, was linked 66 deg sideways to the main road. 0 = off (widths only:
+            the paper, the plain default).
         partner_angle_deg: the ordinary link of a component start/end must also deviate at
             most this much from its partner's driving direction (links longer than
             ``angle_free_m``), not only from the start's/end's own: a ramp node 20 deg off the
@@ -382,6 +388,7 @@ class StitchConfig:
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
     side_link_angle_deg: float = 90.0
+    side_link_overlap: float = 0.0
     partner_angle_deg: float = 180.0
     through_lines: bool = True
 
@@ -450,8 +457,10 @@ class StitchConfig:
             v = getattr(self, name)
             if not 0 < v <= 180:
                 raise ConfigError(f"{name} must be in (0, 180], got {v}")
-        if not 0.0 <= self.join_gap_coverage <= 1.0:
-            raise ConfigError(f"join_gap_coverage must be in [0, 1], got {self.join_gap_coverage}")
+        for name in ("join_gap_coverage", "side_link_overlap"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ConfigError(f"{name} must be in [0, 1], got {v}")
         if self.refuted_piece_max_drives < 1:
             raise ConfigError(f"refuted_piece_max_drives must be >= 1, got {self.refuted_piece_max_drives}")
         if self.inner_border_max_drives < 1:

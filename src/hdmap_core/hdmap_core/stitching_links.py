@@ -47,6 +47,25 @@ def _half_widths(flat: FlatGraph, i: int, j: int) -> float:
     return 0.5 * (w[0] + w[1])
 
 
+#: Slack of ``_features_overlap``: lines of one road seen by two pivots lie this far apart at most [m].
+_OVERLAP_SLACK_M = 1.0
+
+
+def _features_overlap(flat: FlatGraph, i: int, j: int, n: np.ndarray, share: float) -> bool:
+    """Do the lateral spans (along ``n``) of topology nodes i's and j's features overlap by at
+    least ``share`` of the narrower span (less ``_OVERLAP_SLACK_M``)? True when ``share`` is 0 or a
+    node has no features (nothing to tell)."""
+    if share <= 0:
+        return True
+    a, b = slice(flat.t_start[i], flat.t_start[i + 1]), slice(flat.t_start[j], flat.t_start[j + 1])
+    la, lb = flat.n_xy[a] @ n, flat.n_xy[b] @ n
+    if len(la) == 0 or len(lb) == 0:
+        return True
+    overlap = min(la.max(), lb.max()) - max(la.min(), lb.min())
+    narrow = min(la.max() - la.min(), lb.max() - lb.min())
+    return bool(overlap + _OVERLAP_SLACK_M >= share * narrow)
+
+
 def _partner(
     flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, cfg: StitchConfig, allowed: Callable[[int], bool]
 ) -> int:
@@ -70,7 +89,8 @@ def _partner(
             continue
         if dist > cfg.angle_free_m and lat > max(along, 0.0) * tan_c:
             continue
-        if cfg.side_link_angle_deg < 90.0 and lat > _half_widths(flat, i, j) and lat > max(along, 0.0) * tan_s:
+        if (cfg.side_link_angle_deg < 90.0 and lat > max(along, 0.0) * tan_s
+                and (lat > _half_widths(flat, i, j) or not _features_overlap(flat, i, j, n, cfg.side_link_overlap))):
             continue  # RULE: two roads side by side (cross-sections apart) join only at a shallow angle
         if cfg.partner_angle_deg < 180.0 and dist > cfg.angle_free_m:
             # RULE: the link also runs within partner_angle_deg of the partner's own heading
