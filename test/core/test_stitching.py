@@ -1115,13 +1115,8 @@ def test_link_runs_within_the_partners_heading_too():
     from hdmap_core.model import TopologyNode  # noqa: PLC0415
 
     def ramp(heading_deg: float) -> list:
-        h = math.radians(heading_deg)
-        k = np.array([0])
-        return [
-            TopologyNode(id=500 + i, position=np.array([98.0 - kk * 2.0 * math.cos(h), -8.4 - kk * 2.0 * math.sin(h)]),
-                         heading=h, width=9.0, successors=(501 + i,) if i + 1 < len(k) else ())
-            for i, kk in enumerate(k)
-        ]
+        """A's one node (id 500): its end, without successor."""
+        return [TopologyNode(id=500, position=np.array([98.0, -8.4]), heading=math.radians(heading_deg), width=9.0)]
 
     b = _topo_chain(100, np.arange(100, 199, 2.0), np.zeros(50))
     start = b[0]
@@ -1136,8 +1131,6 @@ def test_link_runs_within_the_partners_heading_too():
 
 
 def test_partner_angle_only_in_the_default_preset():
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
-
     assert PipelineConfig.preset("default").stitching.partner_angle_deg == 90.0
     assert StitchConfig().partner_angle_deg == 180.0 and StitchConfig.paper().partner_angle_deg == 180.0
 
