@@ -327,14 +327,19 @@ class MapGraph(LooseEnds):
             return 0
         tree = cKDTree(flat.t_xy)
         cos_max = math.cos(math.radians(cfg.max_heading_diff_deg))
+        comps: dict[str, list[np.ndarray]] = {}
         sizes: dict[str, np.ndarray] = {}
         spared: set[str] = set()
 
+        def components(key: str) -> list[np.ndarray]:
+            if key not in comps:
+                comps[key] = self._graphs[key].components()
+            return comps[key]
+
         def size_of(key: str) -> np.ndarray:
             if key not in sizes:
-                g = self._graphs[key]
-                out = np.zeros(g.n_topo, dtype=np.int64)
-                for comp in g.components():
+                out = np.zeros(self._graphs[key].n_topo, dtype=np.int64)
+                for comp in components(key):
                     out[comp] = len(comp)
                 sizes[key] = out
             return sizes[key]
@@ -386,7 +391,7 @@ class MapGraph(LooseEnds):
         def walk(k: str) -> int:
             alive = self._alive[k]
             killed = 0
-            for comp in self._graphs[k].components():
+            for comp in components(k):
                 order = comp.tolist()
                 for walk_order in (order, order[::-1]):
                     for t in walk_order:
