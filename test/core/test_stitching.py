@@ -1234,6 +1234,42 @@ def test_linked_end_gets_the_turn_its_pivot_took_as_a_second_successor():
     assert _successor_positions(m, end) == [[0.0, 28.0]]
 
 
+def _beside_a_road_joining_later() -> list:
+    """soderleden s5's ramp (docs/graph.md): pivot p drives east on y = 0; its chain ends at x = 0
+    (the steps after it failed, its track runs on at y = 0) and is linked to c, the ramp going on
+    to x = 10, whose end links to the main road m 4.5 m beside it (y = 4.5, x -60 -> 60). p's
+    track after the end lies in m's cross-section (10 m wide) from x = 2 on."""
+    east = 0.0
+    p = [_pose_step("p", i, (-60.0 + 2.0 * i, 0.0), east) for i in range(31)]
+    p += [_pose_step("p", i, (-60.0 + 2.0 * i, 0.0), east, valid=False) for i in range(31, 46)]
+    c = [_pose_step("c", i, (2.0 + 2.0 * i, 0.0), east) for i in range(5)]
+    m = [_pose_step("m", i, (-60.0 + 2.0 * i, 4.5), east) for i in range(61)]
+    return [connect_segment(Segment(k, tuple(v))) for k, v in (("p", p), ("c", c), ("m", m))]
+
+
+@pytest.mark.parametrize("rejoin_m, fan", [(0.0, True), (10.0, False), (30.0, False)])
+def test_linked_end_gets_no_side_step_onto_a_road_it_joins_anyway(rejoin_m: float, fan: bool):
+    """p's end is linked to c, and through c the map reaches m from x = 12 on. p's track enters
+    m's node at x = 2, which the map does not reach from the end: ``track_linked_ends`` alone
+    links it (a 4.9 m side step). With ``track_rejoin_m`` that node's road runs into what the end
+    reaches within 10 m (at x 12): no link; the turn of a pivot onto a road that does not join
+    again is still linked (below)."""
+    graphs = _beside_a_road_joining_later()
+    cfg = StitchConfig(track_search_m=60.0, track_linked_ends=True, track_rejoin_m=rejoin_m)
+    m = stitch(graphs, config=cfg)
+    assert _successor_positions(m, [10.0, 0.0]) == [[12.0, 4.5]]  # c's end joins m
+    succ = sorted(_successor_positions(m, [0.0, 0.0]))
+    assert succ == ([[2.0, 0.0], [2.0, 4.5]] if fan else [[2.0, 0.0]])
+    assert m.extra["last_integrate"]["track_links"] == (1 if fan else 0)
+
+
+def test_track_rejoin_keeps_the_turn_a_linked_pivot_took():
+    c = connect_segment(Segment("c", tuple(_pose_step("c", i, (0.0, 28.0 - 2.0 * i), -math.pi / 2) for i in range(40))))
+    cfg = StitchConfig(track_search_m=60.0, track_linked_ends=True, track_rejoin_m=30.0)
+    succ = _successor_positions(stitch(_junction(turn=True) + [c], config=cfg), [0.0, 30.0])
+    assert len(succ) == 2 and [0.0, 28.0] in succ
+
+
 @pytest.mark.parametrize(
     "landing_deg, next_deg, settle_deg, x_linked",
     [(-25.0, 0.0, 0.0, 20.0), (-25.0, 0.0, 8.0, 22.0), (-25.0, -20.0, 8.0, 20.0), (-12.0, 0.0, 8.0, 20.0)],
@@ -1270,12 +1306,15 @@ def test_track_settle_only_in_the_default_preset():
 
 def test_track_links_only_in_the_default_preset():
     d = PipelineConfig.preset("default").stitching
-    assert d.track_search_m > 0 and d.track_linked_ends
+    assert d.track_search_m > 0 and d.track_linked_ends and d.track_rejoin_m == 30.0
     for name in ("naive", "paper"):
         assert getattr(PipelineConfig.preset(name).stitching, "track_search_m", 0.0) == 0.0
     assert StitchConfig().track_search_m == 0.0 and StitchConfig.paper().track_search_m == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(track_search_m=-1.0)
+    with pytest.raises(ConfigError):
+        StitchConfig(track_rejoin_m=-1.0)
+    assert StitchConfig().track_rejoin_m == 0.0 and StitchConfig.paper().track_rejoin_m == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(track_max_gap_m=math.nan)
 

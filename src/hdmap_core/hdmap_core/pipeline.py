@@ -232,6 +232,9 @@ class PipelineConfig:
                     # an end (linked or not) follows the path its pivot drove through a junction
                     # whose steps failed, onto the road it entered (docs/graph.md, "Track links")
                     track_search_m=60.0, track_linked_ends=True,
+                    # ... but not onto a road that runs into what the end reaches anyway: a side
+                    # step from a ramp onto the main road beside it (docs/graph.md, "Side steps")
+                    track_rejoin_m=30.0,
                     # ... landing where its pivot has settled onto the road, not where it still
                     # turns into it (docs/graph.md, "The one false long link on carla_town06_100_s1")
                     track_settle_deg=8.0,

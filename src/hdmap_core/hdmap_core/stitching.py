@@ -501,10 +501,18 @@ class MapGraph(LooseEnds):
             if linked:
                 # RULE: a linked end still follows its pivot: a node its track enters that the map
                 # does not reach from it within 2 track searches + 30 m gets a link too
-                near = _reached_within(flat, existing if is_end else pred, i, 2.0 * cfg.track_search_m + 30.0)
+                walk = existing if is_end else pred
+                near = _reached_within(flat, walk, i, 2.0 * cfg.track_search_m + 30.0)
 
-                def allowed(j: int, i: int = i, is_end: bool = is_end, near: set[int] = near) -> bool:
-                    return j not in near and not _closes_cycle(existing, i, j, is_end)
+                def allowed(
+                    j: int, i: int = i, is_end: bool = is_end, near: set[int] = near, walk: _Adjacency = walk
+                ) -> bool:
+                    if j in near or _closes_cycle(existing, i, j, is_end):
+                        return False
+                    # RULE: nor a node whose road runs on (back) into what the map reaches from the
+                    # end (start) within track_rejoin_m: the link would only add a side step
+                    # between two roads that join anyway
+                    return not (cfg.track_rejoin_m > 0 and near & _reached_within(flat, walk, j, cfg.track_rejoin_m))
             else:
                 allowed = self._allowed(existing, uf, i, is_end)
             best = _track_partner(flat, tree, i, is_end, track, int(rows[g.key][r]), cfg, reach, allowed)

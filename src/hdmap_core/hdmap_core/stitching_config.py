@@ -244,6 +244,13 @@ class StitchConfig:
             already; it then links to a node its pivot's track enters only when the map does
             not reach that node from the start (end) within 2 * ``track_search_m`` + 30 m (the
             pivot took a turn at a junction that the ordinary link went straight through).
+        track_rejoin_m: with ``track_linked_ends``, a node whose road runs on (for a start:
+            back) within this path length into a node the map reaches from the start (end)
+            is no landing either: the link would only be a side step between two roads that
+            join anyway (esmini_soderleden_40_s5: a ramp end's pivot, on the strip beside the
+            main road, landed 4.6 m sideways on the main road upstream of where the ramp's own
+            continuation joins it; docs/graph.md "Side steps"). 0 disables (the paper, the
+            plain default) [m].
         track_settle_deg: the track search (``track_search_m``) passes over a track point where
             the pivot is still turning onto the node's road: the track's heading there lies more
             than 2 x this off the node's and at the next track point of the walk (no gap)
@@ -384,6 +391,7 @@ class StitchConfig:
     track_bridge_heading_deg: float = 45.0
     track_bridge_leave_margin_m: float = 0.0
     track_settle_deg: float = 0.0
+    track_rejoin_m: float = 0.0
     fill_evidence: EvidenceConfig | None = None
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
@@ -445,6 +453,7 @@ class StitchConfig:
             "track_bridge_m",
             "track_bridge_leave_margin_m",
             "track_settle_deg",
+            "track_rejoin_m",
             "path_curvature_m",
         ):
             v = getattr(self, name)
