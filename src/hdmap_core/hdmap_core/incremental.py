@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.geometry import arc_length, resample_evenly
+from hdmap_core.geometry import arc_length, resample_evenly, split_long_segments
 from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.steps import Segment
 
@@ -119,20 +119,6 @@ def tile_bounds(key: TileKey, *, tile_size_m: float, margin_m: float = 0.0) -> t
     )
 
 
-def _densify(xy: np.ndarray, max_step_m: float) -> np.ndarray:
-    """(N, 2) -> (M, 2): insert points so no two consecutive ones are more than max_step_m apart."""
-    if len(xy) < 2:
-        return xy
-    seg = np.diff(xy, axis=0)
-    n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / max_step_m).astype(int))
-    if int(n.max()) == 1:
-        return xy
-    frac = [np.arange(k) / k for k in n]
-    idx = np.repeat(np.arange(len(seg)), n)
-    t = np.concatenate(frac)
-    return np.vstack([xy[idx] + seg[idx] * t[:, None], xy[-1:]])
-
-
 def tiles_of_drive(drive: Drive, *, config: TileConfig) -> set[TileKey]:
     """The tiles a drive covers: its trajectory comes within ``margin_m`` of them.
 
@@ -144,7 +130,8 @@ def tiles_of_drive(drive: Drive, *, config: TileConfig) -> set[TileKey]:
         Set of tile keys (ix, iy).
     """
     size, margin = config.tile_size_m, config.margin_m
-    xy = _densify(np.asarray(drive.xy, dtype=float), max_step_m=max(1.0, margin / 2 if margin else size / 4))
+    step = max(1.0, margin / 2 if margin else size / 4)
+    xy, _ = split_long_segments(np.asarray(drive.xy, dtype=float), np.zeros(1, dtype=np.int64), step)
     if len(xy) == 0:
         return set()
     lo = np.floor((xy - margin) / size).astype(np.int64)
