@@ -1,0 +1,53 @@
+"""scripts/compare_fleets.py: the per-fleet scoring used to measure a rule on many fleets."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+from hdmap_core.errors import ConfigError
+from hdmap_core.pipeline import PipelineConfig
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _script() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("_scripts_compare_fleets", REPO / "scripts" / "compare_fleets.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_override_sets_a_dotted_field_and_names_a_wrong_one():
+    cf = _script()
+    base = PipelineConfig.preset("default")
+    cfg = cf.override(base, "stitching.track_rejoin_m", 0.0)
+    assert cfg.stitching.track_rejoin_m == 0.0 and base.stitching.track_rejoin_m == 30.0
+    assert cfg.stitching.track_search_m == base.stitching.track_search_m  # the rest untouched
+    with pytest.raises(ConfigError, match="stitching.nope.*StitchConfig has no field 'nope'"):
+        cf.override(base, "stitching.nope", 1)
+    with pytest.raises(ConfigError, match="final_alignment is off"):
+        cf.override(PipelineConfig.preset("paper"), "final_alignment.n_iterations", 2)
+    assert cf.parse_set("a.b=0.5") == ("a.b", 0.5)
+    assert cf.parse_set("a.b=true") == ("a.b", True)
+    assert cf.parse_set("a.b=auto") == ("a.b", "auto")
+    with pytest.raises(ConfigError):
+        cf.parse_set("a.b")
+
+
+def test_scores_a_sample_bag_and_rejects_an_unknown_key(capsys, tmp_path):
+    cf = _script()
+    assert cf.main([str(REPO / "bags" / "ramps_20"), "--workers", "1", "--save", str(tmp_path)]) == 0
+    header, line = capsys.readouterr().out.strip().splitlines()
+    assert header == cf.COLUMNS
+    fields = line.split()
+    assert fields[0] == "ramps_20" and len(fields) == len(header.split())
+    mean, precision = float(fields[1]), float(fields[7])
+    assert 0.0 < mean < 0.5 and precision > 90.0  # a real map of the bag, scored against its GT
+    assert (tmp_path / "ramps_20.pkl").exists()
+    assert cf.main([str(REPO / "bags" / "ramps_20"), "--set", "stitching.nope=1"]) == 2
+    assert "StitchConfig has no field 'nope'" in capsys.readouterr().err
