@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from hdmap_core import pipeline
-from hdmap_core.errors import ConfigError
+from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.evaluate import evaluate_map
 from hdmap_core.groundtruth import load_ground_truth
 from hdmap_ros.bagio import read_fleet_bag
@@ -52,7 +52,12 @@ def override(config: object, key: str, value: object, *, full: str | None = None
     if not dataclasses.is_dataclass(config) or head not in {f.name for f in dataclasses.fields(config)}:
         raise ConfigError(f"--set {full}: {type(config).__name__} has no field {head!r}")
     if not rest:
-        return dataclasses.replace(config, **{head: value})
+        try:
+            return dataclasses.replace(config, **{head: value})
+        except ConfigError as err:
+            raise ConfigError(f"--set {full}: {err}") from err
+        except (TypeError, ValueError) as err:  # a value of the wrong kind fails the field's check
+            raise ConfigError(f"--set {full}={value!r}: not a valid value ({err})") from err
     inner = getattr(config, head)
     if inner is None:
         raise ConfigError(f"--set {full}: {head} is off (None) in this preset")
@@ -102,24 +107,36 @@ def main(argv: list[str] | None = None) -> int:
         print(f"compare_fleets: {err}", file=sys.stderr)
         return 2
     print(COLUMNS, flush=True)
+    failed = 0
     for sc in scenarios:
-        fleet = read_fleet_bag(sc.bag)
-        t0 = time.perf_counter()
-        workers = args.workers or len(os.sched_getaffinity(0))
-        result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, workers=workers)
-        build_s = time.perf_counter() - t0
-        sim = Path(sc.bag).with_name(Path(sc.bag).name + ".sim.json")
-        report = evaluate_map(
-            result.map, load_ground_truth(sc.gt_path), drives=fleet.drives, sigma_loc_m=sc.sigma_loc_m,
-            drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
-            seen_counts=seen_counts_from_sim_json(sim) if sim.exists() else None,
-        )
-        print(score_line(sc.name, report, build_s), flush=True)
-        if args.save is not None:
-            args.save.mkdir(parents=True, exist_ok=True)
-            with open(args.save / f"{sc.name}.pkl", "wb") as f:
-                pickle.dump({"map": result.map, "rep": report}, f)
-    return 0
+        try:
+            line = _score(sc, config, args)
+        except HdmapError as err:  # a bag or ground truth that cannot be used: named, the rest goes on
+            print(f"compare_fleets: {sc.name}: {err}", file=sys.stderr)
+            failed += 1
+            continue
+        print(line, flush=True)
+    return 1 if failed else 0
+
+
+def _score(sc: object, config: object, args: argparse.Namespace) -> str:
+    """Build and score one scenario: its ``COLUMNS`` line (and the pickle with ``--save``)."""
+    fleet = read_fleet_bag(sc.bag)
+    t0 = time.perf_counter()
+    workers = args.workers or len(os.sched_getaffinity(0))
+    result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, workers=workers)
+    build_s = time.perf_counter() - t0
+    sim = Path(sc.bag).with_name(Path(sc.bag).name + ".sim.json")
+    report = evaluate_map(
+        result.map, load_ground_truth(sc.gt_path), drives=fleet.drives, sigma_loc_m=sc.sigma_loc_m,
+        drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
+        seen_counts=seen_counts_from_sim_json(sim) if sim.exists() else None,
+    )
+    if args.save is not None:
+        args.save.mkdir(parents=True, exist_ok=True)
+        with open(args.save / f"{sc.name}.pkl", "wb") as f:
+            pickle.dump({"map": result.map, "rep": report}, f)
+    return score_line(sc.name, report, build_s)
 
 
 if __name__ == "__main__":

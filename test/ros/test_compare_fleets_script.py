@@ -37,6 +37,10 @@ def test_override_sets_a_dotted_field_and_names_a_wrong_one():
     assert cf.parse_set("a.b=auto") == ("a.b", "auto")
     with pytest.raises(ConfigError):
         cf.parse_set("a.b")
+    with pytest.raises(ConfigError, match="track_rejoin_m"):  # the field's own check, named
+        cf.override(base, "stitching.track_rejoin_m", -1.0)
+    with pytest.raises(ConfigError, match="not a valid value"):
+        cf.override(base, "stitching.track_rejoin_m", "far")
 
 
 def test_scores_a_sample_bag_and_rejects_an_unknown_key(capsys, tmp_path):
@@ -51,3 +55,14 @@ def test_scores_a_sample_bag_and_rejects_an_unknown_key(capsys, tmp_path):
     assert (tmp_path / "ramps_20.pkl").exists()
     assert cf.main([str(REPO / "bags" / "ramps_20"), "--set", "stitching.nope=1"]) == 2
     assert "StitchConfig has no field 'nope'" in capsys.readouterr().err
+
+
+def test_a_bag_that_cannot_be_used_is_named_and_the_rest_goes_on(capsys, tmp_path):
+    cf = _script()
+    bad = tmp_path / "broken.mcap"
+    bad.write_bytes(b"not an mcap file")
+    (tmp_path / "broken.mcap.gt.json").write_text((REPO / "bags" / "ramps_20.gt.json").read_text())
+    assert cf.main([str(bad), str(REPO / "bags" / "ramps_20"), "--workers", "1"]) == 1
+    out, err = capsys.readouterr()
+    assert "compare_fleets: broken" in err
+    assert out.strip().splitlines()[-1].startswith("ramps_20 ")
