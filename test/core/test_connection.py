@@ -828,3 +828,50 @@ def test_lines_curving_with_the_pivot_keep_its_frame():
     assert max(_line_hops(g3)) < 0.05 and g3.stats.rejected_angle == 0
     with pytest.raises(ConfigError):
         ConnectionConfig(line_frame_bend_deg=-1.0)
+
+
+def _gore_under_a_stale_tip() -> Segment:
+    """paper_like_536's gore at (729, -832) (README "Speed, memory, scaling"): the through line
+    (solid, y 0) and the exit line diverging from it were one maximum up to step 8; a one-drive
+    dashed maximum at y +1.5 in step 6 left a tip open across steps 7-8. From step 9 the exit line
+    (y -1.6 and on to the right) and the through line (y +0.1) are two maxima."""
+    steps = []
+    for i in range(16):
+        lat, typ = [-5.0, 0.0, 5.0], [B, S, B]
+        if i == 6:
+            lat, typ = [-5.0, 0.0, 1.5, 5.0], [B, S, D, B]
+        if i >= 9:
+            lat, typ = [-5.0, -1.6 - 0.2 * (i - 9), 0.1, 5.0], [B, S, S, B]
+        steps.append(make_step(i, lat, typ))
+    return Segment("p", tuple(steps))
+
+
+def _pred_lateral(g, step: int, y: float) -> list[tuple[int, float, bool]]:
+    """(step, y, leftover) of each edge into the node at ``y`` of ``step``."""
+    owner = np.repeat(np.arange(len(g.topo_step)), np.diff(g.topo_start))
+    (k,) = [k for k in range(len(g.node_xy)) if g.topo_step[owner[k]] == step and abs(g.node_xy[k][1] - y) < 1e-6]
+    return [(int(g.topo_step[owner[a]]), round(float(g.node_xy[a][1]), 2), bool(lo))
+            for (a, b), lo in zip(g.edges, g.edge_leftover) if b == k]
+
+
+@pytest.mark.parametrize("fresh_first", [False, True])
+def test_tips_of_the_last_step_are_assigned_before_bridged_ones(fresh_first: bool):
+    """In one joint assignment the stale dashed tip (y +1.5, step 6) takes the through line
+    (1.4 m) and the solid tip (y 0, step 8) the exit line (1.6 m): 3.0 m against 3.2 m for the
+    right pairs, and the split is lost. With ``fresh_first`` the step-8 tips are assigned first:
+    the through line continues the solid line and the exit line joins it as a leftover (a
+    split); the stale tip is left unpaired (6 m along, 3.1 m across: too steep)."""
+    g = connect_segment(_gore_under_a_stale_tip(), config=dataclasses.replace(ConnectionConfig(), fresh_first=fresh_first))
+    through, exit_ = _pred_lateral(g, 9, 0.1), _pred_lateral(g, 9, -1.6)
+    if fresh_first:
+        assert through == [(8, 0.0, False)] and exit_ == [(8, 0.0, True)]
+    else:
+        assert through == [(6, 1.5, False)] and exit_ == [(8, 0.0, False)]
+
+
+def test_fresh_first_only_in_the_default_preset():
+    from hdmap_core.pipeline import PipelineConfig
+
+    assert PipelineConfig.preset("default").connection.fresh_first
+    assert not ConnectionConfig().fresh_first and not ConnectionConfig.paper().fresh_first
+    assert not getattr(PipelineConfig.preset("naive").connection, "fresh_first", False)

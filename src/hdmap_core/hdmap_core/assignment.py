@@ -121,6 +121,21 @@ def assign(
             rows, cols = np.argsort(lt, kind="stable"), np.argsort(ln, kind="stable")
             if not ok[rows, cols].all():
                 rows, cols = linear_sum_assignment(cost)
+        elif getattr(config, "fresh_first", False) and tip_fresh.any() and not tip_fresh.all():
+            # the tips of the last step first; tips bridged from earlier steps take what is left
+            fr, st = np.flatnonzero(tip_fresh), np.flatnonzero(~tip_fresh)
+            r1, c1 = linear_sum_assignment(cost[fr])
+            r1 = fr[r1]
+            taken = np.zeros(m, dtype=bool)
+            taken[c1[ok[r1, c1]]] = True
+            free = np.flatnonzero(~taken)
+            if len(free):
+                r2, c2 = linear_sum_assignment(cost[np.ix_(st, free)])
+                r2, c2 = st[r2], free[c2]
+            else:
+                r2 = c2 = np.zeros(0, dtype=np.int64)
+            keep1 = ok[r1, c1] | ~np.isin(c1, c2)
+            rows, cols = np.concatenate([r1[keep1], r2]), np.concatenate([c1[keep1], c2])
         else:
             rows, cols = linear_sum_assignment(cost)
     # the plausibility of the step is judged on the assignment as solved (before edge limits)

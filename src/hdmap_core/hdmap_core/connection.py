@@ -59,6 +59,13 @@ class ConnectionConfig:
             lines resolve as one of their type first and split later (solid -> two solids), so
             real splits keep their leftover; a line that ends beside a line of the other marking
             type (solid beside dashed) no longer merges into it. False: the paper.
+        fresh_first: assign the open ends of the last step first and let the ends bridged from
+            earlier steps (``bridge_features``) take only the maxima left. One joint assignment
+            minimises the summed distance, so a one-drive tip bridged from three steps back could
+            take a well-supported line while the line it continues took its diverging neighbour
+            (paper_like 4x: the through line of a gore continued a one-drive dashed maximum
+            1.4 m beside it, and the exit lost its split; docs/pipeline.md "Fresh tips first").
+            False: one assignment (the paper, the plain default).
         leftover_other_type_m: ... except when the marking of the other type is at most this far
             across: two markings that close are one place, so the leftover is a branch starting
             (ending) on the other line (an exit's dashed line starting on the solid edge line,
@@ -158,6 +165,7 @@ class ConnectionConfig:
     edge_slack_m: float = 0.3
     leftover_max_m: float = 2.0
     leftover_same_type: bool = True
+    fresh_first: bool = False
     leftover_other_type_m: float = 1.0
     bridge_features: bool = True
     min_separation_m: float = 1.0

@@ -212,6 +212,9 @@ class PipelineConfig:
                 # entry ramp's pivot; not lines curving with the pivot: docs/pipeline.md, "Lines
                 # crossed by an entering pivot")
                 connection=ConnectionConfig(
+                    # the last step's open ends are paired first, ends bridged from earlier steps
+                    # take what is left (docs/pipeline.md "Fresh tips first")
+                    fresh_first=True,
                     support_window_m=4.0,
                     window_min_count=1,
                     # ... and a line a lane from both its neighbours, whatever its support (one
