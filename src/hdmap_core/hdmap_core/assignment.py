@@ -121,7 +121,7 @@ def assign(
             rows, cols = np.argsort(lt, kind="stable"), np.argsort(ln, kind="stable")
             if not ok[rows, cols].all():
                 rows, cols = linear_sum_assignment(cost)
-        elif getattr(config, "fresh_first", False) and tip_fresh.any() and not tip_fresh.all():
+        elif config.fresh_first and tip_fresh.any() and not tip_fresh.all():
             # the tips of the last step first; tips bridged from earlier steps take what is left
             fr, st = np.flatnonzero(tip_fresh), np.flatnonzero(~tip_fresh)
             r1, c1 = linear_sum_assignment(cost[fr])
