@@ -66,3 +66,37 @@ def test_a_bag_that_cannot_be_used_is_named_and_the_rest_goes_on(capsys, tmp_pat
     out, err = capsys.readouterr()
     assert "compare_fleets: broken" in err
     assert out.strip().splitlines()[-1].startswith("ramps_20 ")
+
+
+def _restitch() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("_scripts_restitch_state", REPO / "scripts" / "restitch_state.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
+    """A map_stitcher store holding one tile's segments (those of bags/ramps_20) is connected and
+    stitched as the node does it: the same map as connect_tile + stitch_graphs, scored."""
+    from hdmap_core.incremental import connect_tile, stitch_graphs
+    from hdmap_core.pipeline import build_map
+    from hdmap_ros.bagio import read_fleet_bag
+    from hdmap_ros.store import MapStore, segments_to_blob
+
+    rs = _restitch()
+    fleet = read_fleet_bag(REPO / "bags" / "ramps_20")
+    config = PipelineConfig.preset("default")
+    segments = build_map(fleet.drives, config=config).segments
+    state = tmp_path / "state"
+    state.mkdir()
+    MapStore(state / "map_stitcher.db").put_tile((0, 0), 1, segments_to_blob(segments), [d.drive_id for d in fleet.drives])
+    direct = stitch_graphs(connect_tile(segments, (0, 0), pipeline_config=config), pipeline_config=config)
+    hdmap, n_tiles = rs.restitch(state, config)
+    assert n_tiles == 1 and len(hdmap.features) == len(direct.features) > 0
+    assert [f.id for f in hdmap.features] == [f.id for f in direct.features]
+    assert rs.main([str(state), "--gt", str(REPO / "bags" / "ramps_20.gt.json")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("1 tiles -> ") and out[2].split()[0] == "state" and float(out[2].split()[7]) > 90.0
+    assert rs.main([str(tmp_path / "nowhere")]) == 2
+    assert "no map_stitcher store" in capsys.readouterr().err

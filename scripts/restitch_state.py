@@ -1,0 +1,81 @@
+#!/usr/bin/env python3
+"""Rebuild the live map offline from a node run's stored tiles, to debug what the live map does.
+
+``hdmap run BAG --state DIR`` keeps the nodes' SQLite stores in DIR. ``map_stitcher.db`` there
+holds the latest segments of every tile; the map_stitcher makes the map from them by connecting
+each tile's segments (``incremental.connect_tile``) and stitching all the graphs
+(``incremental.stitch_graphs``). This script does the same in one process, with the preset and
+``--set`` overrides of ``scripts/compare_fleets.py``. The default preset reproduces the live map
+(docs/graph.md "Side steps": carla_town04_100_s2, 82/87 long links in both). With ``--gt`` it
+scores the map and lists the false long topology links, so a rule can be tried on the live
+map's own tiles in seconds instead of a replay of minutes.
+
+Usage (from the repository root, after ``make setup``):
+    .venv/bin/hdmap run out/fleets/carla_town04_100_s2 -o out/live --state out/live_state -q
+    .venv/bin/python scripts/restitch_state.py out/live_state --gt out/fleets/carla_town04_100_s2.gt.json
+    .venv/bin/python scripts/restitch_state.py out/live_state --gt ... --set stitching.track_rejoin_m=0
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from compare_fleets import override, parse_set, score_line  # noqa: E402
+
+from hdmap_core import pipeline  # noqa: E402
+from hdmap_core.errors import HdmapError  # noqa: E402
+from hdmap_core.evaluate import EvalConfig, evaluate_map  # noqa: E402
+from hdmap_core.groundtruth import load_ground_truth  # noqa: E402
+from hdmap_core.incremental import connect_tile, stitch_graphs  # noqa: E402
+from hdmap_ros.store import MapStore, blob_to_segments  # noqa: E402
+
+
+def restitch(state_dir: Path, config: object):
+    """The map the map_stitcher makes from ``state_dir/map_stitcher.db``, and its tile count."""
+    db = Path(state_dir) / "map_stitcher.db"
+    if not db.is_file():
+        raise HdmapError(f"{db}: no map_stitcher store (run `hdmap run BAG --state {state_dir}` first)")
+    graphs, drive_ids, tiles = [], set(), MapStore(db).tiles()
+    for key, _version, ids, blob in tiles:
+        graphs += connect_tile(blob_to_segments(blob), key, pipeline_config=config)
+        drive_ids.update(ids)
+    return stitch_graphs(graphs, pipeline_config=config, drive_ids=drive_ids), len(tiles)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("state", type=Path, help="the --state directory of an `hdmap run`")
+    parser.add_argument("--gt", type=Path, default=None, help="ground truth (.gt.json) to score the map against")
+    parser.add_argument("--preset", default="default", help="pipeline preset (default: default)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a preset parameter, dotted into PipelineConfig (repeatable)")
+    args = parser.parse_args(argv)
+    try:
+        config = pipeline.PipelineConfig.preset(args.preset)
+        for item in args.set:
+            config = override(config, *parse_set(item))
+        t0 = time.perf_counter()
+        hdmap, n_tiles = restitch(args.state, config)
+        dt = time.perf_counter() - t0
+        print(f"{n_tiles} tiles -> {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes ({dt:.1f} s)")
+        if args.gt is not None:
+            eval_config = EvalConfig()
+            report = evaluate_map(hdmap, load_ground_truth(args.gt), config=eval_config)
+            print("scenario mean cor cov rec obs recobs prec frag roadsm long build")
+            print(score_line(args.state.name, report, dt))
+            for t in report.false_topology_links:
+                if t.length_m > eval_config.link_long_m:
+                    print(f"false long link ({t.x:.1f}, {t.y:.1f}) -> ({t.to_x:.1f}, {t.to_y:.1f}) {t.length_m:.1f} m: {t.reason}")
+    except HdmapError as err:
+        print(f"restitch_state: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
