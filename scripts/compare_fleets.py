@@ -24,19 +24,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import pickle
 import sys
-import time
 from pathlib import Path
 
 from hdmap_core import pipeline
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_core.evaluate import evaluate_map
-from hdmap_core.groundtruth import load_ground_truth
-from hdmap_ros.bagio import read_fleet_bag
-from hdmap_ros.commands.bench import prepare_scenarios
-from hdmap_ros.commands.evaluate import drive_errors_from_sim_json, seen_counts_from_sim_json
+from hdmap_ros.commands.bench import build_and_evaluate, prepare_scenarios
 
 COLUMNS = "scenario mean cor cov rec obs recobs prec frag roadsm long build"
 
@@ -120,18 +114,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _score(sc: object, config: object, args: argparse.Namespace) -> str:
-    """Build and score one scenario: its ``COLUMNS`` line (and the pickle with ``--save``)."""
-    fleet = read_fleet_bag(sc.bag)
-    t0 = time.perf_counter()
-    workers = args.workers or len(os.sched_getaffinity(0))
-    result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, workers=workers)
-    build_s = time.perf_counter() - t0
-    sim = Path(sc.bag).with_name(Path(sc.bag).name + ".sim.json")
-    report = evaluate_map(
-        result.map, load_ground_truth(sc.gt_path), drives=fleet.drives, sigma_loc_m=sc.sigma_loc_m,
-        drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
-        seen_counts=seen_counts_from_sim_json(sim) if sim.exists() else None,
-    )
+    """Build and score one scenario (as ``hdmap bench`` does): its ``COLUMNS`` line (and the
+    pickle with ``--save``)."""
+    _fleet, result, report, build_s, _workers = build_and_evaluate(sc, config, args.seed, args.workers)
     if args.save is not None:
         args.save.mkdir(parents=True, exist_ok=True)
         with open(args.save / f"{sc.name}.pkl", "wb") as f:

@@ -29,7 +29,9 @@ from typing import Any
 
 from hdmap_core.errors import ConfigError
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "Scenario", "run_one", "format_table", "summarize_seeds"]
+__all__ = [
+    "NAME", "HELP", "add_arguments", "run", "Scenario", "build_and_evaluate", "run_one", "format_table", "summarize_seeds",
+]
 
 NAME = "bench"
 HELP = "compare the pipeline presets on the same fleet bags: evaluator figures, floor, time, peak memory"
@@ -259,6 +261,35 @@ def _cached(bag: Path, gt_path: Path, config: Any, seed: int) -> bool:
     return same and isinstance(doc.get("seen_count"), dict)
 
 
+def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int | None = None) -> tuple[Any, ...]:
+    """Read the scenario's bag, build the map with ``config`` (a ``PipelineConfig``), evaluate it
+    against its ground truth (with the simulator truth of ``BAG.sim.json`` when there is one).
+
+    Returns:
+        (fleet, build result, evaluation report, build seconds, worker processes used);
+        ``workers`` None: the CPUs available.
+    """
+    from hdmap_core import pipeline  # noqa: PLC0415
+    from hdmap_core.evaluate import evaluate_map  # noqa: PLC0415
+    from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
+    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
+    from hdmap_ros.bagio import read_fleet_bag  # noqa: PLC0415
+    from hdmap_ros.commands.evaluate import drive_errors_from_sim_json, seen_counts_from_sim_json  # noqa: PLC0415
+
+    fleet = read_fleet_bag(scenario.bag)
+    t0 = time.perf_counter()
+    n_workers = workers or available_cpus()
+    result = pipeline.build_map(fleet.drives, config=config, seed=seed, workers=n_workers)
+    build_s = time.perf_counter() - t0
+    sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
+    rep = evaluate_map(
+        result.map, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m,
+        drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
+        seen_counts=seen_counts_from_sim_json(sim) if sim.exists() else None,
+    )
+    return fleet, result, rep, build_s, n_workers
+
+
 def run_one(scenario: Scenario, preset: str, seed: int, workers: int | None = None) -> dict[str, Any]:
     """Read the bag, build the map with ``preset``, evaluate it; figures as a flat dict.
 
@@ -267,23 +298,9 @@ def run_one(scenario: Scenario, preset: str, seed: int, workers: int | None = No
     import resource  # noqa: PLC0415
 
     from hdmap_core import pipeline  # noqa: PLC0415
-    from hdmap_core.evaluate import evaluate_map  # noqa: PLC0415
-    from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
-    from hdmap_ros.bagio import read_fleet_bag  # noqa: PLC0415
-    from hdmap_ros.commands.evaluate import drive_errors_from_sim_json, seen_counts_from_sim_json  # noqa: PLC0415
 
-    fleet = read_fleet_bag(scenario.bag)
-    t0 = time.perf_counter()
-    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
-
-    n_workers = workers or available_cpus()
-    result = pipeline.build_map(fleet.drives, config=pipeline.PipelineConfig.preset(preset), seed=seed, workers=n_workers)
-    build_s = time.perf_counter() - t0
-    sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
-    rep = evaluate_map(
-        result.map, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m,
-        drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
-        seen_counts=seen_counts_from_sim_json(sim) if sim.exists() else None,
+    fleet, result, rep, build_s, n_workers = build_and_evaluate(
+        scenario, pipeline.PipelineConfig.preset(preset), seed, workers
     )
     o = rep.overall
     floor = rep.floor_mean_m
