@@ -29,7 +29,7 @@ from compare_fleets import override, parse_set, score_line  # noqa: E402
 
 from hdmap_core import pipeline  # noqa: E402
 from hdmap_core.errors import HdmapError  # noqa: E402
-from hdmap_core.evaluate import EvalConfig, evaluate_map  # noqa: E402
+from hdmap_core.evaluate import evaluate_map  # noqa: E402
 from hdmap_core.groundtruth import load_ground_truth  # noqa: E402
 from hdmap_core.incremental import connect_tile, stitch_graphs  # noqa: E402
 from hdmap_ros.store import MapStore, blob_to_segments  # noqa: E402
@@ -64,12 +64,11 @@ def main(argv: list[str] | None = None) -> int:
         dt = time.perf_counter() - t0
         print(f"{n_tiles} tiles -> {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes ({dt:.1f} s)")
         if args.gt is not None:
-            eval_config = EvalConfig()
-            report = evaluate_map(hdmap, load_ground_truth(args.gt), config=eval_config)
+            report = evaluate_map(hdmap, load_ground_truth(args.gt))
             print("scenario mean cor cov rec obs recobs prec frag roadsm long build")
             print(score_line(args.state.name, report, dt))
             for t in report.false_topology_links:
-                if t.length_m > eval_config.link_long_m:
+                if t.length_m > report.config.link_long_m:
                     print(f"false long link ({t.x:.1f}, {t.y:.1f}) -> ({t.to_x:.1f}, {t.to_y:.1f}) {t.length_m:.1f} m: {t.reason}")
     except HdmapError as err:
         print(f"restitch_state: {err}", file=sys.stderr)

@@ -1,4 +1,5 @@
-"""scripts/compare_fleets.py: the per-fleet scoring used to measure a rule on many fleets."""
+"""scripts/compare_fleets.py (a rule measured on many fleets) and scripts/restitch_state.py (the
+live map rebuilt from its stores)."""
 
 from __future__ import annotations
 
@@ -14,12 +15,17 @@ from hdmap_core.pipeline import PipelineConfig
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _script() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("_scripts_compare_fleets", REPO / "scripts" / "compare_fleets.py")
+def _load(name: str) -> ModuleType:
+    """scripts/<name>.py as a module."""
+    spec = importlib.util.spec_from_file_location(f"_scripts_{name}", REPO / "scripts" / f"{name}.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _script() -> ModuleType:
+    return _load("compare_fleets")
 
 
 def test_override_sets_a_dotted_field_and_names_a_wrong_one():
@@ -68,14 +74,6 @@ def test_a_bag_that_cannot_be_used_is_named_and_the_rest_goes_on(capsys, tmp_pat
     assert out.strip().splitlines()[-1].startswith("ramps_20 ")
 
 
-def _restitch() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("_scripts_restitch_state", REPO / "scripts" / "restitch_state.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
     """A map_stitcher store holding one tile's segments (those of bags/ramps_20) is connected and
     stitched as the node does it: the same map as connect_tile + stitch_graphs, scored."""
@@ -84,7 +82,7 @@ def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
     from hdmap_ros.bagio import read_fleet_bag
     from hdmap_ros.store import MapStore, segments_to_blob
 
-    rs = _restitch()
+    rs = _load("restitch_state")
     fleet = read_fleet_bag(REPO / "bags" / "ramps_20")
     config = PipelineConfig.preset("default")
     segments = build_map(fleet.drives, config=config).segments
