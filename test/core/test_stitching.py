@@ -1263,6 +1263,37 @@ def test_linked_end_gets_no_side_step_onto_a_road_it_joins_anyway(rejoin_m: floa
     assert m.extra["last_integrate"]["track_links"] == (1 if fan else 0)
 
 
+def _merging_beside_a_road() -> list:
+    """carla_town04_100_s2's live false link (docs/graph.md "Side steps"): pivot p drives east on
+    y = 0; its steps before x = 0 failed (its track runs on y = 0 from x = -16), its chain runs
+    x 0 -> 8 and merges into the main road m (y = 4.5, x -60 -> 60) at x = 10. c, mapped by
+    another pivot on y = 0 (x -20 -> -2), links into p's start. Walked back from p's start, p's
+    track lies in m's cross-section (10 m wide) from x = -2 back to x = -16, all within 30 m of
+    path from where m and p join."""
+    east = 0.0
+    p = [_pose_step("p", i, (-60.0 + 2.0 * i, 0.0), east, valid=False) for i in range(22, 30)]
+    p += [_pose_step("p", i, (-60.0 + 2.0 * i, 0.0), east) for i in range(30, 35)]
+    c = [_pose_step("c", i, (-20.0 + 2.0 * i, 0.0), east) for i in range(10)]
+    m = [_pose_step("m", i, (-60.0 + 2.0 * i, 4.5), east) for i in range(61)]
+    return [connect_segment(Segment(k, tuple(v))) for k, v in (("p", p), ("c", c), ("m", m))]
+
+
+@pytest.mark.parametrize("rejoin_m, both, side_step", [(0.0, True, True), (30.0, False, True), (30.0, True, False)])
+def test_linked_start_gets_no_side_step_from_a_road_it_merges_into(rejoin_m: float, both: bool, side_step: bool):
+    """p's start is linked from c, and p's end merges into m at x = 10. p's track, walked back,
+    enters m's node at x = -2, which does not reach p's start: ``track_linked_ends`` links
+    m(-2) -> p(0), a 4.9 m side step between two roads that join 10 m on. The one-sided
+    ``track_rejoin_m`` looks only behind a start (m and c share no road upstream) and keeps it;
+    with ``track_rejoin_both`` it also sees that m runs into what p's start reaches (m at x 10):
+    no link."""
+    cfg = StitchConfig(track_search_m=60.0, track_linked_ends=True, track_rejoin_m=rejoin_m, track_rejoin_both=both)
+    m = stitch(_merging_beside_a_road(), config=cfg)
+    assert _successor_positions(m, [-2.0, 0.0]) == [[0.0, 0.0]]  # c's end joins p's start
+    assert _successor_positions(m, [8.0, 0.0]) == [[10.0, 4.5]]  # p merges into m
+    assert sorted(_successor_positions(m, [-2.0, 4.5])) == ([[0.0, 0.0], [0.0, 4.5]] if side_step else [[0.0, 4.5]])
+    assert m.extra["last_integrate"]["track_links"] == (1 if side_step else 0)
+
+
 def test_track_rejoin_keeps_the_turn_a_linked_pivot_took():
     c = connect_segment(Segment("c", tuple(_pose_step("c", i, (0.0, 28.0 - 2.0 * i), -math.pi / 2) for i in range(40))))
     cfg = StitchConfig(track_search_m=60.0, track_linked_ends=True, track_rejoin_m=30.0)
@@ -1315,6 +1346,7 @@ def test_track_links_only_in_the_default_preset():
     with pytest.raises(ConfigError):
         StitchConfig(track_rejoin_m=-1.0)
     assert StitchConfig().track_rejoin_m == 0.0 and StitchConfig.paper().track_rejoin_m == 0.0
+    assert d.track_rejoin_both and not StitchConfig().track_rejoin_both and not StitchConfig.paper().track_rejoin_both
     with pytest.raises(ConfigError):
         StitchConfig(track_max_gap_m=math.nan)
 

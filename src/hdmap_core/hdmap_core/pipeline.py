@@ -238,6 +238,8 @@ class PipelineConfig:
                     # ... but not onto a road that runs into what the end reaches anyway: a side
                     # step from a ramp onto the main road beside it (docs/graph.md, "Side steps")
                     track_rejoin_m=30.0,
+                    # ... nor across the split behind an end or the merge ahead of a start
+                    track_rejoin_both=True,
                     # ... landing where its pivot has settled onto the road, not where it still
                     # turns into it (docs/graph.md, "The one false long link on carla_town06_100_s1")
                     track_settle_deg=8.0,

@@ -501,18 +501,27 @@ class MapGraph(LooseEnds):
             if linked:
                 # RULE: a linked end still follows its pivot: a node its track enters that the map
                 # does not reach from it within 2 track searches + 30 m gets a link too
-                walk = existing if is_end else pred
-                near = _reached_within(flat, walk, i, 2.0 * cfg.track_search_m + 30.0)
+                walk, back = (existing, pred) if is_end else (pred, existing)
+                far = 2.0 * cfg.track_search_m + 30.0
+                near = _reached_within(flat, walk, i, far)
+                behind = _reached_within(flat, back, i, far) if cfg.track_rejoin_both else set()
 
                 def allowed(
-                    j: int, i: int = i, is_end: bool = is_end, near: set[int] = near, walk: _Adjacency = walk
+                    j: int, i: int = i, is_end: bool = is_end, near: set[int] = near, walk: _Adjacency = walk,
+                    behind: set[int] = behind, back: _Adjacency = back,
                 ) -> bool:
                     if j in near or _closes_cycle(existing, i, j, is_end):
                         return False
+                    if cfg.track_rejoin_m <= 0:
+                        return True
                     # RULE: nor a node whose road runs on (back) into what the map reaches from the
                     # end (start) within track_rejoin_m: the link would only add a side step
                     # between two roads that join anyway
-                    return not (cfg.track_rejoin_m > 0 and near & _reached_within(flat, walk, j, cfg.track_rejoin_m))
+                    if near & _reached_within(flat, walk, j, cfg.track_rejoin_m):
+                        return False
+                    # RULE: ... nor one whose road came from (runs on into) what reaches the end
+                    # (what the start reaches): the side step across a split (merge) behind it
+                    return not (behind and behind & _reached_within(flat, back, j, cfg.track_rejoin_m))
             else:
                 allowed = self._allowed(existing, uf, i, is_end)
             best = _track_partner(flat, tree, i, is_end, track, int(rows[g.key][r]), cfg, reach, allowed)

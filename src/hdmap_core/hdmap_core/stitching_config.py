@@ -251,6 +251,13 @@ class StitchConfig:
             main road, landed 4.6 m sideways on the main road upstream of where the ramp's own
             continuation joins it; docs/graph.md "Side steps"). 0 disables (the paper, the
             plain default) [m].
+        track_rejoin_both: with ``track_rejoin_m``, look on the other side of the link too: a
+            node whose road came (for a start: runs on) within ``track_rejoin_m`` from (into)
+            what reaches the end (what the start reaches) is no landing either, the side step
+            across the split behind an end or the merge ahead of a start
+            (carla_town04_100_s2 live: a merging ramp's linked start, its pivot's cut midpoints
+            on the main road beside it, got a 12.9 m link from the main road 8 m before the
+            merge; docs/graph.md "Side steps"). False: only the side named above.
         track_settle_deg: the track search (``track_search_m``) passes over a track point where
             the pivot is still turning onto the node's road: the track's heading there lies more
             than 2 x this off the node's and at the next track point of the walk (no gap)
@@ -392,6 +399,7 @@ class StitchConfig:
     track_bridge_leave_margin_m: float = 0.0
     track_settle_deg: float = 0.0
     track_rejoin_m: float = 0.0
+    track_rejoin_both: bool = False
     fill_evidence: EvidenceConfig | None = None
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
