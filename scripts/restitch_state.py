@@ -5,7 +5,7 @@
 holds the latest segments of every tile; the map_stitcher makes the map from them by connecting
 each tile's segments (``incremental.connect_tile``) and stitching all the graphs
 (``incremental.stitch_graphs``). This script does the same in one process, with the preset and
-``--set`` overrides of ``scripts/compare_fleets.py``. The default preset reproduces the live map
+``--set`` changes of ``hdmap bag2map``. The default preset reproduces the live map
 (docs/graph.md "Side steps": carla_town04_100_s2, 82/87 long links in both). With ``--gt`` it
 scores the map and lists the false long topology links, so a rule can be tried on the live
 map's own tiles in seconds instead of a replay of minutes.
@@ -23,16 +23,14 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from compare_fleets import override, parse_set, score_line  # noqa: E402
-
-from hdmap_core import pipeline  # noqa: E402
-from hdmap_core.errors import HdmapError  # noqa: E402
-from hdmap_core.evaluate import evaluate_map  # noqa: E402
-from hdmap_core.groundtruth import load_ground_truth  # noqa: E402
-from hdmap_core.incremental import connect_tile, stitch_graphs  # noqa: E402
-from hdmap_ros.store import MapStore, blob_to_segments  # noqa: E402
+from hdmap_core import pipeline
+from hdmap_core.errors import HdmapError
+from hdmap_core.evaluate import evaluate_map
+from hdmap_core.groundtruth import load_ground_truth
+from hdmap_core.incremental import connect_tile, stitch_graphs
+from hdmap_ros.commands.bag2map import parse_override
+from hdmap_ros.commands.bench import SCORE_COLUMNS, score_line
+from hdmap_ros.store import MapStore, blob_to_segments
 
 
 def restitch(state_dir: Path, config: object):
@@ -52,20 +50,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("state", type=Path, help="the --state directory of an `hdmap run`")
     parser.add_argument("--gt", type=Path, default=None, help="ground truth (.gt.json) to score the map against")
     parser.add_argument("--preset", default="default", help="pipeline preset (default: default)")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a preset parameter, dotted into PipelineConfig (repeatable)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", type=parse_override,
+                        help="change a preset parameter, as `hdmap bag2map --set` (repeatable)")
     args = parser.parse_args(argv)
     try:
-        config = pipeline.PipelineConfig.preset(args.preset)
-        for item in args.set:
-            config = override(config, *parse_set(item))
+        config = pipeline.PipelineConfig.preset(args.preset).with_overrides(dict(args.set))
         t0 = time.perf_counter()
         hdmap, n_tiles = restitch(args.state, config)
         dt = time.perf_counter() - t0
         print(f"{n_tiles} tiles -> {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes ({dt:.1f} s)")
         if args.gt is not None:
             report = evaluate_map(hdmap, load_ground_truth(args.gt))
-            print("scenario mean cor cov rec obs recobs prec frag roadsm long build")
+            print(SCORE_COLUMNS)
             print(score_line(args.state.name, report, dt))
             for t in report.false_topology_links:
                 if t.length_m > report.config.link_long_m:

@@ -46,6 +46,25 @@ def test_presets_are_frozen_and_distinct():
         PipelineConfig.preset("fast")
 
 
+def test_with_overrides_sets_dotted_fields_and_names_a_wrong_one():
+    base = PipelineConfig.preset("default")
+    cfg = base.with_overrides({"stitching.track_rejoin_m": 0.0, "alignment.n_iterations": 2, "observation_stride": 3})
+    assert cfg.stitching.track_rejoin_m == 0.0 and base.stitching.track_rejoin_m == 30.0
+    assert cfg.alignment.n_iterations == 2 and cfg.observation_stride == 3
+    assert cfg.stitching.track_search_m == base.stitching.track_search_m  # the rest untouched
+    assert cfg.name == "default+" and base.with_overrides({}) == base  # changed, and said so
+    with pytest.raises(ConfigError, match="stitching.nope: StitchConfig has no field 'nope'"):
+        base.with_overrides({"stitching.nope": 1})
+    with pytest.raises(ConfigError, match="final_alignment is off"):
+        PipelineConfig.preset("paper").with_overrides({"final_alignment.n_iterations": 2})
+    with pytest.raises(ConfigError, match="stitching.track_rejoin_m: .*track_rejoin_m"):  # the field's own check
+        base.with_overrides({"stitching.track_rejoin_m": -1.0})
+    with pytest.raises(ConfigError, match="not a valid value"):
+        base.with_overrides({"stitching.track_rejoin_m": "far"})
+    with pytest.raises(ConfigError, match="observation_stride"):  # PipelineConfig's own check
+        base.with_overrides({"observation_stride": 0})
+
+
 @pytest.mark.parametrize("preset", ["paper", "default", "naive"])
 def test_map_segments_recovers_lines(fleet, preset):
     segs = map_segments(fleet, config=PipelineConfig.preset(preset), seed=0)

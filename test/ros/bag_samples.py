@@ -85,8 +85,8 @@ def assert_maps_equal(a: HDMap, b: HDMap) -> None:
 
 def install_fake_pipeline(monkeypatch, build_map) -> None:
     """Replace ``hdmap_core.pipeline`` by a stand-in with the contract's API: ``build_map`` as
-    given and a ``PipelineConfig`` whose ``preset(name)`` keeps only the name (the CLI tests check
-    the glue, not the algorithms)."""
+    given and a ``PipelineConfig`` whose ``preset(name)`` keeps only the name and whose
+    ``with_overrides`` only records them (the CLI tests check the glue, not the algorithms)."""
     import sys  # noqa: PLC0415
     import types  # noqa: PLC0415
     from dataclasses import dataclass  # noqa: PLC0415
@@ -96,10 +96,14 @@ def install_fake_pipeline(monkeypatch, build_map) -> None:
     @dataclass(frozen=True)
     class PipelineConfig:
         name: str
+        overrides: tuple = ()
 
         @classmethod
         def preset(cls, name: str) -> PipelineConfig:
             return cls(name)
+
+        def with_overrides(self, overrides: dict) -> PipelineConfig:
+            return PipelineConfig(self.name + ("+" if overrides else ""), tuple(overrides.items()))
 
     mod = types.ModuleType("hdmap_core.pipeline")
     mod.PipelineConfig, mod.build_map = PipelineConfig, build_map

@@ -74,6 +74,36 @@ def test_wiring_writes_map_bag_and_geojson(tmp_path, fake_pipeline, capsys):
     assert "drives used 3" in captured.out and "rejected 1" in captured.out
 
 
+def test_set_changes_preset_parameters_and_the_report_names_them(tmp_path, fake_pipeline, capsys):
+    bag = _fleet(tmp_path, [make_drive("a", n=10)])
+    rep = tmp_path / "report.json"
+    code = cli.main([
+        "bag2map", str(bag), "-o", str(tmp_path / "map"), "--report", str(rep),
+        "--set", "stitching.track_rejoin_m=0", "--set", "alignment.clustering=auto",
+    ])
+    assert code == 0
+    config = fake_pipeline["config"]
+    assert config.name == "default+"
+    assert config.overrides == (("stitching.track_rejoin_m", 0), ("alignment.clustering", "auto"))
+    assert json.loads(rep.read_text())["overrides"] == {"stitching.track_rejoin_m": 0, "alignment.clustering": "auto"}
+    assert "changed: stitching.track_rejoin_m=0, alignment.clustering=\"auto\"" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "item, message",
+    [
+        ("stitching.nope=1", "stitching.nope: StitchConfig has no field 'nope'"),
+        ("stitching.track_rejoin_m=-1", "stitching.track_rejoin_m"),
+        ("stitching.track_rejoin_m=far", "not a valid value"),
+    ],
+)
+def test_a_bad_set_is_named_before_the_bag_is_read(tmp_path, capsys, item, message):
+    """The real PipelineConfig checks the change; the bag (missing here) is not read at all."""
+    code = cli.main(["bag2map", str(tmp_path / "nope"), "-o", str(tmp_path / "map"), "--set", item])
+    err = capsys.readouterr().err
+    assert code == 2 and "--set" in err and message in err and "no such bag" not in err
+
+
 def test_no_usable_drive_exits_nonzero_with_reasons(tmp_path, fake_pipeline, capsys):
     nan = make_drive("nan", n=10)
     nan.xy[0, 1] = np.inf
@@ -118,6 +148,8 @@ def test_geojson_without_origin(tmp_path, fake_pipeline, capsys):
         ["bag2map", "in", "-o", "out", "--origin", "95,1"],
         ["bag2map", "in", "-o", "out", "--workers", "0"],
         ["bag2map", "in", "-o", "out", "--workers", "two"],
+        ["bag2map", "in", "-o", "out", "--set", "track_rejoin_m"],  # no =VALUE
+        ["bag2map", "in", "-o", "out", "--set", "=1"],
     ],
 )
 def test_bad_arguments_are_usage_errors(argv, capsys):

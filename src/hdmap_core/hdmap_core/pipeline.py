@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -294,6 +294,41 @@ class PipelineConfig:
                 name="default",
             )
         raise ConfigError(f"unknown pipeline preset {name!r}; choose one of {_PRESETS}")
+
+    def with_overrides(self, overrides: Mapping[str, object]) -> PipelineConfig:
+        """This config with each dotted key set, e.g. ``{"stitching.track_rejoin_m": 0.0}``.
+
+        Every stage config's own checks run on its new value. The name gets a ``+`` (the preset
+        with changes), so reports do not pass the result off as the preset itself.
+
+        Raises:
+            ConfigError: a key names no field (or a stage that is off, None, in this config), or a
+                value the field rejects; the message names the key.
+        """
+        config: PipelineConfig = self
+        for key, value in overrides.items():
+            config = _override(config, key, value, key)
+        if overrides and not config.name.endswith("+"):
+            config = replace(config, name=f"{config.name}+")
+        return config
+
+
+def _override(config: object, key: str, value: object, full: str) -> object:
+    """``config`` (a dataclass) with the dotted ``key`` set to ``value`` (``full``: the whole key)."""
+    head, _, rest = key.partition(".")
+    if not is_dataclass(config) or head not in {f.name for f in fields(config)}:
+        raise ConfigError(f"{full}: {type(config).__name__} has no field {head!r}")
+    if not rest:
+        try:
+            return replace(config, **{head: value})
+        except ConfigError as err:
+            raise ConfigError(f"{full}: {err}") from err
+        except (TypeError, ValueError) as err:  # a value of the wrong kind fails the field's check
+            raise ConfigError(f"{full}={value!r}: not a valid value ({err})") from err
+    inner = getattr(config, head)
+    if inner is None:
+        raise ConfigError(f"{full}: {head} is off (None) in this config")
+    return replace(config, **{head: _override(inner, rest, value, full)})
 
 
 @dataclass(frozen=True)

@@ -18,12 +18,12 @@ from typing import Any
 
 import numpy as np
 
-from hdmap_core.errors import NoUsableDataError
+from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.model import GeoOrigin, HDMap
 from hdmap_ros.bagio import FleetBag, read_fleet_bag, write_map_bag
 from hdmap_ros.geojson import write_geojson
 
-__all__ = ["NAME", "HELP", "add_arguments", "run"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "parse_override"]
 
 NAME = "bag2map"
 HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
@@ -35,6 +35,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", metavar="OUT", required=True, help="map bag directory to write")
     parser.add_argument("--geojson", metavar="FILE", help="also write the map features as GeoJSON (WGS84)")
     parser.add_argument("--preset", choices=PRESETS, default="default", help="pipeline preset (default: %(default)s)")
+    parser.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        type=parse_override,
+        default=[],
+        dest="overrides",
+        help="change one parameter of the preset (repeatable), dotted into PipelineConfig, the value as "
+        "JSON, e.g. --set stitching.track_rejoin_m=0 --set alignment.robust_loss=false",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed of the pipeline (default: %(default)s)")
     parser.add_argument(
         "--origin",
@@ -65,6 +75,19 @@ def _parse_origin(text: str) -> GeoOrigin:
     return GeoOrigin(*values)
 
 
+def parse_override(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` of ``--set``: the dotted key and the value as JSON (numbers, true/false, null,
+    lists), else as the string itself (``clustering=auto``). Whether the key and value fit the
+    config is ``PipelineConfig.with_overrides``' check."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is not KEY=VALUE")
+    try:
+        return key.strip(), json.loads(raw)
+    except json.JSONDecodeError:
+        return key.strip(), raw
+
+
 def _parse_workers(text: str) -> int:
     try:
         n = int(text)
@@ -89,6 +112,16 @@ def run(args: argparse.Namespace) -> int:
     if args.geojson and Path(args.geojson).is_dir():
         return _fail(f"--geojson {args.geojson} is a directory")
 
+    from hdmap_core import pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
+    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
+
+    try:  # a bad --set is named before the bag is read
+        config = pipeline.PipelineConfig.preset(args.preset).with_overrides(dict(args.overrides))
+    except ConfigError as err:
+        return _fail(f"--set {err}")
+    if args.overrides:
+        print(f"preset {args.preset}, changed: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in args.overrides))
+
     t_start = time.perf_counter()
     fleet = read_fleet_bag(args.bag)
     _report_input(fleet)
@@ -102,10 +135,6 @@ def run(args: argparse.Namespace) -> int:
     if args.geojson and origin is None:
         return _fail(f"--geojson needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
 
-    from hdmap_core import pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
-    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
-
-    config = pipeline.PipelineConfig.preset(args.preset)
     with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
         result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress,
                                     workers=args.workers or available_cpus())
@@ -131,6 +160,7 @@ def _report_dict(args: argparse.Namespace, fleet: FleetBag, hdmap: HDMap, result
         "input": str(args.bag),
         "output": str(args.output),
         "preset": args.preset,
+        "overrides": dict(args.overrides),
         "seed": args.seed,
         "drives": len(fleet.drives),
         "drive_km": sum(d.length_m for d in fleet.drives) / 1000.0,

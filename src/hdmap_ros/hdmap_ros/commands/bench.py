@@ -31,6 +31,7 @@ from hdmap_core.errors import ConfigError
 
 __all__ = [
     "NAME", "HELP", "add_arguments", "run", "Scenario", "build_and_evaluate", "run_one", "format_table", "summarize_seeds",
+    "SCORE_COLUMNS", "score_line",
 ]
 
 NAME = "bench"
@@ -259,6 +260,25 @@ def _cached(bag: Path, gt_path: Path, config: Any, seed: int) -> bool:
         and doc.get("simulator") == simulator_fingerprint()
     )
     return same and isinstance(doc.get("seen_count"), dict)
+
+
+# One line per map for the measurement scripts (scripts/compare_fleets.py, restitch_state.py):
+# mean and offset-corrected mean lateral error [m], coverage, recall, observed share, recall over
+# the observed points, precision [%], fragmentation, road splits,merges found/in GT, long
+# topology links supported/evaluable, build time [s].
+SCORE_COLUMNS = "scenario mean cor cov rec obs recobs prec frag roadsm long build"
+
+
+def score_line(name: str, report: Any, build_s: float) -> str:
+    """One line of ``SCORE_COLUMNS`` for an ``EvalReport``."""
+    o = report.overall
+    return (
+        f"{name} {o.mean_m:.4f} {o.corrected_mean_m:.4f} {100 * report.coverage:.2f} {100 * o.recall:.2f} "
+        f"{100 * report.observed_share:.2f} {100 * report.recall_observed:.2f} {100 * o.precision:.2f} "
+        f"{report.fragmentation_mean:.3f} {report.found_road_splits}/{report.gt_road_splits},"
+        f"{report.found_road_merges}/{report.gt_road_merges} "
+        f"{report.n_long_links_supported}/{report.n_long_links_evaluable} {build_s:.1f}"
+    )
 
 
 def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int | None = None) -> tuple[Any, ...]:
