@@ -1,5 +1,6 @@
-"""scripts/compare_fleets.py (a rule measured on many fleets) and scripts/restitch_state.py (the
-live map rebuilt from its stores)."""
+"""scripts/compare_fleets.py (a rule measured on many fleets), scripts/restitch_state.py (the
+live map rebuilt from its stores) and scripts/targets.py (the mapping targets checked on bench
+results)."""
 
 from __future__ import annotations
 
@@ -81,3 +82,42 @@ def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
     assert rs.main([str(tmp_path / "nowhere")]) == 2
     assert "no map_stitcher store" in capsys.readouterr().err
     assert rs.main([str(state), "--set", "stitching.track_rejoin_m=0"]) == 0  # changes go through bag2map's parser
+
+
+def _run(scenario: str, preset: str = "default", **figures) -> dict:
+    """A bench JSON run meeting every target, with ``figures`` changed."""
+    run = {
+        "scenario": scenario, "preset": preset, "drives": 40, "mean_m": 0.2, "p95_m": 0.4, "corrected_mean_m": 0.05,
+        "floor_m": 0.2, "fleet_floor_m": 0.18, "coverage": 0.99, "driven_share": 1.0, "recall": 0.98,
+        "observed_share": 0.99, "recall_observed": 0.99, "precision": 0.99, "type_accuracy": 0.99,
+        "fragmentation": 1.1, "splits_merges": "1/1 1/1", "gt_splits": 1, "gt_merges": 1, "found_splits": 1,
+        "found_merges": 1, "road_splits_merges": "2/2 2/2", "gt_road_splits": 2, "gt_road_merges": 2,
+        "found_road_splits": 2, "found_road_merges": 2, "long_links": "100.0% 5/5", "long_link_precision": 1.0,
+    }
+    run.update(figures)
+    return run
+
+
+def test_targets_names_each_miss_and_what_bounds_it(tmp_path, capsys):
+    tg = _load("targets")
+    assert tg.misses(_run("a_s1")) == []
+    missed = tg.misses(_run("a_s1", recall=0.9, observed_share=0.92, recall_observed=0.97))
+    assert missed == ["recall 90.0 % (observed 92.0 %, recall obs. 97.0 %)"]
+    missed = tg.misses(_run("a_s1", mean_m=0.41, fleet_floor_m=0.40, fragmentation=1.6, found_road_merges=1))
+    assert missed[0] == "mean 0.410 m > 0.30 (fleet's own error 0.400 m)" and "2.05 x floor" in missed[1]
+    assert missed[2:] == ["fragm. 1.60", "road splits/merges 2/2 2/2"]
+    assert tg.misses(_run("a_s1", recall=0.9, observed_share=0.99)) == ["recall 90.0 %"]  # nothing bounds it
+    # a peer preset better on one figure (ties are no loss)
+    lost = tg.losses(_run("a_s1"), [_run("a_s1", "naive", long_link_precision=1.0, precision=0.995, recall=0.98)])
+    assert lost == ["precision vs naive"]
+    runs = [_run("a_s1"), _run("a_s1", "naive", mean_m=0.5), _run("a"), _run("b_s2", coverage=0.9, driven_share=0.95)]
+    path = tmp_path / "bench.json"
+    path.write_text(__import__("json").dumps(runs))
+    assert tg.main([str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "| a_s1 | 40 | none | none | naive |" in out and "| a |" not in out  # means over seeds left out
+    assert "| b_s2 | 40 | coverage 90.0 % (driven 95.0 %) | none | - |" in out
+    assert "1 of 2 fleets meet every target" in out
+    assert tg.main([str(path), "--misses-only"]) == 0
+    out = capsys.readouterr().out
+    assert "| a_s1 |" not in out and "| b_s2 |" in out and "1 of 2 fleets meet every target" in out
