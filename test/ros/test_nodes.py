@@ -213,3 +213,26 @@ def test_mapper_refuses_a_store_made_with_another_tiling(ros, tmp_path):
     first.destroy_node()
     with pytest.raises(ConfigError, match="tile_size_m=256.0"):
         SegmentMapper(context=ros.context, parameter_overrides=[db, Parameter("tile_size_m", value=512.0)])
+
+
+@pytest.mark.parametrize("module,cls", [("segment_mapper", "SegmentMapper"), ("map_stitcher", "MapStitcher")])
+def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros, tmp_path, module, cls):
+    import importlib
+
+    from hdmap_core.errors import ConfigError
+    from hdmap_core.pipeline import PipelineConfig
+
+    node_cls = getattr(importlib.import_module(f"hdmap_ros.nodes.{module}"), cls)
+    db = Parameter("db_path", value=str(tmp_path / "x.db"))
+    plain = node_cls(context=ros.context, parameter_overrides=[db])  # not spun: only its config is read
+    assert plain.pipeline_config == PipelineConfig.preset("default")  # unset: the preset as it is
+    plain.destroy_node()
+    changed = node_cls(context=ros.context, parameter_overrides=[
+        db, Parameter("preset_overrides", value=["stitching.track_rejoin_m=0", "alignment.n_iterations=2"])])
+    cfg = changed.pipeline_config
+    changed.destroy_node()
+    assert cfg.stitching.track_rejoin_m == 0 and cfg.alignment.n_iterations == 2 and cfg.name == "default+"
+    with pytest.raises(ConfigError, match="preset_overrides: stitching.nope: StitchConfig has no field 'nope'"):
+        node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["stitching.nope=1"])])
+    with pytest.raises(ConfigError, match="preset_overrides: 'nokey' is not KEY=VALUE"):
+        node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["nokey"])])

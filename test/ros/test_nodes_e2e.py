@@ -312,3 +312,22 @@ def test_hdmap_run_replays_the_bag_in_one_process_and_writes_the_settled_map(fle
     assert abs(live.overall.mean_m - off.overall.mean_m) <= 0.05
     assert abs(live.coverage - off.coverage) <= 0.02
     assert (tmp_path / "m.json").stat().st_size > 0
+
+
+def test_hdmap_run_names_a_bad_set_and_leaves_no_state(fleet, tmp_path):
+    """A --set the pipeline config does not take ends the run before any drive is played: the
+    message names the key, and the temporary state is gone."""
+    import subprocess
+    import sys
+
+    from nodes_harness import dds_env
+
+    env = {**dds_env(76), "TMPDIR": str(tmp_path)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "hdmap_ros.cli", "run", fleet.bag, "-q", "--set", "stitching.nope=1"],
+        env=env, capture_output=True, text=True, timeout=120, cwd=str(tmp_path),
+    )
+    assert proc.returncode == 1
+    assert "hdmap run: error: preset_overrides: stitching.nope: StitchConfig has no field 'nope'" in proc.stderr
+    assert "Traceback" not in proc.stderr and "published" not in proc.stderr
+    assert not list(tmp_path.glob("hdmap-run-*"))

@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--state", help="directory of the SQLite stores (default: a fresh temporary one); "
                                         "an existing state continues where it stopped")
     parser.add_argument("--preset", default=None, help="pipeline preset (default: the params file's, 'default')")
+    parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
+                        help="change one preset parameter (repeatable), as `hdmap bag2map --set`; sets the "
+                        "mapper's and the stitcher's preset_overrides")
     parser.add_argument("--params-file", help="node parameters (YAML), applied over the package defaults")
     parser.add_argument("--keep-alive", action="store_true", help="keep serving /hdmap/map after settling (Ctrl-C ends)")
     parser.add_argument("--timeout", type=float, default=0.0, help="give up after this many seconds (0 = never)")
@@ -63,13 +66,26 @@ class _Suite:
             return [Parameter(k, value=v) for k, v in kw.items()]
 
         preset = {"preset": args.preset} if args.preset else {}
+        if args.overrides:
+            preset["preset_overrides"] = list(args.overrides)
         c = {"context": self.context}
-        self.ingestor = DriveIngestor(**c)
-        self.mapper = SegmentMapper(parameter_overrides=p(db_path=str(state / "segment_mapper.db"), **preset), **c)
-        self.stitcher = MapStitcher(parameter_overrides=p(db_path=str(state / "map_stitcher.db"), **preset), **c)
-        self.publisher = MapPublisher(**c)
-        self.player = BagPlayer(parameter_overrides=p(bag=str(args.bag), rate=float(args.rate)), **c)
-        self.nodes = [self.ingestor, self.mapper, self.stitcher, self.publisher, self.player]
+        self.nodes = []
+        try:  # a parameter a node rejects (e.g. a bad --set) ends the run with its message, cleanly
+            self.ingestor = DriveIngestor(**c)
+            self.nodes.append(self.ingestor)
+            self.mapper = SegmentMapper(parameter_overrides=p(db_path=str(state / "segment_mapper.db"), **preset), **c)
+            self.nodes.append(self.mapper)
+            self.stitcher = MapStitcher(parameter_overrides=p(db_path=str(state / "map_stitcher.db"), **preset), **c)
+            self.nodes.append(self.stitcher)
+            self.publisher = MapPublisher(**c)
+            self.nodes.append(self.publisher)
+            self.player = BagPlayer(parameter_overrides=p(bag=str(args.bag), rate=float(args.rate)), **c)
+            self.nodes.append(self.player)
+        except BaseException:
+            for n in self.nodes:
+                n.destroy_node()
+            rclpy.try_shutdown(context=self.context)
+            raise
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
         for n in self.nodes:
             self.executor.add_node(n)
@@ -111,7 +127,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         tmp = tempfile.TemporaryDirectory(prefix="hdmap-run-")
         state = Path(tmp.name)
-    suite = _Suite(args, state)
+    try:
+        suite = _Suite(args, state)
+    except BaseException:
+        if tmp is not None:
+            tmp.cleanup()
+        raise
     t0 = time.monotonic()
     last_print = 0.0
     try:

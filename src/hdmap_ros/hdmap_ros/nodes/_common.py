@@ -10,14 +10,16 @@ from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
+from hdmap_core.errors import HdmapError
 from hdmap_ros import qos
 from hdmap_ros.diagnostics import Health, health_to_msg
 
-__all__ = ["declare", "params_file", "with_default_params", "run_node", "HealthMixin", "preset_config"]
+__all__ = ["declare", "declare_strings", "params_file", "with_default_params", "run_node", "HealthMixin", "preset_config"]
 
 PACKAGE = "hdmap_ros"
 # src/hdmap_ros/hdmap_ros/nodes/_common.py -> src/hdmap_ros/config/hdmap.yaml
@@ -76,14 +78,38 @@ def declare(
     return node.declare_parameter(name, default, desc).value
 
 
-def preset_config(name: str) -> Any:
-    """The pipeline's named preset (``default``, ``paper``, ``naive``)."""
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+def declare_strings(node: Node, name: str, description: str) -> list[str]:
+    """Declare a string-array parameter that may stay unset (an empty list: rclpy cannot type
+    ``[]`` itself); return its value."""
+    desc = ParameterDescriptor(description=description, read_only=True, type=ParameterType.PARAMETER_STRING_ARRAY)
+    value = node.declare_parameter(name, Parameter.Type.STRING_ARRAY, desc).value
+    return list(value or [])
 
-    for ctor in ("preset", "from_preset"):
-        if hasattr(PipelineConfig, ctor):
-            return getattr(PipelineConfig, ctor)(name)
-    return PipelineConfig()
+
+def preset_config(name: str, overrides: Sequence[str] = ()) -> Any:
+    """The pipeline's named preset (``default``, ``paper``, ``naive``) with ``overrides``, each
+    ``KEY=VALUE`` as ``hdmap bag2map --set`` takes it (the node parameter ``preset_overrides``).
+
+    Raises:
+        ConfigError: an unknown preset, or an override the config does not take (named).
+    """
+    import argparse  # noqa: PLC0415
+
+    from hdmap_core.errors import ConfigError  # noqa: PLC0415
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    from hdmap_ros.commands.bag2map import parse_override  # noqa: PLC0415
+
+    changes = {}
+    for item in overrides:
+        try:
+            key, value = parse_override(item)
+        except argparse.ArgumentTypeError as err:
+            raise ConfigError(f"preset_overrides: {err}") from None
+        changes[key] = value
+    try:
+        return PipelineConfig.preset(name).with_overrides(changes)
+    except ConfigError as err:
+        raise ConfigError(f"preset_overrides: {err}" if changes else str(err)) from err
 
 
 class HealthMixin:
@@ -106,7 +132,11 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     rclpy.init(args=with_default_params(args))
     node = None
     try:
-        node = factory()
+        try:
+            node = factory()
+        except HdmapError as err:  # a parameter the node cannot work with: named, no traceback
+            print(f"hdmap {getattr(factory, '__name__', 'node')}: error: {err}", file=sys.stderr)
+            raise SystemExit(2) from None
         # Two threads: a node's receiving callbacks (own callback group) stay responsive while its
         # worker callback maps or stitches; callbacks of one group never run concurrently.
         rclpy.spin(node, executor=MultiThreadedExecutor(num_threads=2))
