@@ -10,7 +10,14 @@ import pytest
 from hdmap_core.aggregation import ProcessedStore
 from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
-from hdmap_core.pipeline import PipelineConfig, build_map, map_segments, map_stretches, prepare_drives
+from hdmap_core.pipeline import (
+    PipelineConfig,
+    build_map,
+    map_segments,
+    map_stretches,
+    parse_override,
+    prepare_drives,
+)
 from hdmap_core.steps import Segment
 from pipeline_fleet import LINES, RADIUS_M, make_drive, make_fleet
 
@@ -63,6 +70,16 @@ def test_with_overrides_sets_dotted_fields_and_names_a_wrong_one():
         base.with_overrides({"stitching.track_rejoin_m": "far"})
     with pytest.raises(ConfigError, match="observation_stride"):  # PipelineConfig's own check
         base.with_overrides({"observation_stride": 0})
+
+
+def test_parse_override_reads_json_values_else_strings():
+    assert parse_override("stitching.track_rejoin_m=0.5") == ("stitching.track_rejoin_m", 0.5)
+    assert parse_override(" a.b = true") == ("a.b", True)
+    assert parse_override("alignment.clustering=auto") == ("alignment.clustering", "auto")
+    assert parse_override("a.b=[1, 2]") == ("a.b", [1, 2])
+    for bad in ("a.b", "=1", " =1"):
+        with pytest.raises(ConfigError, match="is not KEY=VALUE"):
+            parse_override(bad)
 
 
 @pytest.mark.parametrize("preset", ["paper", "default", "naive"])

@@ -105,7 +105,9 @@ def install_fake_pipeline(monkeypatch, build_map) -> None:
         def with_overrides(self, overrides: dict) -> PipelineConfig:
             return PipelineConfig(self.name + ("+" if overrides else ""), tuple(overrides.items()))
 
+    from hdmap_core.pipeline import parse_override  # noqa: PLC0415 - the real text format of --set
+
     mod = types.ModuleType("hdmap_core.pipeline")
-    mod.PipelineConfig, mod.build_map = PipelineConfig, build_map
+    mod.PipelineConfig, mod.build_map, mod.parse_override = PipelineConfig, build_map, parse_override
     monkeypatch.setitem(sys.modules, "hdmap_core.pipeline", mod)
     monkeypatch.setattr(hdmap_core, "pipeline", mod, raising=False)

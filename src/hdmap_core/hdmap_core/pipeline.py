@@ -18,6 +18,7 @@ Presets (``PipelineConfig.preset``):
 from __future__ import annotations
 
 import contextlib
+import json
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, is_dataclass, replace
@@ -311,6 +312,23 @@ class PipelineConfig:
         if overrides and not config.name.endswith("+"):
             config = replace(config, name=f"{config.name}+")
         return config
+
+
+def parse_override(text: str) -> tuple[str, object]:
+    """One ``KEY=VALUE`` change as ``bag2map --set`` and the nodes' ``preset_overrides`` take it:
+    the dotted key and the value as JSON (numbers, true/false, null, lists), else as the string
+    itself (``alignment.clustering=auto``). Whether it fits is :meth:`PipelineConfig.with_overrides`' check.
+
+    Raises:
+        ConfigError: no ``=``, or nothing before it.
+    """
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(f"{text!r} is not KEY=VALUE")
+    try:
+        return key.strip(), json.loads(raw)
+    except json.JSONDecodeError:
+        return key.strip(), raw
 
 
 def _override(config: object, key: str, value: object, full: str) -> object:

@@ -23,7 +23,7 @@ from hdmap_core.model import GeoOrigin, HDMap
 from hdmap_ros.bagio import FleetBag, read_fleet_bag, write_map_bag
 from hdmap_ros.geojson import write_geojson
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "parse_override"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg"]
 
 NAME = "bag2map"
 HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--set",
         metavar="KEY=VALUE",
         action="append",
-        type=parse_override,
+        type=override_arg,
         default=[],
         dest="overrides",
         help="change one parameter of the preset (repeatable), dotted into PipelineConfig, the value as "
@@ -75,17 +75,14 @@ def _parse_origin(text: str) -> GeoOrigin:
     return GeoOrigin(*values)
 
 
-def parse_override(text: str) -> tuple[str, object]:
-    """``KEY=VALUE`` of ``--set``: the dotted key and the value as JSON (numbers, true/false, null,
-    lists), else as the string itself (``clustering=auto``). Whether the key and value fit the
-    config is ``PipelineConfig.with_overrides``' check."""
-    key, sep, raw = text.partition("=")
-    if not sep or not key.strip():
-        raise argparse.ArgumentTypeError(f"{text!r} is not KEY=VALUE")
+def override_arg(text: str) -> tuple[str, object]:
+    """argparse type of ``--set KEY=VALUE``: ``pipeline.parse_override``, a malformed item a usage error."""
+    from hdmap_core.pipeline import parse_override  # noqa: PLC0415 - heavy; --help stays fast
+
     try:
-        return key.strip(), json.loads(raw)
-    except json.JSONDecodeError:
-        return key.strip(), raw
+        return parse_override(text)
+    except ConfigError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _parse_workers(text: str) -> int:

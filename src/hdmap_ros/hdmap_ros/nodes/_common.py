@@ -15,7 +15,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from hdmap_core.errors import HdmapError
+from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_ros import qos
 from hdmap_ros.diagnostics import Health, health_to_msg
 
@@ -93,23 +93,13 @@ def preset_config(name: str, overrides: Sequence[str] = ()) -> Any:
     Raises:
         ConfigError: an unknown preset, or an override the config does not take (named).
     """
-    import argparse  # noqa: PLC0415
+    from hdmap_core.pipeline import PipelineConfig, parse_override  # noqa: PLC0415
 
-    from hdmap_core.errors import ConfigError  # noqa: PLC0415
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
-    from hdmap_ros.commands.bag2map import parse_override  # noqa: PLC0415
-
-    changes = {}
-    for item in overrides:
-        try:
-            key, value = parse_override(item)
-        except argparse.ArgumentTypeError as err:
-            raise ConfigError(f"preset_overrides: {err}") from None
-        changes[key] = value
     try:
+        changes = dict(parse_override(item) for item in overrides)
         return PipelineConfig.preset(name).with_overrides(changes)
     except ConfigError as err:
-        raise ConfigError(f"preset_overrides: {err}" if changes else str(err)) from err
+        raise ConfigError(f"preset_overrides: {err}" if overrides else str(err)) from err
 
 
 class HealthMixin:
