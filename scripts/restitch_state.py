@@ -6,7 +6,8 @@ holds the latest segments of every tile; the map_stitcher makes the map from the
 each tile's segments (``incremental.connect_tile``) and stitching all the graphs
 (``incremental.stitch_graphs``). This script does the same in one process, with the preset and
 ``--set`` changes of ``hdmap bag2map``. The default preset reproduces the live map
-(docs/graph.md "Side steps": carla_town04_100_s2, 82/87 long links in both). With ``--gt`` it
+(docs/graph.md "Side steps": carla_town04_100_s2's live run on e6b3f41 and its stored tiles
+re-stitched, 83/87 long links in both). With ``--gt`` it
 scores the map and lists the false long topology links, so a rule can be tried on the live
 map's own tiles in seconds instead of a replay of minutes.
 
