@@ -19,7 +19,10 @@ from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_ros import qos
 from hdmap_ros.diagnostics import Health, health_to_msg
 
-__all__ = ["declare", "declare_strings", "params_file", "with_default_params", "run_node", "HealthMixin", "preset_config"]
+__all__ = [
+    "declare", "declare_strings", "declare_pipeline_config", "params_file", "with_default_params", "run_node",
+    "HealthMixin", "preset_config",
+]
 
 PACKAGE = "hdmap_ros"
 # src/hdmap_ros/hdmap_ros/nodes/_common.py -> src/hdmap_ros/config/hdmap.yaml
@@ -84,6 +87,17 @@ def declare_strings(node: Node, name: str, description: str) -> list[str]:
     desc = ParameterDescriptor(description=description, read_only=True, type=ParameterType.PARAMETER_STRING_ARRAY)
     value = node.declare_parameter(name, Parameter.Type.STRING_ARRAY, desc).value
     return list(value or [])
+
+
+def declare_pipeline_config(node: Node) -> Any:
+    """Declare the ``preset`` and ``preset_overrides`` parameters (the mapper's and the
+    stitcher's must match) and return the pipeline config they name (:func:`preset_config`)."""
+    preset = declare(node, "preset", "default", "Pipeline preset: default, paper or naive.")
+    overrides = declare_strings(
+        node, "preset_overrides",
+        "KEY=VALUE changes of preset parameters, as `hdmap bag2map --set` (the mapper's and the stitcher's must match).",
+    )
+    return preset_config(preset, overrides)
 
 
 def preset_config(name: str, overrides: Sequence[str] = ()) -> Any:

@@ -26,7 +26,7 @@ from hdmap_core.errors import HdmapError
 from hdmap_core.incremental import TileKey, carry_over_ids, connect_tile, stitch_graphs
 from hdmap_ros import qos
 from hdmap_ros.convert import map_to_msg, rclpy_types
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_strings, preset_config, run_node
+from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
 from hdmap_ros.nodes.tile_msgs import msg_to_tile, rclpy_tile_types
 from hdmap_ros.store import MapStore, blob_to_segments, segments_to_blob
 
@@ -42,11 +42,7 @@ class MapStitcher(HealthMixin, Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("map_stitcher", **kwargs)
         db = declare(self, "db_path", "~/.ros/hdmap/map_stitcher.db", "SQLite file of the map store.")
-        preset = declare(self, "preset", "default", "Pipeline preset: default, paper or naive.")
-        overrides = declare_strings(
-            self, "preset_overrides",
-            "KEY=VALUE changes of preset parameters, as `hdmap bag2map --set` (the mapper's and the stitcher's must match).",
-        )
+        pipeline_config = declare_pipeline_config(self)  # a bad preset or override fails here, named
         self.debounce_s = declare(
             self, "debounce_s", 1.0, "Rebuild the map after this long without a new tile estimate [s].", lo=0.0, hi=600.0
         )
@@ -64,7 +60,7 @@ class MapStitcher(HealthMixin, Node):
             self, "segments_history_depth", 1000, "History depth of /hdmap/segments (match the mapper).", lo=1, hi=100000
         )
         self._init_health("map_stitcher")
-        self.pipeline_config = preset_config(preset, overrides)
+        self.pipeline_config = pipeline_config
         self.store = MapStore(os.path.expanduser(db))
         self.health.set("tile_versions", self.store.version_total())
         self._types = rclpy_types()

@@ -55,7 +55,7 @@ from hdmap_core.incremental import (
 from hdmap_core.model import validate_drive
 from hdmap_ros import qos
 from hdmap_ros.convert import msg_to_drive, rclpy_types
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_strings, preset_config, run_node
+from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
 from hdmap_ros.nodes.tile_msgs import rclpy_tile_types, tile_to_msg
 from hdmap_ros.store import DriveStore, TileEstimate
 
@@ -72,11 +72,7 @@ class SegmentMapper(HealthMixin, Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("segment_mapper", **kwargs)
         db = declare(self, "db_path", "~/.ros/hdmap/segment_mapper.db", "SQLite file of the drive store.")
-        preset = declare(self, "preset", "default", "Pipeline preset: default, paper or naive.")
-        overrides = declare_strings(
-            self, "preset_overrides",
-            "KEY=VALUE changes of preset parameters, as `hdmap bag2map --set` (the mapper's and the stitcher's must match).",
-        )
+        pipeline_config = declare_pipeline_config(self)  # a bad preset or override fails here, named
         self.tile_config = TileConfig(
             tile_size_m=declare(self, "tile_size_m", 256.0, "Edge of a map tile [m].", lo=32.0, hi=4096.0),
             margin_m=declare(
@@ -113,7 +109,7 @@ class SegmentMapper(HealthMixin, Node):
         self._init_health("segment_mapper")
         self.health.backlog_warn = 200
 
-        self.pipeline_config = preset_config(preset, overrides)
+        self.pipeline_config = pipeline_config
         self.store = DriveStore(os.path.expanduser(db))
         self._check_tiling()
         self._types = rclpy_types()
