@@ -284,3 +284,24 @@ def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
         assert PipelineConfig.preset(name).final_sampling is None
     with pytest.raises(ConfigError, match="final_sampling"):
         dataclasses.replace(default, final_sampling=dataclasses.replace(default.sampling, step_m=4.0))
+
+
+def test_steps_off_their_pivots_road_are_not_aligned():
+    """``SamplingConfig.max_pivot_outside_m`` (default preset, both passes): a step whose pivot
+    lies beyond its refined cut is rejected, not aligned. Two drives that see only a border and
+    a line 16.5-20 m to their left (a junction's far side): the one-sided cut lies 12.5 m left of
+    the pivot, the lines are mapped without the check and not with it."""
+    B, D = FeatureType.ROAD_BORDER, FeatureType.DASHED
+    far = [make_drive(k, lane=0.0, bias=0.0, lines=((20.0, B), (16.5, D))) for k in "ab"]
+    default = PipelineConfig.preset("default")
+    assert default.sampling.max_pivot_outside_m == 2.0 and default.final_sampling.max_pivot_outside_m == 2.0
+    off = default.with_overrides({"sampling.max_pivot_outside_m": float("inf"), "final_sampling.max_pivot_outside_m": float("inf")})
+
+    def valid_steps(config: PipelineConfig) -> int:
+        res = map_stretches(far, config=config, seed=0)
+        return sum(st.valid for seg in res.segments for st in seg.steps)
+
+    assert valid_steps(off) > 100
+    assert valid_steps(default) == 0
+    for name in ("paper", "naive"):  # the paper's reading: no check
+        assert PipelineConfig.preset(name).sampling.max_pivot_outside_m == float("inf")

@@ -185,3 +185,24 @@ def test_far_border_one_drive_saw_kept_with_outer_border_reach():
     first = sample_pivot(idx4, a, config=SamplingConfig(open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True))
     lat4 = first.lateral_m[first.ptr[q] : first.ptr[q + 1]] + (first.midpoint[q] - centre[0]) @ n
     assert not np.any(np.isclose(lat4, 8.0, atol=0.3)) and np.sum(np.isclose(lat4, 4.0, atol=0.3)) == 2
+
+
+def test_pivot_beyond_its_one_sided_cut_is_off_cut():
+    """carla_town06_30_s1, a junction: the only supported border is one 20 m to the left of the
+    pivot, the right side has none, so the one-sided midpoint (border minus half the default
+    width) puts the cut 12.5 m left of the pivot, which lies 4.5 m beyond its right end. With
+    ``max_pivot_outside_m`` such a step is off its pivot's road; a road bordered on both sides
+    (the pivot inside its cut) never is."""
+    B, D = FeatureType.ROAD_BORDER, FeatureType.DASHED
+    far = [make_drive(k, lane=0.0, bias=0.0, lines=((20.0, B), (16.5, D))) for k in "ab"]
+    ps = sample_pivot(preprocess(far), far[0], config=SamplingConfig(spread_factor=0.0, margin_m=0.5))
+    q = ps.n_steps // 2
+    centre, h = offset_line(np.array([ps.s_m[q]]), 0.0)
+    mid = (ps.midpoint[q] - centre[0]) @ np.array([-np.sin(h[0]), np.cos(h[0])])
+    assert mid == pytest.approx(20.5 - 8.0, abs=0.05) and ps.width_m[q] == pytest.approx(16.0)
+    assert not ps.off_cut.any()  # the paper's reading: no check
+    checked = sample_pivot(preprocess(far), far[0], config=SamplingConfig(spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=2.0))
+    assert checked.off_cut[q] and checked.off_cut.mean() > 0.9
+    assert not sample_pivot(preprocess(far), far[0], config=SamplingConfig(spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=5.0)).off_cut.any()
+    both = [make_drive(k, lane=3.5, bias=0.0) for k in "ab"]  # borders at +-6.5, pivot in the left lane
+    assert not sample_pivot(preprocess(both), both[0], config=SamplingConfig(max_pivot_outside_m=0.0)).off_cut.any()

@@ -184,7 +184,9 @@ class PipelineConfig:
             from hdmap_core.connection import ConnectionConfig  # noqa: PLC0415 (stage modules, loaded on use)
             from hdmap_core.stitching import StitchConfig  # noqa: PLC0415
 
-            sampling = SamplingConfig(min_border_support_fraction=0.05, open_side_gap_m=4.0)
+            # a step whose pivot lies over 2 m beyond its smoothed cut is on no road the cut
+            # describes (junctions: docs/pipeline.md, "Steps off their pivot's road")
+            sampling = SamplingConfig(min_border_support_fraction=0.05, open_side_gap_m=4.0, max_pivot_outside_m=2.0)
             return cls(
                 sampling=sampling,
                 alignment=fast,
@@ -650,6 +652,8 @@ def _run_pivot(
     mem_s: list[np.ndarray] = []
     mem_o: list[np.ndarray] = []
     todo = np.flatnonzero(~ps.skipped)
+    if ps.off_cut is not None:
+        todo = todo[~ps.off_cut[todo]]  # RULE: the pivot is not on the road its cut describes
     if stride > 1:
         todo = todo[todo % stride == 0]
     # Without offset estimation the steps are independent: all of them clustered and scored at

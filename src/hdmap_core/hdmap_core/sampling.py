@@ -13,6 +13,7 @@ samples.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -68,6 +69,11 @@ class SamplingConfig:
             margins of the samples in ``border_window_m`` from there; 0 (the paper): such a side
             follows the smoothed width of earlier steps, else ``default_width_m`` [m].
         min_width_m, max_width_m: clamp of the refined cut length [m].
+        max_pivot_outside_m: a step whose pivot point lies more than this beyond its refined
+            (smoothed) cut, i.e. |midpoint offset| > width / 2 + this, is off its ego road
+            (``PivotSamples.off_cut``) and is not aligned: the refinement ran to another road's
+            borders (at a junction the smoothed midpoint lags a jump of the raw one; the
+            pivot drove on another road than the cut describes). inf (the paper): no check [m].
     """
 
     step_m: float = 2.0
@@ -86,6 +92,7 @@ class SamplingConfig:
     open_side_gap_m: float = 0.0
     min_width_m: float = 3.0
     max_width_m: float = 40.0
+    max_pivot_outside_m: float = math.inf
 
     def __post_init__(self) -> None:
         for name in ("step_m", "initial_half_length_m", "max_heading_diff_deg", "default_width_m", "min_width_m"):
@@ -93,6 +100,8 @@ class SamplingConfig:
                 raise ConfigError(f"SamplingConfig.{name} must be > 0, got {getattr(self, name)!r}")
         if not (self.open_side_gap_m >= 0 and np.isfinite(self.open_side_gap_m)):
             raise ConfigError(f"SamplingConfig.open_side_gap_m must be finite and >= 0, got {self.open_side_gap_m!r}")
+        if not self.max_pivot_outside_m >= 0:
+            raise ConfigError(f"SamplingConfig.max_pivot_outside_m must be >= 0, got {self.max_pivot_outside_m!r}")
         if self.max_width_m < self.min_width_m:
             raise ConfigError("SamplingConfig.max_width_m must be >= min_width_m")
         if not 0 < self.width_decay <= 1:
@@ -117,6 +126,8 @@ class PivotSamples:
         types: (M,) FeatureType codes.
         drive: (M,) drive index (``DetectionIndex.drive_ids``).
         drive_s_m: (M,) travelled distance of the sampled drive at the sample [m].
+        off_cut: (Q,) True where the pivot point lies beyond the refined cut by more than
+            ``SamplingConfig.max_pivot_outside_m`` (the step is not on the pivot's road).
     """
 
     s_m: np.ndarray
@@ -130,6 +141,7 @@ class PivotSamples:
     types: np.ndarray
     drive: np.ndarray
     drive_s_m: np.ndarray
+    off_cut: np.ndarray | None = None
 
     @property
     def n_steps(self) -> int:
@@ -412,4 +424,5 @@ def sample_pivot(
         types=types,
         drive=drv,
         drive_s_m=ds,
+        off_cut=np.abs(mid) > 0.5 * width + config.max_pivot_outside_m,
     )
