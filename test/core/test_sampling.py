@@ -206,3 +206,25 @@ def test_pivot_beyond_its_one_sided_cut_is_off_cut():
     assert not sample_pivot(preprocess(far), far[0], config=SamplingConfig(spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=5.0)).off_cut.any()
     both = [make_drive(k, lane=3.5, bias=0.0) for k in "ab"]  # borders at +-6.5, pivot in the left lane
     assert not sample_pivot(preprocess(both), both[0], config=SamplingConfig(max_pivot_outside_m=0.0)).off_cut.any()
+
+
+def test_pivot_pose_is_corrected_like_its_samples():
+    """``PivotSamples.pose``: the pivot point moved along the cut by the offset the ``shift``
+    gives the pivot drive at its own travelled distance (the samples get the same); without a
+    shift it is the point itself."""
+    pivot = make_drive("p", lane=0.0, bias=0.0, s1=100.0)
+    other = make_drive("o", lane=3.5, bias=0.0, s1=100.0)
+    idx = preprocess([other, pivot])  # the pivot is drive 1
+    cfg = SamplingConfig(min_border_support=1)
+    plain = sample_pivot(idx, pivot, config=cfg)
+    np.testing.assert_array_equal(plain.pose, plain.point)
+    calls = []
+
+    def shift(drive, s_m):
+        calls.append(drive.copy())
+        return np.where(drive == 1, 0.7 + 0.001 * s_m, -0.2)
+
+    moved = sample_pivot(idx, pivot, config=cfg, shift=shift)
+    normal = np.stack([-np.sin(moved.heading), np.cos(moved.heading)], axis=1)
+    np.testing.assert_allclose(moved.pose, moved.point + (0.7 + 0.001 * moved.s_m)[:, None] * normal)
+    assert any(np.all(c == 1) and len(c) == moved.n_steps for c in calls)

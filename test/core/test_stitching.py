@@ -1518,6 +1518,45 @@ def test_track_of_a_pivot_is_followed_across_live_tiles():
     assert y == 10.0 and 20.0 <= x <= 24.0
 
 
+
+def _junction_thrown_west() -> tuple[list, Segment]:
+    """``_junction(turn=True)`` where the failed turn's cut midpoints were refined onto a road r
+    10 m west of the pivot, which runs south from y 20 (a road the pivot never drove on): each
+    step keeps the pivot's own position on the turn as its ``pose``."""
+    steps = [dataclasses.replace(st, pose=st.midpoint) for st in _junction_turn_split()[0]]
+    for k, t in enumerate(math.pi + 0.1 * np.arange(1, 16), start=1):
+        pose = np.array([20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)])
+        st = _pose_step("p", 35 + k, (-10.0, pose[1]), t + math.pi / 2, valid=False)
+        steps.append(dataclasses.replace(st, pose=pose))
+    steps += [dataclasses.replace(_pose_step("p", i, xy, 0.0, processed_before=True), pose=np.asarray(xy, float))
+              for i, xy in ((51, (22.0, 10.0)), (70, (60.0, 10.0)))]
+    r = Segment("r", tuple(_pose_step("r", i, (-10.0, 20.0 - 2.0 * i), -math.pi / 2) for i in range(30)))
+    return steps, r
+
+
+def test_track_pose_follows_where_the_pivot_drove_not_its_failed_midpoints():
+    """With ``track_pose`` (default preset) the track search follows the pivot's own positions:
+    p's end links to q, where it turned. On its failed steps' midpoints (the plain default) it
+    lands on r, 10 m west, where the midpoints were thrown; steps without poses (stored before)
+    keep the midpoints."""
+    steps, r = _junction_thrown_west()
+    _, q = _junction(turn=True)
+    p = connect_segment(Segment("p", tuple(steps)))
+    assert len(p.track_pose) == len(p.track_step) and np.allclose(p.track_pose[-1], [60.0, 10.0])
+    graphs = [p, q, connect_segment(r)]
+    end = [0.0, 30.0]
+    base = StitchConfig(track_search_m=60.0)
+    assert _successor_positions(stitch(graphs, config=StitchConfig()), end) == []  # 14 m: no ordinary partner
+    ((x, y),) = _successor_positions(stitch(graphs, config=base), end)
+    assert x == -10.0  # on r: where the midpoints went
+    ((x, y),) = _successor_positions(stitch(graphs, config=dataclasses.replace(base, track_pose=True)), end)
+    assert y == 10.0 and 20.0 <= x <= 24.0
+    assert DEFAULT.track_pose and not StitchConfig().track_pose and not StitchConfig.paper().track_pose
+    no_pose = connect_segment(Segment("p", tuple(dataclasses.replace(st, pose=None) for st in steps)))
+    assert len(no_pose.track_pose) == 0
+    ((x, y),) = _successor_positions(stitch([no_pose, q, connect_segment(r)], config=dataclasses.replace(base, track_pose=True)), end)
+    assert x == -10.0
+
 def _stub_road(others_on: bool):
     """One pivot: solid -3.5 and border 7 m (through x 0..98 if ``others_on``, else up to x 58),
     a dashed line at 0 m up to x 58, another at 3.5 m up to x 40, and two steps of a dashed line

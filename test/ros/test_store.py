@@ -66,6 +66,8 @@ def _segments():
             std_m=np.full(k, 0.07), drive_ids=tuple(f"x{j}" for j in range(i + 1)),
             # negative evidence: judged with two intervals, not judged, judged with none
             empty_m=[np.array([[-3.25, -1.0], [4.5, 6.0]]), None, np.zeros((0, 2))][i],
+            # the pivot's own position: known, not known (stored before poses were kept), known
+            pose=[np.array([0.25, 3.0]), None, np.array([4.0, -0.5])][i],
         )
 
     return [Segment("p1", tuple(step("p1", i, k) for i, k in enumerate([3, 0, 5]))), Segment("p2", ())]
@@ -85,6 +87,9 @@ def test_segments_blob_round_trip_is_exact():
         assert (a.empty_m is None) == (b.empty_m is None)
         if a.empty_m is not None:
             np.testing.assert_array_equal(a.empty_m, b.empty_m)
+        assert (a.pose is None) == (b.pose is None)
+        if a.pose is not None:
+            np.testing.assert_array_equal(a.pose, b.pose)
     assert back[0].steps[0].empty_m.shape == (2, 2)
     assert blob_to_segments(segments_to_blob([])) == []
 

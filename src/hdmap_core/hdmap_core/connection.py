@@ -866,6 +866,8 @@ def _finish(
         track_step=np.array([int(st.index) for st in track], dtype=np.int64),
         track_s=np.array([float(st.s_m) for st in track]),
         track_xy=np.array([np.asarray(st.midpoint, dtype=float) for st in track]).reshape(-1, 2),
+        track_pose=(np.array([np.asarray(st.pose, dtype=float) for st in track]).reshape(-1, 2)
+                    if all(st.pose is not None for st in track) else np.zeros((0, 2))),
         track_heading=np.array([float(st.heading) for st in track]),
         track_judged=np.array([e is not None for e in empties], dtype=bool),
         track_empty_start=np.concatenate([[0], np.cumsum([0 if e is None else len(e) for e in empties])]).astype(np.int64),

@@ -252,6 +252,9 @@ class PipelineConfig:
                     # ... also from a road whose cross-section the track's first point after a gap
                     # misses by up to 2 m (docs/graph.md, "The exit missed on carla_town04_50_s1")
                     track_bridge_leave_margin_m=2.0,
+                    # tracks are the pivot's own corrected positions, not its steps' cut midpoints,
+                    # which fly off onto other roads where steps fail (docs/graph.md, "Tracks of poses")
+                    track_pose=True,
                     # fills through stretches the drives saw empty are dropped (the profiles come
                     # from ``evidence`` above; docs/pipeline.md, "Negative evidence")
                     fill_evidence=EvidenceConfig(min_expected=2.0),
@@ -568,6 +571,7 @@ def _step(
         std_m=std_m,
         drive_ids=drive_ids,
         empty_m=empty,
+        pose=(ps.point if ps.pose is None else ps.pose)[q],
     )
 
 

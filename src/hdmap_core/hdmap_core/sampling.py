@@ -128,6 +128,9 @@ class PivotSamples:
         drive_s_m: (M,) travelled distance of the sampled drive at the sample [m].
         off_cut: (Q,) True where the pivot point lies beyond the refined cut by more than
             ``SamplingConfig.max_pivot_outside_m`` (the step is not on the pivot's road).
+        pose: (Q, 2) the pivot point corrected like its samples (``shift`` of ``sample_pivot``:
+            the offset model at the pivot's own travelled distance, along the cut) [m]; None:
+            ``point``.
     """
 
     s_m: np.ndarray
@@ -142,6 +145,7 @@ class PivotSamples:
     drive: np.ndarray
     drive_s_m: np.ndarray
     off_cut: np.ndarray | None = None
+    pose: np.ndarray | None = None
 
     @property
     def n_steps(self) -> int:
@@ -403,6 +407,10 @@ def sample_pivot(
     if shift is not None and len(t):
         t = t + np.asarray(shift(drv, ds), dtype=float)
     mid, width, lo, hi = _refine(q, t, types, n, config=config, drive=drv)
+    pose = pts
+    if shift is not None and n and pivot.drive_id in index.drive_ids:
+        k = index.drive_ids.index(pivot.drive_id)
+        pose = pts + np.asarray(shift(np.full(n, k, dtype=np.int64), s), dtype=float)[:, None] * normal
     lat = t - mid[q]
     keep = np.abs(lat) <= 0.5 * width[q]
     if config.outer_border_reach:
@@ -425,4 +433,5 @@ def sample_pivot(
         drive=drv,
         drive_s_m=ds,
         off_cut=np.abs(mid) > 0.5 * width + config.max_pivot_outside_m,
+        pose=pose,
     )

@@ -78,6 +78,8 @@ class SegmentGraph:
             order of the pivot's track over all its graphs (empty: not known, step order).
         track_xy: (S, 2) the steps' cut-line midpoints [m].
         track_heading: (S,) the steps' ENU yaw [rad].
+        track_pose: (S, 2) the pivot's own position at each track step (``StepResult.pose``)
+            [m]; empty when a step has none (stored before poses were kept).
         track_judged: (S,) bool, the step carries a negative-evidence profile (``StepResult.empty_m``).
         track_empty_start: (S + 1,) offsets into ``track_empty``.
         track_empty: (M, 2) the steps' empty intervals [lo, hi] along their cuts, from the
@@ -109,6 +111,7 @@ class SegmentGraph:
     track_step: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), compare=False)
     track_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), compare=False)
     track_heading: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False)
+    track_pose: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), compare=False)
     track_judged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool), compare=False)
     track_empty_start: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64), compare=False)
     track_empty: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), compare=False)

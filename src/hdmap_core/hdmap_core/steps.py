@@ -52,6 +52,9 @@ class StepResult:
         empty_m: (M, 2) intervals [lo, hi] along the cut, from the midpoint (+ = left) [m], where
             the drives that passed saw nothing though a line there would have been detected
             (``hdmap_core.evidence``); None: not judged (no profile made for this step).
+        pose: (2,) the pivot's own trajectory point at this step, corrected like its samples
+            (``PivotSamples.pose``) [m]: where it drove, while a rejected step's midpoint may lie
+            on another road; None: not known.
     """
 
     pivot_id: str
@@ -68,6 +71,7 @@ class StepResult:
     std_m: np.ndarray
     drive_ids: tuple[str, ...] = ()
     empty_m: np.ndarray | None = None
+    pose: np.ndarray | None = None
 
     def points(self) -> np.ndarray:
         """(K, 2) world points of the maxima [m]."""

@@ -576,7 +576,9 @@ class MapGraph(LooseEnds):
         in that track. Live, one pivot's steps come in one graph per tile: the graphs' pivot ids
         are per tile (``SegmentGraph.pivot_drive`` names the drive) and their step indices count
         from each tile's clip of the drive, so the pieces are ordered by ``track_s`` (the
-        travelled distance on the whole drive); graphs without it are ordered by step."""
+        travelled distance on the whole drive); graphs without it are ordered by step. The xy
+        are the pivot's positions (``track_pose``) with ``StitchConfig.track_pose`` when every
+        piece has them, else its steps' cut midpoints (``track_xy``)."""
         parts: dict[str, list[SegmentGraph]] = {}
         for k in self.keys:
             g = self._graphs[k]
@@ -584,15 +586,18 @@ class MapGraph(LooseEnds):
                 parts.setdefault(g.pivot_drive or g.pivot_id, []).append(g)
         tracks, rows = {}, {}
         for pid, gs in parts.items():
+            # RULE track_pose: the pivot's own positions where every piece has them
+            pose = self.config.track_pose and all(len(g.track_pose) == len(g.track_step) for g in gs)
+            attr = "track_pose" if pose else "track_xy"
             if len(gs) == 1:
                 g = gs[0]
-                tracks[pid] = (g.track_xy, g.track_heading)
+                tracks[pid] = (getattr(g, attr), g.track_heading)
                 rows[g.key] = np.arange(len(g.track_step))
                 continue
             by_s = all(len(g.track_s) == len(g.track_step) for g in gs)
             order = [np.asarray(g.track_s if by_s else g.track_step, dtype=float) for g in gs]
             _, first, inverse = np.unique(np.concatenate(order), return_index=True, return_inverse=True)
-            tracks[pid] = (np.concatenate([g.track_xy for g in gs])[first],
+            tracks[pid] = (np.concatenate([getattr(g, attr) for g in gs])[first],
                            np.concatenate([g.track_heading for g in gs])[first])
             at = np.cumsum([0] + [len(o) for o in order])
             for g, a, b in zip(gs, at[:-1], at[1:]):

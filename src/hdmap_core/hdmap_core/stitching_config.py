@@ -295,6 +295,15 @@ class StitchConfig:
             Only for leaving, and only there: a bridge still ends in a node's own cross-section,
             and a walk already off a road is not cut short. 0 disables (the paper, the plain
             default) [m].
+        track_pose: the track search (``track_search_m``) and the track bridges
+            (``track_bridge_m``) follow the pivot's own positions (``SegmentGraph.track_pose``:
+            its trajectory point at each step, corrected like its samples by the offset model),
+            not its steps' cut midpoints. A rejected step's midpoint is wherever its cut was
+            refined to: at a junction, on a road the pivot never drove (carla_town04_30_s1: a
+            pivot turning right from a side road had failed midpoints on the crossing road's
+            through lanes, 8 m left of its turn, and the end was linked 18 m onto them, upstream
+            of where the turn joins; docs/graph.md "Tracks of poses"). Graphs without poses
+            (stored before) keep the midpoints. False: the midpoints (the plain default).
         fill_evidence: at export, a feature edge long enough to be filled is dropped when most of
             it runs where the drives that passed saw nothing (``hdmap_core.evidence``, from the
             segments' ``StepResult.empty_m``, made by ``PipelineConfig.evidence``; of this config
@@ -400,6 +409,7 @@ class StitchConfig:
     track_settle_deg: float = 0.0
     track_rejoin_m: float = 0.0
     track_rejoin_both: bool = False
+    track_pose: bool = False
     fill_evidence: EvidenceConfig | None = None
     path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0

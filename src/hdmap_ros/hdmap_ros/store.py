@@ -113,6 +113,8 @@ def segments_to_blob(segments: Sequence[Segment]) -> bytes:
             "index": np.array([st.index for st in steps], dtype=np.int64),
             "s_m": np.array([st.s_m for st in steps], dtype=np.float64),
             "midpoint": np.array([np.asarray(st.midpoint, dtype=np.float64) for st in steps]).reshape(-1, 2),
+            "pose": np.array([np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=np.float64).reshape(-1)[:2]
+                              for st in steps]).reshape(-1, 2),
             "heading": np.array([st.heading for st in steps], dtype=np.float64),
             "width_m": np.array([st.width_m for st in steps], dtype=np.float64),
             "valid": np.array([st.valid for st in steps], dtype=bool),
@@ -138,13 +140,14 @@ def blob_to_segments(blob: bytes) -> list[Segment]:
     lat, typ, cnt, std = (_split(a[n], k) for n in ("lateral_m", "types", "counts", "std_m"))
     judged = a["judged"] if "judged" in a else np.zeros(len(k), dtype=bool)  # blobs written before evidence
     empty = _split(a["empty_m"].reshape(-1, 2), a["n_empty"]) if "empty_m" in a else [None] * len(k)
+    pose = a["pose"] if "pose" in a else np.full((len(k), 2), np.nan)  # blobs written before poses
     steps = [
         StepResult(
             pivot_id="", index=int(a["index"][i]), s_m=float(a["s_m"][i]), midpoint=a["midpoint"][i],
             heading=float(a["heading"][i]), width_m=float(a["width_m"][i]), valid=bool(a["valid"][i]),
             processed_before=bool(a["processed_before"][i]), lateral_m=lat[i], types=typ[i],
             counts=cnt[i], std_m=std[i], drive_ids=tuple(m["drive_ids"][i]),
-            empty_m=empty[i] if judged[i] else None,
+            empty_m=empty[i] if judged[i] else None, pose=pose[i] if np.isfinite(pose[i]).all() else None,
         )
         for i in range(len(k))
     ]
