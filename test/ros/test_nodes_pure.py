@@ -86,6 +86,7 @@ def _segments():
             types=np.array([1, 2, 3, 1, 2][:k]), counts=np.arange(k) + 1, std_m=np.full(k, 0.05),
             drive_ids=("a", "b")[: i + 1],
             empty_m=[np.array([[-3.25, -1.0], [4.5, 6.0]]), None, np.zeros((0, 2))][i],
+            pose=[np.array([10.25, -4.5]), None, np.array([12.0, -1.0])][i],
         )
 
     return [Segment("piv", tuple(st(i, k) for i, k in enumerate([5, 0, 3]))), Segment("other", ())]
@@ -113,18 +114,25 @@ def test_tile_msg_round_trip_through_cdr():
         assert (a.empty_m is None) == (b.empty_m is None)
         if a.empty_m is not None:
             np.testing.assert_array_equal(a.empty_m, b.empty_m)
+        assert (a.pose is None) == (b.pose is None)
+        if a.pose is not None:
+            np.testing.assert_array_equal(a.pose, b.pose)
     assert back.segments[0].steps[0].empty_m.shape == (2, 2)
 
 
 def test_step_evidence_from_a_malformed_message_is_cut_not_fatal():
     from types import SimpleNamespace
 
-    from hdmap_ros.nodes.tile_msgs import _empty_from_msg
+    from hdmap_ros.nodes.tile_msgs import _empty_from_msg, _pose_from_msg
 
     assert _empty_from_msg(SimpleNamespace(judged=False, empty_lo_m=[1.0], empty_hi_m=[2.0])) is None
     got = _empty_from_msg(SimpleNamespace(judged=True, empty_lo_m=[1.0, 4.0], empty_hi_m=[2.0]))
     np.testing.assert_array_equal(got, [[1.0, 2.0]])
     assert _empty_from_msg(SimpleNamespace(judged=True, empty_lo_m=[], empty_hi_m=[])).shape == (0, 2)
+    # a step without the pivot's position (a message of an older node, or NaN) just has none
+    assert _pose_from_msg(SimpleNamespace()) is None
+    assert _pose_from_msg(SimpleNamespace(pose=SimpleNamespace(x=float("nan"), y=1.0))) is None
+    np.testing.assert_array_equal(_pose_from_msg(SimpleNamespace(pose=SimpleNamespace(x=2.0, y=-1.5))), [2.0, -1.5])
 
 
 def test_launch_file_compiles_and_names_every_node():

@@ -81,6 +81,8 @@ def _step_to_msg(t: TileTypes, st: StepResult) -> Any:
     empty = np.zeros((0, 2)) if st.empty_m is None else np.asarray(st.empty_m, dtype=float).reshape(-1, 2)
     kw.update(judged=st.empty_m is not None, empty_lo_m=_prim(t, empty[:, 0], np.float64),
               empty_hi_m=_prim(t, empty[:, 1], np.float64))
+    pose = np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=float).reshape(-1)[:2]
+    kw.update(pose=t.Point(x=float(pose[0]), y=float(pose[1]), z=0.0))
     return t.SegmentStep(**kw)
 
 
@@ -133,6 +135,15 @@ def _empty_from_msg(s: Any) -> np.ndarray | None:
     return np.stack([lo[:n], hi[:n]], axis=1)
 
 
+def _pose_from_msg(s: Any) -> np.ndarray | None:
+    """A SegmentStep's pivot position, None when not known (NaN, or a message without it)."""
+    p = getattr(s, "pose", None)
+    if p is None:
+        return None
+    xy = np.array([p.x, p.y], dtype=float)
+    return xy if np.isfinite(xy).all() else None
+
+
 def msg_to_tile(msg: Any) -> TileMessage:
     """hdmap_msgs/msg/TileSegments (rosbags or rclpy) -> :class:`TileMessage`."""
     segments = []
@@ -146,6 +157,7 @@ def msg_to_tile(msg: Any) -> TileMessage:
                 lateral_m=_np(s.lateral_m, np.float64), types=_np(s.types, np.int64),
                 counts=_np(s.counts, np.int64), std_m=_np(s.std_m, np.float64),
                 drive_ids=tuple(str(d) for d in s.drive_ids), empty_m=_empty_from_msg(s),
+                pose=_pose_from_msg(s),
             )
             for s in sm.steps
         )
