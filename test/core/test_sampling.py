@@ -204,6 +204,12 @@ def test_pivot_beyond_its_one_sided_cut_is_off_cut():
     checked = sample_pivot(preprocess(far), far[0], config=SamplingConfig(spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=2.0))
     assert checked.off_cut[q] and checked.off_cut.mean() > 0.9
     assert not sample_pivot(preprocess(far), far[0], config=SamplingConfig(spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=5.0)).off_cut.any()
+    # the check is made where the pivot is in the frame of its samples: an offset that moves
+    # every drive, the pivot too, 3 m to the left moves the road and the pivot together
+    for margin in (2.0, 5.0):
+        cfg = SamplingConfig(spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=margin)
+        moved = sample_pivot(preprocess(far), far[0], config=cfg, shift=lambda d, s_m: np.full(len(d), 3.0))
+        np.testing.assert_array_equal(moved.off_cut, sample_pivot(preprocess(far), far[0], config=cfg).off_cut)
     both = [make_drive(k, lane=3.5, bias=0.0) for k in "ab"]  # borders at +-6.5, pivot in the left lane
     assert not sample_pivot(preprocess(both), both[0], config=SamplingConfig(max_pivot_outside_m=0.0)).off_cut.any()
 

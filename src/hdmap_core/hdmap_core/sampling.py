@@ -69,8 +69,10 @@ class SamplingConfig:
             margins of the samples in ``border_window_m`` from there; 0 (the paper): such a side
             follows the smoothed width of earlier steps, else ``default_width_m`` [m].
         min_width_m, max_width_m: clamp of the refined cut length [m].
-        max_pivot_outside_m: a step whose pivot point lies more than this beyond its refined
-            (smoothed) cut, i.e. |midpoint offset| > width / 2 + this, is off its ego road
+        max_pivot_outside_m: a step whose pivot lies more than this beyond its refined
+            (smoothed) cut, i.e. |midpoint offset - the pivot's own offset| > width / 2 + this
+            (the pivot's position in the frame of its samples, ``PivotSamples.pose``; the raw
+            point without a ``shift``), is off its ego road
             (``PivotSamples.off_cut``) and is not aligned: the refinement ran to another road's
             borders (at a junction the smoothed midpoint lags a jump of the raw one; the
             pivot drove on another road than the cut describes). inf (the paper): no check [m].
@@ -126,7 +128,7 @@ class PivotSamples:
         types: (M,) FeatureType codes.
         drive: (M,) drive index (``DetectionIndex.drive_ids``).
         drive_s_m: (M,) travelled distance of the sampled drive at the sample [m].
-        off_cut: (Q,) True where the pivot point lies beyond the refined cut by more than
+        off_cut: (Q,) True where the pivot (``pose``) lies beyond the refined cut by more than
             ``SamplingConfig.max_pivot_outside_m`` (the step is not on the pivot's road).
         pose: (Q, 2) the pivot point corrected like its samples (``shift`` of ``sample_pivot``:
             the offset model at the pivot's own travelled distance, along the cut) [m]; None:
@@ -407,10 +409,12 @@ def sample_pivot(
     if shift is not None and len(t):
         t = t + np.asarray(shift(drv, ds), dtype=float)
     mid, width, lo, hi = _refine(q, t, types, n, config=config, drive=drv)
-    pose = pts
+    # the pivot's own position in the frame of its (shifted) samples: its offset along the cut
+    own = np.zeros(n)
     if shift is not None and n and pivot.drive_id in index.drive_ids:
         k = index.drive_ids.index(pivot.drive_id)
-        pose = pts + np.asarray(shift(np.full(n, k, dtype=np.int64), s), dtype=float)[:, None] * normal
+        own = np.asarray(shift(np.full(n, k, dtype=np.int64), s), dtype=float)
+    pose = pts + own[:, None] * normal
     lat = t - mid[q]
     keep = np.abs(lat) <= 0.5 * width[q]
     if config.outer_border_reach:
@@ -432,6 +436,6 @@ def sample_pivot(
         types=types,
         drive=drv,
         drive_s_m=ds,
-        off_cut=np.abs(mid) > 0.5 * width + config.max_pivot_outside_m,
+        off_cut=np.abs(mid - own) > 0.5 * width + config.max_pivot_outside_m,
         pose=pose,
     )
