@@ -200,8 +200,10 @@ class PipelineConfig:
                 final_alignment=final,
                 # final pass (samples corrected): a side without a first border keeps its samples
                 # up to a border only one drive saw when nothing lies beyond it (docs/pipeline.md,
-                # "Far borders one drive saw"); the first pass, which feeds the adjustment, does not
-                final_sampling=replace(sampling, outer_border_reach=True),
+                # "Far borders one drive saw"); the first pass, which feeds the adjustment, does not.
+                # There the pivot's position is corrected too: a step is off its road 1 m beyond
+                # its cut (2 m in the first pass, whose raw positions carry the drive's bias)
+                final_sampling=replace(sampling, outer_border_reach=True, max_pivot_outside_m=1.0),
                 # the first pass only feeds the adjustment (knots every 200 m): EM every 4 m
                 observation_stride=2,
                 mark_on_cut_only=True,
