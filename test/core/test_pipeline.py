@@ -325,3 +325,16 @@ def test_steps_carry_the_pivots_own_corrected_position(fleet):
         moved = [float(np.hypot(*(np.asarray(st.pose) - pivot_walk(drives[st.pivot_id], step_m=2.0)[1][st.index])))
                  for st in steps]
         assert (max(moved) > 0.05) == (preset == "default")  # the biases are 0.3-1.1 m
+
+
+def test_report_counts_the_steps_off_their_pivots_road():
+    """The build report names how many rejected steps lay off their pivot's road (the summary
+    line says so only when there are any)."""
+    B, D = FeatureType.ROAD_BORDER, FeatureType.DASHED
+    far = [make_drive(k, lane=0.0, bias=0.0, lines=((20.0, B), (16.5, D))) for k in "ab"]
+    rep = build_map(far, config=PipelineConfig.preset("default"), seed=0).report
+    assert 0 < rep.steps_off_road <= rep.steps_rejected <= rep.steps_total
+    assert f"({rep.steps_off_road} off their pivot's road)" in rep.summary()
+    road = make_fleet([0.3, -0.2, 0.1], noise_m=0.0, s1=120.0)
+    ok = build_map(road, config=PipelineConfig.preset("default"), seed=0).report
+    assert ok.steps_off_road == 0 and "off their pivot's road" not in ok.summary()

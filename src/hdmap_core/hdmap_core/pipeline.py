@@ -366,7 +366,9 @@ class BuildReport:
         rejected: (drive_id, reason) per rejected drive.
         km_mapped: pivot distance of accepted steps [km].
         steps_total: sampling steps of all pivots (incl. skipped ones).
-        steps_rejected: steps without a result (EM gate failed or no samples).
+        steps_rejected: steps without a result (EM gate failed, no samples, or off the road).
+        steps_off_road: of those, the steps whose pivot lay beyond its refined cut
+            (``SamplingConfig.max_pivot_outside_m``): not aligned.
         steps_skipped_processed: steps skipped as already processed through another pivot.
         seconds: wall time of the whole run [s].
         stage_seconds: wall time per stage [s].
@@ -378,6 +380,7 @@ class BuildReport:
     km_mapped: float = 0.0
     steps_total: int = 0
     steps_rejected: int = 0
+    steps_off_road: int = 0
     steps_skipped_processed: int = 0
     seconds: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
@@ -386,7 +389,8 @@ class BuildReport:
         """A few readable lines."""
         lines = [
             f"drives: {self.n_drives_used} used of {self.n_drives_in} ({len(self.rejected)} rejected)",
-            f"steps: {self.steps_total} total, {self.steps_rejected} rejected, "
+            f"steps: {self.steps_total} total, {self.steps_rejected} rejected"
+            + (f" ({self.steps_off_road} off their pivot's road)" if self.steps_off_road else "") + ", "
             f"{self.steps_skipped_processed} skipped (processed before); {self.km_mapped:.2f} km mapped",
             f"time: {self.seconds:.2f} s (" + ", ".join(f"{k} {v:.2f}" for k, v in self.stage_seconds.items()) + ")",
         ]
@@ -417,7 +421,8 @@ class MappingResult:
         observations: one per accepted step of the first (observation) pass; empty unless
             requested or used by the global adjustment.
         offset_model: the global offset model (None without global adjustment).
-        counters: steps_total, steps_rejected, steps_skipped_processed, steps_valid.
+        counters: steps_total, steps_rejected, steps_skipped_processed, steps_valid,
+            steps_off_road.
         stage_seconds: wall time per stage [s].
     """
 
@@ -464,6 +469,7 @@ class _Counters:
     rejected: int = 0
     skipped: int = 0
     valid: int = 0
+    off_road: int = 0
 
 
 class _OffsetMemory:
@@ -757,6 +763,8 @@ def _run_pivot(
     counters.skipped += int((status == 1).sum())
     counters.valid += int((status == 2).sum())
     counters.rejected += int((status == 0).sum())
+    if ps.off_cut is not None:
+        counters.off_road += int((ps.off_cut & ~ps.skipped).sum())
     # Processed stretches: every drive that took part in an accepted step, keyed by its own
     # travelled distance there (mean of its samples), plus the pivot itself. With ``tracks``
     # (mark_on_cut_only) only drives that were themselves on the refined cut.
@@ -850,7 +858,7 @@ def _merge_parts(
         obs = sorted((o for p in parts for o in p[2] or []), key=lambda o: pos[o.pivot_id])
     counters = _Counters()
     for p in parts:
-        for f in ("total", "rejected", "skipped", "valid"):
+        for f in ("total", "rejected", "skipped", "valid", "off_road"):
             setattr(counters, f, getattr(counters, f) + getattr(p[3], f))
     intervals = dict(store_in.intervals)
     for p in parts:
@@ -1047,6 +1055,7 @@ def _map_stretches(
             "steps_rejected": counters.rejected,
             "steps_skipped_processed": counters.skipped,
             "steps_valid": counters.valid,
+            "steps_off_road": counters.off_road,
         },
         stage_seconds=seconds,
     )
@@ -1117,6 +1126,7 @@ def build_map(
         steps_total=c["steps_total"],
         steps_rejected=c["steps_rejected"],
         steps_skipped_processed=c["steps_skipped_processed"],
+        steps_off_road=c["steps_off_road"],
         seconds=time.perf_counter() - t_start,
         stage_seconds=seconds,
     )
