@@ -875,3 +875,30 @@ def test_fresh_first_only_in_the_default_preset():
     assert PipelineConfig.preset("default").connection.fresh_first
     assert not ConnectionConfig().fresh_first and not ConnectionConfig.paper().fresh_first
     assert not getattr(PipelineConfig.preset("naive").connection, "fresh_first", False)
+
+
+def test_step_angles_on_a_tight_loop_are_judged_less_the_maxima_noise():
+    """A pivot around a loop of 13 m radius (carla_town06_30_s6's at y 148), six lines from the
+    inner border 6.5 m to the outer 6.5 m left and right, the maxima jittering 0.2 m across from
+    step to step. The inner lines' maxima of consecutive steps lie only ~1 m apart along the
+    road, so the jitter alone is ~20 deg there: judged on the raw angles most steps are rejected
+    as implausible; with ``mean_angle_slack`` (default preset) the noise (``edge_slack_m``) is
+    taken off first and the six lines run around the loop unbroken."""
+    radius, lat0 = 13.0, [-6.5, -5.25, -1.75, 1.75, 5.25, 6.5]
+    steps = []
+    for i in range(40):
+        phi = 2.0 * i / radius  # the pivot turns left about (0, radius)
+        mid = np.array([radius * math.sin(phi), radius - radius * math.cos(phi)])
+        jitter = 0.2 if i % 2 else -0.2
+        steps.append(make_step(i, [v + jitter for v in lat0], [B, S, D, D, S, B], heading=phi, midpoint=mid))
+    raw = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig())
+    assert raw.stats.rejected_angle > 10
+    slack = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig(mean_angle_slack=True))
+    assert slack.stats.rejected_angle == 0 and slack.n_topo == 40
+    assert len(slack.polylines()) == 6 and all(len(c) == 40 for c in slack.polylines())
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    assert PipelineConfig.preset("default").connection.mean_angle_slack
+    assert not ConnectionConfig.paper().mean_angle_slack
+    # a real jump is still one: all maxima 3 m sideways at one step (as above)
+    jump = [make_step(i, [-1.75 + (3.0 if i == 7 else 0.0), 1.75 + (3.0 if i == 7 else 0.0)], [S, D]) for i in range(15)]
+    assert connect_segment(Segment("p", tuple(jump)), config=ConnectionConfig(mean_angle_slack=True)).stats.rejected_angle == 1

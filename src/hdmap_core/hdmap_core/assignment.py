@@ -140,7 +140,9 @@ def assign(
             rows, cols = linear_sum_assignment(cost)
     # the plausibility of the step is judged on the assignment as solved (before edge limits)
     allowed = ~forbidden[rows, cols]
-    angles = np.degrees(np.arctan2(lat[rows, cols], np.abs(along[rows, cols]) + 1e-9))[allowed]
+    # RULE mean_angle_slack: the maxima's noise (edge_slack_m) is no angle
+    lat_a = np.maximum(lat[rows, cols] - config.edge_slack_m, 0.0) if config.mean_angle_slack else lat[rows, cols]
+    angles = np.degrees(np.arctan2(lat_a, np.abs(along[rows, cols]) + 1e-9))[allowed]
     if len(angles) == 0:
         mean_angle = 0.0
     else:

@@ -231,6 +231,9 @@ class PipelineConfig:
                     separation_count_ratio=0.5,
                     line_frame_deg=12.0,
                     line_frame_bend_deg=5.0,
+                    # a step's connection angles are judged less the maxima's noise: tight loops
+                    # (docs/pipeline.md "Connection angles on tight curves")
+                    mean_angle_slack=True,
                 ),
                 stitching=StitchConfig(
                     # junction pieces already joined to the map through one end get their other end
