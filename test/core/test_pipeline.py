@@ -69,6 +69,16 @@ def test_with_overrides_sets_dotted_fields_and_names_a_wrong_one():
         base.with_overrides({"stitching.track_rejoin_m": -1.0})
     with pytest.raises(ConfigError, match="not a valid value"):
         base.with_overrides({"stitching.track_rejoin_m": "far"})
+    # the kind of value a field takes is named (a string where a number goes used to fail inside
+    # the field's own check with a TypeError about '>=')
+    with pytest.raises(ConfigError, match=r"sampling.max_pivot_outside_m='wide': not a valid value \(a number is expected\)"):
+        base.with_overrides({"sampling.max_pivot_outside_m": "wide"})
+    with pytest.raises(ConfigError, match=r"stitching.track_pose=1: not a valid value \(true or false is expected\)"):
+        base.with_overrides({"stitching.track_pose": 1})
+    assert base.with_overrides({"sampling.max_pivot_outside_m": float("inf")}).sampling.max_pivot_outside_m == float("inf")
+    # null where the field may be off (None), whatever it holds now
+    assert base.connection.lone_line_border_gap_m == 0.8
+    assert base.with_overrides({"connection.lone_line_border_gap_m": None}).connection.lone_line_border_gap_m is None
     with pytest.raises(ConfigError, match="observation_stride"):  # PipelineConfig's own check
         base.with_overrides({"observation_stride": 0})
 
@@ -78,6 +88,9 @@ def test_parse_override_reads_json_values_else_strings():
     assert parse_override(" a.b = true") == ("a.b", True)
     assert parse_override("alignment.clustering=auto") == ("alignment.clustering", "auto")
     assert parse_override("a.b=[1, 2]") == ("a.b", [1, 2])
+    for text in ("inf", "Infinity", " INF", "+inf"):
+        assert parse_override(f"sampling.max_pivot_outside_m={text}") == ("sampling.max_pivot_outside_m", float("inf"))
+    assert parse_override("a.b=-inf") == ("a.b", float("-inf"))
     for bad in ("a.b", "=1", " =1"):
         with pytest.raises(ConfigError, match="is not KEY=VALUE"):
             parse_override(bad)

@@ -326,8 +326,10 @@ class PipelineConfig:
 
 def parse_override(text: str) -> tuple[str, object]:
     """One ``KEY=VALUE`` change as ``bag2map --set`` and the nodes' ``preset_overrides`` take it:
-    the dotted key and the value as JSON (numbers, true/false, null, lists), else as the string
-    itself (``alignment.clustering=auto``). Whether it fits is :meth:`PipelineConfig.with_overrides`' check.
+    the dotted key and the value as JSON (numbers, true/false, null, lists), ``inf`` / ``-inf``
+    as floats (several limits are off at inf, e.g. ``sampling.max_pivot_outside_m=inf``), else as
+    the string itself (``alignment.clustering=auto``). Whether it fits is
+    :meth:`PipelineConfig.with_overrides`' check.
 
     Raises:
         ConfigError: no ``=``, or nothing before it.
@@ -335,6 +337,8 @@ def parse_override(text: str) -> tuple[str, object]:
     key, sep, raw = text.partition("=")
     if not sep or not key.strip():
         raise ConfigError(f"{text!r} is not KEY=VALUE")
+    if raw.strip().lower() in ("inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"):
+        return key.strip(), float(raw.strip().lower().replace("infinity", "inf"))
     try:
         return key.strip(), json.loads(raw)
     except json.JSONDecodeError:
@@ -347,6 +351,14 @@ def _override(config: object, key: str, value: object, full: str) -> object:
     if not is_dataclass(config) or head not in {f.name for f in fields(config)}:
         raise ConfigError(f"{full}: {type(config).__name__} has no field {head!r}")
     if not rest:
+        now = getattr(config, head)
+        optional = value is None and "None" in str(next(f.type for f in fields(config) if f.name == head))
+        if not optional and isinstance(now, (int, float)) and not isinstance(now, bool) and not (
+            isinstance(value, (int, float)) and not isinstance(value, bool)
+        ):
+            raise ConfigError(f"{full}={value!r}: not a valid value (a number is expected)")
+        if isinstance(now, bool) and not isinstance(value, bool):
+            raise ConfigError(f"{full}={value!r}: not a valid value (true or false is expected)")
         try:
             return replace(config, **{head: value})
         except ConfigError as err:
