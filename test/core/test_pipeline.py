@@ -308,7 +308,7 @@ def test_steps_off_their_pivots_road_are_not_aligned():
     B, D = FeatureType.ROAD_BORDER, FeatureType.DASHED
     far = [make_drive(k, lane=0.0, bias=0.0, lines=((20.0, B), (16.5, D))) for k in "ab"]
     default = PipelineConfig.preset("default")
-    assert default.sampling.max_pivot_outside_m == 2.0 and default.final_sampling.max_pivot_outside_m == 1.0
+    assert default.sampling.max_pivot_outside_m == 2.0 and default.final_sampling.max_pivot_outside_m == 2.0
     off = default.with_overrides({"sampling.max_pivot_outside_m": float("inf"), "final_sampling.max_pivot_outside_m": float("inf")})
 
     def valid_steps(config: PipelineConfig) -> int:
