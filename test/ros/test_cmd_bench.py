@@ -71,6 +71,47 @@ def test_seed_range_runs_each_seed_and_adds_the_mean_over_seeds(gt_pipeline, cap
     assert "Mean over seeds" in out_md.read_text()
 
 
+def test_set_changes_every_preset_run_and_names_the_rows(monkeypatch, tmp_path, capsys):
+    seen = []
+
+    @dataclass(frozen=True)
+    class Result:
+        map: object
+        report: object
+
+    def build_map(drives, *, config, seed=0, progress=None, workers=1):
+        seen.append(config)
+        gt = sorted(tmp_path.glob("*.gt.json"))[0]
+        return Result(hdmap_from_ground_truth(load_ground_truth(gt)), types.SimpleNamespace(stage_seconds={}))
+
+    install_fake_pipeline(monkeypatch, build_map)
+    out_json = tmp_path / "bench.json"
+    assert cli.main(["bench", "motorway:3", "--presets", "naive,default", "--inline", "--work-dir", str(tmp_path),
+                     "--set", "stitching.track_rejoin_m=0", "--set", "alignment.robust_loss=false",
+                     "--json", str(out_json)]) == 0
+    changes = (("stitching.track_rejoin_m", 0), ("alignment.robust_loss", False))
+    assert [(c.name, c.overrides) for c in seen] == [("naive+", changes), ("default+", changes)]
+    rows = json.loads(out_json.read_text())
+    assert [r["preset"] for r in rows] == ["naive+", "default+"]
+    assert rows[1]["overrides"] == {"stitching.track_rejoin_m": 0, "alignment.robust_loss": False}
+    assert "default+" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ("alignment.nope=1", "AlignmentConfig has no field 'nope'"),
+        # the final pass is off in paper and naive: the message names where it fits
+        ("final_alignment.robust_loss=false", "(preset paper); it fits default: choose the presets with --presets"),
+    ],
+)
+def test_set_that_does_not_fit_a_preset_is_named_before_anything_is_simulated(change, message, tmp_path, capsys):
+    assert cli.main(["bench", "motorway:3", "--set", change, "--work-dir", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert message in err and change.partition("=")[0] in err
+    assert not any(tmp_path.iterdir())  # no fleet was simulated
+
+
 def test_summarize_seeds_means_and_ratios_of_means():
     rows = [
         {"scenario": "m_40_s1", "preset": "default", "mean_m": 0.4, "floor_m": 0.2, "fleet_floor_m": 0.4, "coverage": 1.0},

@@ -6,6 +6,8 @@ with the simulator's default configuration (e.g. ``motorway_ramps:134``, the pap
 SEEDS is one seed, a range ``1-8`` or a list ``1,4,7``: one fleet per seed, and a second table
 with each figure's mean over the seeds (one fleet can be unlucky: its drives' errors need not
 average out, see the realized floor in docs/evaluation.md).
+``--set KEY=VALUE`` changes a parameter of every preset run (as ``hdmap bag2map --set``); those
+rows are named ``default+`` etc., and the JSON keeps the changes under ``overrides``.
 Every (scenario, preset) run happens in a fresh process, one after the other, so that wall time
 and peak memory (peak RSS of that process: imports, bag reading, map building and evaluation) are
 its own. The table has the evaluator's figures (``hdmap_core.evaluate``), the floor
@@ -28,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from hdmap_core.errors import ConfigError
+from hdmap_ros.commands.bag2map import override_arg
 
 __all__ = [
     "NAME", "HELP", "add_arguments", "run", "Scenario", "build_and_evaluate", "run_one", "format_table", "summarize_seeds",
@@ -123,6 +126,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         metavar="F",
         help="multiply the drive count of simulated scenarios (repeatable, e.g. --scale 0.25 --scale 1 --scale 4)",
+    )
+    parser.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        type=override_arg,
+        default=[],
+        dest="overrides",
+        help="change one parameter of every preset run (repeatable), as hdmap bag2map --set; "
+        "the rows are named default+ etc. (e.g. --presets default --set alignment.robust_loss=false)",
     )
     parser.add_argument("--seed", type=int, default=0, help="pipeline seed (default: %(default)s)")
     parser.add_argument("--work-dir", metavar="DIR", help="keep simulated bags here (default: a temporary dir)")
@@ -310,23 +323,55 @@ def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int 
     return fleet, result, rep, build_s, n_workers
 
 
-def run_one(scenario: Scenario, preset: str, seed: int, workers: int | None = None) -> dict[str, Any]:
-    """Read the bag, build the map with ``preset``, evaluate it; figures as a flat dict.
+def preset_config(preset: str, overrides: dict[str, Any] | None = None) -> Any:
+    """``PipelineConfig.preset(preset)`` with ``overrides`` (dotted keys) applied.
+
+    Raises:
+        ConfigError: a change that does not fit this preset, naming the key."""
+    from hdmap_core import pipeline  # noqa: PLC0415
+
+    try:
+        return pipeline.PipelineConfig.preset(preset).with_overrides(dict(overrides or {}))
+    except ConfigError as err:
+        raise ConfigError(f"--set {err}") from None
+
+
+def _check_overrides(presets: list[str], overrides: dict[str, Any]) -> None:
+    """Raise ConfigError unless ``overrides`` fit every preset in ``presets``; when they fit some,
+    the message names those, for ``--presets``."""
+    errors = {}
+    for preset in presets:
+        try:
+            preset_config(preset, overrides)
+        except ConfigError as err:
+            errors[preset] = err
+    if not errors:
+        return
+    fits = [p for p in presets if p not in errors]
+    first = next(iter(errors))
+    if fits:
+        raise ConfigError(f"{errors[first]} (preset {first}); it fits {', '.join(fits)}: choose the presets with --presets")
+    raise errors[first]
+
+
+def run_one(
+    scenario: Scenario, preset: str, seed: int, workers: int | None = None, overrides: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Read the bag, build the map with ``preset`` (changed by ``overrides``), evaluate it;
+    figures as a flat dict.
 
     ``workers``: processes for the build (None: the CPUs available). The peak RSS is this
     process's plus its largest worker's (an upper bound: pages they share count twice)."""
     import resource  # noqa: PLC0415
 
-    from hdmap_core import pipeline  # noqa: PLC0415
-
-    fleet, result, rep, build_s, n_workers = build_and_evaluate(
-        scenario, pipeline.PipelineConfig.preset(preset), seed, workers
-    )
+    config = preset_config(preset, overrides)
+    fleet, result, rep, build_s, n_workers = build_and_evaluate(scenario, config, seed, workers)
     o = rep.overall
     floor = rep.floor_mean_m
     return {
         "scenario": scenario.name,
-        "preset": preset,
+        "preset": config.name,
+        "overrides": dict(overrides or {}),
         "drives": len(fleet.drives),
         "drive_km": sum(d.length_m for d in fleet.drives) / 1000.0,
         "mean_m": o.mean_m,
@@ -408,6 +453,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--scale must be > 0")
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    overrides = dict(args.overrides)
+    _check_overrides(presets, overrides)  # before anything is simulated
     with tempfile.TemporaryDirectory(prefix="hdmap-bench-") as tmp:
         work_dir = Path(args.work_dir) if args.work_dir else Path(tmp)
         work_dir.mkdir(parents=True, exist_ok=True)
@@ -415,8 +462,10 @@ def run(args: argparse.Namespace) -> int:
         rows = []
         for sc in scenarios:
             for preset in presets:
-                print(f"hdmap bench: {sc.name} / {preset} ...", file=sys.stderr, flush=True)
-                rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline, workers=args.workers))
+                name = f"{preset}+" if overrides else preset
+                print(f"hdmap bench: {sc.name} / {name} ...", file=sys.stderr, flush=True)
+                rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline, workers=args.workers,
+                                          overrides=overrides))
     summary = summarize_seeds(rows)
     print(format_table(rows))
     if summary:
@@ -467,9 +516,12 @@ def _json_default(value: Any) -> Any:
     return None if isinstance(value, float) and not math.isfinite(value) else str(value)
 
 
-def _run_isolated(scenario: Scenario, preset: str, seed: int, *, inline: bool, workers: int | None = None) -> dict[str, Any]:
+def _run_isolated(
+    scenario: Scenario, preset: str, seed: int, *, inline: bool, workers: int | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     if inline:
-        return run_one(scenario, preset, seed, workers)
+        return run_one(scenario, preset, seed, workers, overrides)
     # A fresh process per run: its peak RSS and time are this run's alone.
     with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"), max_tasks_per_child=1) as pool:
-        return pool.submit(run_one, scenario, preset, seed, workers).result()
+        return pool.submit(run_one, scenario, preset, seed, workers, overrides).result()
