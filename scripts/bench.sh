@@ -24,6 +24,9 @@ fi
 # over 3 seeds each.
 "$HDMAP" bench esmini_soderleden:40:1-8 esmini_e6mini:40:1-8 \
     --work-dir "$OUT/fleets" --markdown "$OUT/seeds.md" --json "$OUT/seeds.json"
+# The esmini maps with 100 drives: every place seen by ~40-95 drives.
+"$HDMAP" bench esmini_e6mini:100:1-8 esmini_soderleden:100:1-8 --presets default,naive \
+    --work-dir "$OUT/fleets" --markdown "$OUT/esmini100.md" --json "$OUT/esmini100.json"
 "$HDMAP" bench carla_town04:100:1-3 carla_town06:100:1-3 --presets default \
     --work-dir "$OUT/fleets" --markdown "$OUT/carla100.md" --json "$OUT/carla100.json"
 "$HDMAP" bench carla_town04:30:1-3 carla_town06:30:1-3 --presets default,naive \

@@ -457,6 +457,38 @@ def test_lone_edge_line_beside_the_border():
     assert lines(1.0, tight) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
 
 
+def test_lone_edge_line_needs_its_border_on_the_outer_side():
+    """esmini_soderleden_100_s4: 97 drives; the lane line at 0 (84 drives) has a two-drive copy
+    typed as border at -0.1, and one drive reports a dashed line at -2.35, 1.15 m inside the
+    right border. Taking the copy as a border neighbour (2.25 m >= 0.8) made that line a lone
+    edge line; with lone_line_border_outer the border counts only outward (below -2.35 here), and
+    the copy inward is an ordinary neighbour, 2.25 m < 3 m: the false line is dropped. The true
+    edge line of test_lone_edge_line_beside_the_border, its border outward, is kept either way."""
+    def st(i, lat, typ, cnt, n=97):
+        s = make_step(i, lat, typ, counts=cnt)
+        return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(n))})
+
+    def lines(steps, cfg):
+        g = connect_segment(Segment("p", tuple(steps)), config=cfg)
+        return sorted(round(float(np.median(g.node_xy[c][:, 1])), 2) for c in g.polylines())
+
+    loose = ConnectionConfig(min_support_share=0.25, support_window_m=4.0, lone_line_gap_m=3.0, lone_line_border_gap_m=0.8)
+    outer = dataclasses.replace(loose, lone_line_border_outer=True)
+    copy = [st(i, [-3.5, -2.35, -0.1, 0.0, 3.5], [B, D, B, D, B], [68, 1, 2, 84, 57]) for i in range(30)]
+    assert lines(copy, loose) == [-3.5, -2.35, 0.0, 3.5]
+    assert lines(copy, outer) == [-3.5, 0.0, 3.5]
+    # mirrored (the false line left of the midpoint, its border above it): the same
+    mirror = [st(i, [-3.5, 0.0, 0.1, 2.35, 3.5], [B, D, B, D, B], [57, 84, 2, 1, 68]) for i in range(30)]
+    assert lines(mirror, loose) == [-3.5, 0.0, 2.35, 3.5]
+    assert lines(mirror, outer) == [-3.5, 0.0, 3.5]
+    edge = [st(i, [-6.0, -7.0, -2.5, 0.0, 3.5, 7.0], [S, B, D, D, D, B], [1, 8, 8, 8, 8, 8], n=30) for i in range(30)]
+    assert lines(edge, outer) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+
+    assert PipelineConfig.preset("default").connection.lone_line_border_outer
+    assert not PipelineConfig.preset("paper").connection.lone_line_border_outer
+
+
 def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():
     """A far line seen by one drive beside a border seen by three (of 30): the window rule alone
     keeps it (1 >= 0.25 x 3); with window_min_count=2 only maxima of two or more drives are

@@ -228,6 +228,9 @@ class PipelineConfig:
                     # ... an edge line only 0.8 m from its border (not a marking on the border;
                     # docs/pipeline.md "Lone edge lines")
                     lone_line_border_gap_m=0.8,
+                    # ... and only on its outer side (a lane line's copy typed as border is no
+                    # edge line's border; docs/pipeline.md "Lone edge lines")
+                    lone_line_border_outer=True,
                     separation_count_ratio=0.5,
                     line_frame_deg=12.0,
                     line_frame_bend_deg=5.0,
