@@ -20,6 +20,9 @@ Usage (from the repository root, after ``make bench``):
     .venv/bin/python scripts/targets.py                 # out/bench/*.json but scaling/smoke
     .venv/bin/python scripts/targets.py out/bench/presets.json out/bench/sparse.json
     .venv/bin/python scripts/targets.py --misses-only     # the table in README "Results"
+    # a change measured with `hdmap bench --presets default --set KEY=VALUE --json out/x.json`,
+    # checked against the shipped presets (the plain default among them) on the same bags:
+    .venv/bin/python scripts/targets.py out/bench/presets.json out/x.json --preset default+
 """
 
 from __future__ import annotations
@@ -124,9 +127,10 @@ def load_runs(paths: Iterable[Path]) -> list[dict]:
     return runs
 
 
-def table(runs: list[dict], *, misses_only: bool = False) -> tuple[str, int, int]:
+def table(runs: list[dict], *, misses_only: bool = False, preset: str = "default") -> tuple[str, int, int]:
     """The Markdown table (with ``misses_only`` only the fleets that miss something), the number
-    of fleets and of fleets that meet every target."""
+    of fleets and of fleets that meet every target; ``preset``'s runs are checked, every other
+    preset run on the same bag is a peer."""
     by_scenario: dict[str, list[dict]] = {}
     for run in runs:
         if _SEEDED.search(run["scenario"]):
@@ -135,11 +139,11 @@ def table(runs: list[dict], *, misses_only: bool = False) -> tuple[str, int, int
     n = n_ok = 0
     for name in sorted(by_scenario):
         group = by_scenario[name]
-        defaults = [r for r in group if r["preset"] == "default"]
+        defaults = [r for r in group if r["preset"] == preset]
         if not defaults:
             continue
         run = defaults[0]
-        peers = list({r["preset"]: r for r in reversed(group) if r["preset"] != "default"}.values())  # first of each
+        peers = list({r["preset"]: r for r in reversed(group) if r["preset"] != preset}.values())  # first of each
         missed, lost = misses(run), losses(run, peers)
         n += 1
         n_ok += not missed and not lost
@@ -154,12 +158,19 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("json", nargs="*", type=Path, help="hdmap bench --json files (default: out/bench/*.json)")
     parser.add_argument("--misses-only", action="store_true", help="list only the fleets that miss a target or lose a figure")
+    parser.add_argument("--preset", default="default",
+                        help="the preset whose runs are checked, e.g. default+ of a bench --set run (default: default)")
     args = parser.parse_args(argv)
     paths = args.json or sorted(p for p in Path("out/bench").glob("*.json") if p.name not in NOT_TARGETS)
     if not paths:
         print("targets: no bench JSON given and none in out/bench (run `make bench` first)", file=sys.stderr)
         return 2
-    text, n, n_ok = table(load_runs(paths), misses_only=args.misses_only)
+    runs = load_runs(paths)
+    if not any(r.get("preset") == args.preset for r in runs):
+        have = ", ".join(sorted({str(r.get("preset")) for r in runs}))
+        print(f"targets: no run of preset {args.preset!r} in the JSON (presets there: {have})", file=sys.stderr)
+        return 2
+    text, n, n_ok = table(runs, misses_only=args.misses_only, preset=args.preset)
     print(text)
     print(f"\n{n_ok} of {n} fleets meet every target and lose no figure to a peer preset.")
     return 0

@@ -121,3 +121,14 @@ def test_targets_names_each_miss_and_what_bounds_it(tmp_path, capsys):
     assert tg.main([str(path), "--misses-only"]) == 0
     out = capsys.readouterr().out
     assert "| a_s1 |" not in out and "| b_s2 |" in out and "1 of 2 fleets meet every target" in out
+    # a bench --set run's rows (default+) checked against the shipped presets, the default among them
+    changed = tmp_path / "changed.json"
+    changed.write_text(__import__("json").dumps([_run("a_s1", "default+", precision=0.985)]))
+    assert tg.main([str(path), str(changed), "--preset", "default+"]) == 0
+    out = capsys.readouterr().out
+    (row,) = [line for line in out.splitlines() if line.startswith("| a_s1 |")]
+    assert row.startswith("| a_s1 | 40 | none | ") and row.endswith(" | default, naive |")
+    assert "precision vs default" in row and "precision vs naive" in row  # both at 99 %
+    assert "0 of 1 fleets meet every target" in out
+    assert tg.main([str(path), "--preset", "default+"]) == 2  # not in these runs: named, not "0 of 0"
+    assert "no run of preset 'default+'" in capsys.readouterr().err
