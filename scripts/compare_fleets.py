@@ -28,7 +28,7 @@ from pathlib import Path
 
 from hdmap_core import pipeline
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_ros.commands.bag2map import override_arg
+from hdmap_ros.commands.bag2map import add_set_argument
 from hdmap_ros.commands.bench import SCORE_COLUMNS, build_and_evaluate, prepare_scenarios, score_line
 
 
@@ -36,8 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scenarios", nargs="+", metavar="SCENARIO")
     parser.add_argument("--preset", default="default", help="pipeline preset (default: default)")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", type=override_arg,
-                        help="change a preset parameter, as `hdmap bag2map --set` (repeatable)")
+    add_set_argument(parser, "change a preset parameter, as `hdmap bag2map --set` (repeatable)", dest="set")
     parser.add_argument("--seed", type=int, default=0, help="pipeline seed (default: 0)")
     parser.add_argument("--workers", type=int, default=None, help="processes per build (default: the CPUs)")
     parser.add_argument("--work-dir", type=Path, default=Path("out/fleets"), help="simulated bags go here")

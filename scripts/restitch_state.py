@@ -29,7 +29,7 @@ from hdmap_core.errors import HdmapError
 from hdmap_core.evaluate import evaluate_map
 from hdmap_core.groundtruth import load_ground_truth
 from hdmap_core.incremental import connect_tile, stitch_graphs
-from hdmap_ros.commands.bag2map import override_arg
+from hdmap_ros.commands.bag2map import add_set_argument
 from hdmap_ros.commands.bench import SCORE_COLUMNS, score_line
 from hdmap_ros.store import MapStore, blob_to_segments
 
@@ -51,8 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("state", type=Path, help="the --state directory of an `hdmap run`")
     parser.add_argument("--gt", type=Path, default=None, help="ground truth (.gt.json) to score the map against")
     parser.add_argument("--preset", default="default", help="pipeline preset (default: default)")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", type=override_arg,
-                        help="change a preset parameter, as `hdmap bag2map --set` (repeatable)")
+    add_set_argument(parser, "change a preset parameter, as `hdmap bag2map --set` (repeatable)", dest="set")
     args = parser.parse_args(argv)
     try:
         config = pipeline.PipelineConfig.preset(args.preset).with_overrides(dict(args.set))

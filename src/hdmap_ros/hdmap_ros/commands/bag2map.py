@@ -23,7 +23,7 @@ from hdmap_core.model import GeoOrigin, HDMap
 from hdmap_ros.bagio import FleetBag, read_fleet_bag, write_map_bag
 from hdmap_ros.geojson import write_geojson
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument"]
 
 NAME = "bag2map"
 HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
@@ -35,14 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", metavar="OUT", required=True, help="map bag directory to write")
     parser.add_argument("--geojson", metavar="FILE", help="also write the map features as GeoJSON (WGS84)")
     parser.add_argument("--preset", choices=PRESETS, default="default", help="pipeline preset (default: %(default)s)")
-    parser.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        type=override_arg,
-        default=[],
-        dest="overrides",
-        help="change one parameter of the preset (repeatable), dotted into PipelineConfig, the value as "
+    add_set_argument(
+        parser,
+        "change one parameter of the preset (repeatable), dotted into PipelineConfig, the value as "
         "JSON, e.g. --set stitching.track_rejoin_m=0 --set alignment.robust_loss=false",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed of the pipeline (default: %(default)s)")
@@ -73,6 +68,13 @@ def _parse_origin(text: str) -> GeoOrigin:
     if len(values) not in (2, 3) or not np.all(np.isfinite(values)) or abs(values[0]) > 90 or abs(values[1]) > 180:
         raise argparse.ArgumentTypeError(f"{text!r} is not a WGS84 LAT,LON[,ALT]")
     return GeoOrigin(*values)
+
+
+def add_set_argument(parser: argparse.ArgumentParser, help_text: str, dest: str = "overrides") -> None:
+    """The repeatable ``--set KEY=VALUE`` of a PipelineConfig change (parsed by :func:`override_arg`)
+    into ``args.<dest>``, a list of (key, value)."""
+    parser.add_argument("--set", metavar="KEY=VALUE", action="append", type=override_arg, default=[], dest=dest,
+                        help=help_text)
 
 
 def override_arg(text: str) -> tuple[str, object]:

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from hdmap_core.errors import ConfigError
-from hdmap_ros.commands.bag2map import override_arg
+from hdmap_ros.commands.bag2map import add_set_argument
 
 __all__ = [
     "NAME", "HELP", "add_arguments", "run", "Scenario", "build_and_evaluate", "run_one", "format_table", "summarize_seeds",
@@ -127,14 +127,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="F",
         help="multiply the drive count of simulated scenarios (repeatable, e.g. --scale 0.25 --scale 1 --scale 4)",
     )
-    parser.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        type=override_arg,
-        default=[],
-        dest="overrides",
-        help="change one parameter of every preset run (repeatable), as hdmap bag2map --set; "
+    add_set_argument(
+        parser,
+        "change one parameter of every preset run (repeatable), as hdmap bag2map --set; "
         "the rows are named default+ etc. (e.g. --presets default --set alignment.robust_loss=false)",
     )
     parser.add_argument("--seed", type=int, default=0, help="pipeline seed (default: %(default)s)")
@@ -336,17 +331,17 @@ def preset_config(preset: str, overrides: dict[str, Any] | None = None) -> Any:
         raise ConfigError(f"--set {err}") from None
 
 
-def _check_overrides(presets: list[str], overrides: dict[str, Any]) -> None:
-    """Raise ConfigError unless ``overrides`` fit every preset in ``presets``; when they fit some,
-    the message names those, for ``--presets``."""
-    errors = {}
+def _check_overrides(presets: list[str], overrides: dict[str, Any]) -> dict[str, Any]:
+    """Each preset's config with ``overrides``. Raises ConfigError unless they fit every preset in
+    ``presets``; when they fit some, the message names those, for ``--presets``."""
+    configs, errors = {}, {}
     for preset in presets:
         try:
-            preset_config(preset, overrides)
+            configs[preset] = preset_config(preset, overrides)
         except ConfigError as err:
             errors[preset] = err
     if not errors:
-        return
+        return configs
     fits = [p for p in presets if p not in errors]
     first = next(iter(errors))
     if fits:
@@ -454,7 +449,7 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     overrides = dict(args.overrides)
-    _check_overrides(presets, overrides)  # before anything is simulated
+    configs = _check_overrides(presets, overrides)  # before anything is simulated
     with tempfile.TemporaryDirectory(prefix="hdmap-bench-") as tmp:
         work_dir = Path(args.work_dir) if args.work_dir else Path(tmp)
         work_dir.mkdir(parents=True, exist_ok=True)
@@ -462,8 +457,7 @@ def run(args: argparse.Namespace) -> int:
         rows = []
         for sc in scenarios:
             for preset in presets:
-                name = f"{preset}+" if overrides else preset
-                print(f"hdmap bench: {sc.name} / {name} ...", file=sys.stderr, flush=True)
+                print(f"hdmap bench: {sc.name} / {configs[preset].name} ...", file=sys.stderr, flush=True)
                 rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline, workers=args.workers,
                                           overrides=overrides))
     summary = summarize_seeds(rows)
