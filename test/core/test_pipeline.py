@@ -83,6 +83,25 @@ def test_with_overrides_sets_dotted_fields_and_names_a_wrong_one():
         base.with_overrides({"observation_stride": 0})
 
 
+def test_with_overrides_carries_a_first_pass_change_into_the_final_pass():
+    """A ``sampling.*`` / ``alignment.*`` change reaches the second pass too (its segments are
+    the map) where that pass has the first's value, not where it differs on purpose; a later
+    ``final_*`` key sets the second pass alone."""
+    base = PipelineConfig.preset("default")
+    cfg = base.with_overrides({"sampling.max_pivot_outside_m": 1.0, "alignment.robust_loss": False})
+    assert cfg.sampling.max_pivot_outside_m == cfg.final_sampling.max_pivot_outside_m == 1.0
+    assert cfg.alignment.robust_loss is False and cfg.final_alignment.robust_loss is False
+    # outer_border_reach is on only in the final pass, clustering differs: each pass keeps its own
+    assert not base.sampling.outer_border_reach and base.final_sampling.outer_border_reach
+    cfg = base.with_overrides({"sampling.outer_border_reach": False, "alignment.clustering": "gap"})
+    assert cfg.final_sampling.outer_border_reach and cfg.final_alignment.clustering == base.final_alignment.clustering
+    assert base.alignment.clustering != base.final_alignment.clustering
+    cfg = base.with_overrides({"sampling.max_pivot_outside_m": 1.0, "final_sampling.max_pivot_outside_m": 3.0})
+    assert (cfg.sampling.max_pivot_outside_m, cfg.final_sampling.max_pivot_outside_m) == (1.0, 3.0)
+    # no final pass config (paper): the first pass's change alone
+    assert PipelineConfig.preset("paper").with_overrides({"sampling.margin_m": 1.0}).final_sampling is None
+
+
 def test_parse_override_reads_json_values_else_strings():
     assert parse_override("stitching.track_rejoin_m=0.5") == ("stitching.track_rejoin_m", 0.5)
     assert parse_override(" a.b = true") == ("a.b", True)

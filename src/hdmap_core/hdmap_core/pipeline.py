@@ -312,6 +312,11 @@ class PipelineConfig:
     def with_overrides(self, overrides: Mapping[str, object]) -> PipelineConfig:
         """This config with each dotted key set, e.g. ``{"stitching.track_rejoin_m": 0.0}``.
 
+        A ``sampling.*`` (``alignment.*``) key also sets the field in ``final_sampling``
+        (``final_alignment``) when that one has the same value as the first pass's before the
+        change: the second pass follows the first where it does not differ on purpose. A later
+        ``final_sampling.*`` key sets the second pass alone.
+
         Every stage config's own checks run on its new value. The name gets a ``+`` (the preset
         with changes), so reports do not pass the result off as the preset itself.
 
@@ -321,10 +326,23 @@ class PipelineConfig:
         """
         config: PipelineConfig = self
         for key, value in overrides.items():
+            before = config
             config = _override(config, key, value, key)
+            head, _, field_name = key.partition(".")
+            final = _FINAL_OF.get(head)
+            if final and getattr(before, final) is not None and "." not in field_name and (
+                getattr(getattr(before, final), field_name) == getattr(getattr(before, head), field_name)
+            ):
+                # the final pass follows a first-pass setting it shares (where it differs on
+                # purpose, e.g. final_sampling.outer_border_reach, it keeps its own)
+                config = _override(config, f"{final}.{field_name}", value, key)
         if overrides and not config.name.endswith("+"):
             config = replace(config, name=f"{config.name}+")
         return config
+
+
+#: The second pass's config of a first-pass stage config (``with_overrides`` carries changes over).
+_FINAL_OF = {"sampling": "final_sampling", "alignment": "final_alignment"}
 
 
 def parse_override(text: str) -> tuple[str, object]:
