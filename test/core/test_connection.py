@@ -489,6 +489,32 @@ def test_lone_edge_line_needs_its_border_on_the_outer_side():
     assert not PipelineConfig.preset("paper").connection.lone_line_border_outer
 
 
+def test_topology_node_holds_the_pivots_lane():
+    """carla_town04_30_s3's T-junction: a step sees only the border on its right, its 4.5 m cut
+    (midpoint y 1.65, from -0.6 to 3.9) lies beside the pivot at y -1.15. With
+    topo_pivot_lane_m=1.75 the topology node's cross-section reaches 1.75 m beyond the pivot
+    (-2.9 .. 3.9: midpoint 0.5, width 6.8); the features stay where they are. A step whose pivot
+    is on its cut (at the midpoint, or 0.25 m inside its end), or that has no pose, keeps its cut."""
+    def st(i, pose_y):
+        s = make_step(i, [1.85], [B], midpoint=np.array([2.0 * i, 1.65]), width_m=4.5)
+        return StepResult(**{**s.__dict__, "pose": None if pose_y is None else np.array([2.0 * i, pose_y])})
+
+    seg = Segment("p", (st(0, 1.65), st(1, -1.15), st(2, None), st(3, -0.35)))
+    plain = connect_segment(seg, config=ConnectionConfig())
+    lane = connect_segment(seg, config=ConnectionConfig(topo_pivot_lane_m=1.75))
+    np.testing.assert_allclose(plain.topo_xy[:, 1], [1.65] * 4)
+    np.testing.assert_allclose(plain.topo_width, [4.5] * 4)
+    np.testing.assert_allclose(lane.topo_xy[:, 1], [1.65, 0.5, 1.65, 1.65])
+    np.testing.assert_allclose(lane.topo_width, [4.5, 6.8, 4.5, 4.5])
+    np.testing.assert_allclose(lane.node_xy, plain.node_xy)
+    with pytest.raises(ConfigError, match="topo_pivot_lane_m"):
+        ConnectionConfig(topo_pivot_lane_m=-1.0)
+    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+
+    assert PipelineConfig.preset("default").connection.topo_pivot_lane_m == 0.5
+    assert PipelineConfig.preset("paper").connection.topo_pivot_lane_m == 0.0
+
+
 def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():
     """A far line seen by one drive beside a border seen by three (of 30): the window rule alone
     keeps it (1 >= 0.25 x 3); with window_min_count=2 only maxima of two or more drives are

@@ -33,7 +33,7 @@ from hdmap_core.assignment import assign
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType
 from hdmap_core.segment_graph import ConnectionStats, SegmentGraph, stable_uid
-from hdmap_core.steps import Segment, StepResult
+from hdmap_core.steps import Segment, StepResult, left_normal
 
 __all__ = ["ConnectionConfig", "connect_segment"]
 
@@ -114,6 +114,15 @@ class ConnectionConfig:
             (the simulator's marking-to-border misclassification); taken as an edge line's
             border, such a copy let one drive's false line 2.3 m beside it through
             (esmini_soderleden_100_s4, precision 97.7 %).
+        topo_pivot_lane_m: when > 0, the topology node of a step whose pivot's own position
+            (``StepResult.pose``) lies beyond its refined cut gets a cross-section (midpoint,
+            width) widened to reach this far beyond the pivot: the node describes the road the
+            pivot drove. Where one side of a junction has no line, the cut sits on the side of
+            the one border seen, its width carried from a step that ended at a stray line beside
+            the pivot, and the node lay beside that road (carla_town04_30_s3's T-junction at x
+            -388: a 4.5 m cut 1.15 m off the pivot, linked to its road 12 m back as if to the
+            junction's side road). Only the topology node moves; the step's samples and
+            features stay. 0: the cut as refined [m].
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
         tip_frame_deg: a polyline end at least ``tip_frame_min_m`` (pivot travel) behind the new
             step (a bridged gap) whose own direction (from its node ~3 edges back, at least
@@ -188,6 +197,7 @@ class ConnectionConfig:
     lone_line_gap_m: float = 0.0
     lone_line_border_gap_m: float | None = None
     lone_line_border_outer: bool = False
+    topo_pivot_lane_m: float = 0.0
     tile_size_m: float = 256.0
     tip_frame_deg: float = 5.0
     tip_frame_min_m: float = 4.0
@@ -225,6 +235,8 @@ class ConnectionConfig:
             self.lone_line_border_gap_m >= 0 and math.isfinite(self.lone_line_border_gap_m)
         ):
             raise ConfigError(f"lone_line_border_gap_m must be None or finite and >= 0, got {self.lone_line_border_gap_m}")
+        if not (self.topo_pivot_lane_m >= 0 and math.isfinite(self.topo_pivot_lane_m)):
+            raise ConfigError(f"topo_pivot_lane_m must be finite and >= 0, got {self.topo_pivot_lane_m}")
         if self.window_min_count < 1:
             raise ConfigError(f"window_min_count must be >= 1, got {self.window_min_count}")
         if not (self.leftover_other_type_m >= 0 and math.isfinite(self.leftover_other_type_m)):
@@ -800,6 +812,25 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
     return _finish(segment, b, stats, drive_ids, config)
 
 
+def _topo_sections(steps: list[StepResult], lane_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 2) midpoints and (T,) widths of the topology nodes of ``steps``: each step's refined
+    cut; with ``lane_m`` > 0, where the pivot's own position lies beyond it, widened to reach
+    ``lane_m`` beyond the pivot (``ConnectionConfig.topo_pivot_lane_m``; a step without a finite
+    pose keeps its cut)."""
+    mid = np.array([np.asarray(st.midpoint, dtype=float) for st in steps]).reshape(-1, 2)
+    width = np.array([float(st.width_m) for st in steps])
+    if lane_m <= 0 or not len(steps):
+        return mid, width
+    pose = np.array([np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=float).reshape(2) for st in steps])
+    normal = left_normal(np.array([float(st.heading) for st in steps])).reshape(-1, 2)
+    own = np.einsum("ij,ij->i", pose - mid, normal)  # the pivot along the cut, + = left [m]
+    ok = np.isfinite(own) & np.isfinite(width) & (np.abs(own) > 0.5 * width)  # the pivot beyond its cut
+    lo = np.minimum(-0.5 * width, own - lane_m)
+    hi = np.maximum(0.5 * width, own + lane_m)
+    shift = np.where(ok, 0.5 * (lo + hi), 0.0)
+    return mid + shift[:, None] * normal, np.where(ok, hi - lo, width)
+
+
 def _pose_ok(st: StepResult) -> bool:
     """Does step ``st`` carry a finite 2-D midpoint and heading?"""
     try:
@@ -865,14 +896,15 @@ def _finish(
     track = sorted((st for st in segment.steps if _pose_ok(st)), key=lambda st: st.index)
     empties = [_empty_of(st) for st in track]
 
+    topo_xy, topo_width = _topo_sections(topo_steps, config.topo_pivot_lane_m)
     return SegmentGraph(
         key=f"{segment.pivot_id}@{first}",
         pivot_id=segment.pivot_id,
         topo_uid=stable_uid("topo:" + segment.pivot_id, step_idx),
         topo_step=step_idx,
-        topo_xy=np.array([np.asarray(st.midpoint, dtype=float) for st in topo_steps]).reshape(-1, 2),
+        topo_xy=topo_xy,
         topo_heading=np.array([float(st.heading) for st in topo_steps]),
-        topo_width=np.array([float(st.width_m) for st in topo_steps]),
+        topo_width=topo_width,
         topo_edges=np.asarray(b.topo_edges if b else [], dtype=np.int64).reshape(-1, 2),
         topo_start=starts,
         node_uid=stable_uid("feature:" + segment.pivot_id, node_step, pick(f.slot if f else None, np.zeros(0, np.int64))),

@@ -231,6 +231,10 @@ class PipelineConfig:
                     # ... and only on its outer side (a lane line's copy typed as border is no
                     # edge line's border; docs/pipeline.md "Lone edge lines")
                     lone_line_border_outer=True,
+                    # a topology node reaches 0.5 m beyond its pivot: the node of a junction step
+                    # whose cut lies beside the pivot describes the road it drove (docs/pipeline.md
+                    # "The pivot's own road in its topology node")
+                    topo_pivot_lane_m=0.5,
                     separation_count_ratio=0.5,
                     line_frame_deg=12.0,
                     line_frame_bend_deg=5.0,
