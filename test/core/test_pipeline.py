@@ -81,6 +81,14 @@ def test_with_overrides_sets_dotted_fields_and_names_a_wrong_one():
     assert base.with_overrides({"connection.lone_line_border_gap_m": None}).connection.lone_line_border_gap_m is None
     with pytest.raises(ConfigError, match="observation_stride"):  # PipelineConfig's own check
         base.with_overrides({"observation_stride": 0})
+    # a whole stage is no value: named, not an AttributeError (sampling=1) or a config that
+    # fails later in the build (connection=true); null where the stage may be off (its defaults)
+    with pytest.raises(ConfigError, match=r"sampling=1: sampling is a group of settings; set one of its fields, e\.g\. sampling\.step_m"):
+        base.with_overrides({"sampling": 1})
+    with pytest.raises(ConfigError, match="connection is a group of settings"):
+        base.with_overrides({"connection": True})
+    assert base.with_overrides({"stitching": None}).stitching is None
+    assert base.with_overrides({"final_sampling": None}).final_sampling is None
 
 
 def test_with_overrides_carries_a_first_pass_change_into_the_final_pass():

@@ -334,7 +334,7 @@ class PipelineConfig:
             config = _override(config, key, value, key)
             head, _, field_name = key.partition(".")
             final = _FINAL_OF.get(head)
-            if final and getattr(before, final) is not None and "." not in field_name and (
+            if final and field_name and getattr(before, final) is not None and "." not in field_name and (
                 getattr(getattr(before, final), field_name) == getattr(getattr(before, head), field_name)
             ):
                 # the final pass follows a first-pass setting it shares (where it differs on
@@ -377,7 +377,11 @@ def _override(config: object, key: str, value: object, full: str) -> object:
         raise ConfigError(f"{full}: {type(config).__name__} has no field {head!r}")
     if not rest:
         now = getattr(config, head)
-        optional = value is None and "None" in str(next(f.type for f in fields(config) if f.name == head))
+        spec = next(f for f in fields(config) if f.name == head)
+        optional = value is None and ("None" in str(spec.type) or spec.default is None)
+        if is_dataclass(now) and not optional:
+            example = fields(now)[0].name
+            raise ConfigError(f"{full}={value!r}: {head} is a group of settings; set one of its fields, e.g. {full}.{example}=...")
         if not optional and isinstance(now, (int, float)) and not isinstance(now, bool) and not (
             isinstance(value, (int, float)) and not isinstance(value, bool)
         ):
