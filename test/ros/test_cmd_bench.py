@@ -141,6 +141,8 @@ def test_table_prints_missing_figures_as_dash():
         (["bench", "motorway:x"], "integers"),
         (["bench", "motorway:3:5-2"], "integers"),
         (["bench", "motorway:3:1,1"], "distinct"),
+        (["bench", "motorway:0"], "DRIVES must be >= 1, got 0"),
+        (["bench", "motorway:-2:1"], "DRIVES must be >= 1, got -2"),
         (["bench", "motorway:3", "--scale", "0"], "--scale"),
         (["bench", "motorway:3", "--workers", "0"], "--workers"),
     ],

@@ -208,6 +208,8 @@ def _parse_simulated(spec: str) -> tuple[str, int, list[int], dict[str, Any] | N
         raise ConfigError(f"scenario {spec!r}: DRIVES and SEEDS must be integers (SEEDS: 3, 1-8 or 1,4,7)") from None
     if any(x < 0 for x in seeds) or len(set(seeds)) != len(seeds):
         raise ConfigError(f"scenario {spec!r}: seeds must be distinct and >= 0")
+    if drives < 1:  # a fleet of none was silently made one drive (and named so)
+        raise ConfigError(f"scenario {spec!r}: DRIVES must be >= 1, got {drives}")
     return parts[0], drives, seeds, named
 
 
