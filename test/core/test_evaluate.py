@@ -122,6 +122,23 @@ def test_one_wrong_type_lowers_type_accuracy(road: GroundTruth) -> None:
     assert report.overall.mean_m == pytest.approx(0.0, abs=1e-9)
 
 
+def test_offset_corrected_type_accuracy_forgives_the_common_error_only(road: GroundTruth) -> None:
+    """Each border lies 0.5 m outside its solid edge line. The whole map 0.35 m to the left (a
+    fleet's common error): the right border (-0.5 -> -0.15) is now nearer the solid line at 0, the
+    left solid line (7.0 -> 7.35) nearer the border at 7.5, so two of five lines count as the wrong
+    type on raw positions; less each cut's offset (0.35 m) every type is right. A type really
+    wrong (the dashed line as solid) stays wrong after the correction."""
+    shifted = hdmap_from_ground_truth(road, lateral_shift_m=0.35)
+    report = evaluate_map(shifted, road)
+    assert report.type_accuracy == pytest.approx(3 / 5)
+    assert report.type_accuracy_corrected == pytest.approx(1.0)
+    assert evaluate_map(hdmap_from_ground_truth(road), road).type_accuracy_corrected == 1.0
+    wrong = [replace(f, type=FeatureType.SOLID) if f.id == 3 else f for f in shifted.features]
+    report = evaluate_map(_with_features(shifted, wrong), road)
+    assert report.type_accuracy_corrected == pytest.approx(4 / 5)
+    assert report.to_dict()["type_accuracy_corrected"] == pytest.approx(4 / 5)
+
+
 def test_missing_half_of_the_features_lowers_recall(road: GroundTruth) -> None:
     perfect = hdmap_from_ground_truth(road)
     kept = [f for f in perfect.features if f.id in (1, 3)]  # one border, the dashed line

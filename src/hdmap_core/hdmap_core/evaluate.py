@@ -265,6 +265,10 @@ class EvalReport:
         overall: figures over all types; per_type: the same per type label ("solid", ...).
         type_accuracy: share of map points (with a ground-truth point of any type within the gate)
             whose nearest ground-truth point has their type; n_typed: that denominator.
+        type_accuracy_corrected: the same with each map point moved by its cut's offset (as the
+            offset-corrected error): where two lines of different type lie close (an edge line
+            0.5-1 m inside its border), the fleet's common error, which no map without an
+            absolute reference can remove, moves a right-typed line nearer the other one.
         fragmentation_mean, fragmentation_max: distinct map features matched along each
             ground-truth feature, over the n_gt_features ground-truth features with a match.
         mean_abs_offset_m: mean over evaluable cuts of |offset| (the paper's offset error).
@@ -383,6 +387,7 @@ class EvalReport:
     n_long_links_supported: int = 0
     false_topology_links: tuple[TopologyLink, ...] = ()
     unevaluable_long_links: tuple[TopologyLink, ...] = ()
+    type_accuracy_corrected: float = math.nan
 
     @property
     def coverage(self) -> float:
@@ -663,6 +668,13 @@ def evaluate_map(
     _, any_d = nearest_on_same_cut(mp.cut, mp.s, gp.cut, gp.s, width=width)
     typed = any_d <= config.gate_m
     type_ok = typed & (gd <= any_d + config.type_tie_m)
+    # ... and on the positions less their cut's offset (RULE 2; a cut without one: as they are)
+    shift = offset[mp.cut] if len(mp.cut) else np.zeros(0)
+    s_cor = np.where(np.isfinite(shift), mp.s - shift, mp.s) if len(mp.cut) else mp.s
+    _, gd_cor = nearest_same_type(mp.cut, s_cor, m_type, gp.cut, gp.s, g_type, width=width)
+    _, any_cor = nearest_on_same_cut(mp.cut, s_cor, gp.cut, gp.s, width=width)
+    typed_cor = any_cor <= config.gate_m
+    type_ok_cor = typed_cor & (gd_cor <= any_cor + config.type_tie_m)
 
     per_cut_err = _per_cut_mean(mp.cut[matched], np.abs(err[matched]), k)
     per_cut_cor = _per_cut_mean(mp.cut[matched], np.abs(corrected[matched]), k)
@@ -718,6 +730,7 @@ def evaluate_map(
         per_type=per_type,
         type_accuracy=_share(int(np.count_nonzero(type_ok)), int(np.count_nonzero(typed))),
         n_typed=int(np.count_nonzero(typed)),
+        type_accuracy_corrected=_share(int(np.count_nonzero(type_ok_cor)), int(np.count_nonzero(typed_cor))),
         fragmentation_mean=frag_mean,
         fragmentation_max=frag_max,
         n_gt_features=n_frag,

@@ -61,7 +61,8 @@ def format_summary(report: EvalReport) -> str:
     lines += [
         "",
         f"mean |offset| per cut {_m(report.mean_abs_offset_m).strip()} m; type accuracy "
-        f"{_pct(report.type_accuracy).strip()} of {report.n_typed} map points; fragmentation "
+        f"{_pct(report.type_accuracy).strip()} of {report.n_typed} map points "
+        f"({_pct(report.type_accuracy_corrected).strip()} offset-corrected); fragmentation "
         + (
             f"{report.fragmentation_mean:.2f} map features per GT feature (max {report.fragmentation_max}, "
             f"{report.n_gt_features} GT features)"

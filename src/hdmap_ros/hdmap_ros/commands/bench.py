@@ -390,6 +390,7 @@ def run_one(
         "recall_by_seen": [list(b) for b in rep.recall_by_seen],
         "precision": o.precision,
         "type_accuracy": rep.type_accuracy,
+        "type_accuracy_corrected": rep.type_accuracy_corrected,
         "fragmentation": rep.fragmentation_mean,
         "splits_merges": f"{rep.found_splits}/{rep.gt_splits} {rep.found_merges}/{rep.gt_merges}",
         "gt_splits": rep.gt_splits,
