@@ -51,6 +51,7 @@ def test_inline_bench_on_a_simulated_scenario(gt_pipeline, capsys):
         assert r["floor_m"] > 0 and r["peak_rss_mb"] > 10
         # 3 short drives see part of the road; the ground truth as map has all of that
         assert 0.05 < r["observed_share"] < 0.9 and r["recall_observed"] == 1.0
+        assert r["type_accuracy"] == r["type_accuracy_corrected"] == 1.0
     table = capsys.readouterr().out
     assert "motorway_3_s0" in table and "mean/floor" in table and "recall obs." in table
     assert out_md.read_text().count("\n") == 4  # header, rule, two rows
