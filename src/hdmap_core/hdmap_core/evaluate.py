@@ -666,15 +666,12 @@ def evaluate_map(
 
     # RULE 4: type accuracy over map points with any ground-truth point within the gate.
     _, any_d = nearest_on_same_cut(mp.cut, mp.s, gp.cut, gp.s, width=width)
-    typed = any_d <= config.gate_m
-    type_ok = typed & (gd <= any_d + config.type_tie_m)
+    typed, type_ok = _typed_right(gd, any_d, config)
     # ... and on the positions less their cut's offset (RULE 2; a cut without one: as they are)
-    shift = offset[mp.cut] if len(mp.cut) else np.zeros(0)
-    s_cor = np.where(np.isfinite(shift), mp.s - shift, mp.s) if len(mp.cut) else mp.s
+    s_cor = mp.s - np.nan_to_num(offset[mp.cut]) if len(mp.cut) else mp.s
     _, gd_cor = nearest_same_type(mp.cut, s_cor, m_type, gp.cut, gp.s, g_type, width=width)
     _, any_cor = nearest_on_same_cut(mp.cut, s_cor, gp.cut, gp.s, width=width)
-    typed_cor = any_cor <= config.gate_m
-    type_ok_cor = typed_cor & (gd_cor <= any_cor + config.type_tie_m)
+    typed_cor, type_ok_cor = _typed_right(gd_cor, any_cor, config)
 
     per_cut_err = _per_cut_mean(mp.cut[matched], np.abs(err[matched]), k)
     per_cut_cor = _per_cut_mean(mp.cut[matched], np.abs(corrected[matched]), k)
@@ -773,6 +770,14 @@ def evaluate_map(
         skipped=tuple(skipped),
         runtime_s=time.perf_counter() - t0,
     )
+
+
+def _typed_right(same_d: np.ndarray, any_d: np.ndarray, config: EvalConfig) -> tuple[np.ndarray, np.ndarray]:
+    """RULE 4 per map point, from its distances to the nearest ground-truth point of its type
+    (``same_d``) and of any type (``any_d``) on its cut: (typed: one within the gate, typed and of
+    the right type: the same-type point no farther than the nearest + ``type_tie_m``)."""
+    typed = any_d <= config.gate_m
+    return typed, typed & (same_d <= any_d + config.type_tie_m)
 
 
 def _per_cut_mean(cut: np.ndarray, values: np.ndarray, k: int) -> np.ndarray:
