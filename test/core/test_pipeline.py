@@ -88,7 +88,22 @@ def test_with_overrides_sets_dotted_fields_and_names_a_wrong_one():
     with pytest.raises(ConfigError, match="connection is a group of settings"):
         base.with_overrides({"connection": True})
     assert base.with_overrides({"stitching": None}).stitching is None
-    assert base.with_overrides({"final_sampling": None}).final_sampling is None
+    # the values are shown as they are written after --set (true, not Python's True)
+    with pytest.raises(ConfigError, match="connection=true: "):
+        base.with_overrides({"connection": True})
+    # null drops the second pass's own settings: it samples as the first
+    plain = base.with_overrides({"final_sampling": None})
+    assert plain.final_sampling == plain.sampling and not plain.final_sampling.outer_border_reach
+    assert plain.final_alignment == base.final_alignment  # the other pass's changes stay
+    with pytest.raises(ConfigError, match="final_sampling is a group of settings"):
+        base.with_overrides({"final_sampling": 1})
+    with pytest.raises(ConfigError, match="final_alignment.nope: AlignmentConfig has no field 'nope'"):
+        base.with_overrides({"final_alignment.nope": 1})
+    with pytest.raises(ConfigError, match=r"final_alignment.n_iterations='x': not a valid value"):
+        base.with_overrides({"final_alignment.n_iterations": "x"})
+    # ... but a second pass can be set together with the switch that turns it on, in any order
+    paper = PipelineConfig.preset("paper").with_overrides({"final_alignment.n_iterations": 2, "use_global_adjustment": True})
+    assert paper.final_alignment.n_iterations == 2 and paper.alignment.n_iterations != 2
 
 
 def test_with_overrides_carries_a_first_pass_change_into_the_final_pass():
@@ -106,8 +121,15 @@ def test_with_overrides_carries_a_first_pass_change_into_the_final_pass():
     assert base.alignment.clustering != base.final_alignment.clustering
     cfg = base.with_overrides({"sampling.max_pivot_outside_m": 1.0, "final_sampling.max_pivot_outside_m": 3.0})
     assert (cfg.sampling.max_pivot_outside_m, cfg.final_sampling.max_pivot_outside_m) == (1.0, 3.0)
-    # no final pass config (paper): the first pass's change alone
-    assert PipelineConfig.preset("paper").with_overrides({"sampling.margin_m": 1.0}).final_sampling is None
+    # ... in either order: a final_* key is a change of the second pass, which a later first-pass
+    # key does not undo
+    cfg = base.with_overrides({"final_sampling.max_pivot_outside_m": 3.0, "sampling.max_pivot_outside_m": 1.0})
+    assert (cfg.sampling.max_pivot_outside_m, cfg.final_sampling.max_pivot_outside_m) == (1.0, 3.0)
+    # the second pass is the first's config with its changes, whatever the first becomes
+    assert cfg.final_sampling == dataclasses.replace(cfg.sampling, max_pivot_outside_m=3.0, outer_border_reach=True)
+    # no second pass of its own (paper): the same config as the first, changed with it
+    paper = PipelineConfig.preset("paper").with_overrides({"sampling.margin_m": 1.0})
+    assert paper.final_sampling == paper.sampling and paper.sampling.margin_m == 1.0
 
 
 def test_parse_override_reads_json_values_else_strings():
@@ -307,7 +329,7 @@ def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
     b = make_drive("b", lane=0.0, bias=0.0, lines=((-6.5, B), (-1.75, D), (1.75, D), (8.0, B)))
     default = PipelineConfig.preset("default")
     assert default.final_sampling.outer_border_reach and not default.sampling.outer_border_reach
-    without = dataclasses.replace(default, final_sampling=None)
+    without = dataclasses.replace(default, final_sampling_changes=())
 
     def far_border_points(config: PipelineConfig) -> int:
         m = build_map([a, b], config=config, seed=0).map
@@ -322,9 +344,18 @@ def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
     assert far_border_points(without) == 0
     assert far_border_points(default) > 50
     for name in ("paper", "naive"):
-        assert PipelineConfig.preset(name).final_sampling is None
-    with pytest.raises(ConfigError, match="final_sampling"):
-        dataclasses.replace(default, final_sampling=dataclasses.replace(default.sampling, step_m=4.0))
+        p = PipelineConfig.preset(name)
+        assert p.final_sampling_changes == () and p.final_sampling == p.sampling
+    # the passes share the pivots' steps: a second pass of its own step is refused
+    with pytest.raises(ConfigError, match="final_sampling cannot change step_m"):
+        dataclasses.replace(default, final_sampling_changes={"step_m": 4.0})
+    with pytest.raises(ConfigError, match="SamplingConfig has no field 'nope'"):
+        dataclasses.replace(default, final_sampling_changes={"nope": 1})
+    with pytest.raises(ConfigError, match="must be a mapping"):
+        dataclasses.replace(default, final_sampling_changes=3)
+    # the changes are kept in one form: equal configs compare (and hash) equal
+    same = dataclasses.replace(default, final_sampling_changes=[("outer_border_reach", True)])
+    assert same == default and hash(same) == hash(default)
 
 
 def test_steps_off_their_pivots_road_are_not_aligned():

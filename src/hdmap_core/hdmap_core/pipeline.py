@@ -71,11 +71,15 @@ class PipelineConfig:
         use_global_adjustment: run the global joint per-drive offset adjustment between a first
             (observation) pass and the final sampling/aggregation pass.
         adjustment: ``hdmap_core.adjustment.AdjustConfig`` (None: its defaults).
-        final_alignment: EM options of the second pass (samples already shifted by the offset
-            model); None = ``alignment``.
-        final_sampling: sampling options of the second pass; None = ``sampling``. Its step,
-            initial cut and heading limit must be ``sampling``'s (the passes share the pivots'
-            steps and the cut-line intersections); the cut refinement may differ.
+        final_alignment_changes: where the EM of the second pass (samples already shifted by
+            the offset model) differs from ``alignment``, as ``{field: value}`` (stored as sorted
+            pairs); the pass's config is the property ``final_alignment``. Empty: as ``alignment``.
+        final_sampling_changes: likewise, where the second pass samples unlike ``sampling``
+            (property ``final_sampling``). The step, initial cut and heading limit cannot differ
+            (the passes share the pivots' steps and the cut-line intersections); the cut
+            refinement may. Kept as changes, not as whole configs, so that a change of
+            ``sampling`` / ``alignment`` reaches the second pass wherever it does not differ on
+            purpose.
         observation_stride: with ``use_global_adjustment``, the first pass, which only collects
             step observations for the adjustment (its segments are replaced by the final pass),
             runs the EM at every this-th step of a pivot. The adjustment fits curves with knots
@@ -103,8 +107,8 @@ class PipelineConfig:
     aggregation: AggregationConfig = AggregationConfig()
     use_global_adjustment: bool = False
     adjustment: Any = None
-    final_alignment: AlignmentConfig | None = None
-    final_sampling: SamplingConfig | None = None
+    final_alignment_changes: Any = ()
+    final_sampling_changes: Any = ()
     observation_stride: int = 1
     connection: Any = None
     stitching: Any = None
@@ -113,14 +117,25 @@ class PipelineConfig:
     name: str = ""
 
     def __post_init__(self) -> None:
-        fs = self.final_sampling
-        if fs is not None and any(
-            getattr(fs, k) != getattr(self.sampling, k) for k in ("step_m", "initial_half_length_m", "max_heading_diff_deg")
-        ):
-            raise ConfigError(
-                "PipelineConfig.final_sampling must have the step_m, initial_half_length_m and "
-                "max_heading_diff_deg of PipelineConfig.sampling (the passes share the pivots' steps)"
-            )
+        for name, base in (("final_sampling", self.sampling), ("final_alignment", self.alignment)):
+            changes = _changes(getattr(self, f"{name}_changes"), f"PipelineConfig.{name}_changes")
+            if name == "final_sampling" and (shared := sorted(set(dict(changes)) & set(_SHARED_SAMPLING))):
+                raise ConfigError(
+                    f"PipelineConfig.final_sampling cannot change {', '.join(shared)}: the passes share "
+                    f"the pivots' steps ({', '.join(_SHARED_SAMPLING)} are sampling's)"
+                )
+            known = {f.name for f in fields(base)}
+            for key, _ in changes:
+                if key not in known:
+                    raise ConfigError(f"PipelineConfig.{name}_changes: {type(base).__name__} has no field {key!r}")
+            try:
+                derived = replace(base, **dict(changes))
+            except ConfigError as err:
+                raise ConfigError(f"PipelineConfig.{name}_changes: {err}") from err
+            except (TypeError, ValueError) as err:
+                raise ConfigError(f"PipelineConfig.{name}_changes: not a valid value ({err})") from err
+            object.__setattr__(self, f"{name}_changes", changes)
+            object.__setattr__(self, f"_{name}", derived)
         if not (isinstance(self.observation_stride, int) and self.observation_stride >= 1):
             raise ConfigError(f"PipelineConfig.observation_stride must be an int >= 1, got {self.observation_stride!r}")
         # The stitcher's fill test reads the profiles this config's ``evidence`` makes; without
@@ -130,6 +145,16 @@ class PipelineConfig:
                 "PipelineConfig.stitching.fill_evidence needs the negative-evidence profiles of "
                 "PipelineConfig.evidence, which is None: set both (or neither)"
             )
+
+    @property
+    def final_sampling(self) -> SamplingConfig:
+        """The second pass's sampling options: ``sampling`` with ``final_sampling_changes``."""
+        return self._final_sampling  # type: ignore[attr-defined]  # set in __post_init__
+
+    @property
+    def final_alignment(self) -> AlignmentConfig:
+        """The second pass's EM options: ``alignment`` with ``final_alignment_changes``."""
+        return self._final_alignment  # type: ignore[attr-defined]  # set in __post_init__
 
     @classmethod
     def preset(cls, name: str) -> PipelineConfig:  # type: ignore[override]
@@ -170,8 +195,8 @@ class PipelineConfig:
             # adjustment, keeps its rules): a sparse step of singletons and one shared cluster is
             # accepted when tight, and steps of 4 drives are judged by the sparse-step rule too
             # (type-clashing singletons still dropped only with <= 3)
-            final = replace(
-                fast, clustering="gap", prior_weight=0.0, estimate_offsets=False, sparse_singletons_accept=True,
+            final = dict(
+                clustering="gap", prior_weight=0.0, estimate_offsets=False, sparse_singletons_accept=True,
                 sparse_step_max_drives=4, sparse_type_clash_max_drives=3,
                 # two drives that share no line but contradict none (each sees lines the other
                 # misses, 2+ m apart) are accepted as one drive alone would be
@@ -197,13 +222,13 @@ class PipelineConfig:
                     border_beside_marking_drives=2,
                 ),
                 use_global_adjustment=True,
-                final_alignment=final,
+                final_alignment_changes=final,
                 # final pass (samples corrected): a side without a first border keeps its samples
                 # up to a border only one drive saw when nothing lies beyond it (docs/pipeline.md,
                 # "Far borders one drive saw"); the first pass, which feeds the adjustment, does not
                 # (the off-cut margin stays 2 m: 1 m cost a 20-drive bag 3.5 points of coverage,
                 # docs/pipeline.md "Steps off their pivot's road")
-                final_sampling=replace(sampling, outer_border_reach=True),
+                final_sampling_changes={"outer_border_reach": True},
                 # the first pass only feeds the adjustment (knots every 200 m): EM every 4 m
                 observation_stride=2,
                 mark_on_cut_only=True,
@@ -316,37 +341,83 @@ class PipelineConfig:
     def with_overrides(self, overrides: Mapping[str, object]) -> PipelineConfig:
         """This config with each dotted key set, e.g. ``{"stitching.track_rejoin_m": 0.0}``.
 
-        A ``sampling.*`` (``alignment.*``) key also sets the field in ``final_sampling``
-        (``final_alignment``) when that one has the same value as the first pass's before the
-        change: the second pass follows the first where it does not differ on purpose. A later
-        ``final_sampling.*`` key sets the second pass alone.
+        A ``final_sampling.*`` (``final_alignment.*``) key sets that field in the second pass
+        alone (one of ``final_sampling_changes``); ``final_sampling=null`` drops those changes. A
+        ``sampling.*`` (``alignment.*``) key sets the first pass and so also the second wherever
+        that one does not differ on purpose.
 
         Every stage config's own checks run on its new value. The name gets a ``+`` (the preset
         with changes), so reports do not pass the result off as the preset itself.
 
         Raises:
-            ConfigError: a key names no field (or a stage that is off, None, in this config), or a
-                value the field rejects; the message names the key.
+            ConfigError: a key names no field (or a stage that is off, None, in this config; or
+                the second pass of a config without one), or a value the field rejects; the
+                message names the key.
         """
         config: PipelineConfig = self
+        second_pass_keys = []
         for key, value in overrides.items():
-            before = config
-            config = _override(config, key, value, key)
-            head, _, field_name = key.partition(".")
-            final = _FINAL_OF.get(head)
-            if final and field_name and getattr(before, final) is not None and "." not in field_name and (
-                getattr(getattr(before, final), field_name) == getattr(getattr(before, head), field_name)
-            ):
-                # the final pass follows a first-pass setting it shares (where it differs on
-                # purpose, e.g. final_sampling.outer_border_reach, it keeps its own)
-                config = _override(config, f"{final}.{field_name}", value, key)
+            head, _, rest = key.partition(".")
+            if head not in _FINAL_PASS:
+                config = _override(config, key, value, key)
+                continue
+            if not rest:
+                if value is not None:
+                    example = next(f.name for f in fields(getattr(config, head)) if f.name not in _SHARED_SAMPLING)
+                    raise ConfigError(
+                        f"{key}={_shown(value)}: {head} is a group of settings; set one of its fields, "
+                        f"e.g. {key}.{example}=..., or null to drop the second pass's own settings"
+                    )
+                config = replace(config, **{f"{head}_changes": ()})
+                continue
+            second_pass_keys.append(key)
+            field_name, _, deeper = rest.partition(".")
+            if deeper:
+                raise ConfigError(f"{key}: {type(getattr(config, head)).__name__}.{field_name} has no fields to set")
+            _override(getattr(config, head), field_name, value, key)  # the field's kind and checks
+            changes = dict(getattr(config, f"{head}_changes"))
+            changes[field_name] = value
+            try:
+                config = replace(config, **{f"{head}_changes": changes})
+            except ConfigError as err:
+                raise ConfigError(f"{key}: {err}") from err
+        if second_pass_keys and not config.use_global_adjustment:
+            raise ConfigError(
+                f"{second_pass_keys[0]}: {second_pass_keys[0].partition('.')[0]} is off in this config "
+                "(it has no second pass: use_global_adjustment is false)"
+            )
         if overrides and not config.name.endswith("+"):
             config = replace(config, name=f"{config.name}+")
         return config
 
 
-#: The second pass's config of a first-pass stage config (``with_overrides`` carries changes over).
-_FINAL_OF = {"sampling": "final_sampling", "alignment": "final_alignment"}
+#: The second pass's stage configs (derived from the first pass's and their changes).
+_FINAL_PASS = ("final_sampling", "final_alignment")
+#: Sampling fields both passes share (the pivots' steps and the cut-line intersections).
+_SHARED_SAMPLING = ("step_m", "initial_half_length_m", "max_heading_diff_deg")
+
+
+def _changes(value: object, name: str) -> tuple[tuple[str, Any], ...]:
+    """``{field: value}`` (or pairs) as sorted ``(field, value)`` pairs: one form, comparable."""
+    try:
+        pairs = dict(value.items() if isinstance(value, Mapping) else value)  # type: ignore[union-attr]
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{name} must be a mapping of field names to values, got {value!r}") from err
+    if not all(isinstance(k, str) for k in pairs):
+        raise ConfigError(f"{name} must be a mapping of field names to values, got {value!r}")
+    return tuple(sorted(pairs.items()))
+
+
+def _shown(value: object) -> str:
+    """A ``--set`` value as it is written there (``true``, ``null``, ``inf``, ``'gap'``)."""
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, float) and not np.isfinite(value):
+        return str(value)  # inf, -inf, nan
+    try:
+        return json.dumps(value)
+    except (TypeError, ValueError):
+        return repr(value)
 
 
 def parse_override(text: str) -> tuple[str, object]:
@@ -381,19 +452,19 @@ def _override(config: object, key: str, value: object, full: str) -> object:
         optional = value is None and ("None" in str(spec.type) or spec.default is None)
         if is_dataclass(now) and not optional:
             example = fields(now)[0].name
-            raise ConfigError(f"{full}={value!r}: {head} is a group of settings; set one of its fields, e.g. {full}.{example}=...")
+            raise ConfigError(f"{full}={_shown(value)}: {head} is a group of settings; set one of its fields, e.g. {full}.{example}=...")
         if not optional and isinstance(now, (int, float)) and not isinstance(now, bool) and not (
             isinstance(value, (int, float)) and not isinstance(value, bool)
         ):
-            raise ConfigError(f"{full}={value!r}: not a valid value (a number is expected)")
+            raise ConfigError(f"{full}={_shown(value)}: not a valid value (a number is expected)")
         if isinstance(now, bool) and not isinstance(value, bool):
-            raise ConfigError(f"{full}={value!r}: not a valid value (true or false is expected)")
+            raise ConfigError(f"{full}={_shown(value)}: not a valid value (true or false is expected)")
         try:
             return replace(config, **{head: value})
         except ConfigError as err:
             raise ConfigError(f"{full}: {err}") from err
         except (TypeError, ValueError) as err:  # a value of the wrong kind fails the field's check
-            raise ConfigError(f"{full}={value!r}: not a valid value ({err})") from err
+            raise ConfigError(f"{full}={_shown(value)}: not a valid value ({err})") from err
     inner = getattr(config, head)
     if inner is None:
         raise ConfigError(f"{full}: {head} is off (None) in this config")
@@ -1034,7 +1105,7 @@ def _map_stretches(
         c = _Counters()
         segs, st = _run_pass(
             drives, index, share, store_in, config=config,
-            alignment=config.final_alignment or config.alignment, shift=_shift_fn(m, index.drive_ids),
+            alignment=config.final_alignment, shift=_shift_fn(m, index.drive_ids),
             observations=None, counters=c, progress=report, hit_cache=hit_cache,
             tracks=tracks, evidence=evidence, sampling=config.final_sampling,
         )
