@@ -363,11 +363,8 @@ class PipelineConfig:
                 continue
             if not rest:
                 if value is not None:
-                    example = next(f.name for f in fields(getattr(config, head)) if f.name not in _SHARED_SAMPLING)
-                    raise ConfigError(
-                        f"{key}={_shown(value)}: {head} is a group of settings; set one of its fields, "
-                        f"e.g. {key}.{example}=..., or null to drop the second pass's own settings"
-                    )
+                    raise _group_error(key, value, getattr(config, head), "or null to drop the second pass's own settings",
+                                       skip=_SHARED_SAMPLING if head == "final_sampling" else ())
                 config = replace(config, **{f"{head}_changes": ()})
                 continue
             second_pass_keys.append(key)
@@ -406,6 +403,17 @@ def _changes(value: object, name: str) -> tuple[tuple[str, Any], ...]:
     if not all(isinstance(k, str) for k in pairs):
         raise ConfigError(f"{name} must be a mapping of field names to values, got {value!r}")
     return tuple(sorted(pairs.items()))
+
+
+def _group_error(key: str, value: object, group: object, also: str = "", skip: Sequence[str] = ()) -> ConfigError:
+    """The error for a value given to a whole stage config (``key``, holding ``group``); the
+    example field is its first not in ``skip`` (fields the key may not change)."""
+    example = next(f.name for f in fields(group) if f.name not in skip)
+    name = key.rpartition(".")[2]
+    return ConfigError(
+        f"{key}={_shown(value)}: {name} is a group of settings; set one of its fields, "
+        f"e.g. {key}.{example}=...{', ' + also if also else ''}"
+    )
 
 
 def _shown(value: object) -> str:
@@ -451,8 +459,7 @@ def _override(config: object, key: str, value: object, full: str) -> object:
         spec = next(f for f in fields(config) if f.name == head)
         optional = value is None and ("None" in str(spec.type) or spec.default is None)
         if is_dataclass(now) and not optional:
-            example = fields(now)[0].name
-            raise ConfigError(f"{full}={_shown(value)}: {head} is a group of settings; set one of its fields, e.g. {full}.{example}=...")
+            raise _group_error(full, value, now)
         if not optional and isinstance(now, (int, float)) and not isinstance(now, bool) and not (
             isinstance(value, (int, float)) and not isinstance(value, bool)
         ):
