@@ -107,20 +107,30 @@ def test_targets_names_each_miss_and_what_bounds_it(tmp_path, capsys):
     assert missed[0] == "mean 0.410 m > 0.30 (fleet's own error 0.400 m)" and "2.05 x floor" in missed[1]
     assert missed[2:] == ["fragm. 1.60", "road splits/merges 2/2 2/2"]
     assert tg.misses(_run("a_s1", recall=0.9, observed_share=0.99)) == ["recall 90.0 %"]  # nothing bounds it
+    # bound by the fleet only where the map meets the target over what the fleet allows
+    assert tg.own_misses(_run("a_s1", recall=0.9, observed_share=0.92, recall_observed=0.97)) == []
+    assert tg.own_misses(_run("a_s1", recall=0.9, observed_share=0.92, recall_observed=0.94)) == [
+        "recall 90.0 % (observed 92.0 %, recall obs. 94.0 %)"]
+    assert tg.own_misses(_run("a_s1", mean_m=0.41, fleet_floor_m=0.40)) == []  # 1.03 x the fleet's own error
+    assert len(tg.own_misses(_run("a_s1", mean_m=0.47, fleet_floor_m=0.40))) == 2  # 1.18 x: the map's own
+    assert tg.own_misses(_run("a_s1", coverage=0.9, driven_share=0.92, coverage_driven=0.98)) == []
+    assert tg.own_misses(_run("a_s1", coverage=0.9, driven_share=0.92, coverage_driven=0.95)) != []
     # a peer preset better on one figure (ties are no loss)
     lost = tg.losses(_run("a_s1"), [_run("a_s1", "naive", long_link_precision=1.0, precision=0.995, recall=0.98)])
     assert lost == ["precision vs naive"]
-    runs = [_run("a_s1"), _run("a_s1", "naive", mean_m=0.5), _run("a"), _run("b_s2", coverage=0.9, driven_share=0.95)]
+    runs = [_run("a_s1"), _run("a_s1", "naive", mean_m=0.5), _run("a"), _run("b_s2", coverage=0.9, driven_share=0.95),
+            _run("c_s3", recall=0.9, observed_share=0.92, recall_observed=0.97)]
     path = tmp_path / "bench.json"
     path.write_text(__import__("json").dumps(runs))
     assert tg.main([str(path)]) == 0
     out = capsys.readouterr().out
     assert "| a_s1 | 40 | none | none | naive |" in out and "| a |" not in out  # means over seeds left out
     assert "| b_s2 | 40 | coverage 90.0 % (driven 95.0 %) | none | - |" in out
-    assert "1 of 2 fleets meet every target" in out
+    assert "1 of 3 fleets meet every target and" in out
+    assert "2 of 3 fleets meet every target their fleet allows" in out  # c_s3: recall bound by the fleet
     assert tg.main([str(path), "--misses-only"]) == 0
     out = capsys.readouterr().out
-    assert "| a_s1 |" not in out and "| b_s2 |" in out and "1 of 2 fleets meet every target" in out
+    assert "| a_s1 |" not in out and "| b_s2 |" in out and "1 of 3 fleets meet every target" in out
     # a bench --set run's rows (default+) checked against the shipped presets, the default among them
     changed = tmp_path / "changed.json"
     changed.write_text(__import__("json").dumps([_run("a_s1", "default+", precision=0.985)]))
