@@ -409,3 +409,23 @@ def test_report_counts_the_steps_off_their_pivots_road():
     road = make_fleet([0.3, -0.2, 0.1], noise_m=0.0, s1=120.0)
     ok = build_map(road, config=PipelineConfig.preset("default"), seed=0).report
     assert ok.steps_off_road == 0 and "off their pivot's road" not in ok.summary()
+
+
+def test_adjustment_settings_are_explicit_where_it_runs_and_changeable_with_set():
+    """The default's adjustment runs with AdjustConfig's defaults, held in the config, so that
+    ``--set adjustment.loss=linear`` reaches them; where it is off they stay None and are refused."""
+    from hdmap_core.adjustment import AdjustConfig
+
+    default = PipelineConfig.preset("default")
+    assert default.adjustment == AdjustConfig()
+    changed = default.with_overrides({"adjustment.loss": "linear", "adjustment.drift_sigma_m": 0.0})
+    assert changed.adjustment == dataclasses.replace(AdjustConfig(), loss="linear", drift_sigma_m=0.0)
+    with pytest.raises(ConfigError, match="adjustment.loss: AdjustConfig.loss must be one of"):
+        default.with_overrides({"adjustment.loss": "l3"})
+    paper = PipelineConfig.preset("paper")
+    assert paper.adjustment is None
+    with pytest.raises(ConfigError, match="adjustment is off"):
+        paper.with_overrides({"adjustment.loss": "linear"})
+    # switched on by an earlier key, the adjustment's fields can be set by a later one
+    on = paper.with_overrides({"use_global_adjustment": True, "adjustment.robust_k": 3.0})
+    assert on.adjustment == dataclasses.replace(AdjustConfig(), robust_k=3.0)

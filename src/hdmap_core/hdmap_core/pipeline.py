@@ -70,7 +70,8 @@ class PipelineConfig:
         preprocess, sampling, alignment, aggregation: stages 1-4.
         use_global_adjustment: run the global joint per-drive offset adjustment between a first
             (observation) pass and the final sampling/aggregation pass.
-        adjustment: ``hdmap_core.adjustment.AdjustConfig`` (None: its defaults).
+        adjustment: ``hdmap_core.adjustment.AdjustConfig``; None with ``use_global_adjustment``
+            becomes its defaults, so that its fields can be changed like any stage's.
         final_alignment_changes: where the EM of the second pass (samples already shifted by
             the offset model) differs from ``alignment``, as ``{field: value}`` (stored as sorted
             pairs); the pass's config is the property ``final_alignment``. Empty: as ``alignment``.
@@ -136,6 +137,12 @@ class PipelineConfig:
                 raise ConfigError(f"PipelineConfig.{name}_changes: not a valid value ({err})") from err
             object.__setattr__(self, f"{name}_changes", changes)
             object.__setattr__(self, f"_{name}", derived)
+        if self.use_global_adjustment and self.adjustment is None:
+            # The adjustment runs: its settings are the defaults, held explicitly so that
+            # ``with_overrides`` ("--set adjustment.loss=linear") reaches them.
+            from hdmap_core.adjustment import AdjustConfig  # noqa: PLC0415 (stage module, loaded on use)
+
+            object.__setattr__(self, "adjustment", AdjustConfig())
         if not (isinstance(self.observation_stride, int) and self.observation_stride >= 1):
             raise ConfigError(f"PipelineConfig.observation_stride must be an int >= 1, got {self.observation_stride!r}")
         # The stitcher's fill test reads the profiles this config's ``evidence`` makes; without
@@ -1151,11 +1158,11 @@ def _map_stretches(
             seconds["sampling_em"] = time.perf_counter() - t0
         if adjust:
             try:
-                from hdmap_core.adjustment import AdjustConfig, adjust_offsets
+                from hdmap_core.adjustment import adjust_offsets
             except ImportError as err:  # the module is part of the package; say so clearly if absent
                 raise ConfigError(f"use_global_adjustment needs hdmap_core.adjustment: {err}") from err
             t0 = time.perf_counter()
-            model = adjust_offsets(obs or [], config=config.adjustment if config.adjustment is not None else AdjustConfig())
+            model = adjust_offsets(obs or [], config=config.adjustment)  # set whenever the adjustment runs
             seconds["adjustment"] = time.perf_counter() - t0
         if model is not None:
             t0 = time.perf_counter()
