@@ -3,7 +3,7 @@
 # evaluator's figures, the floor, wall time and peak RSS per run, then the adjustment solver alone.
 #
 #   make bench                    # full: paper-like scenario at 0.25x, 1x, 4x drive-km
-#   BENCH_SMOKE=1 make bench      # smoke run (CI-sized): small scenario, one scale
+#   BENCH_SMOKE=1 make bench      # smoke run (CI-sized): small scenario, one scale, one switch
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -15,6 +15,7 @@ HDMAP=.venv/bin/hdmap
 if [[ -n "${BENCH_SMOKE:-}" ]]; then
     "$HDMAP" bench esmini_e6mini:20:1 --work-dir "$OUT/fleets" --markdown "$OUT/smoke.md" --json "$OUT/smoke.json"
     .venv/bin/python scripts/bench_incremental.py --drives 12 --road-km 2 --long-km 2 --replay-drives 6
+    .venv/bin/python scripts/ablation.py --smoke --work-dir "$OUT/fleets" --out "$OUT/ablation"
     exit 0
 fi
 "$HDMAP" bench paper_like:134:1 esmini_e6mini:40:1 esmini_soderleden:40:1 carla_town04:100:1 carla_town06:100:1 \
@@ -37,4 +38,6 @@ fi
 "$HDMAP" bench paper_like:134:1 --presets default --scale 0.25 --scale 1 --scale 4 \
     --work-dir "$OUT/fleets" --markdown "$OUT/scaling.md" --json "$OUT/scaling.json"
 .venv/bin/python scripts/bench_incremental.py --drives 100
+# Each switch of the default preset turned back, against the default on the same bags.
+.venv/bin/python scripts/ablation.py --work-dir "$OUT/fleets" --out "$OUT/ablation"
 if [[ -f scripts/bench_adjustment.py ]]; then .venv/bin/python scripts/bench_adjustment.py; fi

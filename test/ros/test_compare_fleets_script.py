@@ -142,3 +142,23 @@ def test_targets_names_each_miss_and_what_bounds_it(tmp_path, capsys):
     assert "0 of 1 fleets meet every target" in out
     assert tg.main([str(path), "--preset", "default+"]) == 2  # not in these runs: named, not "0 of 0"
     assert "no run of preset 'default+'" in capsys.readouterr().err
+
+
+def test_ablation_switches_each_change_the_default_and_the_table_lists_them_per_fleet():
+    ab = _load("ablation")
+    from hdmap_core.pipeline import parse_override
+
+    default = PipelineConfig.preset("default")
+    changed = set()
+    for label, sets in ab.SWITCHES:
+        config = default.with_overrides(dict(parse_override(s) for s in sets))
+        assert config != default, label  # a switch that changes nothing would measure nothing
+        changed.add(config)
+    assert len(changed) == len(ab.SWITCHES)  # no two switches are the same change
+    base = [_run("a_s1"), _run("b_s2", mean_m=0.25)]
+    variants = [("no x", [_run("b_s2", "default+", mean_m=0.4), _run("a_s1", "default+", mean_m=0.3)])]
+    lines = ab.table(base, variants).splitlines()
+    assert len(lines) == 2 + 4
+    assert lines[2].startswith("| a_s1 | default | 0.200 |") and lines[3].startswith("| a_s1 | no x | 0.300 |")
+    assert lines[4].startswith("| b_s2 | default | 0.250 |") and lines[5].startswith("| b_s2 | no x | 0.400 |")
+    assert "| 99.0% |" in lines[2] and lines[2].endswith("| - |")  # no build time in the run: a dash
