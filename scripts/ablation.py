@@ -35,40 +35,22 @@ SWITCHES: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 FLEETS = ("paper_like:134:1", "carla_town04:100:1", "carla_town06:30:1", "esmini_e6mini:40:1", "esmini_soderleden:40:1")
 SMOKE_FLEETS = ("esmini_e6mini:20:1",)
-# (bench JSON key, column, format)
-COLUMNS = (
-    ("mean_m", "mean m", "{:.3f}"),
-    ("corrected_mean_m", "corr. mean m", "{:.3f}"),
-    ("p95_m", "p95 m", "{:.3f}"),
-    ("coverage", "coverage", "{:.1%}"),
-    ("recall", "recall", "{:.1%}"),
-    ("precision", "precision", "{:.1%}"),
-    ("type_accuracy", "type acc.", "{:.1%}"),
-    ("fragmentation", "fragm.", "{:.2f}"),
-    ("splits_merges", "splits/merges", "{}"),
-    ("road_splits_merges", "road splits/merges", "{}"),
-    ("long_links", "topo link prec. (long)", "{}"),
-    ("build_s", "build s", "{:.1f}"),
-)
-
-
-def _cell(run: dict, key: str, fmt: str) -> str:
-    value = run.get(key)
-    if value is None or (isinstance(value, float) and value != value):
-        return "-"
-    return fmt.format(value)
+# the figures of hdmap bench's table that a switch can move (its formats), build time last
+FIGURES = ("mean_m", "corrected_mean_m", "p95_m", "coverage", "recall", "precision", "type_accuracy", "fragmentation",
+           "splits_merges", "road_splits_merges", "long_links", "build_s")
 
 
 def table(base: list[dict], variants: list[tuple[str, list[dict]]]) -> str:
     """One Markdown table: per fleet, the default's row, then each variant's row."""
-    head = "| fleet | variant | " + " | ".join(c for _, c, _ in COLUMNS) + " |"
-    lines = [head, "|" + "---|" * (len(COLUMNS) + 2)]
+    from hdmap_ros.commands.bench import COLUMNS, format_table  # noqa: PLC0415 (needs the workspace)
+
+    formats = {key: (header, fmt) for key, header, fmt in COLUMNS}
+    columns = (("scenario", "fleet", "{}"), ("variant", "variant", "{}"), *((k, *formats[k]) for k in FIGURES))
+    rows = []
     for run in base:
-        name = run["scenario"]
-        rows = [("default", run)] + [(label, r) for label, runs in variants for r in runs if r["scenario"] == name]
-        for label, r in rows:
-            lines.append(f"| {name} | {label} | " + " | ".join(_cell(r, k, f) for k, _, f in COLUMNS) + " |")
-    return "\n".join(lines)
+        rows.append({**run, "variant": "default"})
+        rows += [{**r, "variant": label} for label, runs in variants for r in runs if r["scenario"] == run["scenario"]]
+    return format_table(rows, markdown=True, columns=columns)
 
 
 def _bench(fleets: tuple[str, ...], sets: tuple[str, ...], json_path: Path, work_dir: Path) -> list[dict]:
