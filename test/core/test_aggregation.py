@@ -188,3 +188,17 @@ def test_aggregate_many_equals_per_step():
         one = aggregate_step(x[sel], lab[sel], ty[sel], dr[sel], config=cfg)
         np.testing.assert_allclose(many.lateral_m[many.step == step], one.lateral_m, atol=1e-9)
         np.testing.assert_array_equal(many.counts[many.step == step], one.counts)
+
+
+def test_common_error_of_corrected_drives_is_added_to_the_spread():
+    """Four corrected drives agreeing within 0.1 m still carry the mean of their localization
+    errors: lateral_std = sqrt(spread^2 + common^2 / n); one drive: sqrt(single^2 + common^2)."""
+    x = np.array([0.9, 1.1, 1.0, 1.0])
+    four = dict(labels=np.zeros(4, np.int64), types=np.ones(4, np.int64), drive=np.arange(4))
+    cfg = AggregationConfig(method="mean", common_sigma_m=1.0)
+    agg = aggregate_step(x, four["labels"], four["types"], four["drive"], config=cfg)
+    assert agg.std_m[0] == pytest.approx(np.hypot(x.std() / 2.0, 1.0 / 2.0))
+    one = aggregate_step(np.array([2.0]), np.zeros(1, np.int64), np.ones(1, np.int64), np.zeros(1, np.int64), config=cfg)
+    assert one.std_m[0] == pytest.approx(np.hypot(cfg.single_drive_std_m, 1.0))
+    with pytest.raises(ConfigError, match="common_sigma_m"):
+        AggregationConfig(common_sigma_m=-0.1)

@@ -645,3 +645,22 @@ def test_town04_ground_truth_map_finds_what_is_evaluable() -> None:
     assert report.found_splits == report.gt_splits and report.found_merges == report.gt_merges
     assert report.gt_lane_splits > 0  # the lane graph branches; the markings stop at junctions
     assert all(b.reason.startswith("not evaluable") for b in report.branch_points if not b.found)
+
+
+def test_lateral_std_calibration_counts_the_points_within_their_one_sigma(road: GroundTruth) -> None:
+    """Shifted 0.3 m: a map claiming 0.5 m has every point within it (z 0.6), one claiming 0.1 m
+    none (z 3); a map with lateral_std 0 (hdmap_from_ground_truth) gives no figure."""
+    shifted = hdmap_from_ground_truth(road, lateral_shift_m=0.3)
+    assert evaluate_map(shifted, road).n_std_points == 0
+    assert math.isnan(evaluate_map(shifted, road).std_within_share)
+    for std, within, z in ((0.5, 1.0, 0.6), (0.1, 0.0, 3.0)):
+        feats = [replace(f, lateral_std=np.full(len(f.points), std)) for f in shifted.features]
+        report = evaluate_map(_with_features(shifted, feats), road)
+        assert report.n_std_points == report.overall.n_matched > 0
+        assert report.std_within_share == within
+        assert report.std_z_rms == pytest.approx(z, rel=0.02)
+        assert "lateral_std as 1-sigma" in report.summary()
+    # two of the five features claim 0.5 m, three 0.1 m: two fifths of the points lie within
+    feats = [replace(f, lateral_std=np.full(len(f.points), 0.5 if i % 2 else 0.1)) for i, f in enumerate(shifted.features)]
+    assert len(feats) == 5
+    assert evaluate_map(_with_features(shifted, feats), road).std_within_share == pytest.approx(0.4, abs=0.01)

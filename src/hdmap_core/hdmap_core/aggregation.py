@@ -14,6 +14,7 @@ The maxima are stored for every drive that took part, keyed by that drive's trav
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,7 +44,15 @@ class AggregationConfig:
             curb or barrier right beside an edge line (0.2-0.5 m) is a second physical feature,
             not a misclassified copy of the line.
         grid_points: grid size of the coarse maximum search per cluster (mean-shift polishes).
-        single_drive_std_m: reported 1-sigma of a maximum supported by one drive [m].
+        single_drive_std_m: reported 1-sigma of a maximum supported by one drive [m] (the spread
+            part; ``common_sigma_m`` adds to it).
+        common_sigma_m: 1-sigma of one drive's localization error that no offset correction can
+            remove [m]. Offsets estimated from the drives alone (no absolute reference) align
+            them with each other, so the corrected samples scatter little, but the map point
+            still carries the mean of its n drives' errors, sigma / sqrt(n). The reported
+            lateral_std is then sqrt(spread^2 + common_sigma_m^2 / n). 0: not added (samples
+            not corrected: their spread already holds the drives' errors; or the paper, which
+            reports no uncertainty).
         tie_by_position: when the overlap filter compares a solid and a dashed cluster with as
             many samples each, keep the type the line's place in the cross-section suggests
             instead of the one that happens to lie further left: solid for the outermost
@@ -68,6 +77,7 @@ class AggregationConfig:
     overlap_border_marking: bool = True
     grid_points: int = 16
     single_drive_std_m: float = 0.5
+    common_sigma_m: float = 0.0
     tie_by_position: bool = False
     border_beside_marking_drives: int = 0
 
@@ -80,6 +90,8 @@ class AggregationConfig:
             raise ConfigError(f"AggregationConfig.overlap_threshold must be in [0, 1], got {self.overlap_threshold!r}")
         if self.grid_points < 8:
             raise ConfigError("AggregationConfig.grid_points must be >= 8")
+        if not (math.isfinite(self.common_sigma_m) and self.common_sigma_m >= 0):
+            raise ConfigError(f"AggregationConfig.common_sigma_m must be a finite number >= 0, got {self.common_sigma_m!r}")
 
 
 def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 16, n_shift: int = 50) -> np.ndarray:
@@ -262,7 +274,9 @@ def aggregate_many(
                     else:
                         keep[i if n[i] < n[j] else j] = False
     idx = order[keep[order]]
-    sigma = np.where(n_drives[idx] > 1, std[idx] / np.sqrt(np.maximum(n_drives[idx], 1)), config.single_drive_std_m)
+    n_kept = np.maximum(n_drives[idx], 1)
+    spread = np.where(n_drives[idx] > 1, std[idx] / np.sqrt(n_kept), config.single_drive_std_m)
+    sigma = np.sqrt(spread**2 + config.common_sigma_m**2 / n_kept)
     return ManyAggregates(
         step=cstep[idx],
         lateral_m=pos[idx],

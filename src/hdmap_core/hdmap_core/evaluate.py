@@ -331,6 +331,13 @@ class EvalReport:
             highway_only is False) with >= 2 successors / >= 2 predecessors. Where the ground-truth
             markings stop at junctions these have no branch point of the features.
         runtime_s: wall time of the evaluation.
+        std_within_share: share of the matched map points (RULE 1) with a lateral_std > 0 whose
+            |total error| is at most their lateral_std (interpolated like drive_count: the value
+            of the nearer segment end). The message calls lateral_std a 1-sigma lateral
+            uncertainty: calibrated, this is 0.683. NaN when no matched point carries one.
+        std_z_rms: over the same points, the rms of total error / lateral_std (1 when calibrated;
+            above 1 the map claims more accuracy than it has).
+        n_std_points: those points.
     """
 
     gt_name: str
@@ -388,6 +395,9 @@ class EvalReport:
     false_topology_links: tuple[TopologyLink, ...] = ()
     unevaluable_long_links: tuple[TopologyLink, ...] = ()
     type_accuracy_corrected: float = math.nan
+    std_within_share: float = math.nan
+    std_z_rms: float = math.nan
+    n_std_points: int = 0
 
     @property
     def coverage(self) -> float:
@@ -642,7 +652,8 @@ def evaluate_map(
     map_feats = _valid_map_features(hdmap, skipped)
     mp = points_on_cuts(cuts, [np.asarray(f.points, dtype=float) for f in map_feats], cos_min=cos_feat)
     m_type = np.array([int(f.type) for f in map_feats], dtype=np.int64)[mp.owner] if map_feats else mp.owner
-    m_dc = _map_point_drive_counts(map_feats, mp, skipped)
+    m_dc = _at_map_points([_drive_counts(f, skipped) for f in map_feats], mp)
+    m_std = _at_map_points([_lateral_stds(f, skipped) for f in map_feats], mp)
 
     # RULE 1: a map point is matched to the nearest ground-truth point of its type on its cut,
     # within the gate; the signed difference along the cut is its lateral error.
@@ -728,6 +739,7 @@ def evaluate_map(
         type_accuracy=_share(int(np.count_nonzero(type_ok)), int(np.count_nonzero(typed))),
         n_typed=int(np.count_nonzero(typed)),
         type_accuracy_corrected=_share(int(np.count_nonzero(type_ok_cor)), int(np.count_nonzero(typed_cor))),
+        **_std_calibration(err, m_std, matched),
         fragmentation_mean=frag_mean,
         fragmentation_max=frag_max,
         n_gt_features=n_frag,
@@ -787,15 +799,39 @@ def _per_cut_mean(cut: np.ndarray, values: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def _map_point_drive_counts(feats: list[MapFeature], mp: CutPoints, skipped: list[str]) -> np.ndarray:
-    """(P,) drive_count at each map point on a cut: the value of the nearer segment end."""
-    if not feats:
+def _at_map_points(values: list[np.ndarray], mp: CutPoints) -> np.ndarray:
+    """(P,) a per-vertex value of the map features (one (N_i,) array each) at each map point on
+    a cut: the value of the nearer segment end."""
+    if not values:
         return np.zeros(0)
-    counts = [_drive_counts(f, skipped) for f in feats]
-    offsets = np.concatenate([[0], np.cumsum([len(c) for c in counts])])
-    flat = np.concatenate(counts)
+    offsets = np.concatenate([[0], np.cumsum([len(v) for v in values])])
+    flat = np.concatenate(values)
     vertex = mp.vertex + (mp.u >= 0.5)
     return flat[offsets[mp.owner] + vertex]
+
+
+def _lateral_stds(f: MapFeature, skipped: list[str]) -> np.ndarray:
+    """(N,) the feature's lateral_std per point, NaN where it has none (or not one per point)."""
+    std = np.asarray(f.lateral_std if f.lateral_std is not None else (), dtype=float).reshape(-1)
+    if len(std) != len(f.points):
+        if len(std):
+            skipped.append(f"map feature {f.id}: lateral_std has {len(std)} values for {len(f.points)} points, ignored")
+        return np.full(len(f.points), np.nan)
+    return std
+
+
+def _std_calibration(err: np.ndarray, std: np.ndarray, matched: np.ndarray) -> dict:
+    """How well the map's lateral_std describes its errors (EvalReport.std_within_share)."""
+    ok = matched & np.isfinite(std) & (std > 0)
+    n = int(np.count_nonzero(ok))
+    if not n:
+        return {"n_std_points": 0}
+    z = err[ok] / std[ok]
+    return {
+        "std_within_share": float(np.mean(np.abs(z) <= 1.0)),
+        "std_z_rms": float(np.sqrt(np.mean(z**2))),
+        "n_std_points": n,
+    }
 
 
 def _cut_drive_counts(

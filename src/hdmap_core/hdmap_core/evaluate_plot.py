@@ -70,6 +70,11 @@ def format_summary(report: EvalReport) -> str:
             else "n/a"
         ),
     ]
+    if report.n_std_points:
+        lines.append(
+            f"lateral_std as 1-sigma: {_pct(report.std_within_share).strip()} of {report.n_std_points} matched map "
+            f"points lie within it of the truth (68.3% if calibrated); rms error / lateral_std {report.std_z_rms:.2f}"
+        )
     lines.append(_topology_line(report))
     lines.append(_road_line(report))
     lines.append(_link_line(report))

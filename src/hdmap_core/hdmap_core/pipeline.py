@@ -219,6 +219,11 @@ class PipelineConfig:
             # a step whose pivot lies over 2 m beyond its smoothed cut is on no road the cut
             # describes (junctions: docs/pipeline.md, "Steps off their pivot's road")
             sampling = SamplingConfig(min_border_support_fraction=0.05, open_side_gap_m=4.0, max_pivot_outside_m=2.0)
+            # the adjustment's prior of one drive's lateral error (bias and drift) is the error a
+            # map point keeps from its drives on average (AggregationConfig.common_sigma_m)
+            from hdmap_core.adjustment import AdjustConfig  # noqa: PLC0415
+
+            prior = AdjustConfig()
             return cls(
                 sampling=sampling,
                 alignment=fast,
@@ -227,8 +232,10 @@ class PipelineConfig:
                     # two drives' border on a line is a border there too (docs/pipeline.md,
                     # "Borders on lines")
                     border_beside_marking_drives=2,
+                    common_sigma_m=float(np.hypot(prior.bias_sigma_m, prior.drift_sigma_m)),
                 ),
                 use_global_adjustment=True,
+                adjustment=prior,
                 final_alignment_changes=final,
                 # final pass (samples corrected): a side without a first border keeps its samples
                 # up to a border only one drive saw when nothing lies beyond it (docs/pipeline.md,

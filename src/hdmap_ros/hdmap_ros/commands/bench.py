@@ -391,6 +391,8 @@ def run_one(
         "precision": o.precision,
         "type_accuracy": rep.type_accuracy,
         "type_accuracy_corrected": rep.type_accuracy_corrected,
+        "std_within_share": rep.std_within_share,
+        "std_z_rms": rep.std_z_rms,
         "fragmentation": rep.fragmentation_mean,
         "splits_merges": f"{rep.found_splits}/{rep.gt_splits} {rep.found_merges}/{rep.gt_merges}",
         "gt_splits": rep.gt_splits,
