@@ -539,13 +539,16 @@ def _clean_ground_truth(gt: GroundTruth, skipped: list[str]) -> GroundTruth:
     return replace(gt, features=tuple(feats), lanes=lanes, routes=tuple(routes))
 
 
-def _drive_counts(f: MapFeature, skipped: list[str]) -> np.ndarray:
-    dc = np.asarray(f.drive_count if f.drive_count is not None else (), dtype=float).reshape(-1)
-    if len(dc) != len(f.points):
-        if len(dc):
-            skipped.append(f"map feature {f.id}: drive_count has {len(dc)} values for {len(f.points)} points, ignored")
-        return np.zeros(len(f.points))
-    return np.where(np.isfinite(dc), dc, 0.0)
+def _per_point(f: MapFeature, name: str, skipped: list[str], *, missing: float) -> np.ndarray:
+    """(N,) the feature's per-point attribute ``name`` (drive_count, lateral_std) as floats;
+    ``missing`` everywhere when it has not one value per point (named in ``skipped``)."""
+    raw = getattr(f, name)
+    values = np.asarray(raw if raw is not None else (), dtype=float).reshape(-1)
+    if len(values) != len(f.points):
+        if len(values):
+            skipped.append(f"map feature {f.id}: {name} has {len(values)} values for {len(f.points)} points, ignored")
+        return np.full(len(f.points), missing)
+    return values
 
 
 def _valid_trajectories(drives: Sequence[Drive], skipped: list[str]) -> tuple[list[np.ndarray], list[str | None]]:
@@ -652,8 +655,9 @@ def evaluate_map(
     map_feats = _valid_map_features(hdmap, skipped)
     mp = points_on_cuts(cuts, [np.asarray(f.points, dtype=float) for f in map_feats], cos_min=cos_feat)
     m_type = np.array([int(f.type) for f in map_feats], dtype=np.int64)[mp.owner] if map_feats else mp.owner
-    m_dc = _at_map_points([_drive_counts(f, skipped) for f in map_feats], mp)
-    m_std = _at_map_points([_lateral_stds(f, skipped) for f in map_feats], mp)
+    m_dc = _at_map_points([_per_point(f, "drive_count", skipped, missing=0.0) for f in map_feats], mp)
+    m_dc = np.where(np.isfinite(m_dc), m_dc, 0.0)  # a non-finite count counts as none
+    m_std = _at_map_points([_per_point(f, "lateral_std", skipped, missing=np.nan) for f in map_feats], mp)
 
     # RULE 1: a map point is matched to the nearest ground-truth point of its type on its cut,
     # within the gate; the signed difference along the cut is its lateral error.
@@ -808,16 +812,6 @@ def _at_map_points(values: list[np.ndarray], mp: CutPoints) -> np.ndarray:
     flat = np.concatenate(values)
     vertex = mp.vertex + (mp.u >= 0.5)
     return flat[offsets[mp.owner] + vertex]
-
-
-def _lateral_stds(f: MapFeature, skipped: list[str]) -> np.ndarray:
-    """(N,) the feature's lateral_std per point, NaN where it has none (or not one per point)."""
-    std = np.asarray(f.lateral_std if f.lateral_std is not None else (), dtype=float).reshape(-1)
-    if len(std) != len(f.points):
-        if len(std):
-            skipped.append(f"map feature {f.id}: lateral_std has {len(std)} values for {len(f.points)} points, ignored")
-        return np.full(len(f.points), np.nan)
-    return std
 
 
 def _std_calibration(err: np.ndarray, std: np.ndarray, matched: np.ndarray) -> dict:
