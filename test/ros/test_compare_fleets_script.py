@@ -10,7 +10,7 @@ from types import ModuleType
 
 import pytest
 
-from hdmap_core.pipeline import PipelineConfig
+from hdmap_core.pipeline import PipelineConfig, parse_override
 from hdmap_ros.commands.bench import SCORE_COLUMNS
 
 REPO = Path(__file__).resolve().parents[2]
@@ -146,8 +146,6 @@ def test_targets_names_each_miss_and_what_bounds_it(tmp_path, capsys):
 
 def test_ablation_switches_each_change_the_default_and_the_table_lists_them_per_fleet():
     ab = _load("ablation")
-    from hdmap_core.pipeline import parse_override
-
     default = PipelineConfig.preset("default")
     changed = set()
     for label, sets in ab.SWITCHES:
