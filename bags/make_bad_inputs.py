@@ -18,12 +18,12 @@ import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 from hdmap_core.model import Detection, FeatureType
-from hdmap_core.simulate import SimConfig, simulate_fleet
-from hdmap_core.synthetic import synthetic_highway
-from hdmap_ros.bagio import DRIVE_TYPE, DRIVES_TOPIC, ORIGIN_TOPIC, ORIGIN_TYPE
-from hdmap_ros.convert import origin_to_msg
-from hdmap_ros.fastcdr import encode_drive
-from hdmap_ros.msgdefs import default_typestore
+from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
+from hdmap_core.simulation.synthetic import synthetic_highway
+from hdmap_ros.io.bagio import DRIVE_TYPE, DRIVES_TOPIC, ORIGIN_TOPIC, ORIGIN_TYPE
+from hdmap_ros.convert.messages import origin_to_msg
+from hdmap_ros.io.cdr import encode_drive
+from hdmap_ros.io.msgdefs import default_typestore
 
 SEED = 7
 CONFIG = SimConfig(n_drives=4, snippet_length_min_m=150.0, snippet_length_max_m=250.0)

@@ -21,8 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "hdmap_core"))
 
-from hdmap_core.adjustment import AdjustConfig, adjust_offsets  # noqa: E402
-from hdmap_core.adjustment_sim import ChainSimConfig, simulate_step_observations  # noqa: E402
+from hdmap_core.pipeline.adjustment import AdjustConfig, adjust_offsets  # noqa: E402
+from hdmap_core.simulation.chains import ChainSimConfig, simulate_step_observations  # noqa: E402
 
 SIZES = {
     # name: (road length, drives, step spacing, detection probability)

@@ -1,16 +1,16 @@
 #!/usr/bin/env python3
 """Measure the offset adjustment on observations of the real pipeline, against simulator truth.
 
-Simulates a fleet (``hdmap_core.simulate``), runs the pipeline's first pass (sampling + per-step EM
+Simulates a fleet (``hdmap_core.simulation.fleet``), runs the pipeline's first pass (sampling + per-step EM
 of the "default" preset) to collect the per-step observations, adjusts the offsets jointly
-(``hdmap_core.adjustment``), and compares, step by step, the common error of the drives crossing
+(``hdmap_core.pipeline.adjustment``), and compares, step by step, the common error of the drives crossing
 the step (mean of estimated minus true lateral correction: what shifts the fused lines):
 - adjusted: the joint offset curves;
 - per-step: what the per-step EM leaves (its offsets are zero-mean over the step's drives, so the
   mean true correction of those drives stays in the map).
 
 With ``--build`` it also builds complete maps with the "default" preset, with and without the
-adjustment, and prints the evaluator's summary (``hdmap_core.evaluate``) of each.
+adjustment, and prints the evaluator's summary (``hdmap_core.evaluation.evaluate``) of each.
 
 Usage (from the repository root):
     .venv/bin/python scripts/eval_adjustment_fleet.py --map motorway --length-m 6000 --drives 134 --build
@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "hdmap_core"))
 
-from hdmap_core.adjustment import AdjustConfig, adjust_offsets  # noqa: E402
-from hdmap_core.pipeline import PipelineConfig, map_stretches  # noqa: E402
-from hdmap_core.simulate import SimConfig, load_map, simulate_fleet  # noqa: E402
+from hdmap_core.pipeline.adjustment import AdjustConfig, adjust_offsets  # noqa: E402
+from hdmap_core.pipeline.driver import PipelineConfig, map_stretches  # noqa: E402
+from hdmap_core.simulation.fleet import SimConfig, load_map, simulate_fleet  # noqa: E402
 
 
 def main() -> int:
@@ -97,8 +97,8 @@ def main() -> int:
 
 def _build_and_evaluate(fleet, gt, seed: int) -> None:
     """Whole maps with the "default" preset, with and without the adjustment, scored (Sec. VII)."""
-    from hdmap_core.evaluate import evaluate_map
-    from hdmap_core.pipeline import build_map
+    from hdmap_core.evaluation.evaluate import evaluate_map
+    from hdmap_core.pipeline.driver import build_map
 
     sigma = float(np.hypot(fleet.config.bias_lateral_sigma_m, fleet.config.drift_sigma_m))
     base = PipelineConfig.preset("default")

@@ -24,8 +24,8 @@ def main() -> int:
     ap.add_argument("--top", type=int, default=25, help="functions to list (default: %(default)s)")
     args = ap.parse_args()
 
-    from hdmap_core import pipeline
-    from hdmap_ros.bagio import read_fleet_bag
+    from hdmap_core.pipeline import driver as pipeline
+    from hdmap_ros.io.bagio import read_fleet_bag
 
     drives = read_fleet_bag(args.bag).drives
     config = pipeline.PipelineConfig.preset(args.preset)

@@ -1,6 +1,6 @@
-"""Tests of the network-wide lateral offset adjustment (hdmap_core.adjustment).
+"""Tests of the network-wide lateral offset adjustment (hdmap_core.pipeline.adjustment).
 
-The synthetic cases come from ``hdmap_core.adjustment_sim``: a road with five lines, drives that
+The synthetic cases come from ``hdmap_core.simulation.chains``: a road with five lines, drives that
 cover random intervals of it (chains of overlaps), each with a known correction curve
 (bias + Gauss-Markov drift). "Common error" at a step is the mean, over the drives crossing it,
 of (estimated - true) correction: exactly what shifts the fused lines of that step. The per-step
@@ -16,8 +16,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hdmap_core.adjustment import AdjustConfig, OffsetModel, adjust_offsets
-from hdmap_core.adjustment_sim import ChainSimConfig, simulate_step_observations
+from hdmap_core.pipeline.adjustment import AdjustConfig, OffsetModel, adjust_offsets
+from hdmap_core.simulation.chains import ChainSimConfig, simulate_step_observations
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import StepObservations
@@ -411,7 +411,7 @@ def test_std_skipped_above_limit(small_model):
 
 
 def test_dense_steps_are_thinned_for_the_fit():
-    from hdmap_core import adjustment_assoc as assoc
+    from hdmap_core.pipeline import adjustment_assoc as assoc
 
     def step(idx, n):
         ids = [f"d{i}" for i in range(n)]

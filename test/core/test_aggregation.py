@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hdmap_core.aggregation import (
+from hdmap_core.pipeline.aggregation import (
     AggregationConfig,
     ProcessedStore,
     aggregate_many,

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from sklearn.metrics import silhouette_samples
 
-from hdmap_core.alignment import (
+from hdmap_core.pipeline.alignment import (
     AlignmentConfig,
     align_step,
     align_steps_gap,
@@ -334,7 +334,7 @@ def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
     res4 = align_step(lat, types4, drive, config=replace(cfg, sparse_type_clash_keep=True))
     assert res4.labels[6] == res4.labels[7] >= 0 and np.all(res4.types[[4, 5, 6, 7]] == U)
     # Only the default preset's final pass keeps clashes (the first pass feeds the adjustment).
-    from hdmap_core.pipeline import PipelineConfig
+    from hdmap_core.pipeline.driver import PipelineConfig
 
     default = PipelineConfig.preset("default")
     assert default.final_alignment.sparse_type_clash_keep and not default.alignment.sparse_type_clash_keep
@@ -423,7 +423,7 @@ def test_sparse_step_config_checks():
         AlignmentConfig(sparse_step_max_std_m=0.0)
     # The paper preset stays faithful; the default preset uses the rule in both passes, in the
     # final pass for steps of up to 4 drives (type-clash drop up to 3, as in the first pass).
-    from hdmap_core.pipeline import PipelineConfig
+    from hdmap_core.pipeline.driver import PipelineConfig
 
     assert PipelineConfig.preset("paper").alignment.sparse_step_max_drives == 0
     default = PipelineConfig.preset("default")
@@ -528,7 +528,7 @@ def test_sparse_step_of_two_drives_sharing_no_line_accepted_when_apart():
     with pytest.raises(ConfigError):
         AlignmentConfig(sparse_disjoint_apart_m=-1.0)
     # Only the default preset's final pass uses the rule.
-    from hdmap_core.pipeline import PipelineConfig
+    from hdmap_core.pipeline.driver import PipelineConfig
 
     default = PipelineConfig.preset("default")
     assert default.final_alignment.sparse_disjoint_apart_m == 2.0

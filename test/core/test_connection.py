@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from hdmap_core.connection import ConnectionConfig, connect_segment
-from hdmap_core.segment_graph import feature_chains, stable_uid
+from hdmap_core.graph.connection import ConnectionConfig, connect_segment
+from hdmap_core.graph.segment_graph import feature_chains, stable_uid
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult
@@ -336,7 +336,7 @@ def test_close_duplicate_markings_suppressed():
 
 def test_fast_path_equals_assignment(monkeypatch):
     """The vectorised identity pairing of unchanged steps gives exactly the assignment's graph."""
-    import hdmap_core.connection as conn_mod
+    import hdmap_core.graph.connection as conn_mod
 
     rng = np.random.default_rng(3)
     steps = []
@@ -448,7 +448,7 @@ def test_lone_edge_line_beside_the_border():
     assert lines(1.0, near) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
     assert lines(0.3, near) == [-7.0, -3.2, 0.0, 3.5, 7.0]
     assert lines(0.6, near) == [-7.0, -6.4, -2.9, 0.0, 3.5, 7.0]
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
 
     preset = PipelineConfig.preset("default").connection.lone_line_border_gap_m
     assert preset == 0.8
@@ -483,7 +483,7 @@ def test_lone_edge_line_needs_its_border_on_the_outer_side():
     assert lines(mirror, outer) == [-3.5, 0.0, 3.5]
     edge = [st(i, [-6.0, -7.0, -2.5, 0.0, 3.5, 7.0], [S, B, D, D, D, B], [1, 8, 8, 8, 8, 8], n=30) for i in range(30)]
     assert lines(edge, outer) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
 
     assert PipelineConfig.preset("default").connection.lone_line_border_outer
     assert not PipelineConfig.preset("paper").connection.lone_line_border_outer
@@ -509,7 +509,7 @@ def test_topology_node_holds_the_pivots_lane():
     np.testing.assert_allclose(lane.node_xy, plain.node_xy)
     with pytest.raises(ConfigError, match="topo_pivot_lane_m"):
         ConnectionConfig(topo_pivot_lane_m=-1.0)
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
 
     assert PipelineConfig.preset("default").connection.topo_pivot_lane_m == 0.5
     assert PipelineConfig.preset("paper").connection.topo_pivot_lane_m == 0.0
@@ -587,7 +587,7 @@ def test_chain_links_through_keeps_the_regular_continuation():
     """Node 1 splits into 2 (regular, same type) and 3 (leftover); node 4 merges into 2 by an
     edge of another type. Through: 0-1-2 stays one chain, 3 and 4 are branches. Without: every
     junction closes the chains."""
-    from hdmap_core.segment_graph import chain_links
+    from hdmap_core.graph.segment_graph import chain_links
 
     edges = np.array([[0, 1], [1, 2], [1, 3], [4, 2]])
     leftover = np.array([False, False, True, False])
@@ -603,7 +603,7 @@ def test_chain_links_through_takes_a_lone_leftover_of_its_type():
     """An entry: the solid tip 0 merged into solid node 1 by a leftover edge while the dashed tip 2
     took node 1 by the regular assignment (dashed -> solid). The solid line continues through
     the leftover edge (its only edge of its type); two leftover edges of one type do not."""
-    from hdmap_core.segment_graph import chain_links
+    from hdmap_core.graph.segment_graph import chain_links
 
     edges = np.array([[0, 1], [2, 1], [1, 3]])
     types = np.array([S, S, D, S])
@@ -812,7 +812,7 @@ def test_lines_do_not_turn_a_right_angle_with_the_pivot():
     assert len(g.polylines()) == 5  # three lines before the turn, two after it
     g90 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0, line_check_max_deg=90.0))
     assert _corner_edges(g90) >= 1  # the old bound: the lines left behind joined around the corner
-    from hdmap_core.pipeline import PipelineConfig
+    from hdmap_core.pipeline.driver import PipelineConfig
 
     assert PipelineConfig.preset("default").connection.line_check_max_deg == 180.0
     for bad in (0.0, 181.0, math.nan):
@@ -843,7 +843,7 @@ def test_a_line_just_reached_does_not_turn_with_the_pivot():
 
 
 def test_line_frame_is_off_in_the_paper_and_on_by_default():
-    from hdmap_core.pipeline import PipelineConfig
+    from hdmap_core.pipeline.driver import PipelineConfig
 
     assert ConnectionConfig.paper().line_frame_deg == 0.0
     assert ConnectionConfig().line_frame_deg == 0.0
@@ -928,7 +928,7 @@ def test_tips_of_the_last_step_are_assigned_before_bridged_ones(fresh_first: boo
 
 
 def test_fresh_first_only_in_the_default_preset():
-    from hdmap_core.pipeline import PipelineConfig
+    from hdmap_core.pipeline.driver import PipelineConfig
 
     assert PipelineConfig.preset("default").connection.fresh_first
     assert not ConnectionConfig().fresh_first and not ConnectionConfig.paper().fresh_first
@@ -954,7 +954,7 @@ def test_step_angles_on_a_tight_loop_are_judged_less_the_maxima_noise():
     slack = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig(mean_angle_slack=True))
     assert slack.stats.rejected_angle == 0 and slack.n_topo == 40
     assert len(slack.polylines()) == 6 and all(len(c) == 40 for c in slack.polylines())
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
     assert PipelineConfig.preset("default").connection.mean_angle_slack
     assert not ConnectionConfig.paper().mean_angle_slack
     # a real jump is still one: all maxima 3 m sideways at one step (as above)

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError, NoUsableDataError
-from hdmap_core.evaluate import (
+from hdmap_core.evaluation.evaluate import (
     EvalConfig,
     EvalReport,
     evaluate_map,
@@ -397,8 +397,8 @@ def test_simulated_seen_counts_bound_a_map_of_the_drives_own_detections() -> Non
     # The opposite median barrier is reported in the seeing drive's direction, while the cuts of
     # its own carriageway count only lines running their way: so each detection is also put in
     # reversed (6 short drives leave stretches of a barrier seen from the other side only).
-    from hdmap_core.simulate import SimConfig, simulate_fleet
-    from hdmap_core.synthetic import synthetic_highway
+    from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
+    from hdmap_core.simulation.synthetic import synthetic_highway
 
     gt = synthetic_highway("motorway", length_m=1500.0)
     cfg = SimConfig.noise_free(n_drives=6, snippet_length_min_m=400.0, snippet_length_max_m=800.0,
@@ -552,7 +552,7 @@ def test_bad_ground_truth_parts_are_left_out_and_named(road: GroundTruth) -> Non
 
 
 def test_synthetic_highway_with_ramps_each_cross_section_once() -> None:
-    synthetic = pytest.importorskip("hdmap_core.synthetic")
+    synthetic = pytest.importorskip("hdmap_core.simulation.synthetic")
     length_m = 3000.0
     gt = synthetic.synthetic_highway("motorway_ramps", length_m=length_m)
     report = evaluate_map(hdmap_from_ground_truth(gt), gt)
@@ -570,7 +570,7 @@ def test_synthetic_highway_with_ramps_each_cross_section_once() -> None:
 
 @pytest.fixture(scope="module")
 def ramps() -> GroundTruth:
-    synthetic = pytest.importorskip("hdmap_core.synthetic")
+    synthetic = pytest.importorskip("hdmap_core.simulation.synthetic")
     return synthetic.synthetic_highway("motorway_ramps", length_m=3000.0)
 
 

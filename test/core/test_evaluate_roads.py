@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth
-from hdmap_core.evaluate_roads import topology_from_lanes
+from hdmap_core.evaluation.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth
+from hdmap_core.evaluation.roads import topology_from_lanes
 from hdmap_core.groundtruth import GroundTruth, GTLane, GTRoute
 from hdmap_core.model import HDMap, TopologyNode
-from hdmap_core.synthetic import synthetic_highway
+from hdmap_core.simulation.synthetic import synthetic_highway
 
 
 def _lane_xy(x0: float, x1: float, y_of_x) -> np.ndarray:

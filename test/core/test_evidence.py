@@ -1,4 +1,4 @@
-"""Negative evidence (hdmap_core.evidence): empty stretches per step, and fills through them dropped."""
+"""Negative evidence (hdmap_core.pipeline.evidence): empty stretches per step, and fills through them dropped."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.evidence import _in_intervals, EvidenceConfig, refuted_edges, step_profiles
+from hdmap_core.pipeline.evidence import _in_intervals, EvidenceConfig, refuted_edges, step_profiles
 from hdmap_core.model import Detection, Drive, FeatureType
-from hdmap_core.pipeline import PipelineConfig, build_map, map_stretches, prepare_drives
+from hdmap_core.pipeline.driver import PipelineConfig, build_map, map_stretches, prepare_drives
 from pipeline_fleet import LINES, offset_line
 
 CFG = EvidenceConfig()

@@ -1,4 +1,4 @@
-"""Tests of hdmap_core.incremental: tiles, clipping, step selection, debounce, id carry-over."""
+"""Tests of hdmap_core.live.tiles: tiles, clipping, step selection, debounce, id carry-over."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.incremental import (
+from hdmap_core.live.tiles import (
     TileConfig,
     carry_over_ids,
     clip_drive,
@@ -173,7 +173,7 @@ def test_carry_over_ids_type_must_match_and_no_old_map():
 
 
 def test_clean_drive_drops_short_and_unknown_and_thins():
-    from hdmap_core.incremental import clean_drive
+    from hdmap_core.live.tiles import clean_drive
 
     straight = Detection(FeatureType.SOLID, _line(0, 50, y=1))  # 51 collinear points
     short = Detection(FeatureType.DASHED, _line(0, 2, y=2))  # 2 m < 3 m
@@ -206,8 +206,8 @@ def test_tile_config_rejects_pivot_margin_outside_the_margin(pm):
 
 
 def test_steps_outside_marks_exactly_the_pivot_steps_outside_the_box():
-    from hdmap_core.incremental import steps_outside
-    from hdmap_core.sampling import pivot_walk
+    from hdmap_core.live.tiles import steps_outside
+    from hdmap_core.pipeline.sampling import pivot_walk
 
     d = _drive(_line(-100, 300, n=81), drive_id="a")  # poses every 5 m, steps every 2 m
     bounds = (0.0, -10.0, 100.0, 10.0)
@@ -219,9 +219,9 @@ def test_steps_outside_marks_exactly_the_pivot_steps_outside_the_box():
 
 
 def _sim_tile():
-    from hdmap_core.pipeline import PipelineConfig
-    from hdmap_core.simulate import SimConfig, simulate_fleet
-    from hdmap_core.synthetic import synthetic_highway
+    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
+    from hdmap_core.simulation.synthetic import synthetic_highway
 
     gt = synthetic_highway("motorway", length_m=700.0, seed=3)
     fleet = simulate_fleet(gt, config=SimConfig(n_drives=4, snippet_length_min_m=500, snippet_length_max_m=600), seed=3)
@@ -238,7 +238,7 @@ def _sim_tile():
 def test_map_tile_pivot_margin_keeps_the_tile_and_equals_the_full_walk_at_the_margin():
     from dataclasses import replace
 
-    from hdmap_core.incremental import map_tile
+    from hdmap_core.live.tiles import map_tile
 
     drives, key, cfg, pc = _sim_tile()
     full = map_tile(drives, key, tile_config=cfg, pipeline_config=pc)
@@ -262,7 +262,7 @@ def test_map_tile_pivot_margin_keeps_the_tile_and_equals_the_full_walk_at_the_ma
 
 
 def test_clip_reports_where_on_the_full_drive_the_clip_starts():
-    from hdmap_core.incremental import _clip
+    from hdmap_core.live.tiles import _clip
 
     d = _drive(_line(-500, 500))  # poses every 1 m along y=0
     clipped, s0 = _clip(d, (-128.0, -10.0, 384.0, 10.0))
@@ -280,7 +280,7 @@ def _positions(drive, s):
 
 
 def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
-    from hdmap_core.incremental import map_tile_observed, observe_tile
+    from hdmap_core.live.tiles import map_tile_observed, observe_tile
 
     drives, key, cfg, pc = _sim_tile()
     obs = observe_tile(drives, key, tile_config=cfg, pipeline_config=pc)
@@ -308,8 +308,8 @@ def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
 def test_map_tile_with_a_fleet_model_shifts_by_it_at_full_drive_distances():
     from dataclasses import replace
 
-    from hdmap_core.adjustment import DriveOffset
-    from hdmap_core.incremental import fleet_offsets, map_tile, observe_tile
+    from hdmap_core.pipeline.adjustment import DriveOffset
+    from hdmap_core.live.tiles import fleet_offsets, map_tile, observe_tile
 
     drives, key, cfg, pc = _sim_tile()
     model = fleet_offsets(observe_tile(drives, key, tile_config=cfg, pipeline_config=pc), pipeline_config=pc)
@@ -345,7 +345,7 @@ def test_map_tile_with_a_fleet_model_shifts_by_it_at_full_drive_distances():
 
 
 def test_observations_signature_depends_on_the_drive_sets_only():
-    from hdmap_core.incremental import observations_signature
+    from hdmap_core.live.tiles import observations_signature
 
     a = observations_signature([((0, 0), ["b", "a"]), ((1, 0), ["c"])])
     assert a == observations_signature([((1, 0), ["c"]), ((0, 0), ["a", "b"])])
@@ -355,8 +355,8 @@ def test_observations_signature_depends_on_the_drive_sets_only():
 def test_the_tiles_final_pass_is_the_pipelines_final_pass():
     # the fleet-model path runs the pipeline's passes apart (map_stretches with offset_model); given the model
     # the pipeline estimated itself, its final pass must give exactly the pipeline's segments
-    from hdmap_core.incremental import _final_pass, _tile_input
-    from hdmap_core.pipeline import map_stretches
+    from hdmap_core.live.tiles import _final_pass, _tile_input
+    from hdmap_core.pipeline.driver import map_stretches
 
     drives, key, cfg, pc = _sim_tile()
     inp = _tile_input(drives, key, cfg, pc)

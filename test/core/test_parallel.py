@@ -8,12 +8,12 @@ import os
 import numpy as np
 import pytest
 
-from hdmap_core import pipeline
+from hdmap_core.pipeline import driver as pipeline
 from hdmap_core.errors import ConfigError
 from hdmap_core.parallel import ForkWorker, can_fork, pivot_groups, split_order
-from hdmap_core.pipeline import PipelineConfig, build_map, map_stretches, prepare_drives
-from hdmap_core.preprocess import preprocess
-from hdmap_core.sampling import sample_pivot
+from hdmap_core.pipeline.driver import PipelineConfig, build_map, map_stretches, prepare_drives
+from hdmap_core.pipeline.preprocess import preprocess
+from hdmap_core.pipeline.sampling import sample_pivot
 from pipeline_fleet import make_drive
 
 needs_fork = pytest.mark.skipif(not can_fork(), reason="no fork start method on this platform")
@@ -22,8 +22,8 @@ needs_fork = pytest.mark.skipif(not can_fork(), reason="no fork start method on 
 @pytest.fixture(scope="module")
 def two_way_fleet():
     """A simulated two-carriageway motorway with ramps: drives both ways, exits and entries."""
-    from hdmap_core.simulate import SimConfig, simulate_fleet
-    from hdmap_core.synthetic import synthetic_highway
+    from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
+    from hdmap_core.simulation.synthetic import synthetic_highway
 
     gt = synthetic_highway("motorway_ramps", length_m=2000.0, seed=1)
     fleet = simulate_fleet(gt, config=SimConfig(n_drives=16, snippet_length_min_m=400.0, snippet_length_max_m=900.0), seed=3)

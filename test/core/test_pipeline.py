@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from hdmap_core.aggregation import ProcessedStore
+from hdmap_core.pipeline.aggregation import ProcessedStore
 from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
-from hdmap_core.pipeline import (
+from hdmap_core.pipeline.driver import (
     PipelineConfig,
     build_map,
     map_segments,
@@ -18,7 +18,7 @@ from hdmap_core.pipeline import (
     parse_override,
     prepare_drives,
 )
-from hdmap_core.sampling import pivot_walk
+from hdmap_core.pipeline.sampling import pivot_walk
 from hdmap_core.steps import Segment
 from pipeline_fleet import LINES, RADIUS_M, make_drive, make_fleet
 
@@ -42,8 +42,8 @@ def test_presets_are_frozen_and_distinct():
     assert not cfgs["naive"].alignment.estimate_offsets
     assert cfgs["paper"].alignment.solver == "lm" and cfgs["default"].alignment.solver == "closed_form"
     assert cfgs["paper"].aggregation.kde_bandwidth_factor == 6.0
-    from hdmap_core.connection import ConnectionConfig
-    from hdmap_core.stitching import StitchConfig
+    from hdmap_core.graph.connection import ConnectionConfig
+    from hdmap_core.graph.map_graph import StitchConfig
 
     # the paper preset is the paper's method in stages 5-6 too, not our defaults
     assert cfgs["paper"].connection == ConnectionConfig.paper() != ConnectionConfig()
@@ -276,7 +276,7 @@ def test_map_stretches_raises_without_usable_drive():
 
 
 def test_build_map_rejects_malformed_drive_and_goes_on(fleet):
-    pytest.importorskip("hdmap_core.stitching")
+    pytest.importorskip("hdmap_core.graph.map_graph")
     bad_type = Drive("badtype", fleet[0].xy, fleet[0].yaw, fleet[0].stamps_ns, (Detection(7, fleet[0].xy),))  # type: ignore[arg-type]
     res = build_map([*fleet, _bad_drive(), bad_type], config=PipelineConfig.preset("default"), seed=0)
     rep = res.report
@@ -295,9 +295,9 @@ def test_build_map_all_bad_raises():
 @pytest.mark.slow
 def test_end_to_end_on_simulated_motorway():
     """Simulated fleet on the built-in curved motorway: the default map beats the naive one."""
-    from hdmap_core.evaluate import evaluate_map
-    from hdmap_core.simulate import SimConfig, simulate_fleet
-    from hdmap_core.synthetic import synthetic_highway
+    from hdmap_core.evaluation.evaluate import evaluate_map
+    from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
+    from hdmap_core.simulation.synthetic import synthetic_highway
 
     gt = synthetic_highway("motorway", length_m=1500.0, seed=0)
     fleet = simulate_fleet(gt, config=SimConfig(n_drives=30, snippet_length_min_m=500.0, snippet_length_max_m=1500.0), seed=0)
@@ -414,7 +414,7 @@ def test_report_counts_the_steps_off_their_pivots_road():
 def test_adjustment_settings_are_explicit_where_it_runs_and_changeable_with_set():
     """The default's adjustment runs with AdjustConfig's defaults, held in the config, so that
     ``--set adjustment.loss=linear`` reaches them; where it is off they stay None and are refused."""
-    from hdmap_core.adjustment import AdjustConfig
+    from hdmap_core.pipeline.adjustment import AdjustConfig
 
     default = PipelineConfig.preset("default")
     assert default.adjustment == AdjustConfig()

@@ -8,7 +8,7 @@ import pytest
 from hdmap_core.errors import ConfigError
 from hdmap_core.geometry import cut_segment_intersections
 from hdmap_core.model import Detection, Drive, FeatureType
-from hdmap_core.preprocess import PreprocessConfig, preprocess
+from hdmap_core.pipeline.preprocess import PreprocessConfig, preprocess
 
 
 def _drive(dets, drive_id="a", length_m=100.0):
@@ -94,7 +94,7 @@ def _random_fleet(n_drives: int, seed: int) -> list[Drive]:
 def test_index_is_the_same_in_chunks_and_processes(monkeypatch, workers):
     """Drives are thinned in chunks (and on several processes): every step is per polyline and
     the chunks are joined in drive order, so the index equals the one made in one piece."""
-    import hdmap_core.preprocess as pre
+    import hdmap_core.pipeline.preprocess as pre
 
     drives = _random_fleet(40, seed=3)
     cfg = PreprocessConfig(max_segment_m=6.0)

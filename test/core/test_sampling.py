@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from hdmap_core.model import Detection, Drive, FeatureType
-from hdmap_core.preprocess import preprocess
-from hdmap_core.sampling import SamplingConfig, pivot_walk, refine_cuts, sample_pivot
+from hdmap_core.pipeline.preprocess import preprocess
+from hdmap_core.pipeline.sampling import SamplingConfig, pivot_walk, refine_cuts, sample_pivot
 from pipeline_fleet import LINES, make_drive, offset_line
 
 

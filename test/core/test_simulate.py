@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from hdmap_core.errors import ConfigError, GroundTruthError, NoUsableDataError
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import FeatureType, validate_drive
-from hdmap_core.simulate import (
+from hdmap_core.simulation.fleet import (
     DEFAULT_ORIGIN,
     SimConfig,
     decode_runs,
@@ -24,7 +24,7 @@ from hdmap_core.simulate import (
     simulate_fleet,
     write_sim_json,
 )
-from hdmap_core.synthetic import synthetic_highway
+from hdmap_core.simulation.synthetic import synthetic_highway
 
 SHORT = dict(snippet_length_min_m=300.0, snippet_length_max_m=600.0)
 
@@ -526,7 +526,7 @@ def test_seen_counts_are_split_back_into_the_features(motorway):
     from dataclasses import replace
 
     from hdmap_core.groundtruth import GTFeature
-    from hdmap_core.sim_sensor import feature_index, seen_per_feature
+    from hdmap_core.simulation.sensor import feature_index, seen_per_feature
 
     line = np.stack([np.arange(4.0), np.zeros(4)], axis=1)
     feats = (GTFeature(1, FeatureType.SOLID, line), GTFeature(2, FeatureType.DASHED, line[:1]),

@@ -11,12 +11,12 @@ import math
 import numpy as np
 import pytest
 
-from hdmap_core.connection import ConnectionConfig, connect_segment
+from hdmap_core.graph.connection import ConnectionConfig, connect_segment
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType, HDMap
-from hdmap_core.pipeline import PipelineConfig
+from hdmap_core.pipeline.driver import PipelineConfig
 from hdmap_core.steps import Segment, StepResult
-from hdmap_core.stitching import MapGraph, StitchConfig, graph_from_hdmap, stitch, to_hdmap
+from hdmap_core.graph.map_graph import MapGraph, StitchConfig, graph_from_hdmap, stitch, to_hdmap
 
 B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
 DEFAULT = PipelineConfig.preset("default").stitching  # the default preset's stitching options
@@ -963,7 +963,7 @@ def test_link_inside_a_component_never_closes_a_short_cycle():
 
 
 def test_link_within_component_only_in_the_default_preset():
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
 
     assert PipelineConfig.preset("default").stitching.link_within_component
     for name in ("naive", "paper"):
@@ -1044,7 +1044,7 @@ def test_exit_start_beyond_the_stitch_radius_follows_its_arc_back():
 
 
 def test_path_search_only_in_the_default_preset():
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
 
     assert PipelineConfig.preset("default").stitching.path_search_m > 0
     for name in ("naive", "paper"):
@@ -1098,7 +1098,7 @@ def test_roads_whose_lines_barely_overlap_are_side_by_side():
 
 
 def test_side_link_angle_only_in_the_default_preset():
-    from hdmap_core.pipeline import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
 
     assert PipelineConfig.preset("default").stitching.side_link_angle_deg == 30.0
     assert StitchConfig().side_link_angle_deg == 90.0 and StitchConfig.paper().side_link_angle_deg == 90.0
@@ -1503,7 +1503,7 @@ def test_track_of_a_pivot_is_followed_across_live_tiles():
     in tile (0, 0); its failed turn and the steps processed through q in tile (0, -1), steps
     counted from 0 again, ``s_m`` the travelled distance of the whole drive (``map_tile``). The
     end still follows p's whole track onto q: the pieces are one track by drive and ``s_m``."""
-    from hdmap_core.incremental import connect_tile  # noqa: PLC0415
+    from hdmap_core.live.tiles import connect_tile  # noqa: PLC0415
 
     p, q = _junction(turn=True)
     steps, turn = _junction_turn_split()
@@ -1640,7 +1640,7 @@ def test_cross_section_lookup_with_several_margins_equals_separate_lookups():
 
     from scipy.spatial import cKDTree
 
-    from hdmap_core.stitching_links import _entered_by_points
+    from hdmap_core.graph.links import _entered_by_points
 
     rng = np.random.default_rng(7)
     n = 300

@@ -8,7 +8,7 @@ import pytest
 from hdmap_core.errors import ConfigError
 from hdmap_core.groundtruth import load_ground_truth, save_ground_truth
 from hdmap_core.model import FeatureType
-from hdmap_core.synthetic import LANE_WIDTH_M, SYNTHETIC_NAMES, synthetic_highway
+from hdmap_core.simulation.synthetic import LANE_WIDTH_M, SYNTHETIC_NAMES, synthetic_highway
 
 LENGTH_M = 2500.0
 

@@ -84,14 +84,14 @@ def assert_maps_equal(a: HDMap, b: HDMap) -> None:
 
 
 def install_fake_pipeline(monkeypatch, build_map) -> None:
-    """Replace ``hdmap_core.pipeline`` by a stand-in with the contract's API: ``build_map`` as
+    """Replace ``hdmap_core.pipeline.driver`` by a stand-in with the contract's API: ``build_map`` as
     given and a ``PipelineConfig`` whose ``preset(name)`` keeps only the name and whose
     ``with_overrides`` only records them (the CLI tests check the glue, not the algorithms)."""
     import sys  # noqa: PLC0415
     import types  # noqa: PLC0415
     from dataclasses import dataclass  # noqa: PLC0415
 
-    import hdmap_core  # noqa: PLC0415
+    import hdmap_core.pipeline  # noqa: PLC0415
 
     @dataclass(frozen=True)
     class PipelineConfig:
@@ -105,9 +105,9 @@ def install_fake_pipeline(monkeypatch, build_map) -> None:
         def with_overrides(self, overrides: dict) -> PipelineConfig:
             return PipelineConfig(self.name + ("+" if overrides else ""), tuple(overrides.items()))
 
-    from hdmap_core.pipeline import parse_override  # noqa: PLC0415 - the real text format of --set
+    from hdmap_core.pipeline.driver import parse_override  # noqa: PLC0415 - the real text format of --set
 
-    mod = types.ModuleType("hdmap_core.pipeline")
+    mod = types.ModuleType("hdmap_core.pipeline.driver")
     mod.PipelineConfig, mod.build_map, mod.parse_override = PipelineConfig, build_map, parse_override
-    monkeypatch.setitem(sys.modules, "hdmap_core.pipeline", mod)
-    monkeypatch.setattr(hdmap_core, "pipeline", mod, raising=False)
+    monkeypatch.setitem(sys.modules, "hdmap_core.pipeline.driver", mod)
+    monkeypatch.setattr(hdmap_core.pipeline, "driver", mod, raising=False)

@@ -11,11 +11,11 @@ import pytest
 from rosbags.rosbag2 import Writer
 from rosbags.typesys import Stores, get_typestore
 
-import hdmap_ros.bagio as bagio
+from hdmap_ros.io import bagio
 from bag_samples import T0_NS, assert_drives_equal, assert_maps_equal, make_drive, make_map
 from hdmap_core.errors import BagError
 from hdmap_core.model import Detection, FeatureType, GeoOrigin
-from hdmap_ros.bagio import (
+from hdmap_ros.io.bagio import (
     DRIVE_TYPE,
     DRIVES_TOPIC,
     ORIGIN_TOPIC,
@@ -29,8 +29,8 @@ from hdmap_ros.bagio import (
     write_fleet_bag,
     write_map_bag,
 )
-from hdmap_ros.convert import drive_to_msg, origin_to_msg
-from hdmap_ros.msgdefs import default_typestore
+from hdmap_ros.convert.messages import drive_to_msg, origin_to_msg
+from hdmap_ros.io.msgdefs import default_typestore
 
 ORIGIN = GeoOrigin(57.70887, 11.97456, 12.0)
 
@@ -252,7 +252,7 @@ def test_iter_fleet_bag_streams_in_bag_order_and_flags_conflicting_origin(tmp_pa
 
 
 def test_baginfo_describes_drives_rejections_and_damage(tmp_path, capsys):
-    from hdmap_ros.baginfo import main
+    from hdmap_ros.io.baginfo import main
 
     bad = replace(make_drive("zz-bad", n=5, start_ns=T0_NS + 10**10), frame_id="odom")
     bag = write_fleet_bag(tmp_path / "fleet", _drives(2) + [bad], ORIGIN)
@@ -336,7 +336,7 @@ def test_mcap_from_another_writer_with_small_chunks_and_crcs(tmp_path, compressi
     from mcap.writer import CompressionType
     from mcap.writer import Writer as McapWriter
 
-    from hdmap_ros.fastcdr import encode_drive
+    from hdmap_ros.io.cdr import encode_drive
 
     drives = _drives(12, n=200)
     msgdef, _ = default_typestore().generate_msgdef(DRIVE_TYPE, ros_version=2)

@@ -12,14 +12,14 @@ import pytest
 from bag_samples import T0_NS, assert_maps_equal, install_fake_pipeline, make_drive, make_map
 from hdmap_core.model import GeoOrigin
 from hdmap_ros import cli
-from hdmap_ros.bagio import read_fleet_bag, read_map_bag, write_fleet_bag
+from hdmap_ros.io.bagio import read_fleet_bag, read_map_bag, write_fleet_bag
 
 ORIGIN = GeoOrigin(57.7, 11.97, 5.0)
 
 
 @pytest.fixture
 def fake_pipeline(monkeypatch):
-    """A stand-in for hdmap_core.pipeline with the contract's API; records its calls."""
+    """A stand-in for hdmap_core.pipeline.driver with the contract's API; records its calls."""
     calls = {}
 
     @dataclass(frozen=True)

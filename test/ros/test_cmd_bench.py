@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import pytest
 
 from bag_samples import install_fake_pipeline
-from hdmap_core.evaluate import hdmap_from_ground_truth
+from hdmap_core.evaluation.evaluate import hdmap_from_ground_truth
 from hdmap_core.groundtruth import load_ground_truth
 from hdmap_ros import cli
 from hdmap_ros.commands.bench import format_table, summarize_seeds
@@ -177,7 +177,7 @@ def test_named_paper_like_scenario_is_simulated_with_its_overrides(tmp_path):
 
 
 def test_simulated_fleet_is_reused_only_when_made_with_the_same_config(tmp_path):
-    from hdmap_core.simulate import simulator_fingerprint
+    from hdmap_core.simulation.fleet import simulator_fingerprint
     from hdmap_ros.commands.bench import prepare_scenarios
 
     (first,) = prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)

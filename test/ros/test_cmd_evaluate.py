@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdmap_core.evaluate import hdmap_from_ground_truth
+from hdmap_core.evaluation.evaluate import hdmap_from_ground_truth
 from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute, save_ground_truth
 from hdmap_core.model import Drive, FeatureType, GeoOrigin
 from hdmap_ros import cli
-from hdmap_ros.bagio import write_fleet_bag, write_map_bag
+from hdmap_ros.io.bagio import write_fleet_bag, write_map_bag
 from hdmap_ros.commands.evaluate import resolve_ground_truth, seen_counts_from_sim_json, sigma_from_sim_json
 
 BAGS = Path(__file__).resolve().parents[2] / "bags"

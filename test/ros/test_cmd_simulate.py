@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from hdmap_core.groundtruth import load_ground_truth
-from hdmap_core.simulate import SimConfig, load_map, simulate_fleet
+from hdmap_core.simulation.fleet import SimConfig, load_map, simulate_fleet
 from hdmap_ros import cli
-from hdmap_ros.bagio import read_fleet_bag
+from hdmap_ros.io.bagio import read_fleet_bag
 
 ARGS = ["--map", "motorway", "--length-m", "1500", "--drives", "4", "--seed", "3", "--set", "snippet_length_max_m=600"]
 

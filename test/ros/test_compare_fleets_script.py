@@ -10,7 +10,7 @@ from types import ModuleType
 
 import pytest
 
-from hdmap_core.pipeline import PipelineConfig, parse_override
+from hdmap_core.pipeline.driver import PipelineConfig, parse_override
 from hdmap_ros.commands.bench import SCORE_COLUMNS
 
 REPO = Path(__file__).resolve().parents[2]
@@ -60,10 +60,10 @@ def test_a_bag_that_cannot_be_used_is_named_and_the_rest_goes_on(capsys, tmp_pat
 def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
     """A map_stitcher store holding one tile's segments (those of bags/ramps_20) is connected and
     stitched as the node does it: the same map as connect_tile + stitch_graphs, scored."""
-    from hdmap_core.incremental import connect_tile, stitch_graphs
-    from hdmap_core.pipeline import build_map
-    from hdmap_ros.bagio import read_fleet_bag
-    from hdmap_ros.store import MapStore, segments_to_blob
+    from hdmap_core.live.tiles import connect_tile, stitch_graphs
+    from hdmap_core.pipeline.driver import build_map
+    from hdmap_ros.io.bagio import read_fleet_bag
+    from hdmap_ros.persistence.store import MapStore, segments_to_blob
 
     rs = _load("restitch_state")
     fleet = read_fleet_bag(REPO / "bags" / "ramps_20")

@@ -13,7 +13,7 @@ import pytest
 from bag_samples import assert_drives_equal, assert_maps_equal, make_drive, make_map
 from hdmap_core.errors import InvalidDriveError, InvalidMessageError
 from hdmap_core.model import Detection, FeatureType, GeoOrigin
-from hdmap_ros.convert import (
+from hdmap_ros.convert.messages import (
     MsgTypes,
     drive_to_msg,
     map_to_msg,
@@ -24,7 +24,7 @@ from hdmap_ros.convert import (
     quaternion_to_yaw,
     yaw_to_quaternion,
 )
-from hdmap_ros.msgdefs import default_typestore, hdmap_msg_texts
+from hdmap_ros.io.msgdefs import default_typestore, hdmap_msg_texts
 
 
 def _plain_types() -> MsgTypes:

@@ -13,7 +13,7 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 
 from bag_samples import assert_drives_equal, assert_maps_equal, make_drive, make_map  # noqa: E402
 from hdmap_core.model import GeoOrigin  # noqa: E402
-from hdmap_ros.convert import (  # noqa: E402
+from hdmap_ros.convert.messages import (  # noqa: E402
     drive_to_msg,
     map_to_msg,
     msg_to_drive,
@@ -22,8 +22,8 @@ from hdmap_ros.convert import (  # noqa: E402
     origin_to_msg,
     rclpy_types,
 )
-from hdmap_ros.fastcdr import decode_drive, encode_drive  # noqa: E402
-from hdmap_ros.msgdefs import default_typestore  # noqa: E402
+from hdmap_ros.io.cdr import decode_drive, encode_drive  # noqa: E402
+from hdmap_ros.io.msgdefs import default_typestore  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -9,9 +9,9 @@ import pytest
 
 from bag_samples import assert_drives_equal, make_drive
 from hdmap_core.model import Detection, FeatureType
-from hdmap_ros.convert import drive_to_msg, msg_to_drive
-from hdmap_ros.fastcdr import decode_drive
-from hdmap_ros.msgdefs import default_typestore
+from hdmap_ros.convert.messages import drive_to_msg, msg_to_drive
+from hdmap_ros.io.cdr import decode_drive
+from hdmap_ros.io.msgdefs import default_typestore
 
 DRIVE = "hdmap_msgs/msg/Drive"
 
@@ -66,7 +66,7 @@ def test_declines_mixed_frames_and_damage():
 @pytest.mark.parametrize("frame", ["map", "mapframe", ""])
 @pytest.mark.parametrize("n", [0, 1, 2, 5])
 def test_encoder_is_byte_identical_to_rosbags(drive_id, frame, n):
-    from hdmap_ros.fastcdr import encode_drive
+    from hdmap_ros.io.cdr import encode_drive
 
     drive = replace(make_drive(drive_id, n=6, seed=n), frame_id=frame)
     drive = replace(drive, xy=drive.xy[:n], yaw=drive.yaw[:n], stamps_ns=drive.stamps_ns[:n])

@@ -12,7 +12,7 @@ from pyproj import Geod
 from bag_samples import make_map
 from hdmap_core.errors import InvalidMessageError
 from hdmap_core.model import FeatureType, GeoOrigin, HDMap, MapFeature
-from hdmap_ros.geojson import enu_to_lonlat, map_to_geojson, write_geojson
+from hdmap_ros.io.geojson import enu_to_lonlat, map_to_geojson, write_geojson
 
 WGS84_A = 6378137.0
 WGS84_E2 = 6.69437999014e-3

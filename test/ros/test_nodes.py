@@ -23,9 +23,9 @@ from nodes_harness import Ros, wait_for  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from hdmap_core.model import GeoOrigin  # noqa: E402
-from hdmap_ros import qos  # noqa: E402
-from hdmap_ros.bagio import read_map_bag, write_fleet_bag  # noqa: E402
-from hdmap_ros.convert import drive_to_msg, map_to_msg, msg_to_drive, rclpy_types  # noqa: E402
+from hdmap_ros.nodes import qos  # noqa: E402
+from hdmap_ros.io.bagio import read_map_bag, write_fleet_bag  # noqa: E402
+from hdmap_ros.convert.messages import drive_to_msg, map_to_msg, msg_to_drive, rclpy_types  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -220,7 +220,7 @@ def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros,
     import importlib
 
     from hdmap_core.errors import ConfigError
-    from hdmap_core.pipeline import PipelineConfig
+    from hdmap_core.pipeline.driver import PipelineConfig
 
     node_cls = getattr(importlib.import_module(f"hdmap_ros.nodes.{module}"), cls)
     db = Parameter("db_path", value=str(tmp_path / "x.db"))

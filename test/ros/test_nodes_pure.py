@@ -9,8 +9,8 @@ import pytest
 
 from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.steps import Segment, StepResult
-from hdmap_ros.diagnostics import OK, WARN, Health
-from hdmap_ros.markers import DELETEALL, LINE_LIST, LINE_STRIP, TYPE_COLORS, MarkerTypes, map_to_markers
+from hdmap_ros.nodes.diagnostics import OK, WARN, Health
+from hdmap_ros.convert.markers import DELETEALL, LINE_LIST, LINE_STRIP, TYPE_COLORS, MarkerTypes, map_to_markers
 
 
 class _Msg(SimpleNamespace):
@@ -94,8 +94,8 @@ def _segments():
 
 def test_tile_msg_round_trip_through_cdr():
     pytest.importorskip("rosbags")
-    from hdmap_ros.msgdefs import make_typestore
-    from hdmap_ros.nodes.tile_msgs import msg_to_tile, rosbags_tile_types, tile_to_msg
+    from hdmap_ros.io.msgdefs import make_typestore
+    from hdmap_ros.convert.tiles import msg_to_tile, rosbags_tile_types, tile_to_msg
 
     store = make_typestore()
     segs = _segments()
@@ -123,7 +123,7 @@ def test_tile_msg_round_trip_through_cdr():
 def test_step_evidence_from_a_malformed_message_is_cut_not_fatal():
     from types import SimpleNamespace
 
-    from hdmap_ros.nodes.tile_msgs import _empty_from_msg, _pose_from_msg
+    from hdmap_ros.convert.tiles import _empty_from_msg, _pose_from_msg
 
     assert _empty_from_msg(SimpleNamespace(judged=False, empty_lo_m=[1.0], empty_hi_m=[2.0])) is None
     got = _empty_from_msg(SimpleNamespace(judged=True, empty_lo_m=[1.0, 4.0], empty_hi_m=[2.0]))

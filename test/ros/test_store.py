@@ -1,4 +1,4 @@
-"""Tests of hdmap_ros.store: exact blob round trips, transactional drive and map stores."""
+"""Tests of hdmap_ros.persistence.store: exact blob round trips, transactional drive and map stores."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.steps import Segment, StepResult
-from hdmap_ros.store import (
+from hdmap_ros.persistence.store import (
     DriveStore,
     MapStore,
     blob_to_drive,
@@ -229,7 +229,7 @@ def test_sigkill_mid_transaction_keeps_committed_drives(tmp_path):
         f"""
         import os, signal, numpy as np
         from hdmap_core.model import Drive
-        from hdmap_ros.store import DriveStore
+        from hdmap_ros.persistence.store import DriveStore
         st = DriveStore({str(db)!r})
         d = lambda i: Drive(f"d{{i}}", np.zeros((2, 2)), np.zeros(2), np.zeros(2, np.int64))
         for i in range(3):

@@ -29,8 +29,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from hdmap_core.model import Drive
-from hdmap_core.preprocess import DetectionIndex
-from hdmap_core.sampling import SamplingConfig, pivot_walk
+from hdmap_core.pipeline.preprocess import DetectionIndex
+from hdmap_core.pipeline.sampling import SamplingConfig, pivot_walk
 
 __all__ = ["ForkWorker", "available_cpus", "balance", "can_fork", "map_balanced", "pivot_groups", "run_shares", "split_order"]
 

@@ -3,7 +3,7 @@
 ``StepResult`` is one sampling step of one pivot drive after aggregation; ``Segment`` is the
 ordered steps of one pivot drive. ``StepObservations`` is what the per-step EM saw at an accepted
 step (every sample with its drive, lateral position and cluster label); the global offset
-adjustment (``hdmap_core.adjustment``) consumes these.
+adjustment (``hdmap_core.pipeline.adjustment``) consumes these.
 
 Lateral positions are measured along the cut line from the step's midpoint, positive to the left
 of the heading: world point = midpoint + lateral_m * left_normal(heading).
@@ -51,7 +51,7 @@ class StepResult:
         drive_ids: drives that took part in this step.
         empty_m: (M, 2) intervals [lo, hi] along the cut, from the midpoint (+ = left) [m], where
             the drives that passed saw nothing though a line there would have been detected
-            (``hdmap_core.evidence``); None: not judged (no profile made for this step).
+            (``hdmap_core.pipeline.evidence``); None: not judged (no profile made for this step).
         pose: (2,) the pivot's own trajectory point at this step, corrected like its samples
             (``PivotSamples.pose``) [m]: where it drove, while a rejected step's midpoint may lie
             on another road; None: not known.

@@ -1,7 +1,7 @@
 """``hdmap bag2map IN -o OUT``: build the lane-level map of a fleet bag and write it as a map bag.
 
 Reads the drives and the origin of IN (rosbag2 directory or ``.mcap``), reports every rejected
-drive with its reason, runs :func:`hdmap_core.pipeline.build_map`, writes OUT (rosbag2 MCAP with
+drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes OUT (rosbag2 MCAP with
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
 features as RFC 7946 GeoJSON. Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
@@ -20,8 +20,8 @@ import numpy as np
 
 from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.model import GeoOrigin, HDMap
-from hdmap_ros.bagio import FleetBag, read_fleet_bag, write_map_bag
-from hdmap_ros.geojson import write_geojson
+from hdmap_ros.io.bagio import FleetBag, read_fleet_bag, write_map_bag
+from hdmap_ros.io.geojson import write_geojson
 
 __all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument"]
 
@@ -79,7 +79,7 @@ def add_set_argument(parser: argparse.ArgumentParser, help_text: str, dest: str 
 
 def override_arg(text: str) -> tuple[str, object]:
     """argparse type of ``--set KEY=VALUE``: ``pipeline.parse_override``, a malformed item a usage error."""
-    from hdmap_core.pipeline import parse_override  # noqa: PLC0415 - heavy; --help stays fast
+    from hdmap_core.pipeline.driver import parse_override  # noqa: PLC0415 - heavy; --help stays fast
 
     try:
         return parse_override(text)
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if args.geojson and Path(args.geojson).is_dir():
         return _fail(f"--geojson {args.geojson} is a directory")
 
-    from hdmap_core import pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
+    from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
     from hdmap_core.parallel import available_cpus  # noqa: PLC0415
 
     try:  # a bad --set is named before the bag is read

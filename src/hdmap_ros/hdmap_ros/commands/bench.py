@@ -10,7 +10,7 @@ average out, see the realized floor in docs/evaluation.md).
 rows are named ``default+`` etc., and the JSON keeps the changes under ``overrides``.
 Every (scenario, preset) run happens in a fresh process, one after the other, so that wall time
 and peak memory (peak RSS of that process: imports, bag reading, map building and evaluation) are
-its own. The table has the evaluator's figures (``hdmap_core.evaluate``), the floor
+its own. The table has the evaluator's figures (``hdmap_core.evaluation.evaluate``), the floor
 sigma_loc / sqrt(drives), and from the simulator's truth (``BAG.sim.json``) the realized floor, the
 share of the ground truth the fleet observed and recall over it; build time and peak RSS.
 """
@@ -233,8 +233,8 @@ def _simulate(
     sim: dict[str, Any] | None = None,
 ) -> Scenario:
     from hdmap_core.groundtruth import save_ground_truth  # noqa: PLC0415
-    from hdmap_core.simulate import SimConfig, load_map, simulate_fleet, write_sim_json  # noqa: PLC0415
-    from hdmap_ros.bagio import write_fleet_bag  # noqa: PLC0415
+    from hdmap_core.simulation.fleet import SimConfig, load_map, simulate_fleet, write_sim_json  # noqa: PLC0415
+    from hdmap_ros.io.bagio import write_fleet_bag  # noqa: PLC0415
 
     name = f"{label or map_name}_{n_drives}_s{seed}"
     bag = work_dir / name
@@ -262,7 +262,7 @@ def _cached(bag: Path, gt_path: Path, config: Any, seed: int) -> bool:
         doc = json.loads(sim_path.read_text())
     except (OSError, ValueError):
         return False
-    from hdmap_core.simulate import simulator_fingerprint  # noqa: PLC0415
+    from hdmap_core.simulation.fleet import simulator_fingerprint  # noqa: PLC0415
 
     same = (
         doc.get("seed") == seed
@@ -299,11 +299,11 @@ def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int 
         (fleet, build result, evaluation report, build seconds, worker processes used);
         ``workers`` None: the CPUs available.
     """
-    from hdmap_core import pipeline  # noqa: PLC0415
-    from hdmap_core.evaluate import evaluate_map  # noqa: PLC0415
+    from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415
+    from hdmap_core.evaluation.evaluate import evaluate_map  # noqa: PLC0415
     from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
     from hdmap_core.parallel import available_cpus  # noqa: PLC0415
-    from hdmap_ros.bagio import read_fleet_bag  # noqa: PLC0415
+    from hdmap_ros.io.bagio import read_fleet_bag  # noqa: PLC0415
     from hdmap_ros.commands.evaluate import drive_errors_from_sim_json, seen_counts_from_sim_json  # noqa: PLC0415
 
     fleet = read_fleet_bag(scenario.bag)
@@ -325,7 +325,7 @@ def preset_config(preset: str, overrides: dict[str, Any] | None = None) -> Any:
 
     Raises:
         ConfigError: a change that does not fit this preset, naming the key."""
-    from hdmap_core import pipeline  # noqa: PLC0415
+    from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415
 
     try:
         return pipeline.PipelineConfig.preset(preset).with_overrides(dict(overrides or {}))

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from hdmap_core.errors import HdmapError
-from hdmap_core.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth, plot_evaluation
+from hdmap_core.evaluation.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth, plot_evaluation
 from hdmap_core.groundtruth import GroundTruth, load_ground_truth
 from hdmap_core.model import HDMap
 
@@ -96,13 +96,13 @@ def _fail(message: str) -> int:
 
 def resolve_ground_truth(spec: str) -> GroundTruth:
     """Load ground truth from a path, a shared map name (``carla_town04`` or ``carla_town04.gt.json``)
-    or a synthetic highway name, through :func:`hdmap_core.simulate.load_map` (one resolver for
+    or a synthetic highway name, through :func:`hdmap_core.simulation.fleet.load_map` (one resolver for
     ``hdmap simulate`` and ``hdmap evaluate``).
 
     Raises:
         GroundTruthError: nothing of that name, or the file is not ground truth.
     """
-    from hdmap_core.simulate import load_map
+    from hdmap_core.simulation.fleet import load_map
 
     if Path(spec).exists():
         return load_ground_truth(spec)
@@ -115,7 +115,7 @@ def _load_map(spec: str) -> tuple[HDMap, str]:
     if spec.endswith(".json"):
         gt = load_ground_truth(spec)
         return hdmap_from_ground_truth(gt), f"ground truth {spec} used as map"
-    from hdmap_ros.bagio import read_map_bag
+    from hdmap_ros.io.bagio import read_map_bag
 
     hdmap = read_map_bag(spec)
     note = f"map bag {spec} (version {hdmap.version}, {len(hdmap.features)} features)"
@@ -159,7 +159,7 @@ def seen_counts_from_sim_json(path: str | Path | None) -> dict[int, np.ndarray] 
     points, as ``hdmap simulate`` recorded it (``seen_count``, run-length coded); None when the
     file has none (written before the seen count existed) or it is not readable. Entries that do
     not decode are left out (the evaluator then names those features as skipped)."""
-    from hdmap_core.simulate import decode_runs
+    from hdmap_core.simulation.fleet import decode_runs
 
     doc = _read_json(path)
     seen = doc.get("seen_count") if isinstance(doc, dict) else None
@@ -236,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
     drives, errors, seen = None, None, None
     sigma, sigma_note = args.sigma_loc, "--sigma-loc"
     if args.fleet:
-        from hdmap_ros.bagio import read_fleet_bag
+        from hdmap_ros.io.bagio import read_fleet_bag
 
         fleet = read_fleet_bag(args.fleet)
         if fleet.error and not fleet.drives:

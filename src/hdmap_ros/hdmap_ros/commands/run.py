@@ -161,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write(args: argparse.Namespace, hdmap) -> None:
-    from hdmap_ros.bagio import read_bag_origin, write_map_bag  # noqa: PLC0415
+    from hdmap_ros.io.bagio import read_bag_origin, write_map_bag  # noqa: PLC0415
 
     origin = read_bag_origin(args.bag) if (args.out or args.geojson) else None
     if args.out:
@@ -170,7 +170,7 @@ def _write(args: argparse.Namespace, hdmap) -> None:
     if args.geojson:
         if origin is None:
             raise HdmapError(f"{args.bag} has no /fleet/origin: cannot write GeoJSON")
-        from hdmap_ros.geojson import write_geojson  # noqa: PLC0415
+        from hdmap_ros.io.geojson import write_geojson  # noqa: PLC0415
 
         write_geojson(hdmap, origin, args.geojson)
         print(f"GeoJSON written to {args.geojson}")

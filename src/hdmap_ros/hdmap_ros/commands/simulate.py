@@ -105,11 +105,11 @@ def run(args: argparse.Namespace) -> int:
         overrides["n_drives"] = args.drives
     # Imported here, not at module level: the simulator pulls in scipy.signal, which made every
     # `hdmap` call (even --help) pay for it.
-    from hdmap_core.simulate import SimConfig, load_map, simulate_fleet, write_sim_json  # noqa: PLC0415
+    from hdmap_core.simulation.fleet import SimConfig, load_map, simulate_fleet, write_sim_json  # noqa: PLC0415
 
     config = SimConfig.from_dict(overrides)
     gt = load_map(args.map, length_m=args.length_m, map_seed=args.map_seed)
-    from hdmap_ros.bagio import write_fleet_bag  # here: needs rosbags, the core part does not
+    from hdmap_ros.io.bagio import write_fleet_bag  # here: needs rosbags, the core part does not
 
     t0 = time.perf_counter()
     fleet = simulate_fleet(gt, config=config, seed=args.seed)

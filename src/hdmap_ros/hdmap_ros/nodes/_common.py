@@ -16,8 +16,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_ros import qos
-from hdmap_ros.diagnostics import Health, health_to_msg
+from hdmap_ros.nodes import qos
+from hdmap_ros.nodes.diagnostics import Health, health_to_msg
 
 __all__ = [
     "declare", "declare_strings", "declare_pipeline_config", "params_file", "with_default_params", "run_node",
@@ -107,7 +107,7 @@ def preset_config(name: str, overrides: Sequence[str] = ()) -> Any:
     Raises:
         ConfigError: an unknown preset, or an override the config does not take (named).
     """
-    from hdmap_core.pipeline import PipelineConfig, parse_override  # noqa: PLC0415
+    from hdmap_core.pipeline.driver import PipelineConfig, parse_override  # noqa: PLC0415
 
     try:
         changes = dict(parse_override(item) for item in overrides)

@@ -1,6 +1,6 @@
 """bag_player: replays a fleet bag onto its topics (rosbag2 is not on wheel installs).
 
-Reads a rosbag2 directory or bare ``.mcap`` file (``hdmap_ros.bagio.iter_bag``) and publishes the
+Reads a rosbag2 directory or bare ``.mcap`` file (``hdmap_ros.io.bagio.iter_bag``) and publishes the
 raw CDR bytes of ``/fleet/drives`` (and ``/fleet/origin``, latched) on publishers of the recorded
 type, at the bag's log times scaled by ``rate`` (0 = as fast as possible), starting
 ``start_offset_s`` into the bag, optionally in a loop. On stock Jazzy ``ros2 bag play`` does the same.
@@ -18,8 +18,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from hdmap_core.errors import HdmapError
-from hdmap_ros import qos
-from hdmap_ros.bagio import DRIVES_TOPIC, ORIGIN_TOPIC, BagMessage, iter_bag
+from hdmap_ros.nodes import qos
+from hdmap_ros.io.bagio import DRIVES_TOPIC, ORIGIN_TOPIC, BagMessage, iter_bag
 from hdmap_ros.nodes._common import HealthMixin, declare, with_default_params
 
 __all__ = ["BagPlayer", "main", "message_class"]

@@ -3,7 +3,7 @@
 Subscribes ``/hdmap/drives_accepted``. Each new drive is committed to the SQLite drive store
 together with the tiles it covers (one transaction); from then on it is *acknowledged* (an ack is
 published on ``/hdmap/drive_acks``) and survives any crash. A worker then re-maps the tiles the
-new drives cover, each from all stored drives covering it (``hdmap_core.incremental.map_tile``),
+new drives cover, each from all stored drives covering it (``hdmap_core.live.tiles.map_tile``),
 but only when the tile's drive count grew enough for the estimate to improve (parameters
 ``min_growth_fraction`` / ``min_growth_drives``; a new tile is always mapped). Each estimate is
 committed (one transaction) and published on ``/hdmap/segments`` as hdmap_msgs/TileSegments with a
@@ -40,8 +40,8 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
-from hdmap_core.adjustment import OffsetModel
-from hdmap_core.incremental import (
+from hdmap_core.pipeline.adjustment import OffsetModel
+from hdmap_core.live.tiles import (
     TileConfig,
     TileKey,
     fleet_offsets,
@@ -53,11 +53,11 @@ from hdmap_core.incremental import (
     tiles_of_drive,
 )
 from hdmap_core.model import validate_drive
-from hdmap_ros import qos
-from hdmap_ros.convert import msg_to_drive, rclpy_types
+from hdmap_ros.nodes import qos
+from hdmap_ros.convert.messages import msg_to_drive, rclpy_types
 from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
-from hdmap_ros.nodes.tile_msgs import rclpy_tile_types, tile_to_msg
-from hdmap_ros.store import DriveStore, TileEstimate
+from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
+from hdmap_ros.persistence.store import DriveStore, TileEstimate
 
 __all__ = ["SegmentMapper", "main"]
 

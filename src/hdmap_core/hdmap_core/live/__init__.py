@@ -1,0 +1,1 @@
+"""Live mapping by tiles: which tiles a drive touches, mapping and stitching them."""

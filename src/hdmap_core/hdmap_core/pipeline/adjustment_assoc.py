@@ -1,0 +1,252 @@
+"""Sample pool and association for the network-wide offset adjustment (``hdmap_core.pipeline.adjustment``).
+
+Internal to the adjustment: gathering all steps' samples into flat arrays (bad steps skipped and
+named), selecting the informative ones, and the global association (cluster centres, nearest
+centre of the same step and type, per-drive lane-shift search). Everything is vectorised over all
+steps; see docs/adjustment.md for the method.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__: list[str] = []  # internal module
+
+MAX_REPORTED_PROBLEMS = 20
+
+
+@dataclass(frozen=True)
+class Pool:
+    """Every finite sample of every readable step (before any cluster filtering)."""
+
+    drive: np.ndarray  # (n,) int drive index into drive_ids
+    drive_ids: tuple[str, ...]
+    s_m: np.ndarray  # (n,) travelled distance
+    lateral_m: np.ndarray  # (n,)
+    step: np.ndarray  # (n,) int step number (position in the observation sequence)
+    ftype: np.ndarray  # (n,) int FeatureType code
+    label: np.ndarray  # (n,) int cluster label from the observations (-1 = none)
+    step_drives: np.ndarray  # (number of observations,) distinct drives of each step (0 if skipped)
+
+
+@dataclass(frozen=True)
+class Samples:
+    """The samples one fit uses: in clusters seen by >= 2 drives, indices compacted."""
+
+    drive: np.ndarray  # (n,) int drive index into drive_ids
+    s_m: np.ndarray  # (n,) travelled distance
+    lateral_m: np.ndarray  # (n,)
+    cluster: np.ndarray  # (n,) int global cluster index 0..C-1
+    n_clusters: int
+    drive_ids: tuple[str, ...]
+    pool_index: np.ndarray  # (n,) position of each sample in the Pool
+    pool_drive: np.ndarray  # (D,) pool drive index of each drive
+
+
+def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
+    """Concatenate all steps' samples; skip malformed steps, drop non-finite samples."""
+    drive_lists: list[tuple[str, ...]] = []
+    s_list, lat_list, cl_list, type_list, step_list = [], [], [], [], []
+    problems: list[str] = []
+    n_bad_steps = 0
+    step_drives = np.zeros(len(observations), dtype=np.int64)
+    for j, obs in enumerate(observations):
+        try:
+            ids = tuple(obs.drive_ids)
+            s = np.asarray(obs.drive_s_m, dtype=float).ravel()
+            lat = np.asarray(obs.lateral_m, dtype=float).ravel()
+            cl = np.asarray(obs.cluster).ravel()
+            ty = np.asarray(obs.types).ravel()
+            if ty.dtype == object:  # e.g. FeatureType members: IntEnum converts exactly
+                ty = ty.astype(np.int64)
+        except (AttributeError, TypeError, ValueError) as err:
+            reason = f"unreadable ({err})"
+        else:
+            m = len(ids)
+            reason = "" if s.size == lat.size == cl.size == ty.size == m else (
+                f"array lengths differ: drive_ids {m}, drive_s_m {s.size}, lateral_m {lat.size}, "
+                f"types {ty.size}, cluster {cl.size}"
+            )
+            if not reason and m and (cl.dtype.kind not in "iu" or ty.dtype.kind not in "iu"):
+                reason = f"cluster labels ({cl.dtype}) and types ({ty.dtype}) must be integers"
+        if reason:
+            n_bad_steps += 1
+            if len(problems) < MAX_REPORTED_PROBLEMS:
+                problems.append(f"step {getattr(obs, 'pivot_id', '?')}#{getattr(obs, 'index', j)}: {reason}")
+            continue
+        drive_lists.append(ids)
+        step_drives[j] = len(set(ids))
+        s_list.append(s)
+        lat_list.append(lat)
+        cl_list.append(cl)
+        type_list.append(ty)
+        step_list.append(j)
+    stats["n_steps"] = len(observations)
+    stats["n_steps_skipped"] = n_bad_steps
+    stats["problems"] = problems
+    if not s_list:
+        stats["n_samples"] = stats["n_nonfinite_dropped"] = 0
+        e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
+        return Pool(e_i, (), e_f, e_f, e_i, e_i, e_i, np.zeros(len(observations), np.int64))
+    s = np.concatenate(s_list)
+    lat = np.concatenate(lat_list)
+    label = np.concatenate(cl_list).astype(np.int64)
+    ftype = np.concatenate(type_list).astype(np.int64)
+    step = np.repeat(np.asarray(step_list, dtype=np.int64), [len(ids) for ids in drive_lists])
+    all_ids = [d for ids in drive_lists for d in ids]
+    lookup: dict[str, int] = {}
+    # index of each drive's first sample: unique per drive, built at C speed
+    first = np.fromiter(map(lookup.setdefault, all_ids, range(len(all_ids))), dtype=np.int64, count=len(all_ids))
+    stats["n_samples"] = int(s.size)
+    finite = np.isfinite(s) & np.isfinite(lat)
+    stats["n_nonfinite_dropped"] = int((~finite).sum())
+    drive, firsts = compact(first[finite], return_values=True)
+    return Pool(drive, tuple(all_ids[i] for i in firsts), s[finite], lat[finite], step[finite], ftype[finite],
+                 label[finite], step_drives)
+
+
+def select(pool: Pool, label: np.ndarray, thin_drives: int = 0) -> Samples:
+    """The samples with a label, in clusters seen by >= 2 different drives (others carry no information).
+
+    ``thin_drives`` > 0: a step seen by d drives is used only when its number is a multiple of
+    ceil(d / thin_drives). Eliminating a cluster's position couples every pair of its drives, so
+    the work per step grows with d^2; thinned, it grows with d, and a drive's offset curve (knots
+    every 200 m) is still fitted from dozens of steps per knot.
+    """
+    keep = np.flatnonzero(label >= 0)
+    if thin_drives > 0 and keep.size:
+        stride = np.maximum(1, -(-pool.step_drives // thin_drives))
+        st = pool.step[keep]
+        keep = keep[st % stride[st] == 0]
+    cl, n_cl = compact(pool.step[keep] * (int(label[keep].max(initial=0)) + 1) + label[keep])
+    _, first_of_pair = np.unique(cl * max(len(pool.drive_ids), 1) + pool.drive[keep], return_index=True)
+    n_drives_in = np.bincount(cl[first_of_pair], minlength=n_cl)
+    informative = n_drives_in[cl] >= 2
+    used = keep[informative]
+    cl, n_clusters = compact(cl[informative])
+    drive, pool_drive = compact(pool.drive[used], return_values=True)
+    return Samples(
+        drive=drive,
+        s_m=pool.s_m[used],
+        lateral_m=pool.lateral_m[used],
+        cluster=cl,
+        n_clusters=n_clusters,
+        drive_ids=tuple(pool.drive_ids[i] for i in pool_drive),
+        pool_index=used,
+        pool_drive=np.asarray(pool_drive, dtype=np.int64),
+    )
+
+
+@dataclass(frozen=True)
+class Centres:
+    """Cluster centres of all steps, sorted by (step, type) group then position."""
+
+    key: np.ndarray  # (K,) sort key: group * span + position + span / 2
+    group: np.ndarray  # (K,) step * n_types + type
+    pos: np.ndarray  # (K,) centre position along the cut [m]
+    label: np.ndarray  # (K,) cluster label within its step
+    n_types: int
+    span: float
+
+
+def centres(pool: Pool, label: np.ndarray, v: np.ndarray) -> Centres | None:
+    """Centres (median of the members' positions ``v``) of the clusters of ``label``."""
+    have = np.flatnonzero(label >= 0)
+    if have.size == 0:
+        return None
+    g, n_g = compact(pool.step[have] * (int(label[have].max()) + 1) + label[have])
+    width = 2.0 * float(np.abs(v[have]).max()) + 1.0
+    o = np.argsort(g * width + (v[have] + width / 2))  # by cluster, then position
+    starts = np.concatenate([[0], np.cumsum(np.bincount(g, minlength=n_g))[:-1]])
+    mid = have[o][starts + np.bincount(g, minlength=n_g) // 2]
+    n_types = int(pool.ftype.max(initial=0)) + 1
+    span = 2.0 * float(np.abs(v).max(initial=0.0)) + 20.0
+    group = pool.step[mid] * n_types + pool.ftype[mid]
+    key = group * span + (v[mid] + span / 2)
+    o = np.argsort(key)
+    return Centres(key[o], group[o], v[mid][o], label[mid][o], n_types, span)
+
+
+def nearest(cen: Centres, step: np.ndarray, ftype: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Label of and distance to the nearest centre of the same step and type (-1, inf if none)."""
+    grp = step * cen.n_types + ftype
+    idx = np.searchsorted(cen.key, grp * cen.span + (v + cen.span / 2))
+    best = np.full(v.shape, -1, dtype=np.int64)
+    best_d = np.full(v.shape, np.inf)
+    for cand in (idx - 1, idx):
+        cc = np.clip(cand, 0, cen.key.size - 1)
+        ok = (cand >= 0) & (cand < cen.key.size) & (cen.group[cc] == grp)
+        d = np.where(ok, np.abs(v - cen.pos[cc]), np.inf)
+        better = d < best_d
+        best[better], best_d[better] = cen.label[cc[better]], d[better]
+    return best, best_d
+
+
+def reassociate(pool: Pool, label: np.ndarray, offset: np.ndarray, cen: Centres | None, *,
+                 gate_m: float) -> np.ndarray:
+    """New cluster labels: each sample joins the nearest cluster centre of its step and type.
+
+    ``cen``: the current clusters' centres (``centres``); a sample whose corrected position
+    ``lateral + offset`` is farther than ``gate_m`` from every centre gets -1. Labels stay unique
+    within a step (a centre keeps its cluster's label). Vectorised over all steps.
+    """
+    v = pool.lateral_m + offset
+    if cen is None:
+        return label.copy()
+    best, dist = nearest(cen, pool.step, pool.ftype, v)
+    return np.where(dist <= gate_m, best, -1).astype(np.int64)
+
+
+def lane_shift_search(pool: Pool, cen: Centres | None, offset: np.ndarray, bias_m: np.ndarray, *,
+                       search_m: float, gate_m: float, noise_sigma_m: float, bias_sigma_m: float) -> np.ndarray:
+    """(D,) constant correction per pool drive that best fits the cluster centres [m].
+
+    ``offset``: (n,) current offset of every pool sample; ``bias_m``: (D,) current bias per drive.
+    Per drive, a grid of shifts c in [-search_m, search_m] is scored with a truncated
+    quadratic: sum_i min(d_i(c), gate)^2 / noise^2 + (bias + c)^2 / bias_sigma^2, d_i the distance
+    of the shifted sample to the nearest centre of its step and type. Unlike IRLS this sees the
+    samples that a lane-off association rejects (borders, solid lines of the other type), so a
+    drive associated one lane off over its whole length snaps back. At most ~200 samples per drive.
+    """
+    v = pool.lateral_m + offset
+    n_d = len(pool.drive_ids)
+    if cen is None or search_m <= 0:
+        return np.zeros(n_d)
+    order = np.argsort(pool.drive, kind="stable")
+    bounds = np.searchsorted(pool.drive[order], np.arange(n_d + 1))
+    picks = [order[b0:b1][:: max(1, (b1 - b0) // 200)] for b0, b1 in zip(bounds[:-1], bounds[1:])]
+    sel = np.concatenate(picks) if picks else np.zeros(0, np.int64)
+    # 0.25 m is fine enough to tell lanes apart; the fit that follows refines the offset
+    grid = np.arange(-search_m, search_m + 1e-9, 0.25)
+    vv = v[sel][:, None] + grid[None, :]
+    _, dist = nearest(cen, pool.step[sel][:, None], pool.ftype[sel][:, None], vv)
+    cost_s = np.minimum(dist, gate_m) ** 2 / noise_sigma_m**2
+    cost = np.zeros((n_d, grid.size))
+    np.add.at(cost, pool.drive[sel], cost_s)
+    cost += (bias_m[:, None] + grid[None, :]) ** 2 / bias_sigma_m**2
+    best = grid[np.argmin(cost, axis=1)]
+    # keep the current solution unless a shift is clearly better (a lane, not a nudge)
+    at_zero = cost[:, np.argmin(np.abs(grid))]
+    return np.where((np.abs(best) >= 1.0) & (cost.min(axis=1) < at_zero - 10.0), best, 0.0)
+
+
+def compact(key: np.ndarray, *, return_values: bool = False) -> tuple[np.ndarray, Any]:
+    """Relabel non-negative int keys to 0..K-1 in increasing key order.
+
+    Returns (labels, K), or (labels, the distinct keys) with ``return_values``. O(n) with a
+    lookup table when the key range is small, else a sort.
+    """
+    if key.size == 0:
+        return key.astype(np.int64), (key if return_values else 0)
+    top = int(key.max()) + 1
+    if top <= 8 * key.size + 1024:
+        used = np.zeros(top, dtype=bool)
+        used[key] = True
+        new_id = np.cumsum(used) - 1
+        return new_id[key].astype(np.int64), (np.flatnonzero(used) if return_values else int(used.sum()))
+    values, labels = np.unique(key, return_inverse=True)
+    return labels.astype(np.int64), (values if return_values else values.size)

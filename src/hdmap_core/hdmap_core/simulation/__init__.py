@@ -1,0 +1,1 @@
+"""Fleets simulated on ground-truth maps: drives, sensor noise, synthetic highways."""

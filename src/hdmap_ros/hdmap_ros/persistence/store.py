@@ -1,0 +1,626 @@
+"""SQLite persistence of the live node suite (stdlib ``sqlite3``, WAL, one transaction per update).
+
+Two stores, one file each:
+
+- :class:`DriveStore` (``segment_mapper``): every accepted drive, the tiles it covers (the spatial
+  index: "which stored drives cover tile k" is an indexed query), whether it has been processed,
+  and per tile the latest estimate (segments, version, the drive count it was made from).
+  A drive is *acknowledged* once :meth:`DriveStore.add_drive` has committed it.
+- :class:`MapStore` (``map_stitcher``): the latest segments of every tile as received, and the
+  current map (features with their ids, topology, version).
+
+Model objects are stored as compact ``.npz`` blobs of their arrays (plus a little JSON), not as CDR:
+exact round trips, no dependency on rclpy serialization (whose buffers were seen to carry trailing
+junk bytes, shared notes ros-wheels.md), and readable without ROS.
+
+Crash safety: every method that changes state is one transaction; SIGKILL at any point leaves the
+file at the last committed state (WAL journal). ``synchronous=FULL`` makes commits durable across
+power loss too, at the cost of one fsync per update.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import sqlite3
+import threading
+from collections.abc import Iterable, Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from hdmap_core.live.tiles import TileKey
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
+from hdmap_core.steps import Segment, StepObservations, StepResult
+
+__all__ = [
+    "drive_to_blob",
+    "blob_to_drive",
+    "segments_to_blob",
+    "blob_to_segments",
+    "map_to_blob",
+    "blob_to_map",
+    "observations_to_blob",
+    "blob_to_observations",
+    "DriveStore",
+    "MapStore",
+    "TileEstimate",
+]
+
+
+# --- blobs -----------------------------------------------------------------------------------------
+
+
+def _pack(arrays: dict[str, np.ndarray], meta: dict) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, __meta__=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
+    return buf.getvalue()
+
+
+def _unpack(blob: bytes) -> tuple[dict[str, np.ndarray], dict]:
+    with np.load(io.BytesIO(blob), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays.pop("__meta__").tobytes().decode())
+    return arrays, meta
+
+
+def _split(flat: np.ndarray, lengths: np.ndarray) -> list[np.ndarray]:
+    return np.split(flat, np.cumsum(lengths)[:-1]) if len(lengths) else []
+
+
+def drive_to_blob(drive: Drive) -> bytes:
+    """Serialize a drive exactly (float64 coordinates, int64 stamps)."""
+    dets = drive.detections
+    pts = [np.asarray(d.points, dtype=np.float64).reshape(-1, 2) for d in dets]
+    return _pack(
+        {
+            "xy": np.asarray(drive.xy, dtype=np.float64).reshape(-1, 2),
+            "yaw": np.asarray(drive.yaw, dtype=np.float64),
+            "stamps": np.asarray(drive.stamps_ns, dtype=np.int64),
+            "det_types": np.array([int(d.type) for d in dets], dtype=np.int64),
+            "det_lens": np.array([len(p) for p in pts], dtype=np.int64),
+            "det_pts": np.vstack(pts) if pts else np.zeros((0, 2)),
+        },
+        {"drive_id": drive.drive_id, "vehicle_id": drive.vehicle_id, "frame_id": drive.frame_id},
+    )
+
+
+def blob_to_drive(blob: bytes) -> Drive:
+    a, m = _unpack(blob)
+    dets = tuple(
+        Detection(type=FeatureType(int(t)), points=p)
+        for t, p in zip(a["det_types"], _split(a["det_pts"], a["det_lens"]))
+    )
+    return Drive(
+        drive_id=m["drive_id"], xy=a["xy"], yaw=a["yaw"], stamps_ns=a["stamps"], detections=dets,
+        vehicle_id=m["vehicle_id"], frame_id=m["frame_id"],
+    )
+
+
+def segments_to_blob(segments: Sequence[Segment]) -> bytes:
+    """Serialize segments (every StepResult field) exactly."""
+    steps = [st for seg in segments for st in seg.steps]
+    k = np.array([len(np.asarray(st.lateral_m).reshape(-1)) for st in steps], dtype=np.int64)
+
+    def cat(attr: str, dtype) -> np.ndarray:
+        parts = [np.asarray(getattr(st, attr), dtype=dtype).reshape(-1) for st in steps]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
+
+    return _pack(
+        {
+            "nsteps": np.array([len(s.steps) for s in segments], dtype=np.int64),
+            "index": np.array([st.index for st in steps], dtype=np.int64),
+            "s_m": np.array([st.s_m for st in steps], dtype=np.float64),
+            "midpoint": np.array([np.asarray(st.midpoint, dtype=np.float64) for st in steps]).reshape(-1, 2),
+            "pose": np.array([np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=np.float64).reshape(-1)[:2]
+                              for st in steps]).reshape(-1, 2),
+            "heading": np.array([st.heading for st in steps], dtype=np.float64),
+            "width_m": np.array([st.width_m for st in steps], dtype=np.float64),
+            "valid": np.array([st.valid for st in steps], dtype=bool),
+            "processed_before": np.array([st.processed_before for st in steps], dtype=bool),
+            "k": k,
+            "lateral_m": cat("lateral_m", np.float64),
+            "types": cat("types", np.int64),
+            "counts": cat("counts", np.int64),
+            "std_m": cat("std_m", np.float64),
+            "judged": np.array([st.empty_m is not None for st in steps], dtype=bool),
+            "n_empty": np.array([0 if st.empty_m is None else len(np.asarray(st.empty_m).reshape(-1, 2)) for st in steps],
+                                dtype=np.int64),
+            "empty_m": np.concatenate([np.zeros((0, 2))] + [np.asarray(st.empty_m, dtype=np.float64).reshape(-1, 2)
+                                                           for st in steps if st.empty_m is not None]),
+        },
+        {"pivots": [s.pivot_id for s in segments], "drive_ids": [list(st.drive_ids) for st in steps]},
+    )
+
+
+def blob_to_segments(blob: bytes) -> list[Segment]:
+    a, m = _unpack(blob)
+    k = a["k"]
+    lat, typ, cnt, std = (_split(a[n], k) for n in ("lateral_m", "types", "counts", "std_m"))
+    judged = a["judged"] if "judged" in a else np.zeros(len(k), dtype=bool)  # blobs written before evidence
+    empty = _split(a["empty_m"].reshape(-1, 2), a["n_empty"]) if "empty_m" in a else [None] * len(k)
+    pose = a["pose"] if "pose" in a else np.full((len(k), 2), np.nan)  # blobs written before poses
+    steps = [
+        StepResult(
+            pivot_id="", index=int(a["index"][i]), s_m=float(a["s_m"][i]), midpoint=a["midpoint"][i],
+            heading=float(a["heading"][i]), width_m=float(a["width_m"][i]), valid=bool(a["valid"][i]),
+            processed_before=bool(a["processed_before"][i]), lateral_m=lat[i], types=typ[i],
+            counts=cnt[i], std_m=std[i], drive_ids=tuple(m["drive_ids"][i]),
+            empty_m=empty[i] if judged[i] else None, pose=pose[i] if np.isfinite(pose[i]).all() else None,
+        )
+        for i in range(len(k))
+    ]
+    out, at = [], 0
+    for pivot, n in zip(m["pivots"], a["nsteps"].tolist()):
+        out.append(Segment(pivot_id=pivot, steps=tuple(_with_pivot(st, pivot) for st in steps[at : at + n])))
+        at += n
+    return out
+
+
+def observations_to_blob(observations: Sequence[StepObservations]) -> bytes:
+    """Serialize step observations (every field) exactly; drive ids as indices into one id table."""
+    obs = list(observations)
+    ids: dict[str, int] = {}
+    for ob in obs:
+        for d in ob.drive_ids:
+            ids.setdefault(d, len(ids))
+
+    def cat(attr: str, dtype) -> np.ndarray:
+        parts = [np.asarray(getattr(ob, attr), dtype=dtype).reshape(-1) for ob in obs]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
+
+    return _pack(
+        {
+            "index": np.array([ob.index for ob in obs], dtype=np.int64),
+            "midpoint": np.array([np.asarray(ob.midpoint, dtype=np.float64).reshape(-1)[:2] for ob in obs]).reshape(-1, 2),
+            "heading": np.array([ob.heading for ob in obs], dtype=np.float64),
+            "k": np.array([len(ob.drive_ids) for ob in obs], dtype=np.int64),
+            "k_off": np.array([np.asarray(ob.offsets_m).size for ob in obs], dtype=np.int64),
+            "drive": np.array([ids[d] for ob in obs for d in ob.drive_ids], dtype=np.int64),
+            "drive_s_m": cat("drive_s_m", np.float64),
+            "lateral_m": cat("lateral_m", np.float64),
+            "types": cat("types", np.int64),
+            "cluster": cat("cluster", np.int64),
+            "offsets_m": cat("offsets_m", np.float64),
+        },
+        {"pivots": [ob.pivot_id for ob in obs], "drive_ids": list(ids)},
+    )
+
+
+def blob_to_observations(blob: bytes) -> list[StepObservations]:
+    a, m = _unpack(blob)
+    table = np.array(m["drive_ids"], dtype=object)
+    k = a["k"]
+    drv, ds, lat, typ, clu = (_split(a[n], k) for n in ("drive", "drive_s_m", "lateral_m", "types", "cluster"))
+    off = _split(a["offsets_m"], a["k_off"])
+    return [
+        StepObservations(
+            pivot_id=m["pivots"][i], index=int(a["index"][i]), midpoint=a["midpoint"][i],
+            heading=float(a["heading"][i]), drive_ids=tuple(table[drv[i]].tolist()), drive_s_m=ds[i],
+            lateral_m=lat[i], types=typ[i], cluster=clu[i], offsets_m=off[i],
+        )
+        for i in range(len(k))
+    ]
+
+
+def _with_pivot(step: StepResult, pivot: str) -> StepResult:
+    return replace(step, pivot_id=pivot)
+
+
+def _ids(lists: Iterable[Sequence[int]]) -> tuple[np.ndarray, np.ndarray]:
+    lists = [list(map(int, x)) for x in lists]
+    flat = [i for x in lists for i in x]
+    return np.array(flat, dtype=np.uint64), np.array([len(x) for x in lists], dtype=np.int64)
+
+
+def map_to_blob(hdmap: HDMap) -> bytes:
+    """Serialize a map (features, topology, ids, version) exactly; ``extra`` is kept if JSON-able."""
+    fs, ts = hdmap.features, hdmap.topology
+    pred, pred_n = _ids(f.predecessors for f in fs)
+    succ, succ_n = _ids(f.successors for f in fs)
+    tsucc, tsucc_n = _ids(t.successors for t in ts)
+    tfeat, tfeat_n = _ids(t.features for t in ts)
+    pts = [np.asarray(f.points, dtype=np.float64).reshape(-1, 2) for f in fs]
+    try:
+        extra = json.loads(json.dumps(hdmap.extra))
+    except (TypeError, ValueError):
+        extra = {}
+    return _pack(
+        {
+            "f_id": np.array([f.id for f in fs], dtype=np.uint64),
+            "f_type": np.array([int(f.type) for f in fs], dtype=np.int64),
+            "f_n": np.array([len(p) for p in pts], dtype=np.int64),
+            "f_pts": np.vstack(pts) if pts else np.zeros((0, 2)),
+            "f_count": np.concatenate([np.asarray(f.drive_count, dtype=np.int64) for f in fs]) if fs else np.zeros(0, np.int64),
+            "f_std": np.concatenate([np.asarray(f.lateral_std, dtype=np.float64) for f in fs]) if fs else np.zeros(0),
+            "f_pred": pred, "f_pred_n": pred_n, "f_succ": succ, "f_succ_n": succ_n,
+            "t_id": np.array([t.id for t in ts], dtype=np.uint64),
+            "t_pos": np.array([np.asarray(t.position, dtype=np.float64) for t in ts]).reshape(-1, 2),
+            "t_heading": np.array([t.heading for t in ts], dtype=np.float64),
+            "t_width": np.array([t.width for t in ts], dtype=np.float64),
+            "t_succ": tsucc, "t_succ_n": tsucc_n, "t_feat": tfeat, "t_feat_n": tfeat_n,
+        },
+        {
+            "drive_ids": list(hdmap.drive_ids), "version": int(hdmap.version), "frame_id": hdmap.frame_id,
+            "stamp_ns": int(hdmap.stamp_ns), "extra": extra,
+        },
+    )
+
+
+def blob_to_map(blob: bytes) -> HDMap:
+    a, m = _unpack(blob)
+    n = a["f_n"]
+    pts, cnt, std = _split(a["f_pts"], n), _split(a["f_count"], n), _split(a["f_std"], n)
+    pred, succ = _split(a["f_pred"], a["f_pred_n"]), _split(a["f_succ"], a["f_succ_n"])
+    features = tuple(
+        MapFeature(
+            id=int(a["f_id"][i]), type=FeatureType(int(a["f_type"][i])), points=pts[i], drive_count=cnt[i],
+            lateral_std=std[i], predecessors=tuple(int(x) for x in pred[i]), successors=tuple(int(x) for x in succ[i]),
+        )
+        for i in range(len(n))
+    )
+    tsucc, tfeat = _split(a["t_succ"], a["t_succ_n"]), _split(a["t_feat"], a["t_feat_n"])
+    topology = tuple(
+        TopologyNode(
+            id=int(a["t_id"][i]), position=a["t_pos"][i], heading=float(a["t_heading"][i]),
+            width=float(a["t_width"][i]), successors=tuple(int(x) for x in tsucc[i]),
+            features=tuple(int(x) for x in tfeat[i]),
+        )
+        for i in range(len(a["t_id"]))
+    )
+    return HDMap(
+        features=features, topology=topology, drive_ids=tuple(m["drive_ids"]), version=m["version"],
+        frame_id=m["frame_id"], stamp_ns=m["stamp_ns"], extra=m.get("extra", {}),
+    )
+
+
+# --- stores ----------------------------------------------------------------------------------------
+
+
+def _connect(path: str | Path) -> sqlite3.Connection:
+    if str(path) != ":memory:":
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    # isolation_level=None: we open transactions ourselves (BEGIN IMMEDIATE), one per update.
+    con = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
+    con.execute("PRAGMA journal_mode=WAL")  # readers never block the writer; crash leaves last commit
+    con.execute("PRAGMA synchronous=FULL")  # a committed (acknowledged) drive survives power loss too
+    con.execute("PRAGMA foreign_keys=ON")
+    return con
+
+
+class _Store:
+    _SCHEMA: str = ""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = str(path)
+        self._lock = threading.RLock()  # the executor may call from several threads
+        self._con = _connect(path)
+        with self._tx() as con:
+            for stmt in filter(None, (s.strip() for s in self._SCHEMA.split(";"))):
+                con.execute(stmt)
+
+    def _tx(self):
+        store = self
+
+        class _Tx:
+            def __enter__(self_inner):
+                store._lock.acquire()
+                store._con.execute("BEGIN IMMEDIATE")
+                return store._con
+
+            def __exit__(self_inner, exc_type, exc, tb):
+                try:
+                    store._con.execute("ROLLBACK" if exc_type else "COMMIT")
+                finally:
+                    store._lock.release()
+                return False
+
+        return _Tx()
+
+    def _query(self, sql: str, args: Sequence = ()) -> list[tuple]:
+        with self._lock:
+            return self._con.execute(sql, args).fetchall()
+
+    def get_meta(self, key: str, default: str | None = None) -> str | None:
+        rows = self._query("SELECT value FROM meta WHERE key=?", (key,))
+        return rows[0][0] if rows else default
+
+    def set_meta(self, key: str, value: str) -> None:
+        with self._tx() as con:
+            con.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, value))
+
+    def version_total(self) -> int:
+        """Sum of all tile versions: equal in mapper and stitcher when the stitcher has every estimate."""
+        return int(self._query("SELECT COALESCE(SUM(version), 0) FROM tiles")[0][0])
+
+    def close(self) -> None:
+        with self._lock:
+            self._con.close()
+
+
+class TileEstimate:
+    """The stored estimate of one tile."""
+
+    __slots__ = ("key", "version", "drive_ids", "segments_blob")
+
+    def __init__(self, key: TileKey, version: int, drive_ids: Sequence[str], segments_blob: bytes | None) -> None:
+        self.key = key
+        self.version = version
+        self.drive_ids = tuple(drive_ids)
+        self.segments_blob = segments_blob
+
+    @property
+    def drive_count(self) -> int:
+        """Number of drives the estimate was made from."""
+        return len(self.drive_ids)
+
+    def segments(self) -> list[Segment]:
+        return blob_to_segments(self.segments_blob) if self.segments_blob else []
+
+
+class DriveStore(_Store):
+    """segment_mapper's state: drives, their tiles, tile estimates."""
+
+    _SCHEMA = """
+    CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+    CREATE TABLE IF NOT EXISTS drives (
+        seq INTEGER PRIMARY KEY AUTOINCREMENT,
+        drive_id TEXT NOT NULL UNIQUE,
+        blob BLOB NOT NULL,
+        processed INTEGER NOT NULL DEFAULT 0
+    );
+    CREATE TABLE IF NOT EXISTS drive_tiles (
+        tx INTEGER NOT NULL, ty INTEGER NOT NULL, drive_id TEXT NOT NULL,
+        PRIMARY KEY (tx, ty, drive_id)
+    );
+    CREATE TABLE IF NOT EXISTS tiles (
+        tx INTEGER NOT NULL, ty INTEGER NOT NULL,
+        version INTEGER NOT NULL,
+        drive_count INTEGER NOT NULL,
+        drive_ids TEXT NOT NULL,
+        segments BLOB,
+        model_sig TEXT NOT NULL DEFAULT '',
+        PRIMARY KEY (tx, ty)
+    );
+    CREATE TABLE IF NOT EXISTS tile_obs (
+        tx INTEGER NOT NULL, ty INTEGER NOT NULL,
+        drive_count INTEGER NOT NULL,
+        drive_ids TEXT NOT NULL,
+        blob BLOB NOT NULL,
+        PRIMARY KEY (tx, ty)
+    )
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(path)
+        cols = {r[1] for r in self._query("PRAGMA table_info(tiles)")}
+        if "model_sig" not in cols:  # a store of before the fleet-wide offset model
+            with self._tx() as con:
+                con.execute("ALTER TABLE tiles ADD COLUMN model_sig TEXT NOT NULL DEFAULT ''")
+
+    def add_drive(self, drive: Drive, tiles: Iterable[TileKey]) -> bool:
+        """Store a drive and its tiles in one transaction; False (nothing stored) for a known id.
+
+        Once this returns True the drive is acknowledged: it survives any crash.
+        """
+        blob = drive_to_blob(drive)
+        with self._tx() as con:
+            try:
+                con.execute("INSERT INTO drives(drive_id, blob) VALUES (?, ?)", (drive.drive_id, blob))
+            except sqlite3.IntegrityError:
+                return False
+            con.executemany(
+                "INSERT OR IGNORE INTO drive_tiles(tx, ty, drive_id) VALUES (?, ?, ?)",
+                [(int(x), int(y), drive.drive_id) for x, y in tiles],
+            )
+        return True
+
+    def has_drive(self, drive_id: str) -> bool:
+        return bool(self._query("SELECT 1 FROM drives WHERE drive_id=?", (drive_id,)))
+
+    def drive_count(self) -> int:
+        return int(self._query("SELECT COUNT(*) FROM drives")[0][0])
+
+    def drive_ids(self) -> list[str]:
+        """All stored drive ids in arrival order."""
+        return [r[0] for r in self._query("SELECT drive_id FROM drives ORDER BY seq")]
+
+    def pending(self) -> list[str]:
+        """Acknowledged but not yet processed drive ids, in arrival order."""
+        return [r[0] for r in self._query("SELECT drive_id FROM drives WHERE processed=0 ORDER BY seq")]
+
+    def mark_processed(self, drive_ids: Iterable[str]) -> None:
+        with self._tx() as con:
+            con.executemany("UPDATE drives SET processed=1 WHERE drive_id=?", [(d,) for d in drive_ids])
+
+    def tiles_of(self, drive_ids: Iterable[str]) -> set[TileKey]:
+        ids = list(drive_ids)
+        out: set[TileKey] = set()
+        for i in range(0, len(ids), 500):
+            chunk = ids[i : i + 500]
+            q = ",".join("?" * len(chunk))
+            out.update((x, y) for x, y in self._query(f"SELECT tx, ty FROM drive_tiles WHERE drive_id IN ({q})", chunk))
+        return out
+
+    def tile_drive_count(self, key: TileKey) -> int:
+        return int(self._query("SELECT COUNT(*) FROM drive_tiles WHERE tx=? AND ty=?", key)[0][0])
+
+    def drives_covering(self, key: TileKey) -> list[Drive]:
+        """The stored drives covering a tile, ordered by drive id."""
+        rows = self._query(
+            "SELECT d.blob FROM drive_tiles t JOIN drives d ON d.drive_id = t.drive_id "
+            "WHERE t.tx=? AND t.ty=? ORDER BY d.drive_id",
+            key,
+        )
+        return [blob_to_drive(r[0]) for r in rows]
+
+    def tile(self, key: TileKey) -> TileEstimate | None:
+        rows = self._query("SELECT version, drive_ids, segments FROM tiles WHERE tx=? AND ty=?", key)
+        return TileEstimate(key, rows[0][0], json.loads(rows[0][1]), rows[0][2]) if rows else None
+
+    def tiles(self) -> list[TileEstimate]:
+        rows = self._query("SELECT tx, ty, version, drive_ids, segments FROM tiles ORDER BY tx, ty")
+        return [TileEstimate((r[0], r[1]), r[2], json.loads(r[3]), r[4]) for r in rows]
+
+    def tiles_signature(self) -> str:
+        """Every (tile, version), as :meth:`MapStore.tiles_signature` names them."""
+        rows = self._query("SELECT tx, ty, version FROM tiles ORDER BY tx, ty")
+        return ";".join(f"{x},{y}:{v}" for x, y, v in rows)
+
+    def stale_tiles(self) -> list[TileKey]:
+        """Tiles whose estimate was made from fewer drives than now cover them (or never made)."""
+        rows = self._query(
+            "SELECT c.tx, c.ty FROM (SELECT tx, ty, COUNT(*) AS n FROM drive_tiles GROUP BY tx, ty) c "
+            "LEFT JOIN tiles t ON t.tx = c.tx AND t.ty = c.ty "
+            "WHERE t.drive_count IS NULL OR t.drive_count < c.n ORDER BY c.tx, c.ty"
+        )
+        return [(r[0], r[1]) for r in rows]
+
+    def put_tile(
+        self,
+        key: TileKey,
+        segments: Sequence[Segment],
+        drive_ids: Sequence[str],
+        *,
+        model_sig: str = "",
+        observations: Sequence[StepObservations] | None = None,
+    ) -> TileEstimate:
+        """Replace a tile's estimate (made from ``drive_ids``) in one transaction; returns it with its new version.
+
+        Args:
+            model_sig: the signature of the fleet offset model the estimate was made with ('' = the
+                tile's own adjustment).
+            observations: when given, the tile's observations (made from the same drives) are
+                replaced in the same transaction.
+        """
+        blob = segments_to_blob(segments)
+        ids = list(drive_ids)
+        with self._tx() as con:
+            row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
+            version = (row[0] if row else 0) + 1
+            con.execute(
+                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_count, drive_ids, segments, model_sig) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (key[0], key[1], version, len(ids), json.dumps(ids), blob, model_sig),
+            )
+            if observations is not None:
+                self._put_obs(con, key, observations, ids)
+        return TileEstimate(key, version, ids, blob)
+
+    # --- the fleet-wide offset model and the observations it is estimated from ----------------------
+
+    @staticmethod
+    def _put_obs(con, key: TileKey, observations: Sequence[StepObservations], drive_ids: Sequence[str]) -> None:
+        ids = list(drive_ids)
+        con.execute(
+            "INSERT OR REPLACE INTO tile_obs(tx, ty, drive_count, drive_ids, blob) VALUES (?, ?, ?, ?, ?)",
+            (key[0], key[1], len(ids), json.dumps(ids), observations_to_blob(observations)),
+        )
+
+    def put_observations(self, key: TileKey, observations: Sequence[StepObservations], drive_ids: Sequence[str]) -> None:
+        """Replace a tile's observations (made from ``drive_ids``) in one transaction."""
+        with self._tx() as con:
+            self._put_obs(con, key, observations, drive_ids)
+
+    def stale_observations(self) -> list[TileKey]:
+        """Tiles whose observations were made from fewer drives than now cover them (or never made)."""
+        rows = self._query(
+            "SELECT c.tx, c.ty FROM (SELECT tx, ty, COUNT(*) AS n FROM drive_tiles GROUP BY tx, ty) c "
+            "LEFT JOIN tile_obs o ON o.tx = c.tx AND o.ty = c.ty "
+            "WHERE o.drive_count IS NULL OR o.drive_count < c.n ORDER BY c.tx, c.ty"
+        )
+        return [(r[0], r[1]) for r in rows]
+
+    def observation_sets(self) -> list[tuple[TileKey, list[str]]]:
+        """(tile, the drive ids its observations were made from), ordered by tile."""
+        rows = self._query("SELECT tx, ty, drive_ids FROM tile_obs ORDER BY tx, ty")
+        return [((r[0], r[1]), json.loads(r[2])) for r in rows]
+
+    def observations(self) -> list[StepObservations]:
+        """The observations of every tile, ordered by tile (then as stored)."""
+        out: list[StepObservations] = []
+        for (blob,) in self._query("SELECT blob FROM tile_obs ORDER BY tx, ty"):
+            out.extend(blob_to_observations(blob))
+        return out
+
+    def put_model(self, model: dict, sig: str) -> None:
+        """Store the fleet offset model (``OffsetModel.to_dict()``) made from the observations ``sig`` names."""
+        with self._tx() as con:
+            con.executemany(
+                "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+                [("offset_model", json.dumps(model)), ("offset_model_sig", sig)],
+            )
+
+    def model(self) -> tuple[dict | None, str]:
+        """(the stored fleet offset model dict or None, its signature or '')."""
+        text = self.get_meta("offset_model")
+        return (json.loads(text) if text else None), self.get_meta("offset_model_sig", "") or ""
+
+    def tiles_off_model(self, sig: str) -> list[TileKey]:
+        """Tiles made from all their drives but not with the model ``sig`` names."""
+        rows = self._query(
+            "SELECT t.tx, t.ty FROM tiles t JOIN (SELECT tx, ty, COUNT(*) AS n FROM drive_tiles GROUP BY tx, ty) c "
+            "ON t.tx = c.tx AND t.ty = c.ty WHERE t.drive_count >= c.n AND t.model_sig != ? ORDER BY t.tx, t.ty",
+            (sig,),
+        )
+        return [(r[0], r[1]) for r in rows]
+
+
+class MapStore(_Store):
+    """map_stitcher's state: the latest segments per tile and the current map."""
+
+    _SCHEMA = """
+    CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+    CREATE TABLE IF NOT EXISTS tiles (
+        tx INTEGER NOT NULL, ty INTEGER NOT NULL,
+        version INTEGER NOT NULL,
+        drive_ids TEXT NOT NULL,
+        segments BLOB NOT NULL,
+        PRIMARY KEY (tx, ty)
+    );
+    CREATE TABLE IF NOT EXISTS map (
+        one INTEGER PRIMARY KEY CHECK (one = 1),
+        version INTEGER NOT NULL,
+        tiles_sig TEXT NOT NULL,
+        blob BLOB NOT NULL
+    )
+    """
+
+    def put_tile(self, key: TileKey, version: int, segments_blob: bytes, drive_ids: Sequence[str]) -> bool:
+        """Store a tile's segments unless a same or newer version is stored; True when stored."""
+        with self._tx() as con:
+            row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
+            if row and row[0] >= version:
+                return False
+            con.execute(
+                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_ids, segments) VALUES (?, ?, ?, ?, ?)",
+                (key[0], key[1], int(version), json.dumps(list(drive_ids)), segments_blob),
+            )
+        return True
+
+    def tile_version(self, key: TileKey) -> int:
+        rows = self._query("SELECT version FROM tiles WHERE tx=? AND ty=?", key)
+        return int(rows[0][0]) if rows else 0
+
+    def tiles(self) -> list[tuple[TileKey, int, list[str], bytes]]:
+        """(key, version, drive_ids, segments blob) of every tile, ordered by key."""
+        rows = self._query("SELECT tx, ty, version, drive_ids, segments FROM tiles ORDER BY tx, ty")
+        return [((r[0], r[1]), r[2], json.loads(r[3]), r[4]) for r in rows]
+
+    def tiles_signature(self) -> str:
+        """A string naming every (tile, version): equal signatures mean equal inputs to the map."""
+        rows = self._query("SELECT tx, ty, version FROM tiles ORDER BY tx, ty")
+        return ";".join(f"{x},{y}:{v}" for x, y, v in rows)
+
+    def put_map(self, hdmap: HDMap, tiles_sig: str) -> None:
+        with self._tx() as con:
+            con.execute(
+                "INSERT OR REPLACE INTO map(one, version, tiles_sig, blob) VALUES (1, ?, ?, ?)",
+                (int(hdmap.version), tiles_sig, map_to_blob(hdmap)),
+            )
+
+    def map(self) -> tuple[HDMap | None, str]:
+        """The stored map and the tiles signature it was made from ((None, "") when none)."""
+        rows = self._query("SELECT blob, tiles_sig FROM map WHERE one=1")
+        return (blob_to_map(rows[0][0]), rows[0][1]) if rows else (None, "")
