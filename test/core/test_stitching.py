@@ -16,7 +16,9 @@ from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.pipeline.driver import PipelineConfig
 from hdmap_core.steps import Segment, StepResult
-from hdmap_core.graph.map_graph import MapGraph, StitchConfig, graph_from_hdmap, stitch, to_hdmap
+from hdmap_core.graph.from_hdmap import graph_from_hdmap
+from hdmap_core.graph.map_graph import MapGraph, stitch, to_hdmap
+from hdmap_core.graph.stitch_config import StitchConfig
 
 B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
 DEFAULT = PipelineConfig.preset("default").stitching  # the default preset's stitching options
@@ -1634,13 +1636,13 @@ def test_loose_end_of_a_marking_not_joined_to_a_border_start():
 
 
 def test_cross_section_lookup_with_several_margins_equals_separate_lookups():
-    """``_entered_by_points`` with one margin per heading limit answers as one call per limit
+    """``entered_by_points`` with one margin per heading limit answers as one call per limit
     (one tree query instead of several): random nodes and track points."""
     from types import SimpleNamespace
 
     from scipy.spatial import cKDTree
 
-    from hdmap_core.graph.links import _entered_by_points
+    from hdmap_core.graph.tracks import entered_by_points
 
     rng = np.random.default_rng(7)
     n = 300
@@ -1651,13 +1653,13 @@ def test_cross_section_lookup_with_several_margins_equals_separate_lookups():
     xy = rng.uniform(0, 200, (500, 2))
     heading = rng.uniform(-np.pi, np.pi, 500)
     lims, margins = (0.9, 0.5, 0.9), (0.0, 0.0, 2.0)
-    together = _entered_by_points(flat, tree, xy, heading, lims, 12.0, margins)
+    together = entered_by_points(flat, tree, xy, heading, lims, 12.0, margins)
     for out, lim, mg in zip(together, lims, margins):
-        (alone,) = _entered_by_points(flat, tree, xy, heading, (lim,), 12.0, mg)
+        (alone,) = entered_by_points(flat, tree, xy, heading, (lim,), 12.0, mg)
         np.testing.assert_array_equal(out, alone)
     assert (together[2] >= 0).sum() > (together[0] >= 0).sum() > 0  # the margin widens
     with pytest.raises(ValueError):
-        _entered_by_points(flat, tree, xy, heading, lims, 12.0, (0.0, 1.0))
+        entered_by_points(flat, tree, xy, heading, lims, 12.0, (0.0, 1.0))
 
 
 def test_one_drive_marking_beside_the_border_is_the_solid_edge_line():

@@ -6,6 +6,8 @@ Polylines are (N, 2) float arrays. "Left" is +90 deg from a heading (ENU yaw, co
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -14,6 +16,7 @@ __all__ = [
     "segment_headings",
     "interp_angle",
     "wrap_angle",
+    "heading_frame",
     "resample_by_distance",
     "resample_evenly",
     "rdp_mask_many",
@@ -56,6 +59,12 @@ def segment_headings(xy: np.ndarray) -> np.ndarray:
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:
     """Wrap angles to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def heading_frame(heading_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vector along a heading and its left normal: two (2,) arrays."""
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    return np.array([c, s]), np.array([-s, c])
 
 
 def interp_angle(x: np.ndarray, xp: np.ndarray, angle_p: np.ndarray) -> np.ndarray:

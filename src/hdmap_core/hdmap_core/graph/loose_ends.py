@@ -1,28 +1,45 @@
-"""Loose ends of the stitched map (beyond the paper; ``stitching.py``): dangling polyline ends that
-run on top of another segment's line are de-duplicated, loose ends that continue each other are
-joined (the gap filled at export), and branches that start or end on a line's interior are
-linked. A mixin of ``MapGraph``: the methods work on its graphs, alive masks and link sets.
+"""Loose ends of the stitched map (beyond the paper; Sec. VI).
+
+Dangling polyline ends that run on top of another segment's line are de-duplicated
+(``dedupe_loose_ends``), loose ends that continue each other are joined (``join_loose_ends``; the
+gap is filled at export), and branches that start or end on a line's interior are linked (a split
+or merge across segments). Plain functions of the map's flat view; the caller applies the result.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from hdmap_core.graph.flat import FlatGraph, _unit, _wrap
+from hdmap_core.geometry import heading_frame, wrap_angle
+from hdmap_core.graph.flat import FlatGraph
+from hdmap_core.graph.links import Adjacency
 from hdmap_core.graph.stitch_config import StitchConfig
-from hdmap_core.graph.links import _Adjacency
+from hdmap_core.model import FeatureType
 
-if TYPE_CHECKING:  # stitching.py imports this module
-    from hdmap_core.graph.map_graph import IntegrateReport
+__all__ = ["LooseEndJoins", "dedupe_loose_ends", "join_loose_ends"]
 
 _BIG = 1.0e9
 _TWIN_EDGE_REACH_M = 10.0  # half the longest gap the connection bridges by default (max_gap_m)
-_BORDER_CODE = 3  # FeatureType.ROAD_BORDER
+_BORDER_CODE = int(FeatureType.ROAD_BORDER)
+
+
+@dataclass
+class LooseEndJoins:
+    """What ``join_loose_ends`` found, in global feature-node indices of its ``FlatGraph``.
+
+    ``links``: (end, start) feature links joining loose ends; ``dropped``: (N,) bool, nodes of an
+    end's overlap beside the start it joins, to drop; ``branch_links``: (a, b) split/merge links
+    of branches to another segment's line (stored as leftover edges).
+    """
+
+    links: list[tuple[int, int]] = field(default_factory=list)
+    dropped: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    branch_links: list[tuple[int, int]] = field(default_factory=list)
 
 
 class _GapCheck:
@@ -128,241 +145,235 @@ def _chain_steps(e: np.ndarray, nn: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return outdeg, indeg, nxt, prv
 
 
-class LooseEnds:
-    """Loose-end clean-up of ``MapGraph`` (see the module docstring)."""
+def dedupe_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> np.ndarray:
+    """Drop the dangling ends of polylines that run on top of another segment's polyline.
 
-    def _dedupe_loose_ends(self) -> int:
-        """Drop the dangling ends of polylines that run on top of another segment's polyline.
+    From every loose end (no successor) walk back, and from every loose start walk forward,
+    while the node has a twin: a live feature node of another segment, of the same class
+    (marking / border) within ``twin_lateral_m`` across and ``twin_along_m`` along the road,
+    or on an edge of such a line within ``twin_lateral_m``. Those nodes map a place twice; the copy that
+    continues survives, and the loose-end join then connects the rest.
 
-        From every loose end (no successor) walk back, and from every loose start walk forward,
-        while the node has a twin: a live feature node of another segment, of the same class
-        (marking / border) within ``twin_lateral_m`` across and ``twin_along_m`` along the road,
-        or on an edge of such a line within ``twin_lateral_m``. Those nodes map a place twice; the copy that
-        continues survives, and the loose-end join then connects the rest.
-        """
-        cfg = self.config
-        flat = self._flat()
-        nn = flat.n_nodes
-        if nn < 2:
-            return 0
-        e = flat.edges
-        outdeg, indeg, nxt, prv = _chain_steps(e, nn)
-        border = flat.n_type == _BORDER_CODE
-        tree = cKDTree(flat.n_xy)
-        alive = np.ones(nn, dtype=bool)
+    Returns:
+        (N,) bool: the feature nodes to drop.
+    """
+    cfg = config
+    nn = flat.n_nodes
+    if nn < 2:
+        return np.zeros(nn, dtype=bool)
+    e = flat.edges
+    outdeg, indeg, nxt, prv = _chain_steps(e, nn)
+    border = flat.n_type == _BORDER_CODE
+    tree = cKDTree(flat.n_xy)
+    alive = np.ones(nn, dtype=bool)
 
-        heading = flat.t_heading[flat.node_topo()]
-        # candidates up to half a bridged gap away: the other line may have no node next to j,
-        # only an edge across a gap; j is a twin of a node or of an edge out of it
-        reach = math.hypot(cfg.twin_along_m, cfg.twin_lateral_m) + _TWIN_EDGE_REACH_M
-        out_adj = _Adjacency(e[:, 0], e[:, 1], nn)
+    heading = flat.t_heading[flat.node_topo()]
+    # candidates up to half a bridged gap away: the other line may have no node next to j,
+    # only an edge across a gap; j is a twin of a node or of an edge out of it
+    reach = math.hypot(cfg.twin_along_m, cfg.twin_lateral_m) + _TWIN_EDGE_REACH_M
+    out_adj = Adjacency(e[:, 0], e[:, 1], nn)
 
-        def close_to(j: int, k: int, n: np.ndarray, u: np.ndarray) -> bool:
-            d = flat.n_xy[k] - flat.n_xy[j]
-            if abs(float(d @ n)) <= cfg.twin_lateral_m and abs(float(d @ u)) <= cfg.twin_along_m:
-                return True
-            for k2 in out_adj.get(k):
-                if not alive[k2] or k2 == j:
-                    continue  # the edge into j itself (a stitch link) is no other line
-                seg = flat.n_xy[k2] - flat.n_xy[k]
-                length = float(math.hypot(*seg))
-                if length < 1e-9:
+    def close_to(j: int, k: int, n: np.ndarray, u: np.ndarray) -> bool:
+        d = flat.n_xy[k] - flat.n_xy[j]
+        if abs(float(d @ n)) <= cfg.twin_lateral_m and abs(float(d @ u)) <= cfg.twin_along_m:
+            return True
+        for k2 in out_adj.get(k):
+            if not alive[k2] or k2 == j:
+                continue  # the edge into j itself (a stitch link) is no other line
+            seg = flat.n_xy[k2] - flat.n_xy[k]
+            length = float(math.hypot(*seg))
+            if length < 1e-9:
+                continue
+            t = float((flat.n_xy[j] - flat.n_xy[k]) @ seg) / length**2
+            if 0.0 <= t <= 1.0:
+                off = flat.n_xy[k] + t * seg - flat.n_xy[j]
+                if float(math.hypot(*off)) <= cfg.twin_lateral_m:
+                    return True
+        return False
+
+    def twin(j: int) -> bool:
+        u, n = heading_frame(float(heading[j]))
+        for k in tree.query_ball_point(flat.n_xy[j], reach):
+            if alive[k] and flat.n_graph[k] != flat.n_graph[j] and border[k] == border[j]:
+                if close_to(j, int(k), n, u):
+                    return True
+        return False
+
+    ends = [(int(flat.n_uid[i]), int(i), prv) for i in np.flatnonzero(outdeg == 0)]
+    starts = [(int(flat.n_uid[i]), int(i), nxt) for i in np.flatnonzero(indeg == 0)]
+    for _, i, step_to in sorted(ends + starts, key=lambda x: (x[0], x[1])):
+        j = i
+        while j >= 0 and alive[j] and twin(j):
+            alive[j] = False
+            j = int(step_to[j])
+    return ~alive
+
+def join_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> LooseEndJoins:
+    """Join polyline ends to polyline starts of other segments that continue them (one
+    rectangular assignment over all candidate pairs), and loose branches to the line they split
+    from or merge into (``StitchConfig.branch_lateral_m``)."""
+    cfg = config
+    nn = flat.n_nodes
+    out = LooseEndJoins(dropped=np.zeros(nn, dtype=bool))
+    if nn < 2:
+        return out
+    e = flat.edges
+    outdeg, indeg, nxt, prv = _chain_steps(e, nn)
+    ends = np.flatnonzero(outdeg == 0)
+    starts = np.flatnonzero(indeg == 0)
+    if len(ends) == 0 and len(starts) == 0:
+        return out
+    heading = flat.t_heading[flat.node_topo()]
+    tree = cKDTree(flat.n_xy[starts])
+    cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
+    tan_j = math.tan(math.radians(cfg.join_angle_deg))
+    # the pivot's heading is no direction for a line it sees while turning onto or off a ramp
+    # (a line's loose end beside an entry ramp's pivot, heading 35 deg off the line): ends and
+    # starts whose own line leaves it are also compared in their lines' direction
+    line_h = heading.copy()
+    lim_l = math.radians(cfg.join_line_heading_deg)
+    if cfg.join_line_heading_m > 0:
+        for nodes, walk, sign in ((ends, prv, 1.0), (starts, nxt, -1.0)):
+            for i in nodes.tolist():
+                h = _line_heading(flat.n_xy, walk, i, sign, cfg.join_line_heading_m)
+                if h is not None and abs(float(wrap_angle(h - heading[i]))) > lim_l:
+                    line_h[i] = h
+    gap = _GapCheck(flat, heading, cfg)
+    cut: dict[tuple[int, int], tuple[int, list[int]]] = {}  # (end, start) -> (joined node, dropped)
+    cand: list[tuple[float, int, int]] = []
+    for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
+        for jj in near:
+            j = int(starts[jj])
+            if flat.n_graph[j] == flat.n_graph[i] and not cfg.join_same_segment:
+                continue
+            if flat.n_type[j] != flat.n_type[i] and (
+                (cfg.same_type_only and cfg.join_other_marking_m <= 0)
+                or (flat.n_type[j] == _BORDER_CODE) != (flat.n_type[i] == _BORDER_CODE)
+            ):
+                continue
+            # RULE other marking: a solid end and a dashed start (or the reverse) close ahead
+            # are one line whose type flickered at the cut (``join_other_marking_m``)
+            other_marking = bool(flat.n_type[j] != flat.n_type[i]) and cfg.same_type_only
+            best: tuple[float, int, list[int]] | None = None
+            for hh in (heading, line_h) if (line_h[i] != heading[i] or line_h[j] != heading[j]) else (heading,):
+                if math.cos(hh[j] - hh[i]) < cos_h:
                     continue
-                t = float((flat.n_xy[j] - flat.n_xy[k]) @ seg) / length**2
-                if 0.0 <= t <= 1.0:
-                    off = flat.n_xy[k] + t * seg - flat.n_xy[j]
-                    if float(math.hypot(*off)) <= cfg.twin_lateral_m:
-                        return True
+                # on a circular arc the chord runs along the mean of the two tangents, so the
+                # chord's offset from that direction is the lateral error of the join, curvature-free
+                mean_h = hh[i] + 0.5 * float(wrap_angle(hh[j] - hh[i]))
+                u, n = heading_frame(mean_h)
+                d = flat.n_xy[j] - flat.n_xy[i]
+                along, lat = float(d @ u), abs(float(d @ n))
+                if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
+                    continue
+                if other_marking and along > cfg.join_other_marking_m:
+                    continue
+                if 0 < cfg.join_gap_check_m < along and gap.unmapped(flat.n_xy[i], along, mean_h, u, n):
+                    continue
+                # RULE turning join: passing in the lines' frame only where a pivot turned
+                # through the gap (a junction) is no continuation
+                if 0 < cfg.join_gap_check_m < along and hh is line_h and gap.crossed(flat.n_xy[i], along, mean_h, u, n):
+                    continue
+                src, dropped = i, []
+                while along <= 0.0:  # the start lies beside the end: drop the end's overlap
+                    if prv[src] < 0 or len(dropped) > 8:
+                        break
+                    dropped.append(src)
+                    src = int(prv[src])
+                    along = float((flat.n_xy[j] - flat.n_xy[src]) @ u)
+                if along <= 0.0:
+                    continue
+                c = lat + 0.02 * along
+                if best is None or c < best[0]:
+                    best = (c, src, dropped)
+            if best is None:
+                continue
+            cut[(i, j)] = (best[1], best[2])
+            mismatch = cfg.type_mismatch_cost_m if flat.n_type[j] != flat.n_type[i] else 0.0
+            cand.append((best[0] + mismatch, i, j))
+    joined_e: set[int] = set()
+    joined_s: set[int] = set()
+    if cand:
+        ei = sorted({c[1] for c in cand})
+        sj = sorted({c[2] for c in cand})
+        ri, cj = {v: k for k, v in enumerate(ei)}, {v: k for k, v in enumerate(sj)}
+        cost = np.full((len(ei), len(sj)), _BIG)
+        for c, i, j in cand:
+            cost[ri[i], cj[j]] = min(cost[ri[i], cj[j]], c)
+        rows, cols = linear_sum_assignment(cost)
+        drop = np.ones(nn, dtype=bool)
+        for r, c in zip(rows.tolist(), cols.tolist()):
+            if cost[r, c] < _BIG:
+                src, dropped = cut[(ei[r], sj[c])]
+                drop[dropped] = False
+                out.links.append((src, sj[c]))
+                joined_e.add(ei[r])
+                joined_s.add(sj[c])
+        out.dropped = ~drop
+    if cfg.branch_lateral_m > 0:
+        rest_s = [int(j) for j in starts if int(j) not in joined_s]
+        rest_e = [int(i) for i in ends if int(i) not in joined_e]
+        out.branch_links = _join_branches(flat, heading, rest_s, rest_e, e, cfg)
+    return out
+
+def _join_branches(
+    flat: FlatGraph, heading: np.ndarray, starts: list[int], ends: list[int], e: np.ndarray, cfg: StitchConfig
+) -> list[tuple[int, int]]:
+    """Join a polyline that starts (ends) beside another line of its type to that line: a
+    split (merge) across segments, as the leftover assignment does inside one (Sec. V).
+
+    A loose start joins the nearest node of another segment's polyline of the same type
+    that lies behind it (0 < along <= ``branch_radius_m``) at most ``branch_lateral_m`` across
+    the road; a loose end joins such a node ahead of it.
+    """
+    if not starts and not ends:
+        return []
+    tree = cKDTree(flat.n_xy)
+    nn = flat.n_nodes
+    outdeg, indeg, nxt, prv = _chain_steps(e, nn)
+
+    def diverges(i: int, j: int, lat0: float, walk: np.ndarray) -> bool:
+        """Whether the branch through i moves away from the line through j (not a twin
+        running beside it): ~10 m on along the branch the offset grew by
+        ``branch_divergence_m``."""
+        k = i
+        for _ in range(5):
+            if walk[k] < 0:
+                break
+            k = int(walk[k])
+        if k == i:
             return False
+        _, n = heading_frame(float(heading[k]))
+        offs = [
+            abs(float((flat.n_xy[q] - flat.n_xy[k]) @ n))
+            for q in tree.query_ball_point(flat.n_xy[k], 6.0)
+            if flat.n_graph[q] == flat.n_graph[j] and flat.n_type[q] == flat.n_type[j]
+        ]
+        return not offs or min(offs) >= lat0 + cfg.branch_divergence_m
 
-        def twin(j: int) -> bool:
-            u, n = _unit(float(heading[j]))
-            for k in tree.query_ball_point(flat.n_xy[j], reach):
-                if alive[k] and flat.n_graph[k] != flat.n_graph[j] and border[k] == border[j]:
-                    if close_to(j, int(k), n, u):
-                        return True
-            return False
-
-        ends = [(int(flat.n_uid[i]), int(i), prv) for i in np.flatnonzero(outdeg == 0)]
-        starts = [(int(flat.n_uid[i]), int(i), nxt) for i in np.flatnonzero(indeg == 0)]
-        for _, i, step_to in sorted(ends + starts, key=lambda x: (x[0], x[1])):
-            j = i
-            while j >= 0 and alive[j] and twin(j):
-                alive[j] = False
-                j = int(step_to[j])
-        dead = np.flatnonzero(~alive)
-        for j in dead.tolist():
-            k = flat.keys[flat.n_graph[j]]
-            if k not in self._node_dead:
-                self._node_dead[k] = np.zeros(self._graphs[k].n_nodes, dtype=bool)
-            self._node_dead[k][flat.n_local[j]] = True
-        return len(dead)
-
-    def _join_loose_ends(self, rep: IntegrateReport) -> None:
-        """Join polyline ends to polyline starts of other segments that continue them."""
-        cfg = self.config
-        flat = self._flat()
-        nn = flat.n_nodes
-        if nn < 2:
-            return
-        e = flat.edges
-        outdeg, indeg, nxt, prv = _chain_steps(e, nn)
-        ends = np.flatnonzero(outdeg == 0)
-        starts = np.flatnonzero(indeg == 0)
-        if len(ends) == 0 and len(starts) == 0:
-            return
-        heading = flat.t_heading[flat.node_topo()]
-        tree = cKDTree(flat.n_xy[starts])
-        cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
-        tan_j = math.tan(math.radians(cfg.join_angle_deg))
-        # the pivot's heading is no direction for a line it sees while turning onto or off a ramp
-        # (a line's loose end beside an entry ramp's pivot, heading 35 deg off the line): ends and
-        # starts whose own line leaves it are also compared in their lines' direction
-        line_h = heading.copy()
-        lim_l = math.radians(cfg.join_line_heading_deg)
-        if cfg.join_line_heading_m > 0:
-            for nodes, walk, sign in ((ends, prv, 1.0), (starts, nxt, -1.0)):
-                for i in nodes.tolist():
-                    h = _line_heading(flat.n_xy, walk, i, sign, cfg.join_line_heading_m)
-                    if h is not None and abs(float(_wrap(h - heading[i]))) > lim_l:
-                        line_h[i] = h
-        gap = _GapCheck(flat, heading, cfg)
-        cut: dict[tuple[int, int], tuple[int, list[int]]] = {}  # (end, start) -> (joined node, dropped)
-        cand: list[tuple[float, int, int]] = []
-        for i, near in zip(ends.tolist(), tree.query_ball_point(flat.n_xy[ends], cfg.join_radius_m)):
-            for jj in near:
-                j = int(starts[jj])
-                if flat.n_graph[j] == flat.n_graph[i] and not cfg.join_same_segment:
+    border = flat.n_type == _BORDER_CODE
+    made: list[tuple[int, int]] = []
+    for nodes, sign, walk in ((starts, -1.0, nxt), (ends, 1.0, prv)):
+        for i in nodes:
+            u, n = heading_frame(float(heading[i]))
+            best, best_d, best_lat = -1, math.inf, 0.0
+            for j in tree.query_ball_point(flat.n_xy[i], cfg.branch_radius_m):
+                if flat.n_graph[j] == flat.n_graph[i]:
                     continue
                 if flat.n_type[j] != flat.n_type[i] and (
-                    (cfg.same_type_only and cfg.join_other_marking_m <= 0)
-                    or (flat.n_type[j] == _BORDER_CODE) != (flat.n_type[i] == _BORDER_CODE)
+                    not cfg.branch_any_marking or border[j] or border[i]
                 ):
                     continue
-                # RULE other marking: a solid end and a dashed start (or the reverse) close ahead
-                # are one line whose type flickered at the cut (``join_other_marking_m``)
-                other_marking = bool(flat.n_type[j] != flat.n_type[i]) and cfg.same_type_only
-                best: tuple[float, int, list[int]] | None = None
-                for hh in (heading, line_h) if (line_h[i] != heading[i] or line_h[j] != heading[j]) else (heading,):
-                    if math.cos(hh[j] - hh[i]) < cos_h:
-                        continue
-                    # on a circular arc the chord runs along the mean of the two tangents, so the
-                    # chord's offset from that direction is the lateral error of the join, curvature-free
-                    mean_h = hh[i] + 0.5 * float(_wrap(hh[j] - hh[i]))
-                    u, n = _unit(mean_h)
-                    d = flat.n_xy[j] - flat.n_xy[i]
-                    along, lat = float(d @ u), abs(float(d @ n))
-                    if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
-                        continue
-                    if other_marking and along > cfg.join_other_marking_m:
-                        continue
-                    if 0 < cfg.join_gap_check_m < along and gap.unmapped(flat.n_xy[i], along, mean_h, u, n):
-                        continue
-                    # RULE turning join: passing in the lines' frame only where a pivot turned
-                    # through the gap (a junction) is no continuation
-                    if 0 < cfg.join_gap_check_m < along and hh is line_h and gap.crossed(flat.n_xy[i], along, mean_h, u, n):
-                        continue
-                    src, dropped = i, []
-                    while along <= 0.0:  # the start lies beside the end: drop the end's overlap
-                        if prv[src] < 0 or len(dropped) > 8:
-                            break
-                        dropped.append(src)
-                        src = int(prv[src])
-                        along = float((flat.n_xy[j] - flat.n_xy[src]) @ u)
-                    if along <= 0.0:
-                        continue
-                    c = lat + 0.02 * along
-                    if best is None or c < best[0]:
-                        best = (c, src, dropped)
-                if best is None:
+                if math.cos(heading[j] - heading[i]) < math.cos(math.radians(cfg.max_heading_diff_deg)):
                     continue
-                cut[(i, j)] = (best[1], best[2])
-                mismatch = cfg.type_mismatch_cost_m if flat.n_type[j] != flat.n_type[i] else 0.0
-                cand.append((best[0] + mismatch, i, j))
-        joined_e: set[int] = set()
-        joined_s: set[int] = set()
-        if cand:
-            ei = sorted({c[1] for c in cand})
-            sj = sorted({c[2] for c in cand})
-            ri, cj = {v: k for k, v in enumerate(ei)}, {v: k for k, v in enumerate(sj)}
-            cost = np.full((len(ei), len(sj)), _BIG)
-            for c, i, j in cand:
-                cost[ri[i], cj[j]] = min(cost[ri[i], cj[j]], c)
-            rows, cols = linear_sum_assignment(cost)
-            drop = np.ones(nn, dtype=bool)
-            for r, c in zip(rows.tolist(), cols.tolist()):
-                if cost[r, c] < _BIG:
-                    src, dropped = cut[(ei[r], sj[c])]
-                    drop[dropped] = False
-                    self._feature_links.add(self._link(flat, src, sj[c], topo=False))
-                    joined_e.add(ei[r])
-                    joined_s.add(sj[c])
-                    rep.loose_ends_joined += 1
-            if not drop.all():
-                self._kill(flat, lambda fl: drop)
-        if cfg.branch_lateral_m > 0:
-            rest_s = [int(j) for j in starts if int(j) not in joined_s]
-            rest_e = [int(i) for i in ends if int(i) not in joined_e]
-            rep.branches_joined += self._join_branches(flat, heading, rest_s, rest_e, e)
-
-    def _join_branches(self, flat: FlatGraph, heading: np.ndarray, starts: list[int], ends: list[int], e: np.ndarray) -> int:
-        """Join a polyline that starts (ends) beside another line of its type to that line: a
-        split (merge) across segments, as the leftover assignment does inside one (Sec. V).
-
-        A loose start joins the nearest node of another segment's polyline of the same type
-        that lies behind it (0 < along <= ``branch_radius_m``) at most ``branch_lateral_m`` across
-        the road; a loose end joins such a node ahead of it.
-        """
-        cfg = self.config
-        if not starts and not ends:
-            return 0
-        tree = cKDTree(flat.n_xy)
-        nn = flat.n_nodes
-        outdeg, indeg, nxt, prv = _chain_steps(e, nn)
-
-        def diverges(i: int, j: int, lat0: float, walk: np.ndarray) -> bool:
-            """Whether the branch through i moves away from the line through j (not a twin
-            running beside it): ~10 m on along the branch the offset grew by
-            ``branch_divergence_m``."""
-            k = i
-            for _ in range(5):
-                if walk[k] < 0:
-                    break
-                k = int(walk[k])
-            if k == i:
-                return False
-            _, n = _unit(float(heading[k]))
-            offs = [
-                abs(float((flat.n_xy[q] - flat.n_xy[k]) @ n))
-                for q in tree.query_ball_point(flat.n_xy[k], 6.0)
-                if flat.n_graph[q] == flat.n_graph[j] and flat.n_type[q] == flat.n_type[j]
-            ]
-            return not offs or min(offs) >= lat0 + cfg.branch_divergence_m
-
-        border = flat.n_type == _BORDER_CODE
-        made = 0
-        for nodes, sign, walk in ((starts, -1.0, nxt), (ends, 1.0, prv)):
-            for i in nodes:
-                u, n = _unit(float(heading[i]))
-                best, best_d, best_lat = -1, math.inf, 0.0
-                for j in tree.query_ball_point(flat.n_xy[i], cfg.branch_radius_m):
-                    if flat.n_graph[j] == flat.n_graph[i]:
-                        continue
-                    if flat.n_type[j] != flat.n_type[i] and (
-                        not cfg.branch_any_marking or border[j] or border[i]
-                    ):
-                        continue
-                    if math.cos(heading[j] - heading[i]) < math.cos(math.radians(cfg.max_heading_diff_deg)):
-                        continue
-                    d = flat.n_xy[j] - flat.n_xy[i]
-                    along, lat = sign * float(d @ u), abs(float(d @ n))
-                    if along <= 0.0 or lat > cfg.branch_lateral_m:
-                        continue
-                    dist = math.hypot(along, lat)
-                    if dist < best_d:
-                        best, best_d, best_lat = int(j), dist, lat
-                if best >= 0 and diverges(i, best, best_lat, walk):
-                    a, b = (best, i) if sign < 0 else (i, best)
-                    self._branch_links.add(self._link(flat, a, b, topo=False))
-                    made += 1
-        return made
+                d = flat.n_xy[j] - flat.n_xy[i]
+                along, lat = sign * float(d @ u), abs(float(d @ n))
+                if along <= 0.0 or lat > cfg.branch_lateral_m:
+                    continue
+                dist = math.hypot(along, lat)
+                if dist < best_d:
+                    best, best_d, best_lat = int(j), dist, lat
+            if best >= 0 and diverges(i, best, best_lat, walk):
+                a, b = (best, i) if sign < 0 else (i, best)
+                made.append((a, b))
+    return made

@@ -19,12 +19,14 @@ graphs. Beyond the paper (each switchable in :class:`StitchConfig`, all off in
 ``StitchConfig.paper()``): component ends that duplicate a place already in the map are trimmed,
 spurs and bubbles pruned, dangling ends running on another segment's line deduplicated, loose ends
 that continue each other joined (gaps filled on a Hermite curve), and, at export
-(``hdmap_core.graph.flat``), type flicker smoothed, gore splits placed at the lane line's end and
+(``hdmap_core.graph.export``), type flicker smoothed, gore splits placed at the lane line's end and
 isolated specks dropped.
 
-Helpers: ``stitching_config.py`` (:class:`StitchConfig`), ``stitching_links.py`` (partners of
-component ends, the arc search), ``stitching_ends.py`` (loose-end de-duplication and joins, a mixin
-of :class:`MapGraph`), ``graph.py`` (the flat view of all graphs and the export).
+The steps are functions with plain data in and out, one module each: ``flat.py`` (the flat view
+of all graphs), ``trim.py`` (overlap trimming), ``linking.py`` (steps 1-4 and the late links;
+partners in ``links.py``, the pivots' tracks in ``tracks.py``), ``loose_ends.py``, ``cleanup.py``,
+``type_runs.py``, ``gores.py`` and ``export.py`` (the export), ``from_hdmap.py`` (a map read back).
+:class:`MapGraph` keeps the state (segment graphs, alive masks, links) and applies their results.
 
 Feature ids are the stable uid of a polyline's first feature node (hash of pivot id, step index and
 slot), so the same input gives the same ids and adding an unrelated segment changes none.
@@ -32,52 +34,26 @@ slot), so the same input gives the same ids and adding an unrelated segment chan
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Iterable, Sequence
+import dataclasses
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from hdmap_core.errors import HdmapError
-from hdmap_core.pipeline.evidence import refuted_edges
-from hdmap_core.graph.flat import (
-    FlatGraph,
-    _dedupe_uids,
-    _map_edges,
-    _remap,
-    _spur_free,
-    _unit,
-    export_map,
-    graph_from_hdmap,
-)
-from hdmap_core.model import HDMap
+from hdmap_core.graph.cleanup import spur_free
+from hdmap_core.graph.export import export_map
+from hdmap_core.graph.flat import FlatGraph, Link, dedupe_uids, flatten, link_key
+from hdmap_core.graph.from_hdmap import graph_from_hdmap
+from hdmap_core.graph.linking import link_segments
+from hdmap_core.graph.loose_ends import dedupe_loose_ends, join_loose_ends
 from hdmap_core.graph.segment_graph import SegmentGraph
 from hdmap_core.graph.stitch_config import StitchConfig
-from hdmap_core.graph.loose_ends import LooseEnds
-from hdmap_core.graph.links import (
-    _PATH_STEP_M,
-    _Adjacency,
-    _closes_cycle,
-    _heading_rate,
-    _partner,
-    _path_partner,
-    _reached_within,
-    _track_bridges,
-    _track_partner,
-    _UnionFind,
-)
+from hdmap_core.graph.trim import trim_overlaps
+from hdmap_core.model import HDMap
+from hdmap_core.pipeline.evidence import refuted_edges
 
-__all__ = ["StitchConfig", "MapGraph", "stitch", "to_hdmap", "graph_from_hdmap"]
-
-_BIG = 1.0e9
-_GATE = 1.0e4
-_BORDER_CODE = 3  # FeatureType.ROAD_BORDER
-
-Link = tuple[str, int, str, int]  # (graph key, local index) -> (graph key, local index)
+__all__ = ["MapGraph", "IntegrateReport", "stitch", "to_hdmap"]
 
 
 # --- the complete map graph ---------------------------------------------------------------------------
@@ -101,7 +77,7 @@ class IntegrateReport:
     bridge_links: int = 0
 
 
-class MapGraph(LooseEnds):
+class MapGraph:
     """The complete hierarchical map graph, built from segment graphs and kept up to date.
 
     State is keyed by segment key (``SegmentGraph.key``) and, through the topology nodes' tiles,
@@ -220,475 +196,53 @@ class MapGraph(LooseEnds):
             self._graphs[g.key] = g
             self._alive[g.key] = np.ones(g.n_topo, dtype=bool)
         rep.added = len(new)
-        if self.config.trim_overlap and new:
-            rep.trimmed_nodes = self._trim([g.key for g in new])
-        self._stitch(rep)
-        if self.config.spur_max_m > 0 or self.config.bubble_max_m > 0:
-            # prune spurs and bubbles now, so that the ends they leave are deduplicated and joined
-            rep.pruned_nodes = self._kill(self._flat(), lambda fl: _spur_free(
-                fl, _dedupe_uids(fl), self.config.spur_max_m, self.config.bubble_max_m))
-        if self.config.dedupe_loose_ends:
-            rep.deduplicated_nodes = self._dedupe_loose_ends()
-        if self.config.join_loose_ends:
-            self._join_loose_ends(rep)
+        cfg = self.config
+        if cfg.trim_overlap and new:
+            self._alive, rep.trimmed_nodes = trim_overlaps(
+                self._flatten(), self._graphs, self._alive, new_keys=[g.key for g in new], config=cfg
+            )
+        self._link(rep)
+        if cfg.spur_max_m > 0 or cfg.bubble_max_m > 0:
+            # RULE spur / bubble, now: so that the ends they leave are deduplicated and joined
+            flat = self._flatten()
+            keep = spur_free(flat, dedupe_uids(flat), spur_max_m=cfg.spur_max_m, bubble_max_m=cfg.bubble_max_m)
+            rep.pruned_nodes = self._drop_nodes(flat, ~keep)
+        if cfg.dedupe_loose_ends:
+            flat = self._flatten()
+            rep.deduplicated_nodes = self._drop_nodes(flat, dedupe_loose_ends(flat, config=cfg))
+        if cfg.join_loose_ends:
+            flat = self._flatten()
+            joins = join_loose_ends(flat, config=cfg)
+            self._feature_links.update(link_key(flat, a, b, topo=False) for a, b in joins.links)
+            self._branch_links.update(link_key(flat, a, b, topo=False) for a, b in joins.branch_links)
+            if joins.dropped.any():
+                self._drop_nodes(flat, joins.dropped)
+            rep.loose_ends_joined = len(joins.links)
+            rep.branches_joined = len(joins.branch_links)
         self.version += 1
         self.last_report = rep
         return rep
 
     # -- internals --
-    def _flat(self) -> FlatGraph:
-        keys = self.keys
-        tmap: dict[str, np.ndarray] = {}
-        nmap: dict[str, np.ndarray] = {}
-        t_attrs = ("topo_uid", "topo_xy", "topo_heading", "topo_width")
-        n_attrs = ("node_uid", "node_xy", "node_type", "node_count", "node_std")
-        parts: dict[str, list] = {n: [] for n in ("tg", "tl", "tn", "ng", "nl", "te", "ne", "lo") + t_attrs + n_attrs}
-        t_off = n_off = 0
-        for gi, k in enumerate(keys):
-            g, alive = self._graphs[k], self._alive[k]
-            n_alive = np.repeat(alive, np.diff(g.topo_start))
-            if k in self._node_dead:
-                n_alive &= ~self._node_dead[k]
-            tmap[k] = _remap(alive, t_off)
-            nmap[k] = _remap(n_alive, n_off)
-            tl = np.flatnonzero(alive)
-            nl = np.flatnonzero(n_alive)
-            parts["tg"].append(np.full(len(tl), gi))
-            parts["tl"].append(tl)
-            per_topo = np.diff(g.topo_start)
-            if k in self._node_dead:
-                per_topo = np.bincount(np.repeat(np.arange(g.n_topo), per_topo)[n_alive], minlength=g.n_topo)
-            parts["tn"].append(per_topo[alive])
-            parts["ng"].append(np.full(len(nl), gi))
-            parts["nl"].append(nl)
-            for a in t_attrs:
-                parts[a].append(getattr(g, a)[tl])
-            for a in n_attrs:
-                parts[a].append(getattr(g, a)[nl])
-            te, _ = _map_edges(g.topo_edges, tmap[k])
-            ne, ok = _map_edges(g.edges, nmap[k])
-            parts["te"].append(te)
-            parts["ne"].append(ne)
-            parts["lo"].append(g.edge_leftover[ok] if len(ok) else np.zeros(0, dtype=bool))
-            t_off += len(tl)
-            n_off += len(nl)
-
-        def links(src: set[Link], maps: dict[str, np.ndarray]) -> np.ndarray:
-            out = []
-            for ka, ia, kb, ib in sorted(src):
-                a, b = maps[ka][ia], maps[kb][ib]
-                if a >= 0 and b >= 0:
-                    out.append((a, b))
-            return np.asarray(out, dtype=np.int64).reshape(-1, 2)
-
-        def cat(name: str, empty: np.ndarray, dtype=None) -> np.ndarray:
-            out = np.concatenate(parts[name]) if parts[name] else empty
-            return out.astype(dtype) if dtype is not None else out
-
-        i0 = np.zeros(0, dtype=np.int64)
-        f0 = np.zeros(0)
-        e0 = np.zeros((0, 2), dtype=np.int64)
-        fl = links(self._feature_links, nmap)
-        bl = links(self._branch_links, nmap)
-        return FlatGraph(
-            keys=keys,
-            tmap=tmap,
-            nmap=nmap,
-            t_graph=cat("tg", i0),
-            t_local=cat("tl", i0),
-            t_uid=cat("topo_uid", i0, np.uint64),
-            t_xy=cat("topo_xy", np.zeros((0, 2)), float).reshape(-1, 2),
-            t_heading=cat("topo_heading", f0, float),
-            t_width=cat("topo_width", f0, float),
-            t_start=np.concatenate([[0], np.cumsum(cat("tn", i0))]).astype(np.int64),
-            n_graph=cat("ng", i0),
-            n_local=cat("nl", i0),
-            n_uid=cat("node_uid", i0, np.uint64),
-            n_xy=cat("node_xy", np.zeros((0, 2)), float).reshape(-1, 2),
-            n_type=cat("node_type", i0, np.int64),
-            n_count=cat("node_count", i0, np.int64),
-            n_std=cat("node_std", f0, float),
-            topo_edges=np.concatenate([cat("te", e0).reshape(-1, 2), links(self._topo_links, tmap)]).astype(np.int64),
-            edges=np.concatenate([cat("ne", e0).reshape(-1, 2), fl, bl]).astype(np.int64),
-            leftover=np.concatenate([cat("lo", np.zeros(0, dtype=bool)), np.zeros(len(fl), dtype=bool),
-                                     np.ones(len(bl), dtype=bool)]),
+    def _flatten(self) -> FlatGraph:
+        return flatten(
+            self._graphs, self._alive, node_dead=self._node_dead, topo_links=self._topo_links,
+            feature_links=self._feature_links, branch_links=self._branch_links,
         )
 
-    def _trim(self, new_keys: Sequence[str]) -> int:
-        """Kill component end nodes of new graphs that lie on a place another graph already maps.
+    def _link(self, rep: IntegrateReport) -> None:
+        """Link the component ends of the map (Sec. VI, 1-4; ``linking.link_segments``) and book them."""
+        flat = self._flatten()
+        links = link_segments(flat, self._graphs, config=self.config)
+        self._topo_links.update(link_key(flat, a, b, topo=True) for a, b in links.topo)
+        self._feature_links.update(link_key(flat, x, y, topo=False) for x, y in links.features)
+        rep.topology_links = len(links.topo)
+        rep.feature_links = len(links.features)
+        rep.track_links, rep.path_links, rep.bridge_links = links.track_links, links.path_links, links.bridge_links
 
-        With ``trim_keep_longer`` a node is not killed for overlapping a shorter piece (fewer
-        topology nodes in its component) of another graph; that graph is walked after the new
-        ones instead, so its shorter piece gives way (RULE: the longer estimate of a place stays).
-        """
-        cfg = self.config
-        flat = self._flat()
-        if flat.n_topo == 0:
-            return 0
-        tree = cKDTree(flat.t_xy)
-        cos_max = math.cos(math.radians(cfg.max_heading_diff_deg))
-        comps: dict[str, list[np.ndarray]] = {}
-        sizes: dict[str, np.ndarray] = {}
-        spared: set[str] = set()
-
-        def components(key: str) -> list[np.ndarray]:
-            if key not in comps:
-                comps[key] = self._graphs[key].components()
-            return comps[key]
-
-        def size_of(key: str) -> np.ndarray:
-            if key not in sizes:
-                out = np.zeros(self._graphs[key].n_topo, dtype=np.int64)
-                for comp in components(key):
-                    out[comp] = len(comp)
-                sizes[key] = out
-            return sizes[key]
-
-        graph_index = {k: i for i, k in enumerate(flat.keys)}
-        pending: set[str] = set()  # the new graphs not walked yet
-
-        def overlaps(k: str, t: int, lookahead: bool, skip: int = -1) -> bool:
-            """Does node t of graph k lie on a place of another graph (not ``skip``) that it must
-            give way to?"""
-            g = self._graphs[k]
-            gi = graph_index[k]
-            own = size_of(k)[t]
-            u, n = _unit(float(g.topo_heading[t]))
-            fl = g.node_xy[g.topo_start[t] : g.topo_start[t + 1]] @ n
-            ft = g.node_type[g.topo_start[t] : g.topo_start[t + 1]]
-            radius = max(cfg.overlap_radius_m, cfg.overlap_search_m)
-            for j in tree.query_ball_point(g.topo_xy[t], radius):
-                if flat.t_graph[j] in (gi, skip):
-                    continue
-                kj = flat.keys[flat.t_graph[j]]
-                if not self._alive[kj][flat.t_local[j]]:
-                    continue
-                if math.cos(g.topo_heading[t] - flat.t_heading[j]) < cos_max:
-                    continue
-                d = flat.t_xy[j] - g.topo_xy[t]
-                if math.hypot(*d) <= cfg.overlap_radius_m:
-                    same = True  # the same road midpoint
-                elif abs(float(d @ u)) > cfg.overlap_along_m or len(fl) == 0:
-                    continue
-                else:
-                    # the same features: most of this step's maxima have a twin of the same type
-                    other = slice(flat.t_start[j], flat.t_start[j + 1])
-                    gl, gt = flat.n_xy[other] @ n, flat.n_type[other]
-                    twin = (np.abs(fl[:, None] - gl[None, :]) <= cfg.overlap_feature_m) & (ft[:, None] == gt[None, :])
-                    same = int(twin.any(axis=1).sum()) >= max(min(2, len(fl)), cfg.overlap_share * len(fl))
-                if not same:
-                    continue
-                if cfg.trim_keep_longer and size_of(kj)[flat.t_local[j]] < own:
-                    if lookahead:
-                        spared.add(kj)
-                    continue
-                if (lookahead and cfg.trim_lookahead and kj in pending
-                        and overlaps(kj, int(flat.t_local[j]), False, skip=gi)):
-                    continue  # RULE: not for a place whose own walk will trim it (for a third)
-                return True
-            return False
-
-        def walk(k: str) -> int:
-            alive = self._alive[k]
-            killed = 0
-            for comp in components(k):
-                order = comp.tolist()
-                for walk_order in (order, order[::-1]):
-                    for t in walk_order:
-                        if not alive[t] or not overlaps(k, t, True):
-                            break
-                        alive[t] = False
-                        killed += 1
-            pending.discard(k)
-            return killed
-
-        pending.update(new_keys)
-        killed = sum(walk(k) for k in new_keys)
-        killed += sum(walk(k) for k in sorted(spared - set(new_keys)))
-        return killed
-
-    def _stitch(self, rep: IntegrateReport) -> None:
-        """Link dangling component starts/ends to their nearest valid neighbour (Sec. VI, 1-4)."""
-        cfg = self.config
-        flat = self._flat()
-        nt = flat.n_topo
-        if nt < 2:
-            return
-        te = flat.topo_edges
-        adj = coo_matrix((np.ones(len(te)), (te[:, 0], te[:, 1])), shape=(nt, nt))
-        _, labels = connected_components(adj, directed=True, connection="weak")
-        uf = _UnionFind(labels)
-        indeg = np.bincount(te[:, 1], minlength=nt) if len(te) else np.zeros(nt, dtype=np.int64)
-        outdeg = np.bincount(te[:, 0], minlength=nt) if len(te) else np.zeros(nt, dtype=np.int64)
-        tree = cKDTree(flat.t_xy)
-        out_adj = _Adjacency(flat.edges[:, 0], flat.edges[:, 1], flat.n_nodes)
-        in_adj = _Adjacency(flat.edges[:, 1], flat.edges[:, 0], flat.n_nodes)
-        existing = _Adjacency(te[:, 0], te[:, 1], nt)
-        # 1. components' start (no predecessor) and end (no successor) nodes, in a fixed order
-        ends = [(int(i), True) for i in np.flatnonzero(outdeg == 0)]
-        starts = [(int(i), False) for i in np.flatnonzero(indeg == 0)]
-        todo = sorted(ends + starts, key=lambda x: (int(flat.t_uid[x[0]]), x[1]))
-        for i, is_end in todo:
-            if (is_end and outdeg[i]) or (not is_end and indeg[i]):
-                continue
-            best = _partner(flat, tree, i, is_end, cfg, lambda j: uf.find(j) != uf.find(i))
-            join = True
-            if best < 0 and cfg.link_within_component:
-                # RULE: a start (end) with no partner in another component may link inside its own
-                # component (topology only) unless the link closes a short cycle.
-                best = _partner(
-                    flat, tree, i, is_end, cfg, lambda j: j != i and not _closes_cycle(existing, i, j, is_end)
-                )
-                join = False
-            if best < 0:
-                continue
-            a, b = (i, best) if is_end else (best, i)
-            # 4. link the topology nodes and join their features
-            if not self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
-                continue
-            if join:
-                rep.feature_links += self._join_features(flat, a, b, out_adj, in_adj)
-        if cfg.track_search_m > 0:
-            self._track_links(flat, tree, todo, existing, indeg, outdeg, uf, rep)
-        if cfg.path_search_m > 0:
-            self._path_links(flat, tree, todo, existing, indeg, outdeg, uf, rep)
-        if cfg.track_bridge_m > 0:
-            self._bridge_links(flat, tree, existing, indeg, outdeg, uf, rep)
-
-    def _allowed(self, existing: _Adjacency, uf: _UnionFind, i: int, is_end: bool) -> Callable[[int], bool]:
-        """Partners a late (track or arc) link of start/end i may take: another component, or
-        with ``link_within_component`` its own without closing a short cycle."""
-        within = self.config.link_within_component
-
-        def allowed(j: int) -> bool:
-            if uf.find(j) != uf.find(i):
-                return True
-            return within and not _closes_cycle(existing, i, j, is_end)
-
-        return allowed
-
-    @staticmethod
-    def _reach(flat: FlatGraph) -> float:
-        """Search radius of a late link's point queries: one step along, the widest half road across [m]."""
-        return math.hypot(_PATH_STEP_M, float(np.nanmax(np.where(flat.t_width > 0, flat.t_width, 3.5))) / 2.0)
-
-    def _track_links(
-        self, flat: FlatGraph, tree: cKDTree, todo: list[tuple[int, bool]], existing: _Adjacency,
-        indeg: np.ndarray, outdeg: np.ndarray, uf: _UnionFind, rep: IntegrateReport,
-    ) -> None:
-        """RULE: a start (end) still without a partner follows the path its pivot drove
-        backward (forward) for ``track_search_m`` and links, topology only, to the first node
-        that path enters (``_track_partner``): a drive went there from the end."""
-        cfg = self.config
-        reach = self._reach(flat)
-        te = flat.topo_edges
-        pred = _Adjacency(te[:, 1], te[:, 0], flat.n_topo)
-        for a, b in existing.added():
-            pred.add(b, a)
-        tracks, rows = self._pivot_tracks()
-        for i, is_end in todo:
-            linked = bool(outdeg[i]) if is_end else bool(indeg[i])
-            if linked and not cfg.track_linked_ends:
-                continue
-            g = self._graphs[flat.keys[flat.t_graph[i]]]
-            track = tracks.get(g.pivot_drive or g.pivot_id)
-            if track is None or len(track[0]) < 2:
-                continue
-            step = int(g.topo_step[flat.t_local[i]])
-            r = int(np.searchsorted(g.track_step, step))
-            if r >= len(g.track_step) or int(g.track_step[r]) != step:
-                continue
-            if linked:
-                # RULE: a linked end still follows its pivot: a node its track enters that the map
-                # does not reach from it within 2 track searches + 30 m gets a link too
-                walk, back = (existing, pred) if is_end else (pred, existing)
-                far = 2.0 * cfg.track_search_m + 30.0
-                near = _reached_within(flat, walk, i, far)
-                behind = _reached_within(flat, back, i, far) if cfg.track_rejoin_both else set()
-
-                def allowed(
-                    j: int, i: int = i, is_end: bool = is_end, near: set[int] = near, walk: _Adjacency = walk,
-                    behind: set[int] = behind, back: _Adjacency = back,
-                ) -> bool:
-                    if j in near or _closes_cycle(existing, i, j, is_end):
-                        return False
-                    if cfg.track_rejoin_m <= 0:
-                        return True
-                    # RULE: nor a node whose road runs on (back) into what the map reaches from the
-                    # end (start) within track_rejoin_m: the link would only add a side step
-                    # between two roads that join anyway
-                    if near & _reached_within(flat, walk, j, cfg.track_rejoin_m):
-                        return False
-                    # RULE: ... nor one whose road came from (runs on into) what reaches the end
-                    # (what the start reaches): the side step across a split (merge) behind it
-                    return not (behind and behind & _reached_within(flat, back, j, cfg.track_rejoin_m))
-            else:
-                allowed = self._allowed(existing, uf, i, is_end)
-            best = _track_partner(flat, tree, i, is_end, track, int(rows[g.key][r]), cfg, reach, allowed)
-            if best < 0:
-                continue
-            a, b = (i, best) if is_end else (best, i)
-            if self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
-                pred.add(b, a)
-                rep.track_links += 1
-
-    def _bridge_links(
-        self, flat: FlatGraph, tree: cKDTree, existing: _Adjacency, indeg: np.ndarray, outdeg: np.ndarray,
-        uf: _UnionFind, rep: IntegrateReport,
-    ) -> None:
-        """RULE track bridge: where a pivot's track leaves the map's node A, runs through steps that
-        no node covers (failed steps at a junction, the road on both sides mapped by other pivots)
-        and enters node B within ``track_bridge_m``, A is linked to B (topology only) unless the
-        map reaches B from A within 2 * ``track_bridge_m`` + 30 m already or the link closes a
-        short cycle: the pivot drove from A to B (``_track_bridges``). Unlike the track search it
-        needs no component start/end: the pivot's own chain may not exist there at all."""
-        cfg = self.config
-        reach = self._reach(flat)
-        limit = 2.0 * cfg.track_bridge_m + 30.0
-        reached: dict[int, set[int]] = {}
-
-        def near(a: int) -> set[int]:
-            if a not in reached:
-                reached[a] = _reached_within(flat, existing, a, limit)
-            return reached[a]
-
-        tracks, _ = self._pivot_tracks()
-        for pid in sorted(tracks):
-            xy, heading = tracks[pid]
-            if len(xy) < 3:
-                continue
-            bridges = _track_bridges(
-                flat, tree, np.asarray(xy, dtype=float), np.asarray(heading, dtype=float), cfg, reach,
-                lambda a, j: j in near(a),
-            )
-            for a, b in bridges:
-                if b in near(a):
-                    continue
-                if _closes_cycle(existing, a, b, True):
-                    continue
-                if self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
-                    rep.bridge_links += 1
-                    reached.clear()  # the map reaches more now
-
-    def _pivot_tracks(self) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, np.ndarray]]:
-        """Per pivot drive, its track over all its segment graphs (xy, heading; in order of
-        travelled distance, each step once), and per graph the row of each of its track steps
-        in that track. Live, one pivot's steps come in one graph per tile: the graphs' pivot ids
-        are per tile (``SegmentGraph.pivot_drive`` names the drive) and their step indices count
-        from each tile's clip of the drive, so the pieces are ordered by ``track_s`` (the
-        travelled distance on the whole drive); graphs without it are ordered by step. The xy
-        are the pivot's positions (``track_pose``) with ``StitchConfig.track_pose`` when every
-        piece has them, else its steps' cut midpoints (``track_xy``)."""
-        parts: dict[str, list[SegmentGraph]] = {}
-        for k in self.keys:
-            g = self._graphs[k]
-            if len(g.track_step):
-                parts.setdefault(g.pivot_drive or g.pivot_id, []).append(g)
-        tracks, rows = {}, {}
-        for pid, gs in parts.items():
-            # RULE track_pose: the pivot's own positions where every piece has them
-            pose = self.config.track_pose and all(len(g.track_pose) == len(g.track_step) for g in gs)
-            attr = "track_pose" if pose else "track_xy"
-            if len(gs) == 1:
-                g = gs[0]
-                tracks[pid] = (getattr(g, attr), g.track_heading)
-                rows[g.key] = np.arange(len(g.track_step))
-                continue
-            by_s = all(len(g.track_s) == len(g.track_step) for g in gs)
-            order = [np.asarray(g.track_s if by_s else g.track_step, dtype=float) for g in gs]
-            _, first, inverse = np.unique(np.concatenate(order), return_index=True, return_inverse=True)
-            tracks[pid] = (np.concatenate([getattr(g, attr) for g in gs])[first],
-                           np.concatenate([g.track_heading for g in gs])[first])
-            at = np.cumsum([0] + [len(o) for o in order])
-            for g, a, b in zip(gs, at[:-1], at[1:]):
-                rows[g.key] = inverse[a:b]
-        return tracks, rows
-
-    def _path_links(
-        self, flat: FlatGraph, tree: cKDTree, todo: list[tuple[int, bool]], existing: _Adjacency,
-        indeg: np.ndarray, outdeg: np.ndarray, uf: _UnionFind, rep: IntegrateReport,
-    ) -> None:
-        """RULE: a start (end) still without a partner follows its chain's own arc backward
-        (forward) for ``path_search_m`` and links, topology only, to the first node it enters
-        (``_path_partner``). Run after every start/end had its ordinary turn, so it takes no
-        partner away from another's ordinary (feature-joining) link."""
-        cfg = self.config
-        te = flat.topo_edges
-        pred = _Adjacency(te[:, 1], te[:, 0], flat.n_topo)
-        succ = existing
-        reach = self._reach(flat)
-        for i, is_end in todo:
-            if (is_end and outdeg[i]) or (not is_end and indeg[i]):
-                continue
-            rate = _heading_rate(flat, pred if is_end else succ, i, cfg.path_curvature_m)
-            if not is_end:
-                rate = -rate  # measured from a later node back to the start: flip to driving sense
-            best = _path_partner(flat, tree, i, is_end, rate, cfg, reach, self._allowed(existing, uf, i, is_end))
-            if best < 0:
-                continue
-            a, b = (i, best) if is_end else (best, i)
-            if self._add_topo_link(flat, a, b, existing, outdeg, indeg, uf, rep):
-                rep.path_links += 1
-
-    def _add_topo_link(
-        self, flat: FlatGraph, a: int, b: int, existing: _Adjacency, outdeg: np.ndarray, indeg: np.ndarray,
-        uf: _UnionFind, rep: IntegrateReport,
-    ) -> bool:
-        """Link topology node a -> b (and book it); False when the link exists already."""
-        if b in existing.get(a):
-            return False
-        existing.add(a, b)
-        outdeg[a] += 1
-        indeg[b] += 1
-        uf.union(a, b)
-        self._topo_links.add(self._link(flat, a, b, topo=True))
-        rep.topology_links += 1
-        return True
-
-    @staticmethod
-    def _link(flat: FlatGraph, a: int, b: int, *, topo: bool) -> Link:
-        if topo:
-            return (flat.keys[flat.t_graph[a]], int(flat.t_local[a]), flat.keys[flat.t_graph[b]], int(flat.t_local[b]))
-        return (flat.keys[flat.n_graph[a]], int(flat.n_local[a]), flat.keys[flat.n_graph[b]], int(flat.n_local[b]))
-
-    def _join_features(self, flat: FlatGraph, a: int, b: int, out_adj: _Adjacency, in_adj: _Adjacency) -> int:
-        """Unmodified rectangular assignment between the features of linked topology nodes a -> b,
-        same type only."""
-        cfg = self.config
-        xa = np.arange(flat.t_start[a], flat.t_start[a + 1])
-        yb = np.arange(flat.t_start[b], flat.t_start[b + 1])
-        if len(xa) == 0 or len(yb) == 0:
-            return 0
-        _, n = _unit(float(flat.t_heading[b]))
-        lat = np.abs((flat.n_xy[yb][None, :, :] - flat.n_xy[xa][:, None, :]) @ n)
-        ta, tb = flat.n_type[xa][:, None], flat.n_type[yb][None, :]
-        if cfg.same_type_only:
-            forbidden = ta != tb
-        else:  # markings of either type may meet (flicker); a border only meets a border
-            forbidden = (ta == _BORDER_CODE) != (tb == _BORDER_CODE)
-        cost = np.where(forbidden, _BIG, np.where(lat <= cfg.feature_max_m, lat, _GATE + lat))
-        cost = cost + np.where(ta != tb, cfg.type_mismatch_cost_m, 0.0)
-        rows, cols = linear_sum_assignment(cost)
-        made = 0
-        for r, c in zip(rows.tolist(), cols.tolist()):
-            if forbidden[r, c] or lat[r, c] > cfg.feature_max_m:
-                continue
-            x, y = int(xa[r]), int(yb[c])
-            # the feature already continues next to y (or y is already reached next to x): skip
-            if any(abs(float((flat.n_xy[z] - flat.n_xy[y]) @ n)) <= cfg.duplicate_m for z in out_adj.get(x)):
-                continue
-            if any(abs(float((flat.n_xy[w] - flat.n_xy[x]) @ n)) <= cfg.duplicate_m for w in in_adj.get(y)):
-                continue
-            out_adj.add(x, y)
-            in_adj.add(y, x)
-            self._feature_links.add(self._link(flat, x, y, topo=False))
-            made += 1
-        return made
-
-    def _kill(self, flat: FlatGraph, keep_fn) -> int:
-        """Mark the feature nodes that ``keep_fn(flat)`` (an (N,) keep-mask) drops as dead."""
-        keep = keep_fn(flat)
-        dead = np.flatnonzero(~keep)
+    def _drop_nodes(self, flat: FlatGraph, drop: np.ndarray) -> int:
+        """Mark the feature nodes of ``flat`` where ``drop`` ((N,) bool) is set as dead; returns how many."""
+        dead = np.flatnonzero(drop)
         for j in dead.tolist():
             k = flat.keys[flat.n_graph[j]]
             if k not in self._node_dead:
@@ -696,50 +250,24 @@ class MapGraph(LooseEnds):
             self._node_dead[k][flat.n_local[j]] = True
         return len(dead)
 
-    def _refuted(self, flat: FlatGraph) -> np.ndarray:
-        """(E,) bool: feature edges of ``flat`` through stretches the drives saw empty
-        (``StitchConfig.fill_evidence``, ``evidence.refuted_edges``), from every segment's judged
-        steps."""
-        xy, hd, starts, iv = [], [], [], []
-        off = 0
-        for k in self.keys:
-            g = self._graphs[k]
-            j = np.flatnonzero(g.track_judged) if len(g.track_judged) == len(g.track_step) else np.zeros(0, np.int64)
-            if len(j) == 0:
-                continue
-            xy.append(g.track_xy[j])
-            hd.append(g.track_heading[j])
-            lo, hi = g.track_empty_start[j], g.track_empty_start[j + 1]
-            n = hi - lo
-            rows = np.repeat(lo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
-            iv.append(g.track_empty[rows].reshape(-1, 2))
-            starts.append(off + np.cumsum(n))
-            off += int(n.sum())
-        if not xy:
-            return np.zeros(len(flat.edges), dtype=bool)
-        return refuted_edges(
-            flat.n_xy, flat.edges, np.concatenate(xy), np.concatenate(hd),
-            np.concatenate([[0]] + starts).astype(np.int64), np.concatenate(iv), config=self.config.fill_evidence,
-        )
-
     # -- export --
     def to_hdmap(
         self, *, version: int | None = None, stamp_ns: int = 0, drive_ids: Sequence[str] | None = None
     ) -> HDMap:
         """The complete map as an ``HDMap``: every field of MapFeature / TopologyNode filled."""
-        flat = self._flat()
+        flat = self._flatten()
         if drive_ids is None:
             drive_ids = sorted({d for g in self._graphs.values() for d in g.drive_ids})
         refuted = 0
         protect = None
         if self.config.fill_evidence is not None and len(flat.edges):
-            drop = self._refuted(flat)
+            drop = _refuted_fills(flat, [self._graphs[k] for k in flat.keys], config=self.config)
             refuted = int(drop.sum())
             # the pieces a refuted fill leaves are drive-supported: no speck rule for them
             protect = np.zeros(flat.n_nodes, dtype=bool)
             protect[flat.edges[drop].reshape(-1)] = True
-            flat.edges, flat.leftover = flat.edges[~drop], flat.leftover[~drop]
-        features, topology = export_map(flat, self.config, protect=protect)
+            flat = dataclasses.replace(flat, edges=flat.edges[~drop], leftover=flat.leftover[~drop])
+        features, topology = export_map(flat, config=self.config, protect=protect)
         return HDMap(
             features=features,
             topology=topology,
@@ -754,6 +282,34 @@ class MapGraph(LooseEnds):
                 "fills_refuted": refuted,
             },
         )
+
+
+
+def _refuted_fills(flat: FlatGraph, graphs: Sequence[SegmentGraph], *, config: StitchConfig) -> np.ndarray:
+    """(E,) bool: feature edges of ``flat`` through stretches the drives saw empty
+    (``StitchConfig.fill_evidence``, ``evidence.refuted_edges``), from every segment's judged
+    steps."""
+    xy, hd, starts, iv = [], [], [], []
+    off = 0
+    for g in graphs:
+        j = np.flatnonzero(g.track_judged) if len(g.track_judged) == len(g.track_step) else np.zeros(0, np.int64)
+        if len(j) == 0:
+            continue
+        xy.append(g.track_xy[j])
+        hd.append(g.track_heading[j])
+        lo, hi = g.track_empty_start[j], g.track_empty_start[j + 1]
+        n = hi - lo
+        rows = np.repeat(lo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+        iv.append(g.track_empty[rows].reshape(-1, 2))
+        starts.append(off + np.cumsum(n))
+        off += int(n.sum())
+    if not xy:
+        return np.zeros(len(flat.edges), dtype=bool)
+    return refuted_edges(
+        flat.n_xy, flat.edges, np.concatenate(xy), np.concatenate(hd),
+        np.concatenate([[0]] + starts).astype(np.int64), np.concatenate(iv), config=config.fill_evidence,
+    )
+
 
 
 # --- public functions -----------------------------------------------------------------------------------
