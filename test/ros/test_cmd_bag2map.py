@@ -74,6 +74,27 @@ def test_wiring_writes_map_bag_and_geojson(tmp_path, fake_pipeline, capsys):
     assert "drives used 3" in captured.out and "rejected 1" in captured.out
 
 
+def test_graphml_writes_the_topology_graph(tmp_path, fake_pipeline, capsys):
+    """``--graphml`` writes the map's topology nodes and successor links, read back by networkx."""
+    nx = pytest.importorskip("networkx")
+    bag = _fleet(tmp_path, [make_drive("a", n=10)])
+    gml = tmp_path / "map.graphml"
+    assert cli.main(["bag2map", str(bag), "-o", str(tmp_path / "map"), "--graphml", str(gml)]) == 0
+    want = make_map(n_features=3)
+    g = nx.read_graphml(gml, node_type=int)
+    assert sorted(g.nodes) == sorted(t.id for t in want.topology)
+    assert sorted(g.edges) == sorted((t.id, s) for t in want.topology for s in t.successors)
+    last = want.topology[-1]
+    assert g.nodes[last.id]["width"] == pytest.approx(last.width)
+    assert [int(f) for f in g.nodes[last.id]["features"].split()] == list(last.features)
+    assert "10 nodes, 9 links" in capsys.readouterr().out
+
+
+def test_graphml_into_a_directory_is_refused(tmp_path, capsys):
+    code = cli.main(["bag2map", str(tmp_path / "nope"), "-o", str(tmp_path / "map"), "--graphml", str(tmp_path)])
+    assert code == 2 and "--graphml" in capsys.readouterr().err
+
+
 def test_set_changes_preset_parameters_and_the_report_names_them(tmp_path, fake_pipeline, capsys):
     bag = _fleet(tmp_path, [make_drive("a", n=10)])
     rep = tmp_path / "report.json"

@@ -3,7 +3,7 @@
 Reads the drives and the origin of IN (rosbag2 directory or ``.mcap``), reports every rejected
 drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes OUT (rosbag2 MCAP with
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
-features as RFC 7946 GeoJSON. Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
+features as RFC 7946 GeoJSON; with ``--graphml``, the topology graph as GraphML (map frame). Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="IN", help="fleet bag: rosbag2 directory (MCAP or sqlite3) or .mcap file")
     parser.add_argument("-o", "--output", metavar="OUT", required=True, help="map bag directory to write")
     parser.add_argument("--geojson", metavar="FILE", help="also write the map features as GeoJSON (WGS84)")
+    parser.add_argument("--graphml", metavar="PATH", help="also write the topology graph as GraphML (map frame, metres)")
     parser.add_argument("--preset", choices=PRESETS, default="default", help="pipeline preset (default: %(default)s)")
     add_set_argument(
         parser,
@@ -110,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"{out} exists and is not a rosbag2 directory; refusing to replace it")
     if args.geojson and Path(args.geojson).is_dir():
         return _fail(f"--geojson {args.geojson} is a directory")
+    if args.graphml and Path(args.graphml).is_dir():
+        return _fail(f"--graphml {args.graphml} is a directory")
 
     from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
     from hdmap_core.parallel import available_cpus  # noqa: PLC0415
@@ -144,6 +147,11 @@ def run(args: argparse.Namespace) -> int:
     if args.geojson:
         write_geojson(hdmap, origin, args.geojson)
         print(f"wrote {args.geojson}")
+    if args.graphml:
+        from hdmap_core.graph.topology_graph import write_graphml  # noqa: PLC0415 - networkx only when asked
+
+        g = write_graphml(hdmap, args.graphml)
+        print(f"wrote {args.graphml}: {g.number_of_nodes()} nodes, {g.number_of_edges()} links")
     seconds = time.perf_counter() - t_start
     print(_summary(fleet, hdmap, result, seconds))
     if args.report:
