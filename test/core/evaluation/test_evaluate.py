@@ -33,7 +33,7 @@ from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute, load
 from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
 
 LENGTH_M = 200.0
-MAPS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "maps"
+MAPS_DIR = Path(__file__).resolve().parents[4] / "shared" / "data" / "maps"
 
 
 def _line(y: float, x0: float = 0.0, x1: float = LENGTH_M, reverse: bool = False) -> np.ndarray:

@@ -670,7 +670,7 @@ def test_every_parameter_is_documented_with_its_default():
     from dataclasses import fields
     from pathlib import Path
 
-    doc = Path(__file__).resolve().parents[2] / "docs" / "simulator.md"
+    doc = Path(__file__).resolve().parents[3] / "docs" / "simulator.md"
     text = doc.read_text()
     default = SimConfig()
     missing = [f.name for f in fields(SimConfig) if f"| `{f.name}` | `{getattr(default, f.name)!r}` |" not in text]

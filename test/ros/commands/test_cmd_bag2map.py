@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -191,9 +190,9 @@ def test_progress_bar_follows_stages(capsys):
 
 
 @pytest.mark.slow
-def test_end_to_end_on_sample_bag(tmp_path, capsys):
+def test_end_to_end_on_sample_bag(tmp_path, capsys, sample_bags):
     """The real pipeline on bags/e6mini_20: a map bag and GeoJSON come out, consistent with each other."""
-    bag = Path(__file__).resolve().parents[2] / "bags" / "e6mini_20"
+    bag = sample_bags / "e6mini_20"
     out, gj = tmp_path / "map", tmp_path / "map.geojson"
     assert cli.main(["bag2map", str(bag), "-o", str(out), "--geojson", str(gj), "--no-progress"]) == 0
     hdmap = read_map_bag(out)
@@ -212,12 +211,12 @@ def test_end_to_end_on_sample_bag(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_sample_bag_map_scores_within_thresholds(tmp_path, capsys):
+def test_sample_bag_map_scores_within_thresholds(tmp_path, capsys, sample_bags):
     """bag2map on bags/e6mini_20 (20 drives, 4.9 per place), scored by `hdmap evaluate` against
     its ground truth: the default preset's map is accurate and beats the naive peer's
     (measured 2026-12-01: default 0.106 m / 0.051 m corrected / precision 99.1 % / coverage
     81.3 %; naive 0.668 m / 0.454 m / 74.3 % / 81.2 %)."""
-    bags = Path(__file__).resolve().parents[2] / "bags"
+    bags = sample_bags
     figures = {}
     for preset in ("default", "naive"):
         out, ev = tmp_path / f"map_{preset}", tmp_path / f"{preset}.json"
@@ -234,8 +233,8 @@ def test_sample_bag_map_scores_within_thresholds(tmp_path, capsys):
     assert good["recall"] > naive["recall"] and good["precision"] > naive["precision"]
 
 
-def test_damaged_bag_goes_on_with_intact_drives(tmp_path, fake_pipeline, capsys):
-    bags = Path(__file__).resolve().parents[2] / "bags"
+def test_damaged_bag_goes_on_with_intact_drives(tmp_path, fake_pipeline, capsys, sample_bags):
+    bags = sample_bags
     code = cli.main(["bag2map", str(bags / "bad_inputs_truncated.mcap"), "-o", str(tmp_path / "map")])
     captured = capsys.readouterr()
     assert code == 0 and len(fake_pipeline["drives"]) == 2

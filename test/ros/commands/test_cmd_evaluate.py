@@ -17,8 +17,6 @@ from hdmap_ros import cli
 from hdmap_ros.io.bagio import write_fleet_bag, write_map_bag
 from hdmap_ros.commands.evaluate import resolve_ground_truth, seen_counts_from_sim_json, sigma_from_sim_json
 
-BAGS = Path(__file__).resolve().parents[2] / "bags"
-
 ORIGIN = GeoOrigin(48.78, 9.18, 250.0)
 
 
@@ -110,12 +108,12 @@ def test_seen_counts_in_the_sim_json_give_recall_over_the_observed_ground_truth(
     assert doc["fleet_floor_mean_m"] == pytest.approx(0.1)
 
 
-def test_sim_json_from_before_the_seen_count_still_evaluates(tmp_path: Path, capsys) -> None:
+def test_sim_json_from_before_the_seen_count_still_evaluates(tmp_path: Path, capsys, sample_bags: Path) -> None:
     # bags/e6mini_20.sim.json was written by the simulator before it recorded seen counts.
-    assert "seen_count" not in json.loads((BAGS / "e6mini_20.sim.json").read_text())
-    gt = str(BAGS / "e6mini_20.gt.json")
+    assert "seen_count" not in json.loads((sample_bags / "e6mini_20.sim.json").read_text())
+    gt = str(sample_bags / "e6mini_20.gt.json")
     out_json = tmp_path / "r.json"
-    assert cli.main(["evaluate", gt, gt, "--fleet", str(BAGS / "e6mini_20"), "--json", str(out_json)]) == 0
+    assert cli.main(["evaluate", gt, gt, "--fleet", str(sample_bags / "e6mini_20"), "--json", str(out_json)]) == 0
     text = capsys.readouterr().out
     assert "realized floor" in text and "observed GT points" not in text
     doc = json.loads(out_json.read_text())

@@ -13,7 +13,7 @@ import pytest
 from hdmap_core.pipeline.driver import PipelineConfig, parse_override
 from hdmap_ros.commands.bench import SCORE_COLUMNS
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _load(name: str) -> ModuleType:

@@ -267,19 +267,16 @@ def test_baginfo_describes_drives_rejections_and_damage(tmp_path, capsys):
     assert main([str(tmp_path / "missing")]) == 1
 
 
-BAGS = Path(__file__).resolve().parents[2] / "bags"
-
-
 @pytest.mark.parametrize("name", ["e6mini_20", "ramps_20"])
-def test_sample_fleet_bags_read_cleanly(name):
-    got = read_fleet_bag(BAGS / name)
+def test_sample_fleet_bags_read_cleanly(name, sample_bags):
+    got = read_fleet_bag(sample_bags / name)
     assert got.error is None and got.rejected == [] and got.origin is not None
     assert len(got.drives) == 20 and len({d.drive_id for d in got.drives}) == 20
     assert 10.0 < sum(d.length_m for d in got.drives) / 1000.0 < 13.0  # bags/README.md: 11.6 km
 
 
-def test_sample_bad_inputs_bag_is_as_documented():
-    got = read_fleet_bag(BAGS / "bad_inputs")
+def test_sample_bad_inputs_bag_is_as_documented(sample_bags):
+    got = read_fleet_bag(sample_bags / "bad_inputs")
     assert got.error is None and len(got.drives) == 4
     assert [(r.drive_id, r.reason) for r in got.rejected] == [
         ("bad-nan-trajectory", "non_finite_coordinates"),
@@ -294,7 +291,7 @@ def test_sample_bad_inputs_bag_is_as_documented():
         ("motorway_s7_0001", "duplicate_drive_id"),
         ("", "undecodable"),
     ]
-    cut = read_fleet_bag(BAGS / "bad_inputs_truncated.mcap")
+    cut = read_fleet_bag(sample_bags / "bad_inputs_truncated.mcap")
     assert "truncated" in cut.error
     assert [d.drive_id for d in cut.drives] == [d.drive_id for d in got.drives[:2]]
     assert len(cut.rejected) == 8 and cut.origin == got.origin

@@ -138,7 +138,7 @@ def test_step_evidence_from_a_malformed_message_is_cut_not_fatal():
 def test_launch_file_compiles_and_names_every_node():
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "src/hdmap_ros/launch/hdmap.launch.py"
+    path = Path(__file__).resolve().parents[3] / "src/hdmap_ros/launch/hdmap.launch.py"
     text = path.read_text()
     compile(text, str(path), "exec")
     for node in ("drive_ingestor", "segment_mapper", "map_stitcher", "map_publisher", "bag_player"):

@@ -249,7 +249,7 @@ def _env():
     import os
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(root / "src/hdmap_core"), str(root / "src/hdmap_ros"), env.get("PYTHONPATH", "")])
     return env
