@@ -98,6 +98,7 @@ def main() -> int:
 def _build_and_evaluate(fleet, gt, seed: int) -> None:
     """Whole maps with the "default" preset, with and without the adjustment, scored (Sec. VII)."""
     from hdmap_core.evaluation.evaluate import evaluate_map
+    from hdmap_core.evaluation.summary import format_summary
     from hdmap_core.pipeline.driver import build_map
 
     sigma = float(np.hypot(fleet.config.bias_lateral_sigma_m, fleet.config.drift_sigma_m))
@@ -106,7 +107,7 @@ def _build_and_evaluate(fleet, gt, seed: int) -> None:
         t0 = time.perf_counter()
         res = build_map(fleet.drives, config=cfg, seed=seed)
         print(f"=== default preset {name}: build {time.perf_counter() - t0:.1f} s")
-        print(evaluate_map(res.map, gt, drives=fleet.drives, sigma_loc_m=sigma).summary())
+        print(format_summary(evaluate_map(res.map, gt, drives=fleet.drives, sigma_loc_m=sigma)))
 
 
 if __name__ == "__main__":

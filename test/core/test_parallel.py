@@ -8,12 +8,13 @@ import os
 import numpy as np
 import pytest
 
-from hdmap_core.pipeline import driver as pipeline
 from hdmap_core.errors import ConfigError
-from hdmap_core.parallel import ForkWorker, can_fork, pivot_groups, split_order
+from hdmap_core.parallel import ForkWorker, can_fork, split_order
+from hdmap_core.pipeline import driver as pipeline
 from hdmap_core.pipeline.driver import PipelineConfig, build_map, map_stretches, prepare_drives
 from hdmap_core.pipeline.preprocess import preprocess
-from hdmap_core.pipeline.sampling import sample_pivot
+from hdmap_core.pipeline.sampling import pivot_groups, sample_pivot
+
 from pipeline_fleet import make_drive
 
 needs_fork = pytest.mark.skipif(not can_fork(), reason="no fork start method on this platform")

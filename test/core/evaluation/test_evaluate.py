@@ -22,18 +22,14 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError, NoUsableDataError
-from hdmap_core.evaluation.evaluate import (
-    EvalConfig,
-    EvalReport,
-    evaluate_map,
-    hdmap_from_ground_truth,
-    plot_evaluation,
-)
+from hdmap_core.evaluation.config import EvalConfig
+from hdmap_core.evaluation.evaluate import evaluate_map, hdmap_from_ground_truth
+from hdmap_core.evaluation.plot import plot_evaluation
+from hdmap_core.evaluation.summary import format_summary
 from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute, load_ground_truth
 from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
 
 LENGTH_M = 200.0
-MAPS_DIR = Path(__file__).resolve().parents[4] / "shared" / "data" / "maps"
 
 
 def _line(y: float, x0: float = 0.0, x1: float = LENGTH_M, reverse: bool = False) -> np.ndarray:
@@ -169,7 +165,7 @@ def test_empty_map_gives_zero_coverage_without_crash(road: GroundTruth, tmp_path
     assert report.n_evaluable_cuts == 0
     doc = json.loads(json.dumps(report.to_dict(include_cuts=True), allow_nan=False))
     assert doc["overall"]["mean_m"] is None and doc["coverage"] == 0.0
-    assert "n/a" in report.summary()
+    assert "n/a" in format_summary(report)
     out = plot_evaluation(report, HDMap(), road, tmp_path / "empty.png")
     assert out.stat().st_size > 0
 
@@ -241,12 +237,12 @@ def test_fleet_density_against_the_papers_drives_per_place(road: GroundTruth) ->
         assert 0.4 < report.density_share < 0.6
         assert report.density_share + report.sparse_share == pytest.approx(1.0)
         assert report.drive_count_median in (4.0, 8.5, 13.0)
-    assert "at 5-25 drives" in report.summary()
+    assert "at 5-25 drives" in format_summary(report)
     wide = evaluate_map(hdmap_from_ground_truth(road), road, drives=drives, config=EvalConfig(density_drives=(1, 30)))
     assert wide.density_share == pytest.approx(1.0) and wide.sparse_share == 0.0
     # without drives there is no density (the map's drive counts are not the fleet's)
     bare = evaluate_map(hdmap_from_ground_truth(road), road)
-    assert math.isnan(bare.density_share) and "fleet density" not in bare.summary()
+    assert math.isnan(bare.density_share) and "fleet density" not in format_summary(bare)
 
 
 def test_coverage_over_the_driven_cuts(road: GroundTruth) -> None:
@@ -271,10 +267,10 @@ def test_coverage_over_the_driven_cuts(road: GroundTruth) -> None:
     assert undriven.coverage == pytest.approx(0.5, abs=0.03) and undriven.coverage_driven == 0.0
     driven = evaluate_map(part(0.0, 100.0), road, drives=drives)
     assert driven.coverage == pytest.approx(0.5, abs=0.03) and driven.coverage_driven == pytest.approx(1.0, abs=0.02)
-    assert "coverage over them" in driven.summary()
+    assert "coverage over them" in format_summary(driven)
     assert driven.to_dict()["coverage_driven"] == pytest.approx(driven.coverage_driven)
     bare = evaluate_map(hdmap_from_ground_truth(road), road)  # no drives: unknown
-    assert math.isnan(bare.driven_share) and math.isnan(bare.coverage_driven) and "driven reference" not in bare.summary()
+    assert math.isnan(bare.driven_share) and math.isnan(bare.coverage_driven) and "driven reference" not in format_summary(bare)
 
 
 def test_realized_floor_is_the_mean_error_of_the_crossing_drives(road: GroundTruth) -> None:
@@ -290,7 +286,7 @@ def test_realized_floor_is_the_mean_error_of_the_crossing_drives(road: GroundTru
     expected = (np.count_nonzero(first) * (1.0 / 6.0) + np.count_nonzero(second) * 0.2) / (
         np.count_nonzero(first) + np.count_nonzero(second))
     assert report.fleet_floor_mean_m == pytest.approx(expected, abs=0.01)
-    assert "realized floor" in report.summary()
+    assert "realized floor" in format_summary(report)
     assert math.isnan(evaluate_map(hdmap_from_ground_truth(road), road, drives=drives).fleet_floor_mean_m)
 
 
@@ -307,7 +303,7 @@ def test_recall_over_observed_points_ignores_what_no_drive_saw(road: GroundTruth
     assert report.observed_share == pytest.approx(4 / 5)
     assert report.recall_observed == 1.0
     assert report.n_observed == 4 * report.n_cuts
-    text = report.summary()
+    text = format_summary(report)
     assert "observed GT points" in text and "80.0%" in text and "100.0%" in text
     doc = json.loads(json.dumps(report.to_dict(), allow_nan=False))
     assert doc["observed_share"] == pytest.approx(0.8) and doc["recall_observed"] == 1.0
@@ -341,7 +337,7 @@ def test_observed_and_missed_stretches_of_one_line(road: GroundTruth) -> None:
     assert by["0"] == pytest.approx((50 / 500, 0.0))
     assert by["1"] == pytest.approx((450 / 500, 325 / 450))
     assert math.isnan(by["2"][1]) and by["2"][0] == 0.0 and by[">=3"][0] == 0.0
-    assert "GT points by drives that saw them" in report.summary()
+    assert "GT points by drives that saw them" in format_summary(report)
 
 
 def test_recall_by_seen_count_buckets(road: GroundTruth) -> None:
@@ -387,7 +383,7 @@ def test_missing_or_mismatched_seen_counts_are_left_out_and_named(road: GroundTr
     assert report.recall_observed == 1.0 and report.n_observed == 100
     plain = evaluate_map(hdmap_from_ground_truth(road), road)
     assert math.isnan(plain.observed_share) and math.isnan(plain.recall_observed) and plain.n_observed == 0
-    assert "observed GT points" not in plain.summary()
+    assert "observed GT points" not in format_summary(plain)
     assert json.loads(json.dumps(plain.to_dict(), allow_nan=False))["recall_observed"] is None
 
 
@@ -445,7 +441,7 @@ def test_report_outputs(road: GroundTruth, tmp_path: Path) -> None:
     assert set(doc["per_type"]) == {"solid", "dashed", "road_border"}
     assert len(doc["cuts"]["station_m"]) == report.n_cuts
     assert "cuts" not in report.to_dict()
-    text = report.summary()
+    text = format_summary(report)
     for word in ("solid", "dashed", "road_border", "coverage", "type accuracy", "fragmentation", "floor"):
         assert word in text
     png = plot_evaluation(report, hdmap, road, tmp_path / "eval.png")
@@ -493,12 +489,19 @@ def test_inputs_are_not_mutated(road: GroundTruth) -> None:
 # A real map
 
 
+def _shared_map(name: str) -> GroundTruth:
+    """A map of the shared map set (``shared/data/maps`` in a parent folder, or $HDMAP_MAPS_DIR)."""
+    from hdmap_core.simulation.fleet import shared_maps_dirs
+
+    paths = [d / f"{name}.gt.json" for d in shared_maps_dirs() if (d / f"{name}.gt.json").is_file()]
+    if not paths:
+        pytest.skip(f"{name}.gt.json: no shared/data/maps found (set HDMAP_MAPS_DIR)")
+    return load_ground_truth(paths[0])
+
+
 @pytest.fixture(scope="module")
 def e6mini() -> GroundTruth:
-    path = MAPS_DIR / "esmini_e6mini.gt.json"
-    if not path.exists():
-        pytest.skip(f"{path} not present")
-    return load_ground_truth(path)
+    return _shared_map("esmini_e6mini")
 
 
 def test_real_map_against_itself_and_shifted(e6mini: GroundTruth, tmp_path: Path) -> None:
@@ -519,10 +522,7 @@ def test_real_map_against_itself_and_shifted(e6mini: GroundTruth, tmp_path: Path
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["carla_town04", "carla_town06"])
 def test_large_real_maps_shifted(name: str) -> None:
-    path = MAPS_DIR / f"{name}.gt.json"
-    if not path.exists():
-        pytest.skip(f"{path} not present")
-    gt = load_ground_truth(path)
+    gt = _shared_map(name)
     report = evaluate_map(hdmap_from_ground_truth(gt, lateral_shift_m=0.3), gt)
     assert report.overall.mean_m == pytest.approx(0.3, abs=0.02)
     assert report.overall.corrected_mean_m < 0.02
@@ -560,7 +560,7 @@ def test_synthetic_highway_with_ramps_each_cross_section_once() -> None:
     assert report.type_accuracy == 1.0 and report.fragmentation_mean == 1.0
     # Two carriageways of 3 lanes (6 routes' worth of lanes) plus the ramps' own stretches beyond
     # the gore: far less than the lane length, a little more than twice the road length.
-    lane_km = sum(np.linalg.norm(np.diff(l.centerline, axis=0), axis=1).sum() for l in gt.lanes.values() if l.highway)
+    lane_km = sum(np.linalg.norm(np.diff(ln.centerline, axis=0), axis=1).sum() for ln in gt.lanes.values() if ln.highway)
     assert 2 * length_m * 0.98 < report.reference_length_m < 2 * length_m * 1.5 < lane_km
 
 
@@ -590,7 +590,7 @@ def test_ground_truth_map_has_every_split_and_merge(ramps: GroundTruth) -> None:
     assert (report.gt_lane_splits, report.gt_lane_merges) == (2, 2)
     doc = json.loads(json.dumps(report.to_dict(), allow_nan=False))
     assert (doc["gt_splits"], doc["found_merges"], doc["missing_branch_points"]) == (4, 4, [])
-    assert "splits 4/4, merges 4/4" in report.summary()
+    assert "splits 4/4, merges 4/4" in format_summary(report)
     shifted = evaluate_map(hdmap_from_ground_truth(ramps, lateral_shift_m=0.3), ramps)
     assert (shifted.found_splits, shifted.found_merges) == (4, 4)
 
@@ -611,7 +611,7 @@ def test_splits_without_links_are_missing(ramps: GroundTruth) -> None:
                for f in _unlinked(perfect).features]
     none = evaluate_map(_with_features(perfect, trimmed), ramps)
     assert (none.gt_splits, none.gt_merges, none.found_splits, none.found_merges) == (4, 4, 0, 0)
-    text = none.summary()
+    text = format_summary(none)
     assert "splits 0/4, merges 0/4" in text and "missing split at" in text
 
 
@@ -637,10 +637,7 @@ def test_real_map_branch_points_against_itself(e6mini: GroundTruth) -> None:
 
 @pytest.mark.slow
 def test_town04_ground_truth_map_finds_what_is_evaluable() -> None:
-    path = MAPS_DIR / "carla_town04.gt.json"
-    if not path.exists():
-        pytest.skip(f"{path} not present")
-    gt = load_ground_truth(path)
+    gt = _shared_map("carla_town04")
     report = evaluate_map(hdmap_from_ground_truth(gt), gt)
     assert report.found_splits == report.gt_splits and report.found_merges == report.gt_merges
     assert report.gt_lane_splits > 0  # the lane graph branches; the markings stop at junctions
@@ -659,7 +656,7 @@ def test_lateral_std_calibration_counts_the_points_within_their_one_sigma(road: 
         assert report.n_std_points == report.overall.n_matched > 0
         assert report.std_within_share == within
         assert report.std_z_rms == pytest.approx(z, rel=0.02)
-        assert "lateral_std as 1-sigma" in report.summary()
+        assert "lateral_std as 1-sigma" in format_summary(report)
     # two of the five features claim 0.5 m, three 0.1 m: two fifths of the points lie within
     feats = [replace(f, lateral_std=np.full(len(f.points), 0.5 if i % 2 else 0.1)) for i, f in enumerate(shifted.features)]
     assert len(feats) == 5

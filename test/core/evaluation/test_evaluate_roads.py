@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.evaluation.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth
+from hdmap_core.evaluation.config import EvalConfig
+from hdmap_core.evaluation.evaluate import evaluate_map, hdmap_from_ground_truth
 from hdmap_core.evaluation.roads import topology_from_lanes
+from hdmap_core.evaluation.summary import format_summary
 from hdmap_core.groundtruth import GroundTruth, GTLane, GTRoute
 from hdmap_core.model import HDMap, TopologyNode
 from hdmap_core.simulation.synthetic import synthetic_highway
@@ -131,7 +133,7 @@ def test_map_without_topology_has_no_evaluable_road_point() -> None:
     assert "no topology node on the incoming road" in rep.road_branch_points[0].reason
     doc = rep.to_dict()
     assert doc["gt_road_splits"] == 0 and doc["road_branch_points"][0]["branch_lanes"] == [["M"], ["X"]]
-    assert "road splits/merges connected in the map's topology: splits 0/0" in rep.summary()
+    assert "road splits/merges connected in the map's topology: splits 0/0" in format_summary(rep)
 
 
 def test_motorway_ramps_has_its_exits_and_entries() -> None:
@@ -218,7 +220,7 @@ def test_links_to_the_opposite_carriageway_or_an_unconnected_ramp_are_false() ->
         assert t.length_m == pytest.approx(np.hypot(*(np.array(to_xy) - from_xy)), abs=1.5)
         doc = rep.to_dict()
         assert doc["false_topology_links"][0]["length_m"] == pytest.approx(t.length_m)
-        assert "false link" in rep.summary() and "long (> 3 m) 0/1" in rep.summary()
+        assert "false link" in format_summary(rep) and "long (> 3 m) 0/1" in format_summary(rep)
 
 
 def test_a_link_across_the_exit_is_supported() -> None:

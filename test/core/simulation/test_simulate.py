@@ -12,9 +12,8 @@ from scipy.spatial import cKDTree
 from hdmap_core.errors import ConfigError, GroundTruthError, NoUsableDataError
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import FeatureType, validate_drive
+from hdmap_core.simulation.config import DEFAULT_ORIGIN, SimConfig
 from hdmap_core.simulation.fleet import (
-    DEFAULT_ORIGIN,
-    SimConfig,
     decode_runs,
     encode_runs,
     fleet_to_dict,
@@ -232,7 +231,7 @@ def test_lane_changes_stay_on_existing_lanes(motorway):
         assert lat.min() >= (-0.05 if lane_no == 3 else -3.6)
         if t["n_lane_changes"]:
             assert np.abs(lat).max() > 3.3
-            assert len(t["lane_sequence"]) > len(set(l.split(":")[2] for l in t["lane_sequence"][:1]))
+            assert len(t["lane_sequence"]) > len(set(lane.split(":")[2] for lane in t["lane_sequence"][:1]))
 
 
 # ---------------------------------------------------------------------------- localization error

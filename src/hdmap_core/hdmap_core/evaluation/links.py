@@ -8,7 +8,7 @@ whether a vehicle can drive from A to B on the ground truth's lanes, see ``docs/
 "Topology link precision":
 
 1. a map node is *on* the ground-truth lanes (any lane: ramps and junction lanes too) whose
-   centerline crosses its cross-section (a lane point within ``_ALONG_M`` of it along its heading,
+   centerline crosses its cross-section (a lane point within ``NODE_ALONG_M`` of it along its heading,
    within ``width / 2 + node_margin_m`` across, running within the feature angle of its heading);
    at each such lane its station is that of the crossing point nearest the cross-section;
 2. an edge is *evaluable* when both its nodes are on ground-truth lanes and at least one of them
@@ -36,7 +36,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from hdmap_core.evaluation.roads import _ALONG_M, TopologyArrays, _densify
+from hdmap_core.evaluation.roads import NODE_ALONG_M, TopologyArrays, densify_path
 from hdmap_core.groundtruth import GTLane
 
 __all__ = ["LinkCheckConfig", "TopologyLink", "LinkPrecision", "check_topology_links"]
@@ -148,7 +148,7 @@ class _LanePoints:
     def build(lines: list[np.ndarray]) -> _LanePoints:
         xy, lane, st, dirs, length = [], [], [], [], []
         for k, line in enumerate(lines):
-            p, arc = _densify(np.asarray(line, dtype=float))
+            p, arc = densify_path(np.asarray(line, dtype=float))
             d = np.gradient(p, axis=0) if len(p) > 1 else np.zeros_like(p)
             d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
             xy.append(p)
@@ -170,7 +170,7 @@ def _lanes_under(topo: TopologyArrays, nodes: np.ndarray, lp: _LanePoints, cos_m
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
     if len(nodes) == 0 or len(lp.xy) == 0:
         return empty
-    hits = cKDTree(lp.xy).query_ball_point(topo.xy[nodes], r=np.hypot(topo.half_m[nodes], _ALONG_M))
+    hits = cKDTree(lp.xy).query_ball_point(topo.xy[nodes], r=np.hypot(topo.half_m[nodes], NODE_ALONG_M))
     owner = np.repeat(nodes, [len(h) for h in hits])
     if len(owner) == 0:
         return empty
@@ -179,7 +179,7 @@ def _lanes_under(topo: TopologyArrays, nodes: np.ndarray, lp: _LanePoints, cos_m
     t = topo.tangent[owner]
     along = np.abs((d * t).sum(axis=1))
     across = np.abs(d[:, 0] * t[:, 1] - d[:, 1] * t[:, 0])
-    ok = (along <= _ALONG_M) & (across <= topo.half_m[owner]) & ((lp.direction[q] * t).sum(axis=1) >= cos_min)
+    ok = (along <= NODE_ALONG_M) & (across <= topo.half_m[owner]) & ((lp.direction[q] * t).sum(axis=1) >= cos_min)
     node, lane, along, q = owner[ok], lp.lane[q[ok]], along[ok], q[ok]
     order = np.lexsort((along, lane, node))
     node, lane, q = node[order], lane[order], q[order]

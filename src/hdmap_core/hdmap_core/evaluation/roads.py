@@ -34,12 +34,20 @@ from scipy.spatial import cKDTree
 from hdmap_core.groundtruth import GTLane
 from hdmap_core.model import TopologyNode
 
-__all__ = ["RoadBranchPoint", "RoadCheckConfig", "road_branch_points", "check_road_points", "DEFAULT_NODE_WIDTH_M"]
+__all__ = [
+    "DEFAULT_NODE_WIDTH_M",
+    "NODE_ALONG_M",
+    "RoadBranchPoint",
+    "RoadCheckConfig",
+    "check_road_points",
+    "densify_path",
+    "road_branch_points",
+]
 
 #: Lane paths are resampled to at most this spacing [m] (the node crossing test needs dense points).
 _SPACING_M = 1.0
 #: A path point counts at a node when it is at most this far from the node's cross-section along the road [m].
-_ALONG_M = 1.0
+NODE_ALONG_M = 1.0
 #: Paths are compared per bin of this length of distance from the point [m].
 _BIN_M = 2.0
 #: Width assumed for a topology node whose width is not a finite number > 0 [m].
@@ -143,7 +151,7 @@ class RoadPoint:
     branches: tuple[tuple[tuple[str, ...], _Path], ...]  # (first lanes, their paths) per road
 
 
-def _densify(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def densify_path(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(M, 2) points at most ``_SPACING_M`` apart on the polyline ``points`` and their (M,) arc."""
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(seg)])
@@ -164,7 +172,7 @@ def follow_lanes(lanes: Mapping[str, GTLane], start: str, *, forward: bool, foll
             continue
         seen.add(lid)
         line = lanes[lid].centerline if forward else lanes[lid].centerline[::-1]
-        xy, arc = _densify(np.asarray(line, dtype=float))
+        xy, arc = densify_path(np.asarray(line, dtype=float))
         direction = np.gradient(xy, axis=0) if len(xy) > 1 else np.zeros_like(xy)
         direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
         if not forward:
@@ -295,11 +303,11 @@ class TopologyArrays:
 
 def _crossed(topo: TopologyArrays, cand: np.ndarray, path: _Path, cos_min: float) -> np.ndarray:
     """(C,) bool: the path crosses the cross-section of each candidate node (RULE R4): a path point
-    within ``_ALONG_M`` of it along the node's heading, within its half width across, running its way."""
+    within ``NODE_ALONG_M`` of it along the node's heading, within its half width across, running its way."""
     out = np.zeros(len(cand), dtype=bool)
     if len(cand) == 0 or len(path.dist) == 0:
         return out
-    hits = cKDTree(path.xy).query_ball_point(topo.xy[cand], r=np.hypot(topo.half_m[cand], _ALONG_M))
+    hits = cKDTree(path.xy).query_ball_point(topo.xy[cand], r=np.hypot(topo.half_m[cand], NODE_ALONG_M))
     owner = np.repeat(np.arange(len(cand)), [len(h) for h in hits])
     if len(owner) == 0:
         return out
@@ -308,7 +316,7 @@ def _crossed(topo: TopologyArrays, cand: np.ndarray, path: _Path, cos_min: float
     t = topo.tangent[cand[owner]]
     along = np.abs((d * t).sum(axis=1))
     across = np.abs(d[:, 0] * t[:, 1] - d[:, 1] * t[:, 0])
-    ok = (along <= _ALONG_M) & (across <= topo.half_m[cand[owner]]) & ((path.direction[q] * t).sum(axis=1) >= cos_min)
+    ok = (along <= NODE_ALONG_M) & (across <= topo.half_m[cand[owner]]) & ((path.direction[q] * t).sum(axis=1) >= cos_min)
     out[owner[ok]] = True
     return out
 
@@ -334,7 +342,7 @@ def _check_one(p: RoadPoint, topo: TopologyArrays, cfg: RoadCheckConfig) -> Road
     if topo.tree is None:
         cand = np.zeros(0, dtype=np.int64)
     else:
-        reach = cfg.follow_m + float(topo.half_m.max()) + _ALONG_M
+        reach = cfg.follow_m + float(topo.half_m.max()) + NODE_ALONG_M
         cand = np.asarray(sorted(topo.tree.query_ball_point(p.xy, r=reach)), dtype=np.int64)
     single = cand[_crossed(topo, cand, p.single, cfg.cos_min)]
     on = np.array([_crossed(topo, cand, path, cfg.cos_min) for _, path in p.branches]).reshape(len(p.branches), -1)
@@ -377,7 +385,7 @@ def topology_from_lanes(
     firsts: dict[str, int] = {}
     rows: list[tuple[str, np.ndarray, float]] = []  # (lane, position, heading) per node
     for lid, lane in lanes.items():
-        xy, arc = _densify(np.asarray(lane.centerline, dtype=float))
+        xy, arc = densify_path(np.asarray(lane.centerline, dtype=float))
         if arc[-1] <= 0:
             continue
         s = np.arange(step_m / 2, arc[-1], step_m) if arc[-1] >= step_m else np.array([arc[-1] / 2])

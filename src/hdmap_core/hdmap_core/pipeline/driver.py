@@ -35,10 +35,10 @@ from hdmap_core.pipeline.aggregation import AggregationConfig, ProcessedStore, a
 from hdmap_core.pipeline.alignment import AlignmentConfig, align_step, align_steps_gap, gap_batchable
 from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
 from hdmap_core.model import Drive, HDMap, validate_drive
-from hdmap_core.parallel import ForkWorker, can_fork, map_balanced, pivot_groups, split_order
+from hdmap_core.parallel import ForkWorker, can_fork, map_balanced, split_order
 from hdmap_core.pipeline.evidence import EvidenceConfig, step_profiles
 from hdmap_core.pipeline.preprocess import DetectionIndex, PreprocessConfig, preprocess, trajectory_index
-from hdmap_core.pipeline.sampling import PivotSamples, SamplingConfig, pivot_walk, sample_pivot
+from hdmap_core.pipeline.sampling import PivotSamples, SamplingConfig, pivot_groups, pivot_walk, sample_pivot
 from hdmap_core.geometry import arc_length, wrap_angle
 from hdmap_core.steps import Segment, StepObservations, StepResult, left_normal
 
@@ -1050,7 +1050,7 @@ def map_stretches(
             ``config.observation_stride`` as in the first pass of an adjusted build, and the
             segments are those of that pass.
         workers: processes for the pivot passes (this one plus forked children, on systems with
-            ``fork``). Only independent pivot groups (``parallel.pivot_groups``, e.g. the two
+            ``fork``). Only independent pivot groups (``sampling.pivot_groups``, e.g. the two
             carriageways of a highway) run apart, so the result is the one-process result. Do not
             fork from a process with native threads of its own (a ROS node): keep 1 there.
 

@@ -27,6 +27,7 @@ from hdmap_core.geometry import (
     split_long_segments,
 )
 from hdmap_core.model import Drive, FeatureType
+from hdmap_core.parallel import map_balanced
 
 __all__ = ["trajectory_index", "PreprocessConfig", "DetectionIndex", "CutHits", "preprocess"]
 
@@ -252,8 +253,6 @@ def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConf
     Returns:
         The detection index; drive index i is ``drives[i]``.
     """
-    from hdmap_core.parallel import map_balanced  # noqa: PLC0415 - parallel imports this module
-
     chunks = _drive_chunks(drives)  # of about equal size
     parts = map_balanced(lambda i: _thin(drives, *chunks[i], config), [1.0] * len(chunks), workers)
     n_points_in = sum(t.n_points_in for t in parts)

@@ -14,10 +14,12 @@ samples.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.geometry import interp_angle, resample_by_distance, wrap_angle, arc_length
@@ -25,7 +27,7 @@ from hdmap_core.model import Drive, FeatureType
 from hdmap_core.pipeline.preprocess import DetectionIndex
 from hdmap_core.steps import left_normal
 
-__all__ = ["SamplingConfig", "PivotSamples", "pivot_walk", "sample_pivot", "refine_cuts"]
+__all__ = ["SamplingConfig", "PivotSamples", "pivot_groups", "pivot_walk", "sample_pivot", "refine_cuts"]
 
 ShiftFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -439,3 +441,82 @@ def sample_pivot(
         off_cut=np.abs(mid - own) > 0.5 * width + config.max_pivot_outside_m,
         pose=pose,
     )
+
+
+# Independent pivot groups (for running the pivot passes on several cores). A pivot changes the
+# state later pivots see only through the drives that have samples on its cut lines (their
+# processed-stretch marks and remembered offsets). Two drives can only ever meet that way where one
+# of them, as pivot, has a cut line that crosses a detection segment of the other going the same
+# way. The pivots of different groups never share a drive, so the groups can run apart, each in
+# the global pivot order (a highway's two carriageways are two groups).
+_HEADING_BINS = 12  # 30 deg each
+_OFF = 1 << 20  # cell index offset: keys stay non-negative for maps within +-2^20 cells
+_SPAN = 1 << 22
+
+
+def pivot_groups(index: DetectionIndex, drives: Sequence[Drive], *, config: SamplingConfig) -> np.ndarray:
+    """(N,) group label per drive (0..G-1): drives in different groups never meet on a cut line.
+
+    Drive j's detection segment can be sampled on pivot i's cut at step point p only if the
+    crossing lies within ``initial_half_length_m`` of p and j's heading there (``seg_yaw``) is
+    within ``max_heading_diff_deg`` of the pivot's step heading. So the segment's midpoint lies
+    within R = half length + half the longest segment of p. Place is binned in square cells of
+    side > R (a point within R of p is in p's cell or one of its 8 neighbours) and heading in 30
+    degree bins (two headings within D degrees are at most ceil(D / 30) bins apart): a drive is
+    linked to every drive with a segment in a neighbouring (cell, heading bin) of one of its
+    steps. The test can only unite too much, never too little.
+    """
+    n = len(drives)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    seg_len = np.hypot(*(index.seg_b - index.seg_a).T) if index.n_segments else np.zeros(1)
+    reach = config.initial_half_length_m + 0.5 * float(seg_len.max())
+    cell = reach * (1.0 + 1e-6) + 1e-6
+    bin_w = 2.0 * math.pi / _HEADING_BINS
+    d_bins = math.ceil(math.radians(config.max_heading_diff_deg) / bin_w + 1e-9)
+
+    def place(xy: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        c = np.floor(np.asarray(xy, dtype=float) / cell).astype(np.int64) + _OFF
+        b = np.floor(np.mod(yaw, 2.0 * math.pi) / bin_w).astype(np.int64) % _HEADING_BINS
+        return (c[:, 0] * _SPAN + c[:, 1]) * _HEADING_BINS + b
+
+    # Where each drive's detections are: its distinct place keys (segments come drive by drive).
+    seg_key = place(0.5 * (index.seg_a + index.seg_b), index.seg_yaw)
+    seg_drive = index.seg_drive.astype(np.int64)
+    if np.any(np.diff(seg_drive) < 0):
+        by_drive = np.argsort(seg_drive, kind="stable")
+        seg_key, seg_drive = seg_key[by_drive], seg_drive[by_drive]
+    bounds = np.searchsorted(seg_drive, np.arange(n + 1), side="left")
+    det_key: list[np.ndarray] = []
+    det_drive: list[np.ndarray] = []
+    for i in np.flatnonzero(np.diff(bounds)):
+        k = np.unique(seg_key[bounds[i] : bounds[i + 1]])
+        det_key.append(k)
+        det_drive.append(np.full(len(k), i, dtype=np.int64))
+    det_k = np.concatenate(det_key) if det_key else np.zeros(0, np.int64)
+    det_d = np.concatenate(det_drive) if det_drive else np.zeros(0, np.int64)
+    keys, det_node = np.unique(det_k, return_inverse=True)
+    # Where each drive's cut lines may reach: its steps' keys grown by one cell and d_bins.
+    shifts = sorted({s % _HEADING_BINS for s in range(-d_bins, d_bins + 1)})
+    reach_node: list[np.ndarray] = []
+    reach_drive: list[np.ndarray] = []
+    for i, d in enumerate(drives):
+        _, pts, heading = pivot_walk(d, step_m=config.step_m)
+        k = np.unique(place(pts, heading))
+        b, c = k % _HEADING_BINS, k // _HEADING_BINS
+        grown = np.concatenate([
+            (c + dx * _SPAN + dy) * _HEADING_BINS + (b + db) % _HEADING_BINS
+            for dx in (-1, 0, 1) for dy in (-1, 0, 1) for db in shifts
+        ])
+        pos = np.minimum(np.searchsorted(keys, grown), max(len(keys) - 1, 0))
+        hit = keys[pos] == grown if len(keys) else np.zeros(len(grown), dtype=bool)
+        reach_node.append(pos[hit])
+        reach_drive.append(np.full(int(hit.sum()), i, dtype=np.int64))
+    # Bipartite graph drives -- place keys; its components are the groups.
+    rows = np.concatenate([det_d, *reach_drive])
+    cols = n + np.concatenate([det_node, *reach_node])
+    m = len(keys)
+    g = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n + m, n + m))
+    _, label = connected_components(g, directed=False)
+    _, group = np.unique(label[:n], return_inverse=True)
+    return group.astype(np.int64)

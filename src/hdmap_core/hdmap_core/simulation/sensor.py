@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.ndimage import minimum_filter1d
@@ -22,9 +21,7 @@ from scipy.spatial import cKDTree
 from hdmap_core.geometry import arc_length
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import Detection, FeatureType
-
-if TYPE_CHECKING:  # the config lives in simulate.py, which imports this module
-    from hdmap_core.simulation.fleet import SimConfig
+from hdmap_core.simulation.config import SimConfig
 
 __all__ = [
     "FeatureIndex",

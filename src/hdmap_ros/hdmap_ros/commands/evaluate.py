@@ -27,7 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from hdmap_core.errors import HdmapError
-from hdmap_core.evaluation.evaluate import EvalConfig, evaluate_map, hdmap_from_ground_truth, plot_evaluation
+from hdmap_core.evaluation.config import EvalConfig
+from hdmap_core.evaluation.evaluate import evaluate_map, hdmap_from_ground_truth
+from hdmap_core.evaluation.plot import plot_evaluation
+from hdmap_core.evaluation.summary import format_summary
 from hdmap_core.groundtruth import GroundTruth, load_ground_truth
 from hdmap_core.model import HDMap
 
@@ -264,7 +267,7 @@ def run(args: argparse.Namespace) -> int:
         hdmap, gt, config=config, drives=drives, sigma_loc_m=sigma, drive_errors=errors, seen_counts=seen
     )
     print()
-    print(report.summary())
+    print(format_summary(report))
     if args.json:
         doc = report.to_dict(include_cuts=True)
         doc["inputs"] = {"map": args.map, "gt": args.gt, "fleet": args.fleet, "sigma_loc_source": sigma_note}
