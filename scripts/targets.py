@@ -22,7 +22,7 @@ fleet is judged on its own.
 Usage (from the repository root, after ``make bench``):
     .venv/bin/python scripts/targets.py                 # out/bench/*.json but scaling/smoke
     .venv/bin/python scripts/targets.py out/bench/presets.json out/bench/sparse.json
-    .venv/bin/python scripts/targets.py --misses-only     # the table in docs/results.md
+    .venv/bin/python scripts/targets.py --misses-only     # only the fleets that miss a target
     # a change measured with `hdmap bench --presets default --set KEY=VALUE --json out/x.json`,
     # checked against the shipped presets (the plain default among them) on the same bags:
     .venv/bin/python scripts/targets.py out/bench/presets.json out/x.json --preset default+

@@ -11,9 +11,9 @@ import math
 import numpy as np
 import pytest
 
+from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.graph.connection import ConnectionConfig, connect_segment
 from hdmap_core.graph.segment_graph import feature_chains, stable_uid
-from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult
 
@@ -889,7 +889,7 @@ def test_lines_curving_with_the_pivot_keep_its_frame():
 
 
 def _gore_under_a_stale_tip() -> Segment:
-    """paper_like_536's gore at (729, -832) (docs/results.md "Speed, memory, scaling"): the through line
+    """paper_like_536's gore at (729, -832) (docs/pipeline.md "Fresh tips first"): the through line
     (solid, y 0) and the exit line diverging from it were one maximum up to step 8; a one-drive
     dashed maximum at y +1.5 in step 6 left a tip open across steps 7-8. From step 9 the exit line
     (y -1.6 and on to the right) and the through line (y +0.1) are two maxima."""

@@ -11,14 +11,14 @@ import math
 import numpy as np
 import pytest
 
-from hdmap_core.graph.connection import ConnectionConfig, connect_segment
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_core.model import FeatureType, HDMap
-from hdmap_core.pipeline.driver import PipelineConfig
-from hdmap_core.steps import Segment, StepResult
+from hdmap_core.graph.connection import ConnectionConfig, connect_segment
 from hdmap_core.graph.from_hdmap import graph_from_hdmap
 from hdmap_core.graph.map_graph import MapGraph, stitch, to_hdmap
 from hdmap_core.graph.stitch_config import StitchConfig
+from hdmap_core.model import FeatureType, HDMap
+from hdmap_core.pipeline.driver import PipelineConfig
+from hdmap_core.steps import Segment, StepResult
 
 B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
 DEFAULT = PipelineConfig.preset("default").stitching  # the default preset's stitching options
@@ -321,7 +321,9 @@ def test_one_point_feature_dropped_and_linked_past():
         \__/      the one-point piece at the touch is no polyline: dropped, and
         /  \      both inflows link straight to both outflows; every feature has >= 2 points.
     """
-    lat = lambda i: [0.0] if i == 15 else [-0.1 * abs(i - 15), 0.1 * abs(i - 15)]
+    def lat(i: int) -> list[float]:
+        return [0.0] if i == 15 else [-0.1 * abs(i - 15), 0.1 * abs(i - 15)]
+
     seg = Segment("a", tuple(step("a", i, 2.0 * i, lat(i), [D] * len(lat(i))) for i in range(31)))
     m = stitch([connect_segment(seg, config=ConnectionConfig(min_separation_m=0.0))],
                config=StitchConfig(through_lines=False))
@@ -549,7 +551,9 @@ def test_one_drive_end_run_judged_across_a_leftover_edge():
 def test_spur_at_a_flicker_split_pruned():
     """A second line appears for 3 steps 1 m beside the dashed line (a leftover split) and dies:
     the spur is dropped, the dashed line stays one polyline."""
-    lat = lambda i: [0.0, -1.2] if 20 <= i < 23 else [0.0]
+    def lat(i: int) -> list[float]:
+        return [0.0, -1.2] if 20 <= i < 23 else [0.0]
+
     seg = Segment("a", tuple(step("a", i, 2.0 * i, lat(i), [D] * len(lat(i))) for i in range(50)))
     g = conn(seg)
     assert g.stats.splits == 1
@@ -1435,7 +1439,7 @@ def test_track_bridge_enters_a_road_at_a_merge_angle(landing_deg: float, linked:
 
 @pytest.mark.parametrize("margin_m, linked", [(0.0, False), (2.0, True)])
 def test_track_bridge_leaves_a_road_its_first_point_after_a_gap_just_misses(margin_m: float, linked: bool):
-    """carla_town04_50_s1's missed exit (docs/graph.md, "The exit missed on carla_town04_50_s1"):
+    """carla_town04_50_s1's missed exit (docs/graph.md, "Track bridges"):
     the last step of p's run processed before through e (the track's first point after the run's
     gap) has a cut midpoint pulled 5.6 m across e, whose cross-section reaches 5 m; the failed
     turn lies beside e too. Without a road to leave no bridge starts; with

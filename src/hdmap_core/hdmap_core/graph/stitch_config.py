@@ -265,8 +265,8 @@ class StitchConfig:
             nowhere. A turn's track cuts the corner: on carla_town06_100_s1 an end's pivot,
             turning right onto a road, lay in the cross-section of a node 22 deg off its heading
             2 m before the turn lane joins that road (the node carries only the lanes from the
-            south; a false 14.5 m link), 4.5 deg off one step later (docs/graph.md, "The one
-            false long link on carla_town06_100_s1"). 0 disables (the paper, the plain
+            south; a false 14.5 m link), 4.5 deg off one step later (docs/graph.md, "Track
+            settling"). 0 disables (the paper, the plain
             default) [deg].
         track_bridge_m: where a pivot's track leaves a topology node A (a track point in its
             cross-section, heading within ``track_bridge_heading_deg``), runs through at least one
@@ -291,7 +291,7 @@ class StitchConfig:
             already pulled off the road's middle: on carla_town04_50_s1 the only pivot through
             the exit's left turn at (-381, 12) lay 5.5-5.6 m across the exit road's last nodes
             (4.8-4.9 m half wide), so no bridge started and the exit's branch onto the road at
-            y = -33 was not connected (docs/graph.md, "The exit missed on carla_town04_50_s1").
+            y = -33 was not connected (docs/graph.md, "Track bridges").
             Only for leaving, and only there: a bridge still ends in a node's own cross-section,
             and a walk already off a road is not cut short. 0 disables (the paper, the plain
             default) [m].

@@ -249,8 +249,8 @@ class PipelineConfig:
                 # where drives passed and saw nothing: fills through such places are dropped
                 # (docs/pipeline.md, "Negative evidence")
                 # judged where >= 2 detections are expected (3 in the dataclass): the 30-drive
-                # fleets' false fills lie where 1-4 drives pass (docs/pipeline.md, "Type runs
-                # across leftover edges; negative evidence at 30 drives")
+                # fleets' false fills lie where 1-4 drives pass (docs/pipeline.md, "Negative
+                # evidence")
                 evidence=EvidenceConfig(min_expected=2.0),
                 # straight carriageway lines crossed at 12-30 deg paired in their own direction (an
                 # entry ramp's pivot; not lines curving with the pivot: docs/pipeline.md, "Lines
@@ -295,13 +295,13 @@ class PipelineConfig:
                     # ... nor across the split behind an end or the merge ahead of a start
                     track_rejoin_both=True,
                     # ... landing where its pivot has settled onto the road, not where it still
-                    # turns into it (docs/graph.md, "The one false long link on carla_town06_100_s1")
+                    # turns into it (docs/graph.md, "Track settling")
                     track_settle_deg=8.0,
                     # ... and a pivot's track leaving one mapped road through failed steps onto
                     # another links the two where no chain ends there (docs/graph.md, "Track bridges")
                     track_bridge_m=60.0,
                     # ... also from a road whose cross-section the track's first point after a gap
-                    # misses by up to 2 m (docs/graph.md, "The exit missed on carla_town04_50_s1")
+                    # misses by up to 2 m (docs/graph.md, "Track bridges")
                     track_bridge_leave_margin_m=2.0,
                     # tracks are the pivot's own corrected positions, not its steps' cut midpoints,
                     # which fly off onto other roads where steps fail (docs/graph.md, "Tracks of poses")

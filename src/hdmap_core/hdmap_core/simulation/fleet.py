@@ -13,7 +13,7 @@ every metre. It reports what a series vehicle would (docs/simulator.md has the w
   misclassification, and short false positives. Everything a drive reports is displaced by that
   drive's pose error, so trajectory and detections stay consistent with each other.
 
-Sign convention (shared with ``adjustment_sim``): a drive whose pose error is ``e`` (left of the
+Sign convention (shared with ``simulation.chains``): a drive whose pose error is ``e`` (left of the
 heading) reports every point ``e`` further left than the truth.
 
 The simulation is deterministic: drive ``i`` draws from its own ``numpy.random.Generator``
