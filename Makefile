@@ -11,7 +11,7 @@ PYTEST_ARGS ?=
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export ROS_DOMAIN_ID ?= 42
 
-.PHONY: help setup test test-quick demo bench constraints clean
+.PHONY: help setup test test-quick lint demo bench constraints clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -24,6 +24,11 @@ test: setup  ## the whole pytest suite (after setup)
 
 test-quick: setup  ## the suite without tests marked slow
 	$(PYTHON) -m pytest -m "not slow" $(PYTEST_ARGS)
+
+lint: setup  ## ruff check, ruff format --check (whole tree), mypy on src/hdmap_core (ruff.toml, mypy.ini)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 
 demo: setup  ## simulate a fleet, build a map, evaluate it (scripts/demo.sh)
 	@bash scripts/demo.sh

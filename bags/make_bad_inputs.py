@@ -20,8 +20,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from hdmap_core.model import Detection, FeatureType
 from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
 from hdmap_core.simulation.synthetic import synthetic_highway
-from hdmap_ros.io.bagio import DRIVE_TYPE, DRIVES_TOPIC, ORIGIN_TOPIC, ORIGIN_TYPE
 from hdmap_ros.convert.messages import origin_to_msg
+from hdmap_ros.io.bagio import DRIVE_TYPE, DRIVES_TOPIC, ORIGIN_TOPIC, ORIGIN_TYPE
 from hdmap_ros.io.cdr import encode_drive
 from hdmap_ros.io.msgdefs import default_typestore
 

@@ -63,9 +63,9 @@ def main() -> int:
     from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
     from hdmap_core.simulation.synthetic import synthetic_highway
     from hdmap_ros.convert.messages import drive_to_msg, rclpy_types
+    from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
     from hdmap_ros.nodes.map_stitcher import MapStitcher
     from hdmap_ros.nodes.segment_mapper import SegmentMapper
-    from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
 
     gt = synthetic_highway("motorway", length_m=args.road_km * 1000.0, seed=args.seed)
     lo, hi = args.snippet_m

@@ -26,8 +26,8 @@ import pickle
 import sys
 from pathlib import Path
 
-from hdmap_core.pipeline import driver as pipeline
 from hdmap_core.errors import ConfigError, HdmapError
+from hdmap_core.pipeline import driver as pipeline
 from hdmap_ros.commands.bag2map import add_set_argument
 from hdmap_ros.commands.bench import SCORE_COLUMNS, build_and_evaluate, prepare_scenarios, score_line
 

@@ -24,11 +24,11 @@ import sys
 import time
 from pathlib import Path
 
-from hdmap_core.pipeline import driver as pipeline
 from hdmap_core.errors import HdmapError
 from hdmap_core.evaluation.evaluate import evaluate_map
 from hdmap_core.groundtruth import load_ground_truth
 from hdmap_core.live.tiles import connect_tile, stitch_graphs
+from hdmap_core.pipeline import driver as pipeline
 from hdmap_ros.commands.bag2map import add_set_argument
 from hdmap_ros.commands.bench import SCORE_COLUMNS, score_line
 from hdmap_ros.persistence.store import MapStore, blob_to_segments

@@ -308,8 +308,8 @@ def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
 def test_map_tile_with_a_fleet_model_shifts_by_it_at_full_drive_distances():
     from dataclasses import replace
 
-    from hdmap_core.pipeline.adjustment import DriveOffset
     from hdmap_core.live.tiles import fleet_offsets, map_tile, observe_tile
+    from hdmap_core.pipeline.adjustment import DriveOffset
 
     drives, key, cfg, pc = _sim_tile()
     model = fleet_offsets(observe_tile(drives, key, tile_config=cfg, pipeline_config=pc), pipeline_config=pc)

@@ -16,10 +16,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hdmap_core.pipeline.adjustment import AdjustConfig, OffsetModel, adjust_offsets
-from hdmap_core.simulation.chains import ChainSimConfig, simulate_step_observations
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
+from hdmap_core.pipeline.adjustment import AdjustConfig, OffsetModel, adjust_offsets
+from hdmap_core.simulation.chains import ChainSimConfig, simulate_step_observations
 from hdmap_core.steps import StepObservations
 
 # A short chain keeps every case around a second: 10 km road, 30 drives of 2-5 km.

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hdmap_core.errors import ConfigError
+from hdmap_core.model import FeatureType
 from hdmap_core.pipeline.aggregation import (
     AggregationConfig,
     ProcessedStore,
@@ -13,8 +15,6 @@ from hdmap_core.pipeline.aggregation import (
     gaussian_overlap,
     kde_maxima,
 )
-from hdmap_core.errors import ConfigError
-from hdmap_core.model import FeatureType
 
 
 @pytest.mark.parametrize("factor", [0.5, 1.0, 6.0])

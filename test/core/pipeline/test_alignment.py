@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import replace
-
 import itertools
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from sklearn.metrics import silhouette_samples
 
+from hdmap_core.errors import ConfigError
+from hdmap_core.model import FeatureType
 from hdmap_core.pipeline.alignment import (
     AlignmentConfig,
     align_step,
@@ -23,8 +24,6 @@ from hdmap_core.pipeline.alignment import (
     solve_offsets,
     step_silhouette,
 )
-from hdmap_core.errors import ConfigError
-from hdmap_core.model import FeatureType
 
 LINES = np.array([-5.25, -1.75, 1.75, 5.25])
 LINE_TYPES = np.array([FeatureType.SOLID, FeatureType.DASHED, FeatureType.DASHED, FeatureType.SOLID])

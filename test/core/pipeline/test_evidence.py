@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.pipeline.evidence import _in_intervals, EvidenceConfig, refuted_edges, step_profiles
 from hdmap_core.model import Detection, Drive, FeatureType
 from hdmap_core.pipeline.driver import PipelineConfig, build_map, map_stretches, prepare_drives
+from hdmap_core.pipeline.evidence import EvidenceConfig, _in_intervals, refuted_edges, step_profiles
+
 from pipeline_fleet import LINES, offset_line
 
 CFG = EvidenceConfig()

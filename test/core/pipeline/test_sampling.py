@@ -8,7 +8,8 @@ import pytest
 from hdmap_core.model import Detection, Drive, FeatureType
 from hdmap_core.pipeline.preprocess import preprocess
 from hdmap_core.pipeline.sampling import SamplingConfig, pivot_walk, refine_cuts, sample_pivot
-from pipeline_fleet import LINES, make_drive, offset_line
+
+from pipeline_fleet import make_drive, offset_line
 
 
 def _opposite_drive(drive_id: str) -> Drive:

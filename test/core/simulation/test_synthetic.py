@@ -23,9 +23,9 @@ def _steps(xy: np.ndarray) -> np.ndarray:
 
 
 def test_point_spacing_at_most_one_metre(gt):
-    assert max(_steps(l.centerline).max() for l in gt.lanes.values()) <= 1.0
+    assert max(_steps(ln.centerline).max() for ln in gt.lanes.values()) <= 1.0
     assert max(_steps(f.points).max() for f in gt.features) <= 1.0
-    assert min(_steps(l.centerline).min() for l in gt.lanes.values()) > 0.1
+    assert min(_steps(ln.centerline).min() for ln in gt.lanes.values()) > 0.1
 
 
 def test_links_and_neighbours_are_symmetric(gt):
@@ -75,8 +75,8 @@ def test_through_route_per_lane_and_direction(gt):
 
 def test_features_ordered_in_driving_direction(gt):
     # Every feature runs parallel (not anti-parallel) to the lane centreline nearest to it.
-    pts = np.concatenate([l.centerline for l in gt.lanes.values()])
-    tan = np.concatenate([np.gradient(l.centerline, axis=0) for l in gt.lanes.values()])
+    pts = np.concatenate([ln.centerline for ln in gt.lanes.values()])
+    tan = np.concatenate([np.gradient(ln.centerline, axis=0) for ln in gt.lanes.values()])
     for f in gt.features:
         mid = len(f.points) // 2
         k = np.argmin(np.linalg.norm(pts - f.points[mid], axis=1))
@@ -98,10 +98,10 @@ def test_both_median_barriers_and_all_types_present(gt):
 
 def test_ramps_split_and_merge():
     gt = synthetic_highway("motorway_ramps", length_m=LENGTH_M)
-    splits = [l for l in gt.lanes.values() if len(l.successors) == 2]
-    merges = [l for l in gt.lanes.values() if len(l.predecessors) == 2]
-    assert {l.id.split(":")[0] for l in splits} == {"fwd", "bwd"}
-    assert {l.id.split(":")[0] for l in merges} == {"fwd", "bwd"}
+    splits = [ln for ln in gt.lanes.values() if len(ln.successors) == 2]
+    merges = [ln for ln in gt.lanes.values() if len(ln.predecessors) == 2]
+    assert {ln.id.split(":")[0] for ln in splits} == {"fwd", "bwd"}
+    assert {ln.id.split(":")[0] for ln in merges} == {"fwd", "bwd"}
     for lane in splits:
         a, b = (gt.lanes[s] for s in lane.successors)
         np.testing.assert_allclose(a.centerline[0], b.centerline[0], atol=0.01)  # they start together
@@ -109,25 +109,25 @@ def test_ramps_split_and_merge():
         # follow the ramp to its end: it ends far off the main line
         while ramp.successors:
             ramp = gt.lanes[ramp.successors[0]]
-        main = np.concatenate([l.centerline for l in gt.lanes.values() if l.id.endswith(":3")])
+        main = np.concatenate([ln.centerline for ln in gt.lanes.values() if ln.id.endswith(":3")])
         assert np.min(np.linalg.norm(main - ramp.centerline[-1], axis=1)) > 20.0
     ids = {r.id for r in gt.routes}
     assert {"fwd_exit0", "fwd_entry0", "bwd_exit0", "bwd_entry0"} <= ids
     exit_route = next(r for r in gt.routes if r.id == "fwd_exit0")
-    assert any(len(gt.lanes[l].successors) == 2 for l in exit_route.lanes)
+    assert any(len(gt.lanes[ln].successors) == 2 for ln in exit_route.lanes)
     entry_route = next(r for r in gt.routes if r.id == "fwd_entry0")
-    assert any(len(gt.lanes[l].predecessors) == 2 for l in entry_route.lanes)
+    assert any(len(gt.lanes[ln].predecessors) == 2 for ln in entry_route.lanes)
 
 
 def test_lane_drop_has_a_merge_and_the_opposite_side_a_split():
     gt = synthetic_highway("lane_drop", length_m=LENGTH_M)
-    merges = [l.id for l in gt.lanes.values() if len(l.predecessors) == 2]
-    splits = [l.id for l in gt.lanes.values() if len(l.successors) == 2]
+    merges = [ln.id for ln in gt.lanes.values() if len(ln.predecessors) == 2]
+    splits = [ln.id for ln in gt.lanes.values() if len(ln.successors) == 2]
     assert [m.split(":")[0] for m in merges] == ["fwd"]
     assert [s.split(":")[0] for s in splits] == ["bwd"]
-    first = [l for l in gt.lanes.values() if l.id.startswith("fwd:0:")]
-    last_j = max(int(l.id.split(":")[1]) for l in gt.lanes.values() if l.id.startswith("fwd:"))
-    last = [l for l in gt.lanes.values() if l.id.startswith(f"fwd:{last_j}:")]
+    first = [ln for ln in gt.lanes.values() if ln.id.startswith("fwd:0:")]
+    last_j = max(int(ln.id.split(":")[1]) for ln in gt.lanes.values() if ln.id.startswith("fwd:"))
+    last = [ln for ln in gt.lanes.values() if ln.id.startswith(f"fwd:{last_j}:")]
     assert (len(first), len(last)) == (3, 2)
 
 

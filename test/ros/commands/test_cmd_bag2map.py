@@ -8,10 +8,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from bag_samples import T0_NS, assert_maps_equal, install_fake_pipeline, make_drive, make_map
 from hdmap_core.model import GeoOrigin
 from hdmap_ros import cli
 from hdmap_ros.io.bagio import read_fleet_bag, read_map_bag, write_fleet_bag
+
+from bag_samples import T0_NS, assert_maps_equal, install_fake_pipeline, make_drive, make_map
 
 ORIGIN = GeoOrigin(57.7, 11.97, 5.0)
 

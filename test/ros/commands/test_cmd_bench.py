@@ -3,18 +3,19 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 import math
 import types
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
-from bag_samples import install_fake_pipeline
 from hdmap_core.evaluation.evaluate import hdmap_from_ground_truth
 from hdmap_core.groundtruth import load_ground_truth
 from hdmap_ros import cli
 from hdmap_ros.commands.bench import format_table, summarize_seeds
+
+from bag_samples import install_fake_pipeline
 
 
 @pytest.fixture

@@ -14,8 +14,8 @@ from hdmap_core.evaluation.evaluate import hdmap_from_ground_truth
 from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute, save_ground_truth
 from hdmap_core.model import Drive, FeatureType, GeoOrigin
 from hdmap_ros import cli
-from hdmap_ros.io.bagio import write_fleet_bag, write_map_bag
 from hdmap_ros.commands.evaluate import resolve_ground_truth, seen_counts_from_sim_json, sigma_from_sim_json
+from hdmap_ros.io.bagio import write_fleet_bag, write_map_bag
 
 ORIGIN = GeoOrigin(48.78, 9.18, 250.0)
 

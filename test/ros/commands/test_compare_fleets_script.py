@@ -8,8 +8,6 @@ import importlib.util
 from pathlib import Path
 from types import ModuleType
 
-import pytest
-
 from hdmap_core.pipeline.driver import PipelineConfig, parse_override
 from hdmap_ros.commands.bench import SCORE_COLUMNS
 

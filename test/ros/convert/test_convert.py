@@ -10,7 +10,6 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bag_samples import assert_drives_equal, assert_maps_equal, make_drive, make_map
 from hdmap_core.errors import InvalidDriveError, InvalidMessageError
 from hdmap_core.model import Detection, FeatureType, GeoOrigin
 from hdmap_ros.convert.messages import (
@@ -25,6 +24,8 @@ from hdmap_ros.convert.messages import (
     yaw_to_quaternion,
 )
 from hdmap_ros.io.msgdefs import default_typestore, hdmap_msg_texts
+
+from bag_samples import assert_drives_equal, assert_maps_equal, make_drive, make_map
 
 
 def _plain_types() -> MsgTypes:

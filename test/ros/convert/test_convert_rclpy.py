@@ -11,7 +11,6 @@ hdmap_msgs = pytest.importorskip("hdmap_msgs.msg")
 
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
-from bag_samples import assert_drives_equal, assert_maps_equal, make_drive, make_map  # noqa: E402
 from hdmap_core.model import GeoOrigin  # noqa: E402
 from hdmap_ros.convert.messages import (  # noqa: E402
     drive_to_msg,
@@ -24,6 +23,8 @@ from hdmap_ros.convert.messages import (  # noqa: E402
 )
 from hdmap_ros.io.cdr import decode_drive, encode_drive  # noqa: E402
 from hdmap_ros.io.msgdefs import default_typestore  # noqa: E402
+
+from bag_samples import assert_drives_equal, assert_maps_equal, make_drive, make_map  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

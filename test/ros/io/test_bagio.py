@@ -11,10 +11,10 @@ import pytest
 from rosbags.rosbag2 import Writer
 from rosbags.typesys import Stores, get_typestore
 
-from hdmap_ros.io import bagio
-from bag_samples import T0_NS, assert_drives_equal, assert_maps_equal, make_drive, make_map
 from hdmap_core.errors import BagError
 from hdmap_core.model import Detection, FeatureType, GeoOrigin
+from hdmap_ros.convert.messages import drive_to_msg, origin_to_msg
+from hdmap_ros.io import bagio
 from hdmap_ros.io.bagio import (
     DRIVE_TYPE,
     DRIVES_TOPIC,
@@ -29,8 +29,9 @@ from hdmap_ros.io.bagio import (
     write_fleet_bag,
     write_map_bag,
 )
-from hdmap_ros.convert.messages import drive_to_msg, origin_to_msg
 from hdmap_ros.io.msgdefs import default_typestore
+
+from bag_samples import T0_NS, assert_drives_equal, assert_maps_equal, make_drive, make_map
 
 ORIGIN = GeoOrigin(57.70887, 11.97456, 12.0)
 

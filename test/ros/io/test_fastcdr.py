@@ -7,11 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bag_samples import assert_drives_equal, make_drive
 from hdmap_core.model import Detection, FeatureType
 from hdmap_ros.convert.messages import drive_to_msg, msg_to_drive
 from hdmap_ros.io.cdr import decode_drive
 from hdmap_ros.io.msgdefs import default_typestore
+
+from bag_samples import assert_drives_equal, make_drive
 
 DRIVE = "hdmap_msgs/msg/Drive"
 

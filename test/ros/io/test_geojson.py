@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from pyproj import Geod
 
-from bag_samples import make_map
 from hdmap_core.errors import InvalidMessageError
 from hdmap_core.model import FeatureType, GeoOrigin, HDMap, MapFeature
 from hdmap_ros.io.geojson import enu_to_lonlat, map_to_geojson, write_geojson
+
+from bag_samples import make_map
 
 WGS84_A = 6378137.0
 WGS84_E2 = 6.69437999014e-3

@@ -17,15 +17,16 @@ pytest.importorskip("hdmap_msgs.msg")
 
 from dataclasses import replace  # noqa: E402
 
-from bag_samples import make_drive, make_map  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from nodes_harness import Ros, wait_for  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from hdmap_core.model import GeoOrigin  # noqa: E402
-from hdmap_ros.nodes import qos  # noqa: E402
-from hdmap_ros.io.bagio import read_map_bag, write_fleet_bag  # noqa: E402
 from hdmap_ros.convert.messages import drive_to_msg, map_to_msg, msg_to_drive, rclpy_types  # noqa: E402
+from hdmap_ros.io.bagio import read_map_bag, write_fleet_bag  # noqa: E402
+from hdmap_ros.nodes import qos  # noqa: E402
+
+from bag_samples import make_drive, make_map  # noqa: E402
+from nodes_harness import Ros, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -23,7 +23,6 @@ rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("hdmap_msgs.msg")
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from nodes_harness import Proc, Ros, wait_for  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from hdmap_core.evaluation.evaluate import evaluate_map  # noqa: E402
@@ -31,9 +30,11 @@ from hdmap_core.model import HDMap  # noqa: E402
 from hdmap_core.pipeline.driver import PipelineConfig, build_map  # noqa: E402
 from hdmap_core.simulation.fleet import SimConfig, simulate_fleet  # noqa: E402
 from hdmap_core.simulation.synthetic import synthetic_highway  # noqa: E402
-from hdmap_ros.nodes import qos  # noqa: E402
-from hdmap_ros.io.bagio import write_fleet_bag  # noqa: E402
 from hdmap_ros.convert.messages import drive_to_msg, msg_to_map, rclpy_types  # noqa: E402
+from hdmap_ros.io.bagio import write_fleet_bag  # noqa: E402
+from hdmap_ros.nodes import qos  # noqa: E402
+
+from nodes_harness import Proc, Ros, wait_for  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -294,9 +295,9 @@ def test_hdmap_run_replays_the_bag_in_one_process_and_writes_the_settled_map(fle
     import subprocess
     import sys
 
-    from nodes_harness import dds_env
-
     from hdmap_ros.io.bagio import read_map_bag
+
+    from nodes_harness import dds_env
 
     out = tmp_path / "map"
     proc = subprocess.run(

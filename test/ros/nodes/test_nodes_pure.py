@@ -9,8 +9,8 @@ import pytest
 
 from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.steps import Segment, StepResult
-from hdmap_ros.nodes.diagnostics import OK, WARN, Health
 from hdmap_ros.convert.markers import DELETEALL, LINE_LIST, LINE_STRIP, TYPE_COLORS, MarkerTypes, map_to_markers
+from hdmap_ros.nodes.diagnostics import OK, WARN, Health
 
 
 class _Msg(SimpleNamespace):
@@ -63,7 +63,10 @@ def test_markers_one_line_strip_per_feature_coloured_by_type():
 
 def test_health_counts_and_levels():
     h = Health("hdmap: x", backlog_warn=3)
-    h.accept(); h.accept(); h.reject("non_finite_coordinates", "d7"); h.duplicate()
+    h.accept()
+    h.accept()
+    h.reject("non_finite_coordinates", "d7")
+    h.duplicate()
     h.backlog = 2
     kv = dict(h.key_values())
     assert kv["drives_accepted"] == "2" and kv["drives_rejected"] == "1" and kv["drives_duplicate"] == "1"
@@ -94,8 +97,8 @@ def _segments():
 
 def test_tile_msg_round_trip_through_cdr():
     pytest.importorskip("rosbags")
-    from hdmap_ros.io.msgdefs import make_typestore
     from hdmap_ros.convert.tiles import msg_to_tile, rosbags_tile_types, tile_to_msg
+    from hdmap_ros.io.msgdefs import make_typestore
 
     store = make_typestore()
     segs = _segments()

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdmap_core.model import FeatureType
-
 from hdmap_core.steps import StepObservations
 
 __all__ = ["ChainSimConfig", "SimTruth", "simulate_step_observations", "StepObservations"]

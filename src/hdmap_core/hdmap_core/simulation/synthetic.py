@@ -353,14 +353,14 @@ def _carriageway(name: str, direction: str, ref: _Reference) -> tuple[list[GTFea
         cw.features.pop()  # the dashed line between lanes 2 and 3 is redrawn below
         t_mid = length / 2.0
         if direction == "fwd":  # lane 3 ends: taper into lane 2
-            td, sign = t_mid - _DROP_TAPER_M / 2.0, -1.0
+            td = t_mid - _DROP_TAPER_M / 2.0
             shape = lambda t, td=td: _smoothstep((t - td) / _DROP_TAPER_M)  # noqa: E731
             main[last] = (0.0, td + _DROP_TAPER_M)
             links.append((last, "2"))
             events = [td, td + _DROP_TAPER_M]
             cw.feature(FeatureType.DASHED, 0.0, td, _const(_line_r(2)))
         else:  # lane 3 begins: split from lane 2
-            td, sign = t_mid - _DROP_TAPER_M / 2.0, 1.0
+            td = t_mid - _DROP_TAPER_M / 2.0
             shape = lambda t, td=td: 1.0 - _smoothstep((t - td) / _DROP_TAPER_M)  # noqa: E731
             main[last] = (td, length)
             links.append(("2", last))
@@ -442,9 +442,9 @@ def synthetic_highway(name: str, *, length_m: float = 3000.0, seed: int = 0) -> 
     lanes: dict[str, GTLane] = {}
     routes: list[GTRoute] = []
     for direction in ("fwd", "bwd"):
-        f, l, r = _carriageway(name, direction, ref)
+        f, lane_map, r = _carriageway(name, direction, ref)
         features += [GTFeature(len(features) + i + 1, g.type, g.points) for i, g in enumerate(f)]
-        lanes.update(l)
+        lanes.update(lane_map)
         routes += r
     extra = {
         "source": f"hdmap_core.simulation.synthetic.synthetic_highway({name!r}, length_m={float(length_m)}, seed={seed})",
