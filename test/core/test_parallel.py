@@ -78,6 +78,7 @@ def _same_segments(a, b):
             np.testing.assert_array_equal(x.types, y.types)
 
 
+@pytest.mark.slow
 @needs_fork
 @pytest.mark.parametrize("preset", ["default", "naive"])  # two passes with the adjustment; one pass
 def test_two_workers_give_exactly_the_one_process_result(two_way_fleet, preset):
@@ -103,6 +104,7 @@ def test_two_workers_give_exactly_the_one_process_result(two_way_fleet, preset):
         np.testing.assert_array_equal(f1.lateral_std, f2.lateral_std)
 
 
+@pytest.mark.slow
 @needs_fork
 def test_a_failing_worker_is_taken_over_with_the_same_result(two_way_fleet, monkeypatch, caplog):
     cfg = PipelineConfig.preset("default")
@@ -139,6 +141,7 @@ def test_workers_must_be_a_positive_integer(two_way_fleet, bad):
         map_stretches(two_way_fleet[:2], config=PipelineConfig.preset("paper"), workers=bad)
 
 
+@pytest.mark.slow
 @needs_fork
 def test_no_worker_process_possible_runs_everything_here(two_way_fleet, monkeypatch, caplog):
     """E.g. inside a daemonic multiprocessing worker, which may not start children."""

@@ -136,6 +136,7 @@ def test_map_without_topology_has_no_evaluable_road_point() -> None:
     assert "road splits/merges connected in the map's topology: splits 0/0" in format_summary(rep)
 
 
+@pytest.mark.slow
 def test_motorway_ramps_has_its_exits_and_entries() -> None:
     """One exit and one entry per carriageway; the deceleration lane runs 330 m beside lane 3 before
     it parts (hence road_follow_m 600 m); lane_drop's taper and added lane are no road points."""
@@ -198,6 +199,7 @@ def _with_link(hdmap: HDMap, from_xy, to_xy) -> HDMap:
     return dataclasses.replace(hdmap, topology=tuple(nodes))
 
 
+@pytest.mark.slow
 def test_ground_truth_topology_has_link_precision_one() -> None:
     for gt in (_two_carriageways(), synthetic_highway("motorway_ramps")):
         rep = evaluate_map(hdmap_from_ground_truth(gt), gt)

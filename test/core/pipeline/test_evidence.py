@@ -192,6 +192,7 @@ def test_piece_between_two_refuted_fills_is_kept():
     assert _gap_points(solid, 138.0, 148.0) >= 4
 
 
+@pytest.mark.slow
 def test_steps_of_the_returned_pass_carry_profiles():
     drives, _ = prepare_drives([_drive(i, lane, (120.0, 136.0)) for i, lane in enumerate((-3.5, 0.0, 3.5) * 2)])
     res = map_stretches(drives, config=PipelineConfig.preset("default"))

@@ -192,6 +192,7 @@ def test_processed_stretches_are_skipped(fleet):
     assert ProcessedStore.from_json(res.processed.to_json()).intervals == res.processed.intervals
 
 
+@pytest.mark.slow
 def test_drive_beside_the_cut_is_not_marked_processed(fleet):
     """Drives on a ramp beyond the right road border see the ego road's lines, so they take part
     in the ego pivots' steps. The paper's reading marks them processed there, so the ramp is never

@@ -36,6 +36,7 @@ def gt_pipeline(monkeypatch, tmp_path):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_inline_bench_on_a_simulated_scenario(gt_pipeline, capsys):
     work = gt_pipeline
     out_json, out_md = work / "bench.json", work / "bench.md"
@@ -58,6 +59,7 @@ def test_inline_bench_on_a_simulated_scenario(gt_pipeline, capsys):
     assert out_md.read_text().count("\n") == 4  # header, rule, two rows
 
 
+@pytest.mark.slow
 def test_seed_range_runs_each_seed_and_adds_the_mean_over_seeds(gt_pipeline, capsys):
     work = gt_pipeline
     out_json, out_md = work / "bench.json", work / "bench.md"
@@ -73,6 +75,7 @@ def test_seed_range_runs_each_seed_and_adds_the_mean_over_seeds(gt_pipeline, cap
     assert "Mean over seeds" in out_md.read_text()
 
 
+@pytest.mark.slow
 def test_set_changes_every_preset_run_and_names_the_rows(monkeypatch, tmp_path, capsys):
     seen = []
 
@@ -161,6 +164,7 @@ def test_real_bench_in_a_subprocess(tmp_path, capsys):
     assert "motorway_4_s0" in out and "naive" in out
 
 
+@pytest.mark.slow
 def test_named_paper_like_scenario_is_simulated_with_its_overrides(tmp_path):
     from hdmap_ros.commands.bench import NAMED_SCENARIOS, prepare_scenarios
 
@@ -177,6 +181,7 @@ def test_named_paper_like_scenario_is_simulated_with_its_overrides(tmp_path):
     assert max(max(xs) - min(xs), max(ys) - min(ys)) > 0.6 * named["length_m"]
 
 
+@pytest.mark.slow
 def test_simulated_fleet_is_reused_only_when_made_with_the_same_config(tmp_path):
     from hdmap_core.simulation.fleet import simulator_fingerprint
     from hdmap_ros.commands.bench import prepare_scenarios

@@ -8,6 +8,8 @@ import importlib.util
 from pathlib import Path
 from types import ModuleType
 
+import pytest
+
 from hdmap_core.pipeline.driver import PipelineConfig, parse_override
 from hdmap_ros.commands.bench import SCORE_COLUMNS
 
@@ -27,6 +29,7 @@ def _script() -> ModuleType:
     return _load("compare_fleets")
 
 
+@pytest.mark.slow
 def test_scores_a_sample_bag_and_rejects_an_unknown_key(capsys, tmp_path):
     cf = _script()
     assert cf.main([str(REPO / "bags" / "ramps_20"), "--workers", "1", "--save", str(tmp_path)]) == 0
@@ -44,6 +47,7 @@ def test_scores_a_sample_bag_and_rejects_an_unknown_key(capsys, tmp_path):
     assert "no_such_map" in err and "--set" not in err
 
 
+@pytest.mark.slow
 def test_a_bag_that_cannot_be_used_is_named_and_the_rest_goes_on(capsys, tmp_path):
     cf = _script()
     bad = tmp_path / "broken.mcap"
@@ -55,6 +59,7 @@ def test_a_bag_that_cannot_be_used_is_named_and_the_rest_goes_on(capsys, tmp_pat
     assert out.strip().splitlines()[-1].startswith("ramps_20 ")
 
 
+@pytest.mark.slow
 def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
     """A map_stitcher store holding one tile's segments (those of bags/ramps_20) is connected and
     stitched as the node does it: the same map as connect_tile + stitch_graphs, scored."""
