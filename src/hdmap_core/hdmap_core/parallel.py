@@ -13,6 +13,7 @@ None, and the caller then runs that share itself: the result stays the same, onl
 
 from __future__ import annotations
 
+import functools
 import logging
 import multiprocessing
 import os
@@ -91,7 +92,7 @@ def run_shares(fn: Callable[[Any], Any], shares: Sequence[Any]) -> list[Any]:
     def job(channel: Any, share: Any) -> None:
         channel.send(fn(share))
 
-    workers = [ForkWorker(lambda ch, sh=sh: job(ch, sh)) for sh in shares[1:]]
+    workers = [ForkWorker(functools.partial(job, share=sh)) for sh in shares[1:]]
     try:
         out = [fn(shares[0])]
         for w, share in zip(workers, shares[1:]):
@@ -116,7 +117,9 @@ class ForkWorker:
         ctx = multiprocessing.get_context("fork")
         self._conn, child_conn = ctx.Pipe(duplex=True)
         self.failed = False
-        self._proc = ctx.Process(target=_child_main, args=(job, child_conn), daemon=True)
+        self._proc: multiprocessing.process.BaseProcess | None = ctx.Process(
+            target=_child_main, args=(job, child_conn), daemon=True
+        )
         try:
             self._proc.start()
         except (AssertionError, OSError) as err:  # e.g. a daemonic process may not have children
@@ -140,8 +143,11 @@ class ForkWorker:
         try:
             kind, payload = self._conn.recv()
         except (EOFError, OSError) as err:
-            self._proc.join(timeout=1)
-            self._fail(f"the worker process ended without a result (exit code {self._proc.exitcode}): {err!r}")
+            code = None
+            if self._proc is not None:
+                self._proc.join(timeout=1)
+                code = self._proc.exitcode
+            self._fail(f"the worker process ended without a result (exit code {code}): {err!r}")
             return None
         if kind == "error":
             self._fail(f"the worker process failed:\n{payload}")

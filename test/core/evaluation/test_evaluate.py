@@ -435,6 +435,7 @@ def test_fragmentation_counts_map_pieces_per_gt_feature(road: GroundTruth) -> No
     assert report.fragmentation_mean == pytest.approx((4 * 1 + 3) / 5)
 
 
+@pytest.mark.slow
 def test_report_outputs(road: GroundTruth, tmp_path: Path) -> None:
     hdmap = hdmap_from_ground_truth(road, lateral_shift_m=0.3, drive_count=5)
     report = evaluate_map(hdmap, road)
@@ -635,6 +636,7 @@ def test_unmapped_branch_is_named(ramps: GroundTruth) -> None:
     assert all("not mapped" in b.reason for b in report.missing_branch_points)
 
 
+@pytest.mark.slow
 def test_real_map_branch_points_against_itself(e6mini: GroundTruth) -> None:
     # e6mini is a plain 3 + 3 motorway: no lane or feature splits; the figure is 0 of 0.
     report = evaluate_map(hdmap_from_ground_truth(e6mini), e6mini)

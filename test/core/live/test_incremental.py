@@ -287,6 +287,7 @@ def _positions(drive, s):
     return np.stack([np.interp(s, st, xy[:, 0]), np.interp(s, st, xy[:, 1])], axis=1)
 
 
+@pytest.mark.slow
 def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
     from hdmap_core.live.tiles import map_tile_observed, observe_tile
 

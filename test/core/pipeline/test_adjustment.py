@@ -86,6 +86,7 @@ def test_noise_free_drift_is_followed_by_the_curve():
     assert rms_curve < 0.35 * rms_const
 
 
+@pytest.mark.slow
 def test_noisy_absolute_error_below_local_floor():
     # The main claim: tying every place to the whole chain of drives brings the common offset
     # below what the N drives at that place can give. Three fixed seeds, full-size chain.
@@ -104,6 +105,7 @@ def test_noisy_absolute_error_below_local_floor():
     assert max(ours) < max(local_floor)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("burst_m", [0.0, 100.0])
 def test_wrong_labels_are_resisted_by_the_robust_loss(burst_m):
     sim = replace(SMALL, wrong_label_fraction=0.05, wrong_label_burst_m=burst_m)

@@ -22,6 +22,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -507,7 +508,7 @@ def _observed_gt_points(
     return np.where(np.isfinite(a) & np.isfinite(b), np.maximum(a, b), np.nan)
 
 
-def _observed_figures(observed: np.ndarray | None, gt_hit: np.ndarray) -> dict[str, float | int]:
+def _observed_figures(observed: np.ndarray | None, gt_hit: np.ndarray) -> dict[str, Any]:
     """``observed_share``, ``recall_observed`` and ``n_observed`` of the report (NaN, 0 without
     seen counts)."""
     if observed is None:

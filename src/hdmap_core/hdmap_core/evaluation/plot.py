@@ -44,10 +44,10 @@ def _draw_map(ax, report: EvalReport, hdmap: HDMap, gt: GroundTruth, *, gt_lw: f
     for f in gt.features:
         p = np.asarray(f.points)
         ax.plot(p[:, 0], p[:, 1], color=TYPE_COLORS[f.type], lw=gt_lw, alpha=0.25, solid_capstyle="butt")
-    for f in hdmap.features:
-        p = np.asarray(f.points, dtype=float)
+    for mf in hdmap.features:
+        p = np.asarray(mf.points, dtype=float)
         if p.ndim == 2 and len(p) >= 2 and p.shape[1] == 2:
-            ax.plot(p[:, 0], p[:, 1], color=TYPE_COLORS.get(f.type, "#7f7f7f"), lw=map_lw)
+            ax.plot(p[:, 0], p[:, 1], color=TYPE_COLORS.get(mf.type, "#7f7f7f"), lw=map_lw)
     cuts = report.cuts
     ref, ev = cuts.reference, cuts.evaluable
     normal = np.stack([-np.sin(cuts.heading_rad), np.cos(cuts.heading_rad)], axis=1)

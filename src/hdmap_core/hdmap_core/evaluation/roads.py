@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.cluster.hierarchy import DisjointSet
@@ -351,7 +352,7 @@ def _check_one(p: RoadPoint, topo: TopologyArrays, cfg: RoadCheckConfig) -> Road
     targets = [cand[row] for row in alone]
     connected = _reached(topo, single, targets, cfg.path_m, reverse=p.kind == "merge")
     n_nodes = tuple(int(len(t)) for t in targets)
-    common = dict(
+    common: dict[str, Any] = dict(
         kind=p.kind, x=float(p.xy[0]), y=float(p.xy[1]), heading_rad=p.heading, gt_lanes=p.lanes,
         branch_lanes=tuple(b for b, _ in p.branches), single_nodes=int(len(single)), branch_nodes=n_nodes,
         branch_connected=tuple(connected),

@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import shapely
@@ -239,7 +240,7 @@ def map_feature_graph(
     lasts = np.array([p[-1] for p in pts])
     arcs = [_arc(p) for p in pts]
     def interior(q: np.ndarray, k: int) -> bool:
-        return min(np.linalg.norm(q - firsts[k]), np.linalg.norm(q - lasts[k])) > attach_m
+        return bool(min(np.linalg.norm(q - firsts[k]), np.linalg.norm(q - lasts[k])) > attach_m)
 
     for y, x in zip(*tree.query(shapely.points(firsts), predicate="dwithin", distance=attach_m)):
         if x == y or not interior(firsts[y], x):
@@ -339,7 +340,7 @@ def check_branch_points(
         single_pts = np.concatenate(w_single) if w_single else np.zeros(0, dtype=np.int64)
         multi_ok = [w for w in w_multi if len(w)]
         ids = tuple(sorted({int(gt_features[b.feature].id) for b in nd.branches}))
-        common = dict(
+        common: dict[str, Any] = dict(
             kind=nd.kind, x=float(nd.xy[0]), y=float(nd.xy[1]), heading_rad=nd.heading, gt_features=ids,
             n_in=len(ins), n_out=len(outs),
         )

@@ -4,6 +4,7 @@ default geo origin of a simulated bag."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 
@@ -164,14 +165,14 @@ class SimConfig:
         unknown = sorted(set(values) - set(kinds))
         if unknown:
             raise ConfigError(f"unknown SimConfig parameter(s) {unknown}; known: {', '.join(kinds)}")
-        parsed = {k: _coerce(k, v, kinds[k]) for k, v in values.items()}
+        parsed: dict[str, Any] = {k: _coerce(k, v, kinds[k]) for k, v in values.items()}
         return replace(base, **parsed)
 
     @classmethod
     def noise_free(cls, **overrides: object) -> SimConfig:
         """Perfect sensing: no localization error, noise, wander, misclassification or false
         positives; every feature within the sensor bands is seen (visibility 1)."""
-        clean = dict(
+        clean: dict[str, object] = dict(
             wander_sigma_m=0.0, lane_change_rate_per_km=0.0, bias_lateral_sigma_m=0.0,
             bias_longitudinal_sigma_m=0.0, drift_sigma_m=0.0, visibility_ego_marking=1.0,
             visibility_next_marking=1.0, visibility_far_marking=1.0, visibility_border=1.0,
@@ -182,7 +183,7 @@ class SimConfig:
         return cls.from_dict(clean)
 
 
-def _coerce(name: str, value: object, kind: type) -> object:
+def _coerce(name: str, value: Any, kind: type) -> object:
     try:
         if kind is bool:
             if isinstance(value, str):

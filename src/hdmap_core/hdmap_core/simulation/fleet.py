@@ -118,7 +118,7 @@ def simulator_fingerprint() -> str:
     loader, the geometry they use): written to
     ``OUT.sim.json`` so that a fleet cached by an older simulator is recognised as stale."""
     h = hashlib.sha1()
-    for mod_file in (__file__, *(m.__file__ for m in _FINGERPRINTED)):
+    for mod_file in (__file__, *(str(m.__file__) for m in _FINGERPRINTED)):
         h.update(Path(mod_file).read_bytes())
     return h.hexdigest()[:16]
 
@@ -567,6 +567,7 @@ def simulate_fleet(gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: in
                 key = places.score(geom_of(cand), dirs[cand.id], snip)
                 if best is None or key < best[0]:
                     best = (key, cand, snip)
+            assert best is not None  # coverage_candidates >= 1 (SimConfig.validate)
             _, route, snippet = best
             places.add(geom_of(route), dirs[route.id], snippet)
         else:

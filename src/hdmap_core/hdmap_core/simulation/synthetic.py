@@ -297,8 +297,8 @@ def _breaks(length_m: float, events: list[float]) -> np.ndarray:
     ev = np.asarray(sorted(set([0.0, length_m] + [e for e in events if 0.0 < e < length_m])))
     n = max(1, int(round(length_m / _SECTION_M)))
     grid = np.linspace(0.0, length_m, n + 1)[1:-1]
-    grid = [g for g in grid if np.min(np.abs(ev - g)) > 60.0]
-    return np.unique(np.concatenate([ev, grid]))
+    kept = [g for g in grid if np.min(np.abs(ev - g)) > 60.0]
+    return np.unique(np.concatenate([ev, kept]))
 
 
 def _main_neighbours(key: str) -> tuple[str | None, str | None]:
