@@ -26,24 +26,11 @@ PACKAGES = {
     "hdmap_ros": ROOT / "src" / "hdmap_ros" / "hdmap_ros",
 }
 
-# Cycles being removed on other branches right now (issue 27): helper `config` moves
-# ConnectionConfig out of graph/connection.py, helper `graph` makes MapGraph one class without the
-# LooseEnds mixin. Each entry is the exact set of modules of one strongly connected component.
-# Empty this list once both have landed; any other cycle fails the test.
+# A cycle being removed on another branch right now (issue 27): helper `config` moves
+# ConnectionConfig out of graph/connection.py. Each entry is the exact set of modules of one
+# strongly connected component. Empty this list once that has landed; any other cycle fails.
 _KNOWN_CYCLES: list[frozenset[str]] = [
     frozenset({"hdmap_core.graph.assignment", "hdmap_core.graph.connection"}),
-    frozenset({"hdmap_core.graph.map_graph", "hdmap_core.graph.loose_ends"}),
-]
-
-# Private names taken across modules of Sec. VI, being removed by helper `graph` (links, loose
-# ends, tracks as functions with plain data): (importing module, module the names come from).
-# Empty this list once that has landed; any other private import fails the test.
-_KNOWN_PRIVATE_IMPORTS: list[tuple[str, str]] = [
-    ("hdmap_core.graph.links", "hdmap_core.graph.flat"),
-    ("hdmap_core.graph.loose_ends", "hdmap_core.graph.flat"),
-    ("hdmap_core.graph.loose_ends", "hdmap_core.graph.links"),
-    ("hdmap_core.graph.map_graph", "hdmap_core.graph.flat"),
-    ("hdmap_core.graph.map_graph", "hdmap_core.graph.links"),
 ]
 
 # Top-level imports hdmap_core must not make: ROS client library, message packages, the ROS side.
@@ -181,17 +168,10 @@ def test_no_private_names_across_modules() -> None:
     offences = [
         f"{MODULES[imp.source].relative_to(ROOT)}:{imp.line}: from {imp.module} import {imp.name}"
         for imp in _private_imports()
-        if (imp.source, imp.module) not in _KNOWN_PRIVATE_IMPORTS
     ]
     assert not offences, "private names imported across modules (make them public or move them):\n" + "\n".join(
         offences
     )
-
-
-def test_known_private_imports_still_exist() -> None:
-    found = {(imp.source, imp.module) for imp in _private_imports()}
-    stale = [pair for pair in _KNOWN_PRIVATE_IMPORTS if pair not in found]
-    assert not stale, f"these private imports are gone: remove them from _KNOWN_PRIVATE_IMPORTS: {stale}"
 
 
 def test_core_imports_no_ros() -> None:

@@ -20,40 +20,9 @@ from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.pipeline.driver import PipelineConfig
 from hdmap_core.steps import Segment, StepResult
 
-B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+from segment_samples import LINES, B, D, S, conn, road, step
+
 DEFAULT = PipelineConfig.preset("default").stitching  # the default preset's stitching options
-LINES = ([-3.5, 0.0, 3.5], [S, D, B])
-
-
-def step(pivot: str, i: int, x: float, lateral, types, *, y_mid: float = 0.0, processed_before=False, counts=None):
-    k = len(lateral)
-    return StepResult(
-        pivot_id=pivot,
-        index=i,
-        s_m=2.0 * i,
-        midpoint=np.array([x, y_mid]),
-        heading=0.0,
-        width_m=10.0,
-        valid=True,
-        processed_before=processed_before,
-        lateral_m=np.asarray(lateral, float) - y_mid,
-        types=np.asarray(types),
-        counts=np.asarray(counts if counts is not None else [4] * k),
-        std_m=np.full(k, 0.15),
-        drive_ids=(pivot, f"{pivot}-other"),
-    )
-
-
-def road(pivot: str, x0: float, n: int, lines=LINES, *, y_mid: float = 0.0, processed=()) -> Segment:
-    """n steps from x0 eastwards, 2 m apart; ``processed``: step indices marked processed_before."""
-    return Segment(
-        pivot,
-        tuple(step(pivot, i, x0 + 2.0 * i, lines[0], lines[1], y_mid=y_mid, processed_before=i in processed) for i in range(n)),
-    )
-
-
-def conn(seg: Segment):
-    return connect_segment(seg)
 
 
 def by_type(m: HDMap, t: int):
@@ -1213,9 +1182,9 @@ def test_track_walk_passes_failed_midpoints_thrown_across_the_road(across_m: flo
     pivot drove on: up to ``track_max_jump_m`` (12 m) the walk goes on, beyond it that is no path."""
     p, q = _junction(turn=True)
     xy = p.track_xy.copy()
-    for step, sign in ((37, 1.0), (38, -1.0)):
-        h = p.track_heading[step]
-        xy[step] += sign * across_m * np.array([-math.sin(h), math.cos(h)])
+    for k, sign in ((37, 1.0), (38, -1.0)):
+        h = p.track_heading[k]
+        xy[k] += sign * across_m * np.array([-math.sin(h), math.cos(h)])
     p = dataclasses.replace(p, track_xy=xy)
     end = [0.0, 30.0]
     succ = _successor_positions(stitch([p, q], config=StitchConfig(track_search_m=60.0)), end)

@@ -1,7 +1,7 @@
 """Sec. VI as functions with plain data in and out: the flat view, linking, loose ends, trimming,
 export, the Dijkstra reach of a node and the map's topology graph in networkx.
 
-Roads run east (heading 0); segments are built with the helpers of ``test_stitching``.
+Roads run east (heading 0); segments are built with the helpers of ``segment_samples`` (test/support).
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from hdmap_core.graph.stitch_config import StitchConfig
 from hdmap_core.graph.topology_graph import topology_graph, write_graphml
 from hdmap_core.graph.trim import trim_overlaps
 from hdmap_core.model import HDMap, TopologyNode
-from test_stitching import LINES, conn, road
+
+from segment_samples import LINES, conn, road
 
 
 def _flat_of(*graphs):

@@ -1,0 +1,44 @@
+"""Segments of a road running east (heading 0), for the connection and stitching tests (not a
+test module): a maximum's lateral position is its world y (plus the midpoint's y)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hdmap_core.graph.connection import connect_segment
+from hdmap_core.model import FeatureType
+from hdmap_core.steps import Segment, StepResult
+
+B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
+LINES = ([-3.5, 0.0, 3.5], [S, D, B])
+
+
+def step(pivot: str, i: int, x: float, lateral, types, *, y_mid: float = 0.0, processed_before=False, counts=None):
+    k = len(lateral)
+    return StepResult(
+        pivot_id=pivot,
+        index=i,
+        s_m=2.0 * i,
+        midpoint=np.array([x, y_mid]),
+        heading=0.0,
+        width_m=10.0,
+        valid=True,
+        processed_before=processed_before,
+        lateral_m=np.asarray(lateral, float) - y_mid,
+        types=np.asarray(types),
+        counts=np.asarray(counts if counts is not None else [4] * k),
+        std_m=np.full(k, 0.15),
+        drive_ids=(pivot, f"{pivot}-other"),
+    )
+
+
+def road(pivot: str, x0: float, n: int, lines=LINES, *, y_mid: float = 0.0, processed=()) -> Segment:
+    """n steps from x0 eastwards, 2 m apart; ``processed``: step indices marked processed_before."""
+    return Segment(
+        pivot,
+        tuple(step(pivot, i, x0 + 2.0 * i, lines[0], lines[1], y_mid=y_mid, processed_before=i in processed) for i in range(n)),
+    )
+
+
+def conn(seg: Segment):
+    return connect_segment(seg)
