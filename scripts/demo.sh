@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The main job on an embedded default: simulate a fleet over a real map (esmini E6, from
-# ../shared/data/maps), build the HD map, score it against the ground truth, and show the result.
+# the shared map set), build the HD map, score it against the ground truth, and show the result.
 #
 #   make demo                        # defaults below
 #   DEMO_MAP=carla_town06 DEMO_DRIVES=60 make demo
