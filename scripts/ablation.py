@@ -24,7 +24,7 @@ from pathlib import Path
 # (what is turned back, the --set changes). Each undoes one idea of the default preset
 # (docs/pipeline.md "Presets"); the paper's choice where the paper makes one.
 SWITCHES: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("no network-wide adjustment: offsets of the per-step EM only", ("use_global_adjustment=false",)),
+    ("no network-wide adjustment: offsets of the per-step EM only", ("final_pass=null",)),
     ("adjustment: one constant offset per drive (no drift along it)", ("adjustment.drift_sigma_m=0",)),
     ("adjustment: plain least squares (no robust loss)", ('adjustment.loss="linear"',)),
     ("per-step M-step: no robust (Huber) loss", ("alignment.robust_loss=false",)),

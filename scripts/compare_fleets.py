@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_core.pipeline import driver as pipeline
+from hdmap_core.pipeline.overrides import config_from
 from hdmap_ros.commands.bag2map import add_set_argument
 from hdmap_ros.commands.bench import SCORE_COLUMNS, build_and_evaluate, prepare_scenarios, score_line
 
@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--save", type=Path, default=None, help="pickle each map and report to DIR/NAME.pkl")
     args = parser.parse_args(argv)
     try:
-        config = pipeline.PipelineConfig.preset(args.preset).with_overrides(dict(args.set))
+        config = config_from(args.preset, dict(args.set))
     except ConfigError as err:
         print(f"compare_fleets: --set {err}", file=sys.stderr)
         return 2

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +28,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "hdmap_core"))
 
 from hdmap_core.pipeline.adjustment import AdjustConfig, adjust_offsets  # noqa: E402
-from hdmap_core.pipeline.driver import PipelineConfig, map_stretches  # noqa: E402
+from hdmap_core.pipeline.driver import map_stretches  # noqa: E402
+from hdmap_core.pipeline.overrides import config_from  # noqa: E402
 from hdmap_core.simulation.fleet import SimConfig, load_map, simulate_fleet  # noqa: E402
 
 
@@ -49,7 +49,7 @@ def main() -> int:
     gt = load_map(args.map, length_m=args.length_m)
     fleet = simulate_fleet(gt, config=SimConfig(n_drives=args.drives), seed=args.seed)
     t0 = time.perf_counter()
-    cfg = replace(PipelineConfig.preset("default"), use_global_adjustment=False)
+    cfg = config_from("default", {"final_pass": None})
     res = map_stretches(fleet.drives, config=cfg, seed=args.seed, collect_observations=True)
     t_pass = time.perf_counter() - t0
     obs = res.observations
@@ -102,8 +102,8 @@ def _build_and_evaluate(fleet, gt, seed: int) -> None:
     from hdmap_core.pipeline.driver import build_map
 
     sigma = float(np.hypot(fleet.config.bias_lateral_sigma_m, fleet.config.drift_sigma_m))
-    base = PipelineConfig.preset("default")
-    for name, cfg in (("with adjustment", base), ("without adjustment", replace(base, use_global_adjustment=False))):
+    base = config_from("default")
+    for name, cfg in (("with adjustment", base), ("without adjustment", config_from(base, {"final_pass": None}))):
         t0 = time.perf_counter()
         res = build_map(fleet.drives, config=cfg, seed=seed)
         print(f"=== default preset {name}: build {time.perf_counter() - t0:.1f} s")

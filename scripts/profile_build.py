@@ -25,10 +25,11 @@ def main() -> int:
     args = ap.parse_args()
 
     from hdmap_core.pipeline import driver as pipeline
+    from hdmap_core.pipeline.overrides import config_from
     from hdmap_ros.io.bagio import read_fleet_bag
 
     drives = read_fleet_bag(args.bag).drives
-    config = pipeline.PipelineConfig.preset(args.preset)
+    config = config_from(args.preset)
     t0 = time.perf_counter()
     result = pipeline.build_map(drives, config=config, seed=0)
     wall = time.perf_counter() - t0

@@ -28,7 +28,7 @@ from hdmap_core.errors import HdmapError
 from hdmap_core.evaluation.evaluate import evaluate_map
 from hdmap_core.groundtruth import load_ground_truth
 from hdmap_core.live.tiles import connect_tile, stitch_graphs
-from hdmap_core.pipeline import driver as pipeline
+from hdmap_core.pipeline.overrides import config_from
 from hdmap_ros.commands.bag2map import add_set_argument
 from hdmap_ros.commands.bench import SCORE_COLUMNS, score_line
 from hdmap_ros.persistence.store import MapStore, blob_to_segments
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     add_set_argument(parser, "change a preset parameter, as `hdmap bag2map --set` (repeatable)", dest="set")
     args = parser.parse_args(argv)
     try:
-        config = pipeline.PipelineConfig.preset(args.preset).with_overrides(dict(args.set))
+        config = config_from(args.preset, dict(args.set))
         t0 = time.perf_counter()
         hdmap, n_tiles = restitch(args.state, config)
         dt = time.perf_counter() - t0

@@ -11,7 +11,8 @@ import pytest
 from hdmap_core.errors import ConfigError
 from hdmap_core.parallel import ForkWorker, can_fork, split_order
 from hdmap_core.pipeline import driver as pipeline
-from hdmap_core.pipeline.driver import PipelineConfig, build_map, map_stretches, prepare_drives
+from hdmap_core.pipeline import presets
+from hdmap_core.pipeline.driver import build_map, map_stretches, prepare_drives
 from hdmap_core.pipeline.preprocess import preprocess
 from hdmap_core.pipeline.sampling import pivot_groups, sample_pivot
 
@@ -40,7 +41,7 @@ def test_opposite_directions_and_distant_stretches_are_separate_groups():
         make_drive("c", lane=0.0, bias=0.0, s0=0.0, s1=300.0, reverse=True),  # a's road, other way
         make_drive("d", lane=0.0, bias=0.0, s0=900.0, s1=1200.0),  # same way, 500 m further on
     ]
-    cfg = PipelineConfig.preset("default")
+    cfg = presets.preset("default")
     group = pivot_groups(preprocess(drives, config=cfg.preprocess), drives, config=cfg.sampling)
     assert group[0] == group[1]
     assert len({group[0], group[2], group[3]}) == 3
@@ -48,7 +49,7 @@ def test_opposite_directions_and_distant_stretches_are_separate_groups():
 
 def test_no_pivot_samples_a_drive_of_another_group(two_way_fleet):
     """The grouping is conservative: every drive a pivot's cut lines sample is in its group."""
-    cfg = PipelineConfig.preset("default")
+    cfg = presets.preset("default")
     index = preprocess(two_way_fleet, config=cfg.preprocess)
     group = pivot_groups(index, two_way_fleet, config=cfg.sampling)
     assert group.max() >= 1  # the two carriageways at least
@@ -82,7 +83,7 @@ def _same_segments(a, b):
 @needs_fork
 @pytest.mark.parametrize("preset", ["default", "naive"])  # two passes with the adjustment; one pass
 def test_two_workers_give_exactly_the_one_process_result(two_way_fleet, preset):
-    cfg = PipelineConfig.preset(preset)
+    cfg = presets.preset(preset)
     group = pivot_groups(preprocess(two_way_fleet, config=cfg.preprocess), two_way_fleet, config=cfg.sampling)
     assert group.max() >= 1  # more than one group: the pivots really run in two processes
     one = map_stretches(two_way_fleet, config=cfg, seed=2, collect_observations=True, workers=1)
@@ -107,17 +108,17 @@ def test_two_workers_give_exactly_the_one_process_result(two_way_fleet, preset):
 @pytest.mark.slow
 @needs_fork
 def test_a_failing_worker_is_taken_over_with_the_same_result(two_way_fleet, monkeypatch, caplog):
-    cfg = PipelineConfig.preset("default")
+    cfg = presets.preset("default")
     want = map_stretches(two_way_fleet, config=cfg, seed=2, workers=1)
     parent = os.getpid()
-    real = pipeline._run_pass
+    real = pipeline.run_pass
 
     def fails_in_child(*args, **kwargs):
         if os.getpid() != parent:
             raise RuntimeError("boom in the worker")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "_run_pass", fails_in_child)
+    monkeypatch.setattr(pipeline, "run_pass", fails_in_child)
     with caplog.at_level(logging.WARNING, logger="hdmap_core.parallel"):
         got = map_stretches(two_way_fleet, config=cfg, seed=2, workers=2)
     assert "boom in the worker" in caplog.text and "in this process instead" in caplog.text
@@ -138,7 +139,7 @@ def test_fork_worker_reports_a_dead_child_as_failed(caplog):
 @pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
 def test_workers_must_be_a_positive_integer(two_way_fleet, bad):
     with pytest.raises(ConfigError, match="workers"):
-        map_stretches(two_way_fleet[:2], config=PipelineConfig.preset("paper"), workers=bad)
+        map_stretches(two_way_fleet[:2], config=presets.preset("paper"), workers=bad)
 
 
 @pytest.mark.slow
@@ -147,7 +148,7 @@ def test_no_worker_process_possible_runs_everything_here(two_way_fleet, monkeypa
     """E.g. inside a daemonic multiprocessing worker, which may not start children."""
     import multiprocessing.context
 
-    cfg = PipelineConfig.preset("naive")
+    cfg = presets.preset("naive")
     want = build_map(two_way_fleet, config=cfg, seed=2, workers=1).map
 
     def refuse(self):

@@ -84,30 +84,28 @@ def assert_maps_equal(a: HDMap, b: HDMap) -> None:
 
 
 def install_fake_pipeline(monkeypatch, build_map) -> None:
-    """Replace ``hdmap_core.pipeline.driver`` by a stand-in with the contract's API: ``build_map`` as
-    given and a ``PipelineConfig`` whose ``preset(name)`` keeps only the name and whose
-    ``with_overrides`` only records them (the CLI tests check the glue, not the algorithms)."""
+    """Replace ``hdmap_core.pipeline.driver`` and ``overrides`` by stand-ins with the contract's API:
+    ``build_map`` as given and a ``config_from(preset, overrides)`` whose config keeps only the
+    preset's name and records the overrides (the CLI tests check the glue, not the algorithms)."""
     import sys  # noqa: PLC0415
     import types  # noqa: PLC0415
     from dataclasses import dataclass  # noqa: PLC0415
 
     import hdmap_core.pipeline  # noqa: PLC0415
+    from hdmap_core.pipeline.overrides import parse_override  # noqa: PLC0415 - the real text format of --set
 
     @dataclass(frozen=True)
     class PipelineConfig:
         name: str
         overrides: tuple = ()
 
-        @classmethod
-        def preset(cls, name: str) -> PipelineConfig:
-            return cls(name)
+    def config_from(preset: str, overrides: dict) -> PipelineConfig:
+        return PipelineConfig(preset + ("+" if overrides else ""), tuple(dict(overrides).items()))
 
-        def with_overrides(self, overrides: dict) -> PipelineConfig:
-            return PipelineConfig(self.name + ("+" if overrides else ""), tuple(overrides.items()))
-
-    from hdmap_core.pipeline.driver import parse_override  # noqa: PLC0415 - the real text format of --set
-
-    mod = types.ModuleType("hdmap_core.pipeline.driver")
-    mod.PipelineConfig, mod.build_map, mod.parse_override = PipelineConfig, build_map, parse_override
-    monkeypatch.setitem(sys.modules, "hdmap_core.pipeline.driver", mod)
-    monkeypatch.setattr(hdmap_core.pipeline, "driver", mod, raising=False)
+    driver = types.ModuleType("hdmap_core.pipeline.driver")
+    driver.build_map = build_map
+    overrides = types.ModuleType("hdmap_core.pipeline.overrides")
+    overrides.config_from, overrides.parse_override = config_from, parse_override
+    for name, mod in (("driver", driver), ("overrides", overrides)):
+        monkeypatch.setitem(sys.modules, f"hdmap_core.pipeline.{name}", mod)
+        monkeypatch.setattr(hdmap_core.pipeline, name, mod, raising=False)

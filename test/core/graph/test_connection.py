@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_core.graph.connection import ConnectionConfig, connect_segment
+from hdmap_core.graph.connection import connect_segment
+from hdmap_core.graph.connection_config import ConnectionConfig
 from hdmap_core.graph.segment_graph import feature_chains, stable_uid
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult
@@ -448,9 +449,9 @@ def test_lone_edge_line_beside_the_border():
     assert lines(1.0, near) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
     assert lines(0.3, near) == [-7.0, -3.2, 0.0, 3.5, 7.0]
     assert lines(0.6, near) == [-7.0, -6.4, -2.9, 0.0, 3.5, 7.0]
-    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline import presets  # noqa: PLC0415
 
-    preset = PipelineConfig.preset("default").connection.lone_line_border_gap_m
+    preset = presets.preset("default").connection.lone_line_border_gap_m
     assert preset == 0.8
     tight = dataclasses.replace(base, lone_line_border_gap_m=preset)
     assert lines(0.6, tight) == [-7.0, -2.9, 0.0, 3.5, 7.0]
@@ -483,10 +484,10 @@ def test_lone_edge_line_needs_its_border_on_the_outer_side():
     assert lines(mirror, outer) == [-3.5, 0.0, 3.5]
     edge = [st(i, [-6.0, -7.0, -2.5, 0.0, 3.5, 7.0], [S, B, D, D, D, B], [1, 8, 8, 8, 8, 8], n=30) for i in range(30)]
     assert lines(edge, outer) == [-7.0, -6.0, -2.5, 0.0, 3.5, 7.0]
-    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline import presets  # noqa: PLC0415
 
-    assert PipelineConfig.preset("default").connection.lone_line_border_outer
-    assert not PipelineConfig.preset("paper").connection.lone_line_border_outer
+    assert presets.preset("default").connection.lone_line_border_outer
+    assert not presets.preset("paper").connection.lone_line_border_outer
 
 
 def test_topology_node_holds_the_pivots_lane():
@@ -509,10 +510,10 @@ def test_topology_node_holds_the_pivots_lane():
     np.testing.assert_allclose(lane.node_xy, plain.node_xy)
     with pytest.raises(ConfigError, match="topo_pivot_lane_m"):
         ConnectionConfig(topo_pivot_lane_m=-1.0)
-    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline import presets  # noqa: PLC0415
 
-    assert PipelineConfig.preset("default").connection.topo_pivot_lane_m == 0.5
-    assert PipelineConfig.preset("paper").connection.topo_pivot_lane_m == 0.0
+    assert presets.preset("default").connection.topo_pivot_lane_m == 0.5
+    assert presets.preset("paper").connection.topo_pivot_lane_m == 0.0
 
 
 def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():
@@ -812,9 +813,9 @@ def test_lines_do_not_turn_a_right_angle_with_the_pivot():
     assert len(g.polylines()) == 5  # three lines before the turn, two after it
     g90 = connect_segment(seg, config=ConnectionConfig(line_frame_deg=12.0, line_check_max_deg=90.0))
     assert _corner_edges(g90) >= 1  # the old bound: the lines left behind joined around the corner
-    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.pipeline import presets
 
-    assert PipelineConfig.preset("default").connection.line_check_max_deg == 180.0
+    assert presets.preset("default").connection.line_check_max_deg == 180.0
     for bad in (0.0, 181.0, math.nan):
         with pytest.raises(ConfigError):
             ConnectionConfig(line_check_max_deg=bad)
@@ -843,12 +844,12 @@ def test_a_line_just_reached_does_not_turn_with_the_pivot():
 
 
 def test_line_frame_is_off_in_the_paper_and_on_by_default():
-    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.pipeline import presets
 
     assert ConnectionConfig.paper().line_frame_deg == 0.0
     assert ConnectionConfig().line_frame_deg == 0.0
-    assert PipelineConfig.preset("default").connection.line_frame_deg > 0.0
-    assert PipelineConfig.preset("default").connection.line_frame_bend_deg > 0.0
+    assert presets.preset("default").connection.line_frame_deg > 0.0
+    assert presets.preset("default").connection.line_frame_bend_deg > 0.0
     assert ConnectionConfig.paper().line_frame_bend_deg == 0.0
     with pytest.raises(ConfigError):
         ConnectionConfig(line_frame_deg=-1.0)
@@ -928,11 +929,11 @@ def test_tips_of_the_last_step_are_assigned_before_bridged_ones(fresh_first: boo
 
 
 def test_fresh_first_only_in_the_default_preset():
-    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.pipeline import presets
 
-    assert PipelineConfig.preset("default").connection.fresh_first
+    assert presets.preset("default").connection.fresh_first
     assert not ConnectionConfig().fresh_first and not ConnectionConfig.paper().fresh_first
-    assert not getattr(PipelineConfig.preset("naive").connection, "fresh_first", False)
+    assert not presets.preset("naive").connection.fresh_first
 
 
 def test_step_angles_on_a_tight_loop_are_judged_less_the_maxima_noise():
@@ -954,8 +955,8 @@ def test_step_angles_on_a_tight_loop_are_judged_less_the_maxima_noise():
     slack = connect_segment(Segment("p", tuple(steps)), config=ConnectionConfig(mean_angle_slack=True))
     assert slack.stats.rejected_angle == 0 and slack.n_topo == 40
     assert len(slack.polylines()) == 6 and all(len(c) == 40 for c in slack.polylines())
-    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
-    assert PipelineConfig.preset("default").connection.mean_angle_slack
+    from hdmap_core.pipeline import presets  # noqa: PLC0415
+    assert presets.preset("default").connection.mean_angle_slack
     assert not ConnectionConfig.paper().mean_angle_slack
     # a real jump is still one: all maxima 3 m sideways at one step (as above)
     jump = [make_step(i, [-1.75 + (3.0 if i == 7 else 0.0), 1.75 + (3.0 if i == 7 else 0.0)], [S, D]) for i in range(15)]

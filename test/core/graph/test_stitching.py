@@ -12,17 +12,18 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_core.graph.connection import ConnectionConfig, connect_segment
+from hdmap_core.graph.connection import connect_segment
+from hdmap_core.graph.connection_config import ConnectionConfig
 from hdmap_core.graph.from_hdmap import graph_from_hdmap
 from hdmap_core.graph.map_graph import MapGraph, stitch, to_hdmap
 from hdmap_core.graph.stitch_config import StitchConfig
 from hdmap_core.model import FeatureType, HDMap
-from hdmap_core.pipeline.driver import PipelineConfig
+from hdmap_core.pipeline import presets
 from hdmap_core.steps import Segment, StepResult
 
 from segment_samples import LINES, B, D, S, conn, road, step
 
-DEFAULT = PipelineConfig.preset("default").stitching  # the default preset's stitching options
+DEFAULT = presets.preset("default").stitching  # the default preset's stitching options
 
 
 def by_type(m: HDMap, t: int):
@@ -938,11 +939,11 @@ def test_link_inside_a_component_never_closes_a_short_cycle():
 
 
 def test_link_within_component_only_in_the_default_preset():
-    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline import presets  # noqa: PLC0415
 
-    assert PipelineConfig.preset("default").stitching.link_within_component
+    assert presets.preset("default").stitching.link_within_component
     for name in ("naive", "paper"):
-        assert not getattr(PipelineConfig.preset(name).stitching, "link_within_component", False)
+        assert not presets.preset(name).stitching.link_within_component
     assert not StitchConfig.paper().link_within_component and not StitchConfig().link_within_component
 
 
@@ -1019,11 +1020,11 @@ def test_exit_start_beyond_the_stitch_radius_follows_its_arc_back():
 
 
 def test_path_search_only_in_the_default_preset():
-    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline import presets  # noqa: PLC0415
 
-    assert PipelineConfig.preset("default").stitching.path_search_m > 0
+    assert presets.preset("default").stitching.path_search_m > 0
     for name in ("naive", "paper"):
-        assert getattr(PipelineConfig.preset(name).stitching, "path_search_m", 0.0) == 0.0
+        assert presets.preset(name).stitching.path_search_m == 0.0
     assert StitchConfig.paper().path_search_m == 0.0 and StitchConfig().path_search_m == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(path_search_m=-1.0)
@@ -1066,16 +1067,16 @@ def test_roads_whose_lines_barely_overlap_are_side_by_side():
         off = _successor_positions(stitch(graphs, config=cfg), [98.0, 0.0])
         assert off == [[100.0, y_mid]]
         assert on == ([[100.0, y_mid]] if linked_by_default else [])
-    assert PipelineConfig.preset("default").stitching.side_link_overlap == 0.5
+    assert presets.preset("default").stitching.side_link_overlap == 0.5
     assert StitchConfig().side_link_overlap == 0.0 and StitchConfig.paper().side_link_overlap == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(side_link_overlap=1.5)
 
 
 def test_side_link_angle_only_in_the_default_preset():
-    from hdmap_core.pipeline.driver import PipelineConfig  # noqa: PLC0415
+    from hdmap_core.pipeline import presets  # noqa: PLC0415
 
-    assert PipelineConfig.preset("default").stitching.side_link_angle_deg == 30.0
+    assert presets.preset("default").stitching.side_link_angle_deg == 30.0
     assert StitchConfig().side_link_angle_deg == 90.0 and StitchConfig.paper().side_link_angle_deg == 90.0
 
 
@@ -1106,7 +1107,7 @@ def test_link_runs_within_the_partners_heading_too():
 
 
 def test_partner_angle_only_in_the_default_preset():
-    assert PipelineConfig.preset("default").stitching.partner_angle_deg == 90.0
+    assert presets.preset("default").stitching.partner_angle_deg == 90.0
     assert StitchConfig().partner_angle_deg == 180.0 and StitchConfig.paper().partner_angle_deg == 180.0
 
 
@@ -1302,19 +1303,19 @@ def test_track_link_lands_where_the_pivot_has_settled_onto_the_road(
 
 
 def test_track_settle_only_in_the_default_preset():
-    assert PipelineConfig.preset("default").stitching.track_settle_deg == 8.0
+    assert presets.preset("default").stitching.track_settle_deg == 8.0
     for name in ("naive", "paper"):
-        assert getattr(PipelineConfig.preset(name).stitching, "track_settle_deg", 0.0) == 0.0
+        assert presets.preset(name).stitching.track_settle_deg == 0.0
     assert StitchConfig().track_settle_deg == 0.0 and StitchConfig.paper().track_settle_deg == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(track_settle_deg=-1.0)
 
 
 def test_track_links_only_in_the_default_preset():
-    d = PipelineConfig.preset("default").stitching
+    d = presets.preset("default").stitching
     assert d.track_search_m > 0 and d.track_linked_ends and d.track_rejoin_m == 30.0
     for name in ("naive", "paper"):
-        assert getattr(PipelineConfig.preset(name).stitching, "track_search_m", 0.0) == 0.0
+        assert presets.preset(name).stitching.track_search_m == 0.0
     assert StitchConfig().track_search_m == 0.0 and StitchConfig.paper().track_search_m == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(track_search_m=-1.0)
@@ -1377,7 +1378,7 @@ def test_track_bridge_links_two_mapped_roads_a_pivot_turned_between():
     the node of e the track left to the node of q it entered."""
     graphs = _bridged_turn()
     assert graphs[0].n_topo == 0 and len(graphs[0].track_step) == 19
-    d = PipelineConfig.preset("default").stitching
+    d = presets.preset("default").stitching
     without = dataclasses.replace(d, track_bridge_m=0.0)
     assert not _reaches(stitch(graphs, config=without), [0.0, 30.0], [40.0, 10.0])
     m = stitch(graphs, config=d)
@@ -1402,7 +1403,7 @@ def test_track_bridge_enters_a_road_at_a_merge_angle(landing_deg: float, linked:
     xy[late, 1] = 15.1  # q's cross-section reaches 5 m across
     xy[-2] = [20.0, 11.0]  # the step processed through q
     graphs[0] = dataclasses.replace(p, track_xy=xy)
-    m = stitch(graphs, config=PipelineConfig.preset("default").stitching)
+    m = stitch(graphs, config=presets.preset("default").stitching)
     assert (m.extra["last_integrate"]["bridge_links"] == 1) is linked
 
 
@@ -1416,7 +1417,7 @@ def test_track_bridge_leaves_a_road_its_first_point_after_a_gap_just_misses(marg
     graphs = _bridged_turn()
     p = graphs[0]
     graphs[0] = dataclasses.replace(p, track_xy=p.track_xy + np.array([5.6, 0.0]))
-    d = dataclasses.replace(PipelineConfig.preset("default").stitching, track_bridge_leave_margin_m=margin_m)
+    d = dataclasses.replace(presets.preset("default").stitching, track_bridge_leave_margin_m=margin_m)
     m = stitch(graphs, config=d)
     assert (m.extra["last_integrate"]["bridge_links"] == 1) is linked
     assert _reaches(m, [0.0, 30.0], [40.0, 10.0]) is linked
@@ -1429,18 +1430,18 @@ def test_track_bridge_leaves_a_road_its_first_point_after_a_gap_just_misses(marg
 
 
 def test_track_bridge_leave_margin_only_in_the_default_preset():
-    assert PipelineConfig.preset("default").stitching.track_bridge_leave_margin_m == 2.0
+    assert presets.preset("default").stitching.track_bridge_leave_margin_m == 2.0
     for name in ("naive", "paper"):
-        assert getattr(PipelineConfig.preset(name).stitching, "track_bridge_leave_margin_m", 0.0) == 0.0
+        assert presets.preset(name).stitching.track_bridge_leave_margin_m == 0.0
     assert StitchConfig().track_bridge_leave_margin_m == 0.0 and StitchConfig.paper().track_bridge_leave_margin_m == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(track_bridge_leave_margin_m=-0.5)
 
 
 def test_track_bridges_only_in_the_default_preset():
-    assert PipelineConfig.preset("default").stitching.track_bridge_m == 60.0
+    assert presets.preset("default").stitching.track_bridge_m == 60.0
     for name in ("naive", "paper"):
-        assert getattr(PipelineConfig.preset(name).stitching, "track_bridge_m", 0.0) == 0.0
+        assert presets.preset(name).stitching.track_bridge_m == 0.0
     assert StitchConfig().track_bridge_m == 0.0 and StitchConfig.paper().track_bridge_m == 0.0
     with pytest.raises(ConfigError):
         StitchConfig(track_bridge_m=-1.0)
@@ -1483,7 +1484,7 @@ def test_track_of_a_pivot_is_followed_across_live_tiles():
     p, q = _junction(turn=True)
     steps, turn = _junction_turn_split()
     clip = [dataclasses.replace(st, index=st.index - 30) for st in turn]  # the tile's clip starts 60 m on
-    cfg = PipelineConfig.preset("default")
+    cfg = presets.preset("default")
     (tile_a,) = connect_tile([Segment("p", tuple(steps))], (0, 0), pipeline_config=cfg)
     (tile_b,) = connect_tile([Segment("p", tuple(clip))], (0, -1), pipeline_config=cfg)
     assert tile_a.pivot_id != tile_b.pivot_id and tile_a.pivot_drive == tile_b.pivot_drive == "p"

@@ -227,7 +227,7 @@ def test_steps_outside_marks_exactly_the_pivot_steps_outside_the_box():
 
 
 def _sim_tile():
-    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.pipeline import presets
     from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
     from hdmap_core.simulation.synthetic import synthetic_highway
 
@@ -240,7 +240,7 @@ def _sim_tile():
             cover.setdefault(k, []).append(d)
     mid = np.asarray(fleet.drives[0].xy)[len(fleet.drives[0].xy) // 2]
     key = (int(np.floor(mid[0] / cfg.tile_size_m)), int(np.floor(mid[1] / cfg.tile_size_m)))
-    return cover[key], key, cfg, PipelineConfig.preset("default")
+    return cover[key], key, cfg, presets.preset("default")
 
 
 def test_map_tile_pivot_margin_keeps_the_tile_and_equals_the_full_walk_at_the_margin():
@@ -366,6 +366,7 @@ def test_the_tiles_final_pass_is_the_pipelines_final_pass():
     # the pipeline estimated itself, its final pass must give exactly the pipeline's segments
     from hdmap_core.live.tiles import _final_pass, _tile_input
     from hdmap_core.pipeline.driver import map_stretches
+    from hdmap_core.pipeline import presets
 
     drives, key, cfg, pc = _sim_tile()
     inp = _tile_input(drives, key, cfg, pc)

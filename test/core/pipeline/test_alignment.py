@@ -333,15 +333,15 @@ def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
     res4 = align_step(lat, types4, drive, config=replace(cfg, sparse_type_clash_keep=True))
     assert res4.labels[6] == res4.labels[7] >= 0 and np.all(res4.types[[4, 5, 6, 7]] == U)
     # Only the default preset's final pass keeps clashes (the first pass feeds the adjustment).
-    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.pipeline import presets
 
-    default = PipelineConfig.preset("default")
-    assert default.final_alignment.sparse_type_clash_keep and not default.alignment.sparse_type_clash_keep
+    default = presets.preset("default")
+    assert default.final_pass.alignment.sparse_type_clash_keep and not default.alignment.sparse_type_clash_keep
     assert not AlignmentConfig().sparse_type_clash_keep
     for name in ("paper", "naive"):
-        p = PipelineConfig.preset(name)
+        p = presets.preset(name)
         assert not p.alignment.sparse_type_clash_keep
-        assert p.final_alignment is None or not p.final_alignment.sparse_type_clash_keep
+        assert p.final_pass is None
 
 
 def test_four_drive_step_judged_by_the_sparse_rule_clash_drop_only_up_to_three():
@@ -422,13 +422,13 @@ def test_sparse_step_config_checks():
         AlignmentConfig(sparse_step_max_std_m=0.0)
     # The paper preset stays faithful; the default preset uses the rule in both passes, in the
     # final pass for steps of up to 4 drives (type-clash drop up to 3, as in the first pass).
-    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.pipeline import presets
 
-    assert PipelineConfig.preset("paper").alignment.sparse_step_max_drives == 0
-    default = PipelineConfig.preset("default")
+    assert presets.preset("paper").alignment.sparse_step_max_drives == 0
+    default = presets.preset("default")
     assert default.alignment.sparse_step_max_drives == 3
-    assert default.final_alignment.sparse_step_max_drives == 4
-    assert default.final_alignment.sparse_type_clash_max_drives == default.alignment.sparse_step_max_drives
+    assert default.final_pass.alignment.sparse_step_max_drives == 4
+    assert default.final_pass.alignment.sparse_type_clash_max_drives == default.alignment.sparse_step_max_drives
 
 
 def _gap_final_config(**kw):
@@ -527,12 +527,12 @@ def test_sparse_step_of_two_drives_sharing_no_line_accepted_when_apart():
     with pytest.raises(ConfigError):
         AlignmentConfig(sparse_disjoint_apart_m=-1.0)
     # Only the default preset's final pass uses the rule.
-    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.pipeline import presets
 
-    default = PipelineConfig.preset("default")
-    assert default.final_alignment.sparse_disjoint_apart_m == 2.0
+    default = presets.preset("default")
+    assert default.final_pass.alignment.sparse_disjoint_apart_m == 2.0
     assert default.alignment.sparse_disjoint_apart_m == 0.0
     for name in ("paper", "naive"):
-        p = PipelineConfig.preset(name)
+        p = presets.preset(name)
         assert p.alignment.sparse_disjoint_apart_m == 0.0
-        assert p.final_alignment is None or p.final_alignment.sparse_disjoint_apart_m == 0.0
+        assert p.final_pass is None

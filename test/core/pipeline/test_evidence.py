@@ -9,7 +9,8 @@ import pytest
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import Detection, Drive, FeatureType
-from hdmap_core.pipeline.driver import PipelineConfig, build_map, map_stretches, prepare_drives
+from hdmap_core.pipeline import presets
+from hdmap_core.pipeline.driver import build_map, map_stretches, prepare_drives
 from hdmap_core.pipeline.evidence import EvidenceConfig, _in_intervals, refuted_edges, step_profiles
 
 from pipeline_fleet import LINES, offset_line
@@ -52,7 +53,7 @@ def test_sparse_cut_judged_with_the_default_presets_min_expected():
     drives = np.arange(4)
     hit_t = np.tile([-1.75, 1.75], 4)
     hit_d = np.repeat(drives, 2)
-    preset = PipelineConfig.preset("default")
+    preset = presets.preset("default")
     assert preset.evidence.min_expected == 2.0 and preset.stitching.fill_evidence.min_expected == 2.0
     assert CFG.min_expected == 3.0
     (prof,) = step_profiles(1, np.zeros(4), cross_t, drives, np.zeros(8), hit_t, hit_d, config=preset.evidence)
@@ -162,7 +163,7 @@ def test_fill_dropped_only_where_every_passing_drive_missed_the_line(n_missing):
     evidence drops them (two pieces). Missing for one (a dropout): the others map it, no gap."""
     lanes = (-3.5, -3.5, 0.0, 0.0, 3.5, 3.5)
     drives = [_drive(i, lane, (120.0, 136.0) if i < n_missing else None) for i, lane in enumerate(lanes)]
-    default = PipelineConfig.preset("default")
+    default = presets.preset("default")
     off = dataclasses.replace(default, evidence=None,
                               stitching=dataclasses.replace(default.stitching, fill_evidence=None))
     with_ev, without = build_map(drives, config=default), build_map(drives, config=off)
@@ -185,7 +186,7 @@ def test_piece_between_two_refuted_fills_is_kept():
     and only isolated by the refuted fills, so it stays (three pieces, none in the gaps)."""
     lanes = (-3.5, -3.5, 0.0, 0.0, 3.5, 3.5)
     drives = [_drive(i, lane, (120.0, 136.0, 150.0, 166.0)) for i, lane in enumerate(lanes)]
-    res = build_map(drives, config=PipelineConfig.preset("default"))
+    res = build_map(drives, config=presets.preset("default"))
     solid = _solid_left(res.map)
     assert len(solid) == 3 and res.map.extra["fills_refuted"] >= 2
     assert _gap_points(solid, 124.0, 132.0) == 0 and _gap_points(solid, 154.0, 162.0) == 0
@@ -195,13 +196,13 @@ def test_piece_between_two_refuted_fills_is_kept():
 @pytest.mark.slow
 def test_steps_of_the_returned_pass_carry_profiles():
     drives, _ = prepare_drives([_drive(i, lane, (120.0, 136.0)) for i, lane in enumerate((-3.5, 0.0, 3.5) * 2)])
-    res = map_stretches(drives, config=PipelineConfig.preset("default"))
+    res = map_stretches(drives, config=presets.preset("default"))
     judged = [st for seg in res.segments for st in seg.steps if st.empty_m is not None]
     assert judged and all(st.empty_m.shape[1] == 2 for st in judged)
     at_gap = [st for st in judged if 122.0 < st.s_m < 134.0 and not st.processed_before]
     assert at_gap and all(_inside(st.empty_m, 5.25) for st in at_gap)  # from the midpoint, the road's centre
     for name in ("paper", "naive"):
-        res = map_stretches(drives, config=PipelineConfig.preset(name))
+        res = map_stretches(drives, config=presets.preset(name))
         assert all(st.empty_m is None for seg in res.segments for st in seg.steps)
 
 
@@ -222,7 +223,7 @@ def test_one_drives_speck_between_refuted_fills_is_dropped(seen_by):
     lanes = (3.5, 3.5, 0.0, 0.0)
     gaps = [(120.0, 136.0, 140.0, 166.0) if seen_by == "all" or i == 0 else (120.0, 166.0) for i in range(4)]
     drives = [_drive(i, lane, gap) for i, (lane, gap) in enumerate(zip(lanes, gaps))]
-    default = PipelineConfig.preset("default")
+    default = presets.preset("default")
     res = build_map(drives, config=default)
     solid = _solid_left(res.map)
     assert res.map.extra["fills_refuted"] == 2
@@ -233,7 +234,7 @@ def test_one_drives_speck_between_refuted_fills_is_dropped(seen_by):
         assert len(solid) == 2 and _gap_points(solid, 134.0, 142.0) == 0
     else:
         assert len(solid) == 3 and _gap_points(solid, 134.0, 142.0) >= 2
-    assert PipelineConfig.preset("paper").stitching.refuted_piece_min_m == 0.0
+    assert presets.preset("paper").stitching.refuted_piece_min_m == 0.0
     for bad in (dict(refuted_piece_min_m=-1.0), dict(refuted_piece_max_drives=0)):
         with pytest.raises(ConfigError):
             dataclasses.replace(default.stitching, **bad)

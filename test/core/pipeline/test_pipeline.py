@@ -10,14 +10,10 @@ import pytest
 from hdmap_core.pipeline.aggregation import ProcessedStore
 from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
-from hdmap_core.pipeline.driver import (
-    PipelineConfig,
-    build_map,
-    map_segments,
-    map_stretches,
-    parse_override,
-    prepare_drives,
-)
+from hdmap_core.pipeline.config import PipelineConfig
+from hdmap_core.pipeline.driver import build_map, map_segments, map_stretches, prepare_drives
+from hdmap_core.pipeline.overrides import config_from
+from hdmap_core.pipeline import presets
 from hdmap_core.pipeline.sampling import pivot_walk
 from hdmap_core.steps import Segment
 from pipeline_fleet import LINES, RADIUS_M, make_drive, make_fleet
@@ -35,119 +31,9 @@ def _bad_drive() -> Drive:
     return Drive("broken", xy, np.zeros(3), np.arange(3, dtype=np.int64), ())
 
 
-def test_presets_are_frozen_and_distinct():
-    names = ("paper", "default", "naive")
-    cfgs = {n: PipelineConfig.preset(n) for n in names}
-    assert cfgs["default"].use_global_adjustment and not cfgs["paper"].use_global_adjustment
-    assert not cfgs["naive"].alignment.estimate_offsets
-    assert cfgs["paper"].alignment.solver == "lm" and cfgs["default"].alignment.solver == "closed_form"
-    assert cfgs["paper"].aggregation.kde_bandwidth_factor == 6.0
-    from hdmap_core.graph.connection import ConnectionConfig
-    from hdmap_core.graph.map_graph import StitchConfig
-
-    # the paper preset is the paper's method in stages 5-6 too, not our defaults
-    assert cfgs["paper"].connection == ConnectionConfig.paper() != ConnectionConfig()
-    assert cfgs["paper"].stitching == StitchConfig.paper() != StitchConfig()
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        cfgs["paper"].use_global_adjustment = True  # type: ignore[misc]
-    with pytest.raises(ConfigError):
-        PipelineConfig.preset("fast")
-
-
-def test_with_overrides_sets_dotted_fields_and_names_a_wrong_one():
-    base = PipelineConfig.preset("default")
-    cfg = base.with_overrides({"stitching.track_rejoin_m": 0.0, "alignment.n_iterations": 2, "observation_stride": 3})
-    assert cfg.stitching.track_rejoin_m == 0.0 and base.stitching.track_rejoin_m == 30.0
-    assert cfg.alignment.n_iterations == 2 and cfg.observation_stride == 3
-    assert cfg.stitching.track_search_m == base.stitching.track_search_m  # the rest untouched
-    assert cfg.name == "default+" and base.with_overrides({}) == base  # changed, and said so
-    with pytest.raises(ConfigError, match="stitching.nope: StitchConfig has no field 'nope'"):
-        base.with_overrides({"stitching.nope": 1})
-    with pytest.raises(ConfigError, match="final_alignment is off"):
-        PipelineConfig.preset("paper").with_overrides({"final_alignment.n_iterations": 2})
-    with pytest.raises(ConfigError, match="stitching.track_rejoin_m: .*track_rejoin_m"):  # the field's own check
-        base.with_overrides({"stitching.track_rejoin_m": -1.0})
-    with pytest.raises(ConfigError, match="not a valid value"):
-        base.with_overrides({"stitching.track_rejoin_m": "far"})
-    # the kind of value a field takes is named (a string where a number goes used to fail inside
-    # the field's own check with a TypeError about '>=')
-    with pytest.raises(ConfigError, match=r"sampling.max_pivot_outside_m='wide': not a valid value \(a number is expected\)"):
-        base.with_overrides({"sampling.max_pivot_outside_m": "wide"})
-    with pytest.raises(ConfigError, match=r"stitching.track_pose=1: not a valid value \(true or false is expected\)"):
-        base.with_overrides({"stitching.track_pose": 1})
-    assert base.with_overrides({"sampling.max_pivot_outside_m": float("inf")}).sampling.max_pivot_outside_m == float("inf")
-    # null where the field may be off (None), whatever it holds now
-    assert base.connection.lone_line_border_gap_m == 0.8
-    assert base.with_overrides({"connection.lone_line_border_gap_m": None}).connection.lone_line_border_gap_m is None
-    with pytest.raises(ConfigError, match="observation_stride"):  # PipelineConfig's own check
-        base.with_overrides({"observation_stride": 0})
-    # a whole stage is no value: named, not an AttributeError (sampling=1) or a config that
-    # fails later in the build (connection=true); null where the stage may be off (its defaults)
-    with pytest.raises(ConfigError, match=r"sampling=1: sampling is a group of settings; set one of its fields, e\.g\. sampling\.step_m"):
-        base.with_overrides({"sampling": 1})
-    with pytest.raises(ConfigError, match="connection is a group of settings"):
-        base.with_overrides({"connection": True})
-    assert base.with_overrides({"stitching": None}).stitching is None
-    # the values are shown as they are written after --set (true, not Python's True)
-    with pytest.raises(ConfigError, match="connection=true: "):
-        base.with_overrides({"connection": True})
-    # null drops the second pass's own settings: it samples as the first
-    plain = base.with_overrides({"final_sampling": None})
-    assert plain.final_sampling == plain.sampling and not plain.final_sampling.outer_border_reach
-    assert plain.final_alignment == base.final_alignment  # the other pass's changes stay
-    with pytest.raises(ConfigError, match="final_sampling is a group of settings"):
-        base.with_overrides({"final_sampling": 1})
-    with pytest.raises(ConfigError, match="final_alignment.nope: AlignmentConfig has no field 'nope'"):
-        base.with_overrides({"final_alignment.nope": 1})
-    with pytest.raises(ConfigError, match=r"final_alignment.n_iterations='x': not a valid value"):
-        base.with_overrides({"final_alignment.n_iterations": "x"})
-    # ... but a second pass can be set together with the switch that turns it on, in any order
-    paper = PipelineConfig.preset("paper").with_overrides({"final_alignment.n_iterations": 2, "use_global_adjustment": True})
-    assert paper.final_alignment.n_iterations == 2 and paper.alignment.n_iterations != 2
-
-
-def test_with_overrides_carries_a_first_pass_change_into_the_final_pass():
-    """A ``sampling.*`` / ``alignment.*`` change reaches the second pass too (its segments are
-    the map) where that pass has the first's value, not where it differs on purpose; a later
-    ``final_*`` key sets the second pass alone."""
-    base = PipelineConfig.preset("default")
-    cfg = base.with_overrides({"sampling.max_pivot_outside_m": 1.0, "alignment.robust_loss": False})
-    assert cfg.sampling.max_pivot_outside_m == cfg.final_sampling.max_pivot_outside_m == 1.0
-    assert cfg.alignment.robust_loss is False and cfg.final_alignment.robust_loss is False
-    # outer_border_reach is on only in the final pass, clustering differs: each pass keeps its own
-    assert not base.sampling.outer_border_reach and base.final_sampling.outer_border_reach
-    cfg = base.with_overrides({"sampling.outer_border_reach": False, "alignment.clustering": "gap"})
-    assert cfg.final_sampling.outer_border_reach and cfg.final_alignment.clustering == base.final_alignment.clustering
-    assert base.alignment.clustering != base.final_alignment.clustering
-    cfg = base.with_overrides({"sampling.max_pivot_outside_m": 1.0, "final_sampling.max_pivot_outside_m": 3.0})
-    assert (cfg.sampling.max_pivot_outside_m, cfg.final_sampling.max_pivot_outside_m) == (1.0, 3.0)
-    # ... in either order: a final_* key is a change of the second pass, which a later first-pass
-    # key does not undo
-    cfg = base.with_overrides({"final_sampling.max_pivot_outside_m": 3.0, "sampling.max_pivot_outside_m": 1.0})
-    assert (cfg.sampling.max_pivot_outside_m, cfg.final_sampling.max_pivot_outside_m) == (1.0, 3.0)
-    # the second pass is the first's config with its changes, whatever the first becomes
-    assert cfg.final_sampling == dataclasses.replace(cfg.sampling, max_pivot_outside_m=3.0, outer_border_reach=True)
-    # no second pass of its own (paper): the same config as the first, changed with it
-    paper = PipelineConfig.preset("paper").with_overrides({"sampling.margin_m": 1.0})
-    assert paper.final_sampling == paper.sampling and paper.sampling.margin_m == 1.0
-
-
-def test_parse_override_reads_json_values_else_strings():
-    assert parse_override("stitching.track_rejoin_m=0.5") == ("stitching.track_rejoin_m", 0.5)
-    assert parse_override(" a.b = true") == ("a.b", True)
-    assert parse_override("alignment.clustering=auto") == ("alignment.clustering", "auto")
-    assert parse_override("a.b=[1, 2]") == ("a.b", [1, 2])
-    for text in ("inf", "Infinity", " INF", "+inf"):
-        assert parse_override(f"sampling.max_pivot_outside_m={text}") == ("sampling.max_pivot_outside_m", float("inf"))
-    assert parse_override("a.b=-inf") == ("a.b", float("-inf"))
-    for bad in ("a.b", "=1", " =1"):
-        with pytest.raises(ConfigError, match="is not KEY=VALUE"):
-            parse_override(bad)
-
-
 @pytest.mark.parametrize("preset", ["paper", "default", "naive"])
 def test_map_segments_recovers_lines(fleet, preset):
-    segs = map_segments(fleet, config=PipelineConfig.preset(preset), seed=0)
+    segs = map_segments(fleet, config=presets.preset(preset), seed=0)
     assert len(segs) == len(fleet) and all(isinstance(s, Segment) for s in segs)
     valid = [st for seg in segs for st in seg.steps if st.valid]
     assert len(valid) > 80
@@ -167,7 +53,7 @@ def test_map_segments_recovers_lines(fleet, preset):
 def test_corrected_road_width_beats_naive(fleet):
     # Border to border is 13 m; without offset correction the outer clusters are smeared.
     def width_error(preset):
-        segs = map_segments(fleet, config=PipelineConfig.preset(preset), seed=0)
+        segs = map_segments(fleet, config=presets.preset(preset), seed=0)
         w = [st.lateral_m.max() - st.lateral_m.min() for seg in segs for st in seg.steps if st.valid]
         return abs(np.mean(w) - 13.0)
 
@@ -176,14 +62,14 @@ def test_corrected_road_width_beats_naive(fleet):
 
 
 def test_processed_stretches_are_skipped(fleet):
-    res = map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=0)
+    res = map_stretches(fleet, config=presets.preset("paper"), seed=0)
     c = res.counters
     assert c["steps_skipped_processed"] > 0.5 * c["steps_total"]  # all drives share one road
     # Every drive's stretch was processed through the first pivot.
     for d in fleet:
         assert res.processed.contains(d.drive_id, np.array([50.0, 150.0])).all()
     # Feeding the store back in: nothing is left to map.
-    again = map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=1, processed=res.processed)
+    again = map_stretches(fleet, config=presets.preset("paper"), seed=1, processed=res.processed)
     assert again.counters["steps_valid"] == 0
     assert again.counters["steps_skipped_processed"] == again.counters["steps_total"]
     skipped = [st for seg in again.segments for st in seg.steps]
@@ -206,7 +92,7 @@ def test_drive_beside_the_cut_is_not_marked_processed(fleet):
     assert np.random.default_rng(seed).permutation(len(drives))[0] < len(fleet)  # an ego pivot first
 
     def ramp_steps(mark_on_cut_only: bool) -> list:
-        cfg = dataclasses.replace(PipelineConfig.preset("paper"), mark_on_cut_only=mark_on_cut_only)
+        cfg = dataclasses.replace(presets.preset("paper"), mark_on_cut_only=mark_on_cut_only)
         res = map_stretches(drives, config=cfg, seed=seed)
         return [st for seg in res.segments if seg.pivot_id.startswith("ramp") for st in seg.steps]
 
@@ -224,7 +110,7 @@ def test_drive_beside_the_cut_is_not_marked_processed(fleet):
 
 
 def test_observations_for_the_adjustment(fleet):
-    res = map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=0, collect_observations=True)
+    res = map_stretches(fleet, config=presets.preset("paper"), seed=0, collect_observations=True)
     assert len(res.observations) == res.counters["steps_valid"]
     ob = res.observations[len(res.observations) // 2]
     m = len(ob.lateral_m)
@@ -239,7 +125,7 @@ def test_observations_for_the_adjustment(fleet):
 
 
 def test_observation_pass_runs_the_em_at_every_stride_th_step(fleet):
-    base = dataclasses.replace(PipelineConfig.preset("paper"), use_global_adjustment=False)
+    base = presets.preset("paper")
     every = map_stretches(fleet, config=base, seed=0, collect_observations=True, observations_only=True).observations
     strided = map_stretches(fleet, config=dataclasses.replace(base, observation_stride=2), seed=0,
                             collect_observations=True, observations_only=True).observations
@@ -253,7 +139,7 @@ def test_observation_pass_runs_the_em_at_every_stride_th_step(fleet):
 
 
 def test_fill_evidence_without_profiles_is_a_config_error():
-    default = PipelineConfig.preset("default")
+    default = presets.preset("default")
     assert default.evidence is not None and default.stitching.fill_evidence is not None
     # the stitcher's fill test without the profiles it reads would silently test nothing
     with pytest.raises(ConfigError, match="fill_evidence.*evidence"):
@@ -279,7 +165,7 @@ def test_map_stretches_raises_without_usable_drive():
 def test_build_map_rejects_malformed_drive_and_goes_on(fleet):
     pytest.importorskip("hdmap_core.graph.map_graph")
     bad_type = Drive("badtype", fleet[0].xy, fleet[0].yaw, fleet[0].stamps_ns, (Detection(7, fleet[0].xy),))  # type: ignore[arg-type]
-    res = build_map([*fleet, _bad_drive(), bad_type], config=PipelineConfig.preset("default"), seed=0)
+    res = build_map([*fleet, _bad_drive(), bad_type], config=presets.preset("default"), seed=0)
     rep = res.report
     assert rep.n_drives_in == len(fleet) + 2 and rep.n_drives_used == len(fleet)
     assert {d for d, _ in rep.rejected} == {"broken", "badtype"}
@@ -304,7 +190,7 @@ def test_end_to_end_on_simulated_motorway():
     fleet = simulate_fleet(gt, config=SimConfig(n_drives=30, snippet_length_min_m=500.0, snippet_length_max_m=1500.0), seed=0)
     scores = {}
     for preset in ("default", "naive"):
-        res = build_map(fleet.drives, config=PipelineConfig.preset(preset), seed=0)
+        res = build_map(fleet.drives, config=presets.preset(preset), seed=0)
         scores[preset] = evaluate_map(res.map, gt, drives=fleet.drives).overall
     good, naive = scores["default"], scores["naive"]
     assert good.coverage > 0.9
@@ -315,7 +201,7 @@ def test_end_to_end_on_simulated_motorway():
 
 def test_progress_reports_every_pivot(fleet):
     calls = []
-    map_stretches(fleet, config=PipelineConfig.preset("paper"), seed=0, progress=lambda *a: calls.append(a))
+    map_stretches(fleet, config=presets.preset("paper"), seed=0, progress=lambda *a: calls.append(a))
     assert calls[-1] == ("pivots", len(fleet), len(fleet))
     assert [c[1] for c in calls] == list(range(1, len(fleet) + 1))
 
@@ -328,9 +214,10 @@ def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
     B, S, D = FeatureType.ROAD_BORDER, FeatureType.SOLID, FeatureType.DASHED
     a = make_drive("a", lane=-3.5, bias=0.0, lines=((-6.5, B), (-5.25, S), (-1.75, D), (1.75, D)))
     b = make_drive("b", lane=0.0, bias=0.0, lines=((-6.5, B), (-1.75, D), (1.75, D), (8.0, B)))
-    default = PipelineConfig.preset("default")
-    assert default.final_sampling.outer_border_reach and not default.sampling.outer_border_reach
-    without = dataclasses.replace(default, final_sampling_changes=())
+    default = PipelineConfig()
+    assert default.final_pass is not None
+    assert default.final_pass.sampling.outer_border_reach and not default.sampling.outer_border_reach
+    without = config_from(default, {"final_pass.sampling.outer_border_reach": False})
 
     def far_border_points(config: PipelineConfig) -> int:
         m = build_map([a, b], config=config, seed=0).map
@@ -344,19 +231,6 @@ def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
 
     assert far_border_points(without) == 0
     assert far_border_points(default) > 50
-    for name in ("paper", "naive"):
-        p = PipelineConfig.preset(name)
-        assert p.final_sampling_changes == () and p.final_sampling == p.sampling
-    # the passes share the pivots' steps: a second pass of its own step is refused
-    with pytest.raises(ConfigError, match="final_sampling cannot change step_m"):
-        dataclasses.replace(default, final_sampling_changes={"step_m": 4.0})
-    with pytest.raises(ConfigError, match="SamplingConfig has no field 'nope'"):
-        dataclasses.replace(default, final_sampling_changes={"nope": 1})
-    with pytest.raises(ConfigError, match="must be a mapping"):
-        dataclasses.replace(default, final_sampling_changes=3)
-    # the changes are kept in one form: equal configs compare (and hash) equal
-    same = dataclasses.replace(default, final_sampling_changes=[("outer_border_reach", True)])
-    assert same == default and hash(same) == hash(default)
 
 
 def test_steps_off_their_pivots_road_are_not_aligned():
@@ -366,9 +240,11 @@ def test_steps_off_their_pivots_road_are_not_aligned():
     the pivot, the lines are mapped without the check and not with it."""
     B, D = FeatureType.ROAD_BORDER, FeatureType.DASHED
     far = [make_drive(k, lane=0.0, bias=0.0, lines=((20.0, B), (16.5, D))) for k in "ab"]
-    default = PipelineConfig.preset("default")
-    assert default.sampling.max_pivot_outside_m == 2.0 and default.final_sampling.max_pivot_outside_m == 2.0
-    off = default.with_overrides({"sampling.max_pivot_outside_m": float("inf"), "final_sampling.max_pivot_outside_m": float("inf")})
+    default = PipelineConfig()
+    assert default.final_pass is not None
+    assert default.sampling.max_pivot_outside_m == 2.0 and default.final_pass.sampling.max_pivot_outside_m == 2.0
+    off = config_from(default, {"sampling.max_pivot_outside_m": float("inf")})  # both passes
+    assert off.final_pass is not None and off.final_pass.sampling.max_pivot_outside_m == float("inf")
 
     def valid_steps(config: PipelineConfig) -> int:
         res = map_stretches(far, config=config, seed=0)
@@ -377,7 +253,7 @@ def test_steps_off_their_pivots_road_are_not_aligned():
     assert valid_steps(off) > 100
     assert valid_steps(default) == 0
     for name in ("paper", "naive"):  # the paper's reading: no check
-        assert PipelineConfig.preset(name).sampling.max_pivot_outside_m == float("inf")
+        assert presets.preset(name).sampling.max_pivot_outside_m == float("inf")
 
 
 def test_steps_carry_the_pivots_own_corrected_position(fleet):
@@ -385,7 +261,7 @@ def test_steps_carry_the_pivots_own_corrected_position(fleet):
     step's cut (no offset along it) and inside the road it describes; the default preset's final
     pass corrects it by the offset model, so it differs from the raw trajectory point there."""
     for preset in ("paper", "default"):
-        res = map_stretches(fleet, config=PipelineConfig.preset(preset), seed=0)
+        res = map_stretches(fleet, config=presets.preset(preset), seed=0)
         steps = [st for seg in res.segments for st in seg.steps if not st.processed_before]
         assert steps and all(st.pose is not None for st in steps)
         for st in steps:
@@ -404,29 +280,9 @@ def test_report_counts_the_steps_off_their_pivots_road():
     line says so only when there are any)."""
     B, D = FeatureType.ROAD_BORDER, FeatureType.DASHED
     far = [make_drive(k, lane=0.0, bias=0.0, lines=((20.0, B), (16.5, D))) for k in "ab"]
-    rep = build_map(far, config=PipelineConfig.preset("default"), seed=0).report
+    rep = build_map(far, config=presets.preset("default"), seed=0).report
     assert 0 < rep.steps_off_road <= rep.steps_rejected <= rep.steps_total
     assert f"({rep.steps_off_road} off their pivot's road)" in rep.summary()
     road = make_fleet([0.3, -0.2, 0.1], noise_m=0.0, s1=120.0)
-    ok = build_map(road, config=PipelineConfig.preset("default"), seed=0).report
+    ok = build_map(road, config=presets.preset("default"), seed=0).report
     assert ok.steps_off_road == 0 and "off their pivot's road" not in ok.summary()
-
-
-def test_adjustment_settings_are_explicit_where_it_runs_and_changeable_with_set():
-    """The default's adjustment runs with AdjustConfig's defaults, held in the config, so that
-    ``--set adjustment.loss=linear`` reaches them; where it is off they stay None and are refused."""
-    from hdmap_core.pipeline.adjustment import AdjustConfig
-
-    default = PipelineConfig.preset("default")
-    assert default.adjustment == AdjustConfig()
-    changed = default.with_overrides({"adjustment.loss": "linear", "adjustment.drift_sigma_m": 0.0})
-    assert changed.adjustment == dataclasses.replace(AdjustConfig(), loss="linear", drift_sigma_m=0.0)
-    with pytest.raises(ConfigError, match="adjustment.loss: AdjustConfig.loss must be one of"):
-        default.with_overrides({"adjustment.loss": "l3"})
-    paper = PipelineConfig.preset("paper")
-    assert paper.adjustment is None
-    with pytest.raises(ConfigError, match="adjustment is off"):
-        paper.with_overrides({"adjustment.loss": "linear"})
-    # switched on by an earlier key, the adjustment's fields can be set by a later one
-    on = paper.with_overrides({"use_global_adjustment": True, "adjustment.robust_k": 3.0})
-    assert on.adjustment == dataclasses.replace(AdjustConfig(), robust_k=3.0)

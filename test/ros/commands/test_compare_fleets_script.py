@@ -10,7 +10,8 @@ from types import ModuleType
 
 import pytest
 
-from hdmap_core.pipeline.driver import PipelineConfig, parse_override
+from hdmap_core.pipeline import presets
+from hdmap_core.pipeline.overrides import config_from
 from hdmap_ros.commands.bench import SCORE_COLUMNS
 
 REPO = Path(__file__).resolve().parents[3]
@@ -70,7 +71,7 @@ def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
 
     rs = _load("restitch_state")
     fleet = read_fleet_bag(REPO / "bags" / "ramps_20")
-    config = PipelineConfig.preset("default")
+    config = presets.preset("default")
     segments = build_map(fleet.drives, config=config).segments
     state = tmp_path / "state"
     state.mkdir()
@@ -149,10 +150,10 @@ def test_targets_names_each_miss_and_what_bounds_it(tmp_path, capsys):
 
 def test_ablation_switches_each_change_the_default_and_the_table_lists_them_per_fleet():
     ab = _load("ablation")
-    default = PipelineConfig.preset("default")
+    default = presets.preset("default")
     changed = set()
     for label, sets in ab.SWITCHES:
-        config = default.with_overrides(dict(parse_override(s) for s in sets))
+        config = config_from(default, list(sets))
         assert config != default, label  # a switch that changes nothing would measure nothing
         changed.add(config)
     assert len(changed) == len(ab.SWITCHES)  # no two switches are the same change

@@ -221,12 +221,12 @@ def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros,
     import importlib
 
     from hdmap_core.errors import ConfigError
-    from hdmap_core.pipeline.driver import PipelineConfig
+    from hdmap_core.pipeline import presets
 
     node_cls = getattr(importlib.import_module(f"hdmap_ros.nodes.{module}"), cls)
     db = Parameter("db_path", value=str(tmp_path / "x.db"))
     plain = node_cls(context=ros.context, parameter_overrides=[db])  # not spun: only its config is read
-    assert plain.pipeline_config == PipelineConfig.preset("default")  # unset: the preset as it is
+    assert plain.pipeline_config == presets.preset("default")  # unset: the preset as it is
     plain.destroy_node()
     changed = node_cls(context=ros.context, parameter_overrides=[
         db, Parameter("preset_overrides", value=["stitching.track_rejoin_m=0", "alignment.n_iterations=2"])])

@@ -18,8 +18,8 @@ from scipy.optimize import linear_sum_assignment
 
 from hdmap_core.model import FeatureType
 
-if TYPE_CHECKING:  # the config lives in connection.py, which imports this module
-    from hdmap_core.graph.connection import ConnectionConfig
+if TYPE_CHECKING:
+    from hdmap_core.graph.connection_config import ConnectionConfig
 
 __all__ = ["Assignment", "assign"]
 

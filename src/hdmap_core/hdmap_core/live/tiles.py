@@ -31,6 +31,7 @@ import math
 import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,6 +39,9 @@ from hdmap_core.errors import ConfigError
 from hdmap_core.geometry import arc_length, resample_evenly, split_long_segments
 from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.steps import Segment
+
+if TYPE_CHECKING:  # the pipeline is heavy; tiles load it on first use
+    from hdmap_core.pipeline.config import PipelineConfig
 
 __all__ = [
     "TileConfig",
@@ -244,7 +248,7 @@ class _TileInput:
     core: tuple[float, float, float, float]
 
 
-def _tile_input(drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, pipeline_config: object) -> _TileInput:
+def _tile_input(drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, pipeline_config: PipelineConfig) -> _TileInput:
     grown = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.margin_m)
     clipped, s0 = [], {}
     for d in sorted(drives, key=lambda d: d.drive_id):
@@ -316,7 +320,7 @@ def map_tile(
     key: TileKey,
     *,
     tile_config: TileConfig,
-    pipeline_config: object,
+    pipeline_config: PipelineConfig,
     offset_model: object | None = None,
 ) -> list[Segment]:
     """Map one tile from the drives covering it (stages of Sec. III-V up to the segments).
@@ -339,7 +343,7 @@ def map_tile(
         Segments of the steps inside the tile proper (may be empty); the steps' ``s_m`` are
         travelled distances of the whole pivot drives (not of their clips).
     """
-    if offset_model is not None and getattr(pipeline_config, "use_global_adjustment", False):
+    if offset_model is not None and pipeline_config.final_pass is not None:
         inp = _tile_input(drives, key, tile_config, pipeline_config)
         if not inp.clipped:
             return []
@@ -349,7 +353,7 @@ def map_tile(
 
 
 def map_tile_observed(
-    drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: object
+    drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig
 ) -> tuple[list[Segment], list]:
     """:func:`map_tile` with the tile's own adjustment, and the observations of its steps.
 
@@ -367,7 +371,7 @@ def map_tile_observed(
     return _whole_drive_s(select_steps(res.segments, inp.core), inp.s0), _core_observations(res.observations, inp, key)
 
 
-def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: object) -> list:
+def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig) -> list:
     """The tile's observation pass: per-step EM along its pivots, no adjustment, no final pass.
 
     Returns the ``StepObservations`` of the steps inside the tile proper; their ``drive_s_m`` are
@@ -380,15 +384,15 @@ def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConf
     return _core_observations(_first_pass(inp, pipeline_config), inp, key)
 
 
-def fleet_offsets(observations: Sequence, *, pipeline_config: object):
+def fleet_offsets(observations: Sequence, *, pipeline_config: PipelineConfig):
     """The network-wide offset adjustment over the observations of all tiles (as ``bag2map`` does).
 
     Same settings as the pipeline's own adjustment, without the posterior std (unused by the
     mapping; O(p^3) in the fleet's knots). Deterministic for the same observations in the same order.
     """
-    from hdmap_core.pipeline.adjustment import AdjustConfig, adjust_offsets  # noqa: PLC0415
+    from hdmap_core.pipeline.adjustment import adjust_offsets  # noqa: PLC0415
 
-    cfg = getattr(pipeline_config, "adjustment", None) or AdjustConfig()
+    cfg = pipeline_config.adjustment
     return adjust_offsets(list(observations), config=replace(cfg, compute_std=False))
 
 
@@ -402,18 +406,18 @@ def observations_signature(parts: Iterable[tuple[TileKey, Sequence[str]]]) -> st
     return h.hexdigest()[:32]
 
 
-def _first_pass(inp: _TileInput, pipeline_config: object) -> list:
+def _first_pass(inp: _TileInput, pipeline_config: PipelineConfig) -> list:
     """The step observations of the pipeline's first pass on a tile's drives (no adjustment)."""
     from dataclasses import replace  # noqa: PLC0415
 
     from hdmap_core.pipeline.driver import map_stretches  # noqa: PLC0415
 
-    first_only = replace(pipeline_config, use_global_adjustment=False)
+    first_only = replace(pipeline_config, final_pass=None)
     return map_stretches(inp.clipped, config=first_only, seed=inp.seed, processed=inp.processed,
                          collect_observations=True, validated=True, observations_only=True).observations
 
 
-def _final_pass(inp: _TileInput, pipeline_config: object, model: object) -> list[Segment]:
+def _final_pass(inp: _TileInput, pipeline_config: PipelineConfig, model: object) -> list[Segment]:
     """The pipeline's final pass on a tile's drives with the fleet-wide offset ``model``."""
     from hdmap_core.pipeline.driver import map_stretches  # noqa: PLC0415
 
@@ -474,16 +478,7 @@ def clean_drive(drive: Drive, *, min_length_m: float = 3.0, rdp_epsilon_m: float
     return replace(drive, detections=dets)
 
 
-def _stage_config(pipeline_config: object, *names: str) -> dict:
-    """``{"config": <sub-config>}`` when the pipeline config has one of ``names``, else {} (defaults)."""
-    for name in names:
-        sub = getattr(pipeline_config, name, None)
-        if sub is not None:
-            return {"config": sub}
-    return {}
-
-
-def connect_tile(segments: Sequence[Segment], key: TileKey, *, pipeline_config: object) -> list:
+def connect_tile(segments: Sequence[Segment], key: TileKey, *, pipeline_config: PipelineConfig) -> list:
     """Sec. V for every segment of a tile: ``connection.connect_segment`` per segment.
 
     The same pivot drive is mapped in every tile it crosses, and its step indices count from where
@@ -499,18 +494,17 @@ def connect_tile(segments: Sequence[Segment], key: TileKey, *, pipeline_config: 
     """
     from hdmap_core.graph.connection import connect_segment  # noqa: PLC0415
 
-    kw = _stage_config(pipeline_config, "connection")
     out = []
     for seg in segments:
         if not seg.steps:
             continue
         pivot = f"{seg.pivot_id}#{int(key[0])},{int(key[1])}"
         renamed = Segment(pivot_id=pivot, steps=tuple(replace(st, pivot_id=pivot) for st in seg.steps))
-        out.append(replace(connect_segment(renamed, **kw), pivot_drive=seg.pivot_id))
+        out.append(replace(connect_segment(renamed, config=pipeline_config.connection), pivot_drive=seg.pivot_id))
     return out
 
 
-def stitch_graphs(graphs: Sequence, *, pipeline_config: object, drive_ids: Iterable[str] = ()) -> HDMap:
+def stitch_graphs(graphs: Sequence, *, pipeline_config: PipelineConfig, drive_ids: Iterable[str] = ()) -> HDMap:
     """Sec. VI: the segment graphs of all tiles stitched into the complete map.
 
     Args:
@@ -520,7 +514,7 @@ def stitch_graphs(graphs: Sequence, *, pipeline_config: object, drive_ids: Itera
     """
     from hdmap_core.graph.map_graph import stitch  # noqa: PLC0415
 
-    hdmap = stitch(list(graphs), **_stage_config(pipeline_config, "stitching", "stitch"))
+    hdmap = stitch(list(graphs), config=pipeline_config.stitching)
     return replace(hdmap, drive_ids=tuple(sorted(set(drive_ids))))
 
 

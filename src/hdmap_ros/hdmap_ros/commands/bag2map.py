@@ -80,7 +80,7 @@ def add_set_argument(parser: argparse.ArgumentParser, help_text: str, dest: str 
 
 def override_arg(text: str) -> tuple[str, object]:
     """argparse type of ``--set KEY=VALUE``: ``pipeline.parse_override``, a malformed item a usage error."""
-    from hdmap_core.pipeline.driver import parse_override  # noqa: PLC0415 - heavy; --help stays fast
+    from hdmap_core.pipeline.overrides import parse_override  # noqa: PLC0415 - heavy; --help stays fast
 
     try:
         return parse_override(text)
@@ -115,10 +115,11 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--graphml {args.graphml} is a directory")
 
     from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
+    from hdmap_core.pipeline.overrides import config_from  # noqa: PLC0415
     from hdmap_core.parallel import available_cpus  # noqa: PLC0415
 
     try:  # a bad --set is named before the bag is read
-        config = pipeline.PipelineConfig.preset(args.preset).with_overrides(dict(args.overrides))
+        config = config_from(args.preset, dict(args.overrides))
     except ConfigError as err:
         return _fail(f"--set {err}")
     if args.overrides:

@@ -321,14 +321,14 @@ def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int 
 
 
 def preset_config(preset: str, overrides: dict[str, Any] | None = None) -> Any:
-    """``PipelineConfig.preset(preset)`` with ``overrides`` (dotted keys) applied.
+    """``config_from(preset, overrides)`` (dotted keys).
 
     Raises:
         ConfigError: a change that does not fit this preset, naming the key."""
-    from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415
+    from hdmap_core.pipeline.overrides import config_from  # noqa: PLC0415
 
     try:
-        return pipeline.PipelineConfig.preset(preset).with_overrides(dict(overrides or {}))
+        return config_from(preset, dict(overrides or {}))
     except ConfigError as err:
         raise ConfigError(f"--set {err}") from None
 

@@ -107,11 +107,10 @@ def preset_config(name: str, overrides: Sequence[str] = ()) -> Any:
     Raises:
         ConfigError: an unknown preset, or an override the config does not take (named).
     """
-    from hdmap_core.pipeline.driver import PipelineConfig, parse_override  # noqa: PLC0415
+    from hdmap_core.pipeline.overrides import config_from  # noqa: PLC0415
 
     try:
-        changes = dict(parse_override(item) for item in overrides)
-        return PipelineConfig.preset(name).with_overrides(changes)
+        return config_from(name, list(overrides))
     except ConfigError as err:
         raise ConfigError(f"preset_overrides: {err}" if overrides else str(err)) from err
 

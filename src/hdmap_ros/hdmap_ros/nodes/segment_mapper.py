@@ -117,7 +117,7 @@ class SegmentMapper(HealthMixin, Node):
         self._last_input = time.monotonic()
         self._failed: dict[TileKey, int] = {}  # tile -> drive count at which mapping failed
         # fleet-wide offset model (presets with the global adjustment only)
-        self.use_fleet_model = bool(getattr(self.pipeline_config, "use_global_adjustment", False))
+        self.use_fleet_model = self.pipeline_config.final_pass is not None
         self._obs_failed: dict[TileKey, int] = {}  # tile -> drive count at which its observation pass failed
         self._model_failed_sig = ""  # observations whose fleet adjustment failed
         self._obs_sig: str | None = None  # signature of the stored observations (None: recompute)

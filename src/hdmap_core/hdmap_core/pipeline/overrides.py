@@ -1,0 +1,194 @@
+"""Preset plus ``KEY=VALUE`` changes -> ``PipelineConfig``: the one way every caller builds a config.
+
+``bag2map``/``bench``/``run --set``, the nodes' ``preset_overrides`` parameter and the scripts all
+call :func:`config_from`. A key is a dotted path into ``PipelineConfig``
+(``stitching.track_rejoin_m``, ``final_pass.alignment.clustering``); a value is JSON (numbers,
+true/false, null, lists), ``inf``/``-inf``, or else the string itself (:func:`parse_override`).
+
+The two passes: a first-pass key (``sampling.*``, ``alignment.*``) also sets the final pass's field
+where both passes agree on it (so a change reaches the final pass unless that pass differs there on
+purpose); a ``final_pass.sampling.*`` / ``final_pass.alignment.*`` key sets the final pass alone.
+``final_pass=null`` drops the final pass and the adjustment; ``final_pass=true`` adds one that
+samples and aligns as the first pass. Final-pass keys apply after the others, whatever their order.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import fields, is_dataclass, replace
+
+from hdmap_core.errors import ConfigError
+from hdmap_core.pipeline.config import PassConfig, PipelineConfig
+from hdmap_core.pipeline.presets import preset as named_preset
+
+__all__ = ["REMOVED_KEYS", "config_from", "parse_override"]
+
+#: Keys that were public once and are not any more, with what to do instead.
+REMOVED_KEYS: dict[str, str] = {
+    "use_global_adjustment": "the adjustment runs exactly when there is a final pass: set final_pass=null "
+    "(one pass, no adjustment) or final_pass=true",
+    "final_sampling": "the final pass is explicit now: use final_pass.sampling.<field>",
+    "final_alignment": "the final pass is explicit now: use final_pass.alignment.<field>",
+}
+
+_PASS_GROUPS = ("sampling", "alignment")
+
+
+def parse_override(text: str) -> tuple[str, object]:
+    """One ``KEY=VALUE`` change as ``--set`` and the nodes' ``preset_overrides`` take it: the dotted
+    key and the value as JSON (numbers, true/false, null, lists), ``inf`` / ``-inf`` as floats
+    (several limits are off at inf, e.g. ``sampling.max_pivot_outside_m=inf``), else the string
+    itself (``alignment.clustering=auto``). Whether it fits is :func:`config_from`'s check.
+
+    Raises:
+        ConfigError: no ``=``, or nothing before it.
+    """
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(f"{text!r} is not KEY=VALUE")
+    if raw.strip().lower() in ("inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"):
+        return key.strip(), float(raw.strip().lower().replace("infinity", "inf"))
+    try:
+        return key.strip(), json.loads(raw)
+    except json.JSONDecodeError:
+        return key.strip(), raw
+
+
+def config_from(
+    preset: str | PipelineConfig = "default", overrides: Mapping[str, object] | Iterable[str] = ()
+) -> PipelineConfig:
+    """The preset (a name, or a config) with each override applied.
+
+    Args:
+        preset: "default", "paper", "naive" (``hdmap_core.pipeline.presets``) or a config.
+        overrides: ``{dotted key: value}``, or ``KEY=VALUE`` texts (parsed by :func:`parse_override`).
+
+    Returns:
+        The config; with any override its name gets a ``+`` (the preset with changes), so reports
+        do not pass it off as the preset itself.
+
+    Raises:
+        ConfigError: an unknown preset, a key that names no field (or a removed one, or the final
+            pass of a config without one), or a value the field rejects; the message names the key.
+    """
+    config = named_preset(preset) if isinstance(preset, str) else preset
+    if isinstance(overrides, Mapping):
+        items = list(overrides.items())
+    else:
+        items = [parse_override(text) for text in overrides]
+    for key, _ in items:
+        head = key.partition(".")[0]
+        if head in REMOVED_KEYS:
+            raise ConfigError(f"{key}: no such setting any more ({REMOVED_KEYS[head]})")
+    switches = [(k, v) for k, v in items if k == "final_pass"]
+    final = [(k, v) for k, v in items if k.startswith("final_pass.")]
+    first = [(k, v) for k, v in items if k != "final_pass" and not k.startswith("final_pass.")]
+    for key, value in switches:
+        config = _switch_final_pass(config, key, value)
+    for key, value in first:
+        config = _set_first_pass(config, key, value)
+    for key, value in final:
+        if config.final_pass is None:
+            raise ConfigError(f"{key}: the final pass is off in this config (final_pass is null: set final_pass=true)")
+        config = _checked(lambda c, k=key, v=value: replace(c, final_pass=_override(c.final_pass, k[len("final_pass."):], v, k)), config, key)
+    if items and not config.name.endswith("+"):
+        config = replace(config, name=f"{config.name}+")
+    return config
+
+
+def _checked(build, config: PipelineConfig, key: str) -> PipelineConfig:  # noqa: ANN001 - a one-line lambda
+    """``build(config)``, a ``PipelineConfig`` check that fails named by ``key``."""
+    try:
+        return build(config)
+    except ConfigError as err:
+        if str(err).startswith(key):
+            raise
+        raise ConfigError(f"{key}: {err}") from err
+
+
+def _switch_final_pass(config: PipelineConfig, key: str, value: object) -> PipelineConfig:
+    """``final_pass=null|false`` (one pass) or ``final_pass=true`` (a final pass like the first)."""
+    if value is None or value is False:
+        return replace(config, final_pass=None)
+    if value is True:
+        if config.final_pass is not None:
+            return config
+        return replace(config, final_pass=PassConfig(sampling=config.sampling, alignment=config.alignment))
+    raise ConfigError(
+        f"{key}={_shown(value)}: final_pass is a group of settings; set one of its fields, e.g. "
+        "final_pass.alignment.clustering=..., or true / null to switch the final pass on / off"
+    )
+
+
+def _set_first_pass(config: PipelineConfig, key: str, value: object) -> PipelineConfig:
+    """A key outside ``final_pass``; a sampling/alignment field also reaches the final pass where
+    both passes agree on it."""
+    group, _, rest = key.partition(".")
+    final = config.final_pass
+    shared = (
+        final is not None
+        and group in _PASS_GROUPS
+        and rest
+        and "." not in rest
+        and rest in {f.name for f in fields(getattr(config, group))}
+        and getattr(getattr(final, group), rest) == getattr(getattr(config, group), rest)
+    )
+
+    def build(c: PipelineConfig) -> PipelineConfig:
+        if not (shared and final is not None):
+            return _override(c, key, value, key)  # type: ignore[return-value]
+        first = _override(getattr(c, group), rest, value, key)
+        both = replace(getattr(final, group), **{rest: getattr(first, rest)})
+        return replace(c, **{group: first, "final_pass": replace(final, **{group: both})})
+
+    return _checked(build, config, key)
+
+
+def _group_error(key: str, value: object, group: object) -> ConfigError:
+    """The error for a value given to a whole stage config (``key``, holding ``group``)."""
+    example = fields(group)[0].name  # type: ignore[arg-type]
+    name = key.rpartition(".")[2]
+    return ConfigError(f"{key}={_shown(value)}: {name} is a group of settings; set one of its fields, e.g. {key}.{example}=...")
+
+
+def _shown(value: object) -> str:
+    """A ``--set`` value as it is written there (``true``, ``null``, ``inf``, ``'gap'``)."""
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)  # inf, -inf, nan
+    try:
+        return json.dumps(value)
+    except (TypeError, ValueError):
+        return repr(value)
+
+
+def _override(config: object, key: str, value: object, full: str) -> object:
+    """``config`` (a dataclass) with the dotted ``key`` set to ``value`` (``full``: the whole key)."""
+    head, _, rest = key.partition(".")
+    if not is_dataclass(config) or head not in {f.name for f in fields(config)}:
+        raise ConfigError(f"{full}: {type(config).__name__} has no field {head!r}")
+    now = getattr(config, head)
+    if not rest:
+        spec = next(f for f in fields(config) if f.name == head)
+        optional = value is None and "None" in str(spec.type)
+        if is_dataclass(now) and not optional:
+            raise _group_error(full, value, now)
+        if value is None and not optional:
+            raise ConfigError(f"{full}=null: not a valid value ({head} cannot be off)")
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not optional and isinstance(now, (int, float)) and not isinstance(now, bool) and not number:
+            raise ConfigError(f"{full}={_shown(value)}: not a valid value (a number is expected)")
+        if isinstance(now, bool) and not isinstance(value, bool):
+            raise ConfigError(f"{full}={_shown(value)}: not a valid value (true or false is expected)")
+        try:
+            return replace(config, **{head: value})
+        except ConfigError as err:
+            raise ConfigError(f"{full}: {err}") from err
+        except (TypeError, ValueError) as err:  # a value of the wrong kind fails the field's check
+            raise ConfigError(f"{full}={_shown(value)}: not a valid value ({err})") from err
+    if now is None:
+        raise ConfigError(f"{full}: {head} is off (None) in this config")
+    return replace(config, **{head: _override(now, rest, value, full)})

@@ -1,0 +1,206 @@
+"""Tests of the configuration: PipelineConfig's defaults, the presets, config_from, the range check."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from hdmap_core.checks import check_range
+from hdmap_core.errors import ConfigError
+from hdmap_core.graph.connection_config import ConnectionConfig
+from hdmap_core.graph.stitch_config import StitchConfig
+from hdmap_core.pipeline.adjustment import AdjustConfig
+from hdmap_core.pipeline.aggregation import AggregationConfig
+from hdmap_core.pipeline.alignment import AlignmentConfig
+from hdmap_core.pipeline.config import PassConfig, PipelineConfig
+from hdmap_core.pipeline.overrides import REMOVED_KEYS, config_from, parse_override
+from hdmap_core.pipeline.presets import PRESETS, naive, paper, preset
+from hdmap_core.pipeline.sampling import SamplingConfig
+
+
+def _differences(a: object, b: object) -> set[str]:
+    """Dotted names of the leaf fields where two configs differ."""
+    out: set[str] = set()
+    for f in dataclasses.fields(a):  # type: ignore[arg-type]
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if dataclasses.is_dataclass(x) and dataclasses.is_dataclass(y) and type(x) is type(y):
+            out |= {f"{f.name}.{n}" for n in _differences(x, y)}
+        elif x != y:
+            out.add(f.name)
+    return out
+
+
+def test_the_defaults_are_the_recommended_method():
+    cfg = PipelineConfig()
+    assert preset("default") == cfg and cfg.name == "default"
+    assert cfg.final_pass is not None and cfg.use_global_adjustment  # two passes with the adjustment
+    assert cfg.alignment.solver == "closed_form" and cfg.final_pass.alignment.clustering == "gap"
+    assert cfg.final_pass.sampling.outer_border_reach and not cfg.sampling.outer_border_reach
+    assert cfg.stitching.fill_evidence == cfg.evidence is not None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.final_pass = None  # type: ignore[misc]
+
+
+def test_paper_differs_from_the_default_only_where_listed():
+    """``paper()`` is one pass with the stage classes' paper settings and the paper's Sec. V-VI."""
+    p, d = paper(), PipelineConfig()
+    assert p.final_pass is None and not p.use_global_adjustment and p.evidence is None
+    assert p.connection == ConnectionConfig.paper() and p.stitching == StitchConfig.paper()
+    assert (p.sampling, p.alignment, p.aggregation) == (SamplingConfig(), AlignmentConfig(), AggregationConfig())
+    assert p.alignment.solver == "lm" and p.aggregation.kde_bandwidth_factor == 6.0
+    tops = {name.partition(".")[0] for name in _differences(p, d)}
+    assert tops == {"sampling", "alignment", "aggregation", "final_pass", "observation_stride", "connection",
+                    "stitching", "mark_on_cut_only", "evidence", "name"}
+    assert p.preprocess == d.preprocess and p.adjustment == d.adjustment  # the rest as the default
+
+
+def test_naive_corrects_no_offset_and_differs_from_paper_only_as_listed():
+    n, p = naive(), paper()
+    assert not n.alignment.estimate_offsets and n.final_pass is None
+    assert n.aggregation.method == "mean" and not n.aggregation.overlap_filter
+    # the exact list of what else differs from the paper: the EM gate off, the graph classes' defaults
+    assert _differences(n, p) == {
+        "alignment.estimate_offsets", "alignment.silhouette_gate", "aggregation.method",
+        "aggregation.overlap_filter", "name",
+    } | {f"connection.{k}" for k in _differences(ConnectionConfig(), ConnectionConfig.paper())} | {
+        f"stitching.{k}" for k in _differences(StitchConfig(), StitchConfig.paper())
+    }
+
+
+def test_preset_names_an_unknown_one():
+    assert set(PRESETS) == {"default", "paper", "naive"}
+    assert all(PRESETS[k]().name == k for k in PRESETS)
+    with pytest.raises(ConfigError, match="unknown pipeline preset 'fast'"):
+        preset("fast")
+    with pytest.raises(ConfigError, match="unknown pipeline preset"):
+        config_from("fast", {})
+
+
+def test_config_from_sets_dotted_fields_and_names_a_wrong_one():
+    base = PipelineConfig()
+    cfg = config_from("default", {"stitching.track_rejoin_m": 0.0, "alignment.n_iterations": 2, "observation_stride": 3})
+    assert cfg.stitching.track_rejoin_m == 0.0 and base.stitching.track_rejoin_m == 30.0
+    assert cfg.alignment.n_iterations == 2 and cfg.observation_stride == 3
+    assert cfg.stitching.track_search_m == base.stitching.track_search_m  # the rest untouched
+    assert cfg.name == "default+" and config_from(base, {}) == base  # changed, and said so
+    # KEY=VALUE texts as the CLI and the nodes give them
+    assert config_from("paper", ["stitching.track_rejoin_m=0", "aggregation.method=mean"]) == config_from(
+        "paper", {"stitching.track_rejoin_m": 0.0, "aggregation.method": "mean"})
+    with pytest.raises(ConfigError, match="stitching.nope: StitchConfig has no field 'nope'"):
+        config_from(base, {"stitching.nope": 1})
+    with pytest.raises(ConfigError, match="stitching.track_rejoin_m: .*track_rejoin_m"):  # the field's own check
+        config_from(base, {"stitching.track_rejoin_m": -1.0})
+    with pytest.raises(ConfigError, match=r"sampling.max_pivot_outside_m='wide': not a valid value \(a number is expected\)"):
+        config_from(base, {"sampling.max_pivot_outside_m": "wide"})
+    with pytest.raises(ConfigError, match=r"stitching.track_pose=1: not a valid value \(true or false is expected\)"):
+        config_from(base, {"stitching.track_pose": 1})
+    assert config_from(base, ["sampling.max_pivot_outside_m=inf"]).sampling.max_pivot_outside_m == float("inf")
+    # null where the field may be off (None), refused where it may not
+    assert base.connection.lone_line_border_gap_m == 0.8
+    assert config_from(base, {"connection.lone_line_border_gap_m": None}).connection.lone_line_border_gap_m is None
+    assert config_from(base, {"stitching.fill_evidence": None, "evidence": None}).evidence is None
+    with pytest.raises(ConfigError, match="stitching=null: .*group of settings"):
+        config_from(base, {"stitching": None})
+    with pytest.raises(ConfigError, match="fill_evidence needs"):  # PipelineConfig's own check, named
+        config_from(base, {"evidence": None})
+    with pytest.raises(ConfigError, match="observation_stride"):
+        config_from(base, {"observation_stride": 0})
+    with pytest.raises(ConfigError, match=r"sampling=1: sampling is a group of settings; set one of its fields, e\.g\. sampling\.step_m"):
+        config_from(base, {"sampling": 1})
+    with pytest.raises(ConfigError, match="connection=true: connection is a group of settings"):
+        config_from(base, {"connection": True})
+
+
+def test_a_removed_key_is_named_with_what_to_do_instead():
+    for key in ("use_global_adjustment", "final_sampling.outer_border_reach", "final_alignment"):
+        with pytest.raises(ConfigError, match=rf"{key}: no such setting any more \(.*final_pass"):
+            config_from("default", {key: True})
+    assert set(REMOVED_KEYS) >= {"use_global_adjustment", "final_sampling", "final_alignment"}
+
+
+def test_the_final_pass_is_switched_and_set_on_its_own():
+    base = PipelineConfig()
+    one = config_from(base, {"final_pass": None})
+    assert one.final_pass is None and not one.use_global_adjustment
+    with pytest.raises(ConfigError, match="final_pass.alignment.n_iterations: the final pass is off"):
+        config_from("paper", {"final_pass.alignment.n_iterations": 2})
+    # switched on, it samples and aligns as the first pass; its fields can be set with it, any order
+    on = config_from("paper", {"final_pass.alignment.n_iterations": 2, "final_pass": True})
+    assert on.final_pass == PassConfig(sampling=on.sampling, alignment=dataclasses.replace(on.alignment, n_iterations=2))
+    assert on.alignment.n_iterations != 2
+    with pytest.raises(ConfigError, match="final_pass=1: final_pass is a group of settings"):
+        config_from(base, {"final_pass": 1})
+    with pytest.raises(ConfigError, match="final_pass.alignment.nope: AlignmentConfig has no field 'nope'"):
+        config_from(base, {"final_pass.alignment.nope": 1})
+    # the passes share the pivots' steps: the final pass cannot have a step of its own
+    with pytest.raises(ConfigError, match="final_pass.sampling.step_m: .*cannot differ in step_m"):
+        config_from(base, {"final_pass.sampling.step_m": 4.0})
+    with pytest.raises(ConfigError, match="cannot differ in step_m"):
+        dataclasses.replace(base, final_pass=PassConfig(sampling=SamplingConfig(step_m=4.0)))
+
+
+def test_a_first_pass_change_reaches_the_final_pass_where_both_agree():
+    base = PipelineConfig()
+    assert base.final_pass is not None
+    cfg = config_from(base, {"sampling.max_pivot_outside_m": 1.0, "alignment.robust_loss": False, "sampling.step_m": 3.0})
+    assert cfg.final_pass is not None
+    assert cfg.sampling.max_pivot_outside_m == cfg.final_pass.sampling.max_pivot_outside_m == 1.0
+    assert cfg.alignment.robust_loss is False and cfg.final_pass.alignment.robust_loss is False
+    assert cfg.final_pass.sampling.step_m == 3.0
+    # outer_border_reach is on only in the final pass, clustering differs: each pass keeps its own
+    cfg = config_from(base, {"sampling.outer_border_reach": True, "alignment.clustering": "silhouette"})
+    assert cfg.final_pass == base.final_pass and cfg.alignment.clustering == "silhouette"
+    # a final-pass key sets that pass alone, in either order
+    for items in ({"sampling.max_pivot_outside_m": 1.0, "final_pass.sampling.max_pivot_outside_m": 3.0},
+                  {"final_pass.sampling.max_pivot_outside_m": 3.0, "sampling.max_pivot_outside_m": 1.0}):
+        cfg = config_from(base, items)
+        assert cfg.final_pass is not None
+        assert (cfg.sampling.max_pivot_outside_m, cfg.final_pass.sampling.max_pivot_outside_m) == (1.0, 3.0)
+
+
+def test_adjustment_settings_are_changeable_with_set():
+    changed = config_from("default", {"adjustment.loss": "linear", "adjustment.drift_sigma_m": 0.0})
+    assert changed.adjustment == dataclasses.replace(AdjustConfig(), loss="linear", drift_sigma_m=0.0)
+    with pytest.raises(ConfigError, match="adjustment.loss: AdjustConfig.loss must be one of"):
+        config_from("default", {"adjustment.loss": "l3"})
+
+
+def test_parse_override_reads_json_values_else_strings():
+    assert parse_override("stitching.track_rejoin_m=0.5") == ("stitching.track_rejoin_m", 0.5)
+    assert parse_override(" a.b = true") == ("a.b", True)
+    assert parse_override("alignment.clustering=auto") == ("alignment.clustering", "auto")
+    assert parse_override("a.b=[1, 2]") == ("a.b", [1, 2])
+    for text in ("inf", "Infinity", " INF", "+inf"):
+        assert parse_override(f"sampling.max_pivot_outside_m={text}") == ("sampling.max_pivot_outside_m", float("inf"))
+    assert parse_override("a.b=-inf") == ("a.b", float("-inf"))
+    for bad in ("a.b", "=1", " =1"):
+        with pytest.raises(ConfigError, match="is not KEY=VALUE"):
+            parse_override(bad)
+
+
+@dataclasses.dataclass
+class _Probe:
+    length_m: float = 1.0
+    count: int = 1
+    angle_deg: float = 90.0
+
+
+@pytest.mark.parametrize(
+    ("changes", "kwargs", "message"),
+    [
+        ({"length_m": 0.0}, dict(low=0.0, low_open=True), r"_Probe.length_m must be > 0, got 0.0"),
+        ({"length_m": -1.0}, dict(low=0.0), r"_Probe.length_m must be >= 0, got -1.0"),
+        ({"length_m": float("inf")}, dict(low=0.0, finite=True), r"must be finite and >= 0, got inf"),
+        ({"length_m": float("nan")}, dict(low=0.0), r"must be >= 0, got nan"),
+        ({"angle_deg": 181.0}, dict(low=0.0, high=180.0, low_open=True), r"angle_deg must be in \(0, 180\], got 181.0"),
+        ({"count": 1.5}, dict(low=1, integer=True), r"count must be an integer >= 1, got 1.5"),
+        ({"count": True}, dict(low=1, integer=True), r"count must be an integer >= 1, got True"),
+    ],
+)
+def test_check_range_names_config_field_interval_and_value(changes, kwargs, message):
+    probe = _Probe(**changes)
+    name = next(iter(changes))
+    with pytest.raises(ConfigError, match=message):
+        check_range(probe, (name,), **kwargs)
+    check_range(_Probe(), (name,), **kwargs)  # the default passes
