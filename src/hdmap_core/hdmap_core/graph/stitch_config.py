@@ -49,6 +49,9 @@ class StitchConfig:
             their cut lines) at most ``overlap_along_m`` along the road, when at least
             ``overlap_share`` of its maxima (and 2) have a same-type twin within
             ``overlap_feature_m`` across the road [m].
+        overlap_along_m: see ``overlap_search_m`` [m].
+        overlap_feature_m: see ``overlap_search_m`` [m].
+        overlap_share: see ``overlap_search_m`` (share of the node's maxima, 0..1).
         dedupe_loose_ends: drop dangling polyline ends/starts that run on top of another
             segment's polyline of the same class (``twin_lateral_m`` / ``twin_along_m``) [see
             ``MapGraph._dedupe_loose_ends``].
@@ -332,6 +335,9 @@ class StitchConfig:
             main road was taken as the predecessor of a main-road start 8.4 m beside it, a link
             97 deg off the ramp's heading, backward for it (carla_town04_100_s1). 180 = off
             (the paper, the plain default) [deg].
+        through_lines: at a split or merge whose node has exactly one continuing candidate of its
+            own type, that edge continues the polyline through it (``segment_graph.chain_links``)
+            instead of closing it there. False: the paper (every split and merge closes it).
     """
 
     max_distance_m: float = 12.0
