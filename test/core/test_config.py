@@ -204,3 +204,19 @@ def test_check_range_names_config_field_interval_and_value(changes, kwargs, mess
     with pytest.raises(ConfigError, match=message):
         check_range(probe, (name,), **kwargs)
     check_range(_Probe(), (name,), **kwargs)  # the default passes
+
+
+@pytest.mark.parametrize("key", sorted(k for k in REMOVED_KEYS if "." in k))
+def test_a_knob_made_a_constant_is_refused_by_name_and_its_constant_exists(key):
+    """Each removed knob names the constant that replaced it, with that constant's value."""
+    import importlib
+    import re
+
+    keys = [key] + ([f"final_pass.{key}"] if key.startswith(("sampling.", "alignment.")) else [])
+    keys += [f"stitching.fill_{key}"] if key.startswith("evidence.") else []
+    for k in keys:
+        with pytest.raises(ConfigError, match=rf"^{re.escape(k)}: no such setting any more \(a fixed rule now"):
+            config_from("default", {k: 1.0})
+    m = re.search(r"(\w+) = (.+) in (hdmap_core\.pipeline\.\w+)$", REMOVED_KEYS[key])
+    if m:  # the constant exists with the value the message gives
+        assert repr(getattr(importlib.import_module(m.group(3)), m.group(1))) == m.group(2)

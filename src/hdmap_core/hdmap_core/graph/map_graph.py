@@ -261,7 +261,7 @@ class MapGraph:
         refuted = 0
         protect = None
         if self.config.fill_evidence is not None and len(flat.edges):
-            drop = _refuted_fills(flat, [self._graphs[k] for k in flat.keys], config=self.config)
+            drop = _refuted_fills(flat, [self._graphs[k] for k in flat.keys])
             refuted = int(drop.sum())
             # the pieces a refuted fill leaves are drive-supported: no speck rule for them
             protect = np.zeros(flat.n_nodes, dtype=bool)
@@ -285,7 +285,7 @@ class MapGraph:
 
 
 
-def _refuted_fills(flat: FlatGraph, graphs: Sequence[SegmentGraph], *, config: StitchConfig) -> np.ndarray:
+def _refuted_fills(flat: FlatGraph, graphs: Sequence[SegmentGraph]) -> np.ndarray:
     """(E,) bool: feature edges of ``flat`` through stretches the drives saw empty
     (``StitchConfig.fill_evidence``, ``evidence.refuted_edges``), from every segment's judged
     steps."""
@@ -307,7 +307,7 @@ def _refuted_fills(flat: FlatGraph, graphs: Sequence[SegmentGraph], *, config: S
         return np.zeros(len(flat.edges), dtype=bool)
     return refuted_edges(
         flat.n_xy, flat.edges, np.concatenate(xy), np.concatenate(hd),
-        np.concatenate([[0]] + starts).astype(np.int64), np.concatenate(iv), config=config.fill_evidence,
+        np.concatenate([[0]] + starts).astype(np.int64), np.concatenate(iv),
     )
 
 

@@ -309,10 +309,9 @@ class StitchConfig:
             (stored before) keep the midpoints. False: the midpoints (the plain default).
         fill_evidence: at export, a feature edge long enough to be filled is dropped when most of
             it runs where the drives that passed saw nothing (``hdmap_core.pipeline.evidence``, from the
-            segments' ``StepResult.empty_m``, made by ``PipelineConfig.evidence``; of this config
-            only the export's fields are used: ``refute_share``, ``sample_m``, ``min_edge_m``,
-            ``along_m``, ``heading_deg``, ``half_length_m``): its ends stay loose ends. None: off
-            (the paper, the plain default).
+            segments' ``StepResult.empty_m``, made by ``PipelineConfig.evidence``; the export's
+            rules are that module's constants): its ends stay loose ends. None: off (the paper,
+            the plain default).
         path_curvature_m: the chain's heading rate is taken over this much of it (chord from
             the node to the first chain node at least this far; shorter chains: straight) [m].
         path_max_turn_deg: the arc search stops once the arc has turned this much from the

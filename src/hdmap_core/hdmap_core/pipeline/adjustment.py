@@ -44,12 +44,27 @@ try:
 except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
     threadpool_limits = None
 from hdmap_core.pipeline import adjustment_assoc as assoc
+from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
 
 _LOSSES = ("linear", "huber", "cauchy")
 _REWEIGHT_REL = 0.05  # IRLS: a sample is re-weighted only when its weight changes by more than 5 %
+# Rules of the robust fit, fixed since docs/adjustment.md measured them:
+#: the robust loss's threshold in units of ``AdjustConfig.noise_sigma_m``
+ROBUST_K = 2.5
+#: with ``loss="cauchy"``, the first IRLS iterations use Huber (a convex start keeps Cauchy from
+#: locking onto a wrong solution)
+HUBER_WARMUP_ITERATIONS = 2
+#: stop re-weighting when no offset changes by more than this [m]
+TOL_M = 2e-3
+#: after a fit, samples farther than this from every centre are dropped [m]
+REASSOCIATE_GATE_M = 1.0
+#: before each re-association, every drive's offset is searched for a constant shift within
+#: +-this (0.25 m grid, truncated-quadratic cost on the nearest centres of the same type): repairs
+#: drives associated a whole lane off [m]
+SHIFT_SEARCH_M = 4.5
 
 
 @dataclass(frozen=True)
@@ -65,11 +80,7 @@ class AdjustConfig:
         correlation_length_m: correlation length of the drift.
         noise_sigma_m: sigma of one sample's lateral position about its cluster, after correction.
         loss: ``"linear"`` (plain least squares), ``"huber"`` or ``"cauchy"``.
-        robust_k: the robust loss's threshold in units of ``noise_sigma_m``.
-        huber_warmup_iterations: with ``loss="cauchy"``, the first IRLS iterations use Huber
-            (a convex start keeps Cauchy from locking onto a wrong solution).
         iterations: maximum number of solves (1 = no re-weighting).
-        tol_m: stop re-weighting when no offset changes by more than this.
         coarse_reject_m: before the curves are fitted, one constant per drive is fitted (Huber);
             samples farther than this from their cluster then are dropped as wrong associations
             (e.g. a drive associated one lane off over a stretch, which a curve would follow).
@@ -79,10 +90,6 @@ class AdjustConfig:
             position (centres: medians of the members' raw positions), fit, then this many times
             re-associate with the fitted offsets applied and fit again (a global EM; it repairs
             per-step associations that were a lane off).
-        reassociate_gate_m: after a fit, samples farther than this from every centre are dropped.
-        shift_search_m: before each re-association, every drive's offset is searched for a
-            constant shift within +-this (0.25 m grid, truncated-quadratic cost on the nearest
-            centres of the same type): repairs drives associated a whole lane off. 0 = off.
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
             normal matrix; O(p^3) in the number of unknowns p).
         std_max_unknowns: above this many unknowns the std is not computed (left NaN).
@@ -99,38 +106,20 @@ class AdjustConfig:
     correlation_length_m: float = 1000.0
     noise_sigma_m: float = 0.12
     loss: str = "huber"
-    robust_k: float = 2.5
-    huber_warmup_iterations: int = 2
     iterations: int = 5
-    tol_m: float = 2e-3
     coarse_reject_m: float = 1.5
     reassociate_rounds: int = 2
-    reassociate_gate_m: float = 1.0
-    shift_search_m: float = 4.5
     compute_std: bool = True
     std_max_unknowns: int = 4000
     thin_drives: int = 16
 
     def __post_init__(self) -> None:
-        positive = ("knot_spacing_m", "bias_sigma_m", "correlation_length_m", "noise_sigma_m", "robust_k", "tol_m")
-        for name in positive:
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ConfigError(f"AdjustConfig.{name} must be finite and > 0, got {value!r}")
-        if not (np.isfinite(self.coarse_reject_m) and self.coarse_reject_m >= 0):
-            raise ConfigError(f"AdjustConfig.coarse_reject_m must be finite and >= 0, got {self.coarse_reject_m!r}")
-        if not (np.isfinite(self.drift_sigma_m) and self.drift_sigma_m >= 0):
-            raise ConfigError(f"AdjustConfig.drift_sigma_m must be finite and >= 0, got {self.drift_sigma_m!r}")
-        if self.loss not in _LOSSES:
-            raise ConfigError(f"AdjustConfig.loss must be one of {_LOSSES}, got {self.loss!r}")
-        if self.reassociate_rounds < 0 or not self.reassociate_gate_m > 0:
-            raise ConfigError("AdjustConfig.reassociate_rounds must be >= 0 and reassociate_gate_m > 0")
-        if self.iterations < 1 or self.huber_warmup_iterations < 0 or self.std_max_unknowns < 0:
-            raise ConfigError(
-                "AdjustConfig.iterations must be >= 1, huber_warmup_iterations and std_max_unknowns >= 0"
-            )
-        if self.thin_drives < 0:
-            raise ConfigError(f"AdjustConfig.thin_drives must be >= 0, got {self.thin_drives!r}")
+        check_range(self, ("knot_spacing_m", "bias_sigma_m", "correlation_length_m", "noise_sigma_m"), low=0.0,
+                    low_open=True, finite=True)
+        check_range(self, ("coarse_reject_m", "drift_sigma_m"), low=0.0, finite=True)
+        check_choice(self, "loss", _LOSSES)
+        check_range(self, ("iterations",), low=1, integer=True)
+        check_range(self, ("reassociate_rounds", "std_max_unknowns", "thin_drives"), low=0, integer=True)
 
 
 @dataclass(frozen=True)
@@ -498,7 +487,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         stats.update(n_drives=0, n_unknowns=0, iterations=0)
         return OffsetModel(**base, stats=stats)
     r, info, lay = fit.residual, fit.info, fit.layout
-    inlier = keep & (np.abs(r) <= cfg.robust_k * cfg.noise_sigma_m)
+    inlier = keep & (np.abs(r) <= ROBUST_K * cfg.noise_sigma_m)
     stats.update(
         n_drives=len(samples.drive_ids),
         n_clusters=samples.n_clusters,
@@ -529,10 +518,10 @@ def _shift_and_reassociate(pool: assoc.Pool, label: np.ndarray, model: OffsetMod
     offset = _pool_offsets(pool, model)
     cen = assoc.centres(pool, label, pool.lateral_m + offset)
     bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
-    shift = assoc.lane_shift_search(pool, cen, offset, bias, search_m=cfg.shift_search_m,
-                                    gate_m=cfg.reassociate_gate_m, noise_sigma_m=cfg.noise_sigma_m,
+    shift = assoc.lane_shift_search(pool, cen, offset, bias, search_m=SHIFT_SEARCH_M,
+                                    gate_m=REASSOCIATE_GATE_M, noise_sigma_m=cfg.noise_sigma_m,
                                     bias_sigma_m=cfg.bias_sigma_m)
-    new = assoc.reassociate(pool, label, offset + shift[pool.drive], cen, gate_m=cfg.reassociate_gate_m)
+    new = assoc.reassociate(pool, label, offset + shift[pool.drive], cen, gate_m=REASSOCIATE_GATE_M)
     return new, int(np.count_nonzero(shift))
 
 
@@ -580,7 +569,7 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
     prior = _prior(lay, cfg)
     info0 = np.where(keep, cfg.noise_sigma_m**-2, 0.0)
     theta = np.zeros(lay.n_unknowns)
-    warmup = cfg.huber_warmup_iterations if cfg.loss == "cauchy" else 0
+    warmup = HUBER_WARMUP_ITERATIONS if cfg.loss == "cauchy" else 0
     info = info0.copy()
     h, rhs = _reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
     h = (h + prior).tocsr()
@@ -592,9 +581,9 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
         theta = new_theta
         r = _residuals(a, theta, samples, info)
         # solve k uses the weights from solve k-1's residuals; Huber for solves 2..1+warmup
-        if cfg.loss == "linear" or it == cfg.iterations or (it >= 2 + warmup and change < cfg.tol_m):
+        if cfg.loss == "linear" or it == cfg.iterations or (it >= 2 + warmup and change < TOL_M):
             break
-        weights = _robust_weights(r, cfg.robust_k * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
+        weights = _robust_weights(r, ROBUST_K * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
         h, rhs, info = _update_normal(h, rhs, a, samples, prior, info, info0 * weights)
     return _Fit(lay, theta, h, info, r, it, change)
 

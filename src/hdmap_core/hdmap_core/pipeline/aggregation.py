@@ -14,12 +14,12 @@ The maxima are stored for every drive that took part, keyed by that drive's trav
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import ndtr
 
+from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 
@@ -43,7 +43,6 @@ class AggregationConfig:
             clusters of one class are compared (solid with dashed, border with border), since a
             curb or barrier right beside an edge line (0.2-0.5 m) is a second physical feature,
             not a misclassified copy of the line.
-        grid_points: grid size of the coarse maximum search per cluster (mean-shift polishes).
         single_drive_std_m: reported 1-sigma of a maximum supported by one drive [m] (the spread
             part; ``common_sigma_m`` adds to it).
         common_sigma_m: 1-sigma of one drive's localization error that no offset correction can
@@ -75,23 +74,17 @@ class AggregationConfig:
     overlap_filter: bool = True
     overlap_threshold: float = 0.5
     overlap_border_marking: bool = True
-    grid_points: int = 16
     single_drive_std_m: float = 0.5
     common_sigma_m: float = 0.0
     tie_by_position: bool = False
     border_beside_marking_drives: int = 0
 
     def __post_init__(self) -> None:
-        if self.method not in ("kde", "mean"):
-            raise ConfigError(f"AggregationConfig.method must be 'kde' or 'mean', got {self.method!r}")
-        if not (self.kde_bandwidth_factor > 0 and self.kde_min_bandwidth_m > 0):
-            raise ConfigError("AggregationConfig bandwidth factor and minimum must be > 0")
-        if not 0 <= self.overlap_threshold <= 1:
-            raise ConfigError(f"AggregationConfig.overlap_threshold must be in [0, 1], got {self.overlap_threshold!r}")
-        if self.grid_points < 8:
-            raise ConfigError("AggregationConfig.grid_points must be >= 8")
-        if not (math.isfinite(self.common_sigma_m) and self.common_sigma_m >= 0):
-            raise ConfigError(f"AggregationConfig.common_sigma_m must be a finite number >= 0, got {self.common_sigma_m!r}")
+        check_choice(self, "method", ("kde", "mean"))
+        check_range(self, ("kde_bandwidth_factor", "kde_min_bandwidth_m"), low=0.0, low_open=True)
+        check_range(self, ("overlap_threshold",), low=0.0, high=1.0)
+        check_range(self, ("common_sigma_m", "single_drive_std_m"), low=0.0, finite=True)
+        check_range(self, ("border_beside_marking_drives",), low=0, integer=True)
 
 
 def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 16, n_shift: int = 50) -> np.ndarray:
@@ -241,7 +234,7 @@ def aggregate_many(
     nd = int(drive.max()) + 1
     n_drives = np.bincount(np.unique(lab * nd + drive) // nd, minlength=k)
     bw = np.maximum(config.kde_bandwidth_factor * std, config.kde_min_bandwidth_m)
-    pos = kde_maxima(x, lab, bw, grid_points=config.grid_points) if config.method == "kde" else mean
+    pos = kde_maxima(x, lab, bw) if config.method == "kde" else mean
     keep = np.ones(k, dtype=bool)
     order = np.lexsort((pos, cstep))
     if config.overlap_filter and k >= 2:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 
@@ -41,6 +42,22 @@ __all__ = [
 _CLUSTERINGS = ("silhouette", "gap", "auto")
 _SOLVERS = ("lm", "closed_form")
 
+# Values the paper leaves open, fixed since the first measurements (docs/pipeline.md, "Stages as
+# implemented"):
+#: largest k tried per type: a carriageway shows at most a few lines of one type, and many small
+#: clusters score well on the silhouette even for noise
+K_MAX = 6
+#: with silhouette clustering, k = 1 when no k >= 2 reaches this score (the silhouette is
+#: undefined for k = 1)
+SINGLE_CLUSTER_SILHOUETTE = 0.5
+#: a gap wider than this separates clusters with gap clustering, and bounds the lane-shift
+#: search of drive registration [m]
+GAP_SPLIT_M = 1.0
+#: s of the M-step's penalty exp(-s d^2), "set from the lane width": 0.05 at a 3.5 m lane [1/m^2]
+PENALTY_S_PER_M2 = 0.25
+#: offsets are clipped to +-this [m]
+MAX_OFFSET_M = 5.0
+
 
 @dataclass(frozen=True)
 class AlignmentConfig:
@@ -48,24 +65,17 @@ class AlignmentConfig:
 
     Attributes:
         estimate_offsets: False skips the M-step (no correction; the naive baseline).
-        clustering: "silhouette" (paper: exact 1-D k-means for k = 2..k_max, best silhouette),
-            "gap" (split the sorted samples where the gap exceeds ``gap_split_m``; exact, O(n log n),
+        clustering: "silhouette" (paper: exact 1-D k-means for k = 2..``K_MAX``, best silhouette),
+            "gap" (split the sorted samples where the gap exceeds ``GAP_SPLIT_M``; exact, O(n log n),
             right once offsets are roughly known) or "auto" (gap when every drive of the step has a
             prior offset, else silhouette).
-        k_max: largest k tried per type (open; a carriageway shows at most a few lines of one
-            type, and many small clusters score well on silhouette even for noise).
-        single_cluster_silhouette: with "silhouette", k = 1 when no k >= 2 reaches this score (open:
-            the silhouette is undefined for k = 1).
         min_cluster_separation_m: with "silhouette", a k whose neighbouring cluster means of one
             type are closer than this is not taken (two features of one type are at least about
             a lane apart); 0 = off (paper). Stops the E-step from splitting one line in two,
             which lets the M-step shift drives by a whole lane.
-        gap_split_m: gap that separates clusters with "gap" [m].
         n_iterations: EM iterations (open); the loop stops early when labels repeat.
         solver: "lm" (paper: Levenberg-Marquardt on the full cost) or "closed_form" (variance term
             solved as linear least squares; LM only when the penalty is not negligible).
-        penalty_s_per_m2: s of the penalty exp(-s d^2) (open; "set from the lane width": 0.25
-            makes the penalty 0.05 at a 3.5 m lane width).
         penalty_lm_threshold: with "closed_form", LM polishes only when some cluster's penalty
             exceeds this (0.3: same-type clusters closer than about 2.2 m at s = 0.25).
         robust_loss: Huber-reweighted variance residuals (a drive's odd sample cannot pull).
@@ -117,18 +127,13 @@ class AlignmentConfig:
             preset's final pass judges steps of <= 4 drives by the sparse-step rule but drops
             clashing singletons only in steps of <= 3.)
         min_cluster_drives: clusters supported by fewer distinct drives are dropped (label -1).
-        max_offset_m: offsets are clipped to +-this [m].
     """
 
     estimate_offsets: bool = True
     clustering: str = "silhouette"
-    k_max: int = 6
-    single_cluster_silhouette: float = 0.5
     min_cluster_separation_m: float = 0.0
-    gap_split_m: float = 1.0
     n_iterations: int = 5
     solver: str = "lm"
-    penalty_s_per_m2: float = 0.25
     penalty_lm_threshold: float = 0.3
     robust_loss: bool = False
     huber_delta_m: float = 0.3
@@ -145,23 +150,15 @@ class AlignmentConfig:
     sparse_type_clash_keep: bool = False
     sparse_disjoint_apart_m: float = 0.0
     min_cluster_drives: int = 1
-    max_offset_m: float = 5.0
 
     def __post_init__(self) -> None:
-        if self.clustering not in _CLUSTERINGS:
-            raise ConfigError(f"AlignmentConfig.clustering must be one of {_CLUSTERINGS}, got {self.clustering!r}")
-        if self.solver not in _SOLVERS:
-            raise ConfigError(f"AlignmentConfig.solver must be one of {_SOLVERS}, got {self.solver!r}")
-        if self.k_max < 1 or self.n_iterations < 1 or self.min_cluster_drives < 1:
-            raise ConfigError("AlignmentConfig.k_max, n_iterations, min_cluster_drives must be >= 1")
-        if self.gap_split_m <= 0 or self.huber_delta_m <= 0 or self.ridge < 0 or self.prior_weight < 0:
-            raise ConfigError("AlignmentConfig: gap_split_m, huber_delta_m > 0 and ridge, prior_weight >= 0 required")
-        if (self.sparse_step_max_drives < 0 or self.sparse_step_max_std_m <= 0 or self.sparse_type_clash_m < 0
-                or self.sparse_type_clash_max_drives < 0 or self.sparse_disjoint_apart_m < 0):
-            raise ConfigError(
-                "AlignmentConfig: sparse_step_max_drives, sparse_type_clash_m, sparse_type_clash_max_drives >= 0 and "
-                "sparse_step_max_std_m > 0, sparse_disjoint_apart_m >= 0 required"
-            )
+        check_choice(self, "clustering", _CLUSTERINGS)
+        check_choice(self, "solver", _SOLVERS)
+        check_range(self, ("n_iterations", "min_cluster_drives"), low=1, integer=True)
+        check_range(self, ("sparse_step_max_drives", "sparse_type_clash_max_drives"), low=0, integer=True)
+        check_range(self, ("huber_delta_m", "sparse_step_max_std_m"), low=0.0, low_open=True)
+        check_range(self, ("ridge", "prior_weight", "sparse_type_clash_m", "sparse_disjoint_apart_m",
+                           "min_cluster_separation_m", "lone_cluster_max_std_m", "penalty_lm_threshold"), low=0.0)
 
 
 @dataclass(frozen=True)
@@ -327,7 +324,7 @@ def gap_labels(x: np.ndarray, types: np.ndarray, gap_m: float) -> np.ndarray:
 def cluster_step(x: np.ndarray, types: np.ndarray, *, method: str, config: AlignmentConfig) -> np.ndarray:
     """E-step: cluster every type separately; labels unique across types (M,)."""
     if method == "gap":
-        return gap_labels(x, types, config.gap_split_m)
+        return gap_labels(x, types, GAP_SPLIT_M)
     labels = np.empty(len(x), dtype=np.int64)
     base = 0
     for t in np.unique(types):
@@ -335,9 +332,9 @@ def cluster_step(x: np.ndarray, types: np.ndarray, *, method: str, config: Align
         lab = cluster_type(
             x[sel],
             method=method,
-            k_max=config.k_max,
-            single_cluster_silhouette=config.single_cluster_silhouette,
-            gap_split_m=config.gap_split_m,
+            k_max=K_MAX,
+            single_cluster_silhouette=SINGLE_CLUSTER_SILHOUETTE,
+            gap_split_m=GAP_SPLIT_M,
             min_separation_m=config.min_cluster_separation_m,
         )
         labels[sel] = lab + base
@@ -453,7 +450,7 @@ def solve_offsets(
             if np.array_equal(w_new, w):  # the weights are a fixed point: the next solve is this one
                 break
             w = w_new
-    s = config.penalty_s_per_m2
+    s = PENALTY_S_PER_M2
     centres = np.bincount(labels, weights=x + o[drive], minlength=k) / n_c
     # The penalty only acts when two same-type clusters come close; the closed form already
     # minimises the variance term, so LM runs only then (always with solver="lm", the paper's way).
@@ -490,7 +487,7 @@ def solve_offsets(
         key = labels * n_drives + drive
         share = np.bincount(key, minlength=k * n_drives).reshape(k, n_drives) / n_c[:, None]
         o = o - float((share @ o).mean())
-    return np.clip(o, -config.max_offset_m, config.max_offset_m)
+    return np.clip(o, -MAX_OFFSET_M, MAX_OFFSET_M)
 
 
 # ----------------------------------------------------------------------------- EM
@@ -790,9 +787,9 @@ def align_step(
     res = None
     if known.any():
         if not known.all():
-            o = match_new_drives(x, types, drive, o, known, max_offset_m=config.max_offset_m, gap_m=config.gap_split_m)
+            o = match_new_drives(x, types, drive, o, known, max_offset_m=MAX_OFFSET_M, gap_m=GAP_SPLIT_M)
         if recheck:
-            o2 = recheck_offsets(x, types, drive, o, max_offset_m=config.max_offset_m, gap_m=config.gap_split_m)
+            o2 = recheck_offsets(x, types, drive, o, max_offset_m=MAX_OFFSET_M, gap_m=GAP_SPLIT_M)
             moved = o2 != o
             if moved.any():
                 o = o2
@@ -801,7 +798,7 @@ def align_step(
         res = _em(x, types, drive, o, prior, method="gap", config=config)
         if res.valid:
             return res
-    o0 = register_drives(x, types, drive, n_drives, max_offset_m=config.max_offset_m, gap_m=config.gap_split_m)
+    o0 = register_drives(x, types, drive, n_drives, max_offset_m=MAX_OFFSET_M, gap_m=GAP_SPLIT_M)
     fresh = _em(x, types, drive, o0, None, method="gap", config=config)
     if res is None or fresh.silhouette > res.silhouette:
         return fresh
@@ -852,7 +849,7 @@ def align_steps_gap(
     new_group = np.ones(n, dtype=bool)
     new_group[1:] = (ts[1:] != ts[:-1]) | (os_[1:] != os_[:-1])
     brk = new_group.copy()
-    brk[1:] |= np.diff(xs) > config.gap_split_m
+    brk[1:] |= np.diff(xs) > GAP_SPLIT_M
     run = np.cumsum(brk) - 1
     group = np.cumsum(new_group) - 1
     sil = silhouette_sorted(xs, run, group)

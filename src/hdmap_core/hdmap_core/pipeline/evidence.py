@@ -9,9 +9,9 @@ turns that into a test that the stitched map's fills must pass:
 
 1. per sampling step of a pivot (``step_profiles``): along the cut line, in bins, the number of
    detections expected if a line were there -- the sum over the same-direction drives crossing the
-   cut of the detection rate at that lateral distance from the drive (``EvidenceConfig.bands_m`` /
-   ``rates``, conservative) -- and the number of those drives that detected anything (any type)
-   within ``window_m`` of it. Bins expecting >= ``min_expected`` detections with fewer than
+   cut of the detection rate at that lateral distance from the drive (``BANDS_M`` /
+   ``RATES``, conservative) -- and the number of those drives that detected anything (any type)
+   within ``SEEN_WINDOW_M`` of it. Bins expecting >= ``EvidenceConfig.min_expected`` detections with fewer than
    ``max_seen_ratio`` of them seen are *empty*; each step keeps its empty intervals
    (``StepResult.empty_m``), which travel with the segment like its maxima;
 2. at export (``refuted_edges``): a feature-graph edge long enough to be filled is dropped when
@@ -31,13 +31,45 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hdmap_core.errors import ConfigError
+from hdmap_core.checks import check_range
 
-__all__ = ["EvidenceConfig", "step_profiles", "refuted_edges"]
+__all__ = ["BANDS_M", "PROFILE_HALF_LENGTH_M", "RATES", "SEEN_WINDOW_M", "EvidenceConfig", "refuted_edges", "step_profiles"]
 
 #: The intervals of a judged step without any (shared, read-only).
 _NO_INTERVALS = np.zeros((0, 2))
 _NO_INTERVALS.flags.writeable = False
+
+
+# The rules below were measured and adopted with the negative-evidence test (docs/pipeline.md,
+# "Negative evidence"); they are fixed, only how much evidence a judgement needs is a setting.
+#: Lateral distances from a drive's trajectory bounding its sensor bands [m] ...
+BANDS_M = (3.0, 6.5, 10.0)
+#: ... and the share of the lines in each band a drive is assumed to detect: below the fleet
+#: simulator's 0.95 / 0.70 / 0.25, so the expectation errs low [0..1].
+RATES = (0.9, 0.6, 0.2)
+#: A detection within this of a position counts as something seen there (samples and crossings
+#: are both corrected by the offset model when there is one) [m].
+SEEN_WINDOW_M = 1.0
+#: Bin size of a step's profile along its cut [m].
+_BIN_M = 0.5
+#: A profile spans this far either side of the pivot [m].
+PROFILE_HALF_LENGTH_M = 15.0
+#: Narrower empty intervals are not kept: between two lines seen 3.5 m apart the lane's middle is
+#: empty too (3.5 - 2 windows), a missing line makes two lanes' middles one interval of >= 2 lane
+#: widths minus the windows [m].
+_MIN_INTERVAL_M = 2.5
+#: An edge is dropped when at least this share of its sample points are empty (each point: most
+#: of the steps crossing it say empty).
+_REFUTE_SHARE = 0.5
+#: Sample spacing along an edge; the ends' first and last half spacing are not sampled (a line
+#: ending there is seen up to its end) [m].
+_SAMPLE_M = 2.0
+#: Shorter edges are not tested (they get no filled points) [m].
+_MIN_EDGE_M = 3.0
+#: A step's cut crosses a point when its midpoint lies within this along the step's heading [m] ...
+_ALONG_M = 1.0
+#: ... and the step heads within this of the edge [deg].
+_HEADING_DEG = 30.0
 
 
 @dataclass(frozen=True)
@@ -45,70 +77,24 @@ class EvidenceConfig:
     """Negative evidence for filled stretches (module docstring).
 
     Attributes:
-        bands_m: lateral distances from a drive's trajectory bounding its sensor bands [m].
-        rates: assumed share of the lines in each band that a drive detects (below the fleet
-            simulator's 0.95 / 0.70 / 0.25, so the expectation errs low) [0..1].
-        window_m: a detection within this of a position counts as something seen there [m]
-            (samples and crossings are both corrected by the offset model when there is one).
-        min_expected: a bin is judged only when this many detections are expected there.
+        min_expected: a bin of a step's profile is judged only when this many detections are
+            expected there (the sum of the passing drives' detection rates); fewer: no verdict.
         max_seen_ratio: a judged bin is empty when fewer than this share of the expected
-            detections were seen.
-        bin_m: bin size along the cut [m].
-        half_length_m: the profile spans this far either side of the pivot [m].
-        min_interval_m: narrower empty intervals are not kept: between two lines seen 3.5 m apart
-            the lane's middle is empty too (3.5 - 2 ``window_m``), a missing line makes its two
-            lanes' middles one interval of >= 2 lane widths minus the windows [m].
-        refute_share: an edge is dropped when at least this share of its sample points are empty
-            (each point: most of the steps crossing it say empty).
-        sample_m: sample spacing along an edge [m]; the ends' first and last ``sample_m`` / 2 are
-            not sampled (a line ending there is seen up to its end).
-        min_edge_m: shorter edges are not tested (they get no filled points) [m].
-        along_m: a step's cut crosses a point when its midpoint lies within this along the
-            step's heading [m].
-        heading_deg: ... and the step heads within this of the edge.
+            detections were seen (0..1].
     """
 
-    bands_m: tuple[float, ...] = (3.0, 6.5, 10.0)
-    rates: tuple[float, ...] = (0.9, 0.6, 0.2)
-    window_m: float = 1.0
     min_expected: float = 3.0
     max_seen_ratio: float = 0.2
-    bin_m: float = 0.5
-    half_length_m: float = 15.0
-    min_interval_m: float = 2.5
-    refute_share: float = 0.5
-    sample_m: float = 2.0
-    min_edge_m: float = 3.0
-    along_m: float = 1.0
-    heading_deg: float = 30.0
 
     def __post_init__(self) -> None:
-        if len(self.bands_m) != len(self.rates) or not self.bands_m:
-            raise ConfigError("EvidenceConfig: bands_m and rates need the same, non-zero length")
-        if any(not (b > 0 and math.isfinite(b)) for b in self.bands_m) or list(self.bands_m) != sorted(self.bands_m):
-            raise ConfigError(f"EvidenceConfig: bands_m must be finite, > 0 and increasing, got {self.bands_m}")
-        if any(not 0.0 <= r <= 1.0 for r in self.rates):
-            raise ConfigError(f"EvidenceConfig: rates must be in [0, 1], got {self.rates}")
-        for name in ("window_m", "bin_m", "half_length_m", "sample_m", "along_m"):
-            v = getattr(self, name)
-            if not (v > 0 and math.isfinite(v)):
-                raise ConfigError(f"EvidenceConfig: {name} must be finite and > 0, got {v}")
-        for name in ("min_expected", "min_edge_m", "min_interval_m"):
-            v = getattr(self, name)
-            if not (v >= 0 and math.isfinite(v)):
-                raise ConfigError(f"EvidenceConfig: {name} must be finite and >= 0, got {v}")
-        for name in ("max_seen_ratio", "refute_share"):
-            v = getattr(self, name)
-            if not 0.0 < v <= 1.0:
-                raise ConfigError(f"EvidenceConfig: {name} must be in (0, 1], got {v}")
-        if not 0.0 < self.heading_deg <= 90.0:
-            raise ConfigError(f"EvidenceConfig: heading_deg must be in (0, 90], got {self.heading_deg}")
+        check_range(self, ("min_expected",), low=0.0, finite=True)
+        check_range(self, ("max_seen_ratio",), low=0.0, high=1.0, low_open=True)
 
 
-def _rate(d: np.ndarray, config: EvidenceConfig) -> np.ndarray:
+def _rate(d: np.ndarray) -> np.ndarray:
     """Assumed detection rate of a line at lateral distance(s) ``d`` from a drive."""
-    k = np.searchsorted(np.asarray(config.bands_m), np.abs(d), side="left")
-    rates = np.concatenate([np.asarray(config.rates, dtype=float), [0.0]])
+    k = np.searchsorted(np.asarray(BANDS_M), np.abs(d), side="left")
+    rates = np.concatenate([np.asarray(RATES, dtype=float), [0.0]])
     return rates[k]
 
 
@@ -136,7 +122,7 @@ def step_profiles(
         Per step a (K, 2) array of empty intervals [lo, hi] along the cut, from the pivot point
         [m], each at least ``min_interval_m`` wide (steps without one share one empty array).
     """
-    x = np.arange(-config.half_length_m, config.half_length_m + 1e-9, config.bin_m)
+    x = np.arange(-PROFILE_HALF_LENGTH_M, PROFILE_HALF_LENGTH_M + 1e-9, _BIN_M)
     nb = len(x)
     out = [_NO_INTERVALS] * n_steps
     cross_q = np.asarray(cross_q, dtype=np.int64)
@@ -153,7 +139,7 @@ def step_profiles(
     expected = np.zeros((n_steps, nb))
     for a, b in _chunks(cq):  # (rows x bins) matrices a chunk of steps at a time: bounded memory
         uq, at = np.unique(cq[a:b], return_index=True)  # cq is sorted
-        expected[uq] += np.add.reduceat(_rate(x[None, :] - ct[a:b, None], config), at, axis=0)
+        expected[uq] += np.add.reduceat(_rate(x[None, :] - ct[a:b, None]), at, axis=0)
     seen = np.zeros((n_steps, nb))
     hit_q = np.asarray(hit_q, dtype=np.int64)
     if len(hit_q):
@@ -164,7 +150,7 @@ def step_profiles(
         order = np.argsort(key, kind="stable")
         key, ht = key[order], hit_t[order]
         for a, b in _chunks(key // n_drv):
-            near = (np.abs(x[None, :] - ht[a:b, None]) <= config.window_m).astype(np.int8)
+            near = (np.abs(x[None, :] - ht[a:b, None]) <= SEEN_WINDOW_M).astype(np.int8)
             ukey, at = np.unique(key[a:b], return_index=True)
             by_pair = np.maximum.reduceat(near, at, axis=0)  # per (step, drive): anything seen there
             uq, at = np.unique(ukey // n_drv, return_index=True)  # sorted with the keys
@@ -175,8 +161,8 @@ def step_profiles(
     d = np.diff(pad, axis=1)
     rows, lo_i = np.nonzero(d == 1)  # row-major: the i-th start pairs with the i-th end
     _, hi_i = np.nonzero(d == -1)
-    lo, hi = x[lo_i] - 0.5 * config.bin_m, x[hi_i - 1] + 0.5 * config.bin_m
-    wide = hi - lo >= config.min_interval_m
+    lo, hi = x[lo_i] - 0.5 * _BIN_M, x[hi_i - 1] + 0.5 * _BIN_M
+    wide = hi - lo >= _MIN_INTERVAL_M
     rows, iv = rows[wide], np.stack([lo[wide], hi[wide]], axis=1)
     bounds = np.searchsorted(rows, np.arange(n_steps + 1))
     for q in np.flatnonzero(np.diff(bounds)).tolist():
@@ -206,10 +192,9 @@ def refuted_edges(
     step_heading: np.ndarray,
     empty_start: np.ndarray,
     empty: np.ndarray,
-    *,
-    config: EvidenceConfig = EvidenceConfig(),
 ) -> np.ndarray:
-    """(E,) bool: which feature-graph edges run through stretches the drives saw empty.
+    """(E,) bool: which feature-graph edges run through stretches the drives saw empty (at
+    least ``_REFUTE_SHARE`` of an edge's sample points, every ``_SAMPLE_M``).
 
     Args:
         node_xy: (N, 2) feature node positions [m]; edges: (E, 2) node index pairs.
@@ -225,32 +210,32 @@ def refuted_edges(
         return out
     a, b = node_xy[edges[:, 0]], node_xy[edges[:, 1]]
     length = np.hypot(*(b - a).T)
-    cand = np.flatnonzero(length >= max(config.min_edge_m, config.sample_m))
+    cand = np.flatnonzero(length >= max(_MIN_EDGE_M, _SAMPLE_M))
     if len(cand) == 0:
         return out
     # sample points along each candidate edge, the ends' half spacing left out
-    n_s = np.maximum(1, np.floor(length[cand] / config.sample_m).astype(np.int64))
+    n_s = np.maximum(1, np.floor(length[cand] / _SAMPLE_M).astype(np.int64))
     owner = np.repeat(np.arange(len(cand)), n_s)
     k = np.arange(len(owner)) - np.repeat(np.cumsum(n_s) - n_s, n_s)
     frac = (k + 0.5) / n_s[owner]
     p = a[cand][owner] + frac[:, None] * (b[cand] - a[cand])[owner]
     u = (b[cand] - a[cand])[owner] / length[cand][owner][:, None]
     # every (sample point, step) pair within reach, then the steps whose cut crosses the point
-    reach = config.half_length_m + config.along_m
+    reach = PROFILE_HALF_LENGTH_M + _ALONG_M
     pairs = cKDTree(p).sparse_distance_matrix(cKDTree(step_xy), reach, output_type="ndarray")
     i, j = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
     su = np.stack([np.cos(step_heading[j]), np.sin(step_heading[j])], axis=1)
     rel = p[i] - step_xy[j]
     along = np.einsum("ij,ij->i", rel, su)
     lat = rel[:, 1] * su[:, 0] - rel[:, 0] * su[:, 1]  # + = left of the step's heading
-    ok = np.einsum("ij,ij->i", su, u[i]) >= math.cos(math.radians(config.heading_deg))
-    ok &= (np.abs(along) <= config.along_m) & (np.abs(lat) <= config.half_length_m)
+    ok = np.einsum("ij,ij->i", su, u[i]) >= math.cos(math.radians(_HEADING_DEG))
+    ok &= (np.abs(along) <= _ALONG_M) & (np.abs(lat) <= PROFILE_HALF_LENGTH_M)
     i, j, lat = i[ok], j[ok], lat[ok]
     judged = np.bincount(i, minlength=len(p)).astype(float)
     votes = np.bincount(i[_in_intervals(j, lat, empty_start, empty)], minlength=len(p)).astype(float)
     point_empty = (judged > 0) & (votes > 0.5 * judged)
     share = np.bincount(owner, weights=point_empty.astype(float), minlength=len(cand)) / n_s
-    out[cand[share >= config.refute_share]] = True
+    out[cand[share >= _REFUTE_SHARE]] = True
     return out
 
 

@@ -25,13 +25,57 @@ from hdmap_core.pipeline.presets import preset as named_preset
 
 __all__ = ["REMOVED_KEYS", "config_from", "parse_override"]
 
-#: Keys that were public once and are not any more, with what to do instead.
+def _fixed(module: str, constant: str, value: object) -> str:
+    return f"a fixed rule now: {constant} = {value!r} in hdmap_core.pipeline.{module}"
+
+
+#: Keys that were public once and are not any more, with what became of them. A key of the final
+#: pass (``final_pass.sampling.x``) or of ``stitching.fill_evidence`` is looked up as the first
+#: pass's (``sampling.x``) or ``evidence``'s.
 REMOVED_KEYS: dict[str, str] = {
     "use_global_adjustment": "the adjustment runs exactly when there is a final pass: set final_pass=null "
     "(one pass, no adjustment) or final_pass=true",
     "final_sampling": "the final pass is explicit now: use final_pass.sampling.<field>",
     "final_alignment": "the final pass is explicit now: use final_pass.alignment.<field>",
+    "sampling.border_window_m": _fixed("sampling", "_BORDER_WINDOW_M", 2.0),
+    "sampling.width_smoothing_steps": _fixed("sampling", "_WIDTH_SMOOTHING_STEPS", 10),
+    "sampling.width_decay": _fixed("sampling", "_WIDTH_DECAY", 0.8),
+    "sampling.midpoint_smoothing_steps": _fixed("sampling", "_MIDPOINT_SMOOTHING_STEPS", 5),
+    "sampling.default_width_m": _fixed("sampling", "_DEFAULT_WIDTH_M", 16.0),
+    "sampling.min_width_m": _fixed("sampling", "_MIN_WIDTH_M", 3.0),
+    "alignment.k_max": _fixed("alignment", "K_MAX", 6),
+    "alignment.single_cluster_silhouette": _fixed("alignment", "SINGLE_CLUSTER_SILHOUETTE", 0.5),
+    "alignment.gap_split_m": _fixed("alignment", "GAP_SPLIT_M", 1.0),
+    "alignment.penalty_s_per_m2": _fixed("alignment", "PENALTY_S_PER_M2", 0.25),
+    "alignment.max_offset_m": _fixed("alignment", "MAX_OFFSET_M", 5.0),
+    "aggregation.grid_points": "a fixed rule now: the KDE maximum is searched on 16 grid points "
+    "(hdmap_core.pipeline.aggregation.kde_maxima)",
+    "adjustment.robust_k": _fixed("adjustment", "ROBUST_K", 2.5),
+    "adjustment.huber_warmup_iterations": _fixed("adjustment", "HUBER_WARMUP_ITERATIONS", 2),
+    "adjustment.tol_m": _fixed("adjustment", "TOL_M", 2e-3),
+    "adjustment.reassociate_gate_m": _fixed("adjustment", "REASSOCIATE_GATE_M", 1.0),
+    "adjustment.shift_search_m": _fixed("adjustment", "SHIFT_SEARCH_M", 4.5),
+    "evidence.bands_m": _fixed("evidence", "BANDS_M", (3.0, 6.5, 10.0)),
+    "evidence.rates": _fixed("evidence", "RATES", (0.9, 0.6, 0.2)),
+    "evidence.window_m": _fixed("evidence", "SEEN_WINDOW_M", 1.0),
+    "evidence.bin_m": _fixed("evidence", "_BIN_M", 0.5),
+    "evidence.half_length_m": _fixed("evidence", "PROFILE_HALF_LENGTH_M", 15.0),
+    "evidence.min_interval_m": _fixed("evidence", "_MIN_INTERVAL_M", 2.5),
+    "evidence.refute_share": _fixed("evidence", "_REFUTE_SHARE", 0.5),
+    "evidence.sample_m": _fixed("evidence", "_SAMPLE_M", 2.0),
+    "evidence.min_edge_m": _fixed("evidence", "_MIN_EDGE_M", 3.0),
+    "evidence.along_m": _fixed("evidence", "_ALONG_M", 1.0),
+    "evidence.heading_deg": _fixed("evidence", "_HEADING_DEG", 30.0),
 }
+
+
+def _removed(key: str) -> str | None:
+    """What became of a removed ``key``, or None when it is not one."""
+    plain = key.removeprefix("final_pass.")
+    if plain.startswith("stitching.fill_evidence."):
+        plain = "evidence." + plain.removeprefix("stitching.fill_evidence.")
+    return REMOVED_KEYS.get(plain) or REMOVED_KEYS.get(key.partition(".")[0])
+
 
 _PASS_GROUPS = ("sampling", "alignment")
 
@@ -79,9 +123,8 @@ def config_from(
     else:
         items = [parse_override(text) for text in overrides]
     for key, _ in items:
-        head = key.partition(".")[0]
-        if head in REMOVED_KEYS:
-            raise ConfigError(f"{key}: no such setting any more ({REMOVED_KEYS[head]})")
+        if (what := _removed(key)) is not None:
+            raise ConfigError(f"{key}: no such setting any more ({what})")
     switches = [(k, v) for k, v in items if k == "final_pass"]
     final = [(k, v) for k, v in items if k.startswith("final_pass.")]
     first = [(k, v) for k, v in items if k != "final_pass" and not k.startswith("final_pass.")]

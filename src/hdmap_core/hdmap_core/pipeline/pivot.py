@@ -17,7 +17,7 @@ from hdmap_core.geometry import arc_length, wrap_angle
 from hdmap_core.model import Drive
 from hdmap_core.pipeline.aggregation import AggregationConfig, ManyAggregates, ProcessedStore, aggregate_many
 from hdmap_core.pipeline.alignment import AlignmentConfig, StepAlignment, align_step, align_steps_gap, gap_batchable
-from hdmap_core.pipeline.evidence import EvidenceConfig, step_profiles
+from hdmap_core.pipeline.evidence import PROFILE_HALF_LENGTH_M, SEEN_WINDOW_M, EvidenceConfig, step_profiles
 from hdmap_core.pipeline.preprocess import DetectionIndex
 from hdmap_core.pipeline.sampling import PivotSamples, SamplingConfig, pivot_walk, sample_pivot
 from hdmap_core.steps import Segment, StepObservations, StepResult, left_normal
@@ -419,9 +419,9 @@ def _profiles(
         ok = np.abs(wrap_angle(c.drive_yaw - ps.heading[steps[c.cut]])) <= max_diff
         return steps[c.cut[ok]], c.t_m[ok], c.drive[ok], c.drive_s_m[ok]
 
-    cq, ct, cd, cs = crossings(tindex, cfg.half_length_m)
+    cq, ct, cd, cs = crossings(tindex, PROFILE_HALF_LENGTH_M)
     if hits is None:
-        hq, ht, hd, hs = crossings(ctx.index, cfg.half_length_m + cfg.window_m)
+        hq, ht, hd, hs = crossings(ctx.index, PROFILE_HALF_LENGTH_M + SEEN_WINDOW_M)
     else:
         want = np.zeros(ps.n_steps, dtype=bool)
         want[steps] = True

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hdmap_core.errors import ConfigError
+from hdmap_core.checks import check_range
 from hdmap_core.geometry import (
     arc_length,
     interp_angle,
@@ -50,11 +50,8 @@ class PreprocessConfig:
     grid_cell_m: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in ("rdp_epsilon_m", "max_segment_m", "grid_cell_m"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"PreprocessConfig.{name} must be > 0, got {getattr(self, name)!r}")
-        if self.min_length_m < 0:
-            raise ConfigError(f"PreprocessConfig.min_length_m must be >= 0, got {self.min_length_m!r}")
+        check_range(self, ("rdp_epsilon_m", "max_segment_m", "grid_cell_m"), low=0.0, low_open=True)
+        check_range(self, ("min_length_m",), low=0.0)
 
 
 @dataclass(frozen=True)

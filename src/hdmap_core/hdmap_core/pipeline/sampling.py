@@ -21,6 +21,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from hdmap_core.checks import check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.geometry import interp_angle, resample_by_distance, wrap_angle, arc_length
 from hdmap_core.model import Drive, FeatureType
@@ -30,6 +31,22 @@ from hdmap_core.steps import left_normal
 __all__ = ["SamplingConfig", "PivotSamples", "pivot_groups", "pivot_walk", "sample_pivot", "refine_cuts"]
 
 ShiftFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+# Cut-line refinement rules (Sec. IV-A; values the paper leaves open, fixed since the first
+# measurements, docs/pipeline.md "Stages as implemented"):
+#: border samples within this distance beyond the first one form the "first road border" group
+#: whose spread sets dl_s [m]
+_BORDER_WINDOW_M = 2.0
+#: window and per-step weight decay of the weighted moving average of the cut length (older steps
+#: weigh decay^k) ...
+_WIDTH_SMOOTHING_STEPS = 10
+_WIDTH_DECAY = 0.8
+#: ... and window of the plain moving average of the midpoint
+_MIDPOINT_SMOOTHING_STEPS = 5
+#: cut length used before any border was seen [m]
+_DEFAULT_WIDTH_M = 16.0
+#: the refined cut is at least this long [m]
+_MIN_WIDTH_M = 3.0
 
 
 @dataclass(frozen=True)
@@ -43,8 +60,6 @@ class SamplingConfig:
             width"; 30 m reaches the far edge of a 4-lane carriageway from any lane).
         max_heading_diff_deg: samples of drives whose heading differs more from the pivot's are
             dropped as opposite direction (open).
-        border_window_m: border samples within this distance beyond the first one form the
-            "first road border" group whose spread sets dl_s (open).
         min_border_support: a border sample only counts as the first border when at least this
             many border samples lie in its window (1 = the paper's literal first sample; more makes
             one badly localised drive unable to cut the road short).
@@ -60,17 +75,13 @@ class SamplingConfig:
             samples inside the road must not cut it short).
         spread_factor: dl_s = spread_factor * std(first border group) (open).
         margin_m: constant margin dl_c [m] (open).
-        width_smoothing_steps, width_decay: window and per-step weight decay of the weighted
-            moving average of the cut length (older steps weigh decay^k).
-        midpoint_smoothing_steps: window of the plain moving average of the midpoint.
-        default_width_m: cut length used before any border was seen [m].
         open_side_gap_m: on a side of a step without a road border (e.g. a median without a
             barrier), when > 0 the cut ends after the outermost sample of the chain of samples
             (any type) that starts at the pivot and has no gap wider than this (lines of one
             carriageway are a lane apart, a median is wider), plus the spread and constant
-            margins of the samples in ``border_window_m`` from there; 0 (the paper): such a side
-            follows the smoothed width of earlier steps, else ``default_width_m`` [m].
-        min_width_m, max_width_m: clamp of the refined cut length [m].
+            margins of the samples in ``_BORDER_WINDOW_M`` from there; 0 (the paper): such a side
+            follows the smoothed width of earlier steps, else ``_DEFAULT_WIDTH_M`` [m].
+        max_width_m: the refined cut is at most this long [m].
         max_pivot_outside_m: a step whose pivot lies more than this beyond its refined
             (smoothed) cut, i.e. |midpoint offset - the pivot's own offset| > width / 2 + this
             (the pivot's position in the frame of its samples, ``PivotSamples.pose``; the raw
@@ -83,35 +94,21 @@ class SamplingConfig:
     step_m: float = 2.0
     initial_half_length_m: float = 30.0
     max_heading_diff_deg: float = 60.0
-    border_window_m: float = 2.0
     min_border_support: int = 2
     min_border_support_fraction: float = 0.0
     outer_border_reach: bool = False
     spread_factor: float = 2.0
     margin_m: float = 0.5
-    width_smoothing_steps: int = 10
-    width_decay: float = 0.8
-    midpoint_smoothing_steps: int = 5
-    default_width_m: float = 16.0
     open_side_gap_m: float = 0.0
-    min_width_m: float = 3.0
     max_width_m: float = 40.0
     max_pivot_outside_m: float = math.inf
 
     def __post_init__(self) -> None:
-        for name in ("step_m", "initial_half_length_m", "max_heading_diff_deg", "default_width_m", "min_width_m"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"SamplingConfig.{name} must be > 0, got {getattr(self, name)!r}")
-        if not (self.open_side_gap_m >= 0 and np.isfinite(self.open_side_gap_m)):
-            raise ConfigError(f"SamplingConfig.open_side_gap_m must be finite and >= 0, got {self.open_side_gap_m!r}")
-        if not self.max_pivot_outside_m >= 0:
-            raise ConfigError(f"SamplingConfig.max_pivot_outside_m must be >= 0, got {self.max_pivot_outside_m!r}")
-        if self.max_width_m < self.min_width_m:
-            raise ConfigError("SamplingConfig.max_width_m must be >= min_width_m")
-        if not 0 < self.width_decay <= 1:
-            raise ConfigError(f"SamplingConfig.width_decay must be in (0, 1], got {self.width_decay!r}")
-        if self.width_smoothing_steps < 1 or self.midpoint_smoothing_steps < 1 or self.min_border_support < 1:
-            raise ConfigError("SamplingConfig smoothing windows and min_border_support must be >= 1")
+        check_range(self, ("step_m", "initial_half_length_m", "max_heading_diff_deg"), low=0.0, low_open=True)
+        check_range(self, ("open_side_gap_m",), low=0.0, finite=True)
+        check_range(self, ("max_pivot_outside_m", "margin_m", "spread_factor", "min_border_support_fraction"), low=0.0)
+        check_range(self, ("max_width_m",), low=_MIN_WIDTH_M)
+        check_range(self, ("min_border_support",), low=1, integer=True)
 
 
 @dataclass(frozen=True)
@@ -224,7 +221,7 @@ def _side_chain_end(q: np.ndarray, d: np.ndarray, n_steps: int, *, gap_m: float)
 def _side_end(q: np.ndarray, d: np.ndarray, first: np.ndarray, *, config: SamplingConfig) -> np.ndarray:
     """Raw cut end per step on one side, as a distance >= 0 from the pivot (NaN: no border)."""
     n = len(first)
-    in_group = np.isfinite(first[q]) & (d >= first[q]) & (d <= first[q] + config.border_window_m)
+    in_group = np.isfinite(first[q]) & (d >= first[q]) & (d <= first[q] + _BORDER_WINDOW_M)
     qg, dg = q[in_group], d[in_group]
     cnt = np.bincount(qg, minlength=n).astype(float)
     s1 = np.bincount(qg, weights=dg, minlength=n)
@@ -332,7 +329,7 @@ def _refine(
         mask = border & side
         q, d = step[mask], sign * t_m[mask]
         qa, da = step[side], sign * t_m[side]
-        first = _side_first_border(q, d, n_steps, window_m=config.border_window_m, support=support)
+        first = _side_first_border(q, d, n_steps, window_m=_BORDER_WINDOW_M, support=support)
         end = _side_end(q, d, first, config=config)
         if config.open_side_gap_m > 0 and np.isnan(end).any():
             chain = _side_chain_end(qa, da, n_steps, gap_m=config.open_side_gap_m)
@@ -343,14 +340,14 @@ def _refine(
                      else np.full(n_steps, np.nan))
     left_end, right_end = ends[0], -ends[1]
     width_raw = left_end - right_end
-    width = _fill(_causal_weighted_mean(width_raw, config.width_smoothing_steps, config.width_decay), config.default_width_m)
-    width = np.clip(width, config.min_width_m, config.max_width_m)
+    width = _fill(_causal_weighted_mean(width_raw, _WIDTH_SMOOTHING_STEPS, _WIDTH_DECAY), _DEFAULT_WIDTH_M)
+    width = np.clip(width, _MIN_WIDTH_M, config.max_width_m)
     mid_raw = np.where(
         np.isfinite(width_raw),
         0.5 * (left_end + right_end),
         np.where(np.isfinite(left_end), left_end - 0.5 * width, right_end + 0.5 * width),
     )
-    mid = _fill(_causal_weighted_mean(mid_raw, config.midpoint_smoothing_steps, 1.0), 0.0)
+    mid = _fill(_causal_weighted_mean(mid_raw, _MIDPOINT_SMOOTHING_STEPS, 1.0), 0.0)
     return mid, width, reach[1], reach[0]
 
 
