@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from hdmap_core.errors import ConfigError
+from hdmap_core.checks import check_range
 
 __all__ = ["ConnectionConfig"]
 
@@ -186,45 +186,19 @@ class ConnectionConfig:
     line_frame_bend_deg: float = 0.0
 
     def __post_init__(self) -> None:
-        if not self.max_gap_m >= 0:
-            raise ConfigError(f"max_gap_m must be >= 0, got {self.max_gap_m}")
-        for name in ("max_mean_angle_deg", "max_edge_angle_deg", "bridge_edge_angle_deg"):
-            v = getattr(self, name)
-            if not 0 < v <= 90:
-                raise ConfigError(f"{name} must be in (0, 90], got {v}")
-        if not self.edge_slack_m >= 0:
-            raise ConfigError(f"edge_slack_m must be >= 0, got {self.edge_slack_m}")
-        if not 0 < self.line_check_max_deg <= 180:
-            raise ConfigError(f"line_check_max_deg must be in (0, 180], got {self.line_check_max_deg}")
-        if not self.min_separation_m >= 0:
-            raise ConfigError(f"min_separation_m must be >= 0, got {self.min_separation_m}")
-        if not 0 <= self.min_support_share <= 1:
-            raise ConfigError(f"min_support_share must be in [0, 1], got {self.min_support_share}")
-        if not (self.support_window_m >= 0 and math.isfinite(self.support_window_m)):
-            raise ConfigError(f"support_window_m must be finite and >= 0, got {self.support_window_m}")
-        if not (self.lone_line_gap_m >= 0 and math.isfinite(self.lone_line_gap_m)):
-            raise ConfigError(f"lone_line_gap_m must be finite and >= 0, got {self.lone_line_gap_m}")
-        if self.lone_line_border_gap_m is not None and not (
-            self.lone_line_border_gap_m >= 0 and math.isfinite(self.lone_line_border_gap_m)
-        ):
-            raise ConfigError(f"lone_line_border_gap_m must be None or finite and >= 0, got {self.lone_line_border_gap_m}")
-        if not (self.topo_pivot_lane_m >= 0 and math.isfinite(self.topo_pivot_lane_m)):
-            raise ConfigError(f"topo_pivot_lane_m must be finite and >= 0, got {self.topo_pivot_lane_m}")
-        if self.window_min_count < 1:
-            raise ConfigError(f"window_min_count must be >= 1, got {self.window_min_count}")
-        if not (self.leftover_other_type_m >= 0 and math.isfinite(self.leftover_other_type_m)):
-            raise ConfigError(f"leftover_other_type_m must be finite and >= 0, got {self.leftover_other_type_m}")
-        if not self.leftover_max_m >= 0:
-            raise ConfigError(f"leftover_max_m must be >= 0, got {self.leftover_max_m}")
-        if not (self.tile_size_m > 0 and math.isfinite(self.tile_size_m)):
-            raise ConfigError(f"tile_size_m must be > 0, got {self.tile_size_m}")
-        for name in (
-            "tip_frame_deg", "tip_frame_min_m", "tip_frame_max_deg", "bridge_edge_min_m",
-            "line_frame_deg", "line_frame_min_m", "line_frame_max_deg", "line_frame_bend_deg",
-        ):
-            v = getattr(self, name)
-            if not (v >= 0 and math.isfinite(v)):
-                raise ConfigError(f"{name} must be finite and >= 0, got {v}")
+        check_range(self, ("max_gap_m", "edge_slack_m", "min_separation_m", "leftover_max_m"), low=0.0)
+        check_range(self, ("max_mean_angle_deg", "max_edge_angle_deg", "bridge_edge_angle_deg"), low=0.0, high=90.0,
+                    low_open=True)
+        check_range(self, ("line_check_max_deg",), low=0.0, high=180.0, low_open=True)
+        check_range(self, ("min_support_share",), low=0.0, high=1.0)
+        check_range(self, ("support_window_m", "lone_line_gap_m", "topo_pivot_lane_m", "leftover_other_type_m",
+                           "tip_frame_deg", "tip_frame_min_m", "tip_frame_max_deg", "bridge_edge_min_m",
+                           "line_frame_deg", "line_frame_min_m", "line_frame_max_deg", "line_frame_bend_deg"),
+                    low=0.0, finite=True)
+        if self.lone_line_border_gap_m is not None:
+            check_range(self, ("lone_line_border_gap_m",), low=0.0, finite=True)
+        check_range(self, ("window_min_count",), low=1)
+        check_range(self, ("tile_size_m",), low=0.0, low_open=True, finite=True)
 
     @classmethod
     def paper(cls) -> ConnectionConfig:

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-from hdmap_core.errors import ConfigError
+from hdmap_core.checks import check_range
 from hdmap_core.pipeline.evidence import EvidenceConfig
 
 __all__ = ["StitchConfig"]
@@ -424,81 +423,27 @@ class StitchConfig:
     through_lines: bool = True
 
     def __post_init__(self) -> None:
-        for name in (
-            "max_distance_m",
-            "angle_free_m",
-            "behind_tol_m",
-            "feature_max_m",
-            "type_mismatch_cost_m",
-            "duplicate_m",
-            "overlap_radius_m",
-            "overlap_search_m",
-            "overlap_along_m",
-            "overlap_feature_m",
-            "overlap_share",
-            "join_radius_m",
-            "join_overlap_m",
-            "branch_lateral_m",
-            "branch_radius_m",
-            "branch_divergence_m",
-            "twin_lateral_m",
-            "twin_along_m",
-            "join_lateral_m",
-            "join_angle_deg",
-            "join_line_heading_m",
-            "join_line_heading_deg",
-            "join_gap_check_m",
-            "join_gap_lateral_m",
-            "join_gap_heading_deg",
-            "join_line_cross_deg",
-            "join_line_cross_lateral_m",
-            "join_other_marking_m",
-            "fill_spacing_m",
-            "min_isolated_length_m",
-            "refuted_piece_min_m",
-            "inner_border_max_m",
-            "min_type_run_m",
-            "sparse_type_run_m",
-            "single_drive_run_m",
-            "single_drive_end_run_m",
-            "edge_line_solid_m",
-            "spur_max_m",
-            "end_stub_max_m",
-            "end_stub_side_m",
-            "end_stub_slope",
-            "end_stub_cover_m",
-            "bubble_max_m",
-            "gore_max_m",
-            "path_search_m",
-            "track_search_m",
-            "track_max_gap_m",
-            "track_max_jump_m",
-            "track_bridge_m",
-            "track_bridge_leave_margin_m",
-            "track_settle_deg",
-            "track_rejoin_m",
-            "path_curvature_m",
-        ):
-            v = getattr(self, name)
-            if not (v >= 0 and math.isfinite(v)):
-                raise ConfigError(f"{name} must be finite and >= 0, got {v}")
-        for name in (
+        check_range(self, (
+            "max_distance_m", "angle_free_m", "behind_tol_m", "feature_max_m", "type_mismatch_cost_m",
+            "duplicate_m", "overlap_radius_m", "overlap_search_m", "overlap_along_m", "overlap_feature_m",
+            "overlap_share", "join_radius_m", "join_overlap_m", "branch_lateral_m", "branch_radius_m",
+            "branch_divergence_m", "twin_lateral_m", "twin_along_m", "join_lateral_m", "join_angle_deg",
+            "join_line_heading_m", "join_line_heading_deg", "join_gap_check_m", "join_gap_lateral_m",
+            "join_gap_heading_deg", "join_line_cross_deg", "join_line_cross_lateral_m", "join_other_marking_m",
+            "fill_spacing_m", "min_isolated_length_m", "refuted_piece_min_m", "inner_border_max_m",
+            "min_type_run_m", "sparse_type_run_m", "single_drive_run_m", "single_drive_end_run_m",
+            "edge_line_solid_m", "spur_max_m", "end_stub_max_m", "end_stub_side_m", "end_stub_slope",
+            "end_stub_cover_m", "bubble_max_m", "gore_max_m", "path_search_m", "track_search_m",
+            "track_max_gap_m", "track_max_jump_m", "track_bridge_m", "track_bridge_leave_margin_m",
+            "track_settle_deg", "track_rejoin_m", "path_curvature_m",
+        ), low=0.0, finite=True)
+        check_range(self, (
             "max_heading_diff_deg", "max_connection_angle_deg", "path_max_turn_deg", "side_link_angle_deg",
             "track_bridge_heading_deg", "partner_angle_deg",
-        ):
-            v = getattr(self, name)
-            if not 0 < v <= 180:
-                raise ConfigError(f"{name} must be in (0, 180], got {v}")
-        for name in ("join_gap_coverage", "side_link_overlap"):
-            v = getattr(self, name)
-            if not 0.0 <= v <= 1.0:
-                raise ConfigError(f"{name} must be in [0, 1], got {v}")
-        if self.refuted_piece_max_drives < 1:
-            raise ConfigError(f"refuted_piece_max_drives must be >= 1, got {self.refuted_piece_max_drives}")
-        if self.inner_border_max_drives < 1:
-            raise ConfigError(f"inner_border_max_drives must be >= 1, got {self.inner_border_max_drives}")
-        if self.inner_border_dashed_drives < 0:
-            raise ConfigError(f"inner_border_dashed_drives must be >= 0, got {self.inner_border_dashed_drives}")
+        ), low=0.0, high=180.0, low_open=True)
+        check_range(self, ("join_gap_coverage", "side_link_overlap"), low=0.0, high=1.0)
+        check_range(self, ("refuted_piece_max_drives", "inner_border_max_drives"), low=1)
+        check_range(self, ("inner_border_dashed_drives",), low=0)
 
     @classmethod
     def paper(cls) -> StitchConfig:
