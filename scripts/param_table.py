@@ -26,7 +26,7 @@ TABLE = REPO / "docs" / "parameters.md"
 # Units read from a name's suffix when the description names none in brackets.
 _SUFFIX_UNITS = (("_per_m2", "1/m^2"), ("_m", "m"), ("_deg", "deg"), ("_s", "s"))
 # Groups that repeat another group's fields: listed only where their defaults differ.
-_REPEATS = {"final_pass.sampling": "sampling", "final_pass.alignment": "alignment", "stitching.fill_evidence": "evidence"}
+_REPEATS = {"stitching.fill_evidence": "evidence"}
 
 
 def _doc_entries(cls: type) -> dict[str, str]:

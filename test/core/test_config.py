@@ -35,8 +35,14 @@ def test_the_defaults_are_the_recommended_method():
     cfg = PipelineConfig()
     assert preset("default") == cfg and cfg.name == "default"
     assert cfg.final_pass is not None and cfg.use_global_adjustment  # two passes with the adjustment
-    assert cfg.alignment.solver == "closed_form" and cfg.final_pass.alignment.clustering == "gap"
-    assert cfg.final_pass.sampling.outer_border_reach and not cfg.sampling.outer_border_reach
+    assert cfg.alignment.solver == "closed_form" and cfg.final_alignment.clustering == "gap"
+    assert cfg.final_sampling.outer_border_reach and not cfg.sampling.outer_border_reach
+    # the final pass keeps the adjustment's offsets and differs from the first only by PassConfig
+    assert cfg.final_alignment == dataclasses.replace(
+        cfg.alignment, estimate_offsets=False, clustering="gap", prior_weight=0.0, sparse_step_max_drives=4,
+        sparse_singletons_accept=True, sparse_type_clash_max_drives=3, sparse_disjoint_apart_m=2.0,
+        sparse_type_clash_keep=True)
+    assert cfg.final_sampling == dataclasses.replace(cfg.sampling, outer_border_reach=True)
     assert cfg.stitching.fill_evidence == cfg.evidence is not None
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.final_pass = None  # type: ignore[misc]
@@ -123,40 +129,37 @@ def test_the_final_pass_is_switched_and_set_on_its_own():
     base = PipelineConfig()
     one = config_from(base, {"final_pass": None})
     assert one.final_pass is None and not one.use_global_adjustment
-    with pytest.raises(ConfigError, match="final_pass.alignment.n_iterations: the final pass is off"):
-        config_from("paper", {"final_pass.alignment.n_iterations": 2})
-    # switched on, it samples and aligns as the first pass; its fields can be set with it, any order
-    on = config_from("paper", {"final_pass.alignment.n_iterations": 2, "final_pass": True})
-    assert on.final_pass == PassConfig(sampling=on.sampling, alignment=dataclasses.replace(on.alignment, n_iterations=2))
-    assert on.alignment.n_iterations != 2
+    assert (one.final_sampling, one.final_alignment) == (one.sampling, one.alignment)  # one pass
+    with pytest.raises(ConfigError, match="final_pass.sparse_step_max_drives: the final pass is off"):
+        config_from("paper", {"final_pass.sparse_step_max_drives": 2})
+    # switched on (the recommended final pass), its fields can be set with it, in any order
+    on = config_from("paper", {"final_pass.sparse_step_max_drives": 2, "final_pass": True})
+    assert on.final_pass == PassConfig(sparse_step_max_drives=2) and on.alignment.sparse_step_max_drives == 0
+    assert on.final_alignment.sparse_step_max_drives == 2 and not on.final_alignment.estimate_offsets
     with pytest.raises(ConfigError, match="final_pass=1: final_pass is a group of settings"):
         config_from(base, {"final_pass": 1})
-    with pytest.raises(ConfigError, match="final_pass.alignment.nope: AlignmentConfig has no field 'nope'"):
-        config_from(base, {"final_pass.alignment.nope": 1})
-    # the passes share the pivots' steps: the final pass cannot have a step of its own
-    with pytest.raises(ConfigError, match="final_pass.sampling.step_m: .*cannot differ in step_m"):
-        config_from(base, {"final_pass.sampling.step_m": 4.0})
-    with pytest.raises(ConfigError, match="cannot differ in step_m"):
-        dataclasses.replace(base, final_pass=PassConfig(sampling=SamplingConfig(step_m=4.0)))
+    with pytest.raises(ConfigError, match="final_pass.nope: PassConfig has no field 'nope'"):
+        config_from(base, {"final_pass.nope": 1})
+    with pytest.raises(ConfigError, match="final_pass.sparse_disjoint_apart_m: PassConfig.sparse_disjoint_apart_m must be"):
+        config_from(base, {"final_pass.sparse_disjoint_apart_m": -1.0})
 
 
-def test_a_first_pass_change_reaches_the_final_pass_where_both_agree():
+def test_a_first_pass_change_reaches_the_final_pass_unless_the_pass_sets_it():
     base = PipelineConfig()
-    assert base.final_pass is not None
     cfg = config_from(base, {"sampling.max_pivot_outside_m": 1.0, "alignment.robust_loss": False, "sampling.step_m": 3.0})
-    assert cfg.final_pass is not None
-    assert cfg.sampling.max_pivot_outside_m == cfg.final_pass.sampling.max_pivot_outside_m == 1.0
-    assert cfg.alignment.robust_loss is False and cfg.final_pass.alignment.robust_loss is False
-    assert cfg.final_pass.sampling.step_m == 3.0
-    # outer_border_reach is on only in the final pass, clustering differs: each pass keeps its own
-    cfg = config_from(base, {"sampling.outer_border_reach": True, "alignment.clustering": "silhouette"})
-    assert cfg.final_pass == base.final_pass and cfg.alignment.clustering == "silhouette"
-    # a final-pass key sets that pass alone, in either order
-    for items in ({"sampling.max_pivot_outside_m": 1.0, "final_pass.sampling.max_pivot_outside_m": 3.0},
-                  {"final_pass.sampling.max_pivot_outside_m": 3.0, "sampling.max_pivot_outside_m": 1.0}):
+    assert cfg.sampling.max_pivot_outside_m == cfg.final_sampling.max_pivot_outside_m == 1.0
+    assert cfg.alignment.robust_loss is False and cfg.final_alignment.robust_loss is False
+    assert cfg.final_sampling.step_m == 3.0
+    # outer_border_reach and the sparse rules are the final pass's own: a first-pass key leaves them
+    cfg = config_from(base, {"sampling.outer_border_reach": True, "alignment.sparse_step_max_drives": 1,
+                             "alignment.clustering": "silhouette"})
+    assert cfg.final_alignment == base.final_alignment and cfg.final_sampling.outer_border_reach
+    assert cfg.alignment.clustering == "silhouette" and cfg.sampling.outer_border_reach
+    # ... and a final-pass key sets that pass alone, in either order
+    for items in ({"sampling.outer_border_reach": True, "final_pass.outer_border_reach": False},
+                  {"final_pass.outer_border_reach": False, "sampling.outer_border_reach": True}):
         cfg = config_from(base, items)
-        assert cfg.final_pass is not None
-        assert (cfg.sampling.max_pivot_outside_m, cfg.final_pass.sampling.max_pivot_outside_m) == (1.0, 3.0)
+        assert (cfg.sampling.outer_border_reach, cfg.final_sampling.outer_border_reach) == (True, False)
 
 
 def test_adjustment_settings_are_changeable_with_set():
@@ -212,7 +215,7 @@ def test_a_knob_made_a_constant_is_refused_by_name_and_its_constant_exists(key):
     import importlib
     import re
 
-    keys = [key] + ([f"final_pass.{key}"] if key.startswith(("sampling.", "alignment.")) else [])
+    keys = [key]
     keys += [f"stitching.fill_{key}"] if key.startswith("evidence.") else []
     for k in keys:
         with pytest.raises(ConfigError, match=rf"^{re.escape(k)}: no such setting any more \(a fixed rule now"):

@@ -336,7 +336,7 @@ def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
     from hdmap_core.pipeline import presets
 
     default = presets.preset("default")
-    assert default.final_pass.alignment.sparse_type_clash_keep and not default.alignment.sparse_type_clash_keep
+    assert default.final_alignment.sparse_type_clash_keep and not default.alignment.sparse_type_clash_keep
     assert not AlignmentConfig().sparse_type_clash_keep
     for name in ("paper", "naive"):
         p = presets.preset(name)
@@ -427,8 +427,8 @@ def test_sparse_step_config_checks():
     assert presets.preset("paper").alignment.sparse_step_max_drives == 0
     default = presets.preset("default")
     assert default.alignment.sparse_step_max_drives == 3
-    assert default.final_pass.alignment.sparse_step_max_drives == 4
-    assert default.final_pass.alignment.sparse_type_clash_max_drives == default.alignment.sparse_step_max_drives
+    assert default.final_alignment.sparse_step_max_drives == 4
+    assert default.final_alignment.sparse_type_clash_max_drives == default.alignment.sparse_step_max_drives
 
 
 def _gap_final_config(**kw):
@@ -530,7 +530,7 @@ def test_sparse_step_of_two_drives_sharing_no_line_accepted_when_apart():
     from hdmap_core.pipeline import presets
 
     default = presets.preset("default")
-    assert default.final_pass.alignment.sparse_disjoint_apart_m == 2.0
+    assert default.final_alignment.sparse_disjoint_apart_m == 2.0
     assert default.alignment.sparse_disjoint_apart_m == 0.0
     for name in ("paper", "naive"):
         p = presets.preset(name)

@@ -215,9 +215,8 @@ def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
     a = make_drive("a", lane=-3.5, bias=0.0, lines=((-6.5, B), (-5.25, S), (-1.75, D), (1.75, D)))
     b = make_drive("b", lane=0.0, bias=0.0, lines=((-6.5, B), (-1.75, D), (1.75, D), (8.0, B)))
     default = PipelineConfig()
-    assert default.final_pass is not None
-    assert default.final_pass.sampling.outer_border_reach and not default.sampling.outer_border_reach
-    without = config_from(default, {"final_pass.sampling.outer_border_reach": False})
+    assert default.final_sampling.outer_border_reach and not default.sampling.outer_border_reach
+    without = config_from(default, {"final_pass.outer_border_reach": False})
 
     def far_border_points(config: PipelineConfig) -> int:
         m = build_map([a, b], config=config, seed=0).map
@@ -241,10 +240,9 @@ def test_steps_off_their_pivots_road_are_not_aligned():
     B, D = FeatureType.ROAD_BORDER, FeatureType.DASHED
     far = [make_drive(k, lane=0.0, bias=0.0, lines=((20.0, B), (16.5, D))) for k in "ab"]
     default = PipelineConfig()
-    assert default.final_pass is not None
-    assert default.sampling.max_pivot_outside_m == 2.0 and default.final_pass.sampling.max_pivot_outside_m == 2.0
+    assert default.sampling.max_pivot_outside_m == 2.0 and default.final_sampling.max_pivot_outside_m == 2.0
     off = config_from(default, {"sampling.max_pivot_outside_m": float("inf")})  # both passes
-    assert off.final_pass is not None and off.final_pass.sampling.max_pivot_outside_m == float("inf")
+    assert off.final_sampling.max_pivot_outside_m == float("inf")
 
     def valid_steps(config: PipelineConfig) -> int:
         res = map_stretches(far, config=config, seed=0)

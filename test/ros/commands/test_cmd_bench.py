@@ -107,7 +107,7 @@ def test_set_changes_every_preset_run_and_names_the_rows(monkeypatch, tmp_path, 
     [
         ("alignment.nope=1", "AlignmentConfig has no field 'nope'"),
         # the final pass is off in paper and naive: the message names where it fits
-        ("final_pass.alignment.robust_loss=false", "(preset paper); it fits default: choose the presets with --presets"),
+        ("final_pass.outer_border_reach=false", "(preset paper); it fits default: choose the presets with --presets"),
     ],
 )
 def test_set_that_does_not_fit_a_preset_is_named_before_anything_is_simulated(change, message, tmp_path, capsys):

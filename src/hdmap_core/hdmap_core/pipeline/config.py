@@ -10,8 +10,9 @@ reading; the recommended values of those stages are the module constants below.
 
 Two passes (Sec. IV plus ``hdmap_core.pipeline.adjustment``): with ``final_pass`` set, a first pass
 collects per-step observations, one global adjustment estimates every drive's offset curve from
-them, and the final pass samples and aligns again with the samples shifted by that curve, with its
-own sampling and EM settings (``PassConfig``). ``final_pass=None``: one pass, no adjustment.
+them, and the final pass samples and aligns again with the samples shifted by that curve: the
+first pass's settings without offset estimation and with the few fields of ``PassConfig``
+instead. ``final_pass=None``: one pass, no adjustment.
 """
 
 from __future__ import annotations
@@ -38,11 +39,7 @@ __all__ = [
     "RECOMMENDED_AGGREGATION",
     "RECOMMENDED_CONNECTION",
     "RECOMMENDED_STITCHING",
-    "SHARED_SAMPLING_FIELDS",
 ]
-
-#: Sampling fields both passes share: the pivots' steps and the cut-line intersections.
-SHARED_SAMPLING_FIELDS = ("step_m", "initial_half_length_m", "max_heading_diff_deg")
 
 # A step whose pivot lies over 2 m beyond its smoothed cut is on no road the cut describes
 # (junctions: docs/pipeline.md, "Steps off their pivot's road"); an open side (no border) ends at
@@ -79,32 +76,6 @@ RECOMMENDED_AGGREGATION = AggregationConfig(
     # two drives' border on a line is a border there too (docs/pipeline.md, "Borders on lines")
     border_beside_marking_drives=2,
     common_sigma_m=float(math.hypot(_PRIOR.bias_sigma_m, _PRIOR.drift_sigma_m)),
-)
-
-# The final pass (samples corrected): a side without a first border keeps its samples up to a
-# border only one drive saw when nothing lies beyond it (docs/pipeline.md, "Far borders one drive
-# saw"); the first pass, which feeds the adjustment, does not.
-_FINAL_SAMPLING = replace(RECOMMENDED_SAMPLING, outer_border_reach=True)
-
-# The final pass's EM (docs/pipeline.md, sparse fleets; the first pass, whose steps feed the
-# adjustment, keeps its rules): offsets come from the adjustment, so plain gap clustering.
-_FINAL_ALIGNMENT = replace(
-    RECOMMENDED_ALIGNMENT,
-    clustering="gap",
-    prior_weight=0.0,
-    estimate_offsets=False,
-    # a sparse step of singletons and one shared cluster is accepted when tight, and steps of
-    # 4 drives are judged by the sparse-step rule too (type-clashing singletons still dropped
-    # only with <= 3)
-    sparse_step_max_drives=4,
-    sparse_singletons_accept=True,
-    sparse_type_clash_max_drives=3,
-    # two drives that share no line but contradict none (each sees lines the other misses, 2+ m
-    # apart) are accepted as one drive alone would be
-    sparse_disjoint_apart_m=2.0,
-    # drives that place a line at one spot but disagree on solid/dashed saw a line: kept, of
-    # unknown type, typed along its polyline (docs/pipeline.md, "Type clashes kept")
-    sparse_type_clash_keep=True,
 )
 
 # Negative evidence judged where >= 2 detections are expected (3 in the class): the 30-drive
@@ -200,18 +171,60 @@ RECOMMENDED_STITCHING = StitchConfig(
 
 @dataclass(frozen=True)
 class PassConfig:
-    """How the final pass samples and aligns the drives once the adjustment has shifted them.
+    """Where the final pass samples and aligns unlike the first.
+
+    The final pass keeps the offsets of the adjustment: its EM estimates none (no M-step, no prior,
+    gap clustering of the shifted samples; ``PipelineConfig.final_alignment``). Everything else is
+    the first pass's ``sampling`` / ``alignment`` with these fields instead (docs/pipeline.md,
+    sparse fleets; the first pass, whose steps feed the adjustment, keeps its own rules).
 
     Attributes:
-        sampling: lateral sampling of the final pass. Its ``SHARED_SAMPLING_FIELDS`` (step,
-            initial cut, heading limit) must equal the first pass's: the passes share the pivots'
-            steps and the cut-line intersections.
-        alignment: the final pass's per-step EM (offsets already corrected: typically no
-            estimation, gap clustering).
+        outer_border_reach: ``SamplingConfig.outer_border_reach`` of the final pass: a side
+            without a first border keeps its samples up to a border only one drive saw when
+            nothing lies beyond it ("Far borders one drive saw").
+        sparse_step_max_drives: ``AlignmentConfig.sparse_step_max_drives`` of the final pass:
+            steps of up to 4 drives are judged by the sparse-step rule.
+        sparse_singletons_accept: ``AlignmentConfig.sparse_singletons_accept``: a sparse step of
+            singletons and one shared cluster is accepted when tight.
+        sparse_type_clash_max_drives: ``AlignmentConfig.sparse_type_clash_max_drives``:
+            type-clashing singletons dropped only in steps of <= 3 drives.
+        sparse_disjoint_apart_m: ``AlignmentConfig.sparse_disjoint_apart_m``: two drives that
+            share no line but contradict none (their lines 2+ m apart) are accepted as one drive
+            alone would be [m].
+        sparse_type_clash_keep: ``AlignmentConfig.sparse_type_clash_keep``: drives that place a
+            line at one spot but disagree on solid/dashed saw a line: kept, of unknown type
+            ("Type clashes kept").
     """
 
-    sampling: SamplingConfig = _FINAL_SAMPLING
-    alignment: AlignmentConfig = _FINAL_ALIGNMENT
+    outer_border_reach: bool = True
+    sparse_step_max_drives: int = 4
+    sparse_singletons_accept: bool = True
+    sparse_type_clash_max_drives: int = 3
+    sparse_disjoint_apart_m: float = 2.0
+    sparse_type_clash_keep: bool = True
+
+    def __post_init__(self) -> None:
+        check_range(self, ("sparse_step_max_drives", "sparse_type_clash_max_drives"), low=0, integer=True)
+        check_range(self, ("sparse_disjoint_apart_m",), low=0.0, finite=True)
+
+    def sampling(self, first: SamplingConfig) -> SamplingConfig:
+        """The final pass's sampling: ``first`` (the first pass's) with this pass's fields."""
+        return replace(first, outer_border_reach=self.outer_border_reach)
+
+    def alignment(self, first: AlignmentConfig) -> AlignmentConfig:
+        """The final pass's EM: ``first`` without offset estimation, with this pass's fields."""
+        return replace(
+            first,
+            # RULE: the final pass keeps the adjustment's offsets (its samples are shifted by them)
+            estimate_offsets=False,
+            clustering="gap",
+            prior_weight=0.0,
+            sparse_step_max_drives=self.sparse_step_max_drives,
+            sparse_singletons_accept=self.sparse_singletons_accept,
+            sparse_type_clash_max_drives=self.sparse_type_clash_max_drives,
+            sparse_disjoint_apart_m=self.sparse_disjoint_apart_m,
+            sparse_type_clash_keep=self.sparse_type_clash_keep,
+        )
 
 
 @dataclass(frozen=True)
@@ -223,7 +236,9 @@ class PipelineConfig:
             pass aggregates with the same ``aggregation``).
         adjustment: the global joint per-drive offset adjustment between the passes
             (``hdmap_core.pipeline.adjustment``); used only with ``final_pass``.
-        final_pass: the second pass's own sampling and EM; None: one pass, no adjustment.
+        final_pass: where the final pass (after the adjustment) samples and aligns unlike the
+            first (``PassConfig``; its configs: ``final_sampling``, ``final_alignment``); None:
+            one pass, no adjustment.
         observation_stride: with ``final_pass``, the first pass (it only feeds the adjustment,
             whose knots lie 200 m apart) runs the EM at every this-th step; 1 = every step.
         connection: Sec. V (``hdmap_core.graph.connection``).
@@ -253,13 +268,6 @@ class PipelineConfig:
 
     def __post_init__(self) -> None:
         check_range(self, ("observation_stride",), low=1, integer=True)
-        if self.final_pass is not None:
-            shared = [f for f in SHARED_SAMPLING_FIELDS if getattr(self.final_pass.sampling, f) != getattr(self.sampling, f)]
-            if shared:
-                raise ConfigError(
-                    f"PipelineConfig.final_pass.sampling cannot differ in {', '.join(shared)}: the passes share "
-                    f"the pivots' steps ({', '.join(SHARED_SAMPLING_FIELDS)} are the first pass's)"
-                )
         # The stitcher's fill test reads the profiles ``evidence`` makes; without them it would
         # silently test nothing.
         if self.stitching.fill_evidence is not None and self.evidence is None:
@@ -267,6 +275,16 @@ class PipelineConfig:
                 "PipelineConfig.stitching.fill_evidence needs the negative-evidence profiles of "
                 "PipelineConfig.evidence, which is None: set both (or neither)"
             )
+
+    @property
+    def final_sampling(self) -> SamplingConfig:
+        """The final pass's sampling (``sampling`` when there is no final pass)."""
+        return self.sampling if self.final_pass is None else self.final_pass.sampling(self.sampling)
+
+    @property
+    def final_alignment(self) -> AlignmentConfig:
+        """The final pass's EM (``alignment`` when there is no final pass)."""
+        return self.alignment if self.final_pass is None else self.final_pass.alignment(self.alignment)
 
     @property
     def use_global_adjustment(self) -> bool:

@@ -315,8 +315,7 @@ class _TwoPasses:
             ends = cfg.final_pass is None or self.observations_only
             return PivotContext(sampling=cfg.sampling, alignment=cfg.alignment, observations=observations,
                                 stride=self.first_stride, evidence=self.evidence if ends else None, **common)
-        assert cfg.final_pass is not None  # noqa: S101 - map_stretches checks
-        return PivotContext(sampling=cfg.final_pass.sampling, alignment=cfg.final_pass.alignment,
+        return PivotContext(sampling=cfg.final_sampling, alignment=cfg.final_alignment,
                             shift=_shift_fn(final, self.index.drive_ids), evidence=self.evidence, **common)
 
     def _pass(self, share: np.ndarray, model: OffsetModel | None, report: ProgressFn | None) -> _PassResult:

@@ -5,11 +5,11 @@ call :func:`config_from`. A key is a dotted path into ``PipelineConfig``
 (``stitching.track_rejoin_m``, ``final_pass.alignment.clustering``); a value is JSON (numbers,
 true/false, null, lists), ``inf``/``-inf``, or else the string itself (:func:`parse_override`).
 
-The two passes: a first-pass key (``sampling.*``, ``alignment.*``) also sets the final pass's field
-where both passes agree on it (so a change reaches the final pass unless that pass differs there on
-purpose); a ``final_pass.sampling.*`` / ``final_pass.alignment.*`` key sets the final pass alone.
-``final_pass=null`` drops the final pass and the adjustment; ``final_pass=true`` adds one that
-samples and aligns as the first pass. Final-pass keys apply after the others, whatever their order.
+The two passes: the final pass samples and aligns as the first except where ``PassConfig`` says
+otherwise, so a ``sampling.*`` / ``alignment.*`` key reaches both passes and a ``final_pass.*`` key
+(``final_pass.outer_border_reach``) sets the final pass alone. ``final_pass=null`` drops the final
+pass and the adjustment; ``final_pass=true`` adds the recommended one. The switch applies first and
+final-pass keys last, whatever their order.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ def _fixed(module: str, constant: str, value: object) -> str:
 REMOVED_KEYS: dict[str, str] = {
     "use_global_adjustment": "the adjustment runs exactly when there is a final pass: set final_pass=null "
     "(one pass, no adjustment) or final_pass=true",
-    "final_sampling": "the final pass is explicit now: use final_pass.sampling.<field>",
-    "final_alignment": "the final pass is explicit now: use final_pass.alignment.<field>",
+    "final_sampling": "the final pass is explicit now: final_pass.<field> (PassConfig)",
+    "final_alignment": "the final pass is explicit now: final_pass.<field> (PassConfig)",
     "sampling.border_window_m": _fixed("sampling", "_BORDER_WINDOW_M", 2.0),
     "sampling.width_smoothing_steps": _fixed("sampling", "_WIDTH_SMOOTHING_STEPS", 10),
     "sampling.width_decay": _fixed("sampling", "_WIDTH_DECAY", 0.8),
@@ -77,7 +77,6 @@ def _removed(key: str) -> str | None:
     return REMOVED_KEYS.get(plain) or REMOVED_KEYS.get(key.partition(".")[0])
 
 
-_PASS_GROUPS = ("sampling", "alignment")
 
 
 def parse_override(text: str) -> tuple[str, object]:
@@ -130,21 +129,19 @@ def config_from(
     first = [(k, v) for k, v in items if k != "final_pass" and not k.startswith("final_pass.")]
     for key, value in switches:
         config = _switch_final_pass(config, key, value)
-    for key, value in first:
-        config = _set_first_pass(config, key, value)
-    for key, value in final:
-        if config.final_pass is None:
+    for key, value in first + final:
+        if key.startswith("final_pass.") and config.final_pass is None:
             raise ConfigError(f"{key}: the final pass is off in this config (final_pass is null: set final_pass=true)")
-        config = _checked(lambda c, k=key, v=value: replace(c, final_pass=_override(c.final_pass, k[len("final_pass."):], v, k)), config, key)
+        config = _checked(config, key, value)
     if items and not config.name.endswith("+"):
         config = replace(config, name=f"{config.name}+")
     return config
 
 
-def _checked(build, config: PipelineConfig, key: str) -> PipelineConfig:  # noqa: ANN001 - a one-line lambda
-    """``build(config)``, a ``PipelineConfig`` check that fails named by ``key``."""
+def _checked(config: PipelineConfig, key: str, value: object) -> PipelineConfig:
+    """``config`` with ``key`` set; a failing ``PipelineConfig`` check is named by ``key``."""
     try:
-        return build(config)
+        return _override(config, key, value, key)  # type: ignore[return-value]
     except ConfigError as err:
         if str(err).startswith(key):
             raise
@@ -152,41 +149,17 @@ def _checked(build, config: PipelineConfig, key: str) -> PipelineConfig:  # noqa
 
 
 def _switch_final_pass(config: PipelineConfig, key: str, value: object) -> PipelineConfig:
-    """``final_pass=null|false`` (one pass) or ``final_pass=true`` (a final pass like the first)."""
+    """``final_pass=null|false`` (one pass) or ``final_pass=true`` (the recommended final pass)."""
     if value is None or value is False:
         return replace(config, final_pass=None)
     if value is True:
         if config.final_pass is not None:
             return config
-        return replace(config, final_pass=PassConfig(sampling=config.sampling, alignment=config.alignment))
+        return replace(config, final_pass=PassConfig())
     raise ConfigError(
         f"{key}={_shown(value)}: final_pass is a group of settings; set one of its fields, e.g. "
-        "final_pass.alignment.clustering=..., or true / null to switch the final pass on / off"
+        "final_pass.outer_border_reach=..., or true / null to switch the final pass on / off"
     )
-
-
-def _set_first_pass(config: PipelineConfig, key: str, value: object) -> PipelineConfig:
-    """A key outside ``final_pass``; a sampling/alignment field also reaches the final pass where
-    both passes agree on it."""
-    group, _, rest = key.partition(".")
-    final = config.final_pass
-    shared = (
-        final is not None
-        and group in _PASS_GROUPS
-        and rest
-        and "." not in rest
-        and rest in {f.name for f in fields(getattr(config, group))}
-        and getattr(getattr(final, group), rest) == getattr(getattr(config, group), rest)
-    )
-
-    def build(c: PipelineConfig) -> PipelineConfig:
-        if not (shared and final is not None):
-            return _override(c, key, value, key)  # type: ignore[return-value]
-        first = _override(getattr(c, group), rest, value, key)
-        both = replace(getattr(final, group), **{rest: getattr(first, rest)})
-        return replace(c, **{group: first, "final_pass": replace(final, **{group: both})})
-
-    return _checked(build, config, key)
 
 
 def _group_error(key: str, value: object, group: object) -> ConfigError:
