@@ -23,6 +23,12 @@ if TYPE_CHECKING:
 
 __all__ = ["Assignment", "assign"]
 
+# Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
+# constants, not settings
+#: a bridged connection longer than this along is held to ``bridge_edge_angle_deg``; shorter ones
+#: (one step's gap) keep the ordinary edge limit [m]
+_BRIDGE_EDGE_MIN_M = 3.0
+
 _BORDER = int(FeatureType.ROAD_BORDER)
 _BIG = 1.0e9
 _GATE = 1.0e4  # cost added to a pair beyond the edge limits: taken only when nothing else is left
@@ -48,13 +54,13 @@ class Assignment:
 def _plausible(along: np.ndarray, lat: np.ndarray, config: ConnectionConfig) -> np.ndarray:
     """Edges (``along`` / ``lat`` [m] from tip to maximum in some frame) within the edge angle
     limits: ahead, at most ``max_edge_angle_deg`` steep (plus ``edge_slack_m``), and beyond
-    ``bridge_edge_min_m`` at most ``bridge_edge_angle_deg``."""
+    ``_BRIDGE_EDGE_MIN_M`` at most ``bridge_edge_angle_deg``."""
     tan_max = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
     ok = (along > 0.0) & (lat <= config.edge_slack_m + np.maximum(along, 0.0) * tan_max)
     if config.bridge_edge_angle_deg < 90.0:
         # across a bridged gap a steep edge is a line joined to its neighbour, not the line
         tan_b = math.tan(math.radians(config.bridge_edge_angle_deg))
-        ok &= (along <= config.bridge_edge_min_m) | (lat <= config.edge_slack_m + along * tan_b)
+        ok &= (along <= _BRIDGE_EDGE_MIN_M) | (lat <= config.edge_slack_m + along * tan_b)
     return ok
 
 

@@ -27,6 +27,12 @@ from hdmap_core.model import FeatureType
 
 __all__ = ["spur_free", "end_stubs", "inner_borders"]
 
+# Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
+# constants, not settings
+#: an end stub's far end must also lie this share of the edge's length to the side (a fill that
+#: jumps across, not one that drifts along a curve)
+_END_STUB_SLOPE = 0.1
+
 _BORDER_CODE = int(FeatureType.ROAD_BORDER)
 
 _DUP_LINE_M = 1.0  # a marking this close across an inner border is the line it copies
@@ -107,7 +113,7 @@ def end_stubs(flat: FlatGraph, uid: np.ndarray, *, config: StitchConfig, through
     A stub is the run of drive-supported nodes at a loose end (no edge beyond it, none branching
     off it) up to ``end_stub_max_m`` long, joined to the rest of its line by an edge long enough
     to be filled (> 1.5 ``fill_spacing_m``) whose far end lies at least ``end_stub_side_m`` and
-    ``end_stub_slope`` of the edge's length to the side, measured across the heading of the
+    ``_END_STUB_SLOPE`` of the edge's length to the side, measured across the heading of the
     rest's last topology node (the pivot's, not the line's: a line curving away from its pivot,
     e.g. a border bending into a junction, is no jump). The stub and that edge are dropped. With
     ``end_stub_cover_m`` > 0 only where every stub node has a node of another polyline within
@@ -163,7 +169,7 @@ def end_stubs(flat: FlatGraph, uid: np.ndarray, *, config: StitchConfig, through
             h = float(heading[k])
             v = p1 - p0
             lat = abs(math.cos(h) * v[1] - math.sin(h) * v[0])
-            if lat < cfg.end_stub_side_m or lat < cfg.end_stub_slope * float(np.hypot(*v)):
+            if lat < cfg.end_stub_side_m or lat < _END_STUB_SLOPE * float(np.hypot(*v)):
                 continue
             stubs.append((run, k))
     if not stubs:

@@ -38,6 +38,17 @@ from hdmap_core.steps import Segment, StepResult, left_normal
 
 __all__ = ["connect_segment"]
 
+# Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
+# constants, not settings
+#: a tip's own line direction is taken from its node at least this far back (pivot travel): shorter
+#: stretches are too noisy to give a direction [m]
+_TIP_FRAME_MIN_M = 4.0
+#: ... and by at most this: a pivot turning further is turning at an intersection, where a line
+#: ending there must not continue straight across [deg].
+_TIP_FRAME_MAX_DEG = 30.0
+#: ... the line frame's direction falls back to the farthest node at least this far back [m]
+_LINE_FRAME_MIN_M = 1.5
+
 _BORDER = int(FeatureType.ROAD_BORDER)
 
 
@@ -332,18 +343,18 @@ class _Builder:
 def _tip_frames(
     b: _Builder, tip_idx: np.ndarray, gap_m: np.ndarray, heading: float, config: ConnectionConfig
 ) -> np.ndarray | None:
-    """(n, 2) own line direction of each tip at least ``config.tip_frame_min_m`` back (pivot
+    """(n, 2) own line direction of each tip at least ``_TIP_FRAME_MIN_M`` back (pivot
     travel ``gap_m``) that leaves the step heading by more than ``config.tip_frame_deg`` (NaN for
     the others); None when no tip does."""
     if config.tip_frame_deg <= 0 or len(tip_idx) == 0:
         return None
-    far = gap_m >= config.tip_frame_min_m
+    far = gap_m >= _TIP_FRAME_MIN_M
     if not far.any():
         return None
-    # the first predecessor at least tip_frame_min_m back
+    # the first predecessor at least _TIP_FRAME_MIN_M back
     u = np.full((len(tip_idx), 2), np.nan)
-    u[far] = b.line_directions(tip_idx[far], config.tip_frame_min_m, far_m=config.tip_frame_min_m)
-    dev = _leaves_heading(u, heading, config.tip_frame_deg, config.tip_frame_max_deg)
+    u[far] = b.line_directions(tip_idx[far], _TIP_FRAME_MIN_M, far_m=_TIP_FRAME_MIN_M)
+    dev = _leaves_heading(u, heading, config.tip_frame_deg, _TIP_FRAME_MAX_DEG)
     if not dev.any():
         return None
     out = np.full((len(tip_idx), 2), np.nan)
@@ -375,7 +386,7 @@ def _line_frames(b: _Builder, tip_idx: np.ndarray, heading: float, config: Conne
     # the directions alone first: on most steps no line leaves the heading and the history's
     # bend, a walk over all 6 edges, is not needed (connection 0.8 -> 5-6 s on paper_like_134_s1
     # when every step walked it)
-    u = b.line_directions(tip_idx, config.line_frame_min_m)
+    u = b.line_directions(tip_idx, _LINE_FRAME_MIN_M)
     dev = _leaves_heading(u, heading, config.line_frame_deg, config.line_frame_max_deg)
     # beyond line_frame_max_deg (up to line_check_max_deg): checked only
     far = (
@@ -385,7 +396,7 @@ def _line_frames(b: _Builder, tip_idx: np.ndarray, heading: float, config: Conne
     if not (dev.any() or far.any()):
         return None
     if config.line_frame_bend_deg > 0:
-        straight = b.line_bends(tip_idx, u, config.line_frame_min_m) <= config.line_frame_bend_deg
+        straight = b.line_bends(tip_idx, u, _LINE_FRAME_MIN_M) <= config.line_frame_bend_deg
         dev &= straight
         far &= straight
         if not (dev.any() or far.any()):
@@ -426,7 +437,7 @@ def _undirected_checks(
         turned &= ~np.isfinite(tip_check[:, 0])
     if not turned.any():
         return tip_check
-    u = b.line_directions(tip_idx[turned], config.line_frame_min_m)
+    u = b.line_directions(tip_idx[turned], _LINE_FRAME_MIN_M)
     rows = np.flatnonzero(turned)[~np.isfinite(u[:, 0])]
     if len(rows) == 0:
         return tip_check

@@ -97,25 +97,21 @@ class ConnectionConfig:
             junction's side road). Only the topology node moves; the step's samples and
             features stay. 0: the cut as refined [m].
         tile_size_m: edge of the square tiles that key topology nodes by place [m].
-        tip_frame_deg: a polyline end at least ``tip_frame_min_m`` (pivot travel) behind the new
+        tip_frame_deg: a polyline end at least ``connection._TIP_FRAME_MIN_M`` (pivot travel) behind the new
             step (a bridged gap) whose own direction (from its node ~3 edges back, at least
-            ``tip_frame_min_m`` away) differs from the new step's heading by more than this is
+            ``connection._TIP_FRAME_MIN_M`` away) differs from the new step's heading by more than this is
             paired in its own frame (along / across its direction) instead of the pivot's: where
             the pivot turns off (an exit ramp) the straight lines it still sees leave its
             heading, and in its frame the pairing shifted by one lane looked straight (Town04's
             cloverleaf: every line joined the next one 3.5 m over ~11 m). 0 disables [deg].
-        tip_frame_min_m: see ``tip_frame_deg`` [m].
-        bridge_edge_angle_deg: a connection longer than ``bridge_edge_min_m`` along (across a
+        bridge_edge_angle_deg: a connection longer than ``assignment._BRIDGE_EDGE_MIN_M`` along (across a
             bridged gap) steeper than this is not made (``edge_slack_m`` added): a 30 deg edge
             over 10 m is a line that ended joined to its neighbour 6 m over (an inner gore
             border to the outer border at an entry), not one line. 90 disables [deg].
-        bridge_edge_min_m: see ``bridge_edge_angle_deg`` [m].
-        tip_frame_max_deg: ... and by at most this: a pivot turning further is turning at an
-            intersection, where a line ending there must not continue straight across [deg].
         line_frame_deg: any open polyline end (also between consecutive steps, also on the
             identity fast path) whose own line direction (from its node at least 4 m back within
-            6 edges, else the farthest at least ``line_frame_min_m`` back) differs from the new
-            step's heading by more than this (and at most ``tip_frame_max_deg``) is paired in its
+            6 edges, else the farthest at least ``connection._LINE_FRAME_MIN_M`` back) differs from the new
+            step's heading by more than this (and at most ``connection._TIP_FRAME_MAX_DEG``) is paired in its
             own frame. Where a pivot comes in on an entry ramp at 17-25 deg to the carriageway, in
             its frame each carriageway line paired with the next lane's line (Town04: 3.2 m
             sideways over 6 m), or the step was rejected by the angle check (the true pairs
@@ -123,7 +119,6 @@ class ConnectionConfig:
             reached) keeps the pivot's frame: borrowing a neighbour's direction took a merging
             ramp line's at an entry (Town04 30 s3 fragmentation 1.541 -> 1.568). 0 disables (the
             paper) [deg].
-        line_frame_min_m: see ``line_frame_deg`` [m].
         line_frame_max_deg: see ``line_frame_deg`` [deg].
         line_frame_check: a tip whose line leaves the heading by more than ``line_frame_max_deg``
             (and at most ``line_check_max_deg``) is paired in the pivot's frame, but an edge
@@ -143,7 +138,7 @@ class ConnectionConfig:
             joined across the turn to a line of the other road. Only with ``line_frame_deg`` and
             ``line_frame_check``.
         line_frame_bend_deg: ... both only for a line whose history is straight: the directions to
-            its predecessors (at least ``line_frame_min_m`` back, within 6 edges) all lie within
+            its predecessors (at least ``connection._LINE_FRAME_MIN_M`` back, within 6 edges) all lie within
             this of the line's direction. Where the road curves (Town06's corners and junction
             turns) the lines curve with the pivot, a direction from 4 m back lags its heading by
             12-30 deg, and in that frame true continuations looked steep: steps were rejected
@@ -173,12 +168,8 @@ class ConnectionConfig:
     topo_pivot_lane_m: float = 0.0
     tile_size_m: float = 256.0
     tip_frame_deg: float = 5.0
-    tip_frame_min_m: float = 4.0
-    tip_frame_max_deg: float = 30.0
     bridge_edge_angle_deg: float = 15.0
-    bridge_edge_min_m: float = 3.0
     line_frame_deg: float = 0.0
-    line_frame_min_m: float = 1.5
     line_frame_max_deg: float = 30.0
     line_frame_check: bool = True
     line_check_max_deg: float = 180.0
@@ -192,8 +183,7 @@ class ConnectionConfig:
         check_range(self, ("line_check_max_deg",), low=0.0, high=180.0, low_open=True)
         check_range(self, ("min_support_share",), low=0.0, high=1.0)
         check_range(self, ("support_window_m", "lone_line_gap_m", "topo_pivot_lane_m", "leftover_other_type_m",
-                           "tip_frame_deg", "tip_frame_min_m", "tip_frame_max_deg", "bridge_edge_min_m",
-                           "line_frame_deg", "line_frame_min_m", "line_frame_max_deg", "line_frame_bend_deg"),
+                           "tip_frame_deg", "line_frame_deg", "line_frame_max_deg", "line_frame_bend_deg"),
                     low=0.0, finite=True)
         if self.lone_line_border_gap_m is not None:
             check_range(self, ("lone_line_border_gap_m",), low=0.0, finite=True)

@@ -23,6 +23,12 @@ from hdmap_core.model import FeatureType, MapFeature, TopologyNode
 
 __all__ = ["export_map"]
 
+# Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
+# constants, not settings
+#: the edge-line rule types only markings of at most this many drives (or disputed ones): a marking
+#: many drives saw as dashed keeps its type
+_EDGE_LINE_MAX_DRIVES = 1
+
 _UNKNOWN_CODE = int(FeatureType.UNKNOWN)
 
 
@@ -44,7 +50,7 @@ def export_map(
     e = flat.edges
     if cfg.edge_line_solid_m > 0 and nn:
         # RULE edge line
-        types = edge_lines_solid(flat, within_m=cfg.edge_line_solid_m, max_drives=cfg.edge_line_max_drives)
+        types = edge_lines_solid(flat, within_m=cfg.edge_line_solid_m, max_drives=_EDGE_LINE_MAX_DRIVES)
         flat = dataclasses.replace(flat, n_type=types)
     if cfg.min_type_run_m > 0 and nn:
         # RULE flicker / minority / single drive (type_runs.smooth_types)

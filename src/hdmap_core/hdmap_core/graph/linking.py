@@ -40,6 +40,17 @@ from hdmap_core.model import FeatureType
 
 __all__ = ["SegmentLinks", "link_segments"]
 
+# Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
+# constants, not settings
+#: features are joined across a link only when at most this far apart across the cut [m].
+_FEATURE_MAX_M = 2.0
+#: a join is skipped when the feature already continues within this distance of the new partner
+#: (it would duplicate a polyline) [m].
+_DUPLICATE_M = 0.25
+#: the chain's heading rate is taken over this much of it (chord from the node to the first
+#: chain node at least this far; shorter chains: straight) [m].
+_PATH_CURVATURE_M = 20.0
+
 _BIG = 1.0e9
 _GATE = 1.0e4
 _BORDER_CODE = int(FeatureType.ROAD_BORDER)
@@ -173,17 +184,17 @@ class _Linker:
             forbidden = ta != tb
         else:  # markings of either type may meet (flicker); a border only meets a border
             forbidden = (ta == _BORDER_CODE) != (tb == _BORDER_CODE)
-        cost = np.where(forbidden, _BIG, np.where(lat <= cfg.feature_max_m, lat, _GATE + lat))
+        cost = np.where(forbidden, _BIG, np.where(lat <= _FEATURE_MAX_M, lat, _GATE + lat))
         cost = cost + np.where(ta != tb, cfg.type_mismatch_cost_m, 0.0)
         rows, cols = linear_sum_assignment(cost)
         for r, c in zip(rows.tolist(), cols.tolist()):
-            if forbidden[r, c] or lat[r, c] > cfg.feature_max_m:
+            if forbidden[r, c] or lat[r, c] > _FEATURE_MAX_M:
                 continue
             x, y = int(xa[r]), int(yb[c])
             # the feature already continues next to y (or y is already reached next to x): skip
-            if any(abs(float((flat.n_xy[z] - flat.n_xy[y]) @ n)) <= cfg.duplicate_m for z in out_adj.get(x)):
+            if any(abs(float((flat.n_xy[z] - flat.n_xy[y]) @ n)) <= _DUPLICATE_M for z in out_adj.get(x)):
                 continue
-            if any(abs(float((flat.n_xy[w] - flat.n_xy[x]) @ n)) <= cfg.duplicate_m for w in in_adj.get(y)):
+            if any(abs(float((flat.n_xy[w] - flat.n_xy[x]) @ n)) <= _DUPLICATE_M for w in in_adj.get(y)):
                 continue
             out_adj.add(x, y)
             in_adj.add(y, x)
@@ -298,7 +309,7 @@ class _Linker:
         for i, is_end in todo:
             if (is_end and self.outdeg[i]) or (not is_end and self.indeg[i]):
                 continue
-            rate = heading_rate(flat, pred if is_end else succ, i, cfg.path_curvature_m)
+            rate = heading_rate(flat, pred if is_end else succ, i, _PATH_CURVATURE_M)
             if not is_end:
                 rate = -rate  # measured from a later node back to the start: flip to driving sense
             best = path_partner(flat, self.tree, i, is_end, rate, cfg, reach, self.allowed(i, is_end))

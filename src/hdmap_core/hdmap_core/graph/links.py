@@ -20,6 +20,14 @@ from hdmap_core.geometry import heading_frame, wrap_angle
 from hdmap_core.graph.flat import FlatGraph
 from hdmap_core.graph.stitch_config import StitchConfig
 
+# Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
+# constants, not settings
+#: links shorter than this skip the connection-angle check [m].
+_ANGLE_FREE_M = 3.0
+#: a predecessor may lie at most this far ahead of the start it links to (and a successor this
+#: far behind the end) [m].
+_BEHIND_TOL_M = 1.0
+
 __all__ = [
     "Adjacency", "PATH_STEP_M", "HALF_WIDTH_UNKNOWN_M", "partner", "reached_within", "closes_cycle",
     "heading_rate", "path_partner", "entered",
@@ -124,14 +132,14 @@ def partner(
         d = flat.t_xy[j] - flat.t_xy[i] if is_end else flat.t_xy[i] - flat.t_xy[j]
         along, lat, dist = float(d @ u), abs(float(d @ n)), float(math.hypot(*d))
         # 3. distance and connection-angle check
-        if along < -cfg.behind_tol_m:
+        if along < -_BEHIND_TOL_M:
             continue
-        if dist > cfg.angle_free_m and lat > max(along, 0.0) * tan_c:
+        if dist > _ANGLE_FREE_M and lat > max(along, 0.0) * tan_c:
             continue
         if (cfg.side_link_angle_deg < 90.0 and lat > max(along, 0.0) * tan_s
                 and (lat > _half_widths(flat, i, j) or not _features_overlap(flat, i, j, n, cfg.side_link_overlap))):
             continue  # RULE: two roads side by side (cross-sections apart) join only at a shallow angle
-        if cfg.partner_angle_deg < 180.0 and dist > cfg.angle_free_m:
+        if cfg.partner_angle_deg < 180.0 and dist > _ANGLE_FREE_M:
             # RULE: the link also runs within partner_angle_deg of the partner's own heading
             if float(d @ heading_frame(float(flat.t_heading[j]))[0]) < cos_p * dist:
                 continue

@@ -23,6 +23,32 @@ from hdmap_core.model import FeatureType
 
 __all__ = ["LooseEndJoins", "dedupe_loose_ends", "join_loose_ends"]
 
+# Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
+# constants, not settings
+#: two feature nodes of different segments at most this far apart across the road ...
+_TWIN_LATERAL_M = 0.5
+#: ... and this far along it (steps are 2 m apart) are one place [m].
+_TWIN_ALONG_M = 1.2
+#: a branch start looks this far behind it for the line it leaves [m] ...
+_BRANCH_RADIUS_M = 8.0
+#: ... only when the branch moves away from the line: ~10 m on, its offset grew by at least this
+#: (a copy running beside the line is no branch) [m].
+_BRANCH_DIVERGENCE_M = 0.3
+#: a branch may join a lane marking of the other type (an exit's dashed line starts on the solid
+#: edge line; an entry's solid line ends on the dashed one); a road border joins only a border.
+#: False: same type only.
+_BRANCH_ANY_MARKING = True
+#: how far across the road a loose start may lie from the end's arc [m] ...
+_JOIN_LATERAL_M = 0.5
+#: ... plus this angle's share of the distance [deg].
+_JOIN_ANGLE_DEG = 1.0
+#: a long join is refused where drives passed within this of its direction and saw nothing
+#: (``join_gap_check_m``) [deg]
+_JOIN_GAP_HEADING_DEG = 10.0
+#: a join checked in its lines' frame is refused where a pivot's topology node in the middle of the
+#: gap lies within this across it and turned (``join_line_cross_deg``) [m]
+_JOIN_LINE_CROSS_LATERAL_M = 12.0
+
 _BIG = 1.0e9
 _TWIN_EDGE_REACH_M = 10.0  # half the longest gap the connection bridges by default (max_gap_m)
 _BORDER_CODE = int(FeatureType.ROAD_BORDER)
@@ -53,10 +79,10 @@ class _GapCheck:
         self._flat = flat
         self._node_heading = node_heading
         self._lat = cfg.join_gap_lateral_m
-        self._cos = math.cos(math.radians(cfg.join_gap_heading_deg))
+        self._cos = math.cos(math.radians(_JOIN_GAP_HEADING_DEG))
         self._cover = cfg.join_gap_coverage
         self._cross_cos = math.cos(math.radians(cfg.join_line_cross_deg)) if cfg.join_line_cross_deg > 0 else None
-        self._cross_lat = cfg.join_line_cross_lateral_m
+        self._cross_lat = _JOIN_LINE_CROSS_LATERAL_M
         self._ttree: cKDTree | None = None
         self._ntree: cKDTree | None = None
         self._nsup = np.zeros(0, dtype=np.int64)
@@ -84,7 +110,7 @@ class _GapCheck:
 
     def crossed(self, p: np.ndarray, along: float, h: float, u: np.ndarray, n: np.ndarray) -> bool:
         """A topology node in the middle half of the join from ``p`` (``along`` m in direction
-        ``h``), within ``join_line_cross_lateral_m`` across, heads more than
+        ``h``), within ``_JOIN_LINE_CROSS_LATERAL_M`` across, heads more than
         ``join_line_cross_deg`` off it (False when the check is off)."""
         if self._cross_cos is None:
             return False
@@ -150,8 +176,8 @@ def dedupe_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> np.ndarray:
 
     From every loose end (no successor) walk back, and from every loose start walk forward,
     while the node has a twin: a live feature node of another segment, of the same class
-    (marking / border) within ``twin_lateral_m`` across and ``twin_along_m`` along the road,
-    or on an edge of such a line within ``twin_lateral_m``. Those nodes map a place twice; the copy that
+    (marking / border) within ``_TWIN_LATERAL_M`` across and ``_TWIN_ALONG_M`` along the road,
+    or on an edge of such a line within ``_TWIN_LATERAL_M``. Those nodes map a place twice; the copy that
     continues survives, and the loose-end join then connects the rest.
 
     Returns:
@@ -170,12 +196,12 @@ def dedupe_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> np.ndarray:
     heading = flat.t_heading[flat.node_topo()]
     # candidates up to half a bridged gap away: the other line may have no node next to j,
     # only an edge across a gap; j is a twin of a node or of an edge out of it
-    reach = math.hypot(cfg.twin_along_m, cfg.twin_lateral_m) + _TWIN_EDGE_REACH_M
+    reach = math.hypot(_TWIN_ALONG_M, _TWIN_LATERAL_M) + _TWIN_EDGE_REACH_M
     out_adj = Adjacency(e[:, 0], e[:, 1], nn)
 
     def close_to(j: int, k: int, n: np.ndarray, u: np.ndarray) -> bool:
         d = flat.n_xy[k] - flat.n_xy[j]
-        if abs(float(d @ n)) <= cfg.twin_lateral_m and abs(float(d @ u)) <= cfg.twin_along_m:
+        if abs(float(d @ n)) <= _TWIN_LATERAL_M and abs(float(d @ u)) <= _TWIN_ALONG_M:
             return True
         for k2 in out_adj.get(k):
             if not alive[k2] or k2 == j:
@@ -187,7 +213,7 @@ def dedupe_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> np.ndarray:
             t = float((flat.n_xy[j] - flat.n_xy[k]) @ seg) / length**2
             if 0.0 <= t <= 1.0:
                 off = flat.n_xy[k] + t * seg - flat.n_xy[j]
-                if float(math.hypot(*off)) <= cfg.twin_lateral_m:
+                if float(math.hypot(*off)) <= _TWIN_LATERAL_M:
                     return True
         return False
 
@@ -226,7 +252,7 @@ def join_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> LooseEndJoins:
     heading = flat.t_heading[flat.node_topo()]
     tree = cKDTree(flat.n_xy[starts])
     cos_h = math.cos(math.radians(cfg.max_heading_diff_deg))
-    tan_j = math.tan(math.radians(cfg.join_angle_deg))
+    tan_j = math.tan(math.radians(_JOIN_ANGLE_DEG))
     # the pivot's heading is no direction for a line it sees while turning onto or off a ramp
     # (a line's loose end beside an entry ramp's pivot, heading 35 deg off the line): ends and
     # starts whose own line leaves it are also compared in their lines' direction
@@ -264,7 +290,7 @@ def join_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> LooseEndJoins:
                 u, n = heading_frame(mean_h)
                 d = flat.n_xy[j] - flat.n_xy[i]
                 along, lat = float(d @ u), abs(float(d @ n))
-                if lat > cfg.join_lateral_m + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
+                if lat > _JOIN_LATERAL_M + max(along, 0.0) * tan_j or along < -cfg.join_overlap_m:
                     continue
                 if other_marking and along > cfg.join_other_marking_m:
                     continue
@@ -323,7 +349,7 @@ def _join_branches(
     split (merge) across segments, as the leftover assignment does inside one (Sec. V).
 
     A loose start joins the nearest node of another segment's polyline of the same type
-    that lies behind it (0 < along <= ``branch_radius_m``) at most ``branch_lateral_m`` across
+    that lies behind it (0 < along <= ``_BRANCH_RADIUS_M``) at most ``branch_lateral_m`` across
     the road; a loose end joins such a node ahead of it.
     """
     if not starts and not ends:
@@ -335,7 +361,7 @@ def _join_branches(
     def diverges(i: int, j: int, lat0: float, walk: np.ndarray) -> bool:
         """Whether the branch through i moves away from the line through j (not a twin
         running beside it): ~10 m on along the branch the offset grew by
-        ``branch_divergence_m``."""
+        ``_BRANCH_DIVERGENCE_M``."""
         k = i
         for _ in range(5):
             if walk[k] < 0:
@@ -349,7 +375,7 @@ def _join_branches(
             for q in tree.query_ball_point(flat.n_xy[k], 6.0)
             if flat.n_graph[q] == flat.n_graph[j] and flat.n_type[q] == flat.n_type[j]
         ]
-        return not offs or min(offs) >= lat0 + cfg.branch_divergence_m
+        return not offs or min(offs) >= lat0 + _BRANCH_DIVERGENCE_M
 
     border = flat.n_type == _BORDER_CODE
     made: list[tuple[int, int]] = []
@@ -357,11 +383,11 @@ def _join_branches(
         for i in nodes:
             u, n = heading_frame(float(heading[i]))
             best, best_d, best_lat = -1, math.inf, 0.0
-            for j in tree.query_ball_point(flat.n_xy[i], cfg.branch_radius_m):
+            for j in tree.query_ball_point(flat.n_xy[i], _BRANCH_RADIUS_M):
                 if flat.n_graph[j] == flat.n_graph[i]:
                     continue
                 if flat.n_type[j] != flat.n_type[i] and (
-                    not cfg.branch_any_marking or border[j] or border[i]
+                    not _BRANCH_ANY_MARKING or border[j] or border[i]
                 ):
                     continue
                 if math.cos(heading[j] - heading[i]) < math.cos(math.radians(cfg.max_heading_diff_deg)):

@@ -18,20 +18,13 @@ class StitchConfig:
         max_distance_m: kd-tree search radius for a component end's neighbour [m].
         max_heading_diff_deg: the two topology nodes' headings differ at most this much [deg].
         max_connection_angle_deg: the link from one node to the other deviates at most this much
-            from the driving direction (checked for links longer than ``angle_free_m``) [deg].
-        angle_free_m: links shorter than this skip the connection-angle check [m].
-        behind_tol_m: a predecessor may lie at most this far ahead of the start it links to
-            (and a successor this far behind the end) [m].
-        feature_max_m: features are joined across a link only when at most this far apart
-            across the cut [m].
+            from the driving direction (checked for links longer than ``links._ANGLE_FREE_M``) [deg].
         same_type_only: join features of the same type only (the paper; default). False: a solid
             and a dashed marking may be joined too (at ``type_mismatch_cost_m`` extra cost), since
             their types flicker with misclassification; a road border still joins only a border.
             The polyline closes there (RULE 1) unless ``min_type_run_m`` relabels the short run.
             (Measured on one motorway_ramps run: no gain, so the paper's rule stays default.)
         type_mismatch_cost_m: assignment cost added to a solid-dashed pair [m].
-        duplicate_m: a join is skipped when the feature already continues within this distance of
-            the new partner (it would duplicate a polyline) [m].
         trim_overlap: drop component end nodes that lie on a place already in the map.
         trim_keep_longer: ... but only where the other graph's piece there is at least as long
             (in topology nodes) as the trimmed one; a shorter piece is trimmed instead (a pivot
@@ -42,21 +35,13 @@ class StitchConfig:
             place. esmini_soderleden_40_s7: a one-step piece at the road's start gave way to a
             one-step piece 0.85 m ahead, which then gave way to the long pivot 1.2 m further;
             the road's first 1.4 m were lost.
-        overlap_radius_m: a topology node this close to another graph's node with a similar
-            heading is the same place [m] ...
         overlap_search_m: ... as is one up to this far away (midpoints of two pivots differ with
-            their cut lines) at most ``overlap_along_m`` along the road, when at least
-            ``overlap_share`` of its maxima (and 2) have a same-type twin within
-            ``overlap_feature_m`` across the road [m].
-        overlap_along_m: see ``overlap_search_m`` [m].
-        overlap_feature_m: see ``overlap_search_m`` [m].
-        overlap_share: see ``overlap_search_m`` (share of the node's maxima, 0..1).
+            their cut lines) at most ``trim._OVERLAP_ALONG_M`` along the road, when at least
+            ``trim._OVERLAP_SHARE`` of its maxima (and 2) have a same-type twin within
+            ``trim._OVERLAP_FEATURE_M`` across the road [m].
         dedupe_loose_ends: drop dangling polyline ends/starts that run on top of another
-            segment's polyline of the same class (``twin_lateral_m`` / ``twin_along_m``) [see
+            segment's polyline of the same class (``loose_ends._TWIN_LATERAL_M`` / ``loose_ends._TWIN_ALONG_M``) [see
             ``MapGraph._dedupe_loose_ends``].
-        twin_lateral_m: two feature nodes of different segments at most this far apart across
-            the road ...
-        twin_along_m: ... and this far along it (steps are 2 m apart) are one place [m].
         join_loose_ends: join polyline ends and starts of different segments that continue each
             other (same type, close across the cut) even where topology found no link.
         join_overlap_m: a loose start up to this far behind a loose end (the two overlap) is
@@ -65,16 +50,8 @@ class StitchConfig:
             than the connection's ``max_gap_m``, RULE 3).
         join_radius_m: how far ahead of a loose end a loose start may begin [m].
         branch_lateral_m: a loose start (end) still unjoined then joins the nearest node of
-            another segment's polyline of its type up to ``branch_radius_m`` behind (ahead) and
+            another segment's polyline of its type up to ``loose_ends._BRANCH_RADIUS_M`` behind (ahead) and
             this far across the road: a split (merge) across segments. 0 disables [m].
-        branch_radius_m: see ``branch_lateral_m`` [m].
-        branch_divergence_m: ... only when the branch moves away from the line: ~10 m on, its
-            offset grew by at least this (a copy running beside the line is no branch) [m].
-        branch_any_marking: a branch may join a lane marking of the other type (an exit's
-            dashed line starts on the solid edge line; an entry's solid line ends on the dashed
-            one); a road border joins only a border. False: same type only.
-        join_lateral_m: how far across the road a loose start may lie from the end's arc [m] ...
-        join_angle_deg: ... plus this angle's share of the distance [deg].
         join_line_heading_m: a loose end (start) is compared by its own polyline's direction,
             from the node at least this far back (on), instead of its topology node's heading (the
             pivot's, which leaves the lines where the pivot turns onto or off a ramp), when the
@@ -84,21 +61,19 @@ class StitchConfig:
         join_gap_check_m: a loose-end join longer than this is refused where drives passed
             through the gap but its neighbour lines were not mapped there either: some topology
             node (a pivot's step) lies in the middle half of the gap, within
-            ``join_gap_lateral_m`` across the join and ``join_gap_heading_deg`` of its direction,
+            ``join_gap_lateral_m`` across the join and ``loose_ends._JOIN_GAP_HEADING_DEG`` of its direction,
             while drive-supported feature nodes of that direction within ``join_gap_lateral_m``
             cover less than ``join_gap_coverage`` of the 2 m bins of the middle half. Every line of
             a road then ends at the same gap (a junction's mouth, where the steps failed): the
             straight fill across it is no drive's line. 0 disables (the paper) [m].
         join_gap_lateral_m: see ``join_gap_check_m`` [m].
-        join_gap_heading_deg: see ``join_gap_check_m`` [deg].
         join_gap_coverage: see ``join_gap_check_m`` (share of bins, 0..1).
         join_line_cross_deg: a join longer than ``join_gap_check_m`` that passes only in its
             lines' direction (``join_line_heading_m``: where the pivot turned) is refused when a
-            topology node in the middle half of the gap, within ``join_line_cross_lateral_m``
+            topology node in the middle half of the gap, within ``loose_ends._JOIN_LINE_CROSS_LATERAL_M``
             across, heads more than this off the join: a pivot turning through a junction, whose
             lines all end at its mouth (carla_town06_30: three dashed lines filled straight
             across a junction, 30 false points each). 0 disables [deg].
-        join_line_cross_lateral_m: see ``join_line_cross_deg`` [m].
         join_other_marking_m: with ``same_type_only``, a loose end and a loose start of the other
             lane-marking type (solid / dashed; a road border still joins only a border) are joined
             too when the start lies at most this far ahead (the other tests as for any join, at
@@ -167,7 +142,7 @@ class StitchConfig:
             is judged along the longer chains (the flicker rules there relabelled a true 90 m
             dashed run on carla_town06_30_s1). False in the dataclass (True in the default
             pipeline preset; docs/pipeline.md "Type runs across leftover edges").
-        edge_line_solid_m: a lane-marking node of at most ``edge_line_max_drives`` drives (or of
+        edge_line_solid_m: a lane-marking node of at most ``export._EDGE_LINE_MAX_DRIVES`` drives (or of
             unknown type: drives that disagreed, ``AlignmentConfig.sparse_type_clash_keep``)
             within this distance across of a road border node of the same cross-section
             (topology node) is typed solid before the type runs are smoothed: the marking next to
@@ -176,10 +151,9 @@ class StitchConfig:
             soderleden 103 of 115), while one drive misclassifies a stretch 7.5 % of the time in
             the simulator (carla_town06_30_s3: one drive's 80 m dashed run of the right edge
             line, typed dashed against the other drive's solid). 0 disables [m].
-        edge_line_max_drives: see ``edge_line_solid_m``.
         end_stub_max_m: at a polyline's loose end (no edge beyond it), a run of drive-supported
             nodes up to this long that the rest of the line reaches only through an edge long
-            enough to be filled, whose far end lies ``end_stub_side_m`` (and ``end_stub_slope`` of
+            enough to be filled, whose far end lies ``end_stub_side_m`` (and ``cleanup._END_STUB_SLOPE`` of
             the edge's length) to the side of the rest's topology heading, is dropped with that
             edge: a loose-end join or bridged gap onto the neighbouring lane's line at a ramp or
             junction end, a stray piece of another line (docs/pipeline.md, "Town04's stray
@@ -188,7 +162,6 @@ class StitchConfig:
             cross-section stays. 0 disables (the dataclass default; 12 in the default pipeline
             preset) [m].
         end_stub_side_m: see ``end_stub_max_m`` [m].
-        end_stub_slope: see ``end_stub_max_m`` (lateral offset / edge length).
         end_stub_cover_m: see ``end_stub_max_m``; 0: no coverage check (every such stub is
             dropped) [m].
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
@@ -216,7 +189,7 @@ class StitchConfig:
         path_search_m: a component start (end) still without a partner after every other
             component start/end had its turn follows its chain's own path backward (forward) up
             to this far: an arc from the node along its heading, turning at the chain's heading
-            rate (over ``path_curvature_m`` of the chain). The first node whose cross-section
+            rate (over ``linking._PATH_CURVATURE_M`` of the chain). The first node whose cross-section
             (``topo_width`` / 2 across, one step along) the arc enters, with a heading within
             ``max_heading_diff_deg`` of the arc's there, in another component (or, with
             ``link_within_component``, in its own without closing a short cycle), is linked, as a
@@ -311,8 +284,6 @@ class StitchConfig:
             segments' ``StepResult.empty_m``, made by ``PipelineConfig.evidence``; the export's
             rules are that module's constants): its ends stay loose ends. None: off (the paper,
             the plain default).
-        path_curvature_m: the chain's heading rate is taken over this much of it (chord from
-            the node to the first chain node at least this far; shorter chains: straight) [m].
         path_max_turn_deg: the arc search stops once the arc has turned this much from the
             node's heading: an arc still turning past it has left the road the chain was on
             (a chain start turning 92 deg in 30 m hit the opposite carriageway) [deg].
@@ -329,7 +300,7 @@ class StitchConfig:
             the paper, the plain default).
         partner_angle_deg: the ordinary link of a component start/end must also deviate at
             most this much from its partner's driving direction (links longer than
-            ``angle_free_m``), not only from the start's/end's own: a ramp node 20 deg off the
+            ``links._ANGLE_FREE_M``), not only from the start's/end's own: a ramp node 20 deg off the
             main road was taken as the predecessor of a main-road start 8.4 m beside it, a link
             97 deg off the ramp's heading, backward for it (carla_town04_100_s1). 180 = off
             (the paper, the plain default) [deg].
@@ -341,41 +312,24 @@ class StitchConfig:
     max_distance_m: float = 12.0
     max_heading_diff_deg: float = 30.0
     max_connection_angle_deg: float = 80.0
-    angle_free_m: float = 3.0
-    behind_tol_m: float = 1.0
-    feature_max_m: float = 2.0
     same_type_only: bool = True
     type_mismatch_cost_m: float = 0.3
-    duplicate_m: float = 0.25
     trim_overlap: bool = True
     trim_keep_longer: bool = True
     trim_lookahead: bool = True
-    overlap_radius_m: float = 1.2
     overlap_search_m: float = 8.0
-    overlap_along_m: float = 1.2
-    overlap_feature_m: float = 0.5
-    overlap_share: float = 0.6
     dedupe_loose_ends: bool = True
-    twin_lateral_m: float = 0.5
-    twin_along_m: float = 1.2
     join_loose_ends: bool = True
     join_same_segment: bool = True
     join_overlap_m: float = 8.0
     branch_lateral_m: float = 0.0
-    branch_radius_m: float = 8.0
-    branch_divergence_m: float = 0.3
-    branch_any_marking: bool = True
     join_radius_m: float = 60.0
-    join_lateral_m: float = 0.5
-    join_angle_deg: float = 1.0
     join_line_heading_m: float = 4.0
     join_line_heading_deg: float = 10.0
     join_gap_check_m: float = 20.0
     join_gap_lateral_m: float = 12.0
-    join_gap_heading_deg: float = 10.0
     join_gap_coverage: float = 0.8
     join_line_cross_deg: float = 0.0
-    join_line_cross_lateral_m: float = 12.0
     join_other_marking_m: float = 0.0
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
@@ -392,11 +346,9 @@ class StitchConfig:
     single_drive_end_run_m: float = 0.0
     single_drive_end_through_leftover: bool = False
     edge_line_solid_m: float = 0.0
-    edge_line_max_drives: int = 1
     spur_max_m: float = 12.0
     end_stub_max_m: float = 0.0
     end_stub_side_m: float = 2.0
-    end_stub_slope: float = 0.1
     end_stub_cover_m: float = 8.0
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
@@ -415,7 +367,6 @@ class StitchConfig:
     track_rejoin_both: bool = False
     track_pose: bool = False
     fill_evidence: EvidenceConfig | None = None
-    path_curvature_m: float = 20.0
     path_max_turn_deg: float = 180.0
     side_link_angle_deg: float = 90.0
     side_link_overlap: float = 0.0
@@ -424,19 +375,14 @@ class StitchConfig:
 
     def __post_init__(self) -> None:
         check_range(self, (
-            "max_distance_m", "angle_free_m", "behind_tol_m", "feature_max_m", "type_mismatch_cost_m",
-            "duplicate_m", "overlap_radius_m", "overlap_search_m", "overlap_along_m", "overlap_feature_m",
-            "overlap_share", "join_radius_m", "join_overlap_m", "branch_lateral_m", "branch_radius_m",
-            "branch_divergence_m", "twin_lateral_m", "twin_along_m", "join_lateral_m", "join_angle_deg",
-            "join_line_heading_m", "join_line_heading_deg", "join_gap_check_m", "join_gap_lateral_m",
-            "join_gap_heading_deg", "join_line_cross_deg", "join_line_cross_lateral_m", "join_other_marking_m",
+            "max_distance_m", "type_mismatch_cost_m",
+            "overlap_search_m", "join_radius_m", "join_overlap_m", "branch_lateral_m", "join_line_heading_m", "join_line_heading_deg", "join_gap_check_m", "join_gap_lateral_m",
+            "join_line_cross_deg", "join_other_marking_m",
             "fill_spacing_m", "min_isolated_length_m", "refuted_piece_min_m", "inner_border_max_m",
             "min_type_run_m", "sparse_type_run_m", "single_drive_run_m", "single_drive_end_run_m",
-            "edge_line_solid_m", "spur_max_m", "end_stub_max_m", "end_stub_side_m", "end_stub_slope",
-            "end_stub_cover_m", "bubble_max_m", "gore_max_m", "path_search_m", "track_search_m",
+            "edge_line_solid_m", "spur_max_m", "end_stub_max_m", "end_stub_side_m", "end_stub_cover_m", "bubble_max_m", "gore_max_m", "path_search_m", "track_search_m",
             "track_max_gap_m", "track_max_jump_m", "track_bridge_m", "track_bridge_leave_margin_m",
-            "track_settle_deg", "track_rejoin_m", "path_curvature_m",
-        ), low=0.0, finite=True)
+            "track_settle_deg", "track_rejoin_m", ), low=0.0, finite=True)
         check_range(self, (
             "max_heading_diff_deg", "max_connection_angle_deg", "path_max_turn_deg", "side_link_angle_deg",
             "track_bridge_heading_deg", "partner_angle_deg",

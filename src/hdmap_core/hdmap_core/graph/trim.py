@@ -20,6 +20,19 @@ from hdmap_core.graph.stitch_config import StitchConfig
 
 __all__ = ["trim_overlaps"]
 
+# Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
+# constants, not settings
+#: a topology node this close to another graph's node with a similar heading is the same place
+#: [m] ...
+_OVERLAP_RADIUS_M = 1.2
+#: ... or up to ``overlap_search_m`` away and at most this far along the road, when its features
+#: have twins (two pivots' midpoints differ with their cut lines) [m]
+_OVERLAP_ALONG_M = 1.2
+#: ... a twin: a maximum of the same type within this across the road [m]
+_OVERLAP_FEATURE_M = 0.5
+#: ... for at least this share of the node's maxima (and 2)
+_OVERLAP_SHARE = 0.6
+
 
 def trim_overlaps(
     flat: FlatGraph,
@@ -32,8 +45,8 @@ def trim_overlaps(
     """Kill component end nodes of new graphs that lie on a place another graph already maps.
 
     Each new graph's components are walked from both ends inward while the node overlaps a live
-    node of another graph: within ``overlap_radius_m`` (the same road midpoint), or within
-    ``overlap_along_m`` along with most of its features' twins (the same features).
+    node of another graph: within ``_OVERLAP_RADIUS_M`` (the same road midpoint), or within
+    ``_OVERLAP_ALONG_M`` along with most of its features' twins (the same features).
 
     RULE keep longer (``trim_keep_longer``): a node is not killed for overlapping a shorter piece
     (fewer topology nodes in its component) of another graph; that graph is walked after the new
@@ -85,7 +98,7 @@ def trim_overlaps(
         u, n = heading_frame(float(g.topo_heading[t]))
         fl = g.node_xy[g.topo_start[t] : g.topo_start[t + 1]] @ n
         ft = g.node_type[g.topo_start[t] : g.topo_start[t + 1]]
-        radius = max(cfg.overlap_radius_m, cfg.overlap_search_m)
+        radius = max(_OVERLAP_RADIUS_M, cfg.overlap_search_m)
         for j in tree.query_ball_point(g.topo_xy[t], radius):
             if flat.t_graph[j] in (gi, skip):
                 continue
@@ -95,16 +108,16 @@ def trim_overlaps(
             if math.cos(g.topo_heading[t] - flat.t_heading[j]) < cos_max:
                 continue
             d = flat.t_xy[j] - g.topo_xy[t]
-            if math.hypot(*d) <= cfg.overlap_radius_m:
+            if math.hypot(*d) <= _OVERLAP_RADIUS_M:
                 same = True  # the same road midpoint
-            elif abs(float(d @ u)) > cfg.overlap_along_m or len(fl) == 0:
+            elif abs(float(d @ u)) > _OVERLAP_ALONG_M or len(fl) == 0:
                 continue
             else:
                 # the same features: most of this step's maxima have a twin of the same type
                 other = slice(flat.t_start[j], flat.t_start[j + 1])
                 gl, gt = flat.n_xy[other] @ n, flat.n_type[other]
-                twin = (np.abs(fl[:, None] - gl[None, :]) <= cfg.overlap_feature_m) & (ft[:, None] == gt[None, :])
-                same = int(twin.any(axis=1).sum()) >= max(min(2, len(fl)), cfg.overlap_share * len(fl))
+                twin = (np.abs(fl[:, None] - gl[None, :]) <= _OVERLAP_FEATURE_M) & (ft[:, None] == gt[None, :])
+                same = int(twin.any(axis=1).sum()) >= max(min(2, len(fl)), _OVERLAP_SHARE * len(fl))
             if not same:
                 continue
             if cfg.trim_keep_longer and size_of(kj)[flat.t_local[j]] < own:

@@ -152,7 +152,6 @@ RECOMMENDED_STITCHING = StitchConfig(
     # joins refused where a pivot turned through the gap (docs/pipeline.md, sparse fleets)
     join_line_heading_deg=3.0,
     join_line_cross_deg=30.0,
-    join_line_cross_lateral_m=12.0,
     # a solid end joins a dashed start (or the reverse) up to 10 m ahead (docs/pipeline.md,
     # "Loose ends of the other marking type")
     join_other_marking_m=10.0,
