@@ -27,10 +27,13 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hdmap_core.errors import ConfigError
 from hdmap_ros.commands.bag2map import add_set_argument
+
+if TYPE_CHECKING:  # the pipeline is heavy: loaded on use
+    from hdmap_core.pipeline.config import PipelineConfig
 
 __all__ = [
     "NAME", "HELP", "add_arguments", "run", "Scenario", "build_and_evaluate", "run_one", "format_table", "summarize_seeds",
@@ -320,7 +323,7 @@ def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int 
     return fleet, result, rep, build_s, n_workers
 
 
-def preset_config(preset: str, overrides: dict[str, Any] | None = None) -> Any:
+def preset_config(preset: str, overrides: dict[str, Any] | None = None) -> PipelineConfig:
     """``config_from(preset, overrides)`` (dotted keys).
 
     Raises:
