@@ -49,7 +49,7 @@ def check_range(
     Raises:
         ConfigError: "<Config>.<field> must be <finite and> <interval>, got <value>".
     """
-    for name in names:
+    for name in (names,) if isinstance(names, str) else names:
         value = getattr(config, name)
         if integer:
             ok = isinstance(value, int) and not isinstance(value, bool)

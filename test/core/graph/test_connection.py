@@ -291,7 +291,7 @@ def test_input_not_mutated_and_bad_input_rejected(three_lines):
     with pytest.raises(HdmapError, match="pivot"):
         connect_segment(Segment("q", (make_step(0, [0.0], [S]),)))
     with pytest.raises(ConfigError):
-        ConnectionConfig(max_mean_angle_deg=0.0)
+        ConnectionConfig(max_edge_angle_deg=0.0)
 
 
 def test_empty_segment():

@@ -894,7 +894,7 @@ def test_long_join_made_where_neighbour_lines_are_mapped_through_the_gap():
         if f.points[0, 0] == pytest.approx(0.0):
             assert f.points[-1, 0] == pytest.approx(40.0 if f.points[0, 1] == 0.0 else 120.0)
     with pytest.raises(ConfigError):
-        StitchConfig(join_gap_coverage=1.5)
+        StitchConfig(side_link_overlap=1.5)
 
 
 def _topo_chain(first_id: int, xs: np.ndarray, ys: np.ndarray, nxt: int | None = None) -> list:
@@ -1324,7 +1324,7 @@ def test_track_links_only_in_the_default_preset():
     assert StitchConfig().track_rejoin_m == 0.0 and StitchConfig.paper().track_rejoin_m == 0.0
     assert d.track_rejoin_both and not StitchConfig().track_rejoin_both and not StitchConfig.paper().track_rejoin_both
     with pytest.raises(ConfigError):
-        StitchConfig(track_max_gap_m=math.nan)
+        StitchConfig(track_rejoin_m=math.nan)
 
 
 def _bridged_turn(turn: bool = True, landing_deg: float = 0.0) -> list:
@@ -1446,7 +1446,7 @@ def test_track_bridges_only_in_the_default_preset():
     with pytest.raises(ConfigError):
         StitchConfig(track_bridge_m=-1.0)
     with pytest.raises(ConfigError):
-        StitchConfig(track_bridge_heading_deg=0.0)
+        StitchConfig(partner_angle_deg=0.0)
 
 
 def _junction_turn_split() -> tuple[list, list]:
@@ -1570,7 +1570,7 @@ def test_end_stub_reached_by_a_sideways_fill_dropped_where_other_lines_map_the_p
     assert (76.0, 3.5) in dashed_ends(stitch([lone], config=DEFAULT))
     assert (76.0, 3.5) not in dashed_ends(stitch([lone], config=dataclasses.replace(DEFAULT, end_stub_cover_m=0.0)))
     with pytest.raises(ConfigError):
-        StitchConfig(end_stub_side_m=-1.0)
+        StitchConfig(end_stub_cover_m=-1.0)
 
 
 def _flicker_end(pivot: str, n: int, tail_type: int, tail: int = 5) -> Segment:

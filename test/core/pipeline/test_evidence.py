@@ -232,6 +232,6 @@ def test_one_drives_speck_between_refuted_fills_is_dropped(seen_by):
     else:
         assert len(solid) == 3 and _gap_points(solid, 134.0, 142.0) >= 2
     assert presets.preset("paper").stitching.refuted_piece_min_m == 0.0
-    for bad in (dict(refuted_piece_min_m=-1.0), dict(refuted_piece_max_drives=0)):
+    for bad in (dict(refuted_piece_min_m=-1.0), dict(inner_border_max_drives=0)):
         with pytest.raises(ConfigError):
             dataclasses.replace(default.stitching, **bad)

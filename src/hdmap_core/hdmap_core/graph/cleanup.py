@@ -32,6 +32,8 @@ __all__ = ["spur_free", "end_stubs", "inner_borders"]
 #: an end stub's far end must also lie this share of the edge's length to the side (a fill that
 #: jumps across, not one that drifts along a curve)
 _END_STUB_SLOPE = 0.1
+#: an end stub (``end_stub_max_m``) is a fill whose far end lies at least this far to the side [m]
+_END_STUB_SIDE_M = 2.0
 
 _BORDER_CODE = int(FeatureType.ROAD_BORDER)
 
@@ -112,7 +114,7 @@ def end_stubs(flat: FlatGraph, uid: np.ndarray, *, config: StitchConfig, through
 
     A stub is the run of drive-supported nodes at a loose end (no edge beyond it, none branching
     off it) up to ``end_stub_max_m`` long, joined to the rest of its line by an edge long enough
-    to be filled (> 1.5 ``fill_spacing_m``) whose far end lies at least ``end_stub_side_m`` and
+    to be filled (> 1.5 ``fill_spacing_m``) whose far end lies at least ``_END_STUB_SIDE_M`` and
     ``_END_STUB_SLOPE`` of the edge's length to the side, measured across the heading of the
     rest's last topology node (the pivot's, not the line's: a line curving away from its pivot,
     e.g. a border bending into a junction, is no jump). The stub and that edge are dropped. With
@@ -169,7 +171,7 @@ def end_stubs(flat: FlatGraph, uid: np.ndarray, *, config: StitchConfig, through
             h = float(heading[k])
             v = p1 - p0
             lat = abs(math.cos(h) * v[1] - math.sin(h) * v[0])
-            if lat < cfg.end_stub_side_m or lat < _END_STUB_SLOPE * float(np.hypot(*v)):
+            if lat < _END_STUB_SIDE_M or lat < _END_STUB_SLOPE * float(np.hypot(*v)):
                 continue
             stubs.append((run, k))
     if not stubs:

@@ -38,6 +38,10 @@ from hdmap_core.steps import Segment, StepResult, left_normal
 
 __all__ = ["connect_segment"]
 
+#: a step whose assigned connections have a mean angle (to the heading) above this is rejected
+#: as an implausible optimisation result and bridged [deg].
+_MAX_MEAN_ANGLE_DEG = 15.0
+
 # Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
 # constants, not settings
 #: a tip's own line direction is taken from its node at least this far back (pivot travel): shorter
@@ -247,7 +251,7 @@ def _fast_pairs(
     along = d[:, 0] * c + d[:, 1] * sn
     lat = np.abs(-d[:, 0] * sn + d[:, 1] * c)
     tan_e = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
-    tan_m = math.tan(math.radians(config.max_mean_angle_deg))
+    tan_m = math.tan(math.radians(_MAX_MEAN_ANGLE_DEG))
     slack = config.edge_slack_m if config.mean_angle_slack else 0.0
     ok = (typ[cur] == typ[prev]) & (along > 0) & (lat <= config.edge_slack_m + along * tan_e) & (lat <= slack + along * tan_m)
     bad = np.bincount(elem_j[~ok], minlength=n)
@@ -554,7 +558,7 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
             res = assign(
                 tip_xy, tip_type, tip_s == last_s, flat.xy[a0:a1], flat.typ[a0:a1], st.heading, config, tip_dir, tip_check
             )
-            if res.mean_angle_deg > config.max_mean_angle_deg:
+            if res.mean_angle_deg > _MAX_MEAN_ANGLE_DEG:
                 stats.rejected_angle += 1  # implausible optimisation result: treat as a gap
                 skipped = True
                 tips = (tip_idx, tip_s, tip_xy, tip_type)

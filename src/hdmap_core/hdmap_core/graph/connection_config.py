@@ -20,8 +20,6 @@ class ConnectionConfig:
     Attributes:
         max_gap_m: steps without a result are bridged when the pivot travelled at most this far
             between two valid steps; a longer gap closes every polyline (RULE 3) [m].
-        max_mean_angle_deg: a step whose assigned connections have a mean angle (to the heading)
-            above this is rejected as an implausible optimisation result and bridged [deg].
         robust_angle: judge a step by the median connection angle instead of the mean, so that
             one feature leaving the cut while another enters does not reject a good step.
         mean_angle_slack: measure those connection angles with ``edge_slack_m`` taken off each
@@ -147,7 +145,6 @@ class ConnectionConfig:
     """
 
     max_gap_m: float = 20.0
-    max_mean_angle_deg: float = 15.0
     robust_angle: bool = True
     mean_angle_slack: bool = False
     max_edge_angle_deg: float = 35.0
@@ -178,7 +175,7 @@ class ConnectionConfig:
 
     def __post_init__(self) -> None:
         check_range(self, ("max_gap_m", "edge_slack_m", "min_separation_m", "leftover_max_m"), low=0.0)
-        check_range(self, ("max_mean_angle_deg", "max_edge_angle_deg", "bridge_edge_angle_deg"), low=0.0, high=90.0,
+        check_range(self, ("max_edge_angle_deg", "bridge_edge_angle_deg"), low=0.0, high=90.0,
                     low_open=True)
         check_range(self, ("line_check_max_deg",), low=0.0, high=180.0, low_open=True)
         check_range(self, ("min_support_share",), low=0.0, high=1.0)

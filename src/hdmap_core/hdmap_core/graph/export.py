@@ -23,6 +23,9 @@ from hdmap_core.model import FeatureType, MapFeature, TopologyNode
 
 __all__ = ["export_map"]
 
+#: a refuted piece (``refuted_piece_min_m``) is one of at most this many drives at any of its points
+_REFUTED_PIECE_MAX_DRIVES = 1
+
 # Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
 # constants, not settings
 #: the edge-line rule types only markings of at most this many drives (or disputed ones): a marking
@@ -156,7 +159,7 @@ def export_map(
         if isolated and (len(xy) < 2 or (length < cfg.min_isolated_length_m and not protect[chains[k]].any())):
             keep[k] = False
         elif (isolated and length < cfg.refuted_piece_min_m and protect[chains[k]].any()
-              and int(np.max(geoms[k][1])) <= cfg.refuted_piece_max_drives):
+              and int(np.max(geoms[k][1])) <= _REFUTED_PIECE_MAX_DRIVES):
             keep[k] = False  # one drive's speck left between refuted fills
     inner_m = cfg.inner_border_max_m
     ctype = [int(flat.n_type[c[0]]) for c in chains]

@@ -23,6 +23,10 @@ from hdmap_core.model import FeatureType
 
 __all__ = ["LooseEndJoins", "dedupe_loose_ends", "join_loose_ends"]
 
+#: a long join (``join_gap_check_m``) is refused where drives passed over at least this share of its
+#: length and saw nothing there (0..1)
+_JOIN_GAP_COVERAGE = 0.8
+
 # Rules measured and adopted with this stage (docs/graph.md); no preset changes them, so they are
 # constants, not settings
 #: two feature nodes of different segments at most this far apart across the road ...
@@ -80,7 +84,7 @@ class _GapCheck:
         self._node_heading = node_heading
         self._lat = cfg.join_gap_lateral_m
         self._cos = math.cos(math.radians(_JOIN_GAP_HEADING_DEG))
-        self._cover = cfg.join_gap_coverage
+        self._cover = _JOIN_GAP_COVERAGE
         self._cross_cos = math.cos(math.radians(cfg.join_line_cross_deg)) if cfg.join_line_cross_deg > 0 else None
         self._cross_lat = _JOIN_LINE_CROSS_LATERAL_M
         self._ttree: cKDTree | None = None
@@ -124,7 +128,7 @@ class _GapCheck:
     def unmapped(self, p: np.ndarray, along: float, h: float, u: np.ndarray, n: np.ndarray) -> bool:
         """A join from ``p`` ``along`` m in direction ``h`` (unit ``u``, normal ``n``) crosses a
         stretch drives passed (topology nodes in its middle half) whose lines beside it are missing
-        too (drive-supported nodes cover < ``join_gap_coverage`` of its 2 m bins)."""
+        too (drive-supported nodes cover < ``_JOIN_GAP_COVERAGE`` of its 2 m bins)."""
         fl = self._flat
         self._trees()
         if self._ttree is None:

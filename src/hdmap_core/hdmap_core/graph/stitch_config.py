@@ -63,11 +63,10 @@ class StitchConfig:
             node (a pivot's step) lies in the middle half of the gap, within
             ``join_gap_lateral_m`` across the join and ``loose_ends._JOIN_GAP_HEADING_DEG`` of its direction,
             while drive-supported feature nodes of that direction within ``join_gap_lateral_m``
-            cover less than ``join_gap_coverage`` of the 2 m bins of the middle half. Every line of
+            cover less than ``loose_ends._JOIN_GAP_COVERAGE`` of the 2 m bins of the middle half. Every line of
             a road then ends at the same gap (a junction's mouth, where the steps failed): the
             straight fill across it is no drive's line. 0 disables (the paper) [m].
         join_gap_lateral_m: see ``join_gap_check_m`` [m].
-        join_gap_coverage: see ``join_gap_check_m`` (share of bins, 0..1).
         join_line_cross_deg: a join longer than ``join_gap_check_m`` that passes only in its
             lines' direction (``join_line_heading_m``: where the pivot turned) is refused when a
             topology node in the middle half of the gap, within ``loose_ends._JOIN_LINE_CROSS_LATERAL_M``
@@ -89,11 +88,10 @@ class StitchConfig:
             (single-step specks, false positives) [m].
         refuted_piece_min_m: a polyline isolated only because fills were refuted (``fill_evidence``)
             is kept whatever its length (a short line between two junction mouths), unless it is
-            shorter than this and seen by at most ``refuted_piece_max_drives`` drives: one drive's
+            shorter than this and seen by at most ``export._REFUTED_PIECE_MAX_DRIVES`` drives: one drive's
             2-3 steps left between refuted fills are a speck (carla_town04_50_s1: 1-3 m pieces
             of one drive at a gore and beside the ramps, each an extra piece of its line). 0
             keeps every such piece [m].
-        refuted_piece_max_drives: see ``refuted_piece_min_m`` (max drive count over its points).
         inner_border_max_m: a road border polyline without any link, seen by at most
             ``inner_border_max_drives`` drives, is dropped when at most of its drive-supported
             nodes lane markings of its direction lie within this distance on both sides: a
@@ -153,7 +151,7 @@ class StitchConfig:
             line, typed dashed against the other drive's solid). 0 disables [m].
         end_stub_max_m: at a polyline's loose end (no edge beyond it), a run of drive-supported
             nodes up to this long that the rest of the line reaches only through an edge long
-            enough to be filled, whose far end lies ``end_stub_side_m`` (and ``cleanup._END_STUB_SLOPE`` of
+            enough to be filled, whose far end lies ``cleanup._END_STUB_SIDE_M`` (and ``cleanup._END_STUB_SLOPE`` of
             the edge's length) to the side of the rest's topology heading, is dropped with that
             edge: a loose-end join or bridged gap onto the neighbouring lane's line at a ramp or
             junction end, a stray piece of another line (docs/pipeline.md, "Town04's stray
@@ -161,7 +159,6 @@ class StitchConfig:
             ``end_stub_cover_m`` across (and 2 m along): a stub that is the only map line on its
             cross-section stays. 0 disables (the dataclass default; 12 in the default pipeline
             preset) [m].
-        end_stub_side_m: see ``end_stub_max_m`` [m].
         end_stub_cover_m: see ``end_stub_max_m``; 0: no coverage check (every such stub is
             dropped) [m].
         spur_max_m: a polyline shorter than this that hangs off a split without successor (or
@@ -207,14 +204,9 @@ class StitchConfig:
             without closing a short cycle). The link is drive-supported: the pivot went from the
             end to that node. Run before the arc search (``path_search_m``), whose extrapolated
             arc misses junction turns past ``path_max_turn_deg`` (Town04's exit, docs/graph.md
-            "Track links"). The walk stops at a gap of more than ``track_max_gap_m`` between
+            "Track links"). The walk stops at a gap of more than ``tracks._TRACK_MAX_GAP_M`` between
             track points (a run processed before keeps only its first and last step). 0
             disables (the paper, the plain default) [m].
-        track_max_gap_m: see ``track_search_m``; measured along the track's heading [m].
-        track_max_jump_m: ... and two track points further apart than this (in any direction)
-            are a gap too: a failed step's cut midpoint may lie across the road from the last
-            (carla_town06_30_s1: 8.96 m, 2 m along), but a cut refined onto another road is no
-            path the pivot drove [m].
         track_linked_ends: the track search also runs from starts (ends) that have a partner
             already; it then links to a node its pivot's track enters only when the map does
             not reach that node from the start (end) within 2 * ``track_search_m`` + 30 m (the
@@ -244,7 +236,7 @@ class StitchConfig:
             settling"). 0 disables (the paper, the plain
             default) [deg].
         track_bridge_m: where a pivot's track leaves a topology node A (a track point in its
-            cross-section, heading within ``track_bridge_heading_deg``), runs through at least one
+            cross-section, heading within ``tracks._TRACK_BRIDGE_HEADING_DEG``), runs through at least one
             point in no node's cross-section for at most this far, and enters a node B, A is
             linked to B (topology only) unless the map reaches B from A within 2 * this + 30 m or
             the link closes a short cycle: the pivot drove from A to B. Needs no component
@@ -252,12 +244,6 @@ class StitchConfig:
             mapped by other pivots (the pivot's steps there processed before), no chain ends
             where the pivot turned, so the track search never starts (carla_town04_30_s1's exit,
             docs/graph.md "Track bridges"). 0 disables (the paper, the plain default) [m].
-        track_bridge_heading_deg: see ``track_bridge_m``: the track enters node B (and stays on
-            the road of A while turning off it) with a heading this close to the node's; it
-            leaves A within ``max_heading_diff_deg``. Wider than that: a pivot entering a road
-            at a merge is still turning when its track reaches the road's cross-section (35 deg
-            on Town04). Consecutive track points more than ``track_max_gap_m`` apart in any
-            direction end a bridge's walk [deg].
         track_bridge_leave_margin_m: see ``track_bridge_m``: where the walk has no road to leave
             yet (the track's first point, or the first after a gap: a run processed before keeps
             only its first and last step), a point up to this far beyond a node's cross-section
@@ -328,13 +314,11 @@ class StitchConfig:
     join_line_heading_deg: float = 10.0
     join_gap_check_m: float = 20.0
     join_gap_lateral_m: float = 12.0
-    join_gap_coverage: float = 0.8
     join_line_cross_deg: float = 0.0
     join_other_marking_m: float = 0.0
     fill_spacing_m: float = 2.0
     min_isolated_length_m: float = 20.0
     refuted_piece_min_m: float = 6.0
-    refuted_piece_max_drives: int = 1
     inner_border_max_m: float = 0.0
     inner_border_max_drives: int = 1
     inner_border_dashed_drives: int = 0
@@ -348,7 +332,6 @@ class StitchConfig:
     edge_line_solid_m: float = 0.0
     spur_max_m: float = 12.0
     end_stub_max_m: float = 0.0
-    end_stub_side_m: float = 2.0
     end_stub_cover_m: float = 8.0
     bubble_max_m: float = 60.0
     gore_max_m: float = 100.0
@@ -356,11 +339,8 @@ class StitchConfig:
     link_within_component: bool = False
     path_search_m: float = 0.0
     track_search_m: float = 0.0
-    track_max_gap_m: float = 6.0
-    track_max_jump_m: float = 12.0
     track_linked_ends: bool = False
     track_bridge_m: float = 0.0
-    track_bridge_heading_deg: float = 45.0
     track_bridge_leave_margin_m: float = 0.0
     track_settle_deg: float = 0.0
     track_rejoin_m: float = 0.0
@@ -375,20 +355,21 @@ class StitchConfig:
 
     def __post_init__(self) -> None:
         check_range(self, (
-            "max_distance_m", "type_mismatch_cost_m",
-            "overlap_search_m", "join_radius_m", "join_overlap_m", "branch_lateral_m", "join_line_heading_m", "join_line_heading_deg", "join_gap_check_m", "join_gap_lateral_m",
-            "join_line_cross_deg", "join_other_marking_m",
-            "fill_spacing_m", "min_isolated_length_m", "refuted_piece_min_m", "inner_border_max_m",
-            "min_type_run_m", "sparse_type_run_m", "single_drive_run_m", "single_drive_end_run_m",
-            "edge_line_solid_m", "spur_max_m", "end_stub_max_m", "end_stub_side_m", "end_stub_cover_m", "bubble_max_m", "gore_max_m", "path_search_m", "track_search_m",
-            "track_max_gap_m", "track_max_jump_m", "track_bridge_m", "track_bridge_leave_margin_m",
-            "track_settle_deg", "track_rejoin_m", ), low=0.0, finite=True)
+            "max_distance_m", "type_mismatch_cost_m", "overlap_search_m", "join_radius_m", "join_overlap_m",
+            "branch_lateral_m", "join_line_heading_m", "join_line_heading_deg", "join_gap_check_m",
+            "join_gap_lateral_m", "join_line_cross_deg", "join_other_marking_m", "fill_spacing_m",
+            "min_isolated_length_m", "refuted_piece_min_m", "inner_border_max_m", "min_type_run_m",
+            "sparse_type_run_m", "single_drive_run_m", "single_drive_end_run_m", "edge_line_solid_m",
+            "spur_max_m", "end_stub_max_m", "end_stub_cover_m", "bubble_max_m", "gore_max_m", "path_search_m",
+            "track_search_m", "track_bridge_m", "track_bridge_leave_margin_m", "track_settle_deg",
+            "track_rejoin_m",
+        ), low=0.0, finite=True)
         check_range(self, (
             "max_heading_diff_deg", "max_connection_angle_deg", "path_max_turn_deg", "side_link_angle_deg",
-            "track_bridge_heading_deg", "partner_angle_deg",
+            "partner_angle_deg",
         ), low=0.0, high=180.0, low_open=True)
-        check_range(self, ("join_gap_coverage", "side_link_overlap"), low=0.0, high=1.0)
-        check_range(self, ("refuted_piece_max_drives", "inner_border_max_drives"), low=1)
+        check_range(self, ("side_link_overlap",), low=0.0, high=1.0)
+        check_range(self, ("inner_border_max_drives",), low=1)
         check_range(self, ("inner_border_dashed_drives",), low=0)
 
     @classmethod

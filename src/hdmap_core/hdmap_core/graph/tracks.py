@@ -22,6 +22,22 @@ from hdmap_core.graph.stitch_config import StitchConfig
 
 __all__ = ["pivot_tracks", "track_partner", "entered_by_points", "track_bridges"]
 
+# Rules of following a pivot's track, measured with the track links (docs/graph.md, "Track links");
+# no preset changes them.
+#: two consecutive track points further apart than this along the track's heading are a gap (a
+#: run of steps processed before keeps only its first and last step) [m] ...
+_TRACK_MAX_GAP_M = 6.0
+#: ... and two track points further apart than this (in any direction) are a gap too: a failed
+#: step's cut midpoint may lie across the road from the last (carla_town06_30_s1: 8.96 m, 2 m
+#: along), but a cut refined onto another road is no path the pivot drove [m].
+_TRACK_MAX_JUMP_M = 12.0
+#: a track bridge (``track_bridge_m``): the track enters node B (and stays on the road of A while turning off
+#: it) with a heading this close to the node's; it leaves A within ``max_heading_diff_deg``.
+#: Wider than that: a pivot entering a road at a merge is still turning when its track reaches
+#: the road's cross-section (35 deg on Town04). Consecutive track points more than
+#: ``_TRACK_MAX_GAP_M`` apart in any direction end a bridge's walk [deg].
+_TRACK_BRIDGE_HEADING_DEG = 45.0
+
 
 def track_partner(
     flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, track: tuple[np.ndarray, np.ndarray],
@@ -30,8 +46,8 @@ def track_partner(
     """The first topology node on the path the pivot of end (start) node i drove on from it
     (back to it): ``track`` = (xy, heading) of the pivot's steps in driving order, ``k`` = the
     row of node i's step. A track point within ``track_search_m`` (walked along the track's
-    heading; the walk stops at a gap over ``track_max_gap_m`` along it or a jump over
-    ``track_max_jump_m`` in any direction) lies in the node's cross-section and the node heads
+    heading; the walk stops at a gap over ``_TRACK_MAX_GAP_M`` along it or a jump over
+    ``_TRACK_MAX_JUMP_M`` in any direction) lies in the node's cross-section and the node heads
     within ``max_heading_diff_deg`` of the track there; among several at that point the nearest,
     among those ``allowed``; -1 if none (``StitchConfig.track_search_m``). With
     ``track_settle_deg`` a point where the track is still turning onto the node's heading
@@ -60,13 +76,13 @@ def track_partner(
 
 def _track_gap(xy: np.ndarray, heading: np.ndarray, m: int, n: int, cfg: StitchConfig) -> float | None:
     """How far the pivot drove from track row m to row n: the step along row n's heading [m];
-    None where the two are no consecutive places of one drive (a gap over ``track_max_gap_m``
-    along, or a jump over ``track_max_jump_m`` in any direction). Along the heading because a
+    None where the two are no consecutive places of one drive (a gap over ``_TRACK_MAX_GAP_M``
+    along, or a jump over ``_TRACK_MAX_JUMP_M`` in any direction). Along the heading because a
     failed step's cut midpoint may jump across the road (its cut refined to other borders) though
     the pivot drove on; a run processed before keeps only its first and last step: a gap."""
     step = xy[n] - xy[m]
     gap = abs(float(np.dot(step, heading_frame(float(heading[n]))[0])))
-    if gap > cfg.track_max_gap_m or float(np.hypot(*step)) > cfg.track_max_jump_m:
+    if gap > _TRACK_MAX_GAP_M or float(np.hypot(*step)) > _TRACK_MAX_JUMP_M:
         return None
     return gap
 
@@ -77,7 +93,7 @@ def _still_turning(
     """Is the track (``xy``, ``heading``) at row m, walked in direction ``sign``, still turning
     onto node j's heading (``StitchConfig.track_settle_deg``)? Its heading there lies more than
     2 * ``track_settle_deg`` off the node's and the next row of the walk (no gap: within
-    ``track_max_gap_m`` along its heading and ``track_max_jump_m`` in any direction) within
+    ``_TRACK_MAX_GAP_M`` along its heading and ``_TRACK_MAX_JUMP_M`` in any direction) within
     ``track_settle_deg`` of it: the pivot settles onto the road one step later."""
     settle = math.radians(cfg.track_settle_deg)
     hj = float(flat.t_heading[j])
@@ -134,17 +150,17 @@ def track_bridges(
 ) -> list[tuple[int, int]]:
     """(A, B) topology node pairs a pivot's track (``xy``, ``heading`` in driving order) bridges:
     the track leaves node A's cross-section, runs through at least one point that lies in no
-    node's cross-section (within ``track_bridge_heading_deg``) for at most ``track_bridge_m``
-    (two points further apart than ``track_max_gap_m`` end the walk), and enters node B's
+    node's cross-section (within ``_TRACK_BRIDGE_HEADING_DEG``) for at most ``track_bridge_m``
+    (two points further apart than ``_TRACK_MAX_GAP_M`` end the walk), and enters node B's
     (``StitchConfig.track_bridge_m``). A is left running along it (within
     ``max_heading_diff_deg``; with ``track_bridge_leave_margin_m`` a point up to that far beyond
     A's cross-section leaves it too where the walk has no road to leave yet); points turning off
-    it within ``track_bridge_heading_deg`` while still in the cross-section of a node A's road
+    it within ``_TRACK_BRIDGE_HEADING_DEG`` while still in the cross-section of a node A's road
     leads to (``on_road(A, node)``) keep A."""
     # leaving a road the track runs along it (within max_heading_diff_deg); entering one at a
-    # merge it may still be turning (within track_bridge_heading_deg)
+    # merge it may still be turning (within _TRACK_BRIDGE_HEADING_DEG)
     cos_leave = math.cos(math.radians(cfg.max_heading_diff_deg))
-    cos_enter = math.cos(math.radians(cfg.track_bridge_heading_deg))
+    cos_enter = math.cos(math.radians(_TRACK_BRIDGE_HEADING_DEG))
     # RULE: with track_bridge_leave_margin_m a track that has no road to leave from (its start, or
     # after a gap: a run processed before keeps only its first and last step) leaves the road
     # whose cross-section, widened by the margin, its point lies in: the last point before a
@@ -163,11 +179,11 @@ def track_bridges(
     for m in range(len(xy)):
         if m > 0:
             # a bridge claims the pivot drove the track: consecutive points no further apart than
-            # track_max_gap_m in any direction (the track search's jumps of failed steps' cut
-            # midpoints, up to track_max_jump_m across, land on other roads at junctions)
+            # _TRACK_MAX_GAP_M in any direction (the track search's jumps of failed steps' cut
+            # midpoints, up to _TRACK_MAX_JUMP_M across, land on other roads at junctions)
             gap = float(np.hypot(*(xy[m] - xy[m - 1])))
             walked += gap
-            if gap > cfg.track_max_gap_m:
+            if gap > _TRACK_MAX_GAP_M:
                 last, unmapped, walked = -1, 0, 0.0
         if enter[m] < 0:
             if last < 0 and wide[m] >= 0:
