@@ -109,6 +109,9 @@ def render() -> str:
 
     default, presets = PipelineConfig(), {"paper": paper(), "naive": naive()}
     rows = [r for r in _rows(default) if r[0] != "name"]
+    # one section per group, the pipeline's own keys first
+    heads = ["pipeline"] + list(dict.fromkeys(r[0].rpartition(".")[0] for r in rows if "." in r[0]))
+    rows.sort(key=lambda r: heads.index(r[0].rpartition(".")[0] or "pipeline"))
     lines = [
         "# Parameters",
         "",
