@@ -125,16 +125,19 @@ def render() -> str:
     ]
     group = None
     docs: dict[type, dict[str, str]] = {}
+    table_open = False
     for key, owner, name, value in rows:
         head = key.rpartition(".")[0] or "pipeline"
         repeat = _REPEATS.get(head)
-        if repeat is not None and value == _leaf(default, f"{repeat}.{name}"):
-            continue  # as the group it repeats
         if head != group:
-            group = head
+            group, table_open = head, False
             lines += ["", f"## `{head}` ({owner.__name__})", ""]
             if repeat is not None:
-                lines += [f"Every field of `{repeat}` is also a key here; listed are those whose default differs.", ""]
+                lines += [f"Every field of `{repeat}` is also a key here, with the same default unless listed below.", ""]
+        if repeat is not None and value == _leaf(default, f"{repeat}.{name}"):
+            continue  # as the group it repeats
+        if not table_open:
+            table_open = True
             lines += ["| key | default | paper | naive | unit | effect |", "|---|---|---|---|---|---|"]
         text = docs.setdefault(owner, _doc_entries(owner)).get(name, "")
         others = []
