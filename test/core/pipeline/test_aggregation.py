@@ -8,6 +8,7 @@ import pytest
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 from hdmap_core.pipeline.aggregation import (
+    SINGLE_DRIVE_STD_M,
     AggregationConfig,
     ProcessedStore,
     aggregate_many,
@@ -199,6 +200,6 @@ def test_common_error_of_corrected_drives_is_added_to_the_spread():
     agg = aggregate_step(x, four["labels"], four["types"], four["drive"], config=cfg)
     assert agg.std_m[0] == pytest.approx(np.hypot(x.std() / 2.0, 1.0 / 2.0))
     one = aggregate_step(np.array([2.0]), np.zeros(1, np.int64), np.ones(1, np.int64), np.zeros(1, np.int64), config=cfg)
-    assert one.std_m[0] == pytest.approx(np.hypot(cfg.single_drive_std_m, 1.0))
+    assert one.std_m[0] == pytest.approx(np.hypot(SINGLE_DRIVE_STD_M, 1.0))
     with pytest.raises(ConfigError, match="common_sigma_m"):
         AggregationConfig(common_sigma_m=-0.1)

@@ -23,9 +23,12 @@ from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 
-__all__ = ["AggregationConfig", "ManyAggregates", "aggregate_many", "kde_maxima", "overlap_coefficients", "gaussian_overlap", "aggregate_step", "ProcessedStore"]
+__all__ = ["SINGLE_DRIVE_STD_M", "AggregationConfig", "ManyAggregates", "aggregate_many", "kde_maxima", "overlap_coefficients", "gaussian_overlap", "aggregate_step", "ProcessedStore"]
 
 _SQRT2PI = np.sqrt(2.0 * np.pi)
+#: Reported 1-sigma of a maximum supported by one drive (the spread part; ``common_sigma_m`` adds
+#: to it): a drive's samples of one line scatter by about this after the EM [m].
+SINGLE_DRIVE_STD_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -43,8 +46,6 @@ class AggregationConfig:
             clusters of one class are compared (solid with dashed, border with border), since a
             curb or barrier right beside an edge line (0.2-0.5 m) is a second physical feature,
             not a misclassified copy of the line.
-        single_drive_std_m: reported 1-sigma of a maximum supported by one drive [m] (the spread
-            part; ``common_sigma_m`` adds to it).
         common_sigma_m: 1-sigma of one drive's localization error that no offset correction can
             remove [m]. Offsets estimated from the drives alone (no absolute reference) align
             them with each other, so the corrected samples scatter little, but the map point
@@ -74,7 +75,6 @@ class AggregationConfig:
     overlap_filter: bool = True
     overlap_threshold: float = 0.5
     overlap_border_marking: bool = True
-    single_drive_std_m: float = 0.5
     common_sigma_m: float = 0.0
     tie_by_position: bool = False
     border_beside_marking_drives: int = 0
@@ -83,7 +83,7 @@ class AggregationConfig:
         check_choice(self, "method", ("kde", "mean"))
         check_range(self, ("kde_bandwidth_factor", "kde_min_bandwidth_m"), low=0.0, low_open=True)
         check_range(self, ("overlap_threshold",), low=0.0, high=1.0)
-        check_range(self, ("common_sigma_m", "single_drive_std_m"), low=0.0, finite=True)
+        check_range(self, ("common_sigma_m",), low=0.0, finite=True)
         check_range(self, ("border_beside_marking_drives",), low=0, integer=True)
 
 
@@ -268,7 +268,7 @@ def aggregate_many(
                         keep[i if n[i] < n[j] else j] = False
     idx = order[keep[order]]
     n_kept = np.maximum(n_drives[idx], 1)
-    spread = np.where(n_drives[idx] > 1, std[idx] / np.sqrt(n_kept), config.single_drive_std_m)
+    spread = np.where(n_drives[idx] > 1, std[idx] / np.sqrt(n_kept), SINGLE_DRIVE_STD_M)
     sigma = np.sqrt(spread**2 + config.common_sigma_m**2 / n_kept)
     return ManyAggregates(
         step=cstep[idx],

@@ -50,6 +50,7 @@ REMOVED_KEYS: dict[str, str] = {
     "alignment.max_offset_m": _fixed("alignment", "MAX_OFFSET_M", 5.0),
     "aggregation.grid_points": "a fixed rule now: the KDE maximum is searched on 16 grid points "
     "(hdmap_core.pipeline.aggregation.kde_maxima)",
+    "aggregation.single_drive_std_m": _fixed("aggregation", "SINGLE_DRIVE_STD_M", 0.5),
     "adjustment.robust_k": _fixed("adjustment", "ROBUST_K", 2.5),
     "adjustment.huber_warmup_iterations": _fixed("adjustment", "HUBER_WARMUP_ITERATIONS", 2),
     "adjustment.tol_m": _fixed("adjustment", "TOL_M", 2e-3),
