@@ -1180,7 +1180,7 @@ def test_end_follows_its_pivots_track_through_a_junction_turn():
 def test_track_walk_passes_failed_midpoints_thrown_across_the_road(across_m: float, linked: bool):
     """As above, with two failed steps' cut midpoints thrown across the road (refined to other
     borders), +across_m and -across_m off the pivot's arc: 2 * across_m apart, 2 m along. The
-    pivot drove on: up to ``track_max_jump_m`` (12 m) the walk goes on, beyond it that is no path."""
+    pivot drove on: up to ``tracks._TRACK_MAX_JUMP_M`` (12 m) the walk goes on, beyond it that is no path."""
     p, q = _junction(turn=True)
     xy = p.track_xy.copy()
     for k, sign in ((37, 1.0), (38, -1.0)):
@@ -1394,7 +1394,7 @@ def test_track_bridge_links_two_mapped_roads_a_pivot_turned_between():
 def test_track_bridge_enters_a_road_at_a_merge_angle(landing_deg: float, linked: bool):
     """The track enters q's cross-section while still turning: its last failed steps lie outside
     it, the step processed through q heads ``landing_deg``. Entering is accepted within
-    ``track_bridge_heading_deg`` (45 deg), wider than the 30 deg of leaving a road."""
+    ``tracks._TRACK_BRIDGE_HEADING_DEG`` (45 deg), wider than the 30 deg of leaving a road."""
     graphs = _bridged_turn(landing_deg=landing_deg)
     # the arc's last points lie in q's cross-section already: move them out (the pivot cut the corner)
     p = graphs[0]
