@@ -146,6 +146,11 @@ def render() -> str:
             others.append("" if v == value else _shown(v) if v != "(off)" else "(off)")
         cells = [f"`{key}`", _shown(value), *others, _unit(name, text), text.replace("|", "\\|")]
         lines.append("| " + " | ".join(cells) + " |")
+    from hdmap_core.pipeline.overrides import REMOVED_KEYS  # noqa: PLC0415
+
+    lines += ["", "## Former settings", "", "Keys older docs and measurements name; `--set` refuses them with this text.", "",
+              "| former key | now |", "|---|---|"]
+    lines += [f"| `{key}` | {what} |" for key, what in sorted(REMOVED_KEYS.items())]
     return "\n".join(lines) + "\n"
 
 
