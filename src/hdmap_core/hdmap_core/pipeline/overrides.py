@@ -29,9 +29,8 @@ def _fixed(module: str, constant: str, value: object) -> str:
     return f"a fixed rule now: {constant} = {value!r} in hdmap_core.pipeline.{module}"
 
 
-#: Keys that were public once and are not any more, with what became of them. A key of the final
-#: pass (``final_pass.sampling.x``) or of ``stitching.fill_evidence`` is looked up as the first
-#: pass's (``sampling.x``) or ``evidence``'s.
+#: Keys that were public once and are not any more, with what became of them. A key of
+#: ``stitching.fill_evidence`` is looked up as ``evidence``'s.
 REMOVED_KEYS: dict[str, str] = {
     "use_global_adjustment": "the adjustment runs exactly when there is a final pass: set final_pass=null "
     "(one pass, no adjustment) or final_pass=true",
@@ -103,12 +102,10 @@ REMOVED_KEYS: dict[str, str] = {
 
 def _removed(key: str) -> str | None:
     """What became of a removed ``key``, or None when it is not one."""
-    plain = key.removeprefix("final_pass.")
+    plain = key
     if plain.startswith("stitching.fill_evidence."):
         plain = "evidence." + plain.removeprefix("stitching.fill_evidence.")
     return REMOVED_KEYS.get(plain) or REMOVED_KEYS.get(key.partition(".")[0])
-
-
 
 
 def parse_override(text: str) -> tuple[str, object]:
