@@ -394,7 +394,6 @@ def test_inputs_are_not_mutated():
         {"noise_sigma_m": float("nan")},
         {"loss": "tukey"},
         {"iterations": 0},
-        {"thin_drives": -1},
     ],
 )
 def test_config_rejects_bad_values(kwargs):

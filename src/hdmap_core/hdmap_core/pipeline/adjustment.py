@@ -65,6 +65,12 @@ REASSOCIATE_GATE_M = 1.0
 #: +-this (0.25 m grid, truncated-quadratic cost on the nearest centres of the same type): repairs
 #: drives associated a whole lane off [m]
 SHIFT_SEARCH_M = 4.5
+#: the fit uses every step seen by at most this many drives, and every ceil(d / THIN_DRIVES)-th
+#: step of those seen by d more. The cost of a step grows with d^2 (its cluster positions couple
+#: all its drives); thinned, the fit grows linearly with the fleet while a drive still has dozens
+#: of steps per knot (re-association and the lane-shift search still use every step;
+#: docs/adjustment.md, "Cost in the fleet size")
+THIN_DRIVES = 16
 
 
 @dataclass(frozen=True)
@@ -93,11 +99,6 @@ class AdjustConfig:
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
             normal matrix; O(p^3) in the number of unknowns p).
         std_max_unknowns: above this many unknowns the std is not computed (left NaN).
-        thin_drives: the fit uses every step seen by at most this many drives, and every
-            ceil(d / thin_drives)-th step of those seen by d more (0 = every step). The cost of a
-            step grows with d^2 (its cluster positions couple all its drives); thinned, the fit
-            grows linearly with the fleet while a drive still has dozens of steps per knot.
-            (Re-association and the lane-shift search still use every step.)
     """
 
     knot_spacing_m: float = 200.0
@@ -111,7 +112,6 @@ class AdjustConfig:
     reassociate_rounds: int = 2
     compute_std: bool = True
     std_max_unknowns: int = 4000
-    thin_drives: int = 16
 
     def __post_init__(self) -> None:
         check_range(self, ("knot_spacing_m", "bias_sigma_m", "correlation_length_m", "noise_sigma_m"), low=0.0,
@@ -119,7 +119,7 @@ class AdjustConfig:
         check_range(self, ("coarse_reject_m", "drift_sigma_m"), low=0.0, finite=True)
         check_choice(self, "loss", _LOSSES)
         check_range(self, ("iterations",), low=1, integer=True)
-        check_range(self, ("reassociate_rounds", "std_max_unknowns", "thin_drives"), low=0, integer=True)
+        check_range(self, ("reassociate_rounds", "std_max_unknowns"), low=0, integer=True)
 
 
 @dataclass(frozen=True)
@@ -465,7 +465,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         # per drive fitted on it is then enough to re-associate at the gate.
         label = assoc.reassociate(pool, label, np.zeros(pool.s_m.size), assoc.centres(pool, label, pool.lateral_m),
                              gate_m=np.inf)
-        samples = assoc.select(pool, label, cfg.thin_drives)
+        samples = assoc.select(pool, label, THIN_DRIVES)
         if samples.s_m.size:
             coarse = _coarse_config(cfg)
             fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
@@ -527,7 +527,7 @@ def _shift_and_reassociate(pool: assoc.Pool, label: np.ndarray, model: OffsetMod
 
 def _fit_all(pool: assoc.Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[assoc.Samples, _Fit | None, np.ndarray]:
     """Select the informative samples of ``label`` and fit them (coarse stage, then curves)."""
-    samples = assoc.select(pool, label, cfg.thin_drives)
+    samples = assoc.select(pool, label, THIN_DRIVES)
     keep = np.ones(samples.s_m.size, dtype=bool)
     if samples.s_m.size == 0:
         return samples, None, keep

@@ -54,6 +54,7 @@ REMOVED_KEYS: dict[str, str] = {
     "adjustment.huber_warmup_iterations": _fixed("adjustment", "HUBER_WARMUP_ITERATIONS", 2),
     "adjustment.tol_m": _fixed("adjustment", "TOL_M", 2e-3),
     "adjustment.reassociate_gate_m": _fixed("adjustment", "REASSOCIATE_GATE_M", 1.0),
+    "adjustment.thin_drives": _fixed("adjustment", "THIN_DRIVES", 16),
     "adjustment.shift_search_m": _fixed("adjustment", "SHIFT_SEARCH_M", 4.5),
     "evidence.bands_m": _fixed("evidence", "BANDS_M", (3.0, 6.5, 10.0)),
     "evidence.rates": _fixed("evidence", "RATES", (0.9, 0.6, 0.2)),
