@@ -119,7 +119,7 @@ def render() -> str:
         "",
         "Every key `--set KEY=VALUE` (bag2map, bench, run) and the nodes' `preset_overrides` take, with",
         "its default (`PipelineConfig()`, the recommended method), where the `paper` and `naive` presets",
-        "differ, its unit and its effect. \"(off)\": the group is off (null) in that preset.",
+        'differ, its unit and its effect. "(off)": the group is off (null) in that preset.',
         "",
         f"{len(rows)} settable keys.",
     ]
@@ -133,7 +133,10 @@ def render() -> str:
             group, table_open = head, False
             lines += ["", f"## `{head}` ({owner.__name__})", ""]
             if repeat is not None:
-                lines += [f"Every field of `{repeat}` is also a key here, with the same default unless listed below.", ""]
+                lines += [
+                    f"Every field of `{repeat}` is also a key here, with the same default unless listed below.",
+                    "",
+                ]
         if repeat is not None and value == _leaf(default, f"{repeat}.{name}"):
             continue  # as the group it repeats
         if not table_open:
@@ -148,8 +151,15 @@ def render() -> str:
         lines.append("| " + " | ".join(cells) + " |")
     from hdmap_core.pipeline.overrides import REMOVED_KEYS  # noqa: PLC0415
 
-    lines += ["", "## Former settings", "", "Keys older docs and measurements name; `--set` refuses them with this text.", "",
-              "| former key | now |", "|---|---|"]
+    lines += [
+        "",
+        "## Former settings",
+        "",
+        "Keys older docs and measurements name; `--set` refuses them with this text.",
+        "",
+        "| former key | now |",
+        "|---|---|",
+    ]
     lines += [f"| `{key}` | {what} |" for key, what in sorted(REMOVED_KEYS.items())]
     return "\n".join(lines) + "\n"
 

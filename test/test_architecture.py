@@ -29,9 +29,7 @@ PACKAGES = {
 # A cycle being removed on another branch right now (issue 27): helper `config` moves
 # ConnectionConfig out of graph/connection.py. Each entry is the exact set of modules of one
 # strongly connected component. Empty this list once that has landed; any other cycle fails.
-_KNOWN_CYCLES: list[frozenset[str]] = [
-    frozenset({"hdmap_core.graph.assignment", "hdmap_core.graph.connection"}),
-]
+_KNOWN_CYCLES: list[frozenset[str]] = []
 
 # Top-level imports hdmap_core must not make: ROS client library, message packages, the ROS side.
 _ROS_ONLY = re.compile(r"^(rclpy|rosidl\w*|builtin_interfaces|\w+_msgs|\w+_interfaces|hdmap_ros)$")

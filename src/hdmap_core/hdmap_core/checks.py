@@ -63,9 +63,8 @@ def check_range(
             ok = value < high if high_open else value <= high
         if not ok:
             what = ("an integer " if integer else "") + ("finite and " if finite else "")
-            raise ConfigError(
-                f"{type(config).__name__}.{name} must be {what}{_interval(low, high, low_open, high_open)}, got {value!r}"
-            )
+            interval = _interval(low, high, low_open, high_open)
+            raise ConfigError(f"{type(config).__name__}.{name} must be {what}{interval}, got {value!r}")
 
 
 def check_choice(config: object, name: str, choices: Iterable[str]) -> None:

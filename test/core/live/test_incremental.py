@@ -366,7 +366,6 @@ def test_the_tiles_final_pass_is_the_pipelines_final_pass():
     # the pipeline estimated itself, its final pass must give exactly the pipeline's segments
     from hdmap_core.live.tiles import _final_pass, _tile_input
     from hdmap_core.pipeline.driver import map_stretches
-    from hdmap_core.pipeline import presets
 
     drives, key, cfg, pc = _sim_tile()
     inp = _tile_input(drives, key, cfg, pc)

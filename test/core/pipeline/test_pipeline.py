@@ -7,15 +7,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from hdmap_core.pipeline.aggregation import ProcessedStore
 from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
+from hdmap_core.pipeline import presets
+from hdmap_core.pipeline.aggregation import ProcessedStore
 from hdmap_core.pipeline.config import PipelineConfig
 from hdmap_core.pipeline.driver import build_map, map_segments, map_stretches, prepare_drives
 from hdmap_core.pipeline.overrides import config_from
-from hdmap_core.pipeline import presets
 from hdmap_core.pipeline.sampling import pivot_walk
 from hdmap_core.steps import Segment
+
 from pipeline_fleet import LINES, RADIUS_M, make_drive, make_fleet
 
 BIASES = [0.8, -0.5, 0.3, -1.1, 0.6, 0.0, -0.4]

@@ -27,8 +27,8 @@ from std_msgs.msg import String  # noqa: E402
 
 from hdmap_core.evaluation.evaluate import evaluate_map  # noqa: E402
 from hdmap_core.model import HDMap  # noqa: E402
-from hdmap_core.pipeline.driver import build_map  # noqa: E402
 from hdmap_core.pipeline import presets  # noqa: E402
+from hdmap_core.pipeline.driver import build_map  # noqa: E402
 from hdmap_core.simulation.fleet import SimConfig, simulate_fleet  # noqa: E402
 from hdmap_core.simulation.synthetic import synthetic_highway  # noqa: E402
 from hdmap_ros.convert.messages import drive_to_msg, msg_to_map, rclpy_types  # noqa: E402

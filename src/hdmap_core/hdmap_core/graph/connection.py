@@ -29,11 +29,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from hdmap_core.errors import HdmapError
 from hdmap_core.graph.assignment import assign
 from hdmap_core.graph.connection_config import ConnectionConfig
-from hdmap_core.errors import HdmapError
-from hdmap_core.model import FeatureType
 from hdmap_core.graph.segment_graph import ConnectionStats, SegmentGraph, stable_uid
+from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult, left_normal
 
 __all__ = ["connect_segment"]

@@ -13,6 +13,7 @@ from hdmap_core.checks import check_range
 
 __all__ = ["ConnectionConfig"]
 
+
 @dataclass(frozen=True)
 class ConnectionConfig:
     """Parameters of the connection stage (the paper gives none of these numbers).
@@ -175,13 +176,24 @@ class ConnectionConfig:
 
     def __post_init__(self) -> None:
         check_range(self, ("max_gap_m", "edge_slack_m", "min_separation_m", "leftover_max_m"), low=0.0)
-        check_range(self, ("max_edge_angle_deg", "bridge_edge_angle_deg"), low=0.0, high=90.0,
-                    low_open=True)
+        check_range(self, ("max_edge_angle_deg", "bridge_edge_angle_deg"), low=0.0, high=90.0, low_open=True)
         check_range(self, ("line_check_max_deg",), low=0.0, high=180.0, low_open=True)
         check_range(self, ("min_support_share",), low=0.0, high=1.0)
-        check_range(self, ("support_window_m", "lone_line_gap_m", "topo_pivot_lane_m", "leftover_other_type_m",
-                           "tip_frame_deg", "line_frame_deg", "line_frame_max_deg", "line_frame_bend_deg"),
-                    low=0.0, finite=True)
+        check_range(
+            self,
+            (
+                "support_window_m",
+                "lone_line_gap_m",
+                "topo_pivot_lane_m",
+                "leftover_other_type_m",
+                "tip_frame_deg",
+                "line_frame_deg",
+                "line_frame_max_deg",
+                "line_frame_bend_deg",
+            ),
+            low=0.0,
+            finite=True,
+        )
         if self.lone_line_border_gap_m is not None:
             check_range(self, ("lone_line_border_gap_m",), low=0.0, finite=True)
         check_range(self, ("window_min_count",), low=1)

@@ -175,7 +175,7 @@ def _chain_steps(e: np.ndarray, nn: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return outdeg, indeg, nxt, prv
 
 
-def dedupe_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> np.ndarray:
+def dedupe_loose_ends(flat: FlatGraph) -> np.ndarray:
     """Drop the dangling ends of polylines that run on top of another segment's polyline.
 
     From every loose end (no successor) walk back, and from every loose start walk forward,
@@ -187,7 +187,6 @@ def dedupe_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> np.ndarray:
     Returns:
         (N,) bool: the feature nodes to drop.
     """
-    cfg = config
     nn = flat.n_nodes
     if nn < 2:
         return np.zeros(nn, dtype=bool)

@@ -209,7 +209,7 @@ class MapGraph:
             rep.pruned_nodes = self._drop_nodes(flat, ~keep)
         if cfg.dedupe_loose_ends:
             flat = self._flatten()
-            rep.deduplicated_nodes = self._drop_nodes(flat, dedupe_loose_ends(flat, config=cfg))
+            rep.deduplicated_nodes = self._drop_nodes(flat, dedupe_loose_ends(flat))
         if cfg.join_loose_ends:
             flat = self._flatten()
             joins = join_loose_ends(flat, config=cfg)

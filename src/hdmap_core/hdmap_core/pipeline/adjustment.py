@@ -43,9 +43,9 @@ try:
     from threadpoolctl import threadpool_limits
 except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
     threadpool_limits = None
-from hdmap_core.pipeline import adjustment_assoc as assoc
 from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
+from hdmap_core.pipeline import adjustment_assoc as assoc
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
 

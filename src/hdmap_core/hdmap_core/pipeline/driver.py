@@ -13,15 +13,16 @@ recommended method), ``presets`` and ``overrides``.
 from __future__ import annotations
 
 import contextlib
+import functools
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, cast
 
 import numpy as np
 
 try:  # threadpoolctl comes with scikit-learn
-    from threadpoolctl import threadpool_limits
+    from threadpoolctl import threadpool_limits  # type: ignore[import-untyped]
 except ImportError:  # pragma: no cover
     threadpool_limits = None
 
@@ -95,7 +96,8 @@ class BuildReport:
         lines = [
             f"drives: {self.n_drives_used} used of {self.n_drives_in} ({len(self.rejected)} rejected)",
             f"steps: {self.steps_total} total, {self.steps_rejected} rejected"
-            + (f" ({self.steps_off_road} off their pivot's road)" if self.steps_off_road else "") + ", "
+            + (f" ({self.steps_off_road} off their pivot's road)" if self.steps_off_road else "")
+            + ", "
             f"{self.steps_skipped_processed} skipped (processed before); {self.km_mapped:.2f} km mapped",
             f"time: {self.seconds:.2f} s (" + ", ".join(f"{k} {v:.2f}" for k, v in self.stage_seconds.items()) + ")",
         ]
@@ -171,7 +173,9 @@ def _check_workers(workers: int) -> int:
     return int(workers)
 
 
-def _merge_parts(parts: list[_PassResult], order: np.ndarray, drives: list[Drive], store_in: ProcessedStore) -> _PassResult:
+def _merge_parts(
+    parts: list[_PassResult], order: np.ndarray, drives: list[Drive], store_in: ProcessedStore
+) -> _PassResult:
     """One pass's results of independent pivot shares, as one process in ``order`` gives them.
 
     A share's pivots only mark drives of its own groups, so each drive's intervals come from the
@@ -267,8 +271,15 @@ def map_stretches(
     # (measured: 3.6 ms per 55 x 55 solve with 2 threads on a loaded 2-core machine).
     limit = threadpool_limits(limits=1, user_api="blas") if threadpool_limits is not None else contextlib.nullcontext()
     with limit:
-        return _TwoPasses(drives, config, seed=seed, processed=processed, collect_observations=collect_observations,
-                          observations_only=observations_only, workers=_check_workers(workers)).run(offset_model, progress)
+        return _TwoPasses(
+            drives,
+            config,
+            seed=seed,
+            processed=processed,
+            collect_observations=collect_observations,
+            observations_only=observations_only,
+            workers=_check_workers(workers),
+        ).run(offset_model, progress)
 
 
 class _TwoPasses:
@@ -276,8 +287,15 @@ class _TwoPasses:
     forked workers (each share's first pass, the adjustment here, each share's final pass)."""
 
     def __init__(
-        self, drives: list[Drive], config: PipelineConfig, *, seed: int, processed: ProcessedStore | None,
-        collect_observations: bool, observations_only: bool, workers: int,
+        self,
+        drives: list[Drive],
+        config: PipelineConfig,
+        *,
+        seed: int,
+        processed: ProcessedStore | None,
+        collect_observations: bool,
+        observations_only: bool,
+        workers: int,
     ) -> None:
         self.drives = drives
         self.config = config
@@ -308,15 +326,32 @@ class _TwoPasses:
     def _context(self, final: OffsetModel | None, counters: PassCounters, observations: list | None) -> PivotContext:
         """The pivots' shared settings of the first pass, or of the final pass shifted by ``final``."""
         cfg = self.config
-        common = dict(index=self.index, aggregation=cfg.aggregation, counters=counters, hit_cache=self.hit_cache,
-                      tracks=self.tracks)
         if final is None:
             # the first pass's segments are returned (and get the profiles) only without a final pass
             ends = cfg.final_pass is None or self.observations_only
-            return PivotContext(sampling=cfg.sampling, alignment=cfg.alignment, observations=observations,
-                                stride=self.first_stride, evidence=self.evidence if ends else None, **common)
-        return PivotContext(sampling=cfg.final_sampling, alignment=cfg.final_alignment,
-                            shift=_shift_fn(final, self.index.drive_ids), evidence=self.evidence, **common)
+            return PivotContext(
+                index=self.index,
+                sampling=cfg.sampling,
+                alignment=cfg.alignment,
+                aggregation=cfg.aggregation,
+                observations=observations,
+                counters=counters,
+                hit_cache=self.hit_cache,
+                tracks=self.tracks,
+                stride=self.first_stride,
+                evidence=self.evidence if ends else None,
+            )
+        return PivotContext(
+            index=self.index,
+            sampling=cfg.final_sampling,
+            alignment=cfg.final_alignment,
+            aggregation=cfg.aggregation,
+            shift=_shift_fn(final, self.index.drive_ids),
+            counters=counters,
+            hit_cache=self.hit_cache,
+            tracks=self.tracks,
+            evidence=self.evidence,
+        )
 
     def _pass(self, share: np.ndarray, model: OffsetModel | None, report: ProgressFn | None) -> _PassResult:
         counters = PassCounters()
@@ -328,11 +363,16 @@ class _TwoPasses:
     def run(self, offset_model: OffsetModel | None, progress: ProgressFn | None) -> MappingResult:
         model = offset_model
         adjust = model is None and self.config.final_pass is not None
-        workers = [ForkWorker(lambda ch, sh=sh: self._job(ch, sh, model, adjust)) for sh in self.shares[1:]]
-        report = None
+        workers = [
+            ForkWorker(functools.partial(self._job, share=sh, model=model, adjust=adjust)) for sh in self.shares[1:]
+        ]
+        report: ProgressFn | None = None
         if progress is not None:
-            total = len(self.order)
-            report = lambda stage, done, _n: progress(stage, done, total)  # noqa: E731
+            total, outer = len(self.order), progress
+
+            def report(stage: str, done: int, _n: int) -> None:
+                outer(stage, done, total)  # the whole order's count, not the share's
+
         try:
             obs: list[StepObservations] | None = None
             if model is None:
@@ -374,11 +414,16 @@ class _TwoPasses:
             channel.send((segs if not adjust else [], st, o, c))
             if not adjust:
                 return
-            model = channel.recv()
+            model = cast(OffsetModel, channel.recv())
         channel.send(self._pass(share, model, None))
 
-    def _all(self, workers: list[ForkWorker], model: OffsetModel | None, report: ProgressFn | None,
-             progress: ProgressFn | None) -> _PassResult:
+    def _all(
+        self,
+        workers: list[ForkWorker],
+        model: OffsetModel | None,
+        report: ProgressFn | None,
+        progress: ProgressFn | None,
+    ) -> _PassResult:
         """One pass over every share: this process's here, the others' from their workers (or
         here, if one failed)."""
         parts = [self._pass(self.shares[0], model, report)]
@@ -431,7 +476,9 @@ def build_map(
     drives_in = list(drives)
     usable, rejected = prepare_drives(drives_in)
     if not usable:
-        raise NoUsableDataError(f"none of the {len(drives_in)} drive(s) is usable: " + "; ".join(f"{d!r}: {r}" for d, r in rejected[:5]))
+        raise NoUsableDataError(
+            f"none of the {len(drives_in)} drive(s) is usable: " + "; ".join(f"{d!r}: {r}" for d, r in rejected[:5])
+        )
     res = map_stretches(usable, config=config, seed=seed, progress=progress, validated=True, workers=workers)
     seconds = dict(res.stage_seconds)
     t0 = time.perf_counter()

@@ -33,7 +33,15 @@ from scipy.spatial import cKDTree
 
 from hdmap_core.checks import check_range
 
-__all__ = ["BANDS_M", "PROFILE_HALF_LENGTH_M", "RATES", "SEEN_WINDOW_M", "EvidenceConfig", "refuted_edges", "step_profiles"]
+__all__ = [
+    "BANDS_M",
+    "PROFILE_HALF_LENGTH_M",
+    "RATES",
+    "SEEN_WINDOW_M",
+    "EvidenceConfig",
+    "refuted_edges",
+    "step_profiles",
+]
 
 #: The intervals of a judged step without any (shared, read-only).
 _NO_INTERVALS = np.zeros((0, 2))

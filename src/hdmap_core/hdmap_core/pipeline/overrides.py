@@ -25,8 +25,13 @@ from hdmap_core.pipeline.presets import preset as named_preset
 
 __all__ = ["REMOVED_KEYS", "config_from", "parse_override"]
 
+
 def _fixed(module: str, constant: str, value: object) -> str:
     return f"a fixed rule now: {constant} = {value!r} in hdmap_core.pipeline.{module}"
+
+
+def _fixed_graph(module: str, constant: str, value: object) -> str:
+    return f"a fixed rule now: {constant} = {value!r} in hdmap_core.graph.{module}"
 
 
 #: Keys that were public once and are not any more, with what became of them. A key of
@@ -67,37 +72,37 @@ REMOVED_KEYS: dict[str, str] = {
     "evidence.min_edge_m": _fixed("evidence", "_MIN_EDGE_M", 3.0),
     "evidence.along_m": _fixed("evidence", "_ALONG_M", 1.0),
     "evidence.heading_deg": _fixed("evidence", "_HEADING_DEG", 30.0),
-    "connection.bridge_edge_min_m": "a fixed rule now: _BRIDGE_EDGE_MIN_M = 3.0 in hdmap_core.graph.assignment",
-    "connection.line_frame_min_m": "a fixed rule now: _LINE_FRAME_MIN_M = 1.5 in hdmap_core.graph.connection",
-    "connection.tip_frame_max_deg": "a fixed rule now: _TIP_FRAME_MAX_DEG = 30.0 in hdmap_core.graph.connection",
-    "connection.tip_frame_min_m": "a fixed rule now: _TIP_FRAME_MIN_M = 4.0 in hdmap_core.graph.connection",
-    "connection.max_mean_angle_deg": "a fixed rule now: _MAX_MEAN_ANGLE_DEG = 15.0 in hdmap_core.graph.connection",
-    "stitching.end_stub_side_m": "a fixed rule now: _END_STUB_SIDE_M = 2.0 in hdmap_core.graph.cleanup",
-    "stitching.join_gap_coverage": "a fixed rule now: _JOIN_GAP_COVERAGE = 0.8 in hdmap_core.graph.loose_ends",
-    "stitching.refuted_piece_max_drives": "a fixed rule now: _REFUTED_PIECE_MAX_DRIVES = 1 in hdmap_core.graph.export",
-    "stitching.track_bridge_heading_deg": "a fixed rule now: _TRACK_BRIDGE_HEADING_DEG = 45.0 in hdmap_core.graph.tracks",
-    "stitching.track_max_gap_m": "a fixed rule now: _TRACK_MAX_GAP_M = 6.0 in hdmap_core.graph.tracks",
-    "stitching.track_max_jump_m": "a fixed rule now: _TRACK_MAX_JUMP_M = 12.0 in hdmap_core.graph.tracks",
-    "stitching.angle_free_m": "a fixed rule now: _ANGLE_FREE_M = 3.0 in hdmap_core.graph.links",
-    "stitching.behind_tol_m": "a fixed rule now: _BEHIND_TOL_M = 1.0 in hdmap_core.graph.links",
-    "stitching.branch_any_marking": "a fixed rule now: _BRANCH_ANY_MARKING = True in hdmap_core.graph.loose_ends",
-    "stitching.branch_divergence_m": "a fixed rule now: _BRANCH_DIVERGENCE_M = 0.3 in hdmap_core.graph.loose_ends",
-    "stitching.branch_radius_m": "a fixed rule now: _BRANCH_RADIUS_M = 8.0 in hdmap_core.graph.loose_ends",
-    "stitching.duplicate_m": "a fixed rule now: _DUPLICATE_M = 0.25 in hdmap_core.graph.linking",
-    "stitching.edge_line_max_drives": "a fixed rule now: _EDGE_LINE_MAX_DRIVES = 1 in hdmap_core.graph.export",
-    "stitching.end_stub_slope": "a fixed rule now: _END_STUB_SLOPE = 0.1 in hdmap_core.graph.cleanup",
-    "stitching.feature_max_m": "a fixed rule now: _FEATURE_MAX_M = 2.0 in hdmap_core.graph.linking",
-    "stitching.join_angle_deg": "a fixed rule now: _JOIN_ANGLE_DEG = 1.0 in hdmap_core.graph.loose_ends",
-    "stitching.join_gap_heading_deg": "a fixed rule now: _JOIN_GAP_HEADING_DEG = 10.0 in hdmap_core.graph.loose_ends",
-    "stitching.join_lateral_m": "a fixed rule now: _JOIN_LATERAL_M = 0.5 in hdmap_core.graph.loose_ends",
-    "stitching.join_line_cross_lateral_m": "a fixed rule now: _JOIN_LINE_CROSS_LATERAL_M = 12.0 in hdmap_core.graph.loose_ends",
-    "stitching.overlap_along_m": "a fixed rule now: _OVERLAP_ALONG_M = 1.2 in hdmap_core.graph.trim",
-    "stitching.overlap_feature_m": "a fixed rule now: _OVERLAP_FEATURE_M = 0.5 in hdmap_core.graph.trim",
-    "stitching.overlap_radius_m": "a fixed rule now: _OVERLAP_RADIUS_M = 1.2 in hdmap_core.graph.trim",
-    "stitching.overlap_share": "a fixed rule now: _OVERLAP_SHARE = 0.6 in hdmap_core.graph.trim",
-    "stitching.path_curvature_m": "a fixed rule now: _PATH_CURVATURE_M = 20.0 in hdmap_core.graph.linking",
-    "stitching.twin_along_m": "a fixed rule now: _TWIN_ALONG_M = 1.2 in hdmap_core.graph.loose_ends",
-    "stitching.twin_lateral_m": "a fixed rule now: _TWIN_LATERAL_M = 0.5 in hdmap_core.graph.loose_ends",
+    "connection.bridge_edge_min_m": _fixed_graph("assignment", "_BRIDGE_EDGE_MIN_M", 3.0),
+    "connection.line_frame_min_m": _fixed_graph("connection", "_LINE_FRAME_MIN_M", 1.5),
+    "connection.tip_frame_max_deg": _fixed_graph("connection", "_TIP_FRAME_MAX_DEG", 30.0),
+    "connection.tip_frame_min_m": _fixed_graph("connection", "_TIP_FRAME_MIN_M", 4.0),
+    "connection.max_mean_angle_deg": _fixed_graph("connection", "_MAX_MEAN_ANGLE_DEG", 15.0),
+    "stitching.end_stub_side_m": _fixed_graph("cleanup", "_END_STUB_SIDE_M", 2.0),
+    "stitching.join_gap_coverage": _fixed_graph("loose_ends", "_JOIN_GAP_COVERAGE", 0.8),
+    "stitching.refuted_piece_max_drives": _fixed_graph("export", "_REFUTED_PIECE_MAX_DRIVES", 1),
+    "stitching.track_bridge_heading_deg": _fixed_graph("tracks", "_TRACK_BRIDGE_HEADING_DEG", 45.0),
+    "stitching.track_max_gap_m": _fixed_graph("tracks", "_TRACK_MAX_GAP_M", 6.0),
+    "stitching.track_max_jump_m": _fixed_graph("tracks", "_TRACK_MAX_JUMP_M", 12.0),
+    "stitching.angle_free_m": _fixed_graph("links", "_ANGLE_FREE_M", 3.0),
+    "stitching.behind_tol_m": _fixed_graph("links", "_BEHIND_TOL_M", 1.0),
+    "stitching.branch_any_marking": _fixed_graph("loose_ends", "_BRANCH_ANY_MARKING", True),
+    "stitching.branch_divergence_m": _fixed_graph("loose_ends", "_BRANCH_DIVERGENCE_M", 0.3),
+    "stitching.branch_radius_m": _fixed_graph("loose_ends", "_BRANCH_RADIUS_M", 8.0),
+    "stitching.duplicate_m": _fixed_graph("linking", "_DUPLICATE_M", 0.25),
+    "stitching.edge_line_max_drives": _fixed_graph("export", "_EDGE_LINE_MAX_DRIVES", 1),
+    "stitching.end_stub_slope": _fixed_graph("cleanup", "_END_STUB_SLOPE", 0.1),
+    "stitching.feature_max_m": _fixed_graph("linking", "_FEATURE_MAX_M", 2.0),
+    "stitching.join_angle_deg": _fixed_graph("loose_ends", "_JOIN_ANGLE_DEG", 1.0),
+    "stitching.join_gap_heading_deg": _fixed_graph("loose_ends", "_JOIN_GAP_HEADING_DEG", 10.0),
+    "stitching.join_lateral_m": _fixed_graph("loose_ends", "_JOIN_LATERAL_M", 0.5),
+    "stitching.join_line_cross_lateral_m": _fixed_graph("loose_ends", "_JOIN_LINE_CROSS_LATERAL_M", 12.0),
+    "stitching.overlap_along_m": _fixed_graph("trim", "_OVERLAP_ALONG_M", 1.2),
+    "stitching.overlap_feature_m": _fixed_graph("trim", "_OVERLAP_FEATURE_M", 0.5),
+    "stitching.overlap_radius_m": _fixed_graph("trim", "_OVERLAP_RADIUS_M", 1.2),
+    "stitching.overlap_share": _fixed_graph("trim", "_OVERLAP_SHARE", 0.6),
+    "stitching.path_curvature_m": _fixed_graph("linking", "_PATH_CURVATURE_M", 20.0),
+    "stitching.twin_along_m": _fixed_graph("loose_ends", "_TWIN_ALONG_M", 1.2),
+    "stitching.twin_lateral_m": _fixed_graph("loose_ends", "_TWIN_LATERAL_M", 0.5),
 }
 
 
@@ -196,7 +201,9 @@ def _group_error(key: str, value: object, group: object) -> ConfigError:
     """The error for a value given to a whole stage config (``key``, holding ``group``)."""
     example = fields(group)[0].name  # type: ignore[arg-type]
     name = key.rpartition(".")[2]
-    return ConfigError(f"{key}={_shown(value)}: {name} is a group of settings; set one of its fields, e.g. {key}.{example}=...")
+    return ConfigError(
+        f"{key}={_shown(value)}: {name} is a group of settings; set one of its fields, e.g. {key}.{example}=..."
+    )
 
 
 def _shown(value: object) -> str:
@@ -230,11 +237,11 @@ def _override(config: object, key: str, value: object, full: str) -> object:
         if isinstance(now, bool) and not isinstance(value, bool):
             raise ConfigError(f"{full}={_shown(value)}: not a valid value (true or false is expected)")
         try:
-            return replace(config, **{head: value})
+            return replace(config, **{head: value})  # type: ignore[type-var]  # a dataclass instance, checked above
         except ConfigError as err:
             raise ConfigError(f"{full}: {err}") from err
         except (TypeError, ValueError) as err:  # a value of the wrong kind fails the field's check
             raise ConfigError(f"{full}={_shown(value)}: not a valid value ({err})") from err
     if now is None:
         raise ConfigError(f"{full}: {head} is off (None) in this config")
-    return replace(config, **{head: _override(now, rest, value, full)})
+    return replace(config, **{head: _override(now, rest, value, full)})  # type: ignore[type-var]

@@ -234,7 +234,11 @@ def _align_steps(ps: PivotSamples, todo: np.ndarray, pid: str, status: np.ndarra
     base = 0
     # Without offset estimation the steps are independent: all of them clustered and scored at
     # once; the ones a special rule judges are left to align_step.
-    batch = align_steps_gap(ps.lateral_m, ps.types, ps.drive, ps.ptr, todo, config=alignment) if gap_batchable(alignment) else {}
+    batch = (
+        align_steps_gap(ps.lateral_m, ps.types, ps.drive, ps.ptr, todo, config=alignment)
+        if gap_batchable(alignment)
+        else {}
+    )
     # every step's distinct drives and local drive codes at once (a per-step np.unique each)
     owner = np.repeat(np.arange(ps.n_steps, dtype=np.int64), np.diff(ps.ptr))
     step_drive, sample_code = np.unique(owner * np.int64(n_all) + ps.drive, return_inverse=True)
@@ -253,8 +257,15 @@ def _align_steps(ps: PivotSamples, todo: np.ndarray, pid: str, status: np.ndarra
             init = None
             if ctx.memory is not None and prior is not None and np.isnan(prior).any():
                 init = ctx.memory.lookup(uniq, ps.drive_s_m[a:b], local)
-            al = align_step(x, ty, local, config=alignment, prior=prior, init=init,
-                            recheck=bool(q % _RECHECK_EVERY_STEPS < ctx.stride))
+            al = align_step(
+                x,
+                ty,
+                local,
+                config=alignment,
+                prior=prior,
+                init=init,
+                recheck=bool(q % _RECHECK_EVERY_STEPS < ctx.stride),
+            )
         step_ids[q] = tuple(ids[uniq])
         if not al.valid:
             continue
@@ -299,8 +310,13 @@ def _observation(
 
 
 def _step_results(
-    ps: PivotSamples, pid: str, status: np.ndarray, step_ids: list[tuple[str, ...]], agg: ManyAggregates,
-    ptr: np.ndarray, ctx: PivotContext,
+    ps: PivotSamples,
+    pid: str,
+    status: np.ndarray,
+    step_ids: list[tuple[str, ...]],
+    agg: ManyAggregates,
+    ptr: np.ndarray,
+    ctx: PivotContext,
 ) -> list[StepResult]:
     """One ``StepResult`` per step; a run of skipped (processed before) steps is represented by
     its first and last step only: they carry no data, and connection only needs to see where such
@@ -320,7 +336,9 @@ def _step_results(
         if inner[q]:
             continue
         if status[q] != _ACCEPTED:
-            steps.append(_step(pid, q, ps, processed=bool(status[q] == _SKIPPED), drive_ids=step_ids[q], empty=empty.get(q)))
+            steps.append(
+                _step(pid, q, ps, processed=bool(status[q] == _SKIPPED), drive_ids=step_ids[q], empty=empty.get(q))
+            )
             continue
         a, b = ptr[q], ptr[q + 1]
         maxima = (agg.lateral_m[a:b], agg.types[a:b], agg.counts[a:b], agg.std_m[a:b])

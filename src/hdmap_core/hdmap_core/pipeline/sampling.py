@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 
 from hdmap_core.checks import check_range
 from hdmap_core.errors import ConfigError
-from hdmap_core.geometry import interp_angle, resample_by_distance, wrap_angle, arc_length
+from hdmap_core.geometry import arc_length, interp_angle, resample_by_distance, wrap_angle
 from hdmap_core.model import Drive, FeatureType
 from hdmap_core.pipeline.preprocess import DetectionIndex
 from hdmap_core.steps import left_normal

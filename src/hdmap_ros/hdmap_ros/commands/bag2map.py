@@ -114,9 +114,9 @@ def run(args: argparse.Namespace) -> int:
     if args.graphml and Path(args.graphml).is_dir():
         return _fail(f"--graphml {args.graphml} is a directory")
 
+    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
     from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
     from hdmap_core.pipeline.overrides import config_from  # noqa: PLC0415
-    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
 
     try:  # a bad --set is named before the bag is read
         config = config_from(args.preset, dict(args.overrides))

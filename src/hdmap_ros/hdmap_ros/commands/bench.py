@@ -302,12 +302,12 @@ def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int 
         (fleet, build result, evaluation report, build seconds, worker processes used);
         ``workers`` None: the CPUs available.
     """
-    from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415
     from hdmap_core.evaluation.evaluate import evaluate_map  # noqa: PLC0415
     from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
     from hdmap_core.parallel import available_cpus  # noqa: PLC0415
-    from hdmap_ros.io.bagio import read_fleet_bag  # noqa: PLC0415
+    from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415
     from hdmap_ros.commands.evaluate import drive_errors_from_sim_json, seen_counts_from_sim_json  # noqa: PLC0415
+    from hdmap_ros.io.bagio import read_fleet_bag  # noqa: PLC0415
 
     fleet = read_fleet_bag(scenario.bag)
     t0 = time.perf_counter()

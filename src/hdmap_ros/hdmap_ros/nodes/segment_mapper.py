@@ -40,7 +40,6 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
-from hdmap_core.pipeline.adjustment import OffsetModel
 from hdmap_core.live.tiles import (
     TileConfig,
     TileKey,
@@ -53,10 +52,11 @@ from hdmap_core.live.tiles import (
     tiles_of_drive,
 )
 from hdmap_core.model import validate_drive
-from hdmap_ros.nodes import qos
+from hdmap_core.pipeline.adjustment import OffsetModel
 from hdmap_ros.convert.messages import msg_to_drive, rclpy_types
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
 from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
+from hdmap_ros.nodes import qos
+from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
 from hdmap_ros.persistence.store import DriveStore, TileEstimate
 
 __all__ = ["SegmentMapper", "main"]

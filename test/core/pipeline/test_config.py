@@ -39,9 +39,16 @@ def test_the_defaults_are_the_recommended_method():
     assert cfg.final_sampling.outer_border_reach and not cfg.sampling.outer_border_reach
     # the final pass keeps the adjustment's offsets and differs from the first only by PassConfig
     assert cfg.final_alignment == dataclasses.replace(
-        cfg.alignment, estimate_offsets=False, clustering="gap", prior_weight=0.0, sparse_step_max_drives=4,
-        sparse_singletons_accept=True, sparse_type_clash_max_drives=3, sparse_disjoint_apart_m=2.0,
-        sparse_type_clash_keep=True)
+        cfg.alignment,
+        estimate_offsets=False,
+        clustering="gap",
+        prior_weight=0.0,
+        sparse_step_max_drives=4,
+        sparse_singletons_accept=True,
+        sparse_type_clash_max_drives=3,
+        sparse_disjoint_apart_m=2.0,
+        sparse_type_clash_keep=True,
+    )
     assert cfg.final_sampling == dataclasses.replace(cfg.sampling, outer_border_reach=True)
     assert cfg.stitching.fill_evidence == cfg.evidence is not None
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -56,8 +63,18 @@ def test_paper_differs_from_the_default_only_where_listed():
     assert (p.sampling, p.alignment, p.aggregation) == (SamplingConfig(), AlignmentConfig(), AggregationConfig())
     assert p.alignment.solver == "lm" and p.aggregation.kde_bandwidth_factor == 6.0
     tops = {name.partition(".")[0] for name in _differences(p, d)}
-    assert tops == {"sampling", "alignment", "aggregation", "final_pass", "observation_stride", "connection",
-                    "stitching", "mark_on_cut_only", "evidence", "name"}
+    assert tops == {
+        "sampling",
+        "alignment",
+        "aggregation",
+        "final_pass",
+        "observation_stride",
+        "connection",
+        "stitching",
+        "mark_on_cut_only",
+        "evidence",
+        "name",
+    }
     assert p.preprocess == d.preprocess and p.adjustment == d.adjustment  # the rest as the default
 
 
@@ -67,8 +84,11 @@ def test_naive_corrects_no_offset_and_differs_from_paper_only_as_listed():
     assert n.aggregation.method == "mean" and not n.aggregation.overlap_filter
     # the exact list of what else differs from the paper: the EM gate off, the graph classes' defaults
     assert _differences(n, p) == {
-        "alignment.estimate_offsets", "alignment.silhouette_gate", "aggregation.method",
-        "aggregation.overlap_filter", "name",
+        "alignment.estimate_offsets",
+        "alignment.silhouette_gate",
+        "aggregation.method",
+        "aggregation.overlap_filter",
+        "name",
     } | {f"connection.{k}" for k in _differences(ConnectionConfig(), ConnectionConfig.paper())} | {
         f"stitching.{k}" for k in _differences(StitchConfig(), StitchConfig.paper())
     }
@@ -85,19 +105,24 @@ def test_preset_names_an_unknown_one():
 
 def test_config_from_sets_dotted_fields_and_names_a_wrong_one():
     base = PipelineConfig()
-    cfg = config_from("default", {"stitching.track_rejoin_m": 0.0, "alignment.n_iterations": 2, "observation_stride": 3})
+    cfg = config_from(
+        "default", {"stitching.track_rejoin_m": 0.0, "alignment.n_iterations": 2, "observation_stride": 3}
+    )
     assert cfg.stitching.track_rejoin_m == 0.0 and base.stitching.track_rejoin_m == 30.0
     assert cfg.alignment.n_iterations == 2 and cfg.observation_stride == 3
     assert cfg.stitching.track_search_m == base.stitching.track_search_m  # the rest untouched
     assert cfg.name == "default+" and config_from(base, {}) == base  # changed, and said so
     # KEY=VALUE texts as the CLI and the nodes give them
     assert config_from("paper", ["stitching.track_rejoin_m=0", "aggregation.method=mean"]) == config_from(
-        "paper", {"stitching.track_rejoin_m": 0.0, "aggregation.method": "mean"})
+        "paper", {"stitching.track_rejoin_m": 0.0, "aggregation.method": "mean"}
+    )
     with pytest.raises(ConfigError, match="stitching.nope: StitchConfig has no field 'nope'"):
         config_from(base, {"stitching.nope": 1})
     with pytest.raises(ConfigError, match="stitching.track_rejoin_m: .*track_rejoin_m"):  # the field's own check
         config_from(base, {"stitching.track_rejoin_m": -1.0})
-    with pytest.raises(ConfigError, match=r"sampling.max_pivot_outside_m='wide': not a valid value \(a number is expected\)"):
+    with pytest.raises(
+        ConfigError, match=r"sampling.max_pivot_outside_m='wide': not a valid value \(a number is expected\)"
+    ):
         config_from(base, {"sampling.max_pivot_outside_m": "wide"})
     with pytest.raises(ConfigError, match=r"stitching.track_pose=1: not a valid value \(true or false is expected\)"):
         config_from(base, {"stitching.track_pose": 1})
@@ -112,7 +137,10 @@ def test_config_from_sets_dotted_fields_and_names_a_wrong_one():
         config_from(base, {"evidence": None})
     with pytest.raises(ConfigError, match="observation_stride"):
         config_from(base, {"observation_stride": 0})
-    with pytest.raises(ConfigError, match=r"sampling=1: sampling is a group of settings; set one of its fields, e\.g\. sampling\.step_m"):
+    with pytest.raises(
+        ConfigError,
+        match=r"sampling=1: sampling is a group of settings; set one of its fields, e\.g\. sampling\.step_m",
+    ):
         config_from(base, {"sampling": 1})
     with pytest.raises(ConfigError, match="connection=true: connection is a group of settings"):
         config_from(base, {"connection": True})
@@ -140,24 +168,36 @@ def test_the_final_pass_is_switched_and_set_on_its_own():
         config_from(base, {"final_pass": 1})
     with pytest.raises(ConfigError, match="final_pass.nope: PassConfig has no field 'nope'"):
         config_from(base, {"final_pass.nope": 1})
-    with pytest.raises(ConfigError, match="final_pass.sparse_disjoint_apart_m: PassConfig.sparse_disjoint_apart_m must be"):
+    with pytest.raises(
+        ConfigError, match="final_pass.sparse_disjoint_apart_m: PassConfig.sparse_disjoint_apart_m must be"
+    ):
         config_from(base, {"final_pass.sparse_disjoint_apart_m": -1.0})
 
 
 def test_a_first_pass_change_reaches_the_final_pass_unless_the_pass_sets_it():
     base = PipelineConfig()
-    cfg = config_from(base, {"sampling.max_pivot_outside_m": 1.0, "alignment.robust_loss": False, "sampling.step_m": 3.0})
+    cfg = config_from(
+        base, {"sampling.max_pivot_outside_m": 1.0, "alignment.robust_loss": False, "sampling.step_m": 3.0}
+    )
     assert cfg.sampling.max_pivot_outside_m == cfg.final_sampling.max_pivot_outside_m == 1.0
     assert cfg.alignment.robust_loss is False and cfg.final_alignment.robust_loss is False
     assert cfg.final_sampling.step_m == 3.0
     # outer_border_reach and the sparse rules are the final pass's own: a first-pass key leaves them
-    cfg = config_from(base, {"sampling.outer_border_reach": True, "alignment.sparse_step_max_drives": 1,
-                             "alignment.clustering": "silhouette"})
+    cfg = config_from(
+        base,
+        {
+            "sampling.outer_border_reach": True,
+            "alignment.sparse_step_max_drives": 1,
+            "alignment.clustering": "silhouette",
+        },
+    )
     assert cfg.final_alignment == base.final_alignment and cfg.final_sampling.outer_border_reach
     assert cfg.alignment.clustering == "silhouette" and cfg.sampling.outer_border_reach
     # ... and a final-pass key sets that pass alone, in either order
-    for items in ({"sampling.outer_border_reach": True, "final_pass.outer_border_reach": False},
-                  {"final_pass.outer_border_reach": False, "sampling.outer_border_reach": True}):
+    for items in (
+        {"sampling.outer_border_reach": True, "final_pass.outer_border_reach": False},
+        {"final_pass.outer_border_reach": False, "sampling.outer_border_reach": True},
+    ):
         cfg = config_from(base, items)
         assert (cfg.sampling.outer_border_reach, cfg.final_sampling.outer_border_reach) == (True, False)
 
