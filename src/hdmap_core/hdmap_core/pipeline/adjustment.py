@@ -69,7 +69,7 @@ SHIFT_SEARCH_M = 4.5
 #: step of those seen by d more. The cost of a step grows with d^2 (its cluster positions couple
 #: all its drives); thinned, the fit grows linearly with the fleet while a drive still has dozens
 #: of steps per knot (re-association and the lane-shift search still use every step;
-#: docs/adjustment.md, "Cost in the fleet size")
+#: docs/adjustment.md, "Model")
 THIN_DRIVES = 16
 
 
