@@ -145,7 +145,7 @@ class StitchConfig:
             within this distance across of a road border node of the same cross-section
             (topology node) is typed solid before the type runs are smoothed: the marking next to
             the road's edge is its edge line, solid on 97-100 % of such points in every map of
-            ../shared/data/maps (Town04 2570 of 2642, Town06 11785 of 11795, e6mini all,
+            the ground-truth maps (data/maps on the harden branch) (Town04 2570 of 2642, Town06 11785 of 11795, e6mini all,
             soderleden 103 of 115), while one drive misclassifies a stretch 7.5 % of the time in
             the simulator (carla_town06_30_s3: one drive's 80 m dashed run of the right edge
             line, typed dashed against the other drive's solid). 0 disables [m].
