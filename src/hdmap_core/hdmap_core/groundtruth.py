@@ -1,4 +1,4 @@
-"""Lane-level ground-truth maps: the JSON format of shared/data/maps (see its README).
+"""Lane-level ground-truth maps: the JSON format of data/maps (see its README).
 
 A ``GroundTruth`` holds the true road features (markings and borders), the lanes with their
 centerlines and links, and routes (lane sequences in driving order). The simulator drives along
@@ -124,7 +124,7 @@ def load_ground_truth(path: str | Path) -> GroundTruth:
 
 
 def ground_truth_to_dict(gt: GroundTruth) -> dict:
-    """The JSON document of ``gt`` in the shared/data/maps format."""
+    """The JSON document of ``gt`` in the data/maps format."""
     return {
         "name": gt.name,
         **gt.extra,
@@ -149,5 +149,5 @@ def ground_truth_to_dict(gt: GroundTruth) -> dict:
 
 
 def save_ground_truth(gt: GroundTruth, path: str | Path) -> None:
-    """Write ``gt`` as JSON in the shared/data/maps format."""
+    """Write ``gt`` as JSON in the data/maps format."""
     Path(path).write_text(json.dumps(ground_truth_to_dict(gt)))

@@ -493,12 +493,11 @@ def test_inputs_are_not_mutated(road: GroundTruth) -> None:
 
 
 def _shared_map(name: str) -> GroundTruth:
-    """A map of the shared map set (``shared/data/maps`` in a parent folder, or $HDMAP_MAPS_DIR)."""
-    from hdmap_core.simulation.fleet import shared_maps_dirs
+    """A real map shipped in the repository's ``data/maps``."""
+    from hdmap_core.simulation.fleet import maps_dirs
 
-    paths = [d / f"{name}.gt.json" for d in shared_maps_dirs() if (d / f"{name}.gt.json").is_file()]
-    if not paths:
-        pytest.skip(f"{name}.gt.json: no shared/data/maps found (set HDMAP_MAPS_DIR)")
+    paths = [d / f"{name}.gt.json" for d in maps_dirs() if (d / f"{name}.gt.json").is_file()]
+    assert paths, f"{name}.gt.json not found: data/maps ships with the repository"
     return load_ground_truth(paths[0])
 
 

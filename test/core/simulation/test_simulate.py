@@ -19,7 +19,6 @@ from hdmap_core.simulation.fleet import (
     fleet_to_dict,
     load_map,
     route_directions,
-    shared_maps_dirs,
     simulate_fleet,
     write_sim_json,
 )
@@ -130,8 +129,6 @@ def test_fleets_are_those_of_the_simulator_before_the_seen_count(ramps):
     # Computed with the simulator of commit a20e467, before it recorded what each drive saw:
     # recording it must not change a single draw (same drives, detections, time stamps).
     assert _digest(simulate_fleet(ramps, config=SimConfig(n_drives=6, **SHORT), seed=5)) == "93251ca3690b6925"
-    if not any((d / "carla_town04.gt.json").is_file() for d in shared_maps_dirs()):
-        pytest.skip("shared maps not available")
     town04 = load_map("carla_town04")
     assert _digest(simulate_fleet(town04, config=SimConfig(n_drives=5, **SHORT), seed=0)) == "368fe38e05a0e939"
 
@@ -565,8 +562,6 @@ SHARED = ["esmini_e6mini", "esmini_soderleden", "carla_town04", "carla_town06"]
 
 @pytest.mark.parametrize("name", SHARED)
 def test_runs_on_every_shared_map(name):
-    if not any((d / f"{name}.gt.json").is_file() for d in shared_maps_dirs()):
-        pytest.skip("shared maps not available")
     gt = load_map(name)
     fleet = simulate_fleet(gt, config=SimConfig(n_drives=6, **SHORT), seed=0)
     assert len(fleet.drives) == 6

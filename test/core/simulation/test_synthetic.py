@@ -1,4 +1,4 @@
-"""Synthetic highways: well-formed ground truth of the shared/data/maps format."""
+"""Synthetic highways: well-formed ground truth of the data/maps format."""
 
 from __future__ import annotations
 

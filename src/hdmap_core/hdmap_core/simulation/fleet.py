@@ -57,7 +57,7 @@ __all__ = [
     "simulate_fleet",
     "route_directions",
     "load_map",
-    "shared_maps_dirs",
+    "maps_dirs",
     "fleet_to_dict",
     "write_sim_json",
     "encode_runs",
@@ -174,24 +174,27 @@ def decode_runs(code: object) -> np.ndarray:
 # ------------------------------------------------------------------------------ map lookup
 
 
-def shared_maps_dirs() -> list[Path]:
+def maps_dirs() -> list[Path]:
     """Directories searched for ``<name>.gt.json``: ``$HDMAP_MAPS_DIR`` (os.pathsep separated),
-    then ``shared/data/maps`` in any parent of this package and of the working directory."""
+    then ``data/maps`` of the repository (the real maps shipped with it, licences in its README):
+    the first ``data/maps`` holding a ``*.gt.json`` in a parent of this package or of the working
+    directory."""
     out: list[Path] = []
     env = os.environ.get("HDMAP_MAPS_DIR", "")
     out += [Path(p) for p in env.split(os.pathsep) if p]
     for start in (Path(__file__).resolve(), Path.cwd().resolve()):
         for parent in start.parents if start.is_file() else (start, *start.parents):
-            cand = parent / "shared" / "data" / "maps"
-            if cand.is_dir() and cand not in out:
+            cand = parent / "data" / "maps"
+            if cand.is_dir() and cand not in out and any(cand.glob("*.gt.json")):
                 out.append(cand)
+                break
     return [p for p in out if p.is_dir()]
 
 
 def load_map(name_or_path: str, *, length_m: float | None = None, map_seed: int = 0) -> GroundTruth:
     """Ground truth by name: a synthetic layout (``motorway``, ``motorway_ramps``, ``lane_drop``;
-    ``length_m`` and ``map_seed`` apply), a shared map name (``esmini_e6mini``, found via
-    ``shared_maps_dirs()``) or a path to a ``.gt.json`` file.
+    ``length_m`` and ``map_seed`` apply), a shipped map name (``esmini_e6mini``, found via
+    ``maps_dirs()``) or a path to a ``.gt.json`` file.
 
     Raises:
         GroundTruthError: nothing of that name, or the file is not a ground-truth map.
@@ -203,14 +206,14 @@ def load_map(name_or_path: str, *, length_m: float | None = None, map_seed: int 
     path = Path(name_or_path)
     if path.suffix == ".json" or path.exists():
         return load_ground_truth(path)
-    for d in shared_maps_dirs():
+    for d in maps_dirs():
         cand = d / f"{name_or_path}.gt.json"
         if cand.is_file():
             return load_ground_truth(cand)
-    shared = sorted({p.name[: -len(".gt.json")] for d in shared_maps_dirs() for p in d.glob("*.gt.json")})
+    shared = sorted({p.name[: -len(".gt.json")] for d in maps_dirs() for p in d.glob("*.gt.json")})
     raise GroundTruthError(
         f"no map {name_or_path!r}: not a synthetic name ({', '.join(synthetic.SYNTHETIC_NAMES)}), not a file, "
-        f"not a shared map ({', '.join(shared) or 'no shared/data/maps found; set HDMAP_MAPS_DIR'})"
+        f"not a shipped map ({', '.join(shared) or 'no data/maps found; set HDMAP_MAPS_DIR'})"
     )
 
 

@@ -1,4 +1,4 @@
-"""Built-in synthetic highways in the ground-truth format of shared/data/maps.
+"""Built-in synthetic highways in the ground-truth format of data/maps.
 
 Three layouts of a divided, curved motorway (two carriageways, 3 lanes each way, 3.5 m lanes):
 

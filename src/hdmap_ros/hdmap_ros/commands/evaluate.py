@@ -2,8 +2,8 @@
 
 MAP is a map bag (rosbag2 directory or ``.mcap`` with ``/hdmap/map``; the last map is used) or a
 ``.gt.json`` file (its features then serve as the map: a sanity check that must score 0 m).
-GT is a ``.gt.json`` file, the name of a shared ground-truth map (e.g. ``carla_town04``, searched
-in ``$HDMAP_MAPS_DIR`` and in ``shared/data/maps`` beside the repository, as ``hdmap simulate``
+GT is a ``.gt.json`` file, the name of a shipped ground-truth map (e.g. ``carla_town04``, searched
+in ``$HDMAP_MAPS_DIR`` and in the repository's ``data/maps``, as ``hdmap simulate``
 does) or of a built-in
 synthetic highway (``motorway``, ...).
 

@@ -1,10 +1,10 @@
 """``hdmap simulate --map NAME -o OUT``: simulate a vehicle fleet over a ground-truth map.
 
 Writes OUT (rosbag2 MCAP directory with ``/fleet/drives`` and ``/fleet/origin``), and beside it
-``OUT.gt.json`` (the ground truth, shared/data/maps format) and ``OUT.sim.json`` (the simulator
+``OUT.gt.json`` (the ground truth, data/maps format) and ``OUT.sim.json`` (the simulator
 config, seed and per-drive truth such as the true lateral bias). The map is a synthetic highway
-name (``motorway``, ``motorway_ramps``, ``lane_drop``), a shared map name (``esmini_e6mini``, found
-in ``$HDMAP_MAPS_DIR`` or ``shared/data/maps`` beside the repository) or a ``.gt.json`` path.
+name (``motorway``, ``motorway_ramps``, ``lane_drop``), a shipped real map (``esmini_e6mini``, found
+in ``$HDMAP_MAPS_DIR`` or the repository's ``data/maps``) or a ``.gt.json`` path.
 Simulator parameters: defaults of ``SimConfig`` (docs/simulator.md), overridden by ``--config``
 (JSON or YAML mapping) and then by ``--set key=value`` (repeatable). Exit status: 0 done,
 1 an error (bad map, bad config, unwritable output), 2 usage.
