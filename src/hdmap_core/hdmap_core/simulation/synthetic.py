@@ -447,7 +447,10 @@ def synthetic_highway(name: str, *, length_m: float = 3000.0, seed: int = 0) -> 
         lanes.update(lane_map)
         routes += r
     extra = {
-        "source": f"hdmap_core.simulation.synthetic.synthetic_highway({name!r}, length_m={float(length_m)}, seed={seed})",
+        "source": (
+            "hdmap_core.simulation.synthetic."
+            f"synthetic_highway({name!r}, length_m={float(length_m)}, seed={seed})"
+        ),
         "frame": "local metric frame (x east, y north), synthetic",
         "geo_reference": None,
         "route_directions": {r.id: r.id.split("_", 1)[0] for r in routes},
