@@ -19,15 +19,15 @@ help:  ## list the targets
 setup:  ## create .venv, install pinned ROS 2 wheels + deps, colcon build (idempotent)
 	@bash scripts/setup.sh
 
-test: setup  ## the whole pytest suite (after setup)
+test: lint  ## lint (make lint), then the whole pytest suite
 	$(PYTHON) -m pytest $(PYTEST_ARGS)
 
-test-quick: setup  ## the suite without tests marked slow
+test-quick: setup  ## the suite without tests marked slow (no lint: the edit-test loop)
 	$(PYTHON) -m pytest -m "not slow" $(PYTEST_ARGS)
 
 lint: setup  ## ruff check, ruff format --check (whole tree), mypy on src/hdmap_core (ruff.toml, mypy.ini)
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff format --check --output-format concise .
 	$(VENV)/bin/mypy
 
 demo: setup  ## simulate a fleet, build a map, evaluate it (scripts/demo.sh)

@@ -5,9 +5,10 @@ Usage (from the repository root):
     .venv/bin/python scripts/bench_adjustment.py                 # ~100k samples
     .venv/bin/python scripts/bench_adjustment.py --samples 600k  # the full-map size
 
-Prints the adjustment's wall and CPU time (CPU time is the steadier figure on a shared machine) (with and without the posterior std), the problem size, and the
-mean absolute error of the common offset per step (what stays in the map) next to the local
-per-step floor (the mean offset of the drives crossing the step, which the per-step EM keeps).
+Prints the adjustment's wall and CPU time (CPU time is the steadier figure on a shared machine;
+with and without the posterior std), the problem size, and the mean absolute error of the
+common offset per step (what stays in the map) next to the local per-step floor (the mean
+offset of the drives crossing the step, which the per-step EM keeps).
 """
 
 from __future__ import annotations

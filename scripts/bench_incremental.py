@@ -227,7 +227,8 @@ def main() -> int:
             backlog_max = max(backlog_max, sum(1 for x in arrive if a <= x < free))
         gaps = [b - a for a, b in zip(arrive, arrive[1:])] or [0.0]
         print(f"replay at {args.rate:g}x, first {len(service)} drives one by one: arrivals every "
-              f"{min(gaps):.1f}-{max(gaps):.1f} s (mean {sum(gaps) / len(gaps):.1f} s), service {min(service):.2f}-{max(service):.2f} s "
+              f"{min(gaps):.1f}-{max(gaps):.1f} s (mean {sum(gaps) / len(gaps):.1f} s), "
+              f"service {min(service):.2f}-{max(service):.2f} s "
               f"(mean {sum(service) / len(service):.2f} s): max backlog {backlog_max}, max delay {max(late):.1f} s, "
               f"last {late[-1]:.1f} s")
     mapper.destroy_node()

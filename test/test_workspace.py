@@ -243,6 +243,7 @@ def test_built_messages_round_trip_with_nothing_sourced(tmp_path):
             msg_fields(shared.read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.ros
 def test_hdmap_cli_help_runs_from_anywhere(tmp_path):
     _needs_build()

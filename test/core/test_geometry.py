@@ -77,6 +77,7 @@ def test_cut_intersections_match_brute_force():
     a = rng.uniform(-10, 10, (n, 2))
     b = a + rng.normal(0, 4, (n, 2))
     hit, t, u = cut_segment_intersections(o, d, h, a, b)
+    assert 0 < hit.sum() < n  # both outcomes occur
     # Brute force: solve the 2x2 system per pair.
     for i in range(0, n, 37):
         m = np.array([d[i], -(b[i] - a[i])]).T

@@ -44,6 +44,7 @@ def test_every_listed_key_has_an_effect(table):
 def test_every_public_key_is_settable_with_set(table):
     """Each key takes its own default back (a no-op), so config_from reaches every one of them."""
     base = PipelineConfig()
+    assert table.public_keys()
     for key in table.public_keys():
         value = base
         for part in key.split("."):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -144,3 +145,25 @@ def test_requirements_pin_every_top_level_package():
         name = req.split("[")[0].split("==")[0]
         version = req.split("==")[1]
         assert f"{name}=={version}" in constraints, f"{req} disagrees with constraints.txt"
+
+
+
+def _make_rules() -> dict[str, tuple[list[str], list[str]]]:
+    """Makefile target -> (prerequisites, recipe lines with $(VENV)/bin/ dropped)."""
+    rules = {}
+    pattern = r"^([a-z-]+):([^#\n]*)(?:##[^\n]*)?\n((?:\t[^\n]*\n)*)"
+    for m in re.finditer(pattern, (REPO / "Makefile").read_text(), flags=re.M):
+        recipe = [ln.strip().replace("$(VENV)/bin/", "") for ln in m.group(3).splitlines()]
+        rules[m.group(1)] = (m.group(2).split(), recipe)
+    return rules
+
+
+def test_make_test_lints_before_pytest_with_pinned_tools():
+    """``make test`` depends on ``make lint`` (ruff check, ruff format --check, mypy), whose tools
+    requirements.txt pins, so CI (``.ci/run``: make test) fails on a lint finding."""
+    rules = _make_rules()
+    assert "lint" in rules["test"][0] and "lint" not in rules["test-quick"][0]
+    assert [ln.split()[:2] for ln in rules["lint"][1]] == [["ruff", "check"], ["ruff", "format"], ["mypy"]]
+    assert "--check" in rules["lint"][1][1]
+    pins = {ln.split("==")[0] for ln in (REPO / "requirements.txt").read_text().splitlines() if "==" in ln}
+    assert {"ruff", "mypy"} <= pins

@@ -83,17 +83,17 @@ def _parse(doc: dict, source: str) -> GroundTruth:
             for f in doc["features"]
         )
         lanes = {
-            str(l["id"]): GTLane(
-                id=str(l["id"]),
-                centerline=_array(l["centerline"], f"lane {l['id']}"),
-                successors=tuple(map(str, l.get("successors", ()))),
-                predecessors=tuple(map(str, l.get("predecessors", ()))),
-                left=l.get("left"),
-                right=l.get("right"),
-                highway=bool(l.get("highway", True)),
-                junction=bool(l.get("junction", False)),
+            str(lane["id"]): GTLane(
+                id=str(lane["id"]),
+                centerline=_array(lane["centerline"], f"lane {lane['id']}"),
+                successors=tuple(map(str, lane.get("successors", ()))),
+                predecessors=tuple(map(str, lane.get("predecessors", ()))),
+                left=lane.get("left"),
+                right=lane.get("right"),
+                highway=bool(lane.get("highway", True)),
+                junction=bool(lane.get("junction", False)),
             )
-            for l in doc["lanes"]
+            for lane in doc["lanes"]
         }
         routes = tuple(
             GTRoute(str(r["id"]), tuple(map(str, r["lanes"])), tuple(int(i) for i in r.get("lane_changes", ())))
@@ -133,16 +133,16 @@ def ground_truth_to_dict(gt: GroundTruth) -> dict:
         ],
         "lanes": [
             {
-                "id": l.id,
-                "centerline": np.round(l.centerline, 3).tolist(),
-                "successors": list(l.successors),
-                "predecessors": list(l.predecessors),
-                "left": l.left,
-                "right": l.right,
-                "highway": l.highway,
-                "junction": l.junction,
+                "id": lane.id,
+                "centerline": np.round(lane.centerline, 3).tolist(),
+                "successors": list(lane.successors),
+                "predecessors": list(lane.predecessors),
+                "left": lane.left,
+                "right": lane.right,
+                "highway": lane.highway,
+                "junction": lane.junction,
             }
-            for l in gt.lanes.values()
+            for lane in gt.lanes.values()
         ],
         "routes": [{"id": r.id, "lanes": list(r.lanes), "lane_changes": list(r.lane_changes)} for r in gt.routes],
     }

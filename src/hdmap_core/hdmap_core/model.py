@@ -213,7 +213,7 @@ def validate_drive(drive: Drive, *, expected_frame: str = MAP_FRAME) -> Drive:
         raise InvalidDriveError(did, "bad_stamps", "one stamp per pose is required")
     for i, det in enumerate(drive.detections):
         try:
-            ftype = FeatureType(int(det.type))
+            FeatureType(int(det.type))  # raises ValueError on an unknown code
         except ValueError:
             raise InvalidDriveError(did, "unknown_type", f"detection {i} has type {det.type!r}") from None
         _check_points(did, f"detection {i}", np.asarray(det.points))

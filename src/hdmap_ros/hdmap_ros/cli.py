@@ -39,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Lane-level HD maps from noisy vehicle-fleet data (Immel et al. 2023, with EM).",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, mod in loaded.items():
+    for mod in loaded.values():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)

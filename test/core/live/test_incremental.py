@@ -243,6 +243,7 @@ def _sim_tile():
     return cover[key], key, cfg, presets.preset("default")
 
 
+@pytest.mark.slow
 def test_map_tile_pivot_margin_keeps_the_tile_and_equals_the_full_walk_at_the_margin():
     from dataclasses import replace
 
@@ -314,6 +315,7 @@ def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
             assert np.hypot(*(pos - o.midpoint).T).max() < 30.0
 
 
+@pytest.mark.slow
 def test_map_tile_with_a_fleet_model_shifts_by_it_at_full_drive_distances():
     from dataclasses import replace
 
@@ -361,6 +363,7 @@ def test_observations_signature_depends_on_the_drive_sets_only():
     assert a != observations_signature([((0, 0), ["a", "b"]), ((1, 0), ["c", "d"])])
 
 
+@pytest.mark.slow
 def test_the_tiles_final_pass_is_the_pipelines_final_pass():
     # the fleet-model path runs the pipeline's passes apart (map_stretches with offset_model); given the model
     # the pipeline estimated itself, its final pass must give exactly the pipeline's segments

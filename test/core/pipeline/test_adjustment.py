@@ -55,6 +55,7 @@ def _floor(cfg: ChainSimConfig, n_local: np.ndarray) -> float:
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_noise_free_bias_only_recovers_offsets_and_gauge():
     # Zero-mean true biases, no drift, no noise: relative offsets are exact, and the zero-mean
     # prior fixes the gauge exactly when the model has no drift either.
@@ -74,6 +75,7 @@ def test_noise_free_bias_only_recovers_offsets_and_gauge():
     assert np.abs(local).mean() > 0.5 * floor  # the case is not trivially easy
 
 
+@pytest.mark.slow
 def test_noise_free_drift_is_followed_by_the_curve():
     sim = replace(SMALL, noise_sigma_m=0.0)
     obs, truth = simulate_step_observations(config=sim, seed=1)
@@ -311,6 +313,7 @@ def test_offset_shape_follows_input(small_model):
     assert model.std(truth.drive_ids[1], s).shape == (3, 4)
 
 
+@pytest.mark.slow
 def test_std_is_roughly_calibrated():
     # Over several seeds, the common error divided by the posterior std of a drive crossing the
     # step is of order 1 (not 0.1, not 10): the std is a usable lateral uncertainty.
@@ -337,9 +340,8 @@ def _step(idx, ids, s, lat, cl):
                             types=np.ones(len(ids), dtype=np.int64), cluster=np.asarray(cl))
 
 
-def test_bad_steps_are_skipped_and_named():
-    obs, _ = simulate_step_observations(config=SMALL, seed=0)
-    good = adjust_offsets(obs)
+def test_bad_steps_are_skipped_and_named(small_model):
+    obs, _, good = small_model
     bad = [
         _step(9001, ["a", "b"], [1.0], [0.0, 1.0], [0, 0]),  # length mismatch
         _step(9002, ["a", "b"], [1.0, 2.0], [0.0, 1.0], [0.0, 0.0]),  # float labels
@@ -354,10 +356,10 @@ def test_bad_steps_are_skipped_and_named():
         np.testing.assert_allclose(model.offset(d, np.array([1000.0])), good.offset(d, np.array([1000.0])))
 
 
-def test_feature_type_members_are_accepted_as_types():
-    obs, _ = simulate_step_observations(config=SMALL, seed=0)
+def test_feature_type_members_are_accepted_as_types(small_model):
+    obs, _, a = small_model
     as_enum = [replace(o, types=np.array([FeatureType(int(x)) for x in o.types], dtype=object)) for o in obs]
-    a, b = adjust_offsets(obs), adjust_offsets(as_enum)
+    b = adjust_offsets(as_enum)
     assert b.stats["n_steps_skipped"] == 0
     d = next(iter(a.drives))
     np.testing.assert_allclose(b.offset(d, np.array([1000.0])), a.offset(d, np.array([1000.0])))

@@ -46,6 +46,7 @@ def test_kmeans_dp_is_optimal():
     rng = np.random.default_rng(5)
     x = np.sort(rng.normal(0, 1, 11) + np.repeat([0, 4, 9], [4, 4, 3]))
     parts = kmeans_1d_all_k(x, 4)
+    assert len(parts) == 4  # k = 1..4
     for k, b in enumerate(parts, start=1):
         assert len(b) == k + 1
         best = min(_sse(x, (0, *c, len(x))) for c in itertools.combinations(range(1, len(x)), k - 1))

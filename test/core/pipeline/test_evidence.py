@@ -154,7 +154,7 @@ def _gap_points(feats, lo: float, hi: float) -> int:
     return sum(int(((f.points[:, 0] > lo) & (f.points[:, 0] < hi)).sum()) for f in feats)
 
 
-@pytest.mark.parametrize("n_missing", [6, 1])
+@pytest.mark.parametrize("n_missing", [pytest.param(6, marks=pytest.mark.slow), 1])
 def test_fill_dropped_only_where_every_passing_drive_missed_the_line(n_missing):
     """A 16 m stretch of the left solid line (s 120..136) is missing for ``n_missing`` of six drives.
     Missing for all (a junction mouth): the connection bridges the gap with filled points, and the
@@ -201,7 +201,8 @@ def test_steps_of_the_returned_pass_carry_profiles():
     assert at_gap and all(_inside(st.empty_m, 5.25) for st in at_gap)  # from the midpoint, the road's centre
     for name in ("paper", "naive"):
         res = map_stretches(drives, config=presets.preset(name))
-        assert all(st.empty_m is None for seg in res.segments for st in seg.steps)
+        steps = [st for seg in res.segments for st in seg.steps]
+        assert steps and all(st.empty_m is None for st in steps)
 
 
 def test_evidence_config_checked():

@@ -27,14 +27,32 @@ def fleet() -> list[Drive]:
     return make_fleet(BIASES, noise_m=0.03, s1=200.0)
 
 
+@pytest.fixture(scope="module")
+def run(fleet):
+    """``run(preset) -> (map_stretches(fleet, preset, seed=0), progress calls)``, computed once per
+    module: several tests read the same run (collecting the observations and recording the progress
+    calls leave the result as it is)."""
+    cache: dict[str, tuple] = {}
+
+    def get(preset: str) -> tuple:
+        if preset not in cache:
+            calls: list[tuple] = []
+            res = map_stretches(fleet, config=presets.preset(preset), seed=0, collect_observations=True,
+                                progress=lambda *a: calls.append(a))
+            cache[preset] = (res, calls)
+        return cache[preset]
+
+    return get
+
+
 def _bad_drive() -> Drive:
     xy = np.array([[0.0, 0.0], [np.nan, 1.0], [2.0, 0.0]])
     return Drive("broken", xy, np.zeros(3), np.arange(3, dtype=np.int64), ())
 
 
 @pytest.mark.parametrize("preset", ["paper", "default", "naive"])
-def test_map_segments_recovers_lines(fleet, preset):
-    segs = map_segments(fleet, config=presets.preset(preset), seed=0)
+def test_map_segments_recovers_lines(fleet, run, preset):
+    segs = run(preset)[0].segments
     assert len(segs) == len(fleet) and all(isinstance(s, Segment) for s in segs)
     valid = [st for seg in segs for st in seg.steps if st.valid]
     assert len(valid) > 80
@@ -51,10 +69,19 @@ def test_map_segments_recovers_lines(fleet, preset):
     assert n_exact > 0.8 * len(valid) if preset != "naive" else n_exact > 0
 
 
-def test_corrected_road_width_beats_naive(fleet):
+def test_map_segments_is_map_stretches_segments():
+    few = make_fleet([0.3, -0.2], s1=60.0)
+    segs = map_segments(few, config=presets.preset("paper"), seed=3)
+    again = map_stretches(few, config=presets.preset("paper"), seed=3).segments
+    assert [s.pivot_id for s in segs] == [s.pivot_id for s in again]
+    steps = [(st.index, st.valid, st.lateral_m.tolist()) for seg in segs for st in seg.steps]
+    assert steps and steps == [(st.index, st.valid, st.lateral_m.tolist()) for seg in again for st in seg.steps]
+
+
+def test_corrected_road_width_beats_naive(run):
     # Border to border is 13 m; without offset correction the outer clusters are smeared.
     def width_error(preset):
-        segs = map_segments(fleet, config=presets.preset(preset), seed=0)
+        segs = run(preset)[0].segments
         w = [st.lateral_m.max() - st.lateral_m.min() for seg in segs for st in seg.steps if st.valid]
         return abs(np.mean(w) - 13.0)
 
@@ -62,8 +89,8 @@ def test_corrected_road_width_beats_naive(fleet):
     assert width_error("paper") < 0.1
 
 
-def test_processed_stretches_are_skipped(fleet):
-    res = map_stretches(fleet, config=presets.preset("paper"), seed=0)
+def test_processed_stretches_are_skipped(fleet, run):
+    res = run("paper")[0]
     c = res.counters
     assert c["steps_skipped_processed"] > 0.5 * c["steps_total"]  # all drives share one road
     # Every drive's stretch was processed through the first pivot.
@@ -74,7 +101,7 @@ def test_processed_stretches_are_skipped(fleet):
     assert again.counters["steps_valid"] == 0
     assert again.counters["steps_skipped_processed"] == again.counters["steps_total"]
     skipped = [st for seg in again.segments for st in seg.steps]
-    assert all(st.processed_before and not st.valid for st in skipped)
+    assert skipped and all(st.processed_before and not st.valid for st in skipped)
     # ... and the store round-trips through JSON.
     assert ProcessedStore.from_json(res.processed.to_json()).intervals == res.processed.intervals
 
@@ -110,8 +137,8 @@ def test_drive_beside_the_cut_is_not_marked_processed(fleet):
     assert found > 0.8 * len(valid)
 
 
-def test_observations_for_the_adjustment(fleet):
-    res = map_stretches(fleet, config=presets.preset("paper"), seed=0, collect_observations=True)
+def test_observations_for_the_adjustment(run):
+    res = run("paper")[0]
     assert len(res.observations) == res.counters["steps_valid"]
     ob = res.observations[len(res.observations) // 2]
     m = len(ob.lateral_m)
@@ -125,6 +152,7 @@ def test_observations_for_the_adjustment(fleet):
     np.testing.assert_allclose(ob.drive_s_m, pivot_steps[ob.index], atol=2.0)
 
 
+@pytest.mark.slow
 def test_observation_pass_runs_the_em_at_every_stride_th_step(fleet):
     base = presets.preset("paper")
     every = map_stretches(fleet, config=base, seed=0, collect_observations=True, observations_only=True).observations
@@ -200,9 +228,8 @@ def test_end_to_end_on_simulated_motorway():
     assert good.precision > 0.95
 
 
-def test_progress_reports_every_pivot(fleet):
-    calls = []
-    map_stretches(fleet, config=presets.preset("paper"), seed=0, progress=lambda *a: calls.append(a))
+def test_progress_reports_every_pivot(fleet, run):
+    calls = run("paper")[1]
     assert calls[-1] == ("pivots", len(fleet), len(fleet))
     assert [c[1] for c in calls] == list(range(1, len(fleet) + 1))
 
@@ -255,12 +282,12 @@ def test_steps_off_their_pivots_road_are_not_aligned():
         assert presets.preset(name).sampling.max_pivot_outside_m == float("inf")
 
 
-def test_steps_carry_the_pivots_own_corrected_position(fleet):
+def test_steps_carry_the_pivots_own_corrected_position(fleet, run):
     """Every step, rejected or not, carries its pivot's position (``StepResult.pose``): on the
     step's cut (no offset along it) and inside the road it describes; the default preset's final
     pass corrects it by the offset model, so it differs from the raw trajectory point there."""
     for preset in ("paper", "default"):
-        res = map_stretches(fleet, config=presets.preset(preset), seed=0)
+        res = run(preset)[0]
         steps = [st for seg in res.segments for st in seg.steps if not st.processed_before]
         assert steps and all(st.pose is not None for st in steps)
         for st in steps:

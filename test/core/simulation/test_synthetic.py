@@ -29,7 +29,9 @@ def test_point_spacing_at_most_one_metre(gt):
 
 
 def test_links_and_neighbours_are_symmetric(gt):
-    for lane in gt.lanes.values():
+    lanes = gt.lanes.values()
+    assert any(lane.successors for lane in lanes) and any(lane.left or lane.right for lane in lanes)
+    for lane in lanes:
         for s in lane.successors:
             assert lane.id in gt.lanes[s].predecessors
             np.testing.assert_allclose(lane.centerline[-1], gt.lanes[s].centerline[0], atol=0.01)
@@ -42,6 +44,7 @@ def test_links_and_neighbours_are_symmetric(gt):
 
 
 def test_neighbours_are_one_lane_apart_on_the_correct_side(gt):
+    assert any(lane.left or lane.right for lane in gt.lanes.values())
     for lane in gt.lanes.values():
         mid = len(lane.centerline) // 2
         p = lane.centerline[mid]

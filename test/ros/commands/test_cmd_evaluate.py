@@ -46,6 +46,7 @@ def _gt(road_path: Path) -> GroundTruth:
     return resolve_ground_truth(str(road_path))
 
 
+@pytest.mark.slow
 def test_ground_truth_as_map_scores_zero(road_path: Path, tmp_path: Path, capsys) -> None:
     out_json, out_png = tmp_path / "r.json", tmp_path / "r.png"
     rc = cli.main(["evaluate", str(road_path), str(road_path), "--json", str(out_json), "--plot", str(out_png)])
@@ -108,6 +109,7 @@ def test_seen_counts_in_the_sim_json_give_recall_over_the_observed_ground_truth(
     assert doc["fleet_floor_mean_m"] == pytest.approx(0.1)
 
 
+@pytest.mark.slow
 def test_sim_json_from_before_the_seen_count_still_evaluates(tmp_path: Path, capsys, sample_bags: Path) -> None:
     # bags/e6mini_20.sim.json was written by the simulator before it recorded seen counts.
     assert "seen_count" not in json.loads((sample_bags / "e6mini_20.sim.json").read_text())

@@ -252,6 +252,7 @@ def test_iter_fleet_bag_streams_in_bag_order_and_flags_conflicting_origin(tmp_pa
     assert isinstance(items[2], Rejection) and items[2].reason == "conflicting_origin"
 
 
+@pytest.mark.slow
 def test_baginfo_describes_drives_rejections_and_damage(tmp_path, capsys):
     from hdmap_ros.io.baginfo import main
 

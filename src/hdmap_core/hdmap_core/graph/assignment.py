@@ -88,7 +88,7 @@ def assign(
     c, s_ = math.cos(heading), math.sin(heading)
     u, nrm = np.array([c, s_]), np.array([-s_, c])
     own = np.zeros(len(tip_xy), dtype=bool) if tip_dir is None else np.isfinite(tip_dir[:, 0])
-    if own.any():
+    if tip_dir is not None and own.any():
         uu = np.where(own[:, None], tip_dir, u[None, :])
         nn = np.stack([-uu[:, 1], uu[:, 0]], axis=1)
         along = np.einsum("ijk,ik->ij", d, uu)

@@ -434,7 +434,7 @@ def _undirected_checks(
     if len(tip_idx) == 0:
         return tip_check
     h_tip = np.array([head_at[float(x)] for x in tip_s])
-    turned = _turned(h_tip, heading, config)
+    turned = np.asarray(_turned(h_tip, heading, config))  # (n,): one heading per tip
     if tip_dir is not None:
         turned &= ~np.isfinite(tip_dir[:, 0])
     if tip_check is not None:
@@ -529,9 +529,11 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
         if fast and _turned(head_at[last_s], float(st.heading), config):
             fast = False  # across a turn the ends without a direction of their own are checked
         if fast and config.line_frame_deg > 0:
+            assert last_topo is not None  # fast: there is a last step
             lf_last = _line_frames(b, b.tips_of(last_topo)[0], float(st.heading), config)
             fast = lf_last is None
         if fast:
+            assert last_topo is not None
             t = b.add(j)
             b.topo_edges.append((last_topo, t))
             b.fast_links.append(t)

@@ -188,8 +188,9 @@ def export_map(
         xy = parts[0][0]
         cnt, std = parts[0][1], parts[0][2]
         for pxy, pcnt, pstd in parts[1:]:
-            dup = len(xy) and len(pxy) and float(np.hypot(*(xy[-1] - pxy[0]))) < 1e-6
-            xy, cnt, std = np.vstack([xy, pxy[dup:]]), np.r_[cnt, pcnt[dup:]], np.r_[std, pstd[dup:]]
+            # 1: the next part starts where this one ends (the shared point is kept once)
+            same = int(len(xy) > 0 and len(pxy) > 0 and float(np.hypot(*(xy[-1] - pxy[0]))) < 1e-6)
+            xy, cnt, std = np.vstack([xy, pxy[same:]]), np.r_[cnt, pcnt[same:]], np.r_[std, pstd[same:]]
         features.append(
             MapFeature(
                 id=int(fid[k0]),

@@ -123,7 +123,10 @@ def gore_junctions(
                     byid[b.id] = _replace(b, points=pts, drive_count=cnt, lateral_std=std, successors=(p.id,))
             links = p.successors if mode == "split" else p.predecessors
             new_links = tuple(sorted({x for x in links if x != c.id} | set(branches)))
-            byid[p.id] = _replace(p, **({"successors": new_links} if mode == "split" else {"predecessors": new_links}))
+            if mode == "split":
+                byid[p.id] = _replace(p, successors=new_links)
+            else:
+                byid[p.id] = _replace(p, predecessors=new_links)
             gone[c.id] = tuple(branches)
             del byid[c.id]
             break

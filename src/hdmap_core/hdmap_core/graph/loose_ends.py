@@ -303,7 +303,8 @@ def join_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> LooseEndJoins:
                 # through the gap (a junction) is no continuation
                 if 0 < cfg.join_gap_check_m < along and hh is line_h and gap.crossed(flat.n_xy[i], along, mean_h, u, n):
                     continue
-                src, dropped = i, []
+                src = i
+                dropped: list[int] = []
                 while along <= 0.0:  # the start lies beside the end: drop the end's overlap
                     if prv[src] < 0 or len(dropped) > 8:
                         break

@@ -307,7 +307,7 @@ def _refuted_fills(flat: FlatGraph, graphs: Sequence[SegmentGraph]) -> np.ndarra
         return np.zeros(len(flat.edges), dtype=bool)
     return refuted_edges(
         flat.n_xy, flat.edges, np.concatenate(xy), np.concatenate(hd),
-        np.concatenate([[0]] + starts).astype(np.int64), np.concatenate(iv),
+        np.concatenate([np.zeros(1, np.int64), *starts]).astype(np.int64), np.concatenate(iv),
     )
 
 

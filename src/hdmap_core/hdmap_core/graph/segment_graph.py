@@ -171,7 +171,7 @@ def _splitmix64(x: np.ndarray) -> np.ndarray:
         return x ^ (x >> np.uint64(31))
 
 
-def stable_uid(name: str, a: np.ndarray, b: np.ndarray | int = 0) -> np.ndarray:
+def stable_uid(name: str, a: np.ndarray | int, b: np.ndarray | int = 0) -> np.ndarray:
     """Stable 63-bit ids from a name and two integer keys (e.g. pivot id, step index, slot).
 
     The same inputs give the same ids on every run and machine (no Python ``hash``).

@@ -145,10 +145,11 @@ class StitchConfig:
             within this distance across of a road border node of the same cross-section
             (topology node) is typed solid before the type runs are smoothed: the marking next to
             the road's edge is its edge line, solid on 97-100 % of such points in every map of
-            the ground-truth maps (data/maps on the harden branch) (Town04 2570 of 2642, Town06 11785 of 11795, e6mini all,
-            soderleden 103 of 115), while one drive misclassifies a stretch 7.5 % of the time in
-            the simulator (carla_town06_30_s3: one drive's 80 m dashed run of the right edge
-            line, typed dashed against the other drive's solid). 0 disables [m].
+            the ground-truth maps (data/maps on the harden branch) (Town04 2570 of 2642, Town06
+            11785 of 11795, e6mini all, soderleden 103 of 115), while one drive misclassifies a
+            stretch 7.5 % of the time in the simulator (carla_town06_30_s3: one drive's 80 m
+            dashed run of the right edge line, typed dashed against the other drive's solid).
+            0 disables [m].
         end_stub_max_m: at a polyline's loose end (no edge beyond it), a run of drive-supported
             nodes up to this long that the rest of the line reaches only through an edge long
             enough to be filled, whose far end lies ``cleanup._END_STUB_SIDE_M`` (and ``cleanup._END_STUB_SLOPE`` of

@@ -102,7 +102,7 @@ def _still_turning(
         return False
     if _track_gap(xy, heading, m, n, cfg) is None:
         return False
-    return abs(wrap_angle(float(heading[n]) - hj)) <= settle
+    return bool(abs(wrap_angle(float(heading[n]) - hj)) <= settle)
 
 
 def entered_by_points(

@@ -141,6 +141,7 @@ def smooth_types(
             left = runs[k - 1] if k > 0 else None
             right = runs[k + 1] if k + 1 < len(runs) else None
             into = left if right is None or (left is not None and length(left) >= length(right)) else right
+            assert into is not None  # len(runs) > 1: run k has a neighbour
             runs[k][2] = into[2]
             merged: list[list[int]] = []
             for r in runs:  # join neighbours of equal type

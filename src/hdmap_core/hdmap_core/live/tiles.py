@@ -41,6 +41,8 @@ from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.steps import Segment
 
 if TYPE_CHECKING:  # the pipeline is heavy; tiles load it on first use
+    from hdmap_core.pipeline.adjustment import OffsetSource
+    from hdmap_core.pipeline.aggregation import ProcessedStore
     from hdmap_core.pipeline.config import PipelineConfig
 
 __all__ = [
@@ -243,7 +245,7 @@ class _TileInput:
 
     clipped: list
     s0: dict[str, float]
-    processed: object  # ProcessedStore or None
+    processed: ProcessedStore | None
     seed: int
     core: tuple[float, float, float, float]
 
@@ -270,7 +272,7 @@ def _tile_input(drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, 
 class _ClippedOffsets:
     """A fleet-wide offset model seen from drives clipped to a tile: ``s`` counts from the clip."""
 
-    def __init__(self, model: object, s0: dict[str, float]) -> None:
+    def __init__(self, model: OffsetSource, s0: dict[str, float]) -> None:
         self.model, self.s0 = model, s0
 
     def offset(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:
@@ -321,7 +323,7 @@ def map_tile(
     *,
     tile_config: TileConfig,
     pipeline_config: PipelineConfig,
-    offset_model: object | None = None,
+    offset_model: OffsetSource | None = None,
 ) -> list[Segment]:
     """Map one tile from the drives covering it (stages of Sec. III-V up to the segments).
 
@@ -417,7 +419,7 @@ def _first_pass(inp: _TileInput, pipeline_config: PipelineConfig) -> list:
                          collect_observations=True, validated=True, observations_only=True).observations
 
 
-def _final_pass(inp: _TileInput, pipeline_config: PipelineConfig, model: object) -> list[Segment]:
+def _final_pass(inp: _TileInput, pipeline_config: PipelineConfig, model: OffsetSource) -> list[Segment]:
     """The pipeline's final pass on a tile's drives with the fleet-wide offset ``model``."""
     from hdmap_core.pipeline.driver import map_stretches  # noqa: PLC0415
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.linalg
@@ -145,6 +145,15 @@ class DriveOffset:
     cov_drift_next: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
+class OffsetSource(Protocol):
+    """What the final pass reads of an offset model (an ``OffsetModel``, or one seen through a
+    change of travelled distance such as a live tile's clip)."""
+
+    def offset(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:
+        """Lateral offset [m] to add to ``drive_id``'s samples at travelled distances ``s_m``."""
+        ...
+
+
 @dataclass(frozen=True)
 class OffsetModel:
     """Per-drive lateral offset curves; ``offset(drive, s)`` is to be ADDED to that drive's samples.
@@ -203,7 +212,7 @@ class OffsetModel:
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (plain floats, ints and lists); NaN variances are written as None."""
 
-        def _list(a: np.ndarray) -> list:
+        def _list(a: np.ndarray | list[float]) -> list:
             return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, dtype=float)]
 
         return {
@@ -454,7 +463,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     cfg = config
     stats: dict[str, Any] = {}
     pool = assoc.gather(observations, stats)
-    base = dict(knot_spacing_m=cfg.knot_spacing_m, correlation_length_m=cfg.correlation_length_m,
+    base: dict[str, Any] = dict(knot_spacing_m=cfg.knot_spacing_m, correlation_length_m=cfg.correlation_length_m,
                 drift_sigma_m=cfg.drift_sigma_m, bias_sigma_m=cfg.bias_sigma_m)
     label = pool.label
     n_shifted = 0
@@ -468,8 +477,8 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         samples = assoc.select(pool, label, THIN_DRIVES)
         if samples.s_m.size:
             coarse = _coarse_config(cfg)
-            fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
-            model = OffsetModel(**base, drives=_curves(samples, fit.layout, fit.theta, None))
+            coarse_fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
+            model = OffsetModel(**base, drives=_curves(samples, coarse_fit.layout, coarse_fit.theta, None))
             label, n = _shift_and_reassociate(pool, label, model, cfg)
             n_shifted += n
     samples, fit, keep = _fit_all(pool, label, cfg)
@@ -613,6 +622,7 @@ def _curves(samples: assoc.Samples, lay: _Layout, theta: np.ndarray, cov: dict[s
     for d, did in enumerate(samples.drive_ids):  # one entry per drive (~100s): cheap
         c0, nk = int(lay.col0[d]), int(lay.n_knots[d])
         g = slice(c0 + 1, c0 + 1 + nk)
+        extra: dict[str, Any]
         if cov is None:
             nan = np.full(nk, np.nan)
             extra = dict(var_bias=float("nan"), cov_bias_drift=nan, var_drift=nan.copy(),

@@ -218,10 +218,10 @@ def kmeans_1d_all_k(x_sorted: np.ndarray, k_max: int) -> list[np.ndarray]:
         best = total[arg, np.arange(n + 1)]
         backs[k] = arg
         bounds = [n]
-        j = n
+        end = n
         for kk in range(k, 1, -1):
-            j = int(backs[kk][j])
-            bounds.append(j)
+            end = int(backs[kk][end])
+            bounds.append(end)
         bounds.append(0)
         out.append(np.array(bounds[::-1]))
     return out
@@ -455,7 +455,6 @@ def solve_offsets(
     # The penalty only acts when two same-type clusters come close; the closed form already
     # minimises the variance term, so LM runs only then (always with solver="lm", the paper's way).
     need_lm = k >= 2 and s > 0 and (config.solver == "lm" or _penalty(centres, ctype, s).max() > config.penalty_lm_threshold)
-    share = None
     if need_lm:
         a, b, mean0, share = _variance_system(x, labels, drive, n_drives)
         row_w = np.sqrt(w)
@@ -889,9 +888,10 @@ def _em(
 ) -> StepAlignment:
     """E-step / M-step iterations from the start offsets ``o``."""
     n_drives = len(o)
-    labels = None
-    it = 0
-    for it in range(1, (config.n_iterations if config.estimate_offsets else 1) + 1):
+    labels: np.ndarray | None = None
+    it, n_rounds = 0, (config.n_iterations if config.estimate_offsets else 1)
+    while it < n_rounds:
+        it += 1
         new = cluster_step(x + o[drive], types, method=method, config=config)
         new = _drop_thin_clusters(new, drive, config.min_cluster_drives)
         if labels is not None and np.array_equal(new, labels):
@@ -900,6 +900,7 @@ def _em(
         if not config.estimate_offsets:
             break
         o = solve_offsets(x, labels, types, drive, n_drives, config=config, prior=prior, init=o)
+    assert labels is not None, "AlignmentConfig checks n_iterations >= 1: the loop ran"
     y = x + o[drive]
     n_present = np.count_nonzero(np.bincount(drive))
     sparse = 0 < n_present <= config.sparse_step_max_drives

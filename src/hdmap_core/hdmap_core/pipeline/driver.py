@@ -22,7 +22,7 @@ from typing import Protocol, cast
 import numpy as np
 
 try:  # threadpoolctl comes with scikit-learn
-    from threadpoolctl import threadpool_limits  # type: ignore[import-untyped]
+    from threadpoolctl import threadpool_limits
 except ImportError:  # pragma: no cover
     threadpool_limits = None
 
@@ -31,7 +31,7 @@ from hdmap_core.graph.connection import connect_segment
 from hdmap_core.graph.map_graph import stitch
 from hdmap_core.model import Drive, HDMap, validate_drive
 from hdmap_core.parallel import ForkWorker, can_fork, map_balanced, split_order
-from hdmap_core.pipeline.adjustment import OffsetModel, adjust_offsets
+from hdmap_core.pipeline.adjustment import OffsetModel, OffsetSource, adjust_offsets
 from hdmap_core.pipeline.aggregation import ProcessedStore
 from hdmap_core.pipeline.config import PipelineConfig
 from hdmap_core.pipeline.evidence import EvidenceConfig
@@ -136,7 +136,7 @@ class MappingResult:
     segments: list[Segment]
     processed: ProcessedStore
     observations: list[StepObservations]
-    offset_model: OffsetModel | None
+    offset_model: OffsetSource | None
     counters: dict[str, int]
     stage_seconds: dict[str, float]
 
@@ -201,7 +201,7 @@ def _merge_parts(
     return segments, ProcessedStore(intervals), obs, counters
 
 
-def _shift_fn(model: OffsetModel, drive_ids: tuple[str, ...]) -> ShiftFn:
+def _shift_fn(model: OffsetSource, drive_ids: tuple[str, ...]) -> ShiftFn:
     """The offset model as ``shift(drive index (N,), drive s (N,)) -> (N,)`` [m]."""
 
     def shift(drive_idx: np.ndarray, s_m: np.ndarray) -> np.ndarray:
@@ -227,7 +227,7 @@ def map_stretches(
     collect_observations: bool = False,
     progress: ProgressFn | None = None,
     validated: bool = False,
-    offset_model: OffsetModel | None = None,
+    offset_model: OffsetSource | None = None,
     observations_only: bool = False,
     workers: int = 1,
 ) -> MappingResult:
@@ -323,7 +323,7 @@ class _TwoPasses:
             self.shares = split_order(self.order, group, np.array([d.length_m for d in drives]), workers)
             self.seconds["grouping"] = time.perf_counter() - t0
 
-    def _context(self, final: OffsetModel | None, counters: PassCounters, observations: list | None) -> PivotContext:
+    def _context(self, final: OffsetSource | None, counters: PassCounters, observations: list | None) -> PivotContext:
         """The pivots' shared settings of the first pass, or of the final pass shifted by ``final``."""
         cfg = self.config
         if final is None:
@@ -353,14 +353,14 @@ class _TwoPasses:
             evidence=self.evidence,
         )
 
-    def _pass(self, share: np.ndarray, model: OffsetModel | None, report: ProgressFn | None) -> _PassResult:
+    def _pass(self, share: np.ndarray, model: OffsetSource | None, report: ProgressFn | None) -> _PassResult:
         counters = PassCounters()
         obs: list[StepObservations] | None = [] if (model is None and self.keep_observations) else None
         ctx = self._context(model, counters, obs)
         segs, store = run_pass(self.drives, share, self.store_in, ctx, progress=report)
         return segs, store, obs, counters
 
-    def run(self, offset_model: OffsetModel | None, progress: ProgressFn | None) -> MappingResult:
+    def run(self, offset_model: OffsetSource | None, progress: ProgressFn | None) -> MappingResult:
         model = offset_model
         adjust = model is None and self.config.final_pass is not None
         workers = [
@@ -407,7 +407,7 @@ class _TwoPasses:
             stage_seconds=self.seconds,
         )
 
-    def _job(self, channel: _Channel, share: np.ndarray, model: OffsetModel | None, adjust: bool) -> None:
+    def _job(self, channel: _Channel, share: np.ndarray, model: OffsetSource | None, adjust: bool) -> None:
         """In a worker process: the same passes on its share, results sent back."""
         if model is None:
             segs, st, o, c = self._pass(share, None, None)
@@ -420,7 +420,7 @@ class _TwoPasses:
     def _all(
         self,
         workers: list[ForkWorker],
-        model: OffsetModel | None,
+        model: OffsetSource | None,
         report: ProgressFn | None,
         progress: ProgressFn | None,
     ) -> _PassResult:

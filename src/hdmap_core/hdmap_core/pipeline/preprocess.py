@@ -257,7 +257,7 @@ def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConf
     n_kept = sum(t.n_polylines_kept for t in parts)
     cat = {f: np.concatenate([getattr(t, f) for t in parts]) for f in (
         "seg_a", "seg_b", "seg_type", "seg_drive", "seg_s_a", "seg_s_b", "seg_yaw", "cell_key")}
-    offset = np.cumsum([0] + [len(t.seg_type) for t in parts[:-1]]) if parts else []
+    offset = np.cumsum([0] + [len(t.seg_type) for t in parts[:-1]])
     cell_seg = np.concatenate([t.cell_seg + off for t, off in zip(parts, offset)]) if parts else np.zeros(0, np.int64)
     keys, start, segs = _grid_csr(cat["cell_key"], cell_seg)
     n_in = sum(len(d.detections) for d in drives)

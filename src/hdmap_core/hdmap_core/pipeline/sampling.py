@@ -486,7 +486,7 @@ def pivot_groups(index: DetectionIndex, drives: Sequence[Drive], *, config: Samp
     bounds = np.searchsorted(seg_drive, np.arange(n + 1), side="left")
     det_key: list[np.ndarray] = []
     det_drive: list[np.ndarray] = []
-    for i in np.flatnonzero(np.diff(bounds)):
+    for i in np.flatnonzero(np.diff(bounds)).tolist():
         k = np.unique(seg_key[bounds[i] : bounds[i + 1]])
         det_key.append(k)
         det_drive.append(np.full(len(k), i, dtype=np.int64))

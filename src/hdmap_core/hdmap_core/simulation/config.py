@@ -138,7 +138,8 @@ class SimConfig:
         if self.route_weighting not in ROUTE_WEIGHTINGS:
             raise ConfigError(f"SimConfig.route_weighting={self.route_weighting!r}: choose one of {', '.join(ROUTE_WEIGHTINGS)}")
         if self.coverage_candidates < 1 or self.coverage_cell_m <= 0:
-            raise ConfigError(f"SimConfig: coverage_candidates={self.coverage_candidates} must be >= 1 and coverage_cell_m={self.coverage_cell_m} > 0")
+            raise ConfigError(f"SimConfig: coverage_candidates={self.coverage_candidates} must be >= 1 and "
+                              f"coverage_cell_m={self.coverage_cell_m} > 0")
         if not 0.0 <= self.same_direction_cos_min < 1.0:
             raise ConfigError(f"SimConfig.same_direction_cos_min={self.same_direction_cos_min} must be in [0, 1)")
         if self.misclass_rate + self.marking_to_border_rate > 1.0:

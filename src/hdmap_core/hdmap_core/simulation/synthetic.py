@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -145,6 +146,16 @@ def _const(r: float) -> RFunc:
     return lambda t: np.full(np.shape(t), float(r))
 
 
+def _ramp_out(base: float, t_split: float) -> RFunc:
+    """``base`` plus the ramp lane's offset ``t - t_split`` metres after a split."""
+    return lambda t: base + _ramp_offset(t - t_split)
+
+
+def _ramp_in(base: float, t_merge: float) -> RFunc:
+    """``base`` plus the ramp lane's offset ``t_merge - t`` metres before a merge."""
+    return lambda t: base + _ramp_offset(t_merge - t)
+
+
 def _samples(t0: float, t1: float) -> np.ndarray:
     n = max(2, int(np.ceil((t1 - t0) / _POINT_STEP_M)) + 1)
     return np.linspace(t0, t1, n)
@@ -210,8 +221,8 @@ def _ramp_features(cw: _Carriageway, length_m: float, ics: list[tuple[float, flo
                 r += np.where(t >= te, _ramp_offset(t - te), 0.0)
             return r
 
-        cw.feature(FeatureType.SOLID, t0, t1, lambda t, f=outside: f(t, edge))
-        cw.feature(FeatureType.ROAD_BORDER, t0, t1, lambda t, f=outside: f(t, border))
+        cw.feature(FeatureType.SOLID, t0, t1, partial(outside, base=edge))
+        cw.feature(FeatureType.ROAD_BORDER, t0, t1, partial(outside, base=border))
     inner_line = edge - LANE_WIDTH_M
     inner_border = inner_line - _RAMP_INNER_SHOULDER_M
     for te, tm in ics:
@@ -219,10 +230,10 @@ def _ramp_features(cw: _Carriageway, length_m: float, ics: list[tuple[float, flo
         cw.feature(FeatureType.SOLID, te + u_gore, tm - u_gore, _const(edge))
         cw.feature(FeatureType.DASHED, tm - u_gore, tm, _const(edge))
         cw.feature(FeatureType.ROAD_BORDER, te + u_nose, tm - u_nose, _const(border))
-        cw.feature(FeatureType.SOLID, te + u_gore, te + _RAMP_LEN_M, lambda t, te=te: inner_line + _ramp_offset(t - te))
-        cw.feature(FeatureType.SOLID, tm - _RAMP_LEN_M, tm - u_gore, lambda t, tm=tm: inner_line + _ramp_offset(tm - t))
-        cw.feature(FeatureType.ROAD_BORDER, te + u_nose, te + _RAMP_LEN_M, lambda t, te=te: inner_border + _ramp_offset(t - te))
-        cw.feature(FeatureType.ROAD_BORDER, tm - _RAMP_LEN_M, tm - u_nose, lambda t, tm=tm: inner_border + _ramp_offset(tm - t))
+        cw.feature(FeatureType.SOLID, te + u_gore, te + _RAMP_LEN_M, _ramp_out(inner_line, te))
+        cw.feature(FeatureType.SOLID, tm - _RAMP_LEN_M, tm - u_gore, _ramp_in(inner_line, tm))
+        cw.feature(FeatureType.ROAD_BORDER, te + u_nose, te + _RAMP_LEN_M, _ramp_out(inner_border, te))
+        cw.feature(FeatureType.ROAD_BORDER, tm - _RAMP_LEN_M, tm - u_nose, _ramp_in(inner_border, tm))
 
 
 @dataclass
@@ -340,8 +351,8 @@ def _carriageway(name: str, direction: str, ref: _Reference) -> tuple[list[GTFea
             x, n = f"x{k}", f"n{k}"
             main[x] = (te, te + _RAMP_LEN_M)
             main[n] = (tm - _RAMP_LEN_M, tm)
-            rfuncs[x] = lambda t, te=te: _lane_r(_N_LANES) + _ramp_offset(t - te)
-            rfuncs[n] = lambda t, tm=tm: _lane_r(_N_LANES) + _ramp_offset(tm - t)
+            rfuncs[x] = _ramp_out(_lane_r(_N_LANES), te)
+            rfuncs[n] = _ramp_in(_lane_r(_N_LANES), tm)
             links += [(last, x), (n, last)]
             p0, p1 = _RAMP_TAPER_M, _RAMP_TAPER_M + _RAMP_PARALLEL_M
             events += [te, te + p0, te + p1, te + _RAMP_LEN_M, tm - _RAMP_LEN_M, tm - p1, tm - p0, tm]
@@ -354,29 +365,36 @@ def _carriageway(name: str, direction: str, ref: _Reference) -> tuple[list[GTFea
         t_mid = length / 2.0
         if direction == "fwd":  # lane 3 ends: taper into lane 2
             td = t_mid - _DROP_TAPER_M / 2.0
-            shape = lambda t, td=td: _smoothstep((t - td) / _DROP_TAPER_M)  # noqa: E731
+
+            def shape(t: np.ndarray, td: float = td) -> np.ndarray:
+                return _smoothstep((t - td) / _DROP_TAPER_M)
+
             main[last] = (0.0, td + _DROP_TAPER_M)
             links.append((last, "2"))
             events = [td, td + _DROP_TAPER_M]
             cw.feature(FeatureType.DASHED, 0.0, td, _const(_line_r(2)))
         else:  # lane 3 begins: split from lane 2
             td = t_mid - _DROP_TAPER_M / 2.0
-            shape = lambda t, td=td: 1.0 - _smoothstep((t - td) / _DROP_TAPER_M)  # noqa: E731
+
+            def shape(t: np.ndarray, td: float = td) -> np.ndarray:
+                return 1.0 - _smoothstep((t - td) / _DROP_TAPER_M)
+
             main[last] = (td, length)
             links.append(("2", last))
             events = [td, td + _DROP_TAPER_M]
             cw.feature(FeatureType.DASHED, td + _DROP_TAPER_M, length, _const(_line_r(2)))
+        # shape and edge_fn are bound once in this branch: the closures see these values
         if direction == "fwd":
-            rfuncs[last] = lambda t, s=shape: _lane_r(3) - LANE_WIDTH_M * s(t)
+            rfuncs[last] = lambda t: _lane_r(3) - LANE_WIDTH_M * shape(t)
         else:
-            rfuncs[last] = lambda t, s=shape: _lane_r(2) + LANE_WIDTH_M * (1.0 - s(t))
-        edge_fn = (
-            (lambda t, s=shape: _line_r(3) - LANE_WIDTH_M * s(t))
+            rfuncs[last] = lambda t: _lane_r(2) + LANE_WIDTH_M * (1.0 - shape(t))
+        edge_fn: RFunc = (
+            (lambda t: _line_r(3) - LANE_WIDTH_M * shape(t))
             if direction == "fwd"
-            else (lambda t, s=shape: _line_r(2) + LANE_WIDTH_M * (1.0 - s(t)))
+            else (lambda t: _line_r(2) + LANE_WIDTH_M * (1.0 - shape(t)))
         )
         cw.feature(FeatureType.SOLID, 0.0, length, edge_fn)
-        cw.feature(FeatureType.ROAD_BORDER, 0.0, length, lambda t, f=edge_fn: f(t) + _SHOULDER_M)
+        cw.feature(FeatureType.ROAD_BORDER, 0.0, length, lambda t: edge_fn(t) + _SHOULDER_M)
         parallel = [(last, 0.0, td)] if direction == "fwd" else [(last, td + _DROP_TAPER_M, length)]
     else:
         raise ConfigError(f"unknown synthetic highway {name!r}; choose one of {', '.join(SYNTHETIC_NAMES)}")
@@ -447,7 +465,10 @@ def synthetic_highway(name: str, *, length_m: float = 3000.0, seed: int = 0) -> 
         lanes.update(lane_map)
         routes += r
     extra = {
-        "source": f"hdmap_core.simulation.synthetic.synthetic_highway({name!r}, length_m={float(length_m)}, seed={seed})",
+        "source": (
+            "hdmap_core.simulation.synthetic."
+            f"synthetic_highway({name!r}, length_m={float(length_m)}, seed={seed})"
+        ),
         "frame": "local metric frame (x east, y north), synthetic",
         "geo_reference": None,
         "route_directions": {r.id: r.id.split("_", 1)[0] for r in routes},

@@ -3,7 +3,8 @@
 Reads the drives and the origin of IN (rosbag2 directory or ``.mcap``), reports every rejected
 drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes OUT (rosbag2 MCAP with
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
-features as RFC 7946 GeoJSON; with ``--graphml``, the topology graph as GraphML (map frame). Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
+features as RFC 7946 GeoJSON; with ``--graphml``, the topology graph as GraphML (map frame).
+Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
 from __future__ import annotations

@@ -402,7 +402,9 @@ def run_one(
         "gt_merges": rep.gt_merges,
         "found_splits": rep.found_splits,
         "found_merges": rep.found_merges,
-        "road_splits_merges": f"{rep.found_road_splits}/{rep.gt_road_splits} {rep.found_road_merges}/{rep.gt_road_merges}",
+        "road_splits_merges": (
+            f"{rep.found_road_splits}/{rep.gt_road_splits} {rep.found_road_merges}/{rep.gt_road_merges}"
+        ),
         "gt_road_splits": rep.gt_road_splits,
         "gt_road_merges": rep.gt_road_merges,
         "found_road_splits": rep.found_road_splits,
@@ -445,7 +447,10 @@ def format_table(rows: list[dict[str, Any]], *, markdown: bool = False, columns:
         lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
         return "\n".join(lines + ["| " + " | ".join(b) + " |" for b in body])
     widths = [max(len(x) for x in col) for col in zip(header, *body)]
-    fmt_row = lambda cells: "  ".join(c.rjust(w) if i > 1 else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
+
+    def fmt_row(cells: list[str]) -> str:
+        return "  ".join(c.rjust(w) if i > 1 else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+
     return "\n".join([fmt_row(header), fmt_row(["-" * w for w in widths])] + [fmt_row(b) for b in body])
 
 

@@ -33,9 +33,10 @@ class TileTypes:
 def rclpy_tile_types() -> TileTypes:
     from builtin_interfaces.msg import Time  # noqa: PLC0415
     from geometry_msgs.msg import Point  # noqa: PLC0415
+    from std_msgs.msg import Header  # noqa: PLC0415
+
     from hdmap_msgs.msg import Segment as SegmentMsg  # noqa: PLC0415
     from hdmap_msgs.msg import SegmentStep, TileSegments  # noqa: PLC0415
-    from std_msgs.msg import Header  # noqa: PLC0415
 
     return TileTypes(TileSegments, SegmentMsg, SegmentStep, Point, Header, Time, numpy_arrays=False)
 

@@ -95,7 +95,8 @@ def declare_pipeline_config(node: Node) -> Any:
     preset = declare(node, "preset", "default", "Pipeline preset: default, paper or naive.")
     overrides = declare_strings(
         node, "preset_overrides",
-        "KEY=VALUE changes of preset parameters, as `hdmap bag2map --set` (the mapper's and the stitcher's must match).",
+        "KEY=VALUE changes of preset parameters, as `hdmap bag2map --set` "
+        "(the mapper's and the stitcher's must match).",
     )
     return preset_config(preset, overrides)
 

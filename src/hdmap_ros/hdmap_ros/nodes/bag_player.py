@@ -18,8 +18,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from hdmap_core.errors import HdmapError
-from hdmap_ros.nodes import qos
 from hdmap_ros.io.bagio import DRIVES_TOPIC, ORIGIN_TOPIC, BagMessage, iter_bag
+from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, with_default_params
 
 __all__ = ["BagPlayer", "main", "message_class"]

@@ -15,8 +15,8 @@ from rclpy.node import Node
 
 from hdmap_core.errors import HdmapError, InvalidDriveError
 from hdmap_core.live.tiles import clean_drive
-from hdmap_ros.nodes import qos
 from hdmap_ros.convert.messages import drive_to_msg, msg_to_drive, rclpy_types
+from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, run_node
 
 __all__ = ["DriveIngestor", "main"]

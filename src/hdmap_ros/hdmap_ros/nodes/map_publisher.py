@@ -18,11 +18,11 @@ from std_msgs.msg import Header
 
 from hdmap_core.errors import HdmapError
 from hdmap_core.model import GeoOrigin, HDMap
-from hdmap_ros.nodes import qos
-from hdmap_ros.io.bagio import write_map_bag
-from hdmap_ros.convert.messages import msg_to_map, msg_to_origin, rclpy_types
-from hdmap_ros.io.geojson import write_geojson
 from hdmap_ros.convert.markers import map_to_markers, rclpy_marker_types
+from hdmap_ros.convert.messages import msg_to_map, msg_to_origin, rclpy_types
+from hdmap_ros.io.bagio import write_map_bag
+from hdmap_ros.io.geojson import write_geojson
+from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, run_node
 
 __all__ = ["MapPublisher", "main"]

@@ -24,10 +24,10 @@ from rclpy.node import Node
 
 from hdmap_core.errors import HdmapError
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile, stitch_graphs
-from hdmap_ros.nodes import qos
 from hdmap_ros.convert.messages import map_to_msg, rclpy_types
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
 from hdmap_ros.convert.tiles import msg_to_tile, rclpy_tile_types
+from hdmap_ros.nodes import qos
+from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
 from hdmap_ros.persistence.store import MapStore, blob_to_segments, segments_to_blob
 
 __all__ = ["MapStitcher", "main"]
