@@ -4,8 +4,10 @@ test module): a maximum's lateral position is its world y (plus the midpoint's y
 from __future__ import annotations
 
 import numpy as np
+from former_configs import former
 
 from hdmap_core.graph.connection import connect_segment
+from hdmap_core.graph.connection_config import ConnectionConfig
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult
 
@@ -41,4 +43,6 @@ def road(pivot: str, x0: float, n: int, lines=LINES, *, y_mid: float = 0.0, proc
 
 
 def conn(seg: Segment):
-    return connect_segment(seg)
+    """The segment's graph with the connection's first implementation (``former``: the rules
+    these samples were drawn for)."""
+    return connect_segment(seg, config=former(ConnectionConfig))

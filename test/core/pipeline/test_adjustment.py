@@ -15,6 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from former_configs import former
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
@@ -61,7 +62,7 @@ def test_noise_free_bias_only_recovers_offsets_and_gauge():
     # prior fixes the gauge exactly when the model has no drift either.
     sim = replace(SMALL, noise_sigma_m=0.0, drift_sigma_m=0.0, zero_mean_bias=True)
     obs, truth = simulate_step_observations(config=sim, seed=3)
-    model = adjust_offsets(obs, config=AdjustConfig(drift_sigma_m=0.0))
+    model = adjust_offsets(obs, config=former(AdjustConfig, drift_sigma_m=0.0))
     common, local, n_local, rel = _per_step_errors(obs, truth, model)
     floor = _floor(sim, n_local)
     assert np.abs(rel).max() < 1e-3
@@ -80,7 +81,7 @@ def test_noise_free_drift_is_followed_by_the_curve():
     sim = replace(SMALL, noise_sigma_m=0.0)
     obs, truth = simulate_step_observations(config=sim, seed=1)
     _, _, _, rel_curve = _per_step_errors(obs, truth, adjust_offsets(obs))
-    _, _, _, rel_const = _per_step_errors(obs, truth, adjust_offsets(obs, config=AdjustConfig(drift_sigma_m=0.0)))
+    _, _, _, rel_const = _per_step_errors(obs, truth, adjust_offsets(obs, config=former(AdjustConfig, drift_sigma_m=0.0)))
     rms_curve, rms_const = np.sqrt(np.mean(rel_curve**2)), np.sqrt(np.mean(rel_const**2))
     # A constant per drive cannot follow the 0.3 m drift; 200 m knots follow most of it (what is
     # left is the Gauss-Markov roughness between knots).
@@ -116,12 +117,12 @@ def test_wrong_labels_are_resisted_by_the_robust_loss(burst_m):
     rms = {}
     variants = {
         # no robustness at all: plain least squares on the given labels
-        "linear": AdjustConfig(loss="linear", coarse_reject_m=0.0, reassociate_rounds=0),
+        "linear": former(AdjustConfig, loss="linear", coarse_reject_m=0.0, reassociate_rounds=0),
         # robust loss (+ coarse stage) on the given labels
-        "huber_labels": AdjustConfig(reassociate_rounds=0),
-        "cauchy_labels": AdjustConfig(loss="cauchy", reassociate_rounds=0),
+        "huber_labels": former(AdjustConfig, reassociate_rounds=0),
+        "cauchy_labels": former(AdjustConfig, loss="cauchy", reassociate_rounds=0),
         # default: re-association (global EM) as well
-        "default": AdjustConfig(),
+        "default": former(AdjustConfig),
     }
     for name, cfg in variants.items():
         model = adjust_offsets(obs, config=cfg)
@@ -157,9 +158,9 @@ def test_lane_shifted_stretch_is_rejected_by_the_coarse_stage():
         shifted.append(o)
     s = np.linspace(s_lo + 50.0, s_lo + 350.0, 7)
     true = truth.true_correction(victim, s)
-    plain = AdjustConfig(coarse_reject_m=0.0, reassociate_rounds=0)
+    plain = former(AdjustConfig, coarse_reject_m=0.0, reassociate_rounds=0)
     err_plain = np.abs(adjust_offsets(shifted, config=plain).offset(victim, s) - true)
-    model = adjust_offsets(shifted, config=AdjustConfig(reassociate_rounds=0))
+    model = adjust_offsets(shifted, config=former(AdjustConfig, reassociate_rounds=0))
     err = np.abs(model.offset(victim, s) - true)
     err_default = np.abs(adjust_offsets(shifted).offset(victim, s) - true)
     assert err_default.max() < 0.5
@@ -197,7 +198,7 @@ def test_schur_elimination_matches_explicit_least_squares():
     sim = replace(SMALL, road_length_m=2000.0, n_drives=5, drive_length_min_m=800.0,
                   drive_length_max_m=1500.0, step_spacing_m=50.0)
     obs, _ = simulate_step_observations(config=sim, seed=2)
-    cfg = AdjustConfig(loss="linear", knot_spacing_m=150.0, compute_std=True)
+    cfg = former(AdjustConfig, loss="linear", knot_spacing_m=150.0, compute_std=True)
     model = adjust_offsets(obs, config=cfg)
     ids = list(model.drives)
     col = {}
@@ -380,7 +381,7 @@ def test_nothing_usable_gives_an_empty_model():
 def test_inputs_are_not_mutated():
     obs, _ = simulate_step_observations(config=SMALL, seed=4)
     before = [(o.drive_s_m.copy(), o.lateral_m.copy(), o.cluster.copy()) for o in obs]
-    adjust_offsets(obs, config=AdjustConfig(loss="cauchy"))
+    adjust_offsets(obs, config=former(AdjustConfig, loss="cauchy"))
     for o, (s, lat, cl) in zip(obs, before):
         np.testing.assert_array_equal(o.drive_s_m, s)
         np.testing.assert_array_equal(o.lateral_m, lat)
@@ -400,12 +401,12 @@ def test_inputs_are_not_mutated():
 )
 def test_config_rejects_bad_values(kwargs):
     with pytest.raises(ConfigError, match=next(iter(kwargs)) if "loss" not in kwargs else "loss"):
-        AdjustConfig(**kwargs)
+        former(AdjustConfig, **kwargs)
 
 
 def test_std_skipped_above_limit(small_model):
     obs, truth, _ = small_model
-    model = adjust_offsets(obs, config=AdjustConfig(std_max_unknowns=10))
+    model = adjust_offsets(obs, config=former(AdjustConfig, std_max_unknowns=10))
     assert model.stats["std_computed"] is False
     d = truth.drive_ids[0]
     assert np.isnan(model.std(d, np.array([1000.0]))).all()
