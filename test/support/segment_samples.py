@@ -4,12 +4,13 @@ test module): a maximum's lateral position is its world y (plus the midpoint's y
 from __future__ import annotations
 
 import numpy as np
-from former_configs import former
 
 from hdmap_core.graph.connection import connect_segment
 from hdmap_core.graph.connection_config import ConnectionConfig
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult
+
+from former_configs import former
 
 B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
 LINES = ([-3.5, 0.0, 3.5], [S, D, B])

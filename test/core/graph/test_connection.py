@@ -9,7 +9,6 @@ import math
 
 import numpy as np
 import pytest
-from former_configs import former, former_paper, former_replace
 
 from hdmap_core.errors import HdmapError
 from hdmap_core.graph.connection import connect_segment as _connect_segment
@@ -17,6 +16,8 @@ from hdmap_core.graph.connection_config import ConnectionConfig
 from hdmap_core.graph.segment_graph import feature_chains, stable_uid
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult
+
+from former_configs import former, former_paper, former_replace
 
 
 def connect_segment(segment, *, config: ConnectionConfig | None = None, **kw):
@@ -473,7 +474,9 @@ def test_lone_edge_line_needs_its_border_on_the_outer_side():
         g = connect_segment(Segment("p", tuple(steps)), config=cfg)
         return sorted(round(float(np.median(g.node_xy[c][:, 1])), 2) for c in g.polylines())
 
-    loose = former(ConnectionConfig, min_support_share=0.25, support_window_m=4.0, lone_line_gap_m=3.0, lone_line_border_gap_m=0.8)
+    loose = former(
+        ConnectionConfig, min_support_share=0.25, support_window_m=4.0, lone_line_gap_m=3.0, lone_line_border_gap_m=0.8
+    )
     outer = former_replace(loose, lone_line_border_outer=True)
     copy = [st(i, [-3.5, -2.35, -0.1, 0.0, 3.5], [B, D, B, D, B], [68, 1, 2, 84, 57]) for i in range(30)]
     assert lines(copy, loose) == [-3.5, -2.35, 0.0, 3.5]
@@ -496,6 +499,7 @@ def test_topology_node_holds_the_pivots_lane():
     topo_pivot_lane_m=1.75 the topology node's cross-section reaches 1.75 m beyond the pivot
     (-2.9 .. 3.9: midpoint 0.5, width 6.8); the features stay where they are. A step whose pivot
     is on its cut (at the midpoint, or 0.25 m inside its end), or that has no pose, keeps its cut."""
+
     def st(i, pose_y):
         s = make_step(i, [1.85], [B], midpoint=np.array([2.0 * i, 1.65]), width_m=4.5)
         return StepResult(**{**s.__dict__, "pose": None if pose_y is None else np.array([2.0 * i, pose_y])})
@@ -518,14 +522,21 @@ def test_window_min_count_drops_one_drive_maxima_of_the_window_rule():
     """A far line seen by one drive beside a border seen by three (of 30): the window rule alone
     keeps it (1 >= 0.25 x 3); with window_min_count=2 only maxima of two or more drives are
     rescued, the border stays."""
+
     def st(i):
         s = make_step(i, [-12.0, -9.5, -3.5, 0.0, 3.5], [B, S, D, D, B], counts=[3, 1, 19, 20, 18])
         return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(30))})
 
     seg = Segment("p", tuple(st(i) for i in range(30)))
     cfg = former(ConnectionConfig, min_support_share=0.25, support_window_m=4.0)
-    lat1 = sorted(round(float(np.median(g.node_xy[c][:, 1])), 1) for g in [connect_segment(seg, config=cfg)] for c in g.polylines())
-    g2 = connect_segment(seg, config=former(ConnectionConfig, min_support_share=0.25, support_window_m=4.0, window_min_count=2))
+    lat1 = sorted(
+        round(float(np.median(g.node_xy[c][:, 1])), 1)
+        for g in [connect_segment(seg, config=cfg)]
+        for c in g.polylines()
+    )
+    g2 = connect_segment(
+        seg, config=former(ConnectionConfig, min_support_share=0.25, support_window_m=4.0, window_min_count=2)
+    )
     lat2 = sorted(round(float(np.median(g2.node_xy[c][:, 1])), 1) for c in g2.polylines())
     assert lat1 == [-12.0, -9.5, -3.5, 0.0, 3.5]
     assert lat2 == [-12.0, -3.5, 0.0, 3.5]
@@ -559,7 +570,9 @@ def test_dashed_branch_starting_beside_a_solid_line_is_a_split():
     u, v = g.edges[k]
     assert g.node_type[u] == S and g.node_type[v] == D
     assert g.node_xy[v, 0] == pytest.approx(30.0) and g.node_xy[u, 0] == pytest.approx(28.0)
-    off = connect_segment(_exit_segment(0.0), config=former(ConnectionConfig, min_separation_m=0.0, leftover_other_type_m=0.0))
+    off = connect_segment(
+        _exit_segment(0.0), config=former(ConnectionConfig, min_separation_m=0.0, leftover_other_type_m=0.0)
+    )
     assert off.stats.splits == 0 and not off.edge_leftover.any()
     far = connect_segment(_exit_segment(1.5), config=former(ConnectionConfig, min_separation_m=0.0))
     assert far.stats.splits == 0
@@ -609,7 +622,11 @@ def test_chain_links_through_takes_a_lone_leftover_of_its_type():
     assert chain_links(4, edges, np.array([True, False, False]), types, through=True).tolist() == [True, False, True]
     assert chain_links(4, edges, np.array([True, False, False]), types).tolist() == [False, False, True]
     both = np.array([[0, 1], [2, 1], [1, 3]])
-    assert chain_links(4, both, np.array([True, True, False]), np.array([S, S, S, S]), through=True).tolist() == [False, False, True]
+    assert chain_links(4, both, np.array([True, True, False]), np.array([S, S, S, S]), through=True).tolist() == [
+        False,
+        False,
+        True,
+    ]
 
 
 def test_bridged_tip_does_not_take_the_next_line_when_a_line_appears():
@@ -637,7 +654,6 @@ def test_bridged_tip_does_not_take_the_next_line_when_a_line_appears():
         assert all(abs(g.node_xy[w, 1]) > 1.0 for w in into[v])
 
 
-
 def _turning_pivot_segment() -> Segment:
     """Four straight dashed lines along x (y = 0, 3.5, 7, 10.5) and the pivot's right line at
     y = -3.5. The pivot drives at y = -1.75 for 10 steps, then turns 12 deg right onto an exit
@@ -650,7 +666,11 @@ def _turning_pivot_segment() -> Segment:
         if i < 10:
             mid, h, own = np.array([2.0 * i, -1.75]), 0.0, [-1.75]
         else:
-            mid, h, own = np.array([18.0, -1.75]) + 2.0 * (i - 9) * np.array([math.cos(h1), math.sin(h1)]), h1, [-1.75, 1.75]
+            mid, h, own = (
+                np.array([18.0, -1.75]) + 2.0 * (i - 9) * np.array([math.cos(h1), math.sin(h1)]),
+                h1,
+                [-1.75, 1.75],
+            )
         valid = not 10 <= i < 14
         lat = sorted([(c - mid[1]) / math.cos(h) for c in lines] + own) if valid else []
         steps.append(make_step(i, lat, [D] * len(lat), midpoint=mid, heading=h, width_m=30.0, valid=valid))
@@ -675,7 +695,9 @@ def test_lines_keep_their_place_when_the_pivot_turns_off():
 
 def test_tip_frame_off_keeps_the_pivot_frame():
     assert former_paper(ConnectionConfig).tip_frame_deg == 0.0
-    jumps = _straight_line_jumps(connect_segment(_turning_pivot_segment(), config=former(ConnectionConfig, tip_frame_deg=0.0)))
+    jumps = _straight_line_jumps(
+        connect_segment(_turning_pivot_segment(), config=former(ConnectionConfig, tip_frame_deg=0.0))
+    )
     assert max(jumps) > 3.0  # the shifted pairing of the pivot's frame
 
 
@@ -721,10 +743,17 @@ def _crossing_pivot_segment(angle_deg: float, *, turn_at: int | None = None, n: 
         if turn_at is None and mid[1] + 1.75 < -4.0:
             lat, typ = lat + [-1.75, 1.75], typ + [S, S]
         order = np.argsort(lat)
-        steps.append(make_step(
-            i, np.asarray(lat, dtype=float)[order], np.asarray(typ, dtype=np.int64)[order],
-            midpoint=mid, heading=hd, width_m=24.0, valid=bool(lat),
-        ))
+        steps.append(
+            make_step(
+                i,
+                np.asarray(lat, dtype=float)[order],
+                np.asarray(typ, dtype=np.int64)[order],
+                midpoint=mid,
+                heading=hd,
+                width_m=24.0,
+                valid=bool(lat),
+            )
+        )
     return Segment("p", tuple(steps))
 
 
@@ -824,10 +853,20 @@ def test_a_line_just_reached_does_not_turn_with_the_pivot():
     g0 = connect_segment(seg, config=former(ConnectionConfig, line_frame_deg=12.0, line_check_undirected=False))
     assert _corner_edges(g0) >= 1
     # a pivot that does not turn: the fresh line continues as before
-    straight = Segment("p", tuple(
-        make_step(i, [-1.75, 5.25] if i < 9 else [-1.75, 1.75, 5.25], [S, D] if i < 9 else [S, D, D],
-                  valid=not 10 <= i < 14) if not 10 <= i < 14 else make_step(i, [], [], valid=False)
-        for i in range(24)))
+    straight = Segment(
+        "p",
+        tuple(
+            make_step(
+                i,
+                [-1.75, 5.25] if i < 9 else [-1.75, 1.75, 5.25],
+                [S, D] if i < 9 else [S, D, D],
+                valid=not 10 <= i < 14,
+            )
+            if not 10 <= i < 14
+            else make_step(i, [], [], valid=False)
+            for i in range(24)
+        ),
+    )
     a = connect_segment(straight, config=former(ConnectionConfig, line_frame_deg=12.0))
     b = connect_segment(straight, config=former(ConnectionConfig, line_frame_deg=12.0, line_check_undirected=False))
     assert sorted(map(tuple, a.edges.tolist())) == sorted(map(tuple, b.edges.tolist()))
@@ -870,7 +909,9 @@ def test_lines_curving_with_the_pivot_keep_its_frame():
     assert g1.stats.rejected_angle > 0 or len(g1.polylines()) > 4
     assert g2.stats.rejected_angle == 0
     assert sorted(map(tuple, g2.edges.tolist())) == sorted(map(tuple, g0.edges.tolist()))
-    g3 = connect_segment(_crossing_pivot_segment(20.0), config=former(ConnectionConfig, line_frame_deg=12.0, line_frame_bend_deg=5.0))
+    g3 = connect_segment(
+        _crossing_pivot_segment(20.0), config=former(ConnectionConfig, line_frame_deg=12.0, line_frame_bend_deg=5.0)
+    )
     assert max(_line_hops(g3)) < 0.05 and g3.stats.rejected_angle == 0
 
 
@@ -894,8 +935,11 @@ def _pred_lateral(g, step: int, y: float) -> list[tuple[int, float, bool]]:
     """(step, y, leftover) of each edge into the node at ``y`` of ``step``."""
     owner = np.repeat(np.arange(len(g.topo_step)), np.diff(g.topo_start))
     (k,) = [k for k in range(len(g.node_xy)) if g.topo_step[owner[k]] == step and abs(g.node_xy[k][1] - y) < 1e-6]
-    return [(int(g.topo_step[owner[a]]), round(float(g.node_xy[a][1]), 2), bool(lo))
-            for (a, b), lo in zip(g.edges, g.edge_leftover) if b == k]
+    return [
+        (int(g.topo_step[owner[a]]), round(float(g.node_xy[a][1]), 2), bool(lo))
+        for (a, b), lo in zip(g.edges, g.edge_leftover)
+        if b == k
+    ]
 
 
 @pytest.mark.parametrize("fresh_first", [False, True])
@@ -941,8 +985,16 @@ def test_step_angles_on_a_tight_loop_are_judged_less_the_maxima_noise():
     assert slack.stats.rejected_angle == 0 and slack.n_topo == 40
     assert len(slack.polylines()) == 6 and all(len(c) == 40 for c in slack.polylines())
     from hdmap_core.pipeline import presets  # noqa: PLC0415
+
     assert presets.preset("default").connection.mean_angle_slack
     assert not former_paper(ConnectionConfig).mean_angle_slack
     # a real jump is still one: all maxima 3 m sideways at one step (as above)
-    jump = [make_step(i, [-1.75 + (3.0 if i == 7 else 0.0), 1.75 + (3.0 if i == 7 else 0.0)], [S, D]) for i in range(15)]
-    assert connect_segment(Segment("p", tuple(jump)), config=former(ConnectionConfig, mean_angle_slack=True)).stats.rejected_angle == 1
+    jump = [
+        make_step(i, [-1.75 + (3.0 if i == 7 else 0.0), 1.75 + (3.0 if i == 7 else 0.0)], [S, D]) for i in range(15)
+    ]
+    assert (
+        connect_segment(
+            Segment("p", tuple(jump)), config=former(ConnectionConfig, mean_angle_slack=True)
+        ).stats.rejected_angle
+        == 1
+    )

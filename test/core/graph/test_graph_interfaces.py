@@ -13,7 +13,6 @@ import math
 import networkx as nx
 import numpy as np
 import pytest
-from former_configs import former
 
 from hdmap_core.graph.export import export_map
 from hdmap_core.graph.flat import flatten, link_key
@@ -26,6 +25,7 @@ from hdmap_core.graph.topology_graph import topology_graph, write_graphml
 from hdmap_core.graph.trim import trim_overlaps
 from hdmap_core.model import HDMap, TopologyNode
 
+from former_configs import former
 from segment_samples import LINES, conn, road
 
 

@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-from former_configs import former, former_paper, former_replace
 
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.graph.connection import connect_segment
@@ -23,6 +22,7 @@ from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.pipeline import presets
 from hdmap_core.steps import Segment, StepResult
 
+from former_configs import former, former_paper, former_replace
 from segment_samples import LINES, B, D, S, conn, road, step
 
 

@@ -15,13 +15,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from former_configs import former
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 from hdmap_core.pipeline.adjustment import AdjustConfig, OffsetModel, adjust_offsets
 from hdmap_core.simulation.chains import ChainSimConfig, simulate_step_observations
 from hdmap_core.steps import StepObservations
+
+from former_configs import former
 
 # A short chain keeps every case around a second: 10 km road, 30 drives of 2-5 km.
 SMALL = ChainSimConfig(road_length_m=10000.0, n_drives=30, drive_length_max_m=5000.0, step_spacing_m=25.0)
@@ -81,7 +82,9 @@ def test_noise_free_drift_is_followed_by_the_curve():
     sim = replace(SMALL, noise_sigma_m=0.0)
     obs, truth = simulate_step_observations(config=sim, seed=1)
     _, _, _, rel_curve = _per_step_errors(obs, truth, adjust_offsets(obs))
-    _, _, _, rel_const = _per_step_errors(obs, truth, adjust_offsets(obs, config=former(AdjustConfig, drift_sigma_m=0.0)))
+    _, _, _, rel_const = _per_step_errors(
+        obs, truth, adjust_offsets(obs, config=former(AdjustConfig, drift_sigma_m=0.0))
+    )
     rms_curve, rms_const = np.sqrt(np.mean(rel_curve**2)), np.sqrt(np.mean(rel_const**2))
     # A constant per drive cannot follow the 0.3 m drift; 200 m knots follow most of it (what is
     # left is the Gauss-Markov roughness between knots).
@@ -101,8 +104,10 @@ def test_noisy_absolute_error_below_local_floor():
         ours.append(np.abs(common).mean())
         local_floor.append(_floor(sim, n_local))
         per_step.append(np.abs(local).mean())
-    print(f"mean |common error|: adjusted {np.round(ours, 3)}, floor {np.round(local_floor, 3)}, "
-          f"per-step {np.round(per_step, 3)}")
+    print(
+        f"mean |common error|: adjusted {np.round(ours, 3)}, floor {np.round(local_floor, 3)}, "
+        f"per-step {np.round(per_step, 3)}"
+    )
     assert np.mean(ours) < 0.75 * np.mean(local_floor)
     assert np.mean(ours) < 0.75 * np.mean(per_step)
     assert max(ours) < max(local_floor)
@@ -175,8 +180,12 @@ def test_drive_with_large_bias_is_not_left_a_lane_off():
     # by raw position most of its dashed samples are nearer the neighbouring line (a whole-drive
     # lane ambiguity); its border samples and the far dashed line disagree. The default
     # adjustment (re-association, shift search) must end on the right lane.
-    sim = replace(SMALL, line_offsets_m=(-7.0, -3.5, 0.0, 3.5, 7.0), line_types=(3, 2, 2, 2, 3),
-                  line_detect_prob=(0.15, 0.9, 0.9, 0.9, 0.15))
+    sim = replace(
+        SMALL,
+        line_offsets_m=(-7.0, -3.5, 0.0, 3.5, 7.0),
+        line_types=(3, 2, 2, 2, 3),
+        line_detect_prob=(0.15, 0.9, 0.9, 0.9, 0.15),
+    )
     obs, truth = simulate_step_observations(config=sim, seed=8)
     victim = truth.drive_ids[int(np.argmax([g[-1] - g[0] for g in truth.grid_s_m]))]
     moved = []
@@ -195,8 +204,14 @@ def test_drive_with_large_bias_is_not_left_a_lane_off():
 def test_schur_elimination_matches_explicit_least_squares():
     # Small case solved densely with the cluster positions as explicit unknowns and the priors
     # written out as whitened rows: the eliminated sparse solution must be the same.
-    sim = replace(SMALL, road_length_m=2000.0, n_drives=5, drive_length_min_m=800.0,
-                  drive_length_max_m=1500.0, step_spacing_m=50.0)
+    sim = replace(
+        SMALL,
+        road_length_m=2000.0,
+        n_drives=5,
+        drive_length_min_m=800.0,
+        drive_length_max_m=1500.0,
+        step_spacing_m=50.0,
+    )
     obs, _ = simulate_step_observations(config=sim, seed=2)
     cfg = former(AdjustConfig, loss="linear", knot_spacing_m=150.0, compute_std=True)
     model = adjust_offsets(obs, config=cfg)
@@ -336,9 +351,17 @@ def test_std_is_roughly_calibrated():
 
 
 def _step(idx, ids, s, lat, cl):
-    return StepObservations(pivot_id="p", index=idx, midpoint=np.zeros(2), heading=0.0, drive_ids=tuple(ids),
-                            drive_s_m=np.asarray(s, float), lateral_m=np.asarray(lat, float),
-                            types=np.ones(len(ids), dtype=np.int64), cluster=np.asarray(cl))
+    return StepObservations(
+        pivot_id="p",
+        index=idx,
+        midpoint=np.zeros(2),
+        heading=0.0,
+        drive_ids=tuple(ids),
+        drive_s_m=np.asarray(s, float),
+        lateral_m=np.asarray(lat, float),
+        types=np.ones(len(ids), dtype=np.int64),
+        cluster=np.asarray(cl),
+    )
 
 
 def test_bad_steps_are_skipped_and_named(small_model):

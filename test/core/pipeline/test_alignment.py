@@ -7,7 +7,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from former_configs import former, former_replace
 from sklearn.metrics import silhouette_samples
 
 from hdmap_core.errors import ConfigError
@@ -24,6 +23,8 @@ from hdmap_core.pipeline.alignment import (
     solve_offsets,
     step_silhouette,
 )
+
+from former_configs import former, former_replace
 
 LINES = np.array([-5.25, -1.75, 1.75, 5.25])
 LINE_TYPES = np.array([FeatureType.SOLID, FeatureType.DASHED, FeatureType.DASHED, FeatureType.SOLID])
@@ -93,7 +94,9 @@ def test_robust_loss_resists_one_bad_sample():
     lat = lat.copy()
     lat[0] += 0.8  # drive 0 sees one line 0.8 m off
     plain = align_step(lat, types, drive, config=former(AlignmentConfig, solver="closed_form"))
-    robust = align_step(lat, types, drive, config=former(AlignmentConfig, solver="closed_form", robust_loss=True, huber_delta_m=0.1))
+    robust = align_step(
+        lat, types, drive, config=former(AlignmentConfig, solver="closed_form", robust_loss=True, huber_delta_m=0.1)
+    )
     err_plain = abs((plain.offsets_m - plain.offsets_m.mean())[0] + (shifts[0] - shifts.mean()))
     err_robust = abs((robust.offsets_m - robust.offsets_m.mean())[0] + (shifts[0] - shifts.mean()))
     assert err_robust < 0.5 * err_plain
@@ -104,7 +107,9 @@ def test_silhouette_gate_rejects_pure_noise(seed):
     # 3 drives x 40 samples of one type, no lines at all: a Gaussian blob of noise.
     rng = np.random.default_rng(seed)
     lat = rng.normal(0.0, 2.0, 120)
-    res = align_step(lat, np.full(120, 2), np.repeat(np.arange(3), 40), config=former(AlignmentConfig, solver="closed_form"))
+    res = align_step(
+        lat, np.full(120, 2), np.repeat(np.arange(3), 40), config=former(AlignmentConfig, solver="closed_form")
+    )
     assert res.silhouette < 0.67
     assert not res.valid
 
@@ -142,14 +147,20 @@ def test_config_checks():
 
 def test_fast_silhouette_equals_sklearn_per_type():
     rng = np.random.default_rng(4)
-    x = np.concatenate([rng.normal(0, 0.2, 10), rng.normal(3.5, 0.3, 8), rng.normal(1.0, 0.2, 7), rng.normal(9, 0.2, 5)])
+    x = np.concatenate(
+        [rng.normal(0, 0.2, 10), rng.normal(3.5, 0.3, 8), rng.normal(1.0, 0.2, 7), rng.normal(9, 0.2, 5)]
+    )
     types = np.repeat([1, 1, 2, 2], [10, 8, 7, 5])
     labels = np.repeat([0, 1, 2, 3], [10, 8, 7, 5])
-    want = np.concatenate([silhouette_samples(x[:18, None], labels[:18]), silhouette_samples(x[18:, None], labels[18:])])
+    want = np.concatenate(
+        [silhouette_samples(x[:18, None], labels[:18]), silhouette_samples(x[18:, None], labels[18:])]
+    )
     assert step_silhouette(x, labels, types) == pytest.approx(want.mean())
     # A type with a single cluster does not count.
     x2 = np.concatenate([x, [20.0, 20.1]])
-    assert step_silhouette(x2, np.concatenate([labels, [4, 4]]), np.concatenate([types, [3, 3]])) == pytest.approx(want.mean())
+    assert step_silhouette(x2, np.concatenate([labels, [4, 4]]), np.concatenate([types, [3, 3]])) == pytest.approx(
+        want.mean()
+    )
 
 
 def _road_step(errors, *, seed=0, noise=0.03):
@@ -202,10 +213,14 @@ def test_lone_clusters_accepted_only_when_asked_and_tight():
     drive = np.array([0, 0, 1, 1])
     paper = align_step(lat, types, drive, config=former(AlignmentConfig, solver="closed_form"))
     assert paper.silhouette == -1.0 and not paper.valid
-    lone = align_step(lat, types, drive, config=former(AlignmentConfig, solver="closed_form", lone_cluster_max_std_m=0.3))
+    lone = align_step(
+        lat, types, drive, config=former(AlignmentConfig, solver="closed_form", lone_cluster_max_std_m=0.3)
+    )
     assert lone.valid
     wide = np.array([-2.6, 1.7, -1.0, 1.75])  # the solid samples disagree by 1.6 m
-    res = align_step(wide, types, drive, config=former(AlignmentConfig, estimate_offsets=False, lone_cluster_max_std_m=0.3))
+    res = align_step(
+        wide, types, drive, config=former(AlignmentConfig, estimate_offsets=False, lone_cluster_max_std_m=0.3)
+    )
     assert not res.valid
 
 
@@ -223,15 +238,21 @@ def test_one_drive_alone_accepted_when_asked():
     assert lone.valid
     assert len(np.unique(lone.labels[lone.labels >= 0])) == 5
     # Two drives half a lane apart: singleton clusters too, but the silhouette decides as before.
-    two = align_step(np.r_[lat, lat + 1.75], np.r_[types, types], np.r_[drive, drive + 1],
-                     config=former_replace(gap, estimate_offsets=False, lone_cluster_max_std_m=0.3))
+    two = align_step(
+        np.r_[lat, lat + 1.75],
+        np.r_[types, types],
+        np.r_[drive, drive + 1],
+        config=former_replace(gap, estimate_offsets=False, lone_cluster_max_std_m=0.3),
+    )
     assert two.silhouette < 0.67 and not two.valid
 
 
 # Sparse-step rule: two drives on a 3-lane road (borders, solids, two dashed lines).
 _SPARSE_LINES = np.array([-6.5, -5.25, -1.75, 1.75, 5.25, 6.5])
 _SPARSE_TYPES = np.array([3, 1, 2, 2, 1, 3])
-_SPARSE = former(AlignmentConfig, clustering="gap", solver="closed_form", sparse_step_max_drives=2, sparse_step_max_std_m=0.3)
+_SPARSE = former(
+    AlignmentConfig, clustering="gap", solver="closed_form", sparse_step_max_drives=2, sparse_step_max_std_m=0.3
+)
 
 
 def _two_drive_step(seen0, seen1, *, shift=0.4, err=None):
@@ -275,9 +296,14 @@ def test_sparse_step_of_singletons_and_one_shared_cluster_accepted_with_the_opti
     B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
     types = np.array([B, B, S, D, S, D, D, S, D])
     drive = np.array([1, 0, 0, 1, 1, 0, 1, 0, 1])
-    cfg = former(AlignmentConfig,
-        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
-        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3,
+    cfg = former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        sparse_step_max_drives=3,
+        sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0,
+        lone_cluster_max_std_m=0.3,
     )
     old = align_step(lat, types, drive, config=cfg)
     assert not old.valid and old.silhouette == pytest.approx(0.0)
@@ -289,7 +315,9 @@ def test_sparse_step_of_singletons_and_one_shared_cluster_accepted_with_the_opti
     # the step stays rejected.
     lone = np.ones(len(lat), dtype=bool)
     lone[0] = False
-    assert not align_step(lat[lone], types[lone], drive[lone], config=former_replace(cfg, sparse_singletons_accept=True)).valid
+    assert not align_step(
+        lat[lone], types[lone], drive[lone], config=former_replace(cfg, sparse_singletons_accept=True)
+    ).valid
     # A loose shared cluster (border 0.8 m apart) is no agreement either.
     far = lat.copy()
     far[0] = -8.27
@@ -305,9 +333,15 @@ def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
     B, S, D, U = (int(t) for t in (FeatureType.ROAD_BORDER, FeatureType.SOLID, FeatureType.DASHED, FeatureType.UNKNOWN))
     types = np.array([B, B, S, D, S, D, D, S, D])
     drive = np.array([1, 0, 0, 1, 1, 0, 1, 0, 1])
-    cfg = former(AlignmentConfig,
-        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
-        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3, sparse_singletons_accept=True,
+    cfg = former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        sparse_step_max_drives=3,
+        sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0,
+        lone_cluster_max_std_m=0.3,
+        sparse_singletons_accept=True,
     )
     old = align_step(lat, types, drive, config=cfg)
     assert old.types is None
@@ -315,7 +349,9 @@ def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
     assert res.valid == old.valid and res.silhouette == old.silhouette
     kept = res.labels >= 0
     assert np.array_equal(res.labels[old.labels >= 0], old.labels[old.labels >= 0])
-    assert res.labels[4] == res.labels[5] >= 0 and res.labels[6] == res.labels[7] >= 0 and res.labels[4] != res.labels[6]
+    assert (
+        res.labels[4] == res.labels[5] >= 0 and res.labels[6] == res.labels[7] >= 0 and res.labels[4] != res.labels[6]
+    )
     assert not set(res.labels[[4, 6]].tolist()) & set(old.labels[old.labels >= 0].tolist())  # clusters of their own
     assert np.array_equal(res.types[[4, 5, 6, 7]], [U, U, U, U])
     assert np.array_equal(np.delete(res.types, [4, 5, 6, 7]), np.delete(types, [4, 5, 6, 7])) and kept.all()
@@ -357,9 +393,15 @@ def test_four_drive_step_judged_by_the_sparse_rule_clash_drop_only_up_to_three()
     lat = np.array([-7.55, -6.46, -6.38, -6.28, -2.95, -2.84, -2.78, 0.50, 0.69, 0.70, 4.08, 4.09, 7.50])
     types = np.array([B, S, S, S, D, D, S, D, D, D, S, D, S])
     drive = np.array([0, 2, 0, 3, 2, 3, 0, 3, 2, 0, 3, 1, 1])
-    cfg = former(AlignmentConfig,
-        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
-        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3, sparse_singletons_accept=True,
+    cfg = former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        sparse_step_max_drives=3,
+        sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0,
+        lone_cluster_max_std_m=0.3,
+        sparse_singletons_accept=True,
     )
     old = align_step(lat, types, drive, config=cfg)
     assert not old.valid and 0.6 < old.silhouette < 0.67
@@ -410,7 +452,9 @@ def test_sparse_step_drops_a_type_clashing_singleton():
     assert res5.labels[-2] == -1 and res5.labels[-1] == -1
     # Steps with more drives than the limit keep their singletons.
     lat3 = np.r_[lat, _SPARSE_LINES[[2, 3]]]
-    res3 = align_step(lat3, np.r_[types, 2, 2], np.r_[drive, 2, 2], config=former_replace(_SPARSE, sparse_type_clash_m=1.0))
+    res3 = align_step(
+        lat3, np.r_[types, 2, 2], np.r_[drive, 2, 2], config=former_replace(_SPARSE, sparse_type_clash_m=1.0)
+    )
     assert res3.labels[0] >= 0 and res3.labels[4] >= 0
 
 
@@ -431,8 +475,15 @@ def test_sparse_step_config_checks():
 
 
 def _gap_final_config(**kw):
-    return former(AlignmentConfig, clustering="gap", estimate_offsets=False, lone_cluster_max_std_m=0.3,
-                           sparse_step_max_drives=4, sparse_step_max_std_m=0.3, **kw)
+    return former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        lone_cluster_max_std_m=0.3,
+        sparse_step_max_drives=4,
+        sparse_step_max_std_m=0.3,
+        **kw,
+    )
 
 
 def test_align_steps_gap_equals_align_step_and_leaves_special_steps_out():
@@ -470,8 +521,14 @@ def test_align_steps_gap_equals_align_step_and_leaves_special_steps_out():
 
 def test_align_steps_gap_needs_a_fixed_offset_config():
     with pytest.raises(ConfigError):
-        align_steps_gap(np.zeros(2), np.zeros(2, int), np.zeros(2, int), np.array([0, 2]), np.array([0]),
-                        config=former(AlignmentConfig, clustering="gap"))
+        align_steps_gap(
+            np.zeros(2),
+            np.zeros(2, int),
+            np.zeros(2, int),
+            np.array([0, 2]),
+            np.array([0]),
+            config=former(AlignmentConfig, clustering="gap"),
+        )
 
 
 def test_robust_loss_changes_nothing_without_outliers():
@@ -479,7 +536,9 @@ def test_robust_loss_changes_nothing_without_outliers():
     lat, ty, dr = _step([0.3, -0.2, 0.1], noise=0.02)
     labels = np.tile(np.arange(4), 3)
     plain = solve_offsets(lat, labels, ty, dr, 3, config=former(AlignmentConfig, solver="closed_form"))
-    robust = solve_offsets(lat, labels, ty, dr, 3, config=former(AlignmentConfig, solver="closed_form", robust_loss=True))
+    robust = solve_offsets(
+        lat, labels, ty, dr, 3, config=former(AlignmentConfig, solver="closed_form", robust_loss=True)
+    )
     np.testing.assert_allclose(robust, plain, atol=1e-12)
 
 
@@ -494,9 +553,15 @@ def test_sparse_step_of_two_drives_sharing_no_line_accepted_when_apart():
     lat = np.array([-9.05, -5.42, -1.97, 1.48, 4.99, 8.71])
     types = np.array([B, S, D, D, D, S])
     drive = np.array([1, 1, 1, 1, 0, 0])
-    cfg = former(AlignmentConfig,
-        clustering="gap", estimate_offsets=False, sparse_step_max_drives=4, sparse_step_max_std_m=0.3,
-        sparse_type_clash_m=1.0, sparse_type_clash_max_drives=3, lone_cluster_max_std_m=0.3,
+    cfg = former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        sparse_step_max_drives=4,
+        sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0,
+        sparse_type_clash_max_drives=3,
+        lone_cluster_max_std_m=0.3,
         sparse_singletons_accept=True,
     )
     assert former(AlignmentConfig).sparse_disjoint_apart_m == 0.0

@@ -44,12 +44,17 @@ def test_the_defaults_are_the_recommended_method():
     final = cfg.final_alignment
     assert isinstance(final, FinalAlignment) and isinstance(cfg.final_sampling, FinalSampling)
     assert _differences(final, cfg.alignment) == {
-        "estimate_offsets", "clustering", "prior_weight", "sparse_step_max_drives"
+        "estimate_offsets",
+        "clustering",
+        "prior_weight",
+        "sparse_step_max_drives",
     }
     assert (final.estimate_offsets, final.prior_weight, final.sparse_step_max_drives) == (False, 0.0, 4)
     assert final.sparse_singletons_accept and not cfg.alignment.sparse_singletons_accept
     assert (final.sparse_type_clash_max_drives, final.sparse_disjoint_apart_m, final.sparse_type_clash_keep) == (
-        3, 2.0, True
+        3,
+        2.0,
+        True,
     )
     assert not _differences(cfg.final_sampling, cfg.sampling)
     assert cfg.stitching.fill_evidence and cfg.evidence is not None
@@ -59,8 +64,17 @@ def test_the_defaults_are_the_recommended_method():
 
 @pytest.mark.parametrize(
     "cls",
-    [PreprocessConfig, SamplingConfig, AlignmentConfig, AggregationConfig, AdjustConfig, PassConfig,
-     ConnectionConfig, StitchConfig, EvidenceConfig],
+    [
+        PreprocessConfig,
+        SamplingConfig,
+        AlignmentConfig,
+        AggregationConfig,
+        AdjustConfig,
+        PassConfig,
+        ConnectionConfig,
+        StitchConfig,
+        EvidenceConfig,
+    ],
 )
 def test_every_stage_class_default_is_the_recommended_stage(cls):
     """``XConfig()`` is what ``PipelineConfig()`` holds: no stage keeps other values of its own."""
@@ -152,9 +166,7 @@ def test_preset_names_an_unknown_one():
 
 def test_config_from_sets_dotted_fields_and_names_a_wrong_one():
     base = PipelineConfig()
-    cfg = config_from(
-        "default", {"stitching.track_links": False, "alignment.n_iterations": 2, "observation_stride": 3}
-    )
+    cfg = config_from("default", {"stitching.track_links": False, "alignment.n_iterations": 2, "observation_stride": 3})
     assert cfg.stitching.track_rejoin_m == 0.0 and base.stitching.track_rejoin_m == 30.0
     assert cfg.alignment.n_iterations == 2 and cfg.observation_stride == 3
     assert cfg.stitching.path_search_m == base.stitching.path_search_m  # the rest untouched
@@ -288,10 +300,14 @@ def test_a_knob_made_a_constant_is_refused_by_name_and_its_constant_exists(key):
     import importlib
     import re
 
-    with pytest.raises(ConfigError, match=rf"^{re.escape(key)}: no such setting any more \((a fixed rule now|.*switch)"):
+    with pytest.raises(
+        ConfigError, match=rf"^{re.escape(key)}: no such setting any more \((a fixed rule now|.*switch)"
+    ):
         config_from("default", {key: 1.0})
     text = REMOVED_KEYS[key]
-    m = re.search(r"(\w+(?:\.\w+)?) = (.+?)(?: while (\S+) is true \((.+) when false\))? in (hdmap_core\.\w+\.\w+)$", text)
+    m = re.search(
+        r"(\w+(?:\.\w+)?) = (.+?)(?: while (\S+) is true \((.+) when false\))? in (hdmap_core\.\w+\.\w+)$", text
+    )
     if m is None:  # the KDE grid names its function, a former group names what replaced it
         assert key == "aggregation.grid_points" or "is a switch now" in text or " is " in text
         return
@@ -309,7 +325,11 @@ def test_the_table_lists_every_fixed_rule_of_the_stage_classes():
     """No constant of a stage class is left out of docs/parameters.md's fixed rules."""
     from hdmap_core.checks import Rule
 
-    for prefix, cls in (("stitching.", StitchConfig), ("connection.", ConnectionConfig),
-                        ("sampling.", SamplingConfig), ("aggregation.", AggregationConfig)):
+    for prefix, cls in (
+        ("stitching.", StitchConfig),
+        ("connection.", ConnectionConfig),
+        ("sampling.", SamplingConfig),
+        ("aggregation.", AggregationConfig),
+    ):
         rules = {n for n, v in vars(cls).items() if isinstance(v, Rule)}
         assert rules and {prefix + n for n in rules} <= set(REMOVED_KEYS)

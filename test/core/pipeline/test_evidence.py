@@ -6,7 +6,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-from former_configs import former, former_replace
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import Detection, Drive, FeatureType
@@ -14,6 +13,7 @@ from hdmap_core.pipeline import presets
 from hdmap_core.pipeline.driver import build_map, map_stretches, prepare_drives
 from hdmap_core.pipeline.evidence import EvidenceConfig, _in_intervals, refuted_edges, step_profiles
 
+from former_configs import former, former_replace
 from pipeline_fleet import LINES, offset_line
 
 CFG = former(EvidenceConfig)

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from former_configs import former
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.geometry import cut_segment_intersections
 from hdmap_core.model import Detection, Drive, FeatureType
 from hdmap_core.pipeline.preprocess import PreprocessConfig, preprocess
+
+from former_configs import former
 
 
 def _drive(dets, drive_id="a", length_m=100.0):
@@ -37,7 +38,9 @@ def test_short_polylines_dropped_and_rdp_thins():
 def test_travelled_distance_and_heading_of_segments():
     line = np.stack([np.linspace(5, 45, 41), np.full(41, 3.0)], axis=1)
     line[:, 1] += 0.3 * np.sin(line[:, 0])  # wiggly, so RDP keeps vertices
-    idx = preprocess([_drive([Detection(FeatureType.SOLID, line)])], config=former(PreprocessConfig, rdp_epsilon_m=0.01))
+    idx = preprocess(
+        [_drive([Detection(FeatureType.SOLID, line)])], config=former(PreprocessConfig, rdp_epsilon_m=0.01)
+    )
     # Trajectory runs along x from 0 with s = x, so s of a vertex equals its x.
     np.testing.assert_allclose(idx.seg_s_a, idx.seg_a[:, 0], atol=1e-6)
     np.testing.assert_allclose(idx.seg_s_b, idx.seg_b[:, 0], atol=1e-6)
@@ -104,7 +107,11 @@ def test_index_is_the_same_in_chunks_and_processes(monkeypatch, workers):
     for f in ("seg_a", "seg_b", "seg_type", "seg_drive", "seg_s_a", "seg_s_b", "seg_yaw", "cell_keys", "cell_start"):
         np.testing.assert_array_equal(getattr(whole, f), getattr(chunked, f), err_msg=f)
     assert (whole.n_polylines_in, whole.n_polylines_kept, whole.n_points_in, whole.n_points_kept) == (
-        chunked.n_polylines_in, chunked.n_polylines_kept, chunked.n_points_in, chunked.n_points_kept)
+        chunked.n_polylines_in,
+        chunked.n_polylines_kept,
+        chunked.n_points_in,
+        chunked.n_points_kept,
+    )
     for c in range(len(whole.cell_keys)):  # the same segments in every cell (their order is free)
         lo, hi = whole.cell_start[c], whole.cell_start[c + 1]
         assert sorted(whole.cell_segs[lo:hi]) == sorted(chunked.cell_segs[lo:hi])

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from former_configs import former
 
 from hdmap_core.model import Detection, Drive, FeatureType
 from hdmap_core.pipeline.preprocess import preprocess
 from hdmap_core.pipeline.sampling import SamplingConfig, pivot_walk, refine_cuts, sample_pivot
 
+from former_configs import former
 from pipeline_fleet import make_drive, offset_line
 
 
@@ -47,7 +47,14 @@ def test_opposite_direction_samples_dropped():
     assert len(ps.drive) > 0
     assert set(ps.drive.tolist()) == {0}  # nothing of the opposite drive survives
     # ... although its lines do cross the initial cut: with the filter off they are sampled.
-    wide = former(SamplingConfig, initial_half_length_m=30.0, max_heading_diff_deg=180.0, min_border_support=1, max_width_m=60.0, margin_m=20.0)
+    wide = former(
+        SamplingConfig,
+        initial_half_length_m=30.0,
+        max_heading_diff_deg=180.0,
+        min_border_support=1,
+        max_width_m=60.0,
+        margin_m=20.0,
+    )
     ps2 = sample_pivot(idx, pivot, config=wide)
     assert 1 in set(ps2.drive.tolist())
 
@@ -119,7 +126,14 @@ def test_border_support_fraction_ignores_a_few_inner_border_samples():
     drive = np.concatenate([np.arange(20), np.arange(20), [0, 1, 2, 3]])
     cfg = former(SamplingConfig, spread_factor=0.0, margin_m=0.5)
     _, w_plain = refine_cuts(q, t, types, 1, config=cfg, drive=drive)
-    _, w_frac = refine_cuts(q, t, types, 1, config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, min_border_support_fraction=0.25), drive=drive)
+    _, w_frac = refine_cuts(
+        q,
+        t,
+        types,
+        1,
+        config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, min_border_support_fraction=0.25),
+        drive=drive,
+    )
     assert w_plain[0] < 10.0  # cut short at the misclassified line
     assert w_frac[0] == pytest.approx(14.0)
 
@@ -129,8 +143,15 @@ def test_open_side_reaches_the_last_line_before_the_median():
     lanes reach +9.5 m, the opposite carriageway's inner line (seen by our drives, so kept by
     heading) lies 7 m further. The default width (16 m) clips the +9.5 m line; the open-side
     chain ends the cut just after it and stops at the median."""
-    lines = [(-7.0, FeatureType.ROAD_BORDER), (-4.0, FeatureType.SOLID), (-0.5, FeatureType.DASHED),
-             (3.0, FeatureType.DASHED), (6.5, FeatureType.DASHED), (9.5, FeatureType.SOLID), (16.5, FeatureType.SOLID)]
+    lines = [
+        (-7.0, FeatureType.ROAD_BORDER),
+        (-4.0, FeatureType.SOLID),
+        (-0.5, FeatureType.DASHED),
+        (3.0, FeatureType.DASHED),
+        (6.5, FeatureType.DASHED),
+        (9.5, FeatureType.SOLID),
+        (16.5, FeatureType.SOLID),
+    ]
     n_steps, n_drives = 30, 5
     q = np.repeat(np.arange(n_steps), n_drives * len(lines))
     t = np.tile(np.repeat([lat for lat, _ in lines], n_drives), n_steps).astype(float)
@@ -139,12 +160,26 @@ def test_open_side_reaches_the_last_line_before_the_median():
     cfg = former(SamplingConfig, spread_factor=0.0, margin_m=0.5)
     mid, width = refine_cuts(q, t, types, n_steps, config=cfg, drive=drive)
     assert np.all(mid + 0.5 * width < 9.5)  # paper: the default width cuts the edge line off
-    mid, width = refine_cuts(q, t, types, n_steps, config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, open_side_gap_m=4.0), drive=drive)
+    mid, width = refine_cuts(
+        q,
+        t,
+        types,
+        n_steps,
+        config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, open_side_gap_m=4.0),
+        drive=drive,
+    )
     np.testing.assert_allclose(mid + 0.5 * width, 10.0)  # the edge line + margin
     np.testing.assert_allclose(mid - 0.5 * width, -7.5)  # the border side is unchanged
     # A border seen on a side sets that side as before (here beyond the chain's gap).
     types2 = np.where(t == 16.5, int(FeatureType.ROAD_BORDER), types)
-    mid, width = refine_cuts(q, t, types2, n_steps, config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, open_side_gap_m=4.0), drive=drive)
+    mid, width = refine_cuts(
+        q,
+        t,
+        types2,
+        n_steps,
+        config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, open_side_gap_m=4.0),
+        drive=drive,
+    )
     np.testing.assert_allclose(mid + 0.5 * width, 17.0)
 
 
@@ -162,7 +197,11 @@ def test_far_border_one_drive_saw_kept_with_outer_border_reach():
     base = former(SamplingConfig, open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5)
     q = 40
     plain = sample_pivot(idx, a, config=base)
-    reach = sample_pivot(idx, a, config=former(SamplingConfig, open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True))
+    reach = sample_pivot(
+        idx,
+        a,
+        config=former(SamplingConfig, open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True),
+    )
     lat0, lat1 = (ps.lateral_m[ps.ptr[q] : ps.ptr[q + 1]] for ps in (plain, reach))
     ty1 = reach.types[reach.ptr[q] : reach.ptr[q + 1]]
     centre, h = offset_line(np.array([plain.s_m[q]]), 0.0)
@@ -177,14 +216,22 @@ def test_far_border_one_drive_saw_kept_with_outer_border_reach():
     # A sample beyond the lone border (a parallel road's line): it is no road edge, nothing added.
     c = make_drive("c", lane=0.0, bias=0.0, lines=((12.0, S),))
     idx3 = preprocess([a, b, c])
-    beyond = sample_pivot(idx3, a, config=former(SamplingConfig, open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True))
+    beyond = sample_pivot(
+        idx3,
+        a,
+        config=former(SamplingConfig, open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True),
+    )
     lat3 = beyond.lateral_m[beyond.ptr[q] : beyond.ptr[q + 1]] + (beyond.midpoint[q] - centre[0]) @ n
     assert not np.any(np.isclose(lat3, 8.0, atol=0.3)) and not np.any(np.isclose(lat3, 12.0, atol=0.3))
     # With a border of two drives on that side, the first border ends the cut as before.
     d = make_drive("d", lane=0.0, bias=0.0, lines=((4.0, B),))
     e = make_drive("e", lane=0.0, bias=0.0, lines=((4.0, B),))
     idx4 = preprocess([a, b, d, e])
-    first = sample_pivot(idx4, a, config=former(SamplingConfig, open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True))
+    first = sample_pivot(
+        idx4,
+        a,
+        config=former(SamplingConfig, open_side_gap_m=4.0, spread_factor=0.0, margin_m=0.5, outer_border_reach=True),
+    )
     lat4 = first.lateral_m[first.ptr[q] : first.ptr[q + 1]] + (first.midpoint[q] - centre[0]) @ n
     assert not np.any(np.isclose(lat4, 8.0, atol=0.3)) and np.sum(np.isclose(lat4, 4.0, atol=0.3)) == 2
 
@@ -203,9 +250,13 @@ def test_pivot_beyond_its_one_sided_cut_is_off_cut():
     mid = (ps.midpoint[q] - centre[0]) @ np.array([-np.sin(h[0]), np.cos(h[0])])
     assert mid == pytest.approx(20.5 - 8.0, abs=0.05) and ps.width_m[q] == pytest.approx(16.0)
     assert not ps.off_cut.any()  # the paper's reading: no check
-    checked = sample_pivot(preprocess(far), far[0], config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=2.0))
+    checked = sample_pivot(
+        preprocess(far), far[0], config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=2.0)
+    )
     assert checked.off_cut[q] and checked.off_cut.mean() > 0.9
-    assert not sample_pivot(preprocess(far), far[0], config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=5.0)).off_cut.any()
+    assert not sample_pivot(
+        preprocess(far), far[0], config=former(SamplingConfig, spread_factor=0.0, margin_m=0.5, max_pivot_outside_m=5.0)
+    ).off_cut.any()
     # the check is made where the pivot is in the frame of its samples: an offset that moves
     # every drive, the pivot too, 3 m to the left moves the road and the pivot together
     for margin in (2.0, 5.0):
@@ -213,7 +264,9 @@ def test_pivot_beyond_its_one_sided_cut_is_off_cut():
         moved = sample_pivot(preprocess(far), far[0], config=cfg, shift=lambda d, s_m: np.full(len(d), 3.0))
         np.testing.assert_array_equal(moved.off_cut, sample_pivot(preprocess(far), far[0], config=cfg).off_cut)
     both = [make_drive(k, lane=3.5, bias=0.0) for k in "ab"]  # borders at +-6.5, pivot in the left lane
-    assert not sample_pivot(preprocess(both), both[0], config=former(SamplingConfig, max_pivot_outside_m=0.0)).off_cut.any()
+    assert not sample_pivot(
+        preprocess(both), both[0], config=former(SamplingConfig, max_pivot_outside_m=0.0)
+    ).off_cut.any()
 
 
 def test_pivot_pose_is_corrected_like_its_samples():

@@ -165,6 +165,7 @@ class StitchConfig:
     track_pose = Rule("track_links", True, False)
 
     def __post_init__(self) -> None:
-        check_range(self, ("max_distance_m", "join_radius_m", "fill_spacing_m", "min_isolated_length_m"),
-                    low=0.0, finite=True)
+        check_range(
+            self, ("max_distance_m", "join_radius_m", "fill_spacing_m", "min_isolated_length_m"), low=0.0, finite=True
+        )
         check_range(self, ("max_heading_diff_deg", "max_connection_angle_deg"), low=0.0, high=180.0, low_open=True)

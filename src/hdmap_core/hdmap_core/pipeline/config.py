@@ -87,14 +87,16 @@ class PassConfig:
     def alignment(self, first: AlignmentConfig) -> FinalAlignment:
         """The final pass's EM: ``first`` without offset estimation, with this pass's rules."""
         kept = {f.name: getattr(first, f.name) for f in fields(first)}
-        return FinalAlignment(**{
-            **kept,
-            # RULE: the final pass keeps the adjustment's offsets (its samples are shifted by them)
-            "estimate_offsets": False,
-            "clustering": "gap",
-            "prior_weight": 0.0,
-            "sparse_step_max_drives": self.sparse_step_max_drives,
-        })
+        return FinalAlignment(
+            **{
+                **kept,
+                # RULE: the final pass keeps the adjustment's offsets (its samples are shifted by them)
+                "estimate_offsets": False,
+                "clustering": "gap",
+                "prior_weight": 0.0,
+                "sparse_step_max_drives": self.sparse_step_max_drives,
+            }
+        )
 
 
 @dataclass(frozen=True)

@@ -37,17 +37,26 @@ def paper() -> PipelineConfig:
     return PipelineConfig(
         sampling=SamplingConfig(refined=False),
         alignment=AlignmentConfig(
-            clustering="silhouette", n_iterations=5, solver="lm", robust_loss=False, prior_weight=0.0,
+            clustering="silhouette",
+            n_iterations=5,
+            solver="lm",
+            robust_loss=False,
+            prior_weight=0.0,
             sparse_step_max_drives=0,
         ),
         # bandwidth 6 x std; no uncertainty reported
-        aggregation=AggregationConfig(kde_bandwidth_factor=6.0, kde_min_bandwidth_m=0.02, common_sigma_m=0.0,
-                                      refined=False),
+        aggregation=AggregationConfig(
+            kde_bandwidth_factor=6.0, kde_min_bandwidth_m=0.02, common_sigma_m=0.0, refined=False
+        ),
         final_pass=None,
         observation_stride=1,
         connection=ConnectionConfig(min_support_share=0.0, cleanup=False, refined=False),
         stitching=StitchConfig(
-            fill_spacing_m=0.0, min_isolated_length_m=0.0, cleanup=False, refined=False, track_links=False,
+            fill_spacing_m=0.0,
+            min_isolated_length_m=0.0,
+            cleanup=False,
+            refined=False,
+            track_links=False,
             fill_evidence=False,
         ),
         mark_on_cut_only=False,
