@@ -2,13 +2,15 @@
 
 ``bag2map``/``bench``/``run --set``, the nodes' ``preset_overrides`` parameter and the scripts all
 call :func:`config_from`. A key is a dotted path into ``PipelineConfig``
-(``stitching.track_rejoin_m``, ``final_pass.alignment.clustering``); a value is JSON (numbers,
+(``stitching.max_distance_m``, ``final_pass.sparse_step_max_drives``); a value is JSON (numbers,
 true/false, null, lists), ``inf``/``-inf``, or else the string itself (:func:`parse_override`).
+A key of a rule fixed since (``REMOVED_KEYS``: a constant, or a rule of a stage's switch) is
+refused with what became of it.
 
 The two passes: the final pass samples and aligns as the first except where ``PassConfig`` says
-otherwise, so a ``sampling.*`` / ``alignment.*`` key reaches both passes and a ``final_pass.*`` key
-(``final_pass.sparse_step_max_drives``) sets the final pass alone. ``final_pass=null`` drops the final
-pass and the adjustment; ``final_pass=true`` adds the recommended one. The switch applies first and
+otherwise, so a ``sampling.*`` / ``alignment.*`` key reaches both passes and a ``final_pass.*``
+key (``final_pass.sparse_step_max_drives``) sets the final pass alone. ``final_pass=null`` drops
+the final pass and the adjustment; ``final_pass=true`` adds the recommended one. The switch applies first and
 final-pass keys last, whatever their order.
 """
 
