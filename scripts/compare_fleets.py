@@ -15,7 +15,7 @@ build time [s].
 
 Usage (from the repository root, after ``make setup``):
     .venv/bin/python scripts/compare_fleets.py bags/ramps_20 bags/e6mini_20
-    .venv/bin/python scripts/compare_fleets.py bags/ramps_20 --set stitching.track_rejoin_m=0
+    .venv/bin/python scripts/compare_fleets.py bags/ramps_20 --set stitching.max_distance_m=8
     .venv/bin/python scripts/compare_fleets.py carla_town04:30:1-3 --work-dir out/fleets --save out/maps
 """
 

@@ -25,8 +25,6 @@ TABLE = REPO / "docs" / "parameters.md"
 
 # Units read from a name's suffix when the description names none in brackets.
 _SUFFIX_UNITS = (("_per_m2", "1/m^2"), ("_m", "m"), ("_deg", "deg"), ("_s", "s"))
-# Groups that repeat another group's fields: listed only where their defaults differ.
-_REPEATS = {"stitching.fill_evidence": "evidence"}
 
 
 def _doc_entries(cls: type) -> dict[str, str]:
@@ -128,17 +126,9 @@ def render() -> str:
     table_open = False
     for key, owner, name, value in rows:
         head = key.rpartition(".")[0] or "pipeline"
-        repeat = _REPEATS.get(head)
         if head != group:
             group, table_open = head, False
             lines += ["", f"## `{head}` ({owner.__name__})", ""]
-            if repeat is not None:
-                lines += [
-                    f"Every field of `{repeat}` is also a key here, with the same default unless listed below.",
-                    "",
-                ]
-        if repeat is not None and value == _leaf(default, f"{repeat}.{name}"):
-            continue  # as the group it repeats
         if not table_open:
             table_open = True
             lines += ["| key | default | paper | naive | unit | effect |", "|---|---|---|---|---|---|"]
@@ -153,9 +143,11 @@ def render() -> str:
 
     lines += [
         "",
-        "## Former settings",
+        "## Fixed rules and former settings",
         "",
-        "Keys older docs and measurements name; `--set` refuses them with this text.",
+        "Settings that were public once and are fixed rules now (a constant of the module, or of the",
+        "stage class while one of its switches above is on), and keys older docs and measurements",
+        "name; `--set` refuses each with this text.",
         "",
         "| former key | now |",
         "|---|---|",

@@ -14,7 +14,7 @@ map's own tiles in seconds instead of a replay of minutes.
 Usage (from the repository root, after ``make setup``):
     .venv/bin/hdmap run out/fleets/carla_town04_100_s2 -o out/live --state out/live_state -q
     .venv/bin/python scripts/restitch_state.py out/live_state --gt out/fleets/carla_town04_100_s2.gt.json
-    .venv/bin/python scripts/restitch_state.py out/live_state --gt ... --set stitching.track_rejoin_m=0
+    .venv/bin/python scripts/restitch_state.py out/live_state --gt ... --set stitching.max_distance_m=8
 """
 
 from __future__ import annotations

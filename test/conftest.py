@@ -12,6 +12,7 @@ pytest.ini): ``pipeline_fleet`` (a tiny deterministic fleet for the stage tests)
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -34,3 +35,18 @@ def sample_bags() -> Path:
     """bags/ of the repository: the two 20-drive sample fleets (``e6mini_20``, ``ramps_20``, each
     with ``.gt.json`` and ``.sim.json``) and the damaged inputs (bags/README.md)."""
     return REPO_ROOT / "bags"
+
+
+@pytest.fixture
+def fixed(monkeypatch: pytest.MonkeyPatch):
+    """Set fixed rules of config classes for one test, to probe a rule at another value than the
+    adopted one: ``fixed(StitchConfig, track_search_m=20.0)``. A rule set here holds whatever the
+    class's switches say (a plain class attribute replaces the switched ``Rule``)."""
+
+    def set_rules(cls: type, **values: object) -> None:
+        fields = {f.name for f in dataclasses.fields(cls)}
+        for name, value in values.items():
+            assert hasattr(cls, name) and name not in fields, f"{cls.__name__}.{name} is no fixed rule"
+            monkeypatch.setattr(cls, name, value)
+
+    return set_rules

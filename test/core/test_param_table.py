@@ -51,3 +51,8 @@ def test_every_public_key_is_settable_with_set(table):
             value = getattr(value, part)
         got = config_from(base, {key: value})
         assert dataclasses.replace(got, name=base.name) == base, key
+
+
+def test_the_public_parameters_are_few(table):
+    """At most ~60 keys: a rule measured and adopted is a constant, not a knob (STYLE.md)."""
+    assert len(table.public_keys()) <= 60

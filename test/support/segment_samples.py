@@ -6,8 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from hdmap_core.graph.connection import connect_segment
+from hdmap_core.graph.connection_config import ConnectionConfig
 from hdmap_core.model import FeatureType
 from hdmap_core.steps import Segment, StepResult
+
+from former_configs import former
 
 B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
 LINES = ([-3.5, 0.0, 3.5], [S, D, B])
@@ -41,4 +44,6 @@ def road(pivot: str, x0: float, n: int, lines=LINES, *, y_mid: float = 0.0, proc
 
 
 def conn(seg: Segment):
-    return connect_segment(seg)
+    """The segment's graph with the connection's first implementation (``former``: the rules
+    these samples were drawn for)."""
+    return connect_segment(seg, config=former(ConnectionConfig))

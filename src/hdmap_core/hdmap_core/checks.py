@@ -1,18 +1,53 @@
-"""One range check shared by every configuration dataclass.
+"""One range check shared by every configuration dataclass, and the fixed rules a switch turns on.
 
 Each stage config's ``__post_init__`` names its fields and their allowed interval once, e.g.
 ``check_range(self, ("step_m", "margin_m"), low=0.0, low_open=True)``; the error says which config,
 which field, the interval and the value given, the same way for every config.
+
+A rule that was measured and adopted is a constant, not a field. Where the paper (or a preset)
+does without it, one public switch of the stage turns a family of such rules off: each is a
+:class:`Rule` of the config class, its value while the switch is on and its "off" value (the
+paper's) otherwise; stage code reads it as an attribute like a field (``config.track_search_m``).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from typing import Generic, TypeVar, overload
 
 from hdmap_core.errors import ConfigError
 
-__all__ = ["check_range", "check_choice"]
+__all__ = ["Rule", "check_range", "check_choice"]
+
+T = TypeVar("T")
+
+
+class Rule(Generic[T]):
+    """A fixed rule of a config class: ``on`` while the instance's bool field ``switch`` is true,
+    ``off`` (the paper: the rule does nothing) otherwise. Not a field: ``--set`` cannot reach it.
+
+    Example: ``track_search_m = Rule("track_links", 60.0, 0.0)`` in ``StitchConfig``.
+    """
+
+    def __init__(self, switch: str, on: T, off: T) -> None:
+        self.switch, self.on, self.off = switch, on, off
+        self.name = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> Rule[T]: ...
+    @overload
+    def __get__(self, obj: object, owner: type | None = None) -> T: ...
+    def __get__(self, obj: object | None, owner: type | None = None) -> T | Rule[T]:
+        if obj is None:
+            return self
+        return self.on if getattr(obj, self.switch) else self.off
+
+    def __repr__(self) -> str:
+        return f"{self.on!r} with {self.switch} (off: {self.off!r})"
 
 
 def _interval(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:

@@ -25,6 +25,7 @@ from hdmap_core.graph.topology_graph import topology_graph, write_graphml
 from hdmap_core.graph.trim import trim_overlaps
 from hdmap_core.model import HDMap, TopologyNode
 
+from former_configs import former
 from segment_samples import LINES, conn, road
 
 
@@ -55,7 +56,7 @@ def test_link_segments_joins_two_segments_in_a_row():
     r"""  a: x 0..98 | b: x 100..198  ->  one topology link a -> b and one feature link per line."""
     gs, _, flat = _flat_of(conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50)))
     before = flat.topo_edges.copy()
-    links = link_segments(flat, gs, config=StitchConfig())
+    links = link_segments(flat, gs, config=former(StitchConfig))
     assert links.topo == [(49, 50)]
     assert len(links.features) == len(LINES[0])
     for x, y in links.features:
@@ -68,18 +69,18 @@ def test_link_segments_of_parallel_roads_links_nothing():
     r"""  a: y 0, x 0..98;  b: y 40, x 100..198  ->  too far across: no link."""
     gs, _, flat = _flat_of(conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50, y_mid=40.0,
                                                                  lines=([36.5, 40.0, 43.5], LINES[1]))))
-    links = link_segments(flat, gs, config=StitchConfig())
+    links = link_segments(flat, gs, config=former(StitchConfig))
     assert links.topo == [] and links.features == []
 
 
 def test_join_loose_ends_joins_a_line_across_a_gap_between_segments():
     r"""  a: x 0..98 | (gap 10 m) | b: x 108..206, topology not linked  ->  one join per line."""
     gs, _, flat = _flat_of(conn(road("a", 0.0, 50)), conn(road("b", 108.0, 50)))
-    joins = join_loose_ends(flat, config=StitchConfig())
+    joins = join_loose_ends(flat, config=former(StitchConfig))
     assert len(joins.links) == 3 and not joins.dropped.any()
     for a, b in joins.links:
         assert flat.n_xy[a, 0] == pytest.approx(98.0) and flat.n_xy[b, 0] == pytest.approx(108.0)
-    off = join_loose_ends(flat, config=dataclasses.replace(StitchConfig(), join_radius_m=5.0))
+    off = join_loose_ends(flat, config=dataclasses.replace(former(StitchConfig), join_radius_m=5.0))
     assert off.links == []
 
 
@@ -87,7 +88,7 @@ def test_trim_overlaps_returns_new_masks_and_leaves_its_input():
     """b maps x 60..98 again (no processed_before): its overlapping start is trimmed, not a's."""
     ga, gb = conn(road("a", 0.0, 50)), conn(road("b", 60.0, 50, y_mid=0.4))
     gs, alive, flat = _flat_of(ga, gb)
-    new, killed = trim_overlaps(flat, gs, alive, new_keys=[gb.key], config=StitchConfig())
+    new, killed = trim_overlaps(flat, gs, alive, new_keys=[gb.key], config=former(StitchConfig))
     assert all(v.all() for v in alive.values())  # not modified
     assert new[ga.key].all() and killed == int((~new[gb.key]).sum()) > 0
     assert not new[gb.key][0] and new[gb.key][-1]
@@ -96,7 +97,7 @@ def test_trim_overlaps_returns_new_masks_and_leaves_its_input():
 def test_export_map_leaves_the_flat_view_unchanged():
     _, _, flat = _flat_of(conn(road("a", 0.0, 30)))
     types, edges = flat.n_type.copy(), flat.edges.copy()
-    cfg = dataclasses.replace(StitchConfig(), min_type_run_m=10.0, edge_line_solid_m=1.5)
+    cfg = former(StitchConfig, min_type_run_m=10.0, edge_line_solid_m=1.5)
     features, topology = export_map(flat, config=cfg)
     assert len(features) == 3 and len(topology) == 30
     np.testing.assert_array_equal(flat.n_type, types)

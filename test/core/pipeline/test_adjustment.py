@@ -22,6 +22,8 @@ from hdmap_core.pipeline.adjustment import AdjustConfig, OffsetModel, adjust_off
 from hdmap_core.simulation.chains import ChainSimConfig, simulate_step_observations
 from hdmap_core.steps import StepObservations
 
+from former_configs import former
+
 # A short chain keeps every case around a second: 10 km road, 30 drives of 2-5 km.
 SMALL = ChainSimConfig(road_length_m=10000.0, n_drives=30, drive_length_max_m=5000.0, step_spacing_m=25.0)
 
@@ -61,7 +63,7 @@ def test_noise_free_bias_only_recovers_offsets_and_gauge():
     # prior fixes the gauge exactly when the model has no drift either.
     sim = replace(SMALL, noise_sigma_m=0.0, drift_sigma_m=0.0, zero_mean_bias=True)
     obs, truth = simulate_step_observations(config=sim, seed=3)
-    model = adjust_offsets(obs, config=AdjustConfig(drift_sigma_m=0.0))
+    model = adjust_offsets(obs, config=former(AdjustConfig, drift_sigma_m=0.0))
     common, local, n_local, rel = _per_step_errors(obs, truth, model)
     floor = _floor(sim, n_local)
     assert np.abs(rel).max() < 1e-3
@@ -80,7 +82,9 @@ def test_noise_free_drift_is_followed_by_the_curve():
     sim = replace(SMALL, noise_sigma_m=0.0)
     obs, truth = simulate_step_observations(config=sim, seed=1)
     _, _, _, rel_curve = _per_step_errors(obs, truth, adjust_offsets(obs))
-    _, _, _, rel_const = _per_step_errors(obs, truth, adjust_offsets(obs, config=AdjustConfig(drift_sigma_m=0.0)))
+    _, _, _, rel_const = _per_step_errors(
+        obs, truth, adjust_offsets(obs, config=former(AdjustConfig, drift_sigma_m=0.0))
+    )
     rms_curve, rms_const = np.sqrt(np.mean(rel_curve**2)), np.sqrt(np.mean(rel_const**2))
     # A constant per drive cannot follow the 0.3 m drift; 200 m knots follow most of it (what is
     # left is the Gauss-Markov roughness between knots).
@@ -100,8 +104,10 @@ def test_noisy_absolute_error_below_local_floor():
         ours.append(np.abs(common).mean())
         local_floor.append(_floor(sim, n_local))
         per_step.append(np.abs(local).mean())
-    print(f"mean |common error|: adjusted {np.round(ours, 3)}, floor {np.round(local_floor, 3)}, "
-          f"per-step {np.round(per_step, 3)}")
+    print(
+        f"mean |common error|: adjusted {np.round(ours, 3)}, floor {np.round(local_floor, 3)}, "
+        f"per-step {np.round(per_step, 3)}"
+    )
     assert np.mean(ours) < 0.75 * np.mean(local_floor)
     assert np.mean(ours) < 0.75 * np.mean(per_step)
     assert max(ours) < max(local_floor)
@@ -116,12 +122,12 @@ def test_wrong_labels_are_resisted_by_the_robust_loss(burst_m):
     rms = {}
     variants = {
         # no robustness at all: plain least squares on the given labels
-        "linear": AdjustConfig(loss="linear", coarse_reject_m=0.0, reassociate_rounds=0),
+        "linear": former(AdjustConfig, loss="linear", coarse_reject_m=0.0, reassociate_rounds=0),
         # robust loss (+ coarse stage) on the given labels
-        "huber_labels": AdjustConfig(reassociate_rounds=0),
-        "cauchy_labels": AdjustConfig(loss="cauchy", reassociate_rounds=0),
+        "huber_labels": former(AdjustConfig, reassociate_rounds=0),
+        "cauchy_labels": former(AdjustConfig, loss="cauchy", reassociate_rounds=0),
         # default: re-association (global EM) as well
-        "default": AdjustConfig(),
+        "default": former(AdjustConfig),
     }
     for name, cfg in variants.items():
         model = adjust_offsets(obs, config=cfg)
@@ -157,9 +163,9 @@ def test_lane_shifted_stretch_is_rejected_by_the_coarse_stage():
         shifted.append(o)
     s = np.linspace(s_lo + 50.0, s_lo + 350.0, 7)
     true = truth.true_correction(victim, s)
-    plain = AdjustConfig(coarse_reject_m=0.0, reassociate_rounds=0)
+    plain = former(AdjustConfig, coarse_reject_m=0.0, reassociate_rounds=0)
     err_plain = np.abs(adjust_offsets(shifted, config=plain).offset(victim, s) - true)
-    model = adjust_offsets(shifted, config=AdjustConfig(reassociate_rounds=0))
+    model = adjust_offsets(shifted, config=former(AdjustConfig, reassociate_rounds=0))
     err = np.abs(model.offset(victim, s) - true)
     err_default = np.abs(adjust_offsets(shifted).offset(victim, s) - true)
     assert err_default.max() < 0.5
@@ -174,8 +180,12 @@ def test_drive_with_large_bias_is_not_left_a_lane_off():
     # by raw position most of its dashed samples are nearer the neighbouring line (a whole-drive
     # lane ambiguity); its border samples and the far dashed line disagree. The default
     # adjustment (re-association, shift search) must end on the right lane.
-    sim = replace(SMALL, line_offsets_m=(-7.0, -3.5, 0.0, 3.5, 7.0), line_types=(3, 2, 2, 2, 3),
-                  line_detect_prob=(0.15, 0.9, 0.9, 0.9, 0.15))
+    sim = replace(
+        SMALL,
+        line_offsets_m=(-7.0, -3.5, 0.0, 3.5, 7.0),
+        line_types=(3, 2, 2, 2, 3),
+        line_detect_prob=(0.15, 0.9, 0.9, 0.9, 0.15),
+    )
     obs, truth = simulate_step_observations(config=sim, seed=8)
     victim = truth.drive_ids[int(np.argmax([g[-1] - g[0] for g in truth.grid_s_m]))]
     moved = []
@@ -194,10 +204,16 @@ def test_drive_with_large_bias_is_not_left_a_lane_off():
 def test_schur_elimination_matches_explicit_least_squares():
     # Small case solved densely with the cluster positions as explicit unknowns and the priors
     # written out as whitened rows: the eliminated sparse solution must be the same.
-    sim = replace(SMALL, road_length_m=2000.0, n_drives=5, drive_length_min_m=800.0,
-                  drive_length_max_m=1500.0, step_spacing_m=50.0)
+    sim = replace(
+        SMALL,
+        road_length_m=2000.0,
+        n_drives=5,
+        drive_length_min_m=800.0,
+        drive_length_max_m=1500.0,
+        step_spacing_m=50.0,
+    )
     obs, _ = simulate_step_observations(config=sim, seed=2)
-    cfg = AdjustConfig(loss="linear", knot_spacing_m=150.0, compute_std=True)
+    cfg = former(AdjustConfig, loss="linear", knot_spacing_m=150.0, compute_std=True)
     model = adjust_offsets(obs, config=cfg)
     ids = list(model.drives)
     col = {}
@@ -335,9 +351,17 @@ def test_std_is_roughly_calibrated():
 
 
 def _step(idx, ids, s, lat, cl):
-    return StepObservations(pivot_id="p", index=idx, midpoint=np.zeros(2), heading=0.0, drive_ids=tuple(ids),
-                            drive_s_m=np.asarray(s, float), lateral_m=np.asarray(lat, float),
-                            types=np.ones(len(ids), dtype=np.int64), cluster=np.asarray(cl))
+    return StepObservations(
+        pivot_id="p",
+        index=idx,
+        midpoint=np.zeros(2),
+        heading=0.0,
+        drive_ids=tuple(ids),
+        drive_s_m=np.asarray(s, float),
+        lateral_m=np.asarray(lat, float),
+        types=np.ones(len(ids), dtype=np.int64),
+        cluster=np.asarray(cl),
+    )
 
 
 def test_bad_steps_are_skipped_and_named(small_model):
@@ -380,7 +404,7 @@ def test_nothing_usable_gives_an_empty_model():
 def test_inputs_are_not_mutated():
     obs, _ = simulate_step_observations(config=SMALL, seed=4)
     before = [(o.drive_s_m.copy(), o.lateral_m.copy(), o.cluster.copy()) for o in obs]
-    adjust_offsets(obs, config=AdjustConfig(loss="cauchy"))
+    adjust_offsets(obs, config=former(AdjustConfig, loss="cauchy"))
     for o, (s, lat, cl) in zip(obs, before):
         np.testing.assert_array_equal(o.drive_s_m, s)
         np.testing.assert_array_equal(o.lateral_m, lat)
@@ -400,12 +424,12 @@ def test_inputs_are_not_mutated():
 )
 def test_config_rejects_bad_values(kwargs):
     with pytest.raises(ConfigError, match=next(iter(kwargs)) if "loss" not in kwargs else "loss"):
-        AdjustConfig(**kwargs)
+        former(AdjustConfig, **kwargs)
 
 
 def test_std_skipped_above_limit(small_model):
     obs, truth, _ = small_model
-    model = adjust_offsets(obs, config=AdjustConfig(std_max_unknowns=10))
+    model = adjust_offsets(obs, config=former(AdjustConfig, std_max_unknowns=10))
     assert model.stats["std_computed"] is False
     d = truth.drive_ids[0]
     assert np.isnan(model.std(d, np.array([1000.0]))).all()

@@ -17,6 +17,8 @@ from hdmap_core.pipeline.aggregation import (
     kde_maxima,
 )
 
+from former_configs import former
+
 
 @pytest.mark.parametrize("factor", [0.5, 1.0, 6.0])
 def test_kde_maximum_of_symmetric_cluster_is_its_centre(factor):
@@ -31,7 +33,13 @@ def test_kde_maximum_of_symmetric_cluster_is_its_centre(factor):
 def test_kde_maximum_is_the_mode_not_the_mean():
     # Eight samples at 0 +- 0.02, two outliers at 1.0: the mean moves, the mode stays.
     x = np.array([-0.02, -0.01, 0.0, 0.0, 0.01, 0.02, -0.015, 0.015, 1.0, 1.0])
-    agg = aggregate_step(x, np.zeros(10, np.int64), np.full(10, 1), np.arange(10), config=AggregationConfig(kde_bandwidth_factor=0.3))
+    agg = aggregate_step(
+        x,
+        np.zeros(10, np.int64),
+        np.full(10, 1),
+        np.arange(10),
+        config=former(AggregationConfig, kde_bandwidth_factor=0.3),
+    )
     assert abs(agg.lateral_m[0]) < 0.02
     assert x.mean() > 0.19
 
@@ -45,12 +53,14 @@ def test_overlap_filter_drops_the_smaller_cluster():
     labels = np.repeat([0, 1, 2], [12, 3, 10])
     types = np.repeat([FeatureType.SOLID, FeatureType.DASHED, FeatureType.DASHED], [12, 3, 10])
     drive = np.concatenate([np.arange(12), np.arange(3), np.arange(10)])
-    cfg = AggregationConfig(kde_bandwidth_factor=1.0, overlap_threshold=0.5)
+    cfg = former(AggregationConfig, kde_bandwidth_factor=1.0, overlap_threshold=0.5)
     agg = aggregate_step(x, labels, types, drive, config=cfg)
     np.testing.assert_array_equal(agg.kept_labels, [2, 0])
     np.testing.assert_array_equal(agg.types, [FeatureType.DASHED, FeatureType.SOLID])
     np.testing.assert_array_equal(agg.counts, [10, 12])
-    off = aggregate_step(x, labels, types, drive, config=AggregationConfig(kde_bandwidth_factor=1.0, overlap_filter=False))
+    off = aggregate_step(
+        x, labels, types, drive, config=former(AggregationConfig, kde_bandwidth_factor=1.0, overlap_filter=False)
+    )
     assert len(off.lateral_m) == 3
 
 
@@ -71,10 +81,14 @@ _AGG = dict(kde_bandwidth_factor=1.0, kde_min_bandwidth_m=0.15, overlap_threshol
 def test_overlap_filter_border_beside_marking():
     # A dashed lane line at 0 (8 drives), the solid edge line at 3.50 m (10 drives) and a curb
     # 0.25 m beyond it (6 drives): overlap 2 * Phi(-0.25 / 0.3) = 0.40 > 0.3.
-    x, labels, types, drive = _step([(0.0, FeatureType.DASHED, 8), (3.50, FeatureType.SOLID, 10), (3.75, FeatureType.ROAD_BORDER, 6)])
-    paper = aggregate_step(x, labels, types, drive, config=AggregationConfig(**_AGG))
+    x, labels, types, drive = _step(
+        [(0.0, FeatureType.DASHED, 8), (3.50, FeatureType.SOLID, 10), (3.75, FeatureType.ROAD_BORDER, 6)]
+    )
+    paper = aggregate_step(x, labels, types, drive, config=former(AggregationConfig, **_AGG))
     np.testing.assert_array_equal(paper.kept_labels, [0, 1])  # the curb (fewer samples) dropped
-    split = aggregate_step(x, labels, types, drive, config=AggregationConfig(overlap_border_marking=False, **_AGG))
+    split = aggregate_step(
+        x, labels, types, drive, config=former(AggregationConfig, overlap_border_marking=False, **_AGG)
+    )
     np.testing.assert_array_equal(split.kept_labels, [0, 1, 2])
     np.testing.assert_allclose(split.lateral_m, [0.0, 3.50, 3.75], atol=1e-9)
     np.testing.assert_array_equal(split.types, [FeatureType.DASHED, FeatureType.SOLID, FeatureType.ROAD_BORDER])
@@ -86,9 +100,16 @@ def test_overlap_filter_by_class_still_drops_a_misclassified_copy(copy_m):
     # Plus a dashed copy of the edge line seen by 2 drives, beside the line (3.52 m) or beyond
     # the curb (3.78 m: the curb lies between them in position, the pair must still be compared;
     # overlap with the line 2 * Phi(-0.28 / 0.3) = 0.35 > 0.3).
-    feats = [(0.0, FeatureType.DASHED, 8), (3.50, FeatureType.SOLID, 10), (3.75, FeatureType.ROAD_BORDER, 6), (copy_m, FeatureType.DASHED, 2)]
+    feats = [
+        (0.0, FeatureType.DASHED, 8),
+        (3.50, FeatureType.SOLID, 10),
+        (3.75, FeatureType.ROAD_BORDER, 6),
+        (copy_m, FeatureType.DASHED, 2),
+    ]
     x, labels, types, drive = _step(feats)
-    agg = aggregate_step(x, labels, types, drive, config=AggregationConfig(overlap_border_marking=False, **_AGG))
+    agg = aggregate_step(
+        x, labels, types, drive, config=former(AggregationConfig, overlap_border_marking=False, **_AGG)
+    )
     np.testing.assert_array_equal(agg.kept_labels, [0, 1, 2])
     np.testing.assert_array_equal(agg.counts, [8, 10, 6])
 
@@ -99,17 +120,22 @@ def test_tie_between_solid_and_dashed_goes_by_the_lines_place(first):
     # Outermost marking of its side (only a border beyond it) -> solid; a marking with markings
     # on both sides -> dashed. Without the option the tie goes by position order.
     second = FeatureType.DASHED if first == FeatureType.SOLID else FeatureType.SOLID
-    cfg = AggregationConfig(tie_by_position=True, **_AGG)
+    cfg = former(AggregationConfig, tie_by_position=True, **_AGG)
     outer = [(0.0, FeatureType.DASHED, 3), (3.50, first, 1), (3.55, second, 1), (4.6, FeatureType.ROAD_BORDER, 3)]
     agg = aggregate_step(*_step(outer), config=cfg)
     np.testing.assert_array_equal(agg.types, [FeatureType.DASHED, FeatureType.SOLID, FeatureType.ROAD_BORDER])
     inner = [(0.0, FeatureType.SOLID, 3), (3.50, first, 1), (3.55, second, 1), (7.0, FeatureType.DASHED, 3)]
     agg = aggregate_step(*_step(inner), config=cfg)
     np.testing.assert_array_equal(agg.types, [FeatureType.SOLID, FeatureType.DASHED, FeatureType.DASHED])
-    paper = aggregate_step(*_step(inner), config=AggregationConfig(**_AGG))
+    paper = aggregate_step(*_step(inner), config=former(AggregationConfig, **_AGG))
     np.testing.assert_array_equal(paper.types, [FeatureType.SOLID, first, FeatureType.DASHED])
     # a majority is not overruled: two drives say solid, one dashed, in the inner place
-    major = [(0.0, FeatureType.SOLID, 3), (3.50, FeatureType.SOLID, 2), (3.55, FeatureType.DASHED, 1), (7.0, FeatureType.DASHED, 3)]
+    major = [
+        (0.0, FeatureType.SOLID, 3),
+        (3.50, FeatureType.SOLID, 2),
+        (3.55, FeatureType.DASHED, 1),
+        (7.0, FeatureType.DASHED, 3),
+    ]
     agg = aggregate_step(*_step(major), config=cfg)
     np.testing.assert_array_equal(agg.types, [FeatureType.SOLID, FeatureType.SOLID, FeatureType.DASHED])
 
@@ -118,27 +144,41 @@ def test_border_of_two_drives_on_a_line_stays_beside_it():
     # An edge line at 3.5 m (3 drives) with a border right on it (0.1 m over): seen as a border
     # by one drive it is the filter's misclassified copy and dropped; by two drives it stays
     # with border_beside_marking_drives 2 (a curb on the line), and is dropped without it.
-    cfg = AggregationConfig(border_beside_marking_drives=2, **_AGG)
+    cfg = former(AggregationConfig, border_beside_marking_drives=2, **_AGG)
     one = [(0.0, FeatureType.DASHED, 3), (3.5, FeatureType.SOLID, 3), (3.6, FeatureType.ROAD_BORDER, 1)]
     two = [(0.0, FeatureType.DASHED, 3), (3.5, FeatureType.SOLID, 3), (3.6, FeatureType.ROAD_BORDER, 2)]
-    np.testing.assert_array_equal(aggregate_step(*_step(one), config=cfg).types, [FeatureType.DASHED, FeatureType.SOLID])
+    np.testing.assert_array_equal(
+        aggregate_step(*_step(one), config=cfg).types, [FeatureType.DASHED, FeatureType.SOLID]
+    )
     agg = aggregate_step(*_step(two), config=cfg)
     np.testing.assert_array_equal(agg.types, [FeatureType.DASHED, FeatureType.SOLID, FeatureType.ROAD_BORDER])
     np.testing.assert_array_equal(agg.counts, [3, 3, 2])
-    paper = aggregate_step(*_step(two), config=AggregationConfig(**_AGG))
+    paper = aggregate_step(*_step(two), config=former(AggregationConfig, **_AGG))
     np.testing.assert_array_equal(paper.types, [FeatureType.DASHED, FeatureType.SOLID])
 
 
 def test_mean_method_and_uncertainty():
     x = np.array([0.9, 1.1, 1.0, 1.0])
-    agg = aggregate_step(x, np.zeros(4, np.int64), np.ones(4, np.int64), np.array([0, 1, 2, 3]), config=AggregationConfig(method="mean"))
+    agg = aggregate_step(
+        x,
+        np.zeros(4, np.int64),
+        np.ones(4, np.int64),
+        np.array([0, 1, 2, 3]),
+        config=former(AggregationConfig, method="mean"),
+    )
     assert agg.lateral_m[0] == pytest.approx(1.0)
     assert agg.std_m[0] == pytest.approx(x.std() / 2.0)
     assert agg.counts[0] == 4
 
 
 def test_dropped_labels_ignored():
-    agg = aggregate_step(np.array([5.0, 0.0, 0.1]), np.array([-1, 0, 0]), np.ones(3, np.int64), np.arange(3), config=AggregationConfig())
+    agg = aggregate_step(
+        np.array([5.0, 0.0, 0.1]),
+        np.array([-1, 0, 0]),
+        np.ones(3, np.int64),
+        np.arange(3),
+        config=former(AggregationConfig),
+    )
     assert len(agg.lateral_m) == 1 and agg.lateral_m[0] == pytest.approx(0.05, abs=1e-6)
 
 
@@ -147,7 +187,9 @@ def test_processed_store_marks_merges_and_round_trips():
     s2 = store.with_marks({"a": np.array([10.0, 12.0, 14.0, 40.0]), "b": np.array([0.0])}, pad_m=1.0, merge_gap_m=6.0)
     assert store.intervals == {}  # the input store is not changed
     assert s2.intervals["a"] == [(9.0, 15.0), (39.0, 41.0)]
-    np.testing.assert_array_equal(s2.contains("a", np.array([8.9, 9.0, 12.0, 15.0, 20.0, 40.5])), [False, True, True, True, False, True])
+    np.testing.assert_array_equal(
+        s2.contains("a", np.array([8.9, 9.0, 12.0, 15.0, 20.0, 40.5])), [False, True, True, True, False, True]
+    )
     assert not s2.contains("zzz", np.array([1.0])).any()
     s3 = s2.with_marks({"a": np.array([16.0])}, pad_m=1.0, merge_gap_m=6.0)
     assert s3.intervals["a"][0] == (9.0, 17.0)
@@ -159,12 +201,14 @@ def test_processed_store_marks_merges_and_round_trips():
 
 def test_config_checks():
     with pytest.raises(ConfigError):
-        AggregationConfig(method="median")
+        former(AggregationConfig, method="median")
     with pytest.raises(ConfigError):
-        AggregationConfig(overlap_threshold=1.5)
+        former(AggregationConfig, overlap_threshold=1.5)
 
 
-@pytest.mark.parametrize(("mu2", "s1", "s2"), [(0.5, 0.2, 0.2), (0.5, 0.2, 0.4), (1.0, 0.3, 0.1), (0.0, 0.2, 0.5), (3.0, 0.2, 0.3)])
+@pytest.mark.parametrize(
+    ("mu2", "s1", "s2"), [(0.5, 0.2, 0.2), (0.5, 0.2, 0.4), (1.0, 0.3, 0.1), (0.0, 0.2, 0.5), (3.0, 0.2, 0.3)]
+)
 def test_gaussian_overlap_equals_numeric_integral(mu2, s1, s2):
     grid = np.linspace(-6, 9, 200001)
     p = np.exp(-0.5 * (grid / s1) ** 2) / (s1 * np.sqrt(2 * np.pi))
@@ -180,9 +224,11 @@ def test_aggregate_many_equals_per_step():
         centres = np.array([-5.25, -1.75, 1.75, 5.25]) + rng.normal(0, 0.1)
         for c, (mu, t) in enumerate(zip(centres, (1, 2, 2, 1))):
             n = int(rng.integers(3, 9))
-            parts.append((rng.normal(mu, 0.08, n), np.full(n, step), np.full(n, step * 10 + c), np.full(n, t), np.arange(n)))
+            parts.append(
+                (rng.normal(mu, 0.08, n), np.full(n, step), np.full(n, step * 10 + c), np.full(n, t), np.arange(n))
+            )
     x, st, lab, ty, dr = (np.concatenate(v) for v in zip(*parts))
-    cfg = AggregationConfig(kde_bandwidth_factor=1.0)
+    cfg = former(AggregationConfig, kde_bandwidth_factor=1.0)
     many = aggregate_many(x, st, lab, ty, dr, config=cfg)
     for step in range(5):
         sel = st == step
@@ -196,10 +242,12 @@ def test_common_error_of_corrected_drives_is_added_to_the_spread():
     errors: lateral_std = sqrt(spread^2 + common^2 / n); one drive: sqrt(single^2 + common^2)."""
     x = np.array([0.9, 1.1, 1.0, 1.0])
     four = dict(labels=np.zeros(4, np.int64), types=np.ones(4, np.int64), drive=np.arange(4))
-    cfg = AggregationConfig(method="mean", common_sigma_m=1.0)
+    cfg = former(AggregationConfig, method="mean", common_sigma_m=1.0)
     agg = aggregate_step(x, four["labels"], four["types"], four["drive"], config=cfg)
     assert agg.std_m[0] == pytest.approx(np.hypot(x.std() / 2.0, 1.0 / 2.0))
-    one = aggregate_step(np.array([2.0]), np.zeros(1, np.int64), np.ones(1, np.int64), np.zeros(1, np.int64), config=cfg)
+    one = aggregate_step(
+        np.array([2.0]), np.zeros(1, np.int64), np.ones(1, np.int64), np.zeros(1, np.int64), config=cfg
+    )
     assert one.std_m[0] == pytest.approx(np.hypot(SINGLE_DRIVE_STD_M, 1.0))
     with pytest.raises(ConfigError, match="common_sigma_m"):
-        AggregationConfig(common_sigma_m=-0.1)
+        former(AggregationConfig, common_sigma_m=-0.1)

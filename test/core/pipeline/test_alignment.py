@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 from dataclasses import replace
 
@@ -24,6 +23,8 @@ from hdmap_core.pipeline.alignment import (
     solve_offsets,
     step_silhouette,
 )
+
+from former_configs import former, former_replace
 
 LINES = np.array([-5.25, -1.75, 1.75, 5.25])
 LINE_TYPES = np.array([FeatureType.SOLID, FeatureType.DASHED, FeatureType.DASHED, FeatureType.SOLID])
@@ -74,7 +75,7 @@ def test_offsets_recovered_exactly_noise_free(solver):
     # 5 drives each seeing 3 lines, shifted by known amounts.
     shifts = np.array([0.6, -0.9, 0.25, 1.1, -0.4])
     lat, types, drive = _step(shifts, lines=np.array([-5.25, -1.75, 1.75]), types=np.array([3, 2, 2]))
-    cfg = AlignmentConfig(solver=solver, ridge=1e-9, min_cluster_separation_m=2.0)
+    cfg = former(AlignmentConfig, solver=solver, ridge=1e-9, min_cluster_separation_m=2.0)
     res = align_step(lat, types, drive, config=cfg)
     assert res.valid
     assert res.silhouette > 0.99
@@ -92,8 +93,10 @@ def test_robust_loss_resists_one_bad_sample():
     lat, types, drive = _step(shifts, noise=0.02, seed=1)
     lat = lat.copy()
     lat[0] += 0.8  # drive 0 sees one line 0.8 m off
-    plain = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form"))
-    robust = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form", robust_loss=True, huber_delta_m=0.1))
+    plain = align_step(lat, types, drive, config=former(AlignmentConfig, solver="closed_form"))
+    robust = align_step(
+        lat, types, drive, config=former(AlignmentConfig, solver="closed_form", robust_loss=True, huber_delta_m=0.1)
+    )
     err_plain = abs((plain.offsets_m - plain.offsets_m.mean())[0] + (shifts[0] - shifts.mean()))
     err_robust = abs((robust.offsets_m - robust.offsets_m.mean())[0] + (shifts[0] - shifts.mean()))
     assert err_robust < 0.5 * err_plain
@@ -104,7 +107,9 @@ def test_silhouette_gate_rejects_pure_noise(seed):
     # 3 drives x 40 samples of one type, no lines at all: a Gaussian blob of noise.
     rng = np.random.default_rng(seed)
     lat = rng.normal(0.0, 2.0, 120)
-    res = align_step(lat, np.full(120, 2), np.repeat(np.arange(3), 40), config=AlignmentConfig(solver="closed_form"))
+    res = align_step(
+        lat, np.full(120, 2), np.repeat(np.arange(3), 40), config=former(AlignmentConfig, solver="closed_form")
+    )
     assert res.silhouette < 0.67
     assert not res.valid
 
@@ -113,7 +118,7 @@ def test_prior_offsets_and_gap_clustering():
     shifts = np.array([0.7, -0.8, 0.4, -0.3])
     lat, types, drive = _step(shifts, noise=0.01)
     prior = -shifts + 0.05  # previous step's offsets, nearly right
-    cfg = AlignmentConfig(clustering="auto", solver="closed_form", prior_weight=1.0, remove_drift=False)
+    cfg = former(AlignmentConfig, clustering="auto", solver="closed_form", prior_weight=1.0, remove_drift=False)
     res = align_step(lat, types, drive, config=cfg, prior=prior)
     assert res.valid
     np.testing.assert_allclose(res.offsets_m, -shifts, atol=0.08)
@@ -121,7 +126,7 @@ def test_prior_offsets_and_gap_clustering():
 
 def test_no_offsets_when_estimation_off():
     lat, types, drive = _step([0.3, -0.3, 0.1])
-    res = align_step(lat, types, drive, config=AlignmentConfig(estimate_offsets=False))
+    res = align_step(lat, types, drive, config=former(AlignmentConfig, estimate_offsets=False))
     np.testing.assert_array_equal(res.offsets_m, 0.0)
 
 
@@ -129,27 +134,33 @@ def test_solve_offsets_ignores_dropped_samples():
     lat, types, drive = _step([0.2, -0.2])
     labels = np.tile([0, 1, 2, 3], 2)
     labels[0] = -1
-    o = solve_offsets(lat, labels, types, drive, 2, config=AlignmentConfig(solver="closed_form", ridge=1e-9))
+    o = solve_offsets(lat, labels, types, drive, 2, config=former(AlignmentConfig, solver="closed_form", ridge=1e-9))
     assert o[0] - o[1] == pytest.approx(-0.4, abs=1e-6)
 
 
 def test_config_checks():
     with pytest.raises(ConfigError):
-        AlignmentConfig(clustering="dbscan")
+        former(AlignmentConfig, clustering="dbscan")
     with pytest.raises(ConfigError):
-        AlignmentConfig(solver="adam")
+        former(AlignmentConfig, solver="adam")
 
 
 def test_fast_silhouette_equals_sklearn_per_type():
     rng = np.random.default_rng(4)
-    x = np.concatenate([rng.normal(0, 0.2, 10), rng.normal(3.5, 0.3, 8), rng.normal(1.0, 0.2, 7), rng.normal(9, 0.2, 5)])
+    x = np.concatenate(
+        [rng.normal(0, 0.2, 10), rng.normal(3.5, 0.3, 8), rng.normal(1.0, 0.2, 7), rng.normal(9, 0.2, 5)]
+    )
     types = np.repeat([1, 1, 2, 2], [10, 8, 7, 5])
     labels = np.repeat([0, 1, 2, 3], [10, 8, 7, 5])
-    want = np.concatenate([silhouette_samples(x[:18, None], labels[:18]), silhouette_samples(x[18:, None], labels[18:])])
+    want = np.concatenate(
+        [silhouette_samples(x[:18, None], labels[:18]), silhouette_samples(x[18:, None], labels[18:])]
+    )
     assert step_silhouette(x, labels, types) == pytest.approx(want.mean())
     # A type with a single cluster does not count.
     x2 = np.concatenate([x, [20.0, 20.1]])
-    assert step_silhouette(x2, np.concatenate([labels, [4, 4]]), np.concatenate([types, [3, 3]])) == pytest.approx(want.mean())
+    assert step_silhouette(x2, np.concatenate([labels, [4, 4]]), np.concatenate([types, [3, 3]])) == pytest.approx(
+        want.mean()
+    )
 
 
 def _road_step(errors, *, seed=0, noise=0.03):
@@ -189,7 +200,7 @@ def test_tracked_step_with_prior_and_new_drive():
     lat, types, drive = _road_step(errors, seed=5)
     prior = -errors.copy()
     prior[5] = np.nan  # a drive that just joined
-    cfg = AlignmentConfig(clustering="auto", solver="closed_form", prior_weight=1.0, remove_drift=False)
+    cfg = former(AlignmentConfig, clustering="auto", solver="closed_form", prior_weight=1.0, remove_drift=False)
     res = align_step(lat, types, drive, config=cfg, prior=prior)
     assert res.valid
     np.testing.assert_allclose(res.offsets_m, -errors, atol=0.08)
@@ -200,12 +211,16 @@ def test_lone_clusters_accepted_only_when_asked_and_tight():
     lat = np.array([-1.8, 1.7, -1.75, 1.75])
     types = np.array([1, 3, 1, 3])
     drive = np.array([0, 0, 1, 1])
-    paper = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form"))
+    paper = align_step(lat, types, drive, config=former(AlignmentConfig, solver="closed_form"))
     assert paper.silhouette == -1.0 and not paper.valid
-    lone = align_step(lat, types, drive, config=AlignmentConfig(solver="closed_form", lone_cluster_max_std_m=0.3))
+    lone = align_step(
+        lat, types, drive, config=former(AlignmentConfig, solver="closed_form", lone_cluster_max_std_m=0.3)
+    )
     assert lone.valid
     wide = np.array([-2.6, 1.7, -1.0, 1.75])  # the solid samples disagree by 1.6 m
-    res = align_step(wide, types, drive, config=AlignmentConfig(estimate_offsets=False, lone_cluster_max_std_m=0.3))
+    res = align_step(
+        wide, types, drive, config=former(AlignmentConfig, estimate_offsets=False, lone_cluster_max_std_m=0.3)
+    )
     assert not res.valid
 
 
@@ -216,22 +231,28 @@ def test_one_drive_alone_accepted_when_asked():
     lat = np.array([-5.2, -1.75, 1.75, 5.2, 6.3])
     types = np.array([1, 2, 2, 1, 3])
     drive = np.zeros(5, dtype=np.int64)
-    gap = AlignmentConfig(clustering="gap", solver="closed_form")
+    gap = former(AlignmentConfig, clustering="gap", solver="closed_form")
     paper = align_step(lat, types, drive, config=gap)
     assert paper.silhouette == 0.0 and not paper.valid
-    lone = align_step(lat, types, drive, config=dataclasses.replace(gap, lone_cluster_max_std_m=0.3))
+    lone = align_step(lat, types, drive, config=former_replace(gap, lone_cluster_max_std_m=0.3))
     assert lone.valid
     assert len(np.unique(lone.labels[lone.labels >= 0])) == 5
     # Two drives half a lane apart: singleton clusters too, but the silhouette decides as before.
-    two = align_step(np.r_[lat, lat + 1.75], np.r_[types, types], np.r_[drive, drive + 1],
-                     config=dataclasses.replace(gap, estimate_offsets=False, lone_cluster_max_std_m=0.3))
+    two = align_step(
+        np.r_[lat, lat + 1.75],
+        np.r_[types, types],
+        np.r_[drive, drive + 1],
+        config=former_replace(gap, estimate_offsets=False, lone_cluster_max_std_m=0.3),
+    )
     assert two.silhouette < 0.67 and not two.valid
 
 
 # Sparse-step rule: two drives on a 3-lane road (borders, solids, two dashed lines).
 _SPARSE_LINES = np.array([-6.5, -5.25, -1.75, 1.75, 5.25, 6.5])
 _SPARSE_TYPES = np.array([3, 1, 2, 2, 1, 3])
-_SPARSE = AlignmentConfig(clustering="gap", solver="closed_form", sparse_step_max_drives=2, sparse_step_max_std_m=0.3)
+_SPARSE = former(
+    AlignmentConfig, clustering="gap", solver="closed_form", sparse_step_max_drives=2, sparse_step_max_std_m=0.3
+)
 
 
 def _two_drive_step(seen0, seen1, *, shift=0.4, err=None):
@@ -275,13 +296,18 @@ def test_sparse_step_of_singletons_and_one_shared_cluster_accepted_with_the_opti
     B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
     types = np.array([B, B, S, D, S, D, D, S, D])
     drive = np.array([1, 0, 0, 1, 1, 0, 1, 0, 1])
-    cfg = AlignmentConfig(
-        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
-        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3,
+    cfg = former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        sparse_step_max_drives=3,
+        sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0,
+        lone_cluster_max_std_m=0.3,
     )
     old = align_step(lat, types, drive, config=cfg)
     assert not old.valid and old.silhouette == pytest.approx(0.0)
-    res = align_step(lat, types, drive, config=replace(cfg, sparse_singletons_accept=True))
+    res = align_step(lat, types, drive, config=former_replace(cfg, sparse_singletons_accept=True))
     assert res.valid
     assert np.all(res.labels[[4, 5, 6, 7]] == -1)  # the clashing pairs stay dropped
     assert res.labels[0] == res.labels[1] >= 0 and np.all(res.labels[[2, 3, 8]] >= 0)
@@ -289,11 +315,13 @@ def test_sparse_step_of_singletons_and_one_shared_cluster_accepted_with_the_opti
     # the step stays rejected.
     lone = np.ones(len(lat), dtype=bool)
     lone[0] = False
-    assert not align_step(lat[lone], types[lone], drive[lone], config=replace(cfg, sparse_singletons_accept=True)).valid
+    assert not align_step(
+        lat[lone], types[lone], drive[lone], config=former_replace(cfg, sparse_singletons_accept=True)
+    ).valid
     # A loose shared cluster (border 0.8 m apart) is no agreement either.
     far = lat.copy()
     far[0] = -8.27
-    assert not align_step(far, types, drive, config=replace(cfg, sparse_singletons_accept=True)).valid
+    assert not align_step(far, types, drive, config=former_replace(cfg, sparse_singletons_accept=True)).valid
 
 
 def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
@@ -305,17 +333,25 @@ def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
     B, S, D, U = (int(t) for t in (FeatureType.ROAD_BORDER, FeatureType.SOLID, FeatureType.DASHED, FeatureType.UNKNOWN))
     types = np.array([B, B, S, D, S, D, D, S, D])
     drive = np.array([1, 0, 0, 1, 1, 0, 1, 0, 1])
-    cfg = AlignmentConfig(
-        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
-        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3, sparse_singletons_accept=True,
+    cfg = former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        sparse_step_max_drives=3,
+        sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0,
+        lone_cluster_max_std_m=0.3,
+        sparse_singletons_accept=True,
     )
     old = align_step(lat, types, drive, config=cfg)
     assert old.types is None
-    res = align_step(lat, types, drive, config=replace(cfg, sparse_type_clash_keep=True))
+    res = align_step(lat, types, drive, config=former_replace(cfg, sparse_type_clash_keep=True))
     assert res.valid == old.valid and res.silhouette == old.silhouette
     kept = res.labels >= 0
     assert np.array_equal(res.labels[old.labels >= 0], old.labels[old.labels >= 0])
-    assert res.labels[4] == res.labels[5] >= 0 and res.labels[6] == res.labels[7] >= 0 and res.labels[4] != res.labels[6]
+    assert (
+        res.labels[4] == res.labels[5] >= 0 and res.labels[6] == res.labels[7] >= 0 and res.labels[4] != res.labels[6]
+    )
     assert not set(res.labels[[4, 6]].tolist()) & set(old.labels[old.labels >= 0].tolist())  # clusters of their own
     assert np.array_equal(res.types[[4, 5, 6, 7]], [U, U, U, U])
     assert np.array_equal(np.delete(res.types, [4, 5, 6, 7]), np.delete(types, [4, 5, 6, 7])) and kept.all()
@@ -323,7 +359,7 @@ def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
     # drive 0's dashed sample there is a dropped singleton of no unknown line; the other pair
     # is still kept as unknown.
     lat3, types3, drive3 = np.r_[lat, 0.35], np.r_[types, S], np.r_[drive, 2]
-    res3 = align_step(lat3, types3, drive3, config=replace(cfg, sparse_type_clash_keep=True))
+    res3 = align_step(lat3, types3, drive3, config=former_replace(cfg, sparse_type_clash_keep=True))
     assert res3.valid
     assert res3.labels[5] == -1 and res3.labels[4] == res3.labels[9] >= 0
     assert res3.types[4] == S and res3.types[6] == res3.types[7] == U
@@ -331,14 +367,14 @@ def test_type_clash_kept_as_a_line_of_unknown_type_with_the_option():
     # kept as unknown, its type decided along the polyline (never a border there).
     types4 = types.copy()
     types4[7] = B
-    res4 = align_step(lat, types4, drive, config=replace(cfg, sparse_type_clash_keep=True))
+    res4 = align_step(lat, types4, drive, config=former_replace(cfg, sparse_type_clash_keep=True))
     assert res4.labels[6] == res4.labels[7] >= 0 and np.all(res4.types[[4, 5, 6, 7]] == U)
     # Only the default preset's final pass keeps clashes (the first pass feeds the adjustment).
     from hdmap_core.pipeline import presets
 
     default = presets.preset("default")
     assert default.final_alignment.sparse_type_clash_keep and not default.alignment.sparse_type_clash_keep
-    assert not AlignmentConfig().sparse_type_clash_keep
+    assert not former(AlignmentConfig).sparse_type_clash_keep
     for name in ("paper", "naive"):
         p = presets.preset(name)
         assert not p.alignment.sparse_type_clash_keep
@@ -357,19 +393,23 @@ def test_four_drive_step_judged_by_the_sparse_rule_clash_drop_only_up_to_three()
     lat = np.array([-7.55, -6.46, -6.38, -6.28, -2.95, -2.84, -2.78, 0.50, 0.69, 0.70, 4.08, 4.09, 7.50])
     types = np.array([B, S, S, S, D, D, S, D, D, D, S, D, S])
     drive = np.array([0, 2, 0, 3, 2, 3, 0, 3, 2, 0, 3, 1, 1])
-    cfg = AlignmentConfig(
-        clustering="gap", estimate_offsets=False, sparse_step_max_drives=3, sparse_step_max_std_m=0.3,
-        sparse_type_clash_m=1.0, lone_cluster_max_std_m=0.3, sparse_singletons_accept=True,
+    cfg = former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        sparse_step_max_drives=3,
+        sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0,
+        lone_cluster_max_std_m=0.3,
+        sparse_singletons_accept=True,
     )
     old = align_step(lat, types, drive, config=cfg)
     assert not old.valid and 0.6 < old.silhouette < 0.67
-    four = replace(cfg, sparse_step_max_drives=4, sparse_type_clash_max_drives=3)
+    four = former_replace(cfg, sparse_step_max_drives=4, sparse_type_clash_max_drives=3)
     res = align_step(lat, types, drive, config=four)
     assert res.valid and np.all(res.labels >= 0)
-    dropped = align_step(lat, types, drive, config=replace(four, sparse_type_clash_max_drives=0))
+    dropped = align_step(lat, types, drive, config=former_replace(four, sparse_type_clash_max_drives=0))
     assert dropped.labels[6] == -1 and dropped.labels[10] == -1 and dropped.labels[11] == -1
-    with pytest.raises(ConfigError):
-        AlignmentConfig(sparse_type_clash_max_drives=-1)
 
 
 def test_sparse_step_rule_rejects_loose_clusters():
@@ -394,33 +434,35 @@ def test_sparse_step_drops_a_type_clashing_singleton():
     lat[0] += 0.1
     keep = align_step(lat, types, drive, config=_SPARSE)
     assert keep.labels[0] >= 0 and keep.labels[4] >= 0
-    res = align_step(lat, types, drive, config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    res = align_step(lat, types, drive, config=former_replace(_SPARSE, sparse_type_clash_m=1.0))
     assert res.labels[0] == -1 and res.labels[4] == -1  # both singletons of the clash dropped
     assert np.all(res.labels[[1, 2, 3, 5, 6, 7]] >= 0) and res.valid
     # A singleton with no other type within 1 m stays: a border 1.25 m beside the solid.
     lat2, types2, drive2 = _two_drive_step([0, 1, 2, 3, 4], [1, 2, 3, 4], shift=0.0)
-    res2 = align_step(lat2, types2, drive2, config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    res2 = align_step(lat2, types2, drive2, config=former_replace(_SPARSE, sparse_type_clash_m=1.0))
     assert res2.labels[0] >= 0 and res2.valid
     # One drive's own samples of two types close together are no clash (a line beside a border).
     lat4, types4, drive4 = _two_drive_step([0, 1, 2, 3], [1, 2, 3, 4], shift=0.0)
     lat4, types4, drive4 = np.r_[lat4, 6.0], np.r_[types4, 3], np.r_[drive4, 1]
-    res4 = align_step(lat4, types4, drive4, config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    res4 = align_step(lat4, types4, drive4, config=former_replace(_SPARSE, sparse_type_clash_m=1.0))
     assert res4.labels[-2] >= 0 and res4.labels[-1] >= 0  # drive 1's solid at 5.25, border at 6.0
     assert res4.valid
     # ... but the same border seen by drive 0 clashes with drive 1's solid.
-    res5 = align_step(lat4, types4, np.r_[drive4[:-1], 0], config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    res5 = align_step(lat4, types4, np.r_[drive4[:-1], 0], config=former_replace(_SPARSE, sparse_type_clash_m=1.0))
     assert res5.labels[-2] == -1 and res5.labels[-1] == -1
     # Steps with more drives than the limit keep their singletons.
     lat3 = np.r_[lat, _SPARSE_LINES[[2, 3]]]
-    res3 = align_step(lat3, np.r_[types, 2, 2], np.r_[drive, 2, 2], config=replace(_SPARSE, sparse_type_clash_m=1.0))
+    res3 = align_step(
+        lat3, np.r_[types, 2, 2], np.r_[drive, 2, 2], config=former_replace(_SPARSE, sparse_type_clash_m=1.0)
+    )
     assert res3.labels[0] >= 0 and res3.labels[4] >= 0
 
 
 def test_sparse_step_config_checks():
     with pytest.raises(ConfigError):
-        AlignmentConfig(sparse_step_max_drives=-1)
+        former(AlignmentConfig, sparse_step_max_drives=-1)
     with pytest.raises(ConfigError):
-        AlignmentConfig(sparse_step_max_std_m=0.0)
+        former(AlignmentConfig, sparse_step_max_std_m=0.0)
     # The paper preset stays faithful; the default preset uses the rule in both passes, in the
     # final pass for steps of up to 4 drives (type-clash drop up to 3, as in the first pass).
     from hdmap_core.pipeline import presets
@@ -433,8 +475,15 @@ def test_sparse_step_config_checks():
 
 
 def _gap_final_config(**kw):
-    return AlignmentConfig(clustering="gap", estimate_offsets=False, lone_cluster_max_std_m=0.3,
-                           sparse_step_max_drives=4, sparse_step_max_std_m=0.3, **kw)
+    return former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        lone_cluster_max_std_m=0.3,
+        sparse_step_max_drives=4,
+        sparse_step_max_std_m=0.3,
+        **kw,
+    )
 
 
 def test_align_steps_gap_equals_align_step_and_leaves_special_steps_out():
@@ -472,16 +521,24 @@ def test_align_steps_gap_equals_align_step_and_leaves_special_steps_out():
 
 def test_align_steps_gap_needs_a_fixed_offset_config():
     with pytest.raises(ConfigError):
-        align_steps_gap(np.zeros(2), np.zeros(2, int), np.zeros(2, int), np.array([0, 2]), np.array([0]),
-                        config=AlignmentConfig(clustering="gap"))
+        align_steps_gap(
+            np.zeros(2),
+            np.zeros(2, int),
+            np.zeros(2, int),
+            np.array([0, 2]),
+            np.array([0]),
+            config=former(AlignmentConfig, clustering="gap"),
+        )
 
 
 def test_robust_loss_changes_nothing_without_outliers():
     # residuals within the Huber threshold: the weights stay 1, the robust solve is the plain one
     lat, ty, dr = _step([0.3, -0.2, 0.1], noise=0.02)
     labels = np.tile(np.arange(4), 3)
-    plain = solve_offsets(lat, labels, ty, dr, 3, config=AlignmentConfig(solver="closed_form"))
-    robust = solve_offsets(lat, labels, ty, dr, 3, config=AlignmentConfig(solver="closed_form", robust_loss=True))
+    plain = solve_offsets(lat, labels, ty, dr, 3, config=former(AlignmentConfig, solver="closed_form"))
+    robust = solve_offsets(
+        lat, labels, ty, dr, 3, config=former(AlignmentConfig, solver="closed_form", robust_loss=True)
+    )
     np.testing.assert_allclose(robust, plain, atol=1e-12)
 
 
@@ -496,14 +553,20 @@ def test_sparse_step_of_two_drives_sharing_no_line_accepted_when_apart():
     lat = np.array([-9.05, -5.42, -1.97, 1.48, 4.99, 8.71])
     types = np.array([B, S, D, D, D, S])
     drive = np.array([1, 1, 1, 1, 0, 0])
-    cfg = AlignmentConfig(
-        clustering="gap", estimate_offsets=False, sparse_step_max_drives=4, sparse_step_max_std_m=0.3,
-        sparse_type_clash_m=1.0, sparse_type_clash_max_drives=3, lone_cluster_max_std_m=0.3,
+    cfg = former(
+        AlignmentConfig,
+        clustering="gap",
+        estimate_offsets=False,
+        sparse_step_max_drives=4,
+        sparse_step_max_std_m=0.3,
+        sparse_type_clash_m=1.0,
+        sparse_type_clash_max_drives=3,
+        lone_cluster_max_std_m=0.3,
         sparse_singletons_accept=True,
     )
-    assert AlignmentConfig().sparse_disjoint_apart_m == 0.0
+    assert former(AlignmentConfig).sparse_disjoint_apart_m == 0.0
     assert not align_step(lat, types, drive, config=cfg).valid
-    on = replace(cfg, sparse_disjoint_apart_m=2.0)
+    on = former_replace(cfg, sparse_disjoint_apart_m=2.0)
     res = align_step(lat, types, drive, config=on)
     assert res.valid and np.all(res.labels >= 0) and len(np.unique(res.labels)) == 6
     # Each drive alone passes the one-drive rule either way.
@@ -525,8 +588,6 @@ def test_sparse_step_of_two_drives_sharing_no_line_accepted_when_apart():
     # A loose cluster (std > 0.3 m) is not accepted by the rule either.
     loose = np.r_[lat, 4.99 + 0.9]
     assert not align_step(loose, np.r_[types, D], np.r_[drive, 0], config=on).valid
-    with pytest.raises(ConfigError):
-        AlignmentConfig(sparse_disjoint_apart_m=-1.0)
     # Only the default preset's final pass uses the rule.
     from hdmap_core.pipeline import presets
 

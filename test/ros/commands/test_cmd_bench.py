@@ -92,13 +92,13 @@ def test_set_changes_every_preset_run_and_names_the_rows(monkeypatch, tmp_path, 
     install_fake_pipeline(monkeypatch, build_map)
     out_json = tmp_path / "bench.json"
     assert cli.main(["bench", "motorway:3", "--presets", "naive,default", "--inline", "--work-dir", str(tmp_path),
-                     "--set", "stitching.track_rejoin_m=0", "--set", "alignment.robust_loss=false",
+                     "--set", "stitching.max_distance_m=8", "--set", "alignment.robust_loss=false",
                      "--json", str(out_json)]) == 0
-    changes = (("stitching.track_rejoin_m", 0), ("alignment.robust_loss", False))
+    changes = (("stitching.max_distance_m", 8), ("alignment.robust_loss", False))
     assert [(c.name, c.overrides) for c in seen] == [("naive+", changes), ("default+", changes)]
     rows = json.loads(out_json.read_text())
     assert [r["preset"] for r in rows] == ["naive+", "default+"]
-    assert rows[1]["overrides"] == {"stitching.track_rejoin_m": 0, "alignment.robust_loss": False}
+    assert rows[1]["overrides"] == {"stitching.max_distance_m": 8, "alignment.robust_loss": False}
     assert "default+" in capsys.readouterr().out
 
 
@@ -107,7 +107,7 @@ def test_set_changes_every_preset_run_and_names_the_rows(monkeypatch, tmp_path, 
     [
         ("alignment.nope=1", "AlignmentConfig has no field 'nope'"),
         # the final pass is off in paper and naive: the message names where it fits
-        ("final_pass.outer_border_reach=false", "(preset paper); it fits default: choose the presets with --presets"),
+        ("final_pass.sparse_step_max_drives=2", "(preset paper); it fits default: choose the presets with --presets"),
     ],
 )
 def test_set_that_does_not_fit_a_preset_is_named_before_anything_is_simulated(change, message, tmp_path, capsys):

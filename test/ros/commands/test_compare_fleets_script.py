@@ -85,7 +85,7 @@ def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
     assert out[0].startswith("1 tiles -> ") and out[2].split()[0] == "state" and float(out[2].split()[7]) > 90.0
     assert rs.main([str(tmp_path / "nowhere")]) == 2
     assert "no map_stitcher store" in capsys.readouterr().err
-    assert rs.main([str(state), "--set", "stitching.track_rejoin_m=0"]) == 0  # changes go through bag2map's parser
+    assert rs.main([str(state), "--set", "stitching.max_distance_m=8"]) == 0  # changes go through bag2map's parser
 
 
 def _run(scenario: str, preset: str = "default", **figures) -> dict:

@@ -229,10 +229,10 @@ def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros,
     assert plain.pipeline_config == presets.preset("default")  # unset: the preset as it is
     plain.destroy_node()
     changed = node_cls(context=ros.context, parameter_overrides=[
-        db, Parameter("preset_overrides", value=["stitching.track_rejoin_m=0", "alignment.n_iterations=2"])])
+        db, Parameter("preset_overrides", value=["stitching.max_distance_m=8", "alignment.n_iterations=2"])])
     cfg = changed.pipeline_config
     changed.destroy_node()
-    assert cfg.stitching.track_rejoin_m == 0 and cfg.alignment.n_iterations == 2 and cfg.name == "default+"
+    assert cfg.stitching.max_distance_m == 8 and cfg.alignment.n_iterations == 2 and cfg.name == "default+"
     with pytest.raises(ConfigError, match="preset_overrides: stitching.nope: StitchConfig has no field 'nope'"):
         node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["stitching.nope=1"])])
     with pytest.raises(ConfigError, match="preset_overrides: 'nokey' is not KEY=VALUE"):

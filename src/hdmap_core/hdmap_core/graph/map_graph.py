@@ -15,12 +15,11 @@ graph; :class:`MapGraph` holds the complete one and inserts segments as the pape
 The same mechanism updates an existing map with newly mapped sections: ``MapGraph.integrate``
 adds segment graphs and replaces the graphs of re-estimated segments (keyed by segment key, or
 by place via ``keys_in_tiles``); ``rebuild`` makes the map a function of the set of segment
-graphs. Beyond the paper (each switchable in :class:`StitchConfig`, all off in
-``StitchConfig.paper()``): component ends that duplicate a place already in the map are trimmed,
-spurs and bubbles pruned, dangling ends running on another segment's line deduplicated, loose ends
-that continue each other joined (gaps filled on a Hermite curve), and, at export
-(``hdmap_core.graph.export``), type flicker smoothed, gore splits placed at the lane line's end and
-isolated specks dropped.
+graphs. Beyond the paper (rules of :class:`StitchConfig`, all off in the ``paper`` preset):
+component ends that duplicate a place already in the map are trimmed, spurs and bubbles pruned,
+dangling ends running on another segment's line deduplicated, loose ends that continue each other
+joined (gaps filled on a Hermite curve), and, at export (``hdmap_core.graph.export``), type flicker
+smoothed, gore splits placed at the lane line's end and isolated specks dropped.
 
 The steps are functions with plain data in and out, one module each: ``flat.py`` (the flat view
 of all graphs), ``trim.py`` (overlap trimming), ``linking.py`` (steps 1-4 and the late links;

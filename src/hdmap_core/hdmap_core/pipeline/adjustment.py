@@ -32,7 +32,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 import scipy.linalg
@@ -87,18 +87,13 @@ class AdjustConfig:
         noise_sigma_m: sigma of one sample's lateral position about its cluster, after correction.
         loss: ``"linear"`` (plain least squares), ``"huber"`` or ``"cauchy"``.
         iterations: maximum number of solves (1 = no re-weighting).
-        coarse_reject_m: before the curves are fitted, one constant per drive is fitted (Huber);
-            samples farther than this from their cluster then are dropped as wrong associations
-            (e.g. a drive associated one lane off over a stretch, which a curve would follow).
-            0 = off.
         reassociate_rounds: 0 = use the observations' cluster labels as given. > 0: first
             re-associate every sample to the nearest cluster centre of its step and type by raw
             position (centres: medians of the members' raw positions), fit, then this many times
             re-associate with the fitted offsets applied and fit again (a global EM; it repairs
             per-step associations that were a lane off).
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
-            normal matrix; O(p^3) in the number of unknowns p).
-        std_max_unknowns: above this many unknowns the std is not computed (left NaN).
+            normal matrix; O(p^3) in the number of unknowns p; at most ``std_max_unknowns``).
     """
 
     knot_spacing_m: float = 200.0
@@ -108,18 +103,23 @@ class AdjustConfig:
     noise_sigma_m: float = 0.12
     loss: str = "huber"
     iterations: int = 5
-    coarse_reject_m: float = 1.5
     reassociate_rounds: int = 2
     compute_std: bool = True
-    std_max_unknowns: int = 4000
+
+    #: before the curves are fitted, one constant per drive is fitted (Huber); samples farther
+    #: than this from their cluster then are dropped as wrong associations (a drive associated
+    #: one lane off over a stretch, which a curve would follow) [m]
+    coarse_reject_m: ClassVar[float] = 1.5
+    #: above this many unknowns the std is not computed (left NaN)
+    std_max_unknowns: ClassVar[int] = 4000
 
     def __post_init__(self) -> None:
         check_range(self, ("knot_spacing_m", "bias_sigma_m", "correlation_length_m", "noise_sigma_m"), low=0.0,
                     low_open=True, finite=True)
-        check_range(self, ("coarse_reject_m", "drift_sigma_m"), low=0.0, finite=True)
+        check_range(self, ("drift_sigma_m",), low=0.0, finite=True)
         check_choice(self, "loss", _LOSSES)
         check_range(self, ("iterations",), low=1, integer=True)
-        check_range(self, ("reassociate_rounds", "std_max_unknowns"), low=0, integer=True)
+        check_range(self, ("reassociate_rounds",), low=0, integer=True)
 
 
 @dataclass(frozen=True)

@@ -14,12 +14,14 @@ The maxima are stored for every drive that took part, keyed by that drive's trav
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 from scipy.special import ndtr
 
-from hdmap_core.checks import check_choice, check_range
+from hdmap_core.checks import Rule, check_choice, check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 
@@ -33,58 +35,51 @@ SINGLE_DRIVE_STD_M = 0.5
 
 @dataclass(frozen=True)
 class AggregationConfig:
-    """Aggregation options (Sec. IV-C). Values the paper leaves open are marked (open).
+    """Aggregation options (Sec. IV-C); the defaults are the recommended method. Values the
+    paper leaves open are marked (open).
 
     Attributes:
         method: "kde" (paper: KDE maximum) or "mean" (plain cluster mean; the naive baseline).
         kde_bandwidth_factor: kernel bandwidth = factor x cluster std (paper: 6).
-        kde_min_bandwidth_m: lower bound of the bandwidth [m] (a cluster of identical values).
+        kde_min_bandwidth_m: lower bound of the bandwidth [m] (a cluster of identical values;
+            paper reading 0.02).
         overlap_filter: drop the smaller of two clusters whose densities overlap.
         overlap_threshold: overlap coefficient in [0, 1] above which clusters are merged (open).
-        overlap_border_marking: also filter a road-border cluster against a neighbouring
-            marking cluster (True: the paper, every neighbouring pair of a step). False: only
-            clusters of one class are compared (solid with dashed, border with border), since a
-            curb or barrier right beside an edge line (0.2-0.5 m) is a second physical feature,
-            not a misclassified copy of the line.
         common_sigma_m: 1-sigma of one drive's localization error that no offset correction can
             remove [m]. Offsets estimated from the drives alone (no absolute reference) align
             them with each other, so the corrected samples scatter little, but the map point
             still carries the mean of its n drives' errors, sigma / sqrt(n). The reported
-            lateral_std is then sqrt(spread^2 + common_sigma_m^2 / n). 0: not added (samples
-            not corrected: their spread already holds the drives' errors; or the paper, which
-            reports no uncertainty).
-        tie_by_position: when the overlap filter compares a solid and a dashed cluster with as
-            many samples each, keep the type the line's place in the cross-section suggests
-            instead of the one that happens to lie further left: solid for the outermost
-            marking of a side (no other marking beyond it in the step), dashed for a marking
-            with markings on both sides. In the shared ground-truth maps outermost markings are
-            97-100 % solid and inner ones 98 % dashed (Soderleden, with one marking per
-            direction, is the exception). False: the paper (the tie is not addressed).
-        border_beside_marking_drives: when > 0 (and ``overlap_border_marking``), a road-border
-            cluster of at least this many drives is not compared with an overlapping marking
-            cluster: both stay. One drive's border on a line is the misclassified copy the
-            filter is for (1 % of marking stretches in the simulator); two drives agreeing on a
-            border there see a real one on the line (in the shared maps 2.5 % of carla_town06's
-            GT border points and 1.9 % of soderleden's have a marking within 0.3 m, 7.0 % /
-            2.0 % within 0.5 m). 0: every pair is compared (the paper).
+            lateral_std is then sqrt(spread^2 + common_sigma_m^2 / n). Default: the adjustment's
+            prior of one drive's error, hypot(``AdjustConfig.bias_sigma_m``,
+            ``AdjustConfig.drift_sigma_m``). 0: not added (samples not corrected: their spread
+            already holds the drives' errors; or the paper, which reports no uncertainty).
+        refined: the overlap filter's rules measured and adopted since the paper (its fixed
+            ``refined`` rules: a solid-dashed tie decided by the line's place, a border of two
+            drives kept beside a marking). False: the paper.
     """
 
     method: str = "kde"
-    kde_bandwidth_factor: float = 6.0
-    kde_min_bandwidth_m: float = 0.02
+    kde_bandwidth_factor: float = 1.0
+    kde_min_bandwidth_m: float = 0.15
     overlap_filter: bool = True
     overlap_threshold: float = 0.5
-    overlap_border_marking: bool = True
-    common_sigma_m: float = 0.0
-    tie_by_position: bool = False
-    border_beside_marking_drives: int = 0
+    common_sigma_m: float = math.hypot(1.0, 0.3)
+    refined: bool = True
+
+    #: also filter a road-border cluster against a neighbouring marking cluster (the paper)
+    overlap_border_marking: ClassVar[bool] = True
+    #: (refined) a solid-dashed tie keeps solid for a side's outermost marking, dashed for an
+    #: inner one (97-100 % / 98 % in the ground-truth maps); off: the one further left
+    tie_by_position = Rule("refined", True, False)
+    #: (refined) a border cluster of at least this many drives is not filtered against an
+    #: overlapping marking (a real border on the line); off (0): every pair is compared
+    border_beside_marking_drives = Rule("refined", 2, 0)
 
     def __post_init__(self) -> None:
         check_choice(self, "method", ("kde", "mean"))
         check_range(self, ("kde_bandwidth_factor", "kde_min_bandwidth_m"), low=0.0, low_open=True)
         check_range(self, ("overlap_threshold",), low=0.0, high=1.0)
         check_range(self, ("common_sigma_m",), low=0.0, finite=True)
-        check_range(self, ("border_beside_marking_drives",), low=0, integer=True)
 
 
 def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 16, n_shift: int = 50) -> np.ndarray:

@@ -16,6 +16,7 @@ keeping the mean cluster position unchanged by the correction.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -61,7 +62,8 @@ MAX_OFFSET_M = 5.0
 
 @dataclass(frozen=True)
 class AlignmentConfig:
-    """Per-step EM options (Sec. IV-B). Values the paper leaves open are marked (open).
+    """Per-step EM options (Sec. IV-B); the defaults are the recommended method (the paper's
+    values in brackets). Values the paper leaves open are marked (open).
 
     Attributes:
         estimate_offsets: False skips the M-step (no correction; the naive baseline).
@@ -69,96 +71,79 @@ class AlignmentConfig:
             "gap" (split the sorted samples where the gap exceeds ``GAP_SPLIT_M``; exact, O(n log n),
             right once offsets are roughly known) or "auto" (gap when every drive of the step has a
             prior offset, else silhouette).
-        min_cluster_separation_m: with "silhouette", a k whose neighbouring cluster means of one
-            type are closer than this is not taken (two features of one type are at least about
-            a lane apart); 0 = off (paper). Stops the E-step from splitting one line in two,
-            which lets the M-step shift drives by a whole lane.
-        n_iterations: EM iterations (open); the loop stops early when labels repeat.
+        n_iterations: EM iterations (open; paper reading 5); the loop stops early when labels repeat.
         solver: "lm" (paper: Levenberg-Marquardt on the full cost) or "closed_form" (variance term
-            solved as linear least squares; LM only when the penalty is not negligible).
-        penalty_lm_threshold: with "closed_form", LM polishes only when some cluster's penalty
-            exceeds this (0.3: same-type clusters closer than about 2.2 m at s = 0.25).
+            solved as linear least squares; LM only when some cluster's penalty exceeds
+            ``penalty_lm_threshold``).
         robust_loss: Huber-reweighted variance residuals (a drive's odd sample cannot pull).
+            False: the paper.
         huber_delta_m: Huber threshold [m].
-        ridge: weight of sum(o^2), fixes the gauge (common shift) and keeps lone drives at 0.
         prior_weight: weight of (o_d - prior_d)^2 for drives with a prior offset (the previous
             step's offset: offsets smoothed along a drive). 0 = independent steps (paper).
-        remove_drift: keep the mean cluster position unchanged by the correction (paper).
         silhouette_gate: steps scoring below are rejected (paper: 0.67).
-        lone_cluster_max_std_m: when no type has two clusters the silhouette is undefined (the
-            paper rejects such a step), and with one drive alone every cluster is a singleton
-            (silhouette 0); > 0 accepts such a step when every cluster's std is at most this
-            [m] (sparse places: one drive on a ramp).
-        sparse_step_max_drives: sparse-step rule, 0 = off (paper). In a step seen by at most this
+        sparse_step_max_drives: sparse-step rules, 0 = off (paper). In a step seen by at most this
             many drives each drive sees lines the others miss; those are one-sample clusters
             that score silhouette 0 and pull the mean below the gate although every cluster is
             tight. Such a step is accepted when every cluster's std is at most
             ``sparse_step_max_std_m`` and the mean silhouette of the samples in clusters of two or
-            more passes the gate.
-        sparse_step_max_std_m: cluster std limit of the sparse-step rule [m].
-        sparse_type_clash_m: with the sparse-step rule, a one-sample cluster is dropped (label -1)
-            when another drive's sample of another type lies within this distance [m] (two
-            drives disagreeing on the type of one line); 0 = no drop.
-        sparse_singletons_accept: with the sparse-step rule, a step in which every type with two
-            clusters holds only one-sample clusters (nothing is left to score once they are left
-            out: the silhouette without them is undefined) is accepted when every cluster is
-            tight, as a lone-cluster step, provided some cluster holds samples of two drives
-            (the drives agree somewhere). Two drives that see different lines, or disagree on
-            the type where both see one, left whole stretches unmapped (carla_town06_30_s2: 40
-            steps in a row, 80 m). False: such a step is rejected.
-        sparse_disjoint_apart_m: with ``sparse_singletons_accept``, a step whose drives share no
-            cluster (each saw lines the others did not, or they disagreed on the type of the one
-            line they shared, dropped as a clash) is accepted too when every cluster is tight and
-            no two kept samples of different drives lie closer than this [m] (so they are
-            different lines, not one line the drives placed apart): each drive alone would pass
-            the one-drive rule (``lone_cluster_max_std_m``), and two drives that do not contradict
-            each other are no weaker evidence than one. 0 = off (a shared cluster is required).
-        sparse_type_clash_keep: the samples a type clash dropped are kept as one line of unknown
-            type (``FeatureType.UNKNOWN``, a cluster of its own) when the step is accepted: two
-            drives that place a line at one spot but disagree on its type still saw a line there,
-            and its type is decided along the polyline (the marking type of the runs beside it,
-            ``hdmap_core.graph.flat``; a line of unknown type continuing no marking is dropped). Only
-            samples that are all clash-dropped singletons within ``sparse_type_clash_m`` of each
-            other, of two or more drives, form such a cluster. False: they are dropped (the
-            dataclass, paper, naive; the default preset's final pass keeps them).
-        sparse_type_clash_max_drives: the type-clash drop applies to steps of at most this many
-            drives; 0: to every step of the sparse-step rule. (With 4 drives a one-sample cluster
-            beside another drive's line of the other type can be a real line; the default
-            preset's final pass judges steps of <= 4 drives by the sparse-step rule but drops
-            clashing singletons only in steps of <= 3.)
-        min_cluster_drives: clusters supported by fewer distinct drives are dropped (label -1).
+            more passes the gate; one-sample clusters that clash with another drive's sample of
+            another type (``sparse_type_clash_m``) are dropped, and a step whose clusters are all
+            one drive's (silhouette undefined or 0) is accepted when every cluster's std is at
+            most ``sparse_step_max_std_m`` (``lone_cluster_max_std_m``; sparse places: one drive
+            on a ramp).
+        sparse_step_max_std_m: cluster std limit of the sparse-step rules [m].
     """
 
     estimate_offsets: bool = True
-    clustering: str = "silhouette"
-    min_cluster_separation_m: float = 0.0
-    n_iterations: int = 5
-    solver: str = "lm"
-    penalty_lm_threshold: float = 0.3
-    robust_loss: bool = False
+    clustering: str = "auto"
+    n_iterations: int = 4
+    solver: str = "closed_form"
+    robust_loss: bool = True
     huber_delta_m: float = 0.3
-    ridge: float = 1e-4
-    prior_weight: float = 0.0
-    remove_drift: bool = True
+    prior_weight: float = 1.0
     silhouette_gate: float = 0.67
-    lone_cluster_max_std_m: float = 0.0
-    sparse_step_max_drives: int = 0
+    sparse_step_max_drives: int = 3
     sparse_step_max_std_m: float = 0.3
-    sparse_type_clash_m: float = 0.0
-    sparse_singletons_accept: bool = False
-    sparse_type_clash_max_drives: int = 0
-    sparse_type_clash_keep: bool = False
-    sparse_disjoint_apart_m: float = 0.0
-    min_cluster_drives: int = 1
+
+    #: with "silhouette", a k whose neighbouring cluster means of one type are closer than this
+    #: is not taken; 0 = off (the paper) [m]
+    min_cluster_separation_m: ClassVar[float] = 0.0
+    #: with "closed_form", LM polishes only above this penalty (labels are fixed in the M-step;
+    #: the penalty would only push apart clusters of one feature split by a gap)
+    penalty_lm_threshold: ClassVar[float] = 2.0
+    #: weight of sum(o^2): fixes the gauge (common shift) and keeps lone drives at 0
+    ridge: ClassVar[float] = 1e-4
+    #: keep the mean cluster position unchanged by the correction (paper)
+    remove_drift: ClassVar[bool] = True
+    #: clusters supported by fewer distinct drives are dropped (label -1)
+    min_cluster_drives: ClassVar[int] = 1
+    #: sparse-step rule: a one-sample cluster within this of another drive's sample of another
+    #: type is dropped (two drives disagreeing on one line's type) [m]
+    sparse_type_clash_m: ClassVar[float] = 1.0
+    # The final pass's sparse rules (``FinalAlignment``: samples already corrected); off here.
+    #: a sparse step of singletons and one shared cluster is accepted when tight
+    sparse_singletons_accept: ClassVar[bool] = False
+    #: the type-clash drop applies to steps of at most this many drives; 0: every sparse step
+    sparse_type_clash_max_drives: ClassVar[int] = 0
+    #: clash-dropped singletons of two or more drives at one spot are kept as a line of unknown type
+    sparse_type_clash_keep: ClassVar[bool] = False
+    #: drives sharing no cluster are accepted when their samples lie this far apart; 0: off [m]
+    sparse_disjoint_apart_m: ClassVar[float] = 0.0
+
+    @property
+    def lone_cluster_max_std_m(self) -> float:
+        """A step without two clusters of a type (or of one drive) is accepted when every
+        cluster's std is at most this (the sparse-step rules' limit; 0 without them: the paper
+        rejects such a step) [m]."""
+        return self.sparse_step_max_std_m if self.sparse_step_max_drives > 0 else 0.0
 
     def __post_init__(self) -> None:
         check_choice(self, "clustering", _CLUSTERINGS)
         check_choice(self, "solver", _SOLVERS)
-        check_range(self, ("n_iterations", "min_cluster_drives"), low=1, integer=True)
-        check_range(self, ("sparse_step_max_drives", "sparse_type_clash_max_drives"), low=0, integer=True)
+        check_range(self, ("n_iterations",), low=1, integer=True)
+        check_range(self, ("sparse_step_max_drives",), low=0, integer=True)
         check_range(self, ("huber_delta_m", "sparse_step_max_std_m"), low=0.0, low_open=True)
-        check_range(self, ("ridge", "prior_weight", "sparse_type_clash_m", "sparse_disjoint_apart_m",
-                           "min_cluster_separation_m", "lone_cluster_max_std_m", "penalty_lm_threshold"), low=0.0)
+        check_range(self, ("prior_weight",), low=0.0)
 
 
 @dataclass(frozen=True)

@@ -91,7 +91,7 @@ class EvidenceConfig:
             detections were seen (0..1].
     """
 
-    min_expected: float = 3.0
+    min_expected: float = 2.0
     max_seen_ratio: float = 0.2
 
     def __post_init__(self) -> None:

@@ -2,13 +2,15 @@
 
 ``bag2map``/``bench``/``run --set``, the nodes' ``preset_overrides`` parameter and the scripts all
 call :func:`config_from`. A key is a dotted path into ``PipelineConfig``
-(``stitching.track_rejoin_m``, ``final_pass.alignment.clustering``); a value is JSON (numbers,
+(``stitching.max_distance_m``, ``final_pass.sparse_step_max_drives``); a value is JSON (numbers,
 true/false, null, lists), ``inf``/``-inf``, or else the string itself (:func:`parse_override`).
+A key of a rule fixed since (``REMOVED_KEYS``: a constant, or a rule of a stage's switch) is
+refused with what became of it.
 
 The two passes: the final pass samples and aligns as the first except where ``PassConfig`` says
-otherwise, so a ``sampling.*`` / ``alignment.*`` key reaches both passes and a ``final_pass.*`` key
-(``final_pass.outer_border_reach``) sets the final pass alone. ``final_pass=null`` drops the final
-pass and the adjustment; ``final_pass=true`` adds the recommended one. The switch applies first and
+otherwise, so a ``sampling.*`` / ``alignment.*`` key reaches both passes and a ``final_pass.*``
+key (``final_pass.sparse_step_max_drives``) sets the final pass alone. ``final_pass=null`` drops
+the final pass and the adjustment; ``final_pass=true`` adds the recommended one. The switch applies first and
 final-pass keys last, whatever their order.
 """
 
@@ -19,8 +21,9 @@ import math
 from collections.abc import Iterable, Mapping
 from dataclasses import fields, is_dataclass, replace
 
+from hdmap_core.checks import Rule
 from hdmap_core.errors import ConfigError
-from hdmap_core.pipeline.config import PassConfig, PipelineConfig
+from hdmap_core.pipeline.config import FinalAlignment, FinalSampling, PassConfig, PipelineConfig
 from hdmap_core.pipeline.presets import preset as named_preset
 
 __all__ = ["REMOVED_KEYS", "config_from", "parse_override"]
@@ -34,9 +37,50 @@ def _fixed_graph(module: str, constant: str, value: object) -> str:
     return f"a fixed rule now: {constant} = {value!r} in hdmap_core.graph.{module}"
 
 
-#: Keys that were public once and are not any more, with what became of them. A key of
-#: ``stitching.fill_evidence`` is looked up as ``evidence``'s.
+def _fixed_rules(prefix: str, cls: type) -> dict[str, str]:
+    """``{key: text}`` of every fixed rule of the config class ``cls`` (a constant of the class, or
+    a :class:`~hdmap_core.checks.Rule` of one of its switches), keys under ``prefix``."""
+    out: dict[str, str] = {}
+    names = {f.name for f in fields(cls)}
+    for klass in reversed(cls.__mro__):
+        for name, value in vars(klass).items():
+            if name.startswith("_") or name in names:
+                continue
+            where = f"in {klass.__module__}"
+            if isinstance(value, Rule):
+                out[prefix + name] = (
+                    f"a fixed rule now: {cls.__name__}.{name} = {value.on!r} while {prefix}{value.switch} is true "
+                    f"({value.off!r} when false) {where}"
+                )
+            elif isinstance(value, (bool, int, float, str, tuple)):
+                out[prefix + name] = f"a fixed rule now: {cls.__name__}.{name} = {value!r} {where}"
+    return out
+
+
+def _all_fixed_rules() -> dict[str, str]:
+    """The fixed rules of every stage config of ``PipelineConfig``, and of the final pass."""
+    out: dict[str, str] = {}
+    default = PipelineConfig()
+    for f in fields(default):
+        value = getattr(default, f.name)
+        if is_dataclass(value) and not isinstance(value, PassConfig):
+            out.update(_fixed_rules(f"{f.name}.", type(value)))
+    for cls in (FinalSampling, FinalAlignment):
+        final = _fixed_rules("final_pass.", cls)
+        out.update({k: v for k, v in final.items() if k.rpartition(".")[2] in vars(cls)})
+    return out
+
+
+#: Keys that were public once and are not any more, with what became of them.
 REMOVED_KEYS: dict[str, str] = {
+    **_all_fixed_rules(),
+    "alignment.lone_cluster_max_std_m": "a fixed rule now: AlignmentConfig.lone_cluster_max_std_m is "
+    "alignment.sparse_step_max_std_m while alignment.sparse_step_max_drives > 0 (else 0) "
+    "in hdmap_core.pipeline.alignment",
+    "stitching.fill_evidence.min_expected": "stitching.fill_evidence is a switch now (true/false): the fill test "
+    "uses the profiles of evidence.* (evidence.min_expected)",
+    "stitching.fill_evidence.max_seen_ratio": "stitching.fill_evidence is a switch now (true/false): the fill test "
+    "uses the profiles of evidence.* (evidence.max_seen_ratio)",
     "use_global_adjustment": "the adjustment runs exactly when there is a final pass: set final_pass=null "
     "(one pass, no adjustment) or final_pass=true",
     "final_sampling": "the final pass is explicit now: final_pass.<field> (PassConfig)",
@@ -108,16 +152,13 @@ REMOVED_KEYS: dict[str, str] = {
 
 def _removed(key: str) -> str | None:
     """What became of a removed ``key``, or None when it is not one."""
-    plain = key
-    if plain.startswith("stitching.fill_evidence."):
-        plain = "evidence." + plain.removeprefix("stitching.fill_evidence.")
-    return REMOVED_KEYS.get(plain) or REMOVED_KEYS.get(key.partition(".")[0])
+    return REMOVED_KEYS.get(key) or REMOVED_KEYS.get(key.partition(".")[0])
 
 
 def parse_override(text: str) -> tuple[str, object]:
     """One ``KEY=VALUE`` change as ``--set`` and the nodes' ``preset_overrides`` take it: the dotted
     key and the value as JSON (numbers, true/false, null, lists), ``inf`` / ``-inf`` as floats
-    (several limits are off at inf, e.g. ``sampling.max_pivot_outside_m=inf``), else the string
+    (several limits are off at inf, e.g. ``connection.max_gap_m=inf``), else the string
     itself (``alignment.clustering=auto``). Whether it fits is :func:`config_from`'s check.
 
     Raises:
@@ -193,7 +234,7 @@ def _switch_final_pass(config: PipelineConfig, key: str, value: object) -> Pipel
         return replace(config, final_pass=PassConfig())
     raise ConfigError(
         f"{key}={_shown(value)}: final_pass is a group of settings; set one of its fields, e.g. "
-        "final_pass.outer_border_reach=..., or true / null to switch the final pass on / off"
+        "final_pass.sparse_step_max_drives=..., or true / null to switch the final pass on / off"
     )
 
 

@@ -15,6 +15,7 @@ the opposite-direction filter and the processed-stretch keys.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -40,17 +41,18 @@ class PreprocessConfig:
         min_length_m: detection polylines shorter than this are dropped (paper: 3 m).
         rdp_epsilon_m: Ramer-Douglas-Peucker tolerance [m] (paper: unspecified; well below the
             measurement noise so the shape is kept).
-        max_segment_m: longer segments are split, which keeps grid cells per segment small [m].
-        grid_cell_m: cell size of the spatial hash [m].
     """
 
     min_length_m: float = 3.0
     rdp_epsilon_m: float = 0.05
-    max_segment_m: float = 10.0
-    grid_cell_m: float = 5.0
+
+    #: longer segments are split, which keeps grid cells per segment small [m]
+    max_segment_m: ClassVar[float] = 10.0
+    #: cell size of the spatial hash [m]
+    grid_cell_m: ClassVar[float] = 5.0
 
     def __post_init__(self) -> None:
-        check_range(self, ("rdp_epsilon_m", "max_segment_m", "grid_cell_m"), low=0.0, low_open=True)
+        check_range(self, ("rdp_epsilon_m",), low=0.0, low_open=True)
         check_range(self, ("min_length_m",), low=0.0)
 
 
@@ -363,7 +365,7 @@ def _segments(drives: list[Drive], lo: int, hi: int, xy: np.ndarray, counts: np.
     )
 
 
-def trajectory_index(drives: list[Drive], *, cell_m: float = PreprocessConfig().grid_cell_m) -> DetectionIndex:
+def trajectory_index(drives: list[Drive], *, cell_m: float = PreprocessConfig.grid_cell_m) -> DetectionIndex:
     """The drives' own trajectories as a segment index (type UNKNOWN), for cut-line crossings:
     where each drive passed a cut (``hdmap_core.pipeline.evidence``). Drive index i is ``drives[i]``;
     validated drives (``model.validate_drive``: one finite yaw per pose)."""

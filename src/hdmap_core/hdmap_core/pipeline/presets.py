@@ -2,12 +2,13 @@
 
 - ``default()``: the recommended method, ``PipelineConfig()`` itself.
 - ``paper()``: the method as the paper writes it (Immel et al. 2023), its open values read as in
-  docs/pipeline.md: one pass, no adjustment, the stage classes' own (paper) settings for stages
-  1-4, and for stages 5-6 every leftover joined and same-type unmodified assignment across
-  segments, with none of our clean-up.
+  docs/pipeline.md: one pass, no adjustment, the paper's stage settings, and for stages 5-6 every
+  leftover joined and same-type unmodified assignment across segments, with none of our rules
+  (every stage's ``refined`` / ``cleanup`` / ``track_links`` switch off).
 - ``naive()``: the baseline without any offset correction: cluster means of the raw samples. It
-  is not "the default minus the correction": its stages 1-3 are the paper's (the stage classes'
-  defaults) and its stages 5-6 are the graph classes' own defaults, exactly as listed below.
+  is the paper's method with no M-step, no silhouette gate, plain means without the overlap
+  filter, and the first implementation's clean-up of stages 5-6 (``cleanup`` on): exactly as
+  listed below. It is not "the default minus the correction".
 """
 
 from __future__ import annotations
@@ -32,15 +33,32 @@ def default() -> PipelineConfig:
 
 
 def paper() -> PipelineConfig:
-    """The paper's method: one pass, the stage classes' paper settings, the paper's Sec. V-VI."""
+    """The paper's method: one pass, the paper's stage settings, the paper's Sec. V-VI."""
     return PipelineConfig(
-        sampling=SamplingConfig(),
-        alignment=AlignmentConfig(),
-        aggregation=AggregationConfig(),
+        sampling=SamplingConfig(refined=False),
+        alignment=AlignmentConfig(
+            clustering="silhouette",
+            n_iterations=5,
+            solver="lm",
+            robust_loss=False,
+            prior_weight=0.0,
+            sparse_step_max_drives=0,
+        ),
+        # bandwidth 6 x std; no uncertainty reported
+        aggregation=AggregationConfig(
+            kde_bandwidth_factor=6.0, kde_min_bandwidth_m=0.02, common_sigma_m=0.0, refined=False
+        ),
         final_pass=None,
         observation_stride=1,
-        connection=ConnectionConfig.paper(),
-        stitching=StitchConfig.paper(),
+        connection=ConnectionConfig(min_support_share=0.0, cleanup=False, refined=False),
+        stitching=StitchConfig(
+            fill_spacing_m=0.0,
+            min_isolated_length_m=0.0,
+            cleanup=False,
+            refined=False,
+            track_links=False,
+            fill_evidence=False,
+        ),
         mark_on_cut_only=False,
         evidence=None,
         name="paper",
@@ -48,15 +66,16 @@ def paper() -> PipelineConfig:
 
 
 def naive() -> PipelineConfig:
-    """No offset correction: the paper's sampling, no M-step, no silhouette gate, plain cluster
-    means without the overlap filter, and the graph classes' own defaults (not the paper's
-    Sec. V-VI, not the recommended ones)."""
+    """``paper()`` without offset correction: no M-step, no silhouette gate, plain cluster means
+    without the overlap filter; and the first implementation's clean-up of Sec. V-VI (the graph
+    rules measured later, ``refined`` and ``track_links``, stay off)."""
+    p = paper()
     return replace(
-        paper(),
-        alignment=AlignmentConfig(estimate_offsets=False, silhouette_gate=-1.0),
-        aggregation=AggregationConfig(method="mean", overlap_filter=False),
-        connection=ConnectionConfig(),
-        stitching=StitchConfig(),
+        p,
+        alignment=replace(p.alignment, estimate_offsets=False, silhouette_gate=-1.0),
+        aggregation=replace(p.aggregation, method="mean", overlap_filter=False),
+        connection=ConnectionConfig(refined=False),
+        stitching=StitchConfig(refined=False, track_links=False, fill_evidence=False),
         name="naive",
     )
 

@@ -16,12 +16,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from hdmap_core.checks import check_range
+from hdmap_core.checks import Rule, check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.geometry import arc_length, interp_angle, resample_by_distance, wrap_angle
 from hdmap_core.model import Drive, FeatureType
@@ -51,8 +52,8 @@ _MIN_WIDTH_M = 3.0
 
 @dataclass(frozen=True)
 class SamplingConfig:
-    """Lateral sampling and cut-line refinement (Sec. IV-A). Values the paper leaves open are
-    marked (open).
+    """Lateral sampling and cut-line refinement (Sec. IV-A); the defaults are the recommended
+    method. Values the paper leaves open are marked (open).
 
     Attributes:
         step_m: distance between steps along the pivot (paper: 2 m).
@@ -60,55 +61,41 @@ class SamplingConfig:
             width"; 30 m reaches the far edge of a 4-lane carriageway from any lane).
         max_heading_diff_deg: samples of drives whose heading differs more from the pivot's are
             dropped as opposite direction (open).
-        min_border_support: a border sample only counts as the first border when at least this
-            many border samples lie in its window (1 = the paper's literal first sample; more makes
-            one badly localised drive unable to cut the road short).
-        outer_border_reach: on a side of a step where no border sample has the support to be the
-            first border, samples are also kept up to a border sample that is the outermost
-            sample of that side (``_side_reach``): one drive of the 1-3 passing a place
-            may be the only one to see the far border (carla_town06_30_s2: 9.9 m left of its
-            lane, the lane line between unseen, so the open side's chain stopped 4 m short of
-            it). The cut's midpoint and width (the topology) are not changed: widening the cut
-            itself moved the topology (docs/pipeline.md). False: the paper's reading.
-        min_border_support_fraction: the support needed is also at least this share of the
-            drives sampled at the step (dense fleets: a few misclassified or false border
-            samples inside the road must not cut it short).
         spread_factor: dl_s = spread_factor * std(first border group) (open).
         margin_m: constant margin dl_c [m] (open).
-        open_side_gap_m: on a side of a step without a road border (e.g. a median without a
-            barrier), when > 0 the cut ends after the outermost sample of the chain of samples
-            (any type) that starts at the pivot and has no gap wider than this (lines of one
-            carriageway are a lane apart, a median is wider), plus the spread and constant
-            margins of the samples in ``_BORDER_WINDOW_M`` from there; 0 (the paper): such a side
-            follows the smoothed width of earlier steps, else ``_DEFAULT_WIDTH_M`` [m].
-        max_width_m: the refined cut is at most this long [m].
-        max_pivot_outside_m: a step whose pivot lies more than this beyond its refined
-            (smoothed) cut, i.e. |midpoint offset - the pivot's own offset| > width / 2 + this
-            (the pivot's position in the frame of its samples, ``PivotSamples.pose``; the raw
-            point without a ``shift``), is off its ego road
-            (``PivotSamples.off_cut``) and is not aligned: the refinement ran to another road's
-            borders (at a junction the smoothed midpoint lags a jump of the raw one; the
-            pivot drove on another road than the cut describes). inf (the paper): no check [m].
+        refined: the cut rules measured and adopted since the paper (its fixed ``refined``
+            rules: a border needs the support of a share of the step's drives, an open side ends
+            at a gap in its samples, a step whose pivot lies beyond its cut is not aligned).
+            False: the paper's reading.
     """
 
     step_m: float = 2.0
     initial_half_length_m: float = 30.0
     max_heading_diff_deg: float = 60.0
-    min_border_support: int = 2
-    min_border_support_fraction: float = 0.0
-    outer_border_reach: bool = False
     spread_factor: float = 2.0
     margin_m: float = 0.5
-    open_side_gap_m: float = 0.0
-    max_width_m: float = 40.0
-    max_pivot_outside_m: float = math.inf
+    refined: bool = True
+
+    #: a border sample only counts as the first border when at least this many border samples
+    #: lie in its window (one badly localised drive cannot cut the road short)
+    min_border_support: ClassVar[int] = 2
+    #: the refined cut is at most this long [m]
+    max_width_m: ClassVar[float] = 40.0
+    #: a side without a supported first border also keeps its samples up to a border sample
+    #: that is its outermost sample (``_side_reach``; the final pass only: ``FinalSampling``)
+    outer_border_reach: ClassVar[bool] = False
+    #: (refined) the border support is also at least this share of the step's drives
+    min_border_support_fraction = Rule("refined", 0.05, 0.0)
+    #: (refined) a side without a road border ends after the chain of samples from the pivot
+    #: with no gap wider than this, plus the margins; off: the smoothed width of earlier steps [m]
+    open_side_gap_m = Rule("refined", 4.0, 0.0)
+    #: (refined) a step whose pivot (``PivotSamples.pose``) lies more than this beyond its
+    #: refined cut is off its ego road (``PivotSamples.off_cut``) and not aligned [m]
+    max_pivot_outside_m = Rule("refined", 2.0, math.inf)
 
     def __post_init__(self) -> None:
         check_range(self, ("step_m", "initial_half_length_m", "max_heading_diff_deg"), low=0.0, low_open=True)
-        check_range(self, ("open_side_gap_m",), low=0.0, finite=True)
-        check_range(self, ("max_pivot_outside_m", "margin_m", "spread_factor", "min_border_support_fraction"), low=0.0)
-        check_range(self, ("max_width_m",), low=_MIN_WIDTH_M)
-        check_range(self, ("min_border_support",), low=1, integer=True)
+        check_range(self, ("margin_m", "spread_factor"), low=0.0)
 
 
 @dataclass(frozen=True)

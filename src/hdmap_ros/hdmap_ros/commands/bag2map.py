@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_set_argument(
         parser,
         "change one parameter of the preset (repeatable), dotted into PipelineConfig, the value as "
-        "JSON, e.g. --set stitching.track_rejoin_m=0 --set alignment.robust_loss=false",
+        "JSON, e.g. --set stitching.max_distance_m=8 --set alignment.robust_loss=false",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed of the pipeline (default: %(default)s)")
     parser.add_argument(
