@@ -180,21 +180,6 @@ def test_carry_over_ids_type_must_match_and_no_old_map():
     assert carry_over_ids(new, None) is new
 
 
-def test_clean_drive_drops_short_and_unknown_and_thins():
-    from hdmap_core.live.tiles import clean_drive
-
-    straight = Detection(FeatureType.SOLID, _line(0, 50, y=1))  # 51 collinear points
-    short = Detection(FeatureType.DASHED, _line(0, 2, y=2))  # 2 m < 3 m
-    unknown = Detection(FeatureType.UNKNOWN, _line(0, 50, y=3))
-    bend = Detection(FeatureType.ROAD_BORDER, np.array([[0.0, 0], [10, 0], [20, 5], [30, 10]]))
-    d = _drive(_line(0, 50), dets=[straight, short, unknown, bend])
-    c = clean_drive(d)
-    assert [x.type for x in c.detections] == [FeatureType.SOLID, FeatureType.ROAD_BORDER]
-    np.testing.assert_allclose(c.detections[0].points, [[0, 1], [50, 1]])
-    np.testing.assert_allclose(c.detections[1].points, [[0, 0], [10, 0], [30, 10]])
-    assert len(d.detections) == 4  # input untouched
-
-
 def test_needs_update_default_one_drive_never_makes_a_mapped_tile_due():
     # the default debounce: one more drive never re-estimates a mapped tile, however few drives it
     # has; 3 more drives do on sparse tiles, 10 % more on dense ones

@@ -61,7 +61,6 @@ __all__ = [
     "fleet_offsets",
     "observations_signature",
     "carry_over_ids",
-    "clean_drive",
     "connect_tile",
     "stitch_graphs",
 ]
@@ -445,39 +444,6 @@ def steps_outside(drives: Sequence[Drive], bounds: Sequence[float], *, step_m: f
         if out.any():
             marks[d.drive_id] = np.asarray(s, dtype=float)[out]
     return ProcessedStore().with_marks(marks, pad_m=0.25 * step_m, merge_gap_m=1.5 * step_m)
-
-
-def clean_drive(drive: Drive, *, min_length_m: float = 3.0, rdp_epsilon_m: float = 0.05) -> Drive:
-    """One drive's detections filtered and thinned as in Sec. III (what the ingestor does).
-
-    Detection polylines shorter than ``min_length_m`` and of type UNKNOWN are dropped (likely
-    misdetections; the pipeline ignores UNKNOWN anyway), the rest thinned with Ramer-Douglas-Peucker
-    (``rdp_epsilon_m``). The same rules as ``hdmap_core.pipeline.preprocess`` (which applies them again;
-    both are idempotent), so a drive cleaned early maps the same.
-
-    Args:
-        drive: a validated drive (not modified).
-    """
-    from hdmap_core.geometry import rdp_mask_many  # noqa: PLC0415
-    from hdmap_core.model import FeatureType  # noqa: PLC0415
-
-    kept = []
-    for det in drive.detections:
-        pts = np.asarray(det.points, dtype=float)
-        if int(det.type) == FeatureType.UNKNOWN or len(pts) < 2:
-            continue
-        if float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) < min_length_m:
-            continue
-        kept.append((det, pts))
-    if not kept:
-        return replace(drive, detections=())
-    xy = np.vstack([p for _, p in kept])
-    starts = np.cumsum([0] + [len(p) for _, p in kept[:-1]])
-    mask = rdp_mask_many(xy, np.asarray(starts), rdp_epsilon_m)
-    dets = tuple(
-        Detection(type=det.type, points=pts[mask[s : s + len(pts)]]) for (det, pts), s in zip(kept, starts)
-    )
-    return replace(drive, detections=dets)
 
 
 def connect_tile(segments: Sequence[Segment], key: TileKey, *, pipeline_config: PipelineConfig) -> list:

@@ -2,7 +2,7 @@
 
 Subscribes ``/fleet/drives`` (hdmap_msgs/Drive). Every drive is validated (the bad-input classes of
 ``hdmap_core.model.validate_drive``: NaN/inf, too few points, empty trajectory, unknown type, wrong
-frame), its detections cleaned as in Sec. III (length filter, RDP; ``incremental.clean_drive``),
+frame), its detections cleaned as in Sec. III (length filter, RDP; ``pipeline.preprocess.clean_drive``),
 duplicates dropped by drive id, and the rest published on ``/hdmap/drives_accepted``. Every
 rejection is logged with the drive id and the reason and counted on ``/diagnostics``.
 """
@@ -14,7 +14,7 @@ import time
 from rclpy.node import Node
 
 from hdmap_core.errors import HdmapError, InvalidDriveError
-from hdmap_core.live.tiles import clean_drive
+from hdmap_core.pipeline.preprocess import PreprocessConfig, clean_drive
 from hdmap_ros.convert.messages import drive_to_msg, msg_to_drive, rclpy_types
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, run_node
@@ -42,6 +42,7 @@ class DriveIngestor(HealthMixin, Node):
             self, "accepted_history_depth", 100,
             "Accepted drives kept (TRANSIENT_LOCAL) for a mapper that restarts.", lo=1, hi=100000,
         )
+        self.clean_config = PreprocessConfig(min_length_m=self.min_length_m, rdp_epsilon_m=self.rdp_epsilon_m)
         self._init_health("drive_ingestor")
         self._types = rclpy_types()
         self._seen: set[str] = set()
@@ -75,7 +76,7 @@ class DriveIngestor(HealthMixin, Node):
             self.get_logger().warning(f"drive {did!r} rejected: duplicate_drive_id")
             return
         self._seen.add(drive.drive_id)
-        drive = clean_drive(drive, min_length_m=self.min_length_m, rdp_epsilon_m=self.rdp_epsilon_m)
+        drive = clean_drive(drive, config=self.clean_config)
         self._pub.publish(drive_to_msg(drive, types=self._types))
         self.published += 1
         self.health.accept()
