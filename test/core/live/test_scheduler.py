@@ -189,3 +189,14 @@ def test_any_arrival_and_completion_order_settles_to_jobs_of_the_full_drive_sets
                 assert last[key].drive_ids == want
                 assert last[key].kind == (REMAP if model else MAP)
         assert s.pending_tiles() == 0
+
+
+def test_a_drive_is_integrated_once_every_tile_it_touches_is_mapped_with_it():
+    from hdmap_core.live.progress import integrated_drives
+
+    # a covers 2 tiles, b 1, c 3 (one of c's tiles has no estimate yet)
+    tiles = [(("a", "b", "c"), (2, 1, 3)), (("a", "c"), (2, 3))]
+    assert integrated_drives(tiles) == {"a", "b"}
+    assert integrated_drives(tiles + [(("c",), (3,))]) == {"a", "b", "c"}
+    assert integrated_drives([(("a",), (2,)), (("b",), ())]) == {"b"}  # no counts: vouches for itself
+    assert integrated_drives([]) == set()

@@ -166,6 +166,14 @@ class LiveScheduler:
         """The drives covering a tile, sorted."""
         return tuple(sorted(self._tiles.get(key, ())))
 
+    def queued(self) -> set[TileKey]:
+        """Tiles queued or in work."""
+        return set(self._queue) | {k for k in self._busy if k is not None}
+
+    def is_mapped(self, key: TileKey) -> bool:
+        """The tile has an estimate."""
+        return key in self._est
+
     @property
     def drive_count(self) -> int:
         return len(self._drive_tiles)

@@ -131,8 +131,13 @@ class HealthMixin:
         self._diag_pub.publish(health_to_msg([self.health], stamp=self.get_clock().now().to_msg()))
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> None:
-    """The ros2/demos ``main``: init, spin, clean shutdown on Ctrl-C or external shutdown."""
+def run_node(
+    factory: Callable[[], Node], args: Sequence[str] | None = None, *, until: Callable[[Any], bool] | None = None
+) -> None:
+    """The ros2/demos ``main``: init, spin, clean shutdown on Ctrl-C or external shutdown.
+
+    ``until``: spin only until it returns True for the node (e.g. a player at the end of its bag).
+    """
     rclpy.init(args=with_default_params(args))
     node = None
     try:
@@ -143,7 +148,13 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
             raise SystemExit(2) from None
         # Two threads: a node's receiving callbacks (own callback group) stay responsive while its
         # worker callback maps or stitches; callbacks of one group never run concurrently.
-        rclpy.spin(node, executor=MultiThreadedExecutor(num_threads=2))
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        if until is None:
+            executor.spin()
+        else:
+            while rclpy.ok() and not until(node):
+                executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

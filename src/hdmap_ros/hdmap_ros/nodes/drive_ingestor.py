@@ -4,7 +4,9 @@ Subscribes ``/fleet/drives`` (hdmap_msgs/Drive). Every drive is validated (the b
 ``hdmap_core.model.validate_drive``: NaN/inf, too few points, empty trajectory, unknown type, wrong
 frame), its detections cleaned as in Sec. III (length filter, RDP; ``pipeline.preprocess.clean_drive``),
 duplicates dropped by drive id, and the rest published on ``/hdmap/drives_accepted``. Every
-rejection is logged with the drive id and the reason and counted on ``/diagnostics``.
+rejection is logged with the drive id and the reason and counted on ``/diagnostics``; the id of a
+drive refused as invalid goes out on ``/hdmap/drives_rejected`` (std_msgs/String; the mapper counts
+them in the map's status).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import time
 
 from rclpy.node import Node
+from std_msgs.msg import String
 
 from hdmap_core.errors import HdmapError, InvalidDriveError
 from hdmap_core.pipeline.preprocess import PreprocessConfig, clean_drive
@@ -23,6 +26,7 @@ __all__ = ["DriveIngestor", "main"]
 
 DRIVES_TOPIC = "/fleet/drives"
 ACCEPTED_TOPIC = "/hdmap/drives_accepted"
+REJECTED_TOPIC = "/hdmap/drives_rejected"
 
 
 class DriveIngestor(HealthMixin, Node):
@@ -49,6 +53,7 @@ class DriveIngestor(HealthMixin, Node):
         self.published = 0
         self.received = 0
         self._pub = self.create_publisher(self._types.Drive, ACCEPTED_TOPIC, qos.replay(depth))
+        self._rej_pub = self.create_publisher(String, REJECTED_TOPIC, qos.ACKS)
         self._sub = self.create_subscription(self._types.Drive, DRIVES_TOPIC, self.on_drive, qos.DRIVES)
 
     def on_drive(self, msg) -> None:
@@ -65,10 +70,12 @@ class DriveIngestor(HealthMixin, Node):
         except InvalidDriveError as err:
             self.health.reject(err.reason, f"{did!r} {err.detail}")
             self.get_logger().warning(f"drive {did!r} rejected: {err.reason} ({err.detail})")
+            self._rej_pub.publish(String(data=did))
             return
         except HdmapError as err:
             self.health.reject("invalid_message", f"{did!r} {err}")
             self.get_logger().warning(f"drive {did!r} rejected: invalid_message ({err})")
+            self._rej_pub.publish(String(data=did))
             return
         if drive.drive_id in self._seen:
             self.health.duplicate()

@@ -463,6 +463,29 @@ class DriveStore(_Store):
         rows = self._query("SELECT tx, ty, version, drive_ids, segments FROM tiles ORDER BY tx, ty")
         return [TileEstimate((r[0], r[1]), r[2], json.loads(r[3]), r[4]) for r in rows]
 
+    def tile_drive_sets(self) -> dict[TileKey, list[str]]:
+        """Every tile with the stored drives covering it."""
+        out: dict[TileKey, list[str]] = {}
+        for x, y, d in self._query("SELECT tx, ty, drive_id FROM drive_tiles ORDER BY tx, ty, drive_id"):
+            out.setdefault((x, y), []).append(d)
+        return out
+
+    def estimates(self) -> list[tuple[TileKey, list[str], str]]:
+        """(tile, the drives its estimate was made from, the model signature it was made with) per tile."""
+        rows = self._query("SELECT tx, ty, drive_ids, model_sig FROM tiles ORDER BY tx, ty")
+        return [((r[0], r[1]), json.loads(r[2]), r[3]) for r in rows]
+
+    def drives(self, drive_ids: Iterable[str]) -> list[Drive]:
+        """The stored drives of these ids (unknown ids skipped), ordered by drive id."""
+        ids = sorted(set(drive_ids))
+        out: list[Drive] = []
+        for i in range(0, len(ids), 500):
+            chunk = ids[i : i + 500]
+            q = ",".join("?" * len(chunk))
+            rows = self._query(f"SELECT blob FROM drives WHERE drive_id IN ({q}) ORDER BY drive_id", chunk)
+            out.extend(blob_to_drive(r[0]) for r in rows)
+        return out
+
     def tiles_signature(self) -> str:
         """Every (tile, version), as :meth:`MapStore.tiles_signature` names them."""
         rows = self._query("SELECT tx, ty, version FROM tiles ORDER BY tx, ty")
@@ -587,17 +610,35 @@ class MapStore(_Store):
     )
     """
 
-    def put_tile(self, key: TileKey, version: int, segments_blob: bytes, drive_ids: Sequence[str]) -> bool:
-        """Store a tile's segments unless a same or newer version is stored; True when stored."""
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(path)
+        cols = {r[1] for r in self._query("PRAGMA table_info(tiles)")}
+        if "drive_tile_counts" not in cols:  # a store of before the per-drive tile counts
+            with self._tx() as con:
+                con.execute("ALTER TABLE tiles ADD COLUMN drive_tile_counts TEXT NOT NULL DEFAULT '[]'")
+
+    def put_tile(
+        self, key: TileKey, version: int, segments_blob: bytes, drive_ids: Sequence[str],
+        drive_tile_counts: Sequence[int] = (),
+    ) -> bool:
+        """Store a tile's segments unless a same or newer version is stored; True when stored.
+        ``drive_tile_counts``: per drive id, the tiles that drive covers (empty: unknown)."""
         with self._tx() as con:
             row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
             if row and row[0] >= version:
                 return False
             con.execute(
-                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_ids, segments) VALUES (?, ?, ?, ?, ?)",
-                (key[0], key[1], int(version), json.dumps(list(drive_ids)), segments_blob),
+                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_ids, segments, drive_tile_counts) "
+                "VALUES (?, ?, ?, ?, ?, ?)",
+                (key[0], key[1], int(version), json.dumps(list(drive_ids)), segments_blob,
+                 json.dumps([int(n) for n in drive_tile_counts])),
             )
         return True
+
+    def tile_counts(self) -> dict[TileKey, list[int]]:
+        """Per tile, the tile counts of its estimate's drives (as :meth:`put_tile` got them)."""
+        rows = self._query("SELECT tx, ty, drive_tile_counts FROM tiles ORDER BY tx, ty")
+        return {(r[0], r[1]): json.loads(r[2]) for r in rows}
 
     def tile_version(self, key: TileKey) -> int:
         rows = self._query("SELECT version FROM tiles WHERE tx=? AND ty=?", key)
