@@ -200,3 +200,15 @@ def test_a_drive_is_integrated_once_every_tile_it_touches_is_mapped_with_it():
     assert integrated_drives(tiles + [(("c",), (3,))]) == {"a", "b", "c"}
     assert integrated_drives([(("a",), (2,)), (("b",), ())]) == {"b"}  # no counts: vouches for itself
     assert integrated_drives([]) == set()
+
+
+def test_only_estimates_made_as_the_settled_map_makes_them_are_final():
+    s = _sched(model=False)
+    s.add_drive("d0", [A], now=0.0)
+    assert all(j.final for j in _drain(s, 0.0))  # without the fleet model every estimate is final
+    s = _sched(model=True, settle=1.0)
+    s.add_drive("d0", [A], now=0.0)
+    arrival = _drain(s, 0.0, observed=True)
+    assert [(j.kind, j.final) for j in arrival] == [(MAP, False)]  # its own adjustment: not final
+    settle = _drain(s, 2.0)
+    assert [(j.kind, j.final) for j in settle] == [(MODEL, False), (REMAP, True)]

@@ -20,7 +20,7 @@ from hdmap_core.model import Drive
 if TYPE_CHECKING:
     from hdmap_core.pipeline.config import PipelineConfig
 
-__all__ = ["JobResult", "run_job"]
+__all__ = ["JobResult", "run_job", "warm_up"]
 
 
 @dataclass
@@ -84,3 +84,9 @@ def run_job(
         raise ConfigError(f"unknown job kind {job.kind!r}")
     out.seconds = time.perf_counter() - t0
     return out
+
+
+def warm_up() -> None:
+    """Import the pipeline (what a worker process's first job would), so it is ready before drives come."""
+    import hdmap_core.graph.connection  # noqa: F401, PLC0415
+    import hdmap_core.pipeline.driver  # noqa: F401, PLC0415

@@ -48,12 +48,16 @@ class Job:
         drive_ids: the drives covering the tile when the job was made, sorted (its input).
         sig: :data:`MODEL`: the signature of the observations it is made from; :data:`REMAP`: that
             of the model it uses; else ''.
+        final: its estimate is made as the settled map makes it (a REMAP; a MAP when no fleet model
+            is used, or when the model of these observations failed): only then do the drives it is
+            made from count as mapped on this tile (``Map.drive_ids``).
     """
 
     kind: str
     key: TileKey | None
     drive_ids: tuple[str, ...] = ()
     sig: str = ""
+    final: bool = False
 
 
 class LiveScheduler:
@@ -241,7 +245,8 @@ class LiveScheduler:
             key = self._pick(ready)
             self._queue.discard(key)
             if self._due(key):
-                return Job(MAP, key, self.tile_drives(key))
+                failed = self._model_failed_sig != "" and self._model_failed_sig == self.observations_sig()
+                return Job(MAP, key, self.tile_drives(key), final=not self.use_fleet_model or failed)
         if now - self._last_input < self.settle_after_s:
             return None
         return self._settle_job()
@@ -257,7 +262,7 @@ class LiveScheduler:
         if not self._model_phase():
             for key in sorted(self._tiles):
                 if key not in self._busy and self._stale(key) and not self._failed_at_count(key):
-                    return Job(MAP, key, self.tile_drives(key))
+                    return Job(MAP, key, self.tile_drives(key), final=True)
             return None
         stale_obs = self._stale_observations()
         for key in stale_obs:  # 1. observations of every tile's drive set
@@ -276,7 +281,7 @@ class LiveScheduler:
             keys = after or keys
         key = keys[0]
         self._cursor = key
-        return Job(REMAP, key, self.tile_drives(key), self._model_sig)  # 3. every tile with the model
+        return Job(REMAP, key, self.tile_drives(key), self._model_sig, final=True)  # 3. every tile with the model
 
     # --- tile state ------------------------------------------------------------------------------
 

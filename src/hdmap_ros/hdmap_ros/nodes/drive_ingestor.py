@@ -18,9 +18,9 @@ from std_msgs.msg import String
 
 from hdmap_core.errors import HdmapError, InvalidDriveError
 from hdmap_core.pipeline.preprocess import PreprocessConfig, clean_drive
-from hdmap_ros.convert.messages import drive_to_msg, msg_to_drive, rclpy_types
+from hdmap_ros.convert.messages import rclpy_types
 from hdmap_ros.nodes import qos
-from hdmap_ros.nodes._common import HealthMixin, declare, run_node
+from hdmap_ros.nodes._common import HealthMixin, declare, drive_from_wire, drive_to_wire, run_node
 
 __all__ = ["DriveIngestor", "main"]
 
@@ -54,7 +54,8 @@ class DriveIngestor(HealthMixin, Node):
         self.received = 0
         self._pub = self.create_publisher(self._types.Drive, ACCEPTED_TOPIC, qos.replay(depth))
         self._rej_pub = self.create_publisher(String, REJECTED_TOPIC, qos.ACKS)
-        self._sub = self.create_subscription(self._types.Drive, DRIVES_TOPIC, self.on_drive, qos.DRIVES)
+        # raw: CDR bytes in and out (``drive_from_wire``), no Python object per point
+        self._sub = self.create_subscription(self._types.Drive, DRIVES_TOPIC, self.on_drive, qos.DRIVES, raw=True)
 
     def on_drive(self, msg) -> None:
         """Validate, de-duplicate, clean and forward one drive; never raises on bad input."""
@@ -66,8 +67,9 @@ class DriveIngestor(HealthMixin, Node):
     def _handle(self, msg) -> None:
         did = str(getattr(msg, "drive_id", ""))
         try:
-            drive = msg_to_drive(msg, expected_frame=self.expected_frame or None)
+            drive = drive_from_wire(msg, self._types.Drive, expected_frame=self.expected_frame or None)
         except InvalidDriveError as err:
+            did = did or err.drive_id
             self.health.reject(err.reason, f"{did!r} {err.detail}")
             self.get_logger().warning(f"drive {did!r} rejected: {err.reason} ({err.detail})")
             self._rej_pub.publish(String(data=did))
@@ -84,7 +86,7 @@ class DriveIngestor(HealthMixin, Node):
             return
         self._seen.add(drive.drive_id)
         drive = clean_drive(drive, config=self.clean_config)
-        self._pub.publish(drive_to_msg(drive, types=self._types))
+        self._pub.publish(drive_to_wire(drive))
         self.published += 1
         self.health.accept()
         self.health.updated(time.time_ns())

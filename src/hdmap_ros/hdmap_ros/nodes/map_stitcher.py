@@ -113,7 +113,7 @@ class MapStitcher(HealthMixin, Node):
             self.get_logger().warning(f"tile message rejected: {err}")
             return
         if self.store.put_tile(tile.key, tile.version, segments_to_blob(tile.segments), tile.drive_ids,
-                               tile.drive_tile_counts):
+                               tile.drive_tile_counts, tile.final):
             self.health.accept()
             now = time.monotonic()
             self._last_rx = now
@@ -154,15 +154,17 @@ class MapStitcher(HealthMixin, Node):
         t0 = time.perf_counter()
         sig = self.store.tiles_signature()
         graphs, parts = [], []
-        counts = self.store.tile_counts()
+        progress = self.store.tile_progress()
         for key, version, ids, blob in self.store.tiles():
             cached = self._graphs.get(key)
             if cached is None or cached[0] != version:
                 cached = (version, connect_tile(blob_to_segments(blob), key, pipeline_config=self.pipeline_config))
                 self._graphs[key] = cached
             graphs.extend(cached[1])
-            parts.append((ids, counts.get(key, [])))
-        drive_ids = integrated_drives(parts)  # every tile of each is in this map with it
+            counts, final = progress.get(key, ([], True))
+            if final:  # an estimate vouches for its drives once made as the settled map makes it
+                parts.append((ids, counts))
+        drive_ids = integrated_drives(parts)  # every tile of each is in this map with it, final
         t1 = time.perf_counter()
         new = stitch_graphs(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
         t2 = time.perf_counter()

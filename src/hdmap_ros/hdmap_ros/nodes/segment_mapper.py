@@ -27,8 +27,9 @@ and publishes their results. A tile is one job for all drives waiting on it; til
 covers yet go first, so coverage grows while drives come.
 
 Each tile estimate names, per drive it was made from, how many tiles that drive covers
-(``drive_tile_counts``): the stitcher lists a drive in ``Map.drive_ids`` only once every one of
-its tiles is in the map with it. The mapper's progress (drives received and rejected, tiles
+(``drive_tile_counts``), and whether it is *final*: made as the settled map makes it (with the
+fleet offset model where the preset has one). The stitcher lists a drive in ``Map.drive_ids``
+only once every one of its tiles is in the map with it, final. The mapper's progress (drives received and rejected, tiles
 pending, settled) goes out as hdmap_msgs/MapStatus on ``/hdmap/mapper_status`` (latched); the
 stitcher completes it on ``/hdmap/status``.
 
@@ -49,17 +50,16 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
-from hdmap_core.live.jobs import JobResult, run_job
+from hdmap_core.live.jobs import JobResult, run_job, warm_up
 from hdmap_core.live.progress import LiveStatus
 from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig, tiles_of_drive
-from hdmap_core.model import validate_drive
 from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.adjustment import OffsetModel
-from hdmap_ros.convert.messages import msg_to_drive, rclpy_status_class, rclpy_types, status_to_msg
+from hdmap_ros.convert.messages import rclpy_status_class, rclpy_types, status_to_msg
 from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
 from hdmap_ros.nodes import qos
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
+from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, drive_from_wire, run_node
 from hdmap_ros.persistence.store import DriveStore, TileEstimate
 
 __all__ = ["SegmentMapper", "main"]
@@ -123,7 +123,8 @@ class SegmentMapper(HealthMixin, Node):
         )
         republish = declare(self, "republish_on_start", True, "Publish every stored tile estimate at start.")
         self.work_slice_s = declare(
-            self, "work_slice_s", 0.5, "Mapping time per worker turn with workers=1 [s]; new drives are taken in between.",
+            self, "work_slice_s", 0.5,
+            "Mapping time per worker turn with workers=1 [s]; new drives are taken in between.",
             lo=0.0, hi=600.0,
         )
         workers = declare(
@@ -151,6 +152,8 @@ class SegmentMapper(HealthMixin, Node):
             if self.workers > 1 else _Inline()
         )
         self._running: dict[Future, Job] = {}
+        for _ in range(self.workers if self.workers > 1 else 0):  # start the processes while nothing waits
+            self._pool.submit(warm_up)
         self.tiles_published = 0
         self.received = 0
         self._rejected_ids: set[str] = set()
@@ -164,7 +167,8 @@ class SegmentMapper(HealthMixin, Node):
         self._rx_group = MutuallyExclusiveCallbackGroup()
         self._work_group = MutuallyExclusiveCallbackGroup()
         self._sub = self.create_subscription(
-            self._types.Drive, ACCEPTED_TOPIC, self.on_drive, qos.replay(accepted_depth), callback_group=self._rx_group
+            self._types.Drive, ACCEPTED_TOPIC, self.on_drive, qos.replay(accepted_depth), callback_group=self._rx_group,
+            raw=True,  # CDR bytes, read vectorised (drive_from_wire)
         )
         self._rej_sub = self.create_subscription(
             String, REJECTED_TOPIC, lambda m: self._rejected_ids.add(str(m.data)), qos.ACKS,
@@ -215,10 +219,12 @@ class SegmentMapper(HealthMixin, Node):
             self.received += 1  # counted once handled, so "received" means "stored or refused"
 
     def _receive(self, msg) -> None:
-        did = str(msg.drive_id)
+        did = str(getattr(msg, "drive_id", ""))
         try:
-            drive = validate_drive(msg_to_drive(msg, expected_frame=None), expected_frame="")
+            drive = drive_from_wire(msg, self._types.Drive, expected_frame=None)
+            did = drive.drive_id
         except InvalidDriveError as err:
+            did = did or err.drive_id
             self.health.reject(err.reason, did)
             self._rejected_ids.add(did)
             self.get_logger().warning(f"drive {did!r} rejected: {err.reason} ({err.detail})")
@@ -309,7 +315,7 @@ class SegmentMapper(HealthMixin, Node):
             est = self.store.put_tile(job.key, result.segments, job.drive_ids,
                                       model_sig=job.sig if job.kind == REMAP else "",
                                       observations=result.observations)
-            self._publish(est)
+            self._publish(est, final=job.final)
             self.health.updated()
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
             self.health.set("tiles", self.scheduler.tile_count)
@@ -330,11 +336,14 @@ class SegmentMapper(HealthMixin, Node):
         self._model = OffsetModel.from_dict(data) if data is not None else None
         self._model_sig = sig if data is not None else ""
 
-    def _publish(self, est: TileEstimate) -> None:
+    def _publish(self, est: TileEstimate, *, final: bool | None = None) -> None:
+        """Publish an estimate; ``final`` None (a stored one): final when made with the fleet model
+        or when the preset has none."""
         msg = tile_to_msg(
             est.key, est.segments(), version=est.version, drive_ids=est.drive_ids,
             tile_size_m=self.tile_config.tile_size_m, stamp_ns=time.time_ns(), types=self._tile_types,
             drive_tile_counts=[self.scheduler.drive_tile_count(d) for d in est.drive_ids],
+            final=(bool(est.model_sig) or not self.use_fleet_model) if final is None else final,
         )
         self._seg_pub.publish(msg)
         self.tiles_published += 1
