@@ -173,8 +173,18 @@ def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settl
             lat.append(t_in - t_ack)
     if lat:
         a = np.array(lat)
-        print(f"ack -> listed in drive_ids latency over {len(a)} drives: median {np.median(a):.1f} s, "
+        print(f"ack -> listed in drive_ids latency over {len(a)} drives (acks the probe saw): median {np.median(a):.1f} s, "
               f"p90 {np.percentile(a, 90):.1f} s, max {a.max():.1f} s")
+    if probe.maps:  # coverage while the fleet is mapped: the latest map at quarters of the run
+        end = probe.maps[-1][0]
+        row = []
+        for q in (0.25, 0.5, 0.75):
+            at = t0 + q * (end - t0)
+            seen = [(t, msg) for t, msg in probe.maps if t <= at]
+            if seen:
+                rep = evaluate_map(msg_to_map(seen[-1][1]), gt)
+                row.append(f"{at - t0:.0f} s: {100 * rep.overall.coverage:.1f} % ({rep.overall.mean_m:.3f} m)")
+        print("coverage (mean error) of the latest map at a quarter, half, three quarters of the run: " + ", ".join(row))
     versions = [(t - t0, len(msg.drive_ids)) for t, msg in probe.maps]
     if versions:
         print("map versions (s, drives listed): " + ", ".join(f"{t:.0f}:{n}" for t, n in versions))

@@ -14,7 +14,14 @@ from typing import TYPE_CHECKING, Any
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job
-from hdmap_core.live.tiles import TileConfig, fleet_offsets, map_tile, map_tile_observed, observe_tile
+from hdmap_core.live.tiles import (
+    TileConfig,
+    fleet_offsets,
+    map_tile,
+    map_tile_observed,
+    observe_tile,
+    preview_tile,
+)
 from hdmap_core.model import Drive
 
 if TYPE_CHECKING:
@@ -75,6 +82,11 @@ def run_job(
         if offset_model is None:
             raise ConfigError(f"tile {job.key}: a remap job needs the fleet offset model")
         out = JobResult(segments=map_tile(drives, job.key, offset_model=offset_model, **kw))
+    elif job.kind == MAP and use_fleet_model and not job.final:
+        # RULE: a tile's estimate while drives come is its observation pass (half the work of its
+        # own adjustment and final pass); the settled map re-makes it with the fleet model anyway
+        segments, obs = preview_tile(drives, job.key, **kw)
+        out = JobResult(segments=segments, observations=obs)
     elif job.kind == MAP and use_fleet_model:
         segments, obs = map_tile_observed(drives, job.key, **kw)
         out = JobResult(segments=segments, observations=obs)

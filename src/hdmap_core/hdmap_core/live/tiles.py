@@ -58,6 +58,7 @@ __all__ = [
     "map_tile",
     "map_tile_observed",
     "observe_tile",
+    "preview_tile",
     "fleet_offsets",
     "observations_signature",
     "carry_over_ids",
@@ -385,6 +386,23 @@ def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConf
     return _core_observations(_first_pass(inp, pipeline_config), inp, key)
 
 
+def preview_tile(
+    drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig
+) -> tuple[list[Segment], list]:
+    """The tile's observation pass (:func:`observe_tile`) and the segments of that pass.
+
+    About half the work of :func:`map_tile_observed` (no adjustment, no final pass): a first
+    estimate that puts a new road on the map while drives come, when the settled map is made with
+    the fleet-wide model anyway. Returns (segments of the tile proper, its observations).
+    """
+    inp = _tile_input(drives, key, tile_config, pipeline_config)
+    if not inp.clipped:
+        return [], []
+    res = _first_pass_result(inp, pipeline_config)
+    return (_whole_drive_s(select_steps(res.segments, inp.core), inp.s0),
+            _core_observations(res.observations, inp, key))
+
+
 def fleet_offsets(observations: Sequence, *, pipeline_config: PipelineConfig):
     """The network-wide offset adjustment over the observations of all tiles (as ``bag2map`` does).
 
@@ -409,13 +427,16 @@ def observations_signature(parts: Iterable[tuple[TileKey, Sequence[str]]]) -> st
 
 def _first_pass(inp: _TileInput, pipeline_config: PipelineConfig) -> list:
     """The step observations of the pipeline's first pass on a tile's drives (no adjustment)."""
-    from dataclasses import replace  # noqa: PLC0415
+    return _first_pass_result(inp, pipeline_config).observations
 
+
+def _first_pass_result(inp: _TileInput, pipeline_config: PipelineConfig):
+    """The pipeline's first pass on a tile's drives (no adjustment): segments and observations."""
     from hdmap_core.pipeline.driver import map_stretches  # noqa: PLC0415
 
     first_only = replace(pipeline_config, final_pass=None)
     return map_stretches(inp.clipped, config=first_only, seed=inp.seed, processed=inp.processed,
-                         collect_observations=True, validated=True, observations_only=True).observations
+                         collect_observations=True, validated=True, observations_only=True)
 
 
 def _final_pass(inp: _TileInput, pipeline_config: PipelineConfig, model: OffsetSource) -> list[Segment]:
