@@ -301,6 +301,24 @@ def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
 
 
 @pytest.mark.slow
+def test_preview_tile_observes_as_the_settle_does_and_maps_the_tile():
+    from hdmap_core.live.tiles import observe_tile, preview_tile
+
+    drives, key, cfg, pc = _sim_tile()
+    segments, obs = preview_tile(drives, key, tile_config=cfg, pipeline_config=pc)
+    obs2 = observe_tile(drives, key, tile_config=cfg, pipeline_config=pc)
+    assert len(obs) > 10 and len(obs) == len(obs2)
+    for a, b in zip(obs, obs2):  # the preview's observations are the settle's, exactly
+        assert (a.pivot_id, a.index, a.drive_ids) == (b.pivot_id, b.index, b.drive_ids)
+        for f in ("midpoint", "drive_s_m", "lateral_m", "types", "cluster"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    xmin, ymin, xmax, ymax = tile_bounds(key, tile_size_m=cfg.tile_size_m)
+    mids = np.array([st.midpoint for sg in segments for st in sg.steps if st.valid], dtype=float)
+    assert len(mids) > 10  # a map of the tile, its steps inside the tile proper
+    assert ((mids[:, 0] >= xmin) & (mids[:, 0] < xmax) & (mids[:, 1] >= ymin) & (mids[:, 1] < ymax)).all()
+
+
+@pytest.mark.slow
 def test_map_tile_with_a_fleet_model_shifts_by_it_at_full_drive_distances():
     from dataclasses import replace
 

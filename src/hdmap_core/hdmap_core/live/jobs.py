@@ -71,27 +71,27 @@ def run_job(
         HdmapError: the pipeline's own errors on the tile's data.
     """
     t0 = time.perf_counter()
-    kw = {"tile_config": tile_config, "pipeline_config": pipeline_config}
+    tc, pc = tile_config, pipeline_config
     if job.kind == MODEL:
-        out = JobResult(model=fleet_offsets(list(observations or ()), pipeline_config=pipeline_config))
+        out = JobResult(model=fleet_offsets(list(observations or ()), pipeline_config=pc))
     elif job.key is None:
         raise ConfigError(f"a {job.kind} job needs a tile")
     elif job.kind == OBSERVE:
-        out = JobResult(observations=observe_tile(drives, job.key, **kw))
+        out = JobResult(observations=observe_tile(drives, job.key, tile_config=tc, pipeline_config=pc))
     elif job.kind == REMAP:
         if offset_model is None:
             raise ConfigError(f"tile {job.key}: a remap job needs the fleet offset model")
-        out = JobResult(segments=map_tile(drives, job.key, offset_model=offset_model, **kw))
+        out = JobResult(segments=map_tile(drives, job.key, tile_config=tc, pipeline_config=pc, offset_model=offset_model))
     elif job.kind == MAP and use_fleet_model and not job.final:
         # RULE: a tile's estimate while drives come is its observation pass (half the work of its
         # own adjustment and final pass); the settled map re-makes it with the fleet model anyway
-        segments, obs = preview_tile(drives, job.key, **kw)
+        segments, obs = preview_tile(drives, job.key, tile_config=tc, pipeline_config=pc)
         out = JobResult(segments=segments, observations=obs)
     elif job.kind == MAP and use_fleet_model:
-        segments, obs = map_tile_observed(drives, job.key, **kw)
+        segments, obs = map_tile_observed(drives, job.key, tile_config=tc, pipeline_config=pc)
         out = JobResult(segments=segments, observations=obs)
     elif job.kind == MAP:
-        out = JobResult(segments=map_tile(drives, job.key, **kw))
+        out = JobResult(segments=map_tile(drives, job.key, tile_config=tc, pipeline_config=pc))
     else:
         raise ConfigError(f"unknown job kind {job.kind!r}")
     out.seconds = time.perf_counter() - t0
