@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+from dataclasses import replace
 
 from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig
@@ -212,3 +213,17 @@ def test_only_estimates_made_as_the_settled_map_makes_them_are_final():
     assert [(j.kind, j.final) for j in arrival] == [(MAP, False)]  # its own adjustment: not final
     settle = _drain(s, 2.0)
     assert [(j.kind, j.final) for j in settle] == [(MODEL, False), (REMAP, True)]
+
+
+def test_the_maps_status_completes_the_mappers_and_settles_only_when_every_estimate_is_stitched():
+    from hdmap_core.live.progress import LiveStatus, map_status
+
+    mapper = LiveStatus(drives_received=10, drives_rejected=1, tiles_pending=0, tile_versions=40, settled=True)
+    st = map_status(mapper, map_version=3, drives_integrated=10, tile_versions=38, tiles_unstitched=2, stitched=True)
+    assert (st.drives_received, st.drives_integrated, st.drives_rejected, st.tiles_pending) == (10, 10, 1, 2)
+    assert not st.settled  # two estimates of the mapper are not in the stitcher's store yet
+    st = map_status(mapper, map_version=4, drives_integrated=10, tile_versions=40, tiles_unstitched=0, stitched=True)
+    assert st.settled and st.map_version == 4 and st.same(replace(st, stamp_ns=5)) and not st.same(None)
+    busy = replace(mapper, settled=False, tiles_pending=3)
+    assert not map_status(busy, map_version=4, drives_integrated=9, tile_versions=40, tiles_unstitched=0,
+                          stitched=True).settled

@@ -268,12 +268,7 @@ class SegmentMapper(HealthMixin, Node):
         pending = self.store.pending()
         if not pending:
             return
-        tiles = self.store.tile_drive_sets()
-        per_drive: dict[str, list] = {d: [] for d in pending}
-        for key, ids in tiles.items():
-            for d in ids:
-                if d in per_drive:
-                    per_drive[d].append(key)
+        per_drive = self.store.tiles_per_drive(pending)
         now = time.monotonic()
         for d in pending:
             self.scheduler.add_drive(d, per_drive[d], now)

@@ -446,6 +446,17 @@ class DriveStore(_Store):
             out.update((x, y) for x, y in self._query(f"SELECT tx, ty FROM drive_tiles WHERE drive_id IN ({q})", chunk))
         return out
 
+    def tiles_per_drive(self, drive_ids: Iterable[str]) -> dict[str, list[TileKey]]:
+        """The tiles each of these drives covers (every id a key, [] when unknown)."""
+        ids = list(drive_ids)
+        out: dict[str, list[TileKey]] = {d: [] for d in ids}
+        for i in range(0, len(ids), 500):
+            chunk = ids[i : i + 500]
+            q = ",".join("?" * len(chunk))
+            for x, y, d in self._query(f"SELECT tx, ty, drive_id FROM drive_tiles WHERE drive_id IN ({q})", chunk):
+                out[d].append((x, y))
+        return out
+
     def tile_drive_count(self, key: TileKey) -> int:
         return int(self._query("SELECT COUNT(*) FROM drive_tiles WHERE tx=? AND ty=?", key)[0][0])
 
