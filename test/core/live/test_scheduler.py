@@ -227,3 +227,33 @@ def test_the_maps_status_completes_the_mappers_and_settles_only_when_every_estim
     busy = replace(mapper, settled=False, tiles_pending=3)
     assert not map_status(busy, map_version=4, drives_integrated=9, tile_versions=40, tiles_unstitched=0,
                           stitched=True).settled
+
+
+def _cells(key, xs):
+    return {key: {(x, 0) for x in xs}}
+
+
+def test_new_road_in_a_mapped_tile_is_due_at_once_mapped_road_waits_for_the_settle():
+    s = _sched(model=True, settle=5.0)
+    for i in range(3):
+        s.add_drive(f"d{i}", [A], now=0.0, cells=_cells(A, range(0, 10)))
+    assert [len(j.drive_ids) for j in _drain(s, 0.0, observed=True)] == [3]
+    for i in range(5):  # more drives on the same road: nothing until the settle re-makes the tile
+        s.add_drive(f"e{i}", [A], now=1.0, cells=_cells(A, range(0, 10)))
+    assert s.next_jobs(1.0) == [] and s.pending_tiles() == 1
+    s.add_drive("ramp", [A], now=2.0, cells=_cells(A, range(8, 12)))  # 2 cells of new road
+    (job,) = _run(s, 2.0, observed=True)
+    assert job.kind == MAP and len(job.drive_ids) == 9 and not job.final
+    s.add_drive("wiggle", [A], now=3.0, cells=_cells(A, [12]))  # one new cell: not new road
+    assert s.next_jobs(3.0) == []
+    settle = _drain(s, 9.0)
+    assert [j.kind for j in settle] == [OBSERVE, MODEL, REMAP] and len(settle[-1].drive_ids) == 10
+
+
+def test_without_the_model_new_road_is_due_at_once_beside_the_growth_rule():
+    s = _sched(model=False)
+    for i in range(10):
+        s.add_drive(f"d{i}", [A, B], now=0.0, cells={**_cells(A, range(5)), **_cells(B, range(5))})
+    _drain(s, 0.0)
+    s.add_drive("x", [A, B], now=1.0, cells={**_cells(A, range(5)), **_cells(B, range(5, 8))})
+    assert [(j.key, len(j.drive_ids)) for j in s.next_jobs(1.0, limit=4)] == [(B, 11)]  # A: one drive, old road

@@ -7,11 +7,16 @@ and publishes their results. The rules:
 - **Coalescing.** A drive queues the tiles it covers; a queued tile is one job however many drives
   wait on it, made from every drive covering the tile when the job starts. A tile in work when new
   drives come is queued again and runs after its current job.
-- **Due test.** A mapped tile is re-estimated only when its drive count grew enough
-  (:func:`~hdmap_core.live.tiles.needs_update`); a tile whose job failed is not retried until
-  its drive set changes.
-- **Order.** Tiles no estimate covers yet go first (a new road is on the map at once, so coverage
-  grows while a fleet arrives), then re-estimates, the most grown (relative to the estimate) first.
+- **Due test.** A tile without an estimate is due. A mapped tile is due at once when its drives
+  drove new road in it (at least ``NEW_ROAD_CELLS`` cells of the ``road_cells`` grid its estimate
+  has not seen: a ramp, the other carriageway), so coverage grows while a fleet arrives. Otherwise,
+  with the fleet-wide model, a mapped tile waits for the settle (which re-makes every tile with
+  the model anyway: a re-estimate before it is work thrown away, and the map keeps its final
+  estimates meanwhile); without it, it is due when its drive count grew enough
+  (:func:`~hdmap_core.live.tiles.needs_update`). A tile whose job failed is not retried until its
+  drive set changes.
+- **Order.** Tiles no estimate covers yet go first, then tiles with new road, then re-estimates,
+  the most grown (relative to the estimate) first.
 - **Settling**, after ``settle_after_s`` without input and with nothing queued or in work: without
   the fleet-wide offset model every tile not made from all its drives is re-estimated once. With
   it (presets with a final pass), in three phases: (1) every tile's observations brought up to its
@@ -25,12 +30,14 @@ depends on the drives only, whatever the order, the number of workers or a resta
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from hdmap_core.live.tiles import TileConfig, TileKey, needs_update, observations_signature
 
-__all__ = ["Job", "LiveScheduler", "MAP", "OBSERVE", "MODEL", "REMAP"]
+__all__ = ["Job", "LiveScheduler", "MAP", "OBSERVE", "MODEL", "REMAP", "NEW_ROAD_CELLS"]
+
+NEW_ROAD_CELLS = 2  # RULE: new road in a mapped tile: this many road cells (16 m) its estimate has not seen
 
 MAP = "map"  # the tile with its own offset adjustment (and its observations, with the fleet model)
 OBSERVE = "observe"  # the tile's observation pass only (settle phase 1)
@@ -86,6 +93,10 @@ class LiveScheduler:
         self._busy: dict[TileKey | None, Job] = {}  # jobs in work (None: the model)
         self._cursor: TileKey | None = None  # phase 3 round robin: where the last turn stopped
         self._last_input = float("-inf")
+        self._cells: dict[TileKey, set[tuple[int, int]]] = {}  # road cells the tile's drives drove
+        self._cells_est: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its estimate's drives
+        self._cells_job: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its job in work
+        self._cells_unknown: set[TileKey] = set()  # estimates restored from a store: their cells are not known
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -111,6 +122,7 @@ class LiveScheduler:
         self._drive_tiles.update(counts)
         for key, ids, sig in estimates:
             self._est[key] = (len(ids), sig)
+            self._cells_unknown.add(key)  # new road is told from the tile's next estimate on
         for key, ids in observations:
             self._obs[key] = tuple(sorted(ids))
         self._obs_sig = None
@@ -118,11 +130,17 @@ class LiveScheduler:
         self._last_input = now  # settling waits as after a drive
         self._queue.update(k for k in self._tiles if self._due(k))
 
-    def add_drive(self, drive_id: str, tiles: Iterable[TileKey], now: float) -> bool:
-        """A new drive covering ``tiles`` (False, nothing changed, for a known drive)."""
+    def add_drive(
+        self, drive_id: str, tiles: Iterable[TileKey], now: float,
+        cells: Mapping[TileKey, Iterable[tuple[int, int]]] | None = None,
+    ) -> bool:
+        """A new drive covering ``tiles`` (False, nothing changed, for a known drive); ``cells``:
+        where it drove, per tile (:func:`~hdmap_core.live.tiles.road_cells`; None: not known)."""
         if drive_id in self._drive_tiles:
             return False
         keys = set(tiles)
+        for key, cs in (cells or {}).items():
+            self._cells.setdefault(key, set()).update(cs)
         self._drive_tiles[drive_id] = len(keys)
         for key in keys:
             self._tiles.setdefault(key, set()).add(drive_id)
@@ -151,10 +169,13 @@ class LiveScheduler:
             else:
                 self._obs_failed[key] = n
             return
+        cells = self._cells_job.pop(key, frozenset())
         if not ok:
             self._failed[key] = n
             return
         self._est[key] = (n, job.sig if job.kind == REMAP else "")
+        self._cells_est[key] = cells
+        self._cells_unknown.discard(key)
         self._failed.pop(key, None)
         if observed:
             self._obs[key] = job.drive_ids
@@ -234,6 +255,8 @@ class LiveScheduler:
             if job is None:
                 break
             self._busy[job.key if job.kind != MODEL else None] = job
+            if job.key is not None and job.kind in (MAP, REMAP):
+                self._cells_job[job.key] = frozenset(self._cells.get(job.key, ()))
             jobs.append(job)
         return jobs
 
@@ -255,6 +278,9 @@ class LiveScheduler:
         fresh = [k for k in ready if k not in self._est]
         if fresh:
             return min(fresh)
+        road = [k for k in ready if self._new_road(k)]
+        if road:
+            return min(road)
         # RULE: the most grown estimate first (relative to its drive count), ties by key
         return min(ready, key=lambda k: (-len(self._tiles.get(k, ())) / max(1, self._est[k][0]), k))
 
@@ -291,7 +317,19 @@ class LiveScheduler:
     def _due(self, key: TileKey) -> bool:
         count = self._count(key)
         est = self._est.get(key, (0, ""))[0]
-        return needs_update(est, count, config=self.tile_config) and self._failed.get(key) != count
+        if self._failed.get(key) == count or count <= 0:
+            return False
+        if est <= 0 or self._new_road(key):
+            return True
+        if self.use_fleet_model:
+            return False  # mapped road waits for the settle: it re-makes every tile with the model
+        return needs_update(est, count, config=self.tile_config)
+
+    def _new_road(self, key: TileKey) -> bool:
+        """The tile's drives drove road in it that its estimate has not seen."""
+        if key not in self._est or key in self._cells_unknown:
+            return False
+        return len(self._cells.get(key, set()) - self._cells_est.get(key, frozenset())) >= NEW_ROAD_CELLS
 
     def _stale(self, key: TileKey) -> bool:
         return self._est.get(key, (0, ""))[0] < self._count(key)

@@ -50,6 +50,8 @@ __all__ = [
     "TileKey",
     "tile_bounds",
     "tiles_of_drive",
+    "road_cells",
+    "ROAD_CELL_M",
     "tile_seed",
     "clip_drive",
     "select_steps",
@@ -148,6 +150,24 @@ def tiles_of_drive(drive: Drive, *, config: TileConfig) -> set[TileKey]:
         for ay in (lo[:, 1], hi[:, 1]):
             keys.update(zip(ax.tolist(), ay.tolist()))
     return keys
+
+
+ROAD_CELL_M = 16.0  # RULE: cell of the road-coverage grid [m]: a drive adding cells to a tile drove new road there
+
+
+def road_cells(drive: Drive, *, config: TileConfig) -> dict[TileKey, frozenset[tuple[int, int]]]:
+    """Where a drive drove, per tile proper: the cells of a ``ROAD_CELL_M`` grid its trajectory
+    passes (tiles' edges are multiples of it when ``tile_size_m`` is). A drive whose cells a tile's
+    estimate has not seen brings new road to that tile."""
+    xy, _ = split_long_segments(np.asarray(drive.xy, dtype=float), np.zeros(1, dtype=np.int64), ROAD_CELL_M / 2)
+    if len(xy) == 0:
+        return {}
+    cells = np.floor(xy / ROAD_CELL_M).astype(np.int64)
+    tiles = np.floor(xy / config.tile_size_m).astype(np.int64)
+    out: dict[TileKey, set[tuple[int, int]]] = {}
+    for (tx, ty), (cx, cy) in zip(tiles.tolist(), cells.tolist()):
+        out.setdefault((tx, ty), set()).add((cx, cy))
+    return {k: frozenset(v) for k, v in out.items()}
 
 
 def tile_seed(key: TileKey, *, seed: int = 0) -> int:

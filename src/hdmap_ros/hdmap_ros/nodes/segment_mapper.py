@@ -53,7 +53,7 @@ from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
 from hdmap_core.live.jobs import JobResult, run_job, warm_up
 from hdmap_core.live.progress import LiveStatus
 from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
-from hdmap_core.live.tiles import TileConfig, tiles_of_drive
+from hdmap_core.live.tiles import TileConfig, road_cells, tiles_of_drive
 from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.adjustment import OffsetModel
 from hdmap_ros.convert.messages import rclpy_status_class, rclpy_types, status_to_msg
@@ -269,9 +269,10 @@ class SegmentMapper(HealthMixin, Node):
         if not pending:
             return
         per_drive = self.store.tiles_per_drive(pending)
+        cells = {d.drive_id: road_cells(d, config=self.tile_config) for d in self.store.drives(pending)}
         now = time.monotonic()
         for d in pending:
-            self.scheduler.add_drive(d, per_drive[d], now)
+            self.scheduler.add_drive(d, per_drive[d], now, cells.get(d))
         self.store.mark_processed(pending)
 
     def _start(self, free: int) -> int:
