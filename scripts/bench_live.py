@@ -50,15 +50,29 @@ def main() -> int:
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="hdmap-bench-live-"))
     out.mkdir(parents=True, exist_ok=True)
     fleet = out / "fleet"
-    sim = [HDMAP, "simulate", "--map", args.map, "--drives", str(args.drives), "--seed", str(args.seed),
-           "-o", str(fleet), "--overwrite"]
+    sim = [
+        HDMAP,
+        "simulate",
+        "--map",
+        args.map,
+        "--drives",
+        str(args.drives),
+        "--seed",
+        str(args.seed),
+        "-o",
+        str(fleet),
+        "--overwrite",
+    ]
     if args.length_m:
         sim += ["--length-m", str(args.length_m)]
     subprocess.run(sim, check=True, stdout=subprocess.DEVNULL)
 
     t0 = time.monotonic()
-    subprocess.run([HDMAP, "bag2map", str(fleet), "-o", str(out / "offline"), "--overwrite", "--no-progress"],
-                   check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [HDMAP, "bag2map", str(fleet), "-o", str(out / "offline"), "--overwrite", "--no-progress"],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
     offline_s = time.monotonic() - t0
 
     probe = _Probe()
@@ -89,10 +103,12 @@ class _Probe:
         self.status: list[tuple[float, object]] = []
         self.t0 = time.monotonic()  # when the suite was started (set by _run_live)
         self.node.create_subscription(String, "/hdmap/drive_acks", self._ack, qos.ACKS)
-        self.node.create_subscription(rclpy_types().Map, "/hdmap/map", lambda m: self.maps.append((time.monotonic(), m)),
-                                      qos.LATCHED)
-        self.node.create_subscription(rclpy_status_class(), "/hdmap/status",
-                                      lambda m: self.status.append((time.monotonic(), m)), qos.LATCHED)
+        self.node.create_subscription(
+            rclpy_types().Map, "/hdmap/map", lambda m: self.maps.append((time.monotonic(), m)), qos.LATCHED
+        )
+        self.node.create_subscription(
+            rclpy_status_class(), "/hdmap/status", lambda m: self.status.append((time.monotonic(), m)), qos.LATCHED
+        )
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = False
@@ -119,8 +135,11 @@ class _Probe:
 def _run_live(args, fleet: Path, live: Path, probe: _Probe) -> tuple[float, str]:
     time.sleep(1.0)  # the probe discovered before the suite starts
     probe.t0 = time.monotonic()
-    proc = subprocess.run([HDMAP, "run", str(fleet), "--rate", str(args.rate), "-o", str(live),
-                           "--timeout", str(args.timeout)], capture_output=True, text=True)
+    proc = subprocess.run(
+        [HDMAP, "run", str(fleet), "--rate", str(args.rate), "-o", str(live), "--timeout", str(args.timeout)],
+        capture_output=True,
+        text=True,
+    )
     live_s = time.monotonic() - probe.t0
     if proc.returncode != 0:
         print(proc.stderr[-3000:], file=sys.stderr)
@@ -148,10 +167,14 @@ def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settl
 
     print(f"fleet: {args.map}, {len(drives)} drives (seed {args.seed}), hdmap run --rate {args.rate:g}")
     print(f"offline bag2map wall time                 {offline_s:7.1f} s")
-    print(f"hdmap run: settled after                  {run_settle:7.1f} s  (suite up to settled; "
-          f"process wall time {live_s:.1f} s)  = {run_settle / offline_s:.1f} x bag2map")
-    print(f"settled live map: mean error {settled.overall.mean_m:.3f} m, coverage {100 * settled.overall.coverage:.1f} %"
-          f"  | offline: {offline.overall.mean_m:.3f} m, {100 * offline.overall.coverage:.1f} %")
+    print(
+        f"hdmap run: settled after                  {run_settle:7.1f} s  (suite up to settled; "
+        f"process wall time {live_s:.1f} s)  = {run_settle / offline_s:.1f} x bag2map"
+    )
+    print(
+        f"settled live map: mean error {settled.overall.mean_m:.3f} m, coverage {100 * settled.overall.coverage:.1f} %"
+        f"  | offline: {offline.overall.mean_m:.3f} m, {100 * offline.overall.coverage:.1f} %"
+    )
 
     first_all = next(((t, msg) for t, msg in probe.maps if drives <= set(msg.drive_ids)), None)
     if first_all is None:
@@ -160,8 +183,10 @@ def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settl
         t, msg = first_all
         hd = msg_to_map(msg)
         rep = evaluate_map(hd, gt)
-        print(f"drive_ids first held all {len(drives)} drives at {t - t0:6.1f} s (map version {hd.version}): "
-              f"mean error {rep.overall.mean_m:.3f} m, coverage {100 * rep.overall.coverage:.1f} %")
+        print(
+            f"drive_ids first held all {len(drives)} drives at {t - t0:6.1f} s (map version {hd.version}): "
+            f"mean error {rep.overall.mean_m:.3f} m, coverage {100 * rep.overall.coverage:.1f} %"
+        )
     # coverage while the fleet arrives: the map at the moment half of the drives were acknowledged
     if probe.acks:
         t_acks = sorted(probe.acks.values())
@@ -173,8 +198,11 @@ def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settl
             lat.append(t_in - t_ack)
     if lat:
         a = np.array(lat)
-        print(f"ack -> listed in drive_ids latency over {len(a)} drives (acks the probe saw): median {np.median(a):.1f} s, "
-              f"p90 {np.percentile(a, 90):.1f} s, max {a.max():.1f} s")
+        print(
+            f"ack -> listed in drive_ids latency over {len(a)} drives (acks the probe saw): "
+            f"median {np.median(a):.1f} s, "
+            f"p90 {np.percentile(a, 90):.1f} s, max {a.max():.1f} s"
+        )
     if probe.maps:  # coverage while the fleet is mapped: the latest map at quarters of the run
         end = probe.maps[-1][0]
         row = []
@@ -184,15 +212,19 @@ def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settl
             if seen:
                 rep = evaluate_map(msg_to_map(seen[-1][1]), gt)
                 row.append(f"{at - t0:.0f} s: {100 * rep.overall.coverage:.1f} % ({rep.overall.mean_m:.3f} m)")
-        print("coverage (mean error) of the latest map at a quarter, half, three quarters of the run: " + ", ".join(row))
+        print(
+            "coverage (mean error) of the latest map at a quarter, half, three quarters of the run: " + ", ".join(row)
+        )
     versions = [(t - t0, len(msg.drive_ids)) for t, msg in probe.maps]
     if versions:
         print("map versions (s, drives listed): " + ", ".join(f"{t:.0f}:{n}" for t, n in versions))
     if probe.status:
         st = probe.status[-1][1]
-        print(f"last status: map version {st.map_version}, received {st.drives_received}, integrated "
-              f"{st.drives_integrated}, rejected {st.drives_rejected}, pending tiles {st.tiles_pending}, "
-              f"settled {st.settled}")
+        print(
+            f"last status: map version {st.map_version}, received {st.drives_received}, integrated "
+            f"{st.drives_integrated}, rejected {st.drives_rejected}, pending tiles {st.tiles_pending}, "
+            f"settled {st.settled}"
+        )
 
 
 if __name__ == "__main__":

@@ -113,7 +113,9 @@ def test_settle_with_model_runs_three_phases_with_a_barrier_before_the_model():
     s.finished(model, ok=True)
     remaps = _drain(s, 2.0)  # 3. every tile with the model, from all its drives
     assert sorted((j.kind, j.key, len(j.drive_ids), j.sig) for j in remaps) == [
-        (REMAP, A, 4, model.sig), (REMAP, B, 5, model.sig), (REMAP, C, 1, model.sig)
+        (REMAP, A, 4, model.sig),
+        (REMAP, B, 5, model.sig),
+        (REMAP, C, 1, model.sig),
     ]
     assert s.is_settled() and s.pending_tiles() == 0
     s.add_drive("f", [A], now=3.0)  # new input: not settled until it went through all phases again
@@ -147,13 +149,23 @@ def test_restore_queues_the_due_tiles_and_keeps_a_settled_state():
     obs = [(A, ["d0", "d1"]), (B, ["d1"])]
     sig = observations_signature(obs)
     s = _sched(model=True)
-    s.restore({A: ["d0", "d1"], B: ["d1"]}, estimates=[(A, ["d0", "d1"], sig), (B, ["d1"], sig)],
-              observations=obs, model_sig=sig, now=0.0)
+    s.restore(
+        {A: ["d0", "d1"], B: ["d1"]},
+        estimates=[(A, ["d0", "d1"], sig), (B, ["d1"], sig)],
+        observations=obs,
+        model_sig=sig,
+        now=0.0,
+    )
     assert s.drive_tile_count("d1") == 2 and s.drive_count == 2
     assert s.is_settled() and s.next_jobs(10.0) == []
     s2 = _sched(model=True)
-    s2.restore({A: ["d0", "d1"], B: ["d1"]}, estimates=[(A, ["d0", "d1"], "old"), (B, ["d1"], "old")],
-               observations=obs, model_sig=sig, now=0.0)
+    s2.restore(
+        {A: ["d0", "d1"], B: ["d1"]},
+        estimates=[(A, ["d0", "d1"], "old"), (B, ["d1"], "old")],
+        observations=obs,
+        model_sig=sig,
+        now=0.0,
+    )
     assert not s2.is_settled()
     assert [(j.kind, j.key) for j in s2.next_jobs(10.0, limit=4)] == [(REMAP, A), (REMAP, B)]  # another model
     s3 = _sched()
@@ -225,8 +237,9 @@ def test_the_maps_status_completes_the_mappers_and_settles_only_when_every_estim
     st = map_status(mapper, map_version=4, drives_integrated=10, tile_versions=40, tiles_unstitched=0, stitched=True)
     assert st.settled and st.map_version == 4 and st.same(replace(st, stamp_ns=5)) and not st.same(None)
     busy = replace(mapper, settled=False, tiles_pending=3)
-    assert not map_status(busy, map_version=4, drives_integrated=9, tile_versions=40, tiles_unstitched=0,
-                          stitched=True).settled
+    assert not map_status(
+        busy, map_version=4, drives_integrated=9, tile_versions=40, tiles_unstitched=0, stitched=True
+    ).settled
 
 
 def _cells(key, xs):

@@ -36,8 +36,11 @@ N_DRIVES = 24
 def fleet():
     gt = synthetic_highway("motorway", length_m=600.0, seed=0)
     sim = simulate_fleet(
-        gt, config=SimConfig(n_drives=N_DRIVES, snippet_length_min_m=450.0, snippet_length_max_m=600.0,
-                             route_weighting="length"), seed=5
+        gt,
+        config=SimConfig(
+            n_drives=N_DRIVES, snippet_length_min_m=450.0, snippet_length_max_m=600.0, route_weighting="length"
+        ),
+        seed=5,
     )
     return gt, sorted(sim.drives, key=lambda d: d.drive_id)
 
@@ -77,8 +80,11 @@ def test_a_subscriber_waiting_for_its_drives_gets_them_fully_mapped(fleet, tmp_p
             pub.publish(drive_to_msg(d, types=types))
         want2 = want1 | {d.drive_id for d in second}
         m2 = wait_for(lambda: _first_map_holding(maps, want2), 240, what="a map listing every drive")
-        wait_for(lambda: status and status[-1].settled and status[-1].drives_integrated == len(drives), 240,
-                 what="settled status")
+        wait_for(
+            lambda: status and status[-1].settled and status[-1].drives_integrated == len(drives),
+            240,
+            what="settled status",
+        )
         final = msg_to_status(status[-1])
     except AssertionError:
         print("\n".join(f"--- {n}\n{p.output()[-3000:]}" for n, p in procs.items()))
@@ -94,8 +100,10 @@ def test_a_subscriber_waiting_for_its_drives_gets_them_fully_mapped(fleet, tmp_p
         hd = msg_to_map(m)
         live = evaluate_map(hd, gt)
         off = evaluate_map(build_map(batch, config=presets.preset("default"), seed=0).map, gt)
-        print(f"{len(hd.drive_ids)} drives listed (map v{hd.version}): live {live.overall.mean_m:.3f} m, "
-              f"{live.coverage:.3f}; batch of the same drives {off.overall.mean_m:.3f} m, {off.coverage:.3f}")
+        print(
+            f"{len(hd.drive_ids)} drives listed (map v{hd.version}): live {live.overall.mean_m:.3f} m, "
+            f"{live.coverage:.3f}; batch of the same drives {off.overall.mean_m:.3f} m, {off.coverage:.3f}"
+        )
         scores.append((live, off))
     for live, off in scores:
         assert abs(live.overall.mean_m - off.overall.mean_m) <= MEAN_TOL_M

@@ -81,7 +81,9 @@ def run_job(
     elif job.kind == REMAP:
         if offset_model is None:
             raise ConfigError(f"tile {job.key}: a remap job needs the fleet offset model")
-        out = JobResult(segments=map_tile(drives, job.key, tile_config=tc, pipeline_config=pc, offset_model=offset_model))
+        out = JobResult(
+            segments=map_tile(drives, job.key, tile_config=tc, pipeline_config=pc, offset_model=offset_model)
+        )
     elif job.kind == MAP and use_fleet_model and not job.final:
         # RULE: a tile's estimate while drives come is its observation pass (half the work of its
         # own adjustment and final pass); the settled map re-makes it with the fleet model anyway

@@ -44,13 +44,25 @@ class LiveStatus:
 
 
 def _fields(st: LiveStatus) -> tuple:
-    return (st.map_version, st.drives_received, st.drives_integrated, st.drives_rejected, st.tiles_pending,
-            st.tile_versions, st.settled)
+    return (
+        st.map_version,
+        st.drives_received,
+        st.drives_integrated,
+        st.drives_rejected,
+        st.tiles_pending,
+        st.tile_versions,
+        st.settled,
+    )
 
 
 def map_status(
-    mapper: LiveStatus, *, map_version: int, drives_integrated: int, tile_versions: int,
-    tiles_unstitched: int, stitched: bool,
+    mapper: LiveStatus,
+    *,
+    map_version: int,
+    drives_integrated: int,
+    tile_versions: int,
+    tiles_unstitched: int,
+    stitched: bool,
 ) -> LiveStatus:
     """The map's status: the mapper's part completed with the stitcher's.
 
@@ -63,9 +75,14 @@ def map_status(
     """
     settled = mapper.settled and stitched and tile_versions >= mapper.tile_versions
     return LiveStatus(
-        map_version=map_version, drives_received=mapper.drives_received, drives_integrated=drives_integrated,
-        drives_rejected=mapper.drives_rejected, tiles_pending=mapper.tiles_pending + tiles_unstitched,
-        tile_versions=tile_versions, settled=settled, stamp_ns=mapper.stamp_ns,
+        map_version=map_version,
+        drives_received=mapper.drives_received,
+        drives_integrated=drives_integrated,
+        drives_rejected=mapper.drives_rejected,
+        tiles_pending=mapper.tiles_pending + tiles_unstitched,
+        tile_versions=tile_versions,
+        settled=settled,
+        stamp_ns=mapper.stamp_ns,
     )
 
 

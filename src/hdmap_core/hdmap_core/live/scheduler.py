@@ -131,7 +131,10 @@ class LiveScheduler:
         self._queue.update(k for k in self._tiles if self._due(k))
 
     def add_drive(
-        self, drive_id: str, tiles: Iterable[TileKey], now: float,
+        self,
+        drive_id: str,
+        tiles: Iterable[TileKey],
+        now: float,
         cells: Mapping[TileKey, Iterable[tuple[int, int]]] | None = None,
     ) -> bool:
         """A new drive covering ``tiles`` (False, nothing changed, for a known drive); ``cells``:
@@ -344,13 +347,15 @@ class LiveScheduler:
     def _stale_observations(self) -> list[TileKey]:
         """Tiles whose observations are older than their drive set (and did not fail at it), by key."""
         return sorted(
-            k for k in self._tiles
+            k
+            for k in self._tiles
             if len(self._obs.get(k, ())) < self._count(k) and self._obs_failed.get(k) != self._count(k)
         )
 
     def _off_model(self) -> list[TileKey]:
         """Tiles not made from all their drives with the current model (failed ones excepted), by key."""
         return sorted(
-            k for k in self._tiles
+            k
+            for k in self._tiles
             if (self._stale(k) or self._est[k][1] != self._model_sig) and not self._failed_at_count(k)
         )

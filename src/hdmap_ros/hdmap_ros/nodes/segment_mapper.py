@@ -4,17 +4,17 @@ Subscribes ``/hdmap/drives_accepted``. Each new drive is committed to the SQLite
 together with the tiles it covers (one transaction); from then on it is *acknowledged* (an ack is
 published on ``/hdmap/drive_acks``) and survives any crash. A worker then re-maps the tiles the
 new drives cover, each from all stored drives covering it (``hdmap_core.live.tiles.map_tile``),
-but only when the tile's drive count grew enough for the estimate to improve (parameters
-``min_growth_fraction`` / ``min_growth_drives``; a new tile is always mapped). Each estimate is
+when it is due (``LiveScheduler``: a new tile, new road in a mapped tile, or, without the fleet
+model, a drive count grown by ``min_growth_fraction`` / ``min_growth_drives``). Each estimate is
 committed (one transaction) and published on ``/hdmap/segments`` as hdmap_msgs/TileSegments with a
 growing version per tile. When no drive came for ``settle_after_s``, every tile whose estimate
 is older than its drive set is re-estimated once, so the settled map depends on the drives only.
 
 Offsets (presets with the global adjustment, e.g. ``default``): an estimate made while drives come
-adjusts offsets over the tile and its margin only, and its step observations are stored with it.
-When the input settles, (1) every tile's observations are brought up to its drive set
-(``incremental.observe_tile``), (2) one fleet-wide offset model is estimated from the
-observations of all tiles (``incremental.fleet_offsets``, the network-wide adjustment of
+is the tile's observation pass (``live.tiles.preview_tile``), and its step observations are stored
+with it. When the input settles, (1) every tile's observations are brought up to its drive set
+(``live.tiles.observe_tile``), (2) one fleet-wide offset model is estimated from the
+observations of all tiles (``live.tiles.fleet_offsets``, the network-wide adjustment of
 ``hdmap bag2map``) and stored (``OffsetModel.to_dict``) with a signature of the drive sets it was
 made from, and (3) every tile not yet made from all its drives with that model is re-estimated
 with it (the final pass only). Each is a pure function of the stored drives, so the settled map
@@ -24,14 +24,14 @@ The schedule (queue, due test, order, settle phases) is ``hdmap_core.live.schedu
 this node feeds it drives and finished jobs, runs the jobs it hands out (``live.jobs.run_job``) on
 ``workers`` processes (0: every available CPU; 1: in this process, a time slice per turn), stores
 and publishes their results. A tile is one job for all drives waiting on it; tiles no estimate
-covers yet go first, so coverage grows while drives come.
+covers yet go first, then tiles with new road, so coverage grows while drives come.
 
 Each tile estimate names, per drive it was made from, how many tiles that drive covers
 (``drive_tile_counts``), and whether it is *final*: made as the settled map makes it (with the
 fleet offset model where the preset has one). The stitcher lists a drive in ``Map.drive_ids``
-only once every one of its tiles is in the map with it, final. The mapper's progress (drives received and rejected, tiles
-pending, settled) goes out as hdmap_msgs/MapStatus on ``/hdmap/mapper_status`` (latched); the
-stitcher completes it on ``/hdmap/status``.
+only once every one of its tiles is in the map with it, final. The mapper's progress (drives
+received and rejected, tiles pending, settled) goes out as hdmap_msgs/MapStatus on
+``/hdmap/mapper_status`` (latched); the stitcher completes it on ``/hdmap/status``.
 
 Restart: pending (acknowledged, unprocessed) drives are processed; with ``republish_on_start``
 every stored tile estimate is published again (the stitcher ignores versions it has).
@@ -100,11 +100,11 @@ class SegmentMapper(HealthMixin, Node):
             ),
             min_growth_fraction=declare(
                 self, "min_growth_fraction", 0.10,
-                "Re-estimate a tile when its drive count grew by this fraction (and min_growth_drives).",
+                "Without the fleet model: re-estimate a tile when its drive count grew by this fraction.",
                 lo=0.0, hi=10.0,
             ),
             min_growth_drives=declare(
-                self, "min_growth_drives", 3, "Re-estimate a tile when at least this many drives were added.",
+                self, "min_growth_drives", 3, "Without the fleet model: ... and by at least this many drives.",
                 lo=1, hi=10000,
             ),
             seed=declare(self, "seed", 0, "Base seed; each tile's seed derives from it and the tile key.", lo=0, hi=2**31 - 1),
