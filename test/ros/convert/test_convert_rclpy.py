@@ -75,8 +75,16 @@ def test_map_status_round_trip_through_cdr():
     from hdmap_core.live.progress import LiveStatus
     from hdmap_ros.convert.messages import msg_to_status, rclpy_status_class, status_to_msg
 
-    st = LiveStatus(map_version=7, drives_received=30, drives_integrated=12, drives_rejected=2, tiles_pending=5,
-                    tile_versions=99, settled=False, stamp_ns=1_700_000_000_123_456_789)
+    st = LiveStatus(
+        map_version=7,
+        drives_received=30,
+        drives_integrated=12,
+        drives_rejected=2,
+        tiles_pending=5,
+        tile_versions=99,
+        settled=False,
+        stamp_ns=1_700_000_000_123_456_789,
+    )
     cls = rclpy_status_class()
     msg = deserialize_message(serialize_message(status_to_msg(st, cls=cls, types=rclpy_types())), cls)
     assert msg_to_status(msg) == st and msg.header.frame_id == "map"

@@ -25,6 +25,7 @@ from hdmap_core.live.tiles import (
 from hdmap_core.model import Drive
 
 if TYPE_CHECKING:
+    from hdmap_core.pipeline.adjustment import OffsetSource
     from hdmap_core.pipeline.config import PipelineConfig
 
 __all__ = ["JobResult", "run_job", "warm_up"]
@@ -54,7 +55,7 @@ def run_job(
     tile_config: TileConfig,
     pipeline_config: PipelineConfig,
     use_fleet_model: bool,
-    offset_model: object | None = None,
+    offset_model: OffsetSource | None = None,
     observations: Sequence | None = None,
 ) -> JobResult:
     """Run one job.
