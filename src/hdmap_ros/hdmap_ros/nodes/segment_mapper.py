@@ -178,6 +178,7 @@ class SegmentMapper(HealthMixin, Node):
         if republish:
             for est in self.store.tiles():
                 self._publish(est)
+        self.health.set("drives_stored", self.store.drive_count())
         self._update_status()
         self.get_logger().info(
             f"drive store {self.store.path}: {self.store.drive_count()} drive(s), "
