@@ -94,11 +94,11 @@ def main() -> int:
     types, ttypes = rclpy_types(), rclpy_tile_types()
 
     # hand the mapper's tile messages straight to the stitcher (what DDS does between processes)
-    def forward(est) -> None:
+    def forward(est, *, final: bool | None = None) -> None:
         counts = [mapper.scheduler.drive_tile_count(d) for d in est.drive_ids]
         stitcher.on_tile(tile_to_msg(est.key, est.segments(), version=est.version, drive_ids=est.drive_ids,
                                      tile_size_m=mapper.tile_config.tile_size_m, stamp_ns=0, types=ttypes,
-                                     drive_tile_counts=counts))
+                                     drive_tile_counts=counts, final=bool(final)))
 
     mapper._publish = forward  # noqa: SLF001 - benchmark wiring, the node's own code otherwise
 
@@ -205,7 +205,7 @@ def main() -> int:
         fresh = SegmentMapper(context=ctx, parameter_overrides=[
             Parameter("db_path", value=str(tmp / "m2.db")), Parameter("settle_after_s", value=3600.0),
             Parameter("republish_on_start", value=False)] + mapper_overrides)
-        fresh._publish = lambda est: None  # noqa: SLF001 - mapping only; the stitch is timed above
+        fresh._publish = lambda est, final=None: None  # noqa: SLF001 - mapping only; the stitch is timed above
         msg = drive_to_msg(long_drive, types=types)
         t0 = time.perf_counter()
         fresh.on_drive(msg)
