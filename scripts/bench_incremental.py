@@ -45,6 +45,7 @@ def main() -> int:
     ap.add_argument("--replay-drives", type=int, default=20, help="drives fed one by one for the replay estimate")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=0, help="mapper processes (0: every CPU, 1: in this process)")
     ap.add_argument("--min-growth-drives", type=int, default=None,
                     help="override the mapper's min_growth_drives (default: the node's default)")
     ap.add_argument("--pivot-margin-m", type=float, default=None,
@@ -83,7 +84,7 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="hdmap-bench-"))
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
-    mapper_overrides = [Parameter("preset", value=args.preset)] + (
+    mapper_overrides = [Parameter("preset", value=args.preset), Parameter("workers", value=args.workers)] + (
         [Parameter("min_growth_drives", value=args.min_growth_drives)] if args.min_growth_drives else []) + (
         [Parameter("pivot_margin_m", value=args.pivot_margin_m)] if args.pivot_margin_m is not None else [])
     mapper = SegmentMapper(context=ctx, parameter_overrides=[
@@ -93,9 +94,11 @@ def main() -> int:
     types, ttypes = rclpy_types(), rclpy_tile_types()
 
     # hand the mapper's tile messages straight to the stitcher (what DDS does between processes)
-    def forward(est) -> None:
+    def forward(est, *, final: bool | None = None) -> None:
+        counts = [mapper.scheduler.drive_tile_count(d) for d in est.drive_ids]
         stitcher.on_tile(tile_to_msg(est.key, est.segments(), version=est.version, drive_ids=est.drive_ids,
-                                     tile_size_m=mapper.tile_config.tile_size_m, stamp_ns=0, types=ttypes))
+                                     tile_size_m=mapper.tile_config.tile_size_m, stamp_ns=0, types=ttypes,
+                                     drive_tile_counts=counts, final=bool(final)))
 
     mapper._publish = forward  # noqa: SLF001 - benchmark wiring, the node's own code otherwise
 
@@ -105,9 +108,12 @@ def main() -> int:
         mapper.on_drive(msg)
         return time.perf_counter() - t0
 
-    def run_until(pred) -> None:
+    def run_until(pred, node=None) -> None:
+        node = node or mapper
         while not pred():
-            mapper.work()
+            node.work()
+            if node.scheduler.busy and node.workers > 1:
+                time.sleep(0.002)  # the pool works; do not spin a core away from it
 
     def stitch() -> float:
         t0 = time.perf_counter()
@@ -116,7 +122,8 @@ def main() -> int:
         return time.perf_counter() - t0
 
     def fresh_left() -> bool:
-        return bool(mapper.store.pending()) or any(k not in mapper._est_count for k in mapper._queue)  # noqa: SLF001
+        sched = mapper.scheduler
+        return bool(mapper.store.pending()) or any(not sched.is_mapped(k) for k in sched.queued())
 
     drives = sorted(fleet.drives, key=lambda d: d.start_ns)
     # 1. replay prefix drive by drive: per-drive service time = receive + every due tile + stitch,
@@ -124,26 +131,25 @@ def main() -> int:
     service, upd, first = [], [], None
     for d in drives[: args.replay_drives]:
         t0 = time.perf_counter()
-        n_new = len(tiles_of_drive(d, config=mapper.tile_config) - set(mapper._est_count))  # noqa: SLF001
+        n_new = sum(not mapper.scheduler.is_mapped(k) for k in tiles_of_drive(d, config=mapper.tile_config))
         receive(d)
         run_until(lambda: not fresh_left())
         stitch()
         upd.append(time.perf_counter() - t0)
         if first is None:
             first = (d.length_m / 1000.0, n_new, upd[-1])
-        run_until(lambda: not mapper._queue and not mapper.store.pending())  # noqa: SLF001
+        run_until(lambda: not mapper.scheduler.queued() and not mapper.store.pending())
         stitch()
         service.append(time.perf_counter() - t0)
     # 2. the rest of the map: all drives in, every tile estimated once from all its drives
     t0 = time.perf_counter()
     for d in drives[args.replay_drives :]:
         receive(d)
-    mapper._last_input = -1e9  # noqa: SLF001 - settle now
-    mapper.settle_after_s = 0.0
+    mapper.work()  # the drives handed to the schedule
+    mapper.scheduler.settle_after_s = 0.0  # settle now
     run_until(mapper.is_settled)
     stitch()
-    mapper.settle_after_s = 3600.0
-    mapper._last_input = time.monotonic()  # noqa: SLF001
+    mapper.scheduler.settle_after_s = 3600.0
     build_s = time.perf_counter() - t0
     n_tiles = len(mapper.store.tiles())
     counts = [mapper.store.tile_drive_count(t.key) for t in mapper.store.tiles()]
@@ -160,12 +166,12 @@ def main() -> int:
     t_rx = receive(long_drive)
     slice_s, mapper.work_slice_s = mapper.work_slice_s, 0.0
     t0 = time.perf_counter()
-    mapper.work()  # a turn without mapping time: the drive's tiles are queued
+    mapper.work()  # a turn without mapping time (workers=1): the drive's tiles are queued
     mapper.work_slice_s = slice_s
-    run_until(lambda: not (new & mapper._queue))  # noqa: SLF001 - the stretches it adds are mapped
+    run_until(lambda: not (new & mapper.scheduler.queued()))  # the stretches it adds are mapped
     t_new = time.perf_counter() - t0
     s_new = stitch_if_changed()
-    queued, updates1 = len(mapper._queue), mapper.health.updates  # noqa: SLF001
+    queued, updates1 = len(mapper.scheduler.queued()), mapper.health.updates
     prof = None
     if args.profile:
         import cProfile
@@ -173,7 +179,7 @@ def main() -> int:
         prof = cProfile.Profile()
         prof.enable()
     t1 = time.perf_counter()
-    run_until(lambda: not mapper._queue)  # noqa: SLF001
+    run_until(lambda: not mapper.scheduler.queued())
     t_due = time.perf_counter() - t1
     if prof is not None:
         prof.disable()
@@ -199,12 +205,12 @@ def main() -> int:
         fresh = SegmentMapper(context=ctx, parameter_overrides=[
             Parameter("db_path", value=str(tmp / "m2.db")), Parameter("settle_after_s", value=3600.0),
             Parameter("republish_on_start", value=False)] + mapper_overrides)
-        fresh._publish = lambda est: None  # noqa: SLF001 - mapping only; the stitch is timed above
+        fresh._publish = lambda est, final=None: None  # noqa: SLF001 - mapping only; the stitch is timed above
         msg = drive_to_msg(long_drive, types=types)
         t0 = time.perf_counter()
         fresh.on_drive(msg)
-        while fresh._queue or fresh.store.pending():  # noqa: SLF001
-            fresh.work()
+        fresh.work()
+        run_until(lambda: not fresh.scheduler.queued() and not fresh.store.pending(), fresh)
         t_fresh = time.perf_counter() - t0
         n_fresh = len(fresh.store.tiles())
         print(f"the {long_drive.length_m / 1000:.2f} km drive on an empty map (all road new): {n_fresh} tiles "

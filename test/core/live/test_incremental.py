@@ -180,21 +180,6 @@ def test_carry_over_ids_type_must_match_and_no_old_map():
     assert carry_over_ids(new, None) is new
 
 
-def test_clean_drive_drops_short_and_unknown_and_thins():
-    from hdmap_core.live.tiles import clean_drive
-
-    straight = Detection(FeatureType.SOLID, _line(0, 50, y=1))  # 51 collinear points
-    short = Detection(FeatureType.DASHED, _line(0, 2, y=2))  # 2 m < 3 m
-    unknown = Detection(FeatureType.UNKNOWN, _line(0, 50, y=3))
-    bend = Detection(FeatureType.ROAD_BORDER, np.array([[0.0, 0], [10, 0], [20, 5], [30, 10]]))
-    d = _drive(_line(0, 50), dets=[straight, short, unknown, bend])
-    c = clean_drive(d)
-    assert [x.type for x in c.detections] == [FeatureType.SOLID, FeatureType.ROAD_BORDER]
-    np.testing.assert_allclose(c.detections[0].points, [[0, 1], [50, 1]])
-    np.testing.assert_allclose(c.detections[1].points, [[0, 0], [10, 0], [30, 10]])
-    assert len(d.detections) == 4  # input untouched
-
-
 def test_needs_update_default_one_drive_never_makes_a_mapped_tile_due():
     # the default debounce: one more drive never re-estimates a mapped tile, however few drives it
     # has; 3 more drives do on sparse tiles, 10 % more on dense ones
@@ -313,6 +298,24 @@ def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
             pos = _positions(by_id[did], o.drive_s_m[sel])
             # a sample projected onto its own full trajectory lies beside the cut, not hundreds of m off
             assert np.hypot(*(pos - o.midpoint).T).max() < 30.0
+
+
+@pytest.mark.slow
+def test_preview_tile_observes_as_the_settle_does_and_maps_the_tile():
+    from hdmap_core.live.tiles import observe_tile, preview_tile
+
+    drives, key, cfg, pc = _sim_tile()
+    segments, obs = preview_tile(drives, key, tile_config=cfg, pipeline_config=pc)
+    obs2 = observe_tile(drives, key, tile_config=cfg, pipeline_config=pc)
+    assert len(obs) > 10 and len(obs) == len(obs2)
+    for a, b in zip(obs, obs2):  # the preview's observations are the settle's, exactly
+        assert (a.pivot_id, a.index, a.drive_ids) == (b.pivot_id, b.index, b.drive_ids)
+        for f in ("midpoint", "drive_s_m", "lateral_m", "types", "cluster"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    xmin, ymin, xmax, ymax = tile_bounds(key, tile_size_m=cfg.tile_size_m)
+    mids = np.array([st.midpoint for sg in segments for st in sg.steps if st.valid], dtype=float)
+    assert len(mids) > 10  # a map of the tile, its steps inside the tile proper
+    assert ((mids[:, 0] >= xmin) & (mids[:, 0] < xmax) & (mids[:, 1] >= ymin) & (mids[:, 1] < ymax)).all()
 
 
 @pytest.mark.slow

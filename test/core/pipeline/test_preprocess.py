@@ -120,3 +120,25 @@ def test_index_is_the_same_in_chunks_and_processes(monkeypatch, workers):
 def test_no_drives_no_segments():
     idx = preprocess([])
     assert idx.n_segments == 0 and len(idx.cell_keys) == 0 and idx.n_polylines_in == 0
+
+
+def test_clean_drive_drops_short_and_unknown_and_thins_as_preprocess():
+    from hdmap_core.pipeline.preprocess import clean_drive
+
+    def line(x0, x1, y):
+        n = int(abs(x1 - x0)) + 1
+        return np.stack([np.linspace(x0, x1, n), np.full(n, float(y))], axis=1)
+
+    straight = Detection(FeatureType.SOLID, line(0, 50, 1))  # 51 collinear points
+    short = Detection(FeatureType.DASHED, line(0, 2, 2))  # 2 m < 3 m
+    unknown = Detection(FeatureType.UNKNOWN, line(0, 50, 3))
+    bend = Detection(FeatureType.ROAD_BORDER, np.array([[0.0, 0], [10, 0], [20, 5], [30, 10]]))
+    d = _drive([straight, short, unknown, bend])
+    c = clean_drive(d)
+    assert [x.type for x in c.detections] == [FeatureType.SOLID, FeatureType.ROAD_BORDER]
+    np.testing.assert_allclose(c.detections[0].points, [[0, 1], [50, 1]])
+    np.testing.assert_allclose(c.detections[1].points, [[0, 0], [10, 0], [30, 10]])
+    assert len(d.detections) == 4  # input untouched
+    assert clean_drive(d, config=PreprocessConfig(min_length_m=1.0)).detections[1].type == FeatureType.DASHED
+    # the same segments in the index, cleaned or not
+    assert preprocess([c]).n_segments == preprocess([d]).n_segments

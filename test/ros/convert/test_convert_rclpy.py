@@ -69,3 +69,39 @@ def test_rosbags_map_bytes_deserialize_in_rclpy():
     hdmap = make_map(seed=5)
     raw = bytes(default_typestore().serialize_cdr(map_to_msg(hdmap), "hdmap_msgs/msg/Map"))
     assert_maps_equal(hdmap, msg_to_map(deserialize_message(raw, hdmap_msgs.Map)))
+
+
+def test_map_status_round_trip_through_cdr():
+    from hdmap_core.live.progress import LiveStatus
+    from hdmap_ros.convert.messages import msg_to_status, rclpy_status_class, status_to_msg
+
+    st = LiveStatus(
+        map_version=7,
+        drives_received=30,
+        drives_integrated=12,
+        drives_rejected=2,
+        tiles_pending=5,
+        tile_versions=99,
+        settled=False,
+        stamp_ns=1_700_000_000_123_456_789,
+    )
+    cls = rclpy_status_class()
+    msg = deserialize_message(serialize_message(status_to_msg(st, cls=cls, types=rclpy_types())), cls)
+    assert msg_to_status(msg) == st and msg.header.frame_id == "map"
+
+
+def test_drive_from_wire_reads_cdr_bytes_and_messages_alike_and_names_bad_input():
+    from hdmap_core.errors import InvalidDriveError, InvalidMessageError
+    from hdmap_ros.nodes._common import drive_from_wire, drive_to_wire
+
+    d = make_drive()
+    t = rclpy_types()
+    raw = drive_to_wire(d)
+    assert_drives_equal(msg_to_drive(deserialize_message(raw, t.Drive)), d)  # rclpy reads what we send
+    assert_drives_equal(drive_from_wire(raw, t.Drive, expected_frame="map"), d)
+    assert_drives_equal(drive_from_wire(drive_to_msg(d, types=t), t.Drive, expected_frame="map"), d)
+    with pytest.raises(InvalidDriveError) as err:
+        drive_from_wire(raw, t.Drive, expected_frame="odom")
+    assert err.value.reason == "wrong_frame"
+    with pytest.raises(InvalidMessageError):
+        drive_from_wire(b"\x00\x01\x00\x00garbage", t.Drive, expected_frame=None)

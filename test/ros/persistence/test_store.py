@@ -195,9 +195,14 @@ def test_drive_store_acknowledges_once_and_indexes_tiles(tmp_path):
     assert st.tile_drive_count((1, 0)) == 2 and st.tile_drive_count((5, 5)) == 0
     assert [d.drive_id for d in st.drives_covering((1, 0))] == ["a", "b"]
     assert st.tiles_of(["b"]) == {(1, 0)}
+    assert {d: sorted(k) for d, k in st.tiles_per_drive(["a", "b", "x"]).items()} == {
+        "a": [(0, 0), (1, 0)], "b": [(1, 0)], "x": []}
+    assert st.tile_drive_sets() == {(0, 0): ["a"], (1, 0): ["a", "b"]}
+    assert [d.drive_id for d in st.drives(["b", "a", "x"])] == ["a", "b"]
     assert st.stale_tiles() == [(0, 0), (1, 0)]
     est = st.put_tile((1, 0), _segments(), ["a", "b"])
-    assert est.version == 1 and st.put_tile((1, 0), [], ["a", "b"]).version == 2
+    assert est.version == 1 and st.put_tile((1, 0), [], ["a", "b"], model_sig="m").version == 2
+    assert st.estimates() == [((1, 0), ["a", "b"], "m")] and st.tile((1, 0)).model_sig == "m"
     assert st.stale_tiles() == [(0, 0)]
     st.mark_processed(["a"])
     assert st.pending() == ["b"]
@@ -253,3 +258,24 @@ def _env():
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(root / "src/hdmap_core"), str(root / "src/hdmap_ros"), env.get("PYTHONPATH", "")])
     return env
+
+
+def test_map_store_keeps_each_tiles_drive_counts_and_finality_and_migrates_an_old_store(tmp_path):
+    import sqlite3
+
+    st = MapStore(tmp_path / "s.db")
+    blob = segments_to_blob(_segments())
+    assert st.put_tile((0, 0), 1, blob, ["a", "b"], [2, 1], final=False)
+    assert st.put_tile((1, 0), 1, blob, ["a"], [2])
+    assert st.tile_progress() == {(0, 0): ([2, 1], False), (1, 0): ([2], True)}
+    st.close()
+    old = tmp_path / "old.db"  # a map store of before the counts: its tiles vouch for themselves
+    con = sqlite3.connect(old)
+    con.execute("CREATE TABLE tiles (tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL, "
+                "drive_ids TEXT NOT NULL, segments BLOB NOT NULL, PRIMARY KEY (tx, ty))")
+    con.execute("INSERT INTO tiles VALUES (0, 0, 3, '[\"a\"]', ?)", (blob,))
+    con.commit()
+    con.close()
+    st = MapStore(old)
+    assert st.tile_progress() == {(0, 0): ([], True)} and st.tile_version((0, 0)) == 3
+    st.close()

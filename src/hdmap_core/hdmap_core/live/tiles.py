@@ -50,6 +50,8 @@ __all__ = [
     "TileKey",
     "tile_bounds",
     "tiles_of_drive",
+    "road_cells",
+    "ROAD_CELL_M",
     "tile_seed",
     "clip_drive",
     "select_steps",
@@ -58,10 +60,10 @@ __all__ = [
     "map_tile",
     "map_tile_observed",
     "observe_tile",
+    "preview_tile",
     "fleet_offsets",
     "observations_signature",
     "carry_over_ids",
-    "clean_drive",
     "connect_tile",
     "stitch_graphs",
 ]
@@ -148,6 +150,24 @@ def tiles_of_drive(drive: Drive, *, config: TileConfig) -> set[TileKey]:
         for ay in (lo[:, 1], hi[:, 1]):
             keys.update(zip(ax.tolist(), ay.tolist()))
     return keys
+
+
+ROAD_CELL_M = 16.0  # RULE: cell of the road-coverage grid [m]: a drive adding cells to a tile drove new road there
+
+
+def road_cells(drive: Drive, *, config: TileConfig) -> dict[TileKey, frozenset[tuple[int, int]]]:
+    """Where a drive drove, per tile proper: the cells of a ``ROAD_CELL_M`` grid its trajectory
+    passes (tiles' edges are multiples of it when ``tile_size_m`` is). A drive whose cells a tile's
+    estimate has not seen brings new road to that tile."""
+    xy, _ = split_long_segments(np.asarray(drive.xy, dtype=float), np.zeros(1, dtype=np.int64), ROAD_CELL_M / 2)
+    if len(xy) == 0:
+        return {}
+    cells = np.floor(xy / ROAD_CELL_M).astype(np.int64)
+    tiles = np.floor(xy / config.tile_size_m).astype(np.int64)
+    out: dict[TileKey, set[tuple[int, int]]] = {}
+    for (tx, ty), (cx, cy) in zip(tiles.tolist(), cells.tolist()):
+        out.setdefault((tx, ty), set()).add((cx, cy))
+    return {k: frozenset(v) for k, v in out.items()}
 
 
 def tile_seed(key: TileKey, *, seed: int = 0) -> int:
@@ -386,6 +406,23 @@ def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConf
     return _core_observations(_first_pass(inp, pipeline_config), inp, key)
 
 
+def preview_tile(
+    drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig
+) -> tuple[list[Segment], list]:
+    """The tile's observation pass (:func:`observe_tile`) and the segments of that pass.
+
+    About half the work of :func:`map_tile_observed` (no adjustment, no final pass): a first
+    estimate that puts a new road on the map while drives come, when the settled map is made with
+    the fleet-wide model anyway. Returns (segments of the tile proper, its observations).
+    """
+    inp = _tile_input(drives, key, tile_config, pipeline_config)
+    if not inp.clipped:
+        return [], []
+    res = _first_pass_result(inp, pipeline_config)
+    return (_whole_drive_s(select_steps(res.segments, inp.core), inp.s0),
+            _core_observations(res.observations, inp, key))
+
+
 def fleet_offsets(observations: Sequence, *, pipeline_config: PipelineConfig):
     """The network-wide offset adjustment over the observations of all tiles (as ``bag2map`` does).
 
@@ -410,13 +447,16 @@ def observations_signature(parts: Iterable[tuple[TileKey, Sequence[str]]]) -> st
 
 def _first_pass(inp: _TileInput, pipeline_config: PipelineConfig) -> list:
     """The step observations of the pipeline's first pass on a tile's drives (no adjustment)."""
-    from dataclasses import replace  # noqa: PLC0415
+    return _first_pass_result(inp, pipeline_config).observations
 
+
+def _first_pass_result(inp: _TileInput, pipeline_config: PipelineConfig):
+    """The pipeline's first pass on a tile's drives (no adjustment): segments and observations."""
     from hdmap_core.pipeline.driver import map_stretches  # noqa: PLC0415
 
     first_only = replace(pipeline_config, final_pass=None)
     return map_stretches(inp.clipped, config=first_only, seed=inp.seed, processed=inp.processed,
-                         collect_observations=True, validated=True, observations_only=True).observations
+                         collect_observations=True, validated=True, observations_only=True)
 
 
 def _final_pass(inp: _TileInput, pipeline_config: PipelineConfig, model: OffsetSource) -> list[Segment]:
@@ -445,39 +485,6 @@ def steps_outside(drives: Sequence[Drive], bounds: Sequence[float], *, step_m: f
         if out.any():
             marks[d.drive_id] = np.asarray(s, dtype=float)[out]
     return ProcessedStore().with_marks(marks, pad_m=0.25 * step_m, merge_gap_m=1.5 * step_m)
-
-
-def clean_drive(drive: Drive, *, min_length_m: float = 3.0, rdp_epsilon_m: float = 0.05) -> Drive:
-    """One drive's detections filtered and thinned as in Sec. III (what the ingestor does).
-
-    Detection polylines shorter than ``min_length_m`` and of type UNKNOWN are dropped (likely
-    misdetections; the pipeline ignores UNKNOWN anyway), the rest thinned with Ramer-Douglas-Peucker
-    (``rdp_epsilon_m``). The same rules as ``hdmap_core.pipeline.preprocess`` (which applies them again;
-    both are idempotent), so a drive cleaned early maps the same.
-
-    Args:
-        drive: a validated drive (not modified).
-    """
-    from hdmap_core.geometry import rdp_mask_many  # noqa: PLC0415
-    from hdmap_core.model import FeatureType  # noqa: PLC0415
-
-    kept = []
-    for det in drive.detections:
-        pts = np.asarray(det.points, dtype=float)
-        if int(det.type) == FeatureType.UNKNOWN or len(pts) < 2:
-            continue
-        if float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) < min_length_m:
-            continue
-        kept.append((det, pts))
-    if not kept:
-        return replace(drive, detections=())
-    xy = np.vstack([p for _, p in kept])
-    starts = np.cumsum([0] + [len(p) for _, p in kept[:-1]])
-    mask = rdp_mask_many(xy, np.asarray(starts), rdp_epsilon_m)
-    dets = tuple(
-        Detection(type=det.type, points=pts[mask[s : s + len(pts)]]) for (det, pts), s in zip(kept, starts)
-    )
-    return replace(drive, detections=dets)
 
 
 def connect_tile(segments: Sequence[Segment], key: TileKey, *, pipeline_config: PipelineConfig) -> list:

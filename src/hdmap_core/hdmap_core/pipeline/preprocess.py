@@ -14,7 +14,7 @@ the opposite-direction filter and the processed-stretch keys.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -27,10 +27,10 @@ from hdmap_core.geometry import (
     rdp_mask_many,
     split_long_segments,
 )
-from hdmap_core.model import Drive, FeatureType
+from hdmap_core.model import Detection, Drive, FeatureType
 from hdmap_core.parallel import map_balanced
 
-__all__ = ["trajectory_index", "PreprocessConfig", "DetectionIndex", "CutHits", "preprocess"]
+__all__ = ["trajectory_index", "PreprocessConfig", "DetectionIndex", "CutHits", "preprocess", "clean_drive"]
 
 
 @dataclass(frozen=True)
@@ -433,3 +433,31 @@ def _grid_csr(keys: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray
     start = np.concatenate([ustart, [len(keys)]]).astype(np.int64)
     return keys[ustart], start, seg
 
+
+def clean_drive(drive: Drive, *, config: PreprocessConfig = PreprocessConfig()) -> Drive:
+    """One drive's detections filtered and thinned by the rules of :func:`preprocess` (the live
+    ingestor cleans each drive as it comes).
+
+    Detection polylines of type UNKNOWN, of fewer than 2 points or shorter than
+    ``config.min_length_m`` are dropped (likely misdetections), the rest thinned with
+    Ramer-Douglas-Peucker (``config.rdp_epsilon_m``). :func:`preprocess` applies the same rules
+    again; both are idempotent, so a drive cleaned early maps the same.
+
+    Args:
+        drive: a validated drive (not modified).
+    """
+    kept = []
+    for det in drive.detections:
+        pts = np.asarray(det.points, dtype=float)
+        if int(det.type) == FeatureType.UNKNOWN or len(pts) < 2:
+            continue
+        if float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) < config.min_length_m:
+            continue
+        kept.append((det, pts))
+    if not kept:
+        return replace(drive, detections=())
+    xy = np.vstack([p for _, p in kept])
+    starts = np.cumsum([0] + [len(p) for _, p in kept[:-1]])
+    mask = rdp_mask_many(xy, np.asarray(starts), config.rdp_epsilon_m)
+    dets = tuple(Detection(type=det.type, points=pts[mask[s : s + len(pts)]]) for (det, pts), s in zip(kept, starts))
+    return replace(drive, detections=dets)

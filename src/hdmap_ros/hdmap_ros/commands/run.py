@@ -102,9 +102,9 @@ class _Suite:
         m = self.stitcher.map
         return (
             f"drives played {self.player.published}, accepted {self.ingestor.health.accepted}, "
-            f"rejected {self.ingestor.health.rejected_total}, mapper backlog {self.mapper.health.backlog}, "
-            f"tiles {len(self.mapper.store.tiles())}, map version {m.version if m else 0} "
-            f"({len(m.features) if m else 0} features)"
+            f"rejected {self.ingestor.health.rejected_total}, tiles pending {self.mapper.scheduler.pending_tiles()} "
+            f"(of {self.mapper.scheduler.tile_count}), map version {m.version if m else 0} "
+            f"({len(m.features) if m else 0} features, {len(m.drive_ids) if m else 0} drives)"
         )
 
     def close(self) -> None:

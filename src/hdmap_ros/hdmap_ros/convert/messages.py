@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from hdmap_core.errors import InvalidDriveError, InvalidMessageError
+from hdmap_core.live.progress import LiveStatus
 from hdmap_core.model import (
     MAP_FRAME,
     Detection,
@@ -44,6 +45,9 @@ from hdmap_core.model import (
 )
 
 __all__ = [
+    "status_to_msg",
+    "rclpy_status_class",
+    "msg_to_status",
     "MsgTypes",
     "rosbags_types",
     "rclpy_types",
@@ -441,3 +445,33 @@ def msg_to_origin(msg: Any) -> GeoOrigin:
     if int(msg.status.status) < 0:
         raise InvalidMessageError(f"origin NavSatFix has no fix (status {int(msg.status.status)})")
     return GeoOrigin(latitude_deg=lat, longitude_deg=lon, altitude_m=alt if math.isfinite(alt) else 0.0)
+
+
+# ---------------------------------------------------------------- the live map's status
+
+
+def rclpy_status_class() -> Any:
+    """The rclpy class of hdmap_msgs/msg/MapStatus."""
+    from hdmap_msgs.msg import MapStatus  # noqa: PLC0415
+
+    return MapStatus
+
+
+def status_to_msg(status: LiveStatus, *, cls: Any, types: MsgTypes) -> Any:
+    """:class:`~hdmap_core.live.progress.LiveStatus` -> hdmap_msgs/msg/MapStatus (class ``cls``)."""
+    return cls(
+        header=_header(types, status.stamp_ns, MAP_FRAME), map_version=int(status.map_version),
+        drives_received=int(status.drives_received), drives_integrated=int(status.drives_integrated),
+        drives_rejected=int(status.drives_rejected), tiles_pending=int(status.tiles_pending),
+        tile_versions=int(status.tile_versions), settled=bool(status.settled),
+    )
+
+
+def msg_to_status(msg: Any) -> LiveStatus:
+    """hdmap_msgs/msg/MapStatus -> :class:`~hdmap_core.live.progress.LiveStatus`."""
+    return LiveStatus(
+        map_version=int(msg.map_version), drives_received=int(msg.drives_received),
+        drives_integrated=int(msg.drives_integrated), drives_rejected=int(msg.drives_rejected),
+        tiles_pending=int(msg.tiles_pending), tile_versions=int(msg.tile_versions), settled=bool(msg.settled),
+        stamp_ns=stamp_to_ns(msg.header.stamp),
+    )

@@ -97,6 +97,8 @@ class TileMessage:
     drive_ids: tuple[str, ...]
     segments: list[Segment]
     stamp_ns: int = 0
+    drive_tile_counts: tuple[int, ...] = ()  # per drive id: the tiles that drive covers (empty: unknown)
+    final: bool = True  # made as the settled map makes it: its drives count as mapped here
 
 
 def tile_to_msg(
@@ -109,14 +111,19 @@ def tile_to_msg(
     stamp_ns: int,
     frame_id: str = "map",
     types: TileTypes,
+    drive_tile_counts: list[int] | tuple[int, ...] = (),
+    final: bool = True,
 ) -> Any:
-    """One tile estimate -> hdmap_msgs/msg/TileSegments."""
+    """One tile estimate -> hdmap_msgs/msg/TileSegments (``drive_tile_counts``: per drive id, the
+    tiles that drive covers, and ``final``: made as the settled map makes it, so the stitcher can
+    tell when a drive is mapped everywhere)."""
     t = types
     header = t.Header(stamp=t.Time(sec=int(stamp_ns // 10**9), nanosec=int(stamp_ns % 10**9)), frame_id=frame_id)
     segs = [t.Segment(pivot_id=s.pivot_id, steps=[_step_to_msg(t, st) for st in s.steps]) for s in segments]
     return t.TileSegments(
         header=header, tile_x=int(key[0]), tile_y=int(key[1]), tile_size_m=float(tile_size_m),
-        version=int(version), drive_ids=[str(d) for d in drive_ids], segments=segs,
+        version=int(version), drive_ids=[str(d) for d in drive_ids],
+        drive_tile_counts=_prim(t, [int(n) for n in drive_tile_counts], np.uint32), final=bool(final), segments=segs,
     )
 
 
@@ -168,4 +175,11 @@ def msg_to_tile(msg: Any) -> TileMessage:
         key=(int(msg.tile_x), int(msg.tile_y)), tile_size_m=float(msg.tile_size_m), version=int(msg.version),
         drive_ids=tuple(str(d) for d in msg.drive_ids), segments=segments,
         stamp_ns=int(stamp.sec) * 10**9 + int(stamp.nanosec),
+        drive_tile_counts=_tile_counts(msg), final=bool(getattr(msg, "final", True)),
     )
+
+
+def _tile_counts(msg: Any) -> tuple[int, ...]:
+    """The per-drive tile counts, () when absent or not one per drive id (unknown)."""
+    counts = tuple(int(n) for n in getattr(msg, "drive_tile_counts", ()))
+    return counts if len(counts) == len(msg.drive_ids) else ()

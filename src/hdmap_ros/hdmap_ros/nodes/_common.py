@@ -14,14 +14,18 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 
-from hdmap_core.errors import ConfigError, HdmapError
+from hdmap_core.errors import ConfigError, HdmapError, InvalidMessageError
+from hdmap_core.model import Drive, validate_drive
+from hdmap_ros.convert.messages import msg_to_drive
+from hdmap_ros.io.cdr import decode_drive, encode_drive
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes.diagnostics import Health, health_to_msg
 
 __all__ = [
     "declare", "declare_strings", "declare_pipeline_config", "params_file", "with_default_params", "run_node",
-    "HealthMixin", "preset_config",
+    "HealthMixin", "preset_config", "drive_from_wire", "drive_to_wire",
 ]
 
 PACKAGE = "hdmap_ros"
@@ -116,6 +120,35 @@ def preset_config(name: str, overrides: Sequence[str] = ()) -> Any:
         raise ConfigError(f"preset_overrides: {err}" if overrides else str(err)) from err
 
 
+def drive_from_wire(data: Any, msg_class: Any, *, expected_frame: str | None) -> Drive:
+    """A validated drive from a received hdmap_msgs/Drive: CDR bytes (a ``raw`` subscription) or
+    a message object.
+
+    Bytes of the common layout are read vectorised (``io.cdr.decode_drive``, no Python object per
+    point); anything else goes the generic, exact way (``convert.messages.msg_to_drive``).
+
+    Raises:
+        InvalidDriveError: malformed content, with its reason.
+        InvalidMessageError: bytes that are no Drive message.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        return msg_to_drive(data, expected_frame=expected_frame)
+    drive = decode_drive(bytes(data))
+    if drive is not None:
+        return validate_drive(drive, expected_frame=expected_frame or "")
+    try:
+        msg = deserialize_message(bytes(data), msg_class)
+    except Exception as err:  # noqa: BLE001 - whatever the C deserializer raises on foreign bytes
+        raise InvalidMessageError(f"not a {msg_class.__name__} message: {err}") from err
+    return msg_to_drive(msg, expected_frame=expected_frame)
+
+
+def drive_to_wire(drive: Drive) -> bytes:
+    """A drive as hdmap_msgs/Drive CDR bytes, for ``publish`` (``io.cdr.encode_drive``: the
+    generic encoding's bytes, without a Python object per point)."""
+    return encode_drive(drive)
+
+
 class HealthMixin:
     """Periodic /diagnostics of a node's :class:`Health`."""
 
@@ -131,8 +164,13 @@ class HealthMixin:
         self._diag_pub.publish(health_to_msg([self.health], stamp=self.get_clock().now().to_msg()))
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> None:
-    """The ros2/demos ``main``: init, spin, clean shutdown on Ctrl-C or external shutdown."""
+def run_node(
+    factory: Callable[[], Node], args: Sequence[str] | None = None, *, until: Callable[[Any], bool] | None = None
+) -> None:
+    """The ros2/demos ``main``: init, spin, clean shutdown on Ctrl-C or external shutdown.
+
+    ``until``: spin only until it returns True for the node (e.g. a player at the end of its bag).
+    """
     rclpy.init(args=with_default_params(args))
     node = None
     try:
@@ -143,7 +181,13 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
             raise SystemExit(2) from None
         # Two threads: a node's receiving callbacks (own callback group) stay responsive while its
         # worker callback maps or stitches; callbacks of one group never run concurrently.
-        rclpy.spin(node, executor=MultiThreadedExecutor(num_threads=2))
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        if until is None:
+            executor.spin()
+        else:
+            while rclpy.ok() and not until(node):
+                executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

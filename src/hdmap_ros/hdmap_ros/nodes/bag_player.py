@@ -12,15 +12,13 @@ import importlib
 import time
 from collections.abc import Iterator
 
-import rclpy
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from hdmap_core.errors import HdmapError
 from hdmap_ros.io.bagio import DRIVES_TOPIC, ORIGIN_TOPIC, BagMessage, iter_bag
 from hdmap_ros.nodes import qos
-from hdmap_ros.nodes._common import HealthMixin, declare, with_default_params
+from hdmap_ros.nodes._common import HealthMixin, declare, run_node
 
 __all__ = ["BagPlayer", "main", "message_class"]
 
@@ -132,21 +130,19 @@ class BagPlayer(HealthMixin, Node):
         self.get_logger().info(f"bag {self.bag} done: {self.published} drive message(s) published")
 
 
+    def finished(self) -> bool:
+        """Standalone: the bag is done and the node should exit (``exit_when_done``)."""
+        return self.done and self.exit_when_done
+
+    def destroy_node(self) -> None:
+        if self.done and self.published and self.context.ok():
+            for pub in self._pubs.values():  # let reliable readers take the tail before we go
+                pub.wait_for_all_acked(Duration(seconds=10))
+        super().destroy_node()
+
+
 def main(args=None) -> None:
-    rclpy.init(args=with_default_params(args))
-    node = None
-    try:
-        node = BagPlayer()
-        while rclpy.ok() and not (node.done and node.exit_when_done):
-            rclpy.spin_once(node, timeout_sec=0.1)
-        for pub in node._pubs.values():  # let reliable readers take the tail before we go
-            pub.wait_for_all_acked(Duration(seconds=10))
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(BagPlayer, args, until=BagPlayer.finished)
 
 
 if __name__ == "__main__":

@@ -9,6 +9,13 @@ from the previous version where a feature persists (``incremental.carry_over_ids
 committed with a growing version and published on ``/hdmap/map`` (RELIABLE, TRANSIENT_LOCAL,
 depth 1), so a late subscriber gets the latest map at once.
 
+``Map.drive_ids`` lists exactly the drives every tile of which is in the map with them (each tile
+estimate names how many tiles each of its drives covers; ``live.progress.integrated_drives``): a
+subscriber that waits until its drives are listed gets them fully mapped. The map's progress
+(hdmap_msgs/MapStatus: version, drives received / integrated / rejected, tiles pending, settled)
+is published latched on ``/hdmap/status`` whenever it changes, from the mapper's part
+(``/hdmap/mapper_status``) and the stitcher's own, and is on /diagnostics too.
+
 Restart: the stored map is published again; if tiles changed after it was made it is rebuilt.
 """
 
@@ -23,8 +30,9 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
 from hdmap_core.errors import HdmapError
+from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile, stitch_graphs
-from hdmap_ros.convert.messages import map_to_msg, rclpy_types
+from hdmap_ros.convert.messages import map_to_msg, msg_to_status, rclpy_status_class, rclpy_types, status_to_msg
 from hdmap_ros.convert.tiles import msg_to_tile, rclpy_tile_types
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
@@ -34,6 +42,8 @@ __all__ = ["MapStitcher", "main"]
 
 SEGMENTS_TOPIC = "/hdmap/segments"
 MAP_TOPIC = "/hdmap/map"
+STATUS_TOPIC = "/hdmap/status"
+MAPPER_STATUS_TOPIC = "/hdmap/mapper_status"
 
 
 class MapStitcher(HealthMixin, Node):
@@ -71,11 +81,18 @@ class MapStitcher(HealthMixin, Node):
         self._map_sig = sig  # the tile versions the current map was made from
         self._failed_sig = ""
         self._map_pub = self.create_publisher(self._types.Map, MAP_TOPIC, qos.LATCHED)
+        self._status_cls = rclpy_status_class()
+        self._status_pub = self.create_publisher(self._status_cls, STATUS_TOPIC, qos.LATCHED)
+        self._mapper_status = LiveStatus()
+        self.status: LiveStatus | None = None
         self._rx_group = MutuallyExclusiveCallbackGroup()
         self._work_group = MutuallyExclusiveCallbackGroup()
         self._sub = self.create_subscription(
             rclpy_tile_types().TileSegments, SEGMENTS_TOPIC, self.on_tile, qos.replay(depth),
             callback_group=self._rx_group,
+        )
+        self._status_sub = self.create_subscription(
+            self._status_cls, MAPPER_STATUS_TOPIC, self._on_mapper_status, qos.LATCHED, callback_group=self._work_group
         )
         self._timer = self.create_timer(0.1, self.work, callback_group=self._work_group)
         if self.map is not None:
@@ -95,7 +112,8 @@ class MapStitcher(HealthMixin, Node):
             self.health.reject("invalid_tile", str(err))
             self.get_logger().warning(f"tile message rejected: {err}")
             return
-        if self.store.put_tile(tile.key, tile.version, segments_to_blob(tile.segments), tile.drive_ids):
+        if self.store.put_tile(tile.key, tile.version, segments_to_blob(tile.segments), tile.drive_ids,
+                               tile.drive_tile_counts, tile.final):
             self.health.accept()
             now = time.monotonic()
             self._last_rx = now
@@ -107,6 +125,10 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("tile_versions", self.store.version_total())
 
     def work(self) -> None:
+        self._work()
+        self._update_status()
+
+    def _work(self) -> None:
         if self._first_dirty is None:
             return
         now = time.monotonic()
@@ -131,14 +153,18 @@ class MapStitcher(HealthMixin, Node):
         """Stitch every stored tile into a new map version, commit and publish it."""
         t0 = time.perf_counter()
         sig = self.store.tiles_signature()
-        graphs, drive_ids = [], set()
+        graphs, parts = [], []
+        progress = self.store.tile_progress()
         for key, version, ids, blob in self.store.tiles():
             cached = self._graphs.get(key)
             if cached is None or cached[0] != version:
                 cached = (version, connect_tile(blob_to_segments(blob), key, pipeline_config=self.pipeline_config))
                 self._graphs[key] = cached
             graphs.extend(cached[1])
-            drive_ids.update(ids)
+            counts, final = progress.get(key, ([], True))
+            if final:  # an estimate vouches for its drives once made as the settled map makes it
+                parts.append((ids, counts))
+        drive_ids = integrated_drives(parts)  # every tile of each is in this map with it, final
         t1 = time.perf_counter()
         new = stitch_graphs(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
         t2 = time.perf_counter()
@@ -162,6 +188,28 @@ class MapStitcher(HealthMixin, Node):
 
     def _publish(self) -> None:
         self._map_pub.publish(map_to_msg(self.map, types=self._types))
+
+    def _on_mapper_status(self, msg) -> None:
+        self._mapper_status = msg_to_status(msg)
+        self._update_status()
+
+    def _update_status(self) -> None:
+        """Publish the map's status when it changed (and put it on /diagnostics)."""
+        in_map = set(self._map_sig.split(";")) if self._map_sig else set()
+        sig = self.store.tiles_signature()
+        unstitched = sum(1 for part in (sig.split(";") if sig else []) if part not in in_map)
+        status = map_status(
+            self._mapper_status, map_version=self.map.version if self.map else 0,
+            drives_integrated=len(self.map.drive_ids) if self.map else 0,
+            tile_versions=self.store.version_total(), tiles_unstitched=unstitched, stitched=self.is_settled(),
+        )
+        if status.same(self.status):
+            return
+        status = replace(status, stamp_ns=time.time_ns())
+        self.status = status
+        self._status_pub.publish(status_to_msg(status, cls=self._status_cls, types=self._types))
+        for name in ("drives_received", "drives_integrated", "drives_rejected", "tiles_pending", "settled"):
+            self.health.set(name, getattr(status, name))
 
     def is_settled(self) -> bool:
         """Nothing waits to be stitched: the map was made from every stored tile estimate."""

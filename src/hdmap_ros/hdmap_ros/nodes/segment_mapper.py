@@ -4,26 +4,34 @@ Subscribes ``/hdmap/drives_accepted``. Each new drive is committed to the SQLite
 together with the tiles it covers (one transaction); from then on it is *acknowledged* (an ack is
 published on ``/hdmap/drive_acks``) and survives any crash. A worker then re-maps the tiles the
 new drives cover, each from all stored drives covering it (``hdmap_core.live.tiles.map_tile``),
-but only when the tile's drive count grew enough for the estimate to improve (parameters
-``min_growth_fraction`` / ``min_growth_drives``; a new tile is always mapped). Each estimate is
+when it is due (``LiveScheduler``: a new tile, new road in a mapped tile, or, without the fleet
+model, a drive count grown by ``min_growth_fraction`` / ``min_growth_drives``). Each estimate is
 committed (one transaction) and published on ``/hdmap/segments`` as hdmap_msgs/TileSegments with a
 growing version per tile. When no drive came for ``settle_after_s``, every tile whose estimate
 is older than its drive set is re-estimated once, so the settled map depends on the drives only.
 
 Offsets (presets with the global adjustment, e.g. ``default``): an estimate made while drives come
-adjusts offsets over the tile and its margin only, and its step observations are stored with it.
-When the input settles, (1) every tile's observations are brought up to its drive set
-(``incremental.observe_tile``), (2) one fleet-wide offset model is estimated from the
-observations of all tiles (``incremental.fleet_offsets``, the network-wide adjustment of
+is the tile's observation pass (``live.tiles.preview_tile``), and its step observations are stored
+with it. When the input settles, (1) every tile's observations are brought up to its drive set
+(``live.tiles.observe_tile``), (2) one fleet-wide offset model is estimated from the
+observations of all tiles (``live.tiles.fleet_offsets``, the network-wide adjustment of
 ``hdmap bag2map``) and stored (``OffsetModel.to_dict``) with a signature of the drive sets it was
 made from, and (3) every tile not yet made from all its drives with that model is re-estimated
 with it (the final pass only). Each is a pure function of the stored drives, so the settled map
 still depends on the drive set only, also across SIGKILL and restart.
 
-An update is: the drive committed and acknowledged, the tiles it adds (no estimate yet) mapped and
-published. Re-estimates of mapped tiles are background work: the worker takes them one tile at a
-time and only when no new drive waits and no new tile is queued, so a new drive waits at most for
-the one re-estimate in progress.
+The schedule (queue, due test, order, settle phases) is ``hdmap_core.live.scheduler.LiveScheduler``;
+this node feeds it drives and finished jobs, runs the jobs it hands out (``live.jobs.run_job``) on
+``workers`` processes (0: every available CPU; 1: in this process, a time slice per turn), stores
+and publishes their results. A tile is one job for all drives waiting on it; tiles no estimate
+covers yet go first, then tiles with new road, so coverage grows while drives come.
+
+Each tile estimate names, per drive it was made from, how many tiles that drive covers
+(``drive_tile_counts``), and whether it is *final*: made as the settled map makes it (with the
+fleet offset model where the preset has one). The stitcher lists a drive in ``Map.drive_ids``
+only once every one of its tiles is in the map with it, final. The mapper's progress (drives
+received and rejected, tiles pending, settled) goes out as hdmap_msgs/MapStatus on
+``/hdmap/mapper_status`` (latched); the stitcher completes it on ``/hdmap/status``.
 
 Restart: pending (acknowledged, unprocessed) drives are processed; with ``republish_on_start``
 every stored tile estimate is published again (the stitcher ignores versions it has).
@@ -31,39 +39,51 @@ every stored tile estimate is published again (the stitcher ignores versions it 
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import time
 import traceback
+from concurrent.futures import Future, ProcessPoolExecutor
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from std_msgs.msg import String
 
 from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
-from hdmap_core.live.tiles import (
-    TileConfig,
-    TileKey,
-    fleet_offsets,
-    map_tile,
-    map_tile_observed,
-    needs_update,
-    observations_signature,
-    observe_tile,
-    tiles_of_drive,
-)
-from hdmap_core.model import validate_drive
+from hdmap_core.live.jobs import JobResult, run_job, warm_up
+from hdmap_core.live.progress import LiveStatus
+from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
+from hdmap_core.live.tiles import TileConfig, road_cells, tiles_of_drive
+from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.adjustment import OffsetModel
-from hdmap_ros.convert.messages import msg_to_drive, rclpy_types
+from hdmap_ros.convert.messages import rclpy_status_class, rclpy_types, status_to_msg
 from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
 from hdmap_ros.nodes import qos
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
+from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, drive_from_wire, run_node
 from hdmap_ros.persistence.store import DriveStore, TileEstimate
 
 __all__ = ["SegmentMapper", "main"]
 
 ACCEPTED_TOPIC = "/hdmap/drives_accepted"
+REJECTED_TOPIC = "/hdmap/drives_rejected"
 SEGMENTS_TOPIC = "/hdmap/segments"
 ACKS_TOPIC = "/hdmap/drive_acks"
+STATUS_TOPIC = "/hdmap/mapper_status"
+
+
+class _Inline:
+    """An executor that runs each job at once, in this process (``workers`` = 1)."""
+
+    def submit(self, fn, *args, **kwargs) -> Future:
+        fut: Future = Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except BaseException as err:  # noqa: BLE001 - handed to the caller like a pool would
+            fut.set_exception(err)
+        return fut
+
+    def shutdown(self, *_, **__) -> None:
+        pass
 
 
 class SegmentMapper(HealthMixin, Node):
@@ -80,17 +100,17 @@ class SegmentMapper(HealthMixin, Node):
             ),
             min_growth_fraction=declare(
                 self, "min_growth_fraction", 0.10,
-                "Re-estimate a tile when its drive count grew by this fraction (and min_growth_drives).",
+                "Without the fleet model: re-estimate a tile when its drive count grew by this fraction.",
                 lo=0.0, hi=10.0,
             ),
             min_growth_drives=declare(
-                self, "min_growth_drives", 3, "Re-estimate a tile when at least this many drives were added.",
+                self, "min_growth_drives", 3, "Without the fleet model: ... and by at least this many drives.",
                 lo=1, hi=10000,
             ),
             seed=declare(self, "seed", 0, "Base seed; each tile's seed derives from it and the tile key.", lo=0, hi=2**31 - 1),
             pivot_margin_m=self._pivot_margin(),
         )
-        self.settle_after_s = declare(
+        settle_after_s = declare(
             self, "settle_after_s", 2.0, "Idle time after which stale tiles are re-estimated [s].", lo=0.0, hi=3600.0
         )
         depth = declare(
@@ -103,8 +123,12 @@ class SegmentMapper(HealthMixin, Node):
         )
         republish = declare(self, "republish_on_start", True, "Publish every stored tile estimate at start.")
         self.work_slice_s = declare(
-            self, "work_slice_s", 0.5, "Mapping time per worker turn [s]; new drives are taken in between.",
+            self, "work_slice_s", 0.5,
+            "Mapping time per worker turn with workers=1 [s]; new drives are taken in between.",
             lo=0.0, hi=600.0,
+        )
+        workers = declare(
+            self, "workers", 0, "Processes mapping tiles: 0 = every available CPU, 1 = in this process.", lo=0, hi=256
         )
         self._init_health("segment_mapper")
         self.health.backlog_warn = 200
@@ -114,41 +138,52 @@ class SegmentMapper(HealthMixin, Node):
         self._check_tiling()
         self._types = rclpy_types()
         self._tile_types = rclpy_tile_types()
-        self._last_input = time.monotonic()
-        self._failed: dict[TileKey, int] = {}  # tile -> drive count at which mapping failed
-        # fleet-wide offset model (presets with the global adjustment only)
         self.use_fleet_model = self.pipeline_config.final_pass is not None
-        self._obs_failed: dict[TileKey, int] = {}  # tile -> drive count at which its observation pass failed
-        self._model_failed_sig = ""  # observations whose fleet adjustment failed
-        self._obs_sig: str | None = None  # signature of the stored observations (None: recompute)
+        self.scheduler = LiveScheduler(self.tile_config, use_fleet_model=self.use_fleet_model,
+                                       settle_after_s=settle_after_s)
         self._model: OffsetModel | None = None
-        self._model_sig = ""
-        self._model_cursor: TileKey | None = None  # last tile re-estimated with the model (round robin)
         self._load_model()
+        self.scheduler.restore(self.store.tile_drive_sets(), self.store.estimates(), self.store.observation_sets(),
+                               self._model_sig, now=time.monotonic())
+        self.store.mark_processed(self.store.pending())  # their tiles are in the restored schedule
+        self.workers = workers or available_cpus()
+        self._pool = (
+            ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+            if self.workers > 1 else _Inline()
+        )
+        self._running: dict[Future, Job] = {}
+        for _ in range(self.workers if self.workers > 1 else 0):  # start the processes while nothing waits
+            self._pool.submit(warm_up)
         self.tiles_published = 0
         self.received = 0
+        self._rejected_ids: set[str] = set()
+        self._status: LiveStatus | None = None
+        self._status_cls = rclpy_status_class()
 
         self._seg_pub = self.create_publisher(self._tile_types.TileSegments, SEGMENTS_TOPIC, qos.replay(depth))
         self._ack_pub = self.create_publisher(String, ACKS_TOPIC, qos.ACKS)
+        self._status_pub = self.create_publisher(self._status_cls, STATUS_TOPIC, qos.LATCHED)
         # Receiving (commit + ack) stays quick and apart from the slow mapping worker.
         self._rx_group = MutuallyExclusiveCallbackGroup()
         self._work_group = MutuallyExclusiveCallbackGroup()
         self._sub = self.create_subscription(
-            self._types.Drive, ACCEPTED_TOPIC, self.on_drive, qos.replay(accepted_depth), callback_group=self._rx_group
+            self._types.Drive, ACCEPTED_TOPIC, self.on_drive, qos.replay(accepted_depth), callback_group=self._rx_group,
+            raw=True,  # CDR bytes, read vectorised (drive_from_wire)
+        )
+        self._rej_sub = self.create_subscription(
+            String, REJECTED_TOPIC, lambda m: self._rejected_ids.add(str(m.data)), qos.ACKS,
+            callback_group=self._rx_group,
         )
         self._timer = self.create_timer(0.05, self.work, callback_group=self._work_group)
         if republish:
             for est in self.store.tiles():
                 self._publish(est)
-        # drive count of each tile's latest estimate (the store's, cached: the worker asks per tile)
-        self._est_count: dict[TileKey, int] = {t.key: t.drive_count for t in self.store.tiles()}
-        # the due tiles of before a restart (the queue is not stored; it follows from the store)
-        self._queue: set[TileKey] = {k for k in self.store.stale_tiles() if self._due(k)[0]}
-        self.health.backlog = len(self.store.pending()) + len(self._queue)
         self.health.set("drives_stored", self.store.drive_count())
+        self._update_status()
         self.get_logger().info(
-            f"drive store {self.store.path}: {self.store.drive_count()} drive(s), {self.health.backlog} pending, "
-            f"{len(self.store.tiles())} tile(s)"
+            f"drive store {self.store.path}: {self.store.drive_count()} drive(s), "
+            f"{self.scheduler.pending_tiles()} tile(s) pending, {len(self.store.tiles())} tile(s), "
+            f"{self.workers} worker(s)"
         )
 
     def _pivot_margin(self) -> float | None:
@@ -185,18 +220,21 @@ class SegmentMapper(HealthMixin, Node):
             self.received += 1  # counted once handled, so "received" means "stored or refused"
 
     def _receive(self, msg) -> None:
-        did = str(msg.drive_id)
+        did = str(getattr(msg, "drive_id", ""))
         try:
-            drive = validate_drive(msg_to_drive(msg, expected_frame=None), expected_frame="")
+            drive = drive_from_wire(msg, self._types.Drive, expected_frame=None)
+            did = drive.drive_id
         except InvalidDriveError as err:
+            did = did or err.drive_id
             self.health.reject(err.reason, did)
+            self._rejected_ids.add(did)
             self.get_logger().warning(f"drive {did!r} rejected: {err.reason} ({err.detail})")
             return
         except HdmapError as err:
             self.health.reject("invalid_message", f"{did!r}: {err}")
+            self._rejected_ids.add(did)
             self.get_logger().warning(f"drive {did!r} rejected: {err}")
             return
-        self._last_input = time.monotonic()
         if not self.store.add_drive(drive, tiles_of_drive(drive, config=self.tile_config)):
             self.health.duplicate()
             return
@@ -208,58 +246,85 @@ class SegmentMapper(HealthMixin, Node):
     # --- mapping ---------------------------------------------------------------------------------
 
     def work(self) -> None:
-        """One worker turn: queue the tiles of new drives, map due tiles for a time slice, settle."""
-        self._work()
-        self.health.backlog = len(self._queue) + len(self.store.pending())
-        self.health.set("tiles_due", len(self._queue))
+        """One worker turn: take new drives, collect finished jobs, start the next ones."""
+        self._take_pending()
+        self._collect()
+        if isinstance(self._pool, _Inline):
+            deadline = time.monotonic() + self.work_slice_s
+            while time.monotonic() < deadline and self._start(1):
+                self._collect()
+                self._take_pending()  # a drive that came meanwhile is scheduled before the next job
+        else:
+            self._start(self.workers - len(self._running))
+        self.health.backlog = len(self.store.pending()) + self.scheduler.pending_tiles()
+        self.health.set("tiles_pending", self.scheduler.pending_tiles())
+        self.health.set("jobs_running", len(self._running))
         self.health.set("settled", self.is_settled())
         self.health.set("tile_versions", self.store.version_total())
+        self._update_status()
 
-    def _due(self, key: TileKey) -> tuple[bool, int]:
-        count = self.store.tile_drive_count(key)
-        due = needs_update(self._est_count.get(key, 0), count, config=self.tile_config)
-        return due and self._failed.get(key) != count, count
-
-    def _next_tile(self) -> TileKey:
-        # RULE: stretches no estimate covers yet go first (a new road is on the map at once);
-        # re-estimates of mapped stretches follow, in key order.
-        fresh = [k for k in self._queue if k not in self._est_count]
-        return min(fresh) if fresh else min(self._queue)
-
-    def _take_pending(self) -> bool:
-        """Queue the tiles of acknowledged, unprocessed drives; True when there were any."""
+    def _take_pending(self) -> None:
+        """Hand acknowledged, unprocessed drives to the schedule (then they count as processed: at a
+        restart the schedule follows from the store)."""
         pending = self.store.pending()
-        if pending:
-            # A drive is processed once its tiles are queued; the queue itself need not be stored:
-            # at start it is rebuilt from the store (every tile that is due).
-            self._queue.update(self.store.tiles_of(pending))
-            self.store.mark_processed(pending)
-        return bool(pending)
-
-    def _work(self) -> None:
-        pending = self._take_pending()
-        deadline = time.monotonic() + self.work_slice_s
-        while self._queue and time.monotonic() < deadline:
-            key = self._next_tile()
-            if key in self._est_count and self._take_pending():
-                continue  # a re-estimate is background work: a drive that came meanwhile goes first
-            self._queue.discard(key)
-            due, count = self._due(key)
-            if due:
-                self._estimate(key, count)
-        if self._queue or pending or time.monotonic() - self._last_input < self.settle_after_s:
+        if not pending:
             return
-        if self.use_fleet_model and self._model_failed_sig != self._observations_sig():
-            self._settle_with_model(deadline)
-            return
-        for key in self.store.stale_tiles():  # settle: every estimate made from all its drives
-            count = self.store.tile_drive_count(key)
-            if self._failed.get(key) != count:
-                self._estimate(key, count)
-            if time.monotonic() >= deadline or self.store.pending():
-                return
+        per_drive = self.store.tiles_per_drive(pending)
+        cells = {d.drive_id: road_cells(d, config=self.tile_config) for d in self.store.drives(pending)}
+        now = time.monotonic()
+        for d in pending:
+            self.scheduler.add_drive(d, per_drive[d], now, cells.get(d))
+        self.store.mark_processed(pending)
 
-    # --- the fleet-wide offset model -------------------------------------------------------------
+    def _start(self, free: int) -> int:
+        """Start up to ``free`` jobs; returns how many."""
+        jobs = self.scheduler.next_jobs(time.monotonic(), max(0, free))
+        for job in jobs:
+            kw = {"tile_config": self.tile_config, "pipeline_config": self.pipeline_config,
+                  "use_fleet_model": self.use_fleet_model}
+            if job.kind == MODEL:
+                kw["observations"] = self.store.observations()
+            if job.kind == REMAP:
+                kw["offset_model"] = self._model
+            drives = self.store.drives(job.drive_ids) if job.kind != MODEL else []
+            self._running[self._pool.submit(run_job, job, drives, **kw)] = job
+        return len(jobs)
+
+    def _collect(self) -> None:
+        for fut in [f for f in self._running if f.done()]:
+            job = self._running.pop(fut)
+            try:
+                result = fut.result()
+            except Exception as err:  # noqa: BLE001 - a bug on one tile must not stop the live map; logged in full
+                self._fail(job, err)
+                continue
+            self._commit(job, result)
+
+    def _commit(self, job: Job, result: JobResult) -> None:
+        if job.kind == MODEL:
+            self.store.put_model(result.model.to_dict(), job.sig)
+            self._load_model()
+            self.health.set("offset_model_drives", len(result.model.drives))
+            self.health.set("last_model_update_s", f"{result.seconds:.3f}")
+        elif job.kind == OBSERVE:
+            self.store.put_observations(job.key, result.observations, job.drive_ids)
+        else:
+            est = self.store.put_tile(job.key, result.segments, job.drive_ids,
+                                      model_sig=job.sig if job.kind == REMAP else "",
+                                      observations=result.observations)
+            self._publish(est, final=job.final)
+            self.health.updated()
+            self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
+            self.health.set("tiles", self.scheduler.tile_count)
+        self.scheduler.finished(job, ok=True, observed=job.kind == MAP and result.observations is not None)
+
+    def _fail(self, job: Job, err: Exception) -> None:
+        what = "fleet offset model" if job.kind == MODEL else f"tile {job.key} ({job.kind})"
+        text = f"{what}: {type(err).__name__}: {err}"
+        self.scheduler.finished(job, ok=False)
+        self.health.error(text)
+        detail = "" if isinstance(err, HdmapError) else "\n" + "".join(traceback.format_exception(err))
+        self.get_logger().error(f"{text}; kept as it was{detail}")
 
     def _load_model(self) -> None:
         data, sig = self.store.model()
@@ -268,133 +333,36 @@ class SegmentMapper(HealthMixin, Node):
         self._model = OffsetModel.from_dict(data) if data is not None else None
         self._model_sig = sig if data is not None else ""
 
-    def _observations_sig(self) -> str:
-        if self._obs_sig is None:
-            sets = self.store.observation_sets()
-            self._obs_sig = observations_signature(sets) if sets else ""  # nothing observed: no model needed
-        return self._obs_sig
-
-    def _settle_with_model(self, deadline: float) -> None:
-        """Settle in three phases (module docstring); returns at the deadline or when a drive waits."""
-
-        def out_of_time() -> bool:
-            return time.monotonic() >= deadline or bool(self.store.pending())
-
-        for key in self.store.stale_observations():  # 1. observations of every tile's drive set
-            count = self.store.tile_drive_count(key)
-            if self._obs_failed.get(key) != count:
-                self._observe(key)
-            if out_of_time():
-                return
-        if any(self._obs_failed.get(k) != self.store.tile_drive_count(k) for k in self.store.stale_observations()):
-            return
-        sig = self._observations_sig()
-        if sig != self._model_sig:  # 2. the fleet-wide model of those observations
-            if not self._estimate_model(sig) or out_of_time():
-                return
-        keys = self._tiles_off_model()
-        if self._model_cursor is not None:  # round robin: a settle cut short goes on where it stopped
-            keys = [k for k in keys if k > self._model_cursor] + [k for k in keys if k <= self._model_cursor]
-        for key in keys:  # 3. every tile made from all its drives with that model
-            count = self.store.tile_drive_count(key)
-            if self._failed.get(key) != count:
-                self._estimate(key, count, model=True)
-            self._model_cursor = key
-            if out_of_time():
-                return
-
-    def _tiles_off_model(self) -> list[TileKey]:
-        off = set(self.store.tiles_off_model(self._model_sig)) | set(self.store.stale_tiles())
-        return sorted(off)
-
-    def _observe(self, key: TileKey) -> None:
-        drives = self.store.drives_covering(key)
-        try:
-            obs = observe_tile(drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config)
-        except Exception as err:  # noqa: BLE001 - logged in full; the tile keeps its observations
-            self._obs_failed[key] = len(drives)
-            self.health.error(f"tile {key} observations: {type(err).__name__}: {err}")
-            self.get_logger().error(f"observation pass failed for tile {key}: {traceback.format_exc()}")
-            return
-        self.store.put_observations(key, obs, [d.drive_id for d in drives])
-        self._obs_sig = None
-        self._obs_failed.pop(key, None)
-
-    def _estimate_model(self, sig: str) -> bool:
-        t0 = time.perf_counter()
-        try:
-            model = fleet_offsets(self.store.observations(), pipeline_config=self.pipeline_config)
-        except Exception as err:  # noqa: BLE001 - logged; tiles keep their own adjustment
-            self._model_failed_sig = sig
-            self.health.error(f"fleet offset model: {type(err).__name__}: {err}")
-            self.get_logger().error(f"fleet offset adjustment failed, tiles keep their own: {traceback.format_exc()}")
-            return False
-        self.store.put_model(model.to_dict(), sig)
-        self._load_model()
-        self.health.set("offset_model_drives", len(model.drives))
-        self.health.set("last_model_update_s", f"{time.perf_counter() - t0:.3f}")
-        return True
-
-    def _estimate(self, key: TileKey, count: int, *, model: bool = False) -> None:
-        drives = self.store.drives_covering(key)
-        t0 = time.perf_counter()
-        obs = None
-        try:
-            if model:
-                segments = map_tile(drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config,
-                                    offset_model=self._model)
-            elif self.use_fleet_model:
-                segments, obs = map_tile_observed(
-                    drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config
-                )
-            else:
-                segments = map_tile(drives, key, tile_config=self.tile_config, pipeline_config=self.pipeline_config)
-        except HdmapError as err:
-            self._fail(key, count, f"tile {key}: {err}")
-            return
-        except Exception as err:  # noqa: BLE001 - a bug on one tile must not stop the live map; logged in full
-            self._fail(key, count, f"tile {key}: {type(err).__name__}: {err}\n{traceback.format_exc()}")
-            return
-        est = self.store.put_tile(key, segments, [d.drive_id for d in drives],
-                                  model_sig=self._model_sig if model else "", observations=obs)
-        if obs is not None:
-            self._obs_sig = None
-        self._est_count[key] = est.drive_count
-        self._failed.pop(key, None)
-        self._publish(est)
-        self.health.updated()
-        self.health.set("last_tile_update_s", f"{time.perf_counter() - t0:.3f}")
-        self.health.set("tiles", len(self.store.tiles()))
-
-    def _fail(self, key: TileKey, count: int, text: str) -> None:
-        self._failed[key] = count
-        self.health.error(text.splitlines()[0])
-        self.get_logger().error(f"mapping failed, tile kept as it was: {text}")
-
-    def _publish(self, est: TileEstimate) -> None:
+    def _publish(self, est: TileEstimate, *, final: bool | None = None) -> None:
+        """Publish an estimate; ``final`` None (a stored one): final when made with the fleet model
+        or when the preset has none."""
         msg = tile_to_msg(
             est.key, est.segments(), version=est.version, drive_ids=est.drive_ids,
             tile_size_m=self.tile_config.tile_size_m, stamp_ns=time.time_ns(), types=self._tile_types,
+            drive_tile_counts=[self.scheduler.drive_tile_count(d) for d in est.drive_ids],
+            final=(bool(est.model_sig) or not self.use_fleet_model) if final is None else final,
         )
         self._seg_pub.publish(msg)
         self.tiles_published += 1
 
+    def _update_status(self) -> None:
+        """Publish the mapper's part of MapStatus when it changed."""
+        status = LiveStatus(
+            drives_received=self.store.drive_count(), drives_rejected=len(self._rejected_ids),
+            tiles_pending=self.scheduler.pending_tiles() + len(self.store.pending()),
+            tile_versions=self.store.version_total(), settled=self.is_settled(), stamp_ns=time.time_ns(),
+        )
+        if status.same(self._status):
+            return
+        self._status = status
+        self._status_pub.publish(status_to_msg(status, cls=self._status_cls, types=self._types))
+
     def is_settled(self) -> bool:
-        """No pending drive, no tile due and no stale tile (that did not fail at its current count);
-        with the fleet model also: every tile observed, the model current, every tile made with it."""
-        if self._queue or self.store.pending():
-            return False
-        if self.use_fleet_model and self._model_failed_sig != self._observations_sig():
-            if any(self._obs_failed.get(k) != self.store.tile_drive_count(k) for k in self.store.stale_observations()):
-                return False
-            if self._model_sig != self._observations_sig():
-                return False
-            stale = self._tiles_off_model()
-        else:
-            stale = self.store.stale_tiles()
-        return all(self._failed.get(k) == self.store.tile_drive_count(k) for k in stale)
+        """No pending drive and the schedule settled (``LiveScheduler.is_settled``)."""
+        return not self.store.pending() and self.scheduler.is_settled()
 
     def destroy_node(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
         self.store.close()
         super().destroy_node()
 

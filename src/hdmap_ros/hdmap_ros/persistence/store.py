@@ -342,13 +342,16 @@ class _Store:
 class TileEstimate:
     """The stored estimate of one tile."""
 
-    __slots__ = ("key", "version", "drive_ids", "segments_blob")
+    __slots__ = ("key", "version", "drive_ids", "segments_blob", "model_sig")
 
-    def __init__(self, key: TileKey, version: int, drive_ids: Sequence[str], segments_blob: bytes | None) -> None:
+    def __init__(
+        self, key: TileKey, version: int, drive_ids: Sequence[str], segments_blob: bytes | None, model_sig: str = ""
+    ) -> None:
         self.key = key
         self.version = version
         self.drive_ids = tuple(drive_ids)
         self.segments_blob = segments_blob
+        self.model_sig = model_sig  # the fleet offset model it was made with ('' = the tile's own adjustment)
 
     @property
     def drive_count(self) -> int:
@@ -443,6 +446,17 @@ class DriveStore(_Store):
             out.update((x, y) for x, y in self._query(f"SELECT tx, ty FROM drive_tiles WHERE drive_id IN ({q})", chunk))
         return out
 
+    def tiles_per_drive(self, drive_ids: Iterable[str]) -> dict[str, list[TileKey]]:
+        """The tiles each of these drives covers (every id a key, [] when unknown)."""
+        ids = list(drive_ids)
+        out: dict[str, list[TileKey]] = {d: [] for d in ids}
+        for i in range(0, len(ids), 500):
+            chunk = ids[i : i + 500]
+            q = ",".join("?" * len(chunk))
+            for x, y, d in self._query(f"SELECT tx, ty, drive_id FROM drive_tiles WHERE drive_id IN ({q})", chunk):
+                out[d].append((x, y))
+        return out
+
     def tile_drive_count(self, key: TileKey) -> int:
         return int(self._query("SELECT COUNT(*) FROM drive_tiles WHERE tx=? AND ty=?", key)[0][0])
 
@@ -456,12 +470,35 @@ class DriveStore(_Store):
         return [blob_to_drive(r[0]) for r in rows]
 
     def tile(self, key: TileKey) -> TileEstimate | None:
-        rows = self._query("SELECT version, drive_ids, segments FROM tiles WHERE tx=? AND ty=?", key)
-        return TileEstimate(key, rows[0][0], json.loads(rows[0][1]), rows[0][2]) if rows else None
+        rows = self._query("SELECT version, drive_ids, segments, model_sig FROM tiles WHERE tx=? AND ty=?", key)
+        return TileEstimate(key, rows[0][0], json.loads(rows[0][1]), rows[0][2], rows[0][3]) if rows else None
 
     def tiles(self) -> list[TileEstimate]:
-        rows = self._query("SELECT tx, ty, version, drive_ids, segments FROM tiles ORDER BY tx, ty")
-        return [TileEstimate((r[0], r[1]), r[2], json.loads(r[3]), r[4]) for r in rows]
+        rows = self._query("SELECT tx, ty, version, drive_ids, segments, model_sig FROM tiles ORDER BY tx, ty")
+        return [TileEstimate((r[0], r[1]), r[2], json.loads(r[3]), r[4], r[5]) for r in rows]
+
+    def tile_drive_sets(self) -> dict[TileKey, list[str]]:
+        """Every tile with the stored drives covering it."""
+        out: dict[TileKey, list[str]] = {}
+        for x, y, d in self._query("SELECT tx, ty, drive_id FROM drive_tiles ORDER BY tx, ty, drive_id"):
+            out.setdefault((x, y), []).append(d)
+        return out
+
+    def estimates(self) -> list[tuple[TileKey, list[str], str]]:
+        """(tile, the drives its estimate was made from, the model signature it was made with) per tile."""
+        rows = self._query("SELECT tx, ty, drive_ids, model_sig FROM tiles ORDER BY tx, ty")
+        return [((r[0], r[1]), json.loads(r[2]), r[3]) for r in rows]
+
+    def drives(self, drive_ids: Iterable[str]) -> list[Drive]:
+        """The stored drives of these ids (unknown ids skipped), ordered by drive id."""
+        ids = sorted(set(drive_ids))
+        out: list[Drive] = []
+        for i in range(0, len(ids), 500):
+            chunk = ids[i : i + 500]
+            q = ",".join("?" * len(chunk))
+            rows = self._query(f"SELECT blob FROM drives WHERE drive_id IN ({q}) ORDER BY drive_id", chunk)
+            out.extend(blob_to_drive(r[0]) for r in rows)
+        return out
 
     def tiles_signature(self) -> str:
         """Every (tile, version), as :meth:`MapStore.tiles_signature` names them."""
@@ -506,7 +543,7 @@ class DriveStore(_Store):
             )
             if observations is not None:
                 self._put_obs(con, key, observations, ids)
-        return TileEstimate(key, version, ids, blob)
+        return TileEstimate(key, version, ids, blob, model_sig)
 
     # --- the fleet-wide offset model and the observations it is estimated from ----------------------
 
@@ -587,17 +624,39 @@ class MapStore(_Store):
     )
     """
 
-    def put_tile(self, key: TileKey, version: int, segments_blob: bytes, drive_ids: Sequence[str]) -> bool:
-        """Store a tile's segments unless a same or newer version is stored; True when stored."""
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(path)
+        cols = {r[1] for r in self._query("PRAGMA table_info(tiles)")}
+        with self._tx() as con:  # a store of before the per-drive tile counts
+            if "drive_tile_counts" not in cols:
+                con.execute("ALTER TABLE tiles ADD COLUMN drive_tile_counts TEXT NOT NULL DEFAULT '[]'")
+            if "final" not in cols:
+                con.execute("ALTER TABLE tiles ADD COLUMN final INTEGER NOT NULL DEFAULT 1")
+
+    def put_tile(
+        self, key: TileKey, version: int, segments_blob: bytes, drive_ids: Sequence[str],
+        drive_tile_counts: Sequence[int] = (), final: bool = True,
+    ) -> bool:
+        """Store a tile's segments unless a same or newer version is stored; True when stored.
+        ``drive_tile_counts``: per drive id, the tiles that drive covers (empty: unknown); ``final``:
+        made as the settled map makes it."""
         with self._tx() as con:
             row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
             if row and row[0] >= version:
                 return False
             con.execute(
-                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_ids, segments) VALUES (?, ?, ?, ?, ?)",
-                (key[0], key[1], int(version), json.dumps(list(drive_ids)), segments_blob),
+                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_ids, segments, drive_tile_counts, final) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (key[0], key[1], int(version), json.dumps(list(drive_ids)), segments_blob,
+                 json.dumps([int(n) for n in drive_tile_counts]), int(bool(final))),
             )
         return True
+
+    def tile_progress(self) -> dict[TileKey, tuple[list[int], bool]]:
+        """Per tile, the tile counts of its estimate's drives and whether it is final (as
+        :meth:`put_tile` got them)."""
+        rows = self._query("SELECT tx, ty, drive_tile_counts, final FROM tiles ORDER BY tx, ty")
+        return {(r[0], r[1]): (json.loads(r[2]), bool(r[3])) for r in rows}
 
     def tile_version(self, key: TileKey) -> int:
         rows = self._query("SELECT version FROM tiles WHERE tx=? AND ty=?", key)

@@ -1,0 +1,107 @@
+"""One job of the live mapper run on its input: a plain function, so a process pool can run it.
+
+The schedule (:mod:`hdmap_core.live.scheduler`) says what to run; :func:`run_job` runs it with the
+functions of :mod:`hdmap_core.live.tiles` and returns plain data the mapper stores and publishes.
+Results depend on the job's input only, so they are the same in any process.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from hdmap_core.errors import ConfigError
+from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job
+from hdmap_core.live.tiles import (
+    TileConfig,
+    fleet_offsets,
+    map_tile,
+    map_tile_observed,
+    observe_tile,
+    preview_tile,
+)
+from hdmap_core.model import Drive
+
+if TYPE_CHECKING:
+    from hdmap_core.pipeline.adjustment import OffsetSource
+    from hdmap_core.pipeline.config import PipelineConfig
+
+__all__ = ["JobResult", "run_job", "warm_up"]
+
+
+@dataclass
+class JobResult:
+    """What a job made.
+
+    Attributes:
+        segments: MAP / REMAP: the tile's segments.
+        observations: MAP with the fleet model, OBSERVE: the tile's step observations.
+        model: MODEL: the fleet-wide ``OffsetModel``.
+        seconds: the job's own run time [s].
+    """
+
+    segments: list | None = None
+    observations: list | None = None
+    model: Any = None
+    seconds: float = 0.0
+
+
+def run_job(
+    job: Job,
+    drives: Sequence[Drive],
+    *,
+    tile_config: TileConfig,
+    pipeline_config: PipelineConfig,
+    use_fleet_model: bool,
+    offset_model: OffsetSource | None = None,
+    observations: Sequence | None = None,
+) -> JobResult:
+    """Run one job.
+
+    Args:
+        job: from :meth:`LiveScheduler.next_jobs`.
+        drives: the drives ``job.drive_ids`` names (MAP, OBSERVE, REMAP).
+        use_fleet_model: a MAP job also returns the tile's observations (for the fleet model).
+        offset_model: REMAP: the fleet-wide model ``job.sig`` names.
+        observations: MODEL: every tile's observations.
+
+    Raises:
+        ConfigError: a job of unknown kind, or a REMAP without a model.
+        HdmapError: the pipeline's own errors on the tile's data.
+    """
+    t0 = time.perf_counter()
+    tc, pc = tile_config, pipeline_config
+    if job.kind == MODEL:
+        out = JobResult(model=fleet_offsets(list(observations or ()), pipeline_config=pc))
+    elif job.key is None:
+        raise ConfigError(f"a {job.kind} job needs a tile")
+    elif job.kind == OBSERVE:
+        out = JobResult(observations=observe_tile(drives, job.key, tile_config=tc, pipeline_config=pc))
+    elif job.kind == REMAP:
+        if offset_model is None:
+            raise ConfigError(f"tile {job.key}: a remap job needs the fleet offset model")
+        out = JobResult(
+            segments=map_tile(drives, job.key, tile_config=tc, pipeline_config=pc, offset_model=offset_model)
+        )
+    elif job.kind == MAP and use_fleet_model and not job.final:
+        # RULE: a tile's estimate while drives come is its observation pass (half the work of its
+        # own adjustment and final pass); the settled map re-makes it with the fleet model anyway
+        segments, obs = preview_tile(drives, job.key, tile_config=tc, pipeline_config=pc)
+        out = JobResult(segments=segments, observations=obs)
+    elif job.kind == MAP and use_fleet_model:
+        segments, obs = map_tile_observed(drives, job.key, tile_config=tc, pipeline_config=pc)
+        out = JobResult(segments=segments, observations=obs)
+    elif job.kind == MAP:
+        out = JobResult(segments=map_tile(drives, job.key, tile_config=tc, pipeline_config=pc))
+    else:
+        raise ConfigError(f"unknown job kind {job.kind!r}")
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def warm_up() -> None:
+    """Import the pipeline (what a worker process's first job would), so it is ready before drives come."""
+    import hdmap_core.graph.connection  # noqa: F401, PLC0415
+    import hdmap_core.pipeline.driver  # noqa: F401, PLC0415

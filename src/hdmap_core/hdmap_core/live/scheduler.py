@@ -1,0 +1,361 @@
+"""The live mapper's schedule: which tile job runs next. Pure: no DDS, no store, no clock of its own.
+
+The segment mapper feeds it what happened (:meth:`LiveScheduler.add_drive`, :meth:`finished`) and
+asks it what to run (:meth:`next_jobs`); it runs the jobs (:mod:`hdmap_core.live.tiles`), stores
+and publishes their results. The rules:
+
+- **Coalescing.** A drive queues the tiles it covers; a queued tile is one job however many drives
+  wait on it, made from every drive covering the tile when the job starts. A tile in work when new
+  drives come is queued again and runs after its current job.
+- **Due test.** A tile without an estimate is due. A mapped tile is due at once when its drives
+  drove new road in it (at least ``NEW_ROAD_CELLS`` cells of the ``road_cells`` grid its estimate
+  has not seen: a ramp, the other carriageway), so coverage grows while a fleet arrives. Otherwise,
+  with the fleet-wide model, a mapped tile waits for the settle (which re-makes every tile with
+  the model anyway: a re-estimate before it is work thrown away, and the map keeps its final
+  estimates meanwhile); without it, it is due when its drive count grew enough
+  (:func:`~hdmap_core.live.tiles.needs_update`). A tile whose job failed is not retried until its
+  drive set changes.
+- **Order.** Tiles no estimate covers yet go first, then tiles with new road, then re-estimates,
+  the most grown (relative to the estimate) first.
+- **Settling**, after ``settle_after_s`` without input and with nothing queued or in work: without
+  the fleet-wide offset model every tile not made from all its drives is re-estimated once. With
+  it (presets with a final pass), in three phases: (1) every tile's observations brought up to its
+  drive set, (2) one fleet-wide offset model from all observations, (3) every tile re-made from
+  all its drives with that model. Phase 2 waits until no job is in work (a barrier); the jobs of
+  phases 1 and 3 run side by side.
+
+Each job's result is a function of the tile's drive set (and the model), so the settled map
+depends on the drives only, whatever the order, the number of workers or a restart in between.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+from hdmap_core.live.tiles import TileConfig, TileKey, needs_update, observations_signature
+
+__all__ = ["Job", "LiveScheduler", "MAP", "OBSERVE", "MODEL", "REMAP", "NEW_ROAD_CELLS"]
+
+NEW_ROAD_CELLS = 2  # RULE: new road in a mapped tile: this many road cells (16 m) its estimate has not seen
+
+MAP = "map"  # the tile with its own offset adjustment (and its observations, with the fleet model)
+OBSERVE = "observe"  # the tile's observation pass only (settle phase 1)
+MODEL = "model"  # the fleet-wide offset model over every tile's observations (settle phase 2)
+REMAP = "remap"  # the tile's final pass with the fleet-wide model (settle phase 3)
+
+
+@dataclass(frozen=True)
+class Job:
+    """One unit of work.
+
+    Attributes:
+        kind: :data:`MAP`, :data:`OBSERVE`, :data:`MODEL` or :data:`REMAP`.
+        key: the tile (None for :data:`MODEL`).
+        drive_ids: the drives covering the tile when the job was made, sorted (its input).
+        sig: :data:`MODEL`: the signature of the observations it is made from; :data:`REMAP`: that
+            of the model it uses; else ''.
+        final: its estimate is made as the settled map makes it (a REMAP; a MAP when no fleet model
+            is used, or when the model of these observations failed): only then do the drives it is
+            made from count as mapped on this tile (``Map.drive_ids``).
+    """
+
+    kind: str
+    key: TileKey | None
+    drive_ids: tuple[str, ...] = ()
+    sig: str = ""
+    final: bool = False
+
+
+class LiveScheduler:
+    """Queue, due test, settle phases and jobs in work of the live mapper; see the module docstring.
+
+    Args:
+        tile_config: the tiling (its growth thresholds make the due test).
+        use_fleet_model: settle with the fleet-wide offset model (a pipeline with a final pass).
+        settle_after_s: idle time after the last drive before settling [s].
+    """
+
+    def __init__(self, tile_config: TileConfig, *, use_fleet_model: bool, settle_after_s: float) -> None:
+        self.tile_config = tile_config
+        self.use_fleet_model = use_fleet_model
+        self.settle_after_s = float(settle_after_s)
+        self._tiles: dict[TileKey, set[str]] = {}  # tile -> drives covering it
+        self._drive_tiles: dict[str, int] = {}  # drive -> number of tiles it covers
+        self._est: dict[TileKey, tuple[int, str]] = {}  # tile -> (drive count, model sig) of its estimate
+        self._obs: dict[TileKey, tuple[str, ...]] = {}  # tile -> drives its observations were made from
+        self._failed: dict[TileKey, int] = {}  # tile -> drive count at which its job failed
+        self._obs_failed: dict[TileKey, int] = {}
+        self._model_sig = ""  # observations the current model was made from
+        self._model_failed_sig = ""  # observations whose model failed
+        self._obs_sig: str | None = None  # cache of the observations' signature
+        self._queue: set[TileKey] = set()
+        self._busy: dict[TileKey | None, Job] = {}  # jobs in work (None: the model)
+        self._cursor: TileKey | None = None  # phase 3 round robin: where the last turn stopped
+        self._last_input = float("-inf")
+        self._cells: dict[TileKey, set[tuple[int, int]]] = {}  # road cells the tile's drives drove
+        self._cells_est: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its estimate's drives
+        self._cells_job: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its job in work
+        self._cells_unknown: set[TileKey] = set()  # estimates restored from a store: their cells are not known
+
+    # --- inputs ----------------------------------------------------------------------------------
+
+    def restore(
+        self,
+        tile_drives: dict[TileKey, Iterable[str]],
+        estimates: Iterable[tuple[TileKey, Sequence[str], str]],
+        observations: Iterable[tuple[TileKey, Sequence[str]]] = (),
+        model_sig: str = "",
+        *,
+        now: float,
+    ) -> None:
+        """The state of a store (a restart): drives per tile, (tile, drives, model sig) of each
+        estimate, (tile, drives) of each tile's observations, the stored model's signature; ``now``
+        counts as the last input. Every
+        tile that is due is queued (the queue itself is not stored: it follows from the rest)."""
+        for key, ids in tile_drives.items():
+            self._tiles.setdefault(key, set()).update(ids)
+        counts: dict[str, int] = {}
+        for ids in self._tiles.values():
+            for d in ids:
+                counts[d] = counts.get(d, 0) + 1
+        self._drive_tiles.update(counts)
+        for key, ids, sig in estimates:
+            self._est[key] = (len(ids), sig)
+            self._cells_unknown.add(key)  # new road is told from the tile's next estimate on
+        for key, ids in observations:
+            self._obs[key] = tuple(sorted(ids))
+        self._obs_sig = None
+        self._model_sig = model_sig
+        self._last_input = now  # settling waits as after a drive
+        self._queue.update(k for k in self._tiles if self._due(k))
+
+    def add_drive(
+        self,
+        drive_id: str,
+        tiles: Iterable[TileKey],
+        now: float,
+        cells: Mapping[TileKey, Iterable[tuple[int, int]]] | None = None,
+    ) -> bool:
+        """A new drive covering ``tiles`` (False, nothing changed, for a known drive); ``cells``:
+        where it drove, per tile (:func:`~hdmap_core.live.tiles.road_cells`; None: not known)."""
+        if drive_id in self._drive_tiles:
+            return False
+        keys = set(tiles)
+        for key, cs in (cells or {}).items():
+            self._cells.setdefault(key, set()).update(cs)
+        self._drive_tiles[drive_id] = len(keys)
+        for key in keys:
+            self._tiles.setdefault(key, set()).add(drive_id)
+        self._queue.update(keys)
+        self._last_input = now
+        return True
+
+    def finished(self, job: Job, *, ok: bool, observed: bool = False) -> None:
+        """A job ended. ``observed``: a :data:`MAP` job also stored the tile's observations."""
+        self._busy.pop(job.key if job.kind != MODEL else None, None)
+        n = len(job.drive_ids)
+        if job.kind == MODEL:
+            if ok:
+                self._model_sig = job.sig
+            else:
+                self._model_failed_sig = job.sig
+            return
+        key = job.key
+        if key is None:  # only a MODEL job has no tile
+            return
+        if job.kind == OBSERVE:
+            if ok:
+                self._obs[key] = job.drive_ids
+                self._obs_sig = None
+                self._obs_failed.pop(key, None)
+            else:
+                self._obs_failed[key] = n
+            return
+        cells = self._cells_job.pop(key, frozenset())
+        if not ok:
+            self._failed[key] = n
+            return
+        self._est[key] = (n, job.sig if job.kind == REMAP else "")
+        self._cells_est[key] = cells
+        self._cells_unknown.discard(key)
+        self._failed.pop(key, None)
+        if observed:
+            self._obs[key] = job.drive_ids
+            self._obs_sig = None
+
+    # --- queries ---------------------------------------------------------------------------------
+
+    def drive_tile_count(self, drive_id: str) -> int:
+        """How many tiles a drive covers (0: unknown drive)."""
+        return self._drive_tiles.get(drive_id, 0)
+
+    def tile_drives(self, key: TileKey) -> tuple[str, ...]:
+        """The drives covering a tile, sorted."""
+        return tuple(sorted(self._tiles.get(key, ())))
+
+    def queued(self) -> set[TileKey]:
+        """Tiles queued or in work."""
+        return set(self._queue) | {k for k in self._busy if k is not None}
+
+    def is_mapped(self, key: TileKey) -> bool:
+        """The tile has an estimate."""
+        return key in self._est
+
+    @property
+    def drive_count(self) -> int:
+        return len(self._drive_tiles)
+
+    @property
+    def tile_count(self) -> int:
+        return len(self._tiles)
+
+    @property
+    def busy(self) -> int:
+        """Jobs in work."""
+        return len(self._busy)
+
+    @property
+    def model_sig(self) -> str:
+        return self._model_sig
+
+    def pending_tiles(self) -> int:
+        """Tiles queued, in work, or not yet made from all their drives (failed ones excepted)."""
+        waiting = set(self._queue) | {k for k in self._busy if k is not None}
+        waiting.update(k for k in self._tiles if self._stale(k) and not self._failed_at_count(k))
+        return len(waiting)
+
+    def observations_sig(self) -> str:
+        """Signature of the drive sets every tile's observations were made from ('' = none)."""
+        if self._obs_sig is None:
+            self._obs_sig = observations_signature(self._obs.items()) if self._obs else ""
+        return self._obs_sig
+
+    def idle(self, now: float) -> bool:
+        """Nothing queued or in work and no drive for ``settle_after_s``: time to settle."""
+        return not self._queue and not self._busy and now - self._last_input >= self.settle_after_s
+
+    def is_settled(self) -> bool:
+        """Nothing queued or in work and every tile made from all its drives (with the fleet model:
+        every tile observed, the model current, every tile made with it), failed tiles excepted."""
+        if self._queue or self._busy:
+            return False
+        if self._model_phase():
+            if self._stale_observations():
+                return False
+            if self._model_sig != self.observations_sig():
+                return False
+            return not self._off_model()
+        return not any(self._stale(k) and not self._failed_at_count(k) for k in self._tiles)
+
+    # --- the schedule ----------------------------------------------------------------------------
+
+    def next_jobs(self, now: float, limit: int = 1) -> list[Job]:
+        """Up to ``limit`` jobs to start now (marked as in work), in the order to start them."""
+        jobs: list[Job] = []
+        while len(jobs) < limit:
+            job = self._next(now)
+            if job is None:
+                break
+            self._busy[job.key if job.kind != MODEL else None] = job
+            if job.key is not None and job.kind in (MAP, REMAP):
+                self._cells_job[job.key] = frozenset(self._cells.get(job.key, ()))
+            jobs.append(job)
+        return jobs
+
+    def _next(self, now: float) -> Job | None:
+        while self._queue:
+            ready = [k for k in self._queue if k not in self._busy]
+            if not ready:
+                return None  # every queued tile is in work: it is queued again behind its job
+            key = self._pick(ready)
+            self._queue.discard(key)
+            if self._due(key):
+                failed = self._model_failed_sig != "" and self._model_failed_sig == self.observations_sig()
+                return Job(MAP, key, self.tile_drives(key), final=not self.use_fleet_model or failed)
+        if now - self._last_input < self.settle_after_s:
+            return None
+        return self._settle_job()
+
+    def _pick(self, ready: list[TileKey]) -> TileKey:
+        fresh = [k for k in ready if k not in self._est]
+        if fresh:
+            return min(fresh)
+        road = [k for k in ready if self._new_road(k)]
+        if road:
+            return min(road)
+        # RULE: the most grown estimate first (relative to its drive count), ties by key
+        return min(ready, key=lambda k: (-len(self._tiles.get(k, ())) / max(1, self._est[k][0]), k))
+
+    def _settle_job(self) -> Job | None:
+        if not self._model_phase():
+            for key in sorted(self._tiles):
+                if key not in self._busy and self._stale(key) and not self._failed_at_count(key):
+                    return Job(MAP, key, self.tile_drives(key), final=True)
+            return None
+        stale_obs = self._stale_observations()
+        for key in stale_obs:  # 1. observations of every tile's drive set
+            if key not in self._busy:
+                return Job(OBSERVE, key, self.tile_drives(key))
+        if stale_obs:
+            return None  # the model waits for every observation
+        sig = self.observations_sig()
+        if sig != self._model_sig:  # 2. the fleet-wide model of those observations, once no job is in work
+            return None if self._busy else Job(MODEL, None, (), sig)
+        keys = [k for k in self._off_model() if k not in self._busy]
+        if not keys:
+            return None
+        if self._cursor is not None:  # round robin: a settle cut short goes on where it stopped
+            after = [k for k in keys if k > self._cursor]
+            keys = after or keys
+        key = keys[0]
+        self._cursor = key
+        return Job(REMAP, key, self.tile_drives(key), self._model_sig, final=True)  # 3. every tile with the model
+
+    # --- tile state ------------------------------------------------------------------------------
+
+    def _count(self, key: TileKey) -> int:
+        return len(self._tiles.get(key, ()))
+
+    def _due(self, key: TileKey) -> bool:
+        count = self._count(key)
+        est = self._est.get(key, (0, ""))[0]
+        if self._failed.get(key) == count or count <= 0:
+            return False
+        if est <= 0 or self._new_road(key):
+            return True
+        if self.use_fleet_model:
+            return False  # mapped road waits for the settle: it re-makes every tile with the model
+        return needs_update(est, count, config=self.tile_config)
+
+    def _new_road(self, key: TileKey) -> bool:
+        """The tile's drives drove road in it that its estimate has not seen."""
+        if key not in self._est or key in self._cells_unknown:
+            return False
+        return len(self._cells.get(key, set()) - self._cells_est.get(key, frozenset())) >= NEW_ROAD_CELLS
+
+    def _stale(self, key: TileKey) -> bool:
+        return self._est.get(key, (0, ""))[0] < self._count(key)
+
+    def _failed_at_count(self, key: TileKey) -> bool:
+        return self._failed.get(key) == self._count(key)
+
+    def _model_phase(self) -> bool:
+        """Settling goes through the fleet model (unless the model of these observations failed)."""
+        return self.use_fleet_model and self._model_failed_sig != self.observations_sig()
+
+    def _stale_observations(self) -> list[TileKey]:
+        """Tiles whose observations are older than their drive set (and did not fail at it), by key."""
+        return sorted(
+            k
+            for k in self._tiles
+            if len(self._obs.get(k, ())) < self._count(k) and self._obs_failed.get(k) != self._count(k)
+        )
+
+    def _off_model(self) -> list[TileKey]:
+        """Tiles not made from all their drives with the current model (failed ones excepted), by key."""
+        return sorted(
+            k
+            for k in self._tiles
+            if (self._stale(k) or self._est[k][1] != self._model_sig) and not self._failed_at_count(k)
+        )

@@ -1,0 +1,272 @@
+"""Tests of hdmap_core.live.scheduler: the live mapper's schedule without DDS, store or clock."""
+
+from __future__ import annotations
+
+import random
+from dataclasses import replace
+
+from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
+from hdmap_core.live.tiles import TileConfig
+
+CFG = TileConfig(min_growth_fraction=0.10, min_growth_drives=3)
+A, B, C = (0, 0), (1, 0), (2, 0)
+
+
+def _sched(model: bool = False, settle: float = 2.0) -> LiveScheduler:
+    return LiveScheduler(CFG, use_fleet_model=model, settle_after_s=settle)
+
+
+def _run(s: LiveScheduler, now: float, limit: int = 1, *, observed: bool = False) -> list[Job]:
+    """Start up to ``limit`` jobs and finish them all successfully; return them."""
+    jobs = s.next_jobs(now, limit)
+    for j in jobs:
+        s.finished(j, ok=True, observed=observed and j.kind == MAP)
+    return jobs
+
+
+def _drain(s: LiveScheduler, now: float, *, observed: bool = False) -> list[Job]:
+    done: list[Job] = []
+    while jobs := _run(s, now, 4, observed=observed):
+        done.extend(jobs)
+    return done
+
+
+def test_a_tile_is_one_job_for_all_drives_waiting_on_it():
+    s = _sched()
+    for i in range(5):
+        s.add_drive(f"d{i}", [A, B], now=0.0)
+    jobs = s.next_jobs(0.0, limit=10)
+    assert sorted(j.key for j in jobs) == [A, B]
+    assert all(j.kind == MAP and j.drive_ids == ("d0", "d1", "d2", "d3", "d4") for j in jobs)
+    assert s.next_jobs(0.0, limit=10) == []  # nothing more: both are in work
+    assert s.add_drive("d0", [C], now=0.0) is False  # a known drive changes nothing
+
+
+def test_new_road_goes_before_re_estimates_and_the_most_grown_first():
+    s = _sched()
+    for i in range(3):
+        s.add_drive(f"a{i}", [A, B], now=0.0)
+    _drain(s, 0.0)
+    for i in range(2):
+        s.add_drive(f"b{i}", [A], now=1.0)  # A: 3 -> 5
+    for i in range(4):
+        s.add_drive(f"c{i}", [B], now=1.0)  # B: 3 -> 7 (x2.3)
+    s.add_drive("n", [C, A], now=1.0)  # C: new road; A: 3 -> 6 (x2) now
+    order = [j.key for j in _drain(s, 1.0)]
+    assert order == [C, B, A]
+
+
+def test_due_test_waits_for_enough_new_drives():
+    s = _sched()
+    for i in range(10):
+        s.add_drive(f"d{i:02d}", [A], now=0.0)
+    _drain(s, 0.0)
+    s.add_drive("x1", [A], now=1.0)
+    s.add_drive("x2", [A], now=1.0)
+    assert s.next_jobs(1.0) == []  # 10 -> 12: below min_growth_drives
+    assert s.pending_tiles() == 1 and not s.is_settled()
+    s.add_drive("x3", [A], now=1.0)
+    (job,) = _run(s, 1.0)
+    assert job.kind == MAP and len(job.drive_ids) == 13
+
+
+def test_a_tile_in_work_is_queued_again_behind_its_job():
+    s = _sched()
+    s.add_drive("d0", [A], now=0.0)
+    (job,) = s.next_jobs(0.0)
+    for i in range(1, 4):
+        s.add_drive(f"d{i}", [A], now=0.1)
+    assert s.next_jobs(0.1) == []  # A is in work
+    s.finished(job, ok=True)
+    (again,) = s.next_jobs(0.2)
+    assert again.key == A and again.drive_ids == ("d0", "d1", "d2", "d3")
+
+
+def test_settle_without_model_re_estimates_stale_tiles_after_the_idle_time():
+    s = _sched(settle=2.0)
+    for i in range(10):
+        s.add_drive(f"d{i}", [A, B], now=0.0)
+    _drain(s, 0.0)
+    s.add_drive("late", [A], now=5.0)  # 10 -> 11: not due
+    assert s.next_jobs(6.0) == [] and not s.idle(6.0)
+    assert s.idle(7.0)
+    jobs = _drain(s, 7.0)
+    assert [(j.kind, j.key, len(j.drive_ids)) for j in jobs] == [(MAP, A, 11)]
+    assert s.is_settled() and s.pending_tiles() == 0
+
+
+def test_settle_with_model_runs_three_phases_with_a_barrier_before_the_model():
+    s = _sched(model=True, settle=1.0)
+    for i in range(4):
+        s.add_drive(f"d{i}", [A, B], now=0.0)
+    _drain(s, 0.0, observed=True)  # arrival: both tiles mapped with their own adjustment, observed
+    s.add_drive("e", [B, C], now=0.5)
+    _drain(s, 0.5, observed=True)  # C is new (mapped); B: 4 -> 5 not due
+    assert not s.is_settled()
+    jobs = s.next_jobs(2.0, limit=4)
+    assert [(j.kind, j.key) for j in jobs] == [(OBSERVE, B)]  # 1. B's observations are behind its drives
+    assert s.next_jobs(2.0, limit=4) == []  # 2. the model waits for the observation in work
+    s.finished(jobs[0], ok=True)
+    (model,) = s.next_jobs(2.0, limit=4)
+    assert model.kind == MODEL and model.sig == s.observations_sig() != ""
+    assert s.next_jobs(2.0, limit=4) == []  # nothing beside the model
+    s.finished(model, ok=True)
+    remaps = _drain(s, 2.0)  # 3. every tile with the model, from all its drives
+    assert sorted((j.kind, j.key, len(j.drive_ids), j.sig) for j in remaps) == [
+        (REMAP, A, 4, model.sig),
+        (REMAP, B, 5, model.sig),
+        (REMAP, C, 1, model.sig),
+    ]
+    assert s.is_settled() and s.pending_tiles() == 0
+    s.add_drive("f", [A], now=3.0)  # new input: not settled until it went through all phases again
+    assert not s.is_settled()
+
+
+def test_failed_jobs_are_not_retried_until_the_drive_set_changes():
+    s = _sched(settle=0.0)
+    s.add_drive("d0", [A], now=0.0)
+    (job,) = s.next_jobs(0.0)
+    s.finished(job, ok=False)
+    assert s.next_jobs(1.0) == [] and s.is_settled()  # failed at its count: nobody waits for it
+    s.add_drive("d1", [A], now=1.0)
+    (again,) = s.next_jobs(1.0)
+    assert again.key == A and again.drive_ids == ("d0", "d1")
+
+
+def test_a_failed_model_falls_back_to_the_tiles_own_adjustment():
+    s = _sched(model=True, settle=1.0)
+    s.add_drive("d0", [A], now=0.0)
+    _drain(s, 0.0, observed=True)
+    (model,) = s.next_jobs(1.0)
+    assert model.kind == MODEL
+    s.finished(model, ok=False)
+    assert s.next_jobs(1.0) == [] and s.is_settled()
+
+
+def test_restore_queues_the_due_tiles_and_keeps_a_settled_state():
+    from hdmap_core.live.tiles import observations_signature
+
+    obs = [(A, ["d0", "d1"]), (B, ["d1"])]
+    sig = observations_signature(obs)
+    s = _sched(model=True)
+    s.restore(
+        {A: ["d0", "d1"], B: ["d1"]},
+        estimates=[(A, ["d0", "d1"], sig), (B, ["d1"], sig)],
+        observations=obs,
+        model_sig=sig,
+        now=0.0,
+    )
+    assert s.drive_tile_count("d1") == 2 and s.drive_count == 2
+    assert s.is_settled() and s.next_jobs(10.0) == []
+    s2 = _sched(model=True)
+    s2.restore(
+        {A: ["d0", "d1"], B: ["d1"]},
+        estimates=[(A, ["d0", "d1"], "old"), (B, ["d1"], "old")],
+        observations=obs,
+        model_sig=sig,
+        now=0.0,
+    )
+    assert not s2.is_settled()
+    assert [(j.kind, j.key) for j in s2.next_jobs(10.0, limit=4)] == [(REMAP, A), (REMAP, B)]  # another model
+    s3 = _sched()
+    s3.restore({A: ["d0", "d1"], B: ["d1"]}, estimates=[(A, ["d0"], "")], now=0.0)
+    assert [j.key for j in s3.next_jobs(0.0, limit=4)] == [B]  # A (1 -> 2) is not due; B was never mapped
+    assert [(j.key, j.drive_ids) for j in s3.next_jobs(2.0, limit=4)] == [(A, ("d0", "d1"))]  # settling
+
+
+def test_any_arrival_and_completion_order_settles_to_jobs_of_the_full_drive_sets():
+    rng = random.Random(1)
+    tiles = [(i, 0) for i in range(6)]
+    drives = {f"d{i:02d}": rng.sample(tiles, rng.randint(1, 4)) for i in range(25)}
+    for model in (False, True):
+        s = _sched(model=model, settle=1.0)
+        last: dict = {}
+        in_work: list[Job] = []
+        now = 0.0
+        pending = list(drives.items())
+        while pending or in_work or not s.is_settled():
+            now += 0.3
+            if pending and rng.random() < 0.6:
+                did, keys = pending.pop(0)
+                s.add_drive(did, keys, now)
+            in_work += s.next_jobs(now, limit=2 - len(in_work))
+            if in_work and rng.random() < 0.7:
+                job = in_work.pop(rng.randrange(len(in_work)))
+                s.finished(job, ok=True, observed=model and job.kind == MAP)
+                if job.key is not None and job.kind in (MAP, REMAP):
+                    last[job.key] = job
+            assert now < 1000, "no progress"
+        for key in tiles:
+            want = tuple(sorted(d for d, ks in drives.items() if key in ks))
+            if want:
+                assert last[key].drive_ids == want
+                assert last[key].kind == (REMAP if model else MAP)
+        assert s.pending_tiles() == 0
+
+
+def test_a_drive_is_integrated_once_every_tile_it_touches_is_mapped_with_it():
+    from hdmap_core.live.progress import integrated_drives
+
+    # a covers 2 tiles, b 1, c 3 (one of c's tiles has no estimate yet)
+    tiles = [(("a", "b", "c"), (2, 1, 3)), (("a", "c"), (2, 3))]
+    assert integrated_drives(tiles) == {"a", "b"}
+    assert integrated_drives(tiles + [(("c",), (3,))]) == {"a", "b", "c"}
+    assert integrated_drives([(("a",), (2,)), (("b",), ())]) == {"b"}  # no counts: vouches for itself
+    assert integrated_drives([]) == set()
+
+
+def test_only_estimates_made_as_the_settled_map_makes_them_are_final():
+    s = _sched(model=False)
+    s.add_drive("d0", [A], now=0.0)
+    assert all(j.final for j in _drain(s, 0.0))  # without the fleet model every estimate is final
+    s = _sched(model=True, settle=1.0)
+    s.add_drive("d0", [A], now=0.0)
+    arrival = _drain(s, 0.0, observed=True)
+    assert [(j.kind, j.final) for j in arrival] == [(MAP, False)]  # its own adjustment: not final
+    settle = _drain(s, 2.0)
+    assert [(j.kind, j.final) for j in settle] == [(MODEL, False), (REMAP, True)]
+
+
+def test_the_maps_status_completes_the_mappers_and_settles_only_when_every_estimate_is_stitched():
+    from hdmap_core.live.progress import LiveStatus, map_status
+
+    mapper = LiveStatus(drives_received=10, drives_rejected=1, tiles_pending=0, tile_versions=40, settled=True)
+    st = map_status(mapper, map_version=3, drives_integrated=10, tile_versions=38, tiles_unstitched=2, stitched=True)
+    assert (st.drives_received, st.drives_integrated, st.drives_rejected, st.tiles_pending) == (10, 10, 1, 2)
+    assert not st.settled  # two estimates of the mapper are not in the stitcher's store yet
+    st = map_status(mapper, map_version=4, drives_integrated=10, tile_versions=40, tiles_unstitched=0, stitched=True)
+    assert st.settled and st.map_version == 4 and st.same(replace(st, stamp_ns=5)) and not st.same(None)
+    busy = replace(mapper, settled=False, tiles_pending=3)
+    assert not map_status(
+        busy, map_version=4, drives_integrated=9, tile_versions=40, tiles_unstitched=0, stitched=True
+    ).settled
+
+
+def _cells(key, xs):
+    return {key: {(x, 0) for x in xs}}
+
+
+def test_new_road_in_a_mapped_tile_is_due_at_once_mapped_road_waits_for_the_settle():
+    s = _sched(model=True, settle=5.0)
+    for i in range(3):
+        s.add_drive(f"d{i}", [A], now=0.0, cells=_cells(A, range(0, 10)))
+    assert [len(j.drive_ids) for j in _drain(s, 0.0, observed=True)] == [3]
+    for i in range(5):  # more drives on the same road: nothing until the settle re-makes the tile
+        s.add_drive(f"e{i}", [A], now=1.0, cells=_cells(A, range(0, 10)))
+    assert s.next_jobs(1.0) == [] and s.pending_tiles() == 1
+    s.add_drive("ramp", [A], now=2.0, cells=_cells(A, range(8, 12)))  # 2 cells of new road
+    (job,) = _run(s, 2.0, observed=True)
+    assert job.kind == MAP and len(job.drive_ids) == 9 and not job.final
+    s.add_drive("wiggle", [A], now=3.0, cells=_cells(A, [12]))  # one new cell: not new road
+    assert s.next_jobs(3.0) == []
+    settle = _drain(s, 9.0)
+    assert [j.kind for j in settle] == [OBSERVE, MODEL, REMAP] and len(settle[-1].drive_ids) == 10
+
+
+def test_without_the_model_new_road_is_due_at_once_beside_the_growth_rule():
+    s = _sched(model=False)
+    for i in range(10):
+        s.add_drive(f"d{i}", [A, B], now=0.0, cells={**_cells(A, range(5)), **_cells(B, range(5))})
+    _drain(s, 0.0)
+    s.add_drive("x", [A, B], now=1.0, cells={**_cells(A, range(5)), **_cells(B, range(5, 8))})
+    assert [(j.key, len(j.drive_ids)) for j in s.next_jobs(1.0, limit=4)] == [(B, 11)]  # A: one drive, old road
