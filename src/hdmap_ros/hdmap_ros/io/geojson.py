@@ -23,7 +23,7 @@ from pyproj import Transformer
 from hdmap_core.errors import InvalidMessageError
 from hdmap_core.model import GeoOrigin, HDMap, MapFeature, TopologyNode
 
-__all__ = ["enu_to_lonlat", "map_to_geojson", "write_geojson", "COORD_DECIMALS"]
+__all__ = ["enu_to_lonlat", "enu_to_geodetic", "map_to_geojson", "write_geojson", "COORD_DECIMALS"]
 
 COORD_DECIMALS = 8
 
@@ -46,6 +46,14 @@ def enu_to_lonlat(xy: np.ndarray, origin: GeoOrigin) -> np.ndarray:
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     lon, lat, _h = _transformer(origin).transform(xy[:, 0], xy[:, 1], np.zeros(len(xy)))
     return np.stack([np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64)], axis=1)
+
+
+def enu_to_geodetic(xy: np.ndarray, origin: GeoOrigin) -> np.ndarray:
+    """(N, 2) map-frame east/north [m] on the tangent plane (z = 0) -> (N, 3) WGS84 [lon, lat]
+    [deg] and ellipsoidal height [m] (the height of the tangent plane there)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    lon, lat, h = _transformer(origin).transform(xy[:, 0], xy[:, 1], np.zeros(len(xy)))
+    return np.stack([np.asarray(v, dtype=np.float64) for v in (lon, lat, h)], axis=1)
 
 
 def _coords(lonlat: np.ndarray) -> list[list[float]]:
