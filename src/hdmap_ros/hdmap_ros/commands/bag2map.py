@@ -3,7 +3,8 @@
 Reads the drives and the origin of IN (rosbag2 directory or ``.mcap``), reports every rejected
 drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes OUT (rosbag2 MCAP with
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
-features as RFC 7946 GeoJSON; with ``--graphml``, the topology graph as GraphML (map frame).
+features as RFC 7946 GeoJSON; with ``--lanelet2 DIR``, the lanes as an Autoware map directory
+(``hdmap export``); with ``--graphml``, the topology graph as GraphML (map frame).
 Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
@@ -24,7 +25,7 @@ from hdmap_core.model import GeoOrigin, HDMap
 from hdmap_ros.io.bagio import FleetBag, read_fleet_bag, write_map_bag
 from hdmap_ros.io.geojson import write_geojson
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument", "parse_origin"]
 
 NAME = "bag2map"
 HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
@@ -36,6 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", metavar="OUT", required=True, help="map bag directory to write")
     parser.add_argument("--geojson", metavar="FILE", help="also write the map features as GeoJSON (WGS84)")
     parser.add_argument("--graphml", metavar="PATH", help="also write the topology graph as GraphML (map frame, metres)")
+    parser.add_argument(
+        "--lanelet2", metavar="DIR",
+        help="also write the lanes as an Autoware map directory: DIR/lanelet2_map.osm + DIR/map_projector_info.yaml",
+    )
     parser.add_argument("--preset", choices=PRESETS, default="default", help="pipeline preset (default: %(default)s)")
     add_set_argument(
         parser,
@@ -46,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--origin",
         metavar="LAT,LON[,ALT]",
-        type=_parse_origin,
+        type=parse_origin,
         help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
     )
     parser.add_argument(
@@ -62,7 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
 
 
-def _parse_origin(text: str) -> GeoOrigin:
+def parse_origin(text: str) -> GeoOrigin:
+    """argparse type of ``--origin LAT,LON[,ALT]``."""
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
@@ -110,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"{out} exists already (use --overwrite to replace it)")
     if out.exists() and not (out / "metadata.yaml").exists():
         return _fail(f"{out} exists and is not a rosbag2 directory; refusing to replace it")
+    if args.lanelet2 and Path(args.lanelet2).is_file():
+        return _fail(f"--lanelet2 {args.lanelet2} is a file, not a directory")
     if args.geojson and Path(args.geojson).is_dir():
         return _fail(f"--geojson {args.geojson} is a directory")
     if args.graphml and Path(args.graphml).is_dir():
@@ -138,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
     origin = args.origin or fleet.origin
     if args.geojson and origin is None:
         return _fail(f"--geojson needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
+    if args.lanelet2 and origin is None:
+        return _fail(f"--lanelet2 needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
 
     with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
         result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress,
@@ -149,6 +159,10 @@ def run(args: argparse.Namespace) -> int:
     if args.geojson:
         write_geojson(hdmap, origin, args.geojson)
         print(f"wrote {args.geojson}")
+    if args.lanelet2:
+        from hdmap_ros.io.lanelet2 import export_lanelet2  # noqa: PLC0415 - lanes only when asked
+
+        print(export_lanelet2(hdmap, origin, args.lanelet2))
     if args.graphml:
         from hdmap_core.graph.topology_graph import write_graphml  # noqa: PLC0415 - networkx only when asked
 

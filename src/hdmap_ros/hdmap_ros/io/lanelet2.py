@@ -16,6 +16,7 @@ x/y (and z = 0) to well below a millimetre.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -23,10 +24,11 @@ import numpy as np
 
 from hdmap_core.geometry import rdp_mask_many
 from hdmap_core.lanes.model import Boundary, LaneMap
-from hdmap_core.model import FeatureType, GeoOrigin
+from hdmap_core.lanes.derive import derive_lanes
+from hdmap_core.model import FeatureType, GeoOrigin, HDMap
 from hdmap_ros.io.geojson import enu_to_geodetic
 
-__all__ = ["write_lanelet2", "MAP_FILE", "PROJECTOR_FILE", "THIN_TOLERANCE_M"]
+__all__ = ["write_lanelet2", "export_lanelet2", "MAP_FILE", "PROJECTOR_FILE", "THIN_TOLERANCE_M"]
 
 MAP_FILE = "lanelet2_map.osm"
 PROJECTOR_FILE = "map_projector_info.yaml"
@@ -51,6 +53,15 @@ def write_lanelet2(lane_map: LaneMap, origin: GeoOrigin, directory: str | Path) 
         f"  altitude: {origin.altitude_m!r}\n"
     )
     return out
+
+
+def export_lanelet2(hdmap: HDMap, origin: GeoOrigin, directory: str | Path) -> str:
+    """Derive the lanes of ``hdmap`` and write them to ``directory``; returns a one-line note."""
+    t0 = time.perf_counter()
+    lanes = derive_lanes(hdmap)
+    out = write_lanelet2(lanes, origin, directory)
+    km = sum(ln.length_m for ln in lanes.lanes) / 1000.0
+    return f"wrote {out}: {len(lanes.lanes)} lanelets ({km:.2f} km) in {time.perf_counter() - t0:.2f} s"
 
 
 def _osm(lane_map: LaneMap, origin: GeoOrigin) -> str:

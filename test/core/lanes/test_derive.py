@@ -1,0 +1,73 @@
+"""Lanes derived from hand-made maps (sketches in test/support/lane_samples.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from lane_samples import lane_gain, three_lanes
+
+from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
+from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
+from hdmap_core.model import FeatureType, HDMap
+
+
+def _lane_at(lanes, x: float, y: float) -> int:
+    return int(lanes_at(lanes, np.array([[x, y]]), np.array([0.0]))[0])
+
+
+def test_three_lanes_centerlines_sides_and_pieces():
+    lanes = derive_lanes(three_lanes())
+    # 3 lanes, each cut into pieces of at most LANELET_MAX_M (800 m -> 3 pieces)
+    assert len(lanes.lanes) == 9
+    assert all(ln.length_m <= LANELET_MAX_M + 4.0 for ln in lanes.lanes)
+    ys = sorted({round(float(np.median(ln.centerline[:, 1])), 2) for ln in lanes.lanes})
+    np.testing.assert_allclose(ys, [-3.5, 0.0, 3.5], atol=1e-6)
+    np.testing.assert_allclose(np.concatenate([ln.width for ln in lanes.lanes]), 3.5, atol=1e-6)
+    mid = lanes.lane(_lane_at(lanes, 100.0, 0.0))
+    assert mid.left_type == mid.right_type == FeatureType.DASHED
+    assert mid.change_left and mid.change_right
+    left = lanes.lane(mid.left)
+    assert left.left_type == FeatureType.SOLID and left.left is None and not left.change_left
+    assert left.right == mid.id and left.right_feature == 3 and left.left_feature == 2
+
+
+def test_three_lanes_successors_follow_shared_nodes():
+    lanes = derive_lanes(three_lanes())
+    g = lane_graph(lanes)
+    start, end = _lane_at(lanes, 10.0, 3.5), _lane_at(lanes, 790.0, -3.5)
+    route = lane_route(g, start, end)
+    assert route is not None and route[0] == start and route[-1] == end
+    first = lanes.lane(start)
+    assert len(first.successors) == 1 and not first.predecessors
+    nxt = lanes.lane(first.successors[0])
+    lb, nb = lanes.boundary(first.left_boundary), lanes.boundary(nxt.left_boundary)
+    assert lb.end_node == nb.start_node
+    # no way back against the direction
+    assert lane_route(g, end, start) is None
+    assert start in reachable_lanes(g, start) and end in reachable_lanes(g, start)
+
+
+def test_ids_are_stable():
+    a, b = derive_lanes(three_lanes()), derive_lanes(three_lanes())
+    assert [ln.id for ln in a.lanes] == [ln.id for ln in b.lanes]
+    assert [x.id for x in a.boundaries] == [x.id for x in b.boundaries]
+
+
+def test_lane_gain_opens_beside_the_through_lane():
+    lanes = derive_lanes(lane_gain())
+    new = _lane_at(lanes, 600.0, -7.0)
+    through = _lane_at(lanes, 600.0, -3.5)
+    before = _lane_at(lanes, 100.0, -3.5)
+    assert new and through and before and new != through
+    g = lane_graph(lanes)
+    assert lane_route(g, before, new) is not None  # across the new dashed line or as a split
+    assert lane_route(g, _lane_at(lanes, 100.0, 3.5), new) is not None
+    # the exit lane is not a strip of two lanes' width anywhere after the dashed line starts
+    widths = np.concatenate([ln.width[ln.centerline[:, 0] > 460.0] for ln in lanes.lanes])
+    assert widths.max() < 4.0
+
+
+@pytest.mark.parametrize("hdmap", [HDMap(), HDMap(features=three_lanes().features)])
+def test_no_topology_or_features_gives_no_lanes(hdmap):
+    lanes = derive_lanes(hdmap)
+    assert lanes.lanes == () and lanes.boundaries == ()
