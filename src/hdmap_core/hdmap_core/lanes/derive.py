@@ -43,6 +43,7 @@ __all__ = [
     "LANELET_MAX_M",
     "JOIN_TOL_M",
     "GAP_LINK_M",
+    "BRIDGE_MAX_M",
 ]
 
 LANE_WIDTH_MIN_M = 2.4  # narrowest lane (3.5-3.9 m motorway lanes, 2.75 m in works zones)
@@ -50,6 +51,9 @@ LANE_WIDTH_MAX_M = 5.5  # wider: two lanes with a missing marking, or a taper
 LANELET_MAX_M = 300.0  # longest lane piece where nothing changes
 JOIN_TOL_M = 1.0  # a boundary continues a boundary this close at the joint
 GAP_LINK_M = 15.0  # topology chain ends linked across gaps up to this distance
+BRIDGE_MAX_M = 60.0  # RULE 8: longest connector across a junction without markings
+BRIDGE_LATERAL_M = 1.0  # RULE 8: sideways offset of the lane ahead
+BRIDGE_ANGLE_DEG = 20.0  # RULE 8: heading difference of the lane ahead
 _CUT_MARGIN_M = 3.0  # cut lines reach this far beyond the estimated road width
 _COS_SAME_DIRECTION = 0.7  # features crossing a cut within ~45 deg of its direction
 _COS_LINK = np.cos(np.radians(35.0))  # heading agreement of a gap link
@@ -119,9 +123,9 @@ def _bridge_gaps(st: _Stations) -> None:
         if j is not None and j not in st.succ[i]:
             st.succ[i].append(j)
     for j in starts:
-        i = _nearest_along(st, j, ahead=False)
-        if i is not None and j not in st.succ[i]:
-            st.succ[i].append(j)
+        back = _nearest_along(st, j, ahead=False)
+        if back is not None and j not in st.succ[back]:
+            st.succ[back].append(j)
     st.relink()
 
 
@@ -151,77 +155,77 @@ class _Section:
 
 def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
     """Per station the boundaries crossing it, left to right, each labelled with a track: the
-    same line seen at consecutive stations (RULE 6), also across a change of feature id."""
+    same line seen at consecutive stations (RULE 6), also across a change of feature id.
+    (Per station a handful of lines: plain Python floats are faster here than numpy.)"""
     normal = np.stack([-st.tangent[:, 1], st.tangent[:, 0]], axis=1)
     half = st.width / 2.0 + _CUT_MARGIN_M
     cuts = Cuts(st.pos, st.tangent, normal, -half, half, np.zeros(len(st)))
     polylines = [np.asarray(f.points, dtype=float) for f in hdmap.features]
-    length = np.array([float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in polylines])
+    length = [float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in polylines]
     cp = points_on_cuts(cuts, polylines, cos_min=_COS_SAME_DIRECTION)
     order = np.lexsort((-cp.s, cp.cut))
     cut, owner, s = cp.cut[order], cp.owner[order], cp.s[order]
-    bounds = np.searchsorted(cut, np.arange(len(st) + 1))
-    types = np.array([int(f.type) for f in hdmap.features])
-    raw: list[list[tuple[int, float]]] = []
-    for k in range(len(st)):
-        sl = slice(bounds[k], bounds[k + 1])
-        raw.append(_dedupe(list(zip(owner[sl].tolist(), s[sl].tolist(), strict=True)), length))
-    xy_of = [[(f, st.pos[k] + sv * normal[k]) for f, sv in items] for k, items in enumerate(raw)]
-    tracks = _track(st, xy_of, types, normal)
+    xy = st.pos[cut] + s[:, None] * normal[cut]
+    bounds = np.searchsorted(cut, np.arange(len(st) + 1)).tolist()
+    rows = list(zip(owner.tolist(), s.tolist(), xy[:, 0].tolist(), xy[:, 1].tolist(), strict=True))
+    raw = [_dedupe(rows[bounds[k] : bounds[k + 1]], length) for k in range(len(st))]
+    types = [int(f.type) for f in hdmap.features]
+    tracks = _track(st, raw, types, normal.tolist())
+    pos, nrm = st.pos.tolist(), normal.tolist()
     out: list[_Section] = []
     for k in range(len(st)):
-        xy = np.array([x[2] for x in tracks[k]], dtype=float).reshape(-1, 2)
-        sk = (xy - st.pos[k]) @ normal[k]
-        o = np.argsort(-sk, kind="stable")
-        o = o[_bounding(sk[o], types[[tracks[k][i][1] for i in o]])]
+        (px, py), (nx, ny) = pos[k], nrm[k]
+        items = sorted(((x - px) * nx + (y - py) * ny, t, f, x, y) for t, f, x, y in tracks[k])
+        items.reverse()  # left to right
+        items = [it for it, keep in zip(items, _bounding(items, types), strict=True) if keep]
         out.append(
             _Section(
-                tuple(tracks[k][i][0] for i in o),
-                tuple(tracks[k][i][1] for i in o),
-                sk[o],
-                xy[o],
+                tuple(it[1] for it in items),
+                tuple(it[2] for it in items),
+                np.array([it[0] for it in items], dtype=float),
+                np.array([(it[3], it[4]) for it in items], dtype=float).reshape(-1, 2),
             )
         )
     return out
 
 
-def _bounding(s: np.ndarray, types: np.ndarray) -> np.ndarray:
-    """RULE 7: the boundaries (sorted left to right) next to a plausible lane (RULES 1, 2, with
-    _WIDTH_SLACK_M); others (outer borders beyond shoulders, lines of a road beside) are left out
-    so that they never cut a lane."""
-    gap = s[:-1] - s[1:]
-    pair = (gap >= LANE_WIDTH_MIN_M - _WIDTH_SLACK_M) & (gap <= LANE_WIDTH_MAX_M + _WIDTH_SLACK_M)
-    border, solid = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID)
-    shoulder = ((types[:-1] == border) & (types[1:] == solid)) | ((types[:-1] == solid) & (types[1:] == border))
-    pair &= ~shoulder
-    keep = np.zeros(len(s), dtype=bool)
-    keep[:-1] |= pair
-    keep[1:] |= pair
+def _bounding(items: list[tuple], types: list[int]) -> list[bool]:
+    """RULE 7: the boundaries (``(s, track, feature, x, y)``, left to right) next to a plausible
+    lane (RULES 1, 2, with _WIDTH_SLACK_M); others (outer borders beyond shoulders, lines of a road
+    beside) are left out so that they never cut a lane."""
+    keep = [False] * len(items)
+    lo, hi = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M, LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
+    shoulder = {int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID)}
+    for i in range(len(items) - 1):
+        a, b = items[i], items[i + 1]
+        if lo <= a[0] - b[0] <= hi and {types[a[2]], types[b[2]]} != shoulder:
+            keep[i] = keep[i + 1] = True
     return keep
 
 
-def _dedupe(items: list[tuple[int, float]], length: np.ndarray) -> list[tuple[int, float]]:
-    """Crossings closer than _DUPLICATE_M are one line (overlapping pieces): the longer feature stays."""
-    out: list[tuple[int, float]] = []
-    for f, s in items:  # left to right
-        if out and out[-1][1] - s < _DUPLICATE_M:
-            if length[f] > length[out[-1][0]]:
-                out[-1] = (f, s)
+def _dedupe(items: list[tuple[int, float, float, float]], length: list[float]) -> list[tuple[int, float, float]]:
+    """Crossings ``(feature, s, x, y)`` (left to right) closer than _DUPLICATE_M are one line
+    (overlapping pieces): the longer feature stays. Returns ``(feature, x, y)``."""
+    out: list[tuple[int, float, float, float]] = []
+    for it in items:
+        if out and out[-1][1] - it[1] < _DUPLICATE_M:
+            if length[it[0]] > length[out[-1][0]]:
+                out[-1] = it
             continue
-        out.append((f, s))
-    return out
+        out.append(it)
+    return [(f, x, y) for f, _, x, y in out]
 
 
 def _track(
-    st: _Stations, raw: list[list[tuple[int, np.ndarray]]], types: np.ndarray, normal: np.ndarray
-) -> list[list[tuple[int, int, np.ndarray]]]:
+    st: _Stations, raw: list[list[tuple[int, float, float]]], types: list[int], normal: list[list[float]]
+) -> list[list[tuple[int, int, float, float]]]:
     """RULE 6: a crossing continues the line of the previous stations of its chain that crossed
     within _TRACK_TOL_M of it (sideways, in the map frame) with the same type, also after up to
     _TRACK_GAP stations without a crossing (the gap is filled by interpolation). Returns per
-    station (track, feature, point)."""
-    out: list[list[tuple[int, int, np.ndarray]]] = [[] for _ in range(len(st))]
+    station (track, feature, x, y)."""
+    out: list[list[tuple[int, int, float, float]]] = [[] for _ in range(len(st))]
     next_track = 0
-    done = np.zeros(len(st), dtype=bool)
+    done = [False] * len(st)
 
     def single(k: int) -> int | None:
         if len(st.succ[k]) == 1 and len(st.pred[st.succ[k][0]]) == 1:
@@ -239,33 +243,35 @@ def _track(
             chain.append(nxt)
             done[nxt] = True
             nxt = single(nxt)
-        open_: dict[int, tuple[int, int, np.ndarray]] = {}  # track -> (position in chain, feature, point)
+        open_: dict[int, tuple[int, int, float, float]] = {}  # track -> (position in chain, feature, x, y)
         for i, k in enumerate(chain):
-            cands = []
-            for j, (f, xy) in enumerate(raw[k]):
-                for t, (_oi, of, oxy) in open_.items():
-                    d = abs(float((xy - oxy) @ normal[k]))
-                    if d <= _TRACK_TOL_M and types[f] == types[of]:
-                        cands.append((d, t, j))
-            cands.sort()
+            nx, ny = normal[k]
+            cands = sorted(
+                (abs((x - ox) * nx + (y - oy) * ny), t, j)
+                for j, (f, x, y) in enumerate(raw[k])
+                for t, (_, of, ox, oy) in open_.items()
+                if types[f] == types[of]
+            )
             taken_t: set[int] = set()
             taken_j: set[int] = set()
-            for _, t, j in cands:
+            for d, t, j in cands:
+                if d > _TRACK_TOL_M:
+                    break
                 if t in taken_t or j in taken_j:
                     continue
                 taken_t.add(t)
                 taken_j.add(j)
-                f, xy = raw[k][j]
-                oi, of, oxy = open_[t]
+                f, x, y = raw[k][j]
+                oi, of, ox, oy = open_[t]
                 for g in range(oi + 1, i):  # fill the gap
                     w = (g - oi) / (i - oi)
-                    out[chain[g]].append((t, of, oxy + w * (xy - oxy)))
-                out[k].append((t, f, xy))
-                open_[t] = (i, f, xy)
-            for j, (f, xy) in enumerate(raw[k]):
+                    out[chain[g]].append((t, of, ox + w * (x - ox), oy + w * (y - oy)))
+                out[k].append((t, f, x, y))
+                open_[t] = (i, f, x, y)
+            for j, (f, x, y) in enumerate(raw[k]):
                 if j not in taken_j:
-                    out[k].append((next_track, f, xy))
-                    open_[next_track] = (i, f, xy)
+                    out[k].append((next_track, f, x, y))
+                    open_[next_track] = (i, f, x, y)
                     next_track += 1
             open_ = {t: v for t, v in open_.items() if i - v[0] <= _TRACK_GAP}
     return out
@@ -351,7 +357,6 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
     linked = [
         {index[int(x)] for x in (*f.predecessors, *f.successors) if int(x) in index} for f in feats
     ]
-    run_of_first = {run[0]: r for r, run in enumerate(runs)}
     run_of_last: dict[int, list[int]] = defaultdict(list)
     for r, run in enumerate(runs):
         run_of_last[run[-1]].append(r)
@@ -476,7 +481,77 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
                     right_type=tr,
                 )
             )
+    lanes += _bridges(lanes, boundaries)
     return LaneMap(_link(lanes, boundaries), tuple(sorted(boundaries.values(), key=lambda x: x.id)), nodes)
+
+
+def _bridges(lanes: list[dict], boundaries: dict[int, Boundary]) -> list[dict]:
+    """RULE 8: a lane without successor is joined to the lane ahead that starts within
+    BRIDGE_MAX_M in its line (at most BRIDGE_LATERAL_M + 2 % of the gap aside, heading within
+    BRIDGE_ANGLE_DEG) by a connector lane with virtual sides (``FeatureType.UNKNOWN``): the
+    junctions of a road where the markings stop. Each lane ahead takes one connector, the closest."""
+    starts = {(boundaries[ln["left_boundary"]].start_node, boundaries[ln["right_boundary"]].start_node) for ln in lanes}
+    dead = [
+        ln for ln in lanes
+        if (boundaries[ln["left_boundary"]].end_node, boundaries[ln["right_boundary"]].end_node) not in starts
+    ]
+    if not dead or not lanes:
+        return []
+    head = np.array([ln["centerline"][0] for ln in lanes])
+    head_dir = np.array([_direction(ln["centerline"], first=True) for ln in lanes])
+    cands = []
+    for a in dead:
+        end, d = a["centerline"][-1], _direction(a["centerline"], first=False)
+        rel = head - end
+        along = rel @ d
+        aside = np.abs(rel[:, 0] * d[1] - rel[:, 1] * d[0])
+        ok = (along > 0.5) & (along <= BRIDGE_MAX_M) & (aside <= BRIDGE_LATERAL_M + 0.02 * along)
+        ok &= head_dir @ d >= np.cos(np.radians(BRIDGE_ANGLE_DEG))
+        for j in np.flatnonzero(ok).tolist():
+            if lanes[j]["id"] != a["id"]:
+                cands.append((float(aside[j] + 0.01 * along[j]), int(a["id"]), j))
+    by_id = {ln["id"]: ln for ln in lanes}
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    out = []
+    for _, aid, j in sorted(cands):
+        if aid in used_a or j in used_b:
+            continue
+        used_a.add(aid)
+        used_b.add(j)
+        out.append(_connector(by_id[aid], lanes[j], boundaries))
+    return out
+
+
+def _direction(line: np.ndarray, *, first: bool) -> np.ndarray:
+    """Unit direction of a polyline over its first (last) ~10 m."""
+    n = len(line)
+    k = min(n - 1, 5)
+    d = line[k] - line[0] if first else line[-1] - line[n - 1 - k]
+    return d / max(float(np.hypot(*d)), 1e-9)
+
+
+def _connector(a: dict, b: dict, boundaries: dict[int, Boundary]) -> dict:
+    sides = []
+    n = int(np.hypot(*(b["centerline"][0] - a["centerline"][-1])) // 2.0) + 2  # a point every ~2 m
+    for side in ("left_boundary", "right_boundary"):
+        pa, pb = boundaries[a[side]], boundaries[b[side]]
+        pts = np.linspace(pa.points[-1], pb.points[0], n)
+        bid = _uid("connector", pa.id, pb.id)
+        boundaries[bid] = Boundary(bid, 0, FeatureType.UNKNOWN, pts, pa.end_node, pb.start_node)
+        sides.append((bid, pts))
+    (lb, lp), (rb, rp) = sides
+    return dict(
+        id=_uid("connector_lane", a["id"], b["id"]),
+        centerline=(lp + rp) / 2.0,
+        width=np.hypot(*(lp - rp).T),
+        left_boundary=lb,
+        right_boundary=rb,
+        left_feature=0,
+        right_feature=0,
+        left_type=FeatureType.UNKNOWN,
+        right_type=FeatureType.UNKNOWN,
+    )
 
 
 def _link(lanes: list[dict], boundaries: dict[int, Boundary]) -> tuple[Lane, ...]:

@@ -3,8 +3,8 @@
 Reads the drives and the origin of IN (rosbag2 directory or ``.mcap``), reports every rejected
 drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes OUT (rosbag2 MCAP with
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
-features as RFC 7946 GeoJSON; with ``--lanelet2 DIR``, the lanes as an Autoware map directory
-(``hdmap export``); with ``--graphml``, the topology graph as GraphML (map frame).
+features and lanes as RFC 7946 GeoJSON; with ``--lanelet2 DIR``, the lanes as an Autoware map
+directory (``hdmap export``); with ``--graphml``, the topology graph as GraphML (map frame).
 Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
@@ -35,11 +35,12 @@ PRESETS = ("default", "paper", "naive")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="IN", help="fleet bag: rosbag2 directory (MCAP or sqlite3) or .mcap file")
     parser.add_argument("-o", "--output", metavar="OUT", required=True, help="map bag directory to write")
-    parser.add_argument("--geojson", metavar="FILE", help="also write the map features as GeoJSON (WGS84)")
+    parser.add_argument("--geojson", metavar="FILE", help="also write the map features and lanes as GeoJSON (WGS84)")
     parser.add_argument("--graphml", metavar="PATH", help="also write the topology graph as GraphML (map frame, metres)")
     parser.add_argument(
         "--lanelet2", metavar="DIR",
-        help="also write the lanes as an Autoware map directory: DIR/lanelet2_map.osm + DIR/map_projector_info.yaml",
+        help="also write the lanes as an Autoware map directory: DIR/lanelet2_map.osm + "
+        "DIR/map_projector_info.yaml",
     )
     parser.add_argument("--preset", choices=PRESETS, default="default", help="pipeline preset (default: %(default)s)")
     add_set_argument(
@@ -156,13 +157,19 @@ def run(args: argparse.Namespace) -> int:
 
     write_map_bag(out, hdmap, origin, overwrite=args.overwrite)
     print(f"wrote {out}: {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes")
-    if args.geojson:
-        write_geojson(hdmap, origin, args.geojson)
-        print(f"wrote {args.geojson}")
-    if args.lanelet2:
-        from hdmap_ros.io.lanelet2 import export_lanelet2  # noqa: PLC0415 - lanes only when asked
+    lanes = None
+    if args.geojson or args.lanelet2:
+        from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415 - lanes only when written
 
-        print(export_lanelet2(hdmap, origin, args.lanelet2))
+        lanes = derive_lanes(hdmap)
+    if args.geojson:
+        write_geojson(hdmap, origin, args.geojson, lanes=lanes)
+        print(f"wrote {args.geojson}")
+    if args.lanelet2 and lanes is not None:
+        from hdmap_ros.io.lanelet2 import write_lanelet2  # noqa: PLC0415 - lanes only when asked
+
+        write_lanelet2(lanes, origin, args.lanelet2)
+        print(f"wrote {args.lanelet2}: {len(lanes.lanes)} lanelets")
     if args.graphml:
         from hdmap_core.graph.topology_graph import write_graphml  # noqa: PLC0415 - networkx only when asked
 

@@ -95,7 +95,9 @@ def _lane_report(hdmap: HDMap, gt: GroundTruth, args: argparse.Namespace, config
 
     doc = _read_json(_sim_json_beside(args.fleet)) if args.fleet else None
     truth = doc.get("truth") if isinstance(doc, dict) else None
-    routes = {str(t.get("route_id")) for t in truth.values() if isinstance(t, dict)} if isinstance(truth, dict) else None
+    routes = None
+    if isinstance(truth, dict):
+        routes = {str(t.get("route_id")) for t in truth.values() if isinstance(t, dict)}
     return evaluate_lanes(derive_lanes(hdmap), gt, route_ids=routes, config=config)
 
 

@@ -12,7 +12,6 @@ import argparse
 import sys
 from pathlib import Path
 
-
 __all__ = ["NAME", "HELP", "add_arguments", "run"]
 
 NAME = "export"

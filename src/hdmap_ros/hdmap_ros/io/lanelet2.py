@@ -23,8 +23,8 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from hdmap_core.geometry import rdp_mask_many
-from hdmap_core.lanes.model import Boundary, LaneMap
 from hdmap_core.lanes.derive import derive_lanes
+from hdmap_core.lanes.model import Boundary, LaneMap
 from hdmap_core.model import FeatureType, GeoOrigin, HDMap
 from hdmap_ros.io.geojson import enu_to_geodetic
 
@@ -72,7 +72,8 @@ def _osm(lane_map: LaneMap, origin: GeoOrigin) -> str:
     # node ids: the shared end nodes first (sorted by their stable id), then the inner points
     end_ids = sorted({n for b in pieces for n in (b.start_node, b.end_node)})
     node_no = {n: i + 1 for i, n in enumerate(end_ids)}
-    xy: list[np.ndarray] = [np.asarray(lane_map.nodes[n], dtype=float).reshape(1, 2) for n in end_ids] if end_ids else []
+    nodes = lane_map.nodes or {}
+    xy: list[np.ndarray] = [np.asarray(nodes[n], dtype=float).reshape(1, 2) for n in end_ids]
     next_id = len(end_ids) + 1
     way_nodes: dict[int, list[int]] = {}
     for b, pts in zip(pieces, thinned, strict=True):
@@ -115,6 +116,8 @@ def _osm(lane_map: LaneMap, origin: GeoOrigin) -> str:
 
 
 def _line_tags(b: Boundary) -> str:
+    if b.type == FeatureType.UNKNOWN:  # a connector across a junction: no line in the map
+        return '<tag k="type" v="virtual"/>'
     if b.type == FeatureType.ROAD_BORDER:
         return '<tag k="type" v="road_border"/>'
     subtype = "dashed" if b.type == FeatureType.DASHED else "solid"
