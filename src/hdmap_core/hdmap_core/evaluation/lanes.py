@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from hdmap_core.evaluation.config import EvalConfig
 from hdmap_core.evaluation.cuts import points_on_cuts, reference_cuts
 from hdmap_core.geometry import resample_evenly
-from hdmap_core.groundtruth import GroundTruth
+from hdmap_core.groundtruth import GroundTruth, GTRoute
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at
 from hdmap_core.lanes.model import LaneMap
 
@@ -33,6 +33,7 @@ MATCH_RADIUS_M = 1.0
 SAMPLE_STEP_M = 1.0
 _DENSE_M = 0.2  # reference polylines densified to this spacing for the nearest-point search
 _COS_SAME_DIRECTION = 0.7
+_NEIGHBOURS = 32  # reference points within 1 m at 0.2 m spacing: ~10 per line, 2-3 lines
 
 
 @dataclass(frozen=True)
@@ -85,8 +86,7 @@ def evaluate_lanes(
     acc, n_cuts = _count_accuracy(lane_map, gt, config)
     graph = lane_graph(lane_map)
     bad = []
-    for r in routes:
-        ends = route_ends(lane_map, gt, r.id)
+    for r, ends in zip(routes, _route_ends(lane_map, gt, routes), strict=True):
         if ends is None or lane_route(graph, *ends) is None:
             bad.append(r.id)
     return LaneReport(
@@ -106,13 +106,26 @@ def evaluate_lanes(
 def route_ends(lane_map: LaneMap, gt: GroundTruth, route_id: str) -> tuple[int, int] | None:
     """The first and the last map lane along the centerline of ground-truth route ``route_id``
     (sampled every 5 m, in its direction); None when the map has no lane on the route."""
-    route = next(r for r in gt.routes if r.id == route_id)
-    pts = resample_evenly(gt.route_centerline(route), 5.0)
-    d = np.diff(pts, axis=0)
-    yaw = np.arctan2(d[:, 1], d[:, 0])
-    found = lanes_at(lane_map, pts[:-1], yaw)
-    hit = found[found != 0]
-    return (int(hit[0]), int(hit[-1])) if len(hit) else None
+    return _route_ends(lane_map, gt, [next(r for r in gt.routes if r.id == route_id)])[0]
+
+
+def _route_ends(lane_map: LaneMap, gt: GroundTruth, routes: list[GTRoute]) -> list[tuple[int, int] | None]:
+    pts, yaw, owner = [], [], []
+    for i, route in enumerate(routes):
+        p = resample_evenly(gt.route_centerline(route), 5.0)
+        d = np.diff(p, axis=0)
+        pts.append(p[:-1])
+        yaw.append(np.arctan2(d[:, 1], d[:, 0]))
+        owner.append(np.full(len(d), i))
+    if not pts:
+        return []
+    found = lanes_at(lane_map, np.concatenate(pts), np.concatenate(yaw))  # one spatial index for all
+    own = np.concatenate(owner)
+    out: list[tuple[int, int] | None] = []
+    for i in range(len(routes)):
+        hit = found[(own == i) & (found != 0)]
+        out.append((int(hit[0]), int(hit[-1])) if len(hit) else None)
+    return out
 
 
 def _samples(lines: list[np.ndarray], step_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -141,14 +154,12 @@ def _match(query: list[np.ndarray], reference: list[np.ndarray]) -> tuple[float,
         return float("nan"), float("nan")
     if not len(rp):
         return 0.0, float("nan")
-    tree = cKDTree(rp)
-    dist = np.full(len(qp), np.inf)
-    for i, idx in enumerate(tree.query_ball_point(qp, MATCH_RADIUS_M)):
-        if idx:
-            idx = np.asarray(idx)
-            same = (rd[idx] @ qd[i]) >= _COS_SAME_DIRECTION
-            if same.any():
-                dist[i] = float(np.hypot(*(rp[idx[same]] - qp[i]).T).min())
+    # the nearest _NEIGHBOURS reference points within the radius; other directions left out
+    d, idx = cKDTree(rp).query(qp, k=_NEIGHBOURS, distance_upper_bound=MATCH_RADIUS_M)
+    found = idx < len(rp)
+    safe = np.where(found, idx, 0)
+    same = np.einsum("qkd,qd->qk", rd[safe], qd) >= _COS_SAME_DIRECTION
+    dist = np.where(found & same, d, np.inf).min(axis=1)
     ok = np.isfinite(dist)
     return float(ok.mean()), float(dist[ok].mean()) if ok.any() else float("nan")
 

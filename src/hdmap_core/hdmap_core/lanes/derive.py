@@ -421,7 +421,8 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
 
     def node_uid(key: tuple[int, int]) -> int:
         root = uf.find(key)
-        return _uid("node", int(st.ids[root[0]]), fid[label(root)])
+        slot = sections[root[0]].features.index(root[1])
+        return _uid("node", int(st.ids[root[0]]), fid[label(root)], slot)
 
     nodes: dict[int, np.ndarray] = {}
     boundaries: dict[int, Boundary] = {}
@@ -453,7 +454,8 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
         s = np.array([sections[k].s for k in run])  # (n, B)
         labels = np.array([sections[k].labels for k in run])  # (n, B)
         lab = [int(np.bincount(labels[:, b]).argmax()) for b in range(labels.shape[1])]  # most common
-        piece_ids = [_uid("boundary", int(st.ids[run[0]]), fid[f]) for f in lab]
+        # the slot b keeps two pieces apart that carry the same feature (a feature crossing twice)
+        piece_ids = [_uid("boundary", int(st.ids[run[0]]), fid[f], b) for b, f in enumerate(lab)]
         for b in range(len(lab) - 1):
             fl, fr = lab[b], lab[b + 1]
             tl, tr = feats[fl].type, feats[fr].type
@@ -470,7 +472,7 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
             center = (pts[b] + pts[b + 1]) / 2.0
             lanes.append(
                 dict(
-                    id=_uid("lane", int(st.ids[run[0]]), fid[fl], fid[fr]),
+                    id=_uid("lane", int(st.ids[run[0]]), fid[fl], fid[fr], b),
                     centerline=center,
                     width=np.hypot(*(pts[b] - pts[b + 1]).T),
                     left_boundary=piece_ids[b],
