@@ -488,30 +488,41 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
 
 
 def _bridges(lanes: list[dict], boundaries: dict[int, Boundary]) -> list[dict]:
-    """RULE 8: a lane without successor is joined to the lane ahead that starts within
-    BRIDGE_MAX_M in its line (at most BRIDGE_LATERAL_M + 2 % of the gap aside, heading within
-    BRIDGE_ANGLE_DEG) by a connector lane with virtual sides (``FeatureType.UNKNOWN``): the
-    junctions of a road where the markings stop. Each lane ahead takes one connector, the closest."""
-    starts = {(boundaries[ln["left_boundary"]].start_node, boundaries[ln["right_boundary"]].start_node) for ln in lanes}
-    dead = [
-        ln for ln in lanes
-        if (boundaries[ln["left_boundary"]].end_node, boundaries[ln["right_boundary"]].end_node) not in starts
-    ]
-    if not dead or not lanes:
+    """RULE 8: a lane without successor is joined to a lane without predecessor that starts
+    within BRIDGE_MAX_M ahead in its line (both sides at most BRIDGE_LATERAL_M + 2 % of the gap
+    aside, heading within BRIDGE_ANGLE_DEG, both ends at least LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
+    wide) by a connector lane with virtual sides (``FeatureType.UNKNOWN``): the junctions of a road
+    where the markings stop. Each lane ahead takes one connector, the closest."""
+
+    def ends(ln: dict, k: int) -> tuple[int, int]:
+        lb, rb = boundaries[ln["left_boundary"]], boundaries[ln["right_boundary"]]
+        return (lb.start_node, rb.start_node) if k == 0 else (lb.end_node, rb.end_node)
+
+    starts = {ends(ln, 0) for ln in lanes}
+    finishes = {ends(ln, -1) for ln in lanes}
+    narrow = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
+    dead = [ln for ln in lanes if ends(ln, -1) not in starts and ln["width"][-1] >= narrow]
+    fresh = [j for j, ln in enumerate(lanes) if ends(ln, 0) not in finishes and ln["width"][0] >= narrow]
+    if not dead or not fresh:
         return []
-    head = np.array([ln["centerline"][0] for ln in lanes])
-    head_dir = np.array([_direction(ln["centerline"], first=True) for ln in lanes])
+
+    def side(ln: dict, k: int) -> np.ndarray:  # (2, 2): left and right boundary point at end k
+        return np.stack([boundaries[ln["left_boundary"]].points[k], boundaries[ln["right_boundary"]].points[k]])
+
+    head = np.array([side(lanes[j], 0) for j in fresh])  # (F, 2, 2)
+    head_dir = np.array([_direction(lanes[j]["centerline"], first=True) for j in fresh])
     cands = []
     for a in dead:
-        end, d = a["centerline"][-1], _direction(a["centerline"], first=False)
-        rel = head - end
-        along = rel @ d
-        aside = np.abs(rel[:, 0] * d[1] - rel[:, 1] * d[0])
-        ok = (along > 0.5) & (along <= BRIDGE_MAX_M) & (aside <= BRIDGE_LATERAL_M + 0.02 * along)
+        tail, d = side(a, -1), _direction(a["centerline"], first=False)
+        rel = head - tail[None]  # (F, 2, 2)
+        along = rel @ d  # (F, 2)
+        aside = np.abs(rel[..., 0] * d[1] - rel[..., 1] * d[0])
+        ok = np.all((along > 0.5) & (along <= BRIDGE_MAX_M) & (aside <= BRIDGE_LATERAL_M + 0.02 * along), axis=1)
         ok &= head_dir @ d >= np.cos(np.radians(BRIDGE_ANGLE_DEG))
-        for j in np.flatnonzero(ok).tolist():
+        for i in np.flatnonzero(ok).tolist():
+            j = fresh[i]
             if lanes[j]["id"] != a["id"]:
-                cands.append((float(aside[j] + 0.01 * along[j]), int(a["id"]), j))
+                cands.append((float(aside[i].sum() + 0.01 * along[i].mean()), int(a["id"]), j))
     by_id = {ln["id"]: ln for ln in lanes}
     used_a: set[int] = set()
     used_b: set[int] = set()
