@@ -50,6 +50,16 @@ def three_lanes(length_m: float = 800.0) -> HDMap:
     return HDMap(features=feats, topology=_topology(length_m, 13.0))
 
 
+def missing_marking(length_m: float = 600.0) -> HDMap:
+    """``three_lanes`` without the right dashed line (-1.75) between x = 100 and x = 350."""
+    base = three_lanes(length_m)
+    feats = [f for f in base.features if f.id != 4]
+    x = np.arange(0.0, length_m + 1e-9, 1.0)
+    for fid, keep in ((4, x <= 100.0), (8, x >= 350.0)):
+        feats.append(_feature(fid, FeatureType.DASHED, np.stack([x[keep], np.full(keep.sum(), -1.75)], axis=1)))
+    return HDMap(features=tuple(feats), topology=base.topology)
+
+
 def lane_gain(length_m: float = 800.0) -> HDMap:
     x = np.arange(0.0, length_m + 1e-9, 1.0)
     edge = -5.25 - 3.5 * np.clip((x - 400.0) / 100.0, 0.0, 1.0)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from lane_samples import lane_gain, three_lanes
+from lane_samples import lane_gain, missing_marking, three_lanes
 
 from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
@@ -65,6 +65,19 @@ def test_lane_gain_opens_beside_the_through_lane():
     # the exit lane is not a strip of two lanes' width anywhere after the dashed line starts
     widths = np.concatenate([ln.width[ln.centerline[:, 0] > 460.0] for ln in lanes.lanes])
     assert widths.max() < 4.0
+
+
+def test_missing_marking_is_inferred_between_two_lanes():
+    lanes = derive_lanes(missing_marking())
+    at = [lanes.lane(_lane_at(lanes, x, -3.5)) for x in (50.0, 250.0, 550.0)]
+    assert all(at)
+    gap = at[1]
+    np.testing.assert_allclose(np.median(gap.centerline[:, 1]), -3.5, atol=0.05)
+    left = lanes.boundary(gap.left_boundary)
+    assert left.inferred and left.feature_id == 0 and left.type == FeatureType.DASHED
+    assert gap.left_feature == 0 and gap.change_left
+    g = lane_graph(lanes)
+    assert lane_route(g, at[0].id, at[2].id) is not None
 
 
 @pytest.mark.parametrize("hdmap", [HDMap(), HDMap(features=three_lanes().features)])

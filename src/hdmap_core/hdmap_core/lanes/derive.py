@@ -58,6 +58,7 @@ _CUT_MARGIN_M = 3.0  # cut lines reach this far beyond the estimated road width
 _COS_SAME_DIRECTION = 0.7  # features crossing a cut within ~45 deg of its direction
 _COS_LINK = np.cos(np.radians(35.0))  # heading agreement of a gap link
 _WIDTH_SLACK_M = 0.5  # RULE 7: tolerance of the lane width test per cross section
+_SPLIT_WIDTH_M = (3.0, 4.2)  # RULE 9: width of each lane of a strip split by inferred lines
 _DUPLICATE_M = 0.5  # crossings this close on one cut are one line
 _TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain (2 m apart)
 _TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
@@ -168,10 +169,17 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
     xy = st.pos[cut] + s[:, None] * normal[cut]
     bounds = np.searchsorted(cut, np.arange(len(st) + 1)).tolist()
     rows = list(zip(owner.tolist(), s.tolist(), xy[:, 0].tolist(), xy[:, 1].tolist(), strict=True))
-    raw = [_dedupe(rows[bounds[k] : bounds[k + 1]], length) for k in range(len(st))]
-    types = [int(f.type) for f in hdmap.features]
-    tracks = _track(st, raw, types, normal.tolist())
+    virtual = len(hdmap.features)  # index of the inferred lines (RULE 9)
+    # an inferred line continues a mapped dashed line (a separate type cuts the lanes into pieces
+    # wherever the split flickers); a piece is inferred where most of it is
+    types = [int(f.type) for f in hdmap.features] + [int(FeatureType.DASHED)]
+    length.append(0.0)
     pos, nrm = st.pos.tolist(), normal.tolist()
+    raw = [
+        _split_wide(_dedupe(rows[bounds[k] : bounds[k + 1]], length), types, virtual, pos[k], nrm[k])
+        for k in range(len(st))
+    ]
+    tracks = _track(st, raw, types, nrm)
     out: list[_Section] = []
     for k in range(len(st)):
         (px, py), (nx, ny) = pos[k], nrm[k]
@@ -201,6 +209,30 @@ def _bounding(items: list[tuple], types: list[int]) -> list[bool]:
         if lo <= a[0] - b[0] <= hi and {types[a[2]], types[b[2]]} != shoulder:
             keep[i] = keep[i + 1] = True
     return keep
+
+
+def _split_wide(
+    items: list[tuple[int, float, float]], types: list[int], virtual: int, pos: list[float], normal: list[float]
+) -> list[tuple[int, float, float]]:
+    """RULE 9 (missing marking): a strip between two markings that is n >= 2 lanes wide (each
+    _SPLIT_WIDTH_M) gets n - 1 inferred dashed lines at equal spacing (feature ``virtual``)."""
+    out: list[tuple[int, float, float]] = []
+    border = int(FeatureType.ROAD_BORDER)
+    for i, it in enumerate(items):
+        out.append(it)
+        if i + 1 == len(items):
+            break
+        nxt = items[i + 1]
+        if border in (types[it[0]], types[nxt[0]]):
+            continue
+        gap = (it[1] - nxt[1]) * normal[0] + (it[2] - nxt[2]) * normal[1]
+        n = round(gap / _SPLIT_WIDTH_M[1] + 0.5)  # the fewest lanes not wider than the widest
+        if n < 2 or not _SPLIT_WIDTH_M[0] <= gap / n <= _SPLIT_WIDTH_M[1]:
+            continue
+        for j in range(1, n):
+            w = j / n
+            out.append((virtual, it[1] + w * (nxt[1] - it[1]), it[2] + w * (nxt[2] - it[2])))
+    return out
 
 
 def _dedupe(items: list[tuple[int, float, float, float]], length: list[float]) -> list[tuple[int, float, float]]:
@@ -352,11 +384,12 @@ class _Union:
 
 def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap: HDMap) -> LaneMap:
     feats = hdmap.features
-    fid = [int(f.id) for f in feats]
-    index = {f: i for i, f in enumerate(fid)}
+    index = {int(f.id): i for i, f in enumerate(feats)}
     linked = [
         {index[int(x)] for x in (*f.predecessors, *f.successors) if int(x) in index} for f in feats
-    ]
+    ] + [set()]
+    fid = [int(f.id) for f in feats] + [0]  # the last: inferred lines (RULE 9)
+    ftype = [f.type for f in feats] + [FeatureType.DASHED]
     run_of_last: dict[int, list[int]] = defaultdict(list)
     for r, run in enumerate(runs):
         run_of_last[run[-1]].append(r)
@@ -458,7 +491,7 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
         piece_ids = [_uid("boundary", int(st.ids[run[0]]), fid[f], b) for b, f in enumerate(lab)]
         for b in range(len(lab) - 1):
             fl, fr = lab[b], lab[b + 1]
-            tl, tr = feats[fl].type, feats[fr].type
+            tl, tr = ftype[fl], ftype[fr]
             width = float(np.median(s[:, b] - s[:, b + 1]))
             if not LANE_WIDTH_MIN_M <= width <= LANE_WIDTH_MAX_M:  # RULE 1
                 continue
@@ -467,7 +500,8 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
             for bb, f in ((b, fl), (b + 1, fr)):
                 if piece_ids[bb] not in boundaries:
                     boundaries[piece_ids[bb]] = Boundary(
-                        piece_ids[bb], fid[f], feats[f].type, pts[bb], ends[bb][0], ends[bb][1]
+                        piece_ids[bb], fid[f], ftype[f], pts[bb], ends[bb][0], ends[bb][1],
+                        inferred=f == len(feats),
                     )
             center = (pts[b] + pts[b + 1]) / 2.0
             lanes.append(

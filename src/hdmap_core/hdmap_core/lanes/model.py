@@ -29,6 +29,8 @@ class Boundary:
         points: (N, 2) [m], N >= 2, in driving direction; the first and last point are the
             positions of ``start_node`` and ``end_node``.
         start_node, end_node: ids of the end nodes, shared with the preceding / following pieces.
+        inferred: no map feature: a dashed line inferred in a strip of two or more lanes' width
+            (``feature_id`` 0).
     """
 
     id: int
@@ -37,6 +39,7 @@ class Boundary:
     points: np.ndarray
     start_node: int
     end_node: int
+    inferred: bool = False
 
 
 @dataclass(frozen=True)

@@ -97,8 +97,10 @@ def _osm(lane_map: LaneMap, origin: GeoOrigin) -> str:
             continue
         way_no[b.id] = next_id
         refs = "".join(f'<nd ref="{n}"/>' for n in ids)
-        lines.append(f'  <way id="{next_id}" version="1">{refs}{_line_tags(b)}'
-                     f'<tag k="hdmap:feature_id" v="{b.feature_id}"/></way>')
+        source = (
+            '<tag k="hdmap:inferred" v="yes"/>' if b.inferred else f'<tag k="hdmap:feature_id" v="{b.feature_id}"/>'
+        )
+        lines.append(f'  <way id="{next_id}" version="1">{refs}{_line_tags(b)}{source}</way>')
         next_id += 1
     for ln in lane_map.lanes:
         if ln.left_boundary not in way_no or ln.right_boundary not in way_no:
