@@ -7,21 +7,32 @@ cross it in its direction, sorted from left to right, are the boundaries of that
 RULE 1 (lane): two adjacent boundaries bound a lane when their median distance over a section
 lies in [LANE_WIDTH_MIN_M, LANE_WIDTH_MAX_M].
 RULE 2 (shoulder): a strip between a solid marking and a road border is a shoulder, not a lane.
+RULE 6 (tracks): a line crossing consecutive cross sections of a topology chain within
+_TRACK_TOL_M sideways, with the same type, is one boundary (also across a change of feature id,
+and across up to _TRACK_GAP cross sections without it: the gap is interpolated).
+RULE 7 (relevant lines): only lines next to a plausible lane take part (an outer border beyond a
+shoulder, or a line of a road beside, never cuts a lane).
+RULE 9 (missing marking): a strip between two markings n >= 2 lanes wide gets n - 1 inferred
+dashed lines (``Boundary.inferred``).
 
-Sections are runs of consecutive cross sections with the same boundaries (the same feature ids,
-in the same order); a run is cut into lanes at most LANELET_MAX_M long. Where two runs meet (a
-new feature, a feature ending, a split or merge of the topology) the boundaries are joined node
-by node, so that a lane's successors are the lanes whose boundaries start where its own end:
+Sections are runs of consecutive cross sections with the same boundaries; a run is cut into lanes
+at most LANELET_MAX_M long. Where two runs meet (a line starting or ending, a split or merge of
+the topology) the boundaries are joined node by node, so that a lane's successors are the lanes
+whose boundaries start where its own end (Lanelet2's rule):
 
-RULE 3 (continuation): a boundary continues the boundary of the preceding run of the same feature,
-of a linked feature (predecessor / successor), or the nearest one within JOIN_TOL_M.
+RULE 3 (continuation): a boundary continues the boundary of the preceding run of the same track,
+of the same or a linked feature (predecessor / successor), or the nearest one within JOIN_TOL_M.
 RULE 4 (lane gain, drop, gore): a boundary that starts (ends) without a preceding (following) one
 starts (ends) at the node of the nearest boundary that does continue: the new lane opens from a
 point beside a through lane (reached by a lane change across a dashed line, or as a split) and a
 dropped lane closes onto its neighbour (a merge).
-RULE 5 (gaps): a topology chain that ends (starts) is linked to the nearest cross section of the
-same direction within GAP_LINK_M ahead (behind), so lanes continue across small gaps of the
-topology, ramps joining a road included.
+RULE 5 (topology gaps): a topology chain that ends (starts) is linked to the nearest cross section
+of the same direction within GAP_LINK_M ahead (behind).
+RULE 8 (junctions without markings): a lane without successor is joined by a connector lane with
+virtual sides to a lane without predecessor that starts in its line within BRIDGE_MAX_M.
+
+Ids are stable: hashes of the topology node id where a piece starts, the feature ids and the
+boundary's slot in the cross section.
 """
 
 from __future__ import annotations
