@@ -48,15 +48,28 @@ def main(argv: list[str] | None = None) -> int:
         if np.min(np.hypot(*(ring - c).T)) > args.radius:
             continue
         virtual = ln.left_type == FeatureType.UNKNOWN
-        ax.add_patch(Polygon(local(ring), closed=True, alpha=0.55, lw=0.3, ec="k",
-                             fc="#dddddd" if virtual else colors[i % len(colors)]))
+        ax.add_patch(
+            Polygon(
+                local(ring),
+                closed=True,
+                alpha=0.55,
+                lw=0.3,
+                ec="k",
+                fc="#dddddd" if virtual else colors[i % len(colors)],
+            )
+        )
         ax.plot(*local(ln.centerline).T, "-", color="#1f5f1f", lw=0.6)
-        ax.annotate("", xy=local(ln.centerline[-1]), xytext=local(ln.centerline[-2]),
-                    arrowprops=dict(arrowstyle="->", color="#1f5f1f", lw=0.6))
+        ax.annotate(
+            "",
+            xy=local(ln.centerline[-1]),
+            xytext=local(ln.centerline[-2]),
+            arrowprops=dict(arrowstyle="->", color="#1f5f1f", lw=0.6),
+        )
     for f in hdmap.features:
         if np.min(np.hypot(*(f.points - c).T)) <= args.radius:
-            ax.plot(*local(f.points).T, "--" if f.type == FeatureType.DASHED else "-",
-                    color=TYPE_COLORS[f.type], lw=1.0)
+            ax.plot(
+                *local(f.points).T, "--" if f.type == FeatureType.DASHED else "-", color=TYPE_COLORS[f.type], lw=1.0
+            )
     ax.set_xlim(-args.radius, args.radius)
     ax.set_ylim(-args.radius / 4, args.radius / 4)
     ax.set_aspect("equal")

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from lane_samples import lane_gain, missing_marking, three_lanes
 
 from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
 from hdmap_core.model import FeatureType, HDMap
+
+from lane_samples import lane_gain, missing_marking, three_lanes
 
 
 def _lane_at(lanes, x: float, y: float) -> int:

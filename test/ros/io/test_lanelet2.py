@@ -6,11 +6,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from lane_samples import lane_gain, three_lanes
 
 from hdmap_core.lanes.derive import derive_lanes
 from hdmap_core.model import GeoOrigin
 from hdmap_ros.io.lanelet2 import MAP_FILE, PROJECTOR_FILE, write_lanelet2
+
+from lane_samples import lane_gain, three_lanes
 
 lanelet2 = pytest.importorskip("lanelet2")
 from lanelet2.projection import LocalCartesianProjector  # noqa: E402
@@ -68,8 +69,10 @@ def test_tags_projector_and_coordinates(tmp_path):
         want = lanes.boundary(ln.left_boundary).points
         np.testing.assert_allclose(left[[0, -1], :2], want[[0, -1]], atol=1e-3)
         np.testing.assert_allclose(left[:, 2], 0.0, atol=1e-3)
-    kinds = {(ls.attributes["type"], ls.attributes["subtype"] if "subtype" in ls.attributes else "")
-             for ls in llmap.lineStringLayer}
+    kinds = {
+        (ls.attributes["type"], ls.attributes["subtype"] if "subtype" in ls.attributes else "")
+        for ls in llmap.lineStringLayer
+    }
     assert kinds == {("line_thin", "solid"), ("line_thin", "dashed")}
     # a lane change shares one way: the middle lane's left bound is the left lane's right bound
     mid = next(ln for ln in lanes.lanes if ln.left is not None and ln.right is not None)
@@ -105,7 +108,20 @@ def test_sample_bag_export_is_routable(tmp_path, sample_bags):
         ends = route_ends(lanes, gt, rid)
         assert ends is not None, rid
         assert graph.getRoute(ll[ends[0]], ll[ends[1]]) is not None, rid
-    assert cli.main(["evaluate", str(out), str(sample_bags / "ramps_20.gt.json"), "--fleet", str(bag), "--lanes",
-                     "--json", str(tmp_path / "e.json")]) == 0
+    assert (
+        cli.main(
+            [
+                "evaluate",
+                str(out),
+                str(sample_bags / "ramps_20.gt.json"),
+                "--fleet",
+                str(bag),
+                "--lanes",
+                "--json",
+                str(tmp_path / "e.json"),
+            ]
+        )
+        == 0
+    )
     doc = json.loads((tmp_path / "e.json").read_text())
     assert doc["lanes"]["routes"] == len(driven) and doc["lanes"]["precision"] > 0.9

@@ -396,9 +396,7 @@ class _Union:
 def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap: HDMap) -> LaneMap:
     feats = hdmap.features
     index = {int(f.id): i for i, f in enumerate(feats)}
-    linked = [
-        {index[int(x)] for x in (*f.predecessors, *f.successors) if int(x) in index} for f in feats
-    ] + [set()]
+    linked = [{index[int(x)] for x in (*f.predecessors, *f.successors) if int(x) in index} for f in feats] + [set()]
     fid = [int(f.id) for f in feats] + [0]  # the last: inferred lines (RULE 9)
     ftype = [f.type for f in feats] + [FeatureType.DASHED]
     run_of_last: dict[int, list[int]] = defaultdict(list)
@@ -511,7 +509,12 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
             for bb, f in ((b, fl), (b + 1, fr)):
                 if piece_ids[bb] not in boundaries:
                     boundaries[piece_ids[bb]] = Boundary(
-                        piece_ids[bb], fid[f], ftype[f], pts[bb], ends[bb][0], ends[bb][1],
+                        piece_ids[bb],
+                        fid[f],
+                        ftype[f],
+                        pts[bb],
+                        ends[bb][0],
+                        ends[bb][1],
                         inferred=f == len(feats),
                     )
             center = (pts[b] + pts[b + 1]) / 2.0

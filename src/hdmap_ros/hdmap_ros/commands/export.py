@@ -22,10 +22,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from hdmap_ros.commands.bag2map import parse_origin  # noqa: PLC0415
 
     parser.add_argument("map", metavar="MAP_BAG", help="map bag (rosbag2 directory or .mcap) with /hdmap/map")
-    parser.add_argument("--lanelet2", metavar="DIR", required=True,
-                        help="directory to write: DIR/lanelet2_map.osm and DIR/map_projector_info.yaml")
-    parser.add_argument("--origin", metavar="LAT,LON[,ALT]", type=parse_origin,
-                        help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)")
+    parser.add_argument(
+        "--lanelet2",
+        metavar="DIR",
+        required=True,
+        help="directory to write: DIR/lanelet2_map.osm and DIR/map_projector_info.yaml",
+    )
+    parser.add_argument(
+        "--origin",
+        metavar="LAT,LON[,ALT]",
+        type=parse_origin,
+        help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
