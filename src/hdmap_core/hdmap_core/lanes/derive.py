@@ -8,7 +8,8 @@ RULE 1 (lane): two adjacent boundaries bound a lane when their median distance o
 lies in [LANE_WIDTH_MIN_M, LANE_WIDTH_MAX_M].
 RULE 2 (shoulder): a strip between a solid marking and a road border is a shoulder, not a lane.
 RULE 6 (tracks): a line crossing consecutive cross sections of a topology chain within
-_TRACK_TOL_M sideways, with the same type, is one boundary (also across a change of feature id,
+_TRACK_TOL_M sideways, of the same kind (dashed, or not: solid and road border are one kind), is
+one boundary (also across a change of feature id,
 and across up to _TRACK_GAP cross sections without it: the gap is interpolated).
 RULE 7 (relevant lines): only lines next to a plausible lane take part (an outer border beyond a
 shoulder, or a line of a road beside, never cuts a lane).
@@ -29,7 +30,7 @@ dropped lane closes onto its neighbour (a merge).
 RULE 5 (topology gaps): a topology chain that ends (starts) is linked to the nearest cross section
 of the same direction within GAP_LINK_M ahead (behind).
 RULE 8 (junctions without markings): a lane without successor is joined by a connector lane with
-virtual sides to a lane without predecessor that starts in its line within BRIDGE_MAX_M.
+virtual sides to a lane that starts in its line within BRIDGE_MAX_M.
 
 Ids are stable: hashes of the topology node id where a piece starts, the feature ids and the
 boundary's slot in the cross section.
@@ -70,7 +71,15 @@ _COS_SAME_DIRECTION = 0.7  # features crossing a cut within ~45 deg of its direc
 _COS_LINK = np.cos(np.radians(35.0))  # heading agreement of a gap link
 _WIDTH_SLACK_M = 0.5  # RULE 7: tolerance of the lane width test per cross section
 _SPLIT_WIDTH_M = (3.0, 4.2)  # RULE 9: width of each lane of a strip split by inferred lines
-_DUPLICATE_M = 0.5  # crossings this close on one cut are one line
+_DUPLICATE_M = 0.5
+# RULE 6: the line kinds a track keeps: dashed (crossable) or not; a line the map calls solid in
+# one place and road border in the next is one line (its pieces take the most common type)
+_KIND = {
+    int(FeatureType.DASHED): 0,
+    int(FeatureType.SOLID): 1,
+    int(FeatureType.ROAD_BORDER): 1,
+    int(FeatureType.UNKNOWN): 2,
+}  # crossings this close on one cut are one line
 _TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain (2 m apart)
 _TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
 
@@ -293,7 +302,7 @@ def _track(
                 (abs((x - ox) * nx + (y - oy) * ny), t, j)
                 for j, (f, x, y) in enumerate(raw[k])
                 for t, (_, of, ox, oy) in open_.items()
-                if types[f] == types[of]
+                if _KIND[types[f]] == _KIND[types[of]]
             )
             taken_t: set[int] = set()
             taken_j: set[int] = set()
@@ -536,8 +545,8 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
 
 
 def _bridges(lanes: list[dict], boundaries: dict[int, Boundary]) -> list[dict]:
-    """RULE 8: a lane without successor is joined to a lane without predecessor that starts
-    within BRIDGE_MAX_M ahead in its line (both sides at most BRIDGE_LATERAL_M + 2 % of the gap
+    """RULE 8: a lane without successor is joined to a lane that starts within BRIDGE_MAX_M
+    ahead in its line (both sides at most BRIDGE_LATERAL_M + 2 % of the gap
     aside, heading within BRIDGE_ANGLE_DEG, both ends at least LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
     wide) by a connector lane with virtual sides (``FeatureType.UNKNOWN``): the junctions of a road
     where the markings stop. Each lane ahead takes one connector, the closest."""
@@ -547,10 +556,9 @@ def _bridges(lanes: list[dict], boundaries: dict[int, Boundary]) -> list[dict]:
         return (lb.start_node, rb.start_node) if k == 0 else (lb.end_node, rb.end_node)
 
     starts = {ends(ln, 0) for ln in lanes}
-    finishes = {ends(ln, -1) for ln in lanes}
     narrow = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
     dead = [ln for ln in lanes if ends(ln, -1) not in starts and ln["width"][-1] >= narrow]
-    fresh = [j for j, ln in enumerate(lanes) if ends(ln, 0) not in finishes and ln["width"][0] >= narrow]
+    fresh = [j for j, ln in enumerate(lanes) if ln["width"][0] >= narrow]
     if not dead or not fresh:
         return []
 
