@@ -39,6 +39,7 @@ boundary's slot in the cross section.
 from __future__ import annotations
 
 import hashlib
+from bisect import bisect_left, bisect_right
 from collections import defaultdict
 from dataclasses import dataclass, field
 
@@ -298,12 +299,16 @@ def _track(
         open_: dict[int, tuple[int, int, float, float]] = {}  # track -> (position in chain, feature, x, y)
         for i, k in enumerate(chain):
             nx, ny = normal[k]
-            cands = sorted(
-                (abs((x - ox) * nx + (y - oy) * ny), t, j)
-                for j, (f, x, y) in enumerate(raw[k])
-                for t, (_, of, ox, oy) in open_.items()
-                if _KIND[types[f]] == _KIND[types[of]]
-            )
+            # the open tracks' last points across this cut, sorted: candidates by bisection
+            across = sorted((ox * nx + oy * ny, t) for t, (_, _, ox, oy) in open_.items())
+            keys = [a for a, _ in across]
+            cands = []
+            for j, (f, x, y) in enumerate(raw[k]):
+                s = x * nx + y * ny
+                for a, t in across[bisect_left(keys, s - _TRACK_TOL_M) : bisect_right(keys, s + _TRACK_TOL_M)]:
+                    if _KIND[types[f]] == _KIND[types[open_[t][1]]]:
+                        cands.append((abs(s - a), t, j))
+            cands.sort()
             taken_t: set[int] = set()
             taken_j: set[int] = set()
             for d, t, j in cands:
