@@ -6,12 +6,13 @@ import dataclasses
 
 import numpy as np
 import pytest
-from lane_samples import three_lanes
 
 from hdmap_core.evaluation.lanes import evaluate_lanes, route_ends
 from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute
 from hdmap_core.lanes.derive import derive_lanes
 from hdmap_core.model import HDMap
+
+from lane_samples import three_lanes
 
 
 def _truth(length_m: float = 800.0) -> GroundTruth:
