@@ -60,6 +60,16 @@ def missing_marking(length_m: float = 600.0) -> HDMap:
     return HDMap(features=tuple(feats), topology=base.topology)
 
 
+def junction_gap(length_m: float = 600.0) -> HDMap:
+    """``three_lanes`` with no line at all between x = 300 and x = 330 (a junction without markings)."""
+    base = three_lanes(length_m)
+    feats = []
+    for f in base.features:
+        for part, keep in ((0, f.points[:, 0] <= 300.0), (100, f.points[:, 0] >= 330.0)):
+            feats.append(_feature(f.id + part, f.type, f.points[keep]))
+    return HDMap(features=tuple(feats), topology=base.topology)
+
+
 def lane_gain(length_m: float = 800.0) -> HDMap:
     x = np.arange(0.0, length_m + 1e-9, 1.0)
     edge = -5.25 - 3.5 * np.clip((x - 400.0) / 100.0, 0.0, 1.0)

@@ -9,7 +9,7 @@ from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
 from hdmap_core.model import FeatureType, HDMap
 
-from lane_samples import lane_gain, missing_marking, three_lanes
+from lane_samples import junction_gap, lane_gain, missing_marking, three_lanes
 
 
 def _lane_at(lanes, x: float, y: float) -> int:
@@ -79,6 +79,23 @@ def test_missing_marking_is_inferred_between_two_lanes():
     assert gap.left_feature == 0 and gap.change_left
     g = lane_graph(lanes)
     assert lane_route(g, at[0].id, at[2].id) is not None
+
+
+def test_connectors_cross_a_junction_without_markings():
+    lanes = derive_lanes(junction_gap())
+    g = lane_graph(lanes)
+    for y in (3.5, 0.0, -3.5):
+        before, after = _lane_at(lanes, 290.0, y), _lane_at(lanes, 340.0, y)
+        route = lane_route(g, before, after)
+        assert route is not None
+        inside = [lanes.lane(i) for i in route if i not in (before, after)]
+        # the way through is one connector with virtual sides, in the lane's line
+        assert len(inside) == 1 and inside[0].left_type == FeatureType.UNKNOWN
+        np.testing.assert_allclose(inside[0].centerline[:, 1], y, atol=0.05)
+    # side by side connectors share their virtual side, and no lane change crosses it
+    connectors = [ln for ln in lanes.lanes if ln.left_type == FeatureType.UNKNOWN]
+    assert len(connectors) == 3 and sum(ln.left is not None for ln in connectors) == 2
+    assert not any(ln.change_left or ln.change_right for ln in connectors)
 
 
 @pytest.mark.parametrize("hdmap", [HDMap(), HDMap(features=three_lanes().features)])

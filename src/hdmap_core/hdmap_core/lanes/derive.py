@@ -30,7 +30,9 @@ dropped lane closes onto its neighbour (a merge).
 RULE 5 (topology gaps): a topology chain that ends (starts) is linked to the nearest cross section
 of the same direction within GAP_LINK_M ahead (behind).
 RULE 8 (junctions without markings): a lane without successor is joined by a connector lane with
-virtual sides to a lane that starts in its line within BRIDGE_MAX_M.
+virtual sides to a lane that starts in its line within BRIDGE_MAX_M; where none starts straight
+ahead (a curve), to one that starts along the topology within BRIDGE_MAX_M at the same offsets
+from the road middle, the connector following the topology.
 
 Ids are stable: hashes of the topology node id where a piece starts, the feature ids and the
 boundary's slot in the cross section.
@@ -483,6 +485,7 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
     nodes: dict[int, np.ndarray] = {}
     boundaries: dict[int, Boundary] = {}
     lanes: list[dict] = []
+    where: dict[int, tuple[int, int, tuple[float, float], tuple[float, float]]] = {}  # RULE 8
     for r, run in enumerate(runs):
         sec0 = sections[run[0]]
         if not sec0.features:
@@ -532,9 +535,11 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
                         inferred=f == len(feats),
                     )
             center = (pts[b] + pts[b + 1]) / 2.0
+            lane_id = _uid("lane", int(st.ids[run[0]]), fid[fl], fid[fr], b)
+            where[lane_id] = (run[0], run[-1], (s[0, b], s[0, b + 1]), (s[-1, b], s[-1, b + 1]))
             lanes.append(
                 dict(
-                    id=_uid("lane", int(st.ids[run[0]]), fid[fl], fid[fr], b),
+                    id=lane_id,
                     centerline=center,
                     width=np.hypot(*(pts[b] - pts[b + 1]).T),
                     left_boundary=piece_ids[b],
@@ -545,11 +550,16 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
                     right_type=tr,
                 )
             )
-    lanes += _bridges(lanes, boundaries)
+    lanes += _bridges(lanes, boundaries, st, where)
     return LaneMap(_link(lanes, boundaries), tuple(sorted(boundaries.values(), key=lambda x: x.id)), nodes)
 
 
-def _bridges(lanes: list[dict], boundaries: dict[int, Boundary]) -> list[dict]:
+def _bridges(
+    lanes: list[dict],
+    boundaries: dict[int, Boundary],
+    st: _Stations,
+    where: dict[int, tuple[int, int, tuple[float, float], tuple[float, float]]],
+) -> list[dict]:
     """RULE 8: a lane without successor is joined to a lane that starts within BRIDGE_MAX_M
     ahead in its line (both sides at most BRIDGE_LATERAL_M + 2 % of the gap
     aside, heading within BRIDGE_ANGLE_DEG, both ends at least LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
@@ -572,7 +582,7 @@ def _bridges(lanes: list[dict], boundaries: dict[int, Boundary]) -> list[dict]:
 
     head = np.array([side(lanes[j], 0) for j in fresh])  # (F, 2, 2)
     head_dir = np.array([_direction(lanes[j]["centerline"], first=True) for j in fresh])
-    cands = []
+    cands: list[tuple[float, int, int, np.ndarray | None]] = []
     for a in dead:
         tail, d = side(a, -1), _direction(a["centerline"], first=False)
         rel = head - tail[None]  # (F, 2, 2)
@@ -580,20 +590,67 @@ def _bridges(lanes: list[dict], boundaries: dict[int, Boundary]) -> list[dict]:
         aside = np.abs(rel[..., 0] * d[1] - rel[..., 1] * d[0])
         ok = np.all((along > 0.5) & (along <= BRIDGE_MAX_M) & (aside <= BRIDGE_LATERAL_M + 0.02 * along), axis=1)
         ok &= head_dir @ d >= np.cos(np.radians(BRIDGE_ANGLE_DEG))
-        for i in np.flatnonzero(ok).tolist():
-            j = fresh[i]
-            if lanes[j]["id"] != a["id"]:
-                cands.append((float(aside[i].sum() + 0.01 * along[i].mean()), int(a["id"]), j))
+        straight = [
+            (float(aside[i].sum() + 0.01 * along[i].mean()), int(a["id"]), fresh[i], None)
+            for i in np.flatnonzero(ok).tolist()
+            if lanes[fresh[i]]["id"] != a["id"]
+        ]
+        # the topology's path only where no lane starts straight ahead (curves)
+        cands += straight or _along_topology(a, lanes, fresh, st, where)
     by_id = {ln["id"]: ln for ln in lanes}
     used_a: set[int] = set()
     used_b: set[int] = set()
     out = []
-    for _, aid, j in sorted(cands):
+    for _, aid, j, path in sorted(cands, key=lambda c: c[:3]):
         if aid in used_a or j in used_b:
             continue
         used_a.add(aid)
         used_b.add(j)
-        out.append(_connector(by_id[aid], lanes[j], boundaries))
+        out.append(_connector(by_id[aid], lanes[j], boundaries, path))
+    return out
+
+
+def _along_topology(
+    a: dict,
+    lanes: list[dict],
+    fresh: list[int],
+    st: _Stations,
+    where: dict[int, tuple[int, int, tuple[float, float], tuple[float, float]]],
+) -> list[tuple[float, int, int, np.ndarray]]:
+    """RULE 8 through curves: lanes that start on a station reached from the dead end's last
+    station along the topology within BRIDGE_MAX_M, both sides within BRIDGE_LATERAL_M of the
+    dead end's offsets from the road middle; each with the connector's (N, 2, 2) side points along
+    that path (offsets interpolated)."""
+    if a["id"] not in where:
+        return []
+    _, e, _, (sl, sr) = where[a["id"]]
+    starts: dict[int, list[int]] = defaultdict(list)
+    for j in fresh:
+        if lanes[j]["id"] in where:
+            starts[where[lanes[j]["id"]][0]].append(j)
+    dist, parent = {e: 0.0}, {e: -1}
+    todo = [e]
+    while todo:
+        k = todo.pop()
+        for q in st.succ[k]:
+            d = dist[k] + float(np.hypot(*(st.pos[q] - st.pos[k])))
+            if d <= BRIDGE_MAX_M and d < dist.get(q, np.inf):
+                dist[q], parent[q] = d, k
+                todo.append(q)
+    out = []
+    for k, d in dist.items():
+        for j in starts.get(k, []) if k != e else []:
+            bl, br = where[lanes[j]["id"]][2]
+            if lanes[j]["id"] == a["id"] or max(abs(bl - sl), abs(br - sr)) > BRIDGE_LATERAL_M:
+                continue
+            path = [k]
+            while parent[path[-1]] != -1:
+                path.append(parent[path[-1]])
+            path.reverse()
+            w = np.array([dist[q] for q in path]) / max(d, 1e-9)
+            normal = np.stack([-st.tangent[path, 1], st.tangent[path, 0]], axis=1)
+            sides = [st.pos[path] + ((1 - w) * s0 + w * s1)[:, None] * normal for s0, s1 in ((sl, bl), (sr, br))]
+            out.append((abs(bl - sl) + abs(br - sr) + 0.01 * d, int(a["id"]), j, np.stack(sides, axis=1)))
     return out
 
 
@@ -605,12 +662,18 @@ def _direction(line: np.ndarray, *, first: bool) -> np.ndarray:
     return d / max(float(np.hypot(*d)), 1e-9)
 
 
-def _connector(a: dict, b: dict, boundaries: dict[int, Boundary]) -> dict:
+def _connector(a: dict, b: dict, boundaries: dict[int, Boundary], path: np.ndarray | None = None) -> dict:
+    """The connector lane from ``a``'s end to ``b``'s start: straight, or through the (N, 2, 2)
+    side points ``path`` (end points replaced by the lanes' own end nodes)."""
     sides = []
     n = int(np.hypot(*(b["centerline"][0] - a["centerline"][-1])) // 2.0) + 2  # a point every ~2 m
-    for side in ("left_boundary", "right_boundary"):
+    for i, side in enumerate(("left_boundary", "right_boundary")):
         pa, pb = boundaries[a[side]], boundaries[b[side]]
-        pts = np.linspace(pa.points[-1], pb.points[0], n)
+        if path is None or len(path) < 2:
+            pts = np.linspace(pa.points[-1], pb.points[0], n)
+        else:
+            pts = path[:, i].copy()
+            pts[0], pts[-1] = pa.points[-1], pb.points[0]
         bid = _uid("connector", pa.id, pb.id)
         boundaries[bid] = Boundary(bid, 0, FeatureType.UNKNOWN, pts, pa.end_node, pb.start_node)
         sides.append((bid, pts))
