@@ -32,7 +32,7 @@ of the same direction within GAP_LINK_M ahead (behind).
 RULE 8 (junctions without markings): a lane without successor is joined by a connector lane with
 virtual sides to a lane that starts in its line within BRIDGE_MAX_M; where none starts straight
 ahead (a curve), to one that starts along the topology within BRIDGE_MAX_M at the same offsets
-from the road middle, the connector following the topology.
+from the road middle, the connector a cubic Hermite curve between the two lanes' directions.
 
 Ids are stable: hashes of the topology node id where a piece starts, the feature ids and the
 boundary's slot in the cross section.
@@ -663,17 +663,23 @@ def _direction(line: np.ndarray, *, first: bool) -> np.ndarray:
 
 
 def _connector(a: dict, b: dict, boundaries: dict[int, Boundary], path: np.ndarray | None = None) -> dict:
-    """The connector lane from ``a``'s end to ``b``'s start: straight, or through the (N, 2, 2)
-    side points ``path`` (end points replaced by the lanes' own end nodes)."""
+    """The connector lane from ``a``'s end to ``b``'s start: straight, or, given the (N, 2, 2) side
+    points ``path`` along the topology, a cubic Hermite curve per side from ``a``'s end direction to
+    ``b``'s start direction (tangents as long as the path), N points."""
     sides = []
     n = int(np.hypot(*(b["centerline"][0] - a["centerline"][-1])) // 2.0) + 2  # a point every ~2 m
     for i, side in enumerate(("left_boundary", "right_boundary")):
         pa, pb = boundaries[a[side]], boundaries[b[side]]
         if path is None or len(path) < 2:
             pts = np.linspace(pa.points[-1], pb.points[0], n)
-        else:
-            pts = path[:, i].copy()
-            pts[0], pts[-1] = pa.points[-1], pb.points[0]
+        else:  # a curve: cubic Hermite from a's end direction to b's start direction
+            length = float(np.hypot(*np.diff(path[:, i], axis=0).T).sum())
+            t = np.linspace(0.0, 1.0, max(len(path), 3))[:, None]  # both sides: as many points
+            p0, p1 = pa.points[-1], pb.points[0]
+            d0 = _direction(pa.points, first=False) * length
+            d1 = _direction(pb.points, first=True) * length
+            h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+            pts = h00 * p0 + h10 * d0 + h01 * p1 + h11 * d1
         bid = _uid("connector", pa.id, pb.id)
         boundaries[bid] = Boundary(bid, 0, FeatureType.UNKNOWN, pts, pa.end_node, pb.start_node)
         sides.append((bid, pts))
