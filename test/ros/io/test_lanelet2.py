@@ -125,3 +125,11 @@ def test_sample_bag_export_is_routable(tmp_path, sample_bags):
     )
     doc = json.loads((tmp_path / "e.json").read_text())
     assert doc["lanes"]["routes"] == len(driven) and doc["lanes"]["precision"] > 0.9
+
+
+def test_export_of_a_bag_without_map_is_an_error(tmp_path, sample_bags, capsys):
+    from hdmap_ros import cli
+
+    assert cli.main(["export", str(sample_bags / "e6mini_20"), "--lanelet2", str(tmp_path / "ll")]) == 1
+    assert "no hdmap_msgs/msg/Map" in capsys.readouterr().err
+    assert not (tmp_path / "ll" / MAP_FILE).exists()
