@@ -17,7 +17,7 @@ from hdmap_core.errors import HdmapError
 __all__ = ["main", "COMMAND_MODULES"]
 
 # Order is the order of `hdmap --help`.
-COMMAND_MODULES = ("simulate", "bag2map", "evaluate", "bench", "run")
+COMMAND_MODULES = ("simulate", "bag2map", "export", "evaluate", "bench", "run")
 
 
 def _load_commands() -> tuple[dict, dict]:

@@ -68,7 +68,8 @@ def test_wiring_writes_map_bag_and_geojson(tmp_path, fake_pipeline, capsys):
     got = read_map_bag(out)
     assert_maps_equal(make_map(n_features=3), got)
     assert got.extra["origin"] == ORIGIN
-    assert len(json.loads(gj.read_text())["features"]) == 3
+    kinds = [f["properties"]["kind"] for f in json.loads(gj.read_text())["features"]]
+    assert kinds.count("road_feature") == 3 and set(kinds) <= {"road_feature", "lane"}
     captured = capsys.readouterr()
     assert "broken" in captured.err and "wrong_frame" in captured.err
     assert "drives used 3" in captured.out and "rejected 1" in captured.out
@@ -200,8 +201,11 @@ def test_end_to_end_on_sample_bag(tmp_path, capsys, sample_bags):
     origin = hdmap.extra["origin"]
     assert hdmap.features and hdmap.topology
     assert set(hdmap.drive_ids) <= {d.drive_id for d in read_fleet_bag(bag).drives}
-    features = json.loads(gj.read_text())["features"]
+    everything = json.loads(gj.read_text())["features"]
+    features = [f for f in everything if f["properties"]["kind"] == "road_feature"]
+    lanes = [f for f in everything if f["properties"]["kind"] == "lane"]
     assert len(features) == sum(len(f.points) >= 2 for f in hdmap.features)
+    assert lanes and all(f["geometry"]["type"] == "Polygon" for f in lanes)
     lon, lat = np.array([c for f in features for c in f["geometry"]["coordinates"]]).T
     # the e6mini map spans < 2 km: every point within ~0.03 deg of the origin
     assert np.all(np.abs(lat - origin.latitude_deg) < 0.03) and np.all(np.abs(lon - origin.longitude_deg) < 0.05)

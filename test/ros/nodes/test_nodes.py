@@ -135,7 +135,7 @@ def test_map_publisher_markers_and_save_service(ros, tmp_path):
     viewer = ros.node("viewer")  # joins after the map was published: markers are latched
     markers = _collect(viewer, MarkerArray, "/hdmap/markers", qos.LATCHED)
     arr = wait_for(lambda: markers and markers[-1], 10, what="markers")
-    strips = [m for m in arr.markers if m.type == 4]
+    strips = [m for m in arr.markers if m.type == 4 and m.ns.startswith("features/")]
     assert len(strips) == 3 and {m.ns for m in strips} == {"features/solid", "features/dashed", "features/road_border"}
 
     client = viewer.create_client(SaveMap, "/hdmap/save_map")
@@ -146,6 +146,8 @@ def test_map_publisher_markers_and_save_service(ros, tmp_path):
     back = read_map_bag(out)
     assert [f.id for f in back.features] == [f.id for f in hdmap.features]
     assert (tmp_path / "saved.geojson").is_file()
+    assert (tmp_path / "saved.lanelet2" / "lanelet2_map.osm").is_file()
+    assert "saved.lanelet2" in resp.message
     bad = _call(client, SaveMap.Request(path=""))
     assert not bad.success and "empty" in bad.message
 

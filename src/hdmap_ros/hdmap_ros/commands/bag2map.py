@@ -3,7 +3,8 @@
 Reads the drives and the origin of IN (rosbag2 directory or ``.mcap``), reports every rejected
 drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes OUT (rosbag2 MCAP with
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
-features as RFC 7946 GeoJSON; with ``--graphml``, the topology graph as GraphML (map frame).
+features and lanes as RFC 7946 GeoJSON; with ``--lanelet2 DIR``, the lanes as an Autoware map
+directory (``hdmap export``); with ``--graphml``, the topology graph as GraphML (map frame).
 Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
@@ -24,7 +25,7 @@ from hdmap_core.model import GeoOrigin, HDMap
 from hdmap_ros.io.bagio import FleetBag, read_fleet_bag, write_map_bag
 from hdmap_ros.io.geojson import write_geojson
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument", "parse_origin"]
 
 NAME = "bag2map"
 HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
@@ -34,8 +35,13 @@ PRESETS = ("default", "paper", "naive")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="IN", help="fleet bag: rosbag2 directory (MCAP or sqlite3) or .mcap file")
     parser.add_argument("-o", "--output", metavar="OUT", required=True, help="map bag directory to write")
-    parser.add_argument("--geojson", metavar="FILE", help="also write the map features as GeoJSON (WGS84)")
+    parser.add_argument("--geojson", metavar="FILE", help="also write the map features and lanes as GeoJSON (WGS84)")
     parser.add_argument("--graphml", metavar="PATH", help="also write the topology graph as GraphML (map frame, metres)")
+    parser.add_argument(
+        "--lanelet2", metavar="DIR",
+        help="also write the lanes as an Autoware map directory: DIR/lanelet2_map.osm + "
+        "DIR/map_projector_info.yaml",
+    )
     parser.add_argument("--preset", choices=PRESETS, default="default", help="pipeline preset (default: %(default)s)")
     add_set_argument(
         parser,
@@ -46,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--origin",
         metavar="LAT,LON[,ALT]",
-        type=_parse_origin,
+        type=parse_origin,
         help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
     )
     parser.add_argument(
@@ -62,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
 
 
-def _parse_origin(text: str) -> GeoOrigin:
+def parse_origin(text: str) -> GeoOrigin:
+    """argparse type of ``--origin LAT,LON[,ALT]``."""
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
@@ -110,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"{out} exists already (use --overwrite to replace it)")
     if out.exists() and not (out / "metadata.yaml").exists():
         return _fail(f"{out} exists and is not a rosbag2 directory; refusing to replace it")
+    if args.lanelet2 and Path(args.lanelet2).is_file():
+        return _fail(f"--lanelet2 {args.lanelet2} is a file, not a directory")
     if args.geojson and Path(args.geojson).is_dir():
         return _fail(f"--geojson {args.geojson} is a directory")
     if args.graphml and Path(args.graphml).is_dir():
@@ -138,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
     origin = args.origin or fleet.origin
     if args.geojson and origin is None:
         return _fail(f"--geojson needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
+    if args.lanelet2 and origin is None:
+        return _fail(f"--lanelet2 needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
 
     with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
         result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress,
@@ -146,9 +157,19 @@ def run(args: argparse.Namespace) -> int:
 
     write_map_bag(out, hdmap, origin, overwrite=args.overwrite)
     print(f"wrote {out}: {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes")
+    lanes = None
+    if args.geojson or args.lanelet2:
+        from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415 - lanes only when written
+
+        lanes = derive_lanes(hdmap)
     if args.geojson:
-        write_geojson(hdmap, origin, args.geojson)
+        write_geojson(hdmap, origin, args.geojson, lanes=lanes)
         print(f"wrote {args.geojson}")
+    if args.lanelet2 and lanes is not None:
+        from hdmap_ros.io.lanelet2 import write_lanelet2  # noqa: PLC0415 - lanes only when asked
+
+        write_lanelet2(lanes, origin, args.lanelet2)
+        print(f"wrote {args.lanelet2}: {len(lanes.lanes)} lanelets")
     if args.graphml:
         from hdmap_core.graph.topology_graph import write_graphml  # noqa: PLC0415 - networkx only when asked
 

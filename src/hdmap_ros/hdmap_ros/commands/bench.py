@@ -71,7 +71,13 @@ COLUMNS = (
     ("splits_merges", "splits/merges found", "{}"),
     ("road_splits_merges", "road splits/merges", "{}"),
     ("long_links", "topo link prec. (long)", "{}"),
+    ("lane_coverage", "lane cov.", "{:.1%}"),
+    ("lane_precision", "lane prec.", "{:.1%}"),
+    ("lane_error_m", "lane err m", "{:.3f}"),
+    ("lane_count_accuracy", "lane count", "{:.1%}"),
+    ("routes", "routes", "{}"),
     ("build_s", "build s", "{:.1f}"),
+    ("lanes_s", "lanes s", "{:.2f}"),
     ("peak_rss_mb", "peak RSS MB", "{:.0f}"),
 )
 
@@ -323,6 +329,33 @@ def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int 
     return fleet, result, rep, build_s, n_workers
 
 
+def _lane_figures(scenario: Scenario, hdmap: Any) -> tuple[dict[str, Any], float]:
+    """The lane metrics of the map (``evaluation/lanes.py``; routes: those in ``BAG.sim.json``)
+    as row fields, and the seconds the lanes took to derive."""
+    from hdmap_core.evaluation.lanes import evaluate_lanes  # noqa: PLC0415
+    from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
+    from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415
+
+    t0 = time.perf_counter()
+    lanes = derive_lanes(hdmap)
+    seconds = time.perf_counter() - t0
+    sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
+    routes = None
+    if sim.exists():
+        truth = json.loads(sim.read_text()).get("truth") or {}
+        routes = {str(t.get("route_id")) for t in truth.values() if isinstance(t, dict)}
+    rep = evaluate_lanes(lanes, load_ground_truth(scenario.gt_path), route_ids=routes)
+    return {
+        "lane_coverage": rep.coverage,
+        "lane_precision": rep.precision,
+        "lane_error_m": rep.mean_error_m,
+        "lane_count_accuracy": rep.lane_count_accuracy,
+        "routes": f"{rep.routes_routable}/{rep.routes}",
+        "route_reachability": rep.route_reachability,
+        "n_lanes": rep.n_lanes,
+    }, seconds
+
+
 def preset_config(preset: str, overrides: dict[str, Any] | None = None) -> PipelineConfig:
     """``config_from(preset, overrides)`` (dotted keys).
 
@@ -368,7 +401,10 @@ def run_one(
     fleet, result, rep, build_s, n_workers = build_and_evaluate(scenario, config, seed, workers)
     o = rep.overall
     floor = rep.floor_mean_m
+    lanes, lanes_s = _lane_figures(scenario, result.map)
     return {
+        **lanes,
+        "lanes_s": lanes_s,
         "scenario": scenario.name,
         "preset": config.name,
         "overrides": dict(overrides or {}),

@@ -29,7 +29,9 @@ import numpy as np
 from hdmap_core.errors import HdmapError
 from hdmap_core.evaluation.config import EvalConfig
 from hdmap_core.evaluation.evaluate import evaluate_map, hdmap_from_ground_truth
+from hdmap_core.evaluation.lanes import LaneReport
 from hdmap_core.evaluation.plot import plot_evaluation
+from hdmap_core.evaluation.report import jsonable
 from hdmap_core.evaluation.summary import format_summary
 from hdmap_core.groundtruth import GroundTruth, load_ground_truth
 from hdmap_core.model import HDMap
@@ -74,12 +76,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--json", metavar="OUT.json", help="write the full report (with per-cut arrays) as JSON")
     parser.add_argument("--plot", metavar="OUT.png", help="write the figure: map over ground truth, error along the reference")
+    parser.add_argument(
+        "--lanes", action="store_true",
+        help="also derive the map's lanes and score them: centerline coverage, precision, error, lane "
+        "count, route reachability (routes driven: from BAG.sim.json beside --fleet, else all)",
+    )
     parser.add_argument("--all-lanes", action="store_true", help="evaluate along all route lanes, not only highway lanes")
     parser.add_argument("--step", metavar="M", type=_positive_float, default=2.0, help="cut spacing [m] (default: %(default)s)")
     parser.add_argument(
         "--gate", metavar="M", type=_positive_float, default=EvalConfig().gate_m,
         help="a map point farther than this from every same-type GT point is unmatched [m] (default: %(default)s)",
     )
+
+
+def _lane_report(hdmap: HDMap, gt: GroundTruth, args: argparse.Namespace, config: EvalConfig) -> LaneReport:
+    from hdmap_core.evaluation.lanes import evaluate_lanes  # noqa: PLC0415 - lanes only when asked
+    from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415
+
+    doc = _read_json(_sim_json_beside(args.fleet)) if args.fleet else None
+    truth = doc.get("truth") if isinstance(doc, dict) else None
+    routes = None
+    if isinstance(truth, dict):
+        routes = {str(t.get("route_id")) for t in truth.values() if isinstance(t, dict)}
+    return evaluate_lanes(derive_lanes(hdmap), gt, route_ids=routes, config=config)
 
 
 def _positive_float(text: str) -> float:
@@ -268,8 +287,13 @@ def run(args: argparse.Namespace) -> int:
     )
     print()
     print(format_summary(report))
+    lanes = _lane_report(hdmap, gt, args, config) if args.lanes else None
+    if lanes is not None:
+        print(lanes.summary())
     if args.json:
         doc = report.to_dict(include_cuts=True)
+        if lanes is not None:
+            doc["lanes"] = jsonable(lanes.to_dict())
         doc["inputs"] = {"map": args.map, "gt": args.gt, "fleet": args.fleet, "sigma_loc_source": sigma_note}
         Path(args.json).write_text(json.dumps(doc, allow_nan=False))
         print(f"wrote {args.json}")

@@ -170,7 +170,8 @@ def _write(args: argparse.Namespace, hdmap) -> None:
     if args.geojson:
         if origin is None:
             raise HdmapError(f"{args.bag} has no /fleet/origin: cannot write GeoJSON")
+        from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415
         from hdmap_ros.io.geojson import write_geojson  # noqa: PLC0415
 
-        write_geojson(hdmap, origin, args.geojson)
+        write_geojson(hdmap, origin, args.geojson, lanes=derive_lanes(hdmap))
         print(f"GeoJSON written to {args.geojson}")

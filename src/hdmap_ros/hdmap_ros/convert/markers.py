@@ -1,8 +1,9 @@
 """HDMap -> visualization_msgs/MarkerArray for RViz and Foxglove (pure; no rclpy needed).
 
 One LINE_STRIP per map feature, coloured by type, in namespace ``features/<type label>``; one
-LINE_LIST with the topology graph's edges (namespace ``topology``). The array starts with a
-DELETEALL marker so that features gone from a new map version disappear from the display.
+LINE_LIST with the topology graph's edges (namespace ``topology``); with lanes, one LINE_STRIP per
+lane centerline (namespace ``lanes``) and one LINE_LIST of the lanes' ends across (``lanes/ends``).
+The array starts with a DELETEALL marker so that features gone from a new map version disappear from the display.
 
 Message classes come from a :class:`MarkerTypes` namespace: :func:`rclpy_marker_types` for nodes,
 or any classes taking keyword arguments (tests).
@@ -15,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from hdmap_core.lanes.model import LaneMap
 from hdmap_core.model import FeatureType, HDMap
 
 __all__ = ["MarkerTypes", "rclpy_marker_types", "map_to_markers", "TYPE_COLORS", "LINE_STRIP", "LINE_LIST", "DELETEALL"]
@@ -33,6 +35,7 @@ TYPE_COLORS: dict[FeatureType, tuple[float, float, float, float]] = {
     FeatureType.UNKNOWN: (0.6, 0.6, 0.6, 1.0),
 }
 TOPOLOGY_COLOR = (0.2, 0.6, 1.0, 0.6)
+LANE_COLOR = (0.2, 0.9, 0.4, 0.8)
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,7 @@ def map_to_markers(
     header: Any,
     line_width_m: float = 0.2,
     topology: bool = True,
+    lanes: LaneMap | None = None,
 ) -> Any:
     """Markers of a map.
 
@@ -90,11 +94,12 @@ def map_to_markers(
         header: the std_msgs/Header every marker carries (frame id = the map frame).
         line_width_m: LINE_STRIP width [m].
         topology: also draw the topology graph's edges.
+        lanes: also draw these lanes: centerlines, and a line across each lane's start and end.
 
     Returns:
         A MarkerArray: DELETEALL, one LINE_STRIP per feature with >= 2 points (marker id = index
         within its type namespace, since Marker.id is int32 and feature ids are uint64), then the
-        topology LINE_LIST.
+        topology LINE_LIST, then the lanes' centerlines and their ends.
     """
     out = types.MarkerArray()
     clear = types.Marker()
@@ -120,5 +125,22 @@ def map_to_markers(
             markers.append(
                 _marker(types, header, "topology", 0, LINE_LIST, line_width_m / 2, TOPOLOGY_COLOR, _points(types, xy))
             )
+    if lanes is not None and lanes.lanes:
+        for i, ln in enumerate(lanes.lanes):
+            markers.append(
+                _marker(types, header, "lanes", i, LINE_STRIP, line_width_m / 2, LANE_COLOR,
+                        _points(types, ln.centerline))
+            )
+        bounds = {b.id: b.points for b in lanes.boundaries}
+        ends = [
+            p
+            for ln in lanes.lanes
+            for k in (0, -1)
+            for p in (bounds[ln.left_boundary][k], bounds[ln.right_boundary][k])
+        ]
+        markers.append(
+            _marker(types, header, "lanes/ends", 0, LINE_LIST, line_width_m / 2, LANE_COLOR,
+                    _points(types, np.array(ends)))
+        )
     out.markers = markers
     return out

@@ -21,9 +21,10 @@ import numpy as np
 from pyproj import Transformer
 
 from hdmap_core.errors import InvalidMessageError
+from hdmap_core.lanes.model import Lane, LaneMap
 from hdmap_core.model import GeoOrigin, HDMap, MapFeature, TopologyNode
 
-__all__ = ["enu_to_lonlat", "map_to_geojson", "write_geojson", "COORD_DECIMALS"]
+__all__ = ["enu_to_lonlat", "enu_to_geodetic", "map_to_geojson", "write_geojson", "COORD_DECIMALS"]
 
 COORD_DECIMALS = 8
 
@@ -46,6 +47,14 @@ def enu_to_lonlat(xy: np.ndarray, origin: GeoOrigin) -> np.ndarray:
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     lon, lat, _h = _transformer(origin).transform(xy[:, 0], xy[:, 1], np.zeros(len(xy)))
     return np.stack([np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64)], axis=1)
+
+
+def enu_to_geodetic(xy: np.ndarray, origin: GeoOrigin) -> np.ndarray:
+    """(N, 2) map-frame east/north [m] on the tangent plane (z = 0) -> (N, 3) WGS84 [lon, lat]
+    [deg] and ellipsoidal height [m] (the height of the tangent plane there)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    lon, lat, h = _transformer(origin).transform(xy[:, 0], xy[:, 1], np.zeros(len(xy)))
+    return np.stack([np.asarray(v, dtype=np.float64) for v in (lon, lat, h)], axis=1)
 
 
 def _coords(lonlat: np.ndarray) -> list[list[float]]:
@@ -90,13 +99,42 @@ def _node_json(n: TopologyNode, lonlat: np.ndarray) -> dict[str, Any]:
     }
 
 
-def map_to_geojson(hdmap: HDMap, origin: GeoOrigin, *, include_topology: bool = False) -> dict[str, Any]:
+def _lane_json(lane: Lane, lonlat: np.ndarray) -> dict[str, Any]:
+    ring = _coords(lonlat)
+    ring.append(ring[0])
+    return {
+        "type": "Feature",
+        "id": str(int(lane.id)),
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+        "properties": {
+            "kind": "lane",
+            "id": str(int(lane.id)),
+            "left_feature": str(int(lane.left_feature)),
+            "right_feature": str(int(lane.right_feature)),
+            "left_type": lane.left_type.label,
+            "right_type": lane.right_type.label,
+            "width_mean_m": round(float(np.mean(lane.width)), 3) if len(lane.width) else None,
+            "length_m": round(lane.length_m, 3),
+            "successors": [str(int(i)) for i in lane.successors],
+            "predecessors": [str(int(i)) for i in lane.predecessors],
+            "left": str(int(lane.left)) if lane.left is not None else None,
+            "right": str(int(lane.right)) if lane.right is not None else None,
+        },
+    }
+
+
+def map_to_geojson(
+    hdmap: HDMap, origin: GeoOrigin, *, include_topology: bool = False, lanes: LaneMap | None = None
+) -> dict[str, Any]:
     """The map's road features as an RFC 7946 FeatureCollection of WGS84 LineStrings.
 
     Args:
         hdmap: the map (map-frame coordinates [m]).
         origin: WGS84 origin of the map frame.
         include_topology: also add the topology nodes as Point features (``kind`` tells them apart).
+        lanes: also add these lanes (``hdmap_core.lanes.derive.derive_lanes``) as Polygon features
+            (``kind: "lane"``: the left boundary forward, the right one back) with their boundary
+            feature ids and types, width, length, successors, predecessors and neighbours.
 
     Returns:
         A JSON-ready dict. Each LineString has properties ``id`` (string), ``type`` (label),
@@ -112,6 +150,9 @@ def map_to_geojson(hdmap: HDMap, origin: GeoOrigin, *, include_topology: bool = 
     # One vectorised transform for every point of the map.
     parts = [np.asarray(f.points, dtype=np.float64).reshape(-1, 2) for f in features]
     parts += [np.asarray(n.position, dtype=np.float64).reshape(1, 2) for n in nodes]
+    lane_list = list(lanes.lanes) if lanes is not None else []
+    rings = [lanes.polygon(ln) for ln in lane_list] if lanes is not None else []
+    parts += rings
     lonlat = enu_to_lonlat(np.concatenate(parts) if parts else np.zeros((0, 2)), origin)
     out: list[dict[str, Any]] = []
     start = 0
@@ -121,6 +162,9 @@ def map_to_geojson(hdmap: HDMap, origin: GeoOrigin, *, include_topology: bool = 
     for n in nodes:
         out.append(_node_json(n, lonlat[start : start + 1]))
         start += 1
+    for ln, ring in zip(lane_list, rings, strict=True):
+        out.append(_lane_json(ln, lonlat[start : start + len(ring)]))
+        start += len(ring)
     return {
         "type": "FeatureCollection",
         "features": out,

@@ -2,9 +2,10 @@
 
 Subscribes ``/hdmap/map`` and ``/fleet/origin`` (both latched). Publishes
 ``/hdmap/markers`` (visualization_msgs/MarkerArray, latched): one LINE_STRIP per feature coloured
-by type, plus the topology graph. Offers ``/hdmap/save_map`` (hdmap_msgs/srv/SaveMap): writes the
-current map as a rosbag2 MCAP directory at ``path`` and, when the WGS84 origin is known, as GeoJSON
-at ``path + ".geojson"``.
+by type, plus the topology graph and the lanes (``hdmap_core.lanes``). Offers ``/hdmap/save_map``
+(hdmap_msgs/srv/SaveMap): writes the current map as a rosbag2 MCAP directory at ``path`` and, when
+the WGS84 origin is known, as GeoJSON (features and lanes) at ``path + ".geojson"`` and as a
+Lanelet2 / Autoware map directory at ``path + ".lanelet2"``.
 """
 
 from __future__ import annotations
@@ -17,11 +18,14 @@ from sensor_msgs.msg import NavSatFix
 from std_msgs.msg import Header
 
 from hdmap_core.errors import HdmapError
+from hdmap_core.lanes.derive import derive_lanes
+from hdmap_core.lanes.model import LaneMap
 from hdmap_core.model import GeoOrigin, HDMap
 from hdmap_ros.convert.markers import map_to_markers, rclpy_marker_types
 from hdmap_ros.convert.messages import msg_to_map, msg_to_origin, rclpy_types
 from hdmap_ros.io.bagio import write_map_bag
 from hdmap_ros.io.geojson import write_geojson
+from hdmap_ros.io.lanelet2 import write_lanelet2
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, run_node
 
@@ -40,11 +44,13 @@ class MapPublisher(HealthMixin, Node):
         super().__init__("map_publisher", **kwargs)
         self.line_width_m = declare(self, "line_width_m", 0.2, "Width of the feature LINE_STRIPs [m].", lo=0.01, hi=5.0)
         self.show_topology = declare(self, "show_topology", True, "Also draw the topology graph.")
+        self.show_lanes = declare(self, "show_lanes", True, "Also draw the lanes derived from the map.")
         self.overwrite = declare(self, "overwrite", True, "The save service replaces an existing map bag at the path.")
         self._init_health("map_publisher")
         from hdmap_msgs.srv import SaveMap  # noqa: PLC0415
 
         self.map: HDMap | None = None
+        self.lanes: LaneMap | None = None
         self.origin: GeoOrigin | None = None
         self._marker_types = rclpy_marker_types()
         t = rclpy_types()
@@ -60,16 +66,23 @@ class MapPublisher(HealthMixin, Node):
             self.health.reject("invalid_map", str(err))
             self.get_logger().warning(f"map rejected: {err}")
             return
+        self.lanes = None
         header = Header(frame_id=self.map.frame_id, stamp=self.get_clock().now().to_msg())
         self._markers_pub.publish(
             map_to_markers(
                 self.map, types=self._marker_types, header=header, line_width_m=self.line_width_m,
-                topology=self.show_topology,
+                topology=self.show_topology, lanes=self._lanes() if self.show_lanes else None,
             )
         )
         self.health.accept()
         self.health.updated(time.time_ns())
         self.health.set("map_version", self.map.version)
+
+    def _lanes(self) -> LaneMap:
+        """The lanes of the current map, derived once per map version."""
+        if self.lanes is None and self.map is not None:
+            self.lanes = derive_lanes(self.map)
+        return self.lanes if self.lanes is not None else LaneMap((), (), {})
 
     def on_origin(self, msg) -> None:
         try:
@@ -79,7 +92,8 @@ class MapPublisher(HealthMixin, Node):
             self.get_logger().warning(f"origin rejected: {err}")
 
     def on_save(self, request, response):
-        """Write the current map to ``request.path`` (MCAP) and ``request.path + '.geojson'``."""
+        """Write the current map to ``request.path`` (MCAP), ``request.path + '.geojson'`` and the
+        Lanelet2 directory ``request.path + '.lanelet2'``."""
         path = Path(request.path).expanduser()
         if not request.path:
             response.success, response.message = False, "empty path"
@@ -91,10 +105,12 @@ class MapPublisher(HealthMixin, Node):
             write_map_bag(path, self.map, self.origin, overwrite=self.overwrite)
             written = [str(path)]
             if self.origin is not None:
-                written.append(str(write_geojson(self.map, self.origin, Path(f"{path}.geojson"))))
+                lanes = self._lanes()
+                written.append(str(write_geojson(self.map, self.origin, Path(f"{path}.geojson"), lanes=lanes)))
+                written.append(str(write_lanelet2(lanes, self.origin, Path(f"{path}.lanelet2"))))
                 note = ""
             else:
-                note = " (no /fleet/origin received: GeoJSON not written)"
+                note = " (no /fleet/origin received: GeoJSON and Lanelet2 not written)"
         except (HdmapError, OSError) as err:
             response.success, response.message = False, f"cannot save map version {self.map.version}: {err}"
             self.get_logger().error(response.message)

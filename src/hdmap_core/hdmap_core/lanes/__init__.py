@@ -1,0 +1,1 @@
+"""Lanes derived from the road-feature graph: strips between adjacent boundaries, cut into lanelets."""

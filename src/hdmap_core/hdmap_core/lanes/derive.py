@@ -1,0 +1,738 @@
+"""Lanes derived from the map's feature graph.
+
+Cross sections: every topology node (one sampling step, 2 m apart) is a cut line through the road
+midpoint, perpendicular to its heading, as wide as the road plus a margin. The map features that
+cross it in its direction, sorted from left to right, are the boundaries of that cross section.
+
+RULE 1 (lane): two adjacent boundaries bound a lane when their median distance over a section
+lies in [LANE_WIDTH_MIN_M, LANE_WIDTH_MAX_M].
+RULE 2 (shoulder): a strip between a solid marking and a road border is a shoulder, not a lane.
+RULE 6 (tracks): a line crossing consecutive cross sections of a topology chain within
+_TRACK_TOL_M sideways, of the same kind (dashed, or not: solid and road border are one kind), is
+one boundary (also across a change of feature id,
+and across up to _TRACK_GAP cross sections without it: the gap is interpolated).
+RULE 7 (relevant lines): only lines next to a plausible lane take part (an outer border beyond a
+shoulder, or a line of a road beside, never cuts a lane).
+RULE 9 (missing marking): a strip between two markings n >= 2 lanes wide gets n - 1 inferred
+dashed lines (``Boundary.inferred``).
+
+Sections are runs of consecutive cross sections with the same boundaries; a run is cut into lanes
+at most LANELET_MAX_M long. Where two runs meet (a line starting or ending, a split or merge of
+the topology) the boundaries are joined node by node, so that a lane's successors are the lanes
+whose boundaries start where its own end (Lanelet2's rule):
+
+RULE 3 (continuation): a boundary continues the boundary of the preceding run of the same track,
+of the same or a linked feature (predecessor / successor), or the nearest one within JOIN_TOL_M.
+RULE 4 (lane gain, drop, gore): a boundary that starts (ends) without a preceding (following) one
+starts (ends) at the node of the nearest boundary that does continue: the new lane opens from a
+point beside a through lane (reached by a lane change across a dashed line, or as a split) and a
+dropped lane closes onto its neighbour (a merge).
+RULE 5 (topology gaps): a topology chain that ends (starts) is linked to the nearest cross section
+of the same direction within GAP_LINK_M ahead (behind).
+RULE 8 (junctions without markings): a lane without successor is joined by a connector lane with
+virtual sides to a lane that starts in its line within BRIDGE_MAX_M; where none starts straight
+ahead (a curve), to one that starts along the topology within BRIDGE_MAX_M at the same offsets
+from the road middle, the connector a cubic Hermite curve between the two lanes' directions.
+
+Ids are stable: hashes of the topology node id where a piece starts, the feature ids and the
+boundary's slot in the cross section.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from bisect import bisect_left, bisect_right
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hdmap_core.evaluation.cuts import Cuts, points_on_cuts
+from hdmap_core.lanes.model import Boundary, Lane, LaneMap
+from hdmap_core.model import FeatureType, HDMap
+
+__all__ = [
+    "derive_lanes",
+    "LANE_WIDTH_MIN_M",
+    "LANE_WIDTH_MAX_M",
+    "LANELET_MAX_M",
+    "JOIN_TOL_M",
+    "GAP_LINK_M",
+    "BRIDGE_MAX_M",
+]
+
+LANE_WIDTH_MIN_M = 2.4  # narrowest lane (3.5-3.9 m motorway lanes, 2.75 m in works zones)
+LANE_WIDTH_MAX_M = 5.5  # wider: two lanes with a missing marking, or a taper
+LANELET_MAX_M = 300.0  # longest lane piece where nothing changes
+JOIN_TOL_M = 1.0  # a boundary continues a boundary this close at the joint
+GAP_LINK_M = 15.0  # topology chain ends linked across gaps up to this distance
+BRIDGE_MAX_M = 60.0  # RULE 8: longest connector across a junction without markings
+BRIDGE_LATERAL_M = 1.0  # RULE 8: sideways offset of the lane ahead
+BRIDGE_ANGLE_DEG = 20.0  # RULE 8: heading difference of the lane ahead
+_CUT_MARGIN_M = 3.0  # cut lines reach this far beyond the estimated road width
+_COS_SAME_DIRECTION = 0.7  # features crossing a cut within ~45 deg of its direction
+_COS_LINK = np.cos(np.radians(35.0))  # heading agreement of a gap link
+_WIDTH_SLACK_M = 0.5  # RULE 7: tolerance of the lane width test per cross section
+_SPLIT_WIDTH_M = (3.0, 4.2)  # RULE 9: width of each lane of a strip split by inferred lines
+_DUPLICATE_M = 0.5
+# RULE 6: the line kinds a track keeps: dashed (crossable) or not; a line the map calls solid in
+# one place and road border in the next is one line (its pieces take the most common type)
+_KIND = {
+    int(FeatureType.DASHED): 0,
+    int(FeatureType.SOLID): 1,
+    int(FeatureType.ROAD_BORDER): 1,
+    int(FeatureType.UNKNOWN): 2,
+}  # crossings this close on one cut are one line
+_TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain (2 m apart)
+_TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
+
+
+def derive_lanes(hdmap: HDMap) -> LaneMap:
+    """The lanes of ``hdmap`` (module docstring): lane pieces, shared boundaries and end nodes.
+
+    A map without topology nodes or features has no lanes (an empty ``LaneMap``).
+    """
+    st = _Stations.of(hdmap)
+    if len(st) == 0 or not hdmap.features:
+        return LaneMap((), (), {})
+    _bridge_gaps(st)
+    sections = _cross_sections(st, hdmap)
+    runs = _runs(st, sections)
+    return _build(st, sections, runs, hdmap)
+
+
+# --------------------------------------------------------------------------------------------
+# Stations (cross sections) and their boundaries
+
+
+@dataclass
+class _Stations:
+    ids: np.ndarray  # (K,) topology node ids
+    pos: np.ndarray  # (K, 2)
+    tangent: np.ndarray  # (K, 2)
+    width: np.ndarray  # (K,)
+    succ: list[list[int]]
+    pred: list[list[int]] = field(default_factory=list)
+
+    @classmethod
+    def of(cls, hdmap: HDMap) -> _Stations:
+        nodes = sorted(hdmap.topology, key=lambda t: t.id)
+        index = {int(t.id): i for i, t in enumerate(nodes)}
+        k = len(nodes)
+        pos = np.array([np.asarray(t.position, dtype=float)[:2] for t in nodes]).reshape(k, 2)
+        yaw = np.array([float(t.heading) for t in nodes])
+        tangent = np.stack([np.cos(yaw), np.sin(yaw)], axis=1).reshape(k, 2)
+        width = np.array([float(t.width) for t in nodes])
+        succ = [[index[int(s)] for s in t.successors if int(s) in index] for t in nodes]
+        st = cls(np.array([int(t.id) for t in nodes], dtype=np.int64), pos, tangent, width, succ)
+        st.relink()
+        return st
+
+    def relink(self) -> None:
+        self.pred = [[] for _ in range(len(self.ids))]
+        for a, ss in enumerate(self.succ):
+            for b in ss:
+                self.pred[b].append(a)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def _bridge_gaps(st: _Stations) -> None:
+    """RULE 5: chain ends linked to the nearest station ahead, chain starts to the one behind."""
+    ends = [i for i in range(len(st)) if not st.succ[i]]
+    starts = [i for i in range(len(st)) if not st.pred[i]]
+    for i in ends:
+        j = _nearest_along(st, i, ahead=True)
+        if j is not None and j not in st.succ[i]:
+            st.succ[i].append(j)
+    for j in starts:
+        back = _nearest_along(st, j, ahead=False)
+        if back is not None and j not in st.succ[back]:
+            st.succ[back].append(j)
+    st.relink()
+
+
+def _nearest_along(st: _Stations, i: int, *, ahead: bool) -> int | None:
+    d = st.pos - st.pos[i]
+    along = d @ st.tangent[i] * (1.0 if ahead else -1.0)
+    dist = np.hypot(d[:, 0], d[:, 1])
+    same = st.tangent @ st.tangent[i] >= _COS_LINK
+    ok = same & (along > 0.5) & (dist <= GAP_LINK_M)
+    ok[i] = False
+    # not a station of the own chain close by (the chain itself continues there)
+    for n in st.succ[i] + st.pred[i]:
+        ok[n] = False
+    if not ok.any():
+        return None
+    cand = np.flatnonzero(ok)
+    return int(cand[np.argmin(dist[cand])])
+
+
+@dataclass(frozen=True)
+class _Section:
+    features: tuple[int, ...]  # track ids, left to right (the run key)
+    labels: tuple[int, ...]  # feature index of each boundary
+    s: np.ndarray  # (B,) lateral position on the cut, + = left [m]
+    xy: np.ndarray  # (B, 2) crossing points [m]
+
+
+def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
+    """Per station the boundaries crossing it, left to right, each labelled with a track: the
+    same line seen at consecutive stations (RULE 6), also across a change of feature id.
+    (Per station a handful of lines: plain Python floats are faster here than numpy.)"""
+    normal = np.stack([-st.tangent[:, 1], st.tangent[:, 0]], axis=1)
+    half = st.width / 2.0 + _CUT_MARGIN_M
+    cuts = Cuts(st.pos, st.tangent, normal, -half, half, np.zeros(len(st)))
+    polylines = [np.asarray(f.points, dtype=float) for f in hdmap.features]
+    length = [float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in polylines]
+    cp = points_on_cuts(cuts, polylines, cos_min=_COS_SAME_DIRECTION)
+    order = np.lexsort((-cp.s, cp.cut))
+    cut, owner, s = cp.cut[order], cp.owner[order], cp.s[order]
+    xy = st.pos[cut] + s[:, None] * normal[cut]
+    bounds = np.searchsorted(cut, np.arange(len(st) + 1)).tolist()
+    rows = list(zip(owner.tolist(), s.tolist(), xy[:, 0].tolist(), xy[:, 1].tolist(), strict=True))
+    virtual = len(hdmap.features)  # index of the inferred lines (RULE 9)
+    # an inferred line continues a mapped dashed line (a separate type cuts the lanes into pieces
+    # wherever the split flickers); a piece is inferred where most of it is
+    types = [int(f.type) for f in hdmap.features] + [int(FeatureType.DASHED)]
+    length.append(0.0)
+    pos, nrm = st.pos.tolist(), normal.tolist()
+    raw = [
+        _split_wide(_dedupe(rows[bounds[k] : bounds[k + 1]], length), types, virtual, pos[k], nrm[k])
+        for k in range(len(st))
+    ]
+    tracks = _track(st, raw, types, nrm)
+    out: list[_Section] = []
+    for k in range(len(st)):
+        (px, py), (nx, ny) = pos[k], nrm[k]
+        items = sorted(((x - px) * nx + (y - py) * ny, t, f, x, y) for t, f, x, y in tracks[k])
+        items.reverse()  # left to right
+        items = [it for it, keep in zip(items, _bounding(items, types), strict=True) if keep]
+        out.append(
+            _Section(
+                tuple(it[1] for it in items),
+                tuple(it[2] for it in items),
+                np.array([it[0] for it in items], dtype=float),
+                np.array([(it[3], it[4]) for it in items], dtype=float).reshape(-1, 2),
+            )
+        )
+    return out
+
+
+def _bounding(items: list[tuple], types: list[int]) -> list[bool]:
+    """RULE 7: the boundaries (``(s, track, feature, x, y)``, left to right) next to a plausible
+    lane (RULES 1, 2, with _WIDTH_SLACK_M); others (outer borders beyond shoulders, lines of a road
+    beside) are left out so that they never cut a lane."""
+    keep = [False] * len(items)
+    lo, hi = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M, LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
+    shoulder = {int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID)}
+    for i in range(len(items) - 1):
+        a, b = items[i], items[i + 1]
+        if lo <= a[0] - b[0] <= hi and {types[a[2]], types[b[2]]} != shoulder:
+            keep[i] = keep[i + 1] = True
+    return keep
+
+
+def _split_wide(
+    items: list[tuple[int, float, float]], types: list[int], virtual: int, pos: list[float], normal: list[float]
+) -> list[tuple[int, float, float]]:
+    """RULE 9 (missing marking): a strip between two markings that is n >= 2 lanes wide (each
+    _SPLIT_WIDTH_M) gets n - 1 inferred dashed lines at equal spacing (feature ``virtual``)."""
+    out: list[tuple[int, float, float]] = []
+    border = int(FeatureType.ROAD_BORDER)
+    for i, it in enumerate(items):
+        out.append(it)
+        if i + 1 == len(items):
+            break
+        nxt = items[i + 1]
+        if border in (types[it[0]], types[nxt[0]]):
+            continue
+        gap = (it[1] - nxt[1]) * normal[0] + (it[2] - nxt[2]) * normal[1]
+        n = round(gap / _SPLIT_WIDTH_M[1] + 0.5)  # the fewest lanes not wider than the widest
+        if n < 2 or not _SPLIT_WIDTH_M[0] <= gap / n <= _SPLIT_WIDTH_M[1]:
+            continue
+        for j in range(1, n):
+            w = j / n
+            out.append((virtual, it[1] + w * (nxt[1] - it[1]), it[2] + w * (nxt[2] - it[2])))
+    return out
+
+
+def _dedupe(items: list[tuple[int, float, float, float]], length: list[float]) -> list[tuple[int, float, float]]:
+    """Crossings ``(feature, s, x, y)`` (left to right) closer than _DUPLICATE_M are one line
+    (overlapping pieces): the longer feature stays. Returns ``(feature, x, y)``."""
+    out: list[tuple[int, float, float, float]] = []
+    for it in items:
+        if out and out[-1][1] - it[1] < _DUPLICATE_M:
+            if length[it[0]] > length[out[-1][0]]:
+                out[-1] = it
+            continue
+        out.append(it)
+    return [(f, x, y) for f, _, x, y in out]
+
+
+def _track(
+    st: _Stations, raw: list[list[tuple[int, float, float]]], types: list[int], normal: list[list[float]]
+) -> list[list[tuple[int, int, float, float]]]:
+    """RULE 6: a crossing continues the line of the previous stations of its chain that crossed
+    within _TRACK_TOL_M of it (sideways, in the map frame) with the same type, also after up to
+    _TRACK_GAP stations without a crossing (the gap is filled by interpolation). Returns per
+    station (track, feature, x, y)."""
+    out: list[list[tuple[int, int, float, float]]] = [[] for _ in range(len(st))]
+    next_track = 0
+    done = [False] * len(st)
+
+    def single(k: int) -> int | None:
+        if len(st.succ[k]) == 1 and len(st.pred[st.succ[k][0]]) == 1:
+            return st.succ[k][0]
+        return None
+
+    starts = [k for k in range(len(st)) if not (len(st.pred[k]) == 1 and single(st.pred[k][0]) == k)]
+    for k0 in starts + list(range(len(st))):
+        if done[k0]:
+            continue
+        chain = [k0]
+        done[k0] = True
+        nxt = single(k0)
+        while nxt is not None and not done[nxt]:
+            chain.append(nxt)
+            done[nxt] = True
+            nxt = single(nxt)
+        open_: dict[int, tuple[int, int, float, float]] = {}  # track -> (position in chain, feature, x, y)
+        for i, k in enumerate(chain):
+            nx, ny = normal[k]
+            # the open tracks' last points across this cut, sorted: candidates by bisection
+            across = sorted((ox * nx + oy * ny, t) for t, (_, _, ox, oy) in open_.items())
+            keys = [a for a, _ in across]
+            cands = []
+            for j, (f, x, y) in enumerate(raw[k]):
+                s = x * nx + y * ny
+                for a, t in across[bisect_left(keys, s - _TRACK_TOL_M) : bisect_right(keys, s + _TRACK_TOL_M)]:
+                    if _KIND[types[f]] == _KIND[types[open_[t][1]]]:
+                        cands.append((abs(s - a), t, j))
+            cands.sort()
+            taken_t: set[int] = set()
+            taken_j: set[int] = set()
+            for d, t, j in cands:
+                if d > _TRACK_TOL_M:
+                    break
+                if t in taken_t or j in taken_j:
+                    continue
+                taken_t.add(t)
+                taken_j.add(j)
+                f, x, y = raw[k][j]
+                oi, of, ox, oy = open_[t]
+                for g in range(oi + 1, i):  # fill the gap
+                    w = (g - oi) / (i - oi)
+                    out[chain[g]].append((t, of, ox + w * (x - ox), oy + w * (y - oy)))
+                out[k].append((t, f, x, y))
+                open_[t] = (i, f, x, y)
+            for j, (f, x, y) in enumerate(raw[k]):
+                if j not in taken_j:
+                    out[k].append((next_track, f, x, y))
+                    open_[next_track] = (i, f, x, y)
+                    next_track += 1
+            open_ = {t: v for t, v in open_.items() if i - v[0] <= _TRACK_GAP}
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Runs of equal cross sections
+
+
+def _runs(st: _Stations, sections: list[_Section]) -> list[list[int]]:
+    """Maximal chains of stations with one link between them and the same boundaries, cut to
+    pieces of at most LANELET_MAX_M."""
+
+    def continues(a: int) -> int | None:
+        if len(st.succ[a]) != 1:
+            return None
+        b = st.succ[a][0]
+        if len(st.pred[b]) != 1 or sections[b].features != sections[a].features:
+            return None
+        return b
+
+    starts = [k for k in range(len(st)) if not (len(st.pred[k]) == 1 and continues(st.pred[k][0]) == k)]
+    seen = np.zeros(len(st), dtype=bool)
+    runs: list[list[int]] = []
+
+    def walk(k: int) -> None:
+        run = [k]
+        seen[k] = True
+        nxt = continues(k)
+        while nxt is not None and not seen[nxt]:
+            run.append(nxt)
+            seen[nxt] = True
+            nxt = continues(nxt)
+        runs.extend(_chunks(st, run))
+
+    for k in starts:
+        walk(k)
+    for k in range(len(st)):  # closed loops without any change
+        if not seen[k]:
+            walk(k)
+    return runs
+
+
+def _chunks(st: _Stations, run: list[int]) -> list[list[int]]:
+    if len(run) < 2:
+        return [run]
+    step = np.hypot(*np.diff(st.pos[run], axis=0).T)
+    length = float(step.sum())
+    n = int(np.ceil(length / LANELET_MAX_M))
+    if n <= 1:
+        return [run]
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    cut = np.searchsorted(cum, np.arange(1, n) * length / n)
+    return [list(p) for p in np.split(np.asarray(run), cut) if len(p)]
+
+
+# --------------------------------------------------------------------------------------------
+# Joints and lanes
+
+
+class _Union:
+    def __init__(self) -> None:
+        self.parent: dict[tuple[int, int], tuple[int, int]] = {}
+
+    def find(self, x: tuple[int, int]) -> tuple[int, int]:
+        root = x
+        while self.parent.get(root, root) != root:
+            root = self.parent[root]
+        while self.parent.get(x, x) != root:
+            self.parent[x], x = root, self.parent[x]
+        return root
+
+    def alias(self, x: tuple[int, int], onto: tuple[int, int]) -> None:
+        rx, ro = self.find(x), self.find(onto)
+        if rx != ro:
+            self.parent[rx] = ro
+
+
+def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap: HDMap) -> LaneMap:
+    feats = hdmap.features
+    index = {int(f.id): i for i, f in enumerate(feats)}
+    linked = [{index[int(x)] for x in (*f.predecessors, *f.successors) if int(x) in index} for f in feats] + [set()]
+    fid = [int(f.id) for f in feats] + [0]  # the last: inferred lines (RULE 9)
+    ftype = [f.type for f in feats] + [FeatureType.DASHED]
+    run_of_last: dict[int, list[int]] = defaultdict(list)
+    for r, run in enumerate(runs):
+        run_of_last[run[-1]].append(r)
+
+    def point(key: tuple[int, int]) -> np.ndarray:
+        sec = sections[key[0]]
+        return sec.xy[sec.features.index(key[1])]
+
+    def label(key: tuple[int, int]) -> int:
+        sec = sections[key[0]]
+        return sec.labels[sec.features.index(key[1])]
+
+    def match(t: int, f: int, at: np.ndarray, other: _Section) -> tuple[int, bool]:
+        """RULE 3 / 4: the boundary (track) of ``other`` that track ``t`` (feature ``f``, crossing
+        at ``at``) continues; and whether it truly continues (False: the nearest one)."""
+        if t in other.features:
+            return t, True
+        for g, h in zip(other.features, other.labels, strict=True):
+            if h == f or h in linked[f]:
+                return g, True
+        d = np.hypot(*(other.xy - at).T)
+        i = int(np.argmin(d))
+        return other.features[i], bool(d[i] <= JOIN_TOL_M)
+
+    uf = _Union()
+    prefix: dict[int, dict[int, tuple[int, int]]] = {}  # run -> feature -> key of its first node
+    suffix: dict[int, dict[int, tuple[int, int]]] = {}  # run -> feature -> key of its last node
+    for r, run in enumerate(runs):
+        a = run[0]
+        preds = st.pred[a]
+        sec = sections[a]
+        if len(preds) == 1:  # a continuation or one branch of a split: start at the joints of p
+            p = preds[0]
+            psec = sections[p]
+            if not psec.features:
+                continue
+            prefix[r] = {}
+            for t, f, at in zip(sec.features, sec.labels, sec.xy, strict=True):
+                prefix[r][t] = (p, match(t, f, at, psec)[0])
+        elif len(preds) > 1 and sec.features:  # a merge: the preceding runs end at the joints of a
+            for p in preds:
+                for q in run_of_last.get(p, []):
+                    psec = sections[p]
+                    suffix[q] = {
+                        t: (a, match(t, f, at, sec)[0])
+                        for t, f, at in zip(psec.features, psec.labels, psec.xy, strict=True)
+                    }
+    # RULE 4 for lines that end before a split / continuation or start after a merge
+    used: dict[int, set[int]] = defaultdict(set)  # station -> features a neighbouring run joins at
+    for mapping in list(prefix.values()) + list(suffix.values()):
+        for key in mapping.values():
+            used[key[0]].add(key[1])
+    for k, fs in used.items():
+        sec = sections[k]
+        keep = [i for i, f in enumerate(sec.features) if f in fs]
+        if not keep:
+            continue
+        for i, f in enumerate(sec.features):
+            if f not in fs:
+                j = keep[int(np.argmin(np.abs(sec.s[keep] - sec.s[i])))]
+                uf.alias((k, f), (k, sec.features[j]))
+
+    def node_uid(key: tuple[int, int]) -> int:
+        root = uf.find(key)
+        slot = sections[root[0]].features.index(root[1])
+        return _uid("node", int(st.ids[root[0]]), fid[label(root)], slot)
+
+    nodes: dict[int, np.ndarray] = {}
+    boundaries: dict[int, Boundary] = {}
+    lanes: list[dict] = []
+    where: dict[int, tuple[int, int, tuple[float, float], tuple[float, float]]] = {}  # RULE 8
+    for r, run in enumerate(runs):
+        sec0 = sections[run[0]]
+        if not sec0.features:
+            continue
+        ways: list[list[tuple[int, int]]] = []
+        for f in sec0.features:
+            keys = [(k, f) for k in run]
+            if r in prefix:
+                keys.insert(0, prefix[r][f])
+            if r in suffix:
+                keys.append(suffix[r][f])
+            ways.append(keys)
+        if len(ways[0]) < 2:
+            continue
+        pts = []
+        ends = []
+        for keys in ways:
+            xy = np.array([point(k) for k in keys])
+            first, last = uf.find(keys[0]), uf.find(keys[-1])
+            xy[0], xy[-1] = point(first), point(last)
+            pts.append(xy)
+            ends.append((node_uid(keys[0]), node_uid(keys[-1])))
+            nodes[ends[-1][0]] = xy[0]
+            nodes[ends[-1][1]] = xy[-1]
+        s = np.array([sections[k].s for k in run])  # (n, B)
+        labels = np.array([sections[k].labels for k in run])  # (n, B)
+        lab = [int(np.bincount(labels[:, b]).argmax()) for b in range(labels.shape[1])]  # most common
+        # the slot b keeps two pieces apart that carry the same feature (a feature crossing twice)
+        piece_ids = [_uid("boundary", int(st.ids[run[0]]), fid[f], b) for b, f in enumerate(lab)]
+        for b in range(len(lab) - 1):
+            fl, fr = lab[b], lab[b + 1]
+            tl, tr = ftype[fl], ftype[fr]
+            width = float(np.median(s[:, b] - s[:, b + 1]))
+            if not LANE_WIDTH_MIN_M <= width <= LANE_WIDTH_MAX_M:  # RULE 1
+                continue
+            if {tl, tr} == {FeatureType.SOLID, FeatureType.ROAD_BORDER}:  # RULE 2
+                continue
+            for bb, f in ((b, fl), (b + 1, fr)):
+                if piece_ids[bb] not in boundaries:
+                    boundaries[piece_ids[bb]] = Boundary(
+                        piece_ids[bb],
+                        fid[f],
+                        ftype[f],
+                        pts[bb],
+                        ends[bb][0],
+                        ends[bb][1],
+                        inferred=f == len(feats),
+                    )
+            center = (pts[b] + pts[b + 1]) / 2.0
+            lane_id = _uid("lane", int(st.ids[run[0]]), fid[fl], fid[fr], b)
+            where[lane_id] = (run[0], run[-1], (s[0, b], s[0, b + 1]), (s[-1, b], s[-1, b + 1]))
+            lanes.append(
+                dict(
+                    id=lane_id,
+                    centerline=center,
+                    width=np.hypot(*(pts[b] - pts[b + 1]).T),
+                    left_boundary=piece_ids[b],
+                    right_boundary=piece_ids[b + 1],
+                    left_feature=fid[fl],
+                    right_feature=fid[fr],
+                    left_type=tl,
+                    right_type=tr,
+                )
+            )
+    lanes += _bridges(lanes, boundaries, st, where)
+    return LaneMap(_link(lanes, boundaries), tuple(sorted(boundaries.values(), key=lambda x: x.id)), nodes)
+
+
+def _bridges(
+    lanes: list[dict],
+    boundaries: dict[int, Boundary],
+    st: _Stations,
+    where: dict[int, tuple[int, int, tuple[float, float], tuple[float, float]]],
+) -> list[dict]:
+    """RULE 8: a lane without successor is joined to a lane that starts within BRIDGE_MAX_M
+    ahead in its line (both sides at most BRIDGE_LATERAL_M + 2 % of the gap
+    aside, heading within BRIDGE_ANGLE_DEG, both ends at least LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
+    wide) by a connector lane with virtual sides (``FeatureType.UNKNOWN``): the junctions of a road
+    where the markings stop. Each lane ahead takes one connector, the closest."""
+
+    def ends(ln: dict, k: int) -> tuple[int, int]:
+        lb, rb = boundaries[ln["left_boundary"]], boundaries[ln["right_boundary"]]
+        return (lb.start_node, rb.start_node) if k == 0 else (lb.end_node, rb.end_node)
+
+    starts = {ends(ln, 0) for ln in lanes}
+    narrow = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
+    dead = [ln for ln in lanes if ends(ln, -1) not in starts and ln["width"][-1] >= narrow]
+    fresh = [j for j, ln in enumerate(lanes) if ln["width"][0] >= narrow]
+    if not dead or not fresh:
+        return []
+
+    def side(ln: dict, k: int) -> np.ndarray:  # (2, 2): left and right boundary point at end k
+        return np.stack([boundaries[ln["left_boundary"]].points[k], boundaries[ln["right_boundary"]].points[k]])
+
+    head = np.array([side(lanes[j], 0) for j in fresh])  # (F, 2, 2)
+    head_dir = np.array([_direction(lanes[j]["centerline"], first=True) for j in fresh])
+    cands: list[tuple[float, int, int, np.ndarray | None]] = []
+    for a in dead:
+        tail, d = side(a, -1), _direction(a["centerline"], first=False)
+        rel = head - tail[None]  # (F, 2, 2)
+        along = rel @ d  # (F, 2)
+        aside = np.abs(rel[..., 0] * d[1] - rel[..., 1] * d[0])
+        ok = np.all((along > 0.5) & (along <= BRIDGE_MAX_M) & (aside <= BRIDGE_LATERAL_M + 0.02 * along), axis=1)
+        ok &= head_dir @ d >= np.cos(np.radians(BRIDGE_ANGLE_DEG))
+        straight = [
+            (float(aside[i].sum() + 0.01 * along[i].mean()), int(a["id"]), fresh[i], None)
+            for i in np.flatnonzero(ok).tolist()
+            if lanes[fresh[i]]["id"] != a["id"]
+        ]
+        # the topology's path only where no lane starts straight ahead (curves)
+        cands += straight or _along_topology(a, lanes, fresh, st, where)
+    by_id = {ln["id"]: ln for ln in lanes}
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    out = []
+    for _, aid, j, path in sorted(cands, key=lambda c: c[:3]):
+        if aid in used_a or j in used_b:
+            continue
+        used_a.add(aid)
+        used_b.add(j)
+        out.append(_connector(by_id[aid], lanes[j], boundaries, path))
+    return out
+
+
+def _along_topology(
+    a: dict,
+    lanes: list[dict],
+    fresh: list[int],
+    st: _Stations,
+    where: dict[int, tuple[int, int, tuple[float, float], tuple[float, float]]],
+) -> list[tuple[float, int, int, np.ndarray]]:
+    """RULE 8 through curves: lanes that start on a station reached from the dead end's last
+    station along the topology within BRIDGE_MAX_M, both sides within BRIDGE_LATERAL_M of the
+    dead end's offsets from the road middle; each with the connector's (N, 2, 2) side points along
+    that path (offsets interpolated)."""
+    if a["id"] not in where:
+        return []
+    _, e, _, (sl, sr) = where[a["id"]]
+    starts: dict[int, list[int]] = defaultdict(list)
+    for j in fresh:
+        if lanes[j]["id"] in where:
+            starts[where[lanes[j]["id"]][0]].append(j)
+    dist, parent = {e: 0.0}, {e: -1}
+    todo = [e]
+    while todo:
+        k = todo.pop()
+        for q in st.succ[k]:
+            d = dist[k] + float(np.hypot(*(st.pos[q] - st.pos[k])))
+            if d <= BRIDGE_MAX_M and d < dist.get(q, np.inf):
+                dist[q], parent[q] = d, k
+                todo.append(q)
+    out = []
+    for k, d in dist.items():
+        for j in starts.get(k, []) if k != e else []:
+            bl, br = where[lanes[j]["id"]][2]
+            if lanes[j]["id"] == a["id"] or max(abs(bl - sl), abs(br - sr)) > BRIDGE_LATERAL_M:
+                continue
+            path = [k]
+            while parent[path[-1]] != -1:
+                path.append(parent[path[-1]])
+            path.reverse()
+            w = np.array([dist[q] for q in path]) / max(d, 1e-9)
+            normal = np.stack([-st.tangent[path, 1], st.tangent[path, 0]], axis=1)
+            sides = [st.pos[path] + ((1 - w) * s0 + w * s1)[:, None] * normal for s0, s1 in ((sl, bl), (sr, br))]
+            out.append((abs(bl - sl) + abs(br - sr) + 0.01 * d, int(a["id"]), j, np.stack(sides, axis=1)))
+    return out
+
+
+def _direction(line: np.ndarray, *, first: bool) -> np.ndarray:
+    """Unit direction of a polyline over its first (last) ~10 m."""
+    n = len(line)
+    k = min(n - 1, 5)
+    d = line[k] - line[0] if first else line[-1] - line[n - 1 - k]
+    return d / max(float(np.hypot(*d)), 1e-9)
+
+
+def _connector(a: dict, b: dict, boundaries: dict[int, Boundary], path: np.ndarray | None = None) -> dict:
+    """The connector lane from ``a``'s end to ``b``'s start: straight, or, given the (N, 2, 2) side
+    points ``path`` along the topology, a cubic Hermite curve per side from ``a``'s end direction to
+    ``b``'s start direction (tangents as long as the path), N points."""
+    sides = []
+    n = int(np.hypot(*(b["centerline"][0] - a["centerline"][-1])) // 2.0) + 2  # a point every ~2 m
+    for i, side in enumerate(("left_boundary", "right_boundary")):
+        pa, pb = boundaries[a[side]], boundaries[b[side]]
+        if path is None or len(path) < 2:
+            pts = np.linspace(pa.points[-1], pb.points[0], n)
+        else:  # a curve: cubic Hermite from a's end direction to b's start direction
+            length = float(np.hypot(*np.diff(path[:, i], axis=0).T).sum())
+            t = np.linspace(0.0, 1.0, max(len(path), 3))[:, None]  # both sides: as many points
+            p0, p1 = pa.points[-1], pb.points[0]
+            d0 = _direction(pa.points, first=False) * length
+            d1 = _direction(pb.points, first=True) * length
+            h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+            pts = h00 * p0 + h10 * d0 + h01 * p1 + h11 * d1
+        bid = _uid("connector", pa.id, pb.id)
+        boundaries[bid] = Boundary(bid, 0, FeatureType.UNKNOWN, pts, pa.end_node, pb.start_node)
+        sides.append((bid, pts))
+    (lb, lp), (rb, rp) = sides
+    return dict(
+        id=_uid("connector_lane", a["id"], b["id"]),
+        centerline=(lp + rp) / 2.0,
+        width=np.hypot(*(lp - rp).T),
+        left_boundary=lb,
+        right_boundary=rb,
+        left_feature=0,
+        right_feature=0,
+        left_type=FeatureType.UNKNOWN,
+        right_type=FeatureType.UNKNOWN,
+    )
+
+
+def _link(lanes: list[dict], boundaries: dict[int, Boundary]) -> tuple[Lane, ...]:
+    """Successors by shared end nodes of both sides, neighbours by a shared boundary piece."""
+    by_start: dict[tuple[int, int], list[int]] = defaultdict(list)
+    by_left: dict[int, int] = {}
+    by_right: dict[int, int] = {}
+    for i, ln in enumerate(lanes):
+        lb, rb = boundaries[ln["left_boundary"]], boundaries[ln["right_boundary"]]
+        by_start[(lb.start_node, rb.start_node)].append(i)
+        by_left[ln["left_boundary"]] = i
+        by_right[ln["right_boundary"]] = i
+    succ: list[list[int]] = [[] for _ in lanes]
+    pred: list[list[int]] = [[] for _ in lanes]
+    for i, ln in enumerate(lanes):
+        lb, rb = boundaries[ln["left_boundary"]], boundaries[ln["right_boundary"]]
+        for j in by_start.get((lb.end_node, rb.end_node), []):
+            if j != i:
+                succ[i].append(lanes[j]["id"])
+                pred[j].append(ln["id"])
+    out = []
+    for i, ln in enumerate(lanes):
+        left = by_right.get(ln["left_boundary"])
+        right = by_left.get(ln["right_boundary"])
+        out.append(
+            Lane(
+                **ln,
+                successors=tuple(sorted(succ[i])),
+                predecessors=tuple(sorted(pred[i])),
+                left=lanes[left]["id"] if left is not None else None,
+                right=lanes[right]["id"] if right is not None else None,
+            )
+        )
+    return tuple(sorted(out, key=lambda x: x.id))
+
+
+def _uid(name: str, *keys: int) -> int:
+    """A stable 63-bit id (never 0) from a name and integer keys."""
+    raw = name.encode() + b"".join(int(k).to_bytes(8, "little", signed=False) for k in keys)
+    x = int.from_bytes(hashlib.blake2b(raw, digest_size=8).digest(), "little") & ((1 << 63) - 1)
+    return x or 1

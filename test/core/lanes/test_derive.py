@@ -1,0 +1,104 @@
+"""Lanes derived from hand-made maps (sketches in test/support/lane_samples.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
+from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
+from hdmap_core.model import FeatureType, HDMap
+
+from lane_samples import junction_gap, lane_gain, missing_marking, three_lanes
+
+
+def _lane_at(lanes, x: float, y: float) -> int:
+    return int(lanes_at(lanes, np.array([[x, y]]), np.array([0.0]))[0])
+
+
+def test_three_lanes_centerlines_sides_and_pieces():
+    lanes = derive_lanes(three_lanes())
+    # 3 lanes, each cut into pieces of at most LANELET_MAX_M (800 m -> 3 pieces)
+    assert len(lanes.lanes) == 9
+    assert all(ln.length_m <= LANELET_MAX_M + 4.0 for ln in lanes.lanes)
+    ys = sorted({round(float(np.median(ln.centerline[:, 1])), 2) for ln in lanes.lanes})
+    np.testing.assert_allclose(ys, [-3.5, 0.0, 3.5], atol=1e-6)
+    np.testing.assert_allclose(np.concatenate([ln.width for ln in lanes.lanes]), 3.5, atol=1e-6)
+    mid = lanes.lane(_lane_at(lanes, 100.0, 0.0))
+    assert mid.left_type == mid.right_type == FeatureType.DASHED
+    assert mid.change_left and mid.change_right
+    left = lanes.lane(mid.left)
+    assert left.left_type == FeatureType.SOLID and left.left is None and not left.change_left
+    assert left.right == mid.id and left.right_feature == 3 and left.left_feature == 2
+
+
+def test_three_lanes_successors_follow_shared_nodes():
+    lanes = derive_lanes(three_lanes())
+    g = lane_graph(lanes)
+    start, end = _lane_at(lanes, 10.0, 3.5), _lane_at(lanes, 790.0, -3.5)
+    route = lane_route(g, start, end)
+    assert route is not None and route[0] == start and route[-1] == end
+    first = lanes.lane(start)
+    assert len(first.successors) == 1 and not first.predecessors
+    nxt = lanes.lane(first.successors[0])
+    lb, nb = lanes.boundary(first.left_boundary), lanes.boundary(nxt.left_boundary)
+    assert lb.end_node == nb.start_node
+    # no way back against the direction
+    assert lane_route(g, end, start) is None
+    assert start in reachable_lanes(g, start) and end in reachable_lanes(g, start)
+
+
+def test_ids_are_stable():
+    a, b = derive_lanes(three_lanes()), derive_lanes(three_lanes())
+    assert [ln.id for ln in a.lanes] == [ln.id for ln in b.lanes]
+    assert [x.id for x in a.boundaries] == [x.id for x in b.boundaries]
+
+
+def test_lane_gain_opens_beside_the_through_lane():
+    lanes = derive_lanes(lane_gain())
+    new = _lane_at(lanes, 600.0, -7.0)
+    through = _lane_at(lanes, 600.0, -3.5)
+    before = _lane_at(lanes, 100.0, -3.5)
+    assert new and through and before and new != through
+    g = lane_graph(lanes)
+    assert lane_route(g, before, new) is not None  # across the new dashed line or as a split
+    assert lane_route(g, _lane_at(lanes, 100.0, 3.5), new) is not None
+    # the exit lane is not a strip of two lanes' width anywhere after the dashed line starts
+    widths = np.concatenate([ln.width[ln.centerline[:, 0] > 460.0] for ln in lanes.lanes])
+    assert widths.max() < 4.0
+
+
+def test_missing_marking_is_inferred_between_two_lanes():
+    lanes = derive_lanes(missing_marking())
+    at = [lanes.lane(_lane_at(lanes, x, -3.5)) for x in (50.0, 250.0, 550.0)]
+    assert all(at)
+    gap = at[1]
+    np.testing.assert_allclose(np.median(gap.centerline[:, 1]), -3.5, atol=0.05)
+    left = lanes.boundary(gap.left_boundary)
+    assert left.inferred and left.feature_id == 0 and left.type == FeatureType.DASHED
+    assert gap.left_feature == 0 and gap.change_left
+    g = lane_graph(lanes)
+    assert lane_route(g, at[0].id, at[2].id) is not None
+
+
+def test_connectors_cross_a_junction_without_markings():
+    lanes = derive_lanes(junction_gap())
+    g = lane_graph(lanes)
+    for y in (3.5, 0.0, -3.5):
+        before, after = _lane_at(lanes, 290.0, y), _lane_at(lanes, 340.0, y)
+        route = lane_route(g, before, after)
+        assert route is not None
+        inside = [lanes.lane(i) for i in route if i not in (before, after)]
+        # the way through is one connector with virtual sides, in the lane's line
+        assert len(inside) == 1 and inside[0].left_type == FeatureType.UNKNOWN
+        np.testing.assert_allclose(inside[0].centerline[:, 1], y, atol=0.05)
+    # side by side connectors share their virtual side, and no lane change crosses it
+    connectors = [ln for ln in lanes.lanes if ln.left_type == FeatureType.UNKNOWN]
+    assert len(connectors) == 3 and sum(ln.left is not None for ln in connectors) == 2
+    assert not any(ln.change_left or ln.change_right for ln in connectors)
+
+
+@pytest.mark.parametrize("hdmap", [HDMap(), HDMap(features=three_lanes().features)])
+def test_no_topology_or_features_gives_no_lanes(hdmap):
+    lanes = derive_lanes(hdmap)
+    assert lanes.lanes == () and lanes.boundaries == ()

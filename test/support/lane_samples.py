@@ -1,0 +1,90 @@
+"""Small hand-made maps for the lane tests: straight one-way roads along +x with a topology node
+every 2 m at the road middle.
+
+``three_lanes`` (lateral positions, + = left of the driving direction):
+
+    +6.5  ==========================  road border
+    +5.25 --------------------------  solid
+    +1.75 - - - - - - - - - - - - -   dashed
+    -1.75 - - - - - - - - - - - - -   dashed
+    -5.25 --------------------------  solid
+    -6.5  ==========================  road border
+
+``lane_gain``: the same up to x = 400; then the right edge line moves out to -8.75 over 100 m
+(a taper) and a dashed line starts at -5.25 at x = 450: an exit lane opens on the right.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
+
+THREE = (
+    (6.5, FeatureType.ROAD_BORDER),
+    (5.25, FeatureType.SOLID),
+    (1.75, FeatureType.DASHED),
+    (-1.75, FeatureType.DASHED),
+    (-5.25, FeatureType.SOLID),
+    (-6.5, FeatureType.ROAD_BORDER),
+)
+
+
+def _feature(fid: int, ftype: FeatureType, pts: np.ndarray) -> MapFeature:
+    return MapFeature(fid, ftype, pts, np.full(len(pts), 10), np.full(len(pts), 0.05))
+
+
+def _topology(length_m: float, width: np.ndarray | float, y0: float = 0.0) -> tuple[TopologyNode, ...]:
+    x = np.arange(1.0, length_m, 2.0)
+    w = np.broadcast_to(np.asarray(width, dtype=float), x.shape)
+    ids = 1000 + np.arange(len(x))
+    return tuple(
+        TopologyNode(int(ids[i]), np.array([x[i], y0]), 0.0, float(w[i]), (int(ids[i + 1]),) if i + 1 < len(x) else ())
+        for i in range(len(x))
+    )
+
+
+def three_lanes(length_m: float = 800.0) -> HDMap:
+    x = np.arange(0.0, length_m + 1e-9, 1.0)
+    feats = tuple(_feature(i + 1, t, np.stack([x, np.full_like(x, y)], axis=1)) for i, (y, t) in enumerate(THREE))
+    return HDMap(features=feats, topology=_topology(length_m, 13.0))
+
+
+def missing_marking(length_m: float = 600.0) -> HDMap:
+    """``three_lanes`` without the right dashed line (-1.75) between x = 100 and x = 350."""
+    base = three_lanes(length_m)
+    feats = [f for f in base.features if f.id != 4]
+    x = np.arange(0.0, length_m + 1e-9, 1.0)
+    for fid, keep in ((4, x <= 100.0), (8, x >= 350.0)):
+        feats.append(_feature(fid, FeatureType.DASHED, np.stack([x[keep], np.full(keep.sum(), -1.75)], axis=1)))
+    return HDMap(features=tuple(feats), topology=base.topology)
+
+
+def junction_gap(length_m: float = 600.0) -> HDMap:
+    """``three_lanes`` with no line at all between x = 300 and x = 330 (a junction without markings)."""
+    base = three_lanes(length_m)
+    feats = []
+    for f in base.features:
+        for part, keep in ((0, f.points[:, 0] <= 300.0), (100, f.points[:, 0] >= 330.0)):
+            feats.append(_feature(f.id + part, f.type, f.points[keep]))
+    return HDMap(features=tuple(feats), topology=base.topology)
+
+
+def lane_gain(length_m: float = 800.0) -> HDMap:
+    x = np.arange(0.0, length_m + 1e-9, 1.0)
+    edge = -5.25 - 3.5 * np.clip((x - 400.0) / 100.0, 0.0, 1.0)
+    outer = edge - 1.25
+    feats = [_feature(i + 1, t, np.stack([x, np.full_like(x, y)], axis=1)) for i, (y, t) in enumerate(THREE[:4])]
+    feats.append(_feature(5, FeatureType.SOLID, np.stack([x, edge], axis=1)))
+    feats.append(_feature(6, FeatureType.ROAD_BORDER, np.stack([x, outer], axis=1)))
+    xd = x[x >= 450.0]
+    feats.append(_feature(7, FeatureType.DASHED, np.stack([xd, np.full_like(xd, -5.25)], axis=1)))
+    xt = np.arange(1.0, length_m, 2.0)
+    half_right = 6.5 + 3.5 * np.clip((xt - 400.0) / 100.0, 0.0, 1.0)
+    # the node sits in the middle of the road: its width grows with the taper
+    nodes = _topology(length_m, 6.5 + half_right)
+    nodes = tuple(
+        TopologyNode(n.id, np.array([n.position[0], (6.5 - hr) / 2.0]), n.heading, n.width, n.successors)
+        for n, hr in zip(nodes, half_right, strict=True)
+    )
+    return HDMap(features=tuple(feats), topology=nodes)
