@@ -280,7 +280,9 @@ def _tile_input(drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, 
             s0[c.drive_id] = start
     from hdmap_core.pipeline.driver import prepare_drives  # noqa: PLC0415 - the pipeline is heavy; import on first use
 
-    clipped, _ = prepare_drives(clipped)  # a clip can be degenerate (e.g. repeated poses): as map_stretches does
+    # A clip can be degenerate (e.g. repeated poses): as map_stretches does. The drives passed the
+    # physical bounds when they came in; a clip (e.g. a few metres in a corner) need not.
+    clipped, _ = prepare_drives(clipped, bounds=None)
     processed = None
     if clipped and tile_config.pivot_margin_m is not None:
         near = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.pivot_margin_m)

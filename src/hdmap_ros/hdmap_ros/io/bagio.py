@@ -244,12 +244,12 @@ def _is_our_drive_definition(store: Typestore) -> bool:
 def _decode_drive(bm: BagMessage, expected_frame: str | None) -> Drive | Rejection:
     if bm.msgtype != DRIVE_TYPE:
         return Rejection("", "wrong_type", f"{bm.topic} carries {bm.msgtype}, want {DRIVE_TYPE}")
-    fast = decode_drive(bm.data) if _is_our_drive_definition(bm.typestore) else None
-    if fast is not None:
-        try:
+    try:
+        fast = decode_drive(bm.data) if _is_our_drive_definition(bm.typestore) else None
+        if fast is not None:
             return validate_drive(fast, expected_frame=expected_frame or "")
-        except InvalidDriveError as err:
-            return Rejection(err.drive_id, err.reason, err.detail)
+    except InvalidDriveError as err:
+        return Rejection(err.drive_id, err.reason, err.detail)
     try:
         msg = bm.decode()
     except _DECODE_ERRORS as err:

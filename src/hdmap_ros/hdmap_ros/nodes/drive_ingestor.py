@@ -2,7 +2,8 @@
 
 Subscribes ``/fleet/drives`` (hdmap_msgs/Drive). Every drive is validated (the bad-input classes of
 ``hdmap_core.model.validate_drive``: NaN/inf, too few points, empty trajectory, unknown type, wrong
-frame), its detections cleaned as in Sec. III (length filter, RDP; ``pipeline.preprocess.clean_drive``),
+frame) and physically plausible (``hdmap_core.plausibility``, default bounds), its detections
+cleaned as in Sec. III (length filter, RDP; ``pipeline.preprocess.clean_drive``),
 duplicates dropped by drive id, and the rest published on ``/hdmap/drives_accepted``. Every
 rejection is logged with the drive id and the reason and counted on ``/diagnostics``; the id of a
 drive refused as invalid goes out on ``/hdmap/drives_rejected`` (std_msgs/String; the mapper counts
@@ -18,6 +19,7 @@ from std_msgs.msg import String
 
 from hdmap_core.errors import HdmapError, InvalidDriveError
 from hdmap_core.pipeline.preprocess import PreprocessConfig, clean_drive
+from hdmap_core.plausibility import check_plausible
 from hdmap_ros.convert.messages import rclpy_types
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, drive_from_wire, drive_to_wire, run_node
@@ -67,7 +69,7 @@ class DriveIngestor(HealthMixin, Node):
     def _handle(self, msg) -> None:
         did = str(getattr(msg, "drive_id", ""))
         try:
-            drive = drive_from_wire(msg, self._types.Drive, expected_frame=self.expected_frame or None)
+            drive = check_plausible(drive_from_wire(msg, self._types.Drive, expected_frame=self.expected_frame or None))
         except InvalidDriveError as err:
             did = did or err.drive_id
             self.health.reject(err.reason, f"{did!r} {err.detail}")
