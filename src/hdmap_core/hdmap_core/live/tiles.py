@@ -139,7 +139,9 @@ def tiles_of_drive(drive: Drive, *, config: TileConfig) -> set[TileKey]:
     """
     size, margin = config.tile_size_m, config.margin_m
     step = max(1.0, margin / 2 if margin else size / 4)
-    xy, _ = split_long_segments(np.asarray(drive.xy, dtype=float), np.zeros(1, dtype=np.int64), step)
+    # at most 4096 points per step (262 km at the default margin): only a defective drive has a
+    # longer one, and it must not size the output (a pose at 1e12 m asked for 233 GiB)
+    xy, _ = split_long_segments(np.asarray(drive.xy, dtype=float), np.zeros(1, dtype=np.int64), step, max_pieces=4096)
     if len(xy) == 0:
         return set()
     lo = np.floor((xy - margin) / size).astype(np.int64)
