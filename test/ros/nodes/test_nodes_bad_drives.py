@@ -20,7 +20,7 @@ from hdmap_ros.convert.messages import drive_to_msg, rclpy_types  # noqa: E402
 from hdmap_ros.persistence.store import DriveStore  # noqa: E402
 
 from bag_samples import make_drive  # noqa: E402
-from nodes_harness import Ros  # noqa: E402
+from nodes_harness import Ros, ros_domain, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -99,3 +99,40 @@ def test_ingestor_rejects_implausible_drives_by_reason(ros):
         assert ing.published == 1 and ing.received == 3
     finally:
         ing.destroy_node()
+
+
+def test_bag_player_counts_what_it_cannot_send(ros, tmp_path):
+    """Undecodable bytes and a Drive of another definition are not sent but counted (hdmap run then
+    never waits for them); a damaged chunk is skipped with a warning and the rest played."""
+    from hostile_bags import bag_without_vehicle_id, small_drives
+
+    from hdmap_ros.nodes.bag_player import BagPlayer
+
+    bag = bag_without_vehicle_id(tmp_path, small_drives(3))
+    player = ros.add(
+        BagPlayer(
+            context=ros.context,
+            parameter_overrides=[
+                Parameter("bag", value=str(bag)),
+                Parameter("rate", value=0.0),
+                Parameter("wait_for_subscribers_s", value=0.0),
+            ],
+        )
+    )
+    wait_for(lambda: player.done, 20, what="player done")
+    assert player.published == 0 and player.skipped == {"definition_mismatch": 3} and player.played == 3
+
+
+@pytest.mark.slow
+def test_hdmap_run_settles_on_a_bag_with_undecodable_and_invalid_drives(tmp_path, sample_bags, capsys, monkeypatch):
+    """bags/bad_inputs: 4 good drives, 10 invalid ones the ingestor rejects, one undecodable the
+    player skips (before: never counted, so `hdmap run` waited forever)."""
+    from hdmap_ros import cli
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain(74)))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+    code = cli.main(["run", str(sample_bags / "bad_inputs"), "-o", str(tmp_path / "map"), "--timeout", "300"])
+    err = capsys.readouterr().err
+    assert code == 0, err[-2000:]
+    assert "settled: drives played 15 (skipped 1), accepted 4, rejected 10" in err

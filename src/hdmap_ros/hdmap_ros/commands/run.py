@@ -91,7 +91,8 @@ class _Suite:
             self.executor.add_node(n)
 
     def settled(self) -> bool:
-        """The bag is done and everything it caused has reached the map."""
+        """The bag is done and everything it caused has reached the map (messages the player
+        skipped as unreadable are counted there and never awaited)."""
         if not self.player.done or self.ingestor.received < self.player.published:
             return False
         if self.mapper.received < self.ingestor.published or not self.mapper.is_settled():
@@ -101,7 +102,8 @@ class _Suite:
     def status(self) -> str:
         m = self.stitcher.map
         return (
-            f"drives played {self.player.published}, accepted {self.ingestor.health.accepted}, "
+            f"drives played {self.player.played} (skipped {sum(self.player.skipped.values())}), "
+            f"accepted {self.ingestor.health.accepted}, "
             f"rejected {self.ingestor.health.rejected_total}, tiles pending {self.mapper.scheduler.pending_tiles()} "
             f"(of {self.mapper.scheduler.tile_count}), map version {m.version if m else 0} "
             f"({len(m.features) if m else 0} features, {len(m.drive_ids) if m else 0} drives)"
