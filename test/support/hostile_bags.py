@@ -61,3 +61,28 @@ def bag_without_vehicle_id(tmp_path: Path, drives: list) -> Path:
         )
 
     return crc_mcap(tmp_path / "nodef.mcap", drives, drive_def=changed + "\n" + "=" * 80 + "\n" + rest, encode=encode)
+
+
+def rechunk(path: Path, *, chunk_size: int = 12_000) -> Path:
+    """Rewrite an MCAP file in place with small uncompressed chunks and CRCs (as `ros2 bag record`
+    writes), keeping its schemas, channels (with their metadata) and messages."""
+    from mcap.reader import make_reader  # noqa: PLC0415
+
+    data = path.read_bytes()
+    import io  # noqa: PLC0415
+
+    with path.open("wb") as out:
+        w = McapWriter(out, chunk_size=chunk_size, compression=CompressionType.NONE, enable_crcs=True)
+        w.start(profile="ros2", library="test")
+        sids: dict[int, int] = {}
+        cids: dict[int, int] = {}
+        for schema, channel, msg in make_reader(io.BytesIO(data)).iter_messages():
+            if schema.id not in sids:
+                sids[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in cids:
+                cids[channel.id] = w.register_channel(
+                    channel.topic, channel.message_encoding, sids[schema.id], channel.metadata
+                )
+            w.add_message(cids[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
+        w.finish()
+    return path

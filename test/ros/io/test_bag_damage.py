@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hostile_bags import ORIGIN, bag_without_vehicle_id, crc_mcap, small_drives
+from hostile_bags import ORIGIN, bag_without_vehicle_id, crc_mcap, rechunk, small_drives
 from mcap.reader import make_reader
 
 from hdmap_core.errors import BagError
@@ -58,7 +58,7 @@ def test_a_rosbag2_directory_with_a_bad_chunk_goes_on_past_it(tmp_path):
     drives = small_drives(12)
     bag = write_fleet_bag(tmp_path / "fleet", drives, ORIGIN)
     (mcap,) = bag.glob("*.mcap")
-    crc_mcap(mcap, drives)  # same messages, but small chunks with CRCs, as ros2 bag record writes them
+    rechunk(mcap)  # small chunks with CRCs, as ros2 bag record writes them
     start, length = _chunks(mcap)[1]
     _flip(mcap, start + length - 20)
     got = read_fleet_bag(bag)

@@ -180,7 +180,7 @@ def test_config_yaml_names_only_declared_parameters(ros, tmp_path, module, cls):
 
     from hdmap_ros.nodes._common import params_file
 
-    spec = yaml.safe_load(params_file().read_text())[module]["ros__parameters"]
+    spec = yaml.safe_load(params_file().read_text())[f"/**/{module}"]["ros__parameters"]  # any namespace
     overrides = [Parameter("db_path", value=str(tmp_path / "x.db"))] if "db_path" in spec else []
     node = ros.add(getattr(importlib.import_module(f"hdmap_ros.nodes.{module}"), cls)(
         context=ros.context, parameter_overrides=overrides))

@@ -36,6 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="change one preset parameter (repeatable), as `hdmap bag2map --set`; sets the "
                         "mapper's and the stitcher's preset_overrides")
     parser.add_argument("--params-file", help="node parameters (YAML), applied over the package defaults")
+    parser.add_argument("--namespace", default="", help="namespace of every node and topic (e.g. /ns2: "
+                        "/ns2/fleet/drives, /ns2/hdmap/map), so two suites can share a ROS domain")
     parser.add_argument("--keep-alive", action="store_true", help="keep serving /hdmap/map after settling (Ctrl-C ends)")
     parser.add_argument("--timeout", type=float, default=0.0, help="give up after this many seconds (0 = never)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
@@ -59,6 +61,8 @@ class _Suite:
         ros_args = ["hdmap-run", "--ros-args"]
         if args.params_file:
             ros_args += ["--params-file", str(args.params_file)]
+        if getattr(args, "namespace", ""):
+            ros_args += ["-r", f"__ns:=/{args.namespace.strip('/')}"]
         self.context = rclpy.Context()
         rclpy.init(args=with_default_params(ros_args), context=self.context)
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import ReaderError, StoragePlugin, Writer, WriterError
 from rosbags.serde import SerdeError
 from rosbags.typesys import TypesysError
@@ -405,6 +406,25 @@ def read_bag_origin(path: str | Path) -> GeoOrigin | None:
 
 # ------------------------------------------------------------------------------------ writing
 
+_INFINITE = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)  # rosbag2's "infinite" duration
+
+
+def _qos(*, latched: bool) -> list[Qos]:
+    """The offered QoS recorded with a connection (rosbag2 ``offered_qos_profiles``), as the nodes
+    publish (``hdmap_ros.nodes.qos``): ``ros2 bag play`` then offers the same (the origin and the
+    map latched, TRANSIENT_LOCAL), instead of VOLATILE defaults a latched subscriber cannot match."""
+    return [Qos(
+        history=QosHistory.KEEP_LAST if latched else QosHistory.KEEP_ALL,
+        depth=1 if latched else 0,
+        reliability=QosReliability.RELIABLE,
+        durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+        deadline=_INFINITE, lifespan=_INFINITE, liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=_INFINITE, avoid_ros_namespace_conventions=False,
+    )]
+
+
+_LATCHED, _STREAM = _qos(latched=True), _qos(latched=False)
+
 
 def _open_writer(path: Path, *, overwrite: bool) -> Writer:
     if path.exists():
@@ -447,10 +467,10 @@ def write_fleet_bag(
     try:
         first_ns = min((d.start_ns for d in drives if len(d.stamps_ns)), default=0)
         if origin is not None:
-            conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store)
+            conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store, offered_qos_profiles=_LATCHED)
             msg = origin_to_msg(origin, stamp_ns=first_ns)
             writer.write(conn, first_ns, store.serialize_cdr(msg, ORIGIN_TYPE))
-        conn = writer.add_connection(DRIVES_TOPIC, DRIVE_TYPE, typestore=store)
+        conn = writer.add_connection(DRIVES_TOPIC, DRIVE_TYPE, typestore=store, offered_qos_profiles=_STREAM)
         t_ns = first_ns
         for drive in drives:
             t_ns = drive.start_ns if len(drive.stamps_ns) else t_ns
@@ -490,9 +510,9 @@ def write_map_bag(
     try:
         first_ns = min((m.stamp_ns for m in maps), default=0)
         if origin is not None:
-            conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store)
+            conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store, offered_qos_profiles=_LATCHED)
             writer.write(conn, first_ns, store.serialize_cdr(origin_to_msg(origin, stamp_ns=first_ns), ORIGIN_TYPE))
-        conn = writer.add_connection(MAP_TOPIC, MAP_TYPE, typestore=store)
+        conn = writer.add_connection(MAP_TOPIC, MAP_TYPE, typestore=store, offered_qos_profiles=_LATCHED)
         for m, msg in zip(maps, msgs, strict=True):
             writer.write(conn, int(m.stamp_ns), store.serialize_cdr(msg, MAP_TYPE))
     finally:

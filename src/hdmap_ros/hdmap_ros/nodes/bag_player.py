@@ -53,15 +53,24 @@ class BagPlayer(HealthMixin, Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("bag_player", **kwargs)
         self.bag = declare(self, "bag", "", "The fleet bag to replay (rosbag2 directory or .mcap file).")
-        self.rate = declare(self, "rate", 1.0, "Replay speed factor; 0 = as fast as possible.", lo=0.0, hi=10000.0)
-        self.loop = declare(self, "loop", False, "Start again at the end.")
+        self.rate = declare(
+            self, "rate", 1.0, "Replay speed factor; 0 = as fast as possible.", lo=0.0, hi=10000.0,
+            dynamic="rate",
+        )
+        self.loop = declare(self, "loop", False, "Start again at the end.", dynamic="loop")
         self.start_offset_s = declare(self, "start_offset_s", 0.0, "Skip this much of the bag [s].", lo=0.0, hi=1e7)
         self.wait_for_subscribers_s = declare(
             self, "wait_for_subscribers_s", 5.0, "Wait up to this long for a /fleet/drives subscriber [s].", lo=0.0, hi=600.0
         )
         self.exit_when_done = declare(self, "exit_when_done", True, "Standalone: exit when the bag is done.")
+        self.linger_s = declare(
+            self, "linger_s", 2.0,
+            "Standalone: stay this long after the bag is done (and until every reader acknowledged), so "
+            "readers that match late still get the latched origin [s].", lo=0.0, hi=3600.0,
+        )
         self._init_health("bag_player")
         self.done = False
+        self._done_at = 0.0
         self.published = 0
         self.skipped: Counter = Counter()  # drive messages not sent, by reason
         self._pubs: dict[str, object] = {}
@@ -75,14 +84,21 @@ class BagPlayer(HealthMixin, Node):
             self.get_logger().error("parameter 'bag' is empty: nothing to play")
             self.done = True
             return
+        # The origin's latched publisher exists from the start: readers in other processes match it
+        # while the bag plays, not only after its first (and only) message.
+        self._publisher_for(ORIGIN_TOPIC, ORIGIN_TYPE)
         self._timer = self.create_timer(0.01, self.tick)
 
     def _publisher(self, bm: BagMessage):
-        pub = self._pubs.get(bm.topic)
+        return self._publisher_for(bm.topic, bm.msgtype)
+
+    def _publisher_for(self, topic: str, msgtype: str):
+        pub = self._pubs.get(topic)
         if pub is None:
-            profile = qos.LATCHED if bm.topic == ORIGIN_TOPIC else qos.DRIVES
-            pub = self.create_publisher(message_class(bm.msgtype), bm.topic, profile)
-            self._pubs[bm.topic] = pub
+            profile = qos.LATCHED if topic == ORIGIN_TOPIC else qos.DRIVES
+            # the bag's absolute names become relative: a namespace (-r __ns:=/ns2) moves them
+            pub = self.create_publisher(message_class(msgtype), topic.lstrip("/"), profile)
+            self._pubs[topic] = pub
         return pub
 
     @property
@@ -176,12 +192,13 @@ class BagPlayer(HealthMixin, Node):
 
     def _wait_ready(self) -> bool:
         """True when a /fleet/drives subscriber is there or the wait is over."""
-        if self.count_subscribers(DRIVES_TOPIC) > 0:
+        if self.count_subscribers(DRIVES_TOPIC.lstrip("/")) > 0:
             return True
         return time.monotonic() - self._started >= self.wait_for_subscribers_s
 
     def _finish(self) -> None:
         self.done = True
+        self._done_at = time.monotonic()
         skipped = sum(self.skipped.values())
         self.get_logger().info(
             f"bag {self.bag} done: {self.published} drive message(s) published"
@@ -190,8 +207,9 @@ class BagPlayer(HealthMixin, Node):
 
 
     def finished(self) -> bool:
-        """Standalone: the bag is done and the node should exit (``exit_when_done``)."""
-        return self.done and self.exit_when_done
+        """Standalone: the bag is done, ``linger_s`` has passed since (readers that match late still
+        get the latched origin) and the node should exit (``exit_when_done``)."""
+        return self.done and self.exit_when_done and time.monotonic() - self._done_at >= self.linger_s
 
     def destroy_node(self) -> None:
         if self.done and self.published and self.context.ok():

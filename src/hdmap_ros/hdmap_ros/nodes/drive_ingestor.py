@@ -26,9 +26,9 @@ from hdmap_ros.nodes._common import HealthMixin, declare, drive_from_wire, drive
 
 __all__ = ["DriveIngestor", "main"]
 
-DRIVES_TOPIC = "/fleet/drives"
-ACCEPTED_TOPIC = "/hdmap/drives_accepted"
-REJECTED_TOPIC = "/hdmap/drives_rejected"
+DRIVES_TOPIC = "fleet/drives"  # relative: a namespace (-r __ns:=/ns2) moves every topic
+ACCEPTED_TOPIC = "hdmap/drives_accepted"
+REJECTED_TOPIC = "hdmap/drives_rejected"
 
 
 class DriveIngestor(HealthMixin, Node):
@@ -36,13 +36,17 @@ class DriveIngestor(HealthMixin, Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("drive_ingestor", **kwargs)
-        self.expected_frame = declare(self, "expected_frame", "map", "Frame every drive must be in ('' = any).")
+        self.expected_frame = declare(
+            self, "expected_frame", "map", "Frame every drive must be in ('' = any).",
+            dynamic="expected_frame",
+        )
         self.min_length_m = declare(
             self, "min_detection_length_m", 3.0, "Detection polylines shorter than this are dropped [m] (paper: 3).",
-            lo=0.0, hi=100.0,
+            lo=0.0, hi=100.0, dynamic="min_length_m"
         )
         self.rdp_epsilon_m = declare(
-            self, "rdp_epsilon_m", 0.05, "Ramer-Douglas-Peucker tolerance for detections [m].", lo=0.001, hi=2.0
+            self, "rdp_epsilon_m", 0.05, "Ramer-Douglas-Peucker tolerance for detections [m].", lo=0.001, hi=2.0,
+            dynamic="rdp_epsilon_m"
         )
         depth = declare(
             self, "accepted_history_depth", 100,

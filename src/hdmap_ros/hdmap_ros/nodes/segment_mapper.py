@@ -40,7 +40,6 @@ every stored tile estimate is published again (the stitcher ignores versions it 
 from __future__ import annotations
 
 import multiprocessing
-import os
 import time
 import traceback
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -61,16 +60,23 @@ from hdmap_core.plausibility import check_plausible
 from hdmap_ros.convert.messages import rclpy_status_class, rclpy_types, status_to_msg
 from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
 from hdmap_ros.nodes import qos
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, drive_from_wire, run_node
+from hdmap_ros.nodes._common import (
+    HealthMixin,
+    declare,
+    declare_pipeline_config,
+    drive_from_wire,
+    run_node,
+    state_path,
+)
 from hdmap_ros.persistence.store import DriveStore, TileEstimate, blob_to_drive
 
 __all__ = ["SegmentMapper", "main"]
 
-ACCEPTED_TOPIC = "/hdmap/drives_accepted"
-REJECTED_TOPIC = "/hdmap/drives_rejected"
-SEGMENTS_TOPIC = "/hdmap/segments"
-ACKS_TOPIC = "/hdmap/drive_acks"
-STATUS_TOPIC = "/hdmap/mapper_status"
+ACCEPTED_TOPIC = "hdmap/drives_accepted"  # relative: a namespace (-r __ns:=/ns2) moves every topic
+REJECTED_TOPIC = "hdmap/drives_rejected"
+SEGMENTS_TOPIC = "hdmap/segments"
+ACKS_TOPIC = "hdmap/drive_acks"
+STATUS_TOPIC = "hdmap/mapper_status"
 
 
 class _Inline:
@@ -93,7 +99,7 @@ class SegmentMapper(HealthMixin, Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("segment_mapper", **kwargs)
-        db = declare(self, "db_path", "~/.ros/hdmap/segment_mapper.db", "SQLite file of the drive store.")
+        db = declare(self, "db_path", "", "SQLite file of the drive store ('' = $ROS_HOME/hdmap/segment_mapper.db).")
         pipeline_config = declare_pipeline_config(self)  # a bad preset or override fails here, named
         self.tile_config = TileConfig(
             tile_size_m=declare(self, "tile_size_m", 256.0, "Edge of a map tile [m].", lo=32.0, hi=4096.0),
@@ -112,8 +118,9 @@ class SegmentMapper(HealthMixin, Node):
             seed=declare(self, "seed", 0, "Base seed; each tile's seed derives from it and the tile key.", lo=0, hi=2**31 - 1),
             pivot_margin_m=self._pivot_margin(),
         )
-        settle_after_s = declare(
-            self, "settle_after_s", 2.0, "Idle time after which stale tiles are re-estimated [s].", lo=0.0, hi=3600.0
+        self.settle_after_s = declare(
+            self, "settle_after_s", 2.0, "Idle time after which stale tiles are re-estimated [s].", lo=0.0, hi=3600.0,
+            dynamic="settle_after_s",
         )
         depth = declare(
             self, "segments_history_depth", 1000, "Tile estimates kept (TRANSIENT_LOCAL) for a restarting stitcher.",
@@ -127,7 +134,7 @@ class SegmentMapper(HealthMixin, Node):
         self.work_slice_s = declare(
             self, "work_slice_s", 0.5,
             "Mapping time per worker turn with workers=1 [s]; new drives are taken in between.",
-            lo=0.0, hi=600.0,
+            lo=0.0, hi=600.0, dynamic="work_slice_s",
         )
         workers = declare(
             self, "workers", 0, "Processes mapping tiles: 0 = every available CPU, 1 = in this process.", lo=0, hi=256
@@ -136,13 +143,13 @@ class SegmentMapper(HealthMixin, Node):
         self.health.backlog_warn = 200
 
         self.pipeline_config = pipeline_config
-        self.store = DriveStore(os.path.expanduser(db))
+        self.store = DriveStore(state_path(db, "segment_mapper.db"))
         self._check_tiling()
         self._types = rclpy_types()
         self._tile_types = rclpy_tile_types()
         self.use_fleet_model = self.pipeline_config.final_pass is not None
         self.scheduler = LiveScheduler(self.tile_config, use_fleet_model=self.use_fleet_model,
-                                       settle_after_s=settle_after_s)
+                                       settle_after_s=self.settle_after_s)
         self._model: OffsetModel | None = None
         self._load_model()
         emptied = self._purge_implausible()  # before the schedule is made from the store
@@ -190,6 +197,19 @@ class SegmentMapper(HealthMixin, Node):
             f"{self.scheduler.pending_tiles()} tile(s) pending, {len(self.store.tiles())} tile(s), "
             f"{self.workers} worker(s)"
         )
+
+    @property
+    def settle_after_s(self) -> float:
+        """Idle time before settling [s] (the scheduler's; a run-time parameter)."""
+        sched = self.__dict__.get("scheduler")
+        return sched.settle_after_s if sched is not None else self.__dict__.get("_settle_after_s", 2.0)
+
+    @settle_after_s.setter
+    def settle_after_s(self, value: float) -> None:
+        self.__dict__["_settle_after_s"] = float(value)
+        sched = self.__dict__.get("scheduler")
+        if sched is not None:
+            sched.settle_after_s = float(value)
 
     def _pivot_margin(self) -> float | None:
         margin = float(self.get_parameter("margin_m").value)
