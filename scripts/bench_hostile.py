@@ -32,6 +32,7 @@ def _pose(value):
         xy = np.array(d.xy, dtype=float)
         xy[len(xy) // 2, 1] = value
         return replace(d, xy=xy)
+
     return spoil
 
 
@@ -40,6 +41,7 @@ def _detection(value):
         pts = np.array(d.detections[0].points, dtype=float)
         pts[len(pts) // 2, 0] = value
         return replace(d, detections=(Detection(d.detections[0].type, pts), *d.detections[1:]))
+
     return spoil
 
 
@@ -49,8 +51,15 @@ def _zigzag(d):
     return replace(d, xy=xy)
 
 
-CASES = {"pose 1e6 m": _pose(1e6), "pose 1e9 m": _pose(1e9), "pose 1e12 m": _pose(1e12), "pose 1e200 m": _pose(1e200),
-         "detection 1e12 m": _detection(1e12), "detection 1e60 m": _detection(1e60), "zigzag +50 m": _zigzag}
+CASES = {
+    "pose 1e6 m": _pose(1e6),
+    "pose 1e9 m": _pose(1e9),
+    "pose 1e12 m": _pose(1e12),
+    "pose 1e200 m": _pose(1e200),
+    "detection 1e12 m": _detection(1e12),
+    "detection 1e60 m": _detection(1e60),
+    "zigzag +50 m": _zigzag,
+}
 
 
 def _points(hdmap):
@@ -92,7 +101,10 @@ def main() -> None:
             res, secs = _run(bag, args.workers)
             mean_m, recall = compare(clean.map, res.map)
             why = "; ".join(r for d, r in res.report.rejected if d == "hostile") or "accepted"
-            print(f"{name:18s} {secs:6.2f} s  x{secs / t_clean:4.2f}  mean {mean_m:.4f} m  recall {100 * recall:5.1f} %  {why}")
+            print(
+                f"{name:18s} {secs:6.2f} s  x{secs / t_clean:4.2f}  "
+                f"mean {mean_m:.4f} m  recall {100 * recall:5.1f} %  {why}"
+            )
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hostile_bags import ORIGIN, bag_without_vehicle_id, crc_mcap, rechunk, small_drives
 from mcap.reader import make_reader
 
 from hdmap_core.errors import BagError
@@ -23,6 +22,7 @@ from hdmap_ros.io.bagio import (
 )
 
 from bag_samples import assert_drives_equal
+from hostile_bags import ORIGIN, bag_without_vehicle_id, crc_mcap, rechunk, small_drives
 
 
 def _chunks(path: Path) -> list[tuple[int, int]]:

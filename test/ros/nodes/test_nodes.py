@@ -76,8 +76,12 @@ def test_ingestor_rejects_malformed_drives_and_stays_up(ros):
 
     wait_for(lambda: len(accepted) >= 2, 10, what="two accepted drives")
     vals = wait_for(
-        lambda: (v := _diag_values(diags, "hdmap: drive_ingestor")) and v["drives_rejected"] == "4" and v,
-        10, what="diagnostics with 4 rejections",
+        # both counts: the last rejection (the duplicate) comes before good2 is accepted
+        lambda: (v := _diag_values(diags, "hdmap: drive_ingestor"))
+        and v["drives_rejected"] == "4"
+        and v["drives_accepted"] == "2"
+        and v,
+        10, what="diagnostics with 4 rejections and 2 drives accepted",
     )
     assert [m.drive_id for m in accepted] == ["good", "good2"]
     assert vals["drives_accepted"] == "2"

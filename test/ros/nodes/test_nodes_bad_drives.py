@@ -104,9 +104,9 @@ def test_ingestor_rejects_implausible_drives_by_reason(ros):
 def test_bag_player_counts_what_it_cannot_send(ros, tmp_path):
     """Undecodable bytes and a Drive of another definition are not sent but counted (hdmap run then
     never waits for them); a damaged chunk is skipped with a warning and the rest played."""
-    from hostile_bags import bag_without_vehicle_id, small_drives
-
     from hdmap_ros.nodes.bag_player import BagPlayer
+
+    from hostile_bags import bag_without_vehicle_id, small_drives
 
     bag = bag_without_vehicle_id(tmp_path, small_drives(3))
     player = ros.add(

@@ -175,10 +175,10 @@ def test_the_origin_reaches_the_map_publisher_from_a_volatile_publisher(ros):
 
 
 def test_bag_player_offers_the_latched_origin_from_its_start(ros, tmp_path):
-    from hostile_bags import ORIGIN, small_drives
-
     from hdmap_ros.io.bagio import write_fleet_bag
     from hdmap_ros.nodes.bag_player import BagPlayer
+
+    from hostile_bags import ORIGIN, small_drives
 
     bag = write_fleet_bag(tmp_path / "fleet", small_drives(2), ORIGIN)
     player = ros.add(
@@ -212,9 +212,10 @@ def test_diagnostics_name_what_each_node_counts():
 
 def test_bags_record_offered_qos(tmp_path):
     import yaml
-    from hostile_bags import ORIGIN, small_drives
 
     from hdmap_ros.io.bagio import write_fleet_bag
+
+    from hostile_bags import ORIGIN, small_drives
 
     bag = write_fleet_bag(tmp_path / "fleet", small_drives(1), ORIGIN)
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
