@@ -51,7 +51,7 @@ class _Suite:
         from rclpy.executors import MultiThreadedExecutor  # noqa: PLC0415
         from rclpy.parameter import Parameter  # noqa: PLC0415
 
-        from hdmap_ros.nodes._common import with_default_params  # noqa: PLC0415
+        from hdmap_ros.nodes._common import warn_unknown_parameters, with_default_params  # noqa: PLC0415
         from hdmap_ros.nodes.bag_player import BagPlayer  # noqa: PLC0415
         from hdmap_ros.nodes.drive_ingestor import DriveIngestor  # noqa: PLC0415
         from hdmap_ros.nodes.map_publisher import MapPublisher  # noqa: PLC0415
@@ -92,6 +92,7 @@ class _Suite:
             raise
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
         for n in self.nodes:
+            warn_unknown_parameters(n)  # a misspelt key of --params-file is named, not ignored
             self.executor.add_node(n)
 
     def settled(self) -> bool:
