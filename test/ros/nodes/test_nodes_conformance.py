@@ -234,3 +234,85 @@ def test_origin_is_subscribed_latched_and_live():
 
     assert qos.ORIGIN_LIVE.durability == DurabilityPolicy.VOLATILE
     assert qos.LATCHED.durability == DurabilityPolicy.TRANSIENT_LOCAL
+
+
+@pytest.mark.slow
+def test_a_yaml_value_out_of_range_is_one_line_and_a_misspelt_key_a_warning(tmp_path):
+    env = dds_env(74)
+    env["ROS_HOME"] = str(tmp_path)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**/drive_ingestor:\n  ros__parameters:\n    rdp_epsilon_m: 50.0\n")
+    res = subprocess.run(
+        [sys.executable, "-m", "hdmap_ros.nodes.drive_ingestor", "--ros-args", "--params-file", str(bad)],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and "rdp_epsilon_m" in lines[0], res.stderr
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("/**/bag_player:\n  ros__parameters:\n    rat: 2.0\n")
+    res = subprocess.run(  # an empty bag name: the player says so and ends at once
+        [
+            sys.executable,
+            "-m",
+            "hdmap_ros.nodes.bag_player",
+            "--ros-args",
+            "--params-file",
+            str(typo),
+            "-p",
+            "linger_s:=0.0",
+        ],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert "parameter 'rat' is not a parameter of bag_player" in res.stderr, res.stderr
+
+
+@pytest.mark.slow
+def test_the_origin_reaches_a_reader_in_another_process_after_the_bag(ros, tmp_path):
+    """The player in its own process plays a short bag and ends; a reader that matches while it
+    lingers still gets the latched origin (it used to exit before late readers matched)."""
+    from sensor_msgs.msg import NavSatFix
+
+    from hdmap_ros.io.bagio import write_fleet_bag
+
+    from hostile_bags import ORIGIN, small_drives
+
+    bag = write_fleet_bag(tmp_path / "fleet", small_drives(2), ORIGIN)
+    env = dds_env(ros.domain_id)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "hdmap_ros.nodes.bag_player",
+            "--ros-args",
+            "-p",
+            f"bag:={bag}",
+            "-p",
+            "wait_for_subscribers_s:=0.0",
+            "-p",
+            "rate:=0",
+            "-p",
+            "linger_s:=5.0",
+        ],
+        env=env,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        got = []
+        ros.node("late").create_subscription(NavSatFix, "/fleet/origin", got.append, qos.LATCHED)
+        wait_for(lambda: got, 20, what="the latched origin from the other process")
+        assert got[0].latitude == ORIGIN.latitude_deg
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()

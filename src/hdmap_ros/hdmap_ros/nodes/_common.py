@@ -148,8 +148,10 @@ def _on_set(node: Node, table: dict[str, tuple[str, type]], params: list[Paramet
     for p in params:
         entry = table.get(p.name)
         if entry is not None:
+            changed = hasattr(node, entry[0]) and getattr(node, entry[0]) != p.value  # not the declaration
             setattr(node, entry[0], p.value)
-            node.get_logger().info(f"parameter {p.name} set to {p.value!r}")
+            if changed:
+                node.get_logger().info(f"parameter {p.name} set to {p.value!r}")
     return SetParametersResult(successful=True)
 
 
