@@ -37,8 +37,17 @@ __all__ = ["BagMessage", "scan_mcap", "WarningFn"]
 
 WarningFn = Callable[[str], None]
 # What the mcap library and the decompressors raise on damaged bytes.
-_RECORD_ERRORS = (McapError, struct.error, UnicodeDecodeError, ValueError, KeyError, OverflowError, MemoryError,
-                  IndexError, TypeError)
+_RECORD_ERRORS = (
+    McapError,
+    struct.error,
+    UnicodeDecodeError,
+    ValueError,
+    KeyError,
+    OverflowError,
+    MemoryError,
+    IndexError,
+    TypeError,
+)
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEADER = struct.Struct("<BQ")  # opcode, body length
