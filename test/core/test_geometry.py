@@ -114,3 +114,16 @@ def test_rdp_closed_polyline_measures_from_the_end_point():
     keep = rdp_mask_many(pts, np.array([0]), 0.05)
     assert keep[0] and keep[-1] and keep[2]
     assert keep.sum() >= 4  # a square needs its corners
+
+
+def test_split_long_segments_is_bounded_by_max_pieces():
+    from hdmap_core.geometry import split_long_segments
+
+    xy = np.array([[0.0, 0.0], [1e12, 0.0], [1e12, 1e200], [1e12, 1e200 + 25.0]])
+    out, starts = split_long_segments(xy, np.array([0]), 10.0, max_pieces=1000)
+    assert len(out) <= 1 + 1000 + 1 + 1000 + 1 and np.all(np.isfinite(out))
+    np.testing.assert_array_equal(starts, [0])
+    np.testing.assert_array_equal(out[-1], xy[-1])
+    # segments within the cap are split as before: 25 m at 10 m -> 3 pieces
+    near, _ = split_long_segments(np.array([[0.0, 0.0], [25.0, 0.0]]), np.array([0]), 10.0, max_pieces=1000)
+    np.testing.assert_allclose(near[:, 0], [0.0, 25 / 3, 50 / 3, 25.0])

@@ -179,12 +179,17 @@ def rdp_mask_many(xy: np.ndarray, starts: np.ndarray, epsilon_m: float) -> np.nd
         hi = np.stack([mid, hi[split]], axis=1).ravel()
 
 
-def split_long_segments(xy: np.ndarray, starts: np.ndarray, max_len_m: float) -> tuple[np.ndarray, np.ndarray]:
+def split_long_segments(
+    xy: np.ndarray, starts: np.ndarray, max_len_m: float, *, max_pieces: int = 1 << 20
+) -> tuple[np.ndarray, np.ndarray]:
     """Insert points so that no segment of any polyline is longer than ``max_len_m``.
 
     Args:
         xy: (N, 2) back-to-back polylines, ``starts`` as in :func:`rdp_mask_many`.
         max_len_m: longest allowed segment [m].
+        max_pieces: no segment is split into more pieces than this (nor is a segment of non-finite
+            length split): a defective point far away must not size the output (one point at 1e12 m
+            would ask for 1e11 points).
 
     Returns:
         (xy_out (N', 2), starts_out (P,)).
@@ -199,7 +204,9 @@ def split_long_segments(xy: np.ndarray, starts: np.ndarray, max_len_m: float) ->
     last[-1] = True
     # pieces[i]: how many sub-segments the segment starting at point i becomes (0 after a last point).
     pieces = np.zeros(n, dtype=np.int64)
-    pieces[:-1] = np.maximum(1, np.ceil(seg_len / max_len_m).astype(np.int64))
+    with np.errstate(invalid="ignore", over="ignore"):
+        want = np.ceil(seg_len / max_len_m)
+    pieces[:-1] = np.where(np.isfinite(want), np.clip(want, 1, max(1, int(max_pieces))), 1).astype(np.int64)
     pieces[last] = 0
     count = np.where(last, 1, pieces)  # points emitted per input point
     owner = np.repeat(np.arange(n), count)

@@ -4,8 +4,9 @@
     ros2 launch hdmap_ros hdmap.launch.py bag:=/path/to/bag rate:=10.0
 
 Arguments: ``params_file`` (default: the package's config/hdmap.yaml), ``bag`` (empty: no player;
-feed /fleet/drives yourself, e.g. with ``ros2 bag play``), ``rate``, ``state_dir`` (where the
-SQLite stores live).
+feed /fleet/drives yourself, e.g. with ``ros2 bag play``), ``rate`` (a float; ``rate:=10`` works),
+``state_dir`` (where the SQLite stores live; default ``$ROS_HOME/hdmap``, ``~/.ros/hdmap``),
+``namespace`` (every node and topic under it: topic names are relative).
 """
 
 import os
@@ -16,6 +17,7 @@ from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -23,15 +25,18 @@ def generate_launch_description() -> LaunchDescription:
     params = LaunchConfiguration("params_file")
     state = LaunchConfiguration("state_dir")
     bag = LaunchConfiguration("bag")
+    ns = LaunchConfiguration("namespace")
+    ros_home = os.environ.get("ROS_HOME") or os.path.join(os.path.expanduser("~"), ".ros")
 
     def node(name, extra=None):
-        return Node(package="hdmap_ros", executable=name, name=name, output="screen",
+        return Node(package="hdmap_ros", executable=name, name=name, namespace=ns, output="screen",
                     parameters=[params] + ([extra] if extra else []))
 
     return LaunchDescription([
         DeclareLaunchArgument("params_file", default_value=default_params, description="Node parameters (YAML)."),
-        DeclareLaunchArgument("state_dir", default_value=os.path.expanduser("~/.ros/hdmap"),
+        DeclareLaunchArgument("state_dir", default_value=os.path.join(ros_home, "hdmap"),
                               description="Directory of the SQLite stores."),
+        DeclareLaunchArgument("namespace", default_value="", description="Namespace of every node and topic."),
         DeclareLaunchArgument("bag", default_value="", description="Fleet bag to replay ('' = none)."),
         DeclareLaunchArgument("rate", default_value="1.0", description="Replay speed factor."),
         node("drive_ingestor"),
@@ -39,8 +44,9 @@ def generate_launch_description() -> LaunchDescription:
         node("map_stitcher", {"db_path": PathJoinSubstitution([state, "map_stitcher.db"])}),
         node("map_publisher"),
         Node(
-            package="hdmap_ros", executable="bag_player", name="bag_player", output="screen",
-            parameters=[params, {"bag": bag, "rate": LaunchConfiguration("rate")}],
+            package="hdmap_ros", executable="bag_player", name="bag_player", namespace=ns, output="screen",
+            # a float even when given as rate:=10 (an integer to YAML; the node declares a double)
+            parameters=[params, {"bag": bag, "rate": ParameterValue(LaunchConfiguration("rate"), value_type=float)}],
             condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
         ),
     ])

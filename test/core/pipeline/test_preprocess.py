@@ -142,3 +142,26 @@ def test_clean_drive_drops_short_and_unknown_and_thins_as_preprocess():
     assert clean_drive(d, config=PreprocessConfig(min_length_m=1.0)).detections[1].type == FeatureType.DASHED
     # the same segments in the index, cleaned or not
     assert preprocess([c]).n_segments == preprocess([d]).n_segments
+
+
+@pytest.mark.parametrize("far", [1e9, 1e12, 1e200])
+def test_a_far_detection_point_neither_crashes_nor_sizes_the_index(far):
+    """Drives normally pass the physical bounds first; the index must still not blow up without them
+    (issue 32: 'repeats may not contain negative values', terabytes asked)."""
+    from hdmap_core.live.tiles import TileConfig, tiles_of_drive
+    from hdmap_core.model import Detection, Drive, FeatureType
+    from hdmap_core.pipeline.preprocess import preprocess
+
+    s = np.arange(0.0, 100.0, 1.0)
+    xy = np.stack([s, np.zeros_like(s)], axis=1)
+    line = xy + [0.0, 1.75]
+    bad = line.copy()
+    bad[50, 1] = far
+    drive = Drive("d", xy, np.zeros(len(s)), np.arange(len(s), dtype=np.int64) * 10**8,
+                  (Detection(FeatureType.SOLID, line), Detection(FeatureType.DASHED, bad)))
+    index = preprocess([drive])
+    assert index.n_segments < 10_000 and len(index.cell_segs) < 100_000
+    hits = index.intersect(np.array([[30.0, 0.0]]), np.array([[0.0, 1.0]]), np.array([10.0]))
+    assert sorted(hits.types.tolist()) == [FeatureType.SOLID, FeatureType.DASHED]  # the good parts stay indexed
+    far_pose = Drive("p", np.where(np.arange(len(s))[:, None] == 50, [50.0, far], xy), drive.yaw, drive.stamps_ns)
+    assert len(tiles_of_drive(far_pose, config=TileConfig())) < 100_000

@@ -100,7 +100,8 @@ def _bad(drive_msg_edit):
         (lambda m: setattr(m.detections[2], "type", 9), "unknown_type"),
         (lambda m: setattr(m.header, "frame_id", "odom"), "wrong_frame"),
         (lambda m: setattr(m.trajectory.poses[2].header, "frame_id", "base_link"), "wrong_frame"),
-        (lambda m: setattr(m.trajectory.poses[2].pose.orientation, "w", float("nan")), "bad_heading"),
+        (lambda m: setattr(m.trajectory.poses[2].pose.orientation, "w", float("nan")), "bad_quaternion"),
+        (lambda m: setattr(m.trajectory.poses[2].pose.orientation, "w", 0.0), "bad_quaternion"),
     ],
 )
 def test_malformed_drive_message_names_drive_and_reason(edit, reason):

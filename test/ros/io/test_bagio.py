@@ -288,7 +288,7 @@ def test_sample_bad_inputs_bag_is_as_documented(sample_bags):
         ("bad-one-pose", "too_few_points"),
         ("bad-unknown-type", "unknown_type"),
         ("bad-wrong-frame", "wrong_frame"),
-        ("bad-nan-heading", "bad_heading"),
+        ("bad-nan-heading", "bad_quaternion"),
         ("", "empty_drive_id"),
         ("motorway_s7_0001", "duplicate_drive_id"),
         ("", "undecodable"),

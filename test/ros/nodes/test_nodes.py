@@ -76,8 +76,12 @@ def test_ingestor_rejects_malformed_drives_and_stays_up(ros):
 
     wait_for(lambda: len(accepted) >= 2, 10, what="two accepted drives")
     vals = wait_for(
-        lambda: (v := _diag_values(diags, "hdmap: drive_ingestor")) and v["drives_rejected"] == "4" and v,
-        10, what="diagnostics with 4 rejections",
+        # both counts: the last rejection (the duplicate) comes before good2 is accepted
+        lambda: (v := _diag_values(diags, "hdmap: drive_ingestor"))
+        and v["drives_rejected"] == "4"
+        and v["drives_accepted"] == "2"
+        and v,
+        10, what="diagnostics with 4 rejections and 2 drives accepted",
     )
     assert [m.drive_id for m in accepted] == ["good", "good2"]
     assert vals["drives_accepted"] == "2"
@@ -182,7 +186,7 @@ def test_config_yaml_names_only_declared_parameters(ros, tmp_path, module, cls):
 
     from hdmap_ros.nodes._common import params_file
 
-    spec = yaml.safe_load(params_file().read_text())[module]["ros__parameters"]
+    spec = yaml.safe_load(params_file().read_text())[f"/**/{module}"]["ros__parameters"]  # any namespace
     overrides = [Parameter("db_path", value=str(tmp_path / "x.db"))] if "db_path" in spec else []
     node = ros.add(getattr(importlib.import_module(f"hdmap_ros.nodes.{module}"), cls)(
         context=ros.context, parameter_overrides=overrides))

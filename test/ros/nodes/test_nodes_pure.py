@@ -95,6 +95,20 @@ def _segments():
     return [Segment("piv", tuple(st(i, k) for i, k in enumerate([5, 0, 3]))), Segment("other", ())]
 
 
+@pytest.mark.parametrize("key", [(2**40, -(2**40)), (-(2**62), 2**62)])
+def test_tile_keys_travel_as_int64(key):
+    """A tile of a drive at 1e15 m (key ~4e12) once wrapped in the int32 message fields."""
+    pytest.importorskip("rosbags")
+    from hdmap_ros.convert.tiles import msg_to_tile, rosbags_tile_types, tile_to_msg
+    from hdmap_ros.io.msgdefs import make_typestore
+
+    store = make_typestore()
+    msg = tile_to_msg(key, [], version=1, drive_ids=[], tile_size_m=256.0, stamp_ns=0, types=rosbags_tile_types(store))
+    back = msg_to_tile(store.deserialize_cdr(store.serialize_cdr(msg, "hdmap_msgs/msg/TileSegments"),
+                                             "hdmap_msgs/msg/TileSegments"))
+    assert back.key == key
+
+
 def test_tile_msg_round_trip_through_cdr():
     pytest.importorskip("rosbags")
     from hdmap_ros.convert.tiles import msg_to_tile, rosbags_tile_types, tile_to_msg

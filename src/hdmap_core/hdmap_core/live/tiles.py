@@ -139,7 +139,9 @@ def tiles_of_drive(drive: Drive, *, config: TileConfig) -> set[TileKey]:
     """
     size, margin = config.tile_size_m, config.margin_m
     step = max(1.0, margin / 2 if margin else size / 4)
-    xy, _ = split_long_segments(np.asarray(drive.xy, dtype=float), np.zeros(1, dtype=np.int64), step)
+    # at most 4096 points per step (262 km at the default margin): only a defective drive has a
+    # longer one, and it must not size the output (a pose at 1e12 m asked for 233 GiB)
+    xy, _ = split_long_segments(np.asarray(drive.xy, dtype=float), np.zeros(1, dtype=np.int64), step, max_pieces=4096)
     if len(xy) == 0:
         return set()
     lo = np.floor((xy - margin) / size).astype(np.int64)
@@ -280,7 +282,9 @@ def _tile_input(drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, 
             s0[c.drive_id] = start
     from hdmap_core.pipeline.driver import prepare_drives  # noqa: PLC0415 - the pipeline is heavy; import on first use
 
-    clipped, _ = prepare_drives(clipped)  # a clip can be degenerate (e.g. repeated poses): as map_stretches does
+    # A clip can be degenerate (e.g. repeated poses): as map_stretches does. The drives passed the
+    # physical bounds when they came in; a clip (e.g. a few metres in a corner) need not.
+    clipped, _ = prepare_drives(clipped, bounds=None)
     processed = None
     if clipped and tile_config.pivot_margin_m is not None:
         near = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.pivot_margin_m)

@@ -28,6 +28,7 @@ from hdmap_core.pipeline.alignment import AlignmentConfig
 from hdmap_core.pipeline.evidence import EvidenceConfig
 from hdmap_core.pipeline.preprocess import PreprocessConfig
 from hdmap_core.pipeline.sampling import SamplingConfig
+from hdmap_core.plausibility import PhysicalBounds
 
 __all__ = ["FinalAlignment", "FinalSampling", "PassConfig", "PipelineConfig"]
 
@@ -122,6 +123,8 @@ class PipelineConfig:
         evidence: negative evidence per step of the returned pass (``StepResult.empty_m``; the
             stitcher drops fills through empty places with ``stitching.fill_evidence``).
             None: no profiles.
+        plausibility: the physical bounds a drive must keep to be used at all
+            (``hdmap_core.plausibility``); a drive outside them is rejected with a named reason.
         name: the preset this config came from, with "+" when changed by overrides.
     """
 
@@ -136,6 +139,7 @@ class PipelineConfig:
     stitching: StitchConfig = StitchConfig()
     mark_on_cut_only: bool = True
     evidence: EvidenceConfig | None = EvidenceConfig()
+    plausibility: PhysicalBounds = PhysicalBounds()
     name: str = "default"
 
     def __post_init__(self) -> None:

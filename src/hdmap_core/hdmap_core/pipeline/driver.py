@@ -38,6 +38,7 @@ from hdmap_core.pipeline.evidence import EvidenceConfig
 from hdmap_core.pipeline.pivot import DriveTracks, PassCounters, PivotContext, ProgressFn, ShiftFn, run_pass
 from hdmap_core.pipeline.preprocess import DetectionIndex, preprocess, trajectory_index
 from hdmap_core.pipeline.sampling import pivot_groups
+from hdmap_core.plausibility import PhysicalBounds, check_plausible
 from hdmap_core.steps import Segment, StepObservations
 
 __all__ = [
@@ -143,9 +144,19 @@ class MappingResult:
 
 # ----------------------------------------------------------------------------- input
 
+_BOUNDS = PhysicalBounds()
 
-def prepare_drives(drives: Sequence[Drive]) -> tuple[list[Drive], list[tuple[str, str]]]:
-    """Validate drives; invalid and duplicate ones are rejected with a reason, never raised.
+
+def prepare_drives(
+    drives: Sequence[Drive], *, bounds: PhysicalBounds | None = _BOUNDS
+) -> tuple[list[Drive], list[tuple[str, str]]]:
+    """Validate drives; invalid, implausible and duplicate ones are rejected with a reason, never raised.
+
+    Args:
+        drives: the drives.
+        bounds: the physical bounds every drive must keep (``hdmap_core.plausibility``); None:
+            only the form is checked (``model.validate_drive``), e.g. for clips of drives that
+            passed the bounds when they came in.
 
     Returns:
         (usable drives in input order, [(drive_id, reason), ...]).
@@ -156,6 +167,8 @@ def prepare_drives(drives: Sequence[Drive]) -> tuple[list[Drive], list[tuple[str
     for d in drives:
         try:
             validate_drive(d)
+            if bounds is not None:
+                check_plausible(d, bounds=bounds)
         except InvalidDriveError as err:
             rejected.append((err.drive_id, f"{err.reason}" + (f": {err.detail}" if err.detail else "")))
             continue
@@ -261,7 +274,7 @@ def map_stretches(
         ConfigError: ``offset_model`` with a config without a final pass, or bad ``workers``.
     """
     if not validated:
-        drives, _ = prepare_drives(drives)
+        drives, _ = prepare_drives(drives, bounds=config.plausibility)
     drives = list(drives)
     if not drives:
         raise NoUsableDataError("no valid drive to map")
@@ -456,7 +469,8 @@ def build_map(
 ) -> BuildResult:
     """Build the hierarchical map from fleet drives (the whole method).
 
-    Invalid drives (``validate_drive`` fails) and repeated drive ids are rejected with a reason
+    Invalid drives (``validate_drive`` fails), implausible ones (``config.plausibility``) and
+    repeated drive ids are rejected with a reason
     in the report; the run goes on with the rest.
 
     Args:
@@ -474,7 +488,7 @@ def build_map(
     """
     t_start = time.perf_counter()
     drives_in = list(drives)
-    usable, rejected = prepare_drives(drives_in)
+    usable, rejected = prepare_drives(drives_in, bounds=config.plausibility)
     if not usable:
         raise NoUsableDataError(
             f"none of the {len(drives_in)} drive(s) is usable: " + "; ".join(f"{d!r}: {r}" for d, r in rejected[:5])

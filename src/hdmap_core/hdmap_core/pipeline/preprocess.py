@@ -191,6 +191,16 @@ class DetectionIndex:
         return CutHits(cut=cut, t_m=t, types=self.seg_type[seg], drive=self.seg_drive[seg], drive_s_m=s, drive_yaw=self.seg_yaw[seg])
 
 
+# Grid keys hold 2^31 cells either side of the origin per axis. A segment is indexed in at most
+# _MAX_CELLS_PER_SEGMENT cells (a 320 m square at 5 m cells; see _grid_pairs): detection segments
+# are split to max_segment_m, trajectory steps of plausible drives are at most 100 m. A detection
+# segment is split into at most _MAX_PIECES pieces (40 km at 10 m; longer ones only come from a
+# defect, and their pieces then exceed the cell bound).
+_KEY_HALF = float(1 << 31)
+_MAX_CELLS_PER_SEGMENT = 4096
+_MAX_PIECES = 4096
+
+
 def _cell_key(ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
     # 2^31 cells per axis is far beyond any map extent at metre-scale cells.
     return (ix + (1 << 31)) * (1 << 32) + (iy + (1 << 31))
@@ -200,7 +210,8 @@ def _project_on_trajectory(drive: Drive, pts: np.ndarray) -> tuple[np.ndarray, n
     """(s (N,), yaw (N,)) of points projected onto the drive's trajectory."""
     xy = np.asarray(drive.xy, dtype=float)
     s_traj = arc_length(xy)
-    idx = cKDTree(xy).query(pts)[1]
+    # a point whose distance overflows (far beyond any plausible drive) gets index len(xy): clamp
+    idx = np.minimum(cKDTree(xy).query(pts)[1], len(xy) - 1)
     # Refine along the local tangent so s is not quantised to the pose spacing.
     nxt = np.minimum(idx + 1, len(xy) - 1)
     prv = np.maximum(idx - 1, 0)
@@ -333,7 +344,7 @@ def _thin(drives: list[Drive], lo: int, hi: int, config: PreprocessConfig) -> _T
     xy = xy[mask]
     starts = np.concatenate([[0], np.cumsum(kept_counts)[:-1]]).astype(np.int64) if len(starts) else starts
     n_points_kept = len(xy)
-    xy, starts = split_long_segments(xy, starts, config.max_segment_m)
+    xy, starts = split_long_segments(xy, starts, config.max_segment_m, max_pieces=_MAX_PIECES)
     counts = np.diff(np.concatenate([starts, [len(xy)]])).astype(np.int64)
     return _segments(drives, lo, hi, xy, counts, ptypes_a, pdrive_a, config, n_points_in, n_points_kept)
 
@@ -409,16 +420,26 @@ def _grid_pairs(seg_a: np.ndarray, seg_b: np.ndarray, cell_m: float) -> tuple[np
     if len(seg_a) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     pad = 0.25 * cell_m
-    lo = np.floor((np.minimum(seg_a, seg_b) - pad) / cell_m).astype(np.int64)
-    hi = np.floor((np.maximum(seg_a, seg_b) + pad) / cell_m).astype(np.int64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        lo_f = np.floor((np.minimum(seg_a, seg_b) - pad) / cell_m)
+        hi_f = np.floor((np.maximum(seg_a, seg_b) + pad) / cell_m)
+        span = (hi_f[:, 0] - lo_f[:, 0] + 1) * (hi_f[:, 1] - lo_f[:, 1] + 1)
+    # RULE: a segment over _MAX_CELLS_PER_SEGMENT cells (or beyond the key range) is left out of the
+    # index rather than sized into memory: plausible drives never have one (detection segments are
+    # split to max_segment_m, poses lie at most PhysicalBounds.max_pose_step_m apart), only a
+    # defect does (one point at 1e12 m asked for terabytes).
+    in_keys = (np.abs(lo_f).max(axis=1) < _KEY_HALF) & (np.abs(hi_f).max(axis=1) < _KEY_HALF)
+    ok = (span <= _MAX_CELLS_PER_SEGMENT) & in_keys
+    ids = np.flatnonzero(ok)
+    lo, hi = lo_f[ids].astype(np.int64), hi_f[ids].astype(np.int64)
     nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
     n = nx * ny
-    seg = np.repeat(np.arange(len(seg_a)), n)
+    seg = np.repeat(np.arange(len(ids)), n)
     first = np.concatenate([[0], np.cumsum(n)[:-1]])
     k = np.arange(len(seg)) - first[seg]
     ix = lo[seg, 0] + k % nx[seg]
     iy = lo[seg, 1] + k // nx[seg]
-    return _cell_key(ix, iy), seg.astype(np.int64)
+    return _cell_key(ix, iy), ids[seg].astype(np.int64)
 
 
 def _grid_csr(keys: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

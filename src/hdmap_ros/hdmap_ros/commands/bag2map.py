@@ -15,6 +15,7 @@ import dataclasses
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -186,6 +187,7 @@ def run(args: argparse.Namespace) -> int:
 def _report_dict(args: argparse.Namespace, fleet: FleetBag, hdmap: HDMap, result: Any, seconds: float) -> dict:
     report = getattr(result, "report", None)
     build = dataclasses.asdict(report) if dataclasses.is_dataclass(report) else {}
+    refused = {str(r[0]) for r in getattr(report, "rejected", None) or []}  # by the pipeline (e.g. implausible)
     return {
         "input": str(args.bag),
         "output": str(args.output),
@@ -193,7 +195,7 @@ def _report_dict(args: argparse.Namespace, fleet: FleetBag, hdmap: HDMap, result
         "overrides": dict(args.overrides),
         "seed": args.seed,
         "drives": len(fleet.drives),
-        "drive_km": sum(d.length_m for d in fleet.drives) / 1000.0,
+        "drive_km": sum(d.length_m for d in fleet.drives if d.drive_id not in refused) / 1000.0,
         "rejected": [dataclasses.asdict(r) for r in fleet.rejected],
         "bag_error": fleet.error,
         "features": len(hdmap.features),
@@ -203,10 +205,10 @@ def _report_dict(args: argparse.Namespace, fleet: FleetBag, hdmap: HDMap, result
     }
 
 
-def _reason_counts(fleet: FleetBag) -> str:
+def _reason_counts(fleet: FleetBag, refused: Sequence[tuple[str, str]] = ()) -> str:
     counts: dict[str, int] = {}
-    for r in fleet.rejected:
-        counts[r.reason] = counts.get(r.reason, 0) + 1
+    for reason in [r.reason for r in fleet.rejected] + [reason for _, reason in refused]:
+        counts[reason] = counts.get(reason, 0) + 1
     return ", ".join(f"{n} {reason}" for reason, n in sorted(counts.items()))
 
 
@@ -222,18 +224,23 @@ def _summary(fleet: FleetBag, hdmap: HDMap, result: Any, seconds: float) -> str:
     km_features = sum(
         float(np.linalg.norm(np.diff(np.asarray(f.points), axis=0), axis=1).sum()) for f in hdmap.features
     ) / 1000.0
-    drive_km = sum(d.length_m for d in fleet.drives) / 1000.0
+    report = getattr(result, "report", None)
+    # drives the pipeline rejected (e.g. implausible ones: a pose at 1e12 m) count as rejected here too
+    refused = [(str(d), str(r).split(":", 1)[0]) for d, r in getattr(report, "rejected", None) or []]
+    refused_ids = {d for d, _ in refused}
+    used = [d for d in fleet.drives if d.drive_id not in refused_ids]
+    drive_km = sum(d.length_m for d in used) / 1000.0
+    n_rejected = len(fleet.rejected) + len(refused)
     lines = [
         "summary:",
-        f"  drives read      {len(fleet.drives)} ({drive_km:.1f} km), rejected {len(fleet.rejected)}"
-        + (f" ({_reason_counts(fleet)})" if fleet.rejected else ""),
+        f"  drives read      {len(fleet.drives)}, used {len(used)} ({drive_km:.1f} km), rejected {n_rejected}"
+        + (f" ({_reason_counts(fleet, refused)})" if n_rejected else ""),
         f"  map              {len(hdmap.features)} features ({km_features:.2f} km of polylines), "
         f"{len(hdmap.topology)} topology nodes",
         f"  wall time        {seconds:.1f} s (read + build + write)",
     ]
     if fleet.error:
         lines.insert(2, "  input bag        DAMAGED, only the intact drives before the damage were used")
-    report = getattr(result, "report", None)
     if report is not None:
         text = report.summary() if callable(getattr(report, "summary", None)) else _fields(report)
         lines += ["  pipeline report:"] + [f"    {line}" for line in str(text).splitlines()]

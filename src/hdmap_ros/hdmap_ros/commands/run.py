@@ -36,6 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="change one preset parameter (repeatable), as `hdmap bag2map --set`; sets the "
                         "mapper's and the stitcher's preset_overrides")
     parser.add_argument("--params-file", help="node parameters (YAML), applied over the package defaults")
+    parser.add_argument("--namespace", default="", help="namespace of every node and topic (e.g. /ns2: "
+                        "/ns2/fleet/drives, /ns2/hdmap/map), so two suites can share a ROS domain")
     parser.add_argument("--keep-alive", action="store_true", help="keep serving /hdmap/map after settling (Ctrl-C ends)")
     parser.add_argument("--timeout", type=float, default=0.0, help="give up after this many seconds (0 = never)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
@@ -49,7 +51,7 @@ class _Suite:
         from rclpy.executors import MultiThreadedExecutor  # noqa: PLC0415
         from rclpy.parameter import Parameter  # noqa: PLC0415
 
-        from hdmap_ros.nodes._common import with_default_params  # noqa: PLC0415
+        from hdmap_ros.nodes._common import warn_unknown_parameters, with_default_params  # noqa: PLC0415
         from hdmap_ros.nodes.bag_player import BagPlayer  # noqa: PLC0415
         from hdmap_ros.nodes.drive_ingestor import DriveIngestor  # noqa: PLC0415
         from hdmap_ros.nodes.map_publisher import MapPublisher  # noqa: PLC0415
@@ -59,6 +61,8 @@ class _Suite:
         ros_args = ["hdmap-run", "--ros-args"]
         if args.params_file:
             ros_args += ["--params-file", str(args.params_file)]
+        if getattr(args, "namespace", ""):
+            ros_args += ["-r", f"__ns:=/{args.namespace.strip('/')}"]
         self.context = rclpy.Context()
         rclpy.init(args=with_default_params(ros_args), context=self.context)
 
@@ -88,10 +92,12 @@ class _Suite:
             raise
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
         for n in self.nodes:
+            warn_unknown_parameters(n)  # a misspelt key of --params-file is named, not ignored
             self.executor.add_node(n)
 
     def settled(self) -> bool:
-        """The bag is done and everything it caused has reached the map."""
+        """The bag is done and everything it caused has reached the map (messages the player
+        skipped as unreadable are counted there and never awaited)."""
         if not self.player.done or self.ingestor.received < self.player.published:
             return False
         if self.mapper.received < self.ingestor.published or not self.mapper.is_settled():
@@ -101,7 +107,8 @@ class _Suite:
     def status(self) -> str:
         m = self.stitcher.map
         return (
-            f"drives played {self.player.published}, accepted {self.ingestor.health.accepted}, "
+            f"drives played {self.player.played} (skipped {sum(self.player.skipped.values())}), "
+            f"accepted {self.ingestor.health.accepted}, "
             f"rejected {self.ingestor.health.rejected_total}, tiles pending {self.mapper.scheduler.pending_tiles()} "
             f"(of {self.mapper.scheduler.tile_count}), map version {m.version if m else 0} "
             f"({len(m.features) if m else 0} features, {len(m.drive_ids) if m else 0} drives)"

@@ -43,6 +43,7 @@ from hdmap_core.model import (
     TopologyNode,
     validate_drive,
 )
+from hdmap_core.plausibility import check_quaternions
 
 __all__ = [
     "status_to_msg",
@@ -244,7 +245,9 @@ def msg_to_drive(msg: Any, *, expected_frame: str | None = MAP_FRAME) -> Drive:
     Raises:
         InvalidDriveError: malformed content (``reason`` names the class, e.g.
             ``non_finite_coordinates``, ``too_few_points``, ``empty_trajectory``,
-            ``unknown_type``, ``wrong_frame``); see :func:`hdmap_core.model.validate_drive`.
+            ``unknown_type``, ``wrong_frame``); see :func:`hdmap_core.model.validate_drive`;
+            ``bad_quaternion`` for a pose orientation whose norm is not 1
+            (:func:`hdmap_core.plausibility.check_quaternions`).
     """
     did = str(msg.drive_id)
     frame = str(msg.header.frame_id)
@@ -277,8 +280,8 @@ def msg_to_drive(msg: Any, *, expected_frame: str | None = MAP_FRAME) -> Drive:
         except ValueError:
             raise InvalidDriveError(did, "unknown_type", f"detection {i} has type {int(det.type)}") from None
         detections.append(Detection(type=ftype, points=_msgs_to_xy(det.points)))
-    with np.errstate(invalid="ignore"):
-        yaw = quaternion_to_yaw(quat)
+    check_quaternions(did, quat)
+    yaw = quaternion_to_yaw(quat)
     drive = Drive(
         drive_id=did,
         xy=xy,

@@ -11,10 +11,13 @@ Topics (see docs/bags.md): ``/fleet/drives`` (hdmap_msgs/msg/Drive, one message 
 log time = drive start), ``/fleet/origin`` (sensor_msgs/msg/NavSatFix), ``/hdmap/map``
 (hdmap_msgs/msg/Map, log time = map stamp).
 
-Bad input never stops a read: a malformed drive is skipped and reported as a :class:`Rejection`;
-damage to the bag itself (truncation, corruption) ends the read with :class:`BagError` -- or, in
-:func:`read_fleet_bag`, with ``FleetBag.error`` set -- after every intact message before the damage
-was delivered.
+Bad input never stops a read: a malformed drive is skipped and reported as a :class:`Rejection`
+(also a drive whose embedded definition differs from the contract so that it does not convert:
+``definition_mismatch``); an MCAP chunk whose content is damaged (CRC, compression) is skipped with
+a warning (``damaged_chunk``) and the chunks after it are read; damage to the bag's framing
+(truncation) ends the read with :class:`BagError` -- or, in :func:`read_fleet_bag`, with
+``FleetBag.error`` set -- after every intact message before the damage was delivered. Whatever a
+reader raises on hostile bytes becomes one of these, never a traceback.
 """
 
 from __future__ import annotations
@@ -23,11 +26,13 @@ import functools
 import shutil
 import sqlite3
 import struct
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import ReaderError, StoragePlugin, Writer, WriterError
 from rosbags.serde import SerdeError
 from rosbags.typesys import TypesysError
@@ -37,7 +42,7 @@ from hdmap_core.errors import BagError, InvalidDriveError, InvalidMessageError
 from hdmap_core.model import MAP_FRAME, Drive, GeoOrigin, HDMap, validate_drive
 from hdmap_ros.convert.messages import drive_to_msg, map_to_msg, msg_to_drive, msg_to_map, msg_to_origin, origin_to_msg
 from hdmap_ros.io.cdr import decode_drive, encode_drive
-from hdmap_ros.io.mcapscan import BagMessage, scan_mcap
+from hdmap_ros.io.mcapscan import BagMessage, WarningFn, scan_mcap
 from hdmap_ros.io.msgdefs import default_typestore
 
 __all__ = [
@@ -52,6 +57,8 @@ __all__ = [
     "FleetBag",
     "iter_bag",
     "iter_fleet_bag",
+    "drive_of_message",
+    "has_contract_definition",
     "read_fleet_bag",
     "write_fleet_bag",
     "write_map_bag",
@@ -66,10 +73,17 @@ DRIVE_TYPE = "hdmap_msgs/msg/Drive"
 ORIGIN_TYPE = "sensor_msgs/msg/NavSatFix"
 MAP_TYPE = "hdmap_msgs/msg/Map"
 
-# Errors a damaged rosbag2 can raise from rosbags' readers (and the storage below them).
-_READ_ERRORS = (ReaderError, AnyReaderError, sqlite3.Error, struct.error, OSError, EOFError, ValueError, IndexError)
+# Errors a damaged rosbag2 can raise from rosbags' readers (and the storage, YAML and
+# decompressors below them); found by fuzzing (test_bag_fuzz.py): KeyError, OverflowError and
+# MemoryError (a length field read as gigabytes) among them.
+_READ_ERRORS = (ReaderError, AnyReaderError, sqlite3.Error, struct.error, OSError, EOFError, ValueError, IndexError,
+                KeyError, OverflowError, MemoryError, TypeError, AttributeError, UnicodeDecodeError, RuntimeError,
+                TypesysError, SerdeError)
 # Errors decoding one message can raise: bad CDR, or a schema that does not parse.
-_DECODE_ERRORS = (SerdeError, TypesysError, struct.error, ValueError, IndexError, KeyError, UnicodeDecodeError)
+_DECODE_ERRORS = (SerdeError, TypesysError, struct.error, ValueError, IndexError, KeyError, UnicodeDecodeError,
+                  OverflowError, MemoryError, TypeError, AttributeError, RecursionError)
+# Converting a message of another definition than the contract's (e.g. a Drive without vehicle_id).
+_DEFINITION_ERRORS = (AttributeError, TypeError, ValueError, KeyError, IndexError, OverflowError)
 
 
 @dataclass(frozen=True)
@@ -132,12 +146,17 @@ class FleetBag:
 # ------------------------------------------------------------------------------------ reading
 
 
-def iter_bag(path: str | Path, *, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+def iter_bag(
+    path: str | Path, *, topics: Iterable[str] | None = None, on_warning: WarningFn | None = None
+) -> Iterator[BagMessage]:
     """Yield the raw messages of a bag (rosbag2 directory or bare ``.mcap`` file) in bag order.
 
     rosbag2 directories come in log-time order (rosbags ``AnyReader``); ``.mcap`` files in file
     order. A rosbag2 MCAP directory whose file is damaged (e.g. truncated, so its index is gone) and
-    a directory without ``metadata.yaml`` are read with the scanner, like bare ``.mcap`` files.
+    a directory without ``metadata.yaml`` are read with the scanner, like bare ``.mcap`` files;
+    when the rosbag2 reader fails part way (e.g. a chunk failing its CRC), the scanner delivers the
+    messages it had not delivered yet. ``on_warning`` is called with a line for every damaged chunk
+    skipped (the rest of the bag is read).
 
     Raises:
         BagError: the bag does not exist or is not a bag (before anything is yielded), or it is
@@ -150,51 +169,73 @@ def iter_bag(path: str | Path, *, topics: Iterable[str] | None = None) -> Iterat
     if path.is_dir():
         mcaps = sorted(path.glob("*.mcap"))
         if (path / "metadata.yaml").exists():
-            yield from _iter_rosbag2(path, wanted, mcaps)
+            yield from _iter_rosbag2(path, wanted, mcaps, on_warning)
         elif mcaps:
             note = "no metadata.yaml (recording not closed?)"
-            yield from _iter_mcap_files(mcaps, wanted, note=note)
+            yield from _iter_mcap_files(mcaps, wanted, note=note, on_warning=on_warning)
         else:
             raise BagError(f"{path}: not a rosbag2 directory (no metadata.yaml and no .mcap file)")
     elif path.suffix == ".mcap":
-        yield from _iter_mcap_files([path], wanted)
+        yield from _iter_mcap_files([path], wanted, on_warning=on_warning)
     elif path.suffix == ".db3":
         raise BagError(f"{path}: a sqlite3 bag is read through its rosbag2 directory; pass {path.parent}")
     else:
         raise BagError(f"{path}: not a bag (want a rosbag2 directory or a .mcap file)")
 
 
-def _iter_rosbag2(path: Path, wanted: set[str] | None, mcaps: list[Path]) -> Iterator[BagMessage]:
+def _iter_rosbag2(
+    path: Path, wanted: set[str] | None, mcaps: list[Path], on_warning: WarningFn | None
+) -> Iterator[BagMessage]:
     try:
         reader = AnyReader([path], default_typestore=default_typestore())
         reader.open()
-    except (*_READ_ERRORS, TypesysError) as err:
+    except _READ_ERRORS as err:
         if not mcaps:
-            raise BagError(f"{path}: cannot open the bag: {err}") from err
+            raise BagError(f"{path}: cannot open the bag: {type(err).__name__}: {err}") from err
         # MCAP storage whose index/footer/metadata is damaged: read the records that are intact.
-        yield from _iter_mcap_files(mcaps, wanted, note=f"rosbag2 reader: {err}")
+        yield from _iter_mcap_files(mcaps, wanted, note=f"rosbag2 reader: {err}", on_warning=on_warning)
         raise BagError(
-            f"{path}: damaged: the rosbag2 reader failed ({err}); every message was read from the "
-            "MCAP records instead"
+            f"{path}: damaged: the rosbag2 reader failed ({type(err).__name__}: {err}); every message was "
+            "read from the MCAP records instead"
         ) from err
     count = 0
+    seen: set[tuple[str, int, int]] = set()  # what was delivered, should the scanner take over
+    failure: BaseException | None = None
     try:
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
         if conns:
             for conn, timestamp, raw in reader.messages(connections=conns):
-                yield BagMessage(conn.topic, conn.msgtype, int(timestamp), bytes(raw), reader.typestore)
+                data = bytes(raw)
+                if mcaps:
+                    seen.add((conn.topic, int(timestamp), zlib.crc32(data)))
+                yield BagMessage(conn.topic, conn.msgtype, int(timestamp), data, reader.typestore)
                 count += 1
     except _READ_ERRORS as err:
-        raise BagError(
-            f"{path}: damaged after {count} message(s): {type(err).__name__}: {err}"
-        ) from err
+        failure = err
     finally:
-        reader.close()
+        try:
+            reader.close()
+        except _READ_ERRORS:
+            pass
+    if failure is None:
+        return
+    if not mcaps:
+        raise BagError(f"{path}: damaged after {count} message(s): {type(failure).__name__}: {failure}") from failure
+    # RULE: MCAP storage: the scanner goes on past the damage (a chunk failing its CRC is skipped),
+    # delivering what the rosbag2 reader had not.
+    if on_warning is not None:
+        on_warning(f"{path}: the rosbag2 reader failed after {count} message(s) ({type(failure).__name__}: "
+                   f"{failure}); the rest was read record by record")
+    for bm in _iter_mcap_files(mcaps, wanted, note=f"rosbag2 reader: {failure}", on_warning=on_warning):
+        if (bm.topic, bm.log_time_ns, zlib.crc32(bm.data)) not in seen:
+            yield bm
 
 
-def _iter_mcap_files(paths: list[Path], wanted: set[str] | None, *, note: str = "") -> Iterator[BagMessage]:
+def _iter_mcap_files(
+    paths: list[Path], wanted: set[str] | None, *, note: str = "", on_warning: WarningFn | None = None
+) -> Iterator[BagMessage]:
     for p in paths:
-        yield from scan_mcap(p, wanted, note=note)
+        yield from scan_mcap(p, wanted, note=note, on_warning=on_warning)
 
 
 def iter_fleet_bag(
@@ -210,7 +251,10 @@ def iter_fleet_bag(
     """
     seen: set[str] = set()
     origin: GeoOrigin | None = None
-    for bm in iter_bag(path, topics=(DRIVES_TOPIC, ORIGIN_TOPIC)):
+    warnings: list[str] = []
+    for bm in iter_bag(path, topics=(DRIVES_TOPIC, ORIGIN_TOPIC), on_warning=warnings.append):
+        while warnings:
+            yield Rejection("", "damaged_chunk", warnings.pop(0))
         if bm.topic == ORIGIN_TOPIC:
             item = _decode_origin(bm)
             if isinstance(item, GeoOrigin):
@@ -230,6 +274,20 @@ def iter_fleet_bag(
         if isinstance(item, Rejection):
             item = replace(item, topic=bm.topic, log_time_ns=bm.log_time_ns)
         yield item
+    while warnings:
+        yield Rejection("", "damaged_chunk", warnings.pop(0))
+
+
+def has_contract_definition(bm: BagMessage) -> bool:
+    """True when the bag's definition of the message's type is hdmap_msgs' own (so its bytes read
+    the same in any hdmap_msgs subscriber)."""
+    return bm.msgtype == DRIVE_TYPE and _is_our_drive_definition(bm.typestore)
+
+
+def drive_of_message(bm: BagMessage, *, expected_frame: str | None = MAP_FRAME) -> Drive | Rejection:
+    """One ``/fleet/drives`` message -> a valid Drive, or the Rejection saying why not
+    (``undecodable``, ``definition_mismatch``, ``wrong_type`` or a ``validate_drive`` reason)."""
+    return _decode_drive(bm, expected_frame)
 
 
 @functools.lru_cache(maxsize=8)
@@ -244,20 +302,24 @@ def _is_our_drive_definition(store: Typestore) -> bool:
 def _decode_drive(bm: BagMessage, expected_frame: str | None) -> Drive | Rejection:
     if bm.msgtype != DRIVE_TYPE:
         return Rejection("", "wrong_type", f"{bm.topic} carries {bm.msgtype}, want {DRIVE_TYPE}")
-    fast = decode_drive(bm.data) if _is_our_drive_definition(bm.typestore) else None
-    if fast is not None:
-        try:
+    try:
+        fast = decode_drive(bm.data) if _is_our_drive_definition(bm.typestore) else None
+        if fast is not None:
             return validate_drive(fast, expected_frame=expected_frame or "")
-        except InvalidDriveError as err:
-            return Rejection(err.drive_id, err.reason, err.detail)
+    except InvalidDriveError as err:
+        return Rejection(err.drive_id, err.reason, err.detail)
     try:
         msg = bm.decode()
     except _DECODE_ERRORS as err:
-        return Rejection("", "undecodable", str(err))
+        return Rejection("", "undecodable", f"{type(err).__name__}: {err}")
     try:
         return msg_to_drive(msg, expected_frame=expected_frame)
     except InvalidDriveError as err:
         return Rejection(err.drive_id, err.reason, err.detail)
+    except _DEFINITION_ERRORS as err:
+        did = getattr(msg, "drive_id", "")
+        return Rejection(did if isinstance(did, str) else "", "definition_mismatch",
+                         f"the bag's {DRIVE_TYPE} definition differs from hdmap_msgs': {type(err).__name__}: {err}")
 
 
 def _decode_origin(bm: BagMessage) -> GeoOrigin | Rejection:
@@ -266,7 +328,7 @@ def _decode_origin(bm: BagMessage) -> GeoOrigin | Rejection:
     try:
         return msg_to_origin(bm.decode())
     except _DECODE_ERRORS as err:
-        return Rejection("", "undecodable", f"origin message: {err}")
+        return Rejection("", "undecodable", f"origin message: {type(err).__name__}: {err}")
     except InvalidMessageError as err:
         return Rejection("", "invalid_origin", str(err))
 
@@ -344,6 +406,25 @@ def read_bag_origin(path: str | Path) -> GeoOrigin | None:
 
 # ------------------------------------------------------------------------------------ writing
 
+_INFINITE = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)  # rosbag2's "infinite" duration
+
+
+def _qos(*, latched: bool) -> list[Qos]:
+    """The offered QoS recorded with a connection (rosbag2 ``offered_qos_profiles``), as the nodes
+    publish (``hdmap_ros.nodes.qos``): ``ros2 bag play`` then offers the same (the origin and the
+    map latched, TRANSIENT_LOCAL), instead of VOLATILE defaults a latched subscriber cannot match."""
+    return [Qos(
+        history=QosHistory.KEEP_LAST if latched else QosHistory.KEEP_ALL,
+        depth=1 if latched else 0,
+        reliability=QosReliability.RELIABLE,
+        durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+        deadline=_INFINITE, lifespan=_INFINITE, liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=_INFINITE, avoid_ros_namespace_conventions=False,
+    )]
+
+
+_LATCHED, _STREAM = _qos(latched=True), _qos(latched=False)
+
 
 def _open_writer(path: Path, *, overwrite: bool) -> Writer:
     if path.exists():
@@ -386,10 +467,10 @@ def write_fleet_bag(
     try:
         first_ns = min((d.start_ns for d in drives if len(d.stamps_ns)), default=0)
         if origin is not None:
-            conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store)
+            conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store, offered_qos_profiles=_LATCHED)
             msg = origin_to_msg(origin, stamp_ns=first_ns)
             writer.write(conn, first_ns, store.serialize_cdr(msg, ORIGIN_TYPE))
-        conn = writer.add_connection(DRIVES_TOPIC, DRIVE_TYPE, typestore=store)
+        conn = writer.add_connection(DRIVES_TOPIC, DRIVE_TYPE, typestore=store, offered_qos_profiles=_STREAM)
         t_ns = first_ns
         for drive in drives:
             t_ns = drive.start_ns if len(drive.stamps_ns) else t_ns
@@ -429,9 +510,9 @@ def write_map_bag(
     try:
         first_ns = min((m.stamp_ns for m in maps), default=0)
         if origin is not None:
-            conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store)
+            conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store, offered_qos_profiles=_LATCHED)
             writer.write(conn, first_ns, store.serialize_cdr(origin_to_msg(origin, stamp_ns=first_ns), ORIGIN_TYPE))
-        conn = writer.add_connection(MAP_TOPIC, MAP_TYPE, typestore=store)
+        conn = writer.add_connection(MAP_TOPIC, MAP_TYPE, typestore=store, offered_qos_profiles=_LATCHED)
         for m, msg in zip(maps, msgs, strict=True):
             writer.write(conn, int(m.stamp_ns), store.serialize_cdr(msg, MAP_TYPE))
     finally:

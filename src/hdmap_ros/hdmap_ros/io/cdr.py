@@ -20,6 +20,7 @@ import struct
 import numpy as np
 
 from hdmap_core.model import Detection, Drive, FeatureType
+from hdmap_core.plausibility import check_quaternions
 
 __all__ = ["decode_drive", "encode_drive"]
 
@@ -86,8 +87,11 @@ class _Cursor:
 def decode_drive(raw: bytes) -> Drive | None:
     """Drive from the CDR bytes of hdmap_msgs/msg/Drive, or None if not the simple layout.
 
-    The result is not validated (frames of the poses equal the drive's or are empty, nothing else
-    is checked); arrays are fresh copies.
+    The result is not validated (frames of the poses equal the drive's or are empty, the pose
+    quaternions have norm 1, nothing else is checked); arrays are fresh copies.
+
+    Raises:
+        InvalidDriveError: ``bad_quaternion``, a pose orientation whose norm is not 1.
     """
     raw = bytes(raw)
     if raw[:2] != _CDR_LE:
@@ -124,8 +128,8 @@ def _decode(c: _Cursor) -> Drive:
         raise _Layout
     from hdmap_ros.convert.messages import quaternion_to_yaw  # noqa: PLC0415 - avoid an import cycle
 
-    with np.errstate(invalid="ignore"):
-        yaw = quaternion_to_yaw(quat)
+    check_quaternions(drive_id, quat)
+    yaw = quaternion_to_yaw(quat)
     return Drive(
         drive_id=drive_id, xy=xy, yaw=yaw, stamps_ns=stamps, detections=tuple(detections),
         vehicle_id=vehicle_id, frame_id=frame,

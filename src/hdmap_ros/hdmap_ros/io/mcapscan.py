@@ -3,14 +3,17 @@
 Used for bare ``.mcap`` files and for rosbag2 MCAP files whose summary is damaged (e.g. a
 truncated recording): every complete record before the damage is delivered -- also the complete
 records of a cut-off uncompressed chunk -- and then :class:`~hdmap_core.errors.BagError` says where
-and what the damage is. Records are framed here and parsed with the ``mcap`` library; messages are
+and what the damage is. A chunk whose frame is intact but whose content is not (CRC mismatch,
+bad compression, a damaged record inside) is skipped with a warning (``on_warning``) and the
+records after it are read. Records are framed here and parsed with the ``mcap`` library; messages are
 decoded with rosbags from the schemas embedded in the file.
 """
 
 from __future__ import annotations
 
+import functools
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
@@ -30,7 +33,21 @@ from rosbags.typesys.store import Typestore
 from hdmap_core.errors import BagError
 from hdmap_ros.io.msgdefs import default_typestore
 
-__all__ = ["BagMessage", "scan_mcap"]
+__all__ = ["BagMessage", "scan_mcap", "WarningFn"]
+
+WarningFn = Callable[[str], None]
+# What the mcap library and the decompressors raise on damaged bytes.
+_RECORD_ERRORS = (
+    McapError,
+    struct.error,
+    UnicodeDecodeError,
+    ValueError,
+    KeyError,
+    OverflowError,
+    MemoryError,
+    IndexError,
+    TypeError,
+)
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEADER = struct.Struct("<BQ")  # opcode, body length
@@ -65,14 +82,19 @@ class _McapScanner:
     uncompressed chunk); the damage then raises :class:`BagError` saying where and what.
     """
 
-    def __init__(self, path: Path, wanted: set[str] | None, *, note: str = "") -> None:
+    def __init__(
+        self, path: Path, wanted: set[str] | None, *, note: str = "", on_warning: WarningFn | None = None
+    ) -> None:
         self.path = path
         self.wanted = wanted
         self.note = note
+        self.on_warning = on_warning
         self.schemas: dict[int, McapSchema] = {}
         self.channels: dict[int, McapChannel] = {}
         self.typestore: Typestore | None = None
         self.count = 0
+        self.data: bytes = b""
+        self._summary_read = False
 
     def _fail(self, what: str) -> BagError:
         text = f"{self.path}: {what}; the {self.count} message(s) before the damage were read"
@@ -87,6 +109,7 @@ class _McapScanner:
             raise BagError(f"{self.path}: cannot read: {err}") from err
         if not data.startswith(_MCAP_MAGIC):
             raise BagError(f"{self.path}: not an MCAP file (bad magic)")
+        self.data = data
         view = memoryview(data)
         pos, end = len(_MCAP_MAGIC), len(data)
         while True:
@@ -129,11 +152,13 @@ class _McapScanner:
                 if out is not None:
                     self.count += 1
                     yield out
-        except (McapError, struct.error, UnicodeDecodeError) as err:
-            raise self._fail(f"corrupted {_opname(opcode)} record at byte {pos}: {err}") from err
+        except _RECORD_ERRORS as err:
+            raise self._fail(f"corrupted {_opname(opcode)} record at byte {pos}: {type(err).__name__}: {err}") from err
 
     def _message(self, msg: McapMessage, pos: int) -> BagMessage | None:
         channel = self.channels.get(msg.channel_id)
+        if channel is None and self._from_summary():
+            channel = self.channels.get(msg.channel_id)
         if channel is None:
             raise self._fail(f"corrupted: message at byte {pos} on unknown channel {msg.channel_id}")
         if self.wanted is not None and channel.topic not in self.wanted:
@@ -146,36 +171,54 @@ class _McapScanner:
             raise self._fail(f"channel {channel.topic!r} has no schema, its message type is unknown")
         return BagMessage(channel.topic, msgtype, int(msg.log_time), bytes(msg.data), self._typestore())
 
+    def _from_summary(self) -> bool:
+        """Take the schemas and channels the file's summary section repeats (once): a skipped
+        chunk may have held their only other copy. True when any was new."""
+        if self._summary_read:
+            return False
+        self._summary_read = True
+        from mcap.reader import SeekingReader  # noqa: PLC0415 - only for damaged files
+
+        try:
+            summary = SeekingReader(BytesIO(self.data), validate_crcs=False).get_summary()
+        except (*_RECORD_ERRORS, RuntimeError, EOFError):
+            return False
+        if summary is None:
+            return False
+        new = False
+        for sid, schema in summary.schemas.items():
+            if sid not in self.schemas:
+                self.schemas[sid] = schema
+                self.typestore, new = None, True
+        for cid, channel in summary.channels.items():
+            if cid not in self.channels:
+                self.channels[cid], new = channel, True
+        return new
+
     def _typestore(self) -> Typestore:
         if self.typestore is None:
-            store = default_typestore()
-            types: dict = {}
-            for schema in self.schemas.values():
-                # No (or a damaged) embedded definition: rely on the hdmap_msgs / Jazzy types; a
-                # message that then does not decode is rejected on its own.
-                try:
-                    text = bytes(schema.data).decode("utf-8")
-                    if schema.encoding == "ros2msg" and text:
-                        types.update(get_types_from_msg(text, schema.name))
-                    elif schema.encoding == "ros2idl" and text:
-                        types.update(get_types_from_idl(text))
-                except (TypesysError, UnicodeDecodeError, ValueError):
-                    continue
-            # A fresh store of the bag's own definitions, on top of the known ones for missing ones.
-            fresh = get_typestore(Stores.EMPTY)
-            fresh.register({k: v for k, v in store.fielddefs.items() if k not in types})
-            fresh.register(types)
-            self.typestore = fresh
+            key = tuple(sorted((sc.name, sc.encoding, bytes(sc.data)) for sc in self.schemas.values()))
+            self.typestore = _typestore_of(key)
         return self.typestore
 
+    def _warn(self, text: str) -> None:
+        if self.on_warning is not None:
+            self.on_warning(f"{self.path}: {text}")
+
     def _chunk(self, body: memoryview, pos: int) -> Iterator[BagMessage]:
+        # RULE: the chunk's frame (its length in the record header) is intact, so a chunk whose
+        # content is damaged is skipped and the records after it are still read.
         try:
             chunk = McapChunk.read(ReadDataStream(BytesIO(body)))
             stream, size = get_chunk_data_stream(chunk, validate_crc=True)
             inner = stream.read(size) if size else b""
-        except (McapError, CRCValidationError, struct.error, ValueError, RuntimeError) as err:
-            raise self._fail(f"corrupted chunk at byte {pos}: {type(err).__name__}: {err}") from err
-        yield from self._inner_records(memoryview(inner), pos, partial=False)
+        except (*_RECORD_ERRORS, CRCValidationError, RuntimeError, EOFError) as err:
+            self._warn(f"chunk at byte {pos} skipped: {type(err).__name__}: {err}")
+            return
+        try:
+            yield from self._inner_records(memoryview(inner), pos, partial=False)
+        except BagError as err:
+            self._warn(f"chunk at byte {pos}: the rest of it skipped: {err}")
 
     def _salvage_chunk(self, body: memoryview) -> Iterator[BagMessage]:
         """The complete records of a truncated, uncompressed chunk."""
@@ -205,6 +248,56 @@ class _McapScanner:
             pos += _RECORD_HEADER.size + length
 
 
+@functools.lru_cache(maxsize=32)
+def _typestore_of(schemas: tuple[tuple[str, str, bytes], ...]) -> Typestore:
+    """A typestore of a file's embedded definitions, on top of the known (hdmap_msgs / Jazzy) ones
+    for types they lack; the known store itself when every definition is the known one (the usual
+    case, and no types to register: that took ~1 s per file)."""
+    store = default_typestore()
+    types: dict = {}
+    for name, encoding, data in schemas:
+        # No (or a damaged) embedded definition: rely on the hdmap_msgs / Jazzy types; a message
+        # that then does not decode is rejected on its own.
+        try:
+            text = data.decode("utf-8")
+            if encoding == "ros2msg" and text:
+                types.update(get_types_from_msg(text, name))
+            elif encoding == "ros2idl" and text:
+                types.update(get_types_from_idl(text))
+        except (TypesysError, UnicodeDecodeError, ValueError, KeyError, IndexError, TypeError, RecursionError):
+            continue
+    if all(store.fielddefs.get(k) == v for k, v in types.items()):
+        return store
+    # A fresh store of the file's own definitions plus the known types they refer to.
+    needed = _closure(store.fielddefs, types)
+    fresh = get_typestore(Stores.EMPTY)
+    try:
+        fresh.register({k: store.fielddefs[k] for k in needed if k not in types})
+        fresh.register(types)
+    except (TypesysError, ValueError, KeyError, TypeError):  # definitions that contradict each other
+        return store
+    return fresh
+
+
+def _closure(known: dict, types: dict) -> set[str]:
+    """The names of the known types ``types`` refer to, directly or through each other."""
+    out: set[str] = set()
+    todo = [types[k] for k in types]
+
+    def walk(obj: object) -> None:
+        if isinstance(obj, str):
+            if obj in known and obj not in out and obj not in types:
+                out.add(obj)
+                todo.append(known[obj])
+        elif isinstance(obj, (tuple, list)):
+            for item in obj:
+                walk(item)
+
+    while todo:
+        walk(todo.pop())
+    return out
+
+
 def _opname(opcode: int) -> str:
     try:
         return Opcode(opcode).name
@@ -212,11 +305,16 @@ def _opname(opcode: int) -> str:
         return f"opcode 0x{opcode:02x}"
 
 
-def scan_mcap(path: Path, topics: set[str] | None = None, *, note: str = "") -> Iterator[BagMessage]:
+def scan_mcap(
+    path: Path, topics: set[str] | None = None, *, note: str = "", on_warning: WarningFn | None = None
+) -> Iterator[BagMessage]:
     """Yield the messages of an MCAP file in file order (``topics``: only these).
 
+    Args:
+        on_warning: called with a line naming each damaged chunk that was skipped.
+
     Raises:
-        BagError: not an MCAP file, or damaged (after every intact message before the damage);
-            ``note`` is appended to the error text (e.g. why the index was not used).
+        BagError: not an MCAP file, or damaged beyond a chunk (after every intact message before
+            the damage); ``note`` is appended to the error text (e.g. why the index was not used).
     """
-    yield from _McapScanner(Path(path), topics, note=note).messages()
+    yield from _McapScanner(Path(path), topics, note=note, on_warning=on_warning).messages()

@@ -4,19 +4,37 @@ Reads a rosbag2 directory or bare ``.mcap`` file (``hdmap_ros.io.bagio.iter_bag`
 raw CDR bytes of ``/fleet/drives`` (and ``/fleet/origin``, latched) on publishers of the recorded
 type, at the bag's log times scaled by ``rate`` (0 = as fast as possible), starting
 ``start_offset_s`` into the bag, optionally in a loop. On stock Jazzy ``ros2 bag play`` does the same.
+
+A drive message no hdmap_msgs subscriber could read is not sent but counted as skipped with its
+reason (``skipped``; warnings in the log and on /diagnostics): bytes that do not deserialize
+(``undecodable``), or a message recorded with another Drive definition that does not convert
+(``definition_mismatch``); one with another definition that converts is sent re-encoded. A
+damaged chunk of the bag is skipped with a warning and the rest played. ``played`` counts every
+drive message taken from the bag (sent or skipped).
 """
 
 from __future__ import annotations
 
 import importlib
 import time
+from collections import Counter
 from collections.abc import Iterator
 
 from rclpy.duration import Duration
 from rclpy.node import Node
 
 from hdmap_core.errors import HdmapError
-from hdmap_ros.io.bagio import DRIVES_TOPIC, ORIGIN_TOPIC, BagMessage, iter_bag
+from hdmap_ros.convert.messages import drive_to_msg, rclpy_types
+from hdmap_ros.io.bagio import (
+    DRIVES_TOPIC,
+    ORIGIN_TOPIC,
+    ORIGIN_TYPE,
+    BagMessage,
+    Rejection,
+    drive_of_message,
+    has_contract_definition,
+    iter_bag,
+)
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, run_node
 
@@ -35,16 +53,26 @@ class BagPlayer(HealthMixin, Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("bag_player", **kwargs)
         self.bag = declare(self, "bag", "", "The fleet bag to replay (rosbag2 directory or .mcap file).")
-        self.rate = declare(self, "rate", 1.0, "Replay speed factor; 0 = as fast as possible.", lo=0.0, hi=10000.0)
-        self.loop = declare(self, "loop", False, "Start again at the end.")
+        self.rate = declare(
+            self, "rate", 1.0, "Replay speed factor; 0 = as fast as possible.", lo=0.0, hi=10000.0,
+            dynamic="rate",
+        )
+        self.loop = declare(self, "loop", False, "Start again at the end.", dynamic="loop")
         self.start_offset_s = declare(self, "start_offset_s", 0.0, "Skip this much of the bag [s].", lo=0.0, hi=1e7)
         self.wait_for_subscribers_s = declare(
             self, "wait_for_subscribers_s", 5.0, "Wait up to this long for a /fleet/drives subscriber [s].", lo=0.0, hi=600.0
         )
         self.exit_when_done = declare(self, "exit_when_done", True, "Standalone: exit when the bag is done.")
+        self.linger_s = declare(
+            self, "linger_s", 2.0,
+            "Standalone: stay this long after the bag is done (and until every reader acknowledged), so "
+            "readers that match late still get the latched origin [s].", lo=0.0, hi=3600.0,
+        )
         self._init_health("bag_player")
         self.done = False
+        self._done_at = 0.0
         self.published = 0
+        self.skipped: Counter = Counter()  # drive messages not sent, by reason
         self._pubs: dict[str, object] = {}
         self._it: Iterator[BagMessage] | None = None
         self._next: BagMessage | None = None
@@ -56,18 +84,56 @@ class BagPlayer(HealthMixin, Node):
             self.get_logger().error("parameter 'bag' is empty: nothing to play")
             self.done = True
             return
+        # The origin's latched publisher exists from the start: readers in other processes match it
+        # while the bag plays, not only after its first (and only) message.
+        self._publisher_for(ORIGIN_TOPIC, ORIGIN_TYPE)
         self._timer = self.create_timer(0.01, self.tick)
 
     def _publisher(self, bm: BagMessage):
-        pub = self._pubs.get(bm.topic)
+        return self._publisher_for(bm.topic, bm.msgtype)
+
+    def _publisher_for(self, topic: str, msgtype: str):
+        pub = self._pubs.get(topic)
         if pub is None:
-            profile = qos.LATCHED if bm.topic == ORIGIN_TOPIC else qos.DRIVES
-            pub = self.create_publisher(message_class(bm.msgtype), bm.topic, profile)
-            self._pubs[bm.topic] = pub
+            profile = qos.LATCHED if topic == ORIGIN_TOPIC else qos.DRIVES
+            # the bag's absolute names become relative: a namespace (-r __ns:=/ns2) moves them
+            pub = self.create_publisher(message_class(msgtype), topic.lstrip("/"), profile)
+            self._pubs[topic] = pub
         return pub
 
+    @property
+    def played(self) -> int:
+        """Drive messages taken from the bag: sent or skipped."""
+        return self.published + sum(self.skipped.values())
+
+    def _warn(self, text: str) -> None:
+        self.health.error(text)
+        self.get_logger().warning(text)
+
+    def _skip(self, reason: str, detail: str) -> None:
+        self.skipped[reason] += 1
+        self.health.reject(reason, detail)
+        self.get_logger().warning(f"drive message skipped: {reason} ({detail})")
+
+    def _payload(self, bm: BagMessage) -> bytes | None:
+        """The bytes to send for a drive message, or None when no subscriber could read it (counted)."""
+        from rclpy.serialization import deserialize_message, serialize_message  # noqa: PLC0415
+
+        if has_contract_definition(bm):
+            try:
+                deserialize_message(bm.data, message_class(bm.msgtype))
+            except Exception as err:  # noqa: BLE001 - rclpy raises plain exceptions of the C layer; named, counted
+                self._skip("undecodable", f"log time {bm.log_time_ns}: {type(err).__name__}: {err}")
+                return None
+            return bm.data  # raw CDR as recorded (invalid content is the ingestor's to judge)
+        got = drive_of_message(bm, expected_frame=None)
+        if isinstance(got, Rejection):
+            self._skip(got.reason, f"log time {bm.log_time_ns}: {got.detail}")
+            return None
+        return serialize_message(drive_to_msg(got, types=rclpy_types()))
+
     def _restart(self) -> None:
-        self._it = iter_bag(self.bag, topics=[DRIVES_TOPIC, ORIGIN_TOPIC])
+        self._it = iter_bag(self.bag, topics=[DRIVES_TOPIC, ORIGIN_TOPIC], on_warning=self._warn)
         self._next = None
         self._t0_bag = None
 
@@ -99,7 +165,9 @@ class BagPlayer(HealthMixin, Node):
                 self._t0_bag = bm.log_time_ns + int(self.start_offset_s * 1e9)
                 self._t0_wall = now
             if bm.topic == ORIGIN_TOPIC:
-                if not self._origin_sent:  # latched: once is enough, also across loops
+                if bm.msgtype != ORIGIN_TYPE:
+                    self._warn(f"{ORIGIN_TOPIC} carries {bm.msgtype}, want {ORIGIN_TYPE}: not sent")
+                elif not self._origin_sent:  # latched: once is enough, also across loops
                     self._publisher(bm).publish(bm.data)
                     self._origin_sent = True
                 self._next = None
@@ -109,8 +177,11 @@ class BagPlayer(HealthMixin, Node):
                 continue
             if self.rate > 0 and now < self._t0_wall + (bm.log_time_ns - self._t0_bag) / 1e9 / self.rate:
                 return  # not due yet
-            self._publisher(bm).publish(bm.data)  # raw CDR as recorded
             self._next = None
+            payload = self._payload(bm)
+            if payload is None:
+                continue
+            self._publisher(bm).publish(payload)
             self.published += 1
             self.health.accept()
             self.health.updated()
@@ -121,18 +192,24 @@ class BagPlayer(HealthMixin, Node):
 
     def _wait_ready(self) -> bool:
         """True when a /fleet/drives subscriber is there or the wait is over."""
-        if self.count_subscribers(DRIVES_TOPIC) > 0:
+        if self.count_subscribers(DRIVES_TOPIC.lstrip("/")) > 0:
             return True
         return time.monotonic() - self._started >= self.wait_for_subscribers_s
 
     def _finish(self) -> None:
         self.done = True
-        self.get_logger().info(f"bag {self.bag} done: {self.published} drive message(s) published")
+        self._done_at = time.monotonic()
+        skipped = sum(self.skipped.values())
+        self.get_logger().info(
+            f"bag {self.bag} done: {self.published} drive message(s) published"
+            + (f", {skipped} skipped ({dict(self.skipped)})" if skipped else "")
+        )
 
 
     def finished(self) -> bool:
-        """Standalone: the bag is done and the node should exit (``exit_when_done``)."""
-        return self.done and self.exit_when_done
+        """Standalone: the bag is done, ``linger_s`` has passed since (readers that match late still
+        get the latched origin) and the node should exit (``exit_when_done``)."""
+        return self.done and self.exit_when_done and time.monotonic() - self._done_at >= self.linger_s
 
     def destroy_node(self) -> None:
         if self.done and self.published and self.context.ok():

@@ -27,10 +27,13 @@ class Health:
         name: status name, e.g. ``"hdmap: drive_ingestor"``.
         hardware_id: what the status is about (the node's fully qualified name).
         backlog_warn: backlog at or above which the level is WARN.
+        item: what the node counts, the prefix of its keys: ``drives`` (ingestor, mapper, player),
+            ``tile_estimates`` (stitcher), ``maps`` (publisher).
     """
 
     name: str
     hardware_id: str = ""
+    item: str = "drives"
     backlog_warn: int = 20
     accepted: int = 0
     rejected: Counter = field(default_factory=Counter)
@@ -92,9 +95,9 @@ class Health:
         """(key, value) pairs, stable keys first, then rejections per reason, then extras."""
         with self._lock:
             kv = [
-                ("drives_accepted", str(self.accepted)),
-                ("drives_rejected", str(self.rejected_total)),
-                ("drives_duplicate", str(self.duplicates)),
+                (f"{self.item}_accepted", str(self.accepted)),
+                (f"{self.item}_rejected", str(self.rejected_total)),
+                (f"{self.item}_duplicate", str(self.duplicates)),
                 ("backlog", str(self.backlog)),
                 ("updates", str(self.updates)),
                 ("failed_updates", str(self.errors)),

@@ -2,7 +2,8 @@
 
 Subscribes ``/fleet/drives`` (hdmap_msgs/Drive). Every drive is validated (the bad-input classes of
 ``hdmap_core.model.validate_drive``: NaN/inf, too few points, empty trajectory, unknown type, wrong
-frame), its detections cleaned as in Sec. III (length filter, RDP; ``pipeline.preprocess.clean_drive``),
+frame) and physically plausible (``hdmap_core.plausibility``, default bounds), its detections
+cleaned as in Sec. III (length filter, RDP; ``pipeline.preprocess.clean_drive``),
 duplicates dropped by drive id, and the rest published on ``/hdmap/drives_accepted``. Every
 rejection is logged with the drive id and the reason and counted on ``/diagnostics``; the id of a
 drive refused as invalid goes out on ``/hdmap/drives_rejected`` (std_msgs/String; the mapper counts
@@ -18,15 +19,16 @@ from std_msgs.msg import String
 
 from hdmap_core.errors import HdmapError, InvalidDriveError
 from hdmap_core.pipeline.preprocess import PreprocessConfig, clean_drive
+from hdmap_core.plausibility import check_plausible
 from hdmap_ros.convert.messages import rclpy_types
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, drive_from_wire, drive_to_wire, run_node
 
 __all__ = ["DriveIngestor", "main"]
 
-DRIVES_TOPIC = "/fleet/drives"
-ACCEPTED_TOPIC = "/hdmap/drives_accepted"
-REJECTED_TOPIC = "/hdmap/drives_rejected"
+DRIVES_TOPIC = "fleet/drives"  # relative: a namespace (-r __ns:=/ns2) moves every topic
+ACCEPTED_TOPIC = "hdmap/drives_accepted"
+REJECTED_TOPIC = "hdmap/drives_rejected"
 
 
 class DriveIngestor(HealthMixin, Node):
@@ -34,13 +36,17 @@ class DriveIngestor(HealthMixin, Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("drive_ingestor", **kwargs)
-        self.expected_frame = declare(self, "expected_frame", "map", "Frame every drive must be in ('' = any).")
+        self.expected_frame = declare(
+            self, "expected_frame", "map", "Frame every drive must be in ('' = any).",
+            dynamic="expected_frame",
+        )
         self.min_length_m = declare(
             self, "min_detection_length_m", 3.0, "Detection polylines shorter than this are dropped [m] (paper: 3).",
-            lo=0.0, hi=100.0,
+            lo=0.0, hi=100.0, dynamic="min_length_m"
         )
         self.rdp_epsilon_m = declare(
-            self, "rdp_epsilon_m", 0.05, "Ramer-Douglas-Peucker tolerance for detections [m].", lo=0.001, hi=2.0
+            self, "rdp_epsilon_m", 0.05, "Ramer-Douglas-Peucker tolerance for detections [m].", lo=0.001, hi=2.0,
+            dynamic="rdp_epsilon_m"
         )
         depth = declare(
             self, "accepted_history_depth", 100,
@@ -67,7 +73,7 @@ class DriveIngestor(HealthMixin, Node):
     def _handle(self, msg) -> None:
         did = str(getattr(msg, "drive_id", ""))
         try:
-            drive = drive_from_wire(msg, self._types.Drive, expected_frame=self.expected_frame or None)
+            drive = check_plausible(drive_from_wire(msg, self._types.Drive, expected_frame=self.expected_frame or None))
         except InvalidDriveError as err:
             did = did or err.drive_id
             self.health.reject(err.reason, f"{did!r} {err.detail}")

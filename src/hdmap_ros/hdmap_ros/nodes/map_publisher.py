@@ -31,10 +31,10 @@ from hdmap_ros.nodes._common import HealthMixin, declare, run_node
 
 __all__ = ["MapPublisher", "main"]
 
-MAP_TOPIC = "/hdmap/map"
-ORIGIN_TOPIC = "/fleet/origin"
-MARKERS_TOPIC = "/hdmap/markers"
-SAVE_SERVICE = "/hdmap/save_map"
+MAP_TOPIC = "hdmap/map"  # relative: a namespace (-r __ns:=/ns2) moves every topic
+ORIGIN_TOPIC = "fleet/origin"
+MARKERS_TOPIC = "hdmap/markers"
+SAVE_SERVICE = "hdmap/save_map"
 
 
 class MapPublisher(HealthMixin, Node):
@@ -42,11 +42,23 @@ class MapPublisher(HealthMixin, Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("map_publisher", **kwargs)
-        self.line_width_m = declare(self, "line_width_m", 0.2, "Width of the feature LINE_STRIPs [m].", lo=0.01, hi=5.0)
-        self.show_topology = declare(self, "show_topology", True, "Also draw the topology graph.")
-        self.show_lanes = declare(self, "show_lanes", True, "Also draw the lanes derived from the map.")
-        self.overwrite = declare(self, "overwrite", True, "The save service replaces an existing map bag at the path.")
-        self._init_health("map_publisher")
+        self.line_width_m = declare(
+            self, "line_width_m", 0.2, "Width of the feature LINE_STRIPs [m].", lo=0.01, hi=5.0,
+            dynamic="line_width_m",
+        )
+        self.show_topology = declare(
+            self, "show_topology", True, "Also draw the topology graph.",
+            dynamic="show_topology",
+        )
+        self.show_lanes = declare(
+            self, "show_lanes", True, "Also draw the lanes derived from the map.",
+            dynamic="show_lanes",
+        )
+        self.overwrite = declare(
+            self, "overwrite", True, "The save service replaces an existing map bag at the path.",
+            dynamic="overwrite",
+        )
+        self._init_health("map_publisher", item="maps")
         from hdmap_msgs.srv import SaveMap  # noqa: PLC0415
 
         self.map: HDMap | None = None
@@ -57,6 +69,7 @@ class MapPublisher(HealthMixin, Node):
         self._markers_pub = self.create_publisher(self._marker_types.MarkerArray, MARKERS_TOPIC, qos.LATCHED)
         self._map_sub = self.create_subscription(t.Map, MAP_TOPIC, self.on_map, qos.LATCHED)
         self._origin_sub = self.create_subscription(NavSatFix, ORIGIN_TOPIC, self.on_origin, qos.LATCHED)
+        self._origin_live = self.create_subscription(NavSatFix, ORIGIN_TOPIC, self.on_origin, qos.ORIGIN_LIVE)
         self._srv = self.create_service(SaveMap, SAVE_SERVICE, self.on_save)
 
     def on_map(self, msg) -> None:

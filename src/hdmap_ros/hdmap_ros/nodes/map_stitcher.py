@@ -21,7 +21,6 @@ Restart: the stored map is published again; if tiles changed after it was made i
 
 from __future__ import annotations
 
-import os
 import time
 import traceback
 from dataclasses import replace
@@ -35,15 +34,15 @@ from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile, stitch_
 from hdmap_ros.convert.messages import map_to_msg, msg_to_status, rclpy_status_class, rclpy_types, status_to_msg
 from hdmap_ros.convert.tiles import msg_to_tile, rclpy_tile_types
 from hdmap_ros.nodes import qos
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node
+from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node, state_path
 from hdmap_ros.persistence.store import MapStore, blob_to_segments, segments_to_blob
 
 __all__ = ["MapStitcher", "main"]
 
-SEGMENTS_TOPIC = "/hdmap/segments"
-MAP_TOPIC = "/hdmap/map"
-STATUS_TOPIC = "/hdmap/status"
-MAPPER_STATUS_TOPIC = "/hdmap/mapper_status"
+SEGMENTS_TOPIC = "hdmap/segments"  # relative: a namespace (-r __ns:=/ns2) moves every topic
+MAP_TOPIC = "hdmap/map"
+STATUS_TOPIC = "hdmap/status"
+MAPPER_STATUS_TOPIC = "hdmap/mapper_status"
 
 
 class MapStitcher(HealthMixin, Node):
@@ -51,27 +50,32 @@ class MapStitcher(HealthMixin, Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("map_stitcher", **kwargs)
-        db = declare(self, "db_path", "~/.ros/hdmap/map_stitcher.db", "SQLite file of the map store.")
+        db = declare(self, "db_path", "", "SQLite file of the map store ('' = $ROS_HOME/hdmap/map_stitcher.db).")
         pipeline_config = declare_pipeline_config(self)  # a bad preset or override fails here, named
         self.debounce_s = declare(
-            self, "debounce_s", 1.0, "Rebuild the map after this long without a new tile estimate [s].", lo=0.0, hi=600.0
+            self, "debounce_s", 1.0, "Rebuild the map after this long without a new tile estimate [s].",
+            lo=0.0, hi=600.0,
+            dynamic="debounce_s"
         )
         self.max_delay_s = declare(
             self, "max_delay_s", 5.0, "Rebuild at the latest this long after the first unstitched update [s].",
-            lo=0.0, hi=3600.0,
+            lo=0.0, hi=3600.0, dynamic="max_delay_s"
         )
         self.id_distance_m = declare(
-            self, "id_match_distance_m", 0.75, "A new feature keeps an old id when this close to it [m].", lo=0.01, hi=10.0
+            self, "id_match_distance_m", 0.75, "A new feature keeps an old id when this close to it [m].",
+            lo=0.01, hi=10.0,
+            dynamic="id_distance_m"
         )
         self.id_overlap = declare(
-            self, "id_min_overlap", 0.5, "... along at least this share of the shorter of the two.", lo=0.0, hi=1.0
+            self, "id_min_overlap", 0.5, "... along at least this share of the shorter of the two.", lo=0.0, hi=1.0,
+            dynamic="id_overlap"
         )
         depth = declare(
             self, "segments_history_depth", 1000, "History depth of /hdmap/segments (match the mapper).", lo=1, hi=100000
         )
-        self._init_health("map_stitcher")
+        self._init_health("map_stitcher", item="tile_estimates")
         self.pipeline_config = pipeline_config
-        self.store = MapStore(os.path.expanduser(db))
+        self.store = MapStore(state_path(db, "map_stitcher.db"))
         self.health.set("tile_versions", self.store.version_total())
         self._types = rclpy_types()
         self._graphs: dict[TileKey, tuple[int, list]] = {}  # tile -> (version, segment graphs)

@@ -7,7 +7,7 @@ Topic                  | profile        | why
 /hdmap/segments        | SEGMENTS       | a restarted stitcher gets the recent tile estimates again
 /hdmap/map             | LATCHED        | a late subscriber gets the latest map at once
 /hdmap/markers         | LATCHED        | RViz / Foxglove opened later still show the map
-/fleet/origin          | LATCHED        | published once; late joiners need it
+/fleet/origin          | LATCHED        | published once; late joiners need it (also subscribed ORIGIN_LIVE)
 /hdmap/drive_acks      | ACKS           | one small message per acknowledged drive
 /diagnostics           | DIAGNOSTICS    | the ROS convention (diagnostic_aggregator subscribes so)
 """
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-__all__ = ["DRIVES", "ACCEPTED", "SEGMENTS", "LATCHED", "ACKS", "DIAGNOSTICS", "replay"]
+__all__ = ["DRIVES", "ACCEPTED", "SEGMENTS", "LATCHED", "ORIGIN_LIVE", "ACKS", "DIAGNOSTICS", "replay"]
 
 # /fleet/drives: as the bag player and a fleet gateway publish.
 DRIVES = QoSProfile(
@@ -58,6 +58,20 @@ LATCHED = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     # TRANSIENT_LOCAL: "latched": a subscriber joining later gets the latest map at once.
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+# /fleet/origin as the map publisher subscribes it, besides LATCHED (which gets the fix a
+# TRANSIENT_LOCAL publisher sent before we joined): a second, VOLATILE subscription, which also
+# matches a VOLATILE publisher (`ros2 bag play` of a bag without recorded QoS); LATCHED alone is
+# incompatible with one and the origin never arrived. (BEST_AVAILABLE durability is decided once,
+# when the subscription is made, from the publishers seen then: none, usually.)
+ORIGIN_LIVE = QoSProfile(
+    # KEEP_LAST 1, RELIABLE: one fix, needed whole.
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    # VOLATILE: compatible with every publisher.
+    durability=DurabilityPolicy.VOLATILE,
 )
 
 # /hdmap/drive_acks.

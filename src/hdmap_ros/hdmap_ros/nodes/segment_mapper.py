@@ -40,7 +40,6 @@ every stored tile estimate is published again (the stitcher ignores versions it 
 from __future__ import annotations
 
 import multiprocessing
-import os
 import time
 import traceback
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -54,21 +53,30 @@ from hdmap_core.live.jobs import JobResult, run_job, warm_up
 from hdmap_core.live.progress import LiveStatus
 from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig, road_cells, tiles_of_drive
+from hdmap_core.model import validate_drive
 from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.adjustment import OffsetModel
+from hdmap_core.plausibility import check_plausible
 from hdmap_ros.convert.messages import rclpy_status_class, rclpy_types, status_to_msg
 from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
 from hdmap_ros.nodes import qos
-from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, drive_from_wire, run_node
-from hdmap_ros.persistence.store import DriveStore, TileEstimate
+from hdmap_ros.nodes._common import (
+    HealthMixin,
+    declare,
+    declare_pipeline_config,
+    drive_from_wire,
+    run_node,
+    state_path,
+)
+from hdmap_ros.persistence.store import DriveStore, TileEstimate, blob_to_drive
 
 __all__ = ["SegmentMapper", "main"]
 
-ACCEPTED_TOPIC = "/hdmap/drives_accepted"
-REJECTED_TOPIC = "/hdmap/drives_rejected"
-SEGMENTS_TOPIC = "/hdmap/segments"
-ACKS_TOPIC = "/hdmap/drive_acks"
-STATUS_TOPIC = "/hdmap/mapper_status"
+ACCEPTED_TOPIC = "hdmap/drives_accepted"  # relative: a namespace (-r __ns:=/ns2) moves every topic
+REJECTED_TOPIC = "hdmap/drives_rejected"
+SEGMENTS_TOPIC = "hdmap/segments"
+ACKS_TOPIC = "hdmap/drive_acks"
+STATUS_TOPIC = "hdmap/mapper_status"
 
 
 class _Inline:
@@ -91,7 +99,7 @@ class SegmentMapper(HealthMixin, Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("segment_mapper", **kwargs)
-        db = declare(self, "db_path", "~/.ros/hdmap/segment_mapper.db", "SQLite file of the drive store.")
+        db = declare(self, "db_path", "", "SQLite file of the drive store ('' = $ROS_HOME/hdmap/segment_mapper.db).")
         pipeline_config = declare_pipeline_config(self)  # a bad preset or override fails here, named
         self.tile_config = TileConfig(
             tile_size_m=declare(self, "tile_size_m", 256.0, "Edge of a map tile [m].", lo=32.0, hi=4096.0),
@@ -110,8 +118,9 @@ class SegmentMapper(HealthMixin, Node):
             seed=declare(self, "seed", 0, "Base seed; each tile's seed derives from it and the tile key.", lo=0, hi=2**31 - 1),
             pivot_margin_m=self._pivot_margin(),
         )
-        settle_after_s = declare(
-            self, "settle_after_s", 2.0, "Idle time after which stale tiles are re-estimated [s].", lo=0.0, hi=3600.0
+        self.settle_after_s = declare(
+            self, "settle_after_s", 2.0, "Idle time after which stale tiles are re-estimated [s].", lo=0.0, hi=3600.0,
+            dynamic="settle_after_s",
         )
         depth = declare(
             self, "segments_history_depth", 1000, "Tile estimates kept (TRANSIENT_LOCAL) for a restarting stitcher.",
@@ -125,7 +134,7 @@ class SegmentMapper(HealthMixin, Node):
         self.work_slice_s = declare(
             self, "work_slice_s", 0.5,
             "Mapping time per worker turn with workers=1 [s]; new drives are taken in between.",
-            lo=0.0, hi=600.0,
+            lo=0.0, hi=600.0, dynamic="work_slice_s",
         )
         workers = declare(
             self, "workers", 0, "Processes mapping tiles: 0 = every available CPU, 1 = in this process.", lo=0, hi=256
@@ -134,15 +143,16 @@ class SegmentMapper(HealthMixin, Node):
         self.health.backlog_warn = 200
 
         self.pipeline_config = pipeline_config
-        self.store = DriveStore(os.path.expanduser(db))
+        self.store = DriveStore(state_path(db, "segment_mapper.db"))
         self._check_tiling()
         self._types = rclpy_types()
         self._tile_types = rclpy_tile_types()
         self.use_fleet_model = self.pipeline_config.final_pass is not None
         self.scheduler = LiveScheduler(self.tile_config, use_fleet_model=self.use_fleet_model,
-                                       settle_after_s=settle_after_s)
+                                       settle_after_s=self.settle_after_s)
         self._model: OffsetModel | None = None
         self._load_model()
+        emptied = self._purge_implausible()  # before the schedule is made from the store
         self.scheduler.restore(self.store.tile_drive_sets(), self.store.estimates(), self.store.observation_sets(),
                                self._model_sig, now=time.monotonic())
         self.store.mark_processed(self.store.pending())  # their tiles are in the restored schedule
@@ -175,6 +185,8 @@ class SegmentMapper(HealthMixin, Node):
             callback_group=self._rx_group,
         )
         self._timer = self.create_timer(0.05, self.work, callback_group=self._work_group)
+        for est in emptied:  # tiles no drive covers any more after the purge: an empty estimate
+            self._publish(est)
         if republish:
             for est in self.store.tiles():
                 self._publish(est)
@@ -185,6 +197,19 @@ class SegmentMapper(HealthMixin, Node):
             f"{self.scheduler.pending_tiles()} tile(s) pending, {len(self.store.tiles())} tile(s), "
             f"{self.workers} worker(s)"
         )
+
+    @property
+    def settle_after_s(self) -> float:
+        """Idle time before settling [s] (the scheduler's; a run-time parameter)."""
+        sched = self.__dict__.get("scheduler")
+        return sched.settle_after_s if sched is not None else self.__dict__.get("_settle_after_s", 2.0)
+
+    @settle_after_s.setter
+    def settle_after_s(self, value: float) -> None:
+        self.__dict__["_settle_after_s"] = float(value)
+        sched = self.__dict__.get("scheduler")
+        if sched is not None:
+            sched.settle_after_s = float(value)
 
     def _pivot_margin(self) -> float | None:
         margin = float(self.get_parameter("margin_m").value)
@@ -210,6 +235,38 @@ class SegmentMapper(HealthMixin, Node):
                 f"{self.store.path} was made with {stored}, not {tiling}: use that tiling or a new db_path"
             )
 
+    def _purge_implausible(self) -> list[TileEstimate]:
+        """Forget stored drives outside the physical bounds (stored by an older version or under
+        other bounds): a bad drive never comes back from the store. Only drives not yet checked
+        under the current bounds are read (their last arrival number is kept in the store).
+
+        Returns:
+            the empty estimates stored for tiles no drive covers any more (to publish).
+        """
+        bounds = self.pipeline_config.plausibility
+        done = self.store.get_meta("plausible_upto") or ""
+        key, _, upto = done.rpartition("|")
+        start = int(upto) if key == repr(bounds) and upto.isdigit() else 0
+        bad: list[str] = []
+        for _seq, did, blob in self.store.drives_after(start):
+            try:
+                check_plausible(validate_drive(blob_to_drive(blob), expected_frame=""), bounds=bounds)
+            except InvalidDriveError as err:
+                bad.append(did)
+                self.get_logger().warning(f"stored drive {did!r} removed: {err.reason} ({err.detail})")
+            except (HdmapError, ValueError, KeyError, TypeError, OSError) as err:  # a damaged blob
+                bad.append(did)
+                self.get_logger().warning(f"stored drive {did!r} removed: unreadable ({type(err).__name__}: {err})")
+        emptied: list[TileEstimate] = []
+        if bad:
+            for key_ in sorted(self.store.remove_drives(bad)):
+                if self.store.tile_drive_count(key_) == 0 and self.store.tile(key_) is not None:
+                    emptied.append(self.store.put_tile(key_, [], []))  # nothing left there
+            for did in bad:
+                self.health.reject("implausible_stored", did)
+        self.store.set_meta("plausible_upto", f"{bounds!r}|{self.store.last_seq()}")
+        return emptied
+
     # --- receiving -------------------------------------------------------------------------------
 
     def on_drive(self, msg) -> None:
@@ -224,6 +281,8 @@ class SegmentMapper(HealthMixin, Node):
         try:
             drive = drive_from_wire(msg, self._types.Drive, expected_frame=None)
             did = drive.drive_id
+            check_plausible(drive, bounds=self.pipeline_config.plausibility)
+            tiles = tiles_of_drive(drive, config=self.tile_config)
         except InvalidDriveError as err:
             did = did or err.drive_id
             self.health.reject(err.reason, did)
@@ -235,7 +294,12 @@ class SegmentMapper(HealthMixin, Node):
             self._rejected_ids.add(did)
             self.get_logger().warning(f"drive {did!r} rejected: {err}")
             return
-        if not self.store.add_drive(drive, tiles_of_drive(drive, config=self.tile_config)):
+        except (AttributeError, TypeError, ValueError, MemoryError) as err:  # a message unlike the contract
+            self.health.reject("invalid_message", f"{did!r}: {type(err).__name__}: {err}")
+            self._rejected_ids.add(did)
+            self.get_logger().warning(f"drive {did!r} rejected: invalid_message ({type(err).__name__}: {err})")
+            return
+        if not self.store.add_drive(drive, tiles):
             self.health.duplicate()
             return
         self._ack_pub.publish(String(data=drive.drive_id))

@@ -419,6 +419,32 @@ class DriveStore(_Store):
             )
         return True
 
+    def drives_after(self, seq: int) -> Iterable[tuple[int, str, bytes]]:
+        """(seq, drive_id, blob) of the drives stored after arrival number ``seq``, in arrival order."""
+        return self._query("SELECT seq, drive_id, blob FROM drives WHERE seq > ? ORDER BY seq", (int(seq),))
+
+    def last_seq(self) -> int:
+        """The arrival number of the latest stored drive (0: none)."""
+        return int(self._query("SELECT COALESCE(MAX(seq), 0) FROM drives")[0][0])
+
+    def remove_drives(self, drive_ids: Iterable[str]) -> set[TileKey]:
+        """Forget drives (e.g. ones that fail bounds they were not checked against when stored),
+        in one transaction; returns the tiles they covered.
+
+        The estimates and observations of those tiles are marked stale (made from no drive), so
+        the mapper makes them again from the drives left; a tile no drive covers any more keeps its
+        estimate until :meth:`put_tile` replaces it (with nothing).
+        """
+        ids = list(drive_ids)
+        tiles = self.tiles_of(ids)
+        with self._tx() as con:
+            con.executemany("DELETE FROM drives WHERE drive_id=?", [(d,) for d in ids])
+            con.executemany("DELETE FROM drive_tiles WHERE drive_id=?", [(d,) for d in ids])
+            for key in tiles:
+                con.execute("UPDATE tiles SET drive_count=0, drive_ids='[]' WHERE tx=? AND ty=?", key)
+                con.execute("UPDATE tile_obs SET drive_count=0, drive_ids='[]' WHERE tx=? AND ty=?", key)
+        return tiles
+
     def has_drive(self, drive_id: str) -> bool:
         return bool(self._query("SELECT 1 FROM drives WHERE drive_id=?", (drive_id,)))
 
