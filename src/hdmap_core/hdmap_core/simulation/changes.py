@@ -9,7 +9,8 @@ Kinds (``KINDS``):
 
 * ``shift``: lane markings and lane centerlines move ``size`` metres to the right of the driving
   direction (toward the shoulder; negative: toward the median), reached over a smooth ``taper_m``
-  ramp at each end inside the zone. Road borders (barrier, shoulder border) stay, as in a
+  ramp at each end inside the zone; in full within ``BAND_M / 2`` of the route, fading out to
+  none at ``BAND_M`` (ramps leaving the carriageway). Road borders (barrier, shoulder border) stay, as in a
   construction zone.
 * ``restripe``: markings flip dashed <-> solid inside the zone; by default every dashed one (a
   no-overtaking zone), with ``size`` = k the k-th marking from the left only.
@@ -320,8 +321,11 @@ def _profile(s: np.ndarray, change: RoadChange) -> np.ndarray:
 
 
 def _shifted(zone: ChangeZone, pts: np.ndarray, change: RoadChange) -> np.ndarray:
-    s, _, member = _station(zone, pts, _tangents(pts))
-    w = np.where(member, _profile(s, change), 0.0)
+    s, lat, member = _station(zone, pts, _tangents(pts))
+    # Full shift within half the band, fading out smoothly toward its edge (a ramp leaving the
+    # carriageway bends back onto its old course rather than jumping there).
+    fade = np.clip((zone.band_m - np.abs(lat)) / (zone.band_m / 2.0), 0.0, 1.0)
+    w = np.where(member, _profile(s, change) * fade * fade * (3.0 - 2.0 * fade), 0.0)
     if not np.any(w > 0):
         return pts
     _, j = zone.tree.query(pts)
