@@ -9,7 +9,9 @@ drives) and "after" (>= ``min_after`` drives) such that
   effect away, and within 3 before-spreads (or half the smallest effect) of the after mean (one
   odd drive cannot hide among them, nor can one stray drive make a change);
 * for the shares (type, missed, extra): at least ``min_after_shares`` after-drives, the share
-  grows, and the before median is below ``max_share_before`` (where the map disagrees with its
+  grows, every after-drive lies beyond the before drives' 90th percentile, the spread is their
+  standard deviation (a share is 0 for most drives and large for the few that misread a line),
+  and the before median is below ``max_share_before`` (where the map disagrees with its
   own drives already, e.g. sparse ramps, a share says nothing of a change);
 * the after mean is at least the smallest effect (``min_shift_m`` / ``min_share``) away from the
   before median, and that is at least ``z_min`` standard errors (the before spread, robust,
@@ -105,10 +107,20 @@ def _series(e: PlaceEvidence, name: str, config: ChangeConfig) -> float:
 
 
 def change_point(
-    values: np.ndarray, *, min_effect: float, floor: float, z_min: float, min_before: int, min_after: int
+    values: np.ndarray,
+    *,
+    min_effect: float,
+    floor: float,
+    z_min: float,
+    min_before: int,
+    min_after: int,
+    heavy_tails: bool = False,
 ) -> tuple[int, float, float] | None:
     """(index of the first after-value, effect, z) of the earliest change point of ``values``
-    (time ordered, no NaN), or None (module docstring)."""
+    (time ordered, no NaN), or None (module docstring). ``heavy_tails``: the before spread is the
+    standard deviation, not the median absolute deviation, and every after-value must lie beyond
+    the before values' 90th percentile (a share of wrong types is 0 for most drives and large for
+    the few that misread a line: a robust spread would call those few a change)."""
     n = len(values)
     for k in range(min_before, n - min_after + 1):
         before, after = values[:k], values[k:]
@@ -117,7 +129,13 @@ def change_point(
         if not (np.all(dev >= min_effect / 2) or np.all(dev <= -min_effect / 2)):
             continue
         effect = float(np.mean(after)) - med
-        spread = max(floor, 1.4826 * float(np.median(np.abs(before - med))))
+        if heavy_tails:
+            spread = max(floor, float(np.std(before)))
+            edge = float(np.percentile(before, 90))
+            if not (np.all(after > edge) if effect > 0 else np.all(after < float(np.percentile(before, 10)))):
+                continue
+        else:
+            spread = max(floor, 1.4826 * float(np.median(np.abs(before - med))))
         if np.any(np.abs(after - np.mean(after)) > max(3.0 * spread, min_effect / 2)):
             continue  # the after-drives disagree: a drive of the old road among them, or noise
         z = abs(effect) / (spread * math.sqrt(1.0 / k + 1.0 / (n - k)))
@@ -141,6 +159,7 @@ def _confirm(rows: list[PlaceEvidence], key: PlaceKey, config: ChangeConfig) -> 
             z_min=config.z_min,
             min_before=config.min_before,
             min_after=config.min_after if geometric else config.min_after_shares,
+            heavy_tails=not geometric,
         )
         if found is None:
             continue

@@ -5,9 +5,10 @@ drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
 features and lanes as RFC 7946 GeoJSON; with ``--lanelet2 DIR``, the lanes as an Autoware map
 directory (``hdmap export``); with ``--graphml``, the topology graph as GraphML (map frame).
-``--follow-changes``: the map as of the last drive (``hdmap_core.updates.follow``): changes of the
-road are detected and the changed places rebuilt from the drives after the change; the changes and
-the retired pieces go to ``OUT.history.json`` (docs/updates.md). Exit status: 0 done, 1 an error
+The map is the road as of the last drive (``hdmap_core.updates.follow``; ``--no-follow-changes``:
+the consensus of every drive, the map of the first build): changes of the road are detected and
+the changed places rebuilt from the drives after the change; the changes and the retired pieces go
+to ``OUT.history.json`` (docs/updates.md). Where nothing changed, the map is the same either way. Exit status: 0 done, 1 an error
 (e.g. no usable drive), 2 usage.
 """
 
@@ -69,9 +70,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--follow-changes",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=True,
         help="give the road as of the last drive: detect changes of the road from the drives' time stamps, "
-        "rebuild the changed places from the drives after the change, keep what they replaced in OUT.history.json",
+        "rebuild the changed places from the drives after the change, keep what they replaced in OUT.history.json "
+        "(default: on; a road without changes gets the same map as with --no-follow-changes)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
     parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
