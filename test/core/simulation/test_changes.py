@@ -140,3 +140,39 @@ def test_the_zone_scores_the_current_road_and_finds_ghosts_of_the_old(road):
     assert new.n_cuts > 300
     assert new.recall > 0.99 and new.precision > 0.99 and new.mean_m < 0.01 and new.ghost_share == 0.0
     assert old.recall < 0.6 and old.ghost_share > 0.3 and old.old_recall > 0.99
+
+
+def test_close_moves_the_edge_onto_the_divider_and_the_lane_into_its_neighbour(road):
+    change = RoadChange("close", 400.0, 1100.0, None, "fwd_lane2")
+    after = apply_change(road, change)
+    zone = change_zone(road, change)
+    core = _core(zone)
+    by_id = {f.id: f for f in road.features}
+    moved = [
+        f
+        for f in after.features
+        if f.id in by_id
+        and len(f.points) == len(by_id[f.id].points)
+        and np.abs(f.points - by_id[f.id].points).max() > 0
+    ]
+    (edge,) = moved
+    assert edge.type == FeatureType.SOLID
+    full = zone_mask(core, edge.points, np.gradient(edge.points, axis=0))
+    shift = _lateral(zone, edge.points[full]) - _lateral(zone, by_id[edge.id].points[full])
+    assert np.allclose(shift, 3.5, atol=0.05)  # onto the divider, 3.5 m left
+    # no dashed marking is left inside the zone on that side: the divider is gone
+    for f in after.features:
+        if f.type == FeatureType.DASHED:
+            inside = zone_mask(core, f.points, np.gradient(f.points, axis=0))
+            assert not (inside & (_lateral(zone, f.points) < -4.0)).any()
+    closed = [lid for lid in road.lanes if np.abs(after.lanes[lid].centerline - road.lanes[lid].centerline).max() > 3.0]
+    assert closed and all(lid.startswith("fwd") and lid.endswith(":3") for lid in closed)
+
+
+def test_open_moves_the_edge_out_and_draws_a_divider(road):
+    after = apply_change(road, RoadChange("open", 400.0, 1100.0, 2.5, "fwd_lane2"))
+    assert len(after.features) == len(road.features) + 1
+    new = after.features[-1]
+    assert new.type == FeatureType.DASHED and new.id > max(f.id for f in road.features)
+    with pytest.raises(ConfigError):
+        parse_change("open:400-1100@1")

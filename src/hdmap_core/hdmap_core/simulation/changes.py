@@ -17,6 +17,13 @@ Kinds (``KINDS``):
 * ``remove``: markings disappear inside the zone; by default every dashed one, with ``size`` = k
   the k-th marking from the left only.
 * ``add``: a new solid marking ``size`` metres right of the route centerline along the zone.
+* ``close``: the rightmost lane is closed: the right edge marking moves onto the lane divider left
+  of it (``size`` metres, default the distance between the two), with the tapers; the divider is
+  removed along the zone; the closed lane's centerline merges into its left neighbour, so drives
+  in it change lanes. Lane ids and links stay (the lane count changes in geometry only).
+* ``open``: the shoulder opens as a lane: the right edge marking moves ``size`` metres to the
+  right (required), with the tapers, and a dashed marking is drawn where it was, between the
+  tapers. No lane centerline is added (simulated drives do not use the new lane).
 
 Text form (``parse_change``, ``hdmap simulate --change``): ``KIND:FROM_M-TO_M[:SIZE][:ROUTE]@AFTER``,
 e.g. ``shift:1000-2000:1.5:fwd_lane1@40``: drives 0..39 see the road as it was, drives 40.. the
@@ -56,7 +63,7 @@ __all__ = [
     "default_route",
 ]
 
-KINDS = ("shift", "restripe", "remove", "add")
+KINDS = ("shift", "restripe", "remove", "add", "close", "open")
 #: Lateral reach of a change from its route's centerline [m]: a whole carriageway of 3-4 lanes
 #: with its shoulder from any of its lanes, not the opposite one (that runs the other way).
 BAND_M = 20.0
@@ -101,6 +108,10 @@ class RoadChange:
             raise ConfigError(f"road change {self.kind}: size {self.size} is not finite")
         if self.kind == "add" and self.size is None:
             raise ConfigError("road change add: SIZE (offset of the new marking right of the route [m]) is required")
+        if self.kind == "open" and (self.size is None or self.size <= 0):
+            raise ConfigError("road change open: SIZE (how far the edge marking moves right [m], > 0) is required")
+        if self.kind == "close" and self.size is not None and self.size <= 0:
+            raise ConfigError(f"road change close: SIZE (the closed lane's width [m]) must be > 0, got {self.size}")
         if (
             self.kind in ("restripe", "remove")
             and self.size is not None
@@ -362,6 +373,79 @@ def _selected(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int
     return {i: cand[i][0] for i in order if abs(cand[i][1] - lat_k) < 0.5}
 
 
+def _markings_by_offset(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> list[tuple[float, list[int]]]:
+    """The carriageway's markings in the zone grouped by lateral offset (0.5 m), rightmost first:
+    (median offset [m, + = left], feature indices)."""
+    cand = []
+    for i, f in enumerate(gt.features):
+        if f.type not in (FeatureType.SOLID, FeatureType.DASHED):
+            continue
+        s, lat, member = _station(zone, f.points, _tangents(f.points))
+        inside = member & (s >= change.from_m) & (s <= change.to_m)
+        if np.count_nonzero(inside) >= 2:
+            cand.append((float(np.median(lat[inside])), i))
+    groups: list[tuple[float, list[int]]] = []
+    for lat, i in sorted(cand):
+        if groups and abs(lat - groups[-1][0]) < 0.5:
+            groups[-1][1].append(i)
+        else:
+            groups.append((lat, [i]))
+    return groups
+
+
+def _edge_moved(
+    zone: ChangeZone, gt: GroundTruth, change: RoadChange, edge: list[int], right_m: float
+) -> list[GTFeature]:
+    """The features with those of ``edge`` shifted ``right_m`` to the right with the tapers."""
+    moved = replace(change, kind="shift", size=right_m)
+    return [replace(f, points=_shifted(zone, f.points, moved)) if i in edge else f for i, f in enumerate(gt.features)]
+
+
+def _lane_changes(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> GroundTruth:
+    groups = _markings_by_offset(zone, gt, change)
+    if change.kind == "close":
+        if len(groups) < 2:
+            raise GroundTruthError(
+                f"road change {change.text()}: fewer than two markings in the zone, no lane to close"
+            )
+        (lat_edge, edge), (lat_div, divider) = groups[0], groups[1]
+        width = float(change.size) if change.size is not None else lat_div - lat_edge
+        feats = _edge_moved(zone, gt, change, edge, -width)
+        # The divider disappears along the zone.
+        out: list[GTFeature] = []
+        next_id = max((f.id for f in gt.features), default=0) + 1
+        for i, f in enumerate(feats):
+            if i not in divider:
+                out.append(f)
+                continue
+            s, _, member = _station(zone, f.points, _tangents(f.points))
+            gone = member & (s >= change.from_m) & (s <= change.to_m)
+            pieces = [(a, b) for a, b, kept in _runs(~gone) if kept and b - a >= 2]
+            for k, (a, b) in enumerate(pieces):
+                out.append(GTFeature(f.id if k == 0 else next_id, f.type, f.points[a:b].copy()))
+                next_id += int(k > 0)
+        # The closed lane's centerline merges into its left neighbour.
+        lanes = {}
+        shift_left = replace(change, kind="shift", size=-width)
+        for lid, ln in gt.lanes.items():
+            s, lat, member = _station(zone, ln.centerline, _tangents(ln.centerline))
+            inside = member & (s >= change.from_m) & (s <= change.to_m)
+            closed = np.count_nonzero(inside) >= 2 and lat_edge < float(np.median(lat[inside])) < lat_div
+            lanes[lid] = replace(ln, centerline=_shifted(zone, ln.centerline, shift_left)) if closed else ln
+        return replace(gt, features=tuple(out), lanes=lanes)
+    if not groups:
+        raise GroundTruthError(f"road change {change.text()}: no marking in the zone to open the shoulder beside")
+    lat_edge, edge = groups[0]
+    feats = _edge_moved(zone, gt, change, edge, float(change.size or 0.0))
+    keep = (zone.s >= change.from_m + change.taper_m) & (zone.s <= change.to_m - change.taper_m)
+    piece = zone.line[keep]
+    t = _tangents(piece)
+    left = np.stack([-t[:, 1], t[:, 0]], axis=1)
+    new_id = max((f.id for f in gt.features), default=0) + 1
+    line = GTFeature(new_id, FeatureType.DASHED, resample_evenly(piece + lat_edge * left, 1.0))
+    return replace(gt, features=(*feats, line))
+
+
 def apply_change(gt: GroundTruth, change: RoadChange) -> GroundTruth:
     """``gt`` with ``change`` applied (a new object; ``gt`` is not modified). Feature ids stay where
     a feature is kept whole; a feature cut at the zone's ends keeps its id on its first piece and
@@ -379,6 +463,8 @@ def apply_change(gt: GroundTruth, change: RoadChange) -> GroundTruth:
         )
         lanes = {lid: replace(ln, centerline=_shifted(zone, ln.centerline, change)) for lid, ln in gt.lanes.items()}
         return replace(gt, features=feats, lanes=lanes)
+    if change.kind in ("close", "open"):
+        return _lane_changes(zone, gt, change)
     next_id = max((f.id for f in gt.features), default=0) + 1
     out: list[GTFeature] = []
     if change.kind == "add":

@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         dest="changes",
         help="a road change seen by the drives from AFTER_DRIVE on (repeatable); kinds: shift (SIZE m to the right, "
         "default 1.5), restripe, remove (SIZE = k-th marking from the left, default every dashed one), add "
-        "(SIZE m right of the route); e.g. shift:1000-2000:1.5@40",
+        "(SIZE m right of the route), close (the rightmost lane), open (the shoulder, SIZE m); e.g. shift:1000-2000:1.5@40",
     )
     parser.add_argument("--trajectories", action="store_true", help="also store true trajectories in OUT.sim.json")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
