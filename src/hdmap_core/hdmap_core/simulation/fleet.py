@@ -40,6 +40,7 @@ from hdmap_core.groundtruth import GroundTruth, GTRoute, load_ground_truth
 from hdmap_core.model import Drive, GeoOrigin
 from hdmap_core.simulation import config as sim_config
 from hdmap_core.simulation import sensor as sim_sensor
+from hdmap_core.simulation import changes as sim_changes
 from hdmap_core.simulation import synthetic
 from hdmap_core.simulation.changes import CHANGE_GAP_S, RoadChange, apply_changes
 from hdmap_core.simulation.config import SimConfig
@@ -110,14 +111,14 @@ _ARRAY_KEYS = ("true_xy", "lateral_error_m", "longitudinal_error_m")
 
 
 #: Besides this one, the modules whose source decides what a map, a config and a seed simulate.
-_FINGERPRINTED = (sim_config, sim_sensor, synthetic, groundtruth, geometry)
+_FINGERPRINTED = (sim_config, sim_sensor, synthetic, sim_changes, groundtruth, geometry)
 
 
 @functools.lru_cache(maxsize=1)
 def simulator_fingerprint() -> str:
     """A hash of the source of the modules that turn a map, a config and a seed into a fleet
-    (this one, its config and defaults, the sensor model, the synthetic maps, the ground-truth
-    loader, the geometry they use): written to
+    (this one, its config and defaults, the sensor model, the synthetic maps, the road changes,
+    the ground-truth loader, the geometry they use): written to
     ``OUT.sim.json`` so that a fleet cached by an older simulator is recognised as stale."""
     h = hashlib.sha1()
     for mod_file in (__file__, *(str(m.__file__) for m in _FINGERPRINTED)):
