@@ -38,9 +38,9 @@ from hdmap_core.errors import ConfigError, GroundTruthError, NoUsableDataError
 from hdmap_core.geometry import arc_length, resample_evenly
 from hdmap_core.groundtruth import GroundTruth, GTRoute, load_ground_truth
 from hdmap_core.model import Drive, GeoOrigin
+from hdmap_core.simulation import changes as sim_changes
 from hdmap_core.simulation import config as sim_config
 from hdmap_core.simulation import sensor as sim_sensor
-from hdmap_core.simulation import changes as sim_changes
 from hdmap_core.simulation import synthetic
 from hdmap_core.simulation.changes import CHANGE_GAP_S, RoadChange, apply_changes
 from hdmap_core.simulation.config import SimConfig
