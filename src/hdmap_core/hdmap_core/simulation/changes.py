@@ -376,7 +376,7 @@ def _selected(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int
 def _markings_by_offset(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> list[tuple[float, list[int]]]:
     """The carriageway's markings in the zone grouped by lateral offset (0.5 m), rightmost first:
     (median offset [m, + = left], feature indices)."""
-    cand = []
+    cand: list[tuple[float, int]] = []
     for i, f in enumerate(gt.features):
         if f.type not in (FeatureType.SOLID, FeatureType.DASHED):
             continue
@@ -385,11 +385,11 @@ def _markings_by_offset(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -
         if np.count_nonzero(inside) >= 2:
             cand.append((float(np.median(lat[inside])), i))
     groups: list[tuple[float, list[int]]] = []
-    for lat, i in sorted(cand):
-        if groups and abs(lat - groups[-1][0]) < 0.5:
+    for offset, i in sorted(cand):
+        if groups and abs(offset - groups[-1][0]) < 0.5:
             groups[-1][1].append(i)
         else:
-            groups.append((lat, [i]))
+            groups.append((offset, [i]))
     return groups
 
 

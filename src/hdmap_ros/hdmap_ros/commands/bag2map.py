@@ -237,6 +237,7 @@ def _report_dict(args: argparse.Namespace, fleet: FleetBag, hdmap: HDMap, result
         "bag_error": fleet.error,
         "features": len(hdmap.features),
         "topology_nodes": len(hdmap.topology),
+        "changes_followed": len(hdmap.extra.get("changes", ())),
         "wall_s": seconds,
         "build": json.loads(json.dumps(build, default=str)),
     }
