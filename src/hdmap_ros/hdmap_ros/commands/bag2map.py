@@ -8,8 +8,8 @@ directory (``hdmap export``); with ``--graphml``, the topology graph as GraphML 
 The map is the road as of the last drive (``hdmap_core.updates.follow``; ``--no-follow-changes``:
 the consensus of every drive, the map of the first build): changes of the road are detected and
 the changed places rebuilt from the drives after the change; the changes and the retired pieces go
-to ``OUT.history.json`` (docs/updates.md). Where nothing changed, the map is the same either way. Exit status: 0 done, 1 an error
-(e.g. no usable drive), 2 usage.
+to ``OUT.history.json`` (docs/updates.md). Where nothing changed, the map is the same either way.
+Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
 from __future__ import annotations
