@@ -83,8 +83,18 @@ def test_a_shifted_road_is_found_and_a_badly_localised_drive_is_not(road):
     plain = simulate_fleet(road, config=SIM, seed=5)
     bad = [*plain.drives[:N_BEFORE], *(_moved_left(d, 2.0) for d in plain.drives[N_BEFORE:])]
     bad_map, _ = _build(bad)
-    found, _ = _detect(bad, bad_map)
+    found, places = _detect(bad, bad_map)
     assert found == []
+    # ... though moving those drives 2 m moved their markings' offset against the map by 2 m:
+    # their displacement against the borders did not move.
+    moved_ev = fleet_evidence(bad[N_BEFORE:], bad_map, places, config=ChangeConfig())
+    as_is_ev = fleet_evidence(plain.drives[N_BEFORE:], bad_map, places, config=ChangeConfig())
+    as_is = {(e.drive_id, e.key): e for e in as_is_ev}
+    pairs = [(e, as_is[(e.drive_id, e.key)]) for e in moved_ev if (e.drive_id, e.key) in as_is]
+    pairs = [(a, b) for a, b in pairs if np.isfinite(a.displacement_m) and np.isfinite(b.displacement_m)]
+    assert len(pairs) >= 10
+    assert np.median([abs(a.offset_m - b.offset_m) for a, b in pairs]) > 1.8
+    assert np.median([abs(a.displacement_m - b.displacement_m) for a, b in pairs]) < 0.2
 
 
 @pytest.mark.slow
