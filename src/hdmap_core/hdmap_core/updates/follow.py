@@ -40,7 +40,8 @@ __all__ = [
     "history_to_dict",
 ]
 
-_MIN_POSES = 5  # a drive piece with fewer poses is dropped
+_MIN_POSES = 5  # a drive piece with fewer poses is dropped ...
+_MIN_PIECE_M = 20.0  # ... or shorter than this [m] (the pipeline refuses a drive standing still: 5 m)
 
 
 @dataclass(frozen=True)
@@ -99,7 +100,12 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 def _cut_drive(drive: Drive, keep: np.ndarray) -> list[Drive]:
     """The pieces of ``drive`` on its kept poses, each with the detections nearest to it."""
-    runs = [(a, b) for a, b in _runs(keep) if b - a >= _MIN_POSES]
+    xy = np.asarray(drive.xy, dtype=float)
+    runs = [
+        (a, b)
+        for a, b in _runs(keep)
+        if b - a >= _MIN_POSES and float(np.linalg.norm(np.diff(xy[a:b], axis=0), axis=1).sum()) >= _MIN_PIECE_M
+    ]
     if len(runs) == 1 and runs[0] == (0, len(keep)):
         return [drive]
     if not runs:
