@@ -93,3 +93,20 @@ def test_topology_nodes_optional_and_short_features_skipped():
 def test_invalid_origin():
     with pytest.raises(InvalidMessageError, match="WGS84"):
         map_to_geojson(make_map(n_features=1), GeoOrigin(float("nan"), 0.0))
+
+
+def test_retired_pieces_of_a_followed_change_are_shown_apart():
+    from hdmap_core.updates.follow import RetiredFeature
+
+    origin = GeoOrigin(48.0, 9.0, 0.0)
+    feat = MapFeature(7, FeatureType.SOLID, np.array([[0.0, 0.0], [50.0, 0.0]]), np.array([3, 3]), np.array([0.1, 0.1]))
+    old = RetiredFeature(5, int(FeatureType.DASHED), np.array([[0.0, 1.5], [25.0, 1.5], [50.0, 1.5]]), 99, 10, 20)
+    plain = map_to_geojson(HDMap(features=(feat,)), origin)
+    followed = map_to_geojson(HDMap(features=(feat,), extra={"retired": [old]}), origin)
+    assert [f["properties"]["kind"] for f in plain["features"]] == ["road_feature"]
+    kinds = [f["properties"]["kind"] for f in followed["features"]]
+    assert kinds == ["road_feature", "retired"]
+    props = followed["features"][1]["properties"]
+    assert props["type"] == "dashed" and props["change_id"] == "99" and props["valid_to_ns"] == 20
+    coords = np.array(followed["features"][1]["geometry"]["coordinates"])
+    np.testing.assert_allclose(coords, enu_to_lonlat(old.points, origin), atol=1e-9)

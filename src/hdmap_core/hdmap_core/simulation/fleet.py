@@ -26,7 +26,8 @@ import functools
 import hashlib
 import json
 import os
-from dataclasses import asdict, dataclass, field
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,9 +38,11 @@ from hdmap_core.errors import ConfigError, GroundTruthError, NoUsableDataError
 from hdmap_core.geometry import arc_length, resample_evenly
 from hdmap_core.groundtruth import GroundTruth, GTRoute, load_ground_truth
 from hdmap_core.model import Drive, GeoOrigin
+from hdmap_core.simulation import changes as sim_changes
 from hdmap_core.simulation import config as sim_config
 from hdmap_core.simulation import sensor as sim_sensor
 from hdmap_core.simulation import synthetic
+from hdmap_core.simulation.changes import CHANGE_GAP_S, RoadChange, apply_changes
 from hdmap_core.simulation.config import SimConfig
 from hdmap_core.simulation.sensor import (
     FeatureIndex,
@@ -108,14 +111,14 @@ _ARRAY_KEYS = ("true_xy", "lateral_error_m", "longitudinal_error_m")
 
 
 #: Besides this one, the modules whose source decides what a map, a config and a seed simulate.
-_FINGERPRINTED = (sim_config, sim_sensor, synthetic, groundtruth, geometry)
+_FINGERPRINTED = (sim_config, sim_sensor, synthetic, sim_changes, groundtruth, geometry)
 
 
 @functools.lru_cache(maxsize=1)
 def simulator_fingerprint() -> str:
     """A hash of the source of the modules that turn a map, a config and a seed into a fleet
-    (this one, its config and defaults, the sensor model, the synthetic maps, the ground-truth
-    loader, the geometry they use): written to
+    (this one, its config and defaults, the sensor model, the synthetic maps, the road changes,
+    the ground-truth loader, the geometry they use): written to
     ``OUT.sim.json`` so that a fleet cached by an older simulator is recognised as stale."""
     h = hashlib.sha1()
     for mod_file in (__file__, *(str(m.__file__) for m in _FINGERPRINTED)):
@@ -509,13 +512,21 @@ def _simulate_drive(
     return drive, truth, seen
 
 
-def simulate_fleet(gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: int = 0) -> Fleet:
+def simulate_fleet(
+    gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: int = 0, changes: Sequence[RoadChange] = ()
+) -> Fleet:
     """Simulate ``config.n_drives`` drive snippets over the routes of ``gt``.
 
     Args:
         gt: ground truth with at least one route of >= 2 m.
         config: all simulator parameters.
         seed: seed of everything random; the same (gt, config, seed) gives identical output.
+        changes: road changes (``simulation.changes``): drive ``i`` sees ``gt`` with every change
+            of ``after_drive <= i`` applied; the first drive after a change starts
+            ``CHANGE_GAP_S`` later than it would have. Drives before the first change are those
+            of the same simulation without changes. ``Fleet.extra`` then holds ``changes``
+            (with their ``time_ns``), ``gt_before`` and ``gt_after`` (as of the last drive);
+            ``seen_count`` refers to ``gt_after``.
 
     Returns:
         the ``Fleet``: drives (map frame, with localization error), origin, per-drive truth, and
@@ -525,6 +536,7 @@ def simulate_fleet(gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: in
         ConfigError: ``seed`` is negative or not an integer, or the config is invalid.
         GroundTruthError: ``gt`` is not a ``GroundTruth``.
         NoUsableDataError: ``gt`` has no usable route.
+        GroundTruthError: a change does not fit ``gt`` (unknown route, zone off it).
     """
     if not isinstance(gt, GroundTruth):
         raise GroundTruthError(f"simulate_fleet: expected a GroundTruth, got {type(gt).__name__}")
@@ -540,23 +552,26 @@ def simulate_fleet(gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: in
         raise NoUsableDataError(f"ground truth {gt.name!r} has no route to drive on")
     dirs = route_directions(gt)
     by_dir = {d: [r for r in routes if dirs[r.id] == d] for d in (0, 1)}
-    idx = feature_index(gt)
-    geoms: dict[str, _RouteGeom] = {}
-    trees: dict = {}
+    epochs = _epochs(gt, changes)
+    epoch = epochs[0]
     children = np.random.SeedSequence(int(seed)).spawn(config.n_drives)
     drives: list[Drive] = []
     truth: dict[str, dict] = {}
     t_ns = int(config.start_time_ns)
     places = _PlaceCounts(config.coverage_cell_m)
-    seen_count = np.zeros(len(idx.xy), dtype=np.int64)
 
     def geom_of(route: GTRoute) -> _RouteGeom:
-        if route.id not in geoms:
-            geoms[route.id] = _build_route_geom(gt, route, config.pose_spacing_m, trees)
-        return geoms[route.id]
+        if route.id not in epoch.geoms:
+            epoch.geoms[route.id] = _build_route_geom(epoch.gt, route, config.pose_spacing_m, epoch.trees)
+        return epoch.geoms[route.id]
 
+    timed: list[RoadChange] = []
     for i, child in enumerate(children):
         rng = np.random.default_rng(child)
+        gap_ns = 0
+        while epoch.next_at is not None and i >= epoch.next_at:
+            epoch = epochs[epochs.index(epoch) + 1]
+            gap_ns = int(CHANGE_GAP_S * 1e9)
         d = 0 if rng.random() < config.direction_bias else 1
         pool = by_dir[d] or by_dir[1 - d]
         w = np.array([lengths[r.id] if config.route_weighting != "uniform" else 1.0 for r in pool])
@@ -577,12 +592,62 @@ def simulate_fleet(gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: in
             route = pool[int(rng.choice(len(pool), p=w / w.sum()))]
         if i > 0:
             t_ns += int(rng.uniform(config.drive_gap_min_s, config.drive_gap_max_s) * 1e9)
+        if gap_ns:
+            timed += [replace(c, time_ns=t_ns + gap_ns // 2) for c in epoch.made]
+            t_ns += gap_ns
         drive_id = f"{gt.name}_s{seed}_{i:04d}"
-        drive, tr, seen = _simulate_drive(i, drive_id, geom_of(route), dirs[route.id], t_ns, idx, config, rng, snippet)
+        drive, tr, seen = _simulate_drive(
+            i, drive_id, geom_of(route), dirs[route.id], t_ns, epoch.idx, config, rng, snippet
+        )
         drives.append(drive)
         truth[drive_id] = tr
-        seen_count[seen] += 1  # ``seen`` holds each point once: distinct drives
-    return Fleet(drives, config.origin, truth, config, int(seed), gt.name, seen_count=seen_per_feature(gt, idx, seen_count))
+        epoch.seen[seen] += 1  # ``seen`` holds each point once: distinct drives
+    if not changes:
+        seen_count = seen_per_feature(gt, epoch.idx, epoch.seen)
+        return Fleet(drives, config.origin, truth, config, int(seed), gt.name, seen_count=seen_count)
+    gap_ns = int(CHANGE_GAP_S * 1e9)
+    if epochs[0].made:  # changes before the first drive
+        timed = [replace(c, time_ns=int(config.start_time_ns) - gap_ns // 2) for c in epochs[0].made] + timed
+    for e in epochs[epochs.index(epoch) + 1 :]:  # changes after the last drive
+        t_ns += gap_ns
+        timed += [replace(c, time_ns=t_ns - gap_ns // 2) for c in e.made]
+    seen_count = {}
+    for e in epochs[: epochs.index(epoch) + 1]:  # features kept whole keep id and points: counts add up
+        for fid, n in seen_per_feature(e.gt, e.idx, e.seen).items():
+            same = fid in seen_count and len(seen_count[fid]) == len(n)
+            seen_count[fid] = seen_count[fid] + n if same else n
+    ids_after = {(f.id, len(f.points)) for f in epoch.gt.features}
+    seen_count = {fid: n for fid, n in seen_count.items() if (fid, len(n)) in ids_after}
+    extra = {"changes": timed, "gt_before": gt, "gt_after": epoch.gt}
+    return Fleet(drives, config.origin, truth, config, int(seed), gt.name, extra=extra, seen_count=seen_count)
+
+
+@dataclass(eq=False)
+class _Epoch:
+    """The road between two changes: its ground truth and what the drives on it need."""
+
+    gt: GroundTruth
+    next_at: int | None  # first drive of the next epoch
+    made: tuple[RoadChange, ...]  # the changes that made it
+    idx: FeatureIndex
+    seen: np.ndarray
+    geoms: dict = field(default_factory=dict)
+    trees: dict = field(default_factory=dict)
+
+
+def _epochs(gt: GroundTruth, changes: Sequence[RoadChange]) -> list[_Epoch]:
+    """The road's epochs in order: as it was (with the changes ``@0`` made), then after each
+    group of changes of the same ``after_drive``."""
+    starts = sorted({c.after_drive for c in changes} | {0})
+    out: list[_Epoch] = []
+    road = gt
+    for k, first in enumerate(starts):
+        made = tuple(c for c in changes if c.after_drive == first)
+        road = apply_changes(road, made)
+        idx = feature_index(road)
+        nxt = starts[k + 1] if k + 1 < len(starts) else None
+        out.append(_Epoch(road, nxt, made, idx, np.zeros(len(idx.xy), dtype=np.int64)))
+    return out
 
 
 def write_sim_json(fleet: Fleet, path: str | Path, *, include_trajectories: bool = False) -> None:

@@ -5,6 +5,10 @@ drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
 features and lanes as RFC 7946 GeoJSON; with ``--lanelet2 DIR``, the lanes as an Autoware map
 directory (``hdmap export``); with ``--graphml``, the topology graph as GraphML (map frame).
+The map is the road as of the last drive (``hdmap_core.updates.follow``; ``--no-follow-changes``:
+the consensus of every drive, the map of the first build): changes of the road are detected and
+the changed places rebuilt from the drives after the change; the changes and the retired pieces go
+to ``OUT.history.json`` (docs/updates.md). Where nothing changed, the map is the same either way.
 Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
@@ -63,6 +67,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="processes for the pivot passes; independent parts of the map (e.g. the two carriageways) "
         "run apart and the map is the same as with 1 (default: the CPUs available)",
+    )
+    parser.add_argument(
+        "--follow-changes",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="give the road as of the last drive: detect changes of the road from the drives' time stamps, "
+        "rebuild the changed places from the drives after the change, keep what they replaced in OUT.history.json "
+        "(default: on; a road without changes gets the same map as with --no-follow-changes)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
     parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
@@ -154,10 +166,35 @@ def run(args: argparse.Namespace) -> int:
     with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
         result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress,
                                     workers=args.workers or available_cpus())
+        history = None
+        if args.follow_changes:
+            from hdmap_core.updates.follow import follow_changes, history_to_dict  # noqa: PLC0415
+
+            first = result
+
+            def build(drives: Any) -> tuple[HDMap, Any]:
+                nonlocal result
+                if drives is fleet.drives:  # the map of every drive: built above
+                    return first.map, first.report
+                result = pipeline.build_map(list(drives), config=config, seed=args.seed, progress=progress,
+                                            workers=args.workers or available_cpus())
+                return result.map, result.report
+
+            followed = follow_changes(fleet.drives, build=build)
+            history = history_to_dict(followed)
+            result = dataclasses.replace(result, map=followed.map) if followed.changes else first
+            for c in followed.changes:
+                print(f"change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "
+                      f"{len(c.drives_after)} drive(s) in evidence, confidence {c.confidence:.3f}")
+            print(f"follow changes: {len(followed.changes)} change(s), {len(followed.retired)} retired piece(s)")
     hdmap: HDMap = result.map
 
     write_map_bag(out, hdmap, origin, overwrite=args.overwrite)
     print(f"wrote {out}: {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes")
+    if history is not None:
+        hist = out.with_name(out.name + ".history.json")
+        hist.write_text(json.dumps(history))
+        print(f"wrote {hist}")
     lanes = None
     if args.geojson or args.lanelet2:
         from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415 - lanes only when written
@@ -200,6 +237,7 @@ def _report_dict(args: argparse.Namespace, fleet: FleetBag, hdmap: HDMap, result
         "bag_error": fleet.error,
         "features": len(hdmap.features),
         "topology_nodes": len(hdmap.topology),
+        "changes_followed": len(hdmap.extra.get("changes", ())),
         "wall_s": seconds,
         "build": json.loads(json.dumps(build, default=str)),
     }

@@ -13,6 +13,9 @@ sqrt(bias_lateral_sigma_m^2 + drift_sigma_m^2)), else 1.0 m. The same ``BAG.sim.
 drives' true errors (the realized floor) and the per-point seen counts (the share of the ground truth
 the fleet observed, and recall over it); files without them leave those figures n/a.
 Prints the summary; ``--json`` and ``--plot`` write the full report and the figure.
+``--changes OUT.changes.json`` (from ``hdmap simulate --change``) also scores the changed zones apart
+against GT (accuracy there, ghost lines of the old road); with ``--as-of TIME`` GT is the road
+before the changes and the map is scored against it with the changes made by TIME.
 Exit status: 0 done, 1 an error (unreadable input), 2 usage.
 """
 
@@ -26,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdmap_core.errors import HdmapError
+from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.evaluation.config import EvalConfig
 from hdmap_core.evaluation.evaluate import evaluate_map, hdmap_from_ground_truth
 from hdmap_core.evaluation.lanes import LaneReport
@@ -45,6 +48,8 @@ __all__ = [
     "sigma_from_sim_json",
     "drive_errors_from_sim_json",
     "seen_counts_from_sim_json",
+    "parse_time_ns",
+    "load_changes",
 ]
 
 NAME = "evaluate"
@@ -80,6 +85,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--lanes", action="store_true",
         help="also derive the map's lanes and score them: centerline coverage, precision, error, lane "
         "count, route reachability (routes driven: from BAG.sim.json beside --fleet, else all)",
+    )
+    parser.add_argument(
+        "--changes",
+        metavar="FILE",
+        help="road changes (OUT.changes.json of hdmap simulate --change): also score the changed zones apart",
+    )
+    parser.add_argument(
+        "--as-of",
+        metavar="TIME",
+        help="with --changes: GT is the road before the changes; score against it as of TIME "
+        "(ns since epoch or ISO 8601, e.g. 2023-06-02T09:00:00Z)",
     )
     parser.add_argument("--all-lanes", action="store_true", help="evaluate along all route lanes, not only highway lanes")
     parser.add_argument("--step", metavar="M", type=_positive_float, default=2.0, help="cut spacing [m] (default: %(default)s)")
@@ -245,12 +261,65 @@ def _number(value: object) -> float | None:
     return float(value)
 
 
+def parse_time_ns(text: str) -> int:
+    """ns since epoch from an integer or an ISO 8601 time (UTC when no zone is given).
+
+    Raises:
+        ConfigError: neither.
+    """
+    import datetime as dt  # noqa: PLC0415
+
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        t = dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise ConfigError(f"--as-of {text!r}: not ns since epoch nor an ISO 8601 time") from None
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.UTC)
+    return int(round(t.timestamp() * 1e9))
+
+
+def load_changes(path: str | Path) -> tuple[GroundTruth, list, list]:
+    """(road before the changes, changes, zones) of an ``OUT.changes.json`` file.
+
+    Raises:
+        ConfigError: unreadable or not such a file; GroundTruthError: its road before is unreadable.
+    """
+    from hdmap_core.simulation.changes import changes_from_dict  # noqa: PLC0415
+
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"cannot read road changes {path}: {err}") from err
+    if not isinstance(doc, dict) or "gt_before" not in doc:
+        raise ConfigError(f"{path}: not a road-changes file (no gt_before)")
+    changes, zones = changes_from_dict(doc)
+    return load_ground_truth(path.with_name(str(doc["gt_before"]))), changes, zones
+
+
 def run(args: argparse.Namespace) -> int:
     for opt in ("json", "plot"):
         out = getattr(args, opt)
         if out and Path(out).is_dir():
             return _fail(f"--{opt} {out} is a directory")
+    if args.as_of and not args.changes:
+        return _fail("--as-of needs --changes FILE")
     gt = resolve_ground_truth(args.gt)
+    zone_input = None
+    if args.changes:
+        from hdmap_core.simulation.changes import road_as_of  # noqa: PLC0415
+
+        gt_before, changes, zones = load_changes(args.changes)
+        if args.as_of:
+            t = parse_time_ns(args.as_of)
+            gt = road_as_of(gt, changes, t)
+            print(f"road as of {t} ns: {sum(c.time_ns <= t for c in changes)} of {len(changes)} change(s) made")
+        first = min(c.time_ns for c in changes) if changes else 0
+        zone_input = (road_as_of(gt_before, changes, first - 1), zones)
     hdmap, map_note = _load_map(args.map)
     print(f"map: {map_note}")
     print(f"ground truth: {gt.name} ({len(gt.features)} features, {len(gt.lanes)} lanes, {len(gt.routes)} routes)")
@@ -290,11 +359,19 @@ def run(args: argparse.Namespace) -> int:
     lanes = _lane_report(hdmap, gt, args, config) if args.lanes else None
     if lanes is not None:
         print(lanes.summary())
+    zone_report = None
+    if zone_input is not None:
+        from hdmap_core.evaluation.zone import evaluate_zone  # noqa: PLC0415
+
+        zone_report = evaluate_zone(hdmap, gt, zone_input[0], zone_input[1], config=config)
+        print(zone_report.line())
     if args.json:
         doc = report.to_dict(include_cuts=True)
         if lanes is not None:
             doc["lanes"] = jsonable(lanes.to_dict())
         doc["inputs"] = {"map": args.map, "gt": args.gt, "fleet": args.fleet, "sigma_loc_source": sigma_note}
+        if zone_report is not None:
+            doc["changed_zone"] = zone_report.to_dict()
         Path(args.json).write_text(json.dumps(doc, allow_nan=False))
         print(f"wrote {args.json}")
     if args.plot:

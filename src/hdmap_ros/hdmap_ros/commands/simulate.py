@@ -6,7 +6,11 @@ config, seed and per-drive truth such as the true lateral bias). The map is a sy
 name (``motorway``, ``motorway_ramps``, ``lane_drop``), a shipped real map (``esmini_e6mini``, found
 in ``$HDMAP_MAPS_DIR`` or the repository's ``data/maps``) or a ``.gt.json`` path.
 Simulator parameters: defaults of ``SimConfig`` (docs/simulator.md), overridden by ``--config``
-(JSON or YAML mapping) and then by ``--set key=value`` (repeatable). Exit status: 0 done,
+(JSON or YAML mapping) and then by ``--set key=value`` (repeatable).
+``--change KIND:FROM_M-TO_M[:SIZE][:ROUTE]@AFTER_DRIVE`` (repeatable; ``hdmap_core.simulation.changes``)
+changes the road from drive AFTER_DRIVE on, a day later; then ``OUT.gt.json`` is the road as of
+the last drive, ``OUT.gt_before.json`` the road before every change and ``OUT.changes.json`` the
+changes with their times and zones (docs/updates.md). Exit status: 0 done,
 1 an error (bad map, bad config, unwritable output), 2 usage.
 """
 
@@ -21,7 +25,7 @@ from pathlib import Path
 from hdmap_core.errors import ConfigError
 from hdmap_core.groundtruth import save_ground_truth
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "load_overrides", "parse_set"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "load_overrides", "parse_set", "write_changes_json"]
 
 NAME = "simulate"
 HELP = "simulate a vehicle fleet over a ground-truth map and write a fleet bag (+ .gt.json, .sim.json)"
@@ -49,6 +53,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--length-m", type=float, help="length of a synthetic highway [m] (default: 3000)")
     parser.add_argument("--map-seed", type=int, default=0, help="seed of a synthetic highway's shape (default: 0)")
+    parser.add_argument(
+        "--change",
+        metavar="KIND:FROM_M-TO_M[:SIZE][:ROUTE]@AFTER_DRIVE",
+        action="append",
+        default=[],
+        dest="changes",
+        help="a road change seen by the drives from AFTER_DRIVE on (repeatable); kinds: shift (SIZE m to the right, "
+        "default 1.5), restripe, remove (SIZE = k-th marking from the left, default every dashed one), add "
+        "(SIZE m right of the route), close (the rightmost lane), open (the shoulder, SIZE m); e.g. shift:1000-2000:1.5@40",
+    )
     parser.add_argument("--trajectories", action="store_true", help="also store true trajectories in OUT.sim.json")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
 
@@ -91,6 +105,19 @@ def parse_set(items: list[str]) -> dict:
     return out
 
 
+def write_changes_json(fleet, path: Path, *, before: str) -> None:  # noqa: ANN001 (Fleet: imported late)
+    """``OUT.changes.json``: the base ground truth's file name and every change with its time
+    and zone (``hdmap evaluate --changes`` reads it back)."""
+    from hdmap_core.simulation.changes import change_zone  # noqa: PLC0415
+
+    gt = fleet.extra["gt_before"]
+    doc = {
+        "gt_before": before,
+        "changes": [{**c.to_dict(), "zone": change_zone(gt, c).to_dict()} for c in fleet.extra["changes"]],
+    }
+    path.write_text(json.dumps(doc, indent=1))
+
+
 def _sidecar(out: Path, suffix: str) -> Path:
     return out.with_name(out.name + suffix)
 
@@ -105,23 +132,33 @@ def run(args: argparse.Namespace) -> int:
         overrides["n_drives"] = args.drives
     # Imported here, not at module level: the simulator pulls in scipy.signal, which made every
     # `hdmap` call (even --help) pay for it.
+    from hdmap_core.simulation.changes import parse_change  # noqa: PLC0415
     from hdmap_core.simulation.fleet import SimConfig, load_map, simulate_fleet, write_sim_json  # noqa: PLC0415
 
     config = SimConfig.from_dict(overrides)
+    changes = [parse_change(text) for text in args.changes]
     gt = load_map(args.map, length_m=args.length_m, map_seed=args.map_seed)
     from hdmap_ros.io.bagio import write_fleet_bag  # here: needs rosbags, the core part does not
 
     t0 = time.perf_counter()
-    fleet = simulate_fleet(gt, config=config, seed=args.seed)
+    fleet = simulate_fleet(gt, config=config, seed=args.seed, changes=changes)
     t_sim = time.perf_counter() - t0
     write_fleet_bag(out, fleet.drives, fleet.origin, overwrite=args.overwrite)
-    save_ground_truth(gt, _sidecar(out, ".gt.json"))
+    if changes:
+        save_ground_truth(fleet.extra["gt_after"], _sidecar(out, ".gt.json"))
+        save_ground_truth(gt, _sidecar(out, ".gt_before.json"))
+        write_changes_json(fleet, _sidecar(out, ".changes.json"), before=_sidecar(out, ".gt_before.json").name)
+    else:
+        save_ground_truth(gt, _sidecar(out, ".gt.json"))
     write_sim_json(fleet, _sidecar(out, ".sim.json"), include_trajectories=args.trajectories)
     s = fleet.summary()
     print(
         f"hdmap simulate: {s['drives']} drives, {s['km']:.1f} km, {s['detections']} detections "
         f"({s['false_positives']} false positives) on {gt.name!r} (seed {args.seed}) in {t_sim:.1f} s\n"
-        f"  wrote {out}/, {_sidecar(out, '.gt.json').name}, {_sidecar(out, '.sim.json').name}",
+        f"  wrote {out}/, {_sidecar(out, '.gt.json').name}, {_sidecar(out, '.sim.json').name}"
+        + (f", {_sidecar(out, '.gt_before.json').name}, {_sidecar(out, '.changes.json').name}" if changes else ""),
         file=sys.stdout,
     )
+    for c in fleet.extra.get("changes", ()):
+        print(f"  change {c.text()} at {c.time_ns} ns", file=sys.stdout)
     return 0

@@ -22,7 +22,7 @@ from pyproj import Transformer
 
 from hdmap_core.errors import InvalidMessageError
 from hdmap_core.lanes.model import Lane, LaneMap
-from hdmap_core.model import GeoOrigin, HDMap, MapFeature, TopologyNode
+from hdmap_core.model import FeatureType, GeoOrigin, HDMap, MapFeature, TopologyNode
 
 __all__ = ["enu_to_lonlat", "enu_to_geodetic", "map_to_geojson", "write_geojson", "COORD_DECIMALS"]
 
@@ -123,6 +123,21 @@ def _lane_json(lane: Lane, lonlat: np.ndarray) -> dict[str, Any]:
     }
 
 
+def _retired_json(r: Any, lonlat: np.ndarray) -> dict[str, Any]:
+    return {
+        "type": "Feature",
+        "geometry": {"type": "LineString", "coordinates": _coords(lonlat)},
+        "properties": {
+            "kind": "retired",
+            "feature_id": str(int(r.feature_id)),
+            "type": FeatureType(int(r.type)).label,
+            "change_id": str(int(r.change_id)),
+            "valid_from_ns": int(r.valid_from_ns),
+            "valid_to_ns": int(r.valid_to_ns),
+        },
+    }
+
+
 def map_to_geojson(
     hdmap: HDMap, origin: GeoOrigin, *, include_topology: bool = False, lanes: LaneMap | None = None
 ) -> dict[str, Any]:
@@ -135,6 +150,8 @@ def map_to_geojson(
         lanes: also add these lanes (``hdmap_core.lanes.derive.derive_lanes``) as Polygon features
             (``kind: "lane"``: the left boundary forward, the right one back) with their boundary
             feature ids and types, width, length, successors, predecessors and neighbours.
+        A map that followed a change of the road (``HDMap.extra["retired"]``) also has the pieces
+        it replaced, ``kind`` "retired", with ``change_id``, ``valid_from_ns`` and ``valid_to_ns``.
 
     Returns:
         A JSON-ready dict. Each LineString has properties ``id`` (string), ``type`` (label),
@@ -153,6 +170,8 @@ def map_to_geojson(
     lane_list = list(lanes.lanes) if lanes is not None else []
     rings = [lanes.polygon(ln) for ln in lane_list] if lanes is not None else []
     parts += rings
+    retired = [r for r in hdmap.extra.get("retired", ()) if len(getattr(r, "points", ())) >= 2]
+    parts += [np.asarray(r.points, dtype=np.float64).reshape(-1, 2) for r in retired]
     lonlat = enu_to_lonlat(np.concatenate(parts) if parts else np.zeros((0, 2)), origin)
     out: list[dict[str, Any]] = []
     start = 0
@@ -165,6 +184,10 @@ def map_to_geojson(
     for ln, ring in zip(lane_list, rings, strict=True):
         out.append(_lane_json(ln, lonlat[start : start + len(ring)]))
         start += len(ring)
+    for r in retired:  # what a change of the road replaced (hdmap_core.updates.follow)
+        n_pts = len(r.points)
+        out.append(_retired_json(r, lonlat[start : start + n_pts]))
+        start += n_pts
     return {
         "type": "FeatureCollection",
         "features": out,

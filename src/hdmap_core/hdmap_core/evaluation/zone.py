@@ -1,0 +1,129 @@
+"""The changed zone scored apart: a map against the road as it is now, inside the zones of road
+changes, and its ghost lines (map lines that match only the road as it was).
+
+The same cut lines and matching rules as ``evaluate_map`` (Sec. VII, docs/evaluation.md), on the
+cuts of the current road whose centre lies in a zone (``simulation.changes.zone_mask``, running the
+zone's way):
+
+* recall: share of the current road's points with a map point of their type within
+  ``recall_radius_m`` on their cut; precision: share of the map points with such a partner;
+* mean error: mean |lateral error| of the map points matched (same type, within ``gate_m``);
+* type accuracy: of the map points with any current point within ``gate_m``, the share whose
+  nearest point of their own type is no farther than the nearest of any type + ``type_tie_m``;
+* ghost share: share of the map points with a point of the old road (any type) within
+  ``recall_radius_m`` and none of the current road: what is left of the road as it was;
+* old recall: recall against the old road (how much of the map still shows it).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from hdmap_core.evaluation.config import EVAL_TYPES, EvalConfig
+from hdmap_core.evaluation.cuts import nearest_on_same_cut, nearest_same_type, points_on_cuts, reference_cuts
+from hdmap_core.groundtruth import GroundTruth
+from hdmap_core.model import HDMap
+from hdmap_core.simulation.changes import ChangeZone, zone_mask
+
+__all__ = ["ZoneReport", "evaluate_zone"]
+
+_EVAL_TYPES = tuple(int(t) for t in EVAL_TYPES)
+
+
+@dataclass(frozen=True)
+class ZoneReport:
+    """What ``evaluate_zone`` measured (module docstring); shares in [0, 1], NaN when undefined."""
+
+    n_cuts: int
+    n_gt_points: int
+    n_map_points: int
+    recall: float
+    precision: float
+    mean_m: float
+    type_accuracy: float
+    ghost_share: float
+    old_recall: float
+
+    def to_dict(self) -> dict:
+        return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(self).items()}
+
+    def line(self) -> str:
+        """One line of text."""
+
+        def pct(x: float) -> str:
+            return "n/a" if math.isnan(x) else f"{100 * x:.1f} %"
+
+        mean = "n/a" if math.isnan(self.mean_m) else f"{self.mean_m:.3f} m"
+        return (
+            f"changed zone ({self.n_cuts} cuts): recall {pct(self.recall)}, precision {pct(self.precision)}, "
+            f"mean error {mean}, type accuracy {pct(self.type_accuracy)}, ghost share {pct(self.ghost_share)}, "
+            f"recall of the old road {pct(self.old_recall)}"
+        )
+
+
+def _share(num: int, den: int) -> float:
+    return num / den if den else math.nan
+
+
+def evaluate_zone(
+    hdmap: HDMap,
+    gt_now: GroundTruth,
+    gt_before: GroundTruth,
+    zones: Sequence[ChangeZone],
+    *,
+    config: EvalConfig = EvalConfig(),
+) -> ZoneReport:
+    """Score ``hdmap`` inside ``zones`` against ``gt_now``; ghosts against ``gt_before``."""
+    cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
+    cuts = reference_cuts(
+        gt_now,
+        step_m=config.step_m,
+        highway_only=config.highway_only,
+        max_half_m=config.max_half_length_m,
+        margin_m=config.border_margin_m,
+        cos_feature=cos_feat,
+        cos_dedup=math.cos(math.radians(config.dedup_heading_deg)),
+    )
+    inside = np.zeros(len(cuts), dtype=bool)
+    for z in zones:
+        inside |= zone_mask(z, cuts.center, cuts.tangent)
+    cuts = cuts.take(inside)
+    width = 4.0 * (config.max_half_length_m + config.border_margin_m) + 10.0
+
+    def on_cuts(feats: Sequence) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        feats = [f for f in feats if int(f.type) in _EVAL_TYPES and len(f.points) >= 2]
+        p = points_on_cuts(cuts, [np.asarray(f.points, dtype=float) for f in feats], cos_min=cos_feat)
+        types = np.array([int(f.type) for f in feats], dtype=np.int64)[p.owner] if feats else p.owner
+        return p.cut, p.s, types
+
+    g_cut, g_s, g_t = on_cuts(gt_now.features)
+    o_cut, o_s, o_t = on_cuts(gt_before.features)
+    m_cut, m_s, m_t = on_cuts(hdmap.features)
+    if len(cuts) == 0:
+        nan = math.nan
+        return ZoneReport(0, 0, len(m_cut), nan, nan, nan, nan, nan, nan)
+    gi, gd = nearest_same_type(m_cut, m_s, m_t, g_cut, g_s, g_t, width=width)
+    _, g_to_m = nearest_same_type(g_cut, g_s, g_t, m_cut, m_s, m_t, width=width)
+    _, o_to_m = nearest_same_type(o_cut, o_s, o_t, m_cut, m_s, m_t, width=width)
+    _, any_now = nearest_on_same_cut(m_cut, m_s, g_cut, g_s, width=width)
+    _, any_old = nearest_on_same_cut(m_cut, m_s, o_cut, o_s, width=width)
+    matched = gd <= config.gate_m
+    err = np.abs(m_s[matched] - g_s[gi[matched]]) if matched.any() else np.zeros(0)
+    typed = any_now <= config.gate_m
+    type_ok = typed & (gd <= any_now + config.type_tie_m)
+    ghost = (any_old <= config.recall_radius_m) & (any_now > config.recall_radius_m)
+    return ZoneReport(
+        n_cuts=len(cuts),
+        n_gt_points=len(g_cut),
+        n_map_points=len(m_cut),
+        recall=_share(int(np.count_nonzero(g_to_m <= config.recall_radius_m)), len(g_cut)),
+        precision=_share(int(np.count_nonzero(gd <= config.recall_radius_m)), len(m_cut)),
+        mean_m=float(np.mean(err)) if len(err) else math.nan,
+        type_accuracy=_share(int(np.count_nonzero(type_ok)), int(np.count_nonzero(typed))),
+        ghost_share=_share(int(np.count_nonzero(ghost)), len(m_cut)),
+        old_recall=_share(int(np.count_nonzero(o_to_m <= config.recall_radius_m)), len(o_cut)),
+    )

@@ -1,0 +1,92 @@
+"""Settings of change detection and map updating (docs/updates.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hdmap_core.checks import check_range
+
+__all__ = ["ChangeConfig"]
+
+
+@dataclass(frozen=True)
+class ChangeConfig:
+    """How drives are compared with the map, and when a place counts as changed.
+
+    Attributes:
+        cell_m: size of a place's cell [m] (each split by driving direction).
+        cut_step_m: a drive is compared with the map on a cut across its path every this far [m].
+        view_m: each cut reaches this far to each side of the drive [m].
+        pair_max_m: a drive's line and a map line of the same class (marking / border) on a cut
+            this close are a candidate pair; the largest offset (localisation + change) sought [m].
+        max_shift_m: the markings' offset is sought this far around the anchor: the largest move
+            of the markings seen (half a lane: farther, a marking pairs with its neighbour) [m].
+        kernel_m: kernel width of the offset density per place [m].
+        near_m: markings within this of the drive count for type, negative and positive
+            evidence (the ego lane's markings, seen by nearly every drive) [m].
+        match_m: a drive's marking and a map marking closer than this (after the drive's offset)
+            are the same line [m].
+        min_pairs: marking pairs a drive needs in a place to give its displacement there.
+        min_border_pairs: border pairs it needs to anchor its offset on the borders there
+            (else the drive's own offset over all its places anchors it).
+        min_points: marking points a drive needs in a place for its type / negative / positive
+            shares there.
+        min_before, min_after: drives a place needs before and after a change point.
+        min_after_shares: drives a place needs after a change point of a share (type, missed,
+            extra: noisier than the displacement, and the map's own type errors look alike).
+        max_share_before: a share's change counts only where its before median is below this.
+        min_shift_m: smallest change of the markings' displacement confirmed [m].
+        min_share: smallest change of a share (wrong type, missed, extra) confirmed.
+        z_min: the change in the mean must be this many standard errors of it.
+        displacement_floor_m: smallest per-drive spread of the displacement assumed [m].
+        share_floor: smallest per-drive spread of a share assumed.
+    """
+
+    cell_m: float = 100.0
+    cut_step_m: float = 4.0
+    view_m: float = 12.0
+    pair_max_m: float = 3.0
+    max_shift_m: float = 1.75
+    kernel_m: float = 0.15
+    near_m: float = 3.0
+    match_m: float = 0.4
+    min_pairs: int = 15
+    min_border_pairs: int = 8
+    min_points: int = 10
+    min_before: int = 3
+    min_after: int = 2
+    min_after_shares: int = 3
+    max_share_before: float = 0.2
+    min_shift_m: float = 0.5
+    min_share: float = 0.3
+    z_min: float = 5.0
+    displacement_floor_m: float = 0.1
+    share_floor: float = 0.05
+
+    def __post_init__(self) -> None:
+        check_range(
+            self,
+            (
+                "cell_m",
+                "cut_step_m",
+                "view_m",
+                "pair_max_m",
+                "max_shift_m",
+                "kernel_m",
+                "near_m",
+                "match_m",
+                "min_shift_m",
+                "z_min",
+            ),
+            low=0.0,
+            low_open=True,
+        )
+        check_range(
+            self, ("displacement_floor_m", "share_floor", "min_share", "max_share_before"), low=0.0, low_open=True
+        )
+        check_range(
+            self,
+            ("min_pairs", "min_border_pairs", "min_points", "min_before", "min_after", "min_after_shares"),
+            low=1,
+            integer=True,
+        )

@@ -1,0 +1,286 @@
+"""Confirming a change of the road per place, with a change point in time.
+
+Per place, the drives' evidence (``updates.evidence``) in time order gives four series: the
+markings' displacement against the borders, and the shares of wrong-type, missed and extra
+markings. For each series, a change point is the earliest split into "before" (>= ``min_before``
+drives) and "after" (>= ``min_after`` drives) such that
+
+* every after-drive lies on the same side of the before median, at least half the smallest
+  effect away, and within 3 before-spreads (or half the smallest effect) of the after mean (one
+  odd drive cannot hide among them, nor can one stray drive make a change);
+* for the shares (type, missed, extra): at least ``min_after_shares`` after-drives, the share
+  grows, every after-drive lies beyond the before drives' 90th percentile, the spread is their
+  standard deviation (a share is 0 for most drives and large for the few that misread a line),
+  and the before median is below ``max_share_before`` (where the map disagrees with its
+  own drives already, e.g. sparse ramps, a share says nothing of a change);
+* the after mean is at least the smallest effect (``min_shift_m`` / ``min_share``) away from the
+  before median, and that is at least ``z_min`` standard errors (the before spread, robust,
+  with a floor, over both groups' sizes).
+
+A drive that is badly localised is off in its markings and borders alike: its displacement stays
+near 0, so it confirms nothing. Confirmed places of one direction that touch are one change; it
+grows along the road into neighbouring places where the drives after its time (even one) show the
+same effect: the tapers and the stretches fewer drives passed (carried by the drives in evidence:
+one of them must show the effect there, and no drive after the change the opposite).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdmap_core.updates.config import ChangeConfig
+from hdmap_core.updates.evidence import PlaceEvidence
+from hdmap_core.updates.places import PlaceKey, Places
+
+__all__ = ["PlaceChange", "DetectedChange", "change_point", "detect_changes", "SERIES"]
+
+#: The evidence series tested, with the kind of change each reveals.
+SERIES = {"displacement": "geometry", "wrong_type": "type", "missed": "marking_gone", "extra": "marking_new"}
+
+
+@dataclass(frozen=True)
+class PlaceChange:
+    """A change confirmed at one place.
+
+    Attributes:
+        key: the place.
+        kind: ``geometry``, ``type``, ``marking_gone`` or ``marking_new``.
+        time_ns: start of the first drive after the change point (the road had changed by then).
+        last_before_ns: start of the last drive before it.
+        effect: after mean - before median of the series (m or share).
+        z: that in standard errors.
+        drives_before, drives_after: the drives on each side.
+        extended: True for a place joined along the road, not confirmed on its own.
+    """
+
+    key: PlaceKey
+    kind: str
+    time_ns: int
+    last_before_ns: int
+    effect: float
+    z: float
+    drives_before: tuple[str, ...]
+    drives_after: tuple[str, ...]
+    extended: bool = False
+
+
+@dataclass(frozen=True)
+class DetectedChange:
+    """Touching changed places of one direction: one change of the road.
+
+    Attributes:
+        id: stable (a hash of its places and time).
+        time_ns: the change point: the (lower) median of the change points of its places of the
+            kind most of them show (one place's early change point does not move it).
+        kinds: the kinds seen.
+        places: its places.
+        drives_after: drives in evidence (after the change).
+        confidence: in (0, 1): 1 - 1/z of the strongest confirmed place.
+    """
+
+    id: int
+    time_ns: int
+    kinds: tuple[str, ...]
+    places: tuple[PlaceChange, ...]
+    drives_after: tuple[str, ...]
+    confidence: float
+
+    @property
+    def keys(self) -> set[PlaceKey]:
+        return {p.key for p in self.places}
+
+
+def _series(e: PlaceEvidence, name: str, config: ChangeConfig) -> float:
+    if name == "displacement":
+        return e.displacement_m
+    if name == "wrong_type":
+        return e.n_wrong_type / e.n_typed if e.n_typed >= config.min_points else math.nan
+    if name == "missed":
+        return e.n_missed / e.n_map_near if e.n_map_near >= config.min_points else math.nan
+    return e.n_extra / e.n_drive_near if e.n_drive_near >= config.min_points else math.nan
+
+
+def change_point(
+    values: np.ndarray,
+    *,
+    min_effect: float,
+    floor: float,
+    z_min: float,
+    min_before: int,
+    min_after: int,
+    heavy_tails: bool = False,
+) -> tuple[int, float, float] | None:
+    """(index of the first after-value, effect, z) of the earliest change point of ``values``
+    (time ordered, no NaN), or None (module docstring). ``heavy_tails``: the before spread is the
+    standard deviation, not the median absolute deviation, and every after-value must lie beyond
+    the before values' 90th percentile (a share of wrong types is 0 for most drives and large for
+    the few that misread a line: a robust spread would call those few a change)."""
+    n = len(values)
+    for k in range(min_before, n - min_after + 1):
+        before, after = values[:k], values[k:]
+        med = float(np.median(before))
+        dev = after - med
+        if not (np.all(dev >= min_effect / 2) or np.all(dev <= -min_effect / 2)):
+            continue
+        effect = float(np.mean(after)) - med
+        if heavy_tails:
+            spread = max(floor, float(np.std(before)))
+            edge = float(np.percentile(before, 90))
+            if not (np.all(after > edge) if effect > 0 else np.all(after < float(np.percentile(before, 10)))):
+                continue
+        else:
+            spread = max(floor, 1.4826 * float(np.median(np.abs(before - med))))
+        if np.any(np.abs(after - np.mean(after)) > max(3.0 * spread, min_effect / 2)):
+            continue  # the after-drives disagree: a drive of the old road among them, or noise
+        z = abs(effect) / (spread * math.sqrt(1.0 / k + 1.0 / (n - k)))
+        if abs(effect) >= min_effect and z >= z_min:
+            return k, effect, z
+    return None
+
+
+def _confirm(rows: list[PlaceEvidence], key: PlaceKey, config: ChangeConfig) -> PlaceChange | None:
+    """The strongest series' change at one place (its evidence in time order), if any."""
+    best: PlaceChange | None = None
+    for name, kind in SERIES.items():
+        vals = np.array([_series(e, name, config) for e in rows])
+        ok = np.isfinite(vals)
+        used = [e for e, good in zip(rows, ok) if good]
+        geometric = name == "displacement"
+        found = change_point(
+            vals[ok],
+            min_effect=config.min_shift_m if geometric else config.min_share,
+            floor=config.displacement_floor_m if geometric else config.share_floor,
+            z_min=config.z_min,
+            min_before=config.min_before,
+            min_after=config.min_after if geometric else config.min_after_shares,
+            heavy_tails=not geometric,
+        )
+        if found is None:
+            continue
+        k, effect, z = found
+        if not geometric and (effect <= 0 or float(np.median(vals[ok][:k])) > config.max_share_before):
+            continue  # fewer wrong / missed / extra, or a place the map never agreed on
+        cand = PlaceChange(
+            key,
+            kind,
+            used[k].time_ns,
+            used[k - 1].time_ns,
+            effect,
+            z,
+            tuple(e.drive_id for e in used[:k]),
+            tuple(e.drive_id for e in used[k:]),
+        )
+        if best is None or z > best.z:
+            best = cand
+    return best
+
+
+def _extends(rows: list[PlaceEvidence], key: PlaceKey, change: PlaceChange, config: ChangeConfig) -> PlaceChange | None:
+    """``key`` joined to a neighbouring ``change`` when a drive in evidence of it (one is enough)
+    shows the same kind of effect here, at least half the smallest, against this place's drives
+    before, and no drive after shows the opposite."""
+    name = next(n for n, k in SERIES.items() if k == change.kind)
+    vals = np.array([_series(e, name, config) for e in rows])
+    t = np.array([e.time_ns for e in rows])
+    ok = np.isfinite(vals)
+    before = vals[ok & (t < change.time_ns)]
+    if len(before) < config.min_before:
+        return None
+    med = float(np.median(before))
+    need = (config.min_shift_m if name == "displacement" else config.min_share) / 2
+    sign = 1.0 if change.effect > 0 else -1.0
+    carriers = set(change.drives_after)
+    showing, after_ids = [], []
+    for e, v, good in zip(rows, vals, ok):
+        if not good or e.time_ns < change.time_ns:
+            continue
+        after_ids.append(e.drive_id)
+        dev = (v - med) * sign
+        if dev <= -need:
+            return None
+        if dev >= need and e.drive_id in carriers:
+            showing.append((e.drive_id, v - med))
+    if not showing:
+        return None
+    return PlaceChange(
+        key,
+        change.kind,
+        change.time_ns,
+        change.last_before_ns,
+        float(np.mean([d for _, d in showing])),
+        math.nan,
+        tuple(e.drive_id for e, good in zip(rows, ok) if good and e.time_ns < change.time_ns),
+        tuple(d for d, _ in showing),
+        extended=True,
+    )
+
+
+def detect_changes(
+    evidence: Sequence[PlaceEvidence], places: Places, *, config: ChangeConfig = ChangeConfig()
+) -> list[DetectedChange]:
+    """The changes of the road the ``evidence`` confirms (module docstring), in time order."""
+    by_place: dict[PlaceKey, list[PlaceEvidence]] = defaultdict(list)
+    for e in evidence:
+        by_place[e.key].append(e)
+    for rows in by_place.values():
+        rows.sort(key=lambda e: (e.time_ns, e.drive_id))
+    confirmed: dict[PlaceKey, PlaceChange] = {}
+    for key in sorted(by_place):
+        got = _confirm(by_place[key], key, config)
+        if got is not None:
+            confirmed[key] = got
+    # Grow along the road from the confirmed places.
+    changed = dict(confirmed)
+    frontier = sorted(confirmed)
+    while frontier:
+        nxt = []
+        for key in frontier:
+            for nb in places.neighbours(key):
+                if nb in changed or nb not in by_place:
+                    continue
+                ext = _extends(by_place[nb], nb, changed[key], config)
+                if ext is not None:
+                    changed[nb] = ext
+                    nxt.append(nb)
+        frontier = sorted(nxt)
+    # Touching places of one change: connected components (the drives in evidence).
+    out: list[DetectedChange] = []
+    seen: set[PlaceKey] = set()
+    for key in sorted(changed):
+        if key in seen or changed[key].extended:
+            continue
+        comp, stack = [], [key]
+        seen.add(key)
+        while stack:
+            k = stack.pop()
+            comp.append(changed[k])
+            for nb in places.neighbours(k):
+                if nb in changed and nb not in seen:
+                    seen.add(nb)
+                    stack.append(nb)
+        comp.sort(key=lambda p: p.key)
+        own = [p for p in comp if not p.extended]
+        kinds = [p.kind for p in own]
+        main = max(set(kinds), key=lambda k: (kinds.count(k), k == "geometry"))
+        times = sorted(p.time_ns for p in own if p.kind == main)
+        t = times[(len(times) - 1) // 2]  # the (lower) median change point of the main kind
+        z = max(p.z for p in own)
+        after_t = {e.drive_id for p in comp for e in by_place[p.key] if e.time_ns >= t}
+        digest = hashlib.sha1(repr(([p.key for p in comp], t)).encode()).digest()
+        out.append(
+            DetectedChange(
+                id=int.from_bytes(digest[:8], "little") & ((1 << 63) - 1),
+                time_ns=t,
+                kinds=tuple(sorted({p.kind for p in comp})),
+                places=tuple(comp),
+                drives_after=tuple(sorted({d for p in comp for d in p.drives_after} & after_t)),
+                confidence=1.0 - 1.0 / z,
+            )
+        )
+    return sorted(out, key=lambda c: (c.time_ns, c.id))

@@ -1,0 +1,240 @@
+"""One drive compared with the map, place by place: the evidence of a changed road.
+
+On a cut across the drive's path every ``cut_step_m`` the drive's own lines and the map's lines
+are intersected (the evaluator's vectorised cut machinery). Per place (``updates.places``):
+
+* **offset**: the mode of the density of (map - drive) lateral differences of marking pairs:
+  where the drive's markings lie against the map's. It holds the drive's localisation error
+  plus any move of the markings;
+* **anchor**: the same over the road borders (barrier, shoulder border), which a construction
+  zone leaves in place; where the drive saw too few, the mean of those of the places up to two
+  before and after it along the drive (else its border offset over all its places, else its
+  marking offset over all its places);
+* **displacement** = offset - anchor: the markings' move relative to what did not move. A drive
+  that is merely badly localised is off by the same amount in both: displacement ~ 0;
+* **type**: of the drive's markings near it that match a map marking (after its offset), how
+  many have the other type (dashed <-> solid);
+* **negative**: of the map's markings near the drive, how many it did not see at all;
+* **positive**: of the drive's markings near it, how many have no map marking.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdmap_core.evaluation.cuts import Segments, intersect_cuts, segments_of
+from hdmap_core.geometry import arc_length
+from hdmap_core.model import Drive, FeatureType, HDMap
+from hdmap_core.updates.config import ChangeConfig
+from hdmap_core.updates.places import PlaceKey, Places
+
+__all__ = ["PlaceEvidence", "MapLines", "map_lines", "drive_evidence", "density_mode"]
+
+_BORDER = int(FeatureType.ROAD_BORDER)
+_MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
+_COS_MIN = 0.7  # a line runs with the drive on a cut when cos(angle) >= this
+_GRID_M = 0.02
+_ANCHOR_REACH = 2  # places along the drive whose border offsets stand in for a place without
+_BORDER_REACH_M = 1.0  # a place's border offset within this of the drive's (below half the barriers' 2.5 m)
+
+
+@dataclass(frozen=True)
+class PlaceEvidence:
+    """What one drive says about one place (module docstring). Offsets in metres, + = left of
+    the drive; NaN where the drive saw too little."""
+
+    drive_id: str
+    time_ns: int
+    key: PlaceKey
+    n_cuts: int
+    offset_m: float
+    anchor_m: float
+    anchored_on_borders: bool
+    displacement_m: float
+    n_pairs: int
+    n_typed: int
+    n_wrong_type: int
+    n_map_near: int
+    n_missed: int
+    n_drive_near: int
+    n_extra: int
+
+
+@dataclass(frozen=True)
+class MapLines:
+    """The map's features as segments, ready to be cut; ``types`` (M,) per segment."""
+
+    segments: Segments
+    types: np.ndarray
+
+
+def map_lines(hdmap: HDMap) -> MapLines:
+    feats = [f for f in hdmap.features if len(f.points) >= 2]
+    segs = segments_of([np.asarray(f.points, dtype=float) for f in feats])
+    types = np.array([int(f.type) for f in feats], dtype=np.int64)[segs.owner] if feats else np.zeros(0, np.int64)
+    return MapLines(segs, types)
+
+
+def density_mode(values: np.ndarray, *, reach_m: float, kernel_m: float, center: float = 0.0) -> tuple[float, int]:
+    """(mode, support) of the Gaussian kernel density of ``values`` in ``center`` +- ``reach_m``:
+    the mode refined as the mean of the values within 2 kernels of it, and their number."""
+    v = values[np.abs(values - center) <= reach_m]
+    if len(v) == 0:
+        return float("nan"), 0
+    edges = center + np.arange(-reach_m, reach_m + _GRID_M, _GRID_M)
+    hist, _ = np.histogram(v, bins=edges)
+    half = int(np.ceil(3 * kernel_m / _GRID_M))
+    k = np.exp(-0.5 * (np.arange(-half, half + 1) * _GRID_M / kernel_m) ** 2)
+    dens = np.convolve(hist.astype(float), k, mode="same")
+    mode = 0.5 * (edges[:-1] + edges[1:])[int(np.argmax(dens))]
+    near = v[np.abs(v - mode) <= 2 * kernel_m]
+    return float(near.mean()), len(near)
+
+
+def _cuts_of(drive: Drive, step_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(center (K, 2), unit tangent (K, 2), yaw (K,)) every ``step_m`` along the drive."""
+    xy = np.asarray(drive.xy, dtype=float)
+    s = arc_length(xy)
+    q = np.arange(0.0, s[-1], step_m) if s[-1] > 0 else np.zeros(1)
+    i = np.clip(np.searchsorted(s, q), 0, len(xy) - 1)
+    yaw = np.asarray(drive.yaw, dtype=float)[i]
+    return xy[i], np.stack([np.cos(yaw), np.sin(yaw)], axis=1), yaw
+
+
+def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, segs: Segments, types: np.ndarray):
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    k = len(center)
+    ci, si, s, _ = intersect_cuts(center, normal, np.full(k, -view_m), np.full(k, view_m), segs)
+    d = segs.b[si] - segs.a[si]
+    ok = (d * tangent[ci]).sum(axis=1) >= _COS_MIN * np.linalg.norm(d, axis=1)
+    order = np.argsort(ci[ok], kind="stable")
+    return ci[ok][order], s[ok][order], types[si[ok]][order]
+
+
+def _pairs(d_cut, d_s, m_cut, m_s, k: int, reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(drive point index, map point index, map - drive) of the pairs on the same cut within reach."""
+    start = np.searchsorted(m_cut, np.arange(k), side="left")
+    end = np.searchsorted(m_cut, np.arange(k), side="right")
+    n = (end - start)[d_cut] if len(d_cut) else np.zeros(0, np.int64)
+    di = np.repeat(np.arange(len(d_cut)), n)
+    first = np.repeat(start[d_cut] if len(d_cut) else np.zeros(0, np.int64), n)
+    offs = np.arange(len(di)) - np.repeat(np.cumsum(n) - n, n)
+    mi = first + offs
+    r = m_s[mi] - d_s[di] if len(mi) else np.zeros(0)
+    keep = np.abs(r) <= reach
+    return di[keep], mi[keep], r[keep]
+
+
+def drive_evidence(
+    drive: Drive, lines: MapLines, places: Places, *, config: ChangeConfig = ChangeConfig()
+) -> list[PlaceEvidence]:
+    """The evidence of ``drive`` against the map ``lines``, one record per place it crossed."""
+    if len(drive.xy) < 2 or len(lines.types) == 0:
+        return []
+    center, tangent, yaw = _cuts_of(drive, config.cut_step_m)
+    k = len(center)
+    dets = [d for d in drive.detections if len(d.points) >= 2]
+    dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
+    dtypes = np.array([int(d.type) for d in dets], dtype=np.int64)[dsegs.owner] if dets else np.zeros(0, np.int64)
+    d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, dsegs, dtypes)
+    m_cut, m_s, m_t = _on_cuts(center, tangent, config.view_m, lines.segments, lines.types)
+    keys = places.keys(center, yaw)
+    ids = {key: i for i, key in enumerate(dict.fromkeys(keys))}
+    place_of_cut = np.array([ids[key] for key in keys], dtype=np.int64)
+
+    d_mark, m_mark = np.isin(d_t, _MARKINGS), np.isin(m_t, _MARKINGS)
+    dm = np.flatnonzero(d_mark)
+    mm = np.flatnonzero(m_mark)
+    pi, pj, pr = _pairs(d_cut[dm], d_s[dm], m_cut[mm], m_s[mm], k, config.pair_max_m)
+    db = np.flatnonzero(d_t == _BORDER)
+    mb = np.flatnonzero(m_t == _BORDER)
+    bi, _, br = _pairs(d_cut[db], d_s[db], m_cut[mb], m_s[mb], k, config.pair_max_m)
+    pair_place = place_of_cut[d_cut[dm][pi]]
+    border_place = place_of_cut[d_cut[db][bi]]
+    drive_offset, _ = density_mode(pr, reach_m=config.pair_max_m, kernel_m=config.kernel_m)
+    # The borders' offset over the whole drive picks the right one of two barriers side by side
+    # (a divided road's median: 2.5 m apart); each place then looks only near it (drift is slow).
+    drive_border, _ = density_mode(br, reach_m=config.pair_max_m, kernel_m=config.kernel_m)
+
+    # Border offset per place; a place with too few borders takes the mean of its neighbours
+    # along the drive (within ``_ANCHOR_REACH`` places) that have enough: the drift is slow.
+    n_places = len(ids)
+    borders = np.full(n_places, np.nan)
+    for p in range(n_places):
+        if np.isfinite(drive_border):
+            b, n_b = density_mode(
+                br[border_place == p], reach_m=_BORDER_REACH_M, kernel_m=config.kernel_m, center=drive_border
+            )
+            if n_b >= config.min_border_pairs:
+                borders[p] = b
+    out: list[PlaceEvidence] = []
+    for key, p in ids.items():
+        on_borders = bool(np.isfinite(borders[p]))
+        near = borders[max(0, p - _ANCHOR_REACH) : p + _ANCHOR_REACH + 1]
+        if on_borders:
+            anchor = float(borders[p])
+        elif np.isfinite(near).any():
+            anchor = float(np.nanmean(near))
+        else:
+            anchor = drive_border if np.isfinite(drive_border) else drive_offset
+        # The markings' offset near the anchor: farther than half a lane a marking pairs with its
+        # neighbour line.
+        offset, n_pairs = float("nan"), 0
+        if np.isfinite(anchor):
+            offset, n_pairs = density_mode(
+                pr[pair_place == p], reach_m=config.max_shift_m, kernel_m=config.kernel_m, center=anchor
+            )
+        enough = n_pairs >= config.min_pairs
+        displacement = offset - anchor if enough else float("nan")
+        o = offset if enough else (anchor if np.isfinite(anchor) else 0.0)
+        cuts_here = place_of_cut == p
+        # Type, negative and positive evidence, near the drive, after its offset.
+        dsel = dm[cuts_here[d_cut[dm]] & (np.abs(d_s[dm]) <= config.near_m)]
+        msel = mm[cuts_here[m_cut[mm]] & (np.abs(m_s[mm] - o) <= config.near_m)]
+        n_typed = n_wrong = n_extra = n_missed = 0
+        if len(dsel):
+            # nearest map marking on the same cut to each drive marking (after the offset)
+            ti, tj, tr = _pairs(d_cut[dsel], d_s[dsel] + o, m_cut[mm], m_s[mm], k, config.match_m)
+            best = np.full(len(dsel), np.inf)
+            best_j = np.full(len(dsel), -1)
+            order = np.argsort(np.abs(tr))[::-1]
+            best[ti[order]] = np.abs(tr[order])
+            best_j[ti[order]] = tj[order]
+            matched = np.isfinite(best)
+            n_typed = int(np.count_nonzero(matched))
+            n_wrong = int(np.count_nonzero(d_t[dsel][matched] != m_t[mm][best_j[matched]]))
+            n_extra = int(np.count_nonzero(~matched))
+        if len(msel):
+            ui, _, _ = _pairs(m_cut[msel], m_s[msel] - o, d_cut, d_s, k, config.match_m)
+            n_missed = int(len(msel) - len(np.unique(ui)))
+        out.append(
+            PlaceEvidence(
+                drive_id=drive.drive_id,
+                time_ns=drive.start_ns,
+                key=key,
+                n_cuts=int(np.count_nonzero(cuts_here)),
+                offset_m=offset,
+                anchor_m=float(anchor),
+                anchored_on_borders=bool(on_borders),
+                displacement_m=float(displacement),
+                n_pairs=n_pairs,
+                n_typed=n_typed,
+                n_wrong_type=n_wrong,
+                n_map_near=len(msel),
+                n_missed=n_missed,
+                n_drive_near=len(dsel),
+                n_extra=n_extra,
+            )
+        )
+    return out
+
+
+def fleet_evidence(
+    drives: Sequence[Drive], hdmap: HDMap, places: Places, *, config: ChangeConfig
+) -> list[PlaceEvidence]:
+    """``drive_evidence`` of every drive against ``hdmap``."""
+    lines = map_lines(hdmap)
+    return [e for d in drives for e in drive_evidence(d, lines, places, config=config)]

@@ -1,0 +1,260 @@
+"""The map as of the last drive: changes of the road found and the changed places rebuilt.
+
+1. The map is built from every drive (``build_map``), as always.
+2. Every drive is compared with it place by place (``updates.evidence``) and the changes of the
+   road are confirmed with their change points (``updates.detect``).
+3. No change: that map is the result, unchanged. Otherwise every drive that passed a changed
+   place before the change loses its part there (its trajectory and detections are cut; the
+   pieces elsewhere stay, ids ``<drive id>/<k>``); every drive in evidence of a change is moved
+   onto the first map by its own offset, estimated on what did not change (its anchor per place,
+   ``updates.evidence``, smoothed along it), since a few drives alone would leave their
+   localisation error in the rebuilt place; and the map is built again: the changed places come
+   from the drives after the change only, everything else from every drive as before.
+4. What the changed places held in the first map is retired, not forgotten: ``RetiredFeature``
+   (the feature's piece there, valid until the change's time) in ``HDMap.extra["retired"]``;
+   the changes are in ``HDMap.extra["changes"]``, and the map's version counts them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+from scipy.spatial import cKDTree
+
+from hdmap_core.model import Detection, Drive, HDMap
+from hdmap_core.updates.config import ChangeConfig
+from hdmap_core.updates.detect import DetectedChange, detect_changes
+from hdmap_core.updates.evidence import fleet_evidence
+from hdmap_core.updates.places import PlaceKey, Places, places_of
+
+__all__ = [
+    "RetiredFeature",
+    "FollowResult",
+    "follow_changes",
+    "anchored",
+    "cut_before_changes",
+    "retired_features",
+    "history_to_dict",
+]
+
+_MIN_POSES = 5  # a drive piece with fewer poses is dropped ...
+_MIN_PIECE_M = 20.0  # ... or shorter than this [m] (the pipeline refuses a drive standing still: 5 m)
+
+
+@dataclass(frozen=True)
+class RetiredFeature:
+    """A piece of a map feature that a change replaced.
+
+    Attributes:
+        feature_id: the feature it was part of (in the map before the change).
+        type: its FeatureType code.
+        points: (N, 2) the piece inside the changed places [m].
+        change_id: the change that retired it.
+        valid_from_ns: start of the first drive it was built from; valid_to_ns: the change's time.
+    """
+
+    feature_id: int
+    type: int
+    points: np.ndarray
+    change_id: int
+    valid_from_ns: int
+    valid_to_ns: int
+
+
+@dataclass(frozen=True)
+class FollowResult:
+    """The map as of the last drive, and how it came about.
+
+    Attributes:
+        map: the map (the first build's when nothing changed).
+        changes: the confirmed changes, in time order.
+        retired: what they replaced.
+        first_map: the map of every drive (before any change was followed).
+        report: the last build's report.
+    """
+
+    map: HDMap
+    changes: tuple[DetectedChange, ...]
+    retired: tuple[RetiredFeature, ...]
+    first_map: HDMap
+    report: object
+
+
+def _change_times(changes: Sequence[DetectedChange]) -> dict[PlaceKey, int]:
+    """Per changed place, the time of its change (the latest, where two changes meet)."""
+    out: dict[PlaceKey, int] = {}
+    for c in changes:
+        for p in c.places:
+            out[p.key] = max(out.get(p.key, c.time_ns), c.time_ns)
+    return out
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    edges = np.flatnonzero(np.diff(mask.astype(np.int8))) + 1
+    bounds = np.concatenate([[0], edges, [len(mask)]])
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if mask[a]]
+
+
+def _cut_drive(drive: Drive, keep: np.ndarray) -> list[Drive]:
+    """The pieces of ``drive`` on its kept poses, each with the detections nearest to it."""
+    xy = np.asarray(drive.xy, dtype=float)
+    runs = [
+        (a, b)
+        for a, b in _runs(keep)
+        if b - a >= _MIN_POSES and float(np.linalg.norm(np.diff(xy[a:b], axis=0), axis=1).sum()) >= _MIN_PIECE_M
+    ]
+    if len(runs) == 1 and runs[0] == (0, len(keep)):
+        return [drive]
+    if not runs:
+        return []
+    piece_of_pose = np.full(len(keep), -1)
+    for k, (a, b) in enumerate(runs):
+        piece_of_pose[a:b] = k
+    tree = cKDTree(drive.xy)
+    dets: list[list[Detection]] = [[] for _ in runs]
+    for det in drive.detections:
+        pts = np.asarray(det.points, dtype=float)
+        _, j = tree.query(pts)
+        owner = piece_of_pose[j]
+        starts = np.flatnonzero(np.diff(np.concatenate([[-2], owner])) != 0)
+        ends = np.concatenate([starts[1:], [len(owner)]])
+        for s0, s1 in zip(starts, ends):
+            if owner[s0] >= 0 and s1 - s0 >= 2:
+                dets[int(owner[s0])].append(Detection(det.type, pts[s0:s1].copy()))
+    out = []
+    for k, (a, b) in enumerate(runs):
+        out.append(
+            replace(
+                drive,
+                drive_id=f"{drive.drive_id}/{k}",
+                xy=drive.xy[a:b].copy(),
+                yaw=drive.yaw[a:b].copy(),
+                stamps_ns=drive.stamps_ns[a:b].copy(),
+                detections=tuple(dets[k]),
+            )
+        )
+    return out
+
+
+def anchored(drive: Drive, anchors: dict[PlaceKey, float], places: Places, *, smooth_m: float = 100.0) -> Drive:
+    """``drive`` moved left by its anchor offset of each place (smoothed over ``smooth_m``)."""
+    keys = places.keys(drive.xy, drive.yaw)
+    a = np.array([anchors.get(k, np.nan) for k in keys])
+    if not np.isfinite(a).any():
+        return drive
+    idx = np.arange(len(a))
+    ok = np.isfinite(a)
+    a = np.interp(idx, idx[ok], a[ok])
+    step = max(drive.length_m / max(len(a) - 1, 1), 1e-3)
+    a = uniform_filter1d(a, size=max(1, int(round(smooth_m / step))) | 1, mode="nearest")
+    left = np.stack([-np.sin(drive.yaw), np.cos(drive.yaw)], axis=1)
+    move = a[:, None] * left
+    tree = cKDTree(drive.xy)
+    dets = []
+    for det in drive.detections:
+        _, j = tree.query(np.asarray(det.points, dtype=float))
+        dets.append(Detection(det.type, np.asarray(det.points, dtype=float) + move[j]))
+    return replace(drive, xy=drive.xy + move, detections=tuple(dets))
+
+
+def cut_before_changes(drives: Sequence[Drive], places: Places, changes: Sequence[DetectedChange]) -> list[Drive]:
+    """``drives`` without their parts in a changed place from before its change (module docstring)."""
+    times = _change_times(changes)
+    out: list[Drive] = []
+    for d in drives:
+        keys = places.keys(d.xy, d.yaw)
+        t = np.array([times.get(k, np.iinfo(np.int64).min) for k in keys], dtype=np.int64)
+        keep = np.asarray(d.stamps_ns, dtype=np.int64) >= t
+        out.extend(_cut_drive(d, keep) if not keep.all() else [d])
+    return out
+
+
+def retired_features(
+    hdmap: HDMap, places: Places, changes: Sequence[DetectedChange], *, valid_from_ns: int
+) -> list[RetiredFeature]:
+    """The pieces of ``hdmap``'s features inside the changed places."""
+    owner: dict[PlaceKey, DetectedChange] = {}
+    for c in changes:
+        for p in c.places:
+            owner[p.key] = c
+    out = []
+    for f in hdmap.features:
+        pts = np.asarray(f.points, dtype=float)
+        if len(pts) < 2:
+            continue
+        tang = np.gradient(pts, axis=0)
+        keys = places.keys(pts, np.arctan2(tang[:, 1], tang[:, 0]))
+        inside = np.array([k in owner for k in keys])
+        for a, b in _runs(inside):
+            if b - a >= 2:
+                c = owner[keys[a]]
+                out.append(RetiredFeature(int(f.id), int(f.type), pts[a:b].copy(), c.id, valid_from_ns, c.time_ns))
+    return out
+
+
+def follow_changes(
+    drives: Sequence[Drive],
+    *,
+    build: Callable[[Sequence[Drive]], tuple[HDMap, object]],
+    config: ChangeConfig = ChangeConfig(),
+) -> FollowResult:
+    """The map of ``drives`` as of the last of them (module docstring).
+
+    Args:
+        drives: the fleet's drives (their time stamps order them).
+        build: drives -> (map, build report): the pipeline as configured (``build_map``).
+        config: change detection settings.
+    """
+    first_map, report = build(drives)
+    places = places_of(drives, cell_m=config.cell_m)
+    evidence = fleet_evidence(drives, first_map, places, config=config)
+    changes = detect_changes(evidence, places, config=config)
+    if not changes:
+        return FollowResult(first_map, (), (), first_map, report)
+    in_evidence = {d for c in changes for d in c.drives_after}
+    anchors: dict[str, dict[PlaceKey, float]] = {}
+    for e in evidence:
+        if e.drive_id in in_evidence and np.isfinite(e.anchor_m):
+            anchors.setdefault(e.drive_id, {})[e.key] = e.anchor_m
+    moved = [anchored(d, anchors[d.drive_id], places) if d.drive_id in anchors else d for d in drives]
+    cut = cut_before_changes(moved, places, changes)
+    new_map, report = build(cut)
+    start = min((d.start_ns for d in drives), default=0)
+    retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start))
+    extra = {**new_map.extra, "changes": list(changes), "retired": list(retired)}
+    new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
+    return FollowResult(new_map, tuple(changes), retired, first_map, report)
+
+
+def history_to_dict(result: FollowResult) -> dict:
+    """The changes and retired pieces as a JSON document (``bag2map`` writes ``OUT.history.json``)."""
+    return {
+        "changes": [
+            {
+                "id": c.id,
+                "time_ns": c.time_ns,
+                "kinds": list(c.kinds),
+                "confidence": round(c.confidence, 4),
+                "drives_after": list(c.drives_after),
+                "places": [
+                    {"key": list(p.key), "kind": p.kind, "effect": round(p.effect, 4), "extended": p.extended}
+                    for p in c.places
+                ],
+            }
+            for c in result.changes
+        ],
+        "retired": [
+            {
+                "feature_id": r.feature_id,
+                "type": r.type,
+                "change_id": r.change_id,
+                "valid_from_ns": r.valid_from_ns,
+                "valid_to_ns": r.valid_to_ns,
+                "points": np.round(r.points, 3).tolist(),
+            }
+            for r in result.retired
+        ],
+    }

@@ -1,0 +1,77 @@
+"""Places for change detection: square cells of the plane, each split by driving direction.
+
+A place is ``(ix, iy, side)``: the cell ``ix = floor(x / cell_m)``, ``iy = floor(y / cell_m)``
+and the side of the cell's road axis a drive runs along (0: with it, 1: against it). The axis of
+a cell is the mean direction of every pose in it, as an axis (headings taken modulo pi), so the
+two carriageways of a divided road are two places and every drive of one carriageway falls in
+the same one, whatever the road's heading.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdmap_core.model import Drive
+
+__all__ = ["PlaceKey", "Places", "places_of"]
+
+PlaceKey = tuple[int, int, int]
+
+
+@dataclass(frozen=True)
+class Places:
+    """The cells' road axes.
+
+    Attributes:
+        cell_m: cell size [m].
+        axis: per cell ``(ix, iy)``, the road axis angle [rad] (modulo pi).
+    """
+
+    cell_m: float
+    axis: dict[tuple[int, int], float]
+
+    def keys(self, xy: np.ndarray, yaw: np.ndarray) -> list[PlaceKey]:
+        """The place of each pose ``xy`` (N, 2) heading ``yaw`` (N,)."""
+        ij = np.floor(np.asarray(xy, dtype=float) / self.cell_m).astype(np.int64)
+        ax = np.array([self.axis.get((int(i), int(j)), 0.0) for i, j in ij])
+        side = (np.cos(np.asarray(yaw, dtype=float) - ax) < 0).astype(np.int64)
+        return [(int(i), int(j), int(s)) for (i, j), s in zip(ij, side)]
+
+    def neighbours(self, key: PlaceKey) -> list[PlaceKey]:
+        """The places of the 8 cells around ``key``'s cell, on the side of the same direction.
+
+        The side flips where the axes of two cells point opposite ways (cos < 0)."""
+        ix, iy, side = key
+        a = self.axis.get((ix, iy), 0.0)
+        out = []
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                c = (ix + dx, iy + dy)
+                if (dx or dy) and c in self.axis:
+                    flip = int(np.cos(self.axis[c] - a) < 0)
+                    out.append((c[0], c[1], side ^ flip))
+        return out
+
+
+def places_of(drives: Iterable[Drive], *, cell_m: float) -> Places:
+    """The road axis of every cell some pose of ``drives`` falls in."""
+    sums: dict[tuple[int, int], np.ndarray] = {}
+    for d in drives:
+        xy = np.asarray(d.xy, dtype=float)
+        if len(xy) == 0:
+            continue
+        ij = np.floor(xy / cell_m).astype(np.int64)
+        yaw = np.asarray(d.yaw, dtype=float)
+        c2, s2 = np.cos(2 * yaw), np.sin(2 * yaw)
+        uniq, inv = np.unique(ij, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        cs = np.bincount(inv, weights=c2, minlength=len(uniq))
+        ss = np.bincount(inv, weights=s2, minlength=len(uniq))
+        for (i, j), c, s in zip(uniq, cs, ss):
+            key = (int(i), int(j))
+            acc = sums.setdefault(key, np.zeros(2))
+            acc += (c, s)
+    return Places(cell_m, {k: float(np.arctan2(v[1], v[0]) / 2.0) for k, v in sums.items()})

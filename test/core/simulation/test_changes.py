@@ -1,0 +1,178 @@
+"""Road changes (simulation/changes.py), the simulator's drives over a changing road, and the
+changed zone scored apart (evaluation/zone.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hdmap_core.errors import ConfigError, GroundTruthError
+from hdmap_core.evaluation.evaluate import hdmap_from_ground_truth
+from hdmap_core.evaluation.zone import evaluate_zone
+from hdmap_core.model import FeatureType
+from hdmap_core.simulation.changes import (
+    RoadChange,
+    apply_change,
+    change_zone,
+    changes_from_dict,
+    parse_change,
+    road_as_of,
+    zone_mask,
+)
+from hdmap_core.simulation.config import SimConfig
+from hdmap_core.simulation.fleet import simulate_fleet
+from hdmap_core.simulation.synthetic import synthetic_highway
+
+
+@pytest.fixture(scope="module")
+def road():
+    return synthetic_highway("motorway", length_m=1500.0)
+
+
+def _lateral(zone, pts):
+    _, j = zone.tree.query(pts)
+    t = zone.tangents[j]
+    v = pts - zone.line[j]
+    return t[:, 0] * v[:, 1] - t[:, 1] * v[:, 0]
+
+
+def test_parse_change_reads_the_text_form_and_names_what_is_wrong():
+    c = parse_change("shift:1000-2000:1.5:fwd_lane1@40")
+    assert (c.kind, c.from_m, c.to_m, c.size, c.route_id, c.after_drive) == (
+        "shift",
+        1000.0,
+        2000.0,
+        1.5,
+        "fwd_lane1",
+        40,
+    )
+    assert parse_change(c.text()) == c
+    assert parse_change("restripe:10-500@3").size is None
+    assert parse_change("remove:10-500:fwd_lane2@3").route_id == "fwd_lane2"
+    for bad in ("shift:1000-2000", "warp:0-500@1", "shift:500-100@1", "add:0-500@1", "shift:0-150@1"):
+        with pytest.raises(ConfigError):
+            parse_change(bad)
+
+
+def test_shift_moves_lines_and_lanes_of_one_carriageway_but_not_borders(road):
+    change = RoadChange("shift", 400.0, 1100.0, 1.5, "fwd_lane2")
+    after = apply_change(road, change)
+    zone = change_zone(road, change)
+    moved_any = False
+    for f, g in zip(road.features, after.features):
+        assert f.id == g.id and f.type == g.type and len(f.points) == len(g.points)
+        d = np.linalg.norm(g.points - f.points, axis=1)
+        tang = np.gradient(f.points, axis=0)
+        inside = zone_mask(zone, f.points, tang)
+        full = zone_mask(_core(zone), f.points, tang)
+        if f.type == FeatureType.ROAD_BORDER or not inside.any():
+            assert d.max() == 0.0  # borders and the other carriageway stay
+            continue
+        moved_any = True
+        assert d[~inside].max() == 0.0
+        assert np.allclose(d[full], 1.5, atol=0.01)
+        # to the right of the driving direction
+        assert np.all(_lateral(zone, g.points[full]) < _lateral(zone, f.points[full]) - 1.4)
+    assert moved_any
+    lane = next(lid for lid in road.lanes if lid.startswith("fwd"))
+    assert road.lanes[lane].centerline.shape == after.lanes[lane].centerline.shape
+
+
+def _core(zone):
+    """The zone less its tapers."""
+    return type(zone)(zone.line, zone.s, zone.from_m + 100.0, zone.to_m - 100.0)
+
+
+def test_restripe_and_remove_act_inside_the_zone_only(road):
+    change = RoadChange("restripe", 400.0, 1100.0, None, "fwd_lane2")
+    after = apply_change(road, change)
+    zone = change_zone(road, change)
+
+    inside_dashed = [
+        f
+        for f in after.features
+        if f.type == FeatureType.DASHED and zone_mask(zone, f.points, np.gradient(f.points, axis=0))[1:-1].any()
+    ]
+    assert inside_dashed == []
+    n_dashed_before = sum(len(f.points) for f in road.features if f.type == FeatureType.DASHED)
+    n_dashed_after = sum(len(f.points) for f in after.features if f.type == FeatureType.DASHED)
+    assert 0 < n_dashed_after < n_dashed_before
+    ids = [f.id for f in after.features]
+    assert len(ids) == len(set(ids))
+    removed = apply_change(road, RoadChange("remove", 400.0, 1100.0, 2, "fwd_lane2"))
+    assert sum(len(f.points) for f in removed.features) < sum(len(f.points) for f in road.features)
+    with pytest.raises(GroundTruthError):
+        apply_change(road, RoadChange("remove", 400.0, 1100.0, 9, "fwd_lane2"))
+    with pytest.raises(GroundTruthError):
+        apply_change(road, RoadChange("shift", 400.0, 1100.0, 1.0, "no_such_route"))
+
+
+@pytest.mark.slow
+def test_drives_after_a_change_see_the_changed_road_a_day_later(road):
+    change = parse_change("shift:400-1100:1.5:fwd_lane2@6")
+    cfg = SimConfig(n_drives=8, snippet_length_min_m=600.0, snippet_length_max_m=1400.0, direction_bias=1.0)
+    plain = simulate_fleet(
+        road,
+        config=SimConfig(n_drives=6, snippet_length_min_m=600.0, snippet_length_max_m=1400.0, direction_bias=1.0),
+        seed=3,
+    )
+    fleet = simulate_fleet(road, config=cfg, seed=3, changes=[change])
+    for a, b in zip(plain.drives, fleet.drives[:6]):  # before the change: the same drives
+        assert np.array_equal(a.xy, b.xy) and a.stamps_ns[0] == b.stamps_ns[0]
+    (timed,) = fleet.extra["changes"]
+    assert fleet.drives[5].stamps_ns[-1] < timed.time_ns < fleet.drives[6].stamps_ns[0]
+    assert fleet.drives[6].start_ns - fleet.drives[5].start_ns > 86_000e9
+    assert fleet.extra["gt_before"] is road
+    assert road_as_of(road, [timed], timed.time_ns - 1) is road
+    after = road_as_of(road, [timed], timed.time_ns)
+    assert all(np.array_equal(f.points, g.points) for f, g in zip(after.features, fleet.extra["gt_after"].features))
+
+
+def test_the_zone_scores_the_current_road_and_finds_ghosts_of_the_old(road):
+    change = RoadChange("shift", 400.0, 1100.0, 1.5, "fwd_lane2", time_ns=5)
+    after = apply_change(road, change)
+    zone = change_zone(road, change)
+    doc = {"changes": [{**change.to_dict(), "zone": zone.to_dict()}]}
+    changes, zones = changes_from_dict(doc)
+    assert changes == [change]
+    new = evaluate_zone(hdmap_from_ground_truth(after), after, road, zones)
+    old = evaluate_zone(hdmap_from_ground_truth(road), after, road, zones)
+    assert new.n_cuts > 300
+    assert new.recall > 0.99 and new.precision > 0.99 and new.mean_m < 0.01 and new.ghost_share == 0.0
+    assert old.recall < 0.6 and old.ghost_share > 0.3 and old.old_recall > 0.99
+
+
+def test_close_moves_the_edge_onto_the_divider_and_the_lane_into_its_neighbour(road):
+    change = RoadChange("close", 400.0, 1100.0, None, "fwd_lane2")
+    after = apply_change(road, change)
+    zone = change_zone(road, change)
+    core = _core(zone)
+    by_id = {f.id: f for f in road.features}
+    moved = [
+        f
+        for f in after.features
+        if f.id in by_id
+        and len(f.points) == len(by_id[f.id].points)
+        and np.abs(f.points - by_id[f.id].points).max() > 0
+    ]
+    (edge,) = moved
+    assert edge.type == FeatureType.SOLID
+    full = zone_mask(core, edge.points, np.gradient(edge.points, axis=0))
+    shift = _lateral(zone, edge.points[full]) - _lateral(zone, by_id[edge.id].points[full])
+    assert np.allclose(shift, 3.5, atol=0.05)  # onto the divider, 3.5 m left
+    # no dashed marking is left inside the zone on that side: the divider is gone
+    for f in after.features:
+        if f.type == FeatureType.DASHED:
+            inside = zone_mask(core, f.points, np.gradient(f.points, axis=0))
+            assert not (inside & (_lateral(zone, f.points) < -4.0)).any()
+    closed = [lid for lid in road.lanes if np.abs(after.lanes[lid].centerline - road.lanes[lid].centerline).max() > 3.0]
+    assert closed and all(lid.startswith("fwd") and lid.endswith(":3") for lid in closed)
+
+
+def test_open_moves_the_edge_out_and_draws_a_divider(road):
+    after = apply_change(road, RoadChange("open", 400.0, 1100.0, 2.5, "fwd_lane2"))
+    assert len(after.features) == len(road.features) + 1
+    new = after.features[-1]
+    assert new.type == FeatureType.DASHED and new.id > max(f.id for f in road.features)
+    with pytest.raises(ConfigError):
+        parse_change("open:400-1100@1")

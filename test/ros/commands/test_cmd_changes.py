@@ -1,0 +1,88 @@
+"""`hdmap simulate --change` writes the road before and after and the changes; `hdmap evaluate
+--changes` scores the changed zone apart, `--as-of` picks the road of a time."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hdmap_core.groundtruth import load_ground_truth
+from hdmap_ros import cli
+
+ARGS = ["--map", "motorway", "--length-m", "1500", "--drives", "4", "--seed", "3", "--set", "snippet_length_max_m=600"]
+
+
+@pytest.mark.slow
+def test_simulate_with_a_change_and_evaluate_the_zone(tmp_path, capsys):
+    out = tmp_path / "fleet"
+    assert cli.main(["simulate", *ARGS, "--change", "shift:400-1100:1.5:fwd_lane2@2", "-o", str(out)]) == 0
+    assert "change shift:400-1100:1.5:fwd_lane2@2" in capsys.readouterr().out
+    after = load_ground_truth(tmp_path / "fleet.gt.json")
+    before = load_ground_truth(tmp_path / "fleet.gt_before.json")
+    moved = [np.abs(a.points - b.points).max() for a, b in zip(after.features, before.features)]
+    assert max(moved) > 1.4 and min(moved) == 0.0
+    doc = json.loads((tmp_path / "fleet.changes.json").read_text())
+    assert doc["gt_before"] == "fleet.gt_before.json"
+    (change,) = doc["changes"]
+    assert change["kind"] == "shift" and change["time_ns"] > 0 and len(change["zone"]["line"]) > 10
+
+    # The old road used as map: whole-road figures, then the zone: ghosts, nothing of the new road.
+    gt_old, gt_new = str(tmp_path / "fleet.gt_before.json"), str(tmp_path / "fleet.gt.json")
+    report = tmp_path / "eval.json"
+    assert (
+        cli.main(["evaluate", gt_old, gt_new, "--changes", str(tmp_path / "fleet.changes.json"), "--json", str(report)])
+        == 0
+    )
+    zone = json.loads(report.read_text())["changed_zone"]
+    assert zone["ghost_share"] > 0.3 and zone["old_recall"] > 0.99 and zone["recall"] < 0.7
+    # As of before the change, the old road is the road: no ghost.
+    t = change["time_ns"] - 1
+    assert (
+        cli.main(
+            [
+                "evaluate",
+                gt_old,
+                gt_old,
+                "--changes",
+                str(tmp_path / "fleet.changes.json"),
+                "--as-of",
+                str(t),
+                "--json",
+                str(report),
+            ]
+        )
+        == 0
+    )
+    zone = json.loads(report.read_text())["changed_zone"]
+    assert zone["ghost_share"] == 0.0 and zone["recall"] > 0.99
+    printed = capsys.readouterr().out
+    assert "0 of 1 change(s) made" in printed and "changed zone" in printed
+
+
+def test_as_of_without_changes_is_refused(tmp_path, capsys):
+    gt = tmp_path / "m.gt.json"
+    assert (
+        cli.main(["simulate", "--map", "motorway", "--length-m", "500", "--drives", "1", "-o", str(tmp_path / "m")])
+        == 0
+    )
+    assert cli.main(["evaluate", str(gt), str(gt), "--as-of", "5"]) == 2
+    assert "--as-of needs --changes" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["e6mini_20", "ramps_20"])
+def test_follow_changes_leaves_the_sample_maps_byte_identical(tmp_path, sample_bags, name, capsys):
+    """The sample roads did not change: following changes (the default) finds nothing and writes the
+    same bag as without."""
+    for sub, extra in (("plain", ["--no-follow-changes"]), ("follow", [])):
+        (tmp_path / sub).mkdir()
+        assert (
+            cli.main(["bag2map", str(sample_bags / name), "-o", str(tmp_path / sub / "map"), "--workers", "1", *extra])
+            == 0
+        )
+    assert "follow changes: 0 change(s)" in capsys.readouterr().out
+    plain = (tmp_path / "plain" / "map" / "map.mcap").read_bytes()
+    assert plain == (tmp_path / "follow" / "map" / "map.mcap").read_bytes()
+    assert json.loads((tmp_path / "follow" / "map.history.json").read_text()) == {"changes": [], "retired": []}
