@@ -26,13 +26,16 @@ from hdmap_core.model import GeoOrigin, HDMap
 from hdmap_ros.io.bagio import FleetBag, read_fleet_bag, write_map_bag
 from hdmap_ros.io.geojson import write_geojson
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument", "parse_origin"]
+__all__ = [
+    "NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument", "parse_origin", "tile_config_of",
+    "TILE_DEFAULTS",
+]
 
 NAME = "bag2map"
 HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
 PRESETS = ("default", "paper", "naive")
 # Tiles of an offline tiled build: larger than the live suite's 256 m (less margin per tile).
-_TILE_DEFAULTS = {"tile_size_m": 512.0, "margin_m": 128.0}
+TILE_DEFAULTS = {"tile_size_m": 512.0, "margin_m": 128.0}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -75,9 +78,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     tiled.add_argument("--scheduler", metavar="ADDR",
                        help="build by tiles on the running Dask cluster at ADDR (tcp://HOST:8786); implies --tiled")
     tiled.add_argument("--tile-size-m", type=float, default=None, metavar="M",
-                       help=f"edge of a tile [m] (default: {_TILE_DEFAULTS['tile_size_m']:g})")
+                       help=f"edge of a tile [m] (default: {TILE_DEFAULTS['tile_size_m']:g})")
     tiled.add_argument("--margin-m", type=float, default=None, metavar="M",
-                       help=f"context mapped around a tile [m] (default: {_TILE_DEFAULTS['margin_m']:g})")
+                       help=f"context mapped around a tile [m] (default: {TILE_DEFAULTS['margin_m']:g})")
     tiled.add_argument("--index", metavar="FILE", help="keep the tile index in FILE (default: a temporary file)")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
     parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
@@ -91,8 +94,8 @@ def tile_config_of(args: argparse.Namespace) -> Any:
         ConfigError: a value the tiling does not take, named."""
     from hdmap_core.live.tiles import TileConfig  # noqa: PLC0415
 
-    size = args.tile_size_m if args.tile_size_m is not None else _TILE_DEFAULTS["tile_size_m"]
-    margin = args.margin_m if args.margin_m is not None else _TILE_DEFAULTS["margin_m"]
+    size = args.tile_size_m if args.tile_size_m is not None else TILE_DEFAULTS["tile_size_m"]
+    margin = args.margin_m if args.margin_m is not None else TILE_DEFAULTS["margin_m"]
     return TileConfig(tile_size_m=size, margin_m=margin, seed=args.seed)
 
 
