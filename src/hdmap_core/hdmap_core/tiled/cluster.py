@@ -11,6 +11,7 @@ scheduler holds more than that many tasks' inputs and results in flight.
 
 from __future__ import annotations
 
+import importlib
 import logging
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
@@ -67,6 +68,8 @@ class DaskRunner:
         self.cluster = cluster
         self.in_flight = max(1, int(in_flight))
         self.workers = max(1, len(client.scheduler_info().get("workers", {})))
+        # every worker imports the pipeline now, not inside its first task
+        client.run(importlib.import_module, "hdmap_core.tiled.tasks")
 
     @classmethod
     def local(cls, workers: int, *, in_flight: int = 2) -> DaskRunner:
@@ -75,8 +78,9 @@ class DaskRunner:
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
         from distributed import Client, LocalCluster  # noqa: PLC0415 - only when asked for
 
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=logging.ERROR)
+        # on loopback only; the scheduler's HTTP endpoint on a free port (8787 may be another cluster's)
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
         return cls(Client(cluster), cluster=cluster, in_flight=in_flight)
 
     @classmethod

@@ -34,7 +34,7 @@ __all__ = [
 NAME = "bag2map"
 HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
 PRESETS = ("default", "paper", "naive")
-# Tiles of an offline tiled build (docs/scale.md "Partitioning"): 1 km, four times the live suite's
+# Tiles of an offline tiled build (docs/scale.md "How the work is partitioned"): 1 km, four times the live suite's
 # 256 m edge (less margin per tile); pivots walk only 32 m beyond their tile (the steps of the
 # tile proper are kept anyway): paper_like 1x, tiled 116 s at 1024 m, 140 s at 2048 m, same accuracy.
 TILE_DEFAULTS = {"tile_size_m": 1024.0, "margin_m": 128.0, "pivot_margin_m": 32.0}
