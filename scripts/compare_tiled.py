@@ -8,8 +8,9 @@ Runs ``hdmap bag2map BAG`` (the whole fleet in memory, ``--workers 1``) and ``hd
 ``BAG.gt.json`` (the paper's metric, ``hdmap_core.evaluation``) and prints one Markdown row per
 build: mean and offset-corrected lateral error, coverage, recall, precision, wall time, peak RSS
 (whole build: the process and its forked children, as ``wait4`` reports; tiled: the largest of
-main, scheduler and each worker, from the build report). Then whether the tiled maps are the same
-(feature and topology ids, points, links) and how far the tiled map's feature points lie from the
+main, scheduler and each worker, from the build report) and CPU time of all its processes (what
+the build cost on a machine shared with other work, where wall time says little). Then whether
+the tiled maps are the same (feature and topology ids, points, links) and how far the tiled map's feature points lie from the
 whole-fleet map's (nearest point of the same type, both ways).
 """
 
@@ -30,8 +31,8 @@ HERE = Path(__file__).resolve().parent
 HDMAP = [sys.executable, "-m", "hdmap_ros.cli"]
 
 
-def _run(cmd: list[str]) -> tuple[float, float]:
-    """Run a command; (wall s, peak RSS MB of it and its waited-for children)."""
+def _run(cmd: list[str]) -> tuple[float, float, float]:
+    """Run a command; (wall s, peak RSS MB of it and its waited-for children, their CPU s)."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     _, status, usage = os.wait4(proc.pid, 0)
@@ -40,7 +41,7 @@ def _run(cmd: list[str]) -> tuple[float, float]:
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise SystemExit(f"failed ({proc.returncode}): {' '.join(cmd)}\n{err}")
-    return wall, usage.ru_maxrss / 1024.0
+    return wall, usage.ru_maxrss / 1024.0, usage.ru_utime + usage.ru_stime
 
 
 def _points(hdmap, spacing_m: float | None = None) -> dict[int, np.ndarray]:
@@ -97,13 +98,13 @@ def main(argv: list[str] | None = None) -> int:
     tmp = tempfile.TemporaryDirectory(prefix="hdmap-cmp-")
     out = Path(args.out) if args.out else Path(tmp.name)
     out.mkdir(parents=True, exist_ok=True)
-    runs: list[tuple[str, Path, float, float, dict]] = []
+    runs: list[tuple[str, Path, float, float, float, dict]] = []
     if not args.no_whole:
         m, rep = out / "whole", out / "whole.json"
-        wall, rss = _run([*HDMAP, "bag2map", str(bag), "-o", str(m), "--overwrite", "--workers", "1",
-                          "--report", str(rep), "--no-progress"])
+        wall, rss, cpu = _run([*HDMAP, "bag2map", str(bag), "-o", str(m), "--overwrite", "--workers", "1",
+                               "--report", str(rep), "--no-progress"])
         doc = json.loads(rep.read_text())
-        runs.append(("whole fleet, 1 process", m, doc["build"]["seconds"], rss, doc))
+        runs.append(("whole fleet, 1 process", m, doc["build"]["seconds"], rss, cpu, doc))
     for n in [int(v) for v in args.workers.split(",") if v]:
         m, rep = out / f"tiled{n}", out / f"tiled{n}.json"
         cmd = [*HDMAP, "bag2map", str(bag), "-o", str(m), "--overwrite", "--tiled", "--workers", str(n),
@@ -112,24 +113,25 @@ def main(argv: list[str] | None = None) -> int:
             cmd += ["--tile-size-m", str(args.tile_size_m)]
         if args.margin_m:
             cmd += ["--margin-m", str(args.margin_m)]
-        wall, rss = _run(cmd)
+        wall, rss, cpu = _run(cmd)
         doc = json.loads(rep.read_text())
         peaks = doc["build"]["peak_rss_mb"]
-        runs.append((f"tiled, {n} worker(s)", m, doc["build"]["seconds"] + doc["index_s"], max(peaks.values()), doc))
+        runs.append((f"tiled, {n} worker(s)", m, doc["build"]["seconds"] + doc["index_s"], max(peaks.values()), cpu,
+                     doc))
 
     print(f"{bag.name}: {runs[0][4]['drives']} drives, {runs[0][4]['drive_km']:.1f} drive-km\n")
     print("| build | mean m | offset-corr. m | coverage | recall | precision | features | build s "
-          "| drive-km/s per worker | peak RSS MB (largest process) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| drive-km/s per worker | peak RSS MB (largest process) | CPU s (all processes) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     maps = {}
-    for name, m, secs, rss, doc in runs:
+    for name, m, secs, rss, cpu, doc in runs:
         hd = read_map_bag(m)
         maps[name] = hd
         o = evaluate_map(hd, gt)
         w = int(doc["build"].get("workers", 1))
         print(f"| {name} | {o.overall.mean_m:.4f} | {o.overall.corrected_mean_m:.4f} | {o.coverage:.1%} | "
               f"{o.overall.recall:.1%} | {o.overall.precision:.1%} | {len(hd.features)} | {secs:.1f} | "
-              f"{doc['drive_km'] / secs / w:.2f} | {rss:.0f} |")
+              f"{doc['drive_km'] / secs / w:.2f} | {rss:.0f} | {cpu:.0f} |")
     tiled = [k for k in maps if k.startswith("tiled")]
     for k in tiled[1:]:
         print(f"\n{k} vs {tiled[0]}: " + ("the same map (ids, points, links)" if _same(maps[k], maps[tiled[0]])
@@ -139,11 +141,12 @@ def main(argv: list[str] | None = None) -> int:
         for label, d in (("tiled -> whole", _distances(t, whole)), ("whole -> tiled", _distances(whole, t))):
             print(f"{label}: nearest same-type line median {np.median(d):.3f} m, p95 {np.percentile(d, 95):.3f} m, "
                   f"share within 0.5 m {np.mean(d <= 0.5):.1%}")
-    for name, _, _, _, doc in runs:
+    for name, _, _, _, _, doc in runs:
         if "peak_rss_mb" in doc["build"]:
             print(f"{name}: stages " + ", ".join(f"{k} {v:.1f} s" for k, v in doc["build"]["stage_seconds"].items())
                   + f", index {doc['index_s']:.1f} s; peak RSS MB " + ", ".join(
-                      f"{k} {v:.0f}" for k, v in doc["build"]["peak_rss_mb"].items()))
+                      f"{k} {v:.0f}" for k, v in doc["build"]["peak_rss_mb"].items())
+                  + "; CPU s " + ", ".join(f"{k} {v:.1f}" for k, v in doc["build"].get("cpu_seconds", {}).items()))
     return 0
 
 

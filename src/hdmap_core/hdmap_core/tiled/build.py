@@ -44,6 +44,8 @@ class TiledReport:
         seconds: wall time of the build [s].
         stage_seconds: wall time per stage [s].
         peak_rss_mb: peak RSS per process at the end [MB] ("main", "scheduler", "worker ADDR").
+        cpu_seconds: CPU time per process during the build [s] ("main", "worker ADDR"; the
+            workers' since they started): what the build cost on a machine shared with others.
     """
 
     tiles: int = 0
@@ -53,6 +55,7 @@ class TiledReport:
     seconds: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)
+    cpu_seconds: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> str:
         """A few readable lines."""
@@ -62,6 +65,7 @@ class TiledReport:
             f"{self.workers} worker(s)",
             f"time: {self.seconds:.2f} s (" + ", ".join(f"{k} {v:.2f}" for k, v in self.stage_seconds.items()) + ")",
             f"peak RSS MB: {rss}",
+            "CPU s: " + ", ".join(f"{k} {v:.1f}" for k, v in self.cpu_seconds.items()),
         ])
 
 
@@ -94,6 +98,7 @@ def build_tiled(
     """
     t_start = time.perf_counter()
     runner = runner or SerialRunner()
+    cpu0 = runner.cpu_seconds()
     keys = source.tiles()
     if not keys:
         raise NoUsableDataError("no drive covers any tile: nothing to map")
@@ -127,5 +132,6 @@ def build_tiled(
     report = TiledReport(
         tiles=len(keys), observations=n_obs, graphs=len(graphs), workers=runner.workers,
         seconds=time.perf_counter() - t_start, stage_seconds=seconds, peak_rss_mb=runner.peak_rss_mb(),
+        cpu_seconds={k: v - cpu0.get(k, 0.0) for k, v in runner.cpu_seconds().items()},
     )
     return TiledResult(map=hdmap, report=report)

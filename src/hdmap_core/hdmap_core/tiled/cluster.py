@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.tiled.memory import peak_rss_mb
+from hdmap_core.tiled.memory import cpu_seconds, peak_rss_mb
 
 __all__ = ["Runner", "SerialRunner", "DaskRunner", "ProgressFn"]
 
@@ -34,6 +34,8 @@ class Runner(Protocol):
             progress: ProgressFn | None = None) -> list: ...
 
     def peak_rss_mb(self) -> dict[str, float]: ...
+
+    def cpu_seconds(self) -> dict[str, float]: ...
 
     def close(self) -> None: ...
 
@@ -55,6 +57,10 @@ class SerialRunner:
     def peak_rss_mb(self) -> dict[str, float]:
         """{"main": peak RSS of this process} [MB]."""
         return {"main": peak_rss_mb()}
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """{"main": CPU time of this process} [s]."""
+        return {"main": cpu_seconds()}
 
     def close(self) -> None:
         pass
@@ -147,6 +153,14 @@ class DaskRunner:
         for addr, mb in sorted(self.client.run(peak_rss_mb).items()):
             peaks[f"worker {addr}"] = float(mb)
         return peaks
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU time [s] of this process ("main", with a ``LocalCluster``'s scheduler) and of each
+        worker since it started (by address)."""
+        out = {"main": cpu_seconds()}
+        for addr, sec in sorted(self.client.run(cpu_seconds).items()):
+            out[f"worker {addr}"] = float(sec)
+        return out
 
     def close(self) -> None:
         self.client.close()

@@ -1,11 +1,11 @@
-"""Peak memory of the processes of a build (resident set size, as the kernel counts it)."""
+"""Peak memory and CPU time of the processes of a build (as the kernel counts them)."""
 
 from __future__ import annotations
 
 import resource
 import sys
 
-__all__ = ["peak_rss_mb", "rss_mb"]
+__all__ = ["peak_rss_mb", "rss_mb", "cpu_seconds"]
 
 
 def peak_rss_mb() -> float:
@@ -22,3 +22,10 @@ def rss_mb() -> float:
     except (OSError, ValueError, IndexError):
         return peak_rss_mb()
     return pages * resource.getpagesize() / (1024.0 * 1024.0)
+
+
+def cpu_seconds() -> float:
+    """CPU time of this process so far, user + system [s] (on a loaded machine, wall time is not
+    what a build costs: this is)."""
+    use = resource.getrusage(resource.RUSAGE_SELF)
+    return float(use.ru_utime + use.ru_stime)
