@@ -10,8 +10,8 @@ build: mean and offset-corrected lateral error, coverage, recall, precision, wal
 (whole build: the process and its forked children, as ``wait4`` reports; tiled: the largest of
 main, scheduler and each worker, from the build report) and CPU time of all its processes (what
 the build cost on a machine shared with other work, where wall time says little). Then whether
-the tiled maps are the same (feature and topology ids, points, links) and how far the tiled map's feature points lie from the
-whole-fleet map's (nearest point of the same type, both ways).
+the tiled maps are the same (feature and topology ids, points, links) and how far the tiled map's
+feature points lie from the whole-fleet map's lines of the same type, both ways.
 """
 
 from __future__ import annotations
