@@ -431,6 +431,7 @@ def run_one(
         km = result.index.drive_km
         scale = {"tiled": True, "tiles": result.result.report.tiles, "index_s": result.index_seconds,
                  "stage_seconds": dict(result.result.report.stage_seconds), "peak_rss_by_process": peaks,
+                 "cpu_by_process": dict(result.result.report.cpu_seconds),
                  "km_per_s_worker": km / build_s / max(1, result.result.report.workers),
                  "workers": result.result.report.workers, "peak_rss_mb": max(peaks.values())}
         result = result.result
@@ -611,6 +612,7 @@ def format_scale(rows: list[dict[str, Any]]) -> str:
             f"{r['km_per_s_worker']:.2f} drive-km/s per worker; peak RSS MB main {peaks.get('main', math.nan):.0f}"
             + (f", scheduler {peaks['scheduler']:.0f}" if "scheduler" in peaks else "")
             + (", workers " + " ".join(f"{v:.0f}" for v in workers) if workers else "")
+            + "; CPU s " + " ".join(f"{v:.1f}" for v in r.get("cpu_by_process", {}).values())
         )
     return "\n".join(lines)
 
