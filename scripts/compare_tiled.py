@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         runs.append((f"tiled, {n} worker(s)", m, doc["build"]["seconds"] + doc["index_s"], max(peaks.values()), cpu,
                      doc))
 
-    print(f"{bag.name}: {runs[0][4]['drives']} drives, {runs[0][4]['drive_km']:.1f} drive-km\n")
+    print(f"{bag.name}: {runs[0][5]['drives']} drives, {runs[0][5]['drive_km']:.1f} drive-km\n")
     print("| build | mean m | offset-corr. m | coverage | recall | precision | features | build s "
           "| drive-km/s per worker | peak RSS MB (largest process) | CPU s (all processes) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
