@@ -401,7 +401,7 @@ def map_clips(
     *,
     tile_config: TileConfig,
     pipeline_config: PipelineConfig,
-    offset_model: object | None = None,
+    offset_model: OffsetSource | None = None,
 ) -> list[Segment]:
     """:func:`map_tile` from the tile's clips (:func:`clip_to_tile` pairs, any order): the same
     segments as ``map_tile`` on the full drives with the same ``offset_model``."""
@@ -411,7 +411,7 @@ def map_clips(
     return _observed_input(inp, pipeline_config, key)[0]
 
 
-def _map_input(inp: _TileInput, pipeline_config: PipelineConfig, offset_model: object) -> list[Segment]:
+def _map_input(inp: _TileInput, pipeline_config: PipelineConfig, offset_model: OffsetSource) -> list[Segment]:
     if not inp.clipped:
         return []
     segments = _final_pass(inp, pipeline_config, _ClippedOffsets(offset_model, inp.s0))
