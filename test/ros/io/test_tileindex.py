@@ -84,4 +84,4 @@ def test_bag2map_tiled_is_the_same_map_with_one_and_two_workers(tmp_path, sample
         np.testing.assert_array_equal(np.asarray(f.points), np.asarray(g.points))
     assert [t.id for t in a.topology] == [t.id for t in b.topology]
     assert cli.main(["bag2map", str(sample_bags / "ramps_20"), "-o", str(tmp_path / "m3"), "--tiled",
-                     "--margin-m", "900"]) == 2
+                     "--margin-m", "2000"]) == 2
