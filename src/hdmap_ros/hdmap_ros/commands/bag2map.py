@@ -5,6 +5,8 @@ drive with its reason, runs :func:`hdmap_core.pipeline.driver.build_map`, writes
 the map on ``/hdmap/map`` and the origin on ``/fleet/origin``) and, with ``--geojson``, the
 features and lanes as RFC 7946 GeoJSON; with ``--lanelet2 DIR``, the lanes as an Autoware map
 directory (``hdmap export``); with ``--graphml``, the topology graph as GraphML (map frame).
+With ``--tiled`` (or ``--scheduler``) the bag is indexed by tile on disk and built tile by tile
+(``hdmap_ros.tiled``, docs/scale.md).
 Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
@@ -69,7 +71,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="processes for the pivot passes; independent parts of the map (e.g. the two carriageways) "
-        "run apart and the map is the same as with 1 (default: the CPUs available)",
+        "run apart and the map is the same as with 1 (default: the CPUs available); with --tiled: Dask "
+        "worker processes of a LocalCluster (default: 1, the tiles in this process)",
     )
     tiled = parser.add_argument_group("out of core, by tiles (docs/scale.md)")
     tiled.add_argument(
