@@ -22,6 +22,8 @@ from hdmap_core.tiled.memory import cpu_seconds, peak_rss_mb
 __all__ = ["Runner", "SerialRunner", "DaskRunner", "ProgressFn"]
 
 ProgressFn = Callable[[str, int, int], None]
+_QUIET = {"distributed.worker.memory.monitor-interval": "2s", "distributed.admin.system-monitor.interval": "5s",
+          "distributed.admin.tick.interval": "200ms"}
 PerItem = Callable[[Any], tuple]
 
 
@@ -82,11 +84,16 @@ class DaskRunner:
         """Start a ``LocalCluster`` of ``workers`` single-threaded worker processes."""
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
-        from distributed import Client, LocalCluster  # noqa: PLC0415 - only when asked for
+        import dask  # noqa: PLC0415 - only when asked for
+        from distributed import Client, LocalCluster  # noqa: PLC0415
 
-        # on loopback only; the scheduler's HTTP endpoint on a free port (8787 may be another cluster's)
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
+        # On loopback only; the scheduler's HTTP endpoint on a free port (8787 may be another
+        # cluster's). Tasks take seconds: the monitors need not wake every 0.1-0.5 s (idle, a
+        # worker used 3.1 % of a core with the defaults, 2.3-2.9 % with these; the client 4.3 %,
+        # then 1.0-1.2 %).
+        with dask.config.set(_QUIET):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                   dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
         return cls(Client(cluster), cluster=cluster, in_flight=in_flight)
 
     @classmethod
