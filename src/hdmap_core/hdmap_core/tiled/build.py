@@ -103,11 +103,13 @@ def build_tiled(
     if not keys:
         raise NoUsableDataError("no drive covers any tile: nothing to map")
     seconds: dict[str, float] = {}
+    weights = [len(source.drive_ids(k)) for k in keys] if runner.workers > 1 else None  # heaviest tiles first
     model = None
     n_obs = 0
     if config.final_pass is not None:
         t0 = time.perf_counter()
-        per_tile = runner.run("observe", tasks.observe, keys, shared=(source, config), progress=progress)
+        per_tile = runner.run("observe", tasks.observe, keys, shared=(source, config), progress=progress,
+                              weights=weights)
         observations = [o for obs in per_tile for o in obs]
         del per_tile
         n_obs = len(observations)
@@ -122,7 +124,8 @@ def build_tiled(
     def offsets(key: tuple[int, int]) -> tuple:
         return (tasks.model_of(fleet_model, source.drive_ids(key)) if fleet_model is not None else None,)
 
-    per_tile = runner.run("map", tasks.map_connect, keys, shared=(source, config), per_item=offsets, progress=progress)
+    per_tile = runner.run("map", tasks.map_connect, keys, shared=(source, config), per_item=offsets, progress=progress,
+                          weights=weights)
     graphs = [g for gs in per_tile for g in gs]
     del per_tile
     seconds["final_pass"] = time.perf_counter() - t0

@@ -33,7 +33,7 @@ class Runner(Protocol):
     workers: int
 
     def run(self, stage: str, fn: Callable, items: Sequence, shared: tuple = (), per_item: PerItem | None = None,
-            progress: ProgressFn | None = None) -> list: ...
+            progress: ProgressFn | None = None, weights: Sequence[float] | None = None) -> list: ...
 
     def peak_rss_mb(self) -> dict[str, float]: ...
 
@@ -48,7 +48,7 @@ class SerialRunner:
     workers = 1
 
     def run(self, stage: str, fn: Callable, items: Sequence, shared: tuple = (), per_item: PerItem | None = None,
-            progress: ProgressFn | None = None) -> list:
+            progress: ProgressFn | None = None, weights: Sequence[float] | None = None) -> list:
         out = []
         for i, item in enumerate(items):
             out.append(fn(*shared, item, *(per_item(item) if per_item else ())))
@@ -117,14 +117,17 @@ class DaskRunner:
         return cls(client, in_flight=in_flight)
 
     def run(self, stage: str, fn: Callable, items: Sequence, shared: tuple = (), per_item: PerItem | None = None,
-            progress: ProgressFn | None = None) -> list:
+            progress: ProgressFn | None = None, weights: Sequence[float] | None = None) -> list:
+        """``weights``: the expected cost of each item; the heaviest are submitted first, so that
+        no worker is left with a heavy task at the end of the stage (results stay in item order)."""
         from distributed import as_completed  # noqa: PLC0415
 
         shared_f = [self.client.scatter(v, broadcast=True, hash=False) for v in shared]
         out: list = [None] * len(items)
         limit = self.in_flight * self.workers
         index: dict[str, int] = {}
-        todo = iter(enumerate(items))
+        order = range(len(items)) if weights is None else sorted(range(len(items)), key=lambda i: -float(weights[i]))
+        todo = iter((i, items[i]) for i in order)
         pending = as_completed()
         done = 0
 
