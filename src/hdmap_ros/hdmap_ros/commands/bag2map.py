@@ -194,6 +194,17 @@ def run(args: argparse.Namespace) -> int:
                                     workers=args.workers or available_cpus())
     hdmap: HDMap = result.map
 
+    _write_outputs(args, out, hdmap, origin)
+    seconds = time.perf_counter() - t_start
+    print(_summary(fleet, hdmap, result, seconds))
+    if args.report:
+        Path(args.report).write_text(json.dumps(_report_dict(args, fleet, hdmap, result, seconds), indent=1))
+        print(f"wrote {args.report}")
+    return 0
+
+
+def _write_outputs(args: argparse.Namespace, out: Path, hdmap: HDMap, origin: GeoOrigin | None) -> None:
+    """The map bag, and the GeoJSON, Lanelet2 and GraphML files asked for."""
     write_map_bag(out, hdmap, origin, overwrite=args.overwrite)
     print(f"wrote {out}: {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes")
     lanes = None
@@ -214,12 +225,6 @@ def run(args: argparse.Namespace) -> int:
 
         g = write_graphml(hdmap, args.graphml)
         print(f"wrote {args.graphml}: {g.number_of_nodes()} nodes, {g.number_of_edges()} links")
-    seconds = time.perf_counter() - t_start
-    print(_summary(fleet, hdmap, result, seconds))
-    if args.report:
-        Path(args.report).write_text(json.dumps(_report_dict(args, fleet, hdmap, result, seconds), indent=1))
-        print(f"wrote {args.report}")
-    return 0
 
 
 def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
@@ -243,19 +248,11 @@ def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
         print(f"hdmap {NAME}: warning: {index.bag_error}; went on with the {index.drive_count} intact drive(s)",
               file=sys.stderr)
     origin = args.origin or index.origin
+    for flag, value in (("--geojson", args.geojson), ("--lanelet2", args.lanelet2)):
+        if value and origin is None:
+            return _fail(f"{flag} needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
     hdmap: HDMap = result.map
-    write_map_bag(out, hdmap, origin, overwrite=args.overwrite)
-    print(f"wrote {out}: {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes")
-    if args.geojson:
-        if origin is None:
-            return _fail(f"--geojson needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
-        write_geojson(hdmap, origin, args.geojson)
-        print(f"wrote {args.geojson}")
-    if args.graphml:
-        from hdmap_core.graph.topology_graph import write_graphml  # noqa: PLC0415
-
-        g = write_graphml(hdmap, args.graphml)
-        print(f"wrote {args.graphml}: {g.number_of_nodes()} nodes, {g.number_of_edges()} links")
+    _write_outputs(args, out, hdmap, origin)
     seconds = time.perf_counter() - t_start
     rep = result.report
     print("\n".join([
