@@ -209,3 +209,18 @@ def test_simulated_fleet_is_reused_only_when_made_with_the_same_config(tmp_path)
     prepare_scenarios(["motorway:3:2"], scales=[1.0], work_dir=tmp_path)
     assert json.loads(sim.read_text())["simulator"] == simulator_fingerprint()  # simulated anew
     assert sim.stat().st_mtime_ns != stamp
+
+
+@pytest.mark.slow
+def test_tiled_bench_prints_the_scale_table(sample_bags, tmp_path, capsys):
+    pytest.importorskip("distributed")
+    out_json = tmp_path / "bench.json"
+    assert cli.main(["bench", str(sample_bags / "ramps_20"), "--presets", "default", "--inline", "--tiled",
+                     "--workers", "2", "--json", str(out_json)]) == 0
+    out = capsys.readouterr().out
+    assert "default tiled" in out and "drive-km/s per worker" in out and "scheduler" in out
+    (row,) = json.loads(out_json.read_text())
+    assert row["tiled"] and row["workers"] == 2 and row["tiles"] > 0 and row["km_per_s_worker"] > 0
+    peaks = row["peak_rss_by_process"]
+    assert sum(k.startswith("worker") for k in peaks) == 2 and row["peak_rss_mb"] == max(peaks.values())
+    assert row["mean_m"] < 0.5 and row["coverage"] > 0.5

@@ -92,3 +92,18 @@ def test_yaml_config(tmp_path):
     assert cli.main(["simulate", "--map", "motorway", "--length-m", "600", "--config", str(conf), "-o", str(tmp_path / "y")]) == 0
     sim = json.loads((tmp_path / "y.sim.json").read_text())
     assert sim["config"]["opposite_barrier"] is False and len(sim["truth"]) == 2
+
+
+def test_batch_drives_streams_the_same_bag_and_sim_json(tmp_path):
+    from hdmap_ros.io.bagio import iter_bag
+
+    whole, streamed = tmp_path / "whole", tmp_path / "streamed"
+    assert cli.main(["simulate", *ARGS, "-o", str(whole)]) == 0
+    assert cli.main(["simulate", *ARGS, "-o", str(streamed), "--batch-drives", "3"]) == 0
+
+    def messages(bag):
+        return [(m.topic, m.log_time_ns, m.data) for m in iter_bag(bag)]
+
+    assert messages(streamed) == messages(whole) and len(messages(whole)) == 5  # origin + 4 drives
+    assert json.loads((tmp_path / "streamed.sim.json").read_text()) == json.loads((tmp_path / "whole.sim.json").read_text())
+    assert cli.main(["simulate", *ARGS, "-o", str(tmp_path / "x"), "--batch-drives", "0"]) == 1

@@ -54,6 +54,9 @@ __all__ = [
     "ROAD_CELL_M",
     "tile_seed",
     "clip_drive",
+    "clip_to_tile",
+    "observe_clips",
+    "map_clips",
     "select_steps",
     "steps_outside",
     "needs_update",
@@ -272,14 +275,32 @@ class _TileInput:
     core: tuple[float, float, float, float]
 
 
+def clip_to_tile(drive: Drive, key: TileKey, *, tile_config: TileConfig) -> tuple[Drive | None, float]:
+    """A drive clipped to a tile grown by its margin (:func:`clip_drive`), and the travelled
+    distance of the full drive where the clip starts [m] ((None, 0.0) when it does not reach in).
+
+    What a tile is mapped from: :func:`observe_clips` and :func:`map_clips` take these pairs, so
+    a tile's drives can be clipped once and stored (``hdmap_ros.io.tileindex``)."""
+    return _clip(drive, tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.margin_m))
+
+
 def _tile_input(drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, pipeline_config: PipelineConfig) -> _TileInput:
-    grown = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.margin_m)
-    clipped, s0 = [], {}
-    for d in sorted(drives, key=lambda d: d.drive_id):
-        c, start = _clip(d, grown)
+    clips = []
+    for d in drives:
+        c, start = clip_to_tile(d, key, tile_config=tile_config)
         if c is not None:
-            clipped.append(c)
-            s0[c.drive_id] = start
+            clips.append((c, start))
+    return _clips_input(clips, key, tile_config, pipeline_config)
+
+
+def _clips_input(
+    clips: Sequence[tuple[Drive, float]], key: TileKey, tile_config: TileConfig, pipeline_config: PipelineConfig
+) -> _TileInput:
+    """The tile's input from its drives' clips (:func:`clip_to_tile`), in any order."""
+    clipped, s0 = [], {}
+    for c, start in sorted(clips, key=lambda cs: cs[0].drive_id):
+        clipped.append(c)
+        s0[c.drive_id] = start
     from hdmap_core.pipeline.driver import prepare_drives  # noqa: PLC0415 - the pipeline is heavy; import on first use
 
     # A clip can be degenerate (e.g. repeated poses): as map_stretches does. The drives passed the
@@ -370,12 +391,31 @@ def map_tile(
         travelled distances of the whole pivot drives (not of their clips).
     """
     if offset_model is not None and pipeline_config.final_pass is not None:
-        inp = _tile_input(drives, key, tile_config, pipeline_config)
-        if not inp.clipped:
-            return []
-        segments = _final_pass(inp, pipeline_config, _ClippedOffsets(offset_model, inp.s0))
-        return _whole_drive_s(select_steps(segments, inp.core), inp.s0)
+        return _map_input(_tile_input(drives, key, tile_config, pipeline_config), pipeline_config, offset_model)
     return map_tile_observed(drives, key, tile_config=tile_config, pipeline_config=pipeline_config)[0]
+
+
+def map_clips(
+    clips: Sequence[tuple[Drive, float]],
+    key: TileKey,
+    *,
+    tile_config: TileConfig,
+    pipeline_config: PipelineConfig,
+    offset_model: OffsetSource | None = None,
+) -> list[Segment]:
+    """:func:`map_tile` from the tile's clips (:func:`clip_to_tile` pairs, any order): the same
+    segments as ``map_tile`` on the full drives with the same ``offset_model``."""
+    inp = _clips_input(clips, key, tile_config, pipeline_config)
+    if offset_model is not None and pipeline_config.final_pass is not None:
+        return _map_input(inp, pipeline_config, offset_model)
+    return _observed_input(inp, pipeline_config, key)[0]
+
+
+def _map_input(inp: _TileInput, pipeline_config: PipelineConfig, offset_model: OffsetSource) -> list[Segment]:
+    if not inp.clipped:
+        return []
+    segments = _final_pass(inp, pipeline_config, _ClippedOffsets(offset_model, inp.s0))
+    return _whole_drive_s(select_steps(segments, inp.core), inp.s0)
 
 
 def map_tile_observed(
@@ -387,9 +427,12 @@ def map_tile_observed(
         (segments of the tile proper, the first pass's ``StepObservations`` of the steps inside
         the tile proper with travelled distances of the full drives: see :func:`observe_tile`).
     """
+    return _observed_input(_tile_input(drives, key, tile_config, pipeline_config), pipeline_config, key)
+
+
+def _observed_input(inp: _TileInput, pipeline_config: PipelineConfig, key: TileKey) -> tuple[list[Segment], list]:
     from hdmap_core.pipeline.driver import map_stretches  # the pipeline is heavy; import on first use
 
-    inp = _tile_input(drives, key, tile_config, pipeline_config)
     if not inp.clipped:
         return [], []
     res = map_stretches(inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed,
@@ -404,7 +447,17 @@ def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConf
     travelled distances of the full (unclipped) drives, so the observations of all tiles together
     feed one fleet-wide adjustment (:func:`fleet_offsets`). A function of the tile's drive set.
     """
-    inp = _tile_input(drives, key, tile_config, pipeline_config)
+    return _observe_input(_tile_input(drives, key, tile_config, pipeline_config), pipeline_config, key)
+
+
+def observe_clips(
+    clips: Sequence[tuple[Drive, float]], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig
+) -> list:
+    """:func:`observe_tile` from the tile's clips (:func:`clip_to_tile` pairs, any order)."""
+    return _observe_input(_clips_input(clips, key, tile_config, pipeline_config), pipeline_config, key)
+
+
+def _observe_input(inp: _TileInput, pipeline_config: PipelineConfig, key: TileKey) -> list:
     if not inp.clipped:
         return []
     return _core_observations(_first_pass(inp, pipeline_config), inp, key)

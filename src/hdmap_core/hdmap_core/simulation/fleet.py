@@ -26,7 +26,7 @@ import functools
 import hashlib
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -58,6 +58,7 @@ from hdmap_core.simulation.sensor import (
 __all__ = [
     "Fleet",
     "simulate_fleet",
+    "FleetStream",
     "route_directions",
     "load_map",
     "maps_dirs",
@@ -97,6 +98,8 @@ class Fleet:
 
     def summary(self) -> dict:
         """Counts: drives, driven km, detections (and false positives among them)."""
+        if not self.drives and "summary" in self.extra:  # streamed (``FleetStream.fleet``)
+            return dict(self.extra["summary"])
         km = sum(d.length_m for d in self.drives) / 1000.0
         return {
             "drives": len(self.drives),
@@ -538,88 +541,152 @@ def simulate_fleet(
         NoUsableDataError: ``gt`` has no usable route.
         GroundTruthError: a change does not fit ``gt`` (unknown route, zone off it).
     """
-    if not isinstance(gt, GroundTruth):
-        raise GroundTruthError(f"simulate_fleet: expected a GroundTruth, got {type(gt).__name__}")
-    if not isinstance(config, SimConfig):
-        raise ConfigError(f"simulate_fleet: expected a SimConfig, got {type(config).__name__}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ConfigError(f"simulate_fleet: seed must be a non-negative integer, got {seed!r}")
-    config.validate()
-    routes = [r for r in gt.routes if len(r.lanes) and len(gt.route_centerline(r)) >= 2]
-    lengths = {r.id: float(arc_length(gt.route_centerline(r))[-1]) for r in routes}
-    routes = [r for r in routes if lengths[r.id] >= 2.0]
-    if not routes:
-        raise NoUsableDataError(f"ground truth {gt.name!r} has no route to drive on")
-    dirs = route_directions(gt)
-    by_dir = {d: [r for r in routes if dirs[r.id] == d] for d in (0, 1)}
-    epochs = _epochs(gt, changes)
-    epoch = epochs[0]
-    children = np.random.SeedSequence(int(seed)).spawn(config.n_drives)
-    drives: list[Drive] = []
-    truth: dict[str, dict] = {}
-    t_ns = int(config.start_time_ns)
-    places = _PlaceCounts(config.coverage_cell_m)
+    stream = FleetStream(gt, config=config, seed=seed, changes=changes, keep_arrays=True)
+    drives = list(stream)
+    return Fleet(drives, stream.origin, stream.truth, config, int(seed), gt.name, extra=stream.change_extra(),
+                 seen_count=stream.seen_count())
 
-    def geom_of(route: GTRoute) -> _RouteGeom:
-        if route.id not in epoch.geoms:
-            epoch.geoms[route.id] = _build_route_geom(epoch.gt, route, config.pose_spacing_m, epoch.trees)
-        return epoch.geoms[route.id]
 
-    timed: list[RoadChange] = []
-    for i, child in enumerate(children):
-        rng = np.random.default_rng(child)
-        gap_ns = 0
-        while epoch.next_at is not None and i >= epoch.next_at:
-            epoch = epochs[epochs.index(epoch) + 1]
+class FleetStream:
+    """The drives of :func:`simulate_fleet`, one at a time (the same drives, in the same order),
+    for fleets too large to hold: iterate once; the truth rows and the seen counts grow as it goes.
+
+    Attributes:
+        origin, config, seed, map_name: as in ``Fleet``.
+        truth: per drive id simulated so far, its truth row (per-pose arrays only with
+            ``keep_arrays``).
+
+    Raises:
+        as :func:`simulate_fleet` (on construction).
+    """
+
+    def __init__(self, gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: int = 0,
+                 changes: Sequence[RoadChange] = (), keep_arrays: bool = False) -> None:
+        if not isinstance(gt, GroundTruth):
+            raise GroundTruthError(f"simulate_fleet: expected a GroundTruth, got {type(gt).__name__}")
+        if not isinstance(config, SimConfig):
+            raise ConfigError(f"simulate_fleet: expected a SimConfig, got {type(config).__name__}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ConfigError(f"simulate_fleet: seed must be a non-negative integer, got {seed!r}")
+        config.validate()
+        routes = [r for r in gt.routes if len(r.lanes) and len(gt.route_centerline(r)) >= 2]
+        self._lengths = {r.id: float(arc_length(gt.route_centerline(r))[-1]) for r in routes}
+        routes = [r for r in routes if self._lengths[r.id] >= 2.0]
+        if not routes:
+            raise NoUsableDataError(f"ground truth {gt.name!r} has no route to drive on")
+        self.gt, self.config, self.seed, self.map_name = gt, config, int(seed), gt.name
+        self.origin = config.origin
+        self.keep_arrays = keep_arrays
+        self.changes = tuple(changes)
+        self._dirs = route_directions(gt)
+        self._by_dir = {d: [r for r in routes if self._dirs[r.id] == d] for d in (0, 1)}
+        self._epochs = _epochs(gt, self.changes)
+        self._epoch = self._epochs[0]
+        self._timed: list[RoadChange] = []
+        self.truth: dict[str, dict] = {}
+        self._counts = {"drives": 0, "m": 0.0, "detections": 0, "false_positives": 0, "poses": 0}
+        self._started = False
+
+    def summary(self) -> dict:
+        """``Fleet.summary`` of the drives simulated so far."""
+        c = self._counts
+        return {"drives": c["drives"], "km": round(c["m"] / 1000.0, 3), "detections": c["detections"],
+                "false_positives": c["false_positives"], "poses": c["poses"]}
+
+    def seen_count(self) -> dict[int, np.ndarray]:
+        """``Fleet.seen_count`` of the drives simulated so far (with changes: of the road as of the
+        last drive; a feature kept whole keeps its id and points, so its counts add up)."""
+        epoch = self._epoch
+        if not self.changes:
+            return seen_per_feature(self.gt, epoch.idx, epoch.seen)
+        seen_count: dict[int, np.ndarray] = {}
+        for e in self._epochs[: self._epochs.index(epoch) + 1]:
+            for fid, n in seen_per_feature(e.gt, e.idx, e.seen).items():
+                same = fid in seen_count and len(seen_count[fid]) == len(n)
+                seen_count[fid] = seen_count[fid] + n if same else n
+        ids_after = {(f.id, len(f.points)) for f in epoch.gt.features}
+        return {fid: n for fid, n in seen_count.items() if (fid, len(n)) in ids_after}
+
+    def change_extra(self) -> dict:
+        """``Fleet.extra`` of a simulation with changes (after the iteration): ``changes`` with
+        their ``time_ns``, ``gt_before``, ``gt_after`` (as of the last drive); empty without."""
+        if not self.changes:
+            return {}
+        return {"changes": list(self._timed), "gt_before": self.gt, "gt_after": self._epoch.gt}
+
+    def fleet(self) -> Fleet:
+        """A ``Fleet`` without its drives (they were streamed), for ``write_sim_json``."""
+        return Fleet([], self.origin, self.truth, self.config, self.seed, self.map_name,
+                     extra={"summary": self.summary(), **self.change_extra()}, seen_count=self.seen_count())
+
+    def __iter__(self) -> Iterator[Drive]:
+        if self._started:
+            raise ConfigError("a FleetStream is iterated once")
+        self._started = True
+        gt, config, seed = self.gt, self.config, self.seed
+        lengths, dirs, by_dir, epochs = self._lengths, self._dirs, self._by_dir, self._epochs
+        children = np.random.SeedSequence(int(seed)).spawn(config.n_drives)
+        t_ns = int(config.start_time_ns)
+        places = _PlaceCounts(config.coverage_cell_m)
+
+        def geom_of(route: GTRoute) -> _RouteGeom:
+            epoch = self._epoch
+            if route.id not in epoch.geoms:
+                epoch.geoms[route.id] = _build_route_geom(epoch.gt, route, config.pose_spacing_m, epoch.trees)
+            return epoch.geoms[route.id]
+
+        for i, child in enumerate(children):
+            rng = np.random.default_rng(child)
+            gap_ns = 0
+            while self._epoch.next_at is not None and i >= self._epoch.next_at:
+                self._epoch = epochs[epochs.index(self._epoch) + 1]
+                gap_ns = int(CHANGE_GAP_S * 1e9)
+            d = 0 if rng.random() < config.direction_bias else 1
+            pool = by_dir[d] or by_dir[1 - d]
+            w = np.array([lengths[r.id] if config.route_weighting != "uniform" else 1.0 for r in pool])
+            snippet = None
+            if config.route_weighting == "coverage":
+                # Of a few snippets drawn as for "length", drive the one over the least-driven place.
+                best = None
+                for _ in range(config.coverage_candidates):
+                    cand = pool[int(rng.choice(len(pool), p=w / w.sum()))]
+                    snip = _draw_snippet(geom_of(cand), config, rng)
+                    key = places.score(geom_of(cand), dirs[cand.id], snip)
+                    if best is None or key < best[0]:
+                        best = (key, cand, snip)
+                assert best is not None  # coverage_candidates >= 1 (SimConfig.validate)
+                _, route, snippet = best
+                places.add(geom_of(route), dirs[route.id], snippet)
+            else:
+                route = pool[int(rng.choice(len(pool), p=w / w.sum()))]
+            if i > 0:
+                t_ns += int(rng.uniform(config.drive_gap_min_s, config.drive_gap_max_s) * 1e9)
+            if gap_ns:
+                self._timed += [replace(c, time_ns=t_ns + gap_ns // 2) for c in self._epoch.made]
+                t_ns += gap_ns
+            drive_id = f"{gt.name}_s{seed}_{i:04d}"
+            drive, tr, seen = _simulate_drive(
+                i, drive_id, geom_of(route), dirs[route.id], t_ns, self._epoch.idx, config, rng, snippet
+            )
+            if not self.keep_arrays:
+                tr = {k: v for k, v in tr.items() if k not in _ARRAY_KEYS}
+            self.truth[drive_id] = tr
+            self._epoch.seen[seen] += 1  # ``seen`` holds each point once: distinct drives
+            c = self._counts
+            c["drives"] += 1
+            c["m"] += drive.length_m
+            c["detections"] += len(drive.detections)
+            c["false_positives"] += int(tr["n_false_positives"])
+            c["poses"] += len(drive.xy)
+            yield drive
+        if self.changes:
             gap_ns = int(CHANGE_GAP_S * 1e9)
-        d = 0 if rng.random() < config.direction_bias else 1
-        pool = by_dir[d] or by_dir[1 - d]
-        w = np.array([lengths[r.id] if config.route_weighting != "uniform" else 1.0 for r in pool])
-        snippet = None
-        if config.route_weighting == "coverage":
-            # Of a few snippets drawn as for "length", drive the one over the least-driven place.
-            best = None
-            for _ in range(config.coverage_candidates):
-                cand = pool[int(rng.choice(len(pool), p=w / w.sum()))]
-                snip = _draw_snippet(geom_of(cand), config, rng)
-                key = places.score(geom_of(cand), dirs[cand.id], snip)
-                if best is None or key < best[0]:
-                    best = (key, cand, snip)
-            assert best is not None  # coverage_candidates >= 1 (SimConfig.validate)
-            _, route, snippet = best
-            places.add(geom_of(route), dirs[route.id], snippet)
-        else:
-            route = pool[int(rng.choice(len(pool), p=w / w.sum()))]
-        if i > 0:
-            t_ns += int(rng.uniform(config.drive_gap_min_s, config.drive_gap_max_s) * 1e9)
-        if gap_ns:
-            timed += [replace(c, time_ns=t_ns + gap_ns // 2) for c in epoch.made]
-            t_ns += gap_ns
-        drive_id = f"{gt.name}_s{seed}_{i:04d}"
-        drive, tr, seen = _simulate_drive(
-            i, drive_id, geom_of(route), dirs[route.id], t_ns, epoch.idx, config, rng, snippet
-        )
-        drives.append(drive)
-        truth[drive_id] = tr
-        epoch.seen[seen] += 1  # ``seen`` holds each point once: distinct drives
-    if not changes:
-        seen_count = seen_per_feature(gt, epoch.idx, epoch.seen)
-        return Fleet(drives, config.origin, truth, config, int(seed), gt.name, seen_count=seen_count)
-    gap_ns = int(CHANGE_GAP_S * 1e9)
-    if epochs[0].made:  # changes before the first drive
-        timed = [replace(c, time_ns=int(config.start_time_ns) - gap_ns // 2) for c in epochs[0].made] + timed
-    for e in epochs[epochs.index(epoch) + 1 :]:  # changes after the last drive
-        t_ns += gap_ns
-        timed += [replace(c, time_ns=t_ns - gap_ns // 2) for c in e.made]
-    seen_count = {}
-    for e in epochs[: epochs.index(epoch) + 1]:  # features kept whole keep id and points: counts add up
-        for fid, n in seen_per_feature(e.gt, e.idx, e.seen).items():
-            same = fid in seen_count and len(seen_count[fid]) == len(n)
-            seen_count[fid] = seen_count[fid] + n if same else n
-    ids_after = {(f.id, len(f.points)) for f in epoch.gt.features}
-    seen_count = {fid: n for fid, n in seen_count.items() if (fid, len(n)) in ids_after}
-    extra = {"changes": timed, "gt_before": gt, "gt_after": epoch.gt}
-    return Fleet(drives, config.origin, truth, config, int(seed), gt.name, extra=extra, seen_count=seen_count)
+            if epochs[0].made:  # changes before the first drive
+                start = int(config.start_time_ns) - gap_ns // 2
+                self._timed = [replace(c, time_ns=start) for c in epochs[0].made] + self._timed
+            for e in epochs[epochs.index(self._epoch) + 1 :]:  # changes after the last drive
+                t_ns += gap_ns
+                self._timed += [replace(c, time_ns=t_ns - gap_ns // 2) for c in e.made]
 
 
 @dataclass(eq=False)

@@ -9,6 +9,9 @@ The map is the road as of the last drive (``hdmap_core.updates.follow``; ``--no-
 the consensus of every drive, the map of the first build): changes of the road are detected and
 the changed places rebuilt from the drives after the change; the changes and the retired pieces go
 to ``OUT.history.json`` (docs/updates.md). Where nothing changed, the map is the same either way.
+With ``--tiled`` (or ``--scheduler``) the bag is indexed by tile on disk and built tile by tile
+(``hdmap_ros.tiled``, docs/scale.md). A tiled build gives the consensus of
+every drive (it does not follow changes yet).
 Exit status: 0 done, 1 an error (e.g. no usable drive), 2 usage.
 """
 
@@ -30,11 +33,18 @@ from hdmap_core.model import GeoOrigin, HDMap
 from hdmap_ros.io.bagio import FleetBag, read_fleet_bag, write_map_bag
 from hdmap_ros.io.geojson import write_geojson
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument", "parse_origin"]
+__all__ = [
+    "NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument", "parse_origin", "tile_config_of",
+    "TILE_DEFAULTS",
+]
 
 NAME = "bag2map"
 HELP = "build a lane-level HD map from a fleet bag and write it as a rosbag2 MCAP map bag"
 PRESETS = ("default", "paper", "naive")
+# Tiles of an offline tiled build (docs/scale.md "How the work is partitioned"): 1 km, four times the live suite's
+# 256 m edge (less margin per tile); pivots walk only 32 m beyond their tile (the steps of the
+# tile proper are kept anyway): paper_like 1x, tiled 116 s at 1024 m, 140 s at 2048 m, same accuracy.
+TILE_DEFAULTS = {"tile_size_m": 1024.0, "margin_m": 128.0, "pivot_margin_m": 32.0}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,7 +76,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="processes for the pivot passes; independent parts of the map (e.g. the two carriageways) "
-        "run apart and the map is the same as with 1 (default: the CPUs available)",
+        "run apart and the map is the same as with 1 (default: the CPUs available); with --tiled: Dask "
+        "worker processes of a LocalCluster (default: 1, the tiles in this process)",
     )
     parser.add_argument(
         "--follow-changes",
@@ -76,9 +87,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "rebuild the changed places from the drives after the change, keep what they replaced in OUT.history.json "
         "(default: on; a road without changes gets the same map as with --no-follow-changes)",
     )
+    tiled = parser.add_argument_group("out of core, by tiles (docs/scale.md)")
+    tiled.add_argument(
+        "--tiled", action="store_true",
+        help="index the bag by tile on disk in one pass and build tile by tile: memory bounded by the tiles "
+        "in work, not by the bag; with --workers N (N > 1) on a Dask LocalCluster of N processes",
+    )
+    tiled.add_argument("--scheduler", metavar="ADDR",
+                       help="build by tiles on the running Dask cluster at ADDR (tcp://HOST:8786); implies --tiled")
+    tiled.add_argument("--tile-size-m", type=float, default=None, metavar="M",
+                       help=f"edge of a tile [m] (default: {TILE_DEFAULTS['tile_size_m']:g})")
+    tiled.add_argument("--margin-m", type=float, default=None, metavar="M",
+                       help=f"context mapped around a tile [m] (default: {TILE_DEFAULTS['margin_m']:g})")
+    tiled.add_argument("--index", metavar="FILE", help="keep the tile index in FILE (default: a temporary file)")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
     parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+
+
+def tile_config_of(args: argparse.Namespace) -> Any:
+    """The ``TileConfig`` of ``--tile-size-m``, ``--margin-m`` and ``--seed``.
+
+    Raises:
+        ConfigError: a value the tiling does not take, named."""
+    from hdmap_core.live.tiles import TileConfig  # noqa: PLC0415
+
+    size = args.tile_size_m if args.tile_size_m is not None else TILE_DEFAULTS["tile_size_m"]
+    margin = args.margin_m if args.margin_m is not None else TILE_DEFAULTS["margin_m"]
+    return TileConfig(tile_size_m=size, margin_m=margin, seed=args.seed,
+                      pivot_margin_m=min(TILE_DEFAULTS["pivot_margin_m"], margin))
 
 
 def parse_origin(text: str) -> GeoOrigin:
@@ -148,6 +185,8 @@ def run(args: argparse.Namespace) -> int:
     if args.overrides:
         print(f"preset {args.preset}, changed: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in args.overrides))
 
+    if args.tiled or args.scheduler:
+        return _run_tiled(args, config, out)
     t_start = time.perf_counter()
     fleet = read_fleet_bag(args.bag)
     _report_input(fleet)
@@ -189,6 +228,20 @@ def run(args: argparse.Namespace) -> int:
             print(f"follow changes: {len(followed.changes)} change(s), {len(followed.retired)} retired piece(s)")
     hdmap: HDMap = result.map
 
+    _write_outputs(args, out, hdmap, origin, history=history)
+    seconds = time.perf_counter() - t_start
+    print(_summary(fleet, hdmap, result, seconds))
+    if args.report:
+        Path(args.report).write_text(json.dumps(_report_dict(args, fleet, hdmap, result, seconds), indent=1))
+        print(f"wrote {args.report}")
+    return 0
+
+
+def _write_outputs(
+    args: argparse.Namespace, out: Path, hdmap: HDMap, origin: GeoOrigin | None, *, history: dict | None = None
+) -> None:
+    """The map bag, the change history (``OUT.history.json``, when changes were followed) and the
+    GeoJSON, Lanelet2 and GraphML files asked for."""
     write_map_bag(out, hdmap, origin, overwrite=args.overwrite)
     print(f"wrote {out}: {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes")
     if history is not None:
@@ -213,10 +266,56 @@ def run(args: argparse.Namespace) -> int:
 
         g = write_graphml(hdmap, args.graphml)
         print(f"wrote {args.graphml}: {g.number_of_nodes()} nodes, {g.number_of_edges()} links")
+
+
+def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
+    """``--tiled`` / ``--scheduler``: the bag indexed by tile, the map built tile by tile."""
+    from hdmap_ros.tiled import build_from_bag  # noqa: PLC0415 - dask and the pipeline only when asked
+
+    try:
+        tile_config = tile_config_of(args)
+    except ConfigError as err:
+        return _fail(str(err))
+    if args.index and Path(args.index).is_dir():
+        return _fail(f"--index {args.index} is a directory")
+    t_start = time.perf_counter()
+    with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
+        got = build_from_bag(args.bag, config=config, tile_config=tile_config, workers=args.workers or 1,
+                             scheduler=args.scheduler, index_path=args.index, progress=progress)
+    index, result = got.index, got.result
+    for _did, _reason, text in got.rejected:
+        print(f"hdmap {NAME}: rejected {text}", file=sys.stderr)
+    if index.bag_error:
+        print(f"hdmap {NAME}: warning: {index.bag_error}; went on with the {index.drive_count} intact drive(s)",
+              file=sys.stderr)
+    origin = args.origin or index.origin
+    for flag, value in (("--geojson", args.geojson), ("--lanelet2", args.lanelet2)):
+        if value and origin is None:
+            return _fail(f"{flag} needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
+    hdmap: HDMap = result.map
+    _write_outputs(args, out, hdmap, origin)
     seconds = time.perf_counter() - t_start
-    print(_summary(fleet, hdmap, result, seconds))
+    rep = result.report
+    print("\n".join([
+        "summary (tiled):",
+        f"  drives indexed   {index.drive_count} ({index.drive_km:.1f} km), rejected {len(got.rejected)}",
+        f"  tile index       {got.index_seconds:.1f} s, {index.tile_config.tile_size_m:g} m tiles, "
+        f"{index.tile_config.margin_m:g} m margins" + (f", kept in {args.index}" if args.index else ""),
+        f"  map              {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes",
+        f"  wall time        {seconds:.1f} s (index + build + write)",
+        "  build report:",
+    ] + [f"    {line}" for line in rep.summary().splitlines()]))
     if args.report:
-        Path(args.report).write_text(json.dumps(_report_dict(args, fleet, hdmap, result, seconds), indent=1))
+        doc = {
+            "input": str(args.bag), "output": str(args.output), "preset": args.preset,
+            "overrides": dict(args.overrides), "seed": args.seed, "tiled": True,
+            "scheduler": args.scheduler, "drives": index.drive_count, "drive_km": index.drive_km,
+            "rejected": [{"drive_id": d, "reason": r, "text": t} for d, r, t in got.rejected],
+            "bag_error": index.bag_error or None, "features": len(hdmap.features),
+            "topology_nodes": len(hdmap.topology), "wall_s": seconds, "index_s": got.index_seconds,
+            "build": dataclasses.asdict(rep),
+        }
+        Path(args.report).write_text(json.dumps(doc, indent=1))
         print(f"wrote {args.report}")
     return 0
 

@@ -38,6 +38,7 @@ if TYPE_CHECKING:  # the pipeline is heavy: loaded on use
 __all__ = [
     "NAME", "HELP", "add_arguments", "run", "Scenario", "build_and_evaluate", "run_one", "format_table", "summarize_seeds",
     "SCORE_COLUMNS", "score_line",
+    "format_scale",
 ]
 
 NAME = "bench"
@@ -149,6 +150,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--workers", type=int, default=None, metavar="N",
         help="processes per build, as hdmap bag2map --workers (default: the CPUs available)",
+    )
+    parser.add_argument(
+        "--tiled", action="store_true",
+        help="build as hdmap bag2map --tiled (tile index on disk, tiles on a Dask LocalCluster of --workers "
+        "processes); a second table: build time, drive-km per second per worker, peak RSS of each process",
     )
 
 
@@ -300,9 +306,13 @@ def score_line(name: str, report: Any, build_s: float) -> str:
     )
 
 
-def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int | None = None) -> tuple[Any, ...]:
+def build_and_evaluate(
+    scenario: Scenario, config: Any, seed: int, workers: int | None = None, *, tiled: bool = False
+) -> tuple[Any, ...]:
     """Read the scenario's bag, build the map with ``config`` (a ``PipelineConfig``), evaluate it
     against its ground truth (with the simulator truth of ``BAG.sim.json`` when there is one).
+    ``tiled``: build as ``bag2map --tiled`` (``hdmap_ros.tiled.build_from_bag``), before the
+    fleet is read for the evaluation, so that the build's peak RSS is its own.
 
     Returns:
         (fleet, build result, evaluation report, build seconds, worker processes used);
@@ -315,14 +325,26 @@ def build_and_evaluate(scenario: Scenario, config: Any, seed: int, workers: int 
     from hdmap_ros.commands.evaluate import drive_errors_from_sim_json, seen_counts_from_sim_json  # noqa: PLC0415
     from hdmap_ros.io.bagio import read_fleet_bag  # noqa: PLC0415
 
-    fleet = read_fleet_bag(scenario.bag)
-    t0 = time.perf_counter()
     n_workers = workers or available_cpus()
-    result = pipeline.build_map(fleet.drives, config=config, seed=seed, workers=n_workers)
-    build_s = time.perf_counter() - t0
+    if tiled:
+        from hdmap_core.live.tiles import TileConfig  # noqa: PLC0415
+        from hdmap_ros.commands.bag2map import TILE_DEFAULTS  # noqa: PLC0415
+        from hdmap_ros.tiled import build_from_bag  # noqa: PLC0415
+
+        t0 = time.perf_counter()
+        result = build_from_bag(scenario.bag, config=config, tile_config=TileConfig(**TILE_DEFAULTS, seed=seed),
+                                workers=n_workers)
+        build_s = time.perf_counter() - t0
+        fleet = read_fleet_bag(scenario.bag)
+    else:
+        fleet = read_fleet_bag(scenario.bag)
+        t0 = time.perf_counter()
+        result = pipeline.build_map(fleet.drives, config=config, seed=seed, workers=n_workers)
+        build_s = time.perf_counter() - t0
     sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
+    hdmap = result.result.map if tiled else result.map
     rep = evaluate_map(
-        result.map, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m,
+        hdmap, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m,
         drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
         seen_counts=seen_counts_from_sim_json(sim) if sim.exists() else None,
     )
@@ -388,17 +410,31 @@ def _check_overrides(presets: list[str], overrides: dict[str, Any]) -> dict[str,
 
 
 def run_one(
-    scenario: Scenario, preset: str, seed: int, workers: int | None = None, overrides: dict[str, Any] | None = None
+    scenario: Scenario, preset: str, seed: int, workers: int | None = None, overrides: dict[str, Any] | None = None,
+    tiled: bool = False,
 ) -> dict[str, Any]:
     """Read the bag, build the map with ``preset`` (changed by ``overrides``), evaluate it;
     figures as a flat dict.
 
     ``workers``: processes for the build (None: the CPUs available). The peak RSS is this
-    process's plus its largest worker's (an upper bound: pages they share count twice)."""
+    process's plus its largest worker's (an upper bound: pages they share count twice).
+    ``tiled``: the tiled build; ``peak_rss_mb`` is then the largest process's of the build
+    (before the evaluation), ``peak_rss_by_process`` each one's."""
     import resource  # noqa: PLC0415
 
     config = preset_config(preset, overrides)
-    fleet, result, rep, build_s, n_workers = build_and_evaluate(scenario, config, seed, workers)
+    fleet, result, rep, build_s, n_workers = build_and_evaluate(scenario, config, seed, workers, tiled=tiled)
+    scale: dict[str, Any] = {}
+    if tiled:
+        peaks = dict(result.result.report.peak_rss_mb)
+        peaks["main"] = max(peaks.get("main", 0.0), result.index_peak_rss_mb)
+        km = result.index.drive_km
+        scale = {"tiled": True, "tiles": result.result.report.tiles, "index_s": result.index_seconds,
+                 "stage_seconds": dict(result.result.report.stage_seconds), "peak_rss_by_process": peaks,
+                 "cpu_by_process": dict(result.result.report.cpu_seconds),
+                 "km_per_s_worker": km / build_s / max(1, result.result.report.workers),
+                 "workers": result.result.report.workers, "peak_rss_mb": max(peaks.values())}
+        result = result.result
     o = rep.overall
     floor = rep.floor_mean_m
     lanes, lanes_s = _lane_figures(scenario, result.map)
@@ -458,7 +494,7 @@ def run_one(
         "workers": n_workers,
         "peak_rss_mb": (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
                         + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024.0,
-    }
+    } | scale | ({"preset": f"{config.name} tiled"} if tiled else {})
 
 
 def _link_cell(precision: float, supported: int, evaluable: int) -> str:
@@ -508,9 +544,11 @@ def run(args: argparse.Namespace) -> int:
             for preset in presets:
                 print(f"hdmap bench: {sc.name} / {configs[preset].name} ...", file=sys.stderr, flush=True)
                 rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline, workers=args.workers,
-                                          overrides=overrides))
+                                          overrides=overrides, tiled=args.tiled))
     summary = summarize_seeds(rows)
     print(format_table(rows))
+    if args.tiled:
+        print("\nscale (tiled builds; peak RSS of the build, before the evaluation):\n" + format_scale(rows))
     if summary:
         print("\nmean over seeds:\n" + format_table(summary, columns=SEED_COLUMNS))
     if args.json:
@@ -559,12 +597,32 @@ def _json_default(value: Any) -> Any:
     return None if isinstance(value, float) and not math.isfinite(value) else str(value)
 
 
+def format_scale(rows: list[dict[str, Any]]) -> str:
+    """The tiled rows' build time, drive-km per second per worker and peak RSS of each process."""
+    lines = []
+    for r in rows:
+        if not r.get("tiled"):
+            continue
+        peaks = r.get("peak_rss_by_process", {})
+        workers = [v for k, v in peaks.items() if k.startswith("worker")]
+        lines.append(
+            f"  {r['scenario']} / {r['preset']}: {r['drives']} drives, {r['drive_km']:.1f} drive-km, "
+            f"{r['tiles']} tiles, "
+            f"{r['workers']} worker(s): build {r['build_s']:.1f} s (index {r['index_s']:.1f} s), "
+            f"{r['km_per_s_worker']:.2f} drive-km/s per worker; peak RSS MB main {peaks.get('main', math.nan):.0f}"
+            + (f", scheduler {peaks['scheduler']:.0f}" if "scheduler" in peaks else "")
+            + (", workers " + " ".join(f"{v:.0f}" for v in workers) if workers else "")
+            + "; CPU s " + " ".join(f"{v:.1f}" for v in r.get("cpu_by_process", {}).values())
+        )
+    return "\n".join(lines)
+
+
 def _run_isolated(
     scenario: Scenario, preset: str, seed: int, *, inline: bool, workers: int | None = None,
-    overrides: dict[str, Any] | None = None,
+    overrides: dict[str, Any] | None = None, tiled: bool = False,
 ) -> dict[str, Any]:
     if inline:
-        return run_one(scenario, preset, seed, workers, overrides)
+        return run_one(scenario, preset, seed, workers, overrides, tiled)
     # A fresh process per run: its peak RSS and time are this run's alone.
     with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"), max_tasks_per_child=1) as pool:
-        return pool.submit(run_one, scenario, preset, seed, workers, overrides).result()
+        return pool.submit(run_one, scenario, preset, seed, workers, overrides, tiled).result()

@@ -17,9 +17,11 @@ changes with their times and zones (docs/updates.md). Exit status: 0 done,
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from hdmap_core.errors import ConfigError
@@ -64,6 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(SIZE m right of the route), close (the rightmost lane), open (the shoulder, SIZE m); e.g. shift:1000-2000:1.5@40",
     )
     parser.add_argument("--trajectories", action="store_true", help="also store true trajectories in OUT.sim.json")
+    parser.add_argument(
+        "--batch-drives", type=int, metavar="N",
+        help="stream the fleet to the bag N drives at a time, never holding it (for fleets larger than memory; "
+        "the same bag; OUT.sim.json without per-pose truth)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
 
 
@@ -118,6 +125,12 @@ def write_changes_json(fleet, path: Path, *, before: str) -> None:  # noqa: ANN0
     path.write_text(json.dumps(doc, indent=1))
 
 
+def _batches(drives: Iterator, n: int) -> Iterator:
+    """The drives, simulated ``n`` at a time ahead of the writer."""
+    while batch := list(itertools.islice(drives, n)):
+        yield from batch
+
+
 def _sidecar(out: Path, suffix: str) -> Path:
     return out.with_name(out.name + suffix)
 
@@ -141,9 +154,22 @@ def run(args: argparse.Namespace) -> int:
     from hdmap_ros.io.bagio import write_fleet_bag  # here: needs rosbags, the core part does not
 
     t0 = time.perf_counter()
-    fleet = simulate_fleet(gt, config=config, seed=args.seed, changes=changes)
-    t_sim = time.perf_counter() - t0
-    write_fleet_bag(out, fleet.drives, fleet.origin, overwrite=args.overwrite)
+    if args.batch_drives is not None:
+        if args.batch_drives < 1:
+            raise ConfigError(f"--batch-drives must be >= 1, got {args.batch_drives}")
+        if args.trajectories:
+            raise ConfigError("--trajectories keeps every drive's true trajectory: not with --batch-drives")
+        from hdmap_core.simulation.fleet import FleetStream  # noqa: PLC0415
+
+        stream = FleetStream(gt, config=config, seed=args.seed, changes=changes)
+        write_fleet_bag(out, _batches(iter(stream), args.batch_drives), stream.origin, overwrite=args.overwrite,
+                        start_ns=int(config.start_time_ns))
+        fleet = stream.fleet()
+        t_sim = time.perf_counter() - t0  # simulation and writing, interleaved
+    else:
+        fleet = simulate_fleet(gt, config=config, seed=args.seed, changes=changes)
+        t_sim = time.perf_counter() - t0
+        write_fleet_bag(out, fleet.drives, fleet.origin, overwrite=args.overwrite)
     if changes:
         save_ground_truth(fleet.extra["gt_after"], _sidecar(out, ".gt.json"))
         save_ground_truth(gt, _sidecar(out, ".gt_before.json"))

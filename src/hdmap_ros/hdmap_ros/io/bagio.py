@@ -447,12 +447,14 @@ def write_fleet_bag(
     origin: GeoOrigin | None,
     *,
     overwrite: bool = False,
+    start_ns: int | None = None,
 ) -> Path:
     """Write a rosbag2 MCAP fleet bag: the origin, then one ``/fleet/drives`` message per drive.
 
     Drives are written as given (no validation), in the given order, with log time = drive start
     (a drive with no poses gets the previous log time). ``overwrite`` replaces an existing
-    rosbag2 directory.
+    rosbag2 directory. ``start_ns``: the log time of the origin (default: the earliest drive
+    start); given, the drives are streamed, one at a time, never all held.
 
     Returns:
         the bag directory.
@@ -461,11 +463,12 @@ def write_fleet_bag(
         BagError: the path exists (and not ``overwrite``) or cannot be written.
     """
     path = Path(path)
-    drives = list(drives)
+    if start_ns is None:
+        drives = list(drives)
     store = default_typestore()
     writer = _open_writer(path, overwrite=overwrite)
     try:
-        first_ns = min((d.start_ns for d in drives if len(d.stamps_ns)), default=0)
+        first_ns = start_ns if start_ns is not None else min((d.start_ns for d in drives if len(d.stamps_ns)), default=0)
         if origin is not None:
             conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store, offered_qos_profiles=_LATCHED)
             msg = origin_to_msg(origin, stamp_ns=first_ns)

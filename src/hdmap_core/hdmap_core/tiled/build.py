@@ -1,0 +1,140 @@
+"""A whole map built tile by tile: the method of ``pipeline.driver.build_map``, out of core.
+
+1. Observation pass: every tile's pivots sample and align (per-step EM) over the tile and its
+   margin; the observations of the tile proper come back (``tasks.observe``).
+2. One network-wide offset adjustment over all observations, in this process
+   (``hdmap_core.live.tiles.fleet_offsets``; a single global solve, as ``build_map`` does).
+3. Final pass: every tile is sampled, aligned and aggregated with its drives shifted by the
+   adjustment's offsets, and connected (``tasks.map_connect``); its segment graphs come back.
+4. The segment graphs of all tiles, in tile order, are stitched into the map (Sec. VI).
+
+Each tile is a pure function of its drives' clips, its key and the offsets, and results are
+combined in tile order: the map is the same with any number of workers. It is the map the live
+node suite settles on (``hdmap_core.live``), not byte for byte the one ``build_map`` makes from
+the whole fleet at once (other pivots, other random order); docs/scale.md gives the difference.
+A preset without the adjustment (``final_pass`` None) runs the tiles' one pass only.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from hdmap_core.errors import NoUsableDataError
+from hdmap_core.graph.map_graph import stitch
+from hdmap_core.live.tiles import fleet_offsets
+from hdmap_core.model import HDMap
+from hdmap_core.pipeline.config import PipelineConfig
+from hdmap_core.tiled import tasks
+from hdmap_core.tiled.clips import TileSource
+from hdmap_core.tiled.cluster import ProgressFn, Runner, SerialRunner
+
+__all__ = ["TiledReport", "TiledResult", "build_tiled"]
+
+
+@dataclass(frozen=True)
+class TiledReport:
+    """What a tiled build did.
+
+    Attributes:
+        tiles: tiles mapped.
+        observations: step observations fed to the adjustment.
+        graphs: segment graphs stitched.
+        workers: worker processes (1: this process).
+        seconds: wall time of the build [s].
+        stage_seconds: wall time per stage [s].
+        peak_rss_mb: peak RSS per process at the end [MB] ("main", "scheduler", "worker ADDR").
+        cpu_seconds: CPU time per process during the build [s] ("main", "worker ADDR"; the
+            workers' since they started): what the build cost on a machine shared with others.
+    """
+
+    tiles: int = 0
+    observations: int = 0
+    graphs: int = 0
+    workers: int = 1
+    seconds: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    peak_rss_mb: dict[str, float] = field(default_factory=dict)
+    cpu_seconds: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        """A few readable lines."""
+        rss = ", ".join(f"{k} {v:.0f}" for k, v in self.peak_rss_mb.items())
+        return "\n".join([
+            f"tiles: {self.tiles}, {self.observations} step observations, {self.graphs} segment graphs, "
+            f"{self.workers} worker(s)",
+            f"time: {self.seconds:.2f} s (" + ", ".join(f"{k} {v:.2f}" for k, v in self.stage_seconds.items()) + ")",
+            f"peak RSS MB: {rss}",
+            "CPU s: " + ", ".join(f"{k} {v:.1f}" for k, v in self.cpu_seconds.items()),
+        ])
+
+
+@dataclass(frozen=True)
+class TiledResult:
+    """Output of :func:`build_tiled`."""
+
+    map: HDMap
+    report: TiledReport
+
+
+def build_tiled(
+    source: TileSource,
+    *,
+    config: PipelineConfig = PipelineConfig(),
+    runner: Runner | None = None,
+    progress: ProgressFn | None = None,
+) -> TiledResult:
+    """Build the map of the drives of ``source`` tile by tile (see the module docstring).
+
+    Args:
+        source: the tiles' drives (``clips.MemorySource``, ``hdmap_ros.io.tileindex``); its
+            ``tile_config`` sets the tiles, the margins and the seed.
+        config: pipeline options (default: the recommended method).
+        runner: where the tasks run (default: this process).
+        progress: optional callback(stage, done, total).
+
+    Raises:
+        NoUsableDataError: the source has no tile.
+    """
+    t_start = time.perf_counter()
+    runner = runner or SerialRunner()
+    cpu0 = runner.cpu_seconds()
+    keys = source.tiles()
+    if not keys:
+        raise NoUsableDataError("no drive covers any tile: nothing to map")
+    seconds: dict[str, float] = {}
+    weights = [len(source.drive_ids(k)) for k in keys] if runner.workers > 1 else None  # heaviest tiles first
+    model = None
+    n_obs = 0
+    if config.final_pass is not None:
+        t0 = time.perf_counter()
+        per_tile = runner.run("observe", tasks.observe, keys, shared=(source, config), progress=progress,
+                              weights=weights)
+        observations = [o for obs in per_tile for o in obs]
+        del per_tile
+        n_obs = len(observations)
+        seconds["observation_pass"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        model = fleet_offsets(observations, pipeline_config=config)
+        del observations
+        seconds["adjustment"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fleet_model = model
+
+    def offsets(key: tuple[int, int]) -> tuple:
+        return (tasks.model_of(fleet_model, source.drive_ids(key)) if fleet_model is not None else None,)
+
+    per_tile = runner.run("map", tasks.map_connect, keys, shared=(source, config), per_item=offsets, progress=progress,
+                          weights=weights)
+    graphs = [g for gs in per_tile for g in gs]
+    del per_tile
+    seconds["final_pass"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    hdmap = stitch(graphs, config=config.stitching)
+    seconds["stitching"] = time.perf_counter() - t0
+    report = TiledReport(
+        tiles=len(keys), observations=n_obs, graphs=len(graphs), workers=runner.workers,
+        seconds=time.perf_counter() - t_start, stage_seconds=seconds, peak_rss_mb=runner.peak_rss_mb(),
+        cpu_seconds={k: v - cpu0.get(k, 0.0) for k, v in runner.cpu_seconds().items()},
+    )
+    return TiledResult(map=hdmap, report=report)

@@ -1,0 +1,31 @@
+"""Peak memory and CPU time of the processes of a build (as the kernel counts them)."""
+
+from __future__ import annotations
+
+import resource
+import sys
+
+__all__ = ["peak_rss_mb", "rss_mb", "cpu_seconds"]
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process since it started [MB]."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0  # bytes on macOS, kB on Linux
+
+
+def rss_mb() -> float:
+    """Resident set size of this process now [MB] (Linux ``/proc``; else the peak)."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return peak_rss_mb()
+    return pages * resource.getpagesize() / (1024.0 * 1024.0)
+
+
+def cpu_seconds() -> float:
+    """CPU time of this process so far, user + system [s] (on a loaded machine, wall time is not
+    what a build costs: this is)."""
+    use = resource.getrusage(resource.RUSAGE_SELF)
+    return float(use.ru_utime + use.ru_stime)

@@ -1,0 +1,47 @@
+"""The per-tile tasks of a tiled build; each a pure function of its tile's clips.
+
+``observe`` runs the observation pass of one tile (sampling and the per-step EM along the pivots
+of the tile and its margin; ``hdmap_core.live.tiles.observe_clips``) and returns the step
+observations of the tile proper. ``map_connect`` runs the final pass with the fleet-wide offset
+model (aggregation included), keeps the steps of the tile proper and connects them (Sec. V):
+the tile's segment graphs. Both read their clips from the ``TileSource`` on the worker, so a task
+carries a tile key, the source's address and, for the final pass, the offsets of the tile's drives.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+from hdmap_core.live.tiles import TileKey, connect_tile, map_clips, observe_clips
+from hdmap_core.pipeline.adjustment import OffsetModel
+
+if TYPE_CHECKING:
+    from hdmap_core.graph.segment_graph import SegmentGraph
+    from hdmap_core.pipeline.config import PipelineConfig
+    from hdmap_core.steps import StepObservations
+    from hdmap_core.tiled.clips import TileSource
+
+__all__ = ["observe", "map_connect", "model_of"]
+
+
+def observe(source: TileSource, pipeline_config: PipelineConfig, key: TileKey) -> list[StepObservations]:
+    """The observation pass of one tile: its steps' observations, in full-drive distances."""
+    return observe_clips(source.clips(key), key, tile_config=source.tile_config, pipeline_config=pipeline_config)
+
+
+def map_connect(
+    source: TileSource, pipeline_config: PipelineConfig, key: TileKey, offset_model: OffsetModel | None
+) -> list[SegmentGraph]:
+    """The final pass of one tile with ``offset_model``, connected: its segment graphs (without a
+    model, e.g. a preset without the adjustment: the tile's one pass)."""
+    segments = map_clips(source.clips(key), key, tile_config=source.tile_config, pipeline_config=pipeline_config,
+                         offset_model=offset_model)
+    return connect_tile(segments, key, pipeline_config=pipeline_config)
+
+
+def model_of(model: OffsetModel, drive_ids: Iterable[str]) -> OffsetModel:
+    """``model`` restricted to some drives (a tile's): the same offsets for them, less to ship."""
+    curves = model.drives
+    return replace(model, drives={d: curves[d] for d in drive_ids if d in curves}, stats={})
