@@ -44,17 +44,41 @@ def _malformed(good: list) -> list[tuple[str, object]]:
     none = np.zeros(0)
     return [
         ("NaN in the trajectory", replace(a, drive_id="bad-nan-trajectory", xy=bad_xy(a, 5, np.nan))),
-        ("inf in a detection", replace(a, drive_id="bad-inf-detection",
-                                       detections=(Detection(a.detections[0].type, det_inf),) + a.detections[1:])),
-        ("a 1-point detection", replace(a, drive_id="bad-short-detection",
-                                        detections=a.detections + (Detection(FeatureType.SOLID, a.xy[:1]),))),
-        ("no poses", replace(a, drive_id="bad-empty-trajectory", xy=np.zeros((0, 2)), yaw=none,
-                             stamps_ns=np.zeros(0, np.int64), detections=())),
+        (
+            "inf in a detection",
+            replace(
+                a,
+                drive_id="bad-inf-detection",
+                detections=(Detection(a.detections[0].type, det_inf),) + a.detections[1:],
+            ),
+        ),
+        (
+            "a 1-point detection",
+            replace(
+                a, drive_id="bad-short-detection", detections=a.detections + (Detection(FeatureType.SOLID, a.xy[:1]),)
+            ),
+        ),
+        (
+            "no poses",
+            replace(
+                a,
+                drive_id="bad-empty-trajectory",
+                xy=np.zeros((0, 2)),
+                yaw=none,
+                stamps_ns=np.zeros(0, np.int64),
+                detections=(),
+            ),
+        ),
         ("a single pose", replace(a, drive_id="bad-one-pose", xy=a.xy[:1], yaw=a.yaw[:1], stamps_ns=a.stamps_ns[:1])),
-        ("detection type 7", replace(a, drive_id="bad-unknown-type",
-                                     detections=a.detections + (Detection(7, a.xy[:5]),))),
+        (
+            "detection type 7",
+            replace(a, drive_id="bad-unknown-type", detections=a.detections + (Detection(7, a.xy[:5]),)),
+        ),
         ("frame 'odom'", replace(a, drive_id="bad-wrong-frame", frame_id="odom")),
-        ("NaN heading", replace(a, drive_id="bad-nan-heading", yaw=np.where(np.arange(len(a.yaw)) == 3, np.nan, a.yaw))),
+        (
+            "NaN heading",
+            replace(a, drive_id="bad-nan-heading", yaw=np.where(np.arange(len(a.yaw)) == 3, np.nan, a.yaw)),
+        ),
         ("empty drive id", replace(a, drive_id="")),
         ("duplicate of a good drive's id", replace(b, vehicle_id="impostor")),
         ("bytes that are no Drive", b"\x00\x01\x00\x00this is not a CDR Drive message"),

@@ -36,8 +36,20 @@ SWITCHES: tuple[tuple[str, tuple[str, ...]], ...] = (
 FLEETS = ("paper_like:134:1", "carla_town04:100:1", "carla_town06:30:1", "esmini_e6mini:40:1", "esmini_soderleden:40:1")
 SMOKE_FLEETS = ("esmini_e6mini:20:1",)
 # the figures of hdmap bench's table that a switch can move (its formats), build time last
-FIGURES = ("mean_m", "corrected_mean_m", "p95_m", "coverage", "recall", "precision", "type_accuracy", "fragmentation",
-           "splits_merges", "road_splits_merges", "long_links", "build_s")
+FIGURES = (
+    "mean_m",
+    "corrected_mean_m",
+    "p95_m",
+    "coverage",
+    "recall",
+    "precision",
+    "type_accuracy",
+    "fragmentation",
+    "splits_merges",
+    "road_splits_merges",
+    "long_links",
+    "build_s",
+)
 
 
 def table(base: list[dict], variants: list[tuple[str, list[dict]]]) -> str:
@@ -54,8 +66,17 @@ def table(base: list[dict], variants: list[tuple[str, list[dict]]]) -> str:
 
 
 def _bench(fleets: tuple[str, ...], sets: tuple[str, ...], json_path: Path, work_dir: Path) -> list[dict]:
-    cmd = [str(Path(sys.executable).with_name("hdmap")), "bench", *fleets, "--presets", "default",
-           "--work-dir", str(work_dir), "--json", str(json_path)]
+    cmd = [
+        str(Path(sys.executable).with_name("hdmap")),
+        "bench",
+        *fleets,
+        "--presets",
+        "default",
+        "--work-dir",
+        str(work_dir),
+        "--json",
+        str(json_path),
+    ]
     for s in sets:
         cmd += ["--set", s]
     print("+", " ".join(cmd), flush=True)
@@ -67,7 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("fleets", nargs="*", help=f"bench scenarios (default: {' '.join(FLEETS)})")
     parser.add_argument("--out", type=Path, default=Path("out/ablation"), help="JSON and table go here")
-    parser.add_argument("--work-dir", type=Path, default=Path("out/bench/fleets"), help="simulated bags (shared with make bench)")
+    parser.add_argument(
+        "--work-dir", type=Path, default=Path("out/bench/fleets"), help="simulated bags (shared with make bench)"
+    )
     parser.add_argument("--smoke", action="store_true", help="one small fleet and the first switch only")
     args = parser.parse_args(argv)
     fleets = tuple(args.fleets) or (SMOKE_FLEETS if args.smoke else FLEETS)
@@ -75,8 +98,10 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     base = _bench(fleets, (), args.out / "default.json", args.work_dir)
-    variants = [(label, _bench(fleets, sets, args.out / f"switch{i}.json", args.work_dir))
-                for i, (label, sets) in enumerate(switches, 1)]
+    variants = [
+        (label, _bench(fleets, sets, args.out / f"switch{i}.json", args.work_dir))
+        for i, (label, sets) in enumerate(switches, 1)
+    ]
     text = table(base, variants)
     (args.out / "ablation.md").write_text(text + "\n")
     print(text)

@@ -56,8 +56,14 @@ def main() -> int:
     parser.add_argument("--wrong-label-fraction", type=float, default=0.05)
     args = parser.parse_args()
     road, drives, spacing, detect = SIZES[args.samples]
-    sim = ChainSimConfig(road_length_m=road, n_drives=drives, step_spacing_m=spacing, detect_prob=detect,
-                         wrong_label_fraction=args.wrong_label_fraction, wrong_label_burst_m=100.0)
+    sim = ChainSimConfig(
+        road_length_m=road,
+        n_drives=drives,
+        step_spacing_m=spacing,
+        detect_prob=detect,
+        wrong_label_fraction=args.wrong_label_fraction,
+        wrong_label_burst_m=100.0,
+    )
     t0 = time.perf_counter()
     obs, truth = simulate_step_observations(config=sim, seed=args.seed)
     t_sim = time.perf_counter() - t0
@@ -69,13 +75,17 @@ def main() -> int:
         model = adjust_offsets(obs, config=cfg)
         dt, dc = time.perf_counter() - t0, time.process_time() - c0
         st = model.stats
-        print(f"adjust_offsets(compute_std={std}): wall {dt:.2f} s, cpu {dc:.2f} s  unknowns {st['n_unknowns']}  "
-              f"clusters {st['n_clusters']}  iterations {st['iterations']}  "
-              f"downweighted {st['downweighted_fraction']:.3f}  relabelled {st['relabelled_fraction']:.3f}  "
-              f"lane shifts {st['lane_shifts']}  inlier rms {st['inlier_rms_m']:.3f} m")
+        print(
+            f"adjust_offsets(compute_std={std}): wall {dt:.2f} s, cpu {dc:.2f} s  unknowns {st['n_unknowns']}  "
+            f"clusters {st['n_clusters']}  iterations {st['iterations']}  "
+            f"downweighted {st['downweighted_fraction']:.3f}  relabelled {st['relabelled_fraction']:.3f}  "
+            f"lane shifts {st['lane_shifts']}  inlier rms {st['inlier_rms_m']:.3f} m"
+        )
     ours, local, n_local = _common_error(obs, truth, model)
-    print(f"mean |common offset error| per step: adjusted {ours:.3f} m, per-step (local) {local:.3f} m, "
-          f"drives per step {n_local:.1f}")
+    print(
+        f"mean |common offset error| per step: adjusted {ours:.3f} m, per-step (local) {local:.3f} m, "
+        f"drives per step {n_local:.1f}"
+    )
     return 0
 
 

@@ -46,13 +46,26 @@ def main() -> int:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=0, help="mapper processes (0: every CPU, 1: in this process)")
-    ap.add_argument("--min-growth-drives", type=int, default=None,
-                    help="override the mapper's min_growth_drives (default: the node's default)")
-    ap.add_argument("--pivot-margin-m", type=float, default=None,
-                    help="override the mapper's pivot_margin_m (>= margin_m: walk the whole grown tile)")
+    ap.add_argument(
+        "--min-growth-drives",
+        type=int,
+        default=None,
+        help="override the mapper's min_growth_drives (default: the node's default)",
+    )
+    ap.add_argument(
+        "--pivot-margin-m",
+        type=float,
+        default=None,
+        help="override the mapper's pivot_margin_m (>= margin_m: walk the whole grown tile)",
+    )
     ap.add_argument("--no-new-road", action="store_true", help="skip timing the long drive on an empty map")
-    ap.add_argument("--profile", type=int, default=0, metavar="N",
-                    help="print the N costliest functions (cProfile, cumulative) of the re-estimate phase")
+    ap.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        metavar="N",
+        help="print the N costliest functions (cProfile, cumulative) of the re-estimate phase",
+    )
     args = ap.parse_args()
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", "79")
@@ -70,35 +83,56 @@ def main() -> int:
 
     gt = synthetic_highway("motorway", length_m=args.road_km * 1000.0, seed=args.seed)
     lo, hi = args.snippet_m
-    fleet = simulate_fleet(gt, config=SimConfig(n_drives=args.drives, snippet_length_min_m=lo, snippet_length_max_m=hi),
-                           seed=args.seed)
+    fleet = simulate_fleet(
+        gt, config=SimConfig(n_drives=args.drives, snippet_length_min_m=lo, snippet_length_max_m=hi), seed=args.seed
+    )
     long_m = args.long_km * 1000.0
-    longs = simulate_fleet(gt, config=SimConfig(n_drives=20, snippet_length_min_m=long_m, snippet_length_max_m=long_m),
-                           seed=args.seed + 1).drives
+    longs = simulate_fleet(
+        gt, config=SimConfig(n_drives=20, snippet_length_min_m=long_m, snippet_length_max_m=long_m), seed=args.seed + 1
+    ).drives
     long_drive = max(longs, key=lambda d: d.length_m)
     long_drive = replace(long_drive, drive_id="long-" + long_drive.drive_id)
     km = sum(d.length_m for d in fleet.drives) / 1000.0
-    print(f"fleet: {len(fleet.drives)} drives, {km:.1f} km on a {args.road_km:.1f} km motorway; "
-          f"timed drive {long_drive.length_m / 1000.0:.2f} km")
+    print(
+        f"fleet: {len(fleet.drives)} drives, {km:.1f} km on a {args.road_km:.1f} km motorway; "
+        f"timed drive {long_drive.length_m / 1000.0:.2f} km"
+    )
 
     tmp = Path(tempfile.mkdtemp(prefix="hdmap-bench-"))
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
-    mapper_overrides = [Parameter("preset", value=args.preset), Parameter("workers", value=args.workers)] + (
-        [Parameter("min_growth_drives", value=args.min_growth_drives)] if args.min_growth_drives else []) + (
-        [Parameter("pivot_margin_m", value=args.pivot_margin_m)] if args.pivot_margin_m is not None else [])
-    mapper = SegmentMapper(context=ctx, parameter_overrides=[
-        Parameter("db_path", value=str(tmp / "m.db")), Parameter("settle_after_s", value=3600.0)] + mapper_overrides)
-    stitcher = MapStitcher(context=ctx, parameter_overrides=[
-        Parameter("db_path", value=str(tmp / "s.db")), Parameter("preset", value=args.preset)])
+    mapper_overrides = (
+        [Parameter("preset", value=args.preset), Parameter("workers", value=args.workers)]
+        + ([Parameter("min_growth_drives", value=args.min_growth_drives)] if args.min_growth_drives else [])
+        + ([Parameter("pivot_margin_m", value=args.pivot_margin_m)] if args.pivot_margin_m is not None else [])
+    )
+    mapper = SegmentMapper(
+        context=ctx,
+        parameter_overrides=[Parameter("db_path", value=str(tmp / "m.db")), Parameter("settle_after_s", value=3600.0)]
+        + mapper_overrides,
+    )
+    stitcher = MapStitcher(
+        context=ctx,
+        parameter_overrides=[Parameter("db_path", value=str(tmp / "s.db")), Parameter("preset", value=args.preset)],
+    )
     types, ttypes = rclpy_types(), rclpy_tile_types()
 
     # hand the mapper's tile messages straight to the stitcher (what DDS does between processes)
     def forward(est, *, final: bool | None = None) -> None:
         counts = [mapper.scheduler.drive_tile_count(d) for d in est.drive_ids]
-        stitcher.on_tile(tile_to_msg(est.key, est.segments(), version=est.version, drive_ids=est.drive_ids,
-                                     tile_size_m=mapper.tile_config.tile_size_m, stamp_ns=0, types=ttypes,
-                                     drive_tile_counts=counts, final=bool(final)))
+        stitcher.on_tile(
+            tile_to_msg(
+                est.key,
+                est.segments(),
+                version=est.version,
+                drive_ids=est.drive_ids,
+                tile_size_m=mapper.tile_config.tile_size_m,
+                stamp_ns=0,
+                types=ttypes,
+                drive_tile_counts=counts,
+                final=bool(final),
+            )
+        )
 
     mapper._publish = forward  # noqa: SLF001 - benchmark wiring, the node's own code otherwise
 
@@ -153,8 +187,10 @@ def main() -> int:
     build_s = time.perf_counter() - t0
     n_tiles = len(mapper.store.tiles())
     counts = [mapper.store.tile_drive_count(t.key) for t in mapper.store.tiles()]
-    print(f"\nmap of {len(drives)} drives: {n_tiles} tiles, {len(stitcher.map.features)} features, "
-          f"drives per tile median {sorted(counts)[len(counts) // 2]} (settled build {build_s:.1f} s)")
+    print(
+        f"\nmap of {len(drives)} drives: {n_tiles} tiles, {len(stitcher.map.features)} features, "
+        f"drives per tile median {sorted(counts)[len(counts) // 2]} (settled build {build_s:.1f} s)"
+    )
 
     # 3. one update with the long drive
     def stitch_if_changed() -> float:
@@ -185,14 +221,20 @@ def main() -> int:
         prof.disable()
     s_all = stitch_if_changed()
     n_re = mapper.health.updates - updates1
-    print(f"one update, {long_drive.length_m / 1000:.2f} km drive over "
-          f"{len(tiles_of_drive(long_drive, config=mapper.tile_config))} tiles ({len(new)} new, "
-          f"{updates1 - updates0} mapped for it):")
+    print(
+        f"one update, {long_drive.length_m / 1000:.2f} km drive over "
+        f"{len(tiles_of_drive(long_drive, config=mapper.tile_config))} tiles ({len(new)} new, "
+        f"{updates1 - updates0} mapped for it):"
+    )
     print(f"  update: receive + commit (acknowledged)   {t_rx:7.3f} s")
-    print(f"  update: new stretches mapped + stitched   {t_new + s_new:7.3f} s  (mapping {t_new:.3f}, stitch {s_new:.3f})")
+    print(
+        f"  update: new stretches mapped + stitched   {t_new + s_new:7.3f} s  (mapping {t_new:.3f}, stitch {s_new:.3f})"
+    )
     print(f"  update total                              {t_rx + t_new + s_new:7.3f} s")
-    print(f"  background: {queued} queued tiles checked, {n_re} due re-estimated + stitch {t_due + s_all:7.3f} s "
-          f"(mapping {t_due:.3f}, stitch {s_all:.3f})")
+    print(
+        f"  background: {queued} queued tiles checked, {n_re} due re-estimated + stitch {t_due + s_all:7.3f} s "
+        f"(mapping {t_due:.3f}, stitch {s_all:.3f})"
+    )
     print(f"  update + background                       {t_rx + t_new + s_new + t_due + s_all:7.3f} s")
     print(f"  last map rebuild: {stitcher.health.extra.get('last_rebuild_parts_s')}")
     if prof is not None:
@@ -202,9 +244,15 @@ def main() -> int:
 
     # 4. the long drive alone on an empty map: every stretch it covers is new road
     if not args.no_new_road:
-        fresh = SegmentMapper(context=ctx, parameter_overrides=[
-            Parameter("db_path", value=str(tmp / "m2.db")), Parameter("settle_after_s", value=3600.0),
-            Parameter("republish_on_start", value=False)] + mapper_overrides)
+        fresh = SegmentMapper(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("db_path", value=str(tmp / "m2.db")),
+                Parameter("settle_after_s", value=3600.0),
+                Parameter("republish_on_start", value=False),
+            ]
+            + mapper_overrides,
+        )
         fresh._publish = lambda est, final=None: None  # noqa: SLF001 - mapping only; the stitch is timed above
         msg = drive_to_msg(long_drive, types=types)
         t0 = time.perf_counter()
@@ -213,16 +261,22 @@ def main() -> int:
         run_until(lambda: not fresh.scheduler.queued() and not fresh.store.pending(), fresh)
         t_fresh = time.perf_counter() - t0
         n_fresh = len(fresh.store.tiles())
-        print(f"the {long_drive.length_m / 1000:.2f} km drive on an empty map (all road new): {n_fresh} tiles "
-              f"mapped in {t_fresh:.2f} s ({t_fresh / max(n_fresh, 1):.3f} s per tile), without the stitch")
+        print(
+            f"the {long_drive.length_m / 1000:.2f} km drive on an empty map (all road new): {n_fresh} tiles "
+            f"mapped in {t_fresh:.2f} s ({t_fresh / max(n_fresh, 1):.3f} s per tile), without the stitch"
+        )
         fresh.destroy_node()
     # 5. single-server queue at the given replay rate over the drive-by-drive prefix
     if first is not None:
-        print(f"first drive (all road new): {first[0]:.2f} km, {first[1]} tiles, update {first[2]:.2f} s "
-              f"({first[2] / max(first[1], 1):.2f} s per tile)")
+        print(
+            f"first drive (all road new): {first[0]:.2f} km, {first[1]} tiles, update {first[2]:.2f} s "
+            f"({first[2] / max(first[1], 1):.2f} s per tile)"
+        )
     if upd:
-        print(f"drive-by-drive prefix: update (ack + new tiles + stitch) {min(upd):.2f}-{max(upd):.2f} s "
-              f"(mean {sum(upd) / len(upd):.2f} s); with background re-estimates {min(service):.2f}-{max(service):.2f} s")
+        print(
+            f"drive-by-drive prefix: update (ack + new tiles + stitch) {min(upd):.2f}-{max(upd):.2f} s "
+            f"(mean {sum(upd) / len(upd):.2f} s); with background re-estimates {min(service):.2f}-{max(service):.2f} s"
+        )
     if service:
         starts = [d.start_ns for d in drives[: len(service)]]
         arrive = [(s - starts[0]) / 1e9 / args.rate for s in starts]
@@ -232,11 +286,13 @@ def main() -> int:
             late.append(free - a)
             backlog_max = max(backlog_max, sum(1 for x in arrive if a <= x < free))
         gaps = [b - a for a, b in zip(arrive, arrive[1:])] or [0.0]
-        print(f"replay at {args.rate:g}x, first {len(service)} drives one by one: arrivals every "
-              f"{min(gaps):.1f}-{max(gaps):.1f} s (mean {sum(gaps) / len(gaps):.1f} s), "
-              f"service {min(service):.2f}-{max(service):.2f} s "
-              f"(mean {sum(service) / len(service):.2f} s): max backlog {backlog_max}, max delay {max(late):.1f} s, "
-              f"last {late[-1]:.1f} s")
+        print(
+            f"replay at {args.rate:g}x, first {len(service)} drives one by one: arrivals every "
+            f"{min(gaps):.1f}-{max(gaps):.1f} s (mean {sum(gaps) / len(gaps):.1f} s), "
+            f"service {min(service):.2f}-{max(service):.2f} s "
+            f"(mean {sum(service) / len(service):.2f} s): max backlog {backlog_max}, max delay {max(late):.1f} s, "
+            f"last {late[-1]:.1f} s"
+        )
     mapper.destroy_node()
     stitcher.destroy_node()
     rclpy.try_shutdown(context=ctx)

@@ -72,7 +72,11 @@ def _same(a, b) -> bool:
         return False
     for f, g in zip(a.features, b.features):
         if (f.id, int(f.type), tuple(f.successors), tuple(f.predecessors)) != (
-                g.id, int(g.type), tuple(g.successors), tuple(g.predecessors)):
+            g.id,
+            int(g.type),
+            tuple(g.successors),
+            tuple(g.predecessors),
+        ):
             return False
         if not np.array_equal(np.asarray(f.points), np.asarray(g.points)):
             return False
@@ -101,14 +105,39 @@ def main(argv: list[str] | None = None) -> int:
     runs: list[tuple[str, Path, float, float, float, dict]] = []
     if not args.no_whole:
         m, rep = out / "whole", out / "whole.json"
-        wall, rss, cpu = _run([*HDMAP, "bag2map", str(bag), "-o", str(m), "--overwrite", "--workers", "1",
-                               "--report", str(rep), "--no-progress"])
+        wall, rss, cpu = _run(
+            [
+                *HDMAP,
+                "bag2map",
+                str(bag),
+                "-o",
+                str(m),
+                "--overwrite",
+                "--workers",
+                "1",
+                "--report",
+                str(rep),
+                "--no-progress",
+            ]
+        )
         doc = json.loads(rep.read_text())
         runs.append(("whole fleet, 1 process", m, doc["build"]["seconds"], rss, cpu, doc))
     for n in [int(v) for v in args.workers.split(",") if v]:
         m, rep = out / f"tiled{n}", out / f"tiled{n}.json"
-        cmd = [*HDMAP, "bag2map", str(bag), "-o", str(m), "--overwrite", "--tiled", "--workers", str(n),
-               "--report", str(rep), "--no-progress"]
+        cmd = [
+            *HDMAP,
+            "bag2map",
+            str(bag),
+            "-o",
+            str(m),
+            "--overwrite",
+            "--tiled",
+            "--workers",
+            str(n),
+            "--report",
+            str(rep),
+            "--no-progress",
+        ]
         if args.tile_size_m:
             cmd += ["--tile-size-m", str(args.tile_size_m)]
         if args.margin_m:
@@ -116,12 +145,15 @@ def main(argv: list[str] | None = None) -> int:
         wall, rss, cpu = _run(cmd)
         doc = json.loads(rep.read_text())
         peaks = doc["build"]["peak_rss_mb"]
-        runs.append((f"tiled, {n} worker(s)", m, doc["build"]["seconds"] + doc["index_s"], max(peaks.values()), cpu,
-                     doc))
+        runs.append(
+            (f"tiled, {n} worker(s)", m, doc["build"]["seconds"] + doc["index_s"], max(peaks.values()), cpu, doc)
+        )
 
     print(f"{bag.name}: {runs[0][5]['drives']} drives, {runs[0][5]['drive_km']:.1f} drive-km\n")
-    print("| build | mean m | offset-corr. m | coverage | recall | precision | features | build s "
-          "| drive-km/s per worker | peak RSS MB (largest process) | CPU s (all processes) |")
+    print(
+        "| build | mean m | offset-corr. m | coverage | recall | precision | features | build s "
+        "| drive-km/s per worker | peak RSS MB (largest process) | CPU s (all processes) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     maps = {}
     for name, m, secs, rss, cpu, doc in runs:
@@ -129,24 +161,34 @@ def main(argv: list[str] | None = None) -> int:
         maps[name] = hd
         o = evaluate_map(hd, gt)
         w = int(doc["build"].get("workers", 1))
-        print(f"| {name} | {o.overall.mean_m:.4f} | {o.overall.corrected_mean_m:.4f} | {o.coverage:.1%} | "
-              f"{o.overall.recall:.1%} | {o.overall.precision:.1%} | {len(hd.features)} | {secs:.1f} | "
-              f"{doc['drive_km'] / secs / w:.2f} | {rss:.0f} | {cpu:.0f} |")
+        print(
+            f"| {name} | {o.overall.mean_m:.4f} | {o.overall.corrected_mean_m:.4f} | {o.coverage:.1%} | "
+            f"{o.overall.recall:.1%} | {o.overall.precision:.1%} | {len(hd.features)} | {secs:.1f} | "
+            f"{doc['drive_km'] / secs / w:.2f} | {rss:.0f} | {cpu:.0f} |"
+        )
     tiled = [k for k in maps if k.startswith("tiled")]
     for k in tiled[1:]:
-        print(f"\n{k} vs {tiled[0]}: " + ("the same map (ids, points, links)" if _same(maps[k], maps[tiled[0]])
-                                        else "DIFFERENT maps"))
+        print(
+            f"\n{k} vs {tiled[0]}: "
+            + ("the same map (ids, points, links)" if _same(maps[k], maps[tiled[0]]) else "DIFFERENT maps")
+        )
     if not args.no_whole and tiled:
         whole, t = maps["whole fleet, 1 process"], maps[tiled[0]]
         for label, d in (("tiled -> whole", _distances(t, whole)), ("whole -> tiled", _distances(whole, t))):
-            print(f"{label}: nearest same-type line median {np.median(d):.3f} m, p95 {np.percentile(d, 95):.3f} m, "
-                  f"share within 0.5 m {np.mean(d <= 0.5):.1%}")
+            print(
+                f"{label}: nearest same-type line median {np.median(d):.3f} m, p95 {np.percentile(d, 95):.3f} m, "
+                f"share within 0.5 m {np.mean(d <= 0.5):.1%}"
+            )
     for name, _, _, _, _, doc in runs:
         if "peak_rss_mb" in doc["build"]:
-            print(f"{name}: stages " + ", ".join(f"{k} {v:.1f} s" for k, v in doc["build"]["stage_seconds"].items())
-                  + f", index {doc['index_s']:.1f} s; peak RSS MB " + ", ".join(
-                      f"{k} {v:.0f}" for k, v in doc["build"]["peak_rss_mb"].items())
-                  + "; CPU s " + ", ".join(f"{k} {v:.1f}" for k, v in doc["build"].get("cpu_seconds", {}).items()))
+            print(
+                f"{name}: stages "
+                + ", ".join(f"{k} {v:.1f} s" for k, v in doc["build"]["stage_seconds"].items())
+                + f", index {doc['index_s']:.1f} s; peak RSS MB "
+                + ", ".join(f"{k} {v:.0f}" for k, v in doc["build"]["peak_rss_mb"].items())
+                + "; CPU s "
+                + ", ".join(f"{k} {v:.1f}" for k, v in doc["build"].get("cpu_seconds", {}).items())
+            )
     return 0
 
 

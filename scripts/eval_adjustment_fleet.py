@@ -41,9 +41,12 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--knot-spacing-m", type=float, default=AdjustConfig().knot_spacing_m)
     parser.add_argument("--loss", default=AdjustConfig().loss)
-    parser.add_argument("--build", action="store_true",
-                        help="also build complete maps (default preset with and without the adjustment) and "
-                             "print the evaluator's summary of each")
+    parser.add_argument(
+        "--build",
+        action="store_true",
+        help="also build complete maps (default preset with and without the adjustment) and "
+        "print the evaluator's summary of each",
+    )
     args = parser.parse_args()
 
     gt = load_map(args.map, length_m=args.length_m)
@@ -57,10 +60,12 @@ def main() -> int:
     model = adjust_offsets(obs, config=AdjustConfig(knot_spacing_m=args.knot_spacing_m, loss=args.loss))
     t_adj = time.perf_counter() - t0
     st = model.stats
-    print(f"{args.map} {args.length_m:.0f} m, {args.drives} drives, seed {args.seed}: first pass {t_pass:.1f} s, "
-          f"{len(obs)} steps, {st['n_samples']} samples ({st['n_samples_used']} used), adjustment {t_adj:.2f} s, "
-          f"{st['n_unknowns']} unknowns, {st['iterations']} iterations, downweighted {st['downweighted_fraction']:.3f}, "
-          f"inlier rms {st['inlier_rms_m']:.3f} m")
+    print(
+        f"{args.map} {args.length_m:.0f} m, {args.drives} drives, seed {args.seed}: first pass {t_pass:.1f} s, "
+        f"{len(obs)} steps, {st['n_samples']} samples ({st['n_samples_used']} used), adjustment {t_adj:.2f} s, "
+        f"{st['n_unknowns']} unknowns, {st['iterations']} iterations, downweighted {st['downweighted_fraction']:.3f}, "
+        f"inlier rms {st['inlier_rms_m']:.3f} m"
+    )
 
     # true correction (to add) of each drive as a function of its travelled distance
     truth = {}
@@ -85,11 +90,15 @@ def main() -> int:
     floor = np.mean(np.hypot(1.0, 0.3) / np.sqrt(n_local)) * np.sqrt(2 / np.pi)
     rel = np.concatenate(rel)
     print(f"steps with >= 2 drives: {ours.size}, drives per step: mean {n_local.mean():.1f}")
-    print(f"mean |common error| per step: adjusted {ours.mean():.3f} m, per-step {local.mean():.3f} m, "
-          f"expected local floor {floor:.3f} m; 95th pct adjusted {np.percentile(ours, 95):.3f} m, "
-          f"per-step {np.percentile(local, 95):.3f} m")
-    print(f"relative (per-drive) error rms {np.sqrt(np.mean(rel**2)):.3f} m; "
-          f"error / posterior std: rms {np.sqrt(np.mean(np.square(z))):.2f}")
+    print(
+        f"mean |common error| per step: adjusted {ours.mean():.3f} m, per-step {local.mean():.3f} m, "
+        f"expected local floor {floor:.3f} m; 95th pct adjusted {np.percentile(ours, 95):.3f} m, "
+        f"per-step {np.percentile(local, 95):.3f} m"
+    )
+    print(
+        f"relative (per-drive) error rms {np.sqrt(np.mean(rel**2)):.3f} m; "
+        f"error / posterior std: rms {np.sqrt(np.mean(np.square(z))):.2f}"
+    )
     if args.build:
         _build_and_evaluate(fleet, gt, args.seed)
     return 0

@@ -44,8 +44,7 @@ def main() -> int:
             print(f"fix_ros_wheel_cmake: include dir missing: {needed}", file=sys.stderr)
             return 1
     pattern = "share/*/cmake/export_*__rosidl_generator_pyExport.cmake"
-    changed = [p for p in sorted(prefix.glob(pattern))
-               if fix_file(p, py_include=py_include, np_include=np_include)]
+    changed = [p for p in sorted(prefix.glob(pattern)) if fix_file(p, py_include=py_include, np_include=np_include)]
     print(f"fix_ros_wheel_cmake: rewrote {len(changed)} export file(s) under {prefix}/share")
     return 0
 

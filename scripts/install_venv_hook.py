@@ -80,8 +80,9 @@ if os.path.isdir(_WS_INSTALL):
 
 def render_hook(ws: Path, venv: Path) -> tuple[str, str]:
     """Return (module text, .pth text) of the hook for workspace ``ws`` and venv ``venv``."""
-    module = _MODULE_TEMPLATE.format(ws=str(ws), install=str(ws / "install"), venv=str(venv),
-                                     pth=PTH_NAME, boot=BOOTSTRAPPER_PTH)
+    module = _MODULE_TEMPLATE.format(
+        ws=str(ws), install=str(ws / "install"), venv=str(venv), pth=PTH_NAME, boot=BOOTSTRAPPER_PTH
+    )
     return module, f"import {MODULE_NAME}\n"
 
 
@@ -93,8 +94,10 @@ def main(argv: list[str]) -> int:
     venv = Path(sys.prefix).resolve()
     site_dir = Path(sysconfig.get_paths()["purelib"])
     if not (site_dir / BOOTSTRAPPER_PTH).is_file():
-        print(f"install_venv_hook: {site_dir / BOOTSTRAPPER_PTH} missing: are the ROS wheels "
-              "installed in this venv?", file=sys.stderr)
+        print(
+            f"install_venv_hook: {site_dir / BOOTSTRAPPER_PTH} missing: are the ROS wheels installed in this venv?",
+            file=sys.stderr,
+        )
         return 1
     if sorted([PTH_NAME, BOOTSTRAPPER_PTH])[0] != PTH_NAME:
         raise RuntimeError("hook .pth must sort before the bootstrapper's")  # programming error

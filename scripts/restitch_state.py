@@ -65,8 +65,10 @@ def main(argv: list[str] | None = None) -> int:
             print(score_line(args.state.name, report, dt))
             for t in report.false_topology_links:
                 if t.length_m > report.config.link_long_m:
-                    print(f"false long link ({t.x:.1f}, {t.y:.1f}) -> ({t.to_x:.1f}, {t.to_y:.1f}) "
-                          f"{t.length_m:.1f} m: {t.reason}")
+                    print(
+                        f"false long link ({t.x:.1f}, {t.y:.1f}) -> ({t.to_x:.1f}, {t.to_y:.1f}) "
+                        f"{t.length_m:.1f} m: {t.reason}"
+                    )
     except HdmapError as err:
         print(f"restitch_state: {err}", file=sys.stderr)
         return 2

@@ -87,8 +87,12 @@ def checked(run: dict) -> list[tuple[str, bool]]:
     if mean > MEAN_MAX_M:
         out.append((f"mean {mean:.3f} m > {MEAN_MAX_M:.2f}{note}", follows and fleet_err > MEAN_MAX_M))
     if mean > MEAN_MAX_FLOOR * floor:
-        out.append((f"mean {mean / floor:.2f} x floor > {MEAN_MAX_FLOOR}{note}",
-                    follows and fleet_err > MEAN_MAX_FLOOR * floor))
+        out.append(
+            (
+                f"mean {mean / floor:.2f} x floor > {MEAN_MAX_FLOOR}{note}",
+                follows and fleet_err > MEAN_MAX_FLOOR * floor,
+            )
+        )
     if run["corrected_mean_m"] > CORRECTED_MAX_M:
         out.append((f"corr. mean {run['corrected_mean_m']:.3f} m > {CORRECTED_MAX_M}", False))
     driven = run.get("driven_share")
@@ -96,8 +100,12 @@ def checked(run: dict) -> list[tuple[str, bool]]:
         short = driven is not None and driven < COVERAGE_MIN
         why = f" (driven {100 * driven:.1f} %)" if short else ""
         over_driven = run.get("coverage_driven")
-        out.append((f"coverage {100 * run['coverage']:.1f} %{why}",
-                    short and over_driven is not None and over_driven >= COVERAGE_MIN))
+        out.append(
+            (
+                f"coverage {100 * run['coverage']:.1f} %{why}",
+                short and over_driven is not None and over_driven >= COVERAGE_MIN,
+            )
+        )
     observed = run.get("observed_share")
     if run["recall"] < RECALL_MIN:
         short = observed is not None and math.isfinite(observed) and observed < RECALL_MIN
@@ -177,16 +185,23 @@ def table(runs: list[dict], *, misses_only: bool = False, preset: str = "default
         if misses_only and not missed and not lost:
             continue
         peer_names = ", ".join(sorted({p["preset"] for p in peers})) or "-"
-        lines.append(f"| {name} | {run['drives']} | {'; '.join(missed) or 'none'} | {'; '.join(lost) or 'none'} | {peer_names} |")
+        lines.append(
+            f"| {name} | {run['drives']} | {'; '.join(missed) or 'none'} | {'; '.join(lost) or 'none'} | {peer_names} |"
+        )
     return "\n".join(lines), n, n_ok, n_fleet_ok
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("json", nargs="*", type=Path, help="hdmap bench --json files (default: out/bench/*.json)")
-    parser.add_argument("--misses-only", action="store_true", help="list only the fleets that miss a target or lose a figure")
-    parser.add_argument("--preset", default="default",
-                        help="the preset whose runs are checked, e.g. default+ of a bench --set run (default: default)")
+    parser.add_argument(
+        "--misses-only", action="store_true", help="list only the fleets that miss a target or lose a figure"
+    )
+    parser.add_argument(
+        "--preset",
+        default="default",
+        help="the preset whose runs are checked, e.g. default+ of a bench --set run (default: default)",
+    )
     args = parser.parse_args(argv)
     paths = args.json or sorted(p for p in Path("out/bench").glob("*.json") if p.name not in NOT_TARGETS)
     if not paths:
@@ -200,9 +215,11 @@ def main(argv: list[str] | None = None) -> int:
     text, n, n_ok, n_fleet_ok = table(runs, misses_only=args.misses_only, preset=args.preset)
     print(text)
     print(f"\n{n_ok} of {n} fleets meet every target and lose no figure to a peer preset.")
-    print(f"{n_fleet_ok} of {n} fleets meet every target their fleet allows (each miss bound by the fleet: "
-          "the map within 1.15 x the drives' own error, recall over the observed >= 95 %, coverage over "
-          "the driven >= 97 %) and lose no figure to a peer preset.")
+    print(
+        f"{n_fleet_ok} of {n} fleets meet every target their fleet allows (each miss bound by the fleet: "
+        "the map within 1.15 x the drives' own error, recall over the observed >= 95 %, coverage over "
+        "the driven >= 97 %) and lose no figure to a peer preset."
+    )
     return 0
 
 

@@ -27,7 +27,9 @@ def test_the_tree_names_no_sibling_folder():
     """Nothing the build, the demo or the tests run reads ``../shared``."""
     out = subprocess.run(
         ["git", "grep", "-n", "-e", "../shared", "-e", "shared/data", "--", "Makefile", "scripts", "src", ".ci"],
-        cwd=REPO, capture_output=True, text=True,
+        cwd=REPO,
+        capture_output=True,
+        text=True,
     )
     assert out.stdout == "", out.stdout
 
@@ -37,8 +39,7 @@ def test_a_clone_alone_loads_the_shipped_maps(tmp_path):
     """The files a clone gets (tracked and new, not ignored: ``git ls-files``), copied to an empty
     folder with no ``shared`` beside it and no $HDMAP_MAPS_DIR, with that copy's source first on the
     path, resolve every map by name from the copy's ``data/maps``."""
-    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO,
-                            capture_output=True, text=True)
+    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, capture_output=True, text=True)
     if listed.returncode:
         pytest.skip("not a git checkout")
     clone = tmp_path / "alone" / "hdmap"
@@ -56,8 +57,7 @@ def test_a_clone_alone_loads_the_shipped_maps(tmp_path):
     )
     env = {k: v for k, v in os.environ.items() if k != "HDMAP_MAPS_DIR"}
     env["PYTHONPATH"] = ""
-    res = subprocess.run([sys.executable, "-c", code, str(clone)], cwd=clone, env=env,
-                         capture_output=True, text=True)
+    res = subprocess.run([sys.executable, "-c", code, str(clone)], cwd=clone, env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     assert str(clone / "data" / "maps") in res.stdout
     assert all(f"{n} " in res.stdout for n in MAPS)

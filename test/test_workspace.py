@@ -30,8 +30,21 @@ PACKAGES = {  # name -> build type
 }
 
 _BUILTIN_TYPES = {
-    "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
-    "int32", "uint32", "int64", "uint64", "string", "wstring",
+    "bool",
+    "byte",
+    "char",
+    "float32",
+    "float64",
+    "int8",
+    "uint8",
+    "int16",
+    "uint16",
+    "int32",
+    "uint32",
+    "int64",
+    "uint64",
+    "string",
+    "wstring",
 }
 
 
@@ -41,8 +54,7 @@ def _shared_msgs() -> list[Path]:
 
 def _needs_shared() -> None:
     if not SHARED_MSG_DIR.is_dir():
-        pytest.skip(f"shared interface dir not found at {SHARED_MSG_DIR} (expected ../shared "
-                    "beside the repository)")
+        pytest.skip(f"shared interface dir not found at {SHARED_MSG_DIR} (expected ../shared beside the repository)")
 
 
 _STRING_CONSTANT = re.compile(r"^\s*w?string\S*\s+[A-Z][A-Z0-9_]*\s*=")
@@ -75,6 +87,7 @@ def _field_types(path: Path) -> set[str]:
 
 # --- message contract ------------------------------------------------------------------------
 
+
 def test_msg_field_normaliser_drops_comments_only():
     text = "float64 x   # the drive's x [m]\n# a comment line\n\nstring S=a#b\nuint8[]  v\n"
     assert msg_fields(text) == ["float64 x", "string S=a#b", "uint8[] v"]
@@ -90,7 +103,8 @@ def test_shared_message_copied_with_identical_fields(shared: Path):
     ours = MSG_DIR / shared.name
     assert ours.is_file(), f"{shared.name} of the shared contract is missing from {MSG_DIR}"
     assert msg_fields(ours.read_text()) == msg_fields(shared.read_text()), (
-        f"{ours.relative_to(REPO)} differs from the shared contract in its fields")
+        f"{ours.relative_to(REPO)} differs from the shared contract in its fields"
+    )
 
 
 @pytest.mark.parametrize("shared", _shared_msgs(), ids=lambda p: p.name)
@@ -99,7 +113,8 @@ def test_shared_message_copied_byte_for_byte(shared: Path):
     if not ours.is_file():
         pytest.fail(f"{shared.name} missing from {MSG_DIR}")
     assert ours.read_bytes() == shared.read_bytes(), (
-        f"{ours.relative_to(REPO)} must be an unchanged copy of the shared file (comments too)")
+        f"{ours.relative_to(REPO)} must be an unchanged copy of the shared file (comments too)"
+    )
 
 
 def test_every_message_dependency_is_declared():
@@ -116,7 +131,8 @@ def test_every_message_dependency_is_declared():
                     used.add(pkg)
             else:
                 assert t in _BUILTIN_TYPES or t in own, (
-                    f"{path.name}: type {t!r} is neither builtin nor a message of hdmap_msgs")
+                    f"{path.name}: type {t!r} is neither builtin nor a message of hdmap_msgs"
+                )
     xml = _parse("hdmap_msgs")
     declared = {e.text for tag in ("depend", "build_depend") for e in xml.findall(tag)}
     assert used <= declared, f"hdmap_msgs/package.xml lacks <depend> on {sorted(used - declared)}"
@@ -131,6 +147,7 @@ def test_every_message_dependency_is_declared():
 
 # --- package manifests -----------------------------------------------------------------------
 
+
 def _parse(name: str) -> ET.Element:
     return ET.parse(REPO / "src" / name / "package.xml").getroot()
 
@@ -143,8 +160,7 @@ def test_package_xml_names_package_and_build_type(name: str, build_type: str):
     assert root.findtext("export/build_type") == build_type
     assert root.findtext("license") == "Apache-2.0"
     maint = root.find("maintainer")
-    assert maint is not None and re.fullmatch(r"[\w.+-]+@[\w-]+(\.[\w-]+)*\.[a-z]{2,}",
-                                               maint.get("email", ""))
+    assert maint is not None and re.fullmatch(r"[\w.+-]+@[\w-]+(\.[\w-]+)*\.[a-z]{2,}", maint.get("email", ""))
     if build_type == "ament_python":
         assert "python3-pytest" in {e.text for e in root.findall("test_depend")}
 
@@ -188,6 +204,7 @@ def test_python_package_has_resource_marker_and_script_dir(name: str):
 
 
 # --- the built workspace (make setup) ----------------------------------------------------------
+
 
 def _clean_env() -> dict[str, str]:
     """What a newcomer's fresh shell has: no ROS or venv variables at all."""
@@ -233,14 +250,14 @@ print(get_package_share_directory("hdmap_msgs"))
 @pytest.mark.ros
 def test_built_messages_round_trip_with_nothing_sourced(tmp_path):
     _needs_build()
-    proc = subprocess.run([str(VENV_PY), "-c", _ROUND_TRIP], cwd=tmp_path, env=_clean_env(),
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [str(VENV_PY), "-c", _ROUND_TRIP], cwd=tmp_path, env=_clean_env(), capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr
     share = Path(proc.stdout.strip().splitlines()[-1])
     assert share.resolve() == (INSTALL / "share" / "hdmap_msgs").resolve()
     for shared in _shared_msgs():  # the ament index serves the contract too
-        assert msg_fields((share / "msg" / shared.name).read_text()) == \
-            msg_fields(shared.read_text())
+        assert msg_fields((share / "msg" / shared.name).read_text()) == msg_fields(shared.read_text())
 
 
 @pytest.mark.slow
@@ -249,8 +266,9 @@ def test_hdmap_cli_help_runs_from_anywhere(tmp_path):
     _needs_build()
     if not VENV_HDMAP.exists():
         pytest.skip(f"{VENV_HDMAP} missing: run `make setup`")
-    proc = subprocess.run([str(VENV_HDMAP), "--help"], cwd=tmp_path, env=_clean_env(),
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [str(VENV_HDMAP), "--help"], cwd=tmp_path, env=_clean_env(), capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("usage: hdmap")
 
@@ -259,8 +277,7 @@ def test_hdmap_cli_help_runs_from_anywhere(tmp_path):
 def test_node_executables_are_installed_where_ros2_run_looks():
     _needs_build()
     lib = INSTALL / "lib" / "hdmap_ros"
-    for exe in ("hdmap", "drive_ingestor", "segment_mapper", "map_stitcher", "map_publisher",
-                "bag_player"):
+    for exe in ("hdmap", "drive_ingestor", "segment_mapper", "map_stitcher", "map_publisher", "bag_player"):
         path = lib / exe
         assert path.is_file() and os.access(path, os.X_OK), f"{path} missing or not executable"
         first = path.read_text().splitlines()[0]
@@ -272,10 +289,10 @@ def test_source_edits_are_live_in_the_install(tmp_path):
     """--symlink-install: the installed hdmap_core is the source tree, no rebuild needed."""
     _needs_build()
     code = "import hdmap_core, hdmap_ros; print(hdmap_core.__file__); print(hdmap_ros.__file__)"
-    proc = subprocess.run([str(VENV_PY), "-c", code], cwd=tmp_path, env=_clean_env(),
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [str(VENV_PY), "-c", code], cwd=tmp_path, env=_clean_env(), capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr
     core, ros = (Path(line).resolve() for line in proc.stdout.split())
     assert core == (REPO / "src" / "hdmap_core" / "hdmap_core" / "__init__.py").resolve()
     assert ros == (REPO / "src" / "hdmap_ros" / "hdmap_ros" / "__init__.py").resolve()
-

@@ -28,7 +28,9 @@ def two_way_fleet():
     from hdmap_core.simulation.synthetic import synthetic_highway
 
     gt = synthetic_highway("motorway_ramps", length_m=2000.0, seed=1)
-    fleet = simulate_fleet(gt, config=SimConfig(n_drives=16, snippet_length_min_m=400.0, snippet_length_max_m=900.0), seed=3)
+    fleet = simulate_fleet(
+        gt, config=SimConfig(n_drives=16, snippet_length_min_m=400.0, snippet_length_max_m=900.0), seed=3
+    )
     drives, rejected = prepare_drives(fleet.drives)
     assert not rejected
     return drives
@@ -158,7 +160,9 @@ def test_no_worker_process_possible_runs_everything_here(two_way_fleet, monkeypa
     with caplog.at_level(logging.WARNING, logger="hdmap_core.parallel"):
         got = build_map(two_way_fleet, config=cfg, seed=2, workers=2).map
     assert "cannot start a worker process" in caplog.text
-    assert [(f.id, f.predecessors, f.successors) for f in want.features] == [(f.id, f.predecessors, f.successors) for f in got.features]
+    assert [(f.id, f.predecessors, f.successors) for f in want.features] == [
+        (f.id, f.predecessors, f.successors) for f in got.features
+    ]
     for a, b in zip(want.features, got.features):
         np.testing.assert_array_equal(a.points, b.points)
 

@@ -67,8 +67,7 @@ def _make_ws(tmp_path: Path, *, egg_target: Path | None) -> Path:
 
 
 def _run_hook(module_text: str, monkeypatch, env: dict[str, str]) -> dict[str, str]:
-    for var in ("PYTHONPATH", "LD_LIBRARY_PATH", "AMENT_PREFIX_PATH",
-                "_ROS_WHEELS_BOOTSTRAP_COMPLETE"):
+    for var in ("PYTHONPATH", "LD_LIBRARY_PATH", "AMENT_PREFIX_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE"):
         monkeypatch.delenv(var, raising=False)
     for var, value in env.items():
         monkeypatch.setenv(var, value)
@@ -83,8 +82,7 @@ def test_hook_exports_workspace_and_forces_bootstrap(tmp_path, monkeypatch):
     venv = tmp_path / "venv"
     module, pth = hook.render_hook(ws, venv)
     assert pth == f"import {hook.MODULE_NAME}\n"
-    env = _run_hook(module, monkeypatch, {"LD_LIBRARY_PATH": "/venv/lib",
-                                          "_ROS_WHEELS_BOOTSTRAP_COMPLETE": "1"})
+    env = _run_hook(module, monkeypatch, {"LD_LIBRARY_PATH": "/venv/lib", "_ROS_WHEELS_BOOTSTRAP_COMPLETE": "1"})
     site = next((ws / "install" / "lib").glob("python*/site-packages"))
     assert env["PYTHONPATH"].split(os.pathsep) == [str(site), str(build_pkg)]
     assert env["LD_LIBRARY_PATH"].split(os.pathsep) == [str(ws / "install" / "lib"), "/venv/lib"]
@@ -114,8 +112,7 @@ def test_hook_does_nothing_without_a_built_workspace(tmp_path, monkeypatch):
 
 def test_hook_sorts_before_the_bootstrapper():
     hook = _load("install_venv_hook")
-    assert sorted([hook.BOOTSTRAPPER_PTH, hook.PTH_NAME, "distutils-precedence.pth"])[0] \
-        == hook.PTH_NAME
+    assert sorted([hook.BOOTSTRAPPER_PTH, hook.PTH_NAME, "distutils-precedence.pth"])[0] == hook.PTH_NAME
 
 
 def test_setup_script_is_strict_bash():
@@ -127,8 +124,11 @@ def test_setup_script_is_strict_bash():
 def test_ci_runs_make_test_then_the_benchmark_smoke_run():
     text = (REPO / ".ci" / "run").read_text()
     assert "set -euo pipefail" in text
-    commands = [ln.strip() for ln in text.splitlines()
-                if ln.strip() and not ln.lstrip().startswith(("#", "export", "echo", "cd", "set"))]
+    commands = [
+        ln.strip()
+        for ln in text.splitlines()
+        if ln.strip() and not ln.lstrip().startswith(("#", "export", "echo", "cd", "set"))
+    ]
     assert commands == ["make test", 'BENCH_SMOKE=1 BENCH_OUT="${BENCH_OUT:-out/ci-bench}" make bench']
     smoke = (SCRIPTS / "bench.sh").read_text().split('if [[ -n "${BENCH_SMOKE:-}" ]]; then', 1)[1].split("fi", 1)[0]
     assert "bench esmini_e6mini" in smoke and "bench_incremental.py" in smoke and "exit 0" in smoke
@@ -145,7 +145,6 @@ def test_requirements_pin_every_top_level_package():
         name = req.split("[")[0].split("==")[0]
         version = req.split("==")[1]
         assert f"{name}=={version}" in constraints, f"{req} disagrees with constraints.txt"
-
 
 
 def _make_rules() -> dict[str, tuple[list[str], list[str]]]:

@@ -30,7 +30,9 @@ def make_map(*, n_features: int = 4, n_points: int = 30, seed: int = 0) -> HDMap
     rng = np.random.default_rng(seed)
     feats = []
     for i in range(n_features):
-        pts = np.stack([np.arange(n_points, dtype=float), np.full(n_points, 3.5 * i)], 1) + rng.normal(0, 0.01, (n_points, 2))
+        pts = np.stack([np.arange(n_points, dtype=float), np.full(n_points, 3.5 * i)], 1) + rng.normal(
+            0, 0.01, (n_points, 2)
+        )
         feats.append(
             MapFeature(
                 id=2**63 + 17 * i,

@@ -38,7 +38,8 @@ def dds_env(domain_id: int) -> dict[str, str]:
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env["PYTHONPATH"] = os.pathsep.join(
-        [str(ROOT / "src/hdmap_core"), str(ROOT / "src/hdmap_ros")] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
+        [str(ROOT / "src/hdmap_core"), str(ROOT / "src/hdmap_ros")]
+        + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
     )
     env["PYTHONUNBUFFERED"] = "1"
     return env
@@ -106,8 +107,14 @@ class Proc:
             args += ["-p", f"{k}:={_yaml(v)}"]
         self.log = log
         self._fh = open(log, "ab")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen(args, env=dds_env(domain_id), stdout=self._fh, stderr=subprocess.STDOUT,
-                                     start_new_session=True, cwd=str(log.parent))
+        self.proc = subprocess.Popen(
+            args,
+            env=dds_env(domain_id),
+            stdout=self._fh,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            cwd=str(log.parent),
+        )
 
     def alive(self) -> bool:
         return self.proc.poll() is None

@@ -81,6 +81,5 @@ def make_fleet(biases: list[float], *, noise_m: float = 0.0, seed: int = 0, s1: 
     rng = np.random.default_rng(seed)
     lanes = (-3.5, 0.0, 3.5)
     return [
-        make_drive(f"d{i}", lane=lanes[i % 3], bias=b, noise_m=noise_m, rng=rng, s1=s1)
-        for i, b in enumerate(biases)
+        make_drive(f"d{i}", lane=lanes[i % 3], bias=b, noise_m=noise_m, rng=rng, s1=s1) for i, b in enumerate(biases)
     ]

@@ -39,7 +39,10 @@ def road(pivot: str, x0: float, n: int, lines=LINES, *, y_mid: float = 0.0, proc
     """n steps from x0 eastwards, 2 m apart; ``processed``: step indices marked processed_before."""
     return Segment(
         pivot,
-        tuple(step(pivot, i, x0 + 2.0 * i, lines[0], lines[1], y_mid=y_mid, processed_before=i in processed) for i in range(n)),
+        tuple(
+            step(pivot, i, x0 + 2.0 * i, lines[0], lines[1], y_mid=y_mid, processed_before=i in processed)
+            for i in range(n)
+        ),
     )
 
 

@@ -128,9 +128,7 @@ def ground_truth_to_dict(gt: GroundTruth) -> dict:
     return {
         "name": gt.name,
         **gt.extra,
-        "features": [
-            {"id": f.id, "type": f.type.label, "points": np.round(f.points, 3).tolist()} for f in gt.features
-        ],
+        "features": [{"id": f.id, "type": f.type.label, "points": np.round(f.points, 3).tolist()} for f in gt.features],
         "lanes": [
             {
                 "id": lane.id,

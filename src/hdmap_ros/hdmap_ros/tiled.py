@@ -68,14 +68,20 @@ def build_from_bag(
         with tempfile.TemporaryDirectory(prefix="hdmap-tiles-") as tmp:
             path = Path(index_path) if index_path else Path(tmp) / "tiles.sqlite"
             t0 = time.perf_counter()
-            index = build_tile_index(bag, path, tile_config=tile_config, overwrite=True,
-                                     progress=(lambda n: progress("index", n, 0)) if progress else None)
+            index = build_tile_index(
+                bag,
+                path,
+                tile_config=tile_config,
+                overwrite=True,
+                progress=(lambda n: progress("index", n, 0)) if progress else None,
+            )
             index_s = time.perf_counter() - t0
             index_rss = peak_rss_mb()
             rejected = index.rejected()
             if index.drive_count == 0:
                 raise NoUsableDataError(
-                    f"{bag}: no usable drive" + (f" ({index.bag_error})" if index.bag_error else ""))
+                    f"{bag}: no usable drive" + (f" ({index.bag_error})" if index.bag_error else "")
+                )
             try:
                 result = build_tiled(index, config=config, runner=runner, progress=progress)
             finally:
@@ -83,5 +89,6 @@ def build_from_bag(
                     index.close()
     finally:
         runner.close()
-    return TiledBagResult(index=index, rejected=rejected, result=result, index_seconds=index_s,
-                          index_peak_rss_mb=index_rss)
+    return TiledBagResult(
+        index=index, rejected=rejected, result=result, index_seconds=index_s, index_peak_rss_mb=index_rss
+    )

@@ -29,24 +29,42 @@ def generate_launch_description() -> LaunchDescription:
     ros_home = os.environ.get("ROS_HOME") or os.path.join(os.path.expanduser("~"), ".ros")
 
     def node(name, extra=None):
-        return Node(package="hdmap_ros", executable=name, name=name, namespace=ns, output="screen",
-                    parameters=[params] + ([extra] if extra else []))
+        return Node(
+            package="hdmap_ros",
+            executable=name,
+            name=name,
+            namespace=ns,
+            output="screen",
+            parameters=[params] + ([extra] if extra else []),
+        )
 
-    return LaunchDescription([
-        DeclareLaunchArgument("params_file", default_value=default_params, description="Node parameters (YAML)."),
-        DeclareLaunchArgument("state_dir", default_value=os.path.join(ros_home, "hdmap"),
-                              description="Directory of the SQLite stores."),
-        DeclareLaunchArgument("namespace", default_value="", description="Namespace of every node and topic."),
-        DeclareLaunchArgument("bag", default_value="", description="Fleet bag to replay ('' = none)."),
-        DeclareLaunchArgument("rate", default_value="1.0", description="Replay speed factor."),
-        node("drive_ingestor"),
-        node("segment_mapper", {"db_path": PathJoinSubstitution([state, "segment_mapper.db"])}),
-        node("map_stitcher", {"db_path": PathJoinSubstitution([state, "map_stitcher.db"])}),
-        node("map_publisher"),
-        Node(
-            package="hdmap_ros", executable="bag_player", name="bag_player", namespace=ns, output="screen",
-            # a float even when given as rate:=10 (an integer to YAML; the node declares a double)
-            parameters=[params, {"bag": bag, "rate": ParameterValue(LaunchConfiguration("rate"), value_type=float)}],
-            condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
-        ),
-    ])
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument("params_file", default_value=default_params, description="Node parameters (YAML)."),
+            DeclareLaunchArgument(
+                "state_dir",
+                default_value=os.path.join(ros_home, "hdmap"),
+                description="Directory of the SQLite stores.",
+            ),
+            DeclareLaunchArgument("namespace", default_value="", description="Namespace of every node and topic."),
+            DeclareLaunchArgument("bag", default_value="", description="Fleet bag to replay ('' = none)."),
+            DeclareLaunchArgument("rate", default_value="1.0", description="Replay speed factor."),
+            node("drive_ingestor"),
+            node("segment_mapper", {"db_path": PathJoinSubstitution([state, "segment_mapper.db"])}),
+            node("map_stitcher", {"db_path": PathJoinSubstitution([state, "map_stitcher.db"])}),
+            node("map_publisher"),
+            Node(
+                package="hdmap_ros",
+                executable="bag_player",
+                name="bag_player",
+                namespace=ns,
+                output="screen",
+                # a float even when given as rate:=10 (an integer to YAML; the node declares a double)
+                parameters=[
+                    params,
+                    {"bag": bag, "rate": ParameterValue(LaunchConfiguration("rate"), value_type=float)},
+                ],
+                condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
+            ),
+        ]
+    )

@@ -148,8 +148,10 @@ def test_missing_half_of_the_features_lowers_recall(road: GroundTruth) -> None:
 
 def test_map_of_half_the_road_length_covers_half(road: GroundTruth) -> None:
     perfect = hdmap_from_ground_truth(road)
-    half = [replace(f, points=f.points[:101], drive_count=f.drive_count[:101], lateral_std=f.lateral_std[:101])
-            for f in perfect.features]
+    half = [
+        replace(f, points=f.points[:101], drive_count=f.drive_count[:101], lateral_std=f.lateral_std[:101])
+        for f in perfect.features
+    ]
     report = evaluate_map(_with_features(perfect, half), road)
     assert report.coverage == pytest.approx(0.5, abs=0.011)
     assert report.overall.recall == pytest.approx(0.5, abs=0.011)
@@ -258,7 +260,9 @@ def test_coverage_over_the_driven_cuts(road: GroundTruth) -> None:
         feats = []
         for f in full.features:
             keep = (f.points[:, 0] >= lo) & (f.points[:, 0] <= hi)
-            feats.append(replace(f, points=f.points[keep], drive_count=f.drive_count[keep], lateral_std=f.lateral_std[keep]))
+            feats.append(
+                replace(f, points=f.points[keep], drive_count=f.drive_count[keep], lateral_std=f.lateral_std[keep])
+            )
         return _with_features(full, feats)
 
     whole = evaluate_map(hdmap_from_ground_truth(road), road, drives=drives)
@@ -271,7 +275,11 @@ def test_coverage_over_the_driven_cuts(road: GroundTruth) -> None:
     assert "coverage over them" in format_summary(driven)
     assert driven.to_dict()["coverage_driven"] == pytest.approx(driven.coverage_driven)
     bare = evaluate_map(hdmap_from_ground_truth(road), road)  # no drives: unknown
-    assert math.isnan(bare.driven_share) and math.isnan(bare.coverage_driven) and "driven reference" not in format_summary(bare)
+    assert (
+        math.isnan(bare.driven_share)
+        and math.isnan(bare.coverage_driven)
+        and "driven reference" not in format_summary(bare)
+    )
 
 
 def test_realized_floor_is_the_mean_error_of_the_crossing_drives(road: GroundTruth) -> None:
@@ -285,7 +293,8 @@ def test_realized_floor_is_the_mean_error_of_the_crossing_drives(road: GroundTru
     # first 100 m: the a and b drives (mean of -0.8 and 1.8 over 6 = 1/6), beyond: the a drives
     # (-0.2); the wrong-way drive crosses no cut in its direction
     expected = (np.count_nonzero(first) * (1.0 / 6.0) + np.count_nonzero(second) * 0.2) / (
-        np.count_nonzero(first) + np.count_nonzero(second))
+        np.count_nonzero(first) + np.count_nonzero(second)
+    )
     assert report.fleet_floor_mean_m == pytest.approx(expected, abs=0.01)
     assert "realized floor" in format_summary(report)
     assert math.isnan(evaluate_map(hdmap_from_ground_truth(road), road, drives=drives).fleet_floor_mean_m)
@@ -320,8 +329,9 @@ def test_observed_and_missed_stretches_of_one_line(road: GroundTruth) -> None:
     for f in perfect.features:
         keep = {1: 201, 2: 201, 3: 151, 4: 101, 5: 0}[f.id]
         if keep:
-            feats.append(replace(f, points=f.points[:keep], drive_count=f.drive_count[:keep],
-                                 lateral_std=f.lateral_std[:keep]))
+            feats.append(
+                replace(f, points=f.points[:keep], drive_count=f.drive_count[:keep], lateral_std=f.lateral_std[:keep])
+            )
     seen = _seen_all(road)
     seen[4] = (np.arange(201) <= 100).astype(int)
     report = evaluate_map(_with_features(perfect, feats), road, seen_counts=seen)
@@ -399,8 +409,14 @@ def test_simulated_seen_counts_bound_a_map_of_the_drives_own_detections() -> Non
     from hdmap_core.simulation.synthetic import synthetic_highway
 
     gt = synthetic_highway("motorway", length_m=1500.0)
-    cfg = SimConfig.noise_free(n_drives=6, snippet_length_min_m=400.0, snippet_length_max_m=800.0,
-                               visibility_next_marking=0.7, visibility_far_marking=0.25, visibility_border=0.6)
+    cfg = SimConfig.noise_free(
+        n_drives=6,
+        snippet_length_min_m=400.0,
+        snippet_length_max_m=800.0,
+        visibility_next_marking=0.7,
+        visibility_far_marking=0.25,
+        visibility_border=0.6,
+    )
     fleet = simulate_fleet(gt, config=cfg, seed=2)
     lines = [(x.type, p) for d in fleet.drives for x in d.detections for p in (x.points, x.points[::-1])]
     feats = [MapFeature(i, t, p, np.ones(len(p), int), np.zeros(len(p))) for i, (t, p) in enumerate(lines)]
@@ -425,9 +441,15 @@ def test_fragmentation_counts_map_pieces_per_gt_feature(road: GroundTruth) -> No
     for f in perfect.features:
         if f.id == 3:  # the dashed line in three pieces
             for k, (a, b) in enumerate([(0, 70), (70, 140), (140, 201)]):
-                pieces.append(replace(f, id=300 + k, points=f.points[a:b + (b < 201)],
-                                      drive_count=f.drive_count[a:b + (b < 201)],
-                                      lateral_std=f.lateral_std[a:b + (b < 201)]))
+                pieces.append(
+                    replace(
+                        f,
+                        id=300 + k,
+                        points=f.points[a : b + (b < 201)],
+                        drive_count=f.drive_count[a : b + (b < 201)],
+                        lateral_std=f.lateral_std[a : b + (b < 201)],
+                    )
+                )
         else:
             pieces.append(f)
     report = evaluate_map(_with_features(perfect, pieces), road)
@@ -462,8 +484,15 @@ def test_no_highway_lane_is_a_clear_error(road: GroundTruth) -> None:
 
 @pytest.mark.parametrize(
     "kwargs",
-    [{"step_m": 0.0}, {"gate_m": -1.0}, {"recall_radius_m": 3.0}, {"max_feature_angle_deg": 95.0},
-     {"border_margin_m": float("nan")}, {"density_drives": (5, 2)}, {"density_drives": (-1, 5)}],
+    [
+        {"step_m": 0.0},
+        {"gate_m": -1.0},
+        {"recall_radius_m": 3.0},
+        {"max_feature_angle_deg": 95.0},
+        {"border_margin_m": float("nan")},
+        {"density_drives": (5, 2)},
+        {"density_drives": (-1, 5)},
+    ],
 )
 def test_bad_config_is_rejected(kwargs: dict) -> None:
     with pytest.raises(ConfigError):
@@ -541,7 +570,9 @@ def test_bad_ground_truth_parts_are_left_out_and_named(road: GroundTruth) -> Non
     centre[10] = np.inf
     bad = replace(
         road,
-        features=road.features[:2] + (replace(road.features[2], points=dashed),) + road.features[3:]
+        features=road.features[:2]
+        + (replace(road.features[2], points=dashed),)
+        + road.features[3:]
         + (GTFeature(99, FeatureType.SOLID, np.full((3, 2), np.nan)),),
         lanes={**road.lanes, "A": replace(road.lanes["A"], centerline=centre)},
         routes=road.routes + (GTRoute("ghost", ("A", "no_such_lane")),),
@@ -564,7 +595,9 @@ def test_synthetic_highway_with_ramps_each_cross_section_once() -> None:
     assert report.type_accuracy == 1.0 and report.fragmentation_mean == 1.0
     # Two carriageways of 3 lanes (6 routes' worth of lanes) plus the ramps' own stretches beyond
     # the gore: far less than the lane length, a little more than twice the road length.
-    lane_km = sum(np.linalg.norm(np.diff(ln.centerline, axis=0), axis=1).sum() for ln in gt.lanes.values() if ln.highway)
+    lane_km = sum(
+        np.linalg.norm(np.diff(ln.centerline, axis=0), axis=1).sum() for ln in gt.lanes.values() if ln.highway
+    )
     assert 2 * length_m * 0.98 < report.reference_length_m < 2 * length_m * 1.5 < lane_km
 
 
@@ -613,8 +646,10 @@ def test_splits_without_links_are_missing(ramps: GroundTruth) -> None:
     # Every feature pulled back from its ends by ~12 m as well, where a branch starting on the
     # edge line has left it by > 0.1 m: nothing is connected any more.
     cut = slice(15, -15)
-    trimmed = [replace(f, points=f.points[cut], drive_count=f.drive_count[cut], lateral_std=f.lateral_std[cut])
-               for f in _unlinked(perfect).features]
+    trimmed = [
+        replace(f, points=f.points[cut], drive_count=f.drive_count[cut], lateral_std=f.lateral_std[cut])
+        for f in _unlinked(perfect).features
+    ]
     none = evaluate_map(_with_features(perfect, trimmed), ramps)
     assert (none.gt_splits, none.gt_merges, none.found_splits, none.found_merges) == (4, 4, 0, 0)
     text = format_summary(none)
@@ -627,8 +662,7 @@ def test_unmapped_branch_is_named(ramps: GroundTruth) -> None:
     # Leave out the ramps' inner solid lines (the features that start at the exit gores and end
     # at the entry gores): those splits/merges lose a branch; the others stay found.
     gore = {i for b in evaluate_map(perfect, ramps).branch_points if len(b.gt_features) == 3 for i in b.gt_features}
-    ramp_inner = {f.id for f in ramps.features if f.id in gore and f.type == FeatureType.SOLID
-                  and len(f.points) < 500}
+    ramp_inner = {f.id for f in ramps.features if f.id in gore and f.type == FeatureType.SOLID and len(f.points) < 500}
     kept = [f for f in perfect.features if f.id not in ramp_inner]
     report = evaluate_map(_with_features(perfect, kept), ramps)
     assert (report.found_splits, report.found_merges) == (2, 2)
@@ -668,6 +702,8 @@ def test_lateral_std_calibration_counts_the_points_within_their_one_sigma(road: 
         assert report.std_z_rms == pytest.approx(z, rel=0.02)
         assert "lateral_std as 1-sigma" in format_summary(report)
     # two of the five features claim 0.5 m, three 0.1 m: two fifths of the points lie within
-    feats = [replace(f, lateral_std=np.full(len(f.points), 0.5 if i % 2 else 0.1)) for i, f in enumerate(shifted.features)]
+    feats = [
+        replace(f, lateral_std=np.full(len(f.points), 0.5 if i % 2 else 0.1)) for i, f in enumerate(shifted.features)
+    ]
     assert len(feats) == 5
     assert evaluate_map(_with_features(shifted, feats), road).std_within_share == pytest.approx(0.4, abs=0.01)

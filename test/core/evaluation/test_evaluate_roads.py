@@ -96,13 +96,23 @@ def test_a_ramp_pivot_linked_to_the_main_road_is_found() -> None:
     """Road-level topology as the pipeline makes it: one node chain per road (wide nodes on the
     main road), the exit's chain starting on the main road, linked to it only at its start."""
     gt = _junction(exit_=True)
-    main = [TopologyNode(id=k + 1, position=np.array([x, -1.75]), heading=0.0, width=7.0, successors=(k + 2,))
-            for k, x in enumerate(np.arange(1.0, 900.0, 2.0))]
+    main = [
+        TopologyNode(id=k + 1, position=np.array([x, -1.75]), heading=0.0, width=7.0, successors=(k + 2,))
+        for k, x in enumerate(np.arange(1.0, 900.0, 2.0))
+    ]
     main[-1] = dataclasses.replace(main[-1], successors=())
     xs = np.arange(301.0, 900.0, 2.0)
     first = len(main) + 1
-    ramp = [TopologyNode(id=first + k, position=np.array([x, _exit_y(np.array([x]))[0]]), heading=0.0, width=4.0,
-                         successors=(first + k + 1,) if k + 1 < len(xs) else ()) for k, x in enumerate(xs)]
+    ramp = [
+        TopologyNode(
+            id=first + k,
+            position=np.array([x, _exit_y(np.array([x]))[0]]),
+            heading=0.0,
+            width=4.0,
+            successors=(first + k + 1,) if k + 1 < len(xs) else (),
+        )
+        for k, x in enumerate(xs)
+    ]
     fork = dataclasses.replace(main[149], successors=(151, first))
     linked = HDMap(topology=tuple(main[:149] + [fork] + main[150:] + ramp))
     rep = evaluate_map(linked, gt)
@@ -236,8 +246,11 @@ def test_a_link_across_the_exit_is_supported() -> None:
     rep = evaluate_map(_with_link(hdmap_from_ground_truth(gt), exit_xy, [299.0, 0.0]), gt)
     assert (rep.n_long_links_evaluable, rep.n_long_links_supported) == (1, 0)
     # The path bound: 2 x |AB| + 20 m (config), here 61 m of lane path for a 61 m link.
-    rep = evaluate_map(_with_link(hdmap_from_ground_truth(gt), [199.0, 0.0], [299.0, 0.0]), gt,
-                       config=EvalConfig(link_path_factor=0.5, link_path_slack_m=0.0))
+    rep = evaluate_map(
+        _with_link(hdmap_from_ground_truth(gt), [199.0, 0.0], [299.0, 0.0]),
+        gt,
+        config=EvalConfig(link_path_factor=0.5, link_path_slack_m=0.0),
+    )
     assert rep.n_long_links_supported == 0
 
 

@@ -25,6 +25,7 @@ def connect_segment(segment, *, config: ConnectionConfig | None = None, **kw):
     unless a config is given: the rules these tests were drawn for."""
     return _connect_segment(segment, config=former(ConnectionConfig) if config is None else config, **kw)
 
+
 B, S, D = int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID), int(FeatureType.DASHED)
 
 
@@ -94,7 +95,7 @@ def chain_index(g):
 
 @pytest.fixture
 def three_lines():
-    """  y= 3.5  B ------------------------
+    """y= 3.5  B ------------------------
          y= 0.0  D - - - - - - - - - - - -
          y=-3.5  B ------------------------   (20 steps, 2 m apart)
     with per-step counts/std varying along x."""
@@ -146,10 +147,10 @@ def test_unsorted_lateral_and_curved_road():
 def _split_segment():
     r"""Two lines become three at a gore (the right line splits), 2 m steps:
 
-        y=3.5   B ----------------------------------------
-        y=0     S ----------------------------------------
-        y=-3.5  D --------------------*  gore at step 10
-                                       \----- D (y: -3.5 - 0.6*k)
+    y=3.5   B ----------------------------------------
+    y=0     S ----------------------------------------
+    y=-3.5  D --------------------*  gore at step 10
+                                   \----- D (y: -3.5 - 0.6*k)
     """
     steps = []
     for i in range(25):
@@ -248,7 +249,9 @@ def test_processed_before_closes_polylines_rule4():
 
 def test_implausible_angle_step_rejected():
     """One step's maxima all jump 3 m sideways (a failed optimisation): rejected and bridged."""
-    steps = [make_step(i, [-1.75 + (3.0 if i == 7 else 0.0), 1.75 + (3.0 if i == 7 else 0.0)], [S, D]) for i in range(15)]
+    steps = [
+        make_step(i, [-1.75 + (3.0 if i == 7 else 0.0), 1.75 + (3.0 if i == 7 else 0.0)], [S, D]) for i in range(15)
+    ]
     g = connect_segment(Segment("p", tuple(steps)))
     assert g.stats.rejected_angle == 1
     assert 7 not in g.topo_step.tolist()
@@ -260,7 +263,10 @@ def test_implausible_angle_step_rejected():
 def test_leftover_far_away_does_not_make_false_merge():
     """A marking missing for a few steps 3.5 m from its neighbour: no merge by default, a merge in
     the paper's variant (every leftover joins its nearest neighbour)."""
-    steps = [make_step(i, [-3.5, 0.0, 3.5] if not 5 <= i < 8 else [-3.5, 3.5], [B, D, B] if not 5 <= i < 8 else [B, B]) for i in range(15)]
+    steps = [
+        make_step(i, [-3.5, 0.0, 3.5] if not 5 <= i < 8 else [-3.5, 3.5], [B, D, B] if not 5 <= i < 8 else [B, B])
+        for i in range(15)
+    ]
     g = connect_segment(Segment("p", tuple(steps)))
     assert g.stats.merges == 0 and len(g.polylines()) == 3
     gp = connect_segment(Segment("p", tuple(steps)), config=former_paper(ConnectionConfig))
@@ -326,7 +332,8 @@ def test_close_duplicate_markings_suppressed():
     """A misclassified copy of the dashed line 0.2 m beside it (fewer drives) is dropped; a border
     0.5 m from a marking is kept (borders and markings are never merged); the paper's variant keeps all."""
     steps = [
-        make_step(i, [0.0, 0.2, -3.5, -4.0], [D, S, S, B], counts=[6, 2, 5, 4]) if 3 <= i < 6
+        make_step(i, [0.0, 0.2, -3.5, -4.0], [D, S, S, B], counts=[6, 2, 5, 4])
+        if 3 <= i < 6
         else make_step(i, [0.0, -3.5, -4.0], [D, S, B], counts=[6, 5, 4])
         for i in range(10)
     ]
@@ -364,10 +371,14 @@ def test_fast_path_equals_assignment(monkeypatch):
 def test_low_support_maxima_dropped():
     """A maximum seen by 1 of 10 drives flickering beside the dashed line is noise when
     min_support_share=0.25 (1 < 2.5): no split/merge, three clean polylines."""
+
     def st(i):
-        s = make_step(i, [-3.5, 0.0, 1.6, 3.5] if i % 3 == 0 else [-3.5, 0.0, 3.5],
-                      [B, D, D, B] if i % 3 == 0 else [B, D, B],
-                      counts=[8, 9, 1, 7] if i % 3 == 0 else [8, 9, 7])
+        s = make_step(
+            i,
+            [-3.5, 0.0, 1.6, 3.5] if i % 3 == 0 else [-3.5, 0.0, 3.5],
+            [B, D, D, B] if i % 3 == 0 else [B, D, B],
+            counts=[8, 9, 1, 7] if i % 3 == 0 else [8, 9, 7],
+        )
         return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(10))})
 
     seg = Segment("p", tuple(st(i) for i in range(30)))
@@ -382,6 +393,7 @@ def test_support_window_keeps_far_lines_of_a_wide_cut():
     """A wide cut (a ramp beside the carriageway): the far lines are seen by 5-6 of 30 drives,
     below a 0.25 share of the step's drives but not of the best line within 4 m (18); a
     flickering weak copy beside a line 20 drives see is still dropped."""
+
     def st(i):
         lat = [-12.0, -9.0, -6.5, -3.5, 0.0, 3.5]
         typ = [B, S, B, D, D, B]
@@ -408,6 +420,7 @@ def test_lone_line_of_one_drive_kept_copies_and_lane_noise_dropped():
     drop it. It lies 3.5 m from the border and from the next line: with lone_line_gap_m 3 it is
     kept. One drive's copy 1.2 m beside the dashed line at 3.5 and one drive's false positive
     in the middle of a lane (1.75 m from the lines) are still dropped."""
+
     def st(i):
         lat = [-7.0, -3.5, 0.0, 1.75 + 3.5, 3.5, 4.7, 7.0]
         typ = [B, S, D, S, D, D, B]
@@ -434,6 +447,7 @@ def test_lone_edge_line_beside_the_border():
     away, so it is kept; with the lane gap alone (3 m) it is not. A one-drive marking 0.3 m
     from the border stays dropped; one 0.6 m from it is kept with 0.5 m, dropped with the
     default preset's 0.8 m (esmini_soderleden: one drive's solid along the border)."""
+
     def st(i, edge):
         s = make_step(i, [-7.0 + edge, -7.0, -3.5 + edge, 0.0, 3.5, 7.0], [S, B, D, D, D, B], counts=[1, 8, 8, 8, 8, 8])
         return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(30))})
@@ -466,6 +480,7 @@ def test_lone_edge_line_needs_its_border_on_the_outer_side():
     edge line; with lone_line_border_outer the border counts only outward (below -2.35 here), and
     the copy inward is an ordinary neighbour, 2.25 m < 3 m: the false line is dropped. The true
     edge line of test_lone_edge_line_beside_the_border, its border outward, is kept either way."""
+
     def st(i, lat, typ, cnt, n=97):
         s = make_step(i, lat, typ, counts=cnt)
         return StepResult(**{**s.__dict__, "drive_ids": tuple(f"d{k}" for k in range(n))})

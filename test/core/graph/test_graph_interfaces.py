@@ -36,7 +36,7 @@ def _flat_of(*graphs):
 
 
 def test_flatten_concatenates_graphs_in_key_order_with_their_links():
-    r"""  b: x 100..118 | a: x 0..18  ->  a's nodes first; a stored link a:9 -> b:0 becomes one edge."""
+    r"""b: x 100..118 | a: x 0..18  ->  a's nodes first; a stored link a:9 -> b:0 becomes one edge."""
     ga, gb = conn(road("a", 0.0, 10)), conn(road("b", 100.0, 10))
     gs = {gb.key: gb, ga.key: ga}
     alive = {k: np.ones(g.n_topo, dtype=bool) for k, g in gs.items()}
@@ -53,7 +53,7 @@ def test_flatten_concatenates_graphs_in_key_order_with_their_links():
 
 
 def test_link_segments_joins_two_segments_in_a_row():
-    r"""  a: x 0..98 | b: x 100..198  ->  one topology link a -> b and one feature link per line."""
+    r"""a: x 0..98 | b: x 100..198  ->  one topology link a -> b and one feature link per line."""
     gs, _, flat = _flat_of(conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50)))
     before = flat.topo_edges.copy()
     links = link_segments(flat, gs, config=former(StitchConfig))
@@ -66,15 +66,16 @@ def test_link_segments_joins_two_segments_in_a_row():
 
 
 def test_link_segments_of_parallel_roads_links_nothing():
-    r"""  a: y 0, x 0..98;  b: y 40, x 100..198  ->  too far across: no link."""
-    gs, _, flat = _flat_of(conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50, y_mid=40.0,
-                                                                 lines=([36.5, 40.0, 43.5], LINES[1]))))
+    r"""a: y 0, x 0..98;  b: y 40, x 100..198  ->  too far across: no link."""
+    gs, _, flat = _flat_of(
+        conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50, y_mid=40.0, lines=([36.5, 40.0, 43.5], LINES[1])))
+    )
     links = link_segments(flat, gs, config=former(StitchConfig))
     assert links.topo == [] and links.features == []
 
 
 def test_join_loose_ends_joins_a_line_across_a_gap_between_segments():
-    r"""  a: x 0..98 | (gap 10 m) | b: x 108..206, topology not linked  ->  one join per line."""
+    r"""a: x 0..98 | (gap 10 m) | b: x 108..206, topology not linked  ->  one join per line."""
     gs, _, flat = _flat_of(conn(road("a", 0.0, 50)), conn(road("b", 108.0, 50)))
     joins = join_loose_ends(flat, config=former(StitchConfig))
     assert len(joins.links) == 3 and not joins.dropped.any()
@@ -148,13 +149,19 @@ def test_reached_within_matches_a_textbook_dijkstra_with_added_edges():
 
 
 def _split_map() -> HDMap:
-    r"""  0 -> 1 -> 2 -> 3        a road that splits at node 1 (node 4 on the ramp);
-               \-> 4           node 3 names a successor 99 that is not in the map."""
+    r"""0 -> 1 -> 2 -> 3        a road that splits at node 1 (node 4 on the ramp);
+    \-> 4           node 3 names a successor 99 that is not in the map."""
     pos = {0: (0.0, 0.0), 1: (2.0, 0.0), 2: (4.0, 0.0), 3: (6.0, 0.0), 4: (3.6, -1.2)}
     succ = {0: (1,), 1: (2, 4), 2: (3,), 3: (99,), 4: ()}
     nodes = tuple(
-        TopologyNode(id=2**63 + k, position=np.array(p), heading=0.1 * k, width=7.0 + k,
-                     successors=tuple(2**63 + s for s in succ[k]), features=(2**64 - 1, k + 1))
+        TopologyNode(
+            id=2**63 + k,
+            position=np.array(p),
+            heading=0.1 * k,
+            width=7.0 + k,
+            successors=tuple(2**63 + s for s in succ[k]),
+            features=(2**64 - 1, k + 1),
+        )
         for k, p in pos.items()
     )
     return HDMap(topology=nodes, version=4)
@@ -165,9 +172,16 @@ def test_topology_graph_has_the_nodes_links_and_attributes_of_the_map():
     base = 2**63
     assert isinstance(g, nx.DiGraph) and g.graph["version"] == 4
     assert sorted(g.nodes) == [base + k for k in range(5)]
-    assert sorted(g.edges) == sorted([(base, base + 1), (base + 1, base + 2), (base + 1, base + 4), (base + 2, base + 3)])
-    assert g.nodes[base + 4] == {"x": 3.6, "y": -1.2, "heading": pytest.approx(0.4), "width": 11.0,
-                                 "features": (2**64 - 1, 5)}
+    assert sorted(g.edges) == sorted(
+        [(base, base + 1), (base + 1, base + 2), (base + 1, base + 4), (base + 2, base + 3)]
+    )
+    assert g.nodes[base + 4] == {
+        "x": 3.6,
+        "y": -1.2,
+        "heading": pytest.approx(0.4),
+        "width": 11.0,
+        "features": (2**64 - 1, 5),
+    }
     assert g.edges[base + 1, base + 4]["length_m"] == pytest.approx(math.hypot(1.6, 1.2))
     # a user's query: the ramp is reached from the start, over 2 + 2 m of road
     assert nx.shortest_path_length(g, base, base + 4, weight="length_m") == pytest.approx(4.0)
@@ -185,7 +199,7 @@ def test_graphml_round_trip_keeps_ids_positions_and_features(tmp_path):
 
 
 def test_topology_graph_of_a_stitched_map_is_one_chain():
-    r"""  a: x 0..98 | b: x 100..198 stitched  ->  100 nodes in one chain, 99 links of ~2 m."""
+    r"""a: x 0..98 | b: x 100..198 stitched  ->  100 nodes in one chain, 99 links of ~2 m."""
     g = topology_graph(stitch([conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50))]))
     assert g.number_of_nodes() == 100 and g.number_of_edges() == 99
     assert nx.is_weakly_connected(g) and nx.is_directed_acyclic_graph(g)

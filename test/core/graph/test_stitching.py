@@ -31,6 +31,7 @@ def stitch(graphs, *, config: StitchConfig | None = None, **kw):
     is given: the rules these tests were drawn for."""
     return _stitch(graphs, config=former(StitchConfig) if config is None else config, **kw)
 
+
 DEFAULT = presets.preset("default").stitching  # the default preset's stitching options
 
 
@@ -51,7 +52,7 @@ def assert_one_continuous(m: HDMap, x_from: float, x_to: float) -> None:
 
 
 def test_consecutive_segments_make_one_polyline_per_line():
-    r"""  a: x 0..98 | b: x 100..198   ->  one feature per line, 0..198."""
+    r"""a: x 0..98 | b: x 100..198   ->  one feature per line, 0..198."""
     m = stitch([conn(road("a", 0.0, 50)), conn(road("b", 100.0, 50))])
     assert_one_continuous(m, 0.0, 198.0)
     assert len(m.topology) == 100
@@ -73,8 +74,8 @@ def test_feature_fields_filled_from_step_results():
 
 
 def test_overlap_marked_processed_before_stitched_without_duplicates():
-    r"""  a: x 0..98
-          b: x 60..158, its steps at x 60..98 processed_before (RULE 4) -> joined at x 98 -> 100."""
+    r"""a: x 0..98
+    b: x 60..158, its steps at x 60..98 processed_before (RULE 4) -> joined at x 98 -> 100."""
     b = road("b", 60.0, 50, y_mid=0.4, processed=set(range(20)))
     m = stitch([conn(road("a", 0.0, 50)), conn(b)])
     assert_one_continuous(m, 0.0, 158.0)
@@ -96,7 +97,7 @@ def test_unmarked_overlap_is_trimmed_to_one_copy(order):
 
 @pytest.mark.parametrize("order", ["together", "long_then_short", "short_then_long"])
 def test_trim_keeps_the_longer_piece_at_an_overlap(order):
-    r"""  a: x 0..98 (50 steps)      b: x 97 (one step: the last metres a second pivot saw)
+    r"""a: x 0..98 (50 steps)      b: x 97 (one step: the last metres a second pivot saw)
     RULE trim_keep_longer: b gives way, so every line still reaches x 98; trimming a's end for b
     instead leaves b as a one-step speck (no polyline), and the lines end short of the road's end."""
     ga, gb = conn(road("a", 0.0, 50)), conn(road("b", 97.0, 1, y_mid=0.4))
@@ -113,7 +114,7 @@ def test_trim_keeps_the_longer_piece_at_an_overlap(order):
 
 
 def test_trim_does_not_give_way_to_a_place_trimmed_later():
-    r"""  b: x -2 (one step)   c: x -1.1 (one step)   a: x 0..98 (50 steps)
+    r"""b: x -2 (one step)   c: x -1.1 (one step)   a: x 0..98 (50 steps)
     c lies on a's first place and b on c's, but b is 2 m before a: the map starts at x -2 only if
     b is not trimmed for c, which gives way to a itself when its turn comes (RULE
     trim_lookahead). Without the look ahead b gives way to c, then c to a, and x -2..0 is lost
@@ -161,10 +162,10 @@ def _ramp(pivot: str, x0: float, n: int, *, converging: bool) -> Segment:
 
 
 def test_merge_across_segments_gives_two_predecessors():
-    r"""  main: x 0..198 (S at y=-3.5);  ramp: x 20..58 converging, ends beside the main road.
+    r"""main: x 0..198 (S at y=-3.5);  ramp: x 20..58 converging, ends beside the main road.
 
-         ======================== S y=-3.5 ======>
-                          ____/  ramp S
+    ======================== S y=-3.5 ======>
+                     ____/  ramp S
     """
     m = stitch([conn(road("main", 0.0, 100)), conn(_ramp("ramp", 20.0, 20, converging=True))])
     merging = [f for f in m.features if len(f.predecessors) == 2]
@@ -241,7 +242,9 @@ def test_integrate_replaces_reestimated_segment_and_keeps_other_ids():
 
 
 def test_base_map_roundtrip_and_update():
-    base = stitch([conn(road("main", 0.0, 100)), conn(_ramp("ramp", 100.0, 20, converging=False))], config=former(StitchConfig))
+    base = stitch(
+        [conn(road("main", 0.0, 100)), conn(_ramp("ramp", 100.0, 20, converging=False))], config=former(StitchConfig)
+    )
     same = stitch([], base=base)
     assert sorted(f.id for f in same.features) == sorted(f.id for f in base.features)
     for f in base.features:
@@ -250,7 +253,9 @@ def test_base_map_roundtrip_and_update():
         assert g.successors == f.successors and g.predecessors == f.predecessors
         np.testing.assert_array_equal(g.drive_count, f.drive_count)
     # update: a new section continuing the ramp is stitched onto the base map
-    ext = Segment("ext", tuple(step("ext", i, 140.0 + 2.0 * i, [-10.0, -13.5], [S, B], y_mid=-11.75) for i in range(10)))
+    ext = Segment(
+        "ext", tuple(step("ext", i, 140.0 + 2.0 * i, [-10.0, -13.5], [S, B], y_mid=-11.75) for i in range(10))
+    )
     upd = stitch([conn(ext)], base=base)
     assert upd.version == base.version + 1
     ramp_s = [f for f in by_type(upd, S) if f.points[-1, 0] == pytest.approx(158.0)]
@@ -296,15 +301,18 @@ def test_segment_split_by_long_gap_rejoined_only_when_asked():
 def test_one_point_feature_dropped_and_linked_past():
     r"""Two dashed lines touch in one step and part again (an X):
 
-        \__/      the one-point piece at the touch is no polyline: dropped, and
-        /  \      both inflows link straight to both outflows; every feature has >= 2 points.
+    \__/      the one-point piece at the touch is no polyline: dropped, and
+    /  \      both inflows link straight to both outflows; every feature has >= 2 points.
     """
+
     def lat(i: int) -> list[float]:
         return [0.0] if i == 15 else [-0.1 * abs(i - 15), 0.1 * abs(i - 15)]
 
     seg = Segment("a", tuple(step("a", i, 2.0 * i, lat(i), [D] * len(lat(i))) for i in range(31)))
-    m = stitch([connect_segment(seg, config=former(ConnectionConfig, min_separation_m=0.0))],
-               config=former(StitchConfig, through_lines=False))
+    m = stitch(
+        [connect_segment(seg, config=former(ConnectionConfig, min_separation_m=0.0))],
+        config=former(StitchConfig, through_lines=False),
+    )
     assert all(len(f.points) >= 2 for f in m.features)
     assert len(m.features) == 4
     ins = [f for f in m.features if f.points[0, 0] == 0.0]
@@ -381,11 +389,16 @@ def test_sparse_flicker_between_one_type_relabelled_up_to_100_m():
 
     def seg(count: int, inner: int | None = None) -> Segment:
         cnt = [inner if (inner is not None and 30 <= i < 50) else count for i in range(len(types))]
-        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt))))
+        return Segment(
+            "a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt)))
+        )
 
     for cfg in (former(StitchConfig), DEFAULT):
         m = stitch([conn(seg(3, inner=2))], config=cfg)
-        assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [FeatureType.DASHED, FeatureType.SOLID]
+        assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [
+            FeatureType.DASHED,
+            FeatureType.SOLID,
+        ]
         assert len(stitch([conn(seg(10))], config=cfg).features) == 4
         assert len(stitch([conn(seg(3, inner=2))], config=former_replace(cfg, sparse_type_run_m=0.0)).features) == 4
 
@@ -403,7 +416,10 @@ def test_sparse_flicker_of_as_many_drives_as_its_neighbours_kept():
 
     assert DEFAULT.sparse_minority_only and not former(StitchConfig).sparse_minority_only
     assert [f.type for f in sorted(stitch([conn(seg(3))], config=DEFAULT).features, key=lambda f: f.points[0, 0])] == [
-        FeatureType.DASHED, FeatureType.SOLID, FeatureType.DASHED]
+        FeatureType.DASHED,
+        FeatureType.SOLID,
+        FeatureType.DASHED,
+    ]
     old = former_replace(DEFAULT, sparse_minority_only=False)
     assert [f.type for f in stitch([conn(seg(3))], config=old).features] == [FeatureType.DASHED]
     assert [f.type for f in stitch([conn(seg(1))], config=DEFAULT).features] == [FeatureType.DASHED]
@@ -419,11 +435,16 @@ def test_run_of_four_drives_between_better_supported_runs_kept():
 
     def seg(solid_count: int) -> Segment:
         cnt = [solid_count if t == S else 7 for t in types]
-        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt))))
+        return Segment(
+            "a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt)))
+        )
 
     assert DEFAULT.sparse_drive_count == 3 and former(StitchConfig).sparse_drive_count == 5
     assert [f.type for f in sorted(stitch([conn(seg(4))], config=DEFAULT).features, key=lambda f: f.points[0, 0])] == [
-        FeatureType.DASHED, FeatureType.SOLID, FeatureType.DASHED]
+        FeatureType.DASHED,
+        FeatureType.SOLID,
+        FeatureType.DASHED,
+    ]
     assert [f.type for f in stitch([conn(seg(3))], config=DEFAULT).features] == [FeatureType.DASHED]
     five = former_replace(DEFAULT, sparse_drive_count=5)
     assert [f.type for f in stitch([conn(seg(4))], config=five).features] == [FeatureType.DASHED]
@@ -440,7 +461,9 @@ def test_one_drive_flicker_relabelled_up_to_250_m():
     def seg(n_solid: int, solid_count: int = 1, count: int = 1) -> Segment:
         types = [D] * 100 + [S] * n_solid + [D] * 100
         cnt = [solid_count if t == S else count for t in types]
-        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt))))
+        return Segment(
+            "a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, cnt)))
+        )
 
     assert DEFAULT.single_drive_run_m == 250.0
     assert [f.type for f in stitch([conn(seg(80))], config=DEFAULT).features] == [FeatureType.DASHED]
@@ -450,10 +473,15 @@ def test_one_drive_flicker_relabelled_up_to_250_m():
     # One drive, solid 78 m, dashed 146 m, solid 78 m: the dashed run is longer than both solid
     # runs beside it, so it is not taken for the misclassified one: three polylines S, D, S.
     types = [S] * 40 + [D] * 73 + [S] * 40
-    m = stitch([conn(Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[1]) for i, t in enumerate(types))))],
-               config=DEFAULT)
+    m = stitch(
+        [conn(Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[1]) for i, t in enumerate(types))))],
+        config=DEFAULT,
+    )
     assert [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])] == [
-        FeatureType.SOLID, FeatureType.DASHED, FeatureType.SOLID]
+        FeatureType.SOLID,
+        FeatureType.DASHED,
+        FeatureType.SOLID,
+    ]
 
 
 def test_line_of_unknown_type_takes_the_type_of_the_line_it_continues():
@@ -488,7 +516,9 @@ def test_one_drive_end_run_takes_the_better_supported_type():
     dataclass default). At the line's start alike (the end run first)."""
 
     def seg(types: list[int], counts: list[int]) -> Segment:
-        return Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, counts))))
+        return Segment(
+            "a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, counts)))
+        )
 
     def kinds(m) -> list:
         return [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])]
@@ -498,7 +528,10 @@ def test_one_drive_end_run_takes_the_better_supported_type():
     assert kinds(stitch([conn(seg(types, counts))], config=DEFAULT)) == [FeatureType.SOLID]
     assert kinds(stitch([conn(seg(types[::-1], counts[::-1]))], config=DEFAULT)) == [FeatureType.SOLID]
     assert len(stitch([conn(seg(types, counts))], config=former(StitchConfig)).features) == 2
-    assert len(stitch([conn(seg(types, counts))], config=former_replace(DEFAULT, single_drive_end_run_m=0.0)).features) == 2
+    assert (
+        len(stitch([conn(seg(types, counts))], config=former_replace(DEFAULT, single_drive_end_run_m=0.0)).features)
+        == 2
+    )
     assert len(stitch([conn(seg(types, [2] * 140))], config=DEFAULT).features) == 2  # 2 drives: kept
     assert len(stitch([conn(seg(types, [1] * 140))], config=DEFAULT).features) == 2  # neighbour 1 drive
     long_end = [S] * 40 + [D] * 60
@@ -513,7 +546,9 @@ def test_one_drive_end_run_judged_across_a_leftover_edge():
     on through leftover edges (single_drive_end_through_leftover, default preset) it takes the
     solid type: one polyline. Off in the dataclass."""
     types, counts = [S] * 100 + [D] * 40, [2] * 100 + [1] * 40
-    seg = Segment("a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, counts))))
+    seg = Segment(
+        "a", tuple(step("a", i, 2.0 * i, [0.0], [t], counts=[c]) for i, (t, c) in enumerate(zip(types, counts)))
+    )
     g = conn(seg)
     (k,) = np.flatnonzero(np.abs(g.node_xy[g.edges[:, 0], 0] - 138.0) < 0.5)  # the edge 138 -> 140 m
     g.edge_leftover[k] = True
@@ -523,12 +558,16 @@ def test_one_drive_end_run_judged_across_a_leftover_edge():
 
     assert DEFAULT.single_drive_end_through_leftover and not former(StitchConfig).single_drive_end_through_leftover
     assert kinds(DEFAULT) == [FeatureType.SOLID]
-    assert kinds(former_replace(DEFAULT, single_drive_end_through_leftover=False)) == [FeatureType.SOLID, FeatureType.DASHED]
+    assert kinds(former_replace(DEFAULT, single_drive_end_through_leftover=False)) == [
+        FeatureType.SOLID,
+        FeatureType.DASHED,
+    ]
 
 
 def test_spur_at_a_flicker_split_pruned():
     """A second line appears for 3 steps 1 m beside the dashed line (a leftover split) and dies:
     the spur is dropped, the dashed line stays one polyline."""
+
     def lat(i: int) -> list[float]:
         return [0.0, -1.2] if 20 <= i < 23 else [0.0]
 
@@ -537,7 +576,10 @@ def test_spur_at_a_flicker_split_pruned():
     assert g.stats.splits == 1
     m = stitch([g])
     assert len(m.features) == 1 and len(m.features[0].points) == 50
-    assert len(stitch([g], config=former(StitchConfig, spur_max_m=0.0, bubble_max_m=0.0, through_lines=False)).features) == 4
+    assert (
+        len(stitch([g], config=former(StitchConfig, spur_max_m=0.0, bubble_max_m=0.0, through_lines=False)).features)
+        == 4
+    )
     # through lines: the unpruned spur starts on the dashed line, which stays whole
     kept = stitch([g], config=former(StitchConfig, spur_max_m=0.0, bubble_max_m=0.0)).features
     assert sorted(len(f.points) for f in kept) == [5, 50]
@@ -559,7 +601,7 @@ def test_loose_end_running_on_another_line_deduplicated():
 
 
 def test_loose_end_is_no_twin_of_the_link_into_itself():
-    r"""  a: x 0..98      b: one step at x 99.5 (the last metres of the road another pivot saw)
+    r"""a: x 0..98      b: one step at x 99.5 (the last metres of the road another pivot saw)
     The stitcher links a's end to b's node; b's lines then end there, and the edge into that end
     is no other line running on top of it: the lines reach x 99.5 (they stopped at 98 when the
     de-duplication took the link for a twin)."""
@@ -595,6 +637,7 @@ def test_gore_split_placed_where_the_lane_line_ends():
         D D D D D *======------   solid A
                    \====------    solid B
     """
+
     def lat(i):
         x = 2.0 * i
         if x < 40:
@@ -643,7 +686,10 @@ def test_branch_starting_beside_a_line_joins_it_as_a_split():
     par = Segment("p", tuple(step("p", i, 50.0 + 2.0 * i, [-5.0], [S], y_mid=-8.0) for i in range(20)))
     m2 = stitch([conn(main), conn(par)], config=cfg)
     assert all(len(f.successors) < 2 and len(f.predecessors) < 2 for f in m2.features)
-    m3 = stitch([conn(main), conn(ramp)], config=former(StitchConfig, trim_overlap=False, max_distance_m=0.0, branch_lateral_m=0.0))
+    m3 = stitch(
+        [conn(main), conn(ramp)],
+        config=former(StitchConfig, trim_overlap=False, max_distance_m=0.0, branch_lateral_m=0.0),
+    )
     assert all(len(f.successors) < 2 for f in m3.features)
 
 
@@ -787,14 +833,21 @@ def _turning_pivots(cross: bool):
     line's own direction it passes (from ``join_line_heading_deg`` 3, the default preset's).
     ``cross``: pivot c drives north through the middle of the gap (x 56), as a pivot turning
     through a junction."""
+
     def seg(name: str, x0: float, n: int) -> Segment:
-        return Segment(name, tuple(dataclasses.replace(step(name, i, x0 + 2.0 * i, [0.0], [D]), heading=0.1) for i in range(n)))
+        return Segment(
+            name, tuple(dataclasses.replace(step(name, i, x0 + 2.0 * i, [0.0], [D]), heading=0.1) for i in range(n))
+        )
 
     graphs = [conn(seg("a", 0.0, 21)), conn(seg("b", 72.0, 25))]
     if cross:
-        c = Segment("c", tuple(
-            dataclasses.replace(step("c", i, 56.0, [-6.0, 6.0], [B, B], y_mid=-20.0 + 2.0 * i), heading=math.pi / 2)
-            for i in range(21)))
+        c = Segment(
+            "c",
+            tuple(
+                dataclasses.replace(step("c", i, 56.0, [-6.0, 6.0], [B, B], y_mid=-20.0 + 2.0 * i), heading=math.pi / 2)
+                for i in range(21)
+            ),
+        )
         graphs.append(conn(c))
     return graphs
 
@@ -806,6 +859,7 @@ def test_join_in_the_lines_frame_refused_where_a_pivot_turned_through_the_gap():
     the join is refused: the pivots turned through a junction and the lines end at its mouths
     (Town06). With the dataclass defaults (line frame from 10 deg only, the check off) the
     line stays in two pieces either way."""
+
     def pieces(m: HDMap) -> list:
         return [f for f in m.features if f.type == FeatureType.DASHED]
 
@@ -830,7 +884,9 @@ def test_one_drive_border_between_lane_lines_dropped():
     a = conn(road("a", 0.0, 50, ([-3.5, 0.0, 3.5], [S, D, S])))
 
     def b(count: int, inner: float = 1.75):
-        steps = [step("b", i, 20.0 + 2.0 * i, [inner, 5.5], [B, B], y_mid=3.0, counts=[count, count]) for i in range(30)]
+        steps = [
+            step("b", i, 20.0 + 2.0 * i, [inner, 5.5], [B, B], y_mid=3.0, counts=[count, count]) for i in range(30)
+        ]
         return conn(Segment("b", tuple(steps)))
 
     def lines(m: HDMap, t: FeatureType) -> list[float]:
@@ -899,8 +955,13 @@ def _topo_chain(first_id: int, xs: np.ndarray, ys: np.ndarray, nxt: int | None =
     from hdmap_core.model import TopologyNode  # noqa: PLC0415
 
     return [
-        TopologyNode(id=first_id + k, position=np.array([x, y]), heading=0.0, width=10.0,
-                     successors=(first_id + k + 1,) if k + 1 < len(xs) else (() if nxt is None else (nxt,)))
+        TopologyNode(
+            id=first_id + k,
+            position=np.array([x, y]),
+            heading=0.0,
+            width=10.0,
+            successors=(first_id + k + 1,) if k + 1 < len(xs) else (() if nxt is None else (nxt,)),
+        )
         for k, (x, y) in enumerate(zip(xs, ys))
     ]
 
@@ -955,8 +1016,15 @@ def _arc_chain(first_id: int, center, radius: float, headings: np.ndarray, *, le
     out = []
     for k, h in enumerate(headings):
         xy = np.array([cx + side * radius * math.sin(h), cy - side * radius * math.cos(h)])
-        out.append(TopologyNode(id=first_id + k, position=xy, heading=float(h), width=width,
-                                successors=(first_id + k + 1,) if k + 1 < len(headings) else ()))
+        out.append(
+            TopologyNode(
+                id=first_id + k,
+                position=xy,
+                heading=float(h),
+                width=width,
+                successors=(first_id + k + 1,) if k + 1 < len(headings) else (),
+            )
+        )
     return out
 
 
@@ -986,15 +1054,19 @@ def test_ramp_end_turning_onto_the_road_follows_its_arc():
     assert y == 0.0 and end.position[0] < x < 100.0
     assert _successor_positions(m, [50.0, 0.0]) == [[52.0, 0.0]]  # nothing else changed
     # too short a search, or a chain turning away from the road: no link
-    assert _successor_positions(stitch([], base=base, config=former(StitchConfig, path_search_m=6.0)), end.position) == []
+    assert (
+        _successor_positions(stitch([], base=base, config=former(StitchConfig, path_search_m=6.0)), end.position) == []
+    )
     # the arc turns ~8 deg before it enters the road's cross-section: a 4 deg cap stops it short
     capped = former(StitchConfig, path_search_m=40.0, path_max_turn_deg=4.0)
     assert _successor_positions(stitch([], base=base, config=capped), end.position) == []
-    assert _successor_positions(stitch([], base=base, config=former_replace(capped, path_max_turn_deg=60.0)),
-                                end.position) == [[x, y]]
+    assert _successor_positions(
+        stitch([], base=base, config=former_replace(capped, path_max_turn_deg=60.0)), end.position
+    ) == [[x, y]]
     he, (ex, ey) = end.heading, end.position  # the same end, reached turning left
-    away = _arc_chain(1000, (ex - 50.0 * math.sin(he), ey + 50.0 * math.cos(he)), 50.0,
-                      he - np.arange(0.8, -1e-9, -0.04), left=True)
+    away = _arc_chain(
+        1000, (ex - 50.0 * math.sin(he), ey + 50.0 * math.cos(he)), 50.0, he - np.arange(0.8, -1e-9, -0.04), left=True
+    )
     assert np.allclose(away[-1].position, end.position)
     m = stitch([], base=HDMap(topology=tuple(main + away)), config=former(StitchConfig, path_search_m=40.0))
     assert _successor_positions(m, away[-1].position) == []
@@ -1027,7 +1099,7 @@ def test_path_search_only_in_the_default_preset():
 
 
 def test_roads_side_by_side_join_only_at_a_shallow_angle():
-    r"""  a: x 0..98 at y 0     b: x 100..198 at y 11 (10 m wide each: their cross-sections lie
+    r"""a: x 0..98 at y 0     b: x 100..198 at y 11 (10 m wide each: their cross-sections lie
     apart). a's end and b's start are 11.2 m apart at 80 deg to a's heading, inside
     ``max_connection_angle_deg`` (80.5 deg here): linked by default, not with a 30 deg
     ``side_link_angle_deg``; the same pair 1 m apart across (one road) is linked either way."""
@@ -1043,7 +1115,7 @@ def test_roads_side_by_side_join_only_at_a_shallow_angle():
 
 
 def test_roads_whose_lines_barely_overlap_are_side_by_side():
-    r"""  a: x 0..98, lines at y -3.5 .. 3.5      b: x 100..198, lines at y 4.5 .. 8.5 (mid 6.5)
+    r"""a: x 0..98, lines at y -3.5 .. 3.5      b: x 100..198, lines at y 4.5 .. 8.5 (mid 6.5)
     Both cuts are 10 m wide, so their half widths reach each other (6.5 m across < 10 m) and the
     30 deg ``side_link_angle_deg`` does not apply to a's end and b's start (73 deg apart, inside
     ``max_connection_angle_deg``): a ramp beside its main road (esmini_soderleden_40_s5). Their
@@ -1102,11 +1174,21 @@ def test_partner_angle_only_in_the_default_preset():
 def _pose_step(pivot: str, i: int, xy, heading: float, *, valid: bool = True, processed_before: bool = False):
     """Step i of ``pivot`` at midpoint ``xy`` heading ``heading``, 10 m wide, with the lines
     ``LINES`` (lateral from the midpoint) when valid, else a geometry-only placeholder."""
-    lat, typ = (LINES if valid and not processed_before else ([], []))
+    lat, typ = LINES if valid and not processed_before else ([], [])
     return StepResult(
-        pivot_id=pivot, index=i, s_m=2.0 * i, midpoint=np.asarray(xy, float), heading=float(heading), width_m=10.0,
-        valid=valid, processed_before=processed_before, lateral_m=np.asarray(lat, float), types=np.asarray(typ, int),
-        counts=np.full(len(lat), 4), std_m=np.full(len(lat), 0.15), drive_ids=(pivot, f"{pivot}-other"),
+        pivot_id=pivot,
+        index=i,
+        s_m=2.0 * i,
+        midpoint=np.asarray(xy, float),
+        heading=float(heading),
+        width_m=10.0,
+        valid=valid,
+        processed_before=processed_before,
+        lateral_m=np.asarray(lat, float),
+        types=np.asarray(typ, int),
+        counts=np.full(len(lat), 4),
+        std_m=np.full(len(lat), 0.15),
+        drive_ids=(pivot, f"{pivot}-other"),
     )
 
 
@@ -1124,10 +1206,16 @@ def _junction(turn: bool) -> list:
     steps = [_pose_step("p", i, (0.0, 100.0 - 2.0 * i), south) for i in range(36)]
     if turn:
         thetas = math.pi + 0.1 * np.arange(1, 16)  # centre (20, 30), 2 m steps, to heading 0
-        steps += [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
-                             valid=False) for k, t in enumerate(thetas, start=1)]
-        steps += [_pose_step("p", 51, (22.0, 10.0), 0.0, processed_before=True),
-                  _pose_step("p", 70, (60.0, 10.0), 0.0, processed_before=True)]
+        steps += [
+            _pose_step(
+                "p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2, valid=False
+            )
+            for k, t in enumerate(thetas, start=1)
+        ]
+        steps += [
+            _pose_step("p", 51, (22.0, 10.0), 0.0, processed_before=True),
+            _pose_step("p", 70, (60.0, 10.0), 0.0, processed_before=True),
+        ]
     else:
         steps += [_pose_step("p", 35 + k, (0.0, 30.0 - 2.0 * k), south, valid=False) for k in range(1, 16)]
     q = Segment("q", tuple(_pose_step("q", i, (20.0 + 2.0 * i, 10.0), 0.0) for i in range(50)))
@@ -1161,7 +1249,9 @@ def test_end_follows_its_pivots_track_through_a_junction_turn():
     assert m.extra["last_integrate"]["track_links"] == 1
     # the turn is ~31 m of track: a shorter search, or a pivot that drove straight on, links nothing
     assert _successor_positions(stitch(graphs, config=former(StitchConfig, track_search_m=20.0)), end) == []
-    assert _successor_positions(stitch(_junction(turn=False), config=former(StitchConfig, track_search_m=60.0)), end) == []
+    assert (
+        _successor_positions(stitch(_junction(turn=False), config=former(StitchConfig, track_search_m=60.0)), end) == []
+    )
 
 
 @pytest.mark.parametrize("across_m, linked", [(0.0, True), (4.5, True), (7.0, False)])
@@ -1250,7 +1340,9 @@ def test_linked_start_gets_no_side_step_from_a_road_it_merges_into(rejoin_m: flo
     ``track_rejoin_m`` looks only behind a start (m and c share no road upstream) and keeps it;
     with ``track_rejoin_both`` it also sees that m runs into what p's start reaches (m at x 10):
     no link."""
-    cfg = former(StitchConfig, track_search_m=60.0, track_linked_ends=True, track_rejoin_m=rejoin_m, track_rejoin_both=both)
+    cfg = former(
+        StitchConfig, track_search_m=60.0, track_linked_ends=True, track_rejoin_m=rejoin_m, track_rejoin_both=both
+    )
     m = stitch(_merging_beside_a_road(), config=cfg)
     assert _successor_positions(m, [-2.0, 0.0]) == [[0.0, 0.0]]  # c's end joins p's start
     assert _successor_positions(m, [8.0, 0.0]) == [[10.0, 4.5]]  # p merges into m
@@ -1304,7 +1396,11 @@ def test_track_links_only_in_the_default_preset():
         assert presets.preset(name).stitching.track_search_m == 0.0
     assert former(StitchConfig).track_search_m == 0.0 and former_paper(StitchConfig).track_search_m == 0.0
     assert former(StitchConfig).track_rejoin_m == 0.0 and former_paper(StitchConfig).track_rejoin_m == 0.0
-    assert d.track_rejoin_both and not former(StitchConfig).track_rejoin_both and not former_paper(StitchConfig).track_rejoin_both
+    assert (
+        d.track_rejoin_both
+        and not former(StitchConfig).track_rejoin_both
+        and not former_paper(StitchConfig).track_rejoin_both
+    )
 
 
 def _bridged_turn(turn: bool = True, landing_deg: float = 0.0) -> list:
@@ -1320,14 +1416,22 @@ def _bridged_turn(turn: bool = True, landing_deg: float = 0.0) -> list:
           |   \_ _ _ q -> (22, 10)
     """
     south = -math.pi / 2
-    steps = [_pose_step("p", 0, (0.0, 100.0), south, valid=False, processed_before=True),
-             _pose_step("p", 35, (0.0, 30.0), south, valid=False, processed_before=True)]
+    steps = [
+        _pose_step("p", 0, (0.0, 100.0), south, valid=False, processed_before=True),
+        _pose_step("p", 35, (0.0, 30.0), south, valid=False, processed_before=True),
+    ]
     if turn:
         thetas = math.pi + 0.1 * np.arange(1, 16)  # centre (20, 30), 2 m steps, to heading 0
-        steps += [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
-                             valid=False) for k, t in enumerate(thetas, start=1)]
-        steps += [_pose_step("p", 51, (22.0, 10.0), math.radians(landing_deg), valid=False, processed_before=True),
-                  _pose_step("p", 70, (60.0, 10.0), 0.0, valid=False, processed_before=True)]
+        steps += [
+            _pose_step(
+                "p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2, valid=False
+            )
+            for k, t in enumerate(thetas, start=1)
+        ]
+        steps += [
+            _pose_step("p", 51, (22.0, 10.0), math.radians(landing_deg), valid=False, processed_before=True),
+            _pose_step("p", 70, (60.0, 10.0), 0.0, valid=False, processed_before=True),
+        ]
     else:
         steps += [_pose_step("p", 35 + k, (0.0, 30.0 - 2.0 * k), south, valid=False) for k in range(1, 16)]
     e = Segment("e", tuple(_pose_step("e", i, (0.0, 100.0 - 2.0 * i), south) for i in range(70)))
@@ -1413,7 +1517,10 @@ def test_track_bridge_leave_margin_only_in_the_default_preset():
     assert presets.preset("default").stitching.track_bridge_leave_margin_m == 2.0
     for name in ("naive", "paper"):
         assert presets.preset(name).stitching.track_bridge_leave_margin_m == 0.0
-    assert former(StitchConfig).track_bridge_leave_margin_m == 0.0 and former_paper(StitchConfig).track_bridge_leave_margin_m == 0.0
+    assert (
+        former(StitchConfig).track_bridge_leave_margin_m == 0.0
+        and former_paper(StitchConfig).track_bridge_leave_margin_m == 0.0
+    )
 
 
 def test_track_bridges_only_in_the_default_preset():
@@ -1428,8 +1535,10 @@ def _junction_turn_split() -> tuple[list, list]:
     (steps 0-35) and its failed turn with the step processed through q."""
     steps = [_pose_step("p", i, (0.0, 100.0 - 2.0 * i), -math.pi / 2) for i in range(36)]
     thetas = math.pi + 0.1 * np.arange(1, 16)
-    turn = [_pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2,
-                       valid=False) for k, t in enumerate(thetas, start=1)]
+    turn = [
+        _pose_step("p", 35 + k, (20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)), t + math.pi / 2, valid=False)
+        for k, t in enumerate(thetas, start=1)
+    ]
     turn += [_pose_step("p", 51, (22.0, 10.0), 0.0, processed_before=True)]
     return steps, turn
 
@@ -1468,7 +1577,6 @@ def test_track_of_a_pivot_is_followed_across_live_tiles():
     assert y == 10.0 and 20.0 <= x <= 24.0
 
 
-
 def _junction_thrown_west() -> tuple[list, Segment]:
     """``_junction(turn=True)`` where the failed turn's cut midpoints were refined onto a road r
     10 m west of the pivot, which runs south from y 20 (a road the pivot never drove on): each
@@ -1478,8 +1586,10 @@ def _junction_thrown_west() -> tuple[list, Segment]:
         pose = np.array([20.0 + 20.0 * math.cos(t), 30.0 + 20.0 * math.sin(t)])
         st = _pose_step("p", 35 + k, (-10.0, pose[1]), t + math.pi / 2, valid=False)
         steps.append(dataclasses.replace(st, pose=pose))
-    steps += [dataclasses.replace(_pose_step("p", i, xy, 0.0, processed_before=True), pose=np.asarray(xy, float))
-              for i, xy in ((51, (22.0, 10.0)), (70, (60.0, 10.0)))]
+    steps += [
+        dataclasses.replace(_pose_step("p", i, xy, 0.0, processed_before=True), pose=np.asarray(xy, float))
+        for i, xy in ((51, (22.0, 10.0)), (70, (60.0, 10.0)))
+    ]
     r = Segment("r", tuple(_pose_step("r", i, (-10.0, 20.0 - 2.0 * i), -math.pi / 2) for i in range(30)))
     return steps, r
 
@@ -1504,8 +1614,11 @@ def test_track_pose_follows_where_the_pivot_drove_not_its_failed_midpoints():
     assert DEFAULT.track_pose and not former(StitchConfig).track_pose and not former_paper(StitchConfig).track_pose
     no_pose = connect_segment(Segment("p", tuple(dataclasses.replace(st, pose=None) for st in steps)))
     assert len(no_pose.track_pose) == 0
-    ((x, y),) = _successor_positions(stitch([no_pose, q, connect_segment(r)], config=former_replace(base, track_pose=True)), end)
+    ((x, y),) = _successor_positions(
+        stitch([no_pose, q, connect_segment(r)], config=former_replace(base, track_pose=True)), end
+    )
     assert x == -10.0
+
 
 def _stub_road(others_on: bool):
     """One pivot: solid -3.5 and border 7 m (through x 0..98 if ``others_on``, else up to x 58),
@@ -1593,8 +1706,12 @@ def test_cross_section_lookup_with_several_margins_equals_separate_lookups():
     rng = np.random.default_rng(7)
     n = 300
     t_xy = rng.uniform(0, 200, (n, 2))
-    flat = SimpleNamespace(n_topo=n, t_xy=t_xy, t_heading=rng.uniform(-np.pi, np.pi, n),
-                           t_width=np.where(rng.random(n) < 0.1, np.nan, rng.uniform(4, 14, n)))
+    flat = SimpleNamespace(
+        n_topo=n,
+        t_xy=t_xy,
+        t_heading=rng.uniform(-np.pi, np.pi, n),
+        t_width=np.where(rng.random(n) < 0.1, np.nan, rng.uniform(4, 14, n)),
+    )
     tree = cKDTree(t_xy)
     xy = rng.uniform(0, 200, (500, 2))
     heading = rng.uniform(-np.pi, np.pi, 500)
@@ -1619,11 +1736,19 @@ def test_one_drive_marking_beside_the_border_is_the_solid_edge_line():
     assert DEFAULT.edge_line_solid_m == 1.5 and former(StitchConfig).edge_line_solid_m == 0.0
 
     def edge_types(cfg: StitchConfig, count: int = 1, gap: float = 1.2) -> list[FeatureType]:
-        segment = Segment("a", tuple(step("a", i, 2.0 * i, [-3.5 - gap, -3.5, 0.0], [B, t, D], counts=[3, count, 3])
-                                     for i, t in enumerate(types)))
+        segment = Segment(
+            "a",
+            tuple(
+                step("a", i, 2.0 * i, [-3.5 - gap, -3.5, 0.0], [B, t, D], counts=[3, count, 3])
+                for i, t in enumerate(types)
+            ),
+        )
         m = stitch([conn(segment)], config=cfg)
-        return [f.type for f in sorted(m.features, key=lambda f: f.points[0, 0])
-                if f.type != FeatureType.ROAD_BORDER and abs(f.points[0, 1] + 3.5) < 0.1]
+        return [
+            f.type
+            for f in sorted(m.features, key=lambda f: f.points[0, 0])
+            if f.type != FeatureType.ROAD_BORDER and abs(f.points[0, 1] + 3.5) < 0.1
+        ]
 
     three = [FeatureType.SOLID, FeatureType.DASHED, FeatureType.SOLID]
     assert edge_types(former_replace(DEFAULT, edge_line_solid_m=0.0)) == three

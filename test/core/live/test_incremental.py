@@ -42,7 +42,13 @@ def _line(x0, x1, y=0.0, n=None):
 
 @pytest.mark.parametrize(
     "kwargs",
-    [dict(tile_size_m=0), dict(margin_m=-1), dict(margin_m=256.0), dict(min_growth_fraction=-0.1), dict(min_growth_drives=0)],
+    [
+        dict(tile_size_m=0),
+        dict(margin_m=-1),
+        dict(margin_m=256.0),
+        dict(min_growth_fraction=-0.1),
+        dict(min_growth_drives=0),
+    ],
 )
 def test_tile_config_rejects_bad_values(kwargs):
     with pytest.raises(ConfigError):
@@ -100,9 +106,19 @@ def test_clip_drive_outside_returns_none():
 
 def _step(pivot, i, x):
     return StepResult(
-        pivot_id=pivot, index=i, s_m=2.0 * i, midpoint=np.array([x, 0.0]), heading=0.0, width_m=10.0,
-        valid=True, processed_before=False, lateral_m=np.array([-1.0, 1.0]), types=np.array([1, 2]),
-        counts=np.array([3, 3]), std_m=np.array([0.1, 0.1]), drive_ids=("a",),
+        pivot_id=pivot,
+        index=i,
+        s_m=2.0 * i,
+        midpoint=np.array([x, 0.0]),
+        heading=0.0,
+        width_m=10.0,
+        valid=True,
+        processed_before=False,
+        lateral_m=np.array([-1.0, 1.0]),
+        types=np.array([1, 2]),
+        counts=np.array([3, 3]),
+        std_m=np.array([0.1, 0.1]),
+        drive_ids=("a",),
     )
 
 
@@ -117,7 +133,16 @@ def test_select_steps_keeps_inside_and_splits_runs():
 
 @pytest.mark.parametrize(
     "old,now,due",
-    [(0, 0, False), (0, 1, True), (5, 5, False), (5, 6, True), (20, 21, False), (20, 22, True), (100, 109, False), (100, 110, True)],
+    [
+        (0, 0, False),
+        (0, 1, True),
+        (5, 5, False),
+        (5, 6, True),
+        (20, 21, False),
+        (20, 22, True),
+        (100, 109, False),
+        (100, 110, True),
+    ],
 )
 def test_needs_update_debounce(old, now, due):
     assert needs_update(old, now, config=TileConfig(min_growth_fraction=0.10, min_growth_drives=1)) is due
@@ -126,7 +151,11 @@ def test_needs_update_debounce(old, now, due):
 def _feat(fid, pts, ftype=FeatureType.SOLID, succ=()):
     pts = np.asarray(pts, dtype=float)
     return MapFeature(
-        id=fid, type=ftype, points=pts, drive_count=np.ones(len(pts), int), lateral_std=np.zeros(len(pts)),
+        id=fid,
+        type=ftype,
+        points=pts,
+        drive_count=np.ones(len(pts), int),
+        lateral_std=np.zeros(len(pts)),
         successors=tuple(succ),
     )
 
@@ -290,8 +319,14 @@ def test_observe_tile_equals_the_tiles_own_first_pass_in_full_drive_distances():
     assert ((mids[:, 0] >= xmin) & (mids[:, 0] < xmax) & (mids[:, 1] >= ymin) & (mids[:, 1] < ymax)).all()
     by_id = {d.drive_id: d for d in drives}
     # the tile starts well into some drive: clip-relative distances would land far away
-    assert max(clip_drive(d, (xmin, ymin, xmax, ymax)) is not None and
-               float(np.hypot(*(np.asarray(d.xy[0]) - mids.mean(axis=0)))) for d in drives) > 150
+    assert (
+        max(
+            clip_drive(d, (xmin, ymin, xmax, ymax)) is not None
+            and float(np.hypot(*(np.asarray(d.xy[0]) - mids.mean(axis=0))))
+            for d in drives
+        )
+        > 150
+    )
     for o in obs:
         for did in set(o.drive_ids):
             sel = np.array([x == did for x in o.drive_ids])
@@ -342,7 +377,9 @@ def test_map_tile_with_a_fleet_model_shifts_by_it_at_full_drive_distances():
     by_id = {d.drive_id: d for d in drives}
     for did, s in asked:  # the model is asked at the tile's place on the full drives
         pos = _positions(by_id[did], s)
-        assert ((pos[:, 0] >= grown[0]) & (pos[:, 0] < grown[2]) & (pos[:, 1] >= grown[1]) & (pos[:, 1] < grown[3])).all()
+        assert (
+            (pos[:, 0] >= grown[0]) & (pos[:, 0] < grown[2]) & (pos[:, 1] >= grown[1]) & (pos[:, 1] < grown[3])
+        ).all()
     # a model 1 m further left for every drive moves the tile's features by 1 m along the cuts
     plus = replace(model, drives={k: replace(v, bias_m=v.bias_m + 1.0) for k, v in model.drives.items()})
     moved = map_tile(drives, key, tile_config=cfg, pipeline_config=pc, offset_model=plus)
@@ -350,10 +387,20 @@ def test_map_tile_with_a_fleet_model_shifts_by_it_at_full_drive_distances():
 
     # (cuts are re-centred on the shifted samples: compare positions across the pivot's walk)
     after = {(st.pivot_id, st.index): st for sg in moved for st in sg.steps if st.valid}
-    pairs = [(a, after[(a.pivot_id, a.index)]) for sg in base for a in sg.steps
-             if a.valid and (a.pivot_id, a.index) in after and len(after[(a.pivot_id, a.index)].lateral_m) == len(a.lateral_m)]
-    shifts = [float(np.dot(np.asarray(b.midpoint) - a.midpoint, np.ravel(left_normal(a.heading))))
-              + np.median(b.lateral_m) - np.median(a.lateral_m) for a, b in pairs]
+    pairs = [
+        (a, after[(a.pivot_id, a.index)])
+        for sg in base
+        for a in sg.steps
+        if a.valid
+        and (a.pivot_id, a.index) in after
+        and len(after[(a.pivot_id, a.index)].lateral_m) == len(a.lateral_m)
+    ]
+    shifts = [
+        float(np.dot(np.asarray(b.midpoint) - a.midpoint, np.ravel(left_normal(a.heading))))
+        + np.median(b.lateral_m)
+        - np.median(a.lateral_m)
+        for a, b in pairs
+    ]
     assert len(shifts) > 10 and abs(np.median(shifts) - 1.0) < 0.05
     assert isinstance(next(iter(model.drives.values())), DriveOffset)
 

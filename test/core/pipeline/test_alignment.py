@@ -66,7 +66,13 @@ def test_cluster_type_picks_k_by_silhouette_and_gap():
     for method in ("silhouette", "gap"):
         lab = cluster_type(x, method=method, k_max=6, single_cluster_silhouette=0.5, gap_split_m=1.0)
         np.testing.assert_array_equal(lab, [0, 0, 0, 1, 1, 1, 2, 2])
-    single = cluster_type(np.array([0.0, 0.05, 0.1, 0.15, 0.2]), method="silhouette", k_max=4, single_cluster_silhouette=0.7, gap_split_m=1.0)
+    single = cluster_type(
+        np.array([0.0, 0.05, 0.1, 0.15, 0.2]),
+        method="silhouette",
+        k_max=4,
+        single_cluster_silhouette=0.7,
+        gap_split_m=1.0,
+    )
     assert np.all(single == 0)
 
 

@@ -100,7 +100,10 @@ def test_edges_through_an_empty_stretch_refuted():
     nodes2 = nodes.copy()
     nodes2[1] = [66.0, 5.0]  # 48 m edge, 20 m of it empty (~42 %)
     assert refuted_edges(nodes2, edges, step_xy, np.zeros(len(xs)), start, empty).tolist() == [False, False, False]
-    assert refuted_edges(nodes, edges, np.zeros((0, 2)), np.zeros(0), np.zeros(1, np.int64), np.zeros((0, 2))).tolist() == [False] * 3
+    assert (
+        refuted_edges(nodes, edges, np.zeros((0, 2)), np.zeros(0), np.zeros(1, np.int64), np.zeros((0, 2))).tolist()
+        == [False] * 3
+    )
 
 
 def test_interval_lookup_matches_a_scan_of_each_steps_intervals():
@@ -138,8 +141,13 @@ def _drive(i: int, lane: float, gap: tuple[float, ...] | None) -> Drive:
             dets += [Detection(type=ftype, points=p[idx]) for idx in np.split(np.arange(len(s)), cut) if seen[idx[0]]]
         else:
             dets.append(Detection(type=ftype, points=p))
-    return Drive(drive_id=f"d{i}", xy=xy, yaw=h, stamps_ns=(np.arange(len(s)) * 50_000_000).astype(np.int64),
-                 detections=tuple(dets))
+    return Drive(
+        drive_id=f"d{i}",
+        xy=xy,
+        yaw=h,
+        stamps_ns=(np.arange(len(s)) * 50_000_000).astype(np.int64),
+        detections=tuple(dets),
+    )
 
 
 def _solid_left(hdmap) -> list[np.ndarray]:
@@ -163,13 +171,15 @@ def test_fill_dropped_only_where_every_passing_drive_missed_the_line(n_missing):
     lanes = (-3.5, -3.5, 0.0, 0.0, 3.5, 3.5)
     drives = [_drive(i, lane, (120.0, 136.0) if i < n_missing else None) for i, lane in enumerate(lanes)]
     default = presets.preset("default")
-    off = dataclasses.replace(default, evidence=None,
-                              stitching=dataclasses.replace(default.stitching, fill_evidence=None))
+    off = dataclasses.replace(
+        default, evidence=None, stitching=dataclasses.replace(default.stitching, fill_evidence=None)
+    )
     with_ev, without = build_map(drives, config=default), build_map(drives, config=off)
     a, b = _solid_left(with_ev.map), _solid_left(without.map)
     if n_missing == 6:
         assert _gap_points(b, 124.0, 132.0) >= 3 and all(
-            (f.drive_count[(f.points[:, 0] > 124) & (f.points[:, 0] < 132)] == 0).all() for f in b)
+            (f.drive_count[(f.points[:, 0] > 124) & (f.points[:, 0] < 132)] == 0).all() for f in b
+        )
         assert _gap_points(a, 124.0, 132.0) == 0 and len(a) == 2
         assert with_ev.map.extra["fills_refuted"] >= 1
     else:
@@ -207,8 +217,12 @@ def test_steps_of_the_returned_pass_carry_profiles():
 
 
 def test_evidence_config_checked():
-    for bad in (dict(max_seen_ratio=0.0), dict(max_seen_ratio=1.5), dict(min_expected=-1.0),
-                dict(min_expected=float("inf"))):
+    for bad in (
+        dict(max_seen_ratio=0.0),
+        dict(max_seen_ratio=1.5),
+        dict(min_expected=-1.0),
+        dict(min_expected=float("inf")),
+    ):
         with pytest.raises(ConfigError):
             former(EvidenceConfig, **bad)
 

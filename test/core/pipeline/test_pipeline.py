@@ -36,8 +36,13 @@ def run(fleet):
     def get(preset: str) -> tuple:
         if preset not in cache:
             calls: list[tuple] = []
-            res = map_stretches(fleet, config=presets.preset(preset), seed=0, collect_observations=True,
-                                progress=lambda *a: calls.append(a))
+            res = map_stretches(
+                fleet,
+                config=presets.preset(preset),
+                seed=0,
+                collect_observations=True,
+                progress=lambda *a: calls.append(a),
+            )
             cache[preset] = (res, calls)
         return cache[preset]
 
@@ -112,8 +117,10 @@ def test_drive_beside_the_cut_is_not_marked_processed(fleet):
     mapped; with mark_on_cut_only they are not on the ego cuts, stay unprocessed and, as pivots,
     map the ramp's outer border (lateral -11.5 m), which no ego drive sees."""
     ramp_lines = LINES + ((-8.5, FeatureType.ROAD_BORDER), (-11.5, FeatureType.ROAD_BORDER))
-    ramps = [make_drive(f"ramp{k}", lane=-10.0, bias=b, s0=5.0 * k, s1=200.0, lines=ramp_lines)
-             for k, b in enumerate([0.2, -0.3, 0.1])]
+    ramps = [
+        make_drive(f"ramp{k}", lane=-10.0, bias=b, s0=5.0 * k, s1=200.0, lines=ramp_lines)
+        for k, b in enumerate([0.2, -0.3, 0.1])
+    ]
     drives = [*fleet, *ramps]
     seed = 0
     assert np.random.default_rng(seed).permutation(len(drives))[0] < len(fleet)  # an ego pivot first
@@ -155,12 +162,19 @@ def test_observations_for_the_adjustment(run):
 def test_observation_pass_runs_the_em_at_every_stride_th_step(fleet):
     base = presets.preset("paper")
     every = map_stretches(fleet, config=base, seed=0, collect_observations=True, observations_only=True).observations
-    strided = map_stretches(fleet, config=dataclasses.replace(base, observation_stride=2), seed=0,
-                            collect_observations=True, observations_only=True).observations
+    strided = map_stretches(
+        fleet,
+        config=dataclasses.replace(base, observation_stride=2),
+        seed=0,
+        collect_observations=True,
+        observations_only=True,
+    ).observations
     assert any(ob.index % 2 for ob in every)
     assert strided and all(ob.index % 2 == 0 for ob in strided)
     # a pass whose segments are the map's (no adjustment after it) runs at every step
-    full = map_stretches(fleet, config=dataclasses.replace(base, observation_stride=2), seed=0, collect_observations=True)
+    full = map_stretches(
+        fleet, config=dataclasses.replace(base, observation_stride=2), seed=0, collect_observations=True
+    )
     assert any(ob.index % 2 for ob in full.observations)
     with pytest.raises(ConfigError, match="observation_stride"):
         PipelineConfig(observation_stride=0)
@@ -215,7 +229,9 @@ def test_end_to_end_on_simulated_motorway():
     from hdmap_core.simulation.synthetic import synthetic_highway
 
     gt = synthetic_highway("motorway", length_m=1500.0, seed=0)
-    fleet = simulate_fleet(gt, config=SimConfig(n_drives=30, snippet_length_min_m=500.0, snippet_length_max_m=1500.0), seed=0)
+    fleet = simulate_fleet(
+        gt, config=SimConfig(n_drives=30, snippet_length_min_m=500.0, snippet_length_max_m=1500.0), seed=0
+    )
     scores = {}
     for preset in ("default", "naive"):
         res = build_map(fleet.drives, config=presets.preset(preset), seed=0)
@@ -295,8 +311,10 @@ def test_steps_carry_the_pivots_own_corrected_position(fleet, run):
             across = rel @ np.array([-np.sin(st.heading), np.cos(st.heading)])
             assert abs(along) < 1e-6 and abs(across) <= 0.5 * st.width_m
         drives = {d.drive_id: d for d in fleet}
-        moved = [float(np.hypot(*(np.asarray(st.pose) - pivot_walk(drives[st.pivot_id], step_m=2.0)[1][st.index])))
-                 for st in steps]
+        moved = [
+            float(np.hypot(*(np.asarray(st.pose) - pivot_walk(drives[st.pivot_id], step_m=2.0)[1][st.index])))
+            for st in steps
+        ]
         assert (max(moved) > 0.05) == (preset == "default")  # the biases are 0.3-1.1 m
 
 

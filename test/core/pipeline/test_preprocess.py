@@ -25,7 +25,16 @@ def test_short_polylines_dropped_and_rdp_thins():
     just = np.array([[10.0, -4.0], [13.0, -4.0]])  # exactly 3 m: kept
     unknown = Detection(FeatureType.UNKNOWN, straight + [0, 5])
     idx = preprocess(
-        [_drive([Detection(FeatureType.SOLID, straight), Detection(FeatureType.DASHED, short), Detection(FeatureType.DASHED, just), unknown])],
+        [
+            _drive(
+                [
+                    Detection(FeatureType.SOLID, straight),
+                    Detection(FeatureType.DASHED, short),
+                    Detection(FeatureType.DASHED, just),
+                    unknown,
+                ]
+            )
+        ],
         config=former(PreprocessConfig, max_segment_m=100.0),
     )
     assert idx.n_polylines_in == 4
@@ -157,8 +166,13 @@ def test_a_far_detection_point_neither_crashes_nor_sizes_the_index(far):
     line = xy + [0.0, 1.75]
     bad = line.copy()
     bad[50, 1] = far
-    drive = Drive("d", xy, np.zeros(len(s)), np.arange(len(s), dtype=np.int64) * 10**8,
-                  (Detection(FeatureType.SOLID, line), Detection(FeatureType.DASHED, bad)))
+    drive = Drive(
+        "d",
+        xy,
+        np.zeros(len(s)),
+        np.arange(len(s), dtype=np.int64) * 10**8,
+        (Detection(FeatureType.SOLID, line), Detection(FeatureType.DASHED, bad)),
+    )
     index = preprocess([drive])
     assert index.n_segments < 10_000 and len(index.cell_segs) < 100_000
     hits = index.intersect(np.array([[30.0, 0.0]]), np.array([[0.0, 1.0]]), np.array([10.0]))

@@ -178,8 +178,13 @@ def test_coverage_route_choice_drives_every_ramp(seed):
     assert len(ramps) == 12
 
     def undriven(mode: str) -> int:
-        cfg = SimConfig(n_drives=60, direction_bias=0.5, snippet_length_min_m=1000.0,
-                        snippet_length_max_m=3000.0, route_weighting=mode)
+        cfg = SimConfig(
+            n_drives=60,
+            direction_bias=0.5,
+            snippet_length_min_m=1000.0,
+            snippet_length_max_m=3000.0,
+            route_weighting=mode,
+        )
         used = {t["route_id"] for t in simulate_fleet(gt, config=cfg, seed=seed).truth.values()}
         return sum(r not in used for r in ramps)
 
@@ -226,7 +231,9 @@ def test_lane_changes_stay_on_existing_lanes(motorway):
         tree = cKDTree(c)
         _, k = tree.query(t["true_xy"])
         tan = np.gradient(c, axis=0)[k]
-        lat = np.sum((t["true_xy"] - c[k]) * np.stack([-tan[:, 1], tan[:, 0]], axis=1), axis=1) / np.linalg.norm(tan, axis=1)
+        lat = np.sum((t["true_xy"] - c[k]) * np.stack([-tan[:, 1], tan[:, 0]], axis=1), axis=1) / np.linalg.norm(
+            tan, axis=1
+        )
         # Never left of lane 1 or right of lane 3; at most one lane away.
         assert lat.max() <= (0.05 if lane_no == 1 else 3.6)
         assert lat.min() >= (-0.05 if lane_no == 3 else -3.6)
@@ -253,8 +260,11 @@ def test_reported_minus_true_pose_is_the_recorded_error(ramps):
 def test_measured_lateral_offsets_have_the_configured_sigma(motorway, sigma):
     """Per-drive lateral offset measured from the reported trajectory against the GT lane."""
     cfg = SimConfig(
-        n_drives=150, bias_lateral_sigma_m=sigma, lane_change_rate_per_km=0.0,
-        snippet_length_min_m=150.0, snippet_length_max_m=250.0,
+        n_drives=150,
+        bias_lateral_sigma_m=sigma,
+        lane_change_rate_per_km=0.0,
+        snippet_length_min_m=150.0,
+        snippet_length_max_m=250.0,
     )
     fleet = simulate_fleet(motorway, config=cfg, seed=11)
     routes = {r.id: motorway.route_centerline(r) for r in motorway.routes}
@@ -281,8 +291,11 @@ def test_measured_lateral_offsets_have_the_configured_sigma(motorway, sigma):
 @pytest.mark.slow
 def test_drift_has_the_configured_sigma_and_correlation(motorway):
     cfg = SimConfig(
-        n_drives=50, bias_lateral_sigma_m=0.0, bias_longitudinal_sigma_m=0.0,
-        snippet_length_min_m=1900.0, snippet_length_max_m=2000.0,
+        n_drives=50,
+        bias_lateral_sigma_m=0.0,
+        bias_longitudinal_sigma_m=0.0,
+        snippet_length_min_m=1900.0,
+        snippet_length_max_m=2000.0,
     )
     fleet = simulate_fleet(motorway, config=cfg, seed=12)
     errs = [t["lateral_error_m"] for t in fleet.truth.values()]
@@ -374,7 +387,10 @@ def _detected_share(gt: GroundTruth, fleet, cfg: SimConfig) -> dict[str, float]:
         same = beside & (cos > 0.9)
         groups = {
             "ego": same & marking & (np.abs(lat) <= cfg.ego_marking_max_lateral_m),
-            "next": same & marking & (np.abs(lat) > cfg.ego_marking_max_lateral_m) & (np.abs(lat) <= cfg.next_marking_max_lateral_m),
+            "next": same
+            & marking
+            & (np.abs(lat) > cfg.ego_marking_max_lateral_m)
+            & (np.abs(lat) <= cfg.next_marking_max_lateral_m),
             "border": same & ~marking & (np.abs(lat) <= cfg.border_max_lateral_m),
             # the nearest opposite border on the left is the other carriageway's median barrier
             "opposite_barrier": beside & (cos < -0.9) & ~marking & (lat > 0) & (lat <= cfg.border_max_lateral_m),
@@ -387,8 +403,12 @@ def _detected_share(gt: GroundTruth, fleet, cfg: SimConfig) -> dict[str, float]:
 @pytest.mark.slow
 def test_visibility_rates_follow_the_config(motorway):
     cfg = SimConfig.noise_free(
-        n_drives=50, snippet_length_min_m=600.0, snippet_length_max_m=1000.0,
-        visibility_ego_marking=0.95, visibility_next_marking=0.70, visibility_border=0.60,
+        n_drives=50,
+        snippet_length_min_m=600.0,
+        snippet_length_max_m=1000.0,
+        visibility_ego_marking=0.95,
+        visibility_next_marking=0.70,
+        visibility_border=0.60,
         # the opposite barrier's share depends on the lane mix (far lanes see it at the band
         # edge); "length" keeps the mix this test was tuned on (route choice is tested below)
         route_weighting="length",
@@ -403,7 +423,9 @@ def test_visibility_rates_follow_the_config(motorway):
 
 @pytest.mark.slow
 def test_dropouts_are_gaps_of_the_configured_length(motorway):
-    cfg = SimConfig.noise_free(n_drives=30, visibility_ego_marking=0.5, snippet_length_min_m=1500.0, snippet_length_max_m=1600.0)
+    cfg = SimConfig.noise_free(
+        n_drives=30, visibility_ego_marking=0.5, snippet_length_min_m=1500.0, snippet_length_max_m=1600.0
+    )
     fleet = simulate_fleet(motorway, config=cfg, seed=8)
     gaps = []
     for d in fleet.drives:
@@ -423,7 +445,11 @@ def test_dropouts_are_gaps_of_the_configured_length(motorway):
 @pytest.mark.slow
 def test_misclassification_rates(motorway):
     cfg = SimConfig.noise_free(
-        n_drives=60, misclass_rate=0.075, marking_to_border_rate=0.02, snippet_length_min_m=800.0, snippet_length_max_m=1000.0
+        n_drives=60,
+        misclass_rate=0.075,
+        marking_to_border_rate=0.02,
+        snippet_length_min_m=800.0,
+        snippet_length_max_m=1000.0,
     )
     fleet = simulate_fleet(motorway, config=cfg, seed=13)
     feats = motorway.features
@@ -504,8 +530,13 @@ def test_seen_count_is_the_number_of_drives_whose_detections_cover_the_point(mot
     # Dropouts, and many stretches reported with the wrong type: a misclassified point was still
     # seen. Noise-free otherwise, so a seen point lies on a detection of each drive that saw it.
     cfg = SimConfig.noise_free(
-        n_drives=5, visibility_next_marking=0.7, visibility_far_marking=0.3, visibility_border=0.6,
-        misclass_rate=0.3, marking_to_border_rate=0.1, **SHORT,
+        n_drives=5,
+        visibility_next_marking=0.7,
+        visibility_far_marking=0.3,
+        visibility_border=0.6,
+        misclass_rate=0.3,
+        marking_to_border_rate=0.1,
+        **SHORT,
     )
     fleet = simulate_fleet(motorway, config=cfg, seed=4)
     pts, _, ftype = _gt_points(motorway)
@@ -538,9 +569,13 @@ def test_seen_counts_are_split_back_into_the_features(motorway):
     from hdmap_core.simulation.sensor import feature_index, seen_per_feature
 
     line = np.stack([np.arange(4.0), np.zeros(4)], axis=1)
-    feats = (GTFeature(1, FeatureType.SOLID, line), GTFeature(2, FeatureType.DASHED, line[:1]),
-             GTFeature(3, FeatureType.SOLID, line[:3] + 1), GTFeature(4, FeatureType.SOLID, line[:2] + 2),
-             GTFeature(3, FeatureType.SOLID, line + 3))
+    feats = (
+        GTFeature(1, FeatureType.SOLID, line),
+        GTFeature(2, FeatureType.DASHED, line[:1]),
+        GTFeature(3, FeatureType.SOLID, line[:3] + 1),
+        GTFeature(4, FeatureType.SOLID, line[:2] + 2),
+        GTFeature(3, FeatureType.SOLID, line + 3),
+    )
     gt = replace(motorway, features=feats)
     idx = feature_index(gt)  # indexes features 1, 3, 4, 3 (2 has a single point)
     got = seen_per_feature(gt, idx, np.arange(len(idx.xy)))

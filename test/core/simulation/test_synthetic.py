@@ -158,7 +158,9 @@ def test_seeded_shape_is_curved_and_deterministic():
     assert len(xy) > 2
 
 
-@pytest.mark.parametrize(("name", "length"), [("freeway", 3000.0), ("motorway_ramps", 1000.0), ("motorway", float("nan"))])
+@pytest.mark.parametrize(
+    ("name", "length"), [("freeway", 3000.0), ("motorway_ramps", 1000.0), ("motorway", float("nan"))]
+)
 def test_bad_arguments_raise_config_error(name, length):
     with pytest.raises(ConfigError, match=name if name == "freeway" else "length_m"):
         synthetic_highway(name, length_m=length)

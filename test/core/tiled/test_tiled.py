@@ -53,8 +53,9 @@ def test_tasks_from_clips_equal_the_live_tiles_on_full_drives():
     graphs = tasks.map_connect(src, pc, key, tasks.model_of(model, src.drive_ids(key)))
     from hdmap_core.live.tiles import connect_tile
 
-    ref_graphs = connect_tile(map_tile(covering, key, tile_config=tc, pipeline_config=pc, offset_model=model), key,
-                              pipeline_config=pc)
+    ref_graphs = connect_tile(
+        map_tile(covering, key, tile_config=tc, pipeline_config=pc, offset_model=model), key, pipeline_config=pc
+    )
     assert len(graphs) == len(ref_graphs) > 0
     for g, r in zip(graphs, ref_graphs):
         assert g.key == r.key

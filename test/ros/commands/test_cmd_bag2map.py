@@ -55,10 +55,24 @@ def test_wiring_writes_map_bag_and_geojson(tmp_path, fake_pipeline, capsys):
     bag = _fleet(tmp_path, good + [bad])
     out, gj = tmp_path / "map", tmp_path / "map.geojson"
     rep = tmp_path / "report.json"
-    code = cli.main([
-        "bag2map", str(bag), "-o", str(out), "--geojson", str(gj), "--preset", "paper", "--seed", "7",
-        "--report", str(rep), "--workers", "3",
-    ])
+    code = cli.main(
+        [
+            "bag2map",
+            str(bag),
+            "-o",
+            str(out),
+            "--geojson",
+            str(gj),
+            "--preset",
+            "paper",
+            "--seed",
+            "7",
+            "--report",
+            str(rep),
+            "--workers",
+            "3",
+        ]
+    )
     assert code == 0
     assert fake_pipeline["workers"] == 3
     doc = json.loads(rep.read_text())
@@ -99,16 +113,26 @@ def test_graphml_into_a_directory_is_refused(tmp_path, capsys):
 def test_set_changes_preset_parameters_and_the_report_names_them(tmp_path, fake_pipeline, capsys):
     bag = _fleet(tmp_path, [make_drive("a", n=10)])
     rep = tmp_path / "report.json"
-    code = cli.main([
-        "bag2map", str(bag), "-o", str(tmp_path / "map"), "--report", str(rep),
-        "--set", "stitching.max_distance_m=8", "--set", "alignment.clustering=auto",
-    ])
+    code = cli.main(
+        [
+            "bag2map",
+            str(bag),
+            "-o",
+            str(tmp_path / "map"),
+            "--report",
+            str(rep),
+            "--set",
+            "stitching.max_distance_m=8",
+            "--set",
+            "alignment.clustering=auto",
+        ]
+    )
     assert code == 0
     config = fake_pipeline["config"]
     assert config.name == "default+"
     assert config.overrides == (("stitching.max_distance_m", 8), ("alignment.clustering", "auto"))
     assert json.loads(rep.read_text())["overrides"] == {"stitching.max_distance_m": 8, "alignment.clustering": "auto"}
-    assert "changed: stitching.max_distance_m=8, alignment.clustering=\"auto\"" in capsys.readouterr().out
+    assert 'changed: stitching.max_distance_m=8, alignment.clustering="auto"' in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
@@ -226,8 +250,20 @@ def test_sample_bag_map_scores_within_thresholds(tmp_path, capsys, sample_bags):
     for preset in ("default", "naive"):
         out, ev = tmp_path / f"map_{preset}", tmp_path / f"{preset}.json"
         assert cli.main(["bag2map", str(bags / "e6mini_20"), "-o", str(out), "--preset", preset, "--no-progress"]) == 0
-        assert cli.main(["evaluate", str(out), str(bags / "e6mini_20.gt.json"), "--fleet", str(bags / "e6mini_20"),
-                         "--json", str(ev)]) == 0
+        assert (
+            cli.main(
+                [
+                    "evaluate",
+                    str(out),
+                    str(bags / "e6mini_20.gt.json"),
+                    "--fleet",
+                    str(bags / "e6mini_20"),
+                    "--json",
+                    str(ev),
+                ]
+            )
+            == 0
+        )
         figures[preset] = json.loads(ev.read_text())
     capsys.readouterr()
     good, naive = figures["default"]["overall"], figures["naive"]["overall"]

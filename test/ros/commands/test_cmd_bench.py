@@ -40,10 +40,21 @@ def gt_pipeline(monkeypatch, tmp_path):
 def test_inline_bench_on_a_simulated_scenario(gt_pipeline, capsys):
     work = gt_pipeline
     out_json, out_md = work / "bench.json", work / "bench.md"
-    code = cli.main([
-        "bench", "motorway:3", "--presets", "naive,paper", "--inline", "--work-dir", str(work),
-        "--json", str(out_json), "--markdown", str(out_md),
-    ])
+    code = cli.main(
+        [
+            "bench",
+            "motorway:3",
+            "--presets",
+            "naive,paper",
+            "--inline",
+            "--work-dir",
+            str(work),
+            "--json",
+            str(out_json),
+            "--markdown",
+            str(out_md),
+        ]
+    )
     assert code == 0
     rows = json.loads(out_json.read_text())
     assert [(r["scenario"], r["preset"]) for r in rows] == [("motorway_3_s0", "naive"), ("motorway_3_s0", "paper")]
@@ -63,8 +74,24 @@ def test_inline_bench_on_a_simulated_scenario(gt_pipeline, capsys):
 def test_seed_range_runs_each_seed_and_adds_the_mean_over_seeds(gt_pipeline, capsys):
     work = gt_pipeline
     out_json, out_md = work / "bench.json", work / "bench.md"
-    assert cli.main(["bench", "motorway:3:1-2", "--presets", "naive", "--inline", "--work-dir", str(work),
-                     "--json", str(out_json), "--markdown", str(out_md)]) == 0
+    assert (
+        cli.main(
+            [
+                "bench",
+                "motorway:3:1-2",
+                "--presets",
+                "naive",
+                "--inline",
+                "--work-dir",
+                str(work),
+                "--json",
+                str(out_json),
+                "--markdown",
+                str(out_md),
+            ]
+        )
+        == 0
+    )
     rows = json.loads(out_json.read_text())
     runs = [r for r in rows if not r.get("summary")]
     (mean,) = [r for r in rows if r.get("summary")]
@@ -91,9 +118,26 @@ def test_set_changes_every_preset_run_and_names_the_rows(monkeypatch, tmp_path, 
 
     install_fake_pipeline(monkeypatch, build_map)
     out_json = tmp_path / "bench.json"
-    assert cli.main(["bench", "motorway:3", "--presets", "naive,default", "--inline", "--work-dir", str(tmp_path),
-                     "--set", "stitching.max_distance_m=8", "--set", "alignment.robust_loss=false",
-                     "--json", str(out_json)]) == 0
+    assert (
+        cli.main(
+            [
+                "bench",
+                "motorway:3",
+                "--presets",
+                "naive,default",
+                "--inline",
+                "--work-dir",
+                str(tmp_path),
+                "--set",
+                "stitching.max_distance_m=8",
+                "--set",
+                "alignment.robust_loss=false",
+                "--json",
+                str(out_json),
+            ]
+        )
+        == 0
+    )
     changes = (("stitching.max_distance_m", 8), ("alignment.robust_loss", False))
     assert [(c.name, c.overrides) for c in seen] == [("naive+", changes), ("default+", changes)]
     rows = json.loads(out_json.read_text())
@@ -119,8 +163,22 @@ def test_set_that_does_not_fit_a_preset_is_named_before_anything_is_simulated(ch
 
 def test_summarize_seeds_means_and_ratios_of_means():
     rows = [
-        {"scenario": "m_40_s1", "preset": "default", "mean_m": 0.4, "floor_m": 0.2, "fleet_floor_m": 0.4, "coverage": 1.0},
-        {"scenario": "m_40_s2", "preset": "default", "mean_m": 0.1, "floor_m": 0.2, "fleet_floor_m": 0.1, "coverage": 0.9},
+        {
+            "scenario": "m_40_s1",
+            "preset": "default",
+            "mean_m": 0.4,
+            "floor_m": 0.2,
+            "fleet_floor_m": 0.4,
+            "coverage": 1.0,
+        },
+        {
+            "scenario": "m_40_s2",
+            "preset": "default",
+            "mean_m": 0.1,
+            "floor_m": 0.2,
+            "fleet_floor_m": 0.1,
+            "coverage": 0.9,
+        },
         {"scenario": "m_40_s1", "preset": "naive", "mean_m": 0.5, "floor_m": 0.2, "fleet_floor_m": math.nan},
         {"scenario": "other_30_s1", "preset": "default", "mean_m": 0.3, "floor_m": 0.3},
     ]
@@ -215,8 +273,23 @@ def test_simulated_fleet_is_reused_only_when_made_with_the_same_config(tmp_path)
 def test_tiled_bench_prints_the_scale_table(sample_bags, tmp_path, capsys):
     pytest.importorskip("distributed")
     out_json = tmp_path / "bench.json"
-    assert cli.main(["bench", str(sample_bags / "ramps_20"), "--presets", "default", "--inline", "--tiled",
-                     "--workers", "2", "--json", str(out_json)]) == 0
+    assert (
+        cli.main(
+            [
+                "bench",
+                str(sample_bags / "ramps_20"),
+                "--presets",
+                "default",
+                "--inline",
+                "--tiled",
+                "--workers",
+                "2",
+                "--json",
+                str(out_json),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "default tiled" in out and "drive-km/s per worker" in out and "scheduler" in out
     (row,) = json.loads(out_json.read_text())

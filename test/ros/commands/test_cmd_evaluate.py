@@ -31,8 +31,13 @@ def road_path(tmp_path: Path) -> Path:
     feats = tuple(
         GTFeature(i + 1, t, _line(y))
         for i, (t, y) in enumerate(
-            [(FeatureType.ROAD_BORDER, -0.5), (FeatureType.SOLID, 0.0), (FeatureType.DASHED, 3.5),
-             (FeatureType.SOLID, 7.0), (FeatureType.ROAD_BORDER, 7.5)]
+            [
+                (FeatureType.ROAD_BORDER, -0.5),
+                (FeatureType.SOLID, 0.0),
+                (FeatureType.DASHED, 3.5),
+                (FeatureType.SOLID, 7.0),
+                (FeatureType.ROAD_BORDER, 7.5),
+            ]
         )
     )
     lanes = {"A": GTLane("A", _line(1.75), left="B"), "B": GTLane("B", _line(5.25), right="A")}
@@ -82,8 +87,9 @@ def test_map_bag_with_fleet_and_sim_json(road_path: Path, tmp_path: Path, capsys
     assert doc["floor_source"] == "drives"
     assert doc["floor_mean_m"] == pytest.approx(0.5 / math.sqrt(4))
     # --sigma-loc wins over the sim.json.
-    rc = cli.main(["evaluate", str(map_bag), str(road_path), "--fleet", str(fleet), "--sigma-loc", "2",
-                   "--json", str(out_json)])
+    rc = cli.main(
+        ["evaluate", str(map_bag), str(road_path), "--fleet", str(fleet), "--sigma-loc", "2", "--json", str(out_json)]
+    )
     assert rc == 0 and json.loads(out_json.read_text())["floor_mean_m"] == pytest.approx(1.0)
 
 

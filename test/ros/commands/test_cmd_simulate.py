@@ -46,9 +46,30 @@ def test_writes_bag_ground_truth_and_sim_json(tmp_path, capsys):
 
 def test_config_file_and_set_overrides(tmp_path):
     conf = tmp_path / "sim.json"
-    conf.write_text(json.dumps({"bias_lateral_sigma_m": 0.25, "n_drives": 2, "snippet_length_min_m": 200, "snippet_length_max_m": 400}))
+    conf.write_text(
+        json.dumps(
+            {"bias_lateral_sigma_m": 0.25, "n_drives": 2, "snippet_length_min_m": 200, "snippet_length_max_m": 400}
+        )
+    )
     out = tmp_path / "f"
-    assert cli.main(["simulate", "--map", "motorway", "--length-m", "800", "--config", str(conf), "--set", "noise_sigma_m=0.02", "-o", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "simulate",
+                "--map",
+                "motorway",
+                "--length-m",
+                "800",
+                "--config",
+                str(conf),
+                "--set",
+                "noise_sigma_m=0.02",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     sim = json.loads((tmp_path / "f.sim.json").read_text())
     assert sim["config"]["bias_lateral_sigma_m"] == 0.25
     assert sim["config"]["noise_sigma_m"] == 0.02
@@ -89,7 +110,12 @@ def test_yaml_config(tmp_path):
     pytest.importorskip("ruamel.yaml")
     conf = tmp_path / "sim.yaml"
     conf.write_text("n_drives: 2\nsnippet_length_min_m: 100\nsnippet_length_max_m: 300\nopposite_barrier: false\n")
-    assert cli.main(["simulate", "--map", "motorway", "--length-m", "600", "--config", str(conf), "-o", str(tmp_path / "y")]) == 0
+    assert (
+        cli.main(
+            ["simulate", "--map", "motorway", "--length-m", "600", "--config", str(conf), "-o", str(tmp_path / "y")]
+        )
+        == 0
+    )
     sim = json.loads((tmp_path / "y.sim.json").read_text())
     assert sim["config"]["opposite_barrier"] is False and len(sim["truth"]) == 2
 
@@ -105,5 +131,7 @@ def test_batch_drives_streams_the_same_bag_and_sim_json(tmp_path):
         return [(m.topic, m.log_time_ns, m.data) for m in iter_bag(bag)]
 
     assert messages(streamed) == messages(whole) and len(messages(whole)) == 5  # origin + 4 drives
-    assert json.loads((tmp_path / "streamed.sim.json").read_text()) == json.loads((tmp_path / "whole.sim.json").read_text())
+    assert json.loads((tmp_path / "streamed.sim.json").read_text()) == json.loads(
+        (tmp_path / "whole.sim.json").read_text()
+    )
     assert cli.main(["simulate", *ARGS, "-o", str(tmp_path / "x"), "--batch-drives", "0"]) == 1

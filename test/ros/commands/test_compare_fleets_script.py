@@ -75,7 +75,9 @@ def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
     segments = build_map(fleet.drives, config=config).segments
     state = tmp_path / "state"
     state.mkdir()
-    MapStore(state / "map_stitcher.db").put_tile((0, 0), 1, segments_to_blob(segments), [d.drive_id for d in fleet.drives])
+    MapStore(state / "map_stitcher.db").put_tile(
+        (0, 0), 1, segments_to_blob(segments), [d.drive_id for d in fleet.drives]
+    )
     direct = stitch_graphs(connect_tile(segments, (0, 0), pipeline_config=config), pipeline_config=config)
     hdmap, n_tiles = rs.restitch(state, config)
     assert n_tiles == 1 and len(hdmap.features) == len(direct.features) > 0
@@ -91,12 +93,34 @@ def test_restitch_state_rebuilds_the_map_of_a_stored_tile(capsys, tmp_path):
 def _run(scenario: str, preset: str = "default", **figures) -> dict:
     """A bench JSON run meeting every target, with ``figures`` changed."""
     run = {
-        "scenario": scenario, "preset": preset, "drives": 40, "mean_m": 0.2, "p95_m": 0.4, "corrected_mean_m": 0.05,
-        "floor_m": 0.2, "fleet_floor_m": 0.18, "coverage": 0.99, "driven_share": 1.0, "recall": 0.98,
-        "observed_share": 0.99, "recall_observed": 0.99, "precision": 0.99, "type_accuracy": 0.99,
-        "fragmentation": 1.1, "splits_merges": "1/1 1/1", "gt_splits": 1, "gt_merges": 1, "found_splits": 1,
-        "found_merges": 1, "road_splits_merges": "2/2 2/2", "gt_road_splits": 2, "gt_road_merges": 2,
-        "found_road_splits": 2, "found_road_merges": 2, "long_links": "100.0% 5/5", "long_link_precision": 1.0,
+        "scenario": scenario,
+        "preset": preset,
+        "drives": 40,
+        "mean_m": 0.2,
+        "p95_m": 0.4,
+        "corrected_mean_m": 0.05,
+        "floor_m": 0.2,
+        "fleet_floor_m": 0.18,
+        "coverage": 0.99,
+        "driven_share": 1.0,
+        "recall": 0.98,
+        "observed_share": 0.99,
+        "recall_observed": 0.99,
+        "precision": 0.99,
+        "type_accuracy": 0.99,
+        "fragmentation": 1.1,
+        "splits_merges": "1/1 1/1",
+        "gt_splits": 1,
+        "gt_merges": 1,
+        "found_splits": 1,
+        "found_merges": 1,
+        "road_splits_merges": "2/2 2/2",
+        "gt_road_splits": 2,
+        "gt_road_merges": 2,
+        "found_road_splits": 2,
+        "found_road_merges": 2,
+        "long_links": "100.0% 5/5",
+        "long_link_precision": 1.0,
     }
     run.update(figures)
     return run
@@ -114,7 +138,8 @@ def test_targets_names_each_miss_and_what_bounds_it(tmp_path, capsys):
     # bound by the fleet only where the map meets the target over what the fleet allows
     assert tg.own_misses(_run("a_s1", recall=0.9, observed_share=0.92, recall_observed=0.97)) == []
     assert tg.own_misses(_run("a_s1", recall=0.9, observed_share=0.92, recall_observed=0.94)) == [
-        "recall 90.0 % (observed 92.0 %, recall obs. 94.0 %)"]
+        "recall 90.0 % (observed 92.0 %, recall obs. 94.0 %)"
+    ]
     assert tg.own_misses(_run("a_s1", mean_m=0.41, fleet_floor_m=0.40)) == []  # 1.03 x the fleet's own error
     assert len(tg.own_misses(_run("a_s1", mean_m=0.47, fleet_floor_m=0.40))) == 2  # 1.18 x: the map's own
     assert tg.own_misses(_run("a_s1", coverage=0.9, driven_share=0.92, coverage_driven=0.98)) == []
@@ -122,8 +147,13 @@ def test_targets_names_each_miss_and_what_bounds_it(tmp_path, capsys):
     # a peer preset better on one figure (ties are no loss)
     lost = tg.losses(_run("a_s1"), [_run("a_s1", "naive", long_link_precision=1.0, precision=0.995, recall=0.98)])
     assert lost == ["precision vs naive"]
-    runs = [_run("a_s1"), _run("a_s1", "naive", mean_m=0.5), _run("a"), _run("b_s2", coverage=0.9, driven_share=0.95),
-            _run("c_s3", recall=0.9, observed_share=0.92, recall_observed=0.97)]
+    runs = [
+        _run("a_s1"),
+        _run("a_s1", "naive", mean_m=0.5),
+        _run("a"),
+        _run("b_s2", coverage=0.9, driven_share=0.95),
+        _run("c_s3", recall=0.9, observed_share=0.92, recall_observed=0.97),
+    ]
     path = tmp_path / "bench.json"
     path.write_text(__import__("json").dumps(runs))
     assert tg.main([str(path)]) == 0

@@ -35,8 +35,18 @@ def _plain_types() -> MsgTypes:
         return type(name, (SimpleNamespace,), consts)
 
     names = [
-        "Drive", "DetectionPolyline", "Map", "MapFeature", "TopologyNode", "Header", "Time", "Path",
-        "PoseStamped", "Pose", "Point", "Quaternion",
+        "Drive",
+        "DetectionPolyline",
+        "Map",
+        "MapFeature",
+        "TopologyNode",
+        "Header",
+        "Time",
+        "Path",
+        "PoseStamped",
+        "Pose",
+        "Point",
+        "Quaternion",
     ]
     classes = {n: cls(n) for n in names}
     classes["NavSatFix"] = cls("NavSatFix", COVARIANCE_TYPE_UNKNOWN=0)

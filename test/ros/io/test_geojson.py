@@ -26,12 +26,14 @@ def _prime_vertical_radius(lat_deg: float) -> float:
 
 @pytest.mark.parametrize("origin", [GeoOrigin(48.137154, 11.576124, 0.0), GeoOrigin(-33.9, 151.2, 0.0)])
 def test_100_m_east_is_100_m_on_the_ellipsoid(origin):
-    (lon, lat), = enu_to_lonlat(np.array([[100.0, 0.0]]), origin)
+    ((lon, lat),) = enu_to_lonlat(np.array([[100.0, 0.0]]), origin)
     az, _, dist = Geod(ellps="WGS84").inv(origin.longitude_deg, origin.latitude_deg, lon, lat)
     assert dist == pytest.approx(100.0, abs=0.01)
     assert az == pytest.approx(90.0, abs=1e-3)
     # independent check: an arc of the parallel circle, radius N cos(lat)
-    dlon = math.degrees(100.0 / (_prime_vertical_radius(origin.latitude_deg) * math.cos(math.radians(origin.latitude_deg))))
+    dlon = math.degrees(
+        100.0 / (_prime_vertical_radius(origin.latitude_deg) * math.cos(math.radians(origin.latitude_deg)))
+    )
     metres_per_deg = 100.0 / dlon
     assert (lon - origin.longitude_deg - dlon) * metres_per_deg == pytest.approx(0.0, abs=0.01)
 
@@ -39,7 +41,7 @@ def test_100_m_east_is_100_m_on_the_ellipsoid(origin):
 def test_origin_altitude_is_respected():
     # The tangent plane lies at the origin's altitude: 100 m there spans a slightly smaller angle.
     origin = GeoOrigin(48.0, 11.0, 500.0)
-    (lon, _lat), = enu_to_lonlat(np.array([[100.0, 0.0]]), origin)
+    ((lon, _lat),) = enu_to_lonlat(np.array([[100.0, 0.0]]), origin)
     radius = (_prime_vertical_radius(48.0) + 500.0) * math.cos(math.radians(48.0))
     expected = 11.0 + math.degrees(100.0 / radius)
     assert (lon - expected) * 100.0 / (expected - 11.0) == pytest.approx(0.0, abs=0.01)
@@ -79,7 +81,9 @@ def test_feature_collection_structure(tmp_path):
 
 def test_topology_nodes_optional_and_short_features_skipped():
     hdmap = make_map(n_features=1, n_points=4)
-    stub = MapFeature(id=5, type=FeatureType.SOLID, points=np.zeros((1, 2)), drive_count=np.ones(1), lateral_std=np.ones(1))
+    stub = MapFeature(
+        id=5, type=FeatureType.SOLID, points=np.zeros((1, 2)), drive_count=np.ones(1), lateral_std=np.ones(1)
+    )
     hdmap = HDMap(features=hdmap.features + (stub,), topology=hdmap.topology)
     origin = GeoOrigin(0.0, 0.0, 0.0)
     assert len(map_to_geojson(hdmap, origin)["features"]) == 1

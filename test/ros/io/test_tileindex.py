@@ -70,8 +70,22 @@ def test_bag2map_tiled_is_the_same_map_with_one_and_two_workers(tmp_path, sample
     maps = []
     for n in (1, 2):
         out, rep = tmp_path / f"map{n}", tmp_path / f"rep{n}.json"
-        code = cli.main(["bag2map", str(sample_bags / "ramps_20"), "-o", str(out), "--tiled", "--workers", str(n),
-                         "--tile-size-m", "384", "--report", str(rep), "--no-progress"])
+        code = cli.main(
+            [
+                "bag2map",
+                str(sample_bags / "ramps_20"),
+                "-o",
+                str(out),
+                "--tiled",
+                "--workers",
+                str(n),
+                "--tile-size-m",
+                "384",
+                "--report",
+                str(rep),
+                "--no-progress",
+            ]
+        )
         assert code == 0
         doc = json.loads(rep.read_text())
         assert doc["tiled"] and doc["drives"] == 20 and doc["build"]["workers"] == n
@@ -83,5 +97,9 @@ def test_bag2map_tiled_is_the_same_map_with_one_and_two_workers(tmp_path, sample
         assert f.id == g.id and tuple(f.successors) == tuple(g.successors)
         np.testing.assert_array_equal(np.asarray(f.points), np.asarray(g.points))
     assert [t.id for t in a.topology] == [t.id for t in b.topology]
-    assert cli.main(["bag2map", str(sample_bags / "ramps_20"), "-o", str(tmp_path / "m3"), "--tiled",
-                     "--margin-m", "2000"]) == 2
+    assert (
+        cli.main(
+            ["bag2map", str(sample_bags / "ramps_20"), "-o", str(tmp_path / "m3"), "--tiled", "--margin-m", "2000"]
+        )
+        == 2
+    )

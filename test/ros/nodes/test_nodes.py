@@ -58,7 +58,9 @@ def _diag_values(arrays, name):
 def test_ingestor_rejects_malformed_drives_and_stays_up(ros):
     from hdmap_ros.nodes.drive_ingestor import DriveIngestor
 
-    ing = ros.add(DriveIngestor(context=ros.context, parameter_overrides=[Parameter("diagnostics_period_s", value=0.2)]))
+    ing = ros.add(
+        DriveIngestor(context=ros.context, parameter_overrides=[Parameter("diagnostics_period_s", value=0.2)])
+    )
     t = rclpy_types()
     probe = ros.node("probe")
     accepted = _collect(probe, t.Drive, "/hdmap/drives_accepted", qos.replay(100))
@@ -77,11 +79,14 @@ def test_ingestor_rejects_malformed_drives_and_stays_up(ros):
     wait_for(lambda: len(accepted) >= 2, 10, what="two accepted drives")
     vals = wait_for(
         # both counts: the last rejection (the duplicate) comes before good2 is accepted
-        lambda: (v := _diag_values(diags, "hdmap: drive_ingestor"))
-        and v["drives_rejected"] == "4"
-        and v["drives_accepted"] == "2"
-        and v,
-        10, what="diagnostics with 4 rejections and 2 drives accepted",
+        lambda: (
+            (v := _diag_values(diags, "hdmap: drive_ingestor"))
+            and v["drives_rejected"] == "4"
+            and v["drives_accepted"] == "2"
+            and v
+        ),
+        10,
+        what="diagnostics with 4 rejections and 2 drives accepted",
     )
     assert [m.drive_id for m in accepted] == ["good", "good2"]
     assert vals["drives_accepted"] == "2"
@@ -103,8 +108,16 @@ def test_bag_player_replays_drives_in_order_and_latches_origin(ros, tmp_path):
     t = rclpy_types()
     probe = ros.node("probe")
     got = _collect(probe, t.Drive, "/fleet/drives", qos.DRIVES)
-    player = ros.add(BagPlayer(context=ros.context, parameter_overrides=[
-        Parameter("bag", value=str(bag)), Parameter("rate", value=2.0), Parameter("start_offset_s", value=0.15)]))
+    player = ros.add(
+        BagPlayer(
+            context=ros.context,
+            parameter_overrides=[
+                Parameter("bag", value=str(bag)),
+                Parameter("rate", value=2.0),
+                Parameter("start_offset_s", value=0.15),
+            ],
+        )
+    )
     wait_for(lambda: player.done, 20, what="player done")
     wait_for(lambda: len(got) >= 6, 10, what="six drives")
     # offset 0.15 s skips d00 and d01 (at 0 and 0.1 s); rate 2: 0.5 s of bag in ~0.25 s
@@ -175,10 +188,16 @@ def test_parameters_have_descriptions_ranges_and_reject_out_of_range(ros):
         DriveIngestor(context=ros.context, parameter_overrides=[Parameter("rdp_epsilon_m", value=50.0)])
 
 
-@pytest.mark.parametrize("module,cls", [
-    ("drive_ingestor", "DriveIngestor"), ("segment_mapper", "SegmentMapper"), ("map_stitcher", "MapStitcher"),
-    ("map_publisher", "MapPublisher"), ("bag_player", "BagPlayer"),
-])
+@pytest.mark.parametrize(
+    "module,cls",
+    [
+        ("drive_ingestor", "DriveIngestor"),
+        ("segment_mapper", "SegmentMapper"),
+        ("map_stitcher", "MapStitcher"),
+        ("map_publisher", "MapPublisher"),
+        ("bag_player", "BagPlayer"),
+    ],
+)
 def test_config_yaml_names_only_declared_parameters(ros, tmp_path, module, cls):
     import importlib
 
@@ -188,8 +207,11 @@ def test_config_yaml_names_only_declared_parameters(ros, tmp_path, module, cls):
 
     spec = yaml.safe_load(params_file().read_text())[f"/**/{module}"]["ros__parameters"]  # any namespace
     overrides = [Parameter("db_path", value=str(tmp_path / "x.db"))] if "db_path" in spec else []
-    node = ros.add(getattr(importlib.import_module(f"hdmap_ros.nodes.{module}"), cls)(
-        context=ros.context, parameter_overrides=overrides))
+    node = ros.add(
+        getattr(importlib.import_module(f"hdmap_ros.nodes.{module}"), cls)(
+            context=ros.context, parameter_overrides=overrides
+        )
+    )
     undeclared = [k for k in spec if not node.has_parameter(k)]
     assert not undeclared, f"{module}: {undeclared} in config/hdmap.yaml but not declared"
     for k, v in spec.items():  # the YAML states the declared defaults (paths aside)
@@ -204,8 +226,16 @@ def test_bag_player_loops(ros, tmp_path):
     bag = write_fleet_bag(tmp_path / "fleet", drives, None)
     t = rclpy_types()
     got = _collect(ros.node("probe"), t.Drive, "/fleet/drives", qos.DRIVES)
-    player = ros.add(BagPlayer(context=ros.context, parameter_overrides=[
-        Parameter("bag", value=str(bag)), Parameter("rate", value=0.0), Parameter("loop", value=True)]))
+    player = ros.add(
+        BagPlayer(
+            context=ros.context,
+            parameter_overrides=[
+                Parameter("bag", value=str(bag)),
+                Parameter("rate", value=0.0),
+                Parameter("loop", value=True),
+            ],
+        )
+    )
     wait_for(lambda: len(got) >= 7, 20, what="a second pass over the bag")
     assert [m.drive_id for m in got[:7]] == ["L0", "L1", "L2", "L0", "L1", "L2", "L0"]
     assert not player.done
@@ -234,12 +264,19 @@ def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros,
     plain = node_cls(context=ros.context, parameter_overrides=[db])  # not spun: only its config is read
     assert plain.pipeline_config == presets.preset("default")  # unset: the preset as it is
     plain.destroy_node()
-    changed = node_cls(context=ros.context, parameter_overrides=[
-        db, Parameter("preset_overrides", value=["stitching.max_distance_m=8", "alignment.n_iterations=2"])])
+    changed = node_cls(
+        context=ros.context,
+        parameter_overrides=[
+            db,
+            Parameter("preset_overrides", value=["stitching.max_distance_m=8", "alignment.n_iterations=2"]),
+        ],
+    )
     cfg = changed.pipeline_config
     changed.destroy_node()
     assert cfg.stitching.max_distance_m == 8 and cfg.alignment.n_iterations == 2 and cfg.name == "default+"
     with pytest.raises(ConfigError, match="preset_overrides: stitching.nope: StitchConfig has no field 'nope'"):
-        node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["stitching.nope=1"])])
+        node_cls(
+            context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["stitching.nope=1"])]
+        )
     with pytest.raises(ConfigError, match="preset_overrides: 'nokey' is not KEY=VALUE"):
         node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["nokey"])])

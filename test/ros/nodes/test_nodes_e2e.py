@@ -57,8 +57,11 @@ def fleet(tmp_path_factory):
     # route choice pinned: the simulator's default ("coverage") spreads 10 drives over both
     # directions of 800 m so thinly that even the offline map is 0.88 m off
     sim = simulate_fleet(
-        gt, config=SimConfig(n_drives=N_DRIVES, snippet_length_min_m=400.0, snippet_length_max_m=700.0,
-                             route_weighting="length"), seed=3
+        gt,
+        config=SimConfig(
+            n_drives=N_DRIVES, snippet_length_min_m=400.0, snippet_length_max_m=700.0, route_weighting="length"
+        ),
+        seed=3,
     )
     bag = write_fleet_bag(tmp_path_factory.mktemp("fleet") / "fleet", sim.drives, sim.origin)
     offline = build_map(sim.drives, config=presets.preset("default"), seed=0).map
@@ -119,8 +122,13 @@ class Suite:
     def settled(self) -> bool:
         m, s = self.diags.get("segment_mapper"), self.diags.get("map_stitcher")
         return bool(
-            m and s and m.get("settled") == "True" and m["backlog"] == "0" and s["backlog"] == "0"
-            and int(m["tile_versions"]) > 0 and m["tile_versions"] == s["tile_versions"]
+            m
+            and s
+            and m.get("settled") == "True"
+            and m["backlog"] == "0"
+            and s["backlog"] == "0"
+            and int(m["tile_versions"]) > 0
+            and m["tile_versions"] == s["tile_versions"]
             and int(s.get("map_version", 0)) > 0
         )
 
@@ -175,8 +183,11 @@ def uninterrupted(fleet, tmp_path_factory):
         for d in _bad_drives(fleet.drives):  # malformed drives before and amid the replay
             suite.drive_pub.publish(drive_to_msg(d, types=suite.types))
         suite.start("bag_player")
-        wait_for(lambda: suite.diags.get("segment_mapper", {}).get("drives_accepted") == str(N_DRIVES), 120,
-                 what="all drives acknowledged")
+        wait_for(
+            lambda: suite.diags.get("segment_mapper", {}).get("drives_accepted") == str(N_DRIVES),
+            120,
+            what="all drives acknowledged",
+        )
         for d in _bad_drives(fleet.drives)[:2]:
             suite.drive_pub.publish(drive_to_msg(replace(d, drive_id=d.drive_id + "-2"), types=suite.types))
         suite.wait_settled(240)
@@ -199,8 +210,10 @@ def test_replayed_bag_gives_latched_map_matching_ground_truth_and_offline(fleet,
     assert sorted(hdmap.drive_ids) == sorted(d.drive_id for d in fleet.drives)
     live = evaluate_map(hdmap, fleet.gt)
     off = evaluate_map(fleet.offline, fleet.gt)
-    print(f"live: mean {live.overall.mean_m:.3f} m, coverage {live.coverage:.3f}; "
-          f"offline: mean {off.overall.mean_m:.3f} m, coverage {off.coverage:.3f}")
+    print(
+        f"live: mean {live.overall.mean_m:.3f} m, coverage {live.coverage:.3f}; "
+        f"offline: mean {off.overall.mean_m:.3f} m, coverage {off.coverage:.3f}"
+    )
     assert live.overall.mean_m < 0.5 and live.coverage > 0.3
     # incremental means converging: within 0.05 m mean error and 2 % coverage of the offline map,
     # either way (the settled live map uses the fleet-wide offset model, as bag2map does)
@@ -245,7 +258,9 @@ def test_feature_ids_name_the_same_line_across_versions(uninterrupted):
         # of the other; a twin pair (90 % within 0.3 m) that is each other's only candidate
         # keeps its id
         cand = [
-            (g, f) for g in old.features for f in new.features
+            (g, f)
+            for g in old.features
+            for f in new.features
             if g.type == f.type and _share_within(g.points, f.points, 0.75) >= 0.5
         ]
         n_old = Counter(g.id for g, _ in cand)
@@ -302,9 +317,25 @@ def test_hdmap_run_replays_the_bag_in_one_process_and_writes_the_settled_map(fle
 
     out = tmp_path / "map"
     proc = subprocess.run(
-        [sys.executable, "-m", "hdmap_ros.cli", "run", fleet.bag, "-o", str(out), "--geojson", str(tmp_path / "m.json"),
-         "--timeout", "300", "-q"],
-        env=dds_env(75), capture_output=True, text=True, timeout=400, cwd=str(tmp_path),
+        [
+            sys.executable,
+            "-m",
+            "hdmap_ros.cli",
+            "run",
+            fleet.bag,
+            "-o",
+            str(out),
+            "--geojson",
+            str(tmp_path / "m.json"),
+            "--timeout",
+            "300",
+            "-q",
+        ],
+        env=dds_env(75),
+        capture_output=True,
+        text=True,
+        timeout=400,
+        cwd=str(tmp_path),
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     hdmap = read_map_bag(out)
@@ -327,7 +358,11 @@ def test_hdmap_run_names_a_bad_set_and_leaves_no_state(fleet, tmp_path):
     env = {**dds_env(76), "TMPDIR": str(tmp_path)}
     proc = subprocess.run(
         [sys.executable, "-m", "hdmap_ros.cli", "run", fleet.bag, "-q", "--set", "stitching.nope=1"],
-        env=env, capture_output=True, text=True, timeout=120, cwd=str(tmp_path),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=str(tmp_path),
     )
     assert proc.returncode == 1
     assert "hdmap run: error: preset_overrides: stitching.nope: StitchConfig has no field 'nope'" in proc.stderr

@@ -19,8 +19,16 @@ class _Msg(SimpleNamespace):
 
 def _marker():
     return _Msg(
-        header=None, ns="", id=0, type=0, action=0, points=[], frame_locked=False, color=None,
-        pose=_Msg(orientation=_Msg(w=0.0)), scale=_Msg(x=0.0),
+        header=None,
+        ns="",
+        id=0,
+        type=0,
+        action=0,
+        points=[],
+        frame_locked=False,
+        color=None,
+        pose=_Msg(orientation=_Msg(w=0.0)),
+        scale=_Msg(x=0.0),
     )
 
 
@@ -84,9 +92,18 @@ def test_health_counts_and_levels():
 def _segments():
     def st(i, k):
         return StepResult(
-            pivot_id="piv", index=i, s_m=2.0 * i, midpoint=np.array([10.0 + i, -3.25]), heading=0.125,
-            width_m=12.5, valid=i != 1, processed_before=i == 2, lateral_m=np.linspace(-6, 6, k),
-            types=np.array([1, 2, 3, 1, 2][:k]), counts=np.arange(k) + 1, std_m=np.full(k, 0.05),
+            pivot_id="piv",
+            index=i,
+            s_m=2.0 * i,
+            midpoint=np.array([10.0 + i, -3.25]),
+            heading=0.125,
+            width_m=12.5,
+            valid=i != 1,
+            processed_before=i == 2,
+            lateral_m=np.linspace(-6, 6, k),
+            types=np.array([1, 2, 3, 1, 2][:k]),
+            counts=np.arange(k) + 1,
+            std_m=np.full(k, 0.05),
             drive_ids=("a", "b")[: i + 1],
             empty_m=[np.array([[-3.25, -1.0], [4.5, 6.0]]), None, np.zeros((0, 2))][i],
             pose=[np.array([10.25, -4.5]), None, np.array([12.0, -1.0])][i],
@@ -104,8 +121,9 @@ def test_tile_keys_travel_as_int64(key):
 
     store = make_typestore()
     msg = tile_to_msg(key, [], version=1, drive_ids=[], tile_size_m=256.0, stamp_ns=0, types=rosbags_tile_types(store))
-    back = msg_to_tile(store.deserialize_cdr(store.serialize_cdr(msg, "hdmap_msgs/msg/TileSegments"),
-                                             "hdmap_msgs/msg/TileSegments"))
+    back = msg_to_tile(
+        store.deserialize_cdr(store.serialize_cdr(msg, "hdmap_msgs/msg/TileSegments"), "hdmap_msgs/msg/TileSegments")
+    )
     assert back.key == key
 
 
@@ -116,8 +134,15 @@ def test_tile_msg_round_trip_through_cdr():
 
     store = make_typestore()
     segs = _segments()
-    msg = tile_to_msg((3, -2), segs, version=7, drive_ids=["a", "b"], tile_size_m=256.0,
-                      stamp_ns=1_700_000_000_123_456_789, types=rosbags_tile_types(store))
+    msg = tile_to_msg(
+        (3, -2),
+        segs,
+        version=7,
+        drive_ids=["a", "b"],
+        tile_size_m=256.0,
+        stamp_ns=1_700_000_000_123_456_789,
+        types=rosbags_tile_types(store),
+    )
     cdr = store.serialize_cdr(msg, "hdmap_msgs/msg/TileSegments")
     back = msg_to_tile(store.deserialize_cdr(cdr, "hdmap_msgs/msg/TileSegments"))
     assert (back.key, back.version, back.drive_ids, back.tile_size_m) == ((3, -2), 7, ("a", "b"), 256.0)
@@ -125,7 +150,14 @@ def test_tile_msg_round_trip_through_cdr():
     assert [s.pivot_id for s in back.segments] == ["piv", "other"]
     for a, b in zip(segs[0].steps, back.segments[0].steps):
         assert (a.index, a.s_m, a.heading, a.width_m, a.valid, a.processed_before, a.drive_ids) == (
-            b.index, b.s_m, b.heading, b.width_m, b.valid, b.processed_before, b.drive_ids)
+            b.index,
+            b.s_m,
+            b.heading,
+            b.width_m,
+            b.valid,
+            b.processed_before,
+            b.drive_ids,
+        )
         for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
             np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
         assert (a.empty_m is None) == (b.empty_m is None)

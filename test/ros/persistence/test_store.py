@@ -60,10 +60,19 @@ def test_drive_blob_round_trip_is_exact():
 def _segments():
     def step(pivot, i, k):
         return StepResult(
-            pivot_id=pivot, index=i, s_m=2.0 * i + 0.1, midpoint=np.array([i * 2.0, 1.5]), heading=0.3,
-            width_m=11.5, valid=bool(i % 2 == 0), processed_before=bool(i == 1),
-            lateral_m=np.linspace(-5, 5, k), types=np.arange(k) % 4, counts=np.arange(k) + 2,
-            std_m=np.full(k, 0.07), drive_ids=tuple(f"x{j}" for j in range(i + 1)),
+            pivot_id=pivot,
+            index=i,
+            s_m=2.0 * i + 0.1,
+            midpoint=np.array([i * 2.0, 1.5]),
+            heading=0.3,
+            width_m=11.5,
+            valid=bool(i % 2 == 0),
+            processed_before=bool(i == 1),
+            lateral_m=np.linspace(-5, 5, k),
+            types=np.arange(k) % 4,
+            counts=np.arange(k) + 2,
+            std_m=np.full(k, 0.07),
+            drive_ids=tuple(f"x{j}" for j in range(i + 1)),
             # negative evidence: judged with two intervals, not judged, judged with none
             empty_m=[np.array([[-3.25, -1.0], [4.5, 6.0]]), None, np.zeros((0, 2))][i],
             # the pivot's own position: known, not known (stored before poses were kept), known
@@ -80,7 +89,14 @@ def test_segments_blob_round_trip_is_exact():
     assert len(back[1].steps) == 0
     for a, b in zip(segs[0].steps, back[0].steps):
         assert (a.pivot_id, a.index, a.s_m, a.heading, a.width_m, a.valid, a.processed_before, a.drive_ids) == (
-            b.pivot_id, b.index, b.s_m, b.heading, b.width_m, b.valid, b.processed_before, b.drive_ids
+            b.pivot_id,
+            b.index,
+            b.s_m,
+            b.heading,
+            b.width_m,
+            b.valid,
+            b.processed_before,
+            b.drive_ids,
         )
         for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
             np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
@@ -96,11 +112,21 @@ def test_segments_blob_round_trip_is_exact():
 
 def _map():
     f1 = MapFeature(
-        id=2**63 + 5, type=FeatureType.DASHED, points=np.array([[0.0, 0], [10, 0.5]]),
-        drive_count=np.array([3, 4]), lateral_std=np.array([0.1, 0.2]), successors=(7,),
+        id=2**63 + 5,
+        type=FeatureType.DASHED,
+        points=np.array([[0.0, 0], [10, 0.5]]),
+        drive_count=np.array([3, 4]),
+        lateral_std=np.array([0.1, 0.2]),
+        successors=(7,),
     )
-    f2 = MapFeature(id=7, type=FeatureType.SOLID, points=np.array([[10.0, 0.5], [20, 1], [30, 1]]),
-                    drive_count=np.array([1, 2, 3]), lateral_std=np.zeros(3), predecessors=(2**63 + 5,))
+    f2 = MapFeature(
+        id=7,
+        type=FeatureType.SOLID,
+        points=np.array([[10.0, 0.5], [20, 1], [30, 1]]),
+        drive_count=np.array([1, 2, 3]),
+        lateral_std=np.zeros(3),
+        predecessors=(2**63 + 5,),
+    )
     t = TopologyNode(id=99, position=np.array([1.0, 2.0]), heading=0.5, width=7.25, successors=(100,), features=(7,))
     return HDMap(features=(f1, f2), topology=(t,), drive_ids=("a", "b"), version=12, stamp_ns=123, extra={"k": 1})
 
@@ -115,7 +141,13 @@ def test_map_blob_round_trip_is_exact():
         np.testing.assert_array_equal(fa.drive_count, fb.drive_count)
         np.testing.assert_array_equal(fa.lateral_std, fb.lateral_std)
     (ta,), (tb,) = m.topology, b.topology
-    assert (ta.id, ta.heading, ta.width, ta.successors, ta.features) == (tb.id, tb.heading, tb.width, tb.successors, tb.features)
+    assert (ta.id, ta.heading, ta.width, ta.successors, ta.features) == (
+        tb.id,
+        tb.heading,
+        tb.width,
+        tb.successors,
+        tb.features,
+    )
     assert blob_to_map(map_to_blob(HDMap())).features == ()
 
 
@@ -124,12 +156,29 @@ def _observations():
 
     rng = np.random.default_rng(5)
     return [
-        StepObservations(pivot_id="p#0,0", index=3, midpoint=np.array([1.5, -2.25]), heading=0.3,
-                         drive_ids=("a", "b", "a"), drive_s_m=rng.normal(size=3) * 1e3, lateral_m=rng.normal(size=3),
-                         types=np.array([1, 2, 3]), cluster=np.array([0, -1, 1]), offsets_m=rng.normal(size=3)),
-        StepObservations(pivot_id="q#1,0", index=0, midpoint=np.array([7.0, 8.0]), heading=-1.0,
-                         drive_ids=("c",), drive_s_m=np.array([np.pi]), lateral_m=np.array([1 / 3]),
-                         types=np.array([2]), cluster=np.array([0])),
+        StepObservations(
+            pivot_id="p#0,0",
+            index=3,
+            midpoint=np.array([1.5, -2.25]),
+            heading=0.3,
+            drive_ids=("a", "b", "a"),
+            drive_s_m=rng.normal(size=3) * 1e3,
+            lateral_m=rng.normal(size=3),
+            types=np.array([1, 2, 3]),
+            cluster=np.array([0, -1, 1]),
+            offsets_m=rng.normal(size=3),
+        ),
+        StepObservations(
+            pivot_id="q#1,0",
+            index=0,
+            midpoint=np.array([7.0, 8.0]),
+            heading=-1.0,
+            drive_ids=("c",),
+            drive_s_m=np.array([np.pi]),
+            lateral_m=np.array([1 / 3]),
+            types=np.array([2]),
+            cluster=np.array([0]),
+        ),
     ]
 
 
@@ -174,8 +223,10 @@ def test_drive_store_of_before_the_fleet_model_is_migrated(tmp_path):
     import sqlite3
 
     con = sqlite3.connect(tmp_path / "old.db")
-    con.execute("CREATE TABLE tiles (tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL, "
-                "drive_count INTEGER NOT NULL, drive_ids TEXT NOT NULL, segments BLOB, PRIMARY KEY (tx, ty))")
+    con.execute(
+        "CREATE TABLE tiles (tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL, "
+        "drive_count INTEGER NOT NULL, drive_ids TEXT NOT NULL, segments BLOB, PRIMARY KEY (tx, ty))"
+    )
     con.execute("INSERT INTO tiles VALUES (0, 0, 4, 1, '[\"a\"]', NULL)")
     con.commit()
     con.close()
@@ -196,7 +247,10 @@ def test_drive_store_acknowledges_once_and_indexes_tiles(tmp_path):
     assert [d.drive_id for d in st.drives_covering((1, 0))] == ["a", "b"]
     assert st.tiles_of(["b"]) == {(1, 0)}
     assert {d: sorted(k) for d, k in st.tiles_per_drive(["a", "b", "x"]).items()} == {
-        "a": [(0, 0), (1, 0)], "b": [(1, 0)], "x": []}
+        "a": [(0, 0), (1, 0)],
+        "b": [(1, 0)],
+        "x": [],
+    }
     assert st.tile_drive_sets() == {(0, 0): ["a"], (1, 0): ["a", "b"]}
     assert [d.drive_id for d in st.drives(["b", "a", "x"])] == ["a", "b"]
     assert st.stale_tiles() == [(0, 0), (1, 0)]
@@ -256,7 +310,9 @@ def _env():
 
     root = Path(__file__).resolve().parents[3]
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(root / "src/hdmap_core"), str(root / "src/hdmap_ros"), env.get("PYTHONPATH", "")])
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(root / "src/hdmap_core"), str(root / "src/hdmap_ros"), env.get("PYTHONPATH", "")]
+    )
     return env
 
 
@@ -271,8 +327,10 @@ def test_map_store_keeps_each_tiles_drive_counts_and_finality_and_migrates_an_ol
     st.close()
     old = tmp_path / "old.db"  # a map store of before the counts: its tiles vouch for themselves
     con = sqlite3.connect(old)
-    con.execute("CREATE TABLE tiles (tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL, "
-                "drive_ids TEXT NOT NULL, segments BLOB NOT NULL, PRIMARY KEY (tx, ty))")
+    con.execute(
+        "CREATE TABLE tiles (tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL, "
+        "drive_ids TEXT NOT NULL, segments BLOB NOT NULL, PRIMARY KEY (tx, ty))"
+    )
     con.execute("INSERT INTO tiles VALUES (0, 0, 3, '[\"a\"]', ?)", (blob,))
     con.commit()
     con.close()

@@ -94,11 +94,25 @@ class EvalConfig:
     def __post_init__(self) -> None:
         lo, hi = self.density_drives
         if not (0 <= lo <= hi):
-            raise ConfigError(f"EvalConfig.density_drives must be (lo, hi) with 0 <= lo <= hi, got {self.density_drives!r}")
+            raise ConfigError(
+                f"EvalConfig.density_drives must be (lo, hi) with 0 <= lo <= hi, got {self.density_drives!r}"
+            )
         positive = (
-            "step_m", "recall_radius_m", "gate_m", "max_half_length_m", "default_sigma_loc_m",
-            "topology_separation_m", "topology_window_m", "topology_reach_m", "topology_attach_m",
-            "road_follow_m", "road_apart_m", "road_cluster_m", "road_path_m", "link_path_factor", "link_long_m",
+            "step_m",
+            "recall_radius_m",
+            "gate_m",
+            "max_half_length_m",
+            "default_sigma_loc_m",
+            "topology_separation_m",
+            "topology_window_m",
+            "topology_reach_m",
+            "topology_attach_m",
+            "road_follow_m",
+            "road_apart_m",
+            "road_cluster_m",
+            "road_path_m",
+            "link_path_factor",
+            "link_long_m",
         )
         for name in positive:
             value = getattr(self, name)

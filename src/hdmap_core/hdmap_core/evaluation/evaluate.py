@@ -300,12 +300,28 @@ def evaluate_map(
     per_type = {}
     for t in EVAL_TYPES:
         per_type[t.label] = _type_stats(
-            g_mask=g_type == t, m_mask=m_type == t, gp=gp, mp=mp, err=err, corrected=corrected,
-            matched=matched, gt_hit=gt_hit, map_hit=map_hit, k=k,
+            g_mask=g_type == t,
+            m_mask=m_type == t,
+            gp=gp,
+            mp=mp,
+            err=err,
+            corrected=corrected,
+            matched=matched,
+            gt_hit=gt_hit,
+            map_hit=map_hit,
+            k=k,
         )
     overall = _type_stats(
-        g_mask=np.ones(len(gp.cut), dtype=bool), m_mask=np.ones(len(mp.cut), dtype=bool), gp=gp, mp=mp,
-        err=err, corrected=corrected, matched=matched, gt_hit=gt_hit, map_hit=map_hit, k=k,
+        g_mask=np.ones(len(gp.cut), dtype=bool),
+        m_mask=np.ones(len(mp.cut), dtype=bool),
+        gp=gp,
+        mp=mp,
+        err=err,
+        corrected=corrected,
+        matched=matched,
+        gt_hit=gt_hit,
+        map_hit=map_hit,
+        k=k,
     )
 
     frag_mean, frag_max, n_frag = _fragmentation(gp, gi, matched, map_feats, mp)
@@ -369,8 +385,12 @@ def evaluate_map(
         found_road_splits=sum(b.kind == "split" and b.found for b in evaluable_rp),
         found_road_merges=sum(b.kind == "merge" and b.found for b in evaluable_rp),
         road_branch_points=tuple(road_points),
-        gt_lane_splits=sum(len(ln.successors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()),
-        gt_lane_merges=sum(len(ln.predecessors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()),
+        gt_lane_splits=sum(
+            len(ln.successors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()
+        ),
+        gt_lane_merges=sum(
+            len(ln.predecessors) >= 2 and (ln.highway or not config.highway_only) for ln in gt.lanes.values()
+        ),
         topology_link_precision=links.precision,
         n_topology_links=links.n_links,
         n_topology_links_evaluable=links.n_evaluable,
@@ -721,6 +741,7 @@ def hdmap_from_ground_truth(
         )
     topology = topology_from_lanes(gt.lanes) if with_topology else ()
     return HDMap(
-        features=tuple(out), topology=topology,
+        features=tuple(out),
+        topology=topology,
         extra={"source": f"ground truth {gt.name}", "lateral_shift_m": lateral_shift_m},
     )

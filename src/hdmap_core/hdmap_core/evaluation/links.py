@@ -159,8 +159,9 @@ class _LanePoints:
         if not xy:
             z = np.zeros((0, 2))
             return _LanePoints(z, np.zeros(0, np.int64), np.zeros(0), z, np.zeros(0))
-        return _LanePoints(np.concatenate(xy), np.concatenate(lane), np.concatenate(st), np.concatenate(dirs),
-                           np.array(length))
+        return _LanePoints(
+            np.concatenate(xy), np.concatenate(lane), np.concatenate(st), np.concatenate(dirs), np.array(length)
+        )
 
 
 def _lanes_under(topo: TopologyArrays, nodes: np.ndarray, lp: _LanePoints, cos_min: float) -> tuple[np.ndarray, ...]:
@@ -189,7 +190,11 @@ def _lanes_under(topo: TopologyArrays, nodes: np.ndarray, lp: _LanePoints, cos_m
 
 
 def _with_lane_changes(
-    node: np.ndarray, lane: np.ndarray, station: np.ndarray, lanes: Mapping[str, GTLane], index: Mapping[str, int],
+    node: np.ndarray,
+    lane: np.ndarray,
+    station: np.ndarray,
+    lanes: Mapping[str, GTLane],
+    index: Mapping[str, int],
     length_m: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(node, lane, station) rows plus, for each, the lanes a vehicle reaches from its lane by lane
@@ -282,8 +287,9 @@ def check_topology_links(
         same = np.where((la == lb) & (ahead >= -cfg.back_m), np.maximum(ahead, 0.0), np.inf)
         sources, inv = np.unique(la, return_inverse=True)
         n_l = len(index)
-        dist = dijkstra(_lane_graph(lanes, index, lp.length_m), directed=True, indices=n_l + sources,
-                        limit=float(bound[ev].max()))
+        dist = dijkstra(
+            _lane_graph(lanes, index, lp.length_m), directed=True, indices=n_l + sources, limit=float(bound[ev].max())
+        )
         between = dist[inv, lb]
         other = (lp.length_m[la] - sa) + between + sb
         path = np.minimum(same, other)
@@ -292,29 +298,41 @@ def check_topology_links(
     long_ = length > cfg.long_m
 
     def why(e: int) -> str:
-        off = [f"{end} node on no ground-truth lane running its way" for end, n in (("from", src[e]), ("to", dst[e]))
-               if not on[n]]
+        off = [
+            f"{end} node on no ground-truth lane running its way"
+            for end, n in (("from", src[e]), ("to", dst[e]))
+            if not on[n]
+        ]
         return "; ".join(off) or "both nodes outside the evaluated area"
 
     def link(e: int, verdict: str, reason: str) -> TopologyLink:
         a, b = int(src[e]), int(dst[e])
         return TopologyLink(
-            from_id=int(topo.ids[a]), to_id=int(topo.ids[b]), x=float(topo.xy[a, 0]), y=float(topo.xy[a, 1]),
-            to_x=float(topo.xy[b, 0]), to_y=float(topo.xy[b, 1]), length_m=float(length[e]),
-            lane_path_m=float(best[e]), verdict=verdict, reason=reason,
+            from_id=int(topo.ids[a]),
+            to_id=int(topo.ids[b]),
+            x=float(topo.xy[a, 0]),
+            y=float(topo.xy[a, 1]),
+            to_x=float(topo.xy[b, 0]),
+            to_y=float(topo.xy[b, 1]),
+            length_m=float(length[e]),
+            lane_path_m=float(best[e]),
+            verdict=verdict,
+            reason=reason,
         )
 
     false_e = np.flatnonzero(evaluable & ~supported)
     false_links = tuple(
-        link(int(e), "false",
-             f"no ground-truth lane path within {bound[e]:.1f} m"
-             + (f" (shortest {best[e]:.1f} m)" if np.isfinite(best[e]) else ""))
+        link(
+            int(e),
+            "false",
+            f"no ground-truth lane path within {bound[e]:.1f} m"
+            + (f" (shortest {best[e]:.1f} m)" if np.isfinite(best[e]) else ""),
+        )
         for e in false_e[np.argsort(-length[false_e], kind="stable")]
     )
     unev = np.flatnonzero(~evaluable & long_)
     unevaluable_long = tuple(
-        link(int(e), "unevaluable", why(int(e)))
-        for e in unev[np.argsort(-length[unev], kind="stable")]
+        link(int(e), "unevaluable", why(int(e))) for e in unev[np.argsort(-length[unev], kind="stable")]
     )
     return LinkPrecision(
         n_links=int(len(src)),

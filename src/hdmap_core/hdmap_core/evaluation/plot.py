@@ -38,8 +38,9 @@ def _smooth(values: np.ndarray, window: int) -> np.ndarray:
 _ZOOM_HALF_M = 40.0
 
 
-def _draw_map(ax, report: EvalReport, hdmap: HDMap, gt: GroundTruth, *, gt_lw: float, map_lw: float,
-              cut_every: int, lc: type) -> None:
+def _draw_map(
+    ax, report: EvalReport, hdmap: HDMap, gt: GroundTruth, *, gt_lw: float, map_lw: float, cut_every: int, lc: type
+) -> None:
     """Ground truth (light, wide) and map (strong, narrow) by type, cut lines, non-evaluable cuts."""
     for f in gt.features:
         p = np.asarray(f.points)
@@ -97,7 +98,11 @@ def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str
         f"map over ground truth {report.gt_name!r}: total {report.overall.mean_m:.3f} m, "
         f"offset-corrected {report.overall.corrected_mean_m:.3f} m, coverage {100 * report.coverage:.1f} %, "
         f"recall {100 * report.overall.recall:.1f} %"
-        + (f" ({100 * report.recall_observed:.1f} % of the observed GT points)" if math.isfinite(report.recall_observed) else "")
+        + (
+            f" ({100 * report.recall_observed:.1f} % of the observed GT points)"
+            if math.isfinite(report.recall_observed)
+            else ""
+        )
         if math.isfinite(report.overall.mean_m)
         else f"map over ground truth {report.gt_name!r}: nothing evaluable"
     )
@@ -124,8 +129,15 @@ def plot_evaluation(report: EvalReport, hdmap: HDMap, gt: GroundTruth, path: str
     gaps = ref & ~ev
     if gaps.any():
         ax_err.fill_between(
-            km, 0, 1, where=gaps, transform=ax_err.get_xaxis_transform(), color="red", alpha=0.12,
-            lw=0, label="not evaluable",
+            km,
+            0,
+            1,
+            where=gaps,
+            transform=ax_err.get_xaxis_transform(),
+            color="red",
+            alpha=0.12,
+            lw=0,
+            label="not evaluable",
         )
     ax_err.set_xlabel("distance along the de-duplicated reference [km]")
     ax_err.set_ylabel("mean absolute lateral error [m]")

@@ -263,8 +263,17 @@ class EvalReport:
             "per_type": {k: jsonable(v.__dict__) for k, v in self.per_type.items()},
         }
         for name in self.__dataclass_fields__:
-            if name in ("gt_name", "config", "overall", "per_type", "cuts", "branch_points", "road_branch_points",
-                        "false_topology_links", "unevaluable_long_links"):
+            if name in (
+                "gt_name",
+                "config",
+                "overall",
+                "per_type",
+                "cuts",
+                "branch_points",
+                "road_branch_points",
+                "false_topology_links",
+                "unevaluable_long_links",
+            ):
                 continue
             out[name] = jsonable(getattr(self, name))
         out["missing_branch_points"] = [b.to_dict() for b in self.missing_branch_points]

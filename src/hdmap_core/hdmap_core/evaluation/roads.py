@@ -250,9 +250,7 @@ def _road_point(members: list[_Candidate], cfg: RoadCheckConfig) -> RoadPoint:
             if parting_m(flat[i][1], flat[j][1]) <= cfg.apart_m:
                 ds.merge(i, j)
     groups = sorted((sorted(g) for g in ds.subsets()), key=min)
-    branches = tuple(
-        (tuple(sorted({flat[k][0] for k in g})), _Path.concat([flat[k][1] for k in g])) for g in groups
-    )
+    branches = tuple((tuple(sorted({flat[k][0] for k in g})), _Path.concat([flat[k][1] for k in g])) for g in groups)
     return RoadPoint(
         kind=members[0].kind,
         xy=np.mean([c.xy for c in members], axis=0),
@@ -297,8 +295,14 @@ class TopologyArrays:
         ok = np.all(np.isfinite(xy), axis=1)
         xy = np.where(ok[:, None], xy, 1e12)
         return TopologyArrays(
-            xy, np.stack([np.cos(yaw), np.sin(yaw)], axis=1), width / 2 + margin_m, graph,
-            cKDTree(xy) if len(xy) else None, np.array([int(n.id) for n in nodes], dtype=np.int64), src, dst,
+            xy,
+            np.stack([np.cos(yaw), np.sin(yaw)], axis=1),
+            width / 2 + margin_m,
+            graph,
+            cKDTree(xy) if len(xy) else None,
+            np.array([int(n.id) for n in nodes], dtype=np.int64),
+            src,
+            dst,
         )
 
 
@@ -317,7 +321,11 @@ def _crossed(topo: TopologyArrays, cand: np.ndarray, path: _Path, cos_min: float
     t = topo.tangent[cand[owner]]
     along = np.abs((d * t).sum(axis=1))
     across = np.abs(d[:, 0] * t[:, 1] - d[:, 1] * t[:, 0])
-    ok = (along <= NODE_ALONG_M) & (across <= topo.half_m[cand[owner]]) & ((path.direction[q] * t).sum(axis=1) >= cos_min)
+    ok = (
+        (along <= NODE_ALONG_M)
+        & (across <= topo.half_m[cand[owner]])
+        & ((path.direction[q] * t).sum(axis=1) >= cos_min)
+    )
     out[owner[ok]] = True
     return out
 
@@ -353,8 +361,14 @@ def _check_one(p: RoadPoint, topo: TopologyArrays, cfg: RoadCheckConfig) -> Road
     connected = _reached(topo, single, targets, cfg.path_m, reverse=p.kind == "merge")
     n_nodes = tuple(int(len(t)) for t in targets)
     common: dict[str, Any] = dict(
-        kind=p.kind, x=float(p.xy[0]), y=float(p.xy[1]), heading_rad=p.heading, gt_lanes=p.lanes,
-        branch_lanes=tuple(b for b, _ in p.branches), single_nodes=int(len(single)), branch_nodes=n_nodes,
+        kind=p.kind,
+        x=float(p.xy[0]),
+        y=float(p.xy[1]),
+        heading_rad=p.heading,
+        gt_lanes=p.lanes,
+        branch_lanes=tuple(b for b, _ in p.branches),
+        single_nodes=int(len(single)),
+        branch_nodes=n_nodes,
         branch_connected=tuple(connected),
     )
     side = "incoming" if p.kind == "split" else "outgoing"
@@ -362,14 +376,19 @@ def _check_one(p: RoadPoint, topo: TopologyArrays, cfg: RoadCheckConfig) -> Road
     # RULE R6: evaluable when the single side and at least two branches have nodes.
     if len(single) == 0 or mapped < 2:
         why = (
-            f"no topology node on the {side} road" if len(single) == 0
+            f"no topology node on the {side} road"
+            if len(single) == 0
             else f"topology nodes on {mapped} of {len(n_nodes)} branches"
         )
         return RoadBranchPoint(**common, evaluable=False, found=False, reason=f"not evaluable: {why}")
     missing = sum(n > 0 and not c for n, c in zip(n_nodes, connected))
     if missing:
-        return RoadBranchPoint(**common, evaluable=True, found=False,
-                               reason=f"{missing} branch(es) not connected to the {side} road within {cfg.path_m:g} m")
+        return RoadBranchPoint(
+            **common,
+            evaluable=True,
+            found=False,
+            reason=f"{missing} branch(es) not connected to the {side} road within {cfg.path_m:g} m",
+        )
     return RoadBranchPoint(**common, evaluable=True, found=True)
 
 

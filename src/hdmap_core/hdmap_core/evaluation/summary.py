@@ -106,8 +106,9 @@ def format_summary(report: EvalReport) -> str:
     return "\n".join(lines)
 
 
-def _branch_summary(head: str, points: Sequence[Any], missing: Sequence[Any], describe: Callable[[Any], str],
-                    extra: str = "") -> str:
+def _branch_summary(
+    head: str, points: Sequence[Any], missing: Sequence[Any], describe: Callable[[Any], str], extra: str = ""
+) -> str:
     """``head``, how many ``points`` were not evaluable, ``extra``, then the ``missing`` ones (at most 5)."""
     n_unevaluable = sum(not b.evaluable for b in points)
     line = head + (f" ({n_unevaluable} more not evaluable)" if n_unevaluable else "") + extra

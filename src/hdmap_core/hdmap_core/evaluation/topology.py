@@ -32,7 +32,12 @@ from hdmap_core.groundtruth import GTFeature
 from hdmap_core.model import FeatureType, MapFeature
 
 __all__ = [
-    "BranchPoint", "JOIN_TOL_M", "ground_truth_branch_points", "map_feature_graph", "check_branch_points", "on_cuts",
+    "BranchPoint",
+    "JOIN_TOL_M",
+    "ground_truth_branch_points",
+    "map_feature_graph",
+    "check_branch_points",
+    "on_cuts",
     "inside_cuts",
 ]
 
@@ -239,6 +244,7 @@ def map_feature_graph(
     firsts = np.array([p[0] for p in pts])
     lasts = np.array([p[-1] for p in pts])
     arcs = [_arc(p) for p in pts]
+
     def interior(q: np.ndarray, k: int) -> bool:
         return bool(min(np.linalg.norm(q - firsts[k]), np.linalg.norm(q - lasts[k])) > attach_m)
 
@@ -341,20 +347,37 @@ def check_branch_points(
         multi_ok = [w for w in w_multi if len(w)]
         ids = tuple(sorted({int(gt_features[b.feature].id) for b in nd.branches}))
         common: dict[str, Any] = dict(
-            kind=nd.kind, x=float(nd.xy[0]), y=float(nd.xy[1]), heading_rad=nd.heading, gt_features=ids,
-            n_in=len(ins), n_out=len(outs),
+            kind=nd.kind,
+            x=float(nd.xy[0]),
+            y=float(nd.xy[1]),
+            heading_rad=nd.heading,
+            gt_features=ids,
+            n_in=len(ins),
+            n_out=len(outs),
         )
         if len(single_pts) == 0 or len(multi_ok) < 2:
             why = "the single branch" if len(single_pts) == 0 else "fewer than 2 branches"
-            out.append(BranchPoint(**common, evaluable=False, found=False,
-                                   reason=f"not evaluable: {why} separated on cuts within {reach_m:g} m"))
+            out.append(
+                BranchPoint(
+                    **common,
+                    evaluable=False,
+                    found=False,
+                    reason=f"not evaluable: {why} separated on cuts within {reach_m:g} m",
+                )
+            )
             continue
         m_single = mapped(single_pts)
         m_multi = [mapped(w) for w in multi_ok]
         if not m_single or not all(m_multi):
             n_missing = (not m_single) + sum(not m for m in m_multi)
-            out.append(BranchPoint(**common, evaluable=True, found=False,
-                                   reason=f"{n_missing} branch(es) not mapped within the recall radius"))
+            out.append(
+                BranchPoint(
+                    **common,
+                    evaluable=True,
+                    found=False,
+                    reason=f"{n_missing} branch(es) not mapped within the recall radius",
+                )
+            )
             continue
 
         if nd.kind == "split":
@@ -365,15 +388,19 @@ def check_branch_points(
         if all(connected):
             out.append(BranchPoint(**common, evaluable=True, found=True))
         else:
-            out.append(BranchPoint(**common, evaluable=True, found=False,
-                                   reason=f"{connected.count(False)} branch(es) not connected to the "
-                                   f"{'incoming' if nd.kind == 'split' else 'outgoing'} map feature"))
+            out.append(
+                BranchPoint(
+                    **common,
+                    evaluable=True,
+                    found=False,
+                    reason=f"{connected.count(False)} branch(es) not connected to the "
+                    f"{'incoming' if nd.kind == 'split' else 'outgoing'} map feature",
+                )
+            )
     return out
 
 
-def _reach(
-    start: set[int], edges: list[list[tuple[int, np.ndarray]]], center: np.ndarray, radius: float
-) -> set[int]:
+def _reach(start: set[int], edges: list[list[tuple[int, np.ndarray]]], center: np.ndarray, radius: float) -> set[int]:
     """Map features reachable from ``start`` along ``edges`` whose joints lie within ``radius`` of ``center``."""
     seen = set(start)
     todo = deque(start)

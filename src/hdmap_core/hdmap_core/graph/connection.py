@@ -93,8 +93,7 @@ def _separate(
     kept: list[int] = []
     for i in order.tolist():
         if all(
-            border[i] != border[j] or abs(lat[i] - lat[j]) >= min_sep_m or counts[i] > ratio * counts[j]
-            for j in kept
+            border[i] != border[j] or abs(lat[i] - lat[j]) >= min_sep_m or counts[i] > ratio * counts[j] for j in kept
         ):
             kept.append(i)
     return np.sort(np.asarray(kept, dtype=np.int64))
@@ -139,7 +138,12 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
         if config.lone_line_gap_m > 0:
             bgap = config.lone_line_gap_m if config.lone_line_border_gap_m is None else config.lone_line_border_gap_m
             ok |= _lone_lines(
-                by_place[keep[by_place]], j_of, lat, typ, config.lone_line_gap_m, bgap,
+                by_place[keep[by_place]],
+                j_of,
+                lat,
+                typ,
+                config.lone_line_gap_m,
+                bgap,
                 outer_only=config.lone_line_border_outer,
             ) & (cnt >= config.window_min_count)
         keep &= ok
@@ -157,8 +161,14 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
 
 
 def _lone_lines(
-    order: np.ndarray, j_of: np.ndarray, lat: np.ndarray, typ: np.ndarray, gap_m: float, border_gap_m: float,
-    *, outer_only: bool = False,
+    order: np.ndarray,
+    j_of: np.ndarray,
+    lat: np.ndarray,
+    typ: np.ndarray,
+    gap_m: float,
+    border_gap_m: float,
+    *,
+    outer_only: bool = False,
 ) -> np.ndarray:
     """(M,) bool: of the maxima ``order`` (the valid ones, sorted by step, then lateral position),
     those whose neighbours among them in their step (next lower and next higher lateral position)
@@ -186,7 +196,9 @@ def _lone_lines(
     return out
 
 
-def _local_max_count(j_of: np.ndarray, lat: np.ndarray, cnt: np.ndarray, off: np.ndarray, window_m: float) -> np.ndarray:
+def _local_max_count(
+    j_of: np.ndarray, lat: np.ndarray, cnt: np.ndarray, off: np.ndarray, window_m: float
+) -> np.ndarray:
     """(M,) the largest count among the maxima of the same step within ``window_m`` laterally
     (itself included). j_of (M,) step of each maximum (maxima grouped by step, ``off`` (J+1,)
     the CSR offsets), lat (M,) lateral position [m], cnt (M,) drive counts."""
@@ -242,8 +254,10 @@ def _fast_pairs(
     # element-wise: maxima of step j against those of step j-1 at the same rank
     kk = k[j]
     elem_j = np.repeat(j, kk)
-    cur = np.concatenate([np.arange(off[a], off[a + 1]) for a in j.tolist()]) if len(j) < 64 else (
-        np.repeat(off[j], kk) + (np.arange(kk.sum()) - np.repeat(np.cumsum(kk) - kk, kk))
+    cur = (
+        np.concatenate([np.arange(off[a], off[a + 1]) for a in j.tolist()])
+        if len(j) < 64
+        else (np.repeat(off[j], kk) + (np.arange(kk.sum()) - np.repeat(np.cumsum(kk) - kk, kk)))
     )
     prev = cur - off[elem_j] + off[elem_j - 1]
     d = xy[cur] - xy[prev]
@@ -253,7 +267,12 @@ def _fast_pairs(
     tan_e = math.tan(math.radians(min(config.max_edge_angle_deg, 89.999)))
     tan_m = math.tan(math.radians(_MAX_MEAN_ANGLE_DEG))
     slack = config.edge_slack_m if config.mean_angle_slack else 0.0
-    ok = (typ[cur] == typ[prev]) & (along > 0) & (lat <= config.edge_slack_m + along * tan_e) & (lat <= slack + along * tan_m)
+    ok = (
+        (typ[cur] == typ[prev])
+        & (along > 0)
+        & (lat <= config.edge_slack_m + along * tan_e)
+        & (lat <= slack + along * tan_m)
+    )
     bad = np.bincount(elem_j[~ok], minlength=n)
     fast[j] = bad[j] == 0
     return fast
@@ -376,7 +395,9 @@ def _leaves_heading(u: np.ndarray, heading: float, min_deg: float, max_deg: floa
     return np.isfinite(c) & (c < cos_max) & (c >= cos_lim)
 
 
-def _line_frames(b: _Builder, tip_idx: np.ndarray, heading: float, config: ConnectionConfig) -> tuple[np.ndarray, np.ndarray] | None:
+def _line_frames(
+    b: _Builder, tip_idx: np.ndarray, heading: float, config: ConnectionConfig
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Own line directions of the tips (NaN rows: none), as (frame, check):
 
     - frame (n, 2): of each tip whose line leaves the step heading by more than
@@ -395,7 +416,8 @@ def _line_frames(b: _Builder, tip_idx: np.ndarray, heading: float, config: Conne
     # beyond line_frame_max_deg (up to line_check_max_deg): checked only
     far = (
         _leaves_heading(u, heading, max(config.line_frame_max_deg, config.line_frame_deg), config.line_check_max_deg)
-        if config.line_frame_check else np.zeros(len(u), dtype=bool)
+        if config.line_frame_check
+        else np.zeros(len(u), dtype=bool)
     )
     if not (dev.any() or far.any()):
         return None
@@ -422,8 +444,14 @@ def _turned(h0: float | np.ndarray, h1: float, config: ConnectionConfig) -> bool
 
 
 def _undirected_checks(
-    b: _Builder, tip_idx: np.ndarray, tip_s: np.ndarray, head_at: dict[float, float], heading: float,
-    config: ConnectionConfig, tip_dir: np.ndarray | None, tip_check: np.ndarray | None,
+    b: _Builder,
+    tip_idx: np.ndarray,
+    tip_s: np.ndarray,
+    head_at: dict[float, float],
+    heading: float,
+    config: ConnectionConfig,
+    tip_dir: np.ndarray | None,
+    tip_check: np.ndarray | None,
 ) -> np.ndarray | None:
     """``tip_check`` plus, for each end without a direction of its own (no frame, no check: a
     line the cut had just reached) left behind where the pivot has since turned by more than
@@ -558,7 +586,15 @@ def connect_segment(segment: Segment, *, config: ConnectionConfig = ConnectionCo
                 tip_dir = line_dir
             tip_check = _undirected_checks(b, tip_idx, tip_s, head_at, float(st.heading), config, tip_dir, tip_check)
             res = assign(
-                tip_xy, tip_type, tip_s == last_s, flat.xy[a0:a1], flat.typ[a0:a1], st.heading, config, tip_dir, tip_check
+                tip_xy,
+                tip_type,
+                tip_s == last_s,
+                flat.xy[a0:a1],
+                flat.typ[a0:a1],
+                st.heading,
+                config,
+                tip_dir,
+                tip_check,
             )
             if res.mean_angle_deg > _MAX_MEAN_ANGLE_DEG:
                 stats.rejected_angle += 1  # implausible optimisation result: treat as a gap
@@ -610,7 +646,9 @@ def _topo_sections(steps: list[StepResult], lane_m: float) -> tuple[np.ndarray, 
     width = np.array([float(st.width_m) for st in steps])
     if lane_m <= 0 or not len(steps):
         return mid, width
-    pose = np.array([np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=float).reshape(2) for st in steps])
+    pose = np.array(
+        [np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=float).reshape(2) for st in steps]
+    )
     normal = left_normal(np.array([float(st.heading) for st in steps])).reshape(-1, 2)
     own = np.einsum("ij,ij->i", pose - mid, normal)  # the pivot along the cut, + = left [m]
     ok = np.isfinite(own) & np.isfinite(width) & (np.abs(own) > 0.5 * width)  # the pivot beyond its cut
@@ -696,7 +734,9 @@ def _finish(
         topo_width=topo_width,
         topo_edges=np.asarray(b.topo_edges if b else [], dtype=np.int64).reshape(-1, 2),
         topo_start=starts,
-        node_uid=stable_uid("feature:" + segment.pivot_id, node_step, pick(f.slot if f else None, np.zeros(0, np.int64))),
+        node_uid=stable_uid(
+            "feature:" + segment.pivot_id, node_step, pick(f.slot if f else None, np.zeros(0, np.int64))
+        ),
         node_xy=pick(f.xy if f else None, np.zeros((0, 2))),
         node_type=pick(f.typ if f else None, np.zeros(0, np.int64)),
         node_count=pick(f.cnt if f else None, np.zeros(0, np.int64)),
@@ -709,10 +749,15 @@ def _finish(
         track_step=np.array([int(st.index) for st in track], dtype=np.int64),
         track_s=np.array([float(st.s_m) for st in track]),
         track_xy=np.array([np.asarray(st.midpoint, dtype=float) for st in track]).reshape(-1, 2),
-        track_pose=(np.array([np.asarray(st.pose, dtype=float) for st in track]).reshape(-1, 2)
-                    if all(st.pose is not None for st in track) else np.zeros((0, 2))),
+        track_pose=(
+            np.array([np.asarray(st.pose, dtype=float) for st in track]).reshape(-1, 2)
+            if all(st.pose is not None for st in track)
+            else np.zeros((0, 2))
+        ),
         track_heading=np.array([float(st.heading) for st in track]),
         track_judged=np.array([e is not None for e in empties], dtype=bool),
-        track_empty_start=np.concatenate([[0], np.cumsum([0 if e is None else len(e) for e in empties])]).astype(np.int64),
+        track_empty_start=np.concatenate([[0], np.cumsum([0 if e is None else len(e) for e in empties])]).astype(
+            np.int64
+        ),
         track_empty=np.concatenate([np.zeros((0, 2))] + [e for e in empties if e is not None]).reshape(-1, 2),
     )

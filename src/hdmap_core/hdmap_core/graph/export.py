@@ -58,9 +58,14 @@ def export_map(
     if cfg.min_type_run_m > 0 and nn:
         # RULE flicker / minority / single drive (type_runs.smooth_types)
         types = smooth_types(
-            flat, uid, min_run_m=cfg.min_type_run_m, sparse_run_m=cfg.sparse_type_run_m,
-            sparse_count=cfg.sparse_drive_count, minority_only=cfg.sparse_minority_only,
-            single_run_m=cfg.single_drive_run_m, end_run_m=cfg.single_drive_end_run_m,
+            flat,
+            uid,
+            min_run_m=cfg.min_type_run_m,
+            sparse_run_m=cfg.sparse_type_run_m,
+            sparse_count=cfg.sparse_drive_count,
+            minority_only=cfg.sparse_minority_only,
+            single_run_m=cfg.single_drive_run_m,
+            end_run_m=cfg.single_drive_end_run_m,
             end_run_through=cfg.single_drive_end_through_leftover,
         )
         flat = dataclasses.replace(flat, n_type=types)
@@ -158,15 +163,26 @@ def export_map(
         length = float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
         if isolated and (len(xy) < 2 or (length < cfg.min_isolated_length_m and not protect[chains[k]].any())):
             keep[k] = False
-        elif (isolated and length < cfg.refuted_piece_min_m and protect[chains[k]].any()
-              and int(np.max(geoms[k][1])) <= _REFUTED_PIECE_MAX_DRIVES):
+        elif (
+            isolated
+            and length < cfg.refuted_piece_min_m
+            and protect[chains[k]].any()
+            and int(np.max(geoms[k][1])) <= _REFUTED_PIECE_MAX_DRIVES
+        ):
             keep[k] = False  # one drive's speck left between refuted fills
     inner_m = cfg.inner_border_max_m
     ctype = [int(flat.n_type[c[0]]) for c in chains]
     if inner_m > 0:
         # RULE inner border
-        inner, dup = inner_borders(flat, chains, succ=succ, pred=pred, on_through=on_through, reach_m=inner_m,
-                                   max_drives=cfg.inner_border_max_drives)
+        inner, dup = inner_borders(
+            flat,
+            chains,
+            succ=succ,
+            pred=pred,
+            on_through=on_through,
+            reach_m=inner_m,
+            max_drives=cfg.inner_border_max_drives,
+        )
         as_line = cfg.inner_border_dashed_drives
         for k in np.flatnonzero(inner & keep).tolist():
             if not dup[k] and int(flat.n_count[chains[k]].max()) <= as_line:
@@ -176,7 +192,11 @@ def export_map(
             else:
                 keep[k] = False
     fid = np.array([int(uid[c[0]]) for c in chains], dtype=np.uint64)
-    runs = _continuation_runs(keep, succ, pred, ctype, fid) if cfg.merge_continuations else [[k] for k in np.flatnonzero(keep).tolist()]
+    runs = (
+        _continuation_runs(keep, succ, pred, ctype, fid)
+        if cfg.merge_continuations
+        else [[k] for k in np.flatnonzero(keep).tolist()]
+    )
     head_of = np.arange(len(chains))
     for run in runs:
         head_of[run] = run[0]
@@ -227,7 +247,9 @@ def export_map(
         )
     if cfg.gore_max_m > 0:
         if attached:
-            branch_of = [(int(fid[head_of[t]]), int(fid[head_of[b]]), kind) for t, b, kind in attached if keep[t] and keep[b]]
+            branch_of = [
+                (int(fid[head_of[t]]), int(fid[head_of[b]]), kind) for t, b, kind in attached if keep[t] and keep[b]
+            ]
             features, topology = gore_branches(features, topology, branch_of, max_m=cfg.gore_max_m)
         features, topology = gore_junctions(features, topology, max_m=cfg.gore_max_m)
     features.sort(key=lambda f: f.id)

@@ -181,8 +181,9 @@ def flatten(
         n_std=cat("node_std", f0, float),
         topo_edges=np.concatenate([cat("te", e0).reshape(-1, 2), links(topo_links, tmap)]).astype(np.int64),
         edges=np.concatenate([cat("ne", e0).reshape(-1, 2), fl, bl]).astype(np.int64),
-        leftover=np.concatenate([cat("lo", np.zeros(0, dtype=bool)), np.zeros(len(fl), dtype=bool),
-                                 np.ones(len(bl), dtype=bool)]),
+        leftover=np.concatenate(
+            [cat("lo", np.zeros(0, dtype=bool)), np.zeros(len(fl), dtype=bool), np.ones(len(bl), dtype=bool)]
+        ),
     )
 
 

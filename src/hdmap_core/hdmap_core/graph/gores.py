@@ -39,7 +39,7 @@ def gore_branches(
         outer = c.predecessors if kind == "split" else c.successors
         if len(outer) != 1 or outer[0] not in byid or byid[outer[0]].type == c.type:
             continue
-        if (b.predecessors if kind == "split" else b.successors):
+        if b.predecessors if kind == "split" else b.successors:
             continue
         p = byid[outer[0]]
         end = b.points[0] if kind == "split" else b.points[-1]
@@ -58,9 +58,13 @@ def gore_branches(
             half = 0.5 * (np.asarray(b.points[1], dtype=float) - cp[i + 1])
             shift = ((arc[: i + 1] / max(arc[i + 1], 1e-9)) ** 2)[:, None] * half
             common, rest = slice(0, i + 1), np.asarray(b.points[1:], dtype=float)
-            b = _replace(b, points=np.vstack([cp[common] + shift, rest]),
-                         drive_count=np.r_[c.drive_count[: i + 1], b.drive_count[1:]],
-                         lateral_std=np.r_[c.lateral_std[: i + 1], b.lateral_std[1:]], predecessors=(p.id,))
+            b = _replace(
+                b,
+                points=np.vstack([cp[common] + shift, rest]),
+                drive_count=np.r_[c.drive_count[: i + 1], b.drive_count[1:]],
+                lateral_std=np.r_[c.lateral_std[: i + 1], b.lateral_std[1:]],
+                predecessors=(p.id,),
+            )
             p = _replace(p, successors=tuple(sorted(set(p.successors) | {b.id})))
         else:
             if i == len(cp) - 1 or i == 0 or polyline_length(cp[i:]) > max_m:
@@ -69,9 +73,13 @@ def gore_branches(
             half = 0.5 * (np.asarray(b.points[-2], dtype=float) - cp[i - 1])
             shift = ((arc[1:] / max(arc[0], 1e-9)) ** 2)[:, None] * half
             common, rest = slice(i, len(cp)), np.asarray(b.points[:-1], dtype=float)
-            b = _replace(b, points=np.vstack([rest, cp[common] + shift]),
-                         drive_count=np.r_[b.drive_count[:-1], c.drive_count[i:]],
-                         lateral_std=np.r_[b.lateral_std[:-1], c.lateral_std[i:]], successors=(p.id,))
+            b = _replace(
+                b,
+                points=np.vstack([rest, cp[common] + shift]),
+                drive_count=np.r_[b.drive_count[:-1], c.drive_count[i:]],
+                lateral_std=np.r_[b.lateral_std[:-1], c.lateral_std[i:]],
+                successors=(p.id,),
+            )
             p = _replace(p, predecessors=tuple(sorted(set(p.predecessors) | {b.id})))
         cp = cp.copy()
         cp[common] -= shift

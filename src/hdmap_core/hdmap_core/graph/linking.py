@@ -284,7 +284,12 @@ class _Linker:
             if len(xy) < 3:
                 continue
             bridges = track_bridges(
-                flat, self.tree, np.asarray(xy, dtype=float), np.asarray(heading, dtype=float), cfg, reach,
+                flat,
+                self.tree,
+                np.asarray(xy, dtype=float),
+                np.asarray(heading, dtype=float),
+                cfg,
+                reach,
                 lambda a, j: j in near(a),
             )
             for a, b in bridges:

@@ -29,8 +29,15 @@ _ANGLE_FREE_M = 3.0
 _BEHIND_TOL_M = 1.0
 
 __all__ = [
-    "Adjacency", "PATH_STEP_M", "HALF_WIDTH_UNKNOWN_M", "partner", "reached_within", "closes_cycle",
-    "heading_rate", "path_partner", "entered",
+    "Adjacency",
+    "PATH_STEP_M",
+    "HALF_WIDTH_UNKNOWN_M",
+    "partner",
+    "reached_within",
+    "closes_cycle",
+    "heading_rate",
+    "path_partner",
+    "entered",
 ]
 
 #: A within-component link is refused when it would close a cycle of fewer topology nodes (~1 km).
@@ -136,8 +143,11 @@ def partner(
             continue
         if dist > _ANGLE_FREE_M and lat > max(along, 0.0) * tan_c:
             continue
-        if (cfg.side_link_angle_deg < 90.0 and lat > max(along, 0.0) * tan_s
-                and (lat > _half_widths(flat, i, j) or not _features_overlap(flat, i, j, n, cfg.side_link_overlap))):
+        if (
+            cfg.side_link_angle_deg < 90.0
+            and lat > max(along, 0.0) * tan_s
+            and (lat > _half_widths(flat, i, j) or not _features_overlap(flat, i, j, n, cfg.side_link_overlap))
+        ):
             continue  # RULE: two roads side by side (cross-sections apart) join only at a shallow angle
         if cfg.partner_angle_deg < 180.0 and dist > _ANGLE_FREE_M:
             # RULE: the link also runs within partner_angle_deg of the partner's own heading
@@ -193,7 +203,13 @@ def heading_rate(flat: FlatGraph, walk: Adjacency, i: int, base_m: float) -> flo
 
 
 def path_partner(
-    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, rate: float, cfg: StitchConfig, reach_m: float,
+    flat: FlatGraph,
+    tree: cKDTree,
+    i: int,
+    is_end: bool,
+    rate: float,
+    cfg: StitchConfig,
+    reach_m: float,
     allowed: Callable[[int], bool],
 ) -> int:
     """The first topology node along the arc that continues the chain of end (start) node i
@@ -233,8 +249,16 @@ def _in_cross_section(flat: FlatGraph, j: int, p: np.ndarray) -> float:
 
 
 def entered(
-    flat: FlatGraph, tree: cKDTree, i: int, sign: float, u0: np.ndarray, p: np.ndarray, h: float, cos_h: float,
-    reach_m: float, allowed: Callable[[int], bool],
+    flat: FlatGraph,
+    tree: cKDTree,
+    i: int,
+    sign: float,
+    u0: np.ndarray,
+    p: np.ndarray,
+    h: float,
+    cos_h: float,
+    reach_m: float,
+    allowed: Callable[[int], bool],
 ) -> int:
     """The nearest node (among those ``allowed``) whose cross-section point p, heading h, enters
     for the walk from end (``sign`` +1) or start (-1) node i with heading vector ``u0``; nodes

@@ -237,6 +237,7 @@ def dedupe_loose_ends(flat: FlatGraph) -> np.ndarray:
             j = int(step_to[j])
     return ~alive
 
+
 def join_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> LooseEndJoins:
     """Join polyline ends to polyline starts of other segments that continue them (one
     rectangular assignment over all candidate pairs), and loose branches to the line they split
@@ -346,6 +347,7 @@ def join_loose_ends(flat: FlatGraph, *, config: StitchConfig) -> LooseEndJoins:
         out.branch_links = _join_branches(flat, heading, rest_s, rest_e, e, cfg)
     return out
 
+
 def _join_branches(
     flat: FlatGraph, heading: np.ndarray, starts: list[int], ends: list[int], e: np.ndarray, cfg: StitchConfig
 ) -> list[tuple[int, int]]:
@@ -390,9 +392,7 @@ def _join_branches(
             for j in tree.query_ball_point(flat.n_xy[i], _BRANCH_RADIUS_M):
                 if flat.n_graph[j] == flat.n_graph[i]:
                     continue
-                if flat.n_type[j] != flat.n_type[i] and (
-                    not _BRANCH_ANY_MARKING or border[j] or border[i]
-                ):
+                if flat.n_type[j] != flat.n_type[i] and (not _BRANCH_ANY_MARKING or border[j] or border[i]):
                     continue
                 if math.cos(heading[j] - heading[i]) < math.cos(math.radians(cfg.max_heading_diff_deg)):
                     continue

@@ -184,7 +184,9 @@ class MapGraph:
         new = list(graphs)
         for g in new:
             if not isinstance(g, SegmentGraph):
-                raise HdmapError(f"integrate takes SegmentGraph objects (connection.connect_segment), got {type(g).__name__}")
+                raise HdmapError(
+                    f"integrate takes SegmentGraph objects (connection.connect_segment), got {type(g).__name__}"
+                )
         new.sort(key=lambda g: g.key)
         keys = [g.key for g in new]
         if len(set(keys)) != len(keys):
@@ -225,8 +227,12 @@ class MapGraph:
     # -- internals --
     def _flatten(self) -> FlatGraph:
         return flatten(
-            self._graphs, self._alive, node_dead=self._node_dead, topo_links=self._topo_links,
-            feature_links=self._feature_links, branch_links=self._branch_links,
+            self._graphs,
+            self._alive,
+            node_dead=self._node_dead,
+            topo_links=self._topo_links,
+            feature_links=self._feature_links,
+            branch_links=self._branch_links,
         )
 
     def _link(self, rep: IntegrateReport) -> None:
@@ -283,7 +289,6 @@ class MapGraph:
         )
 
 
-
 def _refuted_fills(flat: FlatGraph, graphs: Sequence[SegmentGraph]) -> np.ndarray:
     """(E,) bool: feature edges of ``flat`` through stretches the drives saw empty
     (``StitchConfig.fill_evidence``, ``evidence.refuted_edges``), from every segment's judged
@@ -305,10 +310,13 @@ def _refuted_fills(flat: FlatGraph, graphs: Sequence[SegmentGraph]) -> np.ndarra
     if not xy:
         return np.zeros(len(flat.edges), dtype=bool)
     return refuted_edges(
-        flat.n_xy, flat.edges, np.concatenate(xy), np.concatenate(hd),
-        np.concatenate([np.zeros(1, np.int64), *starts]).astype(np.int64), np.concatenate(iv),
+        flat.n_xy,
+        flat.edges,
+        np.concatenate(xy),
+        np.concatenate(hd),
+        np.concatenate([np.zeros(1, np.int64), *starts]).astype(np.int64),
+        np.concatenate(iv),
     )
-
 
 
 # --- public functions -----------------------------------------------------------------------------------

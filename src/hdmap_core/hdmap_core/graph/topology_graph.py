@@ -33,7 +33,11 @@ def topology_graph(hdmap: HDMap) -> nx.DiGraph:
         x, y = float(t.position[0]), float(t.position[1])
         xy[int(t.id)] = (x, y)
         g.add_node(
-            int(t.id), x=x, y=y, heading=float(t.heading), width=float(t.width),
+            int(t.id),
+            x=x,
+            y=y,
+            heading=float(t.heading),
+            width=float(t.width),
             features=tuple(int(f) for f in t.features),
         )
     for t in hdmap.topology:

@@ -40,8 +40,15 @@ _TRACK_BRIDGE_HEADING_DEG = 45.0
 
 
 def track_partner(
-    flat: FlatGraph, tree: cKDTree, i: int, is_end: bool, track: tuple[np.ndarray, np.ndarray],
-    k: int, cfg: StitchConfig, reach_m: float, allowed: Callable[[int], bool],
+    flat: FlatGraph,
+    tree: cKDTree,
+    i: int,
+    is_end: bool,
+    track: tuple[np.ndarray, np.ndarray],
+    k: int,
+    cfg: StitchConfig,
+    reach_m: float,
+    allowed: Callable[[int], bool],
 ) -> int:
     """The first topology node on the path the pivot of end (start) node i drove on from it
     (back to it): ``track`` = (xy, heading) of the pivot's steps in driving order, ``k`` = the
@@ -106,7 +113,12 @@ def _still_turning(
 
 
 def entered_by_points(
-    flat: FlatGraph, tree: cKDTree, xy: np.ndarray, heading: np.ndarray, cos_h: tuple[float, ...], reach_m: float,
+    flat: FlatGraph,
+    tree: cKDTree,
+    xy: np.ndarray,
+    heading: np.ndarray,
+    cos_h: tuple[float, ...],
+    reach_m: float,
     margin_m: float | tuple[float, ...] = 0.0,
 ) -> list[np.ndarray]:
     """Per heading limit in ``cos_h``: (K,) per track point (``xy`` (K, 2), ``heading`` (K,)) the
@@ -145,7 +157,12 @@ def entered_by_points(
 
 
 def track_bridges(
-    flat: FlatGraph, tree: cKDTree, xy: np.ndarray, heading: np.ndarray, cfg: StitchConfig, reach_m: float,
+    flat: FlatGraph,
+    tree: cKDTree,
+    xy: np.ndarray,
+    heading: np.ndarray,
+    cfg: StitchConfig,
+    reach_m: float,
     on_road: Callable[[int, int], bool],
 ) -> list[tuple[int, int]]:
     """(A, B) topology node pairs a pivot's track (``xy``, ``heading`` in driving order) bridges:
@@ -169,7 +186,13 @@ def track_bridges(
     # in a node's own cross-section, and a walk off a road is not cut short by the margin.
     if cfg.track_bridge_leave_margin_m > 0:
         leave, enter, wide = entered_by_points(
-            flat, tree, xy, heading, (cos_leave, cos_enter, cos_leave), reach_m, (0.0, 0.0, cfg.track_bridge_leave_margin_m),
+            flat,
+            tree,
+            xy,
+            heading,
+            (cos_leave, cos_enter, cos_leave),
+            reach_m,
+            (0.0, 0.0, cfg.track_bridge_leave_margin_m),
         )
     else:
         leave, enter = entered_by_points(flat, tree, xy, heading, (cos_leave, cos_enter), reach_m)
@@ -240,8 +263,10 @@ def pivot_tracks(
         by_s = all(len(g.track_s) == len(g.track_step) for g in gs)
         order = [np.asarray(g.track_s if by_s else g.track_step, dtype=float) for g in gs]
         _, first, inverse = np.unique(np.concatenate(order), return_index=True, return_inverse=True)
-        tracks[pid] = (np.concatenate([getattr(g, attr) for g in gs])[first],
-                       np.concatenate([g.track_heading for g in gs])[first])
+        tracks[pid] = (
+            np.concatenate([getattr(g, attr) for g in gs])[first],
+            np.concatenate([g.track_heading for g in gs])[first],
+        )
         at = np.cumsum([0] + [len(o) for o in order])
         for g, a, b in zip(gs, at[:-1], at[1:]):
             rows[g.key] = inverse[a:b]

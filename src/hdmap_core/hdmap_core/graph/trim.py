@@ -124,8 +124,12 @@ def trim_overlaps(
                 if lookahead:
                     spared.add(kj)
                 continue
-            if (lookahead and cfg.trim_lookahead and kj in pending
-                    and overlaps(kj, int(flat.t_local[j]), False, skip=gi)):
+            if (
+                lookahead
+                and cfg.trim_lookahead
+                and kj in pending
+                and overlaps(kj, int(flat.t_local[j]), False, skip=gi)
+            ):
                 continue  # RULE: not for a place whose own walk will trim it (for a third)
             return True
         return False

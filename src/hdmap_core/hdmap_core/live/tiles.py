@@ -284,7 +284,9 @@ def clip_to_tile(drive: Drive, key: TileKey, *, tile_config: TileConfig) -> tupl
     return _clip(drive, tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.margin_m))
 
 
-def _tile_input(drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, pipeline_config: PipelineConfig) -> _TileInput:
+def _tile_input(
+    drives: Sequence[Drive], key: TileKey, tile_config: TileConfig, pipeline_config: PipelineConfig
+) -> _TileInput:
     clips = []
     for d in drives:
         c, start = clip_to_tile(d, key, tile_config=tile_config)
@@ -310,8 +312,13 @@ def _clips_input(
     if clipped and tile_config.pivot_margin_m is not None:
         near = tile_bounds(key, tile_size_m=tile_config.tile_size_m, margin_m=tile_config.pivot_margin_m)
         processed = steps_outside(clipped, near, step_m=float(pipeline_config.sampling.step_m))
-    return _TileInput(clipped, s0, processed, tile_seed(key, seed=tile_config.seed),
-                      tile_bounds(key, tile_size_m=tile_config.tile_size_m))
+    return _TileInput(
+        clipped,
+        s0,
+        processed,
+        tile_seed(key, seed=tile_config.seed),
+        tile_bounds(key, tile_size_m=tile_config.tile_size_m),
+    )
 
 
 class _ClippedOffsets:
@@ -338,8 +345,13 @@ def _core_observations(observations: Sequence, inp: _TileInput, key: TileKey) ->
         if not (xmin <= mx < xmax and ymin <= my < ymax):
             continue
         shift = np.array([inp.s0.get(d, 0.0) for d in ob.drive_ids], dtype=float)
-        out.append(replace(ob, pivot_id=f"{ob.pivot_id}#{int(key[0])},{int(key[1])}",
-                           drive_s_m=np.asarray(ob.drive_s_m, dtype=float) + shift))
+        out.append(
+            replace(
+                ob,
+                pivot_id=f"{ob.pivot_id}#{int(key[0])},{int(key[1])}",
+                drive_s_m=np.asarray(ob.drive_s_m, dtype=float) + shift,
+            )
+        )
     return out
 
 
@@ -358,7 +370,9 @@ def _whole_drive_s(segments: list[Segment], s0: dict[str, float]) -> list[Segmen
         if shift == 0.0:
             out.append(seg)
             continue
-        out.append(Segment(pivot_id=seg.pivot_id, steps=tuple(replace(st, s_m=float(st.s_m) + shift) for st in seg.steps)))
+        out.append(
+            Segment(pivot_id=seg.pivot_id, steps=tuple(replace(st, s_m=float(st.s_m) + shift) for st in seg.steps))
+        )
     return out
 
 
@@ -435,12 +449,20 @@ def _observed_input(inp: _TileInput, pipeline_config: PipelineConfig, key: TileK
 
     if not inp.clipped:
         return [], []
-    res = map_stretches(inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed,
-                        collect_observations=True, validated=True)
+    res = map_stretches(
+        inp.clipped,
+        config=pipeline_config,
+        seed=inp.seed,
+        processed=inp.processed,
+        collect_observations=True,
+        validated=True,
+    )
     return _whole_drive_s(select_steps(res.segments, inp.core), inp.s0), _core_observations(res.observations, inp, key)
 
 
-def observe_tile(drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig) -> list:
+def observe_tile(
+    drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig
+) -> list:
     """The tile's observation pass: per-step EM along its pivots, no adjustment, no final pass.
 
     Returns the ``StepObservations`` of the steps inside the tile proper; their ``drive_s_m`` are
@@ -476,8 +498,10 @@ def preview_tile(
     if not inp.clipped:
         return [], []
     res = _first_pass_result(inp, pipeline_config)
-    return (_whole_drive_s(select_steps(res.segments, inp.core), inp.s0),
-            _core_observations(res.observations, inp, key))
+    return (
+        _whole_drive_s(select_steps(res.segments, inp.core), inp.s0),
+        _core_observations(res.observations, inp, key),
+    )
 
 
 def fleet_offsets(observations: Sequence, *, pipeline_config: PipelineConfig):
@@ -512,16 +536,24 @@ def _first_pass_result(inp: _TileInput, pipeline_config: PipelineConfig):
     from hdmap_core.pipeline.driver import map_stretches  # noqa: PLC0415
 
     first_only = replace(pipeline_config, final_pass=None)
-    return map_stretches(inp.clipped, config=first_only, seed=inp.seed, processed=inp.processed,
-                         collect_observations=True, validated=True, observations_only=True)
+    return map_stretches(
+        inp.clipped,
+        config=first_only,
+        seed=inp.seed,
+        processed=inp.processed,
+        collect_observations=True,
+        validated=True,
+        observations_only=True,
+    )
 
 
 def _final_pass(inp: _TileInput, pipeline_config: PipelineConfig, model: OffsetSource) -> list[Segment]:
     """The pipeline's final pass on a tile's drives with the fleet-wide offset ``model``."""
     from hdmap_core.pipeline.driver import map_stretches  # noqa: PLC0415
 
-    return map_stretches(inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed,
-                         validated=True, offset_model=model).segments
+    return map_stretches(
+        inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed, validated=True, offset_model=model
+    ).segments
 
 
 def steps_outside(drives: Sequence[Drive], bounds: Sequence[float], *, step_m: float):

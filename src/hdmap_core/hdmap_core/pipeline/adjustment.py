@@ -114,8 +114,13 @@ class AdjustConfig:
     std_max_unknowns: ClassVar[int] = 4000
 
     def __post_init__(self) -> None:
-        check_range(self, ("knot_spacing_m", "bias_sigma_m", "correlation_length_m", "noise_sigma_m"), low=0.0,
-                    low_open=True, finite=True)
+        check_range(
+            self,
+            ("knot_spacing_m", "bias_sigma_m", "correlation_length_m", "noise_sigma_m"),
+            low=0.0,
+            low_open=True,
+            finite=True,
+        )
         check_range(self, ("drift_sigma_m",), low=0.0, finite=True)
         check_choice(self, "loss", _LOSSES)
         check_range(self, ("iterations",), low=1, integer=True)
@@ -348,16 +353,24 @@ def _prior(lay: _Layout, cfg: AdjustConfig) -> sp.csr_matrix:
     inc_start = np.repeat(first, n_inc) + (np.arange(n_inc.sum()) - np.repeat(np.cumsum(n_inc) - n_inc, n_inc))
     n_first, n_rows = first.size, first.size + inc_start.size
     inc_scale = 1.0 / (cfg.drift_sigma_m * np.sqrt(1.0 - phi**2))
-    rows = np.concatenate([np.arange(n_first), n_first + np.arange(inc_start.size), n_first + np.arange(inc_start.size)])
+    rows = np.concatenate(
+        [np.arange(n_first), n_first + np.arange(inc_start.size), n_first + np.arange(inc_start.size)]
+    )
     cols = np.concatenate([first, inc_start + 1, inc_start])
-    vals = np.concatenate([np.full(n_first, 1.0 / cfg.drift_sigma_m), np.full(inc_start.size, inc_scale),
-                           np.full(inc_start.size, -phi * inc_scale)])
+    vals = np.concatenate(
+        [
+            np.full(n_first, 1.0 / cfg.drift_sigma_m),
+            np.full(inc_start.size, inc_scale),
+            np.full(inc_start.size, -phi * inc_scale),
+        ]
+    )
     jac = sp.csr_matrix((vals, (rows, cols)), shape=(n_rows, lay.n_unknowns))
     return (diag_b + jac.T @ jac).tocsr()
 
 
-def _reduced_normal(a: sp.csr_matrix, cluster: np.ndarray, n_clusters: int, info: np.ndarray,
-                    lateral: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+def _reduced_normal(
+    a: sp.csr_matrix, cluster: np.ndarray, n_clusters: int, info: np.ndarray, lateral: np.ndarray
+) -> tuple[sp.csr_matrix, np.ndarray]:
     """Normal matrix and right-hand side with the cluster positions eliminated (Schur complement).
 
     Cost sum_i info_i (l_i + a_i theta - x_c)^2, minimised over x_c in closed form:
@@ -376,8 +389,15 @@ def _reduced_normal(a: sp.csr_matrix, cluster: np.ndarray, n_clusters: int, info
     return h.tocsr(), np.asarray(rhs).ravel()
 
 
-def _update_normal(h: sp.csr_matrix, rhs: np.ndarray, a: sp.csr_matrix, samples: assoc.Samples, prior: sp.csr_matrix,
-                   old_info: np.ndarray, want_info: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+def _update_normal(
+    h: sp.csr_matrix,
+    rhs: np.ndarray,
+    a: sp.csr_matrix,
+    samples: assoc.Samples,
+    prior: sp.csr_matrix,
+    old_info: np.ndarray,
+    want_info: np.ndarray,
+) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
     """Re-weight the normal equations, recomputing only the clusters whose weights changed.
 
     The normal matrix is a sum over clusters, and IRLS changes few weights after the first
@@ -422,8 +442,9 @@ class _Solver:
         # H is symmetric positive definite: no pivoting needed, and a symmetric ordering keeps the
         # factors sparse (measured on paper_like 4x, 8217 unknowns: L+U 3.1 M entries in 0.8 s,
         # against 15 M in 1.9 s with COLAMD and partial pivoting)
-        self._lu = spla.splu(h.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                             options=dict(SymmetricMode=True))
+        self._lu = spla.splu(
+            h.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True)
+        )
         return self._lu.solve(rhs)
 
 
@@ -463,8 +484,12 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     cfg = config
     stats: dict[str, Any] = {}
     pool = assoc.gather(observations, stats)
-    base: dict[str, Any] = dict(knot_spacing_m=cfg.knot_spacing_m, correlation_length_m=cfg.correlation_length_m,
-                drift_sigma_m=cfg.drift_sigma_m, bias_sigma_m=cfg.bias_sigma_m)
+    base: dict[str, Any] = dict(
+        knot_spacing_m=cfg.knot_spacing_m,
+        correlation_length_m=cfg.correlation_length_m,
+        drift_sigma_m=cfg.drift_sigma_m,
+        bias_sigma_m=cfg.bias_sigma_m,
+    )
     label = pool.label
     n_shifted = 0
     if cfg.reassociate_rounds > 0:
@@ -472,8 +497,9 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         # error (~1 m) of the truth, so the nearest cluster centre (median of the members' raw
         # positions) is an association that no per-step EM lane shift can bias. One constant
         # per drive fitted on it is then enough to re-associate at the gate.
-        label = assoc.reassociate(pool, label, np.zeros(pool.s_m.size), assoc.centres(pool, label, pool.lateral_m),
-                             gate_m=np.inf)
+        label = assoc.reassociate(
+            pool, label, np.zeros(pool.s_m.size), assoc.centres(pool, label, pool.lateral_m), gate_m=np.inf
+        )
         samples = assoc.select(pool, label, THIN_DRIVES)
         if samples.s_m.size:
             coarse = _coarse_config(cfg)
@@ -517,19 +543,32 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
 
 def _coarse_config(cfg: AdjustConfig) -> AdjustConfig:
     """One constant per drive (prior: the total offset variance), Huber, few iterations."""
-    return replace(cfg, drift_sigma_m=0.0, bias_sigma_m=float(np.hypot(cfg.bias_sigma_m, cfg.drift_sigma_m)),
-                   loss="huber", iterations=min(cfg.iterations, 3))
+    return replace(
+        cfg,
+        drift_sigma_m=0.0,
+        bias_sigma_m=float(np.hypot(cfg.bias_sigma_m, cfg.drift_sigma_m)),
+        loss="huber",
+        iterations=min(cfg.iterations, 3),
+    )
 
 
-def _shift_and_reassociate(pool: assoc.Pool, label: np.ndarray, model: OffsetModel, cfg: AdjustConfig
-                           ) -> tuple[np.ndarray, int]:
+def _shift_and_reassociate(
+    pool: assoc.Pool, label: np.ndarray, model: OffsetModel, cfg: AdjustConfig
+) -> tuple[np.ndarray, int]:
     """Lane-shift search per drive, then re-association at the gate; returns labels and #shifted drives."""
     offset = _pool_offsets(pool, model)
     cen = assoc.centres(pool, label, pool.lateral_m + offset)
     bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
-    shift = assoc.lane_shift_search(pool, cen, offset, bias, search_m=SHIFT_SEARCH_M,
-                                    gate_m=REASSOCIATE_GATE_M, noise_sigma_m=cfg.noise_sigma_m,
-                                    bias_sigma_m=cfg.bias_sigma_m)
+    shift = assoc.lane_shift_search(
+        pool,
+        cen,
+        offset,
+        bias,
+        search_m=SHIFT_SEARCH_M,
+        gate_m=REASSOCIATE_GATE_M,
+        noise_sigma_m=cfg.noise_sigma_m,
+        bias_sigma_m=cfg.bias_sigma_m,
+    )
     new = assoc.reassociate(pool, label, offset + shift[pool.drive], cen, gate_m=REASSOCIATE_GATE_M)
     return new, int(np.count_nonzero(shift))
 
@@ -554,7 +593,7 @@ def _pool_offsets(pool: assoc.Pool, model: OffsetModel) -> np.ndarray:
     order = np.argsort(pool.drive, kind="stable")
     bounds = np.searchsorted(pool.drive[order], np.arange(len(pool.drive_ids) + 1))
     for d, did in enumerate(pool.drive_ids):  # one vectorised call per drive (~100s)
-        part = order[bounds[d]:bounds[d + 1]]
+        part = order[bounds[d] : bounds[d + 1]]
         if part.size and did in model.drives:
             out[part] = model.offset(did, pool.s_m[part])
     return out
@@ -616,8 +655,9 @@ def _covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:
     }
 
 
-def _curves(samples: assoc.Samples, lay: _Layout, theta: np.ndarray, cov: dict[str, np.ndarray] | None
-            ) -> dict[str, DriveOffset]:
+def _curves(
+    samples: assoc.Samples, lay: _Layout, theta: np.ndarray, cov: dict[str, np.ndarray] | None
+) -> dict[str, DriveOffset]:
     out: dict[str, DriveOffset] = {}
     for d, did in enumerate(samples.drive_ids):  # one entry per drive (~100s): cheap
         c0, nk = int(lay.col0[d]), int(lay.n_knots[d])
@@ -625,10 +665,18 @@ def _curves(samples: assoc.Samples, lay: _Layout, theta: np.ndarray, cov: dict[s
         extra: dict[str, Any]
         if cov is None:
             nan = np.full(nk, np.nan)
-            extra = dict(var_bias=float("nan"), cov_bias_drift=nan, var_drift=nan.copy(),
-                         cov_drift_next=np.full(max(nk - 1, 0), np.nan))
+            extra = dict(
+                var_bias=float("nan"),
+                cov_bias_drift=nan,
+                var_drift=nan.copy(),
+                cov_drift_next=np.full(max(nk - 1, 0), np.nan),
+            )
         else:
-            extra = dict(var_bias=float(cov["diag"][c0]), cov_bias_drift=cov["with_bias"][g].copy(),
-                         var_drift=cov["diag"][g].copy(), cov_drift_next=cov["next"][c0 + 1:c0 + nk].copy())
+            extra = dict(
+                var_bias=float(cov["diag"][c0]),
+                cov_bias_drift=cov["with_bias"][g].copy(),
+                var_drift=cov["diag"][g].copy(),
+                cov_drift_next=cov["next"][c0 + 1 : c0 + nk].copy(),
+            )
         out[did] = DriveOffset(k0=int(lay.k0[d]), bias_m=float(theta[c0]), drift_m=theta[g].copy(), **extra)
     return out

@@ -67,9 +67,13 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
             reason = f"unreadable ({err})"
         else:
             m = len(ids)
-            reason = "" if s.size == lat.size == cl.size == ty.size == m else (
-                f"array lengths differ: drive_ids {m}, drive_s_m {s.size}, lateral_m {lat.size}, "
-                f"types {ty.size}, cluster {cl.size}"
+            reason = (
+                ""
+                if s.size == lat.size == cl.size == ty.size == m
+                else (
+                    f"array lengths differ: drive_ids {m}, drive_s_m {s.size}, lateral_m {lat.size}, "
+                    f"types {ty.size}, cluster {cl.size}"
+                )
             )
             if not reason and m and (cl.dtype.kind not in "iu" or ty.dtype.kind not in "iu"):
                 reason = f"cluster labels ({cl.dtype}) and types ({ty.dtype}) must be integers"
@@ -105,8 +109,16 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
     finite = np.isfinite(s) & np.isfinite(lat)
     stats["n_nonfinite_dropped"] = int((~finite).sum())
     drive, firsts = compact(first[finite], return_values=True)
-    return Pool(drive, tuple(all_ids[i] for i in firsts), s[finite], lat[finite], step[finite], ftype[finite],
-                 label[finite], step_drives)
+    return Pool(
+        drive,
+        tuple(all_ids[i] for i in firsts),
+        s[finite],
+        lat[finite],
+        step[finite],
+        ftype[finite],
+        label[finite],
+        step_drives,
+    )
 
 
 def select(pool: Pool, label: np.ndarray, thin_drives: int = 0) -> Samples:
@@ -186,8 +198,7 @@ def nearest(cen: Centres, step: np.ndarray, ftype: np.ndarray, v: np.ndarray) ->
     return best, best_d
 
 
-def reassociate(pool: Pool, label: np.ndarray, offset: np.ndarray, cen: Centres | None, *,
-                 gate_m: float) -> np.ndarray:
+def reassociate(pool: Pool, label: np.ndarray, offset: np.ndarray, cen: Centres | None, *, gate_m: float) -> np.ndarray:
     """New cluster labels: each sample joins the nearest cluster centre of its step and type.
 
     ``cen``: the current clusters' centres (``centres``); a sample whose corrected position
@@ -201,8 +212,17 @@ def reassociate(pool: Pool, label: np.ndarray, offset: np.ndarray, cen: Centres 
     return np.where(dist <= gate_m, best, -1).astype(np.int64)
 
 
-def lane_shift_search(pool: Pool, cen: Centres | None, offset: np.ndarray, bias_m: np.ndarray, *,
-                       search_m: float, gate_m: float, noise_sigma_m: float, bias_sigma_m: float) -> np.ndarray:
+def lane_shift_search(
+    pool: Pool,
+    cen: Centres | None,
+    offset: np.ndarray,
+    bias_m: np.ndarray,
+    *,
+    search_m: float,
+    gate_m: float,
+    noise_sigma_m: float,
+    bias_sigma_m: float,
+) -> np.ndarray:
     """(D,) constant correction per pool drive that best fits the cluster centres [m].
 
     ``offset``: (n,) current offset of every pool sample; ``bias_m``: (D,) current bias per drive.

@@ -25,7 +25,17 @@ from hdmap_core.checks import Rule, check_choice, check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
 
-__all__ = ["SINGLE_DRIVE_STD_M", "AggregationConfig", "ManyAggregates", "aggregate_many", "kde_maxima", "overlap_coefficients", "gaussian_overlap", "aggregate_step", "ProcessedStore"]
+__all__ = [
+    "SINGLE_DRIVE_STD_M",
+    "AggregationConfig",
+    "ManyAggregates",
+    "aggregate_many",
+    "kde_maxima",
+    "overlap_coefficients",
+    "gaussian_overlap",
+    "aggregate_step",
+    "ProcessedStore",
+]
 
 _SQRT2PI = np.sqrt(2.0 * np.pi)
 #: Reported 1-sigma of a maximum supported by one drive (the spread part; ``common_sigma_m`` adds
@@ -82,7 +92,9 @@ class AggregationConfig:
         check_range(self, ("common_sigma_m",), low=0.0, finite=True)
 
 
-def kde_maxima(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 16, n_shift: int = 50) -> np.ndarray:
+def kde_maxima(
+    x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, *, grid_points: int = 16, n_shift: int = 50
+) -> np.ndarray:
     """Maximum of the Gaussian KDE of every cluster.
 
     Args:
@@ -123,7 +135,9 @@ def _kde_on(points: np.ndarray, x: np.ndarray, h: float) -> np.ndarray:
     return np.exp(-0.5 * z * z).sum(axis=1) / (len(x) * h * _SQRT2PI)
 
 
-def overlap_coefficients(x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, pairs: np.ndarray, *, grid_points: int = 48) -> np.ndarray:
+def overlap_coefficients(
+    x: np.ndarray, labels: np.ndarray, bandwidth_m: np.ndarray, pairs: np.ndarray, *, grid_points: int = 48
+) -> np.ndarray:
     """Overlap coefficient integral(min(p_i, p_j)) of the KDEs of cluster pairs.
 
     Args:
@@ -236,7 +250,11 @@ def aggregate_many(
         # Neighbours in position within a step (within each class when borders and markings
         # are not compared, so a border between a line and its misclassified copy does not hide
         # the pair).
-        cls = np.zeros(k, dtype=np.int64) if config.overlap_border_marking else (ctype == int(FeatureType.ROAD_BORDER)).astype(np.int64)
+        cls = (
+            np.zeros(k, dtype=np.int64)
+            if config.overlap_border_marking
+            else (ctype == int(FeatureType.ROAD_BORDER)).astype(np.int64)
+        )
         by_class = np.lexsort((pos, cstep, cls))
         a, b = by_class[:-1], by_class[1:]
         near = (cstep[a] == cstep[b]) & (cls[a] == cls[b]) & (np.abs(pos[a] - pos[b]) < 4.0 * (bw[a] + bw[b]))
@@ -257,7 +275,11 @@ def aggregate_many(
                         if n_drives[border] >= config.border_beside_marking_drives:
                             continue  # two drives' border on a line: both there (a curb on an edge line)
                     if config.tie_by_position and n[i] == n[j] and {int(ctype[i]), int(ctype[j])} == _SOLID_DASHED:
-                        members = order[np.searchsorted(step_sorted, cstep[i], "left"):np.searchsorted(step_sorted, cstep[i], "right")]
+                        members = order[
+                            np.searchsorted(step_sorted, cstep[i], "left") : np.searchsorted(
+                                step_sorted, cstep[i], "right"
+                            )
+                        ]
                         keep[i if int(ctype[i]) != _tie_type(i, j, members, pos, ctype) else j] = False
                     else:
                         keep[i if n[i] < n[j] else j] = False

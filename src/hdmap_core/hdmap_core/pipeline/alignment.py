@@ -366,7 +366,13 @@ def _penalty(mu: np.ndarray, ctype: np.ndarray, s: float) -> np.ndarray:
 
 
 def _closed_form(
-    x: np.ndarray, labels: np.ndarray, drive: np.ndarray, n_drives: int, w: np.ndarray, reg_w: np.ndarray, reg_t: np.ndarray
+    x: np.ndarray,
+    labels: np.ndarray,
+    drive: np.ndarray,
+    n_drives: int,
+    w: np.ndarray,
+    reg_w: np.ndarray,
+    reg_t: np.ndarray,
 ) -> np.ndarray:
     """Exact minimiser of sum_c (1/n_c) sum_j w_j (x_j + o_dj - mu_c(o))^2 + sum_d reg_w (o_d - reg_t)^2.
 
@@ -430,7 +436,9 @@ def solve_offsets(
         o = _closed_form(x, labels, drive, n_drives, w, reg_w, reg_t)
         if config.robust_loss and it < 3:
             y = x + o[drive]
-            mu = np.bincount(labels, weights=w * y, minlength=k) / np.maximum(np.bincount(labels, weights=w, minlength=k), 1e-300)
+            mu = np.bincount(labels, weights=w * y, minlength=k) / np.maximum(
+                np.bincount(labels, weights=w, minlength=k), 1e-300
+            )
             w_new = np.minimum(1.0, config.huber_delta_m / np.maximum(np.abs(y - mu[labels]), 1e-12))
             if np.array_equal(w_new, w):  # the weights are a fixed point: the next solve is this one
                 break
@@ -439,7 +447,9 @@ def solve_offsets(
     centres = np.bincount(labels, weights=x + o[drive], minlength=k) / n_c
     # The penalty only acts when two same-type clusters come close; the closed form already
     # minimises the variance term, so LM runs only then (always with solver="lm", the paper's way).
-    need_lm = k >= 2 and s > 0 and (config.solver == "lm" or _penalty(centres, ctype, s).max() > config.penalty_lm_threshold)
+    need_lm = (
+        k >= 2 and s > 0 and (config.solver == "lm" or _penalty(centres, ctype, s).max() > config.penalty_lm_threshold)
+    )
     if need_lm:
         a, b, mean0, share = _variance_system(x, labels, drive, n_drives)
         row_w = np.sqrt(w)
@@ -488,7 +498,9 @@ def _gap_clusters(y: np.ndarray, types: np.ndarray, gap_m: float) -> tuple[np.nd
     return lab, centre, ctype
 
 
-def _grid_scores(x: np.ndarray, cand: np.ndarray, centre: np.ndarray, allowed: np.ndarray, capture_m: float) -> np.ndarray:
+def _grid_scores(
+    x: np.ndarray, cand: np.ndarray, centre: np.ndarray, allowed: np.ndarray, capture_m: float
+) -> np.ndarray:
     """(G, M) score of each sample ``x`` (M,) shifted by each candidate offset ``cand`` (G,):
     max(0, 1 - distance to the nearest allowed cluster centre / ``capture_m``); ``allowed``
     (M, K) marks the clusters a sample may land on."""
@@ -763,7 +775,9 @@ def align_step(
         o = np.where(fill, init, o)
         known = known | fill
     if config.clustering != "auto" or not config.estimate_offsets:
-        return _em(x, types, drive, o, prior, method=config.clustering if config.clustering != "auto" else "gap", config=config)
+        return _em(
+            x, types, drive, o, prior, method=config.clustering if config.clustering != "auto" else "gap", config=config
+        )
     # Tracking: drives carried over from the previous step keep their offsets, new ones are
     # matched onto the clusters those form, then gaps separate the clusters. Without a
     # carried-over drive, or when the tracked result fails the gate (a drive may have locked onto
@@ -843,15 +857,20 @@ def align_steps_gap(
     nd = int(dv.max()) + 1
     n_drv = np.bincount(np.unique(owner * np.int64(nd) + dv) // nd, minlength=len(steps))  # distinct drives per step
     special = (score == -1.0) | (n_drv <= max(config.sparse_step_max_drives, 1))
-    labels_sorted = run - np.repeat(run[np.searchsorted(os_, np.arange(len(steps)))], np.bincount(os_, minlength=len(steps)))
+    labels_sorted = run - np.repeat(
+        run[np.searchsorted(os_, np.arange(len(steps)))], np.bincount(os_, minlength=len(steps))
+    )
     labels = np.empty(n, dtype=np.int64)
     labels[order] = labels_sorted
     first = np.concatenate([[0], np.cumsum(n_in)])
     out: dict[int, StepAlignment] = {}
     for j in np.flatnonzero(~special):
         out[int(steps[j])] = StepAlignment(
-            offsets_m=np.zeros(int(n_drv[j])), labels=labels[first[j]:first[j + 1]],
-            silhouette=float(score[j]), valid=bool(score[j] >= config.silhouette_gate), n_iterations=1,
+            offsets_m=np.zeros(int(n_drv[j])),
+            labels=labels[first[j] : first[j + 1]],
+            silhouette=float(score[j]),
+            valid=bool(score[j] >= config.silhouette_gate),
+            n_iterations=1,
         )
     return out
 
@@ -905,10 +924,17 @@ def _em(
             # clusters, so nothing is left to score: judged like a lone-cluster step when the
             # drives agree somewhere, or (RULE disjoint drives) share no line and contradict
             # none (docs/pipeline.md)
-            or (config.sparse_singletons_accept and paired == -1.0 and (
-                _shared_cluster(labels, drive)
-                or (config.sparse_disjoint_apart_m > 0 and _drives_apart(y, labels, drive, config.sparse_disjoint_apart_m))
-            ))
+            or (
+                config.sparse_singletons_accept
+                and paired == -1.0
+                and (
+                    _shared_cluster(labels, drive)
+                    or (
+                        config.sparse_disjoint_apart_m > 0
+                        and _drives_apart(y, labels, drive, config.sparse_disjoint_apart_m)
+                    )
+                )
+            )
         )
     use = labels >= 0
     one_drive = bool(use.any()) and bool(np.all(drive[use] == drive[use][0]))
@@ -921,7 +947,9 @@ def _em(
     out_types = None
     if valid and config.sparse_type_clash_keep and labels is not before_clash:
         labels, out_types = _keep_clashes(y, before_clash, labels, types, drive, config.sparse_type_clash_m)
-    return StepAlignment(offsets_m=o, labels=labels, silhouette=score, valid=bool(valid), n_iterations=it, types=out_types)
+    return StepAlignment(
+        offsets_m=o, labels=labels, silhouette=score, valid=bool(valid), n_iterations=it, types=out_types
+    )
 
 
 def _keep_clashes(

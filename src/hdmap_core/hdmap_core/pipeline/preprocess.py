@@ -117,7 +117,9 @@ class DetectionIndex:
     def n_segments(self) -> int:
         return len(self.seg_type)
 
-    def candidates(self, origin: np.ndarray, direction: np.ndarray, half_len_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def candidates(
+        self, origin: np.ndarray, direction: np.ndarray, half_len_m: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Candidate (cut, segment) pairs: every segment that may cross a cut line.
 
         Exact superset: the cut line is sampled every cell/2, and segments were inserted into all
@@ -134,13 +136,15 @@ class DetectionIndex:
         if q == 0 or len(self.cell_keys) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         delta = 0.5 * self.cell_m
-        n_pts = (np.floor(2.0 * half_len_m / delta).astype(np.int64) + 2)
+        n_pts = np.floor(2.0 * half_len_m / delta).astype(np.int64) + 2
         owner = np.repeat(np.arange(q), n_pts)
         first = np.concatenate([[0], np.cumsum(n_pts)[:-1]])
         k = np.arange(len(owner)) - first[owner]
         t = np.minimum(-half_len_m[owner] + k * delta, half_len_m[owner])
         p = origin[owner] + t[:, None] * direction[owner]
-        keys = _cell_key(np.floor(p[:, 0] / self.cell_m).astype(np.int64), np.floor(p[:, 1] / self.cell_m).astype(np.int64))
+        keys = _cell_key(
+            np.floor(p[:, 0] / self.cell_m).astype(np.int64), np.floor(p[:, 1] / self.cell_m).astype(np.int64)
+        )
         # Distinct (cut, cell) pairs; sample points of one cut are in order, so neighbours suffice
         # for most repeats, and a full sort is not needed for correctness (pairs may repeat).
         dup = np.zeros(len(keys), dtype=bool)
@@ -188,7 +192,14 @@ class DetectionIndex:
             _, first = np.unique(cut * np.int64(self.n_segments + 1) + seg, return_index=True)
             cut, seg, t, u = cut[first], seg[first], t[first], u[first]
         s = self.seg_s_a[seg] + u * (self.seg_s_b[seg] - self.seg_s_a[seg])
-        return CutHits(cut=cut, t_m=t, types=self.seg_type[seg], drive=self.seg_drive[seg], drive_s_m=s, drive_yaw=self.seg_yaw[seg])
+        return CutHits(
+            cut=cut,
+            t_m=t,
+            types=self.seg_type[seg],
+            drive=self.seg_drive[seg],
+            drive_s_m=s,
+            drive_yaw=self.seg_yaw[seg],
+        )
 
 
 # Grid keys hold 2^31 cells either side of the origin per axis. A segment is indexed in at most
@@ -250,7 +261,9 @@ class _Thinned:
     n_points_kept: int
 
 
-def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConfig(), workers: int = 1) -> DetectionIndex:
+def preprocess(
+    drives: list[Drive], *, config: PreprocessConfig = PreprocessConfig(), workers: int = 1
+) -> DetectionIndex:
     """Filter, thin and index the detections of valid drives (Sec. III).
 
     Args:
@@ -268,8 +281,10 @@ def preprocess(drives: list[Drive], *, config: PreprocessConfig = PreprocessConf
     n_points_in = sum(t.n_points_in for t in parts)
     n_points_kept = sum(t.n_points_kept for t in parts)
     n_kept = sum(t.n_polylines_kept for t in parts)
-    cat = {f: np.concatenate([getattr(t, f) for t in parts]) for f in (
-        "seg_a", "seg_b", "seg_type", "seg_drive", "seg_s_a", "seg_s_b", "seg_yaw", "cell_key")}
+    cat = {
+        f: np.concatenate([getattr(t, f) for t in parts])
+        for f in ("seg_a", "seg_b", "seg_type", "seg_drive", "seg_s_a", "seg_s_b", "seg_yaw", "cell_key")
+    }
     offset = np.cumsum([0] + [len(t.seg_type) for t in parts[:-1]])
     cell_seg = np.concatenate([t.cell_seg + off for t, off in zip(parts, offset)]) if parts else np.zeros(0, np.int64)
     keys, start, segs = _grid_csr(cat["cell_key"], cell_seg)
@@ -325,8 +340,18 @@ def _thin(drives: list[Drive], lo: int, hi: int, config: PreprocessConfig) -> _T
             pdrive.append(di)
     n_points_in = int(sum(len(c) for c in chunks))
     if not chunks:
-        return _segments(drives, lo, hi, np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0, np.int8),
-                         np.zeros(0, np.int32), config, n_points_in, 0)
+        return _segments(
+            drives,
+            lo,
+            hi,
+            np.zeros((0, 2)),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int8),
+            np.zeros(0, np.int32),
+            config,
+            n_points_in,
+            0,
+        )
     counts = np.array([len(c) for c in chunks])
     xy = np.concatenate(chunks)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -349,8 +374,18 @@ def _thin(drives: list[Drive], lo: int, hi: int, config: PreprocessConfig) -> _T
     return _segments(drives, lo, hi, xy, counts, ptypes_a, pdrive_a, config, n_points_in, n_points_kept)
 
 
-def _segments(drives: list[Drive], lo: int, hi: int, xy: np.ndarray, counts: np.ndarray, ptypes: np.ndarray,
-              pdrive: np.ndarray, config: PreprocessConfig, n_points_in: int, n_points_kept: int) -> _Thinned:
+def _segments(
+    drives: list[Drive],
+    lo: int,
+    hi: int,
+    xy: np.ndarray,
+    counts: np.ndarray,
+    ptypes: np.ndarray,
+    pdrive: np.ndarray,
+    config: PreprocessConfig,
+    n_points_in: int,
+    n_points_kept: int,
+) -> _Thinned:
     """Segments of back-to-back polylines (drive by drive) with their own drive's distance and
     heading, and the grid cells they touch."""
     # Per-vertex own-drive distance and heading; vertices come drive by drive.
@@ -370,9 +405,18 @@ def _segments(drives: list[Drive], lo: int, hi: int, xy: np.ndarray, counts: np.
     seg_a, seg_b = xy[a_idx], xy[a_idx + 1]
     cell_key, cell_seg = _grid_pairs(seg_a, seg_b, config.grid_cell_m)
     return _Thinned(
-        seg_a=seg_a, seg_b=seg_b, seg_type=np.repeat(ptypes, counts)[a_idx], seg_drive=v_drive[a_idx],
-        seg_s_a=v_s[a_idx], seg_s_b=v_s[a_idx + 1], seg_yaw=v_yaw[a_idx], cell_key=cell_key, cell_seg=cell_seg,
-        n_polylines_kept=len(counts), n_points_in=n_points_in, n_points_kept=n_points_kept,
+        seg_a=seg_a,
+        seg_b=seg_b,
+        seg_type=np.repeat(ptypes, counts)[a_idx],
+        seg_drive=v_drive[a_idx],
+        seg_s_a=v_s[a_idx],
+        seg_s_b=v_s[a_idx + 1],
+        seg_yaw=v_yaw[a_idx],
+        cell_key=cell_key,
+        cell_seg=cell_seg,
+        n_polylines_kept=len(counts),
+        n_points_in=n_points_in,
+        n_points_kept=n_points_kept,
     )
 
 
@@ -397,10 +441,18 @@ def trajectory_index(drives: list[Drive], *, cell_m: float = PreprocessConfig.gr
     seg_a, seg_b = cat(a_parts, np.zeros((0, 2))), cat(b_parts, np.zeros((0, 2)))
     keys, start, segs = _build_grid(seg_a, seg_b, cell_m)
     return DetectionIndex(
-        drive_ids=tuple(d.drive_id for d in drives), seg_a=seg_a, seg_b=seg_b,
-        seg_type=np.full(len(seg_a), int(FeatureType.UNKNOWN), dtype=np.int8), seg_drive=cat(d_parts, np.zeros(0, np.int32)),
-        seg_s_a=cat(sa_parts, np.zeros(0)), seg_s_b=cat(sb_parts, np.zeros(0)), seg_yaw=cat(y_parts, np.zeros(0)),
-        cell_m=cell_m, cell_keys=keys, cell_start=start, cell_segs=segs,
+        drive_ids=tuple(d.drive_id for d in drives),
+        seg_a=seg_a,
+        seg_b=seg_b,
+        seg_type=np.full(len(seg_a), int(FeatureType.UNKNOWN), dtype=np.int8),
+        seg_drive=cat(d_parts, np.zeros(0, np.int32)),
+        seg_s_a=cat(sa_parts, np.zeros(0)),
+        seg_s_b=cat(sb_parts, np.zeros(0)),
+        seg_yaw=cat(y_parts, np.zeros(0)),
+        cell_m=cell_m,
+        cell_keys=keys,
+        cell_start=start,
+        cell_segs=segs,
     )
 
 

@@ -156,7 +156,9 @@ def pivot_walk(drive: Drive, *, step_m: float) -> tuple[np.ndarray, np.ndarray, 
     return s, pts, heading
 
 
-def _side_first_border(q: np.ndarray, d: np.ndarray, n_steps: int, *, window_m: float, support: np.ndarray) -> np.ndarray:
+def _side_first_border(
+    q: np.ndarray, d: np.ndarray, n_steps: int, *, window_m: float, support: np.ndarray
+) -> np.ndarray:
     """Per step, the distance d >= 0 of the first border sample with enough support, else NaN.
 
     q: (B,) step of each border sample on this side; d: (B,) its distance from the pivot [m];
@@ -253,7 +255,9 @@ def _border_support(step: np.ndarray, n_steps: int, config: SamplingConfig, driv
     return support
 
 
-def _side_reach(q: np.ndarray, d: np.ndarray, first: np.ndarray, qa: np.ndarray, da: np.ndarray, *, config: SamplingConfig) -> np.ndarray:
+def _side_reach(
+    q: np.ndarray, d: np.ndarray, first: np.ndarray, qa: np.ndarray, da: np.ndarray, *, config: SamplingConfig
+) -> np.ndarray:
     """``SamplingConfig.outer_border_reach`` on one side: per step, how far (distance >= 0 from
     the pivot) samples are kept beyond the refined cut, NaN where it adds nothing.
 
@@ -323,8 +327,11 @@ def _refine(
             open_end = _side_end(qa, da, chain, config=config)
             end = np.where(np.isnan(end), open_end, end)
         ends.append(end)
-        reach.append(sign * _side_reach(q, d, first, qa, da, config=config) if config.outer_border_reach
-                     else np.full(n_steps, np.nan))
+        reach.append(
+            sign * _side_reach(q, d, first, qa, da, config=config)
+            if config.outer_border_reach
+            else np.full(n_steps, np.nan)
+        )
     left_end, right_end = ends[0], -ends[1]
     width_raw = left_end - right_end
     width = _fill(_causal_weighted_mean(width_raw, _WIDTH_SMOOTHING_STEPS, _WIDTH_DECAY), _DEFAULT_WIDTH_M)
@@ -379,7 +386,9 @@ def sample_pivot(
         hits = index.intersect(pts[active], normal[active], np.full(len(active), config.initial_half_length_m))
         qn = active[hits.cut]
         same_dir = np.abs(wrap_angle(hits.drive_yaw - heading[qn])) <= np.deg2rad(config.max_heading_diff_deg)
-        parts.append((qn[same_dir], hits.t_m[same_dir], hits.types[same_dir], hits.drive[same_dir], hits.drive_s_m[same_dir]))
+        parts.append(
+            (qn[same_dir], hits.t_m[same_dir], hits.types[same_dir], hits.drive[same_dir], hits.drive_s_m[same_dir])
+        )
     if len(parts) > 1:
         merged = tuple(np.concatenate(v) for v in zip(*parts))
     elif parts:
@@ -488,10 +497,14 @@ def pivot_groups(index: DetectionIndex, drives: Sequence[Drive], *, config: Samp
         _, pts, heading = pivot_walk(d, step_m=config.step_m)
         k = np.unique(place(pts, heading))
         b, c = k % _HEADING_BINS, k // _HEADING_BINS
-        grown = np.concatenate([
-            (c + dx * _SPAN + dy) * _HEADING_BINS + (b + db) % _HEADING_BINS
-            for dx in (-1, 0, 1) for dy in (-1, 0, 1) for db in shifts
-        ])
+        grown = np.concatenate(
+            [
+                (c + dx * _SPAN + dy) * _HEADING_BINS + (b + db) % _HEADING_BINS
+                for dx in (-1, 0, 1)
+                for dy in (-1, 0, 1)
+                for db in shifts
+            ]
+        )
         pos = np.minimum(np.searchsorted(keys, grown), max(len(keys) - 1, 0))
         hit = keys[pos] == grown if len(keys) else np.zeros(len(grown), dtype=bool)
         reach_node.append(pos[hit])

@@ -167,8 +167,9 @@ def simulate_step_observations(
         present = np.flatnonzero((starts <= u) & (u <= starts + lengths))
         if present.size == 0:
             continue
-        seen = rng.random((present.size, n_lines)) < (np.asarray(cfg.line_detect_prob) if cfg.line_detect_prob
-                                                        else cfg.detect_prob)
+        seen = rng.random((present.size, n_lines)) < (
+            np.asarray(cfg.line_detect_prob) if cfg.line_detect_prob else cfg.detect_prob
+        )
         di, li = np.nonzero(seen)
         drv = present[di]
         s = s0[drv] + (u - starts[drv])

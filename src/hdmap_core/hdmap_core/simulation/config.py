@@ -120,26 +120,46 @@ class SimConfig:
             if f.name in _PROBABILITIES and not 0.0 <= v <= 1.0:
                 raise ConfigError(f"SimConfig.{f.name}={v!r} must be in [0, 1]")
         if abs(self.origin_latitude_deg) > 90.0 or abs(self.origin_longitude_deg) > 180.0:
-            raise ConfigError(f"SimConfig: origin {self.origin_latitude_deg}, {self.origin_longitude_deg} is not a WGS84 position")
-        pairs = [("snippet_length", "_m"), ("speed", "_mps"), ("drive_gap", "_s"), ("lane_change_length", "_m"),
-                 ("lane_change_stay", "_m"), ("visibility_block", "_m"), ("misclass_block", "_m"),
-                 ("false_positive_length", "_m")]
+            raise ConfigError(
+                f"SimConfig: origin {self.origin_latitude_deg}, {self.origin_longitude_deg} is not a WGS84 position"
+            )
+        pairs = [
+            ("snippet_length", "_m"),
+            ("speed", "_mps"),
+            ("drive_gap", "_s"),
+            ("lane_change_length", "_m"),
+            ("lane_change_stay", "_m"),
+            ("visibility_block", "_m"),
+            ("misclass_block", "_m"),
+            ("false_positive_length", "_m"),
+        ]
         for stem, unit in pairs:
             lo, hi = getattr(self, f"{stem}_min{unit}"), getattr(self, f"{stem}_max{unit}")
             if lo > hi:
                 raise ConfigError(f"SimConfig.{stem}_min{unit}={lo} exceeds {stem}_max{unit}={hi}")
-        positive = ("pose_spacing_m", "detection_spacing_m", "speed_min_mps", "visibility_block_min_m",
-                    "misclass_block_min_m", "lane_change_length_min_m", "snippet_length_max_m")
+        positive = (
+            "pose_spacing_m",
+            "detection_spacing_m",
+            "speed_min_mps",
+            "visibility_block_min_m",
+            "misclass_block_min_m",
+            "lane_change_length_min_m",
+            "snippet_length_max_m",
+        )
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"SimConfig.{name}={getattr(self, name)!r} must be > 0")
         if self.n_drives < 0 or self.n_vehicles < 1:
             raise ConfigError(f"SimConfig: n_drives={self.n_drives} must be >= 0 and n_vehicles={self.n_vehicles} >= 1")
         if self.route_weighting not in ROUTE_WEIGHTINGS:
-            raise ConfigError(f"SimConfig.route_weighting={self.route_weighting!r}: choose one of {', '.join(ROUTE_WEIGHTINGS)}")
+            raise ConfigError(
+                f"SimConfig.route_weighting={self.route_weighting!r}: choose one of {', '.join(ROUTE_WEIGHTINGS)}"
+            )
         if self.coverage_candidates < 1 or self.coverage_cell_m <= 0:
-            raise ConfigError(f"SimConfig: coverage_candidates={self.coverage_candidates} must be >= 1 and "
-                              f"coverage_cell_m={self.coverage_cell_m} > 0")
+            raise ConfigError(
+                f"SimConfig: coverage_candidates={self.coverage_candidates} must be >= 1 and "
+                f"coverage_cell_m={self.coverage_cell_m} > 0"
+            )
         if not 0.0 <= self.same_direction_cos_min < 1.0:
             raise ConfigError(f"SimConfig.same_direction_cos_min={self.same_direction_cos_min} must be in [0, 1)")
         if self.misclass_rate + self.marking_to_border_rate > 1.0:
@@ -174,10 +194,19 @@ class SimConfig:
         """Perfect sensing: no localization error, noise, wander, misclassification or false
         positives; every feature within the sensor bands is seen (visibility 1)."""
         clean: dict[str, object] = dict(
-            wander_sigma_m=0.0, lane_change_rate_per_km=0.0, bias_lateral_sigma_m=0.0,
-            bias_longitudinal_sigma_m=0.0, drift_sigma_m=0.0, visibility_ego_marking=1.0,
-            visibility_next_marking=1.0, visibility_far_marking=1.0, visibility_border=1.0,
-            noise_sigma_m=0.0, noise_growth_per_m=0.0, misclass_rate=0.0, marking_to_border_rate=0.0,
+            wander_sigma_m=0.0,
+            lane_change_rate_per_km=0.0,
+            bias_lateral_sigma_m=0.0,
+            bias_longitudinal_sigma_m=0.0,
+            drift_sigma_m=0.0,
+            visibility_ego_marking=1.0,
+            visibility_next_marking=1.0,
+            visibility_far_marking=1.0,
+            visibility_border=1.0,
+            noise_sigma_m=0.0,
+            noise_growth_per_m=0.0,
+            misclass_rate=0.0,
+            marking_to_border_rate=0.0,
             false_positive_rate_per_km=0.0,
         )
         clean.update(overrides)

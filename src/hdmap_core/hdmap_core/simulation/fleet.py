@@ -356,13 +356,17 @@ def _build_route_geom(gt: GroundTruth, route: GTRoute, spacing_m: float, trees: 
                 all_ids.append(nid)
             off[side][sel[good]] = lat[good]
             nb[side][sel[good]] = all_ids.index(nid)
-    return _RouteGeom(route.id, xy, q, tangent, left, lane, off["left"], off["right"], nb["left"], nb["right"], tuple(all_ids))
+    return _RouteGeom(
+        route.id, xy, q, tangent, left, lane, off["left"], off["right"], nb["left"], nb["right"], tuple(all_ids)
+    )
 
 
 # ------------------------------------------------------------------------------ drives
 
 
-def _lane_change_offsets(geom: _RouteGeom, k0: int, m: int, cfg: SimConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _lane_change_offsets(
+    geom: _RouteGeom, k0: int, m: int, cfg: SimConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Lateral offset (m,) of lane-change manoeuvres (out to a neighbour lane, stay, back) and the
     side (m,) the vehicle is in (+1 left, -1 right, 0 own lane). A manoeuvre only starts where the
     neighbour exists and returns before the neighbour lane ends."""
@@ -392,7 +396,9 @@ def _lane_change_offsets(geom: _RouteGeom, k0: int, m: int, cfg: SimConfig, rng:
                 pos += n_t * step
                 continue
         j = np.arange(2 * n_t + n_s)
-        prof = np.where(j < n_t, smoothstep(j / n_t), np.where(j < n_t + n_s, 1.0, 1.0 - smoothstep((j - n_t - n_s) / n_t)))
+        prof = np.where(
+            j < n_t, smoothstep(j / n_t), np.where(j < n_t + n_s, 1.0, 1.0 - smoothstep((j - n_t - n_s) / n_t))
+        )
         prof = prof[: m - i0]
         off[i0 : i0 + len(prof)] = prof * np.nan_to_num(arr[: len(prof)])
         side_of[i0 : i0 + len(prof)] = np.where(prof > 0.5, side, 0)
@@ -433,7 +439,9 @@ class _PlaceCounts:
         got = self._cells.get(geom.route_id)
         if got is None:
             ij = np.floor(geom.xy / self.cell_m).astype(np.int64)
-            got = np.array([self.ids.setdefault((direction, int(i), int(j)), len(self.ids)) for i, j in ij], dtype=np.int64)
+            got = np.array(
+                [self.ids.setdefault((direction, int(i), int(j)), len(self.ids)) for i, j in ij], dtype=np.int64
+            )
             self._cells[geom.route_id] = got
             if len(self.ids) > len(self.count):
                 self.count = np.concatenate([self.count, np.zeros(len(self.ids) - len(self.count), dtype=np.int64)])
@@ -543,8 +551,16 @@ def simulate_fleet(
     """
     stream = FleetStream(gt, config=config, seed=seed, changes=changes, keep_arrays=True)
     drives = list(stream)
-    return Fleet(drives, stream.origin, stream.truth, config, int(seed), gt.name, extra=stream.change_extra(),
-                 seen_count=stream.seen_count())
+    return Fleet(
+        drives,
+        stream.origin,
+        stream.truth,
+        config,
+        int(seed),
+        gt.name,
+        extra=stream.change_extra(),
+        seen_count=stream.seen_count(),
+    )
 
 
 class FleetStream:
@@ -560,8 +576,15 @@ class FleetStream:
         as :func:`simulate_fleet` (on construction).
     """
 
-    def __init__(self, gt: GroundTruth, *, config: SimConfig = SimConfig(), seed: int = 0,
-                 changes: Sequence[RoadChange] = (), keep_arrays: bool = False) -> None:
+    def __init__(
+        self,
+        gt: GroundTruth,
+        *,
+        config: SimConfig = SimConfig(),
+        seed: int = 0,
+        changes: Sequence[RoadChange] = (),
+        keep_arrays: bool = False,
+    ) -> None:
         if not isinstance(gt, GroundTruth):
             raise GroundTruthError(f"simulate_fleet: expected a GroundTruth, got {type(gt).__name__}")
         if not isinstance(config, SimConfig):
@@ -590,8 +613,13 @@ class FleetStream:
     def summary(self) -> dict:
         """``Fleet.summary`` of the drives simulated so far."""
         c = self._counts
-        return {"drives": c["drives"], "km": round(c["m"] / 1000.0, 3), "detections": c["detections"],
-                "false_positives": c["false_positives"], "poses": c["poses"]}
+        return {
+            "drives": c["drives"],
+            "km": round(c["m"] / 1000.0, 3),
+            "detections": c["detections"],
+            "false_positives": c["false_positives"],
+            "poses": c["poses"],
+        }
 
     def seen_count(self) -> dict[int, np.ndarray]:
         """``Fleet.seen_count`` of the drives simulated so far (with changes: of the road as of the
@@ -616,8 +644,16 @@ class FleetStream:
 
     def fleet(self) -> Fleet:
         """A ``Fleet`` without its drives (they were streamed), for ``write_sim_json``."""
-        return Fleet([], self.origin, self.truth, self.config, self.seed, self.map_name,
-                     extra={"summary": self.summary(), **self.change_extra()}, seen_count=self.seen_count())
+        return Fleet(
+            [],
+            self.origin,
+            self.truth,
+            self.config,
+            self.seed,
+            self.map_name,
+            extra={"summary": self.summary(), **self.change_extra()},
+            seen_count=self.seen_count(),
+        )
 
     def __iter__(self) -> Iterator[Drive]:
         if self._started:

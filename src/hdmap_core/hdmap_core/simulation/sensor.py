@@ -62,7 +62,6 @@ def gauss_markov(n: int, step_m: float, sigma: float, corr_m: float, rng: np.ran
     return lfilter([1.0], [1.0, -phi], e)
 
 
-
 # ------------------------------------------------------------------------------ features
 
 
@@ -154,7 +153,11 @@ def _visibility(cfg: SimConfig, typ: np.ndarray, abs_lat: np.ndarray) -> np.ndar
         fp += [values[i], values[i + 1]]
     p_mark = np.interp(abs_lat, np.maximum.accumulate(xp), fp)
     hb = min(cfg.visibility_edge_m / 2.0, cfg.border_max_lateral_m)
-    p_border = np.interp(abs_lat, [0.0, cfg.border_max_lateral_m - hb, cfg.border_max_lateral_m + hb + 1e-9], [cfg.visibility_border, cfg.visibility_border, 0.0])
+    p_border = np.interp(
+        abs_lat,
+        [0.0, cfg.border_max_lateral_m - hb, cfg.border_max_lateral_m + hb + 1e-9],
+        [cfg.visibility_border, cfg.visibility_border, 0.0],
+    )
     marking = np.isin(typ, _MARKINGS)
     return np.where(marking, p_mark, np.where(typ == _BORDER, p_border, 0.0))
 
@@ -165,7 +168,9 @@ def _candidates(idx: FeatureIndex, xy: np.ndarray, yaw_last: float, reach_m: flo
     if len(idx.xy) == 0:
         return np.zeros(0, np.int64)
     stride = max(1, int(round(_CELL_M / 2.0 / cfg.pose_spacing_m)))
-    ahead = xy[-1] + np.outer(np.arange(0.0, cfg.range_ahead_m + _CELL_M, _CELL_M / 2.0), [np.cos(yaw_last), np.sin(yaw_last)])
+    ahead = xy[-1] + np.outer(
+        np.arange(0.0, cfg.range_ahead_m + _CELL_M, _CELL_M / 2.0), [np.cos(yaw_last), np.sin(yaw_last)]
+    )
     q = np.concatenate([xy[::stride], xy[-1:], ahead])
     r = int(np.ceil(reach_m / _CELL_M)) + 1
     d = np.arange(-r, r + 1)
@@ -305,7 +310,9 @@ def _pieces(
     return dets, seen
 
 
-def _piecewise_gauss_markov(piece: np.ndarray, first: np.ndarray, cfg: SimConfig, rng: np.random.Generator) -> np.ndarray:
+def _piecewise_gauss_markov(
+    piece: np.ndarray, first: np.ndarray, cfg: SimConfig, rng: np.random.Generator
+) -> np.ndarray:
     """(N,) unit-std Gauss-Markov noise, started afresh (stationary) at every piece start."""
     n = len(piece)
     w = rng.standard_normal(n)
@@ -336,7 +343,9 @@ def _normals(xy: np.ndarray, piece: np.ndarray) -> np.ndarray:
     return np.stack([-d[:, 1], d[:, 0]], axis=1)
 
 
-def false_positives(xy: np.ndarray, yaw: np.ndarray, disp: np.ndarray, length_m: float, cfg: SimConfig, rng: np.random.Generator) -> list[Detection]:
+def false_positives(
+    xy: np.ndarray, yaw: np.ndarray, disp: np.ndarray, length_m: float, cfg: SimConfig, rng: np.random.Generator
+) -> list[Detection]:
     """Short spurious polylines beside the trajectory, roughly parallel to it."""
     n = int(rng.poisson(cfg.false_positive_rate_per_km * length_m / 1000.0))
     types = np.array([int(FeatureType.SOLID), int(FeatureType.DASHED), _BORDER])

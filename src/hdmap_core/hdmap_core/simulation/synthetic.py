@@ -329,7 +329,9 @@ def _route(topo: _Topology, keys_windows: list[tuple[str, float, float]]) -> tup
     return tuple(out)
 
 
-def _carriageway(name: str, direction: str, ref: _Reference) -> tuple[list[GTFeature], dict[str, GTLane], list[GTRoute]]:
+def _carriageway(
+    name: str, direction: str, ref: _Reference
+) -> tuple[list[GTFeature], dict[str, GTLane], list[GTRoute]]:
     """Features, lanes and routes of one carriageway of layout ``name``."""
     length = ref.length_m
     cw = _Carriageway(direction, ref, [], {})
@@ -466,8 +468,7 @@ def synthetic_highway(name: str, *, length_m: float = 3000.0, seed: int = 0) -> 
         routes += r
     extra = {
         "source": (
-            "hdmap_core.simulation.synthetic."
-            f"synthetic_highway({name!r}, length_m={float(length_m)}, seed={seed})"
+            f"hdmap_core.simulation.synthetic.synthetic_highway({name!r}, length_m={float(length_m)}, seed={seed})"
         ),
         "frame": "local metric frame (x east, y north), synthetic",
         "geo_reference": None,

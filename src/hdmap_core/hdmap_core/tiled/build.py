@@ -60,13 +60,17 @@ class TiledReport:
     def summary(self) -> str:
         """A few readable lines."""
         rss = ", ".join(f"{k} {v:.0f}" for k, v in self.peak_rss_mb.items())
-        return "\n".join([
-            f"tiles: {self.tiles}, {self.observations} step observations, {self.graphs} segment graphs, "
-            f"{self.workers} worker(s)",
-            f"time: {self.seconds:.2f} s (" + ", ".join(f"{k} {v:.2f}" for k, v in self.stage_seconds.items()) + ")",
-            f"peak RSS MB: {rss}",
-            "CPU s: " + ", ".join(f"{k} {v:.1f}" for k, v in self.cpu_seconds.items()),
-        ])
+        return "\n".join(
+            [
+                f"tiles: {self.tiles}, {self.observations} step observations, {self.graphs} segment graphs, "
+                f"{self.workers} worker(s)",
+                f"time: {self.seconds:.2f} s ("
+                + ", ".join(f"{k} {v:.2f}" for k, v in self.stage_seconds.items())
+                + ")",
+                f"peak RSS MB: {rss}",
+                "CPU s: " + ", ".join(f"{k} {v:.1f}" for k, v in self.cpu_seconds.items()),
+            ]
+        )
 
 
 @dataclass(frozen=True)
@@ -108,8 +112,9 @@ def build_tiled(
     n_obs = 0
     if config.final_pass is not None:
         t0 = time.perf_counter()
-        per_tile = runner.run("observe", tasks.observe, keys, shared=(source, config), progress=progress,
-                              weights=weights)
+        per_tile = runner.run(
+            "observe", tasks.observe, keys, shared=(source, config), progress=progress, weights=weights
+        )
         observations = [o for obs in per_tile for o in obs]
         del per_tile
         n_obs = len(observations)
@@ -124,8 +129,9 @@ def build_tiled(
     def offsets(key: tuple[int, int]) -> tuple:
         return (tasks.model_of(fleet_model, source.drive_ids(key)) if fleet_model is not None else None,)
 
-    per_tile = runner.run("map", tasks.map_connect, keys, shared=(source, config), per_item=offsets, progress=progress,
-                          weights=weights)
+    per_tile = runner.run(
+        "map", tasks.map_connect, keys, shared=(source, config), per_item=offsets, progress=progress, weights=weights
+    )
     graphs = [g for gs in per_tile for g in gs]
     del per_tile
     seconds["final_pass"] = time.perf_counter() - t0
@@ -133,8 +139,13 @@ def build_tiled(
     hdmap = stitch(graphs, config=config.stitching)
     seconds["stitching"] = time.perf_counter() - t0
     report = TiledReport(
-        tiles=len(keys), observations=n_obs, graphs=len(graphs), workers=runner.workers,
-        seconds=time.perf_counter() - t_start, stage_seconds=seconds, peak_rss_mb=runner.peak_rss_mb(),
+        tiles=len(keys),
+        observations=n_obs,
+        graphs=len(graphs),
+        workers=runner.workers,
+        seconds=time.perf_counter() - t_start,
+        stage_seconds=seconds,
+        peak_rss_mb=runner.peak_rss_mb(),
         cpu_seconds={k: v - cpu0.get(k, 0.0) for k, v in runner.cpu_seconds().items()},
     )
     return TiledResult(map=hdmap, report=report)

@@ -22,8 +22,11 @@ from hdmap_core.tiled.memory import cpu_seconds, peak_rss_mb
 __all__ = ["Runner", "SerialRunner", "DaskRunner", "ProgressFn"]
 
 ProgressFn = Callable[[str, int, int], None]
-_QUIET = {"distributed.worker.memory.monitor-interval": "2s", "distributed.admin.system-monitor.interval": "5s",
-          "distributed.admin.tick.interval": "200ms"}
+_QUIET = {
+    "distributed.worker.memory.monitor-interval": "2s",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.admin.tick.interval": "200ms",
+}
 PerItem = Callable[[Any], tuple]
 
 
@@ -32,8 +35,16 @@ class Runner(Protocol):
 
     workers: int
 
-    def run(self, stage: str, fn: Callable, items: Sequence, shared: tuple = (), per_item: PerItem | None = None,
-            progress: ProgressFn | None = None, weights: Sequence[float] | None = None) -> list: ...
+    def run(
+        self,
+        stage: str,
+        fn: Callable,
+        items: Sequence,
+        shared: tuple = (),
+        per_item: PerItem | None = None,
+        progress: ProgressFn | None = None,
+        weights: Sequence[float] | None = None,
+    ) -> list: ...
 
     def peak_rss_mb(self) -> dict[str, float]: ...
 
@@ -47,8 +58,16 @@ class SerialRunner:
 
     workers = 1
 
-    def run(self, stage: str, fn: Callable, items: Sequence, shared: tuple = (), per_item: PerItem | None = None,
-            progress: ProgressFn | None = None, weights: Sequence[float] | None = None) -> list:
+    def run(
+        self,
+        stage: str,
+        fn: Callable,
+        items: Sequence,
+        shared: tuple = (),
+        per_item: PerItem | None = None,
+        progress: ProgressFn | None = None,
+        weights: Sequence[float] | None = None,
+    ) -> list:
         out = []
         for i, item in enumerate(items):
             out.append(fn(*shared, item, *(per_item(item) if per_item else ())))
@@ -92,8 +111,14 @@ class DaskRunner:
         # worker used 3.1 % of a core with the defaults, 2.3-2.9 % with these; the client 4.3 %,
         # then 1.0-1.2 %).
         with dask.config.set(_QUIET):
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                   dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address="127.0.0.1:0",
+                silence_logs=logging.ERROR,
+            )
         return cls(Client(cluster), cluster=cluster, in_flight=in_flight)
 
     @classmethod
@@ -116,8 +141,16 @@ class DaskRunner:
             raise ConfigError(f"the Dask scheduler at {address} has no worker after {timeout_s:.0f} s") from err
         return cls(client, in_flight=in_flight)
 
-    def run(self, stage: str, fn: Callable, items: Sequence, shared: tuple = (), per_item: PerItem | None = None,
-            progress: ProgressFn | None = None, weights: Sequence[float] | None = None) -> list:
+    def run(
+        self,
+        stage: str,
+        fn: Callable,
+        items: Sequence,
+        shared: tuple = (),
+        per_item: PerItem | None = None,
+        progress: ProgressFn | None = None,
+        weights: Sequence[float] | None = None,
+    ) -> list:
         """``weights``: the expected cost of each item; the heaviest are submitted first, so that
         no worker is left with a heavy task at the end of the stage (results stay in item order)."""
         from distributed import as_completed  # noqa: PLC0415
@@ -136,8 +169,9 @@ class DaskRunner:
             if nxt is None:
                 return False
             i, item = nxt
-            fut = self.client.submit(fn, *shared_f, item, *(per_item(item) if per_item else ()), pure=False,
-                                     key=f"{stage}-{i}-{id(out):x}")
+            fut = self.client.submit(
+                fn, *shared_f, item, *(per_item(item) if per_item else ()), pure=False, key=f"{stage}-{i}-{id(out):x}"
+            )
             index[fut.key] = i
             pending.add(fut)
             return True

@@ -36,8 +36,13 @@ def map_connect(
 ) -> list[SegmentGraph]:
     """The final pass of one tile with ``offset_model``, connected: its segment graphs (without a
     model, e.g. a preset without the adjustment: the tile's one pass)."""
-    segments = map_clips(source.clips(key), key, tile_config=source.tile_config, pipeline_config=pipeline_config,
-                         offset_model=offset_model)
+    segments = map_clips(
+        source.clips(key),
+        key,
+        tile_config=source.tile_config,
+        pipeline_config=pipeline_config,
+        offset_model=offset_model,
+    )
     return connect_tile(segments, key, pipeline_config=pipeline_config)
 
 

@@ -34,7 +34,14 @@ from hdmap_ros.io.bagio import FleetBag, read_fleet_bag, write_map_bag
 from hdmap_ros.io.geojson import write_geojson
 
 __all__ = [
-    "NAME", "HELP", "add_arguments", "run", "override_arg", "add_set_argument", "parse_origin", "tile_config_of",
+    "NAME",
+    "HELP",
+    "add_arguments",
+    "run",
+    "override_arg",
+    "add_set_argument",
+    "parse_origin",
+    "tile_config_of",
     "TILE_DEFAULTS",
 ]
 
@@ -51,11 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="IN", help="fleet bag: rosbag2 directory (MCAP or sqlite3) or .mcap file")
     parser.add_argument("-o", "--output", metavar="OUT", required=True, help="map bag directory to write")
     parser.add_argument("--geojson", metavar="FILE", help="also write the map features and lanes as GeoJSON (WGS84)")
-    parser.add_argument("--graphml", metavar="PATH", help="also write the topology graph as GraphML (map frame, metres)")
     parser.add_argument(
-        "--lanelet2", metavar="DIR",
-        help="also write the lanes as an Autoware map directory: DIR/lanelet2_map.osm + "
-        "DIR/map_projector_info.yaml",
+        "--graphml", metavar="PATH", help="also write the topology graph as GraphML (map frame, metres)"
+    )
+    parser.add_argument(
+        "--lanelet2",
+        metavar="DIR",
+        help="also write the lanes as an Autoware map directory: DIR/lanelet2_map.osm + DIR/map_projector_info.yaml",
     )
     parser.add_argument("--preset", choices=PRESETS, default="default", help="pipeline preset (default: %(default)s)")
     add_set_argument(
@@ -89,16 +98,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     tiled = parser.add_argument_group("out of core, by tiles (docs/scale.md)")
     tiled.add_argument(
-        "--tiled", action="store_true",
+        "--tiled",
+        action="store_true",
         help="index the bag by tile on disk in one pass and build tile by tile: memory bounded by the tiles "
         "in work, not by the bag; with --workers N (N > 1) on a Dask LocalCluster of N processes",
     )
-    tiled.add_argument("--scheduler", metavar="ADDR",
-                       help="build by tiles on the running Dask cluster at ADDR (tcp://HOST:8786); implies --tiled")
-    tiled.add_argument("--tile-size-m", type=float, default=None, metavar="M",
-                       help=f"edge of a tile [m] (default: {TILE_DEFAULTS['tile_size_m']:g})")
-    tiled.add_argument("--margin-m", type=float, default=None, metavar="M",
-                       help=f"context mapped around a tile [m] (default: {TILE_DEFAULTS['margin_m']:g})")
+    tiled.add_argument(
+        "--scheduler",
+        metavar="ADDR",
+        help="build by tiles on the running Dask cluster at ADDR (tcp://HOST:8786); implies --tiled",
+    )
+    tiled.add_argument(
+        "--tile-size-m",
+        type=float,
+        default=None,
+        metavar="M",
+        help=f"edge of a tile [m] (default: {TILE_DEFAULTS['tile_size_m']:g})",
+    )
+    tiled.add_argument(
+        "--margin-m",
+        type=float,
+        default=None,
+        metavar="M",
+        help=f"context mapped around a tile [m] (default: {TILE_DEFAULTS['margin_m']:g})",
+    )
     tiled.add_argument("--index", metavar="FILE", help="keep the tile index in FILE (default: a temporary file)")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
     parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
@@ -114,8 +137,9 @@ def tile_config_of(args: argparse.Namespace) -> Any:
 
     size = args.tile_size_m if args.tile_size_m is not None else TILE_DEFAULTS["tile_size_m"]
     margin = args.margin_m if args.margin_m is not None else TILE_DEFAULTS["margin_m"]
-    return TileConfig(tile_size_m=size, margin_m=margin, seed=args.seed,
-                      pivot_margin_m=min(TILE_DEFAULTS["pivot_margin_m"], margin))
+    return TileConfig(
+        tile_size_m=size, margin_m=margin, seed=args.seed, pivot_margin_m=min(TILE_DEFAULTS["pivot_margin_m"], margin)
+    )
 
 
 def parse_origin(text: str) -> GeoOrigin:
@@ -132,8 +156,9 @@ def parse_origin(text: str) -> GeoOrigin:
 def add_set_argument(parser: argparse.ArgumentParser, help_text: str, dest: str = "overrides") -> None:
     """The repeatable ``--set KEY=VALUE`` of a PipelineConfig change (parsed by :func:`override_arg`)
     into ``args.<dest>``, a list of (key, value)."""
-    parser.add_argument("--set", metavar="KEY=VALUE", action="append", type=override_arg, default=[], dest=dest,
-                        help=help_text)
+    parser.add_argument(
+        "--set", metavar="KEY=VALUE", action="append", type=override_arg, default=[], dest=dest, help=help_text
+    )
 
 
 def override_arg(text: str) -> tuple[str, object]:
@@ -203,8 +228,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--lanelet2 needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
 
     with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
-        result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress,
-                                    workers=args.workers or available_cpus())
+        result = pipeline.build_map(
+            fleet.drives, config=config, seed=args.seed, progress=progress, workers=args.workers or available_cpus()
+        )
         history = None
         if args.follow_changes:
             from hdmap_core.updates.follow import follow_changes, history_to_dict  # noqa: PLC0415
@@ -215,16 +241,23 @@ def run(args: argparse.Namespace) -> int:
                 nonlocal result
                 if drives is fleet.drives:  # the map of every drive: built above
                     return first.map, first.report
-                result = pipeline.build_map(list(drives), config=config, seed=args.seed, progress=progress,
-                                            workers=args.workers or available_cpus())
+                result = pipeline.build_map(
+                    list(drives),
+                    config=config,
+                    seed=args.seed,
+                    progress=progress,
+                    workers=args.workers or available_cpus(),
+                )
                 return result.map, result.report
 
             followed = follow_changes(fleet.drives, build=build)
             history = history_to_dict(followed)
             result = dataclasses.replace(result, map=followed.map) if followed.changes else first
             for c in followed.changes:
-                print(f"change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "
-                      f"{len(c.drives_after)} drive(s) in evidence, confidence {c.confidence:.3f}")
+                print(
+                    f"change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "
+                    f"{len(c.drives_after)} drive(s) in evidence, confidence {c.confidence:.3f}"
+                )
             print(f"follow changes: {len(followed.changes)} change(s), {len(followed.retired)} retired piece(s)")
     hdmap: HDMap = result.map
 
@@ -280,14 +313,23 @@ def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
         return _fail(f"--index {args.index} is a directory")
     t_start = time.perf_counter()
     with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
-        got = build_from_bag(args.bag, config=config, tile_config=tile_config, workers=args.workers or 1,
-                             scheduler=args.scheduler, index_path=args.index, progress=progress)
+        got = build_from_bag(
+            args.bag,
+            config=config,
+            tile_config=tile_config,
+            workers=args.workers or 1,
+            scheduler=args.scheduler,
+            index_path=args.index,
+            progress=progress,
+        )
     index, result = got.index, got.result
     for _did, _reason, text in got.rejected:
         print(f"hdmap {NAME}: rejected {text}", file=sys.stderr)
     if index.bag_error:
-        print(f"hdmap {NAME}: warning: {index.bag_error}; went on with the {index.drive_count} intact drive(s)",
-              file=sys.stderr)
+        print(
+            f"hdmap {NAME}: warning: {index.bag_error}; went on with the {index.drive_count} intact drive(s)",
+            file=sys.stderr,
+        )
     origin = args.origin or index.origin
     for flag, value in (("--geojson", args.geojson), ("--lanelet2", args.lanelet2)):
         if value and origin is None:
@@ -296,23 +338,37 @@ def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
     _write_outputs(args, out, hdmap, origin)
     seconds = time.perf_counter() - t_start
     rep = result.report
-    print("\n".join([
-        "summary (tiled):",
-        f"  drives indexed   {index.drive_count} ({index.drive_km:.1f} km), rejected {len(got.rejected)}",
-        f"  tile index       {got.index_seconds:.1f} s, {index.tile_config.tile_size_m:g} m tiles, "
-        f"{index.tile_config.margin_m:g} m margins" + (f", kept in {args.index}" if args.index else ""),
-        f"  map              {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes",
-        f"  wall time        {seconds:.1f} s (index + build + write)",
-        "  build report:",
-    ] + [f"    {line}" for line in rep.summary().splitlines()]))
+    print(
+        "\n".join(
+            [
+                "summary (tiled):",
+                f"  drives indexed   {index.drive_count} ({index.drive_km:.1f} km), rejected {len(got.rejected)}",
+                f"  tile index       {got.index_seconds:.1f} s, {index.tile_config.tile_size_m:g} m tiles, "
+                f"{index.tile_config.margin_m:g} m margins" + (f", kept in {args.index}" if args.index else ""),
+                f"  map              {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes",
+                f"  wall time        {seconds:.1f} s (index + build + write)",
+                "  build report:",
+            ]
+            + [f"    {line}" for line in rep.summary().splitlines()]
+        )
+    )
     if args.report:
         doc = {
-            "input": str(args.bag), "output": str(args.output), "preset": args.preset,
-            "overrides": dict(args.overrides), "seed": args.seed, "tiled": True,
-            "scheduler": args.scheduler, "drives": index.drive_count, "drive_km": index.drive_km,
+            "input": str(args.bag),
+            "output": str(args.output),
+            "preset": args.preset,
+            "overrides": dict(args.overrides),
+            "seed": args.seed,
+            "tiled": True,
+            "scheduler": args.scheduler,
+            "drives": index.drive_count,
+            "drive_km": index.drive_km,
             "rejected": [{"drive_id": d, "reason": r, "text": t} for d, r, t in got.rejected],
-            "bag_error": index.bag_error or None, "features": len(hdmap.features),
-            "topology_nodes": len(hdmap.topology), "wall_s": seconds, "index_s": got.index_seconds,
+            "bag_error": index.bag_error or None,
+            "features": len(hdmap.features),
+            "topology_nodes": len(hdmap.topology),
+            "wall_s": seconds,
+            "index_s": got.index_seconds,
             "build": dataclasses.asdict(rep),
         }
         Path(args.report).write_text(json.dumps(doc, indent=1))
@@ -358,9 +414,9 @@ def _report_input(fleet: FleetBag) -> None:
 
 
 def _summary(fleet: FleetBag, hdmap: HDMap, result: Any, seconds: float) -> str:
-    km_features = sum(
-        float(np.linalg.norm(np.diff(np.asarray(f.points), axis=0), axis=1).sum()) for f in hdmap.features
-    ) / 1000.0
+    km_features = (
+        sum(float(np.linalg.norm(np.diff(np.asarray(f.points), axis=0), axis=1).sum()) for f in hdmap.features) / 1000.0
+    )
     report = getattr(result, "report", None)
     # drives the pipeline rejected (e.g. implausible ones: a pose at 1e12 m) count as rejected here too
     refused = [(str(d), str(r).split(":", 1)[0]) for d, r in getattr(report, "rejected", None) or []]

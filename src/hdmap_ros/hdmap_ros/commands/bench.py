@@ -36,8 +36,17 @@ if TYPE_CHECKING:  # the pipeline is heavy: loaded on use
     from hdmap_core.pipeline.config import PipelineConfig
 
 __all__ = [
-    "NAME", "HELP", "add_arguments", "run", "Scenario", "build_and_evaluate", "run_one", "format_table", "summarize_seeds",
-    "SCORE_COLUMNS", "score_line",
+    "NAME",
+    "HELP",
+    "add_arguments",
+    "run",
+    "Scenario",
+    "build_and_evaluate",
+    "run_one",
+    "format_table",
+    "summarize_seeds",
+    "SCORE_COLUMNS",
+    "score_line",
     "format_scale",
 ]
 
@@ -83,9 +92,24 @@ COLUMNS = (
 )
 
 # The table over seeds: the mean over the seeds of each of these figures (formats as in COLUMNS) ...
-_SEED_MEANS = ("drives", "mean_m", "corrected_mean_m", "floor_m", "fleet_floor_m", "sparse_share", "coverage", "driven_share",
-               "coverage_driven", "recall",
-               "observed_share", "recall_observed", "precision", "type_accuracy", "fragmentation", "build_s")
+_SEED_MEANS = (
+    "drives",
+    "mean_m",
+    "corrected_mean_m",
+    "floor_m",
+    "fleet_floor_m",
+    "sparse_share",
+    "coverage",
+    "driven_share",
+    "coverage_driven",
+    "recall",
+    "observed_share",
+    "recall_observed",
+    "precision",
+    "type_accuracy",
+    "fragmentation",
+    "build_s",
+)
 # ... and ratios of those means, the worst seed's ratio, the seeds.
 _SEED_EXTRA = {
     "seeds": ("seeds", "seeds", "{}"),
@@ -93,10 +117,30 @@ _SEED_EXTRA = {
     "mean_over_floor_max": ("mean_over_floor_max", "max seed mean/floor", "{:.2f}"),
     "mean_over_fleet": ("mean_over_fleet", "mean/fleet err", "{:.2f}"),
 }
-_SEED_ORDER = ("scenario", "preset", "seeds", "drives", "mean_m", "corrected_mean_m", "floor_m", "mean_over_floor",
-               "mean_over_floor_max", "fleet_floor_m", "mean_over_fleet", "sparse_share", "coverage", "driven_share",
-               "coverage_driven", "recall", "observed_share",
-               "recall_observed", "precision", "type_accuracy", "fragmentation", "build_s")
+_SEED_ORDER = (
+    "scenario",
+    "preset",
+    "seeds",
+    "drives",
+    "mean_m",
+    "corrected_mean_m",
+    "floor_m",
+    "mean_over_floor",
+    "mean_over_floor_max",
+    "fleet_floor_m",
+    "mean_over_fleet",
+    "sparse_share",
+    "coverage",
+    "driven_share",
+    "coverage_driven",
+    "recall",
+    "observed_share",
+    "recall_observed",
+    "precision",
+    "type_accuracy",
+    "fragmentation",
+    "build_s",
+)
 SEED_COLUMNS = tuple(_SEED_EXTRA.get(k) or next(c for c in COLUMNS if c[0] == k) for k in _SEED_ORDER)
 
 
@@ -148,11 +192,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--markdown", metavar="FILE", help="write the table as Markdown")
     parser.add_argument("--inline", action="store_true", help="run in this process (peak RSS then not per run)")
     parser.add_argument(
-        "--workers", type=int, default=None, metavar="N",
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
         help="processes per build, as hdmap bag2map --workers (default: the CPUs available)",
     )
     parser.add_argument(
-        "--tiled", action="store_true",
+        "--tiled",
+        action="store_true",
         help="build as hdmap bag2map --tiled (tile index on disk, tiles on a Dask LocalCluster of --workers "
         "processes); a second table: build time, drive-km per second per worker, peak RSS of each process",
     )
@@ -205,7 +253,9 @@ def prepare_scenarios(specs: list[str], *, scales: list[float], work_dir: Path) 
         map_name, kw = name, {}
         if named is not None:
             map_name, kw = named["map"], {"label": name, "length_m": named["length_m"], "sim": named["sim"]}
-        out.extend(_simulate(map_name, max(1, round(drives * s)), seed, work_dir, **kw) for s in scales for seed in seeds)
+        out.extend(
+            _simulate(map_name, max(1, round(drives * s)), seed, work_dir, **kw) for s in scales for seed in seeds
+        )
     return out
 
 
@@ -332,8 +382,9 @@ def build_and_evaluate(
         from hdmap_ros.tiled import build_from_bag  # noqa: PLC0415
 
         t0 = time.perf_counter()
-        result = build_from_bag(scenario.bag, config=config, tile_config=TileConfig(**TILE_DEFAULTS, seed=seed),
-                                workers=n_workers)
+        result = build_from_bag(
+            scenario.bag, config=config, tile_config=TileConfig(**TILE_DEFAULTS, seed=seed), workers=n_workers
+        )
         build_s = time.perf_counter() - t0
         fleet = read_fleet_bag(scenario.bag)
     else:
@@ -344,7 +395,10 @@ def build_and_evaluate(
     sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
     hdmap = result.result.map if tiled else result.map
     rep = evaluate_map(
-        hdmap, load_ground_truth(scenario.gt_path), drives=fleet.drives, sigma_loc_m=scenario.sigma_loc_m,
+        hdmap,
+        load_ground_truth(scenario.gt_path),
+        drives=fleet.drives,
+        sigma_loc_m=scenario.sigma_loc_m,
         drive_errors=drive_errors_from_sim_json(sim) if sim.exists() else None,
         seen_counts=seen_counts_from_sim_json(sim) if sim.exists() else None,
     )
@@ -405,12 +459,18 @@ def _check_overrides(presets: list[str], overrides: dict[str, Any]) -> dict[str,
     fits = [p for p in presets if p not in errors]
     first = next(iter(errors))
     if fits:
-        raise ConfigError(f"{errors[first]} (preset {first}); it fits {', '.join(fits)}: choose the presets with --presets")
+        raise ConfigError(
+            f"{errors[first]} (preset {first}); it fits {', '.join(fits)}: choose the presets with --presets"
+        )
     raise errors[first]
 
 
 def run_one(
-    scenario: Scenario, preset: str, seed: int, workers: int | None = None, overrides: dict[str, Any] | None = None,
+    scenario: Scenario,
+    preset: str,
+    seed: int,
+    workers: int | None = None,
+    overrides: dict[str, Any] | None = None,
     tiled: bool = False,
 ) -> dict[str, Any]:
     """Read the bag, build the map with ``preset`` (changed by ``overrides``), evaluate it;
@@ -429,72 +489,85 @@ def run_one(
         peaks = dict(result.result.report.peak_rss_mb)
         peaks["main"] = max(peaks.get("main", 0.0), result.index_peak_rss_mb)
         km = result.index.drive_km
-        scale = {"tiled": True, "tiles": result.result.report.tiles, "index_s": result.index_seconds,
-                 "stage_seconds": dict(result.result.report.stage_seconds), "peak_rss_by_process": peaks,
-                 "cpu_by_process": dict(result.result.report.cpu_seconds),
-                 "km_per_s_worker": km / build_s / max(1, result.result.report.workers),
-                 "workers": result.result.report.workers, "peak_rss_mb": max(peaks.values())}
+        scale = {
+            "tiled": True,
+            "tiles": result.result.report.tiles,
+            "index_s": result.index_seconds,
+            "stage_seconds": dict(result.result.report.stage_seconds),
+            "peak_rss_by_process": peaks,
+            "cpu_by_process": dict(result.result.report.cpu_seconds),
+            "km_per_s_worker": km / build_s / max(1, result.result.report.workers),
+            "workers": result.result.report.workers,
+            "peak_rss_mb": max(peaks.values()),
+        }
         result = result.result
     o = rep.overall
     floor = rep.floor_mean_m
     lanes, lanes_s = _lane_figures(scenario, result.map)
-    return {
-        **lanes,
-        "lanes_s": lanes_s,
-        "scenario": scenario.name,
-        "preset": config.name,
-        "overrides": dict(overrides or {}),
-        "drives": len(fleet.drives),
-        "drive_km": sum(d.length_m for d in fleet.drives) / 1000.0,
-        "mean_m": o.mean_m,
-        "median_m": o.median_m,
-        "p95_m": o.p95_m,
-        "corrected_mean_m": o.corrected_mean_m,
-        "floor_m": floor,
-        "fleet_floor_m": rep.fleet_floor_mean_m,
-        "mean_over_floor": _ratio(o.mean_m, floor),
-        "drives_per_cut": rep.drive_count_median,
-        "density_share": rep.density_share,
-        "sparse_share": rep.sparse_share,
-        "coverage": rep.coverage,
-        "driven_share": rep.driven_share,
-        "coverage_driven": rep.coverage_driven,
-        "recall": o.recall,
-        "observed_share": rep.observed_share,
-        "recall_observed": rep.recall_observed,
-        "recall_by_seen": [list(b) for b in rep.recall_by_seen],
-        "precision": o.precision,
-        "type_accuracy": rep.type_accuracy,
-        "type_accuracy_corrected": rep.type_accuracy_corrected,
-        "std_within_share": rep.std_within_share,
-        "std_z_rms": rep.std_z_rms,
-        "fragmentation": rep.fragmentation_mean,
-        "splits_merges": f"{rep.found_splits}/{rep.gt_splits} {rep.found_merges}/{rep.gt_merges}",
-        "gt_splits": rep.gt_splits,
-        "gt_merges": rep.gt_merges,
-        "found_splits": rep.found_splits,
-        "found_merges": rep.found_merges,
-        "road_splits_merges": (
-            f"{rep.found_road_splits}/{rep.gt_road_splits} {rep.found_road_merges}/{rep.gt_road_merges}"
-        ),
-        "gt_road_splits": rep.gt_road_splits,
-        "gt_road_merges": rep.gt_road_merges,
-        "found_road_splits": rep.found_road_splits,
-        "found_road_merges": rep.found_road_merges,
-        # Long topology links (> link_long_m: the stitcher's) that the GT lane graph supports.
-        "long_links": _link_cell(rep.long_link_precision, rep.n_long_links_supported, rep.n_long_links_evaluable),
-        "long_link_precision": rep.long_link_precision,
-        "n_long_links_evaluable": rep.n_long_links_evaluable,
-        "n_long_links_supported": rep.n_long_links_supported,
-        "topology_link_precision": rep.topology_link_precision,
-        "false_long_links": [t.to_dict() for t in rep.false_topology_links if t.length_m > rep.config.link_long_m],
-        "n_features": len(result.map.features),
-        "build_s": build_s,
-        "stage_seconds": dict(getattr(result.report, "stage_seconds", {}) or {}),
-        "workers": n_workers,
-        "peak_rss_mb": (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-                        + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024.0,
-    } | scale | ({"preset": f"{config.name} tiled"} if tiled else {})
+    return (
+        {
+            **lanes,
+            "lanes_s": lanes_s,
+            "scenario": scenario.name,
+            "preset": config.name,
+            "overrides": dict(overrides or {}),
+            "drives": len(fleet.drives),
+            "drive_km": sum(d.length_m for d in fleet.drives) / 1000.0,
+            "mean_m": o.mean_m,
+            "median_m": o.median_m,
+            "p95_m": o.p95_m,
+            "corrected_mean_m": o.corrected_mean_m,
+            "floor_m": floor,
+            "fleet_floor_m": rep.fleet_floor_mean_m,
+            "mean_over_floor": _ratio(o.mean_m, floor),
+            "drives_per_cut": rep.drive_count_median,
+            "density_share": rep.density_share,
+            "sparse_share": rep.sparse_share,
+            "coverage": rep.coverage,
+            "driven_share": rep.driven_share,
+            "coverage_driven": rep.coverage_driven,
+            "recall": o.recall,
+            "observed_share": rep.observed_share,
+            "recall_observed": rep.recall_observed,
+            "recall_by_seen": [list(b) for b in rep.recall_by_seen],
+            "precision": o.precision,
+            "type_accuracy": rep.type_accuracy,
+            "type_accuracy_corrected": rep.type_accuracy_corrected,
+            "std_within_share": rep.std_within_share,
+            "std_z_rms": rep.std_z_rms,
+            "fragmentation": rep.fragmentation_mean,
+            "splits_merges": f"{rep.found_splits}/{rep.gt_splits} {rep.found_merges}/{rep.gt_merges}",
+            "gt_splits": rep.gt_splits,
+            "gt_merges": rep.gt_merges,
+            "found_splits": rep.found_splits,
+            "found_merges": rep.found_merges,
+            "road_splits_merges": (
+                f"{rep.found_road_splits}/{rep.gt_road_splits} {rep.found_road_merges}/{rep.gt_road_merges}"
+            ),
+            "gt_road_splits": rep.gt_road_splits,
+            "gt_road_merges": rep.gt_road_merges,
+            "found_road_splits": rep.found_road_splits,
+            "found_road_merges": rep.found_road_merges,
+            # Long topology links (> link_long_m: the stitcher's) that the GT lane graph supports.
+            "long_links": _link_cell(rep.long_link_precision, rep.n_long_links_supported, rep.n_long_links_evaluable),
+            "long_link_precision": rep.long_link_precision,
+            "n_long_links_evaluable": rep.n_long_links_evaluable,
+            "n_long_links_supported": rep.n_long_links_supported,
+            "topology_link_precision": rep.topology_link_precision,
+            "false_long_links": [t.to_dict() for t in rep.false_topology_links if t.length_m > rep.config.link_long_m],
+            "n_features": len(result.map.features),
+            "build_s": build_s,
+            "stage_seconds": dict(getattr(result.report, "stage_seconds", {}) or {}),
+            "workers": n_workers,
+            "peak_rss_mb": (
+                resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+                + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+            )
+            / 1024.0,
+        }
+        | scale
+        | ({"preset": f"{config.name} tiled"} if tiled else {})
+    )
 
 
 def _link_cell(precision: float, supported: int, evaluable: int) -> str:
@@ -543,8 +616,17 @@ def run(args: argparse.Namespace) -> int:
         for sc in scenarios:
             for preset in presets:
                 print(f"hdmap bench: {sc.name} / {configs[preset].name} ...", file=sys.stderr, flush=True)
-                rows.append(_run_isolated(sc, preset, args.seed, inline=args.inline, workers=args.workers,
-                                          overrides=overrides, tiled=args.tiled))
+                rows.append(
+                    _run_isolated(
+                        sc,
+                        preset,
+                        args.seed,
+                        inline=args.inline,
+                        workers=args.workers,
+                        overrides=overrides,
+                        tiled=args.tiled,
+                    )
+                )
     summary = summarize_seeds(rows)
     print(format_table(rows))
     if args.tiled:
@@ -575,8 +657,12 @@ def summarize_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for (base, preset), runs in groups.items():
         if len(runs) < 2:
             continue
-        row: dict[str, Any] = {"scenario": base, "preset": preset, "summary": True,
-                               "seeds": ",".join(str(r["scenario"]).rpartition("_s")[2] for r in runs)}
+        row: dict[str, Any] = {
+            "scenario": base,
+            "preset": preset,
+            "summary": True,
+            "seeds": ",".join(str(r["scenario"]).rpartition("_s")[2] for r in runs),
+        }
         for key in _SEED_MEANS:
             vals = [float(r[key]) for r in runs if isinstance(r.get(key), (int, float)) and math.isfinite(r[key])]
             row[key] = sum(vals) / len(vals) if vals else math.nan
@@ -612,14 +698,21 @@ def format_scale(rows: list[dict[str, Any]]) -> str:
             f"{r['km_per_s_worker']:.2f} drive-km/s per worker; peak RSS MB main {peaks.get('main', math.nan):.0f}"
             + (f", scheduler {peaks['scheduler']:.0f}" if "scheduler" in peaks else "")
             + (", workers " + " ".join(f"{v:.0f}" for v in workers) if workers else "")
-            + "; CPU s " + " ".join(f"{v:.1f}" for v in r.get("cpu_by_process", {}).values())
+            + "; CPU s "
+            + " ".join(f"{v:.1f}" for v in r.get("cpu_by_process", {}).values())
         )
     return "\n".join(lines)
 
 
 def _run_isolated(
-    scenario: Scenario, preset: str, seed: int, *, inline: bool, workers: int | None = None,
-    overrides: dict[str, Any] | None = None, tiled: bool = False,
+    scenario: Scenario,
+    preset: str,
+    seed: int,
+    *,
+    inline: bool,
+    workers: int | None = None,
+    overrides: dict[str, Any] | None = None,
+    tiled: bool = False,
 ) -> dict[str, Any]:
     if inline:
         return run_one(scenario, preset, seed, workers, overrides, tiled)

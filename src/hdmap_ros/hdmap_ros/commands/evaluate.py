@@ -80,9 +80,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="localization sigma for the floor [m] (default: from BAG.sim.json beside --fleet, else 1.0)",
     )
     parser.add_argument("--json", metavar="OUT.json", help="write the full report (with per-cut arrays) as JSON")
-    parser.add_argument("--plot", metavar="OUT.png", help="write the figure: map over ground truth, error along the reference")
     parser.add_argument(
-        "--lanes", action="store_true",
+        "--plot", metavar="OUT.png", help="write the figure: map over ground truth, error along the reference"
+    )
+    parser.add_argument(
+        "--lanes",
+        action="store_true",
         help="also derive the map's lanes and score them: centerline coverage, precision, error, lane "
         "count, route reachability (routes driven: from BAG.sim.json beside --fleet, else all)",
     )
@@ -97,10 +100,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --changes: GT is the road before the changes; score against it as of TIME "
         "(ns since epoch or ISO 8601, e.g. 2023-06-02T09:00:00Z)",
     )
-    parser.add_argument("--all-lanes", action="store_true", help="evaluate along all route lanes, not only highway lanes")
-    parser.add_argument("--step", metavar="M", type=_positive_float, default=2.0, help="cut spacing [m] (default: %(default)s)")
     parser.add_argument(
-        "--gate", metavar="M", type=_positive_float, default=EvalConfig().gate_m,
+        "--all-lanes", action="store_true", help="evaluate along all route lanes, not only highway lanes"
+    )
+    parser.add_argument(
+        "--step", metavar="M", type=_positive_float, default=2.0, help="cut spacing [m] (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--gate",
+        metavar="M",
+        type=_positive_float,
+        default=EvalConfig().gate_m,
         help="a map point farther than this from every same-type GT point is unmatched [m] (default: %(default)s)",
     )
 
@@ -187,8 +197,11 @@ def drive_errors_from_sim_json(path: str | Path | None) -> dict[str, float] | No
     truth = doc.get("truth") if isinstance(doc, dict) else None
     if not isinstance(truth, dict):
         return None
-    out = {str(k): float(v["lateral_error_mean_m"]) for k, v in truth.items()
-           if isinstance(v, dict) and _number(v.get("lateral_error_mean_m")) is not None}
+    out = {
+        str(k): float(v["lateral_error_mean_m"])
+        for k, v in truth.items()
+        if isinstance(v, dict) and _number(v.get("lateral_error_mean_m")) is not None
+    }
     return out or None
 
 
@@ -349,8 +362,7 @@ def run(args: argparse.Namespace) -> int:
         sigma, sigma_note = EvalConfig().default_sigma_loc_m, "default"
     print(f"sigma_loc: {sigma:g} m ({sigma_note})")
 
-    config = EvalConfig(step_m=args.step, gate_m=args.gate,
-                        highway_only=not args.all_lanes)
+    config = EvalConfig(step_m=args.step, gate_m=args.gate, highway_only=not args.all_lanes)
     report = evaluate_map(
         hdmap, gt, config=config, drives=drives, sigma_loc_m=sigma, drive_errors=errors, seen_counts=seen
     )

@@ -25,20 +25,39 @@ HELP = "run the node suite in one process on a fleet bag (drive by drive) and wr
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", help="fleet bag (rosbag2 directory or .mcap) to replay onto /fleet/drives")
-    parser.add_argument("--rate", type=float, default=0.0,
-                        help="replay speed factor of the bag's log times; 0 = as fast as possible (default)")
+    parser.add_argument(
+        "--rate",
+        type=float,
+        default=0.0,
+        help="replay speed factor of the bag's log times; 0 = as fast as possible (default)",
+    )
     parser.add_argument("--out", "-o", help="write the settled map here (rosbag2 MCAP directory)")
     parser.add_argument("--geojson", help="also write the settled map as GeoJSON (needs /fleet/origin in the bag)")
-    parser.add_argument("--state", help="directory of the SQLite stores (default: a fresh temporary one); "
-                                        "an existing state continues where it stopped")
+    parser.add_argument(
+        "--state",
+        help="directory of the SQLite stores (default: a fresh temporary one); "
+        "an existing state continues where it stopped",
+    )
     parser.add_argument("--preset", default=None, help="pipeline preset (default: the params file's, 'default')")
-    parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
-                        help="change one preset parameter (repeatable), as `hdmap bag2map --set`; sets the "
-                        "mapper's and the stitcher's preset_overrides")
+    parser.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        dest="overrides",
+        help="change one preset parameter (repeatable), as `hdmap bag2map --set`; sets the "
+        "mapper's and the stitcher's preset_overrides",
+    )
     parser.add_argument("--params-file", help="node parameters (YAML), applied over the package defaults")
-    parser.add_argument("--namespace", default="", help="namespace of every node and topic (e.g. /ns2: "
-                        "/ns2/fleet/drives, /ns2/hdmap/map), so two suites can share a ROS domain")
-    parser.add_argument("--keep-alive", action="store_true", help="keep serving /hdmap/map after settling (Ctrl-C ends)")
+    parser.add_argument(
+        "--namespace",
+        default="",
+        help="namespace of every node and topic (e.g. /ns2: "
+        "/ns2/fleet/drives, /ns2/hdmap/map), so two suites can share a ROS domain",
+    )
+    parser.add_argument(
+        "--keep-alive", action="store_true", help="keep serving /hdmap/map after settling (Ctrl-C ends)"
+    )
     parser.add_argument("--timeout", type=float, default=0.0, help="give up after this many seconds (0 = never)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
 
@@ -102,7 +121,9 @@ class _Suite:
             return False
         if self.mapper.received < self.ingestor.published or not self.mapper.is_settled():
             return False
-        return self.mapper.store.tiles_signature() == self.stitcher.store.tiles_signature() and self.stitcher.is_settled()
+        return (
+            self.mapper.store.tiles_signature() == self.stitcher.store.tiles_signature() and self.stitcher.is_settled()
+        )
 
     def status(self) -> str:
         m = self.stitcher.map

@@ -42,7 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "or .gt.json path (default: %(default)s)",
     )
     parser.add_argument("-o", "--output", metavar="OUT", required=True, help="fleet bag directory to write")
-    parser.add_argument("--drives", type=int, metavar="N", help="number of drive snippets (default: SimConfig.n_drives)")
+    parser.add_argument(
+        "--drives", type=int, metavar="N", help="number of drive snippets (default: SimConfig.n_drives)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation (default: %(default)s)")
     parser.add_argument("--config", metavar="FILE", help="JSON or YAML mapping of SimConfig overrides")
     parser.add_argument(
@@ -63,11 +65,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         dest="changes",
         help="a road change seen by the drives from AFTER_DRIVE on (repeatable); kinds: shift (SIZE m to the right, "
         "default 1.5), restripe, remove (SIZE = k-th marking from the left, default every dashed one), add "
-        "(SIZE m right of the route), close (the rightmost lane), open (the shoulder, SIZE m); e.g. shift:1000-2000:1.5@40",
+        "(SIZE m right of the route), close (the rightmost lane), open (the shoulder, SIZE m); "
+        "e.g. shift:1000-2000:1.5@40",
     )
     parser.add_argument("--trajectories", action="store_true", help="also store true trajectories in OUT.sim.json")
     parser.add_argument(
-        "--batch-drives", type=int, metavar="N",
+        "--batch-drives",
+        type=int,
+        metavar="N",
         help="stream the fleet to the bag N drives at a time, never holding it (for fleets larger than memory; "
         "the same bag; OUT.sim.json without per-pose truth)",
     )
@@ -162,8 +167,13 @@ def run(args: argparse.Namespace) -> int:
         from hdmap_core.simulation.fleet import FleetStream  # noqa: PLC0415
 
         stream = FleetStream(gt, config=config, seed=args.seed, changes=changes)
-        write_fleet_bag(out, _batches(iter(stream), args.batch_drives), stream.origin, overwrite=args.overwrite,
-                        start_ns=int(config.start_time_ns))
+        write_fleet_bag(
+            out,
+            _batches(iter(stream), args.batch_drives),
+            stream.origin,
+            overwrite=args.overwrite,
+            start_ns=int(config.start_time_ns),
+        )
         fleet = stream.fleet()
         t_sim = time.perf_counter() - t0  # simulation and writing, interleaved
     else:

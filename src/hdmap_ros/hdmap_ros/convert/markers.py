@@ -114,8 +114,16 @@ def map_to_markers(
         mid = per_type.get(ftype, 0)
         per_type[ftype] = mid + 1
         markers.append(
-            _marker(types, header, f"features/{ftype.label}", mid, LINE_STRIP, line_width_m,
-                    TYPE_COLORS[ftype], _points(types, f.points))
+            _marker(
+                types,
+                header,
+                f"features/{ftype.label}",
+                mid,
+                LINE_STRIP,
+                line_width_m,
+                TYPE_COLORS[ftype],
+                _points(types, f.points),
+            )
         )
     if topology and hdmap.topology:
         pos = {n.id: np.asarray(n.position, dtype=float) for n in hdmap.topology}
@@ -128,8 +136,9 @@ def map_to_markers(
     if lanes is not None and lanes.lanes:
         for i, ln in enumerate(lanes.lanes):
             markers.append(
-                _marker(types, header, "lanes", i, LINE_STRIP, line_width_m / 2, LANE_COLOR,
-                        _points(types, ln.centerline))
+                _marker(
+                    types, header, "lanes", i, LINE_STRIP, line_width_m / 2, LANE_COLOR, _points(types, ln.centerline)
+                )
             )
         bounds = {b.id: b.points for b in lanes.boundaries}
         ends = [
@@ -139,8 +148,9 @@ def map_to_markers(
             for p in (bounds[ln.left_boundary][k], bounds[ln.right_boundary][k])
         ]
         markers.append(
-            _marker(types, header, "lanes/ends", 0, LINE_LIST, line_width_m / 2, LANE_COLOR,
-                    _points(types, np.array(ends)))
+            _marker(
+                types, header, "lanes/ends", 0, LINE_LIST, line_width_m / 2, LANE_COLOR, _points(types, np.array(ends))
+            )
         )
     out.markers = markers
     return out

@@ -257,9 +257,7 @@ def msg_to_drive(msg: Any, *, expected_frame: str | None = MAP_FRAME) -> Drive:
     inner = {str(msg.trajectory.header.frame_id)} | {str(p.header.frame_id) for p in poses}
     inner.discard("")
     if inner - {frame}:
-        raise InvalidDriveError(
-            did, "wrong_frame", f"drive frame {frame!r} but trajectory poses in {sorted(inner)}"
-        )
+        raise InvalidDriveError(did, "wrong_frame", f"drive frame {frame!r} but trajectory poses in {sorted(inner)}")
     xy = np.fromiter(
         (c for p in poses for c in (p.pose.position.x, p.pose.position.y)), dtype=np.float64, count=2 * n
     ).reshape(n, 2)
@@ -463,18 +461,26 @@ def rclpy_status_class() -> Any:
 def status_to_msg(status: LiveStatus, *, cls: Any, types: MsgTypes) -> Any:
     """:class:`~hdmap_core.live.progress.LiveStatus` -> hdmap_msgs/msg/MapStatus (class ``cls``)."""
     return cls(
-        header=_header(types, status.stamp_ns, MAP_FRAME), map_version=int(status.map_version),
-        drives_received=int(status.drives_received), drives_integrated=int(status.drives_integrated),
-        drives_rejected=int(status.drives_rejected), tiles_pending=int(status.tiles_pending),
-        tile_versions=int(status.tile_versions), settled=bool(status.settled),
+        header=_header(types, status.stamp_ns, MAP_FRAME),
+        map_version=int(status.map_version),
+        drives_received=int(status.drives_received),
+        drives_integrated=int(status.drives_integrated),
+        drives_rejected=int(status.drives_rejected),
+        tiles_pending=int(status.tiles_pending),
+        tile_versions=int(status.tile_versions),
+        settled=bool(status.settled),
     )
 
 
 def msg_to_status(msg: Any) -> LiveStatus:
     """hdmap_msgs/msg/MapStatus -> :class:`~hdmap_core.live.progress.LiveStatus`."""
     return LiveStatus(
-        map_version=int(msg.map_version), drives_received=int(msg.drives_received),
-        drives_integrated=int(msg.drives_integrated), drives_rejected=int(msg.drives_rejected),
-        tiles_pending=int(msg.tiles_pending), tile_versions=int(msg.tile_versions), settled=bool(msg.settled),
+        map_version=int(msg.map_version),
+        drives_received=int(msg.drives_received),
+        drives_integrated=int(msg.drives_integrated),
+        drives_rejected=int(msg.drives_rejected),
+        tiles_pending=int(msg.tiles_pending),
+        tile_versions=int(msg.tile_versions),
+        settled=bool(msg.settled),
         stamp_ns=stamp_to_ns(msg.header.stamp),
     )

@@ -48,8 +48,13 @@ def rosbags_tile_types(typestore: Any = None) -> TileTypes:
         typestore = default_typestore()
     t = typestore.types
     return TileTypes(
-        t["hdmap_msgs/msg/TileSegments"], t["hdmap_msgs/msg/Segment"], t["hdmap_msgs/msg/SegmentStep"],
-        t["geometry_msgs/msg/Point"], t["std_msgs/msg/Header"], t["builtin_interfaces/msg/Time"], numpy_arrays=True,
+        t["hdmap_msgs/msg/TileSegments"],
+        t["hdmap_msgs/msg/Segment"],
+        t["hdmap_msgs/msg/SegmentStep"],
+        t["geometry_msgs/msg/Point"],
+        t["std_msgs/msg/Header"],
+        t["builtin_interfaces/msg/Time"],
+        numpy_arrays=True,
     )
 
 
@@ -80,8 +85,11 @@ def _step_to_msg(t: TileTypes, st: StepResult) -> Any:
         drive_ids=[str(d) for d in st.drive_ids],
     )
     empty = np.zeros((0, 2)) if st.empty_m is None else np.asarray(st.empty_m, dtype=float).reshape(-1, 2)
-    kw.update(judged=st.empty_m is not None, empty_lo_m=_prim(t, empty[:, 0], np.float64),
-              empty_hi_m=_prim(t, empty[:, 1], np.float64))
+    kw.update(
+        judged=st.empty_m is not None,
+        empty_lo_m=_prim(t, empty[:, 0], np.float64),
+        empty_hi_m=_prim(t, empty[:, 1], np.float64),
+    )
     pose = np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=float).reshape(-1)[:2]
     kw.update(pose=t.Point(x=float(pose[0]), y=float(pose[1]), z=0.0))
     return t.SegmentStep(**kw)
@@ -121,9 +129,15 @@ def tile_to_msg(
     header = t.Header(stamp=t.Time(sec=int(stamp_ns // 10**9), nanosec=int(stamp_ns % 10**9)), frame_id=frame_id)
     segs = [t.Segment(pivot_id=s.pivot_id, steps=[_step_to_msg(t, st) for st in s.steps]) for s in segments]
     return t.TileSegments(
-        header=header, tile_x=int(key[0]), tile_y=int(key[1]), tile_size_m=float(tile_size_m),
-        version=int(version), drive_ids=[str(d) for d in drive_ids],
-        drive_tile_counts=_prim(t, [int(n) for n in drive_tile_counts], np.uint32), final=bool(final), segments=segs,
+        header=header,
+        tile_x=int(key[0]),
+        tile_y=int(key[1]),
+        tile_size_m=float(tile_size_m),
+        version=int(version),
+        drive_ids=[str(d) for d in drive_ids],
+        drive_tile_counts=_prim(t, [int(n) for n in drive_tile_counts], np.uint32),
+        final=bool(final),
+        segments=segs,
     )
 
 
@@ -159,12 +173,20 @@ def msg_to_tile(msg: Any) -> TileMessage:
         pivot = str(sm.pivot_id)
         steps = tuple(
             StepResult(
-                pivot_id=pivot, index=int(s.index), s_m=float(s.s_m),
-                midpoint=np.array([s.midpoint.x, s.midpoint.y], dtype=float), heading=float(s.heading),
-                width_m=float(s.width_m), valid=bool(s.valid), processed_before=bool(s.processed_before),
-                lateral_m=_np(s.lateral_m, np.float64), types=_np(s.types, np.int64),
-                counts=_np(s.counts, np.int64), std_m=_np(s.std_m, np.float64),
-                drive_ids=tuple(str(d) for d in s.drive_ids), empty_m=_empty_from_msg(s),
+                pivot_id=pivot,
+                index=int(s.index),
+                s_m=float(s.s_m),
+                midpoint=np.array([s.midpoint.x, s.midpoint.y], dtype=float),
+                heading=float(s.heading),
+                width_m=float(s.width_m),
+                valid=bool(s.valid),
+                processed_before=bool(s.processed_before),
+                lateral_m=_np(s.lateral_m, np.float64),
+                types=_np(s.types, np.int64),
+                counts=_np(s.counts, np.int64),
+                std_m=_np(s.std_m, np.float64),
+                drive_ids=tuple(str(d) for d in s.drive_ids),
+                empty_m=_empty_from_msg(s),
                 pose=_pose_from_msg(s),
             )
             for s in sm.steps
@@ -172,10 +194,14 @@ def msg_to_tile(msg: Any) -> TileMessage:
         segments.append(Segment(pivot_id=pivot, steps=steps))
     stamp = msg.header.stamp
     return TileMessage(
-        key=(int(msg.tile_x), int(msg.tile_y)), tile_size_m=float(msg.tile_size_m), version=int(msg.version),
-        drive_ids=tuple(str(d) for d in msg.drive_ids), segments=segments,
+        key=(int(msg.tile_x), int(msg.tile_y)),
+        tile_size_m=float(msg.tile_size_m),
+        version=int(msg.version),
+        drive_ids=tuple(str(d) for d in msg.drive_ids),
+        segments=segments,
         stamp_ns=int(stamp.sec) * 10**9 + int(stamp.nanosec),
-        drive_tile_counts=_tile_counts(msg), final=bool(getattr(msg, "final", True)),
+        drive_tile_counts=_tile_counts(msg),
+        final=bool(getattr(msg, "final", True)),
     )
 
 

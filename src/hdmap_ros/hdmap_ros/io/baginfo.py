@@ -46,7 +46,9 @@ def describe(path: str, *, drives: bool = False) -> str:
     except BagError:
         pass  # reported above
     if origin is not None:
-        lines.append(f"origin: lat {origin.latitude_deg:.8f} lon {origin.longitude_deg:.8f} alt {origin.altitude_m:.2f} m")
+        lines.append(
+            f"origin: lat {origin.latitude_deg:.8f} lon {origin.longitude_deg:.8f} alt {origin.altitude_m:.2f} m"
+        )
     if kept or rejected:
         km = sum(d.length_m for d in kept) / 1000.0
         lines.append(f"drives: {len(kept)} valid ({km:.2f} km), {len(rejected)} rejected")

@@ -76,12 +76,40 @@ MAP_TYPE = "hdmap_msgs/msg/Map"
 # Errors a damaged rosbag2 can raise from rosbags' readers (and the storage, YAML and
 # decompressors below them); found by fuzzing (test_bag_fuzz.py): KeyError, OverflowError and
 # MemoryError (a length field read as gigabytes) among them.
-_READ_ERRORS = (ReaderError, AnyReaderError, sqlite3.Error, struct.error, OSError, EOFError, ValueError, IndexError,
-                KeyError, OverflowError, MemoryError, TypeError, AttributeError, UnicodeDecodeError, RuntimeError,
-                TypesysError, SerdeError)
+_READ_ERRORS = (
+    ReaderError,
+    AnyReaderError,
+    sqlite3.Error,
+    struct.error,
+    OSError,
+    EOFError,
+    ValueError,
+    IndexError,
+    KeyError,
+    OverflowError,
+    MemoryError,
+    TypeError,
+    AttributeError,
+    UnicodeDecodeError,
+    RuntimeError,
+    TypesysError,
+    SerdeError,
+)
 # Errors decoding one message can raise: bad CDR, or a schema that does not parse.
-_DECODE_ERRORS = (SerdeError, TypesysError, struct.error, ValueError, IndexError, KeyError, UnicodeDecodeError,
-                  OverflowError, MemoryError, TypeError, AttributeError, RecursionError)
+_DECODE_ERRORS = (
+    SerdeError,
+    TypesysError,
+    struct.error,
+    ValueError,
+    IndexError,
+    KeyError,
+    UnicodeDecodeError,
+    OverflowError,
+    MemoryError,
+    TypeError,
+    AttributeError,
+    RecursionError,
+)
 # Converting a message of another definition than the contract's (e.g. a Drive without vehicle_id).
 _DEFINITION_ERRORS = (AttributeError, TypeError, ValueError, KeyError, IndexError, OverflowError)
 
@@ -224,8 +252,10 @@ def _iter_rosbag2(
     # RULE: MCAP storage: the scanner goes on past the damage (a chunk failing its CRC is skipped),
     # delivering what the rosbag2 reader had not.
     if on_warning is not None:
-        on_warning(f"{path}: the rosbag2 reader failed after {count} message(s) ({type(failure).__name__}: "
-                   f"{failure}); the rest was read record by record")
+        on_warning(
+            f"{path}: the rosbag2 reader failed after {count} message(s) ({type(failure).__name__}: "
+            f"{failure}); the rest was read record by record"
+        )
     for bm in _iter_mcap_files(mcaps, wanted, note=f"rosbag2 reader: {failure}", on_warning=on_warning):
         if (bm.topic, bm.log_time_ns, zlib.crc32(bm.data)) not in seen:
             yield bm
@@ -268,7 +298,9 @@ def iter_fleet_bag(
             item = _decode_drive(bm, expected_frame)
             if isinstance(item, Drive):
                 if item.drive_id in seen:
-                    item = Rejection(item.drive_id, "duplicate_drive_id", "an earlier drive has this id; kept the first")
+                    item = Rejection(
+                        item.drive_id, "duplicate_drive_id", "an earlier drive has this id; kept the first"
+                    )
                 else:
                     seen.add(item.drive_id)
         if isinstance(item, Rejection):
@@ -318,8 +350,11 @@ def _decode_drive(bm: BagMessage, expected_frame: str | None) -> Drive | Rejecti
         return Rejection(err.drive_id, err.reason, err.detail)
     except _DEFINITION_ERRORS as err:
         did = getattr(msg, "drive_id", "")
-        return Rejection(did if isinstance(did, str) else "", "definition_mismatch",
-                         f"the bag's {DRIVE_TYPE} definition differs from hdmap_msgs': {type(err).__name__}: {err}")
+        return Rejection(
+            did if isinstance(did, str) else "",
+            "definition_mismatch",
+            f"the bag's {DRIVE_TYPE} definition differs from hdmap_msgs': {type(err).__name__}: {err}",
+        )
 
 
 def _decode_origin(bm: BagMessage) -> GeoOrigin | Rejection:
@@ -413,14 +448,19 @@ def _qos(*, latched: bool) -> list[Qos]:
     """The offered QoS recorded with a connection (rosbag2 ``offered_qos_profiles``), as the nodes
     publish (``hdmap_ros.nodes.qos``): ``ros2 bag play`` then offers the same (the origin and the
     map latched, TRANSIENT_LOCAL), instead of VOLATILE defaults a latched subscriber cannot match."""
-    return [Qos(
-        history=QosHistory.KEEP_LAST if latched else QosHistory.KEEP_ALL,
-        depth=1 if latched else 0,
-        reliability=QosReliability.RELIABLE,
-        durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
-        deadline=_INFINITE, lifespan=_INFINITE, liveliness=QosLiveliness.AUTOMATIC,
-        liveliness_lease_duration=_INFINITE, avoid_ros_namespace_conventions=False,
-    )]
+    return [
+        Qos(
+            history=QosHistory.KEEP_LAST if latched else QosHistory.KEEP_ALL,
+            depth=1 if latched else 0,
+            reliability=QosReliability.RELIABLE,
+            durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+            deadline=_INFINITE,
+            lifespan=_INFINITE,
+            liveliness=QosLiveliness.AUTOMATIC,
+            liveliness_lease_duration=_INFINITE,
+            avoid_ros_namespace_conventions=False,
+        )
+    ]
 
 
 _LATCHED, _STREAM = _qos(latched=True), _qos(latched=False)
@@ -468,7 +508,9 @@ def write_fleet_bag(
     store = default_typestore()
     writer = _open_writer(path, overwrite=overwrite)
     try:
-        first_ns = start_ns if start_ns is not None else min((d.start_ns for d in drives if len(d.stamps_ns)), default=0)
+        first_ns = (
+            start_ns if start_ns is not None else min((d.start_ns for d in drives if len(d.stamps_ns)), default=0)
+        )
         if origin is not None:
             conn = writer.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store, offered_qos_profiles=_LATCHED)
             msg = origin_to_msg(origin, stamp_ns=first_ns)

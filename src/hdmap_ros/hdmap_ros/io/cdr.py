@@ -131,8 +131,13 @@ def _decode(c: _Cursor) -> Drive:
     check_quaternions(drive_id, quat)
     yaw = quaternion_to_yaw(quat)
     return Drive(
-        drive_id=drive_id, xy=xy, yaw=yaw, stamps_ns=stamps, detections=tuple(detections),
-        vehicle_id=vehicle_id, frame_id=frame,
+        drive_id=drive_id,
+        xy=xy,
+        yaw=yaw,
+        stamps_ns=stamps,
+        detections=tuple(detections),
+        vehicle_id=vehicle_id,
+        frame_id=frame,
     )
 
 

@@ -60,10 +60,7 @@ def hdmap_msg_dir() -> Path:
 def hdmap_msg_texts() -> dict[str, str]:
     """Map ``"hdmap_msgs/msg/<Name>"`` to the text of ``<Name>.msg``, for every message there."""
     msg_dir = hdmap_msg_dir()
-    return {
-        f"{PACKAGE}/msg/{path.stem}": path.read_text(encoding="utf-8")
-        for path in sorted(msg_dir.glob("*.msg"))
-    }
+    return {f"{PACKAGE}/msg/{path.stem}": path.read_text(encoding="utf-8") for path in sorted(msg_dir.glob("*.msg"))}
 
 
 @functools.lru_cache(maxsize=1)

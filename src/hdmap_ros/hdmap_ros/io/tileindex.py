@@ -98,8 +98,10 @@ def build_tile_index(
                         if progress is not None:
                             progress(n_drives)
                 elif isinstance(item, Rejection):
-                    con.execute("INSERT INTO rejected(drive_id, reason, detail) VALUES (?, ?, ?)",
-                                (item.drive_id, item.reason, str(item)))
+                    con.execute(
+                        "INSERT INTO rejected(drive_id, reason, detail) VALUES (?, ?, ?)",
+                        (item.drive_id, item.reason, str(item)),
+                    )
                 else:
                     origin = item
         except BagError as err:
@@ -107,9 +109,15 @@ def build_tile_index(
                 raise
             error = str(err)
         meta = {
-            "tile_size_m": tile_config.tile_size_m, "margin_m": tile_config.margin_m, "seed": tile_config.seed,
-            "pivot_margin_m": tile_config.pivot_margin_m, "origin": asdict(origin) if origin else None,
-            "bag": str(bag), "bag_error": error, "drives": n_drives, "drive_km": km,
+            "tile_size_m": tile_config.tile_size_m,
+            "margin_m": tile_config.margin_m,
+            "seed": tile_config.seed,
+            "pivot_margin_m": tile_config.pivot_margin_m,
+            "origin": asdict(origin) if origin else None,
+            "bag": str(bag),
+            "bag_error": error,
+            "drives": n_drives,
+            "drive_km": km,
         }
         con.executemany("INSERT INTO meta(key, value) VALUES (?, ?)", [(k, json.dumps(v)) for k, v in meta.items()])
         con.execute("COMMIT")
@@ -151,8 +159,12 @@ class TileIndex:
             raise BagError(f"{self.path}: not a tile index: {err}") from err
         self.meta = {k: json.loads(v) for k, v in meta.items()}
         m = self.meta
-        self.tile_config = TileConfig(tile_size_m=float(m["tile_size_m"]), margin_m=float(m["margin_m"]),
-                                      seed=int(m["seed"]), pivot_margin_m=m.get("pivot_margin_m"))
+        self.tile_config = TileConfig(
+            tile_size_m=float(m["tile_size_m"]),
+            margin_m=float(m["margin_m"]),
+            seed=int(m["seed"]),
+            pivot_margin_m=m.get("pivot_margin_m"),
+        )
 
     def __getstate__(self) -> dict:
         return {"path": self.path}
@@ -192,13 +204,18 @@ class TileIndex:
         return [(int(x), int(y)) for x, y in self._query("SELECT DISTINCT tx, ty FROM clips ORDER BY tx, ty")]
 
     def clips(self, key: TileKey) -> list[tuple[Drive, float]]:
-        rows = self._query("SELECT s0_m, blob FROM clips WHERE tx=? AND ty=? ORDER BY drive_id",
-                           (int(key[0]), int(key[1])))
+        rows = self._query(
+            "SELECT s0_m, blob FROM clips WHERE tx=? AND ty=? ORDER BY drive_id", (int(key[0]), int(key[1]))
+        )
         return [(blob_to_drive(blob), float(s0)) for s0, blob in rows]
 
     def drive_ids(self, key: TileKey) -> list[str]:
-        return [r[0] for r in self._query("SELECT drive_id FROM clips WHERE tx=? AND ty=? ORDER BY drive_id",
-                                          (int(key[0]), int(key[1])))]
+        return [
+            r[0]
+            for r in self._query(
+                "SELECT drive_id FROM clips WHERE tx=? AND ty=? ORDER BY drive_id", (int(key[0]), int(key[1]))
+            )
+        ]
 
     def close(self) -> None:
         if self._con is not None:

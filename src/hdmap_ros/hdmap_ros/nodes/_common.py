@@ -30,15 +30,29 @@ from hdmap_ros.nodes import qos
 from hdmap_ros.nodes.diagnostics import Health, health_to_msg
 
 __all__ = [
-    "declare", "declare_strings", "declare_pipeline_config", "params_file", "with_default_params", "run_node",
-    "HealthMixin", "preset_config", "drive_from_wire", "drive_to_wire", "ros_home", "state_path",
+    "declare",
+    "declare_strings",
+    "declare_pipeline_config",
+    "params_file",
+    "with_default_params",
+    "run_node",
+    "HealthMixin",
+    "preset_config",
+    "drive_from_wire",
+    "drive_to_wire",
+    "ros_home",
+    "state_path",
     "warn_unknown_parameters",
 ]
 
 PACKAGE = "hdmap_ros"
 # What rclpy raises when a given parameter value does not fit its declaration.
-PARAMETER_ERRORS = (InvalidParameterTypeException, InvalidParameterValueException, ParameterImmutableException,
-                    ParameterUninitializedException)
+PARAMETER_ERRORS = (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterImmutableException,
+    ParameterUninitializedException,
+)
 # src/hdmap_ros/hdmap_ros/nodes/_common.py -> src/hdmap_ros/config/hdmap.yaml
 _SOURCE_YAML = Path(__file__).resolve().parents[2] / "config" / "hdmap.yaml"
 
@@ -175,7 +189,8 @@ def declare_pipeline_config(node: Node) -> Any:
     stitcher's must match) and return the pipeline config they name (:func:`preset_config`)."""
     preset = declare(node, "preset", "default", "Pipeline preset: default, paper or naive.")
     overrides = declare_strings(
-        node, "preset_overrides",
+        node,
+        "preset_overrides",
         "KEY=VALUE changes of preset parameters, as `hdmap bag2map --set` "
         "(the mapper's and the stitcher's must match).",
     )
@@ -249,7 +264,8 @@ def warn_unknown_parameters(node: Node) -> list[str]:
     """Log a warning for every parameter given to the node (YAML, ``-p``) that it does not declare
     (e.g. a misspelt key, which would otherwise be silently ignored); returns their names."""
     unknown = sorted(
-        k for k in node._parameter_overrides  # what was given and not taken by a declaration
+        k
+        for k in node._parameter_overrides  # what was given and not taken by a declaration
         if not node.has_parameter(k) and k.split(".", 1)[0] not in _BUILTIN_PARAMETERS
     )
     for k in unknown:

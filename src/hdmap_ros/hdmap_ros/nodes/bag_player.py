@@ -54,19 +54,33 @@ class BagPlayer(HealthMixin, Node):
         super().__init__("bag_player", **kwargs)
         self.bag = declare(self, "bag", "", "The fleet bag to replay (rosbag2 directory or .mcap file).")
         self.rate = declare(
-            self, "rate", 1.0, "Replay speed factor; 0 = as fast as possible.", lo=0.0, hi=10000.0,
+            self,
+            "rate",
+            1.0,
+            "Replay speed factor; 0 = as fast as possible.",
+            lo=0.0,
+            hi=10000.0,
             dynamic="rate",
         )
         self.loop = declare(self, "loop", False, "Start again at the end.", dynamic="loop")
         self.start_offset_s = declare(self, "start_offset_s", 0.0, "Skip this much of the bag [s].", lo=0.0, hi=1e7)
         self.wait_for_subscribers_s = declare(
-            self, "wait_for_subscribers_s", 5.0, "Wait up to this long for a /fleet/drives subscriber [s].", lo=0.0, hi=600.0
+            self,
+            "wait_for_subscribers_s",
+            5.0,
+            "Wait up to this long for a /fleet/drives subscriber [s].",
+            lo=0.0,
+            hi=600.0,
         )
         self.exit_when_done = declare(self, "exit_when_done", True, "Standalone: exit when the bag is done.")
         self.linger_s = declare(
-            self, "linger_s", 2.0,
+            self,
+            "linger_s",
+            2.0,
             "Standalone: stay this long after the bag is done (and until every reader acknowledged), so "
-            "readers that match late still get the latched origin [s].", lo=0.0, hi=3600.0,
+            "readers that match late still get the latched origin [s].",
+            lo=0.0,
+            hi=3600.0,
         )
         self._init_health("bag_player")
         self.done = False
@@ -204,7 +218,6 @@ class BagPlayer(HealthMixin, Node):
             f"bag {self.bag} done: {self.published} drive message(s) published"
             + (f", {skipped} skipped ({dict(self.skipped)})" if skipped else "")
         )
-
 
     def finished(self) -> bool:
         """Standalone: the bag is done, ``linger_s`` has passed since (readers that match late still

@@ -37,20 +37,37 @@ class DriveIngestor(HealthMixin, Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("drive_ingestor", **kwargs)
         self.expected_frame = declare(
-            self, "expected_frame", "map", "Frame every drive must be in ('' = any).",
+            self,
+            "expected_frame",
+            "map",
+            "Frame every drive must be in ('' = any).",
             dynamic="expected_frame",
         )
         self.min_length_m = declare(
-            self, "min_detection_length_m", 3.0, "Detection polylines shorter than this are dropped [m] (paper: 3).",
-            lo=0.0, hi=100.0, dynamic="min_length_m"
+            self,
+            "min_detection_length_m",
+            3.0,
+            "Detection polylines shorter than this are dropped [m] (paper: 3).",
+            lo=0.0,
+            hi=100.0,
+            dynamic="min_length_m",
         )
         self.rdp_epsilon_m = declare(
-            self, "rdp_epsilon_m", 0.05, "Ramer-Douglas-Peucker tolerance for detections [m].", lo=0.001, hi=2.0,
-            dynamic="rdp_epsilon_m"
+            self,
+            "rdp_epsilon_m",
+            0.05,
+            "Ramer-Douglas-Peucker tolerance for detections [m].",
+            lo=0.001,
+            hi=2.0,
+            dynamic="rdp_epsilon_m",
         )
         depth = declare(
-            self, "accepted_history_depth", 100,
-            "Accepted drives kept (TRANSIENT_LOCAL) for a mapper that restarts.", lo=1, hi=100000,
+            self,
+            "accepted_history_depth",
+            100,
+            "Accepted drives kept (TRANSIENT_LOCAL) for a mapper that restarts.",
+            lo=1,
+            hi=100000,
         )
         self.clean_config = PreprocessConfig(min_length_m=self.min_length_m, rdp_epsilon_m=self.rdp_epsilon_m)
         self._init_health("drive_ingestor")

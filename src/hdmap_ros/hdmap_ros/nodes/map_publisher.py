@@ -43,19 +43,33 @@ class MapPublisher(HealthMixin, Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("map_publisher", **kwargs)
         self.line_width_m = declare(
-            self, "line_width_m", 0.2, "Width of the feature LINE_STRIPs [m].", lo=0.01, hi=5.0,
+            self,
+            "line_width_m",
+            0.2,
+            "Width of the feature LINE_STRIPs [m].",
+            lo=0.01,
+            hi=5.0,
             dynamic="line_width_m",
         )
         self.show_topology = declare(
-            self, "show_topology", True, "Also draw the topology graph.",
+            self,
+            "show_topology",
+            True,
+            "Also draw the topology graph.",
             dynamic="show_topology",
         )
         self.show_lanes = declare(
-            self, "show_lanes", True, "Also draw the lanes derived from the map.",
+            self,
+            "show_lanes",
+            True,
+            "Also draw the lanes derived from the map.",
             dynamic="show_lanes",
         )
         self.overwrite = declare(
-            self, "overwrite", True, "The save service replaces an existing map bag at the path.",
+            self,
+            "overwrite",
+            True,
+            "The save service replaces an existing map bag at the path.",
             dynamic="overwrite",
         )
         self._init_health("map_publisher", item="maps")
@@ -83,8 +97,12 @@ class MapPublisher(HealthMixin, Node):
         header = Header(frame_id=self.map.frame_id, stamp=self.get_clock().now().to_msg())
         self._markers_pub.publish(
             map_to_markers(
-                self.map, types=self._marker_types, header=header, line_width_m=self.line_width_m,
-                topology=self.show_topology, lanes=self._lanes() if self.show_lanes else None,
+                self.map,
+                types=self._marker_types,
+                header=header,
+                line_width_m=self.line_width_m,
+                topology=self.show_topology,
+                lanes=self._lanes() if self.show_lanes else None,
             )
         )
         self.health.accept()

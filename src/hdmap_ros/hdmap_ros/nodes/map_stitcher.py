@@ -53,25 +53,48 @@ class MapStitcher(HealthMixin, Node):
         db = declare(self, "db_path", "", "SQLite file of the map store ('' = $ROS_HOME/hdmap/map_stitcher.db).")
         pipeline_config = declare_pipeline_config(self)  # a bad preset or override fails here, named
         self.debounce_s = declare(
-            self, "debounce_s", 1.0, "Rebuild the map after this long without a new tile estimate [s].",
-            lo=0.0, hi=600.0,
-            dynamic="debounce_s"
+            self,
+            "debounce_s",
+            1.0,
+            "Rebuild the map after this long without a new tile estimate [s].",
+            lo=0.0,
+            hi=600.0,
+            dynamic="debounce_s",
         )
         self.max_delay_s = declare(
-            self, "max_delay_s", 5.0, "Rebuild at the latest this long after the first unstitched update [s].",
-            lo=0.0, hi=3600.0, dynamic="max_delay_s"
+            self,
+            "max_delay_s",
+            5.0,
+            "Rebuild at the latest this long after the first unstitched update [s].",
+            lo=0.0,
+            hi=3600.0,
+            dynamic="max_delay_s",
         )
         self.id_distance_m = declare(
-            self, "id_match_distance_m", 0.75, "A new feature keeps an old id when this close to it [m].",
-            lo=0.01, hi=10.0,
-            dynamic="id_distance_m"
+            self,
+            "id_match_distance_m",
+            0.75,
+            "A new feature keeps an old id when this close to it [m].",
+            lo=0.01,
+            hi=10.0,
+            dynamic="id_distance_m",
         )
         self.id_overlap = declare(
-            self, "id_min_overlap", 0.5, "... along at least this share of the shorter of the two.", lo=0.0, hi=1.0,
-            dynamic="id_overlap"
+            self,
+            "id_min_overlap",
+            0.5,
+            "... along at least this share of the shorter of the two.",
+            lo=0.0,
+            hi=1.0,
+            dynamic="id_overlap",
         )
         depth = declare(
-            self, "segments_history_depth", 1000, "History depth of /hdmap/segments (match the mapper).", lo=1, hi=100000
+            self,
+            "segments_history_depth",
+            1000,
+            "History depth of /hdmap/segments (match the mapper).",
+            lo=1,
+            hi=100000,
         )
         self._init_health("map_stitcher", item="tile_estimates")
         self.pipeline_config = pipeline_config
@@ -92,7 +115,10 @@ class MapStitcher(HealthMixin, Node):
         self._rx_group = MutuallyExclusiveCallbackGroup()
         self._work_group = MutuallyExclusiveCallbackGroup()
         self._sub = self.create_subscription(
-            rclpy_tile_types().TileSegments, SEGMENTS_TOPIC, self.on_tile, qos.replay(depth),
+            rclpy_tile_types().TileSegments,
+            SEGMENTS_TOPIC,
+            self.on_tile,
+            qos.replay(depth),
             callback_group=self._rx_group,
         )
         self._status_sub = self.create_subscription(
@@ -116,8 +142,9 @@ class MapStitcher(HealthMixin, Node):
             self.health.reject("invalid_tile", str(err))
             self.get_logger().warning(f"tile message rejected: {err}")
             return
-        if self.store.put_tile(tile.key, tile.version, segments_to_blob(tile.segments), tile.drive_ids,
-                               tile.drive_tile_counts, tile.final):
+        if self.store.put_tile(
+            tile.key, tile.version, segments_to_blob(tile.segments), tile.drive_ids, tile.drive_tile_counts, tile.final
+        ):
             self.health.accept()
             now = time.monotonic()
             self._last_rx = now
@@ -203,9 +230,12 @@ class MapStitcher(HealthMixin, Node):
         sig = self.store.tiles_signature()
         unstitched = sum(1 for part in (sig.split(";") if sig else []) if part not in in_map)
         status = map_status(
-            self._mapper_status, map_version=self.map.version if self.map else 0,
+            self._mapper_status,
+            map_version=self.map.version if self.map else 0,
             drives_integrated=len(self.map.drive_ids) if self.map else 0,
-            tile_versions=self.store.version_total(), tiles_unstitched=unstitched, stitched=self.is_settled(),
+            tile_versions=self.store.version_total(),
+            tiles_unstitched=unstitched,
+            stitched=self.is_settled(),
         )
         if status.same(self.status):
             return

@@ -107,34 +107,60 @@ class SegmentMapper(HealthMixin, Node):
                 self, "margin_m", 128.0, "Context mapped around a tile [m]; must be < tile_size_m.", lo=0.0, hi=1024.0
             ),
             min_growth_fraction=declare(
-                self, "min_growth_fraction", 0.10,
+                self,
+                "min_growth_fraction",
+                0.10,
                 "Without the fleet model: re-estimate a tile when its drive count grew by this fraction.",
-                lo=0.0, hi=10.0,
+                lo=0.0,
+                hi=10.0,
             ),
             min_growth_drives=declare(
-                self, "min_growth_drives", 3, "Without the fleet model: ... and by at least this many drives.",
-                lo=1, hi=10000,
+                self,
+                "min_growth_drives",
+                3,
+                "Without the fleet model: ... and by at least this many drives.",
+                lo=1,
+                hi=10000,
             ),
-            seed=declare(self, "seed", 0, "Base seed; each tile's seed derives from it and the tile key.", lo=0, hi=2**31 - 1),
+            seed=declare(
+                self, "seed", 0, "Base seed; each tile's seed derives from it and the tile key.", lo=0, hi=2**31 - 1
+            ),
             pivot_margin_m=self._pivot_margin(),
         )
         self.settle_after_s = declare(
-            self, "settle_after_s", 2.0, "Idle time after which stale tiles are re-estimated [s].", lo=0.0, hi=3600.0,
+            self,
+            "settle_after_s",
+            2.0,
+            "Idle time after which stale tiles are re-estimated [s].",
+            lo=0.0,
+            hi=3600.0,
             dynamic="settle_after_s",
         )
         depth = declare(
-            self, "segments_history_depth", 1000, "Tile estimates kept (TRANSIENT_LOCAL) for a restarting stitcher.",
-            lo=1, hi=100000,
+            self,
+            "segments_history_depth",
+            1000,
+            "Tile estimates kept (TRANSIENT_LOCAL) for a restarting stitcher.",
+            lo=1,
+            hi=100000,
         )
         accepted_depth = declare(
-            self, "accepted_history_depth", 100, "History depth of /hdmap/drives_accepted (match the ingestor).",
-            lo=1, hi=100000,
+            self,
+            "accepted_history_depth",
+            100,
+            "History depth of /hdmap/drives_accepted (match the ingestor).",
+            lo=1,
+            hi=100000,
         )
         republish = declare(self, "republish_on_start", True, "Publish every stored tile estimate at start.")
         self.work_slice_s = declare(
-            self, "work_slice_s", 0.5,
+            self,
+            "work_slice_s",
+            0.5,
             "Mapping time per worker turn with workers=1 [s]; new drives are taken in between.",
-            lo=0.0, hi=600.0, dynamic="work_slice_s",
+            lo=0.0,
+            hi=600.0,
+            dynamic="work_slice_s",
         )
         workers = declare(
             self, "workers", 0, "Processes mapping tiles: 0 = every available CPU, 1 = in this process.", lo=0, hi=256
@@ -148,18 +174,25 @@ class SegmentMapper(HealthMixin, Node):
         self._types = rclpy_types()
         self._tile_types = rclpy_tile_types()
         self.use_fleet_model = self.pipeline_config.final_pass is not None
-        self.scheduler = LiveScheduler(self.tile_config, use_fleet_model=self.use_fleet_model,
-                                       settle_after_s=self.settle_after_s)
+        self.scheduler = LiveScheduler(
+            self.tile_config, use_fleet_model=self.use_fleet_model, settle_after_s=self.settle_after_s
+        )
         self._model: OffsetModel | None = None
         self._load_model()
         emptied = self._purge_implausible()  # before the schedule is made from the store
-        self.scheduler.restore(self.store.tile_drive_sets(), self.store.estimates(), self.store.observation_sets(),
-                               self._model_sig, now=time.monotonic())
+        self.scheduler.restore(
+            self.store.tile_drive_sets(),
+            self.store.estimates(),
+            self.store.observation_sets(),
+            self._model_sig,
+            now=time.monotonic(),
+        )
         self.store.mark_processed(self.store.pending())  # their tiles are in the restored schedule
         self.workers = workers or available_cpus()
         self._pool = (
             ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
-            if self.workers > 1 else _Inline()
+            if self.workers > 1
+            else _Inline()
         )
         self._running: dict[Future, Job] = {}
         for _ in range(self.workers if self.workers > 1 else 0):  # start the processes while nothing waits
@@ -177,11 +210,18 @@ class SegmentMapper(HealthMixin, Node):
         self._rx_group = MutuallyExclusiveCallbackGroup()
         self._work_group = MutuallyExclusiveCallbackGroup()
         self._sub = self.create_subscription(
-            self._types.Drive, ACCEPTED_TOPIC, self.on_drive, qos.replay(accepted_depth), callback_group=self._rx_group,
+            self._types.Drive,
+            ACCEPTED_TOPIC,
+            self.on_drive,
+            qos.replay(accepted_depth),
+            callback_group=self._rx_group,
             raw=True,  # CDR bytes, read vectorised (drive_from_wire)
         )
         self._rej_sub = self.create_subscription(
-            String, REJECTED_TOPIC, lambda m: self._rejected_ids.add(str(m.data)), qos.ACKS,
+            String,
+            REJECTED_TOPIC,
+            lambda m: self._rejected_ids.add(str(m.data)),
+            qos.ACKS,
             callback_group=self._rx_group,
         )
         self._timer = self.create_timer(0.05, self.work, callback_group=self._work_group)
@@ -214,10 +254,13 @@ class SegmentMapper(HealthMixin, Node):
     def _pivot_margin(self) -> float | None:
         margin = float(self.get_parameter("margin_m").value)
         pm = declare(
-            self, "pivot_margin_m", 48.0,
+            self,
+            "pivot_margin_m",
+            48.0,
             "Pivots walk their steps only this far around a tile [m] (the whole margin stays context); "
             ">= margin_m walks the whole grown tile.",
-            lo=0.0, hi=1024.0,
+            lo=0.0,
+            hi=1024.0,
         )
         return None if pm >= margin else pm
 
@@ -344,8 +387,11 @@ class SegmentMapper(HealthMixin, Node):
         """Start up to ``free`` jobs; returns how many."""
         jobs = self.scheduler.next_jobs(time.monotonic(), max(0, free))
         for job in jobs:
-            kw = {"tile_config": self.tile_config, "pipeline_config": self.pipeline_config,
-                  "use_fleet_model": self.use_fleet_model}
+            kw = {
+                "tile_config": self.tile_config,
+                "pipeline_config": self.pipeline_config,
+                "use_fleet_model": self.use_fleet_model,
+            }
             if job.kind == MODEL:
                 kw["observations"] = self.store.observations()
             if job.kind == REMAP:
@@ -373,9 +419,13 @@ class SegmentMapper(HealthMixin, Node):
         elif job.kind == OBSERVE:
             self.store.put_observations(job.key, result.observations, job.drive_ids)
         else:
-            est = self.store.put_tile(job.key, result.segments, job.drive_ids,
-                                      model_sig=job.sig if job.kind == REMAP else "",
-                                      observations=result.observations)
+            est = self.store.put_tile(
+                job.key,
+                result.segments,
+                job.drive_ids,
+                model_sig=job.sig if job.kind == REMAP else "",
+                observations=result.observations,
+            )
             self._publish(est, final=job.final)
             self.health.updated()
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
@@ -401,8 +451,13 @@ class SegmentMapper(HealthMixin, Node):
         """Publish an estimate; ``final`` None (a stored one): final when made with the fleet model
         or when the preset has none."""
         msg = tile_to_msg(
-            est.key, est.segments(), version=est.version, drive_ids=est.drive_ids,
-            tile_size_m=self.tile_config.tile_size_m, stamp_ns=time.time_ns(), types=self._tile_types,
+            est.key,
+            est.segments(),
+            version=est.version,
+            drive_ids=est.drive_ids,
+            tile_size_m=self.tile_config.tile_size_m,
+            stamp_ns=time.time_ns(),
+            types=self._tile_types,
             drive_tile_counts=[self.scheduler.drive_tile_count(d) for d in est.drive_ids],
             final=(bool(est.model_sig) or not self.use_fleet_model) if final is None else final,
         )
@@ -412,9 +467,12 @@ class SegmentMapper(HealthMixin, Node):
     def _update_status(self) -> None:
         """Publish the mapper's part of MapStatus when it changed."""
         status = LiveStatus(
-            drives_received=self.store.drive_count(), drives_rejected=len(self._rejected_ids),
+            drives_received=self.store.drive_count(),
+            drives_rejected=len(self._rejected_ids),
             tiles_pending=self.scheduler.pending_tiles() + len(self.store.pending()),
-            tile_versions=self.store.version_total(), settled=self.is_settled(), stamp_ns=time.time_ns(),
+            tile_versions=self.store.version_total(),
+            settled=self.is_settled(),
+            stamp_ns=time.time_ns(),
         )
         if status.same(self._status):
             return

@@ -93,8 +93,13 @@ def blob_to_drive(blob: bytes) -> Drive:
         for t, p in zip(a["det_types"], _split(a["det_pts"], a["det_lens"]))
     )
     return Drive(
-        drive_id=m["drive_id"], xy=a["xy"], yaw=a["yaw"], stamps_ns=a["stamps"], detections=dets,
-        vehicle_id=m["vehicle_id"], frame_id=m["frame_id"],
+        drive_id=m["drive_id"],
+        xy=a["xy"],
+        yaw=a["yaw"],
+        stamps_ns=a["stamps"],
+        detections=dets,
+        vehicle_id=m["vehicle_id"],
+        frame_id=m["frame_id"],
     )
 
 
@@ -113,8 +118,12 @@ def segments_to_blob(segments: Sequence[Segment]) -> bytes:
             "index": np.array([st.index for st in steps], dtype=np.int64),
             "s_m": np.array([st.s_m for st in steps], dtype=np.float64),
             "midpoint": np.array([np.asarray(st.midpoint, dtype=np.float64) for st in steps]).reshape(-1, 2),
-            "pose": np.array([np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=np.float64).reshape(-1)[:2]
-                              for st in steps]).reshape(-1, 2),
+            "pose": np.array(
+                [
+                    np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=np.float64).reshape(-1)[:2]
+                    for st in steps
+                ]
+            ).reshape(-1, 2),
             "heading": np.array([st.heading for st in steps], dtype=np.float64),
             "width_m": np.array([st.width_m for st in steps], dtype=np.float64),
             "valid": np.array([st.valid for st in steps], dtype=bool),
@@ -125,10 +134,14 @@ def segments_to_blob(segments: Sequence[Segment]) -> bytes:
             "counts": cat("counts", np.int64),
             "std_m": cat("std_m", np.float64),
             "judged": np.array([st.empty_m is not None for st in steps], dtype=bool),
-            "n_empty": np.array([0 if st.empty_m is None else len(np.asarray(st.empty_m).reshape(-1, 2)) for st in steps],
-                                dtype=np.int64),
-            "empty_m": np.concatenate([np.zeros((0, 2))] + [np.asarray(st.empty_m, dtype=np.float64).reshape(-1, 2)
-                                                           for st in steps if st.empty_m is not None]),
+            "n_empty": np.array(
+                [0 if st.empty_m is None else len(np.asarray(st.empty_m).reshape(-1, 2)) for st in steps],
+                dtype=np.int64,
+            ),
+            "empty_m": np.concatenate(
+                [np.zeros((0, 2))]
+                + [np.asarray(st.empty_m, dtype=np.float64).reshape(-1, 2) for st in steps if st.empty_m is not None]
+            ),
         },
         {"pivots": [s.pivot_id for s in segments], "drive_ids": [list(st.drive_ids) for st in steps]},
     )
@@ -143,11 +156,21 @@ def blob_to_segments(blob: bytes) -> list[Segment]:
     pose = a["pose"] if "pose" in a else np.full((len(k), 2), np.nan)  # blobs written before poses
     steps = [
         StepResult(
-            pivot_id="", index=int(a["index"][i]), s_m=float(a["s_m"][i]), midpoint=a["midpoint"][i],
-            heading=float(a["heading"][i]), width_m=float(a["width_m"][i]), valid=bool(a["valid"][i]),
-            processed_before=bool(a["processed_before"][i]), lateral_m=lat[i], types=typ[i],
-            counts=cnt[i], std_m=std[i], drive_ids=tuple(m["drive_ids"][i]),
-            empty_m=empty[i] if judged[i] else None, pose=pose[i] if np.isfinite(pose[i]).all() else None,
+            pivot_id="",
+            index=int(a["index"][i]),
+            s_m=float(a["s_m"][i]),
+            midpoint=a["midpoint"][i],
+            heading=float(a["heading"][i]),
+            width_m=float(a["width_m"][i]),
+            valid=bool(a["valid"][i]),
+            processed_before=bool(a["processed_before"][i]),
+            lateral_m=lat[i],
+            types=typ[i],
+            counts=cnt[i],
+            std_m=std[i],
+            drive_ids=tuple(m["drive_ids"][i]),
+            empty_m=empty[i] if judged[i] else None,
+            pose=pose[i] if np.isfinite(pose[i]).all() else None,
         )
         for i in range(len(k))
     ]
@@ -173,7 +196,9 @@ def observations_to_blob(observations: Sequence[StepObservations]) -> bytes:
     return _pack(
         {
             "index": np.array([ob.index for ob in obs], dtype=np.int64),
-            "midpoint": np.array([np.asarray(ob.midpoint, dtype=np.float64).reshape(-1)[:2] for ob in obs]).reshape(-1, 2),
+            "midpoint": np.array([np.asarray(ob.midpoint, dtype=np.float64).reshape(-1)[:2] for ob in obs]).reshape(
+                -1, 2
+            ),
             "heading": np.array([ob.heading for ob in obs], dtype=np.float64),
             "k": np.array([len(ob.drive_ids) for ob in obs], dtype=np.int64),
             "k_off": np.array([np.asarray(ob.offsets_m).size for ob in obs], dtype=np.int64),
@@ -196,9 +221,16 @@ def blob_to_observations(blob: bytes) -> list[StepObservations]:
     off = _split(a["offsets_m"], a["k_off"])
     return [
         StepObservations(
-            pivot_id=m["pivots"][i], index=int(a["index"][i]), midpoint=a["midpoint"][i],
-            heading=float(a["heading"][i]), drive_ids=tuple(table[drv[i]].tolist()), drive_s_m=ds[i],
-            lateral_m=lat[i], types=typ[i], cluster=clu[i], offsets_m=off[i],
+            pivot_id=m["pivots"][i],
+            index=int(a["index"][i]),
+            midpoint=a["midpoint"][i],
+            heading=float(a["heading"][i]),
+            drive_ids=tuple(table[drv[i]].tolist()),
+            drive_s_m=ds[i],
+            lateral_m=lat[i],
+            types=typ[i],
+            cluster=clu[i],
+            offsets_m=off[i],
         )
         for i in range(len(k))
     ]
@@ -232,18 +264,29 @@ def map_to_blob(hdmap: HDMap) -> bytes:
             "f_type": np.array([int(f.type) for f in fs], dtype=np.int64),
             "f_n": np.array([len(p) for p in pts], dtype=np.int64),
             "f_pts": np.vstack(pts) if pts else np.zeros((0, 2)),
-            "f_count": np.concatenate([np.asarray(f.drive_count, dtype=np.int64) for f in fs]) if fs else np.zeros(0, np.int64),
+            "f_count": np.concatenate([np.asarray(f.drive_count, dtype=np.int64) for f in fs])
+            if fs
+            else np.zeros(0, np.int64),
             "f_std": np.concatenate([np.asarray(f.lateral_std, dtype=np.float64) for f in fs]) if fs else np.zeros(0),
-            "f_pred": pred, "f_pred_n": pred_n, "f_succ": succ, "f_succ_n": succ_n,
+            "f_pred": pred,
+            "f_pred_n": pred_n,
+            "f_succ": succ,
+            "f_succ_n": succ_n,
             "t_id": np.array([t.id for t in ts], dtype=np.uint64),
             "t_pos": np.array([np.asarray(t.position, dtype=np.float64) for t in ts]).reshape(-1, 2),
             "t_heading": np.array([t.heading for t in ts], dtype=np.float64),
             "t_width": np.array([t.width for t in ts], dtype=np.float64),
-            "t_succ": tsucc, "t_succ_n": tsucc_n, "t_feat": tfeat, "t_feat_n": tfeat_n,
+            "t_succ": tsucc,
+            "t_succ_n": tsucc_n,
+            "t_feat": tfeat,
+            "t_feat_n": tfeat_n,
         },
         {
-            "drive_ids": list(hdmap.drive_ids), "version": int(hdmap.version), "frame_id": hdmap.frame_id,
-            "stamp_ns": int(hdmap.stamp_ns), "extra": extra,
+            "drive_ids": list(hdmap.drive_ids),
+            "version": int(hdmap.version),
+            "frame_id": hdmap.frame_id,
+            "stamp_ns": int(hdmap.stamp_ns),
+            "extra": extra,
         },
     )
 
@@ -255,23 +298,36 @@ def blob_to_map(blob: bytes) -> HDMap:
     pred, succ = _split(a["f_pred"], a["f_pred_n"]), _split(a["f_succ"], a["f_succ_n"])
     features = tuple(
         MapFeature(
-            id=int(a["f_id"][i]), type=FeatureType(int(a["f_type"][i])), points=pts[i], drive_count=cnt[i],
-            lateral_std=std[i], predecessors=tuple(int(x) for x in pred[i]), successors=tuple(int(x) for x in succ[i]),
+            id=int(a["f_id"][i]),
+            type=FeatureType(int(a["f_type"][i])),
+            points=pts[i],
+            drive_count=cnt[i],
+            lateral_std=std[i],
+            predecessors=tuple(int(x) for x in pred[i]),
+            successors=tuple(int(x) for x in succ[i]),
         )
         for i in range(len(n))
     )
     tsucc, tfeat = _split(a["t_succ"], a["t_succ_n"]), _split(a["t_feat"], a["t_feat_n"])
     topology = tuple(
         TopologyNode(
-            id=int(a["t_id"][i]), position=a["t_pos"][i], heading=float(a["t_heading"][i]),
-            width=float(a["t_width"][i]), successors=tuple(int(x) for x in tsucc[i]),
+            id=int(a["t_id"][i]),
+            position=a["t_pos"][i],
+            heading=float(a["t_heading"][i]),
+            width=float(a["t_width"][i]),
+            successors=tuple(int(x) for x in tsucc[i]),
             features=tuple(int(x) for x in tfeat[i]),
         )
         for i in range(len(a["t_id"]))
     )
     return HDMap(
-        features=features, topology=topology, drive_ids=tuple(m["drive_ids"]), version=m["version"],
-        frame_id=m["frame_id"], stamp_ns=m["stamp_ns"], extra=m.get("extra", {}),
+        features=features,
+        topology=topology,
+        drive_ids=tuple(m["drive_ids"]),
+        version=m["version"],
+        frame_id=m["frame_id"],
+        stamp_ns=m["stamp_ns"],
+        extra=m.get("extra", {}),
     )
 
 
@@ -581,7 +637,9 @@ class DriveStore(_Store):
             (key[0], key[1], len(ids), json.dumps(ids), observations_to_blob(observations)),
         )
 
-    def put_observations(self, key: TileKey, observations: Sequence[StepObservations], drive_ids: Sequence[str]) -> None:
+    def put_observations(
+        self, key: TileKey, observations: Sequence[StepObservations], drive_ids: Sequence[str]
+    ) -> None:
         """Replace a tile's observations (made from ``drive_ids``) in one transaction."""
         with self._tx() as con:
             self._put_obs(con, key, observations, drive_ids)
@@ -660,8 +718,13 @@ class MapStore(_Store):
                 con.execute("ALTER TABLE tiles ADD COLUMN final INTEGER NOT NULL DEFAULT 1")
 
     def put_tile(
-        self, key: TileKey, version: int, segments_blob: bytes, drive_ids: Sequence[str],
-        drive_tile_counts: Sequence[int] = (), final: bool = True,
+        self,
+        key: TileKey,
+        version: int,
+        segments_blob: bytes,
+        drive_ids: Sequence[str],
+        drive_tile_counts: Sequence[int] = (),
+        final: bool = True,
     ) -> bool:
         """Store a tile's segments unless a same or newer version is stored; True when stored.
         ``drive_tile_counts``: per drive id, the tiles that drive covers (empty: unknown); ``final``:
@@ -673,8 +736,15 @@ class MapStore(_Store):
             con.execute(
                 "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_ids, segments, drive_tile_counts, final) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (key[0], key[1], int(version), json.dumps(list(drive_ids)), segments_blob,
-                 json.dumps([int(n) for n in drive_tile_counts]), int(bool(final))),
+                (
+                    key[0],
+                    key[1],
+                    int(version),
+                    json.dumps(list(drive_ids)),
+                    segments_blob,
+                    json.dumps([int(n) for n in drive_tile_counts]),
+                    int(bool(final)),
+                ),
             )
         return True
 
