@@ -100,6 +100,7 @@ def install_fake_pipeline(monkeypatch, build_map) -> None:
     class PipelineConfig:
         name: str
         overrides: tuple = ()
+        plausibility: object = None  # bag2map hands it to change detection (None: the form only)
 
     def config_from(preset: str, overrides: dict) -> PipelineConfig:
         return PipelineConfig(preset + ("+" if overrides else ""), tuple(dict(overrides).items()))

@@ -20,15 +20,23 @@ the pose quaternions (:func:`check_quaternions`), which the data model no longer
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from hdmap_core.checks import check_range
 from hdmap_core.errors import InvalidDriveError
-from hdmap_core.model import Drive
+from hdmap_core.model import Drive, validate_drive
 
-__all__ = ["PhysicalBounds", "check_plausible", "check_quaternions", "QUATERNION_NORM_TOLERANCE", "REASONS"]
+__all__ = [
+    "PhysicalBounds",
+    "check_plausible",
+    "prepare_drives",
+    "check_quaternions",
+    "QUATERNION_NORM_TOLERANCE",
+    "REASONS",
+]
 
 # A pose orientation is a unit quaternion; writers normalise in float64 (float32 at worst, 1e-7),
 # so a norm off by more than 1 % is a defect (e.g. an all-zero quaternion: no heading at all).
@@ -206,3 +214,39 @@ def _check_range(drive: Drive, xy: np.ndarray, bounds: PhysicalBounds) -> None:
             "detection_out_of_range",
             f"detection {det} has a point over {bounds.max_detection_range_m:g} m from every pose",
         )
+
+
+_BOUNDS = PhysicalBounds()
+
+
+def prepare_drives(
+    drives: Sequence[Drive], *, bounds: PhysicalBounds | None = _BOUNDS
+) -> tuple[list[Drive], list[tuple[str, str]]]:
+    """Validate drives; invalid, implausible and duplicate ones are rejected with a reason, never raised.
+
+    Args:
+        drives: the drives.
+        bounds: the physical bounds every drive must keep (``hdmap_core.plausibility``); None:
+            only the form is checked (``model.validate_drive``), e.g. for clips of drives that
+            passed the bounds when they came in.
+
+    Returns:
+        (usable drives in input order, [(drive_id, reason), ...]).
+    """
+    ok: list[Drive] = []
+    rejected: list[tuple[str, str]] = []
+    seen: set[str] = set()
+    for d in drives:
+        try:
+            validate_drive(d)
+            if bounds is not None:
+                check_plausible(d, bounds=bounds)
+        except InvalidDriveError as err:
+            rejected.append((err.drive_id, f"{err.reason}" + (f": {err.detail}" if err.detail else "")))
+            continue
+        if d.drive_id in seen:
+            rejected.append((d.drive_id, "duplicate_drive_id"))
+            continue
+        seen.add(d.drive_id)
+        ok.append(d)
+    return ok, rejected

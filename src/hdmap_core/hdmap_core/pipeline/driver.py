@@ -26,10 +26,10 @@ try:  # threadpoolctl comes with scikit-learn
 except ImportError:  # pragma: no cover
     threadpool_limits = None
 
-from hdmap_core.errors import ConfigError, InvalidDriveError, NoUsableDataError
+from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.graph.connection import connect_segment
 from hdmap_core.graph.map_graph import stitch
-from hdmap_core.model import Drive, HDMap, validate_drive
+from hdmap_core.model import Drive, HDMap
 from hdmap_core.parallel import ForkWorker, can_fork, map_balanced, split_order
 from hdmap_core.pipeline.adjustment import OffsetModel, OffsetSource, adjust_offsets
 from hdmap_core.pipeline.aggregation import ProcessedStore
@@ -38,7 +38,7 @@ from hdmap_core.pipeline.evidence import EvidenceConfig
 from hdmap_core.pipeline.pivot import DriveTracks, PassCounters, PivotContext, ProgressFn, ShiftFn, run_pass
 from hdmap_core.pipeline.preprocess import DetectionIndex, preprocess, trajectory_index
 from hdmap_core.pipeline.sampling import pivot_groups
-from hdmap_core.plausibility import PhysicalBounds, check_plausible
+from hdmap_core.plausibility import prepare_drives
 from hdmap_core.steps import Segment, StepObservations
 
 __all__ = [
@@ -143,41 +143,6 @@ class MappingResult:
 
 
 # ----------------------------------------------------------------------------- input
-
-_BOUNDS = PhysicalBounds()
-
-
-def prepare_drives(
-    drives: Sequence[Drive], *, bounds: PhysicalBounds | None = _BOUNDS
-) -> tuple[list[Drive], list[tuple[str, str]]]:
-    """Validate drives; invalid, implausible and duplicate ones are rejected with a reason, never raised.
-
-    Args:
-        drives: the drives.
-        bounds: the physical bounds every drive must keep (``hdmap_core.plausibility``); None:
-            only the form is checked (``model.validate_drive``), e.g. for clips of drives that
-            passed the bounds when they came in.
-
-    Returns:
-        (usable drives in input order, [(drive_id, reason), ...]).
-    """
-    ok: list[Drive] = []
-    rejected: list[tuple[str, str]] = []
-    seen: set[str] = set()
-    for d in drives:
-        try:
-            validate_drive(d)
-            if bounds is not None:
-                check_plausible(d, bounds=bounds)
-        except InvalidDriveError as err:
-            rejected.append((err.drive_id, f"{err.reason}" + (f": {err.detail}" if err.detail else "")))
-            continue
-        if d.drive_id in seen:
-            rejected.append((d.drive_id, "duplicate_drive_id"))
-            continue
-        seen.add(d.drive_id)
-        ok.append(d)
-    return ok, rejected
 
 
 def _check_workers(workers: int) -> int:

@@ -25,6 +25,7 @@ from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
 from hdmap_core.model import Detection, Drive, HDMap
+from hdmap_core.plausibility import PhysicalBounds, prepare_drives
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
 from hdmap_core.updates.evidence import fleet_evidence
@@ -195,11 +196,15 @@ def retired_features(
     return out
 
 
+_BOUNDS = PhysicalBounds()
+
+
 def follow_changes(
     drives: Sequence[Drive],
     *,
     build: Callable[[Sequence[Drive]], tuple[HDMap, object]],
     config: ChangeConfig = ChangeConfig(),
+    bounds: PhysicalBounds | None = _BOUNDS,
 ) -> FollowResult:
     """The map of ``drives`` as of the last of them (module docstring).
 
@@ -207,7 +212,14 @@ def follow_changes(
         drives: the fleet's drives (their time stamps order them).
         build: drives -> (map, build report): the pipeline as configured (``build_map``).
         config: change detection settings.
+        bounds: the physical bounds of the build (``PipelineConfig.plausibility``): a drive outside
+            them (or malformed) is left out here as the build leaves it out, so that no evidence
+            is computed on it (a pose at 1e12 m would ask for terabytes). ``drives`` is passed
+            to ``build`` as given when every drive keeps them.
     """
+    usable, rejected = prepare_drives(drives, bounds=bounds)
+    if rejected:
+        drives = usable
     first_map, report = build(drives)
     places = places_of(drives, cell_m=config.cell_m)
     evidence = fleet_evidence(drives, first_map, places, config=config)

@@ -233,13 +233,16 @@ def run(args: argparse.Namespace) -> int:
         )
         history = None
         if args.follow_changes:
+            from hdmap_core.plausibility import prepare_drives  # noqa: PLC0415
             from hdmap_core.updates.follow import follow_changes, history_to_dict  # noqa: PLC0415
 
             first = result
+            # the drives the build used: change detection never sees a drive the build refused
+            usable, _ = prepare_drives(fleet.drives, bounds=config.plausibility)
 
             def build(drives: Any) -> tuple[HDMap, Any]:
                 nonlocal result
-                if drives is fleet.drives:  # the map of every drive: built above
+                if drives is usable:  # the map of every drive: built above
                     return first.map, first.report
                 result = pipeline.build_map(
                     list(drives),
@@ -250,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
                 )
                 return result.map, result.report
 
-            followed = follow_changes(fleet.drives, build=build)
+            followed = follow_changes(usable, build=build, bounds=config.plausibility)
             history = history_to_dict(followed)
             result = dataclasses.replace(result, map=followed.map) if followed.changes else first
             for c in followed.changes:
