@@ -357,7 +357,7 @@ def iter_fleet_bag(
 def has_contract_definition(bm: BagMessage) -> bool:
     """True when the bag's definition of the message's type is hdmap_msgs' own (so its bytes read
     the same in any hdmap_msgs subscriber)."""
-    return bm.msgtype == DRIVE_TYPE and _is_our_drive_definition(bm.typestore)
+    return bm.msgtype == DRIVE_TYPE and not bm.unknown_definition and _is_our_drive_definition(bm.typestore)
 
 
 def drive_of_message(bm: BagMessage, *, expected_frame: str | None = MAP_FRAME) -> Drive | Rejection:
