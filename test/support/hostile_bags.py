@@ -1,5 +1,5 @@
 """Hostile bags the bag and node tests share (not a test module): CRC-checked MCAP files with small
-chunks, and one whose Drive definition differs from hdmap_msgs'."""
+chunks, one whose Drive definition differs from hdmap_msgs', and one holding both definitions."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ from pathlib import Path
 
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from hdmap_core.model import GeoOrigin
@@ -18,6 +20,7 @@ from hdmap_ros.io.msgdefs import default_typestore
 from bag_samples import T0_NS, make_drive
 
 ORIGIN = GeoOrigin(48.0, 11.0, 500.0)
+_NO_TIME = (QosTime(0, 0), QosTime(0, 0), QosLiveliness.AUTOMATIC, QosTime(0, 0), False)
 
 
 def small_drives(k: int, n: int = 60) -> list:
@@ -41,8 +44,9 @@ def crc_mcap(path: Path, drives: list, *, chunk_size: int = 12_000, drive_def: s
     return path
 
 
-def bag_without_vehicle_id(tmp_path: Path, drives: list) -> Path:
-    """A bare .mcap whose Drive definition (and bytes) lack ``vehicle_id``."""
+def _without_vehicle_id():
+    """A Drive definition lacking ``vehicle_id`` (as embedded in a bag), its typestore, and an encoder
+    of drives with it."""
     store = default_typestore()
     full, _ = store.generate_msgdef(DRIVE_TYPE, ros_version=2)
     own, _, rest = full.partition("\n" + "=" * 80 + "\n")
@@ -60,7 +64,47 @@ def bag_without_vehicle_id(tmp_path: Path, drives: list) -> Path:
             )
         )
 
-    return crc_mcap(tmp_path / "nodef.mcap", drives, drive_def=changed + "\n" + "=" * 80 + "\n" + rest, encode=encode)
+    return changed + "\n" + "=" * 80 + "\n" + rest, other, encode
+
+
+def bag_without_vehicle_id(tmp_path: Path, drives: list) -> Path:
+    """A bare .mcap whose Drive definition (and bytes) lack ``vehicle_id``."""
+    msgdef, _, encode = _without_vehicle_id()
+    return crc_mcap(tmp_path / "nodef.mcap", drives, drive_def=msgdef, encode=encode)
+
+
+def two_definition_bag(path: Path, good: list, bad: list, *, rosbag2: bool) -> Path:
+    """A bag with two ``/fleet/drives`` connections of hdmap_msgs/msg/Drive: ``good`` recorded with the
+    contract's definition, ``bad`` with one lacking ``vehicle_id`` (as two recordings merged would
+    give); messages in start-time order. ``rosbag2``: a rosbag2 MCAP directory, else a bare .mcap."""
+    store = default_typestore()
+    bad_def, bad_store, bad_encode = _without_vehicle_id()
+    items = sorted([(d, False) for d in good] + [(d, True) for d in bad], key=lambda x: x[0].start_ns)
+    origin_cdr = bytes(store.serialize_cdr(origin_to_msg(ORIGIN, stamp_ns=T0_NS), ORIGIN_TYPE))
+    if rosbag2:
+        with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+            oc = w.add_connection(ORIGIN_TOPIC, ORIGIN_TYPE, typestore=store)
+            w.write(oc, T0_NS, origin_cdr)
+            # a rosbag2 writer keeps one connection per topic, type and QoS: the second recording's differs
+            gc = w.add_connection(DRIVES_TOPIC, DRIVE_TYPE, typestore=store)
+            qos = Qos(QosHistory.KEEP_ALL, 0, QosReliability.RELIABLE, QosDurability.VOLATILE, *_NO_TIME)
+            bc = w.add_connection(DRIVES_TOPIC, DRIVE_TYPE, typestore=bad_store, offered_qos_profiles=[qos])
+            for d, is_bad in items:
+                w.write(bc if is_bad else gc, d.start_ns, bad_encode(d) if is_bad else encode_drive(d))
+        return path
+    good_def, _ = store.generate_msgdef(DRIVE_TYPE, ros_version=2)
+    odef, _ = store.generate_msgdef(ORIGIN_TYPE, ros_version=2)
+    with path.open("wb") as stream:
+        w = McapWriter(stream, chunk_size=12_000, compression=CompressionType.NONE, enable_crcs=True)
+        w.start(profile="ros2", library="test")
+        oid = w.register_channel(ORIGIN_TOPIC, "cdr", w.register_schema(ORIGIN_TYPE, "ros2msg", odef.encode()))
+        w.add_message(oid, T0_NS, origin_cdr, T0_NS)
+        gid = w.register_channel(DRIVES_TOPIC, "cdr", w.register_schema(DRIVE_TYPE, "ros2msg", good_def.encode()))
+        bid = w.register_channel(DRIVES_TOPIC, "cdr", w.register_schema(DRIVE_TYPE, "ros2msg", bad_def.encode()))
+        for d, is_bad in items:
+            w.add_message(bid if is_bad else gid, d.start_ns, bad_encode(d) if is_bad else encode_drive(d), d.start_ns)
+        w.finish()
+    return path
 
 
 def rechunk(path: Path, *, chunk_size: int = 12_000) -> Path:

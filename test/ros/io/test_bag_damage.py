@@ -22,7 +22,7 @@ from hdmap_ros.io.bagio import (
 )
 
 from bag_samples import assert_drives_equal
-from hostile_bags import ORIGIN, bag_without_vehicle_id, crc_mcap, rechunk, small_drives
+from hostile_bags import ORIGIN, bag_without_vehicle_id, crc_mcap, rechunk, small_drives, two_definition_bag
 
 
 def _chunks(path: Path) -> list[tuple[int, int]]:
@@ -73,6 +73,30 @@ def test_a_drive_of_another_definition_is_rejected_per_message(tmp_path):
     assert got.error is None and not got.drives and got.origin == ORIGIN
     assert [(r.drive_id, r.reason) for r in got.rejected] == [(d.drive_id, "definition_mismatch") for d in drives]
     assert "vehicle_id" in got.rejected[0].detail
+
+
+@pytest.mark.parametrize("rosbag2", [False, True], ids=["mcap", "rosbag2"])
+def test_two_definitions_of_one_type_keep_the_good_drives_and_reject_the_others(tmp_path, rosbag2):
+    """One /fleet/drives connection with the contract's Drive, one without ``vehicle_id``. A bare MCAP
+    holds both schemas: each connection is decoded with its own. rosbag2 holds one definition per
+    type (its MCAP storage writes one schema per type name) but each connection's type hash: the
+    connection whose hash is not that of the definition in the bag is rejected per message."""
+    drives = small_drives(8)
+    good, bad = drives[0::2], drives[1::2]  # interleaved in the bag
+    path = two_definition_bag(tmp_path / ("two" if rosbag2 else "two.mcap"), good, bad, rosbag2=rosbag2)
+    got = read_fleet_bag(path)
+    assert got.error is None and got.origin == ORIGIN
+    assert [d.drive_id for d in got.drives] == [d.drive_id for d in good]
+    for d, want in zip(got.drives, good, strict=True):
+        assert_drives_equal(d, want)
+    assert [(r.drive_id, r.reason) for r in got.rejected] == [(d.drive_id, "definition_mismatch") for d in bad]
+    assert all(r.topic == "/fleet/drives" for r in got.rejected)
+    assert all(("hash" if rosbag2 else "vehicle_id") in r.detail for r in got.rejected)
+    messages = list(iter_bag(path, topics=("/fleet/drives",)))
+    if rosbag2:
+        assert [bool(bm.unknown_definition) for bm in messages] == [i % 2 == 1 for i in range(len(drives))]
+    else:  # each channel's messages come with their own schema's types
+        assert len({bm.typestore for bm in messages}) == 2
 
 
 # ----------------------------------------------------------------------------------------- fuzz

@@ -123,6 +123,30 @@ def test_bag_player_counts_what_it_cannot_send(ros, tmp_path):
     assert player.published == 0 and player.skipped == {"definition_mismatch": 3} and player.played == 3
 
 
+@pytest.mark.parametrize("rosbag2", [False, True], ids=["mcap", "rosbag2"])
+def test_bag_player_sends_the_good_drives_of_a_bag_with_two_definitions(ros, tmp_path, rosbag2):
+    """One Drive connection with the contract's definition, one without vehicle_id: the first one's
+    drives are sent, the other's counted as definition_mismatch."""
+    from hdmap_ros.nodes.bag_player import BagPlayer
+
+    from hostile_bags import small_drives, two_definition_bag
+
+    drives = small_drives(6)
+    bag = two_definition_bag(tmp_path / ("two" if rosbag2 else "two.mcap"), drives[0::2], drives[1::2], rosbag2=rosbag2)
+    player = ros.add(
+        BagPlayer(
+            context=ros.context,
+            parameter_overrides=[
+                Parameter("bag", value=str(bag)),
+                Parameter("rate", value=0.0),
+                Parameter("wait_for_subscribers_s", value=0.0),
+            ],
+        )
+    )
+    wait_for(lambda: player.done, 20, what="player done")
+    assert player.published == 3 and player.skipped == {"definition_mismatch": 3} and player.played == 6
+
+
 @pytest.mark.slow
 def test_hdmap_run_settles_on_a_bag_with_undecodable_and_invalid_drives(tmp_path, sample_bags, capsys, monkeypatch):
     """bags/bad_inputs: 4 good drives, 10 invalid ones the ingestor rejects, one undecodable the

@@ -1,9 +1,11 @@
 """Bag I/O: fleet bags (drives + origin) and map bags, read from and written to rosbag2.
 
-Read: rosbag2 directories (MCAP or sqlite3 storage, through rosbags' ``AnyReader``) and bare
+Read: rosbag2 directories (MCAP or sqlite3 storage, through rosbags' rosbag2 ``Reader``) and bare
 ``.mcap`` files (through a record scanner built on the ``mcap`` library). Messages are decoded with
-the schemas embedded in the bag, so no type has to be registered to read; a bag without embedded
-definitions falls back to the hdmap_msgs definitions (:mod:`hdmap_ros.io.msgdefs`).
+the schemas embedded in the bag, each message with its own connection's (so a bag holding one type
+name under two definitions decodes each connection right), and no type has to be registered to
+read; a connection without an embedded definition falls back to the hdmap_msgs definitions
+(:mod:`hdmap_ros.io.msgdefs`).
 
 Write: rosbag2 MCAP (``rosbags.rosbag2.Writer``, bag version 9) with the hdmap_msgs definitions.
 
@@ -31,9 +33,17 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.interfaces import (
+    Connection,
+    MessageDefinitionFormat,
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
 from rosbags.serde import SerdeError
 from rosbags.typesys import TypesysError
 from rosbags.typesys.store import Typestore
@@ -41,8 +51,8 @@ from rosbags.typesys.store import Typestore
 from hdmap_core.errors import BagError, InvalidDriveError, InvalidMessageError
 from hdmap_core.model import MAP_FRAME, Drive, GeoOrigin, HDMap, validate_drive
 from hdmap_ros.convert.messages import drive_to_msg, map_to_msg, msg_to_drive, msg_to_map, msg_to_origin, origin_to_msg
-from hdmap_ros.io.cdr import decode_drive, encode_drive
-from hdmap_ros.io.mcapscan import BagMessage, WarningFn, scan_mcap
+from hdmap_ros.io.cdr import decode_drive, drive_id_of, encode_drive
+from hdmap_ros.io.mcapscan import BagMessage, WarningFn, scan_mcap, typestore_of_schema
 from hdmap_ros.io.msgdefs import default_typestore
 
 __all__ = [
@@ -78,7 +88,6 @@ MAP_TYPE = "hdmap_msgs/msg/Map"
 # MemoryError (a length field read as gigabytes) among them.
 _READ_ERRORS = (
     ReaderError,
-    AnyReaderError,
     sqlite3.Error,
     struct.error,
     OSError,
@@ -179,7 +188,7 @@ def iter_bag(
 ) -> Iterator[BagMessage]:
     """Yield the raw messages of a bag (rosbag2 directory or bare ``.mcap`` file) in bag order.
 
-    rosbag2 directories come in log-time order (rosbags ``AnyReader``); ``.mcap`` files in file
+    rosbag2 directories come in log-time order (rosbags' rosbag2 ``Reader``); ``.mcap`` files in file
     order. A rosbag2 MCAP directory whose file is damaged (e.g. truncated, so its index is gone) and
     a directory without ``metadata.yaml`` are read with the scanner, like bare ``.mcap`` files;
     when the rosbag2 reader fails part way (e.g. a chunk failing its CRC), the scanner delivers the
@@ -215,7 +224,9 @@ def _iter_rosbag2(
     path: Path, wanted: set[str] | None, mcaps: list[Path], on_warning: WarningFn | None
 ) -> Iterator[BagMessage]:
     try:
-        reader = AnyReader([path], default_typestore=default_typestore())
+        # Not rosbags' AnyReader: its one typestore holds one definition per type name and fails to
+        # open a bag holding a type under two definitions (two recordings merged).
+        reader = Reader(path)
         reader.open()
     except _READ_ERRORS as err:
         if not mcaps:
@@ -231,12 +242,15 @@ def _iter_rosbag2(
     failure: BaseException | None = None
     try:
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+        # RULE: each connection's messages are decoded with its own embedded definition.
+        stores = {id(c): _connection_typestore(c) for c in conns}
+        unknown = {id(c): _unknown_definition(c, stores[id(c)]) for c in conns}
         if conns:
             for conn, timestamp, raw in reader.messages(connections=conns):
                 data = bytes(raw)
                 if mcaps:
                     seen.add((conn.topic, int(timestamp), zlib.crc32(data)))
-                yield BagMessage(conn.topic, conn.msgtype, int(timestamp), data, reader.typestore)
+                yield BagMessage(conn.topic, conn.msgtype, int(timestamp), data, stores[id(conn)], unknown[id(conn)])
                 count += 1
     except _READ_ERRORS as err:
         failure = err
@@ -259,6 +273,36 @@ def _iter_rosbag2(
     for bm in _iter_mcap_files(mcaps, wanted, note=f"rosbag2 reader: {failure}", on_warning=on_warning):
         if (bm.topic, bm.log_time_ns, zlib.crc32(bm.data)) not in seen:
             yield bm
+
+
+def _connection_typestore(conn: Connection) -> Typestore:
+    """The typestore of a rosbag2 connection's embedded definition (the known one without)."""
+    fmt = conn.msgdef.format
+    if fmt == MessageDefinitionFormat.NONE:
+        return default_typestore()
+    encoding = "ros2idl" if fmt == MessageDefinitionFormat.IDL else "ros2msg"
+    return typestore_of_schema(conn.msgtype, encoding, conn.msgdef.data.encode("utf-8"))
+
+
+def _unknown_definition(conn: Connection, store: Typestore) -> str:
+    """Why the bag lacks this connection's definition ("" when it has it).
+
+    rosbag2 keeps one definition per type name (its storage writes one schema per type) but each
+    connection's type hash: a connection recorded with another definition of the type (two
+    recordings merged) has a hash that differs from the definition the bag gives. Its bytes are not
+    of that definition, so they are not decoded with it."""
+    if not conn.digest.startswith("RIHS01_"):
+        return ""  # older bags record no hash
+    try:
+        have = store.hash_rihs01(conn.msgtype)
+    except (TypesysError, KeyError, ValueError, TypeError):
+        return ""
+    if have == conn.digest:
+        return ""
+    return (
+        f"the {conn.topic} connection was recorded with a {conn.msgtype} definition of hash {conn.digest}, "
+        f"which the bag does not hold (its definition of the type has hash {have})"
+    )
 
 
 def _iter_mcap_files(
@@ -313,7 +357,7 @@ def iter_fleet_bag(
 def has_contract_definition(bm: BagMessage) -> bool:
     """True when the bag's definition of the message's type is hdmap_msgs' own (so its bytes read
     the same in any hdmap_msgs subscriber)."""
-    return bm.msgtype == DRIVE_TYPE and _is_our_drive_definition(bm.typestore)
+    return bm.msgtype == DRIVE_TYPE and not bm.unknown_definition and _is_our_drive_definition(bm.typestore)
 
 
 def drive_of_message(bm: BagMessage, *, expected_frame: str | None = MAP_FRAME) -> Drive | Rejection:
@@ -334,6 +378,8 @@ def _is_our_drive_definition(store: Typestore) -> bool:
 def _decode_drive(bm: BagMessage, expected_frame: str | None) -> Drive | Rejection:
     if bm.msgtype != DRIVE_TYPE:
         return Rejection("", "wrong_type", f"{bm.topic} carries {bm.msgtype}, want {DRIVE_TYPE}")
+    if bm.unknown_definition:
+        return Rejection(drive_id_of(bm.data), "definition_mismatch", bm.unknown_definition)
     try:
         fast = decode_drive(bm.data) if _is_our_drive_definition(bm.typestore) else None
         if fast is not None:

@@ -22,7 +22,7 @@ import numpy as np
 from hdmap_core.model import Detection, Drive, FeatureType
 from hdmap_core.plausibility import check_quaternions
 
-__all__ = ["decode_drive", "encode_drive"]
+__all__ = ["decode_drive", "drive_id_of", "encode_drive"]
 
 _CDR_LE = b"\x00\x01"
 _BASE = 4  # alignment origin: after the encapsulation header
@@ -100,6 +100,22 @@ def decode_drive(raw: bytes) -> Drive | None:
         return _decode(_Cursor(raw))
     except _Layout:
         return None
+
+
+def drive_id_of(raw: bytes) -> str:
+    """The drive_id of Drive CDR bytes, "" when unreadable. Read from the leading header and
+    drive_id only, so it works for any definition of Drive that starts like hdmap_msgs' does."""
+    raw = bytes(raw)
+    if raw[:2] != _CDR_LE:
+        return ""
+    c = _Cursor(raw)
+    try:
+        c.i32()
+        c.u32()
+        c.string()
+        return c.string()
+    except _Layout:
+        return ""
 
 
 def _decode(c: _Cursor) -> Drive:

@@ -6,7 +6,8 @@ records of a cut-off uncompressed chunk -- and then :class:`~hdmap_core.errors.B
 and what the damage is. A chunk whose frame is intact but whose content is not (CRC mismatch,
 bad compression, a damaged record inside) is skipped with a warning (``on_warning``) and the
 records after it are read. Records are framed here and parsed with the ``mcap`` library; messages are
-decoded with rosbags from the schemas embedded in the file.
+decoded with rosbags from the schemas embedded in the file, each with its own channel's schema (two
+schemas of one type name, e.g. two recordings with different definitions, do not mix).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from rosbags.typesys.store import Typestore
 from hdmap_core.errors import BagError
 from hdmap_ros.io.msgdefs import default_typestore
 
-__all__ = ["BagMessage", "scan_mcap", "WarningFn"]
+__all__ = ["BagMessage", "scan_mcap", "typestore_of_schema", "WarningFn"]
 
 WarningFn = Callable[[str], None]
 # What the mcap library and the decompressors raise on damaged bytes.
@@ -61,7 +62,10 @@ class BagMessage:
         topic, msgtype: where it was recorded and its ROS type name.
         log_time_ns: the bag's log (receive) time [ns].
         data: the serialized CDR bytes (what a raw publisher sends).
-        typestore: a rosbags typestore that knows ``msgtype`` (from the bag's own schemas).
+        typestore: a rosbags typestore that knows ``msgtype`` (from the message's own schema in the
+            bag: two connections of one type with different definitions get different stores).
+        unknown_definition: empty, or why the bag does not hold this message's own definition (a
+            rosbag2 connection whose type hash differs from the definition the bag gives its type).
     """
 
     topic: str
@@ -69,6 +73,7 @@ class BagMessage:
     log_time_ns: int
     data: bytes
     typestore: Typestore = field(repr=False, compare=False)
+    unknown_definition: str = field(default="", compare=False)
 
     def decode(self) -> Any:
         """Deserialize into a rosbags message object."""
@@ -91,7 +96,7 @@ class _McapScanner:
         self.on_warning = on_warning
         self.schemas: dict[int, McapSchema] = {}
         self.channels: dict[int, McapChannel] = {}
-        self.typestore: Typestore | None = None
+        self.typestores: dict[int, Typestore] = {}  # per schema id
         self.count = 0
         self.data: bytes = b""
         self._summary_read = False
@@ -142,7 +147,7 @@ class _McapScanner:
             if opcode == Opcode.SCHEMA:
                 schema = McapSchema.read(stream)
                 self.schemas[schema.id] = schema
-                self.typestore = None  # rebuilt with the new schema when needed
+                self.typestores.pop(schema.id, None)  # rebuilt with the new schema when needed
             elif opcode == Opcode.CHANNEL:
                 channel = McapChannel.read(stream)
                 self.channels[channel.id] = channel
@@ -166,10 +171,9 @@ class _McapScanner:
         if channel.message_encoding != "cdr":
             raise self._fail(f"channel {channel.topic!r} has encoding {channel.message_encoding!r}, want cdr")
         schema = self.schemas.get(channel.schema_id)
-        msgtype = schema.name if schema is not None else ""
-        if not msgtype:
+        if schema is None or not schema.name:
             raise self._fail(f"channel {channel.topic!r} has no schema, its message type is unknown")
-        return BagMessage(channel.topic, msgtype, int(msg.log_time), bytes(msg.data), self._typestore())
+        return BagMessage(channel.topic, schema.name, int(msg.log_time), bytes(msg.data), self._typestore(schema))
 
     def _from_summary(self) -> bool:
         """Take the schemas and channels the file's summary section repeats (once): a skipped
@@ -189,17 +193,18 @@ class _McapScanner:
         for sid, schema in summary.schemas.items():
             if sid not in self.schemas:
                 self.schemas[sid] = schema
-                self.typestore, new = None, True
+                self.typestores.pop(sid, None)
+                new = True
         for cid, channel in summary.channels.items():
             if cid not in self.channels:
                 self.channels[cid], new = channel, True
         return new
 
-    def _typestore(self) -> Typestore:
-        if self.typestore is None:
-            key = tuple(sorted((sc.name, sc.encoding, bytes(sc.data)) for sc in self.schemas.values()))
-            self.typestore = _typestore_of(key)
-        return self.typestore
+    def _typestore(self, schema: McapSchema) -> Typestore:
+        store = self.typestores.get(schema.id)
+        if store is None:
+            store = self.typestores[schema.id] = typestore_of_schema(schema.name, schema.encoding, bytes(schema.data))
+        return store
 
     def _warn(self, text: str) -> None:
         if self.on_warning is not None:
@@ -248,24 +253,30 @@ class _McapScanner:
             pos += _RECORD_HEADER.size + length
 
 
+_IDL_SEPARATOR = "=" * 80 + "\n"
+
+
 @functools.lru_cache(maxsize=32)
-def _typestore_of(schemas: tuple[tuple[str, str, bytes], ...]) -> Typestore:
-    """A typestore of a file's embedded definitions, on top of the known (hdmap_msgs / Jazzy) ones
-    for types they lack; the known store itself when every definition is the known one (the usual
-    case, and no types to register: that took ~1 s per file)."""
+def typestore_of_schema(name: str, encoding: str, data: bytes) -> Typestore:
+    """A typestore for the messages of one schema (``encoding`` ``ros2msg`` or ``ros2idl``, as MCAP
+    and rosbag2 name them): the schema's embedded definitions (the type and the types it uses), on top
+    of the known (hdmap_msgs / Jazzy) ones for types it lacks; the known store itself when every
+    definition is the known one (the usual case, and no types to register: that took ~1 s per file).
+    No (or a damaged) embedded definition: the known store; a message that then does not decode is
+    rejected on its own."""
     store = default_typestore()
     types: dict = {}
-    for name, encoding, data in schemas:
-        # No (or a damaged) embedded definition: rely on the hdmap_msgs / Jazzy types; a message
-        # that then does not decode is rejected on its own.
-        try:
-            text = data.decode("utf-8")
-            if encoding == "ros2msg" and text:
-                types.update(get_types_from_msg(text, name))
-            elif encoding == "ros2idl" and text:
-                types.update(get_types_from_idl(text))
-        except (TypesysError, UnicodeDecodeError, ValueError, KeyError, IndexError, TypeError, RecursionError):
-            continue
+    try:
+        text = data.decode("utf-8")
+        if encoding == "ros2msg" and text:
+            types.update(get_types_from_msg(text, name))
+        elif encoding == "ros2idl" and text.startswith(_IDL_SEPARATOR + "IDL: "):
+            for part in text.split(_IDL_SEPARATOR)[1:]:  # rosbag2's concatenation of IDL files
+                types.update(get_types_from_idl(part.split("\n", 1)[1]))
+        elif encoding == "ros2idl" and text:
+            types.update(get_types_from_idl(text))
+    except (TypesysError, UnicodeDecodeError, ValueError, KeyError, IndexError, TypeError, RecursionError):
+        return store
     if all(store.fielddefs.get(k) == v for k, v in types.items()):
         return store
     # A fresh store of the file's own definitions plus the known types they refer to.
