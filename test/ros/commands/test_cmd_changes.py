@@ -86,3 +86,19 @@ def test_follow_changes_leaves_the_sample_maps_byte_identical(tmp_path, sample_b
     plain = (tmp_path / "plain" / "map" / "map.mcap").read_bytes()
     assert plain == (tmp_path / "follow" / "map" / "map.mcap").read_bytes()
     assert json.loads((tmp_path / "follow" / "map.history.json").read_text()) == {"changes": [], "retired": []}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["paper", "naive"])
+def test_paper_and_naive_map_the_consensus_unless_asked(tmp_path, sample_bags, preset, capsys):
+    """``paper`` and ``naive`` do not follow changes by default (FOLLOWS_CHANGES): the naive map,
+    without offset correction, is too far off for change detection (a false change on e6mini_20);
+    ``--follow-changes`` still turns it on."""
+    bag = str(sample_bags / "e6mini_20")
+    args = ["bag2map", bag, "--preset", preset, "--workers", "1"]
+    assert cli.main([*args, "-o", str(tmp_path / "plain")]) == 0
+    assert "follow changes" not in capsys.readouterr().out
+    assert not (tmp_path / "plain.history.json").exists()
+    assert cli.main([*args, "-o", str(tmp_path / "asked"), "--follow-changes"]) == 0
+    assert "follow changes:" in capsys.readouterr().out
+    assert (tmp_path / "asked.history.json").exists()

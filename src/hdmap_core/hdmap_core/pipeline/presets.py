@@ -24,7 +24,7 @@ from hdmap_core.pipeline.alignment import AlignmentConfig
 from hdmap_core.pipeline.config import PipelineConfig
 from hdmap_core.pipeline.sampling import SamplingConfig
 
-__all__ = ["PRESETS", "default", "naive", "paper", "preset"]
+__all__ = ["FOLLOWS_CHANGES", "PRESETS", "default", "naive", "paper", "preset"]
 
 
 def default() -> PipelineConfig:
@@ -82,6 +82,14 @@ def naive() -> PipelineConfig:
 
 #: The presets by name (``--preset``), each a function returning a fresh config.
 PRESETS: dict[str, Callable[[], PipelineConfig]] = {"default": default, "paper": paper, "naive": naive}
+
+
+#: Whether ``hdmap bag2map`` follows changes of the road with the preset (``hdmap_core.updates``;
+#: ``--follow-changes`` / ``--no-follow-changes`` decide otherwise). ``paper`` and ``naive`` map the
+#: consensus of every drive, as the paper does: change detection compares each drive with the
+#: first map, and a map without offset correction is too far off for that (``naive`` on the sample
+#: bag e6mini_20: a false geometry change over 4 places).
+FOLLOWS_CHANGES: dict[str, bool] = {"default": True, "paper": False, "naive": False}
 
 
 def preset(name: str) -> PipelineConfig:

@@ -91,10 +91,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--follow-changes",
         action=argparse.BooleanOptionalAction,
-        default=True,
+        default=None,
         help="give the road as of the last drive: detect changes of the road from the drives' time stamps, "
         "rebuild the changed places from the drives after the change, keep what they replaced in OUT.history.json "
-        "(default: on; a road without changes gets the same map as with --no-follow-changes)",
+        "(default: on with the default preset, off with paper and naive; a road without changes gets the same map "
+        "as with --no-follow-changes)",
     )
     tiled = parser.add_argument_group("out of core, by tiles (docs/scale.md)")
     tiled.add_argument(
@@ -202,6 +203,7 @@ def run(args: argparse.Namespace) -> int:
     from hdmap_core.parallel import available_cpus  # noqa: PLC0415
     from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
     from hdmap_core.pipeline.overrides import config_from  # noqa: PLC0415
+    from hdmap_core.pipeline.presets import FOLLOWS_CHANGES  # noqa: PLC0415
 
     try:  # a bad --set is named before the bag is read
         config = config_from(args.preset, dict(args.overrides))
@@ -232,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
             fleet.drives, config=config, seed=args.seed, progress=progress, workers=args.workers or available_cpus()
         )
         history = None
-        if args.follow_changes:
+        if args.follow_changes if args.follow_changes is not None else FOLLOWS_CHANGES.get(args.preset, False):
             from hdmap_core.plausibility import prepare_drives  # noqa: PLC0415
             from hdmap_core.updates.follow import follow_changes, history_to_dict  # noqa: PLC0415
 
