@@ -10,12 +10,14 @@ the cut, + = left [m].
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import shapely
 
+from hdmap_core.evaluation.config import EvalConfig
 from hdmap_core.geometry import nearest_on_same_cut
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import FeatureType
@@ -27,6 +29,7 @@ __all__ = [
     "segments_of",
     "intersect_cuts",
     "reference_cuts",
+    "configured_cuts",
     "points_on_cuts",
     "nearest_on_same_cut",
     "nearest_same_type",
@@ -366,6 +369,22 @@ class CutPoints:
     owner: np.ndarray  # (P,) polyline index
     vertex: np.ndarray  # (P,) segment start vertex within the polyline
     u: np.ndarray  # (P,) parameter along that segment
+
+
+def configured_cuts(gt: GroundTruth, config: EvalConfig, *, cos_feature: float | None = None) -> Cuts:
+    """``reference_cuts`` of ``gt`` with the settings of ``config`` (``cos_feature``: the cosine of
+    ``config.max_feature_angle_deg`` unless given)."""
+    if cos_feature is None:
+        cos_feature = math.cos(math.radians(config.max_feature_angle_deg))
+    return reference_cuts(
+        gt,
+        step_m=config.step_m,
+        highway_only=config.highway_only,
+        max_half_m=config.max_half_length_m,
+        margin_m=config.border_margin_m,
+        cos_feature=cos_feature,
+        cos_dedup=math.cos(math.radians(config.dedup_heading_deg)),
+    )
 
 
 def points_on_cuts(cuts: Cuts, polylines: Sequence[np.ndarray], *, cos_min: float) -> CutPoints:

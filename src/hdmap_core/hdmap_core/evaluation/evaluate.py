@@ -32,10 +32,10 @@ from hdmap_core.evaluation.config import EVAL_TYPES, EvalConfig
 from hdmap_core.evaluation.cuts import (
     CutPoints,
     Cuts,
+    configured_cuts,
     nearest_on_same_cut,
     nearest_same_type,
     points_on_cuts,
-    reference_cuts,
 )
 from hdmap_core.evaluation.links import LinkCheckConfig, LinkPrecision, check_topology_links
 from hdmap_core.evaluation.report import CutProfile, EvalReport, TypeStats
@@ -230,15 +230,7 @@ def evaluate_map(
     cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
     skipped: list[str] = []
     gt = _clean_ground_truth(gt, skipped)
-    cuts = reference_cuts(
-        gt,
-        step_m=config.step_m,
-        highway_only=config.highway_only,
-        max_half_m=config.max_half_length_m,
-        margin_m=config.border_margin_m,
-        cos_feature=cos_feat,
-        cos_dedup=math.cos(math.radians(config.dedup_heading_deg)),
-    )
+    cuts = configured_cuts(gt, config, cos_feature=cos_feat)
     if len(cuts) == 0:
         which = "highway lane" if config.highway_only else "lane"
         raise NoUsableDataError(

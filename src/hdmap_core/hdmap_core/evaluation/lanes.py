@@ -14,14 +14,13 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.evaluation.config import EvalConfig
-from hdmap_core.evaluation.cuts import points_on_cuts, reference_cuts
+from hdmap_core.evaluation.cuts import configured_cuts, points_on_cuts
 from hdmap_core.geometry import resample_evenly
 from hdmap_core.groundtruth import GroundTruth, GTRoute
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at
@@ -165,15 +164,7 @@ def _match(query: list[np.ndarray], reference: list[np.ndarray]) -> tuple[float,
 
 
 def _count_accuracy(lane_map: LaneMap, gt: GroundTruth, config: EvalConfig) -> tuple[float, int]:
-    cuts = reference_cuts(
-        gt,
-        step_m=config.step_m,
-        highway_only=config.highway_only,
-        max_half_m=config.max_half_length_m,
-        margin_m=config.border_margin_m,
-        cos_feature=_COS_SAME_DIRECTION,
-        cos_dedup=math.cos(math.radians(config.dedup_heading_deg)),
-    )
+    cuts = configured_cuts(gt, config, cos_feature=_COS_SAME_DIRECTION)
     if not len(cuts):
         return float("nan"), 0
     gt_cp = points_on_cuts(cuts, [ln.centerline for ln in gt.lanes.values()], cos_min=_COS_SAME_DIRECTION)

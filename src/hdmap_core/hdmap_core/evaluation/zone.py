@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from hdmap_core.evaluation.config import EVAL_TYPES, EvalConfig
-from hdmap_core.evaluation.cuts import nearest_on_same_cut, nearest_same_type, points_on_cuts, reference_cuts
+from hdmap_core.evaluation.cuts import configured_cuts, nearest_on_same_cut, nearest_same_type, points_on_cuts
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import HDMap
 from hdmap_core.simulation.changes import ChangeZone, zone_mask
@@ -79,15 +79,7 @@ def evaluate_zone(
 ) -> ZoneReport:
     """Score ``hdmap`` inside ``zones`` against ``gt_now``; ghosts against ``gt_before``."""
     cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
-    cuts = reference_cuts(
-        gt_now,
-        step_m=config.step_m,
-        highway_only=config.highway_only,
-        max_half_m=config.max_half_length_m,
-        margin_m=config.border_margin_m,
-        cos_feature=cos_feat,
-        cos_dedup=math.cos(math.radians(config.dedup_heading_deg)),
-    )
+    cuts = configured_cuts(gt_now, config, cos_feature=cos_feat)
     inside = np.zeros(len(cuts), dtype=bool)
     for z in zones:
         inside |= zone_mask(z, cuts.center, cuts.tangent)
