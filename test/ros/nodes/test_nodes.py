@@ -7,8 +7,6 @@ SIGKILL/restart) are in test_nodes_e2e.py and marked slow.
 
 from __future__ import annotations
 
-import zlib
-
 import numpy as np
 import pytest
 
@@ -26,18 +24,9 @@ from hdmap_ros.io.bagio import read_map_bag, write_fleet_bag  # noqa: E402
 from hdmap_ros.nodes import qos  # noqa: E402
 
 from bag_samples import make_drive, make_map  # noqa: E402
-from nodes_harness import Ros, wait_for  # noqa: E402
+from nodes_harness import wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def ros(request):
-    # one domain per test (70-79 belong to this suite), so a straggler never crosses tests
-    domain = 70 + zlib.crc32(request.node.name.encode()) % 5
-    r = Ros(domain)
-    yield r
-    r.close()
 
 
 def _collect(node, msg_type, topic, profile):

@@ -4,7 +4,6 @@ directly; no spinning needed)."""
 
 from __future__ import annotations
 
-import zlib
 from dataclasses import replace
 
 import numpy as np
@@ -20,16 +19,9 @@ from hdmap_ros.convert.messages import drive_to_msg, rclpy_types  # noqa: E402
 from hdmap_ros.persistence.store import DriveStore  # noqa: E402
 
 from bag_samples import make_drive  # noqa: E402
-from nodes_harness import Ros, ros_domain, wait_for  # noqa: E402
+from nodes_harness import ros_domain, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def ros(request):
-    r = Ros(70 + zlib.crc32(request.node.name.encode()) % 5)
-    yield r
-    r.close()
 
 
 def _far_pose(drive, dist):

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import zlib
 
 import pytest
 
@@ -19,16 +18,9 @@ from rclpy.parameter import Parameter  # noqa: E402
 
 from hdmap_ros.nodes import qos  # noqa: E402
 
-from nodes_harness import ROOT, Ros, dds_env, wait_for  # noqa: E402
+from nodes_harness import ROOT, dds_env, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def ros(request):
-    r = Ros(70 + zlib.crc32(request.node.name.encode()) % 5)
-    yield r
-    r.close()
 
 
 def _call(ros, node_name, srv_type, suffix, request):
