@@ -255,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
                 )
                 return result.map, result.report
 
-            followed = follow_changes(usable, build=build, bounds=config.plausibility)
+            followed = follow_changes(usable, build=build, bounds=None)  # usable: checked above
             history = history_to_dict(followed)
             result = dataclasses.replace(result, map=followed.map) if followed.changes else first
             for c in followed.changes:
