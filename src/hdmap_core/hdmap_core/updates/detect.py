@@ -38,7 +38,15 @@ from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.evidence import PlaceEvidence
 from hdmap_core.updates.places import PlaceKey, Places
 
-__all__ = ["PlaceChange", "DetectedChange", "change_point", "detect_changes", "SERIES"]
+__all__ = [
+    "PlaceChange",
+    "DetectedChange",
+    "change_point",
+    "detect_changes",
+    "drive_scatter",
+    "series_spread",
+    "SERIES",
+]
 
 #: The evidence series tested, with the kind of change each reveals.
 SERIES = {"displacement": "geometry", "wrong_type": "type", "missed": "marking_gone", "extra": "marking_new"}
@@ -115,37 +123,97 @@ def change_point(
     min_before: int,
     min_after: int,
     heavy_tails: bool = False,
+    noise: np.ndarray | None = None,
+    fleet_spread: float = 0.0,
 ) -> tuple[int, float, float] | None:
     """(index of the first after-value, effect, z) of the earliest change point of ``values``
-    (time ordered, no NaN), or None (module docstring). ``heavy_tails``: the before spread is the
-    standard deviation, not the median absolute deviation, and every after-value must lie beyond
-    the before values' 90th percentile (a share of wrong types is 0 for most drives and large for
-    the few that misread a line: a robust spread would call those few a change)."""
+    (time ordered, no NaN), or None (module docstring).
+
+    ``floor`` is the smallest spread assumed. ``fleet_spread``: the fleet's own spread of the
+    series (``series_spread``), the least spread the standard error is computed with, so that a
+    map or a fleet whose drives scatter widely everywhere (a map without offset correction)
+    needs a larger step. Every after-value must lie beyond
+    the before values' 90th (10th) percentile: the drives after disagree with the drives before
+    themselves, not only with the map. ``heavy_tails``: the before spread is the standard
+    deviation, not the median absolute deviation (a share of wrong types is 0 for most drives and
+    large for the few that misread a line: a robust spread would call those few a change); with
+    fewer than 10 before-values the larger of that and their standard deviation (the median
+    absolute deviation of 3 values is the smaller half-gap). ``noise`` (per value): each drive's
+    own scatter over the road (``drive_scatter``); an after-drive must lie at least twice its
+    own scatter from the before median (a drive off everywhere says nothing of this place)."""
     n = len(values)
     for k in range(min_before, n - min_after + 1):
         before, after = values[:k], values[k:]
         med = float(np.median(before))
         dev = after - med
-        if not (np.all(dev >= min_effect / 2) or np.all(dev <= -min_effect / 2)):
+        need = min_effect / 2 if noise is None else np.maximum(min_effect / 2, 2.0 * noise[k:])
+        if not (np.all(dev >= need) or np.all(dev <= -need)):
             continue
         effect = float(np.mean(after)) - med
+        # the before values' 90th / 10th percentile by nearest rank: with fewer than 10 before,
+        # their largest / smallest (an interpolated percentile of 3 values lies inside them); never
+        # inside the interpolated percentile
+        ranked = np.sort(before)
+        skip = (k - 1) // 10
+        hi, lo = float(ranked[k - 1 - skip]), float(ranked[skip])
+        if not (np.all(after > hi) if effect > 0 else np.all(after < lo)):
+            continue  # an after-drive lies among the before-drives: their own scatter
         if heavy_tails:
             spread = max(floor, float(np.std(before)))
-            edge = float(np.percentile(before, 90))
-            if not (np.all(after > edge) if effect > 0 else np.all(after < float(np.percentile(before, 10)))):
-                continue
         else:
             spread = max(floor, 1.4826 * float(np.median(np.abs(before - med))))
+            if k < 10:
+                spread = max(spread, float(np.std(before, ddof=1)))
         if np.any(np.abs(after - np.mean(after)) > max(3.0 * spread, min_effect / 2)):
             continue  # the after-drives disagree: a drive of the old road among them, or noise
-        z = abs(effect) / (spread * math.sqrt(1.0 / k + 1.0 / (n - k)))
+        z = abs(effect) / (max(spread, fleet_spread) * math.sqrt(1.0 / k + 1.0 / (n - k)))
         if abs(effect) >= min_effect and z >= z_min:
             return k, effect, z
     return None
 
 
-def _confirm(rows: list[PlaceEvidence], key: PlaceKey, config: ChangeConfig) -> PlaceChange | None:
-    """The strongest series' change at one place (its evidence in time order), if any."""
+def series_spread(by_place: dict[PlaceKey, list[PlaceEvidence]], name: str, config: ChangeConfig) -> float:
+    """The fleet's own per-drive spread of series ``name``: the median over places (with at least
+    ``2 * min_before`` drives) of the robust spread (1.4826 MAD) of all drives there. A change
+    touches few places and few drives, so it barely moves this; a poor map or a badly localised
+    fleet raises it everywhere. 0 when no place has enough drives."""
+    spreads = []
+    for rows in by_place.values():
+        v = np.array([_series(e, name, config) for e in rows])
+        v = v[np.isfinite(v)]
+        if len(v) >= 2 * config.min_before:
+            spreads.append(1.4826 * float(np.median(np.abs(v - np.median(v)))))
+    return float(np.median(spreads)) if spreads else 0.0
+
+
+def drive_scatter(evidence: Sequence[PlaceEvidence]) -> dict[str, float]:
+    """Per drive, the scatter of its displacement from place to place along it: the robust spread
+    (1.4826 MAD / sqrt 2) of the differences between consecutive places it gave one in. A
+    badly localised drive whose markings and borders disagree differently in every place scatters;
+    a change of the road moves a block of consecutive places, which adds two steps (its ends)
+    and leaves the rest. ``evidence`` of one drive must come in its order along the drive (as
+    ``drive_evidence`` gives it). 0 for a drive with fewer than 5 places."""
+    vals: dict[str, list[float]] = defaultdict(list)
+    for e in evidence:
+        if math.isfinite(e.displacement_m):
+            vals[e.drive_id].append(e.displacement_m)
+    out = {}
+    for d, v in vals.items():
+        steps = np.diff(np.asarray(v))
+        out[d] = 1.4826 * float(np.median(np.abs(steps))) / math.sqrt(2.0) if len(v) >= 5 else 0.0
+    return out
+
+
+def _confirm(
+    rows: list[PlaceEvidence],
+    key: PlaceKey,
+    config: ChangeConfig,
+    spreads: dict[str, float],
+    scatter: dict[str, float],
+) -> PlaceChange | None:
+    """The strongest series' change at one place (its evidence in time order), if any;
+    ``spreads``: the fleet's spread per series (``series_spread``); ``scatter``: each drive's
+    own (``drive_scatter``), for the displacement."""
     best: PlaceChange | None = None
     for name, kind in SERIES.items():
         vals = np.array([_series(e, name, config) for e in rows])
@@ -160,12 +228,17 @@ def _confirm(rows: list[PlaceEvidence], key: PlaceKey, config: ChangeConfig) -> 
             min_before=config.min_before,
             min_after=config.min_after if geometric else config.min_after_shares,
             heavy_tails=not geometric,
+            noise=np.array([scatter.get(e.drive_id, 0.0) for e in used]) if geometric else None,
+            fleet_spread=spreads.get(name, 0.0),
         )
         if found is None:
             continue
         k, effect, z = found
-        if not geometric and (effect <= 0 or float(np.median(vals[ok][:k])) > config.max_share_before):
+        before_med = float(np.median(vals[ok][:k]))
+        if not geometric and (effect <= 0 or before_med > config.max_share_before):
             continue  # fewer wrong / missed / extra, or a place the map never agreed on
+        if geometric and abs(before_med) > config.min_shift_m:
+            continue  # the map lies off its own drives before: a poor consensus there, no evidence
         cand = PlaceChange(
             key,
             kind,
@@ -230,9 +303,11 @@ def detect_changes(
         by_place[e.key].append(e)
     for rows in by_place.values():
         rows.sort(key=lambda e: (e.time_ns, e.drive_id))
+    spreads = {name: series_spread(by_place, name, config) for name in SERIES}
+    scatter = drive_scatter(evidence)
     confirmed: dict[PlaceKey, PlaceChange] = {}
     for key in sorted(by_place):
-        got = _confirm(by_place[key], key, config)
+        got = _confirm(by_place[key], key, config, spreads, scatter)
         if got is not None:
             confirmed[key] = got
     # Grow along the road from the confirmed places.
