@@ -28,6 +28,7 @@ from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
+from hdmap_core.updates.edges import detect_edge_changes, fleet_edge_evidence, merge_changes
 from hdmap_core.updates.evidence import fleet_evidence
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import border_shift, grow, shifted, splice
@@ -273,6 +274,8 @@ def follow_changes(
     places = places_of(drives, cell_m=config.cell_m)
     evidence = fleet_evidence(drives, first_map, places, config=config)
     changes = detect_changes(evidence, places, config=config)
+    edges = fleet_edge_evidence(drives, first_map, places, evidence, config=config)
+    changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
     if not changes:
         return FollowResult(first_map, (), (), first_map, report)
     in_evidence = {d for c in changes for d in c.drives_after}
@@ -282,8 +285,10 @@ def follow_changes(
             anchors.setdefault(e.drive_id, {})[e.key] = e.anchor_m
     moved = [anchored(d, anchors[d.drive_id], places) if d.drive_id in anchors else d for d in drives]
     if local:
-        after = [d for d in moved if d.drive_id in in_evidence]
+        first_change = min(c.time_ns for c in changes)
+        after = [d for d in moved if d.start_ns >= first_change]
         times = along_drives(after, places, _change_times(changes), taper_places)
+        after = [d for d in after if d.drive_id in in_evidence]
         cut = cut_before_changes(moved, places, changes, times=times)
         core = set(times)
         region = grow(places, core, margin_places)
