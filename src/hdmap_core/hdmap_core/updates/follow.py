@@ -77,6 +77,8 @@ class FollowResult:
         changes: the confirmed changes, in time order.
         retired: what they replaced.
         first_map: the map of every drive (before any change was followed).
+        rebuilt: with a local rebuild, the places taken from it (the changed ones and their
+            ends along the drives); the map is the first map's everywhere else.
         report: the build's report: the first (whole) build's with a local rebuild, else the
             rebuild's.
     """
@@ -86,6 +88,7 @@ class FollowResult:
     retired: tuple[RetiredFeature, ...]
     first_map: HDMap
     report: object
+    rebuilt: frozenset[PlaceKey] = frozenset()
 
 
 def _change_times(changes: Sequence[DetectedChange]) -> dict[PlaceKey, int]:
@@ -297,12 +300,13 @@ def follow_changes(
         new_map = splice(first_map, local_map, places, core)
         report = first_report
     else:
+        core = set()
         new_map, report = build(cut_before_changes(moved, places, changes))
     start = min((d.start_ns for d in drives), default=0)
     retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start))
     extra = {**new_map.extra, "changes": list(changes), "retired": list(retired)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
-    return FollowResult(new_map, tuple(changes), retired, first_map, report)
+    return FollowResult(new_map, tuple(changes), retired, first_map, report, frozenset(core))
 
 
 def history_to_dict(result: FollowResult) -> dict:
