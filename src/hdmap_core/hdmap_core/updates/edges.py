@@ -11,10 +11,12 @@ edge, which needs ``min_after_shares`` drives after the change to confirm as sha
   about plus a lane (to the left) after a close, minus the shoulder after an open. Only on the
   cuts where the map's edge line lies within ``_SEEN_M`` right of the drive (whether a drive in
   the far lane sees it depends on its lane and its sensor, not on the road: such drives made the
-  series two-valued at ramps); the median over the place's cuts where both exist.
+  series two-valued at ramps); the median over the place's cuts where both exist (at least
+  ``_MIN_CUTS``).
 
-A change point of that series (``detect.change_point``, as for the displacement: >= ``min_before``
-drives before, >= ``min_after`` after, at least ``MIN_EDGE_MOVE_M``) confirms the place; touching
+A change point of that series (``detect.change_point``, as for the displacement, but with at
+least ``_MIN_BEFORE`` drives before (a few drives that saw the edge on a handful of cuts made a
+change back on carla_town06), >= ``min_after`` after, at least ``MIN_EDGE_MOVE_M``) confirms the place; touching
 confirmed places of one direction are one change, ``lane_closed`` (edge moved left) or
 ``lane_opened``; it grows into neighbouring places where a drive after it shows at least half
 the move the same way and none the other (the tapers). A shift of the markings by less than
@@ -46,6 +48,8 @@ MIN_EDGE_MOVE_M = 1.8  # the smallest move of the edge line that is a lane close
 _STEP_M = 8.0  # cut spacing [m]
 _SOLID = int(FeatureType.SOLID)
 _SEEN_M = 6.0  # the map's edge line counts where it lies this close right of the drive (the next lane's) [m]
+_MIN_CUTS = 6  # cuts a drive needs in a place for its edge move there (a place is ~12 cuts long)
+_MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
 _COS_MIN = 0.7  # a line runs with the drive on a cut when cos(angle) >= this
 
 
@@ -123,7 +127,7 @@ def edge_evidence(
     for key in dict.fromkeys(keys):
         sel = np.array([kk == key for kk in keys]) & np.isfinite(move) & np.isfinite(a)
         n = int(np.count_nonzero(sel))
-        value = float(np.median(move[sel])) if n >= max(3, config.min_points // 3) else math.nan
+        value = float(np.median(move[sel])) if n >= _MIN_CUTS else math.nan
         out.append(EdgeEvidence(drive.drive_id, drive.start_ns, key, value, n))
     return out
 
@@ -163,7 +167,7 @@ def detect_edge_changes(
             min_effect=MIN_EDGE_MOVE_M,
             floor=config.displacement_floor_m,
             z_min=config.z_min,
-            min_before=config.min_before,
+            min_before=max(config.min_before, _MIN_BEFORE),
             min_after=config.min_after,
         )
         if found is None:
