@@ -49,11 +49,17 @@ SCENARIOS = {
     "close": ("close:2250-2950:fwd_lane1@40", 50),
     "open": ("open:2250-2950:2.0:fwd_lane1@40", 50),
 }
+METHODS = (("whole", False), ("follow", True))  # follow_changes(local=...)
 LANE_SCENARIOS = ("close", "open")  # the lane count in the zone is scored for these
 
 
 def _pct(x: float) -> str:
     return "  n/a" if math.isnan(x) else f"{100 * x:5.1f}"
+
+
+def secs(t: dict) -> str:
+    cols = [("build", 5), ("detect", 6), ("rebuild", 7), ("apply", 5)]
+    return " ".join(f"{t[k]:{w}.1f}" if k in t else f"{'-':>{w}}" for k, w in cols)
 
 
 def lane_cols(z) -> str:
@@ -87,37 +93,23 @@ def run(scenario: str, seed: int) -> list[dict]:
         tang = np.stack([np.cos(d.yaw), np.sin(d.yaw)], axis=1)
         through += bool(near.any() and zone_mask(zone, d.xy[near], tang[near]).any())
 
-    timings: dict[str, float] = {}
     first: list = []
 
     def build(drives):
         drives = list(drives)
         if first and drives == list(fleet.drives):  # the map of every drive: built once
-            timings["first"] = 0.0
             return first[0][0], first[0][1]
         t0 = time.perf_counter()
         r = build_map(drives, config=PipelineConfig(), seed=0, workers=1)
-        dt = time.perf_counter() - t0
         if not first:
-            first.append((r.map, r.report, dt))
-            timings["first"] = dt
-        else:
-            timings["rebuild"] = dt
+            first.append((r.map, r.report, time.perf_counter() - t0))
         return r.map, r.report
 
-    results: dict = {}
-    for method, local in (("whole", False), ("follow", True)):
-        timings.clear()
-        t0 = time.perf_counter()
-        results[method] = follow_changes(fleet.drives, build=build, local=local)
-        # the update: evidence, detection and the rebuild (the first build not counted)
-        results[method + "_t"] = time.perf_counter() - t0 - timings["first"]
-        results[method + "_r"] = timings.get("rebuild", math.nan)
+    results = {method: follow_changes(fleet.drives, build=build, local=local) for method, local in METHODS}
     rows = []
-    for method, hdmap, seconds, rebuild in (
-        ("baseline", first[0][0], first[0][2], math.nan),
-        ("whole", results["whole"].map, results["whole_t"], results["whole_r"]),
-        ("follow", results["follow"].map, results["follow_t"], results["follow_r"]),
+    for method, hdmap, seconds in (
+        ("baseline", first[0][0], {"build": first[0][2]}),
+        *((m, results[m].map, {k: v for k, v in results[m].seconds.items() if k != "build"}) for m, _ in METHODS),
     ):
         whole = evaluate_map(hdmap, now)
         z = evaluate_zone(hdmap, now, before, [zone])
@@ -132,7 +124,6 @@ def run(scenario: str, seed: int) -> list[dict]:
                 "whole": whole,
                 "changes": len(results[method].changes) if method != "baseline" else 0,
                 "seconds": seconds,
-                "rebuild": rebuild,
                 "lanes": lanes,
             }
         )
@@ -151,7 +142,8 @@ def main() -> int:
     head = (
         f"{'scenario':9} {'seed':>4} {'method':8} {'thru':>4} | {'zone recall':>11} {'prec':>5} {'mean m':>6} "
         f"{'type':>5} {'ghost':>5} | {'road mean m':>11} {'recall':>6} {'prec':>5} {'type':>5} | "
-        f"{'chg':>3} {'s':>5} {'rebuild':>7} | {'lanes ok':>8} {'n map':>5} {'n road':>6}"
+        f"{'chg':>3} {'build':>5} {'detect':>6} {'rebuild':>7} {'apply':>5} | "
+        f"{'lanes ok':>8} {'n map':>5} {'n road':>6}"
     )
     print(head)
     print("-" * len(head))
@@ -163,15 +155,16 @@ def main() -> int:
                 f"{r['scenario']:9} {r['seed']:4d} {r['method']:8} {r['through']:4d} | {_pct(z.recall):>11} "
                 f"{_pct(z.precision)} {mean} {_pct(z.type_accuracy)} {_pct(z.ghost_share)} | "
                 f"{w.overall.mean_m:11.3f} {_pct(w.overall.recall):>6} {_pct(w.overall.precision)} "
-                f"{_pct(w.type_accuracy)} | {r['changes']:3d} {r['seconds']:5.1f} {r['rebuild']:7.1f} | "
+                f"{_pct(w.type_accuracy)} | {r['changes']:3d} {secs(r['seconds'])} | "
                 f"{lane_cols(r['lanes'])}",
                 flush=True,
             )
     print("zone: the changed kilometre (with its tapers), scored against the road as of the last drive; ghost: share")
     print("of the map's points there that match only the old road; thru: drives after the change through the zone's")
     print("middle; road: the whole road; chg: changes confirmed; whole: the changed places followed by rebuilding the")
-    print("whole map; follow: by rebuilding them alone and splicing them in (updates/splice.py); s: the baseline's")
-    print("build, or the update (evidence + detection + rebuild; the first build not counted); rebuild: its build [s];")
+    print("whole map; follow: by rebuilding them alone and splicing them in (updates/splice.py); seconds: build = the")
+    print("first map (the baseline), detect = evidence and change points over all drives, rebuild = the second build")
+    print("(whole map / the rebuilt places with their margin), apply = cutting, alignment and splice;")
     print("lanes ok: share of the zone's cuts with as many map lanes as the road has now; n map / n road: mean counts")
     return 0
 

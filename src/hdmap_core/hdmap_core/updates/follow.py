@@ -17,8 +17,9 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
@@ -79,6 +80,8 @@ class FollowResult:
         first_map: the map of every drive (before any change was followed).
         rebuilt: with a local rebuild, the places taken from it (the changed ones and their
             ends along the drives); the map is the first map's everywhere else.
+        seconds: wall time per stage: ``build`` (the first map), ``detect`` (evidence and change
+            points), ``rebuild`` (the second build), ``apply`` (alignment and splice).
         report: the build's report: the first (whole) build's with a local rebuild, else the
             rebuild's.
     """
@@ -89,6 +92,7 @@ class FollowResult:
     first_map: HDMap
     report: object
     rebuilt: frozenset[PlaceKey] = frozenset()
+    seconds: dict[str, float] = field(default_factory=dict, compare=False)
 
 
 def _change_times(changes: Sequence[DetectedChange]) -> dict[PlaceKey, int]:
@@ -272,15 +276,19 @@ def follow_changes(
     usable, rejected = prepare_drives(drives, bounds=bounds)
     if rejected:
         drives = usable
+    t0 = time.perf_counter()
     first_map, report = build(drives)
     first_report = report
+    t1 = time.perf_counter()
+    seconds = {"build": t1 - t0}
     places = places_of(drives, cell_m=config.cell_m)
     evidence = fleet_evidence(drives, first_map, places, config=config)
     changes = detect_changes(evidence, places, config=config)
     edges = fleet_edge_evidence(drives, first_map, places, evidence, config=config)
     changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
+    t0, seconds["detect"] = time.perf_counter(), time.perf_counter() - t1
     if not changes:
-        return FollowResult(first_map, (), (), first_map, report)
+        return FollowResult(first_map, (), (), first_map, report, seconds=seconds)
     in_evidence = {d for c in changes for d in c.drives_after}
     anchors: dict[str, dict[PlaceKey, float]] = {}
     for e in evidence:
@@ -295,18 +303,25 @@ def follow_changes(
         cut = cut_before_changes(moved, places, changes, times=times)
         core = set(times)
         region = grow(places, core, margin_places)
-        local_map, report = build(clip_to_places(cut, places, region))
+        clipped = clip_to_places(cut, places, region)
+        t1 = time.perf_counter()
+        local_map, report = build(clipped)
+        seconds["rebuild"] = time.perf_counter() - t1
         local_map = shifted(local_map, border_shift(local_map, first_map, after, places, core, config=config), places)
         new_map = splice(first_map, local_map, places, core)
         report = first_report
     else:
         core = set()
-        new_map, report = build(cut_before_changes(moved, places, changes))
+        cut = cut_before_changes(moved, places, changes)
+        t1 = time.perf_counter()
+        new_map, report = build(cut)
+        seconds["rebuild"] = time.perf_counter() - t1
     start = min((d.start_ns for d in drives), default=0)
     retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start))
     extra = {**new_map.extra, "changes": list(changes), "retired": list(retired)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
-    return FollowResult(new_map, tuple(changes), retired, first_map, report, frozenset(core))
+    seconds["apply"] = time.perf_counter() - t0 - seconds["rebuild"]
+    return FollowResult(new_map, tuple(changes), retired, first_map, report, frozenset(core), seconds)
 
 
 def history_to_dict(result: FollowResult) -> dict:
