@@ -12,7 +12,12 @@ an entry per carriageway), simulated in memory:
 * ``restripe``: 40 drives, then 10 after the dashed lines of one carriageway were painted solid
   over 1 km: ``restripe:1000-2000:fwd_lane1@40``;
 * ``close``: 40 drives, then 10 after the right lane of one carriageway was closed over 700 m
-  after the entry ramp: ``close:2250-2950:fwd_lane1@40`` (not in the default run).
+  after the entry ramp: ``close:2250-2950:fwd_lane1@40`` (not in the default run);
+* ``open``: the same place, the hard shoulder opened as a lane (the edge line moves 2 m out):
+  ``open:2250-2950:2.0:fwd_lane1@40`` (not in the default run).
+
+For ``close`` and ``open`` also the lane count in the zone: the map's lanes (``hdmap_core.lanes``)
+crossing each zone cut against the road's markings there less one (``evaluate_zone_lanes``).
 
 For each scenario and seed: the map of every drive (the baseline, plain ``bag2map``) and the map
 that follows the changes (``hdmap_core.updates.follow``), both scored against the road as it is
@@ -42,18 +47,33 @@ SCENARIOS = {
     "shift10": ("shift:1000-2000:1.5:fwd_lane1@40", 50),
     "restripe": ("restripe:1000-2000:fwd_lane1@40", 50),
     "close": ("close:2250-2950:fwd_lane1@40", 50),
+    "open": ("open:2250-2950:2.0:fwd_lane1@40", 50),
 }
+METHODS = (("whole", False), ("follow", True))  # follow_changes(local=...)
+LANE_SCENARIOS = ("close", "open")  # the lane count in the zone is scored for these
 
 
 def _pct(x: float) -> str:
     return "  n/a" if math.isnan(x) else f"{100 * x:5.1f}"
 
 
+def secs(t: dict) -> str:
+    cols = [("build", 5), ("detect", 6), ("rebuild", 7), ("apply", 5)]
+    return " ".join(f"{t[k]:{w}.1f}" if k in t else f"{'-':>{w}}" for k, w in cols)
+
+
+def lane_cols(z) -> str:
+    if z is None:
+        return f"{'-':>8} {'-':>5} {'-':>6}"
+    return f"{_pct(z.count_accuracy):>8} {z.mean_map_lanes:5.2f} {z.mean_gt_lanes:6.2f}"
+
+
 def run(scenario: str, seed: int) -> list[dict]:
     import numpy as np
 
     from hdmap_core.evaluation.evaluate import evaluate_map
-    from hdmap_core.evaluation.zone import evaluate_zone
+    from hdmap_core.evaluation.zone import evaluate_zone, evaluate_zone_lanes
+    from hdmap_core.lanes.derive import derive_lanes
     from hdmap_core.pipeline.driver import PipelineConfig, build_map
     from hdmap_core.simulation.changes import change_zone, parse_change, zone_mask
     from hdmap_core.simulation.config import SimConfig
@@ -73,24 +93,27 @@ def run(scenario: str, seed: int) -> list[dict]:
         tang = np.stack([np.cos(d.yaw), np.sin(d.yaw)], axis=1)
         through += bool(near.any() and zone_mask(zone, d.xy[near], tang[near]).any())
 
-    timings: dict[str, float] = {}
+    first: list = []
 
     def build(drives):
+        drives = list(drives)
+        if first and drives == list(fleet.drives):  # the map of every drive: built once
+            return first[0][0], first[0][1]
         t0 = time.perf_counter()
-        r = build_map(list(drives), config=PipelineConfig(), seed=0, workers=1)
-        timings["build" if "build" not in timings else "rebuild"] = time.perf_counter() - t0
+        r = build_map(drives, config=PipelineConfig(), seed=0, workers=1)
+        if not first:
+            first.append((r.map, r.report, time.perf_counter() - t0))
         return r.map, r.report
 
-    t0 = time.perf_counter()
-    result = follow_changes(fleet.drives, build=build)
-    t_follow = time.perf_counter() - t0
+    results = {method: follow_changes(fleet.drives, build=build, local=local) for method, local in METHODS}
     rows = []
     for method, hdmap, seconds in (
-        ("baseline", result.first_map, timings["build"]),
-        ("follow", result.map, t_follow),
+        ("baseline", first[0][0], {"build": first[0][2]}),
+        *((m, results[m].map, {k: v for k, v in results[m].seconds.items() if k != "build"}) for m, _ in METHODS),
     ):
         whole = evaluate_map(hdmap, now)
         z = evaluate_zone(hdmap, now, before, [zone])
+        lanes = evaluate_zone_lanes(derive_lanes(hdmap), now, [zone]) if scenario in LANE_SCENARIOS else None
         rows.append(
             {
                 "scenario": scenario,
@@ -99,8 +122,9 @@ def run(scenario: str, seed: int) -> list[dict]:
                 "through": through,
                 "zone": z,
                 "whole": whole,
-                "changes": len(result.changes) if method == "follow" else 0,
+                "changes": len(results[method].changes) if method != "baseline" else 0,
                 "seconds": seconds,
+                "lanes": lanes,
             }
         )
     return rows
@@ -112,12 +136,14 @@ def main() -> int:
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default: 0)")
     args = ap.parse_args()
     plan: list[tuple[str, int]] = []
-    for sc in [k for k in SCENARIOS if k != "close"] if args.scenario == "all" else [args.scenario]:
+    for sc in [k for k in SCENARIOS if k not in LANE_SCENARIOS] if args.scenario == "all" else [args.scenario]:
         seeds = [int(s) for s in args.seeds.split(",")]
         plan += [(sc, s) for s in seeds]
     head = (
         f"{'scenario':9} {'seed':>4} {'method':8} {'thru':>4} | {'zone recall':>11} {'prec':>5} {'mean m':>6} "
-        f"{'type':>5} {'ghost':>5} | {'road mean m':>11} {'recall':>6} {'prec':>5} {'type':>5} | {'chg':>3} {'s':>5}"
+        f"{'type':>5} {'ghost':>5} | {'road mean m':>11} {'recall':>6} {'prec':>5} {'type':>5} | "
+        f"{'chg':>3} {'build':>5} {'detect':>6} {'rebuild':>7} {'apply':>5} | "
+        f"{'lanes ok':>8} {'n map':>5} {'n road':>6}"
     )
     print(head)
     print("-" * len(head))
@@ -129,14 +155,17 @@ def main() -> int:
                 f"{r['scenario']:9} {r['seed']:4d} {r['method']:8} {r['through']:4d} | {_pct(z.recall):>11} "
                 f"{_pct(z.precision)} {mean} {_pct(z.type_accuracy)} {_pct(z.ghost_share)} | "
                 f"{w.overall.mean_m:11.3f} {_pct(w.overall.recall):>6} {_pct(w.overall.precision)} "
-                f"{_pct(w.type_accuracy)} | {r['changes']:3d} {r['seconds']:5.1f}",
+                f"{_pct(w.type_accuracy)} | {r['changes']:3d} {secs(r['seconds'])} | "
+                f"{lane_cols(r['lanes'])}",
                 flush=True,
             )
     print("zone: the changed kilometre (with its tapers), scored against the road as of the last drive; ghost: share")
     print("of the map's points there that match only the old road; thru: drives after the change through the zone's")
-    print(
-        "middle; road: the whole road; chg: changes confirmed; s: baseline build, or follow (build + detect + rebuild)"
-    )
+    print("middle; road: the whole road; chg: changes confirmed; whole: the changed places followed by rebuilding the")
+    print("whole map; follow: by rebuilding them alone and splicing them in (updates/splice.py); seconds: build = the")
+    print("first map (the baseline), detect = evidence and change points over all drives, rebuild = the second build")
+    print("(whole map / the rebuilt places with their margin), apply = cutting, alignment and splice;")
+    print("lanes ok: share of the zone's cuts with as many map lanes as the road has now; n map / n road: mean counts")
     return 0
 
 

@@ -102,3 +102,19 @@ def test_paper_and_naive_map_the_consensus_unless_asked(tmp_path, sample_bags, p
     assert cli.main([*args, "-o", str(tmp_path / "asked"), "--follow-changes"]) == 0
     assert "follow changes:" in capsys.readouterr().out
     assert (tmp_path / "asked.history.json").exists()
+
+
+@pytest.mark.slow
+def test_a_closed_lane_is_scored_by_lane_count_in_the_zone(tmp_path, capsys):
+    out = tmp_path / "fleet"
+    assert cli.main(["simulate", *ARGS, "--change", "close:400-1100:fwd_lane2@2", "-o", str(out)]) == 0
+    gt_old, gt_new = str(tmp_path / "fleet.gt_before.json"), str(tmp_path / "fleet.gt.json")
+    changes = str(tmp_path / "fleet.changes.json")
+    report = tmp_path / "eval.json"
+    assert cli.main(["evaluate", gt_old, gt_new, "--changes", changes, "--lanes", "--json", str(report)]) == 0
+    zone = json.loads(report.read_text())["changed_zone_lanes"]
+    assert "changed zone lanes" in capsys.readouterr().out
+    # the old road as map shows the closed lane: one lane too many all along the zone (the new
+    # road's own GT map is no reference: its closed lane's centerline runs on in its neighbour's)
+    assert zone["n_cuts"] > 100 and zone["count_accuracy"] < 0.1
+    assert zone["mean_map_lanes"] > zone["mean_gt_lanes"] + 0.8

@@ -26,12 +26,14 @@ import numpy as np
 from hdmap_core.evaluation.config import EVAL_TYPES, EvalConfig
 from hdmap_core.evaluation.cuts import configured_cuts, nearest_on_same_cut, nearest_same_type, points_on_cuts
 from hdmap_core.groundtruth import GroundTruth
-from hdmap_core.model import HDMap
+from hdmap_core.lanes.model import LaneMap
+from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.simulation.changes import ChangeZone, zone_mask
 
-__all__ = ["ZoneReport", "evaluate_zone"]
+__all__ = ["ZoneReport", "evaluate_zone", "ZoneLanes", "evaluate_zone_lanes"]
 
 _EVAL_TYPES = tuple(int(t) for t in EVAL_TYPES)
+_MARKING_TYPES = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 
 
 @dataclass(frozen=True)
@@ -119,3 +121,43 @@ def evaluate_zone(
         ghost_share=_share(int(np.count_nonzero(ghost)), len(m_cut)),
         old_recall=_share(int(np.count_nonzero(o_to_m <= config.recall_radius_m)), len(o_cut)),
     )
+
+
+@dataclass(frozen=True)
+class ZoneLanes:
+    """Lane count in the changed zone (``evaluate_zone_lanes``): the share of the zone's cuts
+    where the map has as many lanes as the road has now, and the mean counts."""
+
+    n_cuts: int
+    count_accuracy: float
+    mean_map_lanes: float
+    mean_gt_lanes: float
+
+    def line(self) -> str:
+        return (
+            f"changed zone lanes ({self.n_cuts} cuts): lane count right at {100 * self.count_accuracy:.1f} % "
+            f"(mean {self.mean_map_lanes:.2f} lanes in the map, {self.mean_gt_lanes:.2f} on the road)"
+        )
+
+
+def evaluate_zone_lanes(
+    lane_map: LaneMap, gt_now: GroundTruth, zones: Sequence[ChangeZone], *, config: EvalConfig = EvalConfig()
+) -> ZoneLanes:
+    """Lane count of ``lane_map`` (``hdmap_core.lanes.derive_lanes``) on the zone's cuts against the
+    road as it is now: its markings (solid, dashed) crossing the cut, less one. The ground truth's
+    lane centerlines do not say it: a closed lane's centerline merges into its neighbour and an
+    opened one has none (``simulation.changes``)."""
+    cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
+    cuts = configured_cuts(gt_now, config, cos_feature=cos_feat)
+    inside = np.zeros(len(cuts), dtype=bool)
+    for z in zones:
+        inside |= zone_mask(z, cuts.center, cuts.tangent)
+    cuts = cuts.take(inside)
+    if len(cuts) == 0:
+        return ZoneLanes(0, math.nan, math.nan, math.nan)
+    marks = [np.asarray(f.points, dtype=float) for f in gt_now.features if int(f.type) in _MARKING_TYPES]
+    g = points_on_cuts(cuts, marks, cos_min=cos_feat)
+    m = points_on_cuts(cuts, [ln.centerline for ln in lane_map.lanes], cos_min=cos_feat)
+    n_gt = np.maximum(np.bincount(g.cut, minlength=len(cuts)) - 1, 0)
+    n_map = np.bincount(m.cut, minlength=len(cuts))
+    return ZoneLanes(len(cuts), float(np.mean(n_gt == n_map)), float(n_map.mean()), float(n_gt.mean()))

@@ -17,8 +17,9 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
@@ -28,8 +29,10 @@ from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
+from hdmap_core.updates.edges import detect_edge_changes, fleet_edge_evidence, merge_changes
 from hdmap_core.updates.evidence import fleet_evidence
 from hdmap_core.updates.places import PlaceKey, Places, places_of
+from hdmap_core.updates.splice import border_shift, grow, shifted, splice
 
 __all__ = [
     "RetiredFeature",
@@ -37,6 +40,7 @@ __all__ = [
     "follow_changes",
     "anchored",
     "cut_before_changes",
+    "clip_to_places",
     "retired_features",
     "history_to_dict",
 ]
@@ -74,7 +78,12 @@ class FollowResult:
         changes: the confirmed changes, in time order.
         retired: what they replaced.
         first_map: the map of every drive (before any change was followed).
-        report: the last build's report.
+        rebuilt: with a local rebuild, the places taken from it (the changed ones and their
+            ends along the drives); the map is the first map's everywhere else.
+        seconds: wall time per stage: ``build`` (the first map), ``detect`` (evidence and change
+            points), ``rebuild`` (the second build), ``apply`` (alignment and splice).
+        report: the build's report: the first (whole) build's with a local rebuild, else the
+            rebuild's.
     """
 
     map: HDMap
@@ -82,6 +91,8 @@ class FollowResult:
     retired: tuple[RetiredFeature, ...]
     first_map: HDMap
     report: object
+    rebuilt: frozenset[PlaceKey] = frozenset()
+    seconds: dict[str, float] = field(default_factory=dict, compare=False)
 
 
 def _change_times(changes: Sequence[DetectedChange]) -> dict[PlaceKey, int]:
@@ -161,15 +172,50 @@ def anchored(drive: Drive, anchors: dict[PlaceKey, float], places: Places, *, sm
     return replace(drive, xy=drive.xy + move, detections=tuple(dets))
 
 
-def cut_before_changes(drives: Sequence[Drive], places: Places, changes: Sequence[DetectedChange]) -> list[Drive]:
-    """``drives`` without their parts in a changed place from before its change (module docstring)."""
-    times = _change_times(changes)
+def along_drives(
+    drives: Sequence[Drive], places: Places, times: dict[PlaceKey, int], steps: int
+) -> dict[PlaceKey, int]:
+    """``times`` with the places up to ``steps`` places before and after them along ``drives``
+    (the change's time of the place they lead to): the tapers and stretches detection left out."""
+    out = dict(times)
+    for d in drives:
+        keys = places.keys(d.xy, d.yaw)
+        seq = [k for i, k in enumerate(keys) if i == 0 or k != keys[i - 1]]
+        for i, k in enumerate(seq):
+            if k not in times:
+                continue
+            for j in range(max(0, i - steps), min(len(seq), i + steps + 1)):
+                if seq[j] not in times:
+                    out[seq[j]] = max(out.get(seq[j], times[k]), times[k])
+    return out
+
+
+def cut_before_changes(
+    drives: Sequence[Drive],
+    places: Places,
+    changes: Sequence[DetectedChange],
+    *,
+    times: dict[PlaceKey, int] | None = None,
+) -> list[Drive]:
+    """``drives`` without their parts in a changed place from before its change (module docstring);
+    ``times``: the change time per place, instead of ``changes``'."""
+    times = _change_times(changes) if times is None else times
     out: list[Drive] = []
     for d in drives:
         keys = places.keys(d.xy, d.yaw)
         t = np.array([times.get(k, np.iinfo(np.int64).min) for k in keys], dtype=np.int64)
         keep = np.asarray(d.stamps_ns, dtype=np.int64) >= t
         out.extend(_cut_drive(d, keep) if not keep.all() else [d])
+    return out
+
+
+def clip_to_places(drives: Sequence[Drive], places: Places, keys: set[PlaceKey]) -> list[Drive]:
+    """The pieces of ``drives`` in the places ``keys`` (ids ``<drive id>/<k>`` where cut)."""
+    out: list[Drive] = []
+    for d in drives:
+        keep = np.array([k in keys for k in places.keys(d.xy, d.yaw)], dtype=bool)
+        if keep.any():
+            out.extend(_cut_drive(d, keep) if not keep.all() else [d])
     return out
 
 
@@ -205,6 +251,9 @@ def follow_changes(
     build: Callable[[Sequence[Drive]], tuple[HDMap, object]],
     config: ChangeConfig = ChangeConfig(),
     bounds: PhysicalBounds | None = _BOUNDS,
+    local: bool = True,
+    margin_places: int = 2,
+    taper_places: int = 1,
 ) -> FollowResult:
     """The map of ``drives`` as of the last of them (module docstring).
 
@@ -216,29 +265,63 @@ def follow_changes(
             them (or malformed) is left out here as the build leaves it out, so that no evidence
             is computed on it (a pose at 1e12 m would ask for terabytes). ``drives`` is passed
             to ``build`` as given when every drive keeps them.
+        local: rebuild only the changed places (grown by ``margin_places`` places for context),
+            aligned on the first map's road borders and spliced into it (``updates.splice``);
+            False: rebuild the whole map from every drive (cut and moved as above).
+        margin_places: places around the changed ones mapped with them and thrown away.
+        taper_places: with ``local``, the places this many before and after the changed ones
+            along the drives after the change are rebuilt with them (from those drives only):
+            the ends of a change (tapers) that detection left out.
     """
     usable, rejected = prepare_drives(drives, bounds=bounds)
     if rejected:
         drives = usable
+    t0 = time.perf_counter()
     first_map, report = build(drives)
+    first_report = report
+    t1 = time.perf_counter()
+    seconds = {"build": t1 - t0}
     places = places_of(drives, cell_m=config.cell_m)
     evidence = fleet_evidence(drives, first_map, places, config=config)
     changes = detect_changes(evidence, places, config=config)
+    edges = fleet_edge_evidence(drives, first_map, places, evidence, config=config)
+    changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
+    t0, seconds["detect"] = time.perf_counter(), time.perf_counter() - t1
     if not changes:
-        return FollowResult(first_map, (), (), first_map, report)
+        return FollowResult(first_map, (), (), first_map, report, seconds=seconds)
     in_evidence = {d for c in changes for d in c.drives_after}
     anchors: dict[str, dict[PlaceKey, float]] = {}
     for e in evidence:
         if e.drive_id in in_evidence and np.isfinite(e.anchor_m):
             anchors.setdefault(e.drive_id, {})[e.key] = e.anchor_m
     moved = [anchored(d, anchors[d.drive_id], places) if d.drive_id in anchors else d for d in drives]
-    cut = cut_before_changes(moved, places, changes)
-    new_map, report = build(cut)
+    if local:
+        first_change = min(c.time_ns for c in changes)
+        after = [d for d in moved if d.start_ns >= first_change]
+        times = along_drives(after, places, _change_times(changes), taper_places)
+        after = [d for d in after if d.drive_id in in_evidence]
+        cut = cut_before_changes(moved, places, changes, times=times)
+        core = set(times)
+        region = grow(places, core, margin_places)
+        clipped = clip_to_places(cut, places, region)
+        t1 = time.perf_counter()
+        local_map, report = build(clipped)
+        seconds["rebuild"] = time.perf_counter() - t1
+        local_map = shifted(local_map, border_shift(local_map, first_map, after, places, core, config=config), places)
+        new_map = splice(first_map, local_map, places, core)
+        report = first_report
+    else:
+        core = set()
+        cut = cut_before_changes(moved, places, changes)
+        t1 = time.perf_counter()
+        new_map, report = build(cut)
+        seconds["rebuild"] = time.perf_counter() - t1
     start = min((d.start_ns for d in drives), default=0)
     retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start))
     extra = {**new_map.extra, "changes": list(changes), "retired": list(retired)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
-    return FollowResult(new_map, tuple(changes), retired, first_map, report)
+    seconds["apply"] = time.perf_counter() - t0 - seconds["rebuild"]
+    return FollowResult(new_map, tuple(changes), retired, first_map, report, frozenset(core), seconds)
 
 
 def history_to_dict(result: FollowResult) -> dict:

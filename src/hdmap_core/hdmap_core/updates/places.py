@@ -35,10 +35,13 @@ class Places:
 
     def keys(self, xy: np.ndarray, yaw: np.ndarray) -> list[PlaceKey]:
         """The place of each pose ``xy`` (N, 2) heading ``yaw`` (N,)."""
-        ij = np.floor(np.asarray(xy, dtype=float) / self.cell_m).astype(np.int64)
-        ax = np.array([self.axis.get((int(i), int(j)), 0.0) for i, j in ij])
+        ij = np.floor(np.asarray(xy, dtype=float) / self.cell_m).astype(np.int64).reshape(-1, 2)
+        if len(ij) == 0:
+            return []
+        cells, inv = np.unique(ij, axis=0, return_inverse=True)
+        ax = np.array([self.axis.get((int(i), int(j)), 0.0) for i, j in cells])[inv.reshape(-1)]
         side = (np.cos(np.asarray(yaw, dtype=float) - ax) < 0).astype(np.int64)
-        return [(int(i), int(j), int(s)) for (i, j), s in zip(ij, side)]
+        return list(zip(ij[:, 0].tolist(), ij[:, 1].tolist(), side.tolist()))
 
     def neighbours(self, key: PlaceKey) -> list[PlaceKey]:
         """The places of the 8 cells around ``key``'s cell, on the side of the same direction.

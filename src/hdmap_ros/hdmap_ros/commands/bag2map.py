@@ -257,7 +257,9 @@ def run(args: argparse.Namespace) -> int:
 
             followed = follow_changes(usable, build=build, bounds=None)  # usable: checked above
             history = history_to_dict(followed)
-            result = dataclasses.replace(result, map=followed.map) if followed.changes else first
+            # a local rebuild maps the changed places only: the run's figures are the first build's
+            base = first if followed.report is first.report else result
+            result = dataclasses.replace(base, map=followed.map) if followed.changes else first
             for c in followed.changes:
                 print(
                     f"change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "

@@ -22,6 +22,7 @@ Exit status: 0 done, 1 an error (unreadable input), 2 usage.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -371,12 +372,18 @@ def run(args: argparse.Namespace) -> int:
     lanes = _lane_report(hdmap, gt, args, config) if args.lanes else None
     if lanes is not None:
         print(lanes.summary())
-    zone_report = None
+    zone_report = zone_lanes = None
     if zone_input is not None:
         from hdmap_core.evaluation.zone import evaluate_zone  # noqa: PLC0415
 
         zone_report = evaluate_zone(hdmap, gt, zone_input[0], zone_input[1], config=config)
         print(zone_report.line())
+        if args.lanes:  # the lane count there against the road's markings now (a closed / opened lane)
+            from hdmap_core.evaluation.zone import evaluate_zone_lanes  # noqa: PLC0415
+            from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415
+
+            zone_lanes = evaluate_zone_lanes(derive_lanes(hdmap), gt, zone_input[1], config=config)
+            print(zone_lanes.line())
     if args.json:
         doc = report.to_dict(include_cuts=True)
         if lanes is not None:
@@ -384,6 +391,8 @@ def run(args: argparse.Namespace) -> int:
         doc["inputs"] = {"map": args.map, "gt": args.gt, "fleet": args.fleet, "sigma_loc_source": sigma_note}
         if zone_report is not None:
             doc["changed_zone"] = zone_report.to_dict()
+            if zone_lanes is not None:
+                doc["changed_zone_lanes"] = jsonable(dataclasses.asdict(zone_lanes))
         Path(args.json).write_text(json.dumps(doc, allow_nan=False))
         print(f"wrote {args.json}")
     if args.plot:

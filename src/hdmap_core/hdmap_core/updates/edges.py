@@ -1,0 +1,282 @@
+"""A lane closed or opened: the road's right edge line moved by about a lane.
+
+A closed lane moves the right edge marking onto the divider left of it; an opened shoulder moves
+it out. Drives see it as a solid line where the map has a dashed one (or none) and miss the old
+edge, which needs ``min_after_shares`` drives after the change to confirm as shares
+(``updates.detect``). Measured directly it is one number per drive and place:
+
+* **edge move**: on a cut across the drive every ``_STEP_M``, the rightmost solid marking the
+  drive saw on its right against the map's rightmost solid marking on its right, after the drive's
+  anchor (its offset on the road borders, ``updates.evidence``): ~0 on the unchanged road,
+  about plus a lane (to the left) after a close, minus the shoulder after an open. Only on the
+  cuts where the map's edge line lies within ``_SEEN_M`` right of the drive (whether a drive in
+  the far lane sees it depends on its lane and its sensor, not on the road: such drives made the
+  series two-valued at ramps); the median over the place's cuts where both exist (at least
+  ``_MIN_CUTS``).
+
+A change point of that series (``detect.change_point``, as for the displacement, but with at
+least ``_MIN_BEFORE`` drives before (a few drives that saw the edge on a handful of cuts made a
+change back on carla_town06), >= ``min_after`` after, at least ``MIN_EDGE_MOVE_M``) confirms the place; touching
+confirmed places of one direction are one change, ``lane_closed`` (edge moved left) or
+``lane_opened``; it grows into neighbouring places where a drive after it shows at least half
+the move the same way and none the other (the tapers). A shift of the markings by less than
+``MIN_EDGE_MOVE_M`` is no lane change (it is the displacement's), nor a drive badly localised
+(the anchor takes that out). A larger shift (which the displacement does not see) shows as one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdmap_core.evaluation.cuts import Segments, intersect_cuts, segments_of
+from hdmap_core.geometry import arc_length
+from hdmap_core.model import Drive, FeatureType, HDMap
+from hdmap_core.updates.config import ChangeConfig
+from hdmap_core.updates.detect import DetectedChange, PlaceChange, change_point
+from hdmap_core.updates.evidence import PlaceEvidence
+from hdmap_core.updates.places import PlaceKey, Places
+
+__all__ = ["EdgeEvidence", "edge_evidence", "detect_edge_changes", "merge_changes", "MIN_EDGE_MOVE_M"]
+
+MIN_EDGE_MOVE_M = 1.8  # the smallest move of the edge line that is a lane closed / opened (a 2 m shoulder) [m]
+_STEP_M = 8.0  # cut spacing [m]
+_SOLID = int(FeatureType.SOLID)
+_SEEN_M = 6.0  # the map's edge line counts where it lies this close right of the drive (the next lane's) [m]
+_MIN_CUTS = 6  # cuts a drive needs in a place for its edge move there (a place is ~12 cuts long)
+_MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
+_COS_MIN = 0.7  # a line runs with the drive on a cut when cos(angle) >= this
+
+
+@dataclass(frozen=True)
+class EdgeEvidence:
+    """One drive's edge move at one place (module docstring); NaN where it saw too little."""
+
+    drive_id: str
+    time_ns: int
+    key: PlaceKey
+    move_m: float
+    n_cuts: int
+
+
+def _cuts_of(drive: Drive, step_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(center (K, 2), unit tangent (K, 2), yaw (K,)) every ``step_m`` along the drive."""
+    xy = np.asarray(drive.xy, dtype=float)
+    s = arc_length(xy)
+    q = np.arange(0.0, s[-1], step_m) if s[-1] > 0 else np.zeros(1)
+    i = np.clip(np.searchsorted(s, q), 0, len(xy) - 1)
+    yaw = np.asarray(drive.yaw, dtype=float)[i]
+    return xy[i], np.stack([np.cos(yaw), np.sin(yaw)], axis=1), yaw
+
+
+def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, segs: Segments) -> tuple[np.ndarray, np.ndarray]:
+    """(cut, lateral position) of the lines ``segs`` crossing the cuts, running with the drive."""
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    k = len(center)
+    ci, si, s, _ = intersect_cuts(center, normal, np.full(k, -view_m), np.full(k, view_m), segs)
+    d = segs.b[si] - segs.a[si]
+    ok = (d * tangent[ci]).sum(axis=1) >= _COS_MIN * np.linalg.norm(d, axis=1)
+    return ci[ok], s[ok]
+
+
+def _rightmost(cut: np.ndarray, s: np.ndarray, k: int, reach: float) -> np.ndarray:
+    """Per cut, the smallest s in [-reach, 0) (NaN where none)."""
+    out = np.full(k, np.inf)
+    sel = (s < 0) & (s >= -reach)
+    np.minimum.at(out, cut[sel], s[sel])
+    out[~np.isfinite(out)] = np.nan
+    return out
+
+
+def edge_evidence(
+    drive: Drive,
+    solids: HDMap | tuple,
+    places: Places,
+    anchors: dict[PlaceKey, float],
+    *,
+    config: ChangeConfig = ChangeConfig(),
+) -> list[EdgeEvidence]:
+    """The edge move of ``drive`` per place it crossed; ``solids``: the map, or its solid
+    markings as ``(segments, types)`` (``solid_lines``); ``anchors``: its anchor per place."""
+    segs, types = solid_lines(solids) if isinstance(solids, HDMap) else solids
+    if len(drive.xy) < 2 or len(types) == 0:
+        return []
+    center, tangent, yaw = _cuts_of(drive, _STEP_M)
+    k = len(center)
+    dets = [d for d in drive.detections if int(d.type) == _SOLID and len(d.points) >= 2]
+    if not dets:
+        return []
+    dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
+    d_cut, d_s = _on_cuts(center, tangent, config.view_m, dsegs)
+    m_cut, m_s = _on_cuts(center, tangent, config.view_m, segs)
+    keys = places.keys(center, yaw)
+    a = np.array([anchors.get(key, np.nan) for key in keys])
+    drive_right = _rightmost(d_cut, d_s, k, config.view_m)
+    # the map's lines in the drive's frame: map - drive = anchor where nothing moved
+    map_right = _rightmost(m_cut, m_s - np.nan_to_num(a)[m_cut], k, config.view_m)
+    move = drive_right - map_right  # + = the edge moved left of where the map has it
+    # only where the drive would have seen the map's edge line: farther out, whether a drive sees
+    # it depends on its lane and the sensor's reach, not on the road
+    move[~(map_right >= -_SEEN_M)] = np.nan
+    out = []
+    for key in dict.fromkeys(keys):
+        sel = np.array([kk == key for kk in keys]) & np.isfinite(move) & np.isfinite(a)
+        n = int(np.count_nonzero(sel))
+        value = float(np.median(move[sel])) if n >= _MIN_CUTS else math.nan
+        out.append(EdgeEvidence(drive.drive_id, drive.start_ns, key, value, n))
+    return out
+
+
+def solid_lines(hdmap: HDMap) -> tuple:
+    feats = [f for f in hdmap.features if int(f.type) == _SOLID and len(f.points) >= 2]
+    segs = segments_of([np.asarray(f.points, dtype=float) for f in feats])
+    return segs, np.full(len(segs.owner), _SOLID, dtype=np.int64)
+
+
+def fleet_edge_evidence(
+    drives: Sequence[Drive], hdmap: HDMap, places: Places, evidence: Sequence[PlaceEvidence], *, config: ChangeConfig
+) -> list[EdgeEvidence]:
+    """``edge_evidence`` of every drive, anchored as in ``evidence`` (``updates.evidence``)."""
+    anchors: dict[str, dict[PlaceKey, float]] = defaultdict(dict)
+    for e in evidence:
+        if np.isfinite(e.anchor_m):
+            anchors[e.drive_id][e.key] = e.anchor_m
+    lines = solid_lines(hdmap)
+    return [x for d in drives for x in edge_evidence(d, lines, places, anchors[d.drive_id], config=config)]
+
+
+def detect_edge_changes(
+    evidence: Sequence[EdgeEvidence], places: Places, *, config: ChangeConfig = ChangeConfig()
+) -> list[DetectedChange]:
+    """The lanes closed and opened the edge evidence confirms (module docstring), in time order."""
+    by_place: dict[PlaceKey, list[EdgeEvidence]] = defaultdict(list)
+    for e in evidence:
+        if np.isfinite(e.move_m):
+            by_place[e.key].append(e)
+    confirmed: dict[PlaceKey, PlaceChange] = {}
+    for key, rows in sorted(by_place.items()):
+        rows.sort(key=lambda e: (e.time_ns, e.drive_id))
+        vals = np.array([e.move_m for e in rows])
+        found = change_point(
+            vals,
+            min_effect=MIN_EDGE_MOVE_M,
+            floor=config.displacement_floor_m,
+            z_min=config.z_min,
+            min_before=max(config.min_before, _MIN_BEFORE),
+            min_after=config.min_after,
+        )
+        if found is None:
+            continue
+        i, effect, z = found
+        kind = "lane_closed" if effect > 0 else "lane_opened"
+        confirmed[key] = PlaceChange(
+            key,
+            kind,
+            rows[i].time_ns,
+            rows[i - 1].time_ns,
+            effect,
+            z,
+            tuple(e.drive_id for e in rows[:i]),
+            tuple(e.drive_id for e in rows[i:]),
+        )
+    # Grow along the road into the tapers: a neighbour where a drive after the change shows at
+    # least half the smallest move the same way against the place's drives before, none the other.
+    frontier = sorted(confirmed)
+    while frontier:
+        nxt = []
+        for key in frontier:
+            c = confirmed[key]
+            for nb in places.neighbours(key):
+                if nb in confirmed or nb not in by_place:
+                    continue
+                ext = _extends(by_place[nb], nb, c)
+                if ext is not None:
+                    confirmed[nb] = ext
+                    nxt.append(nb)
+        frontier = sorted(nxt)
+    out: list[DetectedChange] = []
+    seen: set[PlaceKey] = set()
+    for key in sorted(confirmed):
+        if key in seen:
+            continue
+        comp, stack = [], [key]
+        seen.add(key)
+        while stack:
+            k = stack.pop()
+            comp.append(confirmed[k])
+            for nb in places.neighbours(k):
+                if nb in confirmed and nb not in seen and confirmed[nb].kind == confirmed[key].kind:
+                    seen.add(nb)
+                    stack.append(nb)
+        comp.sort(key=lambda p: p.key)
+        if all(p.extended for p in comp):
+            continue
+        times = sorted(p.time_ns for p in comp if not p.extended)
+        t = times[(len(times) - 1) // 2]
+        digest = hashlib.sha1(repr(([p.key for p in comp], t, "edge")).encode()).digest()
+        out.append(
+            DetectedChange(
+                id=int.from_bytes(digest[:8], "little") & ((1 << 63) - 1),
+                time_ns=t,
+                kinds=(comp[0].kind,),
+                places=tuple(comp),
+                drives_after=tuple(sorted({d for p in comp for d in p.drives_after})),
+                confidence=1.0 - 1.0 / max(p.z for p in comp if not p.extended),
+            )
+        )
+    return sorted(out, key=lambda c: (c.time_ns, c.id))
+
+
+def _extends(rows: list[EdgeEvidence], key: PlaceKey, change: PlaceChange) -> PlaceChange | None:
+    before = [e for e in rows if e.time_ns < change.time_ns]
+    after = [e for e in rows if e.time_ns >= change.time_ns]
+    if len(before) < 3 or not after:
+        return None
+    med = float(np.median([e.move_m for e in before]))
+    sign = 1.0 if change.effect > 0 else -1.0
+    dev = np.array([(e.move_m - med) * sign for e in after])
+    if np.any(dev <= -MIN_EDGE_MOVE_M / 2) or not np.any(dev >= MIN_EDGE_MOVE_M / 2):
+        return None
+    showing = [e for e, d in zip(after, dev) if d >= MIN_EDGE_MOVE_M / 2]
+    return PlaceChange(
+        key,
+        change.kind,
+        change.time_ns,
+        change.last_before_ns,
+        float(np.mean([e.move_m - med for e in showing])),
+        math.nan,
+        tuple(e.drive_id for e in before),
+        tuple(e.drive_id for e in showing),
+        extended=True,
+    )
+
+
+def merge_changes(
+    changes: Sequence[DetectedChange], edges: Sequence[DetectedChange], places: Places
+) -> list[DetectedChange]:
+    """``changes`` with the lane changes ``edges``: one that shares or touches a place of a change
+    joins it (its places there are the change's; its kinds and drives are added), else it is a
+    change of its own."""
+    out = list(changes)
+    for e in edges:
+        near = {nb for p in e.places for nb in (p.key, *places.neighbours(p.key))}
+        hit = next((i for i, c in enumerate(out) if near & c.keys), None)
+        if hit is None:
+            out.append(e)
+            continue
+        c = out[hit]
+        have = c.keys
+        out[hit] = DetectedChange(
+            id=c.id,
+            time_ns=c.time_ns,
+            kinds=tuple(sorted({*c.kinds, *e.kinds})),
+            places=tuple(sorted([*c.places, *(p for p in e.places if p.key not in have)], key=lambda p: p.key)),
+            drives_after=tuple(sorted({*c.drives_after, *e.drives_after})),
+            confidence=max(c.confidence, e.confidence),
+        )
+    return sorted(out, key=lambda c: (c.time_ns, c.id))

@@ -1,0 +1,82 @@
+"""Lane closed / opened: the edge line's move (``updates.edges``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hdmap_core.evaluation.zone import evaluate_zone, evaluate_zone_lanes
+from hdmap_core.lanes.derive import derive_lanes
+from hdmap_core.pipeline.driver import PipelineConfig, build_map
+from hdmap_core.simulation.changes import change_zone, parse_change
+from hdmap_core.simulation.config import SimConfig
+from hdmap_core.simulation.fleet import simulate_fleet
+from hdmap_core.simulation.synthetic import synthetic_highway
+from hdmap_core.updates.config import ChangeConfig
+from hdmap_core.updates.edges import EdgeEvidence, detect_edge_changes
+from hdmap_core.updates.follow import follow_changes
+from hdmap_core.updates.places import Places, places_of
+
+PLACES = Places(100.0, {(i, 0): 0.0 for i in range(0, 6)})
+
+
+def _rows(key, before, after, t0=0):
+    vals = [*before, *after]
+    return [EdgeEvidence(f"d{t0 + i:02d}", (t0 + i) * 10**9, key, float(v), 10) for i, v in enumerate(vals)]
+
+
+def test_an_edge_line_that_moved_a_lane_is_a_lane_change_and_grows_into_the_taper():
+    rng = np.random.default_rng(1)
+    ev = [
+        *_rows((2, 0, 0), rng.normal(0, 0.05, 8), [3.4, 3.6]),
+        *_rows((3, 0, 0), rng.normal(0, 0.05, 8), [1.4, np.nan]),  # the taper: one drive, half the move
+        *_rows((4, 0, 0), rng.normal(0, 0.05, 8), [0.02, 0.01]),  # the road after the zone
+    ]
+    (c,) = detect_edge_changes(ev, PLACES)
+    assert c.kinds == ("lane_closed",)
+    assert {p.key for p in c.places} == {(2, 0, 0), (3, 0, 0)}
+    assert [p.extended for p in c.places] == [False, True]
+    assert c.time_ns == 8 * 10**9 and c.drives_after == ("d08", "d09")
+    # an opened shoulder moves it right
+    (o,) = detect_edge_changes(_rows((2, 0, 0), rng.normal(0, 0.05, 8), [-2.0, -2.1]), PLACES)
+    assert o.kinds == ("lane_opened",)
+    # no change: one drive off, a move under the smallest, drives that disagree
+    assert detect_edge_changes(_rows((2, 0, 0), rng.normal(0, 0.05, 8), [3.5]), PLACES) == []
+    assert detect_edge_changes(_rows((2, 0, 0), rng.normal(0, 0.05, 8), [1.2, 1.3]), PLACES) == []
+    assert detect_edge_changes(_rows((2, 0, 0), rng.normal(0, 0.05, 8), [3.5, 0.0, 3.5]), PLACES) == []
+
+
+N_BEFORE, N_AFTER = 14, 4
+SIM = SimConfig(
+    n_drives=N_BEFORE + N_AFTER, snippet_length_min_m=1300.0, snippet_length_max_m=1500.0, direction_bias=1.0
+)
+CLOSE = f"close:400-1100:fwd_lane2@{N_BEFORE}"
+
+
+def _build(drives):
+    r = build_map(list(drives), config=PipelineConfig(), seed=0, workers=1)
+    return r.map, r.report
+
+
+@pytest.mark.slow
+def test_a_closed_lane_is_found_and_the_lanes_follow():
+    road = synthetic_highway("motorway", length_m=1500.0)
+    fleet = simulate_fleet(road, config=SIM, seed=5, changes=[parse_change(CLOSE)])
+    result = follow_changes(fleet.drives, build=_build)
+    assert any("lane_closed" in c.kinds for c in result.changes)
+    zones = [change_zone(road, parse_change(CLOSE))]
+    gt_now = fleet.extra["gt_after"]
+    before = evaluate_zone_lanes(derive_lanes(result.first_map), gt_now, zones)
+    after = evaluate_zone_lanes(derive_lanes(result.map), gt_now, zones)
+    assert after.count_accuracy > before.count_accuracy + 0.3
+    assert abs(after.mean_map_lanes - after.mean_gt_lanes) < abs(before.mean_map_lanes - before.mean_gt_lanes)
+    z = evaluate_zone(result.map, gt_now, road, zones)
+    assert z.ghost_share < evaluate_zone(result.first_map, gt_now, road, zones).ghost_share
+    # the map outside the rebuilt places is the first map's: every feature that does not enter them is kept as is
+    places = places_of(fleet.drives, cell_m=ChangeConfig().cell_m)
+    assert result.rebuilt
+    kept = {id(f) for f in result.map.features}
+    for f in result.first_map.features:
+        yaw = np.arctan2(*np.gradient(f.points, axis=0)[:, ::-1].T)
+        if not set(places.keys(f.points, yaw)) & result.rebuilt:
+            assert id(f) in kept

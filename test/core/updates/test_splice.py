@@ -1,0 +1,84 @@
+"""The changed places rebuilt alone and spliced into the first map (``updates.splice``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
+from hdmap_core.updates.places import Places
+from hdmap_core.updates.splice import grow, shifted, splice
+
+PLACES = Places(100.0, {(i, 0): 0.0 for i in range(-1, 7)})
+CORE = {(2, 0, 0)}  # x in [200, 300), running +x
+
+
+def _line(fid: int, x0: float, x1: float, y: float, ftype=FeatureType.DASHED, reverse=False) -> MapFeature:
+    x = np.arange(x0, x1 + 1e-9, 2.0)
+    pts = np.stack([x, np.full_like(x, y)], axis=1)
+    pts = pts[::-1].copy() if reverse else pts
+    return MapFeature(fid, ftype, pts, np.full(len(pts), 5), np.full(len(pts), 0.1))
+
+
+def _nodes(first_id: int, x0: float, x1: float, y: float, feature_ids) -> tuple[TopologyNode, ...]:
+    xs = np.arange(x0, x1 + 1e-9, 10.0)
+    return tuple(
+        TopologyNode(
+            first_id + i, np.array([x, y]), 0.0, 7.0, (first_id + i + 1,) if i + 1 < len(xs) else (), feature_ids
+        )
+        for i, x in enumerate(xs)
+    )
+
+
+def test_splice_takes_the_changed_places_from_the_local_map_and_keeps_the_rest():
+    first = HDMap(
+        features=(
+            _line(1, 0.0, 500.0, 10.0, FeatureType.SOLID),
+            _line(2, 0.0, 500.0, 13.5),
+            _line(3, 0.0, 500.0, 5.0, FeatureType.SOLID, reverse=True),  # the other carriageway
+            _line(4, 400.0, 500.0, 17.0),  # never enters the changed place
+        ),
+        topology=_nodes(0, 0.0, 500.0, 12.0, (1, 2)),
+        drive_ids=("a",),
+    )
+    local = HDMap(
+        features=(_line(1, 150.0, 350.0, 11.0, FeatureType.SOLID), _line(7, 150.0, 350.0, 14.5)),
+        topology=_nodes(0, 150.0, 350.0, 13.0, (1, 7)),
+        drive_ids=("a/0", "b"),
+    )
+    out = splice(first, local, PLACES, CORE)
+    by_id = {f.id: f for f in out.features}
+    # untouched: the other carriageway and the line that never enters the place, as they were
+    assert by_id[3] is first.features[2] and by_id[4] is first.features[3]
+    # every point in the changed place comes from the local map, every other one from the first
+    for f in out.features:
+        inside = (f.points[:, 0] >= 200.0) & (f.points[:, 0] < 300.0) & (f.points[:, 1] > 8.0)
+        assert np.all(np.isin(f.points[inside, 1], [11.0, 14.5]))
+        assert np.all(np.isin(f.points[~inside, 1], [5.0, 10.0, 13.5, 17.0]))
+    solid = sorted((f for f in out.features if f.type == FeatureType.SOLID and f.id != 3), key=lambda f: f.points[0, 0])
+    assert [round(f.points[0, 0]) for f in solid] == [0, 200, 300]
+    assert solid[0].id == 1  # the first piece keeps the feature's id
+    assert len({f.id for f in out.features}) == len(out.features)
+    # linked across both seams
+    assert solid[1].id in solid[0].successors and solid[2].id in solid[1].successors
+    assert solid[0].id in solid[1].predecessors
+    # topology: local nodes inside, first nodes outside, successors across the seams
+    pos = {n.id: n.position for n in out.topology}
+    core_nodes = [n for n in out.topology if 200.0 <= n.position[0] < 300.0]
+    assert core_nodes and all(n.position[1] == 13.0 for n in core_nodes)
+    assert all(n.position[1] == 12.0 for n in out.topology if not 200.0 <= n.position[0] < 300.0)
+    before_seam = next(n for n in out.topology if n.position[0] == 190.0)
+    assert [pos[s][0] for s in before_seam.successors] == [200.0]
+    last_inside = max(core_nodes, key=lambda n: n.position[0])
+    assert [pos[s][0] for s in last_inside.successors] == [300.0]
+    assert all(s in pos for n in out.topology for s in n.successors)
+    assert set(out.drive_ids) == {"a", "a/0", "b"}
+
+
+def test_shifted_moves_features_left_by_their_place_and_grow_adds_neighbours():
+    hdmap = HDMap(features=(_line(1, 0.0, 500.0, 10.0),))
+    out = shifted(hdmap, {(k, 0, 0): 0.5 for k in range(5)}, PLACES)
+    np.testing.assert_allclose(out.features[0].points[:, 1], 10.5)
+    np.testing.assert_allclose(out.features[0].points[:, 0], hdmap.features[0].points[:, 0])
+    assert shifted(hdmap, {}, PLACES) is hdmap
+    assert grow(PLACES, CORE, 1) == {(1, 0, 0), (2, 0, 0), (3, 0, 0)}
+    assert grow(PLACES, CORE, 0) == CORE
