@@ -71,7 +71,7 @@ class LiveChange:
     Attributes:
         id: the change's stable id (``DetectedChange.id``).
         time_ns: the change point; the new road is valid from it, the retired pieces until it.
-        kinds: the kinds of evidence (displacement, wrong_type, missed, extra).
+        kinds: geometry (markings moved), type (re-striped), marking_gone, marking_new.
         places: its places ``(ix, iy, side)`` of ``cell_m`` cells.
         cell_m: the places' cell size [m].
         polygon: (N, 2) convex hull of its places' cells [m], counter-clockwise.
