@@ -90,6 +90,12 @@ def test_stitcher_announces_a_change_once_and_keeps_its_history_across_a_restart
     probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos.DIAGNOSTICS)
     status = probe.create_publisher(rclpy_status_class(), "hdmap/mapper_status", qos.LATCHED)
 
+    from hdmap_ros.convert.markers import rclpy_marker_types
+    from hdmap_ros.nodes.map_publisher import MARKERS_TOPIC, MapPublisher
+
+    markers = []
+    probe.create_subscription(rclpy_marker_types().MarkerArray, MARKERS_TOPIC, markers.append, qos.LATCHED)
+    ros.add(MapPublisher(context=ros.context))
     stitcher = _stitcher(ros, d)
     wait_for(lambda: maps and maps[-1].version == 1, 20, what="the stored map")
     assert not changes and not stitcher.changes_followed()  # nothing announced before the map settled
@@ -121,6 +127,16 @@ def test_stitcher_announces_a_change_once_and_keeps_its_history_across_a_restart
     )
     assert values["changes_known"] == "1" and values["changes_in_map"] == "1"
     assert stitcher.changes_followed() and len(stitcher.store.changes()) == 1
+    # the publisher draws the zone (closed) and the retired pieces in their own namespaces
+    ns = wait_for(
+        lambda: markers and (n := {m.ns for m in markers[-1].markers}) >= {"changes/zone", "changes/retired"} and n,
+        20,
+        what="change markers",
+    )
+    assert any(n.startswith("features/") for n in ns)
+    zone = next(m for m in markers[-1].markers if m.ns == "changes/zone")
+    assert (zone.points[0].x, zone.points[0].y) == (zone.points[-1].x, zone.points[-1].y)
+    assert sum(m.ns == "changes/retired" for m in markers[-1].markers) == len(c.retired)
     ros.nodes.remove(stitcher)
     ros.executor.remove_node(stitcher)
     stitcher.destroy_node()

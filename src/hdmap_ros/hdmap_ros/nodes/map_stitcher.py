@@ -38,7 +38,6 @@ from dataclasses import replace
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from hdmap_core.errors import ConfigError, HdmapError
 from hdmap_core.live.changes import LiveChange, change_from_dict, dumps, follow_live, live_changes, new_changes
@@ -66,13 +65,7 @@ MAP_TOPIC = "hdmap/map"
 STATUS_TOPIC = "hdmap/status"
 MAPPER_STATUS_TOPIC = "hdmap/mapper_status"
 CHANGES_TOPIC = "hdmap/changes"
-# every change ever confirmed, for a late subscriber too (a restart publishes the history again)
-CHANGES_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1000,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
+CHANGES_QOS = qos.CHANGES  # the whole history latched (a restart publishes it again)
 
 
 class MapStitcher(HealthMixin, Node):
