@@ -277,7 +277,12 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("changes_known", len(self.history))
         self.health.set("changes_new", self.changes_new)
         self.health.set("changes_in_map", len(result.changes))
-        self.health.set("last_follow_s", f"{time.perf_counter() - t0:.3f}")
+        seconds = time.perf_counter() - t0
+        self.health.set("last_follow_s", f"{seconds:.3f}")
+        self.get_logger().info(
+            f"road changes followed on map version {self.map.version} in {seconds:.1f} s: "
+            f"{len(result.changes)} in the map, {len(fresh)} new, {len(self.history)} in the history"
+        )
 
     def _build_region(self, drives):
         from hdmap_core.pipeline.driver import build_map  # noqa: PLC0415
