@@ -37,30 +37,42 @@ SIM = SimConfig(
 CHANGE = f"shift:400-1100:1.5:fwd_lane2@{N_BEFORE}"
 
 
-def _feature(fid, xs, y, kind=FeatureType.SOLID):
+def _feature(fid, xs, y, pred=(), succ=()):
     pts = np.stack([np.asarray(xs, dtype=float), np.full(len(xs), float(y))], axis=1)
-    return MapFeature(fid, kind, pts, np.full(len(pts), 5, dtype=np.uint16), np.full(len(pts), 0.1), (9,), (8,))
+    n = len(pts)
+    return MapFeature(fid, FeatureType.SOLID, pts, np.full(n, 5, dtype=np.uint16), np.full(n, 0.1), pred, succ)
 
 
-def test_splice_replaces_exactly_the_changed_places():
+def test_splice_replaces_exactly_the_changed_places_and_keeps_the_links_of_kept_ends():
     places = Places(100.0, {(i, 0): 0.0 for i in range(4)})  # a road along +x, cells 0..3
     changed = {(1, 0, 0), (2, 0, 0)}  # x in [100, 300) driving along +x
     xs = np.arange(0.0, 400.0, 5.0)
-    consensus = HDMap(features=(_feature(1, xs, 50.0), _feature(7, xs[:10], 20.0)), version=3)
-    rebuilt = HDMap(features=(_feature(1, xs, 51.5),))  # the same line, moved, everywhere
+    inlet = _feature(3, [-50.0, -5.0], 50.0, succ=(1,))  # ends where line 1 starts
+    line = _feature(1, xs, 50.0, pred=(3,), succ=(4,))
+    outlet = _feature(4, [400.0, 450.0], 50.0, pred=(1,))
+    into = _feature(5, [-50.0, -5.0], 30.0, succ=(6,))  # ends where 6 starts, inside the zone
+    inside = _feature(6, xs[(xs >= 150) & (xs < 250)], 30.0, pred=(5,))
+    short = _feature(7, xs[:10], 20.0)
+    consensus = HDMap(features=(inlet, line, outlet, into, inside, short), version=3)
+    rebuilt = HDMap(features=(_feature(1, xs, 51.5, pred=(3,)),))  # the same line, moved, everywhere
     out = splice(consensus, rebuilt, places, changed)
     ids = [f.id for f in out.features]
-    assert len(ids) == len(set(ids))
-    # the line left the changed places in two pieces (before and after), the rebuilt one inside
-    old = [f for f in out.features if np.allclose(f.points[:, 1], 50.0)]
-    new = [f for f in out.features if np.allclose(f.points[:, 1], 51.5)]
-    assert sorted((f.points[0, 0], f.points[-1, 0]) for f in old) == [(0.0, 95.0), (300.0, 395.0)]
-    assert [(f.points[0, 0], f.points[-1, 0]) for f in new] == [(100.0, 295.0)]
-    assert old[0].id == 1 and all(f.id > 7 for f in new)
-    assert old[0].successors == () and new[0].predecessors == ()  # cut pieces lose their links
-    short = next(f for f in out.features if np.allclose(f.points[:, 1], 20.0))  # outside: untouched
-    assert short.id == 7 and short.successors == (8,)
-    assert out.version == 3
+    assert len(ids) == len(set(ids)) and 6 not in ids  # a feature wholly inside is gone
+    by_y = lambda y: [f for f in out.features if np.allclose(f.points[:, 1], y)]  # noqa: E731
+    old = sorted((f for f in by_y(50.0) if len(f.points) > 2), key=lambda f: f.points[0, 0])
+    (new,) = by_y(51.5)
+    assert [(f.points[0, 0], f.points[-1, 0]) for f in old] == [(0.0, 95.0), (300.0, 395.0)]
+    assert (new.points[0, 0], new.points[-1, 0]) == (100.0, 295.0) and new.id > 7
+    assert new.predecessors == () and new.successors == ()  # rebuilt pieces: no links
+    # the piece that starts where line 1 started keeps its id and its predecessor; the piece that
+    # ends where it ended has a new id, the successor and the outlet's predecessor link
+    head, tail = old
+    assert head.id == 1 and head.predecessors == (3,) and head.successors == ()
+    assert tail.id > 7 and tail.predecessors == () and tail.successors == (4,)
+    got = {f.id: f for f in out.features}
+    assert got[4].predecessors == (tail.id,) and got[3].successors == (1,)
+    assert got[5].successors == ()  # its successor's start was inside the changed places
+    assert got[7].points.shape == short.points.shape and out.version == 3
 
 
 def test_polygon_history_document_and_new_changes():

@@ -122,39 +122,54 @@ def _in_places(points: np.ndarray, places: Places, keys: set[PlaceKey]) -> np.nd
 
 
 def _cut(f: MapFeature, a: int, b: int, new_id: int) -> MapFeature:
-    whole = a == 0 and b == len(f.points)
     return replace(
         f,
         id=new_id,
         points=np.asarray(f.points)[a:b].copy(),
         drive_count=np.asarray(f.drive_count)[a:b].copy(),
         lateral_std=np.asarray(f.lateral_std)[a:b].copy(),
-        predecessors=f.predecessors if whole else (),
-        successors=f.successors if whole else (),
+        predecessors=f.predecessors if a == 0 else (),
+        successors=f.successors if b == len(f.points) else (),
     )
 
 
 def splice(consensus: HDMap, rebuilt: HDMap, places: Places, keys: set[PlaceKey]) -> HDMap:
     """``consensus`` with its features inside the places ``keys`` replaced by ``rebuilt``'s there.
 
-    A consensus feature that leaves the changed places whole keeps its id and links; its pieces
-    outside them keep the id on the first piece, the others get new ids; ``rebuilt``'s pieces inside
-    get new ids (above every consensus id). The topology is the consensus map's (not rebuilt)."""
+    A consensus feature keeps its id on its piece that starts where it started (else on its first
+    piece outside); its other pieces, and ``rebuilt``'s pieces inside, get new ids (above every
+    consensus id). Links stay where a feature's end is kept: a predecessor link goes to the piece
+    that kept the predecessor's last point, a successor link to the piece that kept the
+    successor's first point; links to an end inside the changed places are dropped. Pieces cut at
+    the places' edge have no link there. The topology is the consensus map's (not rebuilt)."""
     next_id = max((int(f.id) for f in consensus.features), default=0) + 1
     out: list[MapFeature] = []
+    start_of: dict[int, int] = {}  # consensus id -> id of the piece holding its first point
+    end_of: dict[int, int] = {}  # ... its last point
     for f in consensus.features:
         pts = np.asarray(f.points, dtype=float)
-        outside = ~_in_places(pts, places, keys)
-        for k, (a, b) in enumerate(_pieces(f, outside)):
-            if k == 0:
-                out.append(_cut(f, a, b, int(f.id)))
-            else:
-                out.append(_cut(f, a, b, next_id))
-                next_id += 1
+        runs = _pieces(f, ~_in_places(pts, places, keys))
+        keeper = next((k for k, (a, _) in enumerate(runs) if a == 0), 0)
+        for k, (a, b) in enumerate(runs):
+            fid = int(f.id) if k == keeper else next_id
+            next_id += k != keeper
+            out.append(_cut(f, a, b, fid))
+            if a == 0:
+                start_of[int(f.id)] = fid
+            if b == len(pts):
+                end_of[int(f.id)] = fid
+    out = [
+        replace(
+            f,
+            predecessors=tuple(end_of[i] for i in f.predecessors if i in end_of),
+            successors=tuple(start_of[i] for i in f.successors if i in start_of),
+        )
+        for f in out
+    ]
     for f in rebuilt.features:
         inside = _in_places(np.asarray(f.points, dtype=float), places, keys)
         for a, b in _pieces(f, inside):
-            out.append(_cut(f, a, b, next_id))
+            out.append(replace(_cut(f, a, b, next_id), predecessors=(), successors=()))
             next_id += 1
     return replace(consensus, features=tuple(out))
 
