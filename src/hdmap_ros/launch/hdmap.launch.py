@@ -51,7 +51,13 @@ def generate_launch_description() -> LaunchDescription:
             DeclareLaunchArgument("rate", default_value="1.0", description="Replay speed factor."),
             node("drive_ingestor"),
             node("segment_mapper", {"db_path": PathJoinSubstitution([state, "segment_mapper.db"])}),
-            node("map_stitcher", {"db_path": PathJoinSubstitution([state, "map_stitcher.db"])}),
+            node(
+                "map_stitcher",
+                {
+                    "db_path": PathJoinSubstitution([state, "map_stitcher.db"]),
+                    "drive_db_path": PathJoinSubstitution([state, "segment_mapper.db"]),
+                },
+            ),
             node("map_publisher"),
             Node(
                 package="hdmap_ros",

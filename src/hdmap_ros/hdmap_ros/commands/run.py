@@ -98,7 +98,12 @@ class _Suite:
             self.nodes.append(self.ingestor)
             self.mapper = SegmentMapper(parameter_overrides=p(db_path=str(state / "segment_mapper.db"), **preset), **c)
             self.nodes.append(self.mapper)
-            self.stitcher = MapStitcher(parameter_overrides=p(db_path=str(state / "map_stitcher.db"), **preset), **c)
+            self.stitcher = MapStitcher(
+                parameter_overrides=p(
+                    db_path=str(state / "map_stitcher.db"), drive_db_path=str(state / "segment_mapper.db"), **preset
+                ),
+                **c,
+            )
             self.nodes.append(self.stitcher)
             self.publisher = MapPublisher(**c)
             self.nodes.append(self.publisher)
@@ -122,7 +127,9 @@ class _Suite:
         if self.mapper.received < self.ingestor.published or not self.mapper.is_settled():
             return False
         return (
-            self.mapper.store.tiles_signature() == self.stitcher.store.tiles_signature() and self.stitcher.is_settled()
+            self.mapper.store.tiles_signature() == self.stitcher.store.tiles_signature()
+            and self.stitcher.is_settled()
+            and self.stitcher.changes_followed()
         )
 
     def status(self) -> str:

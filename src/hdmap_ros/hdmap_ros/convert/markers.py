@@ -11,6 +11,7 @@ or any classes taking keyword arguments (tests).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,6 +37,8 @@ TYPE_COLORS: dict[FeatureType, tuple[float, float, float, float]] = {
 }
 TOPOLOGY_COLOR = (0.2, 0.6, 1.0, 0.6)
 LANE_COLOR = (0.2, 0.9, 0.4, 0.8)
+CHANGE_COLOR = (1.0, 0.5, 0.0, 0.9)  # a road change's zone: orange
+RETIRED_COLOR = (0.8, 0.3, 0.9, 0.6)  # what it replaced: violet
 
 
 @dataclass(frozen=True)
@@ -85,6 +88,7 @@ def map_to_markers(
     line_width_m: float = 0.2,
     topology: bool = True,
     lanes: LaneMap | None = None,
+    changes: Sequence[tuple[np.ndarray, Sequence[np.ndarray]]] = (),
 ) -> Any:
     """Markers of a map.
 
@@ -95,11 +99,14 @@ def map_to_markers(
         line_width_m: LINE_STRIP width [m].
         topology: also draw the topology graph's edges.
         lanes: also draw these lanes: centerlines, and a line across each lane's start and end.
+        changes: road changes the map followed, each (its polygon (N, 2), the pieces it retired
+            [(M, 2)]): the polygon closed in namespace ``changes/zone``, the retired pieces in
+            ``changes/retired``.
 
     Returns:
         A MarkerArray: DELETEALL, one LINE_STRIP per feature with >= 2 points (marker id = index
         within its type namespace, since Marker.id is int32 and feature ids are uint64), then the
-        topology LINE_LIST, then the lanes' centerlines and their ends.
+        topology LINE_LIST, then the lanes' centerlines and their ends, then the changes.
     """
     out = types.MarkerArray()
     clear = types.Marker()
@@ -152,5 +159,28 @@ def map_to_markers(
                 types, header, "lanes/ends", 0, LINE_LIST, line_width_m / 2, LANE_COLOR, _points(types, np.array(ends))
             )
         )
+    n_retired = 0
+    for i, (polygon, retired) in enumerate(changes):
+        poly = np.asarray(polygon, dtype=float).reshape(-1, 2)
+        if len(poly) >= 3:
+            ring = np.vstack([poly, poly[:1]])
+            markers.append(
+                _marker(types, header, "changes/zone", i, LINE_STRIP, line_width_m, CHANGE_COLOR, _points(types, ring))
+            )
+        for pts in retired:
+            if len(pts) >= 2:
+                markers.append(
+                    _marker(
+                        types,
+                        header,
+                        "changes/retired",
+                        n_retired,
+                        LINE_STRIP,
+                        line_width_m / 2,
+                        RETIRED_COLOR,
+                        _points(types, pts),
+                    )
+                )
+                n_retired += 1
     out.markers = markers
     return out

@@ -484,3 +484,54 @@ def msg_to_status(msg: Any) -> LiveStatus:
         settled=bool(msg.settled),
         stamp_ns=stamp_to_ns(msg.header.stamp),
     )
+
+
+# ---------------------------------------------------------------- road changes
+
+
+def rclpy_change_class() -> Any:
+    """The rclpy class of hdmap_msgs/msg/MapChange."""
+    from hdmap_msgs.msg import MapChange  # noqa: PLC0415
+
+    return MapChange
+
+
+def change_to_msg(change: Any, *, cls: Any, types: MsgTypes) -> Any:
+    """:class:`~hdmap_core.live.changes.LiveChange` -> hdmap_msgs/msg/MapChange (class ``cls``)."""
+    from geometry_msgs.msg import Point32, Polygon  # noqa: PLC0415
+
+    poly = np.asarray(change.polygon, dtype=float).reshape(-1, 2)
+    valid_from = min((r.valid_from_ns for r in change.retired), default=int(change.time_ns))
+    return cls(
+        header=_header(types, change.confirmed_ns, MAP_FRAME),
+        id=int(change.id),
+        time_ns=int(change.time_ns),
+        kinds=[str(k) for k in change.kinds],
+        confidence=float(change.confidence),
+        polygon=Polygon(points=[Point32(x=float(x), y=float(y), z=0.0) for x, y in poly]),
+        tile_x=[int(t[0]) for t in change.tiles],
+        tile_y=[int(t[1]) for t in change.tiles],
+        place_x=[int(p[0]) for p in change.places],
+        place_y=[int(p[1]) for p in change.places],
+        place_side=[int(p[2]) for p in change.places],
+        place_cell_m=float(change.cell_m),
+        retired_feature_ids=[int(i) for i in change.retired_feature_ids],
+        retired=[
+            _feature_to_msg(
+                types,
+                MapFeature(
+                    id=int(r.feature_id),
+                    type=FeatureType(int(r.type)),
+                    points=np.asarray(r.points, dtype=float).reshape(-1, 2),
+                    drive_count=np.zeros(len(r.points), dtype=np.uint16),
+                    lateral_std=np.zeros(len(r.points)),
+                ),
+            )
+            for r in change.retired
+        ],
+        drive_ids=[str(d) for d in change.drive_ids],
+        valid_from_ns=int(change.time_ns),
+        retired_valid_from_ns=int(valid_from),
+        retired_valid_to_ns=int(change.time_ns),
+        map_version=int(change.map_version),
+    )

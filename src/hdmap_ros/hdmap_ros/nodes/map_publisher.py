@@ -2,7 +2,10 @@
 
 Subscribes ``/hdmap/map`` and ``/fleet/origin`` (both latched). Publishes
 ``/hdmap/markers`` (visualization_msgs/MarkerArray, latched): one LINE_STRIP per feature coloured
-by type, plus the topology graph and the lanes (``hdmap_core.lanes``). Offers ``/hdmap/save_map``
+by type, plus the topology graph and the lanes (``hdmap_core.lanes``), and the road changes the map
+followed (``hdmap/changes``, hdmap_msgs/MapChange: each zone's polygon and the pieces it retired, in
+namespaces ``changes/zone`` and ``changes/retired``; the saved GeoJSON has the retired pieces,
+``kind`` "retired"). Offers ``/hdmap/save_map``
 (hdmap_msgs/srv/SaveMap): writes the current map as a rosbag2 MCAP directory at ``path`` and, when
 the WGS84 origin is known, as GeoJSON (features and lanes) at ``path + ".geojson"`` and as a
 Lanelet2 / Autoware map directory at ``path + ".lanelet2"``.
@@ -11,8 +14,10 @@ Lanelet2 / Autoware map directory at ``path + ".lanelet2"``.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import NavSatFix
 from std_msgs.msg import Header
@@ -21,8 +26,9 @@ from hdmap_core.errors import HdmapError
 from hdmap_core.lanes.derive import derive_lanes
 from hdmap_core.lanes.model import LaneMap
 from hdmap_core.model import GeoOrigin, HDMap
+from hdmap_core.updates.follow import RetiredFeature
 from hdmap_ros.convert.markers import map_to_markers, rclpy_marker_types
-from hdmap_ros.convert.messages import msg_to_map, msg_to_origin, rclpy_types
+from hdmap_ros.convert.messages import msg_to_map, msg_to_origin, rclpy_change_class, rclpy_types
 from hdmap_ros.io.bagio import write_map_bag
 from hdmap_ros.io.geojson import write_geojson
 from hdmap_ros.io.lanelet2 import write_lanelet2
@@ -35,6 +41,7 @@ MAP_TOPIC = "hdmap/map"  # relative: a namespace (-r __ns:=/ns2) moves every top
 ORIGIN_TOPIC = "fleet/origin"
 MARKERS_TOPIC = "hdmap/markers"
 SAVE_SERVICE = "hdmap/save_map"
+CHANGES_TOPIC = "hdmap/changes"
 
 
 class MapPublisher(HealthMixin, Node):
@@ -85,6 +92,35 @@ class MapPublisher(HealthMixin, Node):
         self._origin_sub = self.create_subscription(NavSatFix, ORIGIN_TOPIC, self.on_origin, qos.LATCHED)
         self._origin_live = self.create_subscription(NavSatFix, ORIGIN_TOPIC, self.on_origin, qos.ORIGIN_LIVE)
         self._srv = self.create_service(SaveMap, SAVE_SERVICE, self.on_save)
+        # road changes by id: (polygon, retired pieces as RetiredFeature)
+        self.changes: dict[int, tuple[np.ndarray, list[RetiredFeature]]] = {}
+        self._changes_sub = self.create_subscription(rclpy_change_class(), CHANGES_TOPIC, self.on_change, qos.CHANGES)
+
+    def on_change(self, msg) -> None:
+        """Keep a road change (its zone and retired pieces) and draw the map again with it."""
+        try:
+            poly = np.array([[p.x, p.y] for p in msg.polygon.points], dtype=float).reshape(-1, 2)
+            retired = [
+                RetiredFeature(
+                    int(f.id),
+                    int(f.type),
+                    np.array([[p.x, p.y] for p in f.points], dtype=float).reshape(-1, 2),
+                    int(msg.id),
+                    int(msg.retired_valid_from_ns),
+                    int(msg.retired_valid_to_ns),
+                )
+                for f in msg.retired
+            ]
+        except (TypeError, ValueError, AttributeError) as err:
+            self.health.reject("invalid_change", str(err))
+            return
+        if not (np.isfinite(poly).all() and all(np.isfinite(r.points).all() for r in retired)):
+            self.health.reject("invalid_change", f"change {msg.id}: coordinates not finite")
+            return
+        self.changes[int(msg.id)] = (poly, retired)
+        self.health.set("changes", len(self.changes))
+        if self.map is not None:
+            self._draw()
 
     def on_map(self, msg) -> None:
         try:
@@ -94,6 +130,14 @@ class MapPublisher(HealthMixin, Node):
             self.get_logger().warning(f"map rejected: {err}")
             return
         self.lanes = None
+        self._draw()
+        self.health.accept()
+        self.health.updated(time.time_ns())
+        self.health.set("map_version", self.map.version)
+
+    def _draw(self) -> None:
+        if self.map is None:
+            return
         header = Header(frame_id=self.map.frame_id, stamp=self.get_clock().now().to_msg())
         self._markers_pub.publish(
             map_to_markers(
@@ -103,11 +147,9 @@ class MapPublisher(HealthMixin, Node):
                 line_width_m=self.line_width_m,
                 topology=self.show_topology,
                 lanes=self._lanes() if self.show_lanes else None,
+                changes=[(poly, [r.points for r in retired]) for poly, retired in self.changes.values()],
             )
         )
-        self.health.accept()
-        self.health.updated(time.time_ns())
-        self.health.set("map_version", self.map.version)
 
     def _lanes(self) -> LaneMap:
         """The lanes of the current map, derived once per map version."""
@@ -137,7 +179,9 @@ class MapPublisher(HealthMixin, Node):
             written = [str(path)]
             if self.origin is not None:
                 lanes = self._lanes()
-                written.append(str(write_geojson(self.map, self.origin, Path(f"{path}.geojson"), lanes=lanes)))
+                retired = [r for _, pieces in self.changes.values() for r in pieces]
+                shown = replace(self.map, extra={**self.map.extra, "retired": retired}) if retired else self.map
+                written.append(str(write_geojson(shown, self.origin, Path(f"{path}.geojson"), lanes=lanes)))
                 written.append(str(write_lanelet2(lanes, self.origin, Path(f"{path}.lanelet2"))))
                 note = ""
             else:

@@ -16,11 +16,22 @@ subscriber that waits until its drives are listed gets them fully mapped. The ma
 is published latched on ``/hdmap/status`` whenever it changes, from the mapper's part
 (``/hdmap/mapper_status``) and the stitcher's own, and is on /diagnostics too.
 
+Road changes (docs/updates.md, "Live"): once the map has settled (the mapper settled, every
+estimate stitched), the stitcher reads every drive from the mapper's store (``drive_db_path``,
+read-only) and follows the changes of the road as ``bag2map`` does (``live.changes.follow_live``,
+the offline ``hdmap_core.updates`` functions): the changed places are rebuilt from the drives after
+the change, their old pieces retired. Each change not yet in the history is published on
+``hdmap/changes`` (hdmap_msgs/MapChange, RELIABLE, TRANSIENT_LOCAL, depth 1000) and stored with
+the followed map in one transaction; the map's version grows by the number of new changes. A
+restart publishes the stored history again (same ids) and finds the same changes, which are not
+new.
+
 Restart: the stored map is published again; if tiles changed after it was made it is rebuilt.
 """
 
 from __future__ import annotations
 
+import json
 import time
 import traceback
 from dataclasses import replace
@@ -28,14 +39,24 @@ from dataclasses import replace
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
-from hdmap_core.errors import HdmapError
+from hdmap_core.errors import ConfigError, HdmapError
+from hdmap_core.live.changes import LiveChange, change_from_dict, dumps, follow_live, live_changes, new_changes
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile, stitch_graphs
-from hdmap_ros.convert.messages import map_to_msg, msg_to_status, rclpy_status_class, rclpy_types, status_to_msg
+from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
+from hdmap_ros.convert.messages import (
+    change_to_msg,
+    map_to_msg,
+    msg_to_status,
+    rclpy_change_class,
+    rclpy_status_class,
+    rclpy_types,
+    status_to_msg,
+)
 from hdmap_ros.convert.tiles import msg_to_tile, rclpy_tile_types
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node, state_path
-from hdmap_ros.persistence.store import MapStore, blob_to_segments, segments_to_blob
+from hdmap_ros.persistence.store import MapStore, blob_to_segments, read_drives, segments_to_blob
 
 __all__ = ["MapStitcher", "main"]
 
@@ -43,6 +64,8 @@ SEGMENTS_TOPIC = "hdmap/segments"  # relative: a namespace (-r __ns:=/ns2) moves
 MAP_TOPIC = "hdmap/map"
 STATUS_TOPIC = "hdmap/status"
 MAPPER_STATUS_TOPIC = "hdmap/mapper_status"
+CHANGES_TOPIC = "hdmap/changes"
+CHANGES_QOS = qos.CHANGES  # the whole history latched (a restart publishes it again)
 
 
 class MapStitcher(HealthMixin, Node):
@@ -96,6 +119,31 @@ class MapStitcher(HealthMixin, Node):
             lo=1,
             hi=100000,
         )
+        follow = declare(
+            self,
+            "follow_changes",
+            "auto",
+            "Follow road changes once the map settled: on, off, or auto (as bag2map: on with the default preset).",
+        )
+        if follow not in ("auto", "on", "off"):
+            raise ConfigError(f"follow_changes: {follow!r} is not one of auto, on, off")
+        preset_name = self.get_parameter("preset").value
+        self.follow_changes = follow == "on" or (follow == "auto" and FOLLOWS_CHANGES.get(preset_name, False))
+        drive_db = declare(
+            self,
+            "drive_db_path",
+            "",
+            "The mapper's SQLite drive store, read for change detection ('' = $ROS_HOME/hdmap/segment_mapper.db).",
+        )
+        self.drive_db = state_path(drive_db, "segment_mapper.db")
+        self.tile_size_m = declare(
+            self,
+            "tile_size_m",
+            256.0,
+            "Edge of a map tile [m], as the mapper's (names the tiles of a change on hdmap/changes).",
+            lo=32.0,
+            hi=4096.0,
+        )
         self._init_health("map_stitcher", item="tile_estimates")
         self.pipeline_config = pipeline_config
         self.store = MapStore(state_path(db, "map_stitcher.db"))
@@ -125,6 +173,21 @@ class MapStitcher(HealthMixin, Node):
             self._status_cls, MAPPER_STATUS_TOPIC, self._on_mapper_status, qos.LATCHED, callback_group=self._work_group
         )
         self._timer = self.create_timer(0.1, self.work, callback_group=self._work_group)
+        self._change_cls = rclpy_change_class()
+        self._changes_pub = self.create_publisher(self._change_cls, CHANGES_TOPIC, CHANGES_QOS)
+        self.history: dict[int, LiveChange] = {}
+        for doc in self.store.changes():
+            c = change_from_dict(json.loads(doc))
+            self.history[c.id] = c
+        self.changes_new = 0  # changes first confirmed by this process
+        self._followed_sig = self.store.get_meta("followed_sig", "") or ""
+        # the consensus map (of every drive) the changes are followed on: the stored map unless
+        # it is already the followed one
+        self._consensus = self.map if self._followed_sig != sig else None
+        for c in self.history.values():  # latched: the history again, same ids (not new)
+            self._changes_pub.publish(change_to_msg(c, cls=self._change_cls, types=self._types))
+        self.health.set("changes_known", len(self.history))
+        self.health.set("changes_new", 0)
         if self.map is not None:
             self._publish()
         if self.store.tiles_signature() != sig:
@@ -157,7 +220,79 @@ class MapStitcher(HealthMixin, Node):
 
     def work(self) -> None:
         self._work()
+        self._follow()
         self._update_status()
+
+    def changes_followed(self) -> bool:
+        """The current map follows the road changes of every stored drive (or following is off)."""
+        return not self.follow_changes or self.map is None or self._followed_sig == self._map_sig
+
+    def _follow(self) -> None:
+        """Follow the road changes on the settled map (module docstring)."""
+        if self.changes_followed() or not self._mapper_status.settled or not self.is_settled():
+            return
+        sig = self._map_sig
+        consensus = self._consensus
+        if consensus is None:  # the stored map is the followed one of an older signature: rebuild
+            self._first_dirty = time.monotonic()
+            return
+        t0 = time.perf_counter()
+        try:
+            drives = read_drives(self.drive_db)
+            result = follow_live(consensus, drives, build=self._build_region)
+        except HdmapError as err:
+            self._follow_failed(sig, str(err))
+            return
+        except Exception as err:  # noqa: BLE001 - a bug must not stop the live map; logged in full
+            self._follow_failed(sig, f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
+            return
+        fresh = new_changes(self.history, result.changes)
+        if not result.changes:  # nothing changed: the consensus map is the map
+            self.store.set_meta("followed_sig", sig)
+            self._followed_sig = sig
+        else:
+            version = self.map.version + max(1, len(fresh))
+            new = replace(result.map, version=version, stamp_ns=time.time_ns())
+            announced = [
+                c
+                for c in live_changes(
+                    result, tile_size_m=self.tile_size_m, map_version=version, confirmed_ns=new.stamp_ns
+                )
+                if c.id not in self.history
+            ]
+            self.store.put_followed(new, sig, [(c.id, c.time_ns, dumps(c)) for c in announced])
+            self.map = new
+            self._followed_sig = sig
+            self._publish()
+            for c in announced:
+                self.history[c.id] = c
+                self.changes_new += 1
+                self._changes_pub.publish(change_to_msg(c, cls=self._change_cls, types=self._types))
+                self.get_logger().info(
+                    f"road change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "
+                    f"{len(c.drive_ids)} drive(s) in evidence, confidence {c.confidence:.3f}, map version {version}"
+                )
+            self.health.set("map_version", new.version)
+            self.health.set("features", len(new.features))
+        self.health.set("changes_known", len(self.history))
+        self.health.set("changes_new", self.changes_new)
+        self.health.set("changes_in_map", len(result.changes))
+        seconds = time.perf_counter() - t0
+        self.health.set("last_follow_s", f"{seconds:.3f}")
+        self.get_logger().info(
+            f"road changes followed on map version {self.map.version} in {seconds:.1f} s: "
+            f"{len(result.changes)} in the map, {len(fresh)} new, {len(self.history)} in the history"
+        )
+
+    def _build_region(self, drives):
+        from hdmap_core.pipeline.driver import build_map  # noqa: PLC0415
+
+        return build_map(list(drives), config=self.pipeline_config).map
+
+    def _follow_failed(self, sig: str, text: str) -> None:
+        self._followed_sig = sig  # not again on the same inputs
+        self.health.error(text.splitlines()[0])
+        self.get_logger().error(f"following road changes failed, the map of every drive kept: {text}")
 
     def _work(self) -> None:
         if self._first_dirty is None:
@@ -204,6 +339,7 @@ class MapStitcher(HealthMixin, Node):
         t3 = time.perf_counter()
         self.store.put_map(new, sig)
         self.map = new
+        self._consensus = new
         self._map_sig = sig
         t4 = time.perf_counter()
         self._publish()

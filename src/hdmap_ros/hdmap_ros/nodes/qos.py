@@ -7,6 +7,7 @@ Topic                  | profile        | why
 /hdmap/segments        | SEGMENTS       | a restarted stitcher gets the recent tile estimates again
 /hdmap/map             | LATCHED        | a late subscriber gets the latest map at once
 /hdmap/markers         | LATCHED        | RViz / Foxglove opened later still show the map
+/hdmap/changes         | CHANGES        | every road change ever confirmed, for a late subscriber too
 /fleet/origin          | LATCHED        | published once; late joiners need it (also subscribed ORIGIN_LIVE)
 /hdmap/drive_acks      | ACKS           | one small message per acknowledged drive
 /diagnostics           | DIAGNOSTICS    | the ROS convention (diagnostic_aggregator subscribes so)
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-__all__ = ["DRIVES", "ACCEPTED", "SEGMENTS", "LATCHED", "ORIGIN_LIVE", "ACKS", "DIAGNOSTICS", "replay"]
+__all__ = ["DRIVES", "ACCEPTED", "SEGMENTS", "LATCHED", "CHANGES", "ORIGIN_LIVE", "ACKS", "DIAGNOSTICS", "replay"]
 
 # /fleet/drives: as the bag player and a fleet gateway publish.
 DRIVES = QoSProfile(
@@ -57,6 +58,15 @@ LATCHED = QoSProfile(
     # RELIABLE: maps are large and must arrive whole.
     reliability=ReliabilityPolicy.RELIABLE,
     # TRANSIENT_LOCAL: "latched": a subscriber joining later gets the latest map at once.
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+# /hdmap/changes: one MapChange per road change, the whole history latched.
+CHANGES = QoSProfile(
+    # KEEP_LAST 1000: every change, not only the newest (a late subscriber reads the history).
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 

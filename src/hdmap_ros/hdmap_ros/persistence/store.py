@@ -36,6 +36,7 @@ from hdmap_core.steps import Segment, StepObservations, StepResult
 
 __all__ = [
     "drive_to_blob",
+    "read_drives",
     "blob_to_drive",
     "segments_to_blob",
     "blob_to_segments",
@@ -705,6 +706,11 @@ class MapStore(_Store):
         version INTEGER NOT NULL,
         tiles_sig TEXT NOT NULL,
         blob BLOB NOT NULL
+    );
+    CREATE TABLE IF NOT EXISTS changes (
+        id INTEGER PRIMARY KEY,
+        time_ns INTEGER NOT NULL,
+        doc TEXT NOT NULL
     )
     """
 
@@ -779,3 +785,37 @@ class MapStore(_Store):
         """The stored map and the tiles signature it was made from ((None, "") when none)."""
         rows = self._query("SELECT blob, tiles_sig FROM map WHERE one=1")
         return (blob_to_map(rows[0][0]), rows[0][1]) if rows else (None, "")
+
+    def put_followed(self, hdmap: HDMap, tiles_sig: str, changes: Sequence[tuple[int, int, str]]) -> None:
+        """The map with the road changes followed and the new changes of the history
+        ``(id, time_ns, JSON document)``, in one transaction (``tiles_sig``: the tiles it was made
+        from, also stored as the followed signature in meta)."""
+        with self._tx() as con:
+            con.execute(
+                "INSERT OR REPLACE INTO map(one, version, tiles_sig, blob) VALUES (1, ?, ?, ?)",
+                (int(hdmap.version), tiles_sig, map_to_blob(hdmap)),
+            )
+            con.executemany(
+                "INSERT OR IGNORE INTO changes(id, time_ns, doc) VALUES (?, ?, ?)",
+                [(int(i), int(t), doc) for i, t, doc in changes],
+            )
+            con.execute("INSERT OR REPLACE INTO meta(key, value) VALUES ('followed_sig', ?)", (tiles_sig,))
+
+    def changes(self) -> list[str]:
+        """The history of road changes (JSON documents), in time order."""
+        return [r[0] for r in self._query("SELECT doc FROM changes ORDER BY time_ns, id")]
+
+
+def read_drives(path: str | Path) -> list[Drive]:
+    """Every drive of a ``DriveStore`` (the mapper's), read-only (another process may write it;
+    WAL readers never block it); [] when there is no such store."""
+    if str(path) == ":memory:" or not Path(path).exists():
+        return []
+    con = sqlite3.connect(f"file:{Path(path).resolve()}?mode=ro", uri=True, check_same_thread=False)
+    try:
+        rows = con.execute("SELECT blob FROM drives ORDER BY drive_id").fetchall()
+    except sqlite3.OperationalError:
+        return []
+    finally:
+        con.close()
+    return [blob_to_drive(r[0]) for r in rows]
