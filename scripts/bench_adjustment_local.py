@@ -91,9 +91,10 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--free",
-        choices=("new", "neighbours"),
-        default="neighbours",
-        help="free drives of each update: the new drive only, or it and every drive sharing a step with it",
+        choices=("new", "neighbours", "all"),
+        default="new",
+        help="free drives of each update: the new drive only, it and every drive sharing a step with it, "
+        "or every drive (a warm-started global solve)",
     )
     args = ap.parse_args()
 
@@ -119,7 +120,9 @@ def main() -> int:
         seen = _without(obs, set(new[k + 1 :]))
         t0 = time.perf_counter()
         free = {d}
-        if args.free == "neighbours":
+        if args.free == "all":
+            free.update(x for o in seen for x in o.drive_ids)
+        elif args.free == "neighbours":
             free.update(x for o in seen if d in o.drive_ids for x in o.drive_ids)
         model = update_offsets(seen, model=model, free=free, config=acfg)
         times.append(time.perf_counter() - t0)
