@@ -11,6 +11,15 @@
    the moment ``drive_ids`` first holds every drive and that map's score; and the latency from a
    drive's acknowledgement to the first map listing it.
 
+4. with ``--rates R1,R2,...``: one live run per rate (``--rate`` is then ignored) and a table of
+   the offered drive rate (drives per hour of wall time while the bag plays), the backlog slope
+   while it plays (least-squares slope of ``MapStatus.tiles_pending`` over time [tiles/min]; > 0:
+   the suite falls behind), the time from the last ack to the settled (last) map, and the ack -> listed latency.
+   The highest offered rate whose slope stays <= 0 is what the suite absorbs on this machine.
+
+``BENCH_SMOKE=1``: a small fleet (8 drives on 2 km of ``motorway_ramps``), one run: a check
+that the benchmark works, in about a minute.
+
 Prints figures only; no assertions. Keep discovery local and the domain your own:
 
     ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID=63 .venv/bin/python scripts/bench_live.py
@@ -28,6 +37,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 HDMAP = str(ROOT / ".venv" / "bin" / "hdmap")
@@ -42,7 +52,10 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=0.0, help="hdmap run --rate (0: as fast as possible)")
     ap.add_argument("--out", default=None, help="keep the bags here (default: a temporary folder)")
     ap.add_argument("--timeout", type=float, default=900.0)
+    ap.add_argument("--rates", default="", help="comma-separated replay rates: one live run each, a backlog table")
     args = ap.parse_args()
+    if os.environ.get("BENCH_SMOKE") == "1":
+        args.drives, args.length_m = 8, 2000.0
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if "ROS_DOMAIN_ID" not in os.environ:
         print("set ROS_DOMAIN_ID (your own domain) first", file=sys.stderr)
@@ -75,6 +88,27 @@ def main() -> int:
     )
     offline_s = time.monotonic() - t0
 
+    if args.rates:
+        rows = []
+        for rate in (float(r) for r in args.rates.split(",") if r.strip()):
+            args.rate = rate
+            probe = _Probe()
+            try:
+                live_s, settle_line = _run_live(args, fleet, out / f"live_{rate:g}", probe)
+            finally:
+                probe.close()
+            rows.append(_backlog_row(args, fleet, rate, live_s, settle_line, probe))
+            print(f"rate {rate:g} done", file=sys.stderr)
+        print(
+            f"fleet: {args.map}, {args.drives} drives (seed {args.seed}); offline bag2map wall time {offline_s:.1f} s"
+        )
+        print(
+            "rate  | drives/h offered | bag played [s] | backlog slope [tiles/min] | max backlog | "
+            "settled map after bag [s] | latency median / p90 / max [s] (n)"
+        )
+        for r in rows:
+            print(r)
+        return 0
     probe = _Probe()
     try:
         live_s, settle_line = _run_live(args, fleet, out / "live", probe)
@@ -82,6 +116,42 @@ def main() -> int:
         probe.close()
     _report(args, fleet, out, offline_s, live_s, settle_line, probe)
     return 0
+
+
+def _latencies(probe: _Probe) -> list[float]:
+    """Per drive whose ack the probe saw: time from the ack to the first map listing it [s]."""
+    lat = []
+    for did, t_ack in probe.acks.items():
+        t_in = next((t for t, msg in probe.maps if did in set(msg.drive_ids)), None)
+        if t_in is not None:
+            lat.append(t_in - t_ack)
+    return lat
+
+
+def _backlog_row(args, fleet: Path, rate: float, live_s: float, settle_line: str, probe: _Probe) -> str:
+    """One line of the rate table (see the module docstring, 4.)."""
+    import numpy as np
+
+    if not probe.acks:
+        return f"{rate:5g} | no ack seen"
+    t_first, t_last = min(probe.acks.values()), max(probe.acks.values())
+    played = max(t_last - t_first, 1e-9)
+    offered = (len(probe.acks) - 1) / played * 3600.0 if len(probe.acks) > 1 else float("nan")
+    pts = np.array([(t, st.tiles_pending) for t, st in probe.status if t_first <= t <= t_last], dtype=np.float64)
+    slope = float(np.polyfit(pts[:, 0], pts[:, 1], 1)[0] * 60.0) if len(pts) >= 3 else float("nan")
+    peak = int(max((st.tiles_pending for _, st in probe.status), default=0))
+    _ = settle_line
+    settled_at = probe.maps[-1][0] if probe.maps else probe.t0 + live_s  # the settled map is the last one
+    lat = np.array(_latencies(probe))
+    lat_s = (
+        f"{np.median(lat):.1f} / {np.percentile(lat, 90):.1f} / {lat.max():.1f} ({lat.size})"
+        if lat.size
+        else "none listed"
+    )
+    return (
+        f"{rate:5g} | {offered:16.0f} | {played:14.1f} | {slope:25.1f} | {peak:11d} | "
+        f"{settled_at - t_last:25.1f} | {lat_s}"
+    )
 
 
 class _Probe:
@@ -99,8 +169,8 @@ class _Probe:
         rclpy.init(context=self.context, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
         self.node = rclpy.create_node("bench_live_probe", context=self.context)
         self.acks: dict[str, float] = {}
-        self.maps: list[tuple[float, object]] = []
-        self.status: list[tuple[float, object]] = []
+        self.maps: list[tuple[float, Any]] = []
+        self.status: list[tuple[float, Any]] = []
         self.t0 = time.monotonic()  # when the suite was started (set by _run_live)
         self.node.create_subscription(String, "/hdmap/drive_acks", self._ack, qos.ACKS)
         self.node.create_subscription(
@@ -191,16 +261,12 @@ def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settl
     if probe.acks:
         t_acks = sorted(probe.acks.values())
         print(f"drives acknowledged from {t_acks[0] - t0:.1f} s to {t_acks[-1] - t0:.1f} s")
-    lat = []
-    for did, t_ack in probe.acks.items():
-        t_in = next((t for t, msg in probe.maps if did in set(msg.drive_ids)), None)
-        if t_in is not None:
-            lat.append(t_in - t_ack)
+    lat = _latencies(probe)
     if lat:
         a = np.array(lat)
         print(
             f"ack -> listed in drive_ids latency over {len(a)} drives (acks the probe saw): "
-            f"median {np.median(a):.1f} s, "
+            f"min {a.min():.1f} s, p10 {np.percentile(a, 10):.1f} s, median {np.median(a):.1f} s, "
             f"p90 {np.percentile(a, 90):.1f} s, max {a.max():.1f} s"
         )
     if probe.maps:  # coverage while the fleet is mapped: the latest map at quarters of the run
