@@ -15,6 +15,10 @@ RULE 7 (relevant lines): only lines next to a plausible lane take part (an outer
 shoulder, or a line of a road beside, never cuts a lane).
 RULE 9 (missing marking): a strip between two markings n >= 2 lanes wide gets n - 1 inferred
 dashed lines (``Boundary.inferred``).
+RULE 10 (hand-over): along a chain, a boundary that ends is continued by one of any kind starting
+within _HANDOVER_M of it at the next cross section (the map hands a line over from one feature to
+an overlapping one, or flickers between dashed and solid); a boundary is cut where its kind changes
+for at least _KIND_MIN cross sections. Lanes are cut only where the lane structure changes.
 
 Sections are runs of consecutive cross sections with the same boundaries; a run is cut into lanes
 at most LANELET_MAX_M long. Where two runs meet (a line starting or ending, a split or merge of
@@ -85,6 +89,8 @@ _KIND = {
 }  # crossings this close on one cut are one line
 _TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain (2 m apart)
 _TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
+_HANDOVER_M = 1.0  # RULE 10: a boundary that ends continues one starting this close at the next station
+_KIND_MIN = 10  # RULE 10: stations (20 m): a shorter stretch of another kind along a boundary is noise
 
 
 def derive_lanes(hdmap: HDMap) -> LaneMap:
@@ -203,11 +209,26 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
         for k in range(len(st))
     ]
     tracks = _track(st, raw, types, nrm)
+    size: dict[int, int] = defaultdict(int)  # track -> stations
+    for row in tracks:
+        for t, *_ in row:
+            size[t] += 1
     out: list[_Section] = []
     for k in range(len(st)):
         (px, py), (nx, ny) = pos[k], nrm[k]
         items = sorted(((x - px) * nx + (y - py) * ny, t, f, x, y) for t, f, x, y in tracks[k])
         items.reverse()  # left to right
+        # a line tracked across a gap beside one crossing there (one line mapped twice): the
+        # longer track stays
+        items = [
+            it
+            for n, it in enumerate(items)
+            if not any(
+                abs(it[0] - o[0]) < _DUPLICATE_M and (size[o[1]], o[1]) > (size[it[1]], it[1])
+                for o in items[max(0, n - 1) : n + 2]
+                if o is not it
+            )
+        ]
         items = [it for it, keep in zip(items, _bounding(items, types), strict=True) if keep]
         out.append(
             _Section(
@@ -217,7 +238,98 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
                 np.array([(it[3], it[4]) for it in items], dtype=float).reshape(-1, 2),
             )
         )
-    return out
+    return _handover(st, out, types)
+
+
+def _chains(st: _Stations) -> list[list[int]]:
+    """Maximal chains of stations joined by single links (a station with one successor that has
+    one predecessor), in order; every station in exactly one chain."""
+
+    def single(k: int) -> int | None:
+        if len(st.succ[k]) == 1 and len(st.pred[st.succ[k][0]]) == 1:
+            return st.succ[k][0]
+        return None
+
+    starts = [k for k in range(len(st)) if not (len(st.pred[k]) == 1 and single(st.pred[k][0]) == k)]
+    done = [False] * len(st)
+    chains = []
+    for k0 in starts + list(range(len(st))):
+        if done[k0]:
+            continue
+        chain = [k0]
+        done[k0] = True
+        nxt = single(k0)
+        while nxt is not None and not done[nxt]:
+            chain.append(nxt)
+            done[nxt] = True
+            nxt = single(nxt)
+        chains.append(chain)
+    return chains
+
+
+def _handover(st: _Stations, sections: list[_Section], types: list[int]) -> list[_Section]:
+    """RULE 10: relabel the boundaries (tracks) of ``sections`` along each chain so that a
+    boundary handed over to another line keeps its track, and a track whose kind changes for
+    _KIND_MIN stations or more gets a new one there."""
+    orig = [sec.features for sec in sections]
+    feats = [list(f) for f in orig]
+    next_track = 1 + max((t for f in orig for t in f), default=0)
+    for chain in _chains(st):
+        alias: dict[int, int] = {}  # original track -> track
+        for i, k in enumerate(chain):
+            row = [alias.get(t, t) for t in orig[k]]
+            for n, t in enumerate(orig[k]):  # a line handed over that comes back beside its heir
+                if t not in alias and row.count(t) > 1:
+                    alias[t] = next_track
+                    row[n] = next_track
+                    next_track += 1
+            if i > 0:
+                prev = chain[i - 1]
+                pf, ps, s = feats[prev], sections[prev].s, sections[k].s
+                gone = [(float(ps[n]), t) for n, t in enumerate(pf) if t not in row]
+                pairs = sorted(
+                    (abs(float(s[n]) - s0), n, t0)
+                    for n, t in enumerate(row)
+                    if t not in pf
+                    for s0, t0 in gone
+                    if abs(float(s[n]) - s0) <= _HANDOVER_M
+                )
+                taken: set[int] = set()
+                for _, n, t0 in pairs:
+                    if n in taken or t0 in row:
+                        continue
+                    taken.add(n)
+                    alias[orig[k][n]] = t0
+                    row[n] = t0
+            feats[k] = row
+        # kind stretches along each track of the chain
+        seen: dict[int, list[tuple[int, int, int]]] = defaultdict(list)  # track -> (station, slot, kind)
+        for k in chain:
+            for n, t in enumerate(feats[k]):
+                seen[t].append((k, n, _KIND[types[sections[k].labels[n]]]))
+        for t, items in seen.items():
+            kinds = [kd for _, _, kd in items]
+            if len(set(kinds)) < 2:
+                continue
+            spans: list[list[int]] = []  # [kind, first, end)
+            for n, kd in enumerate(kinds):
+                if spans and spans[-1][0] == kd:
+                    spans[-1][2] = n + 1
+                else:
+                    spans.append([kd, n, n + 1])
+            long_ = [sp for sp in spans if sp[2] - sp[1] >= _KIND_MIN]
+            cuts = [b[1] for a, b in zip(long_, long_[1:], strict=False) if a[0] != b[0]]
+            new_id = t
+            for n, (k, slot, _) in enumerate(items):
+                if cuts and n >= cuts[0]:
+                    cuts.pop(0)
+                    new_id = next_track
+                    next_track += 1
+                feats[k][slot] = new_id
+    return [
+        _Section(tuple(f), sec.labels, sec.s, sec.xy) if tuple(f) != sec.features else sec
+        for f, sec in zip(feats, sections, strict=True)
+    ]
 
 
 def _bounding(items: list[tuple], types: list[int]) -> list[bool]:
