@@ -19,6 +19,11 @@ RULE 10 (hand-over): along a chain, a boundary that ends is continued by one of 
 within _HANDOVER_M of it at the next cross section (the map hands a line over from one feature to
 an overlapping one, or flickers between dashed and solid); a boundary is cut where its kind changes
 for at least _KIND_MIN cross sections. Lanes are cut only where the lane structure changes.
+RULE 11 (groups): a cross section falls apart into groups of boundaries where no lane can lie
+between two neighbours (wider than a lane, a shoulder, or two road borders closer than
+_BARRIER_M: a ramp beside the carriageway); each group is a station of its own, linked to the
+groups of the next station that overlap it sideways, so that a line starting or ending in one
+group (a ramp beside) does not cut the lanes of another.
 
 Sections are runs of consecutive cross sections with the same boundaries; a run is cut into lanes
 at most LANELET_MAX_M long. Where two runs meet (a line starting or ending, a split or merge of
@@ -79,6 +84,8 @@ _COS_LINK = np.cos(np.radians(35.0))  # heading agreement of a gap link
 _WIDTH_SLACK_M = 0.5  # RULE 7: tolerance of the lane width test per cross section
 _SPLIT_WIDTH_M = (3.0, 4.2)  # RULE 9: width of each lane of a strip split by inferred lines
 _DUPLICATE_M = 0.5
+_BARRIER_M = 3.0  # RULE 11: two road borders closer than this are a barrier between roads, not a lane
+_GROUP_OVERLAP_M = 0.0  # RULE 11: groups of consecutive stations that overlap sideways are linked
 # RULE 6: the line kinds a track keeps: dashed (crossable) or not; a line the map calls solid in
 # one place and road border in the next is one line (its pieces take the most common type)
 _KIND = {
@@ -103,6 +110,7 @@ def derive_lanes(hdmap: HDMap) -> LaneMap:
         return LaneMap((), (), {})
     _bridge_gaps(st)
     sections = _cross_sections(st, hdmap)
+    st, sections = _groups(st, sections, [int(f.type) for f in hdmap.features] + [int(FeatureType.DASHED)])
     runs = _runs(st, sections)
     return _build(st, sections, runs, hdmap)
 
@@ -220,15 +228,14 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
         items.reverse()  # left to right
         # a line tracked across a gap beside one crossing there (one line mapped twice): the
         # longer track stays
-        items = [
-            it
-            for n, it in enumerate(items)
-            if not any(
-                abs(it[0] - o[0]) < _DUPLICATE_M and (size[o[1]], o[1]) > (size[it[1]], it[1])
-                for o in items[max(0, n - 1) : n + 2]
-                if o is not it
-            )
-        ]
+        kept: list[tuple] = []
+        for it in items:
+            if kept and kept[-1][0] - it[0] < _DUPLICATE_M:
+                if (size[it[1]], it[1]) > (size[kept[-1][1]], kept[-1][1]):
+                    kept[-1] = it
+                continue
+            kept.append(it)
+        items = kept
         items = [it for it, keep in zip(items, _bounding(items, types), strict=True) if keep]
         out.append(
             _Section(
@@ -239,6 +246,75 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
             )
         )
     return _handover(st, out, types)
+
+
+def _groups(st: _Stations, sections: list[_Section], types: list[int]) -> tuple[_Stations, list[_Section]]:
+    """RULE 11: stations split into groups of boundaries; returns the stations of the groups
+    (the first group keeps the station's id) and their sections."""
+    border, shoulder = int(FeatureType.ROAD_BORDER), {int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID)}
+    wide = LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
+    first: list[int] = []  # station -> index of its first group
+    ids: list[int] = []
+    origin: list[int] = []
+    out: list[_Section] = []
+    span: list[tuple[float, float] | None] = []  # group -> (right, left) s on its station
+    for k, sec in enumerate(sections):
+        first.append(len(out))
+        n = len(sec.features)
+        s = sec.s.tolist()
+        cuts = [0]
+        for i in range(n - 1):
+            ta, tb = types[sec.labels[i]], types[sec.labels[i + 1]]
+            w = s[i] - s[i + 1]
+            if w > wide or {ta, tb} == shoulder or (ta == tb == border and w < _BARRIER_M):
+                cuts.append(i + 1)
+        cuts.append(n)
+        parts = list(zip(cuts[:-1], cuts[1:], strict=True))
+        if len(parts) > 1:  # a lone line beside a group bounds no lane
+            parts = [p for p in parts if p[1] - p[0] > 1] or parts[:1]
+        for g, (lo, hi) in enumerate(parts):
+            ids.append(int(st.ids[k]) if g == 0 else _uid("group", int(st.ids[k]), g))
+            origin.append(k)
+            if hi - lo == n:
+                out.append(sec)
+            else:
+                out.append(_Section(sec.features[lo:hi], sec.labels[lo:hi], sec.s[lo:hi], sec.xy[lo:hi]))
+            span.append((s[hi - 1], s[lo]) if n else None)
+    first.append(len(out))
+    if len(out) == len(sections):
+        return st, sections
+    o = np.asarray(origin)
+    succ: list[list[int]] = [[] for _ in out]
+    normal = np.stack([-st.tangent[:, 1], st.tangent[:, 0]], axis=1)
+    for k in range(len(st)):
+        mine = range(first[k], first[k + 1])
+        for k2 in st.succ[k]:
+            theirs = range(first[k2], first[k2 + 1])
+            if len(mine) == 1 and len(theirs) == 1:
+                succ[mine[0]].append(theirs[0])
+                continue
+            links = set()
+            for v2 in theirs:
+                xy = out[v2].xy
+                rng = None
+                if len(xy):
+                    proj = (xy - st.pos[k]) @ normal[k]
+                    rng = (float(proj.min()), float(proj.max()))
+                for v in mine:
+                    a = span[v]
+                    if a is None or rng is None or max(a[0], rng[0]) <= min(a[1], rng[1]) + _GROUP_OVERLAP_M:
+                        links.add((v, v2))
+            for v in mine:  # a group without any overlapping group ahead keeps all links
+                if not any(x == v for x, _ in links):
+                    links.update((v, v2) for v2 in theirs)
+            for v2 in theirs:
+                if not any(y == v2 for _, y in links):
+                    links.update((v, v2) for v in mine)
+            for v, v2 in sorted(links):
+                succ[v].append(v2)
+    st2 = _Stations(np.array(ids, dtype=np.int64), st.pos[o], st.tangent[o], st.width[o], succ)
+    st2.relink()
+    return st2, out
 
 
 def _chains(st: _Stations) -> list[list[int]]:
@@ -283,7 +359,7 @@ def _handover(st: _Stations, sections: list[_Section], types: list[int]) -> list
                     alias[t] = next_track
                     row[n] = next_track
                     next_track += 1
-            if i > 0:
+            if i > 0 and not set(row).issubset(feats[chain[i - 1]]):
                 prev = chain[i - 1]
                 pf, ps, s = feats[prev], sections[prev].s, sections[k].s
                 gone = [(float(ps[n]), t) for n, t in enumerate(pf) if t not in row]
