@@ -88,3 +88,22 @@ def lane_gain(length_m: float = 800.0) -> HDMap:
         for n, hr in zip(nodes, half_right, strict=True)
     )
     return HDMap(features=tuple(feats), topology=nodes)
+
+
+def handover(length_m: float = 250.0) -> HDMap:
+    """``three_lanes`` whose left edge line (+5.25) ends at x = 100 where another solid line goes on
+    0.7 m further out (the map hands the line over to another feature), and whose right dashed line
+    (-1.75) is called solid for 6 m at x = 150 (a flicker of the type, not a change of the lanes)."""
+    base = three_lanes(length_m)
+    x = np.arange(0.0, length_m + 1e-9, 1.0)
+    feats = [f for f in base.features if f.id not in (2, 4)]
+    left = x <= 100.0
+    feats.append(_feature(2, FeatureType.SOLID, np.stack([x[left], np.full(left.sum(), 5.25)], axis=1)))
+    feats.append(_feature(12, FeatureType.SOLID, np.stack([x[~left], np.full((~left).sum(), 5.95)], axis=1)))
+    for fid, keep, t in (
+        (4, x < 150.0, FeatureType.DASHED),
+        (14, (x >= 150.0) & (x <= 156.0), FeatureType.SOLID),
+        (24, x > 156.0, FeatureType.DASHED),
+    ):
+        feats.append(_feature(fid, t, np.stack([x[keep], np.full(keep.sum(), -1.75)], axis=1)))
+    return HDMap(features=tuple(feats), topology=base.topology)

@@ -9,7 +9,7 @@ from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
 from hdmap_core.model import FeatureType, HDMap
 
-from lane_samples import junction_gap, lane_gain, missing_marking, three_lanes
+from lane_samples import handover, junction_gap, lane_gain, missing_marking, three_lanes
 
 
 def _lane_at(lanes, x: float, y: float) -> int:
@@ -96,6 +96,19 @@ def test_connectors_cross_a_junction_without_markings():
     connectors = [ln for ln in lanes.lanes if ln.left_type == FeatureType.UNKNOWN]
     assert len(connectors) == 3 and sum(ln.left is not None for ln in connectors) == 2
     assert not any(ln.change_left or ln.change_right for ln in connectors)
+
+
+def test_lanes_are_not_cut_where_a_line_is_handed_over_or_its_type_flickers():
+    """RULE 10: the edge line taken over by another feature 0.7 m out, and a 6 m stretch of a
+    dashed line mapped as solid, change nothing in the lane structure: 3 lanes, one piece each."""
+    lanes = derive_lanes(handover())
+    assert len(lanes.lanes) == 3
+    assert all(ln.length_m > 240.0 for ln in lanes.lanes)
+    mid = lanes.lane(_lane_at(lanes, 150.0, 0.0))
+    assert mid.right_type == FeatureType.DASHED and mid.change_right
+    # the feature hand-over: one boundary piece, the first feature most of its length
+    left = lanes.lane(mid.left)
+    assert lanes.boundary(left.left_boundary).feature_id == 12
 
 
 @pytest.mark.parametrize("hdmap", [HDMap(), HDMap(features=three_lanes().features)])

@@ -15,6 +15,15 @@ RULE 7 (relevant lines): only lines next to a plausible lane take part (an outer
 shoulder, or a line of a road beside, never cuts a lane).
 RULE 9 (missing marking): a strip between two markings n >= 2 lanes wide gets n - 1 inferred
 dashed lines (``Boundary.inferred``).
+RULE 10 (hand-over): along a chain, a boundary that ends is continued by one of any kind starting
+within _HANDOVER_M of it at the next cross section (the map hands a line over from one feature to
+an overlapping one, or flickers between dashed and solid); a boundary is cut where its kind changes
+for at least _KIND_MIN cross sections. Lanes are cut only where the lane structure changes.
+RULE 11 (groups): a cross section falls apart into groups of boundaries where no lane can lie
+between two neighbours (wider than a lane, a shoulder, or two road borders closer than
+_BARRIER_M: a ramp beside the carriageway); each group is a station of its own, linked to the
+groups of the next station that overlap it sideways, so that a line starting or ending in one
+group (a ramp beside) does not cut the lanes of another.
 
 Sections are runs of consecutive cross sections with the same boundaries; a run is cut into lanes
 at most LANELET_MAX_M long. Where two runs meet (a line starting or ending, a split or merge of
@@ -75,6 +84,8 @@ _COS_LINK = np.cos(np.radians(35.0))  # heading agreement of a gap link
 _WIDTH_SLACK_M = 0.5  # RULE 7: tolerance of the lane width test per cross section
 _SPLIT_WIDTH_M = (3.0, 4.2)  # RULE 9: width of each lane of a strip split by inferred lines
 _DUPLICATE_M = 0.5
+_BARRIER_M = 3.0  # RULE 11: two road borders closer than this are a barrier between roads, not a lane
+_GROUP_OVERLAP_M = 0.0  # RULE 11: groups of consecutive stations that overlap sideways are linked
 # RULE 6: the line kinds a track keeps: dashed (crossable) or not; a line the map calls solid in
 # one place and road border in the next is one line (its pieces take the most common type)
 _KIND = {
@@ -85,6 +96,8 @@ _KIND = {
 }  # crossings this close on one cut are one line
 _TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain (2 m apart)
 _TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
+_HANDOVER_M = 1.0  # RULE 10: a boundary that ends continues one starting this close at the next station
+_KIND_MIN = 10  # RULE 10: stations (20 m): a shorter stretch of another kind along a boundary is noise
 
 
 def derive_lanes(hdmap: HDMap) -> LaneMap:
@@ -97,6 +110,7 @@ def derive_lanes(hdmap: HDMap) -> LaneMap:
         return LaneMap((), (), {})
     _bridge_gaps(st)
     sections = _cross_sections(st, hdmap)
+    st, sections = _groups(st, sections, [int(f.type) for f in hdmap.features] + [int(FeatureType.DASHED)])
     runs = _runs(st, sections)
     return _build(st, sections, runs, hdmap)
 
@@ -203,11 +217,25 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
         for k in range(len(st))
     ]
     tracks = _track(st, raw, types, nrm)
+    size: dict[int, int] = defaultdict(int)  # track -> stations
+    for row in tracks:
+        for t, *_ in row:
+            size[t] += 1
     out: list[_Section] = []
     for k in range(len(st)):
         (px, py), (nx, ny) = pos[k], nrm[k]
         items = sorted(((x - px) * nx + (y - py) * ny, t, f, x, y) for t, f, x, y in tracks[k])
         items.reverse()  # left to right
+        # a line tracked across a gap beside one crossing there (one line mapped twice): the
+        # longer track stays
+        kept: list[tuple] = []
+        for it in items:
+            if kept and kept[-1][0] - it[0] < _DUPLICATE_M:
+                if (size[it[1]], it[1]) > (size[kept[-1][1]], kept[-1][1]):
+                    kept[-1] = it
+                continue
+            kept.append(it)
+        items = kept
         items = [it for it, keep in zip(items, _bounding(items, types), strict=True) if keep]
         out.append(
             _Section(
@@ -217,7 +245,167 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
                 np.array([(it[3], it[4]) for it in items], dtype=float).reshape(-1, 2),
             )
         )
-    return out
+    return _handover(st, out, types)
+
+
+def _groups(st: _Stations, sections: list[_Section], types: list[int]) -> tuple[_Stations, list[_Section]]:
+    """RULE 11: stations split into groups of boundaries; returns the stations of the groups
+    (the first group keeps the station's id) and their sections."""
+    border, shoulder = int(FeatureType.ROAD_BORDER), {int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID)}
+    wide = LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
+    first: list[int] = []  # station -> index of its first group
+    ids: list[int] = []
+    origin: list[int] = []
+    out: list[_Section] = []
+    span: list[tuple[float, float] | None] = []  # group -> (right, left) s on its station
+    for k, sec in enumerate(sections):
+        first.append(len(out))
+        n = len(sec.features)
+        s = sec.s.tolist()
+        cuts = [0]
+        for i in range(n - 1):
+            ta, tb = types[sec.labels[i]], types[sec.labels[i + 1]]
+            w = s[i] - s[i + 1]
+            if w > wide or {ta, tb} == shoulder or (ta == tb == border and w < _BARRIER_M):
+                cuts.append(i + 1)
+        cuts.append(n)
+        parts = list(zip(cuts[:-1], cuts[1:], strict=True))
+        if len(parts) > 1:  # a lone line beside a group bounds no lane
+            parts = [p for p in parts if p[1] - p[0] > 1] or parts[:1]
+        for g, (lo, hi) in enumerate(parts):
+            ids.append(int(st.ids[k]) if g == 0 else _uid("group", int(st.ids[k]), g))
+            origin.append(k)
+            if hi - lo == n:
+                out.append(sec)
+            else:
+                out.append(_Section(sec.features[lo:hi], sec.labels[lo:hi], sec.s[lo:hi], sec.xy[lo:hi]))
+            span.append((s[hi - 1], s[lo]) if n else None)
+    first.append(len(out))
+    if len(out) == len(sections):
+        return st, sections
+    o = np.asarray(origin)
+    succ: list[list[int]] = [[] for _ in out]
+    normal = np.stack([-st.tangent[:, 1], st.tangent[:, 0]], axis=1)
+    for k in range(len(st)):
+        mine = range(first[k], first[k + 1])
+        for k2 in st.succ[k]:
+            theirs = range(first[k2], first[k2 + 1])
+            if len(mine) == 1 and len(theirs) == 1:
+                succ[mine[0]].append(theirs[0])
+                continue
+            links = set()
+            for v2 in theirs:
+                xy = out[v2].xy
+                rng = None
+                if len(xy):
+                    proj = (xy - st.pos[k]) @ normal[k]
+                    rng = (float(proj.min()), float(proj.max()))
+                for v in mine:
+                    a = span[v]
+                    if a is None or rng is None or max(a[0], rng[0]) <= min(a[1], rng[1]) + _GROUP_OVERLAP_M:
+                        links.add((v, v2))
+            for v in mine:  # a group without any overlapping group ahead keeps all links
+                if not any(x == v for x, _ in links):
+                    links.update((v, v2) for v2 in theirs)
+            for v2 in theirs:
+                if not any(y == v2 for _, y in links):
+                    links.update((v, v2) for v in mine)
+            for v, v2 in sorted(links):
+                succ[v].append(v2)
+    st2 = _Stations(np.array(ids, dtype=np.int64), st.pos[o], st.tangent[o], st.width[o], succ)
+    st2.relink()
+    return st2, out
+
+
+def _chains(st: _Stations) -> list[list[int]]:
+    """Maximal chains of stations joined by single links (a station with one successor that has
+    one predecessor), in order; every station in exactly one chain."""
+
+    def single(k: int) -> int | None:
+        if len(st.succ[k]) == 1 and len(st.pred[st.succ[k][0]]) == 1:
+            return st.succ[k][0]
+        return None
+
+    starts = [k for k in range(len(st)) if not (len(st.pred[k]) == 1 and single(st.pred[k][0]) == k)]
+    done = [False] * len(st)
+    chains = []
+    for k0 in starts + list(range(len(st))):
+        if done[k0]:
+            continue
+        chain = [k0]
+        done[k0] = True
+        nxt = single(k0)
+        while nxt is not None and not done[nxt]:
+            chain.append(nxt)
+            done[nxt] = True
+            nxt = single(nxt)
+        chains.append(chain)
+    return chains
+
+
+def _handover(st: _Stations, sections: list[_Section], types: list[int]) -> list[_Section]:
+    """RULE 10: relabel the boundaries (tracks) of ``sections`` along each chain so that a
+    boundary handed over to another line keeps its track, and a track whose kind changes for
+    _KIND_MIN stations or more gets a new one there."""
+    orig = [sec.features for sec in sections]
+    feats = [list(f) for f in orig]
+    next_track = 1 + max((t for f in orig for t in f), default=0)
+    for chain in _chains(st):
+        alias: dict[int, int] = {}  # original track -> track
+        for i, k in enumerate(chain):
+            row = [alias.get(t, t) for t in orig[k]]
+            for n, t in enumerate(orig[k]):  # a line handed over that comes back beside its heir
+                if t not in alias and row.count(t) > 1:
+                    alias[t] = next_track
+                    row[n] = next_track
+                    next_track += 1
+            if i > 0 and not set(row).issubset(feats[chain[i - 1]]):
+                prev = chain[i - 1]
+                pf, ps, s = feats[prev], sections[prev].s, sections[k].s
+                gone = [(float(ps[n]), t) for n, t in enumerate(pf) if t not in row]
+                pairs = sorted(
+                    (abs(float(s[n]) - s0), n, t0)
+                    for n, t in enumerate(row)
+                    if t not in pf
+                    for s0, t0 in gone
+                    if abs(float(s[n]) - s0) <= _HANDOVER_M
+                )
+                taken: set[int] = set()
+                for _, n, t0 in pairs:
+                    if n in taken or t0 in row:
+                        continue
+                    taken.add(n)
+                    alias[orig[k][n]] = t0
+                    row[n] = t0
+            feats[k] = row
+        # kind stretches along each track of the chain
+        seen: dict[int, list[tuple[int, int, int]]] = defaultdict(list)  # track -> (station, slot, kind)
+        for k in chain:
+            for n, t in enumerate(feats[k]):
+                seen[t].append((k, n, _KIND[types[sections[k].labels[n]]]))
+        for t, items in seen.items():
+            kinds = [kd for _, _, kd in items]
+            if len(set(kinds)) < 2:
+                continue
+            spans: list[list[int]] = []  # [kind, first, end)
+            for n, kd in enumerate(kinds):
+                if spans and spans[-1][0] == kd:
+                    spans[-1][2] = n + 1
+                else:
+                    spans.append([kd, n, n + 1])
+            long_ = [sp for sp in spans if sp[2] - sp[1] >= _KIND_MIN]
+            cuts = [b[1] for a, b in zip(long_, long_[1:], strict=False) if a[0] != b[0]]
+            new_id = t
+            for n, (k, slot, _) in enumerate(items):
+                if cuts and n >= cuts[0]:
+                    cuts.pop(0)
+                    new_id = next_track
+                    next_track += 1
+                feats[k][slot] = new_id
+    return [
+        _Section(tuple(f), sec.labels, sec.s, sec.xy) if tuple(f) != sec.features else sec
+        for f, sec in zip(feats, sections, strict=True)
+    ]
 
 
 def _bounding(items: list[tuple], types: list[int]) -> list[bool]:
