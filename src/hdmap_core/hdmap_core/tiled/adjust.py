@@ -14,8 +14,9 @@ into square blocks of ``block_tiles`` x ``block_tiles`` tiles and:
    common to all its drives that the data cannot see and that the zero-mean bias prior sets within
    the block. One unknown shift ``c_b`` per block ties the blocks together: every drive seen by two
    blocks whose knot ranges share knots gives ``c_b - c_a = o_a(k) - o_b(k)`` at those knots
-   (weighted least squares), and the prior ``c_b ~ N(0, bias_sigma^2 / drives_b)`` keeps the
-   network's gauge where the single solve's priors put it (the mean drive bias near 0).
+   (weighted least squares), and the single solve's gauge prior, ``bias_d ~ N(0, bias_sigma^2)``
+   once per drive on its merged bias (the mean over its blocks of its bias there plus ``c_b``),
+   puts the network's gauge where the single solve puts it.
 3. **Merge**: every drive's curve is the mean, at each knot, of its shifted block curves (knots no
    block covers interpolated between those that are), split into a bias (the mean of the blocks'
    shifted biases) and a drift.
@@ -123,22 +124,32 @@ def coarse_shifts(models: Mapping[BlockKey, OffsetModel], config: AdjustConfig) 
         bs = seen[d]
         for x in range(len(bs)):
             for y in range(x + 1, len(bs)):
-                a, b = models[bs[x]].drives[d], models[bs[y]].drives[d]
-                ta, tb = _totals(a), _totals(b)
-                if a.drift_m.size == 0 or b.drift_m.size == 0:  # constant offsets: the biases
+                ca, cb = models[bs[x]].drives[d], models[bs[y]].drives[d]
+                ta, tb = _totals(ca), _totals(cb)
+                if ca.drift_m.size == 0 or cb.drift_m.size == 0:  # constant offsets: the biases
                     shared_a, shared_b = ta[:1], tb[:1]
                 else:
-                    lo, hi = max(a.k0, b.k0), min(a.k0 + a.drift_m.size, b.k0 + b.drift_m.size)
+                    lo, hi = max(ca.k0, cb.k0), min(ca.k0 + ca.drift_m.size, cb.k0 + cb.drift_m.size)
                     if hi <= lo:
                         continue  # the drive left the road between the blocks: no shared knot
-                    shared_a, shared_b = ta[lo - a.k0 : hi - a.k0], tb[lo - b.k0 : hi - b.k0]
+                    shared_a, shared_b = ta[lo - ca.k0 : hi - ca.k0], tb[lo - cb.k0 : hi - cb.k0]
                 rows_i.append(col[bs[x]])
                 rows_j.append(col[bs[y]])
                 delta.append(float(np.mean(shared_a - shared_b)))  # c_y - c_x
                 weight.append(shared_a.size / LINK_SIGMA_M**2)
-    drives = np.array([max(len(models[b].drives), 1) for b in blocks], dtype=float)
-    h = sp.diags(drives / config.bias_sigma_m**2).tolil()
+    # the single solve's gauge prior, bias_d ~ N(0, bias_sigma^2) once per drive: here on each
+    # drive's merged bias, the mean over its blocks of (its bias there + c_b)
+    h = sp.diags(np.full(n, 1e-9)).tolil()  # a block no drive links stays at 0
     rhs = np.zeros(n)
+    prior = config.bias_sigma_m**-2
+    for d in sorted(seen):
+        idx = [col[b] for b in seen[d]]
+        m = len(idx)
+        mean_bias = float(np.mean([models[b].drives[d].bias_m for b in seen[d]]))
+        for i in idx:
+            rhs[i] -= prior * mean_bias / m
+            for j in idx:
+                h[i, j] += prior / m**2
     for i, j, dl, w in zip(rows_i, rows_j, delta, weight, strict=True):
         h[i, i] += w
         h[j, j] += w
