@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """The tiled build against the whole-fleet build on one fleet bag: accuracy, identity, time, memory.
 
-    scripts/compare_tiled.py BAG [--workers 1,2] [--no-whole] [--tile-size-m M] [--margin-m M] [--out DIR]
+    scripts/compare_tiled.py BAG [--workers 1,2] [--block-tiles 0,4] [--no-whole] [--tile-size-m M] [--margin-m M]
+                             [--out DIR]
 
 Runs ``hdmap bag2map BAG`` (the whole fleet in memory, ``--workers 1``) and ``hdmap bag2map BAG
 --tiled --workers N`` for each N, each in its own process, scores every map against
@@ -90,6 +91,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-whole", action="store_true", help="skip the whole-fleet build")
     ap.add_argument("--tile-size-m", type=float)
     ap.add_argument("--margin-m", type=float)
+    ap.add_argument(
+        "--block-tiles",
+        default="0",
+        help="adjustments to build with, comma-separated: 0 one network-wide solve, N block-wise over N x N tiles "
+        "(default: %(default)s)",
+    )
     ap.add_argument("--out", help="keep maps and reports here (default: a temporary dir)")
     args = ap.parse_args(argv)
 
@@ -122,8 +129,14 @@ def main(argv: list[str] | None = None) -> int:
         )
         doc = json.loads(rep.read_text())
         runs.append(("whole fleet, 1 process", m, doc["build"]["seconds"], rss, cpu, doc))
-    for n in [int(v) for v in args.workers.split(",") if v]:
-        m, rep = out / f"tiled{n}", out / f"tiled{n}.json"
+    variants = [
+        (n, b)
+        for b in [int(v) for v in args.block_tiles.split(",") if v]
+        for n in [int(v) for v in args.workers.split(",") if v]
+    ]
+    for n, b in variants:
+        tag = f"{n}" + (f"b{b}" if b else "")
+        m, rep = out / f"tiled{tag}", out / f"tiled{tag}.json"
         cmd = [
             *HDMAP,
             "bag2map",
@@ -142,11 +155,20 @@ def main(argv: list[str] | None = None) -> int:
             cmd += ["--tile-size-m", str(args.tile_size_m)]
         if args.margin_m:
             cmd += ["--margin-m", str(args.margin_m)]
+        if b:
+            cmd += ["--block-tiles", str(b)]
         wall, rss, cpu = _run(cmd)
         doc = json.loads(rep.read_text())
         peaks = doc["build"]["peak_rss_mb"]
         runs.append(
-            (f"tiled, {n} worker(s)", m, doc["build"]["seconds"] + doc["index_s"], max(peaks.values()), cpu, doc)
+            (
+                f"tiled, {n} worker(s)" + (f", adjustment in {b}x{b}-tile blocks" if b else ""),
+                m,
+                doc["build"]["seconds"] + doc["index_s"],
+                max(peaks.values()),
+                cpu,
+                doc,
+            )
         )
 
     print(f"{bag.name}: {runs[0][5]['drives']} drives, {runs[0][5]['drive_km']:.1f} drive-km\n")
@@ -167,11 +189,14 @@ def main(argv: list[str] | None = None) -> int:
             f"{doc['drive_km'] / secs / w:.2f} | {rss:.0f} | {cpu:.0f} |"
         )
     tiled = [k for k in maps if k.startswith("tiled")]
-    for k in tiled[1:]:
-        print(
-            f"\n{k} vs {tiled[0]}: "
-            + ("the same map (ids, points, links)" if _same(maps[k], maps[tiled[0]]) else "DIFFERENT maps")
-        )
+    for k in tiled:
+        adj = k.partition(" worker(s)")[2]
+        first = next(t for t in tiled if t.partition(" worker(s)")[2] == adj)  # same adjustment, other workers
+        if k != first:
+            print(
+                f"\n{k} vs {first}: "
+                + ("the same map (ids, points, links)" if _same(maps[k], maps[first]) else "DIFFERENT maps")
+            )
     if not args.no_whole and tiled:
         whole, t = maps["whole fleet, 1 process"], maps[tiled[0]]
         for label, d in (("tiled -> whole", _distances(t, whole)), ("whole -> tiled", _distances(whole, t))):

@@ -55,8 +55,10 @@ def build_from_bag(
     scheduler: str | None = None,
     index_path: str | Path | None = None,
     progress: ProgressFn | None = None,
+    block_tiles: int | None = None,
 ) -> TiledBagResult:
-    """Index ``bag`` by tile (into ``index_path``, else a temporary file) and build its map by tiles.
+    """Index ``bag`` by tile (into ``index_path``, else a temporary file) and build its map by tiles
+    (``block_tiles``: the adjustment block-wise, ``build_tiled``).
 
     Raises:
         BagError: the bag is missing or not a bag.
@@ -83,7 +85,7 @@ def build_from_bag(
                     f"{bag}: no usable drive" + (f" ({index.bag_error})" if index.bag_error else "")
                 )
             try:
-                result = build_tiled(index, config=config, runner=runner, progress=progress)
+                result = build_tiled(index, config=config, runner=runner, progress=progress, block_tiles=block_tiles)
             finally:
                 if not index_path:
                     index.close()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tiled_fleet import same_map, small_fleet
 
 from hdmap_core.errors import NoUsableDataError
 from hdmap_core.live.tiles import TileConfig, map_tile, observe_tile
@@ -15,29 +16,9 @@ from hdmap_core.tiled.clips import MemorySource
 from hdmap_core.tiled.cluster import SerialRunner
 
 
-def _fleet(n: int = 8, length_m: float = 1400.0, seed: int = 5):
-    from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
-    from hdmap_core.simulation.synthetic import synthetic_highway
-
-    gt = synthetic_highway("motorway", length_m=length_m, seed=seed)
-    cfg = SimConfig(n_drives=n, snippet_length_min_m=600, snippet_length_max_m=1200)
-    return simulate_fleet(gt, config=cfg, seed=seed).drives
-
-
-def _same_map(a, b) -> None:
-    assert len(a.features) == len(b.features) > 0
-    for f, g in zip(a.features, b.features):
-        assert f.id == g.id and int(f.type) == int(g.type)
-        np.testing.assert_array_equal(np.asarray(f.points), np.asarray(g.points))
-        assert tuple(f.predecessors) == tuple(g.predecessors) and tuple(f.successors) == tuple(g.successors)
-    assert [t.id for t in a.topology] == [t.id for t in b.topology]
-    for t, u in zip(a.topology, b.topology):
-        assert tuple(t.features) == tuple(u.features)
-
-
 @pytest.mark.slow
 def test_tasks_from_clips_equal_the_live_tiles_on_full_drives():
-    drives = _fleet()
+    drives = small_fleet()
     tc = TileConfig(tile_size_m=256.0, margin_m=96.0)
     pc = presets.preset("default")
     src = MemorySource(drives, tc)
@@ -74,7 +55,7 @@ def test_tiled_build_is_the_same_map_on_one_process_and_on_two_dask_workers():
     pytest.importorskip("distributed")
     from hdmap_core.tiled.cluster import DaskRunner
 
-    drives = _fleet()
+    drives = small_fleet()
     src = MemorySource(drives, TileConfig(tile_size_m=384.0, margin_m=96.0))
     pc = presets.preset("default")
     one = build_tiled(src, config=pc, runner=SerialRunner())
@@ -84,7 +65,7 @@ def test_tiled_build_is_the_same_map_on_one_process_and_on_two_dask_workers():
         two = build_tiled(src, config=pc, runner=runner)
     finally:
         runner.close()
-    _same_map(one.map, two.map)
+    same_map(one.map, two.map)
     assert one.report.tiles == two.report.tiles == len(src.tiles())
     assert one.report.observations == two.report.observations > 0
     peaks = two.report.peak_rss_mb
@@ -95,7 +76,7 @@ def test_tiled_build_is_the_same_map_on_one_process_and_on_two_dask_workers():
 def test_tiled_build_maps_the_road_as_the_whole_fleet_build_does():
     from hdmap_core.pipeline.driver import build_map
 
-    drives = _fleet()
+    drives = small_fleet()
     pc = presets.preset("default")
     tiled = build_tiled(MemorySource(drives, TileConfig(tile_size_m=512.0, margin_m=128.0)), config=pc).map
     whole = build_map(drives, config=pc).map
@@ -118,7 +99,7 @@ def test_tiled_build_needs_a_tile():
 
 @pytest.mark.slow
 def test_tiled_build_without_adjustment_runs_one_pass_per_tile():
-    drives = _fleet(n=5)
+    drives = small_fleet(n=5)
     pc = presets.preset("naive")
     assert pc.final_pass is None
     res = build_tiled(MemorySource(drives, TileConfig(tile_size_m=512.0, margin_m=128.0)), config=pc)

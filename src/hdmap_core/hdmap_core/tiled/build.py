@@ -20,12 +20,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from hdmap_core.errors import NoUsableDataError
+from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.graph.map_graph import stitch
 from hdmap_core.live.tiles import fleet_offsets
 from hdmap_core.model import HDMap
 from hdmap_core.pipeline.config import PipelineConfig
 from hdmap_core.tiled import tasks
+from hdmap_core.tiled.adjust import HALO_TILES, group_tiles
 from hdmap_core.tiled.clips import TileSource
 from hdmap_core.tiled.cluster import ProgressFn, Runner, SerialRunner
 
@@ -87,6 +88,8 @@ def build_tiled(
     config: PipelineConfig = PipelineConfig(),
     runner: Runner | None = None,
     progress: ProgressFn | None = None,
+    block_tiles: int | None = None,
+    halo_tiles: int = HALO_TILES,
 ) -> TiledResult:
     """Build the map of the drives of ``source`` tile by tile (see the module docstring).
 
@@ -96,6 +99,10 @@ def build_tiled(
         config: pipeline options (default: the recommended method).
         runner: where the tasks run (default: this process).
         progress: optional callback(stage, done, total).
+        block_tiles: None: one network-wide offset adjustment over all tiles' observations in
+            this process. N: the adjustment block-wise over blocks of N x N tiles with a global
+            coarse solve (``tiled.adjust``), as tasks of the runner; the observations stay on the
+            workers. ``halo_tiles``: the tiles around a block that its solve sees too.
 
     Raises:
         NoUsableDataError: the source has no tile.
@@ -110,7 +117,27 @@ def build_tiled(
     weights = [len(source.drive_ids(k)) for k in keys] if runner.workers > 1 else None  # heaviest tiles first
     model = None
     n_obs = 0
-    if config.final_pass is not None:
+    if config.final_pass is not None and block_tiles is not None:
+        if isinstance(block_tiles, bool) or not isinstance(block_tiles, int) or block_tiles < 1:
+            raise ConfigError(f"block_tiles must be an integer >= 1, got {block_tiles!r}")
+        t0 = time.perf_counter()
+        groups = list(group_tiles(keys, block_tiles, halo_tiles).items())
+        if weights is not None:  # heaviest blocks first
+            w = dict(zip(keys, weights, strict=True))
+            groups.sort(key=lambda g: -sum(w[k] for k in g[1]))
+        model = runner.run_grouped(
+            "observe",
+            tasks.observe_keyed,
+            groups,
+            tasks.solve_block_of,
+            tasks.coarse_merge,
+            shared=(source, config),
+            group_shared=(config, block_tiles),
+            progress=progress,
+        )
+        n_obs = int(model.stats.get("observations", 0))
+        seconds["observation_pass_and_adjustment"] = time.perf_counter() - t0
+    elif config.final_pass is not None:
         t0 = time.perf_counter()
         per_tile = runner.run(
             "observe", tasks.observe, keys, shared=(source, config), progress=progress, weights=weights

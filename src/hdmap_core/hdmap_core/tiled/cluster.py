@@ -31,7 +31,14 @@ PerItem = Callable[[Any], tuple]
 
 
 class Runner(Protocol):
-    """Runs ``fn(*shared, item, *per_item(item))`` for every item; results in item order."""
+    """Runs ``fn(*shared, item, *per_item(item))`` for every item; results in item order.
+
+    ``run_grouped`` runs ``fn(*shared, item)`` once for every item of the ``(label, items)``
+    groups (groups may share items), then ``group_fn(label, results of the group's items,
+    *group_shared)`` per group and ``reduce_fn(the groups' results in group order, *group_shared)``
+    once, and returns the latter; on a cluster the items' and the groups' results stay on the
+    workers (a block-wise reduction: the client receives only what ``reduce_fn`` returns).
+    """
 
     workers: int
 
@@ -45,6 +52,18 @@ class Runner(Protocol):
         progress: ProgressFn | None = None,
         weights: Sequence[float] | None = None,
     ) -> list: ...
+
+    def run_grouped(
+        self,
+        stage: str,
+        fn: Callable,
+        groups: Sequence[tuple[Any, Sequence]],
+        group_fn: Callable,
+        reduce_fn: Callable,
+        shared: tuple = (),
+        group_shared: tuple = (),
+        progress: ProgressFn | None = None,
+    ) -> Any: ...
 
     def peak_rss_mb(self) -> dict[str, float]: ...
 
@@ -74,6 +93,33 @@ class SerialRunner:
             if progress is not None:
                 progress(stage, i + 1, len(items))
         return out
+
+    def run_grouped(
+        self,
+        stage: str,
+        fn: Callable,
+        groups: Sequence[tuple[Any, Sequence]],
+        group_fn: Callable,
+        reduce_fn: Callable,
+        shared: tuple = (),
+        group_shared: tuple = (),
+        progress: ProgressFn | None = None,
+    ) -> Any:
+        last = {item: g for g, (_, items) in enumerate(groups) for item in items}  # last group using it
+        total, done, out = len(last), 0, []
+        cache: dict = {}
+        for g, (label, items) in enumerate(groups):
+            for item in items:
+                if item not in cache:
+                    cache[item] = fn(*shared, item)
+                    done += 1
+                    if progress is not None:
+                        progress(stage, done, total)
+            out.append(group_fn(label, [cache[i] for i in items], *group_shared))
+            for item in items:
+                if last[item] == g:
+                    cache.pop(item, None)
+        return reduce_fn(out, *group_shared)
 
     def peak_rss_mb(self) -> dict[str, float]:
         """{"main": peak RSS of this process} [MB]."""
@@ -187,6 +233,80 @@ class DaskRunner:
                 progress(stage, done, len(items))
             submit()
         for f in shared_f:
+            f.release()
+        return out
+
+    def run_grouped(
+        self,
+        stage: str,
+        fn: Callable,
+        groups: Sequence[tuple[Any, Sequence]],
+        group_fn: Callable,
+        reduce_fn: Callable,
+        shared: tuple = (),
+        group_shared: tuple = (),
+        progress: ProgressFn | None = None,
+    ) -> Any:
+        """Groups submitted in the order given (put the heaviest first); a group's items (those
+        not submitted before) and its group task together, at most ``in_flight`` x workers groups
+        unfinished. An item's result is released once every group using it is submitted."""
+        from distributed import as_completed  # noqa: PLC0415
+
+        shared_f = [self.client.scatter(v, broadcast=True, hash=False) for v in shared]
+        gshared_f = [self.client.scatter(v, broadcast=True, hash=False) for v in group_shared]
+        tag = f"{id(groups):x}"
+        last = {item: g for g, (_, items) in enumerate(groups) for item in items}
+        total = len(last)
+        done = 0
+        futs: dict = {}  # item -> future, until its last group is submitted
+        pending = as_completed()
+        group_futs: list = []
+        is_group: set = set()
+        limit = self.in_flight * self.workers
+        todo = iter(enumerate(groups))
+
+        def submit() -> None:
+            while sum(not f.done() for f in group_futs) < limit:
+                nxt = next(todo, None)
+                if nxt is None:
+                    return
+                g, (label, items) = nxt
+                for item in items:
+                    if item not in futs:
+                        futs[item] = self.client.submit(
+                            fn, *shared_f, item, pure=False, key=f"{stage}-{len(futs)}-{g}-{tag}"
+                        )
+                        pending.add(futs[item])
+                parts = [futs[i] for i in items]
+                gfut = self.client.submit(
+                    group_fn, label, parts, *gshared_f, pure=False, key=f"{stage}-group-{g}-{tag}"
+                )
+                group_futs.append(gfut)
+                is_group.add(gfut.key)
+                pending.add(gfut)
+                for item in items:
+                    if last[item] == g:
+                        finished_with.add(futs[item].key)
+                        if futs[item].key in completed:
+                            futs[item].release()
+
+        finished_with: set = set()  # items whose last group is submitted
+        completed: set = set()
+        submit()
+        for fut in pending:
+            if fut.status == "error":
+                fut.result()  # a task's error is raised here, named by Dask
+            if fut.key not in is_group:  # a group's result stays on its worker
+                completed.add(fut.key)
+                done += 1
+                if progress is not None:
+                    progress(stage, done, total)
+            submit()
+            if fut.key in finished_with:
+                fut.release()
+        reduced = self.client.submit(reduce_fn, group_futs, *gshared_f, pure=False, key=f"{stage}-reduce-{tag}")
+        out = reduced.result()
+        for f in [reduced, *group_futs, *shared_f, *gshared_f]:
             f.release()
         return out
 

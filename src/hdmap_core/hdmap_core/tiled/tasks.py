@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 
 from hdmap_core.live.tiles import TileKey, connect_tile, map_clips, observe_clips
 from hdmap_core.pipeline.adjustment import OffsetModel
+from hdmap_core.tiled.adjust import BlockKey, block_of, coarse_shifts, merge_blocks, solve_block
 
 if TYPE_CHECKING:
     from hdmap_core.graph.segment_graph import SegmentGraph
@@ -23,12 +24,43 @@ if TYPE_CHECKING:
     from hdmap_core.steps import StepObservations
     from hdmap_core.tiled.clips import TileSource
 
-__all__ = ["observe", "map_connect", "model_of"]
+__all__ = ["observe", "observe_keyed", "solve_block_of", "coarse_merge", "map_connect", "model_of"]
 
 
 def observe(source: TileSource, pipeline_config: PipelineConfig, key: TileKey) -> list[StepObservations]:
     """The observation pass of one tile: its steps' observations, in full-drive distances."""
     return observe_clips(source.clips(key), key, tile_config=source.tile_config, pipeline_config=pipeline_config)
+
+
+def observe_keyed(
+    source: TileSource, pipeline_config: PipelineConfig, key: TileKey
+) -> tuple[TileKey, list[StepObservations]]:
+    """``observe`` with the tile's key (the block-wise adjustment groups them by block)."""
+    return key, observe(source, pipeline_config, key)
+
+
+def solve_block_of(
+    block: BlockKey,
+    parts: list[tuple[TileKey, list[StepObservations]]],
+    pipeline_config: PipelineConfig,
+    block_tiles: int,
+) -> tuple[BlockKey, OffsetModel]:
+    """The adjustment of one block (its tiles and halo) from their ``observe_keyed`` results
+    (``tiled.adjust``); ``stats["observations"]``: those of the block's own tiles."""
+    observations = [o for _, obs in parts for o in obs]
+    own = sum(len(obs) for key, obs in parts if block_of(key, block_tiles) == block)
+    model = solve_block(observations, pipeline_config.adjustment)
+    return block, replace(model, stats={**model.stats, "observations": own})
+
+
+def coarse_merge(
+    blocks: list[tuple[BlockKey, OffsetModel]], pipeline_config: PipelineConfig, block_tiles: int
+) -> OffsetModel:
+    """The coarse solve over the blocks' models and their merge: the fleet's offset model."""
+    models = dict(blocks)
+    model = merge_blocks(models, coarse_shifts(models, pipeline_config.adjustment))
+    n_obs = sum(int(m.stats.get("observations", 0)) for m in models.values())
+    return replace(model, stats={**model.stats, "observations": n_obs})
 
 
 def map_connect(

@@ -123,6 +123,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="M",
         help=f"context mapped around a tile [m] (default: {TILE_DEFAULTS['margin_m']:g})",
     )
+    tiled.add_argument(
+        "--block-tiles",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the offset adjustment block-wise over blocks of N x N tiles with a global coarse solve, as tasks "
+        "on the workers (default: one network-wide solve in this process)",
+    )
     tiled.add_argument("--index", metavar="FILE", help="keep the tile index in FILE (default: a temporary file)")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
     parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
@@ -328,6 +336,7 @@ def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
             scheduler=args.scheduler,
             index_path=args.index,
             progress=progress,
+            block_tiles=args.block_tiles,
         )
     index, result = got.index, got.result
     for _did, _reason, text in got.rejected:
