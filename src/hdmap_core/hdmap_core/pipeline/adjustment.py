@@ -48,6 +48,9 @@ from hdmap_core.errors import ConfigError
 from hdmap_core.pipeline import adjustment_assoc as assoc
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
+# The solver's building blocks (knot_layout, design_matrix, prior_matrix, reduced_normal, NormalSolver,
+# update_normal, sample_residuals, robust_weights, pool_offsets, coarse_config) are public but not
+# in __all__: adjustment_local.update_offsets solves new drives with them against a fixed fleet.
 
 _LOSSES = ("linear", "huber", "cauchy")
 _REWEIGHT_REL = 0.05  # IRLS: a sample is re-weighted only when its weight changes by more than 5 %
@@ -305,7 +308,7 @@ class _Layout:
     n_unknowns: int
 
 
-def _layout(samples: assoc.Samples, cfg: AdjustConfig) -> _Layout:
+def knot_layout(samples: assoc.Samples, cfg: AdjustConfig) -> _Layout:
     n_drives = len(samples.drive_ids)
     if cfg.drift_sigma_m == 0:
         n_knots = np.zeros(n_drives, dtype=np.int64)
@@ -322,7 +325,7 @@ def _layout(samples: assoc.Samples, cfg: AdjustConfig) -> _Layout:
     return _Layout(k0, n_knots, col0, int((1 + n_knots).sum()))
 
 
-def _design(samples: assoc.Samples, lay: _Layout, cfg: AdjustConfig) -> sp.csr_matrix:
+def design_matrix(samples: assoc.Samples, lay: _Layout, cfg: AdjustConfig) -> sp.csr_matrix:
     """(n, p) matrix A with o(s_i) = A[i] @ theta (bias + linear interpolation of the drift)."""
     n = samples.s_m.size
     d = samples.drive
@@ -339,7 +342,7 @@ def _design(samples: assoc.Samples, lay: _Layout, cfg: AdjustConfig) -> sp.csr_m
     return sp.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(n, lay.n_unknowns))
 
 
-def _prior(lay: _Layout, cfg: AdjustConfig) -> sp.csr_matrix:
+def prior_matrix(lay: _Layout, cfg: AdjustConfig) -> sp.csr_matrix:
     """(p, p) prior information: bias ~ N(0, sb^2), drift an exact AR(1) chain on the knots."""
     diag_b = sp.csr_matrix(
         (np.full(lay.col0.size, cfg.bias_sigma_m**-2), (lay.col0, lay.col0)), shape=(lay.n_unknowns,) * 2
@@ -368,7 +371,7 @@ def _prior(lay: _Layout, cfg: AdjustConfig) -> sp.csr_matrix:
     return (diag_b + jac.T @ jac).tocsr()
 
 
-def _reduced_normal(
+def reduced_normal(
     a: sp.csr_matrix, cluster: np.ndarray, n_clusters: int, info: np.ndarray, lateral: np.ndarray
 ) -> tuple[sp.csr_matrix, np.ndarray]:
     """Normal matrix and right-hand side with the cluster positions eliminated (Schur complement).
@@ -389,7 +392,7 @@ def _reduced_normal(
     return h.tocsr(), np.asarray(rhs).ravel()
 
 
-def _update_normal(
+def update_normal(
     h: sp.csr_matrix,
     rhs: np.ndarray,
     a: sp.csr_matrix,
@@ -413,15 +416,15 @@ def _update_normal(
     if rows.size == 0:
         return h, rhs, old_info
     if rows.size > samples.s_m.size // 3:  # cheaper to rebuild than to subtract and add
-        h_all, rhs_all = _reduced_normal(a, samples.cluster, samples.n_clusters, new_info, samples.lateral_m)
+        h_all, rhs_all = reduced_normal(a, samples.cluster, samples.n_clusters, new_info, samples.lateral_m)
         return (h_all + prior).tocsr(), rhs_all, new_info
     a_sub, c_sub, l_sub = a[rows], samples.cluster[rows], samples.lateral_m[rows]
-    h_old, rhs_old = _reduced_normal(a_sub, c_sub, samples.n_clusters, old_info[rows], l_sub)
-    h_new, rhs_new = _reduced_normal(a_sub, c_sub, samples.n_clusters, new_info[rows], l_sub)
+    h_old, rhs_old = reduced_normal(a_sub, c_sub, samples.n_clusters, old_info[rows], l_sub)
+    h_new, rhs_new = reduced_normal(a_sub, c_sub, samples.n_clusters, new_info[rows], l_sub)
     return (h + (h_new - h_old)).tocsr(), rhs + (rhs_new - rhs_old), new_info
 
 
-class _Solver:
+class NormalSolver:
     """Solves the SPD systems of the IRLS loop.
 
     The first system is factorised (SuperLU in symmetric mode); the re-weighted ones differ little,
@@ -448,7 +451,7 @@ class _Solver:
         return self._lu.solve(rhs)
 
 
-def _robust_weights(r: np.ndarray, scale_m: float, loss: str) -> np.ndarray:
+def robust_weights(r: np.ndarray, scale_m: float, loss: str) -> np.ndarray:
     """IRLS weights of residuals ``r`` [m] for the given loss with threshold ``scale_m``."""
     z = np.abs(r) / scale_m
     if loss == "huber":
@@ -458,7 +461,7 @@ def _robust_weights(r: np.ndarray, scale_m: float, loss: str) -> np.ndarray:
     return np.ones_like(r)
 
 
-def _residuals(a: sp.csr_matrix, theta: np.ndarray, samples: assoc.Samples, info: np.ndarray) -> np.ndarray:
+def sample_residuals(a: sp.csr_matrix, theta: np.ndarray, samples: assoc.Samples, info: np.ndarray) -> np.ndarray:
     v = samples.lateral_m + a @ theta
     w_c = np.maximum(np.bincount(samples.cluster, weights=info, minlength=samples.n_clusters), 1e-300)
     mean_v = np.bincount(samples.cluster, weights=info * v, minlength=samples.n_clusters) / w_c
@@ -502,7 +505,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         )
         samples = assoc.select(pool, label, THIN_DRIVES)
         if samples.s_m.size:
-            coarse = _coarse_config(cfg)
+            coarse = coarse_config(cfg)
             coarse_fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
             model = OffsetModel(**base, drives=_curves(samples, coarse_fit.layout, coarse_fit.theta, None))
             label, n = _shift_and_reassociate(pool, label, model, cfg)
@@ -541,7 +544,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     return OffsetModel(**base, drives=_curves(samples, lay, theta, cov), stats=stats)
 
 
-def _coarse_config(cfg: AdjustConfig) -> AdjustConfig:
+def coarse_config(cfg: AdjustConfig) -> AdjustConfig:
     """One constant per drive (prior: the total offset variance), Huber, few iterations."""
     return replace(
         cfg,
@@ -556,7 +559,7 @@ def _shift_and_reassociate(
     pool: assoc.Pool, label: np.ndarray, model: OffsetModel, cfg: AdjustConfig
 ) -> tuple[np.ndarray, int]:
     """Lane-shift search per drive, then re-association at the gate; returns labels and #shifted drives."""
-    offset = _pool_offsets(pool, model)
+    offset = pool_offsets(pool, model)
     cen = assoc.centres(pool, label, pool.lateral_m + offset)
     bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
     shift = assoc.lane_shift_search(
@@ -583,11 +586,11 @@ def _fit_all(pool: assoc.Pool, label: np.ndarray, cfg: AdjustConfig) -> tuple[as
         # RULE coarse-to-fine: a drive associated a lane off over a stretch gives samples that
         # agree with each other but not with the rest of the drive. A curve would follow them;
         # one constant per drive does not, so they stand out here and are dropped.
-        keep = np.abs(_irls(samples, _coarse_config(cfg), keep).residual) <= cfg.coarse_reject_m
+        keep = np.abs(_irls(samples, coarse_config(cfg), keep).residual) <= cfg.coarse_reject_m
     return samples, _irls(samples, cfg, keep), keep
 
 
-def _pool_offsets(pool: assoc.Pool, model: OffsetModel) -> np.ndarray:
+def pool_offsets(pool: assoc.Pool, model: OffsetModel) -> np.ndarray:
     """(n,) offset of every pool sample under ``model`` (0 for drives it does not know)."""
     out = np.zeros(pool.s_m.size)
     order = np.argsort(pool.drive, kind="stable")
@@ -612,27 +615,27 @@ class _Fit:
 
 def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
     """Solve the adjustment with IRLS re-weighting; samples outside ``keep`` have weight 0."""
-    lay = _layout(samples, cfg)
-    a = _design(samples, lay, cfg)
-    prior = _prior(lay, cfg)
+    lay = knot_layout(samples, cfg)
+    a = design_matrix(samples, lay, cfg)
+    prior = prior_matrix(lay, cfg)
     info0 = np.where(keep, cfg.noise_sigma_m**-2, 0.0)
     theta = np.zeros(lay.n_unknowns)
     warmup = HUBER_WARMUP_ITERATIONS if cfg.loss == "cauchy" else 0
     info = info0.copy()
-    h, rhs = _reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
+    h, rhs = reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
     h = (h + prior).tocsr()
-    solver = _Solver()
+    solver = NormalSolver()
     it, change = 0, 0.0
     for it in range(1, cfg.iterations + 1):
         new_theta = solver.solve(h, rhs, theta)
         change = float(np.max(np.abs(new_theta - theta), initial=0.0))
         theta = new_theta
-        r = _residuals(a, theta, samples, info)
+        r = sample_residuals(a, theta, samples, info)
         # solve k uses the weights from solve k-1's residuals; Huber for solves 2..1+warmup
         if cfg.loss == "linear" or it == cfg.iterations or (it >= 2 + warmup and change < TOL_M):
             break
-        weights = _robust_weights(r, ROBUST_K * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
-        h, rhs, info = _update_normal(h, rhs, a, samples, prior, info, info0 * weights)
+        weights = robust_weights(r, ROBUST_K * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
+        h, rhs, info = update_normal(h, rhs, a, samples, prior, info, info0 * weights)
     return _Fit(lay, theta, h, info, r, it, change)
 
 

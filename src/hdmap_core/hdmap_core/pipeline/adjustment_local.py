@@ -45,17 +45,17 @@ from hdmap_core.pipeline.adjustment import (
     TOL_M,
     AdjustConfig,
     DriveOffset,
+    NormalSolver,
     OffsetModel,
-    _coarse_config,
-    _design,
-    _layout,
-    _pool_offsets,
-    _prior,
-    _reduced_normal,
-    _residuals,
-    _robust_weights,
-    _Solver,
-    _update_normal,
+    coarse_config,
+    design_matrix,
+    knot_layout,
+    pool_offsets,
+    prior_matrix,
+    reduced_normal,
+    robust_weights,
+    sample_residuals,
+    update_normal,
 )
 
 __all__ = ["update_offsets", "steps_of"]
@@ -107,7 +107,7 @@ def update_offsets(
     pool = assoc.gather(local, stats)
     free_set.update(d for d in pool.drive_ids if d not in model.drives)
     is_free = np.array([d in free_set for d in pool.drive_ids], dtype=bool)
-    old = _pool_offsets(pool, model)  # the old model's offsets (0 for new drives): a warm start
+    old = pool_offsets(pool, model)  # the old model's offsets (0 for new drives): a warm start
     fixed_off = np.where(is_free[pool.drive], 0.0, old) if pool.s_m.size else old
     base: dict[str, Any] = dict(
         knot_spacing_m=cfg.knot_spacing_m,
@@ -149,7 +149,7 @@ def _shift_free(
     pool: assoc.Pool, label: np.ndarray, model: OffsetModel, is_free: np.ndarray, cfg: AdjustConfig
 ) -> tuple[np.ndarray, int]:
     """Lane-shift search for the free drives only, then re-association at the gate."""
-    offset = _pool_offsets(pool, model)
+    offset = pool_offsets(pool, model)
     cen = assoc.centres(pool, label, pool.lateral_m + offset)
     bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
     shift = assoc.lane_shift_search(
@@ -178,7 +178,7 @@ def _fit_local(
     keep = np.ones(samples.s_m.size, dtype=bool)
     if cfg.coarse_reject_m > 0 and cfg.drift_sigma_m > 0:
         # RULE coarse-to-fine, as in the global adjustment (one constant per free drive first)
-        _, _, r = _irls_free(shifted, free_d, _coarse_config(cfg), keep)
+        _, _, r = _irls_free(shifted, free_d, coarse_config(cfg), keep)
         keep = np.abs(r) <= cfg.coarse_reject_m
     lay, (theta, iterations), _ = _irls_free(shifted, free_d, cfg, keep)
     out: dict[str, DriveOffset] = {}
@@ -211,26 +211,26 @@ def _irls_free(
     """The global adjustment's IRLS loop (``adjustment._irls``) with only the free drives' columns
     unknown; ``samples.lateral_m`` already holds the fixed drives' corrected positions. Returns the
     layout of all drives, (theta of the free columns, iterations) and the residuals."""
-    lay = _layout(samples, cfg)
+    lay = knot_layout(samples, cfg)
     cols = _free_columns(lay, free_d)
-    a = _design(samples, lay, cfg)[:, cols].tocsr()
-    prior = _prior(lay, cfg)[cols][:, cols].tocsr()  # a drive's prior couples its own columns only
+    a = design_matrix(samples, lay, cfg)[:, cols].tocsr()
+    prior = prior_matrix(lay, cfg)[cols][:, cols].tocsr()  # a drive's prior couples its own columns only
     info0 = np.where(keep, cfg.noise_sigma_m**-2, 0.0)
     theta = np.zeros(cols.size)
     warmup = HUBER_WARMUP_ITERATIONS if cfg.loss == "cauchy" else 0
     info = info0.copy()
-    h, rhs = _reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
+    h, rhs = reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
     h = sp.csr_matrix(h + prior)
-    solver = _Solver()
+    solver = NormalSolver()
     it = 0
     r = np.zeros(samples.s_m.size)
     for it in range(1, cfg.iterations + 1):
         new_theta = solver.solve(h, rhs, theta)
         change = float(np.max(np.abs(new_theta - theta), initial=0.0))
         theta = new_theta
-        r = _residuals(a, theta, samples, info)
+        r = sample_residuals(a, theta, samples, info)
         if cfg.loss == "linear" or it == cfg.iterations or (it >= 2 + warmup and change < TOL_M):
             break
-        weights = _robust_weights(r, ROBUST_K * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
-        h, rhs, info = _update_normal(h, rhs, a, samples, prior, info, info0 * weights)
+        weights = robust_weights(r, ROBUST_K * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
+        h, rhs, info = update_normal(h, rhs, a, samples, prior, info, info0 * weights)
     return lay, (theta, it), r
