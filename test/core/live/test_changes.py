@@ -1,5 +1,6 @@
-"""Road changes followed by the live map (hdmap_core/live/changes.py): the offline change rule on
-the settled map, only the changed region rebuilt; the history's documents and ids."""
+"""Road changes followed by the live map (hdmap_core/live/changes.py): bag2map's ``follow_map`` on
+the settled map, only the changed places rebuilt; the history's documents and ids. The splice
+itself is tested in test/core/updates/test_splice.py."""
 
 from __future__ import annotations
 
@@ -10,16 +11,13 @@ import pytest
 
 from hdmap_core.evaluation.zone import evaluate_zone
 from hdmap_core.live.changes import (
-    LiveFollow,
     change_from_dict,
     change_polygon,
     change_to_dict,
     follow_live,
     live_changes,
     new_changes,
-    splice,
 )
-from hdmap_core.model import FeatureType, HDMap, MapFeature
 from hdmap_core.pipeline.driver import PipelineConfig, build_map
 from hdmap_core.simulation.changes import change_zone, parse_change
 from hdmap_core.simulation.config import SimConfig
@@ -28,51 +26,15 @@ from hdmap_core.simulation.synthetic import synthetic_highway
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import detect_changes
 from hdmap_core.updates.evidence import fleet_evidence
-from hdmap_core.updates.places import Places, places_of
+from hdmap_core.updates.follow import FollowResult, follow_changes
+from hdmap_core.updates.places import places_of
+from hdmap_core.updates.splice import grow
 
 N_BEFORE, N_AFTER = 14, 4
 SIM = SimConfig(
     n_drives=N_BEFORE + N_AFTER, snippet_length_min_m=1300.0, snippet_length_max_m=1500.0, direction_bias=1.0
 )
 CHANGE = f"shift:400-1100:1.5:fwd_lane2@{N_BEFORE}"
-
-
-def _feature(fid, xs, y, pred=(), succ=()):
-    pts = np.stack([np.asarray(xs, dtype=float), np.full(len(xs), float(y))], axis=1)
-    n = len(pts)
-    return MapFeature(fid, FeatureType.SOLID, pts, np.full(n, 5, dtype=np.uint16), np.full(n, 0.1), pred, succ)
-
-
-def test_splice_replaces_exactly_the_changed_places_and_keeps_the_links_of_kept_ends():
-    places = Places(100.0, {(i, 0): 0.0 for i in range(4)})  # a road along +x, cells 0..3
-    changed = {(1, 0, 0), (2, 0, 0)}  # x in [100, 300) driving along +x
-    xs = np.arange(0.0, 400.0, 5.0)
-    inlet = _feature(3, [-50.0, -5.0], 50.0, succ=(1,))  # ends where line 1 starts
-    line = _feature(1, xs, 50.0, pred=(3,), succ=(4,))
-    outlet = _feature(4, [400.0, 450.0], 50.0, pred=(1,))
-    into = _feature(5, [-50.0, -5.0], 30.0, succ=(6,))  # ends where 6 starts, inside the zone
-    inside = _feature(6, xs[(xs >= 150) & (xs < 250)], 30.0, pred=(5,))
-    short = _feature(7, xs[:10], 20.0)
-    consensus = HDMap(features=(inlet, line, outlet, into, inside, short), version=3)
-    rebuilt = HDMap(features=(_feature(1, xs, 51.5, pred=(3,)),))  # the same line, moved, everywhere
-    out = splice(consensus, rebuilt, places, changed)
-    ids = [f.id for f in out.features]
-    assert len(ids) == len(set(ids)) and 6 not in ids  # a feature wholly inside is gone
-    by_y = lambda y: [f for f in out.features if np.allclose(f.points[:, 1], y)]  # noqa: E731
-    old = sorted((f for f in by_y(50.0) if len(f.points) > 2), key=lambda f: f.points[0, 0])
-    (new,) = by_y(51.5)
-    assert [(f.points[0, 0], f.points[-1, 0]) for f in old] == [(0.0, 95.0), (300.0, 395.0)]
-    assert (new.points[0, 0], new.points[-1, 0]) == (100.0, 295.0) and new.id > 7
-    assert new.predecessors == () and new.successors == ()  # rebuilt pieces: no links
-    # the piece that starts where line 1 started keeps its id and its predecessor; the piece that
-    # ends where it ended has a new id, the successor and the outlet's predecessor link
-    head, tail = old
-    assert head.id == 1 and head.predecessors == (3,) and head.successors == ()
-    assert tail.id > 7 and tail.predecessors == () and tail.successors == (4,)
-    got = {f.id: f for f in out.features}
-    assert got[4].predecessors == (tail.id,) and got[3].successors == (1,)
-    assert got[5].successors == ()  # its successor's start was inside the changed places
-    assert got[7].points.shape == short.points.shape and out.version == 3
 
 
 def test_polygon_history_document_and_new_changes():
@@ -86,7 +48,7 @@ def test_polygon_history_document_and_new_changes():
         def __init__(self, i):
             self.id = i
 
-    assert [c.id for c in new_changes({5: None}, [_C(5), _C(6)])] == [6]
+    assert [c.id for c in new_changes({5: None}, [_C(5), _C(6)])] == [6]  # type: ignore[list-item]
 
 
 @pytest.fixture(scope="module")
@@ -111,12 +73,30 @@ def test_follow_live_finds_the_offline_change_and_rebuilds_only_its_region(moved
     places = places_of(fleet.drives, cell_m=ChangeConfig().cell_m)
     offline = detect_changes(fleet_evidence(fleet.drives, first, places, config=ChangeConfig()), places)
     assert [c.id for c in result.changes] == [c.id for c in offline] and len(offline) == 1
-    # one build, of the drives clipped to the changed places grown by the margin
+    # one build, of the drives clipped to the rebuilt places (the changed ones and their tapers)
+    # grown by the margin of 2 places; the map is the settled one outside the rebuilt places
     (region,) = built
-    ij = np.array([k[:2] for k in result.changes[0].keys])
-    lo, hi = ij.min(axis=0) * 100.0 - 128.0, (ij.max(axis=0) + 1) * 100.0 + 128.0
-    pts = np.concatenate([d.xy for d in region])
-    assert (pts >= lo).all() and (pts < hi).all()
+    assert set(result.changes[0].keys) <= result.rebuilt
+    margin = grow(places, result.rebuilt, 2)
+    assert all(k in margin for d in region for k in places.keys(d.xy, d.yaw))
+    every = {k for d in fleet.drives for k in places.keys(d.xy, d.yaw)}
+    assert len(every & margin) < len(every)  # not the whole road
+    # exactly bag2map's code: follow_changes with the settled map as its first build gives this map
+    calls: list[int] = []
+
+    def offline_build(drives):
+        calls.append(len(drives))
+        return (first if len(calls) == 1 else build(drives)), None
+
+    offline_follow = follow_changes(fleet.drives, build=offline_build)
+    assert calls[0] == len(fleet.drives) and len(calls) == 2
+    assert [f.id for f in offline_follow.map.features] == [f.id for f in result.map.features]
+    for a, b in zip(offline_follow.map.features, result.map.features):
+        np.testing.assert_array_equal(a.points, b.points)
+        assert (a.predecessors, a.successors) == (b.predecessors, b.successors)
+    assert [(n.id, n.successors, n.features) for n in offline_follow.map.topology] == [
+        (n.id, n.successors, n.features) for n in result.map.topology
+    ]
     # the zone follows the road as it is now; the old pieces are retired with the change's time
     zones = [change_zone(road, parse_change(CHANGE))]
     gt_now = fleet.extra["gt_after"]
@@ -149,5 +129,5 @@ def test_no_change_keeps_the_map_and_builds_nothing():
         raise AssertionError("nothing to rebuild")
 
     result = follow_live(first, fleet.drives, build=build)
-    assert isinstance(result, LiveFollow) and result.changes == () and result.map is first
+    assert isinstance(result, FollowResult) and result.changes == () and result.map is first
     assert follow_live(first, [], build=build).map is first

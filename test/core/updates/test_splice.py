@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
@@ -82,3 +84,32 @@ def test_shifted_moves_features_left_by_their_place_and_grow_adds_neighbours():
     assert shifted(hdmap, {}, PLACES) is hdmap
     assert grow(PLACES, CORE, 1) == {(1, 0, 0), (2, 0, 0), (3, 0, 0)}
     assert grow(PLACES, CORE, 0) == CORE
+
+
+def _solid(fid: int, x0: float, x1: float, y: float, pred=(), succ=()) -> MapFeature:
+    return replace(_line(fid, x0, x1, y, FeatureType.SOLID), predecessors=tuple(pred), successors=tuple(succ))
+
+
+def test_splice_keeps_the_links_of_the_ends_it_keeps():
+    # the live map of motorway_ramps had lost a lane split's connection outside the zone: a feature
+    # cut by the changed place must keep the links at its ends outside it, on the pieces holding them
+    inlet = _solid(3, 0.0, 100.0, 10.0, succ=(1,))  # ends where line 1 starts
+    line = _solid(1, 100.0, 400.0, 10.0, pred=(3,), succ=(4,))  # crosses the changed place
+    outlet = _solid(4, 400.0, 500.0, 10.0, pred=(1,))
+    into = _solid(5, 0.0, 198.0, 30.0, succ=(6,))  # ends just before the changed place ...
+    onward = _solid(6, 200.0, 500.0, 30.0, pred=(5,))  # ... where 6 starts; 6 leaves it at 300
+    first = HDMap(features=(inlet, line, outlet, into, onward))
+    out = splice(first, HDMap(), PLACES, CORE)
+    by_id = {f.id: f for f in out.features}
+    assert len(by_id) == len(out.features)
+    head = by_id[1]  # the piece that starts where line 1 started keeps its id and predecessor
+    assert (head.points[0, 0], head.points[-1, 0]) == (100.0, 198.0)
+    assert head.predecessors == (3,) and head.successors == ()
+    (tail,) = [f for f in out.features if f.id not in (1, 3, 4, 5, 6) and f.points[0, 1] == 10.0]
+    assert (tail.points[0, 0], tail.points[-1, 0]) == (300.0, 400.0)  # holds its last point: its links
+    assert tail.predecessors == () and tail.successors == (4,)
+    assert by_id[3].successors == (1,) and by_id[4].predecessors == (tail.id,)
+    # a link to an end the changed place took is dropped, not moved to a piece 100 m on
+    assert by_id[5].points.shape == into.points.shape and by_id[5].successors == ()
+    (rest,) = [f for f in out.features if f.points[0, 1] == 30.0 and f.points[0, 0] >= 300.0]
+    assert rest.id == 6 and rest.predecessors == ()  # 6's only piece, from the changed place's end

@@ -13,6 +13,10 @@
 4. What the changed places held in the first map is retired, not forgotten: ``RetiredFeature``
    (the feature's piece there, valid until the change's time) in ``HDMap.extra["retired"]``;
    the changes are in ``HDMap.extra["changes"]``, and the map's version counts them.
+
+``follow_changes`` is step 1 and then ``follow_map`` (steps 2-4) on the map it built. The node
+suite calls ``follow_map`` itself on its settled map (``live.changes.follow_live``), so the live
+map follows a change with exactly the code ``bag2map`` uses.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ __all__ = [
     "RetiredFeature",
     "FollowResult",
     "follow_changes",
+    "follow_map",
     "anchored",
     "cut_before_changes",
     "clip_to_places",
@@ -83,7 +88,8 @@ class FollowResult:
         seconds: wall time per stage: ``build`` (the first map), ``detect`` (evidence and change
             points), ``rebuild`` (the second build), ``apply`` (alignment and splice).
         report: the build's report: the first (whole) build's with a local rebuild, else the
-            rebuild's.
+            rebuild's (``follow_changes``; None from ``follow_map``, whose build gives none).
+        places: the places the drives were compared in (None when nothing was compared).
     """
 
     map: HDMap
@@ -93,6 +99,7 @@ class FollowResult:
     report: object
     rebuilt: frozenset[PlaceKey] = frozenset()
     seconds: dict[str, float] = field(default_factory=dict, compare=False)
+    places: Places | None = field(default=None, compare=False)
 
 
 def _change_times(changes: Sequence[DetectedChange]) -> dict[PlaceKey, int]:
@@ -255,7 +262,8 @@ def follow_changes(
     margin_places: int = 2,
     taper_places: int = 1,
 ) -> FollowResult:
-    """The map of ``drives`` as of the last of them (module docstring).
+    """The map of ``drives`` as of the last of them: the map of every drive (``build``), then
+    :func:`follow_map` on it (module docstring).
 
     Args:
         drives: the fleet's drives (their time stamps order them).
@@ -265,30 +273,84 @@ def follow_changes(
             them (or malformed) is left out here as the build leaves it out, so that no evidence
             is computed on it (a pose at 1e12 m would ask for terabytes). ``drives`` is passed
             to ``build`` as given when every drive keeps them.
+        local, margin_places, taper_places: as :func:`follow_map`.
+    """
+    usable, rejected = prepare_drives(drives, bounds=bounds)
+    if rejected:
+        drives = usable
+    reports: list[object] = []
+
+    def map_only(ds: Sequence[Drive]) -> HDMap:
+        hdmap, report = build(ds)
+        reports.append(report)
+        return hdmap
+
+    t0 = time.perf_counter()
+    first_map = map_only(drives)
+    build_s = time.perf_counter() - t0
+    result = follow_map(
+        first_map,
+        drives,
+        build=map_only,
+        config=config,
+        local=local,
+        margin_places=margin_places,
+        taper_places=taper_places,
+    )
+    # the first (whole) build's report, unless the whole map was built again
+    report = reports[-1] if result.changes and not local else reports[0]
+    return replace(result, report=report, seconds={"build": build_s, **result.seconds})
+
+
+def follow_map(
+    first_map: HDMap,
+    drives: Sequence[Drive],
+    *,
+    build: Callable[[Sequence[Drive]], HDMap],
+    config: ChangeConfig = ChangeConfig(),
+    local: bool = True,
+    margin_places: int = 2,
+    taper_places: int = 1,
+) -> FollowResult:
+    """An existing map of ``drives`` made to follow the changes of the road they show.
+
+    This is :func:`follow_changes` after its first build, shared by ``bag2map`` (its first build)
+    and the node suite (the stitcher's settled map, ``live.changes.follow_live``), steps 2-4 of the
+    module docstring: every drive is compared with ``first_map`` place by place, the changes are
+    confirmed (markings moved, re-striped, gone or new; an edge line moved: a lane closed or
+    opened), and only when there is one the changed places are mapped again and put into it.
+
+    Args:
+        first_map: the consensus of every drive in ``drives`` (the map to follow the changes on).
+        drives: every drive it was built from, usable as they are (within the physical bounds);
+            their time stamps order them.
+        build: drives -> map: the pipeline as configured (``build_map(...).map``); called once,
+            and only when a change is confirmed.
+        config: change detection settings.
         local: rebuild only the changed places (grown by ``margin_places`` places for context),
-            aligned on the first map's road borders and spliced into it (``updates.splice``);
+            aligned on ``first_map``'s road borders and spliced into it (``updates.splice``);
             False: rebuild the whole map from every drive (cut and moved as above).
         margin_places: places around the changed ones mapped with them and thrown away.
         taper_places: with ``local``, the places this many before and after the changed ones
             along the drives after the change are rebuilt with them (from those drives only):
             the ends of a change (tapers) that detection left out.
+
+    Returns:
+        The followed map (``first_map`` itself when nothing changed, its version grown by the
+        number of changes otherwise), the changes, the retired pieces, the places compared in,
+        ``rebuilt`` (with ``local``) and the stages' wall time (``detect``, ``rebuild``, ``apply``).
+        ``report`` is None: ``build`` gives none.
     """
-    usable, rejected = prepare_drives(drives, bounds=bounds)
-    if rejected:
-        drives = usable
-    t0 = time.perf_counter()
-    first_map, report = build(drives)
-    first_report = report
     t1 = time.perf_counter()
-    seconds = {"build": t1 - t0}
     places = places_of(drives, cell_m=config.cell_m)
     evidence = fleet_evidence(drives, first_map, places, config=config)
     changes = detect_changes(evidence, places, config=config)
     edges = fleet_edge_evidence(drives, first_map, places, evidence, config=config)
     changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
-    t0, seconds["detect"] = time.perf_counter(), time.perf_counter() - t1
+    t0 = time.perf_counter()
+    seconds = {"detect": t0 - t1}
     if not changes:
-        return FollowResult(first_map, (), (), first_map, report, seconds=seconds)
+        return FollowResult(first_map, (), (), first_map, None, seconds=seconds, places=places)
     in_evidence = {d for c in changes for d in c.drives_after}
     anchors: dict[str, dict[PlaceKey, float]] = {}
     for e in evidence:
@@ -305,23 +367,22 @@ def follow_changes(
         region = grow(places, core, margin_places)
         clipped = clip_to_places(cut, places, region)
         t1 = time.perf_counter()
-        local_map, report = build(clipped)
+        local_map = build(clipped)
         seconds["rebuild"] = time.perf_counter() - t1
         local_map = shifted(local_map, border_shift(local_map, first_map, after, places, core, config=config), places)
         new_map = splice(first_map, local_map, places, core)
-        report = first_report
     else:
         core = set()
         cut = cut_before_changes(moved, places, changes)
         t1 = time.perf_counter()
-        new_map, report = build(cut)
+        new_map = build(cut)
         seconds["rebuild"] = time.perf_counter() - t1
     start = min((d.start_ns for d in drives), default=0)
     retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start))
     extra = {**new_map.extra, "changes": list(changes), "retired": list(retired)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
     seconds["apply"] = time.perf_counter() - t0 - seconds["rebuild"]
-    return FollowResult(new_map, tuple(changes), retired, first_map, report, frozenset(core), seconds)
+    return FollowResult(new_map, tuple(changes), retired, first_map, None, frozenset(core), seconds, places=places)
 
 
 def history_to_dict(result: FollowResult) -> dict:

@@ -13,8 +13,11 @@ Following a change costs a build of the places it touches, not of the whole map:
 3. ``splice``: the first map's features lose their points in the changed places (a feature that
    crosses them is split into pieces; the first keeps the id), the local map's features give their
    points there (new ids), and the pieces are linked across each seam (same type, end within
-   ``_SEAM_M``). The topology graph the same way: the first map's nodes outside, the local map's
-   inside, a successor lost at a seam replaced by the nearest node ahead on the other side.
+   ``_SEAM_M``). A link between features stays where both its ends are kept: it goes to the
+   pieces holding them (a lane split next to the changed places keeps its connection); a link to
+   an end the changed places took is dropped. The topology graph the same way: the first map's
+   nodes outside, the local map's inside, a successor lost at a seam replaced by the nearest node
+   ahead on the other side.
 
 A place belongs to a point by its position and the direction of its feature (``Places.keys``): a
 feature runs in the driving direction, so the other carriageway in the same cell stays as it was.
@@ -168,28 +171,29 @@ def splice(first: HDMap, local: HDMap, places: Places, keys: set[PlaceKey]) -> H
                 )
                 out.append([piece, src, a > 0, b < len(pts)])
                 (first_pieces if src == "first" else local_pieces).setdefault(int(f.id), []).append(len(out) - 1)
-    # Links: within a source, a link to a feature that was split goes to its nearest piece;
-    # links to features wholly removed are dropped; seams are linked across.
+    # Links: within a source, a link follows the end it names: a successor link goes to the piece
+    # that kept the successor's first point, a predecessor link to the piece that kept the
+    # predecessor's last point; a link to an end the changed places took is dropped (not moved
+    # to a piece elsewhere). Seams are linked across below.
     feats: list[MapFeature] = [row[0] for row in out]
     pieces_of = {"first": first_pieces, "local": local_pieces}
 
-    def relink(ids: tuple[int, ...], src: str, at: np.ndarray, end: str) -> tuple[int, ...]:
+    def relink(ids: tuple[int, ...], src: str, end: str) -> tuple[int, ...]:
         got = []
         for i in ids:
             rows = pieces_of[src].get(int(i), [])
-            if not rows:
-                continue
-            pick = min(rows, key=lambda r: float(np.linalg.norm(feats[r].points[0 if end == "start" else -1] - at)))
-            got.append(int(feats[pick].id))
+            # out rows: [feature, source, cut at start, cut at end]
+            holder = next((r for r in rows if not out[r][2 if end == "start" else 3]), None)
+            if holder is not None:
+                got.append(int(feats[holder].id))
         return tuple(dict.fromkeys(got))
 
     for row in out:
         f, src = row[0], row[1]
-        pts = np.asarray(f.points, dtype=float)
-        if len(pts) < 2:
+        if len(f.points) < 2:
             continue
-        preds = relink(f.predecessors, src, pts[0], "end")
-        succs = relink(f.successors, src, pts[-1], "start")
+        preds = relink(f.predecessors, src, "end")
+        succs = relink(f.successors, src, "start")
         if preds != tuple(f.predecessors) or succs != tuple(f.successors):
             row[0] = replace(f, predecessors=preds, successors=succs)
     feats = [row[0] for row in out]

@@ -18,13 +18,13 @@ is published latched on ``/hdmap/status`` whenever it changes, from the mapper's
 
 Road changes (docs/updates.md, "Live"): once the map has settled (the mapper settled, every
 estimate stitched), the stitcher reads every drive from the mapper's store (``drive_db_path``,
-read-only) and follows the changes of the road as ``bag2map`` does (``live.changes.follow_live``,
-the offline ``hdmap_core.updates`` functions): the changed places are rebuilt from the drives after
-the change, their old pieces retired. Each change not yet in the history is published on
-``hdmap/changes`` (hdmap_msgs/MapChange, RELIABLE, TRANSIENT_LOCAL, depth 1000) and stored with
-the followed map in one transaction; the map's version grows by the number of new changes. A
-restart publishes the stored history again (same ids) and finds the same changes, which are not
-new.
+read-only) and follows the changes of the road with ``bag2map``'s code
+(``live.changes.follow_live``: ``updates.follow.follow_map`` on the settled map): the changed
+places are rebuilt from the drives after the change, aligned and spliced in with their topology,
+their old pieces retired. Each change not yet in the history is published on ``hdmap/changes``
+(hdmap_msgs/MapChange, RELIABLE, TRANSIENT_LOCAL, depth 1000) and stored with the followed map in
+one transaction; the map's version grows by the number of new changes. A restart publishes the
+stored history again (same ids) and finds the same changes, which are not new.
 
 Restart: the stored map is published again; if tiles changed after it was made it is rebuilt.
 """
