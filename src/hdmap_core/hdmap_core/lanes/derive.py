@@ -52,11 +52,12 @@ from __future__ import annotations
 import hashlib
 from bisect import bisect_left, bisect_right
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from hdmap_core.evaluation.cuts import Cuts, points_on_cuts
+from hdmap_core.evaluation.cuts import CutPoints, Cuts, points_on_cuts
 from hdmap_core.lanes.model import Boundary, Lane, LaneMap
 from hdmap_core.model import FeatureType, HDMap
 
@@ -77,6 +78,7 @@ JOIN_TOL_M = 1.0  # a boundary continues a boundary this close at the joint
 GAP_LINK_M = 15.0  # topology chain ends linked across gaps up to this distance
 BRIDGE_MAX_M = 60.0  # RULE 8: longest connector across a junction without markings
 BRIDGE_LATERAL_M = 1.0  # RULE 8: sideways offset of the lane ahead
+BRIDGE_TURN_M = 4.0  # RULE 8 turns: offset of the lane ahead where none lies in line
 BRIDGE_ANGLE_DEG = 20.0  # RULE 8: heading difference of the lane ahead
 _CUT_MARGIN_M = 3.0  # cut lines reach this far beyond the estimated road width
 _COS_SAME_DIRECTION = 0.7  # features crossing a cut within ~45 deg of its direction
@@ -97,6 +99,7 @@ _KIND = {
 _TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain (2 m apart)
 _TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
 _HANDOVER_M = 1.0  # RULE 10: a boundary that ends continues one starting this close at the next station
+_JOINT_MAX_M = LANE_WIDTH_MAX_M + _WIDTH_SLACK_M  # RULE 13: farthest joint of a boundary
 _KIND_MIN = 10  # RULE 10: stations (20 m): a shorter stretch of another kind along a boundary is noise
 
 
@@ -201,8 +204,9 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
     polylines = [np.asarray(f.points, dtype=float) for f in hdmap.features]
     length = [float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in polylines]
     cp = points_on_cuts(cuts, polylines, cos_min=_COS_SAME_DIRECTION)
-    order = np.lexsort((-cp.s, cp.cut))
-    cut, owner, s = cp.cut[order], cp.owner[order], cp.s[order]
+    cut, owner, s = _with_centre_lines(cp, cuts, polylines, [f.type for f in hdmap.features], half - _CUT_MARGIN_M)
+    order = np.lexsort((-s, cut))
+    cut, owner, s = cut[order], owner[order], s[order]
     xy = st.pos[cut] + s[:, None] * normal[cut]
     bounds = np.searchsorted(cut, np.arange(len(st) + 1)).tolist()
     rows = list(zip(owner.tolist(), s.tolist(), xy[:, 0].tolist(), xy[:, 1].tolist(), strict=True))
@@ -246,6 +250,33 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
             )
         )
     return _handover(st, out, types)
+
+
+def _with_centre_lines(
+    cp: CutPoints, cuts: Cuts, polylines: list[np.ndarray], types: list[FeatureType], half_road: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RULE 12 (two-way roads): per cut, the crossings of its direction ``(cut, owner, s)`` and,
+    left of all of them, the nearest crossing against its direction if that is a marking (not a
+    road border) inside the road (``|s| <= half_road``) within a lane's width of the leftmost own
+    crossing: the centre line of a two-way road, mapped in the other direction only, bounds the
+    lane beside it on the left."""
+    back = points_on_cuts(cuts, [p[::-1] for p in polylines], cos_min=_COS_SAME_DIRECTION)
+    if not len(back.cut):
+        return cp.cut, cp.owner, cp.s
+    k = len(cuts.center)
+    left = np.full(k, -np.inf)  # leftmost own crossing per cut
+    np.maximum.at(left, cp.cut, cp.s)
+    ahead = (back.s > left[back.cut]) & np.isfinite(left[back.cut])
+    c, o, sb = back.cut[ahead], back.owner[ahead], back.s[ahead]
+    order = np.lexsort((sb, c))
+    c, o, sb = c[order], o[order], sb[order]
+    first = np.flatnonzero(np.r_[True, c[1:] != c[:-1]]) if len(c) else np.zeros(0, dtype=np.int64)
+    c, o, sb = c[first], o[first], sb[first]
+    marking = np.array([types[i] in (FeatureType.SOLID, FeatureType.DASHED) for i in o.tolist()], dtype=bool)
+    gap = sb - left[c]
+    ok = marking & (np.abs(sb) <= half_road[c]) & (gap >= LANE_WIDTH_MIN_M - _WIDTH_SLACK_M)
+    ok &= gap <= LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
+    return np.r_[cp.cut, c[ok]], np.r_[cp.owner, o[ok]], np.r_[cp.s, sb[ok]]
 
 
 def _groups(st: _Stations, sections: list[_Section], types: list[int]) -> tuple[_Stations, list[_Section]]:
@@ -639,17 +670,19 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
             psec = sections[p]
             if not psec.features:
                 continue
-            prefix[r] = {}
-            for t, f, at in zip(sec.features, sec.labels, sec.xy, strict=True):
-                prefix[r][t] = (p, match(t, f, at, psec)[0])
+            joints = [(p, match(t, f, at, psec)[0]) for t, f, at in zip(sec.features, sec.labels, sec.xy, strict=True)]
+            if _near(joints, sec, point):
+                prefix[r] = dict(zip(sec.features, joints, strict=True))
         elif len(preds) > 1 and sec.features:  # a merge: the preceding runs end at the joints of a
             for p in preds:
                 for q in run_of_last.get(p, []):
                     psec = sections[p]
-                    suffix[q] = {
-                        t: (a, match(t, f, at, sec)[0])
+                    joints = [
+                        (a, match(t, f, at, sec)[0])
                         for t, f, at in zip(psec.features, psec.labels, psec.xy, strict=True)
-                    }
+                    ]
+                    if _near(joints, psec, point):
+                        suffix[q] = dict(zip(psec.features, joints, strict=True))
     # RULE 4 for lines that end before a split / continuation or start after a merge
     used: dict[int, set[int]] = defaultdict(set)  # station -> features a neighbouring run joins at
     for mapping in list(prefix.values()) + list(suffix.values()):
@@ -742,6 +775,13 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
     return LaneMap(_link(lanes, boundaries), tuple(sorted(boundaries.values(), key=lambda x: x.id)), nodes)
 
 
+def _near(joints: list[tuple[int, int]], sec: _Section, point: Callable[[tuple[int, int]], np.ndarray]) -> bool:
+    """RULE 13 (far joints): every boundary of ``sec`` joins a node (``joints``, one per boundary)
+    within _JOINT_MAX_M of its own crossing; else the runs are not joined there (the cut lines of a
+    turn reach across the lines of another road, and the nearest of those is no continuation)."""
+    return all(float(np.hypot(*(point(key) - xy))) <= _JOINT_MAX_M for key, xy in zip(joints, sec.xy, strict=True))
+
+
 def _bridges(
     lanes: list[dict],
     boundaries: dict[int, Boundary],
@@ -826,10 +866,15 @@ def _along_topology(
                 dist[q], parent[q] = d, k
                 todo.append(q)
     out = []
+    turns = []  # RULE 8 turns: the lane ahead nearest to the dead end's offset, within BRIDGE_TURN_M
     for k, d in dist.items():
         for j in starts.get(k, []) if k != e else []:
             bl, br = where[lanes[j]["id"]][2]
-            if lanes[j]["id"] == a["id"] or max(abs(bl - sl), abs(br - sr)) > BRIDGE_LATERAL_M:
+            if lanes[j]["id"] == a["id"]:
+                continue
+            if max(abs(bl - sl), abs(br - sr)) > BRIDGE_LATERAL_M:
+                if abs((bl + br) - (sl + sr)) / 2.0 <= BRIDGE_TURN_M:
+                    turns.append((k, d, j))
                 continue
             path = [k]
             while parent[path[-1]] != -1:
@@ -839,6 +884,19 @@ def _along_topology(
             normal = np.stack([-st.tangent[path, 1], st.tangent[path, 0]], axis=1)
             sides = [st.pos[path] + ((1 - w) * s0 + w * s1)[:, None] * normal for s0, s1 in ((sl, bl), (sr, br))]
             out.append((abs(bl - sl) + abs(br - sr) + 0.01 * d, int(a["id"]), j, np.stack(sides, axis=1)))
+    if out or not turns:
+        return out
+    for k, d, j in turns:
+        bl, br = where[lanes[j]["id"]][2]
+        path = [k]
+        while parent[path[-1]] != -1:
+            path.append(parent[path[-1]])
+        path.reverse()
+        w = np.array([dist[q] for q in path]) / max(d, 1e-9)
+        normal = np.stack([-st.tangent[path, 1], st.tangent[path, 0]], axis=1)
+        sides = [st.pos[path] + ((1 - w) * s0 + w * s1)[:, None] * normal for s0, s1 in ((sl, bl), (sr, br))]
+        score = 2.0 * BRIDGE_LATERAL_M + abs(bl - sl) + abs(br - sr) + 0.01 * d  # after every lane in line
+        out.append((score, int(a["id"]), j, np.stack(sides, axis=1)))
     return out
 
 
