@@ -79,6 +79,8 @@ GAP_LINK_M = 15.0  # topology chain ends linked across gaps up to this distance
 BRIDGE_MAX_M = 60.0  # RULE 8: longest connector across a junction without markings
 BRIDGE_LATERAL_M = 1.0  # RULE 8: sideways offset of the lane ahead
 BRIDGE_TURN_M = 4.0  # RULE 8 turns: offset of the lane ahead where none lies in line
+_GORE_BRIDGE_M = 15.0  # RULE 8: longest connector from a lane end that a gore closes
+_END_POINTS = 5  # RULE 8: a lane end is wide enough when any of its last (first) points is (a gore closes it)
 BRIDGE_ANGLE_DEG = 20.0  # RULE 8: heading difference of the lane ahead
 _CUT_MARGIN_M = 3.0  # cut lines reach this far beyond the estimated road width
 _COS_SAME_DIRECTION = 0.7  # features crossing a cut within ~45 deg of its direction
@@ -800,8 +802,8 @@ def _bridges(
 
     starts = {ends(ln, 0) for ln in lanes}
     narrow = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
-    dead = [ln for ln in lanes if ends(ln, -1) not in starts and ln["width"][-1] >= narrow]
-    fresh = [j for j, ln in enumerate(lanes) if ln["width"][0] >= narrow]
+    dead = [ln for ln in lanes if ends(ln, -1) not in starts and ln["width"][-_END_POINTS:].max() >= narrow]
+    fresh = [j for j, ln in enumerate(lanes) if ln["width"][:_END_POINTS].max() >= narrow]
     if not dead or not fresh:
         return []
 
@@ -824,7 +826,12 @@ def _bridges(
             if lanes[fresh[i]]["id"] != a["id"]
         ]
         # the topology's path only where no lane starts straight ahead (curves)
-        cands += straight or _along_topology(a, lanes, fresh, st, where)
+        more: list[tuple[float, int, int, np.ndarray | None]] = []
+        more += straight or _along_topology(a, lanes, fresh, st, where)
+        if a["width"][-1] < narrow:  # a gore closes it: only a short way on to the lane ahead
+            tip = a["centerline"][-1]
+            more = [c for c in more if np.hypot(*(lanes[c[2]]["centerline"][0] - tip)) <= _GORE_BRIDGE_M]
+        cands += more
     by_id = {ln["id"]: ln for ln in lanes}
     used_a: set[int] = set()
     used_b: set[int] = set()
