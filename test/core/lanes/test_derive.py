@@ -9,7 +9,7 @@ from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
 from hdmap_core.model import FeatureType, HDMap
 
-from lane_samples import handover, junction_gap, lane_gain, missing_marking, three_lanes
+from lane_samples import handover, junction_gap, lane_gain, missing_marking, three_lanes, two_way
 
 
 def _lane_at(lanes, x: float, y: float) -> int:
@@ -109,6 +109,21 @@ def test_lanes_are_not_cut_where_a_line_is_handed_over_or_its_type_flickers():
     # the feature hand-over: one boundary piece, the first feature most of its length
     left = lanes.lane(mid.left)
     assert lanes.boundary(left.left_boundary).feature_id == 12
+
+
+def test_two_way_road_lane_beside_a_centre_line_mapped_the_other_way():
+    """RULE 12: the centre line, mapped westbound only, bounds the eastbound lane on its left; the
+    eastbound border (a road border against the westbound direction) bounds no westbound lane."""
+    lanes = derive_lanes(two_way())
+    east = [ln for ln in lanes.lanes if ln.centerline[-1, 0] > ln.centerline[0, 0]]
+    west = [ln for ln in lanes.lanes if ln.centerline[-1, 0] < ln.centerline[0, 0]]
+    assert len(east) == len(west) == 1
+    np.testing.assert_allclose(east[0].centerline[:, 1], -2.0, atol=1e-6)
+    np.testing.assert_allclose(west[0].centerline[:, 1], 2.0, atol=1e-6)
+    assert east[0].left_feature == west[0].left_feature == 3 and east[0].left_type == FeatureType.DASHED
+    assert east[0].right_type == FeatureType.ROAD_BORDER
+    # no lane change into the oncoming lane
+    assert east[0].left is None and not east[0].change_left
 
 
 @pytest.mark.parametrize("hdmap", [HDMap(), HDMap(features=three_lanes().features)])
