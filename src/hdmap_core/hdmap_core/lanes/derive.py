@@ -79,6 +79,7 @@ GAP_LINK_M = 15.0  # topology chain ends linked across gaps up to this distance
 BRIDGE_MAX_M = 60.0  # RULE 8: longest connector across a junction without markings
 BRIDGE_LATERAL_M = 1.0  # RULE 8: sideways offset of the lane ahead
 BRIDGE_TURN_M = 4.0  # RULE 8 turns: offset of the lane ahead where none lies in line
+_SIDE_EPS_M = 0.05  # RULE 14: a side's middle lies this far off the other side at least
 _GORE_BRIDGE_M = 15.0  # RULE 8: longest connector from a lane end that a gore closes
 _END_POINTS = 5  # RULE 8: a lane end is wide enough when any of its last (first) points is (a gore closes it)
 BRIDGE_ANGLE_DEG = 20.0  # RULE 8: heading difference of the lane ahead
@@ -746,6 +747,8 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
                 continue
             if {tl, tr} == {FeatureType.SOLID, FeatureType.ROAD_BORDER}:  # RULE 2
                 continue
+            if not _proper(pts[b], pts[b + 1], ends[b], ends[b + 1]):  # RULE 14
+                continue
             for bb, f in ((b, fl), (b + 1, fr)):
                 if piece_ids[bb] not in boundaries:
                     boundaries[piece_ids[bb]] = Boundary(
@@ -775,6 +778,46 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
             )
     lanes += _bridges(lanes, boundaries, st, where)
     return LaneMap(_link(lanes, boundaries), tuple(sorted(boundaries.values(), key=lambda x: x.id)), nodes)
+
+
+def _proper(left: np.ndarray, right: np.ndarray, left_ends: tuple[int, int], right_ends: tuple[int, int]) -> bool:
+    """RULE 14 (degenerate pieces): a lane needs sides that run from one node to another, each
+    with its middle off the other side on its own side (left of the right side, right of the left
+    side, by more than _SIDE_EPS_M) and no point on the wrong side. Lanelet2's loader aligns the
+    bounds of a lanelet by the side the other bound's middle point lies on
+    (``geometry::align``): a side whose ends are joined into one node, a strip of width 0, or
+    sides crossed over come out turned round, and its routing disagrees with the lane graph."""
+    if left_ends[0] == left_ends[1] or right_ends[0] == right_ends[1]:
+        return False
+    for a, b, sign in ((left, right, -1.0), (right, left, 1.0)):  # b's points as seen from a
+        if len(a) < 2 or float(np.hypot(*(a[-1] - a[0]))) < _SIDE_EPS_M:
+            return False
+        if sign * _signed_distance(a, _middle(b)[None])[0] <= _SIDE_EPS_M:  # + = left of a
+            return False
+    return True
+
+
+def _middle(line: np.ndarray) -> np.ndarray:
+    """The point halfway along a polyline."""
+    step = np.hypot(*np.diff(line, axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    half = cum[-1] / 2.0
+    return np.array([np.interp(half, cum, line[:, 0]), np.interp(half, cum, line[:, 1])])
+
+
+def _signed_distance(line: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Distance of each (M, 2) point to the polyline (N, 2), + on its left (the nearest segment's)."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    len2 = np.maximum((ab**2).sum(axis=1), 1e-12)
+    rel = pts[:, None, :] - a[None]  # (M, S, 2)
+    t = np.clip((rel * ab[None]).sum(axis=2) / len2[None], 0.0, 1.0)
+    near = a[None] + t[..., None] * ab[None]
+    dist = np.hypot(*(pts[:, None, :] - near).transpose(2, 0, 1))
+    k = np.argmin(dist, axis=1)
+    r = rel[np.arange(len(pts)), k]
+    side = np.sign(ab[k, 0] * r[:, 1] - ab[k, 1] * r[:, 0])
+    return side * dist[np.arange(len(pts)), k]
 
 
 def _near(joints: list[tuple[int, int]], sec: _Section, point: Callable[[tuple[int, int]], np.ndarray]) -> bool:
@@ -835,13 +878,22 @@ def _bridges(
     by_id = {ln["id"]: ln for ln in lanes}
     used_a: set[int] = set()
     used_b: set[int] = set()
-    out = []
+    out: list[dict] = []
     for _, aid, j, path in sorted(cands, key=lambda c: c[:3]):
         if aid in used_a or j in used_b:
             continue
         used_a.add(aid)
         used_b.add(j)
-        out.append(_connector(by_id[aid], lanes[j], boundaries, path))
+        con = _connector(by_id[aid], lanes[j], boundaries, path)
+        lb, rb = boundaries[con["left_boundary"]], boundaries[con["right_boundary"]]
+        if not _proper(lb.points, rb.points, (lb.start_node, lb.end_node), (rb.start_node, rb.end_node)):
+            used_a.discard(aid)  # RULE 14: the dead end may take its next candidate
+            used_b.discard(j)
+            for bid in (con["left_boundary"], con["right_boundary"]):
+                if not any(bid in (x["left_boundary"], x["right_boundary"]) for x in out):
+                    boundaries.pop(bid, None)
+            continue
+        out.append(con)
     return out
 
 
