@@ -24,6 +24,10 @@ between two neighbours (wider than a lane, a shoulder, or two road borders close
 _BARRIER_M: a ramp beside the carriageway); each group is a station of its own, linked to the
 groups of the next station that overlap it sideways, so that a line starting or ending in one
 group (a ramp beside) does not cut the lanes of another.
+RULE 12 (two-way roads): left of all the lines crossing a cut in its direction, the nearest line
+crossing against it counts as a boundary when it is a marking inside the road within a lane's
+width: the centre line of a two-way road, mapped in one direction only, bounds the lane beside
+it in the other.
 
 Sections are runs of consecutive cross sections with the same boundaries; a run is cut into lanes
 at most LANELET_MAX_M long. Where two runs meet (a line starting or ending, a split or merge of
@@ -36,12 +40,22 @@ RULE 4 (lane gain, drop, gore): a boundary that starts (ends) without a precedin
 starts (ends) at the node of the nearest boundary that does continue: the new lane opens from a
 point beside a through lane (reached by a lane change across a dashed line, or as a split) and a
 dropped lane closes onto its neighbour (a merge).
+RULE 13 (far joints): two runs are not joined where a boundary's joint lies more than
+_JOINT_MAX_M from its own crossing (the cut lines of a turn reach across the lines of another
+road: the nearest of those is no continuation).
 RULE 5 (topology gaps): a topology chain that ends (starts) is linked to the nearest cross section
 of the same direction within GAP_LINK_M ahead (behind).
 RULE 8 (junctions without markings): a lane without successor is joined by a connector lane with
 virtual sides to a lane that starts in its line within BRIDGE_MAX_M; where none starts straight
 ahead (a curve), to one that starts along the topology within BRIDGE_MAX_M at the same offsets
-from the road middle, the connector a cubic Hermite curve between the two lanes' directions.
+from the road middle, the connector a cubic Hermite curve between the two lanes' directions;
+where no lane lies at those offsets (a turn into a road of another width), to the one starting
+along the topology whose middle is within BRIDGE_TURN_M of the dead end's offset. A lane end that
+a gore closes (narrow at its very end, wide within its last _END_POINTS points) is joined only
+to a lane starting within _GORE_BRIDGE_M.
+RULE 14 (degenerate pieces): no lane (connectors included) whose side runs from a node to the
+same node, or whose sides' middles do not lie on their own side of the other side: Lanelet2
+turns such a lanelet round on loading, and its routing then disagrees with the lane graph.
 
 Ids are stable: hashes of the topology node id where a piece starts, the feature ids and the
 boundary's slot in the cross section.
@@ -102,7 +116,7 @@ _KIND = {
 _TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain (2 m apart)
 _TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
 _HANDOVER_M = 1.0  # RULE 10: a boundary that ends continues one starting this close at the next station
-_JOINT_MAX_M = LANE_WIDTH_MAX_M + _WIDTH_SLACK_M  # RULE 13: farthest joint of a boundary
+_JOINT_MAX_M = 15.0  # RULE 13: farthest joint of a boundary (the fans reached 40 m; 6 m lost 5 of 15 routes)
 _KIND_MIN = 10  # RULE 10: stations (20 m): a shorter stretch of another kind along a boundary is noise
 
 
