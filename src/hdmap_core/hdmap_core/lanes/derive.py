@@ -407,13 +407,13 @@ def _handover(st: _Stations, sections: list[_Section], types: list[int]) -> list
                     alias[t] = next_track
                     row[n] = next_track
                     next_track += 1
-            seen: set[int] = set()
+            taken_ids: set[int] = set()
             for n, t in enumerate(row):  # two lines handed over to one heir: the later one apart
-                if t in seen:
+                if t in taken_ids:
                     alias[orig[k][n]] = next_track
                     row[n] = next_track
                     next_track += 1
-                seen.add(row[n])
+                taken_ids.add(row[n])
             if i > 0 and not set(row).issubset(feats[chain[i - 1]]):
                 prev = chain[i - 1]
                 pf, ps, s = feats[prev], sections[prev].s, sections[k].s
