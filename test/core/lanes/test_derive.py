@@ -130,3 +130,29 @@ def test_two_way_road_lane_beside_a_centre_line_mapped_the_other_way():
 def test_no_topology_or_features_gives_no_lanes(hdmap):
     lanes = derive_lanes(hdmap)
     assert lanes.lanes == () and lanes.boundaries == ()
+
+
+def test_two_lines_handed_over_to_one_heir_keep_two_tracks():
+    """RULE 10: line A ends, B takes it over (0.3 m aside), B pauses and C takes over, then B is
+    back beside C: each cross section keeps one track per line (one track for both gave a lane of
+    width 0 between them on paper_like and lost the lane beside)."""
+    from hdmap_core.lanes.derive import _handover, _Section, _Stations
+
+    k = 5
+    st = _Stations(
+        np.arange(k, dtype=np.int64),
+        np.stack([2.0 * np.arange(k), np.zeros(k)], axis=1),
+        np.tile([1.0, 0.0], (k, 1)),
+        np.full(k, 10.0),
+        [[i + 1] for i in range(k - 1)] + [[]],
+    )
+    st.relink()
+    rows = [[(1, 0.0)], [(2, 0.3)], [(3, 0.6)], [(2, 0.3), (3, -3.0)], [(2, 0.3), (3, -3.0)]]
+    sections = [
+        _Section(tuple(t for t, _ in r), tuple(0 for _ in r), np.array([s for _, s in r]), np.zeros((len(r), 2)))
+        for r in rows
+    ]
+    out = _handover(st, sections, [int(FeatureType.DASHED)])
+    assert all(len(set(sec.features)) == len(sec.features) for sec in out)
+    assert out[0].features == out[1].features == out[2].features  # one line handed over twice
+    assert out[3].features == out[4].features  # and the two lines keep their tracks after
