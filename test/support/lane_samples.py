@@ -107,3 +107,20 @@ def handover(length_m: float = 250.0) -> HDMap:
     ):
         feats.append(_feature(fid, t, np.stack([x[keep], np.full(keep.sum(), -1.75)], axis=1)))
     return HDMap(features=tuple(feats), topology=base.topology)
+
+
+def two_way(length_m: float = 250.0) -> HDMap:
+    """A two-way road along x, one lane each way: road borders at -4 (mapped eastbound) and +4
+    (mapped westbound) and a dashed centre line at 0 mapped westbound only (as a map does that
+    saw it from one direction); a topology chain each way along the middle."""
+    x = np.arange(0.0, length_m + 1e-9, 1.0)
+    east = _feature(1, FeatureType.ROAD_BORDER, np.stack([x, np.full_like(x, -4.0)], axis=1))
+    west = _feature(2, FeatureType.ROAD_BORDER, np.stack([x[::-1], np.full_like(x, 4.0)], axis=1))
+    centre = _feature(3, FeatureType.DASHED, np.stack([x[::-1], np.zeros_like(x)], axis=1))
+    xs = np.arange(length_m - 1.0, 0.0, -2.0)
+    ids = 5000 + np.arange(len(xs))
+    back = tuple(
+        TopologyNode(int(ids[i]), np.array([xs[i], 0.0]), np.pi, 8.0, (int(ids[i + 1]),) if i + 1 < len(xs) else ())
+        for i in range(len(xs))
+    )
+    return HDMap(features=(east, west, centre), topology=_topology(length_m, 8.0) + back)

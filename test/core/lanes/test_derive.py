@@ -9,7 +9,7 @@ from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
 from hdmap_core.model import FeatureType, HDMap
 
-from lane_samples import handover, junction_gap, lane_gain, missing_marking, three_lanes
+from lane_samples import handover, junction_gap, lane_gain, missing_marking, three_lanes, two_way
 
 
 def _lane_at(lanes, x: float, y: float) -> int:
@@ -111,7 +111,48 @@ def test_lanes_are_not_cut_where_a_line_is_handed_over_or_its_type_flickers():
     assert lanes.boundary(left.left_boundary).feature_id == 12
 
 
+def test_two_way_road_lane_beside_a_centre_line_mapped_the_other_way():
+    """RULE 12: the centre line, mapped westbound only, bounds the eastbound lane on its left; the
+    eastbound border (a road border against the westbound direction) bounds no westbound lane."""
+    lanes = derive_lanes(two_way())
+    east = [ln for ln in lanes.lanes if ln.centerline[-1, 0] > ln.centerline[0, 0]]
+    west = [ln for ln in lanes.lanes if ln.centerline[-1, 0] < ln.centerline[0, 0]]
+    assert len(east) == len(west) == 1
+    np.testing.assert_allclose(east[0].centerline[:, 1], -2.0, atol=1e-6)
+    np.testing.assert_allclose(west[0].centerline[:, 1], 2.0, atol=1e-6)
+    assert east[0].left_feature == west[0].left_feature == 3 and east[0].left_type == FeatureType.DASHED
+    assert east[0].right_type == FeatureType.ROAD_BORDER
+    # no lane change into the oncoming lane
+    assert east[0].left is None and not east[0].change_left
+
+
 @pytest.mark.parametrize("hdmap", [HDMap(), HDMap(features=three_lanes().features)])
 def test_no_topology_or_features_gives_no_lanes(hdmap):
     lanes = derive_lanes(hdmap)
     assert lanes.lanes == () and lanes.boundaries == ()
+
+
+def test_two_lines_handed_over_to_one_heir_keep_two_tracks():
+    """RULE 10: line A ends, B takes it over (0.3 m aside), B pauses and C takes over, then B is
+    back beside C: each cross section keeps one track per line (one track for both gave a lane of
+    width 0 between them on paper_like and lost the lane beside)."""
+    from hdmap_core.lanes.derive import _handover, _Section, _Stations
+
+    k = 5
+    st = _Stations(
+        np.arange(k, dtype=np.int64),
+        np.stack([2.0 * np.arange(k), np.zeros(k)], axis=1),
+        np.tile([1.0, 0.0], (k, 1)),
+        np.full(k, 10.0),
+        [[i + 1] for i in range(k - 1)] + [[]],
+    )
+    st.relink()
+    rows = [[(1, 0.0)], [(2, 0.3)], [(3, 0.6)], [(2, 0.3), (3, -3.0)], [(2, 0.3), (3, -3.0)]]
+    sections = [
+        _Section(tuple(t for t, _ in r), tuple(0 for _ in r), np.array([s for _, s in r]), np.zeros((len(r), 2)))
+        for r in rows
+    ]
+    out = _handover(st, sections, [int(FeatureType.DASHED)])
+    assert all(len(set(sec.features)) == len(sec.features) for sec in out)
+    assert out[0].features == out[1].features == out[2].features  # one line handed over twice
+    assert out[3].features == out[4].features  # and the two lines keep their tracks after

@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdmap_core.lanes.derive import derive_lanes
-from hdmap_core.model import GeoOrigin
+from hdmap_core.lanes.derive import _proper, derive_lanes
+from hdmap_core.lanes.model import Boundary, Lane, LaneMap
+from hdmap_core.model import FeatureType, GeoOrigin
 from hdmap_ros.io.lanelet2 import MAP_FILE, PROJECTOR_FILE, write_lanelet2
 
 from lane_samples import junction_gap, lane_gain, three_lanes
@@ -133,3 +134,36 @@ def test_export_of_a_bag_without_map_is_an_error(tmp_path, sample_bags, capsys):
     assert cli.main(["export", str(sample_bags / "e6mini_20"), "--lanelet2", str(tmp_path / "ll")]) == 1
     assert "no hdmap_msgs/msg/Map" in capsys.readouterr().err
     assert not (tmp_path / "ll" / MAP_FILE).exists()
+
+
+@pytest.mark.parametrize(
+    ("left_y", "right_y"),
+    [
+        ((1.75, 1.75, 1.75), (-1.75, -1.75, -1.75)),  # a lane
+        ((-1.75, -1.75, -1.75), (1.75, 1.75, 1.75)),  # sides crossed over
+        ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),  # zero width
+        ((0.0, 1.0, 2.0), (0.0, -1.0, -2.0)),  # opening from a point (a gore): a lane
+    ],
+)
+def test_degenerate_lanes_are_those_lanelet2_turns_round(tmp_path, left_y, right_y):
+    """RULE 14 predicts Lanelet2's loader: it aligns a lanelet's bounds by the side the other
+    bound's middle lies on, and the lanes the rule drops are those it turns round."""
+    x = np.array([0.0, 5.0, 10.0])
+    left, right = np.stack([x, left_y], axis=1), np.stack([x, right_y], axis=1)
+    nodes = {1: left[0], 2: left[-1], 3: right[0], 4: right[-1]}
+    if left_y[0] == right_y[0]:
+        nodes.pop(3)
+    start_r = 3 if 3 in nodes else 1
+    bounds = (
+        Boundary(11, 1, FeatureType.SOLID, left, 1, 2),
+        Boundary(12, 2, FeatureType.SOLID, right, start_r, 4 if left_y[-1] != right_y[-1] else 2),
+    )
+    lane = Lane(
+        7, (left + right) / 2, np.abs(np.array(left_y) - right_y), 11, 12, 1, 2, FeatureType.SOLID, FeatureType.SOLID
+    )
+    write_lanelet2(LaneMap((lane,), bounds, nodes), ORIGIN, tmp_path)
+    llmap, *_ = load(tmp_path)
+    (ll,) = list(llmap.laneletLayer)
+    turned = ll.leftBound.inverted() or ll.rightBound.inverted()
+    b_l, b_r = bounds
+    assert turned == (not _proper(left, right, (b_l.start_node, b_l.end_node), (b_r.start_node, b_r.end_node)))

@@ -24,6 +24,10 @@ between two neighbours (wider than a lane, a shoulder, or two road borders close
 _BARRIER_M: a ramp beside the carriageway); each group is a station of its own, linked to the
 groups of the next station that overlap it sideways, so that a line starting or ending in one
 group (a ramp beside) does not cut the lanes of another.
+RULE 12 (two-way roads): left of all the lines crossing a cut in its direction, the nearest line
+crossing against it counts as a boundary when it is a marking inside the road within a lane's
+width: the centre line of a two-way road, mapped in one direction only, bounds the lane beside
+it in the other.
 
 Sections are runs of consecutive cross sections with the same boundaries; a run is cut into lanes
 at most LANELET_MAX_M long. Where two runs meet (a line starting or ending, a split or merge of
@@ -36,12 +40,22 @@ RULE 4 (lane gain, drop, gore): a boundary that starts (ends) without a precedin
 starts (ends) at the node of the nearest boundary that does continue: the new lane opens from a
 point beside a through lane (reached by a lane change across a dashed line, or as a split) and a
 dropped lane closes onto its neighbour (a merge).
+RULE 13 (far joints): two runs are not joined where a boundary's joint lies more than
+_JOINT_MAX_M from its own crossing (the cut lines of a turn reach across the lines of another
+road: the nearest of those is no continuation).
 RULE 5 (topology gaps): a topology chain that ends (starts) is linked to the nearest cross section
 of the same direction within GAP_LINK_M ahead (behind).
 RULE 8 (junctions without markings): a lane without successor is joined by a connector lane with
 virtual sides to a lane that starts in its line within BRIDGE_MAX_M; where none starts straight
 ahead (a curve), to one that starts along the topology within BRIDGE_MAX_M at the same offsets
-from the road middle, the connector a cubic Hermite curve between the two lanes' directions.
+from the road middle, the connector a cubic Hermite curve between the two lanes' directions;
+where no lane lies at those offsets (a turn into a road of another width), to the one starting
+along the topology whose middle is within BRIDGE_TURN_M of the dead end's offset. A lane end that
+a gore closes (narrow at its very end, wide within its last _END_POINTS points) is joined only
+to a lane starting within _GORE_BRIDGE_M.
+RULE 14 (degenerate pieces): no lane (connectors included) whose side runs from a node to the
+same node, or whose sides' middles do not lie on their own side of the other side: Lanelet2
+turns such a lanelet round on loading, and its routing then disagrees with the lane graph.
 
 Ids are stable: hashes of the topology node id where a piece starts, the feature ids and the
 boundary's slot in the cross section.
@@ -52,11 +66,12 @@ from __future__ import annotations
 import hashlib
 from bisect import bisect_left, bisect_right
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from hdmap_core.evaluation.cuts import Cuts, points_on_cuts
+from hdmap_core.evaluation.cuts import CutPoints, Cuts, points_on_cuts
 from hdmap_core.lanes.model import Boundary, Lane, LaneMap
 from hdmap_core.model import FeatureType, HDMap
 
@@ -77,6 +92,10 @@ JOIN_TOL_M = 1.0  # a boundary continues a boundary this close at the joint
 GAP_LINK_M = 15.0  # topology chain ends linked across gaps up to this distance
 BRIDGE_MAX_M = 60.0  # RULE 8: longest connector across a junction without markings
 BRIDGE_LATERAL_M = 1.0  # RULE 8: sideways offset of the lane ahead
+BRIDGE_TURN_M = 4.0  # RULE 8 turns: offset of the lane ahead where none lies in line
+_SIDE_EPS_M = 0.05  # RULE 14: a side's middle lies this far off the other side at least
+_GORE_BRIDGE_M = 15.0  # RULE 8: longest connector from a lane end that a gore closes
+_END_POINTS = 5  # RULE 8: a lane end is wide enough when any of its last (first) points is (a gore closes it)
 BRIDGE_ANGLE_DEG = 20.0  # RULE 8: heading difference of the lane ahead
 _CUT_MARGIN_M = 3.0  # cut lines reach this far beyond the estimated road width
 _COS_SAME_DIRECTION = 0.7  # features crossing a cut within ~45 deg of its direction
@@ -97,6 +116,7 @@ _KIND = {
 _TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain (2 m apart)
 _TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
 _HANDOVER_M = 1.0  # RULE 10: a boundary that ends continues one starting this close at the next station
+_JOINT_MAX_M = 15.0  # RULE 13: farthest joint of a boundary (the fans reached 40 m; 6 m lost 5 of 15 routes)
 _KIND_MIN = 10  # RULE 10: stations (20 m): a shorter stretch of another kind along a boundary is noise
 
 
@@ -201,8 +221,9 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
     polylines = [np.asarray(f.points, dtype=float) for f in hdmap.features]
     length = [float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in polylines]
     cp = points_on_cuts(cuts, polylines, cos_min=_COS_SAME_DIRECTION)
-    order = np.lexsort((-cp.s, cp.cut))
-    cut, owner, s = cp.cut[order], cp.owner[order], cp.s[order]
+    cut, owner, s = _with_centre_lines(cp, cuts, polylines, [f.type for f in hdmap.features], half - _CUT_MARGIN_M)
+    order = np.lexsort((-s, cut))
+    cut, owner, s = cut[order], owner[order], s[order]
     xy = st.pos[cut] + s[:, None] * normal[cut]
     bounds = np.searchsorted(cut, np.arange(len(st) + 1)).tolist()
     rows = list(zip(owner.tolist(), s.tolist(), xy[:, 0].tolist(), xy[:, 1].tolist(), strict=True))
@@ -246,6 +267,33 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
             )
         )
     return _handover(st, out, types)
+
+
+def _with_centre_lines(
+    cp: CutPoints, cuts: Cuts, polylines: list[np.ndarray], types: list[FeatureType], half_road: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RULE 12 (two-way roads): per cut, the crossings of its direction ``(cut, owner, s)`` and,
+    left of all of them, the nearest crossing against its direction if that is a marking (not a
+    road border) inside the road (``|s| <= half_road``) within a lane's width of the leftmost own
+    crossing: the centre line of a two-way road, mapped in the other direction only, bounds the
+    lane beside it on the left."""
+    back = points_on_cuts(cuts, [p[::-1] for p in polylines], cos_min=_COS_SAME_DIRECTION)
+    if not len(back.cut):
+        return cp.cut, cp.owner, cp.s
+    k = len(cuts.center)
+    left = np.full(k, -np.inf)  # leftmost own crossing per cut
+    np.maximum.at(left, cp.cut, cp.s)
+    ahead = (back.s > left[back.cut]) & np.isfinite(left[back.cut])
+    c, o, sb = back.cut[ahead], back.owner[ahead], back.s[ahead]
+    order = np.lexsort((sb, c))
+    c, o, sb = c[order], o[order], sb[order]
+    first = np.flatnonzero(np.r_[True, c[1:] != c[:-1]]) if len(c) else np.zeros(0, dtype=np.int64)
+    c, o, sb = c[first], o[first], sb[first]
+    marking = np.array([types[i] in (FeatureType.SOLID, FeatureType.DASHED) for i in o.tolist()], dtype=bool)
+    gap = sb - left[c]
+    ok = marking & (np.abs(sb) <= half_road[c]) & (gap >= LANE_WIDTH_MIN_M - _WIDTH_SLACK_M)
+    ok &= gap <= LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
+    return np.r_[cp.cut, c[ok]], np.r_[cp.owner, o[ok]], np.r_[cp.s, sb[ok]]
 
 
 def _groups(st: _Stations, sections: list[_Section], types: list[int]) -> tuple[_Stations, list[_Section]]:
@@ -359,6 +407,13 @@ def _handover(st: _Stations, sections: list[_Section], types: list[int]) -> list
                     alias[t] = next_track
                     row[n] = next_track
                     next_track += 1
+            taken_ids: set[int] = set()
+            for n, t in enumerate(row):  # two lines handed over to one heir: the later one apart
+                if t in taken_ids:
+                    alias[orig[k][n]] = next_track
+                    row[n] = next_track
+                    next_track += 1
+                taken_ids.add(row[n])
             if i > 0 and not set(row).issubset(feats[chain[i - 1]]):
                 prev = chain[i - 1]
                 pf, ps, s = feats[prev], sections[prev].s, sections[k].s
@@ -639,17 +694,19 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
             psec = sections[p]
             if not psec.features:
                 continue
-            prefix[r] = {}
-            for t, f, at in zip(sec.features, sec.labels, sec.xy, strict=True):
-                prefix[r][t] = (p, match(t, f, at, psec)[0])
+            joints = [(p, match(t, f, at, psec)[0]) for t, f, at in zip(sec.features, sec.labels, sec.xy, strict=True)]
+            if _near(joints, sec, point):
+                prefix[r] = dict(zip(sec.features, joints, strict=True))
         elif len(preds) > 1 and sec.features:  # a merge: the preceding runs end at the joints of a
             for p in preds:
                 for q in run_of_last.get(p, []):
                     psec = sections[p]
-                    suffix[q] = {
-                        t: (a, match(t, f, at, sec)[0])
+                    joints = [
+                        (a, match(t, f, at, sec)[0])
                         for t, f, at in zip(psec.features, psec.labels, psec.xy, strict=True)
-                    }
+                    ]
+                    if _near(joints, psec, point):
+                        suffix[q] = dict(zip(psec.features, joints, strict=True))
     # RULE 4 for lines that end before a split / continuation or start after a merge
     used: dict[int, set[int]] = defaultdict(set)  # station -> features a neighbouring run joins at
     for mapping in list(prefix.values()) + list(suffix.values()):
@@ -711,6 +768,8 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
                 continue
             if {tl, tr} == {FeatureType.SOLID, FeatureType.ROAD_BORDER}:  # RULE 2
                 continue
+            if not _proper(pts[b], pts[b + 1], ends[b], ends[b + 1]):  # RULE 14
+                continue
             for bb, f in ((b, fl), (b + 1, fr)):
                 if piece_ids[bb] not in boundaries:
                     boundaries[piece_ids[bb]] = Boundary(
@@ -742,6 +801,53 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
     return LaneMap(_link(lanes, boundaries), tuple(sorted(boundaries.values(), key=lambda x: x.id)), nodes)
 
 
+def _proper(left: np.ndarray, right: np.ndarray, left_ends: tuple[int, int], right_ends: tuple[int, int]) -> bool:
+    """RULE 14 (degenerate pieces): a lane needs sides that run from one node to another, each
+    with its middle off the other side on its own side (left of the right side, right of the left
+    side, by more than _SIDE_EPS_M) and no point on the wrong side. Lanelet2's loader aligns the
+    bounds of a lanelet by the side the other bound's middle point lies on
+    (``geometry::align``): a side whose ends are joined into one node, a strip of width 0, or
+    sides crossed over come out turned round, and its routing disagrees with the lane graph."""
+    if left_ends[0] == left_ends[1] or right_ends[0] == right_ends[1]:
+        return False
+    for a, b, sign in ((left, right, -1.0), (right, left, 1.0)):  # b's points as seen from a
+        if len(a) < 2 or float(np.hypot(*(a[-1] - a[0]))) < _SIDE_EPS_M:
+            return False
+        if sign * _signed_distance(a, _middle(b)[None])[0] <= _SIDE_EPS_M:  # + = left of a
+            return False
+    return True
+
+
+def _middle(line: np.ndarray) -> np.ndarray:
+    """The point halfway along a polyline."""
+    step = np.hypot(*np.diff(line, axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    half = cum[-1] / 2.0
+    return np.array([np.interp(half, cum, line[:, 0]), np.interp(half, cum, line[:, 1])])
+
+
+def _signed_distance(line: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Distance of each (M, 2) point to the polyline (N, 2), + on its left (the nearest segment's)."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    len2 = np.maximum((ab**2).sum(axis=1), 1e-12)
+    rel = pts[:, None, :] - a[None]  # (M, S, 2)
+    t = np.clip((rel * ab[None]).sum(axis=2) / len2[None], 0.0, 1.0)
+    near = a[None] + t[..., None] * ab[None]
+    dist = np.hypot(*(pts[:, None, :] - near).transpose(2, 0, 1))
+    k = np.argmin(dist, axis=1)
+    r = rel[np.arange(len(pts)), k]
+    side = np.sign(ab[k, 0] * r[:, 1] - ab[k, 1] * r[:, 0])
+    return side * dist[np.arange(len(pts)), k]
+
+
+def _near(joints: list[tuple[int, int]], sec: _Section, point: Callable[[tuple[int, int]], np.ndarray]) -> bool:
+    """RULE 13 (far joints): every boundary of ``sec`` joins a node (``joints``, one per boundary)
+    within _JOINT_MAX_M of its own crossing; else the runs are not joined there (the cut lines of a
+    turn reach across the lines of another road, and the nearest of those is no continuation)."""
+    return all(float(np.hypot(*(point(key) - xy))) <= _JOINT_MAX_M for key, xy in zip(joints, sec.xy, strict=True))
+
+
 def _bridges(
     lanes: list[dict],
     boundaries: dict[int, Boundary],
@@ -760,8 +866,8 @@ def _bridges(
 
     starts = {ends(ln, 0) for ln in lanes}
     narrow = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M
-    dead = [ln for ln in lanes if ends(ln, -1) not in starts and ln["width"][-1] >= narrow]
-    fresh = [j for j, ln in enumerate(lanes) if ln["width"][0] >= narrow]
+    dead = [ln for ln in lanes if ends(ln, -1) not in starts and ln["width"][-_END_POINTS:].max() >= narrow]
+    fresh = [j for j, ln in enumerate(lanes) if ln["width"][:_END_POINTS].max() >= narrow]
     if not dead or not fresh:
         return []
 
@@ -784,17 +890,31 @@ def _bridges(
             if lanes[fresh[i]]["id"] != a["id"]
         ]
         # the topology's path only where no lane starts straight ahead (curves)
-        cands += straight or _along_topology(a, lanes, fresh, st, where)
+        more: list[tuple[float, int, int, np.ndarray | None]] = []
+        more += straight or _along_topology(a, lanes, fresh, st, where)
+        if a["width"][-1] < narrow:  # a gore closes it: only a short way on to the lane ahead
+            tip = a["centerline"][-1]
+            more = [c for c in more if np.hypot(*(lanes[c[2]]["centerline"][0] - tip)) <= _GORE_BRIDGE_M]
+        cands += more
     by_id = {ln["id"]: ln for ln in lanes}
     used_a: set[int] = set()
     used_b: set[int] = set()
-    out = []
+    out: list[dict] = []
     for _, aid, j, path in sorted(cands, key=lambda c: c[:3]):
         if aid in used_a or j in used_b:
             continue
         used_a.add(aid)
         used_b.add(j)
-        out.append(_connector(by_id[aid], lanes[j], boundaries, path))
+        con = _connector(by_id[aid], lanes[j], boundaries, path)
+        lb, rb = boundaries[con["left_boundary"]], boundaries[con["right_boundary"]]
+        if not _proper(lb.points, rb.points, (lb.start_node, lb.end_node), (rb.start_node, rb.end_node)):
+            used_a.discard(aid)  # RULE 14: the dead end may take its next candidate
+            used_b.discard(j)
+            for bid in (con["left_boundary"], con["right_boundary"]):
+                if not any(bid in (x["left_boundary"], x["right_boundary"]) for x in out):
+                    boundaries.pop(bid, None)
+            continue
+        out.append(con)
     return out
 
 
@@ -826,10 +946,15 @@ def _along_topology(
                 dist[q], parent[q] = d, k
                 todo.append(q)
     out = []
+    turns = []  # RULE 8 turns: the lane ahead nearest to the dead end's offset, within BRIDGE_TURN_M
     for k, d in dist.items():
         for j in starts.get(k, []) if k != e else []:
             bl, br = where[lanes[j]["id"]][2]
-            if lanes[j]["id"] == a["id"] or max(abs(bl - sl), abs(br - sr)) > BRIDGE_LATERAL_M:
+            if lanes[j]["id"] == a["id"]:
+                continue
+            if max(abs(bl - sl), abs(br - sr)) > BRIDGE_LATERAL_M:
+                if abs((bl + br) - (sl + sr)) / 2.0 <= BRIDGE_TURN_M:
+                    turns.append((k, d, j))
                 continue
             path = [k]
             while parent[path[-1]] != -1:
@@ -839,6 +964,19 @@ def _along_topology(
             normal = np.stack([-st.tangent[path, 1], st.tangent[path, 0]], axis=1)
             sides = [st.pos[path] + ((1 - w) * s0 + w * s1)[:, None] * normal for s0, s1 in ((sl, bl), (sr, br))]
             out.append((abs(bl - sl) + abs(br - sr) + 0.01 * d, int(a["id"]), j, np.stack(sides, axis=1)))
+    if out or not turns:
+        return out
+    for k, d, j in turns:
+        bl, br = where[lanes[j]["id"]][2]
+        path = [k]
+        while parent[path[-1]] != -1:
+            path.append(parent[path[-1]])
+        path.reverse()
+        w = np.array([dist[q] for q in path]) / max(d, 1e-9)
+        normal = np.stack([-st.tangent[path, 1], st.tangent[path, 0]], axis=1)
+        sides = [st.pos[path] + ((1 - w) * s0 + w * s1)[:, None] * normal for s0, s1 in ((sl, bl), (sr, br))]
+        score = 2.0 * BRIDGE_LATERAL_M + abs(bl - sl) + abs(br - sr) + 0.01 * d  # after every lane in line
+        out.append((score, int(a["id"]), j, np.stack(sides, axis=1)))
     return out
 
 
