@@ -16,8 +16,11 @@ drives on the changed road. Of those, only the ones through the changed zone's m
 ``ChangeConfig.min_after``, so one never suffices) the map is built and followed as
 ``hdmap bag2map`` does (``updates.follow.follow_changes``):
 
-* ``needed``: the fewest drives through the zone after which a change on the zone's places is
-  confirmed, so the map is rebuilt there (">10": not within 10);
+* ``needed``: the fewest drives through the zone from which on a change on the zone's places is
+  confirmed, so the map is rebuilt there, at every count after it that was run (the scan runs
+  every count until a change is confirmed, then 3, 5 and 10, and every count again after one
+  that lost it; ">10": not within 10); ``first``: the fewest after which one was confirmed at all
+  (a change confirmed after 2 drives can be lost after the third, when it disagrees);
 * after 3, 5 and 10 such drives: the zone against the road as it is now (``evaluation/zone.py``:
   recall, precision, mean error, type accuracy, ghost share = the map's points there matching only
   the old road) for the followed map and the ghost share of the map of every drive (plain
@@ -191,12 +194,12 @@ def run_case(label: str, seed: int, js: list[int]) -> dict:
     sim_s = time.perf_counter() - t0
     build = _builder("default")
     steps: list[Step] = []
-    needed = None
+    needed = first_seen = None
     for j in js:
         if j > len(through):
             break
         if needed is not None and j not in AT:
-            continue  # found: only the figures after 3 / 5 / 10 are left
+            continue  # confirmed: only the figures after 3 / 5 / 10 are left, unless it is lost
         drives = before + through[:j]
         res = follow_changes(drives, build=build)
         places = places_of(drives, cell_m=ChangeConfig().cell_m)
@@ -205,6 +208,9 @@ def run_case(label: str, seed: int, js: list[int]) -> dict:
         step = Step(j, len(on), len(res.changes) - len(on), seconds=dict(res.seconds))
         if on and needed is None:
             needed = j
+        first_seen = j if first_seen is None and on else first_seen
+        if not on:
+            needed = None  # lost again: scan on
         if j in AT:
             step.zone = evaluate_zone(res.map, now, old, [zone])
             first = evaluate_zone(res.first_map, now, old, [zone])
@@ -228,6 +234,7 @@ def run_case(label: str, seed: int, js: list[int]) -> dict:
         "after_simulated": n_after,
         "through": len(through),
         "needed": needed,
+        "first": first_seen,
         "steps": steps,
         "sim_s": sim_s,
         "total_s": time.perf_counter() - t0,
@@ -236,18 +243,19 @@ def run_case(label: str, seed: int, js: list[int]) -> dict:
 
 def changes_tables(rows: list[dict]) -> str:
     out = [
-        "| case | map | seed | through | needed | drives | zone recall % | precision % | mean m | type % "
+        "| case | map | seed | through | needed | first | drives | zone recall % | precision % | mean m | type % "
         "| ghost % | ghost % plain | road recall % | road mean m | changes zone/else | lanes ok % |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         needed = str(r["needed"]) if r["needed"] is not None else f">{min(r['through'], MAX_THROUGH)}"
+        needed += f" | {r['first'] if r['first'] is not None else '-'}"
         first = True
         for s in r["steps"]:
             if s.zone is None:
                 continue
             z = s.zone
-            head = f"| {r['case']} | {r['map']} | {r['seed']} | {r['through']} | {needed} " if first else "| | | | | "
+            head = f"| {r['case']} | {r['map']} | {r['seed']} | {r['through']} | {needed} " if first else "| | | | | | "
             first = False
             lanes = _pct(s.lanes.count_accuracy) if s.lanes is not None else "-"
             out.append(
@@ -402,7 +410,8 @@ def main() -> int:
     md += [
         "",
         "through: drives after the change through the zone's middle (kept, up to 10); needed: the fewest of them "
-        "after which a change on the zone is confirmed (the map rebuilt there); drives: the zone figures after that "
+        "from which on a change on the zone is confirmed (the map rebuilt there); first: after which one was "
+        "confirmed at all; drives: the zone figures after that "
         "many; zone: the changed stretch with its tapers against the road as of the last drive; ghost: share of the "
         "map's points there matching only the old road (plain: the map of every drive, no following); changes "
         "zone/else: confirmed on the zone's places / elsewhere (false); lanes ok: zone cuts with the road's lane "
