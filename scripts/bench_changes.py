@@ -157,7 +157,7 @@ def _zone_keys(zone, places) -> set:
     return keys | {nb for k in keys for nb in places.neighbours(k)}
 
 
-def run_case(label: str, seed: int, js: list[int]) -> dict:
+def run_case(label: str, seed: int, js: list[int], preset: str = "default") -> dict:
     import numpy as np
 
     from hdmap_core.evaluation.evaluate import evaluate_map
@@ -192,7 +192,7 @@ def run_case(label: str, seed: int, js: list[int]) -> dict:
     now, old = fleet.extra["gt_after"], fleet.extra["gt_before"]
     before = list(fleet.drives[:N_BEFORE])
     sim_s = time.perf_counter() - t0
-    build = _builder("default")
+    build = _builder(preset)
     steps: list[Step] = []
     needed = first_seen = None
     for j in js:
@@ -227,7 +227,7 @@ def run_case(label: str, seed: int, js: list[int]) -> dict:
             flush=True,
         )
     return {
-        "case": label,
+        "case": label if preset == "default" else f"{label} ({preset})",
         "map": map_name,
         "change": change.text(),
         "seed": seed,
@@ -378,6 +378,7 @@ def main() -> int:
     ap.add_argument("--cases", help=f"comma-separated cases (default: all of {', '.join(CASES)})")
     ap.add_argument("--fleets", help="comma-separated no-change fleets by label (default: all)")
     ap.add_argument("--presets", help="comma-separated presets of the no-change section (default: all three)")
+    ap.add_argument("--preset", default="default", help="preset of the changes section (default: %(default)s)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds of the changes section (default: 0)")
     ap.add_argument("--markdown", metavar="FILE", help="write the tables as Markdown")
     ap.add_argument("--json", metavar="FILE", help="write every figure as JSON")
@@ -395,7 +396,7 @@ def main() -> int:
     if args.section in ("changes", "all"):
         for seed in (int(s) for s in args.seeds.split(",")):
             for c in cases:
-                doc["changes"].append(run_case(c, seed, js))
+                doc["changes"].append(run_case(c, seed, js, args.preset))
         md += [
             "## Changes: drives through the zone needed, the zone after 3 / 5 / 10",
             "",
