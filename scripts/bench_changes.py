@@ -41,8 +41,9 @@ drives, 8 fleets x 3 presets) takes ~15 min of CPU on one core (6.6 min changes,
 change; measured 2026-12-06 on the 2-core development machine, whose load of 6-19 stretched it to
 23 + 27 min wall with the sections side by side; docs/updates.md "Measured"); most of it is
 ``paper`` on the 100-134-drive fleets and the evidence pass of paper_like. ``--smoke`` (the 1.5 m
-shift up to 3 drives, the sample bags with ``default`` and ``naive``) ~1 min. More seeds: ``--seeds 0,1,2`` (each adds the changes
-section's time again). Prints Markdown tables; ``--markdown`` / ``--json`` write them::
+shift up to 3 drives, the sample bags with ``default`` and ``naive``) ~1 min. More seeds:
+``--seeds 0,1,2`` (each adds the changes section's time again). Prints Markdown tables;
+``--markdown`` / ``--json`` write them::
 
     .venv/bin/python scripts/bench_changes.py                      # full
     .venv/bin/python scripts/bench_changes.py --smoke              # CI-sized
