@@ -3,7 +3,8 @@
 # evaluator's figures, the floor, wall time and peak RSS per run, then the adjustment solver alone.
 #
 #   make bench                    # full: paper-like scenario at 0.25x, 1x, 4x drive-km
-#   BENCH_SMOKE=1 make bench      # smoke run (CI-sized): small scenario, one scale, one switch
+#   BENCH_SMOKE=1 make bench      # smoke run (CI-sized): small scenario, one scale, one switch,
+#                                 # one road change
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -16,6 +17,8 @@ if [[ -n "${BENCH_SMOKE:-}" ]]; then
     "$HDMAP" bench esmini_e6mini:20:1 --work-dir "$OUT/fleets" --markdown "$OUT/smoke.md" --json "$OUT/smoke.json"
     .venv/bin/python scripts/bench_incremental.py --drives 12 --road-km 2 --long-km 2 --replay-drives 6
     .venv/bin/python scripts/ablation.py --smoke --work-dir "$OUT/fleets" --out "$OUT/ablation"
+    # Map updating: a 1.5 m shift followed after 2-3 drives, no false change on the sample bags.
+    .venv/bin/python scripts/bench_changes.py --smoke --markdown "$OUT/changes_smoke.md" --json "$OUT/changes_smoke.json"
     exit 0
 fi
 "$HDMAP" bench paper_like:134:1 esmini_e6mini:40:1 esmini_soderleden:40:1 carla_town04:100:1 carla_town06:100:1 \
@@ -40,4 +43,7 @@ fi
 .venv/bin/python scripts/bench_incremental.py --drives 100
 # Each switch of the default preset turned back, against the default on the same bags.
 .venv/bin/python scripts/ablation.py --work-dir "$OUT/fleets" --out "$OUT/ablation"
+# Map updating (issue 28): drives needed to follow each kind and size of change, the changed zone
+# after 3 / 5 / 10 drives through it, and false changes on the fleets above without a change.
+.venv/bin/python scripts/bench_changes.py --markdown "$OUT/changes.md" --json "$OUT/changes.json"
 if [[ -f scripts/bench_adjustment.py ]]; then .venv/bin/python scripts/bench_adjustment.py; fi
