@@ -64,6 +64,7 @@ __all__ = [
     "map_tile_observed",
     "observe_tile",
     "preview_tile",
+    "TileWork",
     "fleet_offsets",
     "observations_signature",
     "carry_over_ids",
@@ -502,6 +503,59 @@ def preview_tile(
         _whole_drive_s(select_steps(res.segments, inp.core), inp.s0),
         _core_observations(res.observations, inp, key),
     )
+
+
+class TileWork:
+    """One tile's drive set prepared once for both of its passes (the live mapper's settle).
+
+    With the fleet-wide model a tile runs its observation pass (:func:`preview_tile` /
+    :func:`observe_tile`) while drives come, and its final pass with the model
+    (``map_tile(..., offset_model=...)``) at the settle. Each of those clips the drives,
+    preprocesses their detections and intersects every pivot step's cut with them again; kept in
+    one object (``pipeline.driver.StagedPasses``), the final pass reuses all of it, as the final
+    pass of ``build_map`` reuses its first pass's. The results are those of the functions named
+    above on the same drives.
+
+    Args:
+        drives: the drives covering the tile (any order; not modified).
+        key, tile_config, pipeline_config: as :func:`map_tile`; the config must have a final pass.
+    """
+
+    def __init__(
+        self, drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig
+    ) -> None:
+        from hdmap_core.pipeline.driver import StagedPasses  # noqa: PLC0415
+
+        self.key = key
+        self.pipeline_config = pipeline_config
+        self._inp = _tile_input(drives, key, tile_config, pipeline_config)
+        inp = self._inp
+        self._passes = (
+            StagedPasses(inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed)
+            if inp.clipped
+            else None
+        )
+        self._first: tuple[list[Segment], list] | None = None
+
+    def preview(self) -> tuple[list[Segment], list]:
+        """:func:`preview_tile`: (segments of the observation pass, observations), made once."""
+        if self._first is None:
+            if self._passes is None:
+                self._first = ([], [])
+            else:
+                res = self._passes.first()
+                self._first = (
+                    _whole_drive_s(select_steps(res.segments, self._inp.core), self._inp.s0),
+                    _core_observations(res.observations, self._inp, self.key),
+                )
+        return self._first
+
+    def final(self, offset_model: OffsetSource) -> list[Segment]:
+        """``map_tile(..., offset_model=offset_model)``: the final pass with the fleet model."""
+        if self._passes is None:
+            return []
+        res = self._passes.final(_ClippedOffsets(offset_model, self._inp.s0))
+        return _whole_drive_s(select_steps(res.segments, self._inp.core), self._inp.s0)
 
 
 def fleet_offsets(observations: Sequence, *, pipeline_config: PipelineConfig):

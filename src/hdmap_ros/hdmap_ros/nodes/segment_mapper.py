@@ -39,6 +39,7 @@ every stored tile estimate is published again (the stitcher ignores versions it 
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import time
 import traceback
@@ -52,7 +53,7 @@ from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
 from hdmap_core.live.jobs import JobResult, run_job, warm_up
 from hdmap_core.live.progress import LiveStatus
 from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
-from hdmap_core.live.tiles import TileConfig, road_cells, tiles_of_drive
+from hdmap_core.live.tiles import TileConfig, TileKey, road_cells, tiles_of_drive
 from hdmap_core.model import validate_drive
 from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.adjustment import OffsetModel
@@ -189,14 +190,16 @@ class SegmentMapper(HealthMixin, Node):
         )
         self.store.mark_processed(self.store.pending())  # their tiles are in the restored schedule
         self.workers = workers or available_cpus()
-        self._pool = (
-            ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
-            if self.workers > 1
-            else _Inline()
+        # one process per worker, so a tile's settle job can go to the process that keeps the
+        # work of its observation pass (``live.jobs.TileWork``)
+        ctx = multiprocessing.get_context("spawn")
+        self._pools: list[ProcessPoolExecutor | _Inline] = (
+            [ProcessPoolExecutor(1, mp_context=ctx) for _ in range(self.workers)] if self.workers > 1 else [_Inline()]
         )
-        self._running: dict[Future, Job] = {}
-        for _ in range(self.workers if self.workers > 1 else 0):  # start the processes while nothing waits
-            self._pool.submit(warm_up)
+        self._running: dict[Future, tuple[Job, int]] = {}  # job in work -> (job, its worker)
+        self._home: dict[TileKey, int] = {}  # tile -> the worker that made its observation pass last
+        for pool in self._pools if self.workers > 1 else []:  # start the processes while nothing waits
+            pool.submit(warm_up)
         self.tiles_published = 0
         self.received = 0
         self._rejected_ids: set[str] = set()
@@ -356,7 +359,7 @@ class SegmentMapper(HealthMixin, Node):
         """One worker turn: take new drives, collect finished jobs, start the next ones."""
         self._take_pending()
         self._collect()
-        if isinstance(self._pool, _Inline):
+        if self.workers <= 1:
             deadline = time.monotonic() + self.work_slice_s
             while time.monotonic() < deadline and self._start(1):
                 self._collect()
@@ -384,25 +387,44 @@ class SegmentMapper(HealthMixin, Node):
         self.store.mark_processed(pending)
 
     def _start(self, free: int) -> int:
-        """Start up to ``free`` jobs; returns how many."""
-        jobs = self.scheduler.next_jobs(time.monotonic(), max(0, free))
-        for job in jobs:
-            kw = {
-                "tile_config": self.tile_config,
-                "pipeline_config": self.pipeline_config,
-                "use_fleet_model": self.use_fleet_model,
-            }
-            if job.kind == MODEL:
-                kw["observations"] = self.store.observations()
-            if job.kind == REMAP:
-                kw["offset_model"] = self._model
-            drives = self.store.drives(job.drive_ids) if job.kind != MODEL else []
-            self._running[self._pool.submit(run_job, job, drives, **kw)] = job
-        return len(jobs)
+        """Start up to ``free`` jobs, one per idle worker; returns how many."""
+        busy = {w for _, w in self._running.values()}
+        idle = [w for w in range(len(self._pools)) if w not in busy][: max(0, free)]
+        started = 0
+        for w in idle:
+            # RULE: a settle job goes preferably to the worker holding its tile's observation pass
+            jobs = self.scheduler.next_jobs(time.monotonic(), 1, prefer=functools.partial(self._at_home, worker=w))
+            if not jobs:
+                break
+            self._submit(jobs[0], w)
+            started += 1
+        return started
+
+    def _at_home(self, key: TileKey, *, worker: int) -> bool:
+        """The tile's observation pass was made on ``worker`` (or on none still known)."""
+        return self._home.get(key, worker) == worker
+
+    def _submit(self, job: Job, worker: int) -> None:
+        """Run a job on a worker (``live.jobs.run_job``) with what it needs from the store."""
+        if job.key is not None and (job.kind == OBSERVE or (job.kind == MAP and not job.final)):
+            self._home[job.key] = worker  # that process keeps the work for the tile's final pass
+        elif job.key is not None and job.kind == REMAP:
+            self._home.pop(job.key, None)
+        kw = {
+            "tile_config": self.tile_config,
+            "pipeline_config": self.pipeline_config,
+            "use_fleet_model": self.use_fleet_model,
+        }
+        if job.kind == MODEL:
+            kw["observations"] = self.store.observations()
+        if job.kind == REMAP:
+            kw["offset_model"] = self._model
+        drives = self.store.drives(job.drive_ids) if job.kind != MODEL else []
+        self._running[self._pools[worker].submit(run_job, job, drives, **kw)] = (job, worker)
 
     def _collect(self) -> None:
         for fut in [f for f in self._running if f.done()]:
-            job = self._running.pop(fut)
+            job, _ = self._running.pop(fut)
             try:
                 result = fut.result()
             except Exception as err:  # noqa: BLE001 - a bug on one tile must not stop the live map; logged in full
@@ -484,7 +506,8 @@ class SegmentMapper(HealthMixin, Node):
         return not self.store.pending() and self.scheduler.is_settled()
 
     def destroy_node(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        for pool in self._pools:
+            pool.shutdown(wait=True, cancel_futures=True)
         self.store.close()
         super().destroy_node()
 
