@@ -20,6 +20,7 @@ import cProfile
 import pstats
 import time
 from collections import defaultdict
+from typing import Any
 
 
 def main() -> int:
@@ -63,7 +64,7 @@ def main() -> int:
         for k in tiles_of_drive(d, config=tc):
             tiles[k].append(d.drive_id)
     keys = sorted(tiles)
-    kw = {"tile_config": tc, "pipeline_config": pc, "use_fleet_model": True}
+    kw: dict[str, Any] = {"tile_config": tc, "pipeline_config": pc, "use_fleet_model": True}
     prof = cProfile.Profile()
 
     def phase(name, fn):

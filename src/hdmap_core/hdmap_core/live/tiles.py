@@ -681,6 +681,11 @@ def _line(points: np.ndarray):
     return shapely.LineString(pts) if len(pts) >= 2 else shapely.Point(pts[0])
 
 
+def _shape_key(f) -> tuple:
+    """A feature's type and points, as a dict key (equal for the same line)."""
+    return (int(f.type), np.ascontiguousarray(f.points, dtype=np.float64).tobytes())
+
+
 def carry_over_ids(
     new_map: HDMap,
     old_map: HDMap | None,
@@ -691,7 +696,8 @@ def carry_over_ids(
 ) -> HDMap:
     """Give the features of a new map version the ids of the old features they continue.
 
-    A new feature continues an old one of the same type when at least ``min_overlap`` of the
+    A new feature equal to an old one (same type and points) keeps its id. Otherwise, a new
+    feature continues an old one of the same type when at least ``min_overlap`` of the
     shorter of the two (resampled every ``spacing_m``) lies within ``max_distance_m`` of the other.
     Pairs are taken greedily by overlap (largest first); every old id is used at most once. Ids of
     new features without a match stay as the stitcher made them unless that id is taken by a carried
@@ -712,39 +718,53 @@ def carry_over_ids(
     import shapely  # noqa: PLC0415
     from scipy.spatial import cKDTree  # noqa: PLC0415
 
-    old_pts = [resample_evenly(f.points, spacing_m) for f in old_map.features]
-    new_pts = [resample_evenly(f.points, spacing_m) for f in new_map.features]
-    all_old = np.vstack(old_pts)
-    owner = np.repeat(np.arange(len(old_pts)), [len(p) for p in old_pts])
-    tree_all = cKDTree(all_old)
-    old_geoms: dict[int, tuple] = {}  # (line, resampled points) of an old feature, made once when first a candidate
-
-    pairs: list[tuple[float, int, int]] = []
-    for j, (nf, npnt) in enumerate(zip(new_map.features, new_pts)):
-        # candidate old features: a point within max_distance_m of an old line lies within
-        # max_distance_m + spacing_m / 2 of one of its resampled points
-        near = tree_all.query_ball_point(npnt, r=max_distance_m + 0.5 * spacing_m)
-        cands = {int(owner[k]) for lst in near for k in lst}
-        new_line = _line(nf.points) if cands else None
-        new_geom = shapely.points(npnt) if cands else None
-        for i in sorted(cands):
-            of = old_map.features[i]
-            if of.type != nf.type:
-                continue
-            if i not in old_geoms:
-                old_geoms[i] = (_line(of.points), shapely.points(old_pts[i]))
-            old_line, old_geom = old_geoms[i]
-            # distances to the other polyline, not to its resampled points: the same line begun
-            # a metre further back is resampled a metre out of phase
-            if len(npnt) <= len(old_pts[i]):
-                ov = float(np.mean(shapely.distance(new_geom, old_line) <= max_distance_m))
-            else:
-                ov = float(np.mean(shapely.distance(old_geom, new_line) <= max_distance_m))
-            if ov >= min_overlap:
-                pairs.append((ov, j, i))
-    pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
     new_id: dict[int, int] = {}
     used_old: set[int] = set()
+    # RULE: a feature the same as in the old version (type and every point) keeps its id at once:
+    # the stitch re-makes unchanged places exactly, so only the changed places are matched below
+    same: dict[tuple, list[int]] = {}
+    for i, f in enumerate(old_map.features):
+        same.setdefault(_shape_key(f), []).append(i)
+    for j, f in enumerate(new_map.features):
+        olds = same.get(_shape_key(f))
+        if olds:
+            i = olds.pop(0)
+            new_id[j] = int(old_map.features[i].id)
+            used_old.add(i)
+    rest_old = [i for i in range(len(old_map.features)) if i not in used_old]
+    rest_new = [j for j in range(len(new_map.features)) if j not in new_id]
+    pairs: list[tuple[float, int, int]] = []
+    if rest_old and rest_new:
+        old_pts = {i: resample_evenly(old_map.features[i].points, spacing_m) for i in rest_old}
+        all_old = np.vstack([old_pts[i] for i in rest_old])
+        owner = np.repeat(np.asarray(rest_old), [len(old_pts[i]) for i in rest_old])
+        tree_all = cKDTree(all_old)
+        old_geoms: dict[int, tuple] = {}  # (line, resampled points) of an old feature, made once when first a candidate
+        for j in rest_new:
+            nf = new_map.features[j]
+            npnt = resample_evenly(nf.points, spacing_m)
+            # candidate old features: a point within max_distance_m of an old line lies within
+            # max_distance_m + spacing_m / 2 of one of its resampled points
+            near = tree_all.query_ball_point(npnt, r=max_distance_m + 0.5 * spacing_m)
+            cands = {int(owner[k]) for lst in near for k in lst}
+            new_line = _line(nf.points) if cands else None
+            new_geom = shapely.points(npnt) if cands else None
+            for i in sorted(cands):
+                of = old_map.features[i]
+                if of.type != nf.type:
+                    continue
+                if i not in old_geoms:
+                    old_geoms[i] = (_line(of.points), shapely.points(old_pts[i]))
+                old_line, old_geom = old_geoms[i]
+                # distances to the other polyline, not to its resampled points: the same line begun
+                # a metre further back is resampled a metre out of phase
+                if len(npnt) <= len(old_pts[i]):
+                    ov = float(np.mean(shapely.distance(new_geom, old_line) <= max_distance_m))
+                else:
+                    ov = float(np.mean(shapely.distance(old_geom, new_line) <= max_distance_m))
+                if ov >= min_overlap:
+                    pairs.append((ov, j, i))
+    pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
     for _, j, i in pairs:
         if j in new_id or i in used_old:
             continue

@@ -39,6 +39,7 @@ every stored tile estimate is published again (the stitcher ignores versions it 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import multiprocessing
 import time
@@ -228,6 +229,8 @@ class SegmentMapper(HealthMixin, Node):
             callback_group=self._rx_group,
         )
         self._timer = self.create_timer(0.05, self.work, callback_group=self._work_group)
+        # a finished job wakes the worker turn at once: the next job starts without waiting for a tick
+        self._wake = self.create_guard_condition(self.work, callback_group=self._work_group)
         for est in emptied:  # tiles no drive covers any more after the purge: an empty estimate
             self._publish(est)
         if republish:
@@ -420,7 +423,15 @@ class SegmentMapper(HealthMixin, Node):
         if job.kind == REMAP:
             kw["offset_model"] = self._model
         drives = self.store.drives(job.drive_ids) if job.kind != MODEL else []
-        self._running[self._pools[worker].submit(run_job, job, drives, **kw)] = (job, worker)
+        fut = self._pools[worker].submit(run_job, job, drives, **kw)
+        self._running[fut] = (job, worker)
+        if self.workers > 1:
+            fut.add_done_callback(self._job_done)
+
+    def _job_done(self, _fut: Future) -> None:
+        """(A pool's thread) a job ended: wake :meth:`work` to collect it and start the next."""
+        with contextlib.suppress(Exception):  # the node may be on its way down
+            self._wake.trigger()
 
     def _collect(self) -> None:
         for fut in [f for f in self._running if f.done()]:
