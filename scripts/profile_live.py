@@ -30,6 +30,8 @@ def main() -> int:
     ap.add_argument("--profile", default="", help="cProfile one phase: preview, remap or stitch")
     ap.add_argument("--top", type=int, default=20)
     ap.add_argument("--skip-offline", action="store_true")
+    ap.add_argument("--tile-size", type=float, default=256.0, help="tile_size_m (the mapper's default 256)")
+    ap.add_argument("--margin", type=float, default=128.0, help="margin_m (the mapper's default 128)")
     args = ap.parse_args()
 
     from hdmap_core.live.jobs import run_job
@@ -48,7 +50,7 @@ def main() -> int:
 
     drives = read_fleet_bag(args.bag).drives
     pc = config_from(args.preset)
-    tc = TileConfig(pivot_margin_m=48.0)
+    tc = TileConfig(tile_size_m=args.tile_size, margin_m=args.margin, pivot_margin_m=48.0)
     by_id = {d.drive_id: d for d in drives}
     print(f"{args.bag}: {len(drives)} drives, {sum(d.length_m for d in drives) / 1000:.1f} drive-km")
 
@@ -97,9 +99,15 @@ def main() -> int:
     m_prev, _ = phase("", lambda: stitch(prev))
     m_new, t_stitch = phase("stitch", lambda: stitch(remap))
     _, t_ids = phase("ids", lambda: carry_over_ids(m_new, m_prev))
+    # a version in which one tile changed: the settled map with one tile's preview instead
+    one = dict(remap)
+    one[keys[len(keys) // 2]] = prev[keys[len(keys) // 2]]
+    m_one, t_stitch1 = phase("", lambda: stitch(one))
+    _, t_ids1 = phase("", lambda: carry_over_ids(m_new, m_one))
     print(
-        f"live: {len(keys)} tiles; preview {t_prev:.2f} s, model {t_model:.2f} s, remap {t_remap:.2f} s, "
-        f"connect+stitch {t_stitch:.2f} s, ids {t_ids:.2f} s"
+        f"live: {len(keys)} tiles of {tc.tile_size_m:g} m (margin {tc.margin_m:g} m); preview {t_prev:.2f} s, "
+        f"model {t_model:.2f} s, remap {t_remap:.2f} s, connect+stitch {t_stitch:.2f} s, ids {t_ids:.2f} s "
+        f"(one tile changed: connect+stitch {t_stitch1:.2f} s, ids {t_ids1:.2f} s)"
     )
     if args.profile:
         st = pstats.Stats(prof)
