@@ -226,6 +226,9 @@ class BagPlayer(HealthMixin, Node):
     def _finish(self) -> None:
         self.done = True
         self._done_at = time.monotonic()
+        # a 100 Hz timer that only returns woke the executor of every node in the process (hdmap
+        # run) ~100 times a second for the rest of the run: most of its wake-ups while settling
+        self._timer.cancel()
         skipped = sum(self.skipped.values())
         self.get_logger().info(
             f"bag {self.bag} done: {self.published} drive message(s) published"
