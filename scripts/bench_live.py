@@ -6,8 +6,10 @@
 2. runs ``hdmap run BAG --rate R -o LIVE`` in a subprocess while a probe node in this process
    (its own rclpy context, the same ROS_DOMAIN_ID) records, with receive times, every drive ack
    (``/hdmap/drive_acks``), every map version (``/hdmap/map``) and status (``/hdmap/status``);
-3. prints: the settle time of ``hdmap run`` against the ``bag2map`` wall time; the settled live
-   map and the offline map scored against the ground truth (``evaluate_map``, as ``hdmap evaluate``);
+3. prints: the settle time of ``hdmap run`` against the ``bag2map`` wall time, and the CPU time of
+   the two (every process, user + system: less bent by other load on the machine than wall
+   times); the settled live map and the offline map scored against the ground truth
+   (``evaluate_map``, as ``hdmap evaluate``);
    the moment ``drive_ids`` first holds every drive and that map's score; and the latency from a
    drive's acknowledgement to the first map listing it.
 
@@ -80,13 +82,14 @@ def main() -> int:
         sim += ["--length-m", str(args.length_m)]
     subprocess.run(sim, check=True, stdout=subprocess.DEVNULL)
 
-    t0 = time.monotonic()
+    t0, c0 = time.monotonic(), _children_cpu()
     subprocess.run(
         [HDMAP, "bag2map", str(fleet), "-o", str(out / "offline"), "--overwrite", "--no-progress"],
         check=True,
         stdout=subprocess.DEVNULL,
     )
     offline_s = time.monotonic() - t0
+    args.offline_cpu = _children_cpu() - c0
 
     if args.rates:
         rows = []
@@ -116,6 +119,14 @@ def main() -> int:
         probe.close()
     _report(args, fleet, out, offline_s, live_s, settle_line, probe)
     return 0
+
+
+def _children_cpu() -> float:
+    """CPU time (user + system) of every child process waited for so far, with theirs [s]."""
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 def _latencies(probe: _Probe) -> list[float]:
@@ -204,13 +215,14 @@ class _Probe:
 
 def _run_live(args, fleet: Path, live: Path, probe: _Probe) -> tuple[float, str]:
     time.sleep(1.0)  # the probe discovered before the suite starts
-    probe.t0 = time.monotonic()
+    probe.t0, c0 = time.monotonic(), _children_cpu()
     proc = subprocess.run(
         [HDMAP, "run", str(fleet), "--rate", str(args.rate), "-o", str(live), "--timeout", str(args.timeout)],
         capture_output=True,
         text=True,
     )
     live_s = time.monotonic() - probe.t0
+    args.live_cpu = _children_cpu() - c0
     if proc.returncode != 0:
         print(proc.stderr[-3000:], file=sys.stderr)
         raise SystemExit(f"hdmap run failed ({proc.returncode})")
@@ -240,6 +252,10 @@ def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settl
     print(
         f"hdmap run: settled after                  {run_settle:7.1f} s  (suite up to settled; "
         f"process wall time {live_s:.1f} s)  = {run_settle / offline_s:.1f} x bag2map"
+    )
+    print(
+        f"CPU time (user + system, every process): bag2map {args.offline_cpu:.1f} s, hdmap run {args.live_cpu:.1f} s"
+        f" = {args.live_cpu / args.offline_cpu:.1f} x (holds on a loaded machine; wall times do not)"
     )
     print(
         f"settled live map: mean error {settled.overall.mean_m:.3f} m, coverage {100 * settled.overall.coverage:.1f} %"

@@ -436,3 +436,48 @@ def test_the_tiles_final_pass_is_the_pipelines_final_pass():
             if x.empty_m is not None:
                 np.testing.assert_array_equal(x.empty_m, y.empty_m)
     assert any(st.empty_m is not None for sg in mine for st in sg.steps)
+
+
+def _same_segments(a, b):
+    assert len(a) == len(b)
+    for sa, sb in zip(a, b):
+        assert sa.pivot_id == sb.pivot_id and len(sa.steps) == len(sb.steps)
+        for x, y in zip(sa.steps, sb.steps):
+            assert (x.index, x.s_m, x.valid, x.drive_ids) == (y.index, y.s_m, y.valid, y.drive_ids)
+            for f in ("lateral_m", "types", "counts", "midpoint", "pose"):
+                np.testing.assert_array_equal(getattr(x, f), getattr(y, f))
+            assert (x.empty_m is None) == (y.empty_m is None)
+            if x.empty_m is not None:
+                np.testing.assert_array_equal(x.empty_m, y.empty_m)
+
+
+@pytest.mark.slow
+def test_tile_work_gives_the_preview_and_the_final_pass_of_the_tile_functions():
+    # the settle's final pass reuses the observation pass's preprocessing and cut intersections
+    # (TileWork); the segments must be exactly those of the tile made afresh with the model
+    from hdmap_core.live.tiles import TileWork, fleet_offsets, map_tile, preview_tile
+
+    drives, key, cfg, pc = _sim_tile()
+    work = TileWork(drives, key, tile_config=cfg, pipeline_config=pc)
+    segs, obs = work.preview()
+    segs0, obs0 = preview_tile(drives, key, tile_config=cfg, pipeline_config=pc)
+    _same_segments(segs, segs0)
+    assert len(obs) == len(obs0) > 10
+    for a, b in zip(obs, obs0):
+        assert (a.pivot_id, a.index, a.drive_ids) == (b.pivot_id, b.index, b.drive_ids)
+        np.testing.assert_array_equal(a.drive_s_m, b.drive_s_m)
+    assert work.preview() is work.preview()  # made once
+    model = fleet_offsets(obs, pipeline_config=pc)
+    final = work.final(model)
+    assert sum(st.valid for sg in final for st in sg.steps) > 10
+    _same_segments(final, map_tile(drives, key, tile_config=cfg, pipeline_config=pc, offset_model=model))
+
+
+def test_tile_work_of_a_tile_no_drive_reaches_is_empty():
+    from hdmap_core.live.tiles import TileWork
+    from hdmap_core.pipeline import presets
+
+    d = _drive(_line(0.0, 100.0), "a")
+    work = TileWork([d], (50, 50), tile_config=TileConfig(), pipeline_config=presets.preset("default"))
+    assert work.preview() == ([], [])
+    assert work.final(None) == []  # type: ignore[arg-type]

@@ -270,3 +270,23 @@ def test_without_the_model_new_road_is_due_at_once_beside_the_growth_rule():
     _drain(s, 0.0)
     s.add_drive("x", [A, B], now=1.0, cells={**_cells(A, range(5)), **_cells(B, range(5, 8))})
     assert [(j.key, len(j.drive_ids)) for j in s.next_jobs(1.0, limit=4)] == [(B, 11)]  # A: one drive, old road
+
+
+def test_prefer_picks_the_settle_job_a_worker_holds_the_observations_of():
+    s = _sched(model=True, settle=1.0)
+    for i in range(3):
+        s.add_drive(f"d{i}", [A, B, C], now=0.0)
+    _drain(s, 0.0, observed=True)
+    (model,) = s.next_jobs(2.0)
+    s.finished(model, ok=True)
+    # the worker asking holds C's and B's observation pass: C first, then B, then whatever is left
+    first = s.next_jobs(2.0, prefer=lambda k: k in (B, C))
+    second = s.next_jobs(2.0, prefer=lambda k: k in (B, C))
+    third = s.next_jobs(2.0, prefer=lambda k: k in (B, C))
+    assert [(j.kind, j.key) for j in first + second + third] == [(REMAP, B), (REMAP, C), (REMAP, A)]
+    for j in first + second + third:
+        s.finished(j, ok=True)
+    assert s.is_settled()
+    # before the settle, prefer changes nothing: new tiles go first in key order
+    s.add_drive("n", [(5, 0), (4, 0)], now=3.0)
+    assert [j.key for j in s.next_jobs(3.0, prefer=lambda k: k == (5, 0))] == [(4, 0)]

@@ -269,3 +269,48 @@ def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros,
         )
     with pytest.raises(ConfigError, match="preset_overrides: 'nokey' is not KEY=VALUE"):
         node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["nokey"])])
+
+
+def test_stitcher_paces_rebuilds_while_estimates_stream_and_rebuilds_at_once_when_quiet(ros, tmp_path, monkeypatch):
+    """While estimates keep coming (never a quiet debounce_s), a rebuild forced by max_delay_s
+    waits at least as long as the last rebuild took (REBUILD_SHARE 0.5); once quiet, at once."""
+    import time
+
+    from hdmap_ros.nodes.map_stitcher import REBUILD_SHARE, MapStitcher
+
+    assert REBUILD_SHARE == 0.5
+    st = MapStitcher(  # not spun: only this test calls its turn
+        context=ros.context,
+        parameter_overrides=[
+            Parameter("db_path", value=str(tmp_path / "s.db")),
+            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
+            Parameter("debounce_s", value=0.5),
+            Parameter("max_delay_s", value=0.0),
+        ],
+    )
+    starts: list[float] = []
+
+    def rebuild() -> None:  # a rebuild that takes 0.3 s
+        starts.append(time.monotonic())
+        time.sleep(0.3)
+
+    monkeypatch.setattr(st, "rebuild", rebuild)
+    try:
+        end = time.monotonic() + 1.5
+        while time.monotonic() < end:  # an estimate every 20 ms
+            now = time.monotonic()
+            st._last_rx = now
+            if st._first_dirty is None:
+                st._first_dirty = now
+            st._work()
+            time.sleep(0.02)
+        assert len(starts) >= 2
+        # each rebuild started at least 0.3 s (the last one's duration) after the last one ended
+        assert all(b - a >= 0.6 - 1e-3 for a, b in zip(starts, starts[1:]))
+        n = len(starts)
+        st._first_dirty = st._last_rx = time.monotonic() - 0.6  # quiet for more than debounce_s
+        st._rested_at = time.monotonic() + 100.0
+        st._work()
+        assert len(starts) == n + 1  # a quiet debounce rebuilds at once, paced or not
+    finally:
+        st.destroy_node()

@@ -8,6 +8,7 @@ Results depend on the job's input only, so they are the same in any process.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -16,11 +17,11 @@ from hdmap_core.errors import ConfigError
 from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job
 from hdmap_core.live.tiles import (
     TileConfig,
+    TileKey,
+    TileWork,
     fleet_offsets,
     map_tile,
     map_tile_observed,
-    observe_tile,
-    preview_tile,
 )
 from hdmap_core.model import Drive
 
@@ -28,7 +29,13 @@ if TYPE_CHECKING:
     from hdmap_core.pipeline.adjustment import OffsetSource
     from hdmap_core.pipeline.config import PipelineConfig
 
-__all__ = ["JobResult", "run_job", "warm_up"]
+__all__ = ["JobResult", "run_job", "warm_up", "WORK_KEPT"]
+
+WORK_KEPT = 64  # RULE: tiles whose prepared work (TileWork) a process keeps for their settle job, least recent dropped
+
+# tile -> (its drive set, the configs, its TileWork): the observation pass's work, reused by the
+# tile's final pass when the drive set and the configs are still the same (else made afresh)
+_work: OrderedDict[TileKey, tuple[tuple[str, ...], TileConfig, PipelineConfig, TileWork]] = OrderedDict()
 
 
 @dataclass
@@ -78,17 +85,21 @@ def run_job(
     elif job.key is None:
         raise ConfigError(f"a {job.kind} job needs a tile")
     elif job.kind == OBSERVE:
-        out = JobResult(observations=observe_tile(drives, job.key, tile_config=tc, pipeline_config=pc))
+        out = JobResult(observations=_tile_work(job, drives, tc, pc).preview()[1])
     elif job.kind == REMAP:
         if offset_model is None:
             raise ConfigError(f"tile {job.key}: a remap job needs the fleet offset model")
-        out = JobResult(
-            segments=map_tile(drives, job.key, tile_config=tc, pipeline_config=pc, offset_model=offset_model)
+        work = _kept_work(job, tc, pc)
+        segments = (
+            work.final(offset_model)
+            if work is not None
+            else map_tile(drives, job.key, tile_config=tc, pipeline_config=pc, offset_model=offset_model)
         )
+        out = JobResult(segments=segments)
     elif job.kind == MAP and use_fleet_model and not job.final:
         # RULE: a tile's estimate while drives come is its observation pass (half the work of its
         # own adjustment and final pass); the settled map re-makes it with the fleet model anyway
-        segments, obs = preview_tile(drives, job.key, tile_config=tc, pipeline_config=pc)
+        segments, obs = _tile_work(job, drives, tc, pc).preview()
         out = JobResult(segments=segments, observations=obs)
     elif job.kind == MAP and use_fleet_model:
         segments, obs = map_tile_observed(drives, job.key, tile_config=tc, pipeline_config=pc)
@@ -99,6 +110,26 @@ def run_job(
         raise ConfigError(f"unknown job kind {job.kind!r}")
     out.seconds = time.perf_counter() - t0
     return out
+
+
+def _tile_work(job: Job, drives: Sequence[Drive], tc: TileConfig, pc: PipelineConfig) -> TileWork:
+    """The tile's work for its observation pass, kept (:data:`WORK_KEPT`) for its final pass."""
+    assert job.key is not None
+    work = TileWork(drives, job.key, tile_config=tc, pipeline_config=pc)
+    _work[job.key] = (job.drive_ids, tc, pc, work)
+    _work.move_to_end(job.key)
+    while len(_work) > WORK_KEPT:
+        _work.popitem(last=False)
+    return work
+
+
+def _kept_work(job: Job, tc: TileConfig, pc: PipelineConfig) -> TileWork | None:
+    """The kept work of the job's tile if made from the same drives with the same configs (taken
+    out: a final pass is the last use of a drive set's work)."""
+    kept = _work.pop(job.key, None) if job.key is not None else None
+    if kept is None or kept[0] != job.drive_ids or kept[1] != tc or kept[2] != pc:
+        return None
+    return kept[3]
 
 
 def warm_up() -> None:

@@ -30,7 +30,7 @@ depends on the drives only, whatever the order, the number of workers or a resta
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from hdmap_core.live.tiles import TileConfig, TileKey, needs_update, observations_signature
@@ -250,11 +250,15 @@ class LiveScheduler:
 
     # --- the schedule ----------------------------------------------------------------------------
 
-    def next_jobs(self, now: float, limit: int = 1) -> list[Job]:
-        """Up to ``limit`` jobs to start now (marked as in work), in the order to start them."""
+    def next_jobs(self, now: float, limit: int = 1, *, prefer: Callable[[TileKey], bool] | None = None) -> list[Job]:
+        """Up to ``limit`` jobs to start now (marked as in work), in the order to start them.
+
+        ``prefer``: of the settle's final jobs (phase 3, any order gives the same map), a tile it
+        holds true for goes first (the mapper: the worker asking holds that tile's observation pass).
+        """
         jobs: list[Job] = []
         while len(jobs) < limit:
-            job = self._next(now)
+            job = self._next(now, prefer)
             if job is None:
                 break
             self._busy[job.key if job.kind != MODEL else None] = job
@@ -263,7 +267,7 @@ class LiveScheduler:
             jobs.append(job)
         return jobs
 
-    def _next(self, now: float) -> Job | None:
+    def _next(self, now: float, prefer: Callable[[TileKey], bool] | None = None) -> Job | None:
         while self._queue:
             ready = [k for k in self._queue if k not in self._busy]
             if not ready:
@@ -275,7 +279,7 @@ class LiveScheduler:
                 return Job(MAP, key, self.tile_drives(key), final=not self.use_fleet_model or failed)
         if now - self._last_input < self.settle_after_s:
             return None
-        return self._settle_job()
+        return self._settle_job(prefer)
 
     def _pick(self, ready: list[TileKey]) -> TileKey:
         fresh = [k for k in ready if k not in self._est]
@@ -287,7 +291,7 @@ class LiveScheduler:
         # RULE: the most grown estimate first (relative to its drive count), ties by key
         return min(ready, key=lambda k: (-len(self._tiles.get(k, ())) / max(1, self._est[k][0]), k))
 
-    def _settle_job(self) -> Job | None:
+    def _settle_job(self, prefer: Callable[[TileKey], bool] | None = None) -> Job | None:
         if not self._model_phase():
             for key in sorted(self._tiles):
                 if key not in self._busy and self._stale(key) and not self._failed_at_count(key):
@@ -307,8 +311,8 @@ class LiveScheduler:
             return None
         if self._cursor is not None:  # round robin: a settle cut short goes on where it stopped
             after = [k for k in keys if k > self._cursor]
-            keys = after or keys
-        key = keys[0]
+            keys = after + [k for k in keys if k <= self._cursor]
+        key = next((k for k in keys if prefer(k)), keys[0]) if prefer is not None else keys[0]
         self._cursor = key
         return Job(REMAP, key, self.tile_drives(key), self._model_sig, final=True)  # 3. every tile with the model
 

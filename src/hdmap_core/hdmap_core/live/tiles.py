@@ -64,6 +64,7 @@ __all__ = [
     "map_tile_observed",
     "observe_tile",
     "preview_tile",
+    "TileWork",
     "fleet_offsets",
     "observations_signature",
     "carry_over_ids",
@@ -504,6 +505,59 @@ def preview_tile(
     )
 
 
+class TileWork:
+    """One tile's drive set prepared once for both of its passes (the live mapper's settle).
+
+    With the fleet-wide model a tile runs its observation pass (:func:`preview_tile` /
+    :func:`observe_tile`) while drives come, and its final pass with the model
+    (``map_tile(..., offset_model=...)``) at the settle. Each of those clips the drives,
+    preprocesses their detections and intersects every pivot step's cut with them again; kept in
+    one object (``pipeline.driver.StagedPasses``), the final pass reuses all of it, as the final
+    pass of ``build_map`` reuses its first pass's. The results are those of the functions named
+    above on the same drives.
+
+    Args:
+        drives: the drives covering the tile (any order; not modified).
+        key, tile_config, pipeline_config: as :func:`map_tile`; the config must have a final pass.
+    """
+
+    def __init__(
+        self, drives: Sequence[Drive], key: TileKey, *, tile_config: TileConfig, pipeline_config: PipelineConfig
+    ) -> None:
+        from hdmap_core.pipeline.driver import StagedPasses  # noqa: PLC0415
+
+        self.key = key
+        self.pipeline_config = pipeline_config
+        self._inp = _tile_input(drives, key, tile_config, pipeline_config)
+        inp = self._inp
+        self._passes = (
+            StagedPasses(inp.clipped, config=pipeline_config, seed=inp.seed, processed=inp.processed)
+            if inp.clipped
+            else None
+        )
+        self._first: tuple[list[Segment], list] | None = None
+
+    def preview(self) -> tuple[list[Segment], list]:
+        """:func:`preview_tile`: (segments of the observation pass, observations), made once."""
+        if self._first is None:
+            if self._passes is None:
+                self._first = ([], [])
+            else:
+                res = self._passes.first()
+                self._first = (
+                    _whole_drive_s(select_steps(res.segments, self._inp.core), self._inp.s0),
+                    _core_observations(res.observations, self._inp, self.key),
+                )
+        return self._first
+
+    def final(self, offset_model: OffsetSource) -> list[Segment]:
+        """``map_tile(..., offset_model=offset_model)``: the final pass with the fleet model."""
+        if self._passes is None:
+            return []
+        res = self._passes.final(_ClippedOffsets(offset_model, self._inp.s0))
+        return _whole_drive_s(select_steps(res.segments, self._inp.core), self._inp.s0)
+
+
 def fleet_offsets(observations: Sequence, *, pipeline_config: PipelineConfig):
     """The network-wide offset adjustment over the observations of all tiles (as ``bag2map`` does).
 
@@ -619,12 +673,34 @@ def stitch_graphs(graphs: Sequence, *, pipeline_config: PipelineConfig, drive_id
 # --- feature ids -----------------------------------------------------------------------------------
 
 
-def _line(points: np.ndarray):
-    """A shapely geometry of a polyline (a point for a one-point line)."""
-    import shapely  # noqa: PLC0415
+class _NearLine:
+    """A polyline, asked which points lie within a distance of it: ``shapely.distance(point, line)
+    <= d`` for each point, found through an STRtree of the line's segments instead of measuring
+    every point against every segment (the id carry-over of a 12 km map spent 90 % there)."""
 
-    pts = np.asarray(points, dtype=float)
-    return shapely.LineString(pts) if len(pts) >= 2 else shapely.Point(pts[0])
+    def __init__(self, points: np.ndarray) -> None:
+        import shapely  # noqa: PLC0415
+
+        pts = np.asarray(points, dtype=float)
+        self.point = shapely.Point(pts[0]) if len(pts) < 2 else None
+        self.tree = (
+            shapely.STRtree(shapely.linestrings(np.stack([pts[:-1], pts[1:]], axis=1))) if len(pts) >= 2 else None
+        )
+
+    def share_within(self, points: np.ndarray, distance_m: float) -> float:
+        """The share of ``points`` ((N, 2), N >= 1) within ``distance_m`` of the line."""
+        import shapely  # noqa: PLC0415
+
+        geoms = shapely.points(np.asarray(points, dtype=float))
+        if self.tree is None:
+            return float(np.mean(shapely.distance(geoms, self.point) <= distance_m))
+        hit = self.tree.query(geoms, predicate="dwithin", distance=distance_m)
+        return len(np.unique(hit[0])) / len(geoms)
+
+
+def _shape_key(f) -> tuple:
+    """A feature's type and points, as a dict key (equal for the same line)."""
+    return (int(f.type), np.ascontiguousarray(f.points, dtype=np.float64).tobytes())
 
 
 def carry_over_ids(
@@ -637,7 +713,8 @@ def carry_over_ids(
 ) -> HDMap:
     """Give the features of a new map version the ids of the old features they continue.
 
-    A new feature continues an old one of the same type when at least ``min_overlap`` of the
+    A new feature equal to an old one (same type and points) keeps its id. Otherwise, a new
+    feature continues an old one of the same type when at least ``min_overlap`` of the
     shorter of the two (resampled every ``spacing_m``) lies within ``max_distance_m`` of the other.
     Pairs are taken greedily by overlap (largest first); every old id is used at most once. Ids of
     new features without a match stay as the stitcher made them unless that id is taken by a carried
@@ -655,42 +732,54 @@ def carry_over_ids(
     """
     if old_map is None or not old_map.features or not new_map.features:
         return new_map
-    import shapely  # noqa: PLC0415
     from scipy.spatial import cKDTree  # noqa: PLC0415
 
-    old_pts = [resample_evenly(f.points, spacing_m) for f in old_map.features]
-    new_pts = [resample_evenly(f.points, spacing_m) for f in new_map.features]
-    all_old = np.vstack(old_pts)
-    owner = np.repeat(np.arange(len(old_pts)), [len(p) for p in old_pts])
-    tree_all = cKDTree(all_old)
-    old_geoms: dict[int, tuple] = {}  # (line, resampled points) of an old feature, made once when first a candidate
-
-    pairs: list[tuple[float, int, int]] = []
-    for j, (nf, npnt) in enumerate(zip(new_map.features, new_pts)):
-        # candidate old features: a point within max_distance_m of an old line lies within
-        # max_distance_m + spacing_m / 2 of one of its resampled points
-        near = tree_all.query_ball_point(npnt, r=max_distance_m + 0.5 * spacing_m)
-        cands = {int(owner[k]) for lst in near for k in lst}
-        new_line = _line(nf.points) if cands else None
-        new_geom = shapely.points(npnt) if cands else None
-        for i in sorted(cands):
-            of = old_map.features[i]
-            if of.type != nf.type:
-                continue
-            if i not in old_geoms:
-                old_geoms[i] = (_line(of.points), shapely.points(old_pts[i]))
-            old_line, old_geom = old_geoms[i]
-            # distances to the other polyline, not to its resampled points: the same line begun
-            # a metre further back is resampled a metre out of phase
-            if len(npnt) <= len(old_pts[i]):
-                ov = float(np.mean(shapely.distance(new_geom, old_line) <= max_distance_m))
-            else:
-                ov = float(np.mean(shapely.distance(old_geom, new_line) <= max_distance_m))
-            if ov >= min_overlap:
-                pairs.append((ov, j, i))
-    pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
     new_id: dict[int, int] = {}
     used_old: set[int] = set()
+    # RULE: a feature the same as in the old version (type and every point) keeps its id at once:
+    # the stitch re-makes unchanged places exactly, so only the changed places are matched below
+    same: dict[tuple, list[int]] = {}
+    for i, f in enumerate(old_map.features):
+        same.setdefault(_shape_key(f), []).append(i)
+    for j, f in enumerate(new_map.features):
+        olds = same.get(_shape_key(f))
+        if olds:
+            i = olds.pop(0)
+            new_id[j] = int(old_map.features[i].id)
+            used_old.add(i)
+    rest_old = [i for i in range(len(old_map.features)) if i not in used_old]
+    rest_new = [j for j in range(len(new_map.features)) if j not in new_id]
+    pairs: list[tuple[float, int, int]] = []
+    if rest_old and rest_new:
+        old_pts = {i: resample_evenly(old_map.features[i].points, spacing_m) for i in rest_old}
+        all_old = np.vstack([old_pts[i] for i in rest_old])
+        owner = np.repeat(np.asarray(rest_old), [len(old_pts[i]) for i in rest_old])
+        tree_all = cKDTree(all_old)
+        old_lines: dict[int, _NearLine] = {}  # made once, when first a candidate
+        for j in rest_new:
+            nf = new_map.features[j]
+            npnt = resample_evenly(nf.points, spacing_m)
+            # candidate old features: a point within max_distance_m of an old line lies within
+            # max_distance_m + spacing_m / 2 of one of its resampled points
+            near = tree_all.query_ball_point(npnt, r=max_distance_m + 0.5 * spacing_m)
+            cands = {int(owner[k]) for lst in near for k in lst}
+            new_line: _NearLine | None = None
+            for i in sorted(cands):
+                of = old_map.features[i]
+                if of.type != nf.type:
+                    continue
+                # distances to the other polyline, not to its resampled points: the same line begun
+                # a metre further back is resampled a metre out of phase
+                if len(npnt) <= len(old_pts[i]):
+                    if i not in old_lines:
+                        old_lines[i] = _NearLine(of.points)
+                    ov = old_lines[i].share_within(npnt, max_distance_m)
+                else:
+                    new_line = new_line or _NearLine(nf.points)
+                    ov = new_line.share_within(old_pts[i], max_distance_m)
+                if ov >= min_overlap:
+                    pairs.append((ov, j, i))
+    pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
     for _, j, i in pairs:
         if j in new_id or i in used_old:
             continue

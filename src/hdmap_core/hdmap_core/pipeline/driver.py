@@ -49,6 +49,7 @@ __all__ = [
     "map_segments",
     "map_stretches",
     "prepare_drives",
+    "StagedPasses",
 ]
 
 # A pass's results: segments, the processed-stretch store, observations (or None), step counts.
@@ -245,10 +246,7 @@ def map_stretches(
         raise NoUsableDataError("no valid drive to map")
     if offset_model is not None and config.final_pass is None:
         raise ConfigError("map_stretches: an offset_model needs a config with a final pass (final_pass is None)")
-    # Tens of thousands of tiny (D x D) solves: multithreaded BLAS only adds sync overhead
-    # (measured: 3.6 ms per 55 x 55 solve with 2 threads on a loaded 2-core machine).
-    limit = threadpool_limits(limits=1, user_api="blas") if threadpool_limits is not None else contextlib.nullcontext()
-    with limit:
+    with _blas_one():
         return _TwoPasses(
             drives,
             config,
@@ -258,6 +256,78 @@ def map_stretches(
             observations_only=observations_only,
             workers=_check_workers(workers),
         ).run(offset_model, progress)
+
+
+class StagedPasses:
+    """The two passes of one ``map_stretches`` call run apart: the first (observation) pass now,
+    the final pass later with an offset model estimated elsewhere.
+
+    What a live tile needs (``hdmap_core.live.tiles.TileWork``): its observation pass feeds a
+    fleet-wide adjustment over every tile, and its final pass runs with that model once it is
+    there. Kept in one object, the preprocessing and the pivots' cut intersections are made once
+    for both passes, as ``build_map`` makes them once for its two passes (``_TwoPasses``).
+
+    :meth:`first` gives what ``map_stretches(..., collect_observations=True,
+    observations_only=True)`` gives; :meth:`final` what ``map_stretches(..., offset_model=model)``
+    gives on the same drives: the same segments whatever ran before (the cut intersections of a
+    step do not depend on the pass).
+
+    Args:
+        drives: valid drives (``prepare_drives``); config: with a final pass; seed, processed:
+            as ``map_stretches``.
+
+    Raises:
+        NoUsableDataError: no drive; ConfigError: a config without a final pass.
+    """
+
+    def __init__(
+        self,
+        drives: Sequence[Drive],
+        *,
+        config: PipelineConfig,
+        seed: int = 0,
+        processed: ProcessedStore | None = None,
+    ) -> None:
+        drives = list(drives)
+        if not drives:
+            raise NoUsableDataError("no valid drive to map")
+        if config.final_pass is None:
+            raise ConfigError("StagedPasses needs a config with a final pass (final_pass is None)")
+        with _blas_one():
+            self._passes = _TwoPasses(
+                drives,
+                config,
+                seed=seed,
+                processed=processed,
+                collect_observations=True,
+                observations_only=True,
+                workers=1,
+            )
+
+    def first(self) -> MappingResult:
+        """The observation pass: its segments and its step observations (no adjustment)."""
+        p = self._passes
+        with _blas_one():
+            t0 = time.perf_counter()
+            segments, store, obs, counters = p._all([], None, None, None)
+            p.seconds["sampling_em"] = time.perf_counter() - t0
+        return p.result(segments, store, obs, None, counters)
+
+    def final(self, model: OffsetSource) -> MappingResult:
+        """The final pass with ``model`` (travelled distances of these drives)."""
+        p = self._passes
+        with _blas_one():
+            p.with_evidence()
+            t0 = time.perf_counter()
+            segments, store, _, counters = p._all([], model, None, None)
+            p.seconds["final_pass"] = time.perf_counter() - t0
+        return p.result(segments, store, None, model, counters)
+
+
+def _blas_one():
+    """Tens of thousands of tiny (D x D) solves: multithreaded BLAS only adds sync overhead
+    (measured: 3.6 ms per 55 x 55 solve with 2 threads on a loaded 2-core machine)."""
+    return threadpool_limits(limits=1, user_api="blas") if threadpool_limits is not None else contextlib.nullcontext()
 
 
 class _TwoPasses:
@@ -290,16 +360,24 @@ class _TwoPasses:
         self.observations_only = observations_only
         self.first_stride = config.observation_stride if (two or observations_only) else 1
         self.evidence: tuple[DetectionIndex, EvidenceConfig] | None = None
-        if config.evidence is not None and not observations_only:
-            t0 = time.perf_counter()
-            self.evidence = (trajectory_index(drives, cell_m=config.preprocess.grid_cell_m), config.evidence)
-            self.seconds["preprocess"] += time.perf_counter() - t0
+        if not observations_only:
+            self.with_evidence()
         self.shares = [self.order]
         if workers > 1 and len(drives) > 1 and can_fork():
             t0 = time.perf_counter()
             group = pivot_groups(self.index, drives, config=config.sampling)
             self.shares = split_order(self.order, group, np.array([d.length_m for d in drives]), workers)
             self.seconds["grouping"] = time.perf_counter() - t0
+
+    def with_evidence(self) -> None:
+        """Make the negative-evidence index (``config.evidence``) if it is not there yet."""
+        if self.config.evidence is not None and self.evidence is None:
+            t0 = time.perf_counter()
+            self.evidence = (
+                trajectory_index(self.drives, cell_m=self.config.preprocess.grid_cell_m),
+                self.config.evidence,
+            )
+            self.seconds["preprocess"] += time.perf_counter() - t0
 
     def _context(self, final: OffsetSource | None, counters: PassCounters, observations: list | None) -> PivotContext:
         """The pivots' shared settings of the first pass, or of the final pass shifted by ``final``."""
@@ -370,6 +448,16 @@ class _TwoPasses:
         finally:
             for w in workers:
                 w.close()
+        return self.result(segments, store, obs, model, counters)
+
+    def result(
+        self,
+        segments: list[Segment],
+        store: ProcessedStore,
+        obs: list[StepObservations] | None,
+        model: OffsetSource | None,
+        counters: PassCounters,
+    ) -> MappingResult:
         return MappingResult(
             segments=segments,
             processed=store,
@@ -382,7 +470,7 @@ class _TwoPasses:
                 "steps_valid": counters.valid,
                 "steps_off_road": counters.off_road,
             },
-            stage_seconds=self.seconds,
+            stage_seconds=dict(self.seconds),
         )
 
     def _job(self, channel: _Channel, share: np.ndarray, model: OffsetSource | None, adjust: bool) -> None:

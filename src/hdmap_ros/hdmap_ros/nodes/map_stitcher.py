@@ -3,7 +3,8 @@
 Subscribes ``/hdmap/segments`` (hdmap_msgs/TileSegments). A tile estimate newer than the stored
 one replaces it (committed in one transaction; older or repeated versions are ignored, so replays
 after a restart are harmless). After a quiet ``debounce_s`` (or at the latest ``max_delay_s`` after
-the first unstitched update) the map is rebuilt: every tile's segments connected (Sec. V, cached
+the first unstitched update, and no sooner after the last rebuild than that rebuild took) the map
+is rebuilt: every tile's segments connected (Sec. V, cached
 per tile version), all stitched into the complete graph (Sec. VI), and feature ids carried over
 from the previous version where a feature persists (``incremental.carry_over_ids``). The map is
 committed with a growing version and published on ``/hdmap/map`` (RELIABLE, TRANSIENT_LOCAL,
@@ -65,6 +66,10 @@ MAP_TOPIC = "hdmap/map"
 STATUS_TOPIC = "hdmap/status"
 MAPPER_STATUS_TOPIC = "hdmap/mapper_status"
 CHANGES_TOPIC = "hdmap/changes"
+# RULE: while tile estimates keep coming (no quiet debounce_s), rebuilds take at most this share
+# of the time: on a loaded machine a rebuild takes seconds, and back-to-back rebuilds every
+# max_delay_s took the CPU the mapper needs to finish its tiles (a quiet debounce_s rebuilds at once)
+REBUILD_SHARE = 0.5
 CHANGES_QOS = qos.CHANGES  # the whole history latched (a restart publishes it again)
 
 
@@ -152,6 +157,7 @@ class MapStitcher(HealthMixin, Node):
         self._graphs: dict[TileKey, tuple[int, list]] = {}  # tile -> (version, segment graphs)
         self._first_dirty: float | None = None
         self._last_rx = 0.0
+        self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
         self.map, sig = self.store.map()
         self._map_sig = sig  # the tile versions the current map was made from
         self._failed_sig = ""
@@ -298,16 +304,21 @@ class MapStitcher(HealthMixin, Node):
         if self._first_dirty is None:
             return
         now = time.monotonic()
-        if now - self._last_rx < self.debounce_s and now - self._first_dirty < self.max_delay_s:
+        if now - self._last_rx < self.debounce_s and (
+            now - self._first_dirty < self.max_delay_s or now < self._rested_at
+        ):
             return
         self._first_dirty = None
         sig = self.store.tiles_signature()
+        t0 = time.monotonic()
         try:
             self.rebuild()
         except HdmapError as err:
             self._fail(sig, str(err))
         except Exception as err:  # noqa: BLE001 - a bug must not stop the live map; logged in full
             self._fail(sig, f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
+        end = time.monotonic()
+        self._rested_at = end + (end - t0) * (1.0 - REBUILD_SHARE) / REBUILD_SHARE
         self.health.backlog = int(self._first_dirty is not None)
 
     def _fail(self, sig: str, text: str) -> None:
