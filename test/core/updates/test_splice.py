@@ -146,3 +146,31 @@ def test_splice_keeps_what_no_drive_after_the_change_could_see():
     retired = retired_features(first, PLACES, [change], valid_from_ns=0, reach=Reach(poses, 12.0))
     assert [r.feature_id for r in retired] == [1]
     assert {r.feature_id for r in retired_features(first, PLACES, [change], valid_from_ns=0)} == {1, 4}
+
+
+def test_splice_keeps_the_first_maps_borders_the_local_map_lacks_but_not_inside_the_road():
+    # seeds 0-2 of shift10: the drives after the change saw the shoulder border once at most
+    # (visibility 0.6) and the rebuild dropped it; a change leaves the borders in place (the
+    # local map is aligned on them), so the first map's border stays where the local map has
+    # none within border_m -- but not a "border" with local markings on both sides (a first-map
+    # artefact across the lanes)
+    shoulder = _line(5, 0.0, 500.0, 4.0, FeatureType.ROAD_BORDER)
+    across = _line(6, 150.0, 350.0, 12.5, FeatureType.ROAD_BORDER)  # between lines 10 and 14.5
+    first = HDMap(features=(_line(1, 0.0, 500.0, 10.0, FeatureType.SOLID), shoulder, across))
+    local = HDMap(
+        features=(_line(1, 150.0, 350.0, 11.0, FeatureType.SOLID), _line(7, 150.0, 350.0, 14.5, FeatureType.DASHED))
+    )
+    poses = np.stack([np.arange(200.0, 300.0, 1.0), np.full(100, 12.0)], axis=1)
+    marks = np.concatenate([f.points for f in local.features])
+    reach = Reach(poses, 12.0, np.zeros((0, 2)), 3.0, marks)
+    out = splice(first, local, PLACES, CORE, reach=reach)
+    assert any(f is shoulder for f in out.features)
+    pts = np.concatenate([f.points for f in out.features if f.type == FeatureType.ROAD_BORDER])
+    assert not np.any((pts[:, 0] >= 200.0) & (pts[:, 0] < 300.0) & (pts[:, 1] == 12.5))
+    # a local border within border_m replaces it as before
+    local_b = replace(local, features=(*local.features, _line(8, 150.0, 350.0, 5.0, FeatureType.ROAD_BORDER)))
+    reach_b = Reach(poses, 12.0, local_b.features[-1].points, 3.0, marks)
+    out_b = splice(first, local_b, PLACES, CORE, reach=reach_b)
+    pts = np.concatenate([f.points for f in out_b.features if f.type == FeatureType.ROAD_BORDER])
+    inside = (pts[:, 0] >= 200.0) & (pts[:, 0] < 300.0)
+    assert np.all(np.isin(pts[inside, 1], [5.0]))

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.model import Detection, Drive, HDMap
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
@@ -249,7 +249,7 @@ def retired_features(
         keys = places.keys(pts, np.arctan2(tang[:, 1], tang[:, 0]))
         inside = np.array([k in owner for k in keys])
         if reach is not None and inside.any():
-            inside[inside] = reach.mask(pts[inside])
+            inside[inside] = reach.replaced(pts[inside], np.arctan2(tang[inside, 1], tang[inside, 0]), int(f.type))
         for a, b in _runs(inside):
             if b - a >= 2:
                 c = owner[keys[a]]
@@ -258,6 +258,8 @@ def retired_features(
 
 
 _BOUNDS = PhysicalBounds()
+_BORDER = int(FeatureType.ROAD_BORDER)
+_MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 
 
 def follow_changes(
@@ -381,7 +383,15 @@ def follow_map(
         # what the rebuilt places were mapped from: beyond the sensors' reach of every such pose
         # the first map stays (updates.splice)
         poses = [d.xy[np.array([k in core for k in places.keys(d.xy, d.yaw)], dtype=bool)] for d in clipped]
-        reach = Reach(np.concatenate([np.zeros((0, 2)), *poses]), config.view_m)
+        borders = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) == _BORDER]
+        marks = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) in _MARKINGS]
+        reach = Reach(
+            np.concatenate([np.zeros((0, 2)), *poses]),
+            config.view_m,
+            np.concatenate([np.zeros((0, 2)), *borders]),
+            config.pair_max_m,
+            np.concatenate([np.zeros((0, 2)), *marks]),
+        )
         new_map = splice(first_map, local_map, places, core, reach=reach)
     else:
         core = set()
