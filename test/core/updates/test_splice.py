@@ -7,8 +7,10 @@ from dataclasses import replace
 import numpy as np
 
 from hdmap_core.model import FeatureType, HDMap, MapFeature, TopologyNode
+from hdmap_core.updates.detect import DetectedChange, PlaceChange
+from hdmap_core.updates.follow import retired_features
 from hdmap_core.updates.places import Places
-from hdmap_core.updates.splice import grow, shifted, splice
+from hdmap_core.updates.splice import Reach, grow, shifted, splice
 
 PLACES = Places(100.0, {(i, 0): 0.0 for i in range(-1, 7)})
 CORE = {(2, 0, 0)}  # x in [200, 300), running +x
@@ -113,3 +115,62 @@ def test_splice_keeps_the_links_of_the_ends_it_keeps():
     assert by_id[5].points.shape == into.points.shape and by_id[5].successors == ()
     (rest,) = [f for f in out.features if f.points[0, 1] == 30.0 and f.points[0, 0] >= 300.0]
     assert rest.id == 6 and rest.predecessors == ()  # 6's only piece, from the changed place's end
+
+
+def test_splice_keeps_what_no_drive_after_the_change_could_see():
+    # motorway_ramps, shift of one carriageway: the drives after the change kept to the
+    # carriageway, the ramp's far border in the same places (18 m off) was left to nobody; the
+    # first map must keep it there, not leave a 100 m gap (nor take a stray local line there)
+    border = _line(4, 0.0, 500.0, 30.0, FeatureType.ROAD_BORDER)
+    first = HDMap(features=(_line(1, 0.0, 500.0, 10.0, FeatureType.SOLID), border))
+    local = HDMap(
+        features=(
+            _line(1, 150.0, 350.0, 11.0, FeatureType.SOLID),
+            _line(2, 150.0, 350.0, 30.5, FeatureType.ROAD_BORDER),  # beyond reach: not taken
+        )
+    )
+    poses = np.stack([np.arange(200.0, 300.0, 1.0), np.full(100, 12.0)], axis=1)
+    out = splice(first, local, PLACES, CORE, reach=Reach(poses, 12.0))
+    assert any(f is border for f in out.features)  # kept whole, as it was
+    far = [f for f in out.features if f.type == FeatureType.ROAD_BORDER]
+    assert len(far) == 1
+    solid_in = np.concatenate([f.points for f in out.features if f.type == FeatureType.SOLID])
+    solid_in = solid_in[(solid_in[:, 0] >= 200.0) & (solid_in[:, 0] < 300.0)]
+    assert len(solid_in) and np.all(solid_in[:, 1] == 11.0)  # within reach: the local map's
+    # without reach every point of the place is replaced: the border loses its piece there
+    cut = splice(first, local, PLACES, CORE)
+    gone = np.concatenate([f.points for f in cut.features if f.type == FeatureType.ROAD_BORDER])
+    assert not np.any((gone[:, 0] >= 200.0) & (gone[:, 0] < 300.0) & (gone[:, 1] == 30.0))
+    # and the history retires only what was replaced
+    change = DetectedChange(1, 5, ("geometry",), (PlaceChange((2, 0, 0), "geometry", 5, 1, 1.5, 9.0, (), ()),), (), 0.9)
+    retired = retired_features(first, PLACES, [change], valid_from_ns=0, reach=Reach(poses, 12.0))
+    assert [r.feature_id for r in retired] == [1]
+    assert {r.feature_id for r in retired_features(first, PLACES, [change], valid_from_ns=0)} == {1, 4}
+
+
+def test_splice_keeps_the_first_maps_borders_the_local_map_lacks_but_not_inside_the_road():
+    # seeds 0-2 of shift10: the drives after the change saw the shoulder border once at most
+    # (visibility 0.6) and the rebuild dropped it; a change leaves the borders in place (the
+    # local map is aligned on them), so the first map's border stays where the local map has
+    # none within border_m -- but not a "border" with local markings on both sides (a first-map
+    # artefact across the lanes)
+    shoulder = _line(5, 0.0, 500.0, 4.0, FeatureType.ROAD_BORDER)
+    across = _line(6, 150.0, 350.0, 12.5, FeatureType.ROAD_BORDER)  # between lines 10 and 14.5
+    first = HDMap(features=(_line(1, 0.0, 500.0, 10.0, FeatureType.SOLID), shoulder, across))
+    local = HDMap(
+        features=(_line(1, 150.0, 350.0, 11.0, FeatureType.SOLID), _line(7, 150.0, 350.0, 14.5, FeatureType.DASHED))
+    )
+    poses = np.stack([np.arange(200.0, 300.0, 1.0), np.full(100, 12.0)], axis=1)
+    marks = np.concatenate([f.points for f in local.features])
+    reach = Reach(poses, 12.0, np.zeros((0, 2)), 3.0, marks)
+    out = splice(first, local, PLACES, CORE, reach=reach)
+    assert any(f is shoulder for f in out.features)
+    pts = np.concatenate([f.points for f in out.features if f.type == FeatureType.ROAD_BORDER])
+    assert not np.any((pts[:, 0] >= 200.0) & (pts[:, 0] < 300.0) & (pts[:, 1] == 12.5))
+    # a local border within border_m replaces it as before
+    local_b = replace(local, features=(*local.features, _line(8, 150.0, 350.0, 5.0, FeatureType.ROAD_BORDER)))
+    reach_b = Reach(poses, 12.0, local_b.features[-1].points, 3.0, marks)
+    out_b = splice(first, local_b, PLACES, CORE, reach=reach_b)
+    pts = np.concatenate([f.points for f in out_b.features if f.type == FeatureType.ROAD_BORDER])
+    inside = (pts[:, 0] >= 200.0) & (pts[:, 0] < 300.0)
+    assert np.all(np.isin(pts[inside, 1], [5.0]))

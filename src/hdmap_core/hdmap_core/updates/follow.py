@@ -29,14 +29,14 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.model import Detection, Drive, HDMap
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
 from hdmap_core.updates.edges import detect_edge_changes, fleet_edge_evidence, merge_changes
 from hdmap_core.updates.evidence import fleet_evidence
 from hdmap_core.updates.places import PlaceKey, Places, places_of
-from hdmap_core.updates.splice import border_shift, grow, shifted, splice
+from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
 
 __all__ = [
     "RetiredFeature",
@@ -227,9 +227,15 @@ def clip_to_places(drives: Sequence[Drive], places: Places, keys: set[PlaceKey])
 
 
 def retired_features(
-    hdmap: HDMap, places: Places, changes: Sequence[DetectedChange], *, valid_from_ns: int
+    hdmap: HDMap,
+    places: Places,
+    changes: Sequence[DetectedChange],
+    *,
+    valid_from_ns: int,
+    reach: Reach | None = None,
 ) -> list[RetiredFeature]:
-    """The pieces of ``hdmap``'s features inside the changed places."""
+    """The pieces of ``hdmap``'s features inside the changed places (with ``reach``: and within it,
+    as ``updates.splice.splice`` replaces them)."""
     owner: dict[PlaceKey, DetectedChange] = {}
     for c in changes:
         for p in c.places:
@@ -242,6 +248,8 @@ def retired_features(
         tang = np.gradient(pts, axis=0)
         keys = places.keys(pts, np.arctan2(tang[:, 1], tang[:, 0]))
         inside = np.array([k in owner for k in keys])
+        if reach is not None and inside.any():
+            inside[inside] = reach.replaced(pts[inside], np.arctan2(tang[inside, 1], tang[inside, 0]), int(f.type))
         for a, b in _runs(inside):
             if b - a >= 2:
                 c = owner[keys[a]]
@@ -250,6 +258,14 @@ def retired_features(
 
 
 _BOUNDS = PhysicalBounds()
+_BORDER = int(FeatureType.ROAD_BORDER)
+_MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
+# A first map's border in a changed place stays unless the (aligned) local map has a border this
+# close (updates.splice.Reach): the same barrier seen again. Not ChangeConfig.pair_max_m (3 m):
+# on motorway_ramps the opposite carriageway's barrier, 2.5 m beyond the median one, which the
+# drives after the change saw and the local map holds, then took the median barrier's place
+# (shift10 seed 1: zone recall 93.8 % with 3 m, 97.4 % with 1.5 m; docs/journal/2026-12-06-zone-recall.md).
+_BORDER_SAME_M = 1.5
 
 
 def follow_changes(
@@ -370,15 +386,28 @@ def follow_map(
         local_map = build(clipped)
         seconds["rebuild"] = time.perf_counter() - t1
         local_map = shifted(local_map, border_shift(local_map, first_map, after, places, core, config=config), places)
-        new_map = splice(first_map, local_map, places, core)
+        # what the rebuilt places were mapped from: beyond the sensors' reach of every such pose
+        # the first map stays (updates.splice)
+        poses = [d.xy[np.array([k in core for k in places.keys(d.xy, d.yaw)], dtype=bool)] for d in clipped]
+        borders = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) == _BORDER]
+        marks = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) in _MARKINGS]
+        reach = Reach(
+            np.concatenate([np.zeros((0, 2)), *poses]),
+            config.view_m,
+            np.concatenate([np.zeros((0, 2)), *borders]),
+            _BORDER_SAME_M,
+            np.concatenate([np.zeros((0, 2)), *marks]),
+        )
+        new_map = splice(first_map, local_map, places, core, reach=reach)
     else:
         core = set()
+        reach = None
         cut = cut_before_changes(moved, places, changes)
         t1 = time.perf_counter()
         new_map = build(cut)
         seconds["rebuild"] = time.perf_counter() - t1
     start = min((d.start_ns for d in drives), default=0)
-    retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start))
+    retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start, reach=reach))
     extra = {**new_map.extra, "changes": list(changes), "retired": list(retired)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
     seconds["apply"] = time.perf_counter() - t0 - seconds["rebuild"]

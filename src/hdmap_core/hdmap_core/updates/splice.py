@@ -21,12 +21,18 @@ Following a change costs a build of the places it touches, not of the whole map:
 
 A place belongs to a point by its position and the direction of its feature (``Places.keys``): a
 feature runs in the driving direction, so the other carriageway in the same cell stays as it was.
+
+Only what the drives after the change could see is replaced (``Reach``): a point of a changed place
+farther than the sensors' reach from every pose the local map was built from (a ramp's far border
+beside a carriageway the drives after the change kept to) has no evidence of the change, for or
+against, and the first map keeps it there, on both sides of the splice alike (features and topology).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
@@ -37,13 +43,14 @@ from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.evidence import drive_evidence, map_lines
 from hdmap_core.updates.places import PlaceKey, Places
 
-__all__ = ["grow", "border_shift", "shifted", "splice"]
+__all__ = ["Reach", "grow", "border_shift", "shifted", "splice"]
 
 _SEAM_M = 4.0  # pieces on both sides of a seam whose ends are this close are linked [m]
 _SEAM_COS = 0.7  # ... and run the same way (cos of the angle between them)
 _TOPO_SEAM_M = 12.0  # a topology node's successor across a seam is sought this far ahead [m]
 _SMOOTH_M = 100.0  # the alignment shift is smoothed along each feature over this [m]
 _BORDER = int(FeatureType.ROAD_BORDER)
+_SIDE_M = 1.0  # markings farther than this to each side of a first map's border: it is inside the road [m]
 
 
 def grow(places: Places, keys: Iterable[PlaceKey], steps: int) -> set[PlaceKey]:
@@ -62,8 +69,86 @@ def _tangent_yaw(pts: np.ndarray) -> np.ndarray:
     return np.arctan2(t[:, 1], t[:, 0])
 
 
-def _inside(pts: np.ndarray, places: Places, keys: set[PlaceKey]) -> np.ndarray:
-    return np.array([k in keys for k in places.keys(pts, _tangent_yaw(pts))], dtype=bool)
+@dataclass(frozen=True)
+class Reach:
+    """What the drives after a change give evidence of: within ``reach_m`` of one of their poses;
+    for the road borders, which a change leaves in place (``border_shift`` aligns on them), also
+    only where the local map has a border within ``border_m``.
+
+    Attributes:
+        poses: (N, 2) the poses the rebuilt places were mapped from [m].
+        reach_m: the sensors' lateral reach (``ChangeConfig.view_m``) [m].
+        borders: (M, 2) the local map's road border points [m].
+        border_m: a first map's border point with no local border point this close stays, unless
+            ``markings`` (the local map's marking points) lie on both sides of it within
+            ``reach_m`` (it crosses the road: not a border); 0: off [m].
+    """
+
+    poses: np.ndarray
+    reach_m: float
+    borders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    border_m: float = 0.0
+    markings: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(np.asarray(self.poses, dtype=float).reshape(-1, 2))
+
+    @cached_property
+    def border_tree(self) -> cKDTree:
+        return cKDTree(np.asarray(self.borders, dtype=float).reshape(-1, 2))
+
+    def mask(self, pts: np.ndarray) -> np.ndarray:
+        """(N,) True for the points ``pts`` (N, 2) within reach of a pose."""
+        pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+        if len(pts) == 0 or len(self.tree.data) == 0:
+            return np.zeros(len(pts), dtype=bool)
+        d, _ = self.tree.query(pts, distance_upper_bound=self.reach_m)
+        return np.isfinite(d)
+
+    @cached_property
+    def marking_tree(self) -> cKDTree:
+        return cKDTree(np.asarray(self.markings, dtype=float).reshape(-1, 2))
+
+    def replaced(self, pts: np.ndarray, yaw: np.ndarray, ftype: int) -> np.ndarray:
+        """(N,) True for the points ``pts`` (N, 2), heading ``yaw`` (N,), of a first map's feature
+        of type ``ftype`` that the local map replaces (of those in a changed place)."""
+        pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+        out = self.mask(pts)
+        if self.border_m <= 0 or int(ftype) != _BORDER or not out.any():
+            return out
+        idx = np.flatnonzero(out)
+        if len(self.border_tree.data):
+            d, _ = self.border_tree.query(pts[idx], distance_upper_bound=self.border_m)
+            stays = ~np.isfinite(d)
+        else:
+            stays = np.ones(len(idx), dtype=bool)
+        # ... unless the local map's markings lie on both sides of it: inside the road, no border
+        if len(self.marking_tree.data) and stays.any():
+            marks = self.marking_tree.data
+            for i in np.flatnonzero(stays):
+                near = self.marking_tree.query_ball_point(pts[idx[i]], self.reach_m)
+                if near:
+                    v = marks[near] - pts[idx[i]]
+                    side = np.cos(yaw[idx[i]]) * v[:, 1] - np.sin(yaw[idx[i]]) * v[:, 0]
+                    stays[i] = not (side.max() > _SIDE_M and side.min() < -_SIDE_M)
+        out[idx[stays]] = False
+        return out
+
+
+def _in_keys(
+    pts: np.ndarray, yaw: np.ndarray, places: Places, keys: set[PlaceKey], reach: Reach | None, ftype: int | None
+) -> np.ndarray:
+    inside = np.array([k in keys for k in places.keys(pts, yaw)], dtype=bool)
+    if reach is not None and inside.any():
+        inside[inside] = reach.mask(pts[inside]) if ftype is None else reach.replaced(pts[inside], yaw[inside], ftype)
+    return inside
+
+
+def _inside(
+    pts: np.ndarray, places: Places, keys: set[PlaceKey], reach: Reach | None = None, ftype: int | None = None
+) -> np.ndarray:
+    return _in_keys(pts, _tangent_yaw(pts), places, keys, reach, ftype)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -133,9 +218,11 @@ def _pieces(f: MapFeature, keep: np.ndarray) -> list[tuple[int, int]]:
     return [(a, b) for a, b in _runs(keep) if b - a >= 2]
 
 
-def splice(first: HDMap, local: HDMap, places: Places, keys: set[PlaceKey]) -> HDMap:
+def splice(first: HDMap, local: HDMap, places: Places, keys: set[PlaceKey], *, reach: Reach | None = None) -> HDMap:
     """``first`` with its features and topology in the places ``keys`` taken from ``local``
-    (module docstring). ``first``'s features that do not enter those places keep everything."""
+    (module docstring). ``first``'s features that do not enter those places keep everything.
+    With ``reach``, only the points of those places within it are taken from ``local``; the
+    first map keeps the rest (no drive after the change could see there)."""
     next_id = 1 + max([int(f.id) for f in (*first.features, *local.features)] + [0])
     # (new feature, source ("first" / "local"), cut at start, cut at end)
     out: list[list] = []
@@ -148,7 +235,7 @@ def splice(first: HDMap, local: HDMap, places: Places, keys: set[PlaceKey]) -> H
                 if src == "first":
                     out.append([f, src, False, False])
                 continue
-            inside = _inside(pts, places, keys)
+            inside = _inside(pts, places, keys, reach, int(f.type) if src == "first" else None)
             keep = ~inside if src == "first" else inside
             if keep.all():
                 if src == "first":
@@ -229,7 +316,7 @@ def splice(first: HDMap, local: HDMap, places: Places, keys: set[PlaceKey]) -> H
             else f
             for f in feats
         ]
-    topology = _splice_topology(first, local, places, keys, feats, pieces_of)
+    topology = _splice_topology(first, local, places, keys, feats, pieces_of, reach)
     return replace(
         first, features=tuple(feats), topology=topology, drive_ids=tuple(sorted({*first.drive_ids, *local.drive_ids}))
     )
@@ -242,13 +329,14 @@ def _splice_topology(
     keys: set[PlaceKey],
     feats: list[MapFeature],
     pieces_of: dict[str, dict[int, list[int]]],
+    reach: Reach | None = None,
 ) -> tuple[TopologyNode, ...]:
     def inside(nodes: Sequence[TopologyNode]) -> np.ndarray:
         if not nodes:
             return np.zeros(0, dtype=bool)
         pos = np.array([np.asarray(n.position, dtype=float) for n in nodes])
         head = np.array([float(n.heading) for n in nodes])
-        return np.array([k in keys for k in places.keys(pos, head)], dtype=bool)
+        return _in_keys(pos, head, places, keys, reach, None)
 
     next_id = 1 + max([int(n.id) for n in (*first.topology, *local.topology)] + [0])
     kept: list[tuple[TopologyNode, str]] = [
