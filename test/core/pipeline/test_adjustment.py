@@ -452,3 +452,20 @@ def test_dense_steps_are_thinned_for_the_fit():
     np.testing.assert_array_equal(used, [0, 1, 2, 3, 4, 6, 8])
     every = np.unique(pool.step[assoc.select(pool, pool.label).pool_index])
     np.testing.assert_array_equal(every, np.arange(10))
+
+
+def test_lane_shift_search_in_chunks_is_the_one_chunk_result(monkeypatch):
+    """The shift search scores its samples in chunks (bounded memory): the same model, bit for bit."""
+    import hdmap_core.pipeline.adjustment_assoc as assoc  # noqa: PLC0415
+
+    sim = replace(SMALL, line_offsets_m=(-3.5, 0.0, 3.5), line_types=(2, 2, 2))
+    obs, _ = simulate_step_observations(config=sim, seed=8)
+    monkeypatch.setattr(assoc, "SHIFT_CHUNK_SAMPLES", 10**9)
+    one = adjust_offsets(obs)
+    monkeypatch.setattr(assoc, "SHIFT_CHUNK_SAMPLES", 37)
+    chunked = adjust_offsets(obs)
+    assert one.stats["n_samples_used"] > 37 * 10  # many chunks
+    assert sorted(one.drives) == sorted(chunked.drives) and one.drives
+    for d, cur in one.drives.items():
+        other = chunked.drives[d]
+        assert cur.k0 == other.k0 and cur.bias_m == other.bias_m and np.array_equal(cur.drift_m, other.drift_m)

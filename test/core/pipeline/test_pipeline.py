@@ -329,3 +329,28 @@ def test_report_counts_the_steps_off_their_pivots_road():
     road = make_fleet([0.3, -0.2, 0.1], noise_m=0.0, s1=120.0)
     ok = build_map(road, config=presets.preset("default"), seed=0).report
     assert ok.steps_off_road == 0 and "off their pivot's road" not in ok.summary()
+
+
+def test_final_pass_with_a_given_model_holds_one_pivot_of_hits(fleet, run, monkeypatch):
+    """With the offset model given only the final pass runs (a tiled build's final pass): the hit
+    cache then holds the latest pivot only (bounded memory), and the segments are those of a
+    cache holding every pivot."""
+    import hdmap_core.pipeline.driver as drv  # noqa: PLC0415
+
+    config = presets.preset("default")
+    assert config.evidence is not None  # the evidence profiles read the cache back
+    model = run("default")[0].offset_model
+    sizes: list[int] = []
+
+    class Recording(drv._LatestOnly):
+        def __setitem__(self, key, value):
+            super().__setitem__(key, value)
+            sizes.append(len(self))
+
+    monkeypatch.setattr(drv, "_LatestOnly", Recording)
+    got = map_stretches(fleet, config=config, seed=0, offset_model=model).segments
+    monkeypatch.setattr(drv, "_LatestOnly", dict)
+    want = map_stretches(fleet, config=config, seed=0, offset_model=model).segments
+    assert len(sizes) == len(fleet) and max(sizes) == 1
+    flat = [(s.pivot_id, st.index, st.valid, st.lateral_m.tolist()) for s in got for st in s.steps]
+    assert flat and flat == [(s.pivot_id, st.index, st.valid, st.lateral_m.tolist()) for s in want for st in s.steps]

@@ -83,6 +83,33 @@ def test_index_query_equals_brute_force():
     assert got == want
 
 
+def test_intersect_in_chunks_of_cuts_is_the_one_call_result(monkeypatch):
+    """The crossing test runs in chunks of cuts (bounded memory): same hits, same order."""
+    import hdmap_core.pipeline.preprocess as pre  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    dets = [
+        Detection(
+            FeatureType(int(rng.integers(1, 4))), rng.uniform(-60, 60, 2) + np.cumsum(rng.normal(0, 3, (20, 2)), 0)
+        )
+        for _ in range(80)
+    ]
+    idx = preprocess([_drive(dets, length_m=10)])
+    q = 500
+    origin = rng.uniform(-70, 70, (q, 2))
+    ang = rng.uniform(-np.pi, np.pi, q)
+    direction = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    half = rng.uniform(2, 40, q)
+    monkeypatch.setattr(pre, "INTERSECT_CHUNK_CUTS", q)
+    one = idx.intersect(origin, direction, half)
+    monkeypatch.setattr(pre, "INTERSECT_CHUNK_CUTS", 7)
+    chunked = idx.intersect(origin, direction, half)
+    assert one.cut.size > 200 and np.unique(one.cut).size > 50  # hits in many chunks
+    for name in ("cut", "t_m", "types", "drive", "drive_s_m", "drive_yaw"):
+        a, b = getattr(one, name), getattr(chunked, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+
+
 def test_config_rejects_bad_values():
     with pytest.raises(ConfigError):
         former(PreprocessConfig, min_length_m=-1.0)

@@ -386,7 +386,10 @@ def reduced_normal(
     inc = sp.csr_matrix((np.ones(n), cluster, np.arange(n + 1)), shape=(n, n_clusters))
     b = awt @ inc
     b_scaled = sp.csr_matrix((b.data / w_c[b.indices], b.indices, b.indptr), shape=b.shape)
-    h = (awt @ a) - (b_scaled @ b.T.tocsr())
+    pairs = b_scaled @ b.T.tocsr()  # the clusters' coupling of their drives: d^2 entries per step
+    del b, b_scaled
+    h = (awt @ a) - pairs
+    del pairs
     mean_l = np.bincount(cluster, weights=info * lateral, minlength=n_clusters) / w_c
     rhs = -(awt @ (lateral - mean_l[cluster]))
     return h.tocsr(), np.asarray(rhs).ravel()
@@ -421,7 +424,11 @@ def update_normal(
     a_sub, c_sub, l_sub = a[rows], samples.cluster[rows], samples.lateral_m[rows]
     h_old, rhs_old = reduced_normal(a_sub, c_sub, samples.n_clusters, old_info[rows], l_sub)
     h_new, rhs_new = reduced_normal(a_sub, c_sub, samples.n_clusters, new_info[rows], l_sub)
-    return (h + (h_new - h_old)).tocsr(), rhs + (rhs_new - rhs_old), new_info
+    # the same sum as h + (h_new - h_old), without keeping both parts while it is formed (each
+    # is of the order of H when many clusters change: their pairs of drives, d^2 per step)
+    diff = h_new - h_old
+    del h_new, h_old
+    return (h + diff).tocsr(), rhs + (rhs_new - rhs_old), new_info
 
 
 class NormalSolver:

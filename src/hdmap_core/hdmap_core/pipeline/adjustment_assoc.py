@@ -17,6 +17,8 @@ import numpy as np
 __all__: list[str] = []  # internal module
 
 MAX_REPORTED_PROBLEMS = 20
+#: samples scored per chunk of the lane-shift search (each against every shift of the grid)
+SHIFT_CHUNK_SAMPLES = 20_000
 
 
 @dataclass(frozen=True)
@@ -242,11 +244,15 @@ def lane_shift_search(
     sel = np.concatenate(picks) if picks else np.zeros(0, np.int64)
     # 0.25 m is fine enough to tell lanes apart; the fit that follows refines the offset
     grid = np.arange(-search_m, search_m + 1e-9, 0.25)
-    vv = v[sel][:, None] + grid[None, :]
-    _, dist = nearest(cen, pool.step[sel][:, None], pool.ftype[sel][:, None], vv)
-    cost_s = np.minimum(dist, gate_m) ** 2 / noise_sigma_m**2
     cost = np.zeros((n_d, grid.size))
-    np.add.at(cost, pool.drive[sel], cost_s)
+    # RULE bounded memory: (samples x shifts) at once is ~0.5 GB for a tile of 745 drives, more
+    # for a block of tiles. Consecutive chunks add the same terms in the same order (add.at is
+    # sequential), so the cost is bit-identical.
+    for c0 in range(0, sel.size, SHIFT_CHUNK_SAMPLES):
+        part = sel[c0 : c0 + SHIFT_CHUNK_SAMPLES]
+        vv = v[part][:, None] + grid[None, :]
+        _, dist = nearest(cen, pool.step[part][:, None], pool.ftype[part][:, None], vv)
+        np.add.at(cost, pool.drive[part], np.minimum(dist, gate_m) ** 2 / noise_sigma_m**2)
     cost += (bias_m[:, None] + grid[None, :]) ** 2 / bias_sigma_m**2
     best = grid[np.argmin(cost, axis=1)]
     # keep the current solution unless a shift is clearly better (a lane, not a nudge)

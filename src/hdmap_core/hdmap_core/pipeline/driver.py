@@ -17,7 +17,7 @@ import functools
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, cast
+from typing import Any, Protocol, cast
 
 import numpy as np
 
@@ -330,6 +330,14 @@ def _blas_one():
     return threadpool_limits(limits=1, user_api="blas") if threadpool_limits is not None else contextlib.nullcontext()
 
 
+class _LatestOnly(dict):
+    """A dict that holds only the entry set last."""
+
+    def __setitem__(self, key: Any, value: Any) -> None:
+        self.clear()
+        super().__setitem__(key, value)
+
+
 class _TwoPasses:
     """The passes of one ``map_stretches`` call over shares of pivots, in this process and in
     forked workers (each share's first pass, the adjustment here, each share's final pass)."""
@@ -419,6 +427,12 @@ class _TwoPasses:
     def run(self, offset_model: OffsetSource | None, progress: ProgressFn | None) -> MappingResult:
         model = offset_model
         adjust = model is None and self.config.final_pass is not None
+        if model is not None and self.hit_cache is not None:
+            # RULE bounded memory: the hit cache saves the final pass the first pass's
+            # intersections. With the model given only the final pass runs: a pivot's entry is
+            # read back only by that pivot's own profiles, so keeping the latest one gives the
+            # same result without holding every hit of every pivot (a tiled build's final pass).
+            self.hit_cache = _LatestOnly()
         workers = [
             ForkWorker(functools.partial(self._job, share=sh, model=model, adjust=adjust)) for sh in self.shares[1:]
         ]

@@ -14,7 +14,7 @@ the opposite-direction filter and the processed-stretch keys.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import ClassVar
 
 import numpy as np
@@ -54,6 +54,11 @@ class PreprocessConfig:
     def __post_init__(self) -> None:
         check_range(self, ("rdp_epsilon_m",), low=0.0, low_open=True)
         check_range(self, ("min_length_m",), low=0.0)
+
+
+#: cut lines intersected per call of the vectorised crossing test (``DetectionIndex.intersect``):
+#: its candidate pairs, and so its memory, grow with the cuts times the drives per grid cell
+INTERSECT_CHUNK_CUTS = 64
 
 
 @dataclass(frozen=True)
@@ -169,6 +174,20 @@ class DetectionIndex:
         origin = np.asarray(origin, dtype=float).reshape(-1, 2)
         direction = np.asarray(direction, dtype=float).reshape(-1, 2)
         half_len_m = np.broadcast_to(np.asarray(half_len_m, dtype=float), (len(origin),))
+        q = len(origin)
+        if q <= INTERSECT_CHUNK_CUTS:
+            return self._intersect(origin, direction, half_len_m)
+        # RULE bounded memory: the candidate pairs of all cuts at once grow with the drives per
+        # cell (a dense tile of 745 drives: 0.5 GB in one call). Chunks of consecutive cuts give
+        # the same hits in the same (cut, segment) order: every step below is per pair or per cut.
+        parts = []
+        for c0 in range(0, q, INTERSECT_CHUNK_CUTS):
+            sl = slice(c0, min(c0 + INTERSECT_CHUNK_CUTS, q))
+            h = self._intersect(origin[sl], direction[sl], half_len_m[sl])
+            parts.append(replace(h, cut=h.cut + c0))
+        return CutHits(*(np.concatenate([getattr(h, f.name) for h in parts]) for f in fields(CutHits)))
+
+    def _intersect(self, origin: np.ndarray, direction: np.ndarray, half_len_m: np.ndarray) -> CutHits:
         cut, seg = self.candidates(origin, direction, half_len_m)
         # Signed distance of both end points from the cut line (left of its direction > 0): a
         # segment crosses where they differ in sign; an end point on the line counts for the
