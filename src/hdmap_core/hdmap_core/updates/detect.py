@@ -9,8 +9,10 @@ drives) and "after" (>= ``min_after`` drives) such that
   effect away, and within 3 before-spreads (or half the smallest effect) of the after mean (one
   odd drive cannot hide among them, nor can one stray drive make a change);
 * for the shares (type, missed, extra): at least ``min_after_shares`` after-drives, the share
-  grows, every after-drive lies beyond the before drives' 90th percentile, the spread is their
-  standard deviation (a share is 0 for most drives and large for the few that misread a line),
+  grows, every after-drive lies beyond the before drives' maximum (a share is 0 for most drives
+  and large for the few that misread a line: its 90th percentile is 0 or one of those few, so
+  after-drives that misread as one before did are no change), the spread is their standard
+  deviation,
   and the before median is below ``max_share_before`` (where the map disagrees with its
   own drives already, e.g. sparse ramps, a share says nothing of a change);
 * the after mean is at least the smallest effect (``min_shift_m`` / ``min_share``) away from the
@@ -134,9 +136,10 @@ def change_point(
     map or a fleet whose drives scatter widely everywhere (a map without offset correction)
     needs a larger step. Every after-value must lie beyond
     the before values' 90th (10th) percentile: the drives after disagree with the drives before
-    themselves, not only with the map. ``heavy_tails``: the before spread is the standard
-    deviation, not the median absolute deviation (a share of wrong types is 0 for most drives and
-    large for the few that misread a line: a robust spread would call those few a change); with
+    themselves, not only with the map. ``heavy_tails``: beyond their maximum (minimum) instead, and
+    the before spread is the standard deviation, not the median absolute deviation (a share of
+    wrong types is 0 for most drives and large for the few that misread a line: a robust spread
+    would call those few a change, and the 90th percentile is one of them or 0); with
     fewer than 10 before-values the larger of that and their standard deviation (the median
     absolute deviation of 3 values is the smaller half-gap). ``noise`` (per value): each drive's
     own scatter over the road (``drive_scatter``); an after-drive must lie at least twice its
@@ -154,9 +157,13 @@ def change_point(
         # their largest / smallest (an interpolated percentile of 3 values lies inside them); never
         # inside the interpolated percentile
         ranked = np.sort(before)
-        skip = (k - 1) // 10
+        skip = 0 if heavy_tails else (k - 1) // 10  # a share: beyond the before-drives' maximum
         hi, lo = float(ranked[k - 1 - skip]), float(ranked[skip])
-        if not (np.all(after > hi) if effect > 0 else np.all(after < lo)):
+        if heavy_tails:  # a share: none below the largest before (a tie: a share of 1 of 2, 2 of 4)
+            beyond = np.all(after >= hi) if effect > 0 else np.all(after <= lo)
+        else:
+            beyond = np.all(after > hi) if effect > 0 else np.all(after < lo)
+        if not beyond:
             continue  # an after-drive lies among the before-drives: their own scatter
         if heavy_tails:
             spread = max(floor, float(np.std(before)))
