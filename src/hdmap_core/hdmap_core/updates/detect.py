@@ -9,9 +9,10 @@ drives) and "after" (>= ``min_after`` drives) such that
   effect away, and within 3 before-spreads (or half the smallest effect) of the after mean (one
   odd drive cannot hide among them, nor can one stray drive make a change);
 * for the shares (type, missed, extra): at least ``min_after_shares`` after-drives, the share
-  grows, every after-drive lies beyond the before drives' maximum (a share is 0 for most drives
-  and large for the few that misread a line: its 90th percentile is 0 or one of those few, so
-  after-drives that misread as one before did are no change), every after-drive's share is at
+  grows, every after-drive lies beyond the before drives' 90th percentile and none below their
+  maximum (a share is 0 for most drives and large for the few that misread a line: its 90th
+  percentile is 0 or one of those few, so after-drives that misread as one before did are no
+  change), every after-drive's share is at
   least ``min_share_drive`` above the before median (a changed line is one of the two markings
   near a drive in its lane: about half its points or all of them; a drive misreading a few
   pieces of a line reads less), the spread is their standard deviation,
@@ -139,10 +140,11 @@ def change_point(
     map or a fleet whose drives scatter widely everywhere (a map without offset correction)
     needs a larger step. Every after-value must lie beyond
     the before values' 90th (10th) percentile: the drives after disagree with the drives before
-    themselves, not only with the map. ``heavy_tails``: beyond their maximum (minimum) instead, and
-    the before spread is the standard deviation, not the median absolute deviation (a share of
-    wrong types is 0 for most drives and large for the few that misread a line: a robust spread
-    would call those few a change, and the 90th percentile is one of them or 0); with
+    themselves, not only with the map. ``heavy_tails``: and none below their maximum (above their
+    minimum; a tie counts, a share of 1 of 2 points is common), and the before spread is the
+    standard deviation, not the median absolute deviation (a share of wrong types is 0 for most
+    drives and large for the few that misread a line: a robust spread would call those few a
+    change, and the 90th percentile is one of them or 0); with
     fewer than 10 before-values the larger of that and their standard deviation (the median
     absolute deviation of 3 values is the smaller half-gap). ``noise`` (per value): each drive's
     own scatter over the road (``drive_scatter``); an after-drive must lie at least twice its
@@ -162,12 +164,11 @@ def change_point(
         # their largest / smallest (an interpolated percentile of 3 values lies inside them); never
         # inside the interpolated percentile
         ranked = np.sort(before)
-        skip = 0 if heavy_tails else (k - 1) // 10  # a share: beyond the before-drives' maximum
+        skip = (k - 1) // 10
         hi, lo = float(ranked[k - 1 - skip]), float(ranked[skip])
-        if heavy_tails:  # a share: none below the largest before (a tie: a share of 1 of 2, 2 of 4)
-            beyond = np.all(after >= hi) if effect > 0 else np.all(after <= lo)
-        else:
-            beyond = np.all(after > hi) if effect > 0 else np.all(after < lo)
+        beyond = bool(np.all(after > hi) if effect > 0 else np.all(after < lo))
+        if heavy_tails:  # a share: and none below the largest before (a tie counts: 1 of 2 points)
+            beyond = beyond and bool(np.all(after >= ranked[-1]) if effect > 0 else np.all(after <= ranked[0]))
         if not beyond:
             continue  # an after-drive lies among the before-drives: their own scatter
         if heavy_tails:
