@@ -12,10 +12,10 @@ drives) and "after" (>= ``min_after`` drives) such that
   grows, every after-drive lies beyond the before drives' 90th percentile and none below their
   maximum (a share is 0 for most drives and large for the few that misread a line: its 90th
   percentile is 0 or one of those few, so after-drives that misread as one before did are no
-  change), every after-drive's share is at
-  least ``min_share_drive`` above the before median (a changed line is one of the two markings
-  near a drive in its lane: about half its points or all of them; a drive misreading a few
-  pieces of a line reads less), the spread is their standard deviation,
+  change), every after-drive's share is at least ``min_share_drive`` above the before median (a
+  changed line is one of the two markings near a drive in its lane: about half its points or all
+  of them; a drive misreading a few pieces of a line reads less), the spread is their standard
+  deviation,
   and the before median is below ``max_share_before`` (where the map disagrees with its
   own drives already, e.g. sparse ramps, a share says nothing of a change);
 * the after mean is at least the smallest effect (``min_shift_m`` / ``min_share``) away from the
