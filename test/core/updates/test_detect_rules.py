@@ -192,6 +192,100 @@ def test_no_geometry_change_where_the_map_lies_off_its_own_drives():
     assert change.keys == {(PLACE, 0, 0)}
 
 
+def _typed(shares: np.ndarray) -> list[PlaceEvidence]:
+    """Per drive (in time order) its share of wrong-type markings at place PLACE, of 20 typed
+    points; every drive agrees with the map elsewhere (share 0) and no displacement (NaN)."""
+    out = []
+    for d, share in enumerate(shares):
+        for i in range(N_PLACES):
+            wrong = int(round(20 * share)) if i == PLACE else 0
+            out.append(
+                PlaceEvidence(
+                    drive_id=f"d{d:02d}",
+                    time_ns=(d + 1) * HOUR,
+                    key=(i, 0, 0),
+                    n_cuts=25,
+                    offset_m=float("nan"),
+                    anchor_m=0.0,
+                    anchored_on_borders=True,
+                    displacement_m=float("nan"),
+                    n_pairs=0,
+                    n_typed=20,
+                    n_wrong_type=wrong,
+                    n_map_near=0,
+                    n_missed=0,
+                    n_drive_near=0,
+                    n_extra=0,
+                )
+            )
+    return out
+
+
+def _share_step(values: np.ndarray):
+    """``change_point`` of one place's share series with the default settings."""
+    return change_point(
+        np.asarray(values, dtype=float),
+        min_effect=CONFIG.min_share,
+        floor=CONFIG.share_floor,
+        z_min=CONFIG.z_min,
+        min_before=CONFIG.min_before,
+        min_after=CONFIG.min_after_shares,
+        heavy_tails=True,
+    )
+
+
+def test_share_after_drives_must_lie_beyond_every_before_drive():
+    """Rule: for a share (wrong type, missed, extra) every after-drive lies beyond the before
+    drives' maximum, not only their 90th percentile. Of 20 drives before, 18 read every type
+    right at one place, one misread 20 % and one 60 % (the misreading drives of a share are its
+    tail, and the 90th percentile, the second largest, is among them); the last 3 drives misread
+    55, 55 and 50 %: as the one before did, so the road need not have changed (seen on
+    carla_town04 seed 1, missed 0.48, 0.48, 0.35 after a before-drive's 0.49). With the 90th
+    percentile the step of 0.53 is confirmed (z 6.3); the same 3 after one before-drive at 30 %
+    instead of 60 % are confirmed with the rule too, and so are after-drives that tie with the
+    largest before."""
+    shares = np.zeros(23)
+    shares[[4, 11]] = [0.2, 0.6]
+    shares[20:] = [0.55, 0.55, 0.5]
+    assert detect_changes(_typed(shares), PLACES, config=CONFIG) == []
+    assert _share_step(shares) is None
+    lower = shares.copy()
+    lower[11] = 0.3  # below every after-drive: they lie beyond the drives before
+    (change,) = detect_changes(_typed(lower), PLACES, config=CONFIG)
+    assert change.kinds == ("type",)
+    assert change.keys == {(PLACE, 0, 0)}
+    assert change.drives_after == ("d20", "d21", "d22")
+    found = _share_step(lower)
+    assert found is not None and found[0] == 20
+    # an after-drive at the largest before share is not among them (a share is often 1 of 2):
+    # re-striping read as 0.5, 0.5, 0.75 after one drive before read 0.5 is confirmed
+    tie = np.zeros(24)
+    tie[11] = 0.5
+    tie[21:] = [0.5, 0.5, 0.75]
+    (change,) = detect_changes(_typed(tie), PLACES, config=CONFIG)
+    assert change.drives_after == ("d21", "d22", "d23")
+
+
+def test_every_share_after_drive_reads_about_half_its_markings_changed():
+    """Rule (``min_share_drive``): every drive after a change point of a share reads at least 0.45
+    of the markings near it wrong (or missed): a changed line is one of the two markings of the
+    drive's lane, half of what it reads there. 11 drives before read every type right but one
+    (14 %); the fleet's last 4 drives misread 59, 50, 41 and 40 % at that place, a chance run of
+    partial misreads (seen on paper_like_134 seed 2: z 16.3, grown into 7 places). Every other
+    test passes: with the rule out the step of 0.475 is confirmed. The same 4 drives reading half
+    or more are a change."""
+    shares = np.zeros(15)
+    shares[9] = 0.15
+    shares[11:] = [0.6, 0.5, 0.4, 0.4]
+    assert detect_changes(_typed(shares), PLACES, config=CONFIG) == []
+    assert _share_step(shares) is not None  # without the rule (min_each 0)
+    restriped = shares.copy()
+    restriped[11:] = [0.6, 0.5, 0.5, 0.5]
+    (change,) = detect_changes(_typed(restriped), PLACES, config=CONFIG)
+    assert change.kinds == ("type",)
+    assert change.drives_after == ("d11", "d12", "d13", "d14")
+
+
 # ------------------------------------------------------------------------------ on a simulated fleet
 
 

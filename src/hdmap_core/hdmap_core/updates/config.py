@@ -37,6 +37,10 @@ class ChangeConfig:
         max_share_before: a share's change counts only where its before median is below this.
         min_shift_m: smallest change of the markings' displacement confirmed [m].
         min_share: smallest change of a share (wrong type, missed, extra) confirmed.
+        min_share_drive: smallest share (over the before median) each drive after a change point
+            of a share must show: a changed line is one of the two markings near a drive in its
+            lane, about half of the points it reads there (a drive misreading pieces of a line
+            reads less, and a chance run of such drives at the end of a fleet made false changes).
         z_min: the change in the mean must be this many standard errors of it.
         displacement_floor_m: smallest per-drive spread of the displacement assumed [m].
         share_floor: smallest per-drive spread of a share assumed.
@@ -59,6 +63,7 @@ class ChangeConfig:
     max_share_before: float = 0.2
     min_shift_m: float = 0.5
     min_share: float = 0.3
+    min_share_drive: float = 0.45
     z_min: float = 5.0
     displacement_floor_m: float = 0.1
     share_floor: float = 0.05
@@ -82,7 +87,10 @@ class ChangeConfig:
             low_open=True,
         )
         check_range(
-            self, ("displacement_floor_m", "share_floor", "min_share", "max_share_before"), low=0.0, low_open=True
+            self,
+            ("displacement_floor_m", "share_floor", "min_share", "min_share_drive", "max_share_before"),
+            low=0.0,
+            low_open=True,
         )
         check_range(
             self,

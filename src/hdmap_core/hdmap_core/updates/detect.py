@@ -9,8 +9,13 @@ drives) and "after" (>= ``min_after`` drives) such that
   effect away, and within 3 before-spreads (or half the smallest effect) of the after mean (one
   odd drive cannot hide among them, nor can one stray drive make a change);
 * for the shares (type, missed, extra): at least ``min_after_shares`` after-drives, the share
-  grows, every after-drive lies beyond the before drives' 90th percentile, the spread is their
-  standard deviation (a share is 0 for most drives and large for the few that misread a line),
+  grows, every after-drive lies beyond the before drives' 90th percentile and none below their
+  maximum (a share is 0 for most drives and large for the few that misread a line: its 90th
+  percentile is 0 or one of those few, so after-drives that misread as one before did are no
+  change), every after-drive's share is at least ``min_share_drive`` above the before median (a
+  changed line is one of the two markings near a drive in its lane: about half its points or all
+  of them; a drive misreading a few pieces of a line reads less), the spread is their standard
+  deviation,
   and the before median is below ``max_share_before`` (where the map disagrees with its
   own drives already, e.g. sparse ramps, a share says nothing of a change);
 * the after mean is at least the smallest effect (``min_shift_m`` / ``min_share``) away from the
@@ -125,6 +130,7 @@ def change_point(
     heavy_tails: bool = False,
     noise: np.ndarray | None = None,
     fleet_spread: float = 0.0,
+    min_each: float = 0.0,
 ) -> tuple[int, float, float] | None:
     """(index of the first after-value, effect, z) of the earliest change point of ``values``
     (time ordered, no NaN), or None (module docstring).
@@ -134,19 +140,23 @@ def change_point(
     map or a fleet whose drives scatter widely everywhere (a map without offset correction)
     needs a larger step. Every after-value must lie beyond
     the before values' 90th (10th) percentile: the drives after disagree with the drives before
-    themselves, not only with the map. ``heavy_tails``: the before spread is the standard
-    deviation, not the median absolute deviation (a share of wrong types is 0 for most drives and
-    large for the few that misread a line: a robust spread would call those few a change); with
+    themselves, not only with the map. ``heavy_tails``: and none below their maximum (above their
+    minimum; a tie counts, a share of 1 of 2 points is common), and the before spread is the
+    standard deviation, not the median absolute deviation (a share of wrong types is 0 for most
+    drives and large for the few that misread a line: a robust spread would call those few a
+    change, and the 90th percentile is one of them or 0); with
     fewer than 10 before-values the larger of that and their standard deviation (the median
     absolute deviation of 3 values is the smaller half-gap). ``noise`` (per value): each drive's
     own scatter over the road (``drive_scatter``); an after-drive must lie at least twice its
-    own scatter from the before median (a drive off everywhere says nothing of this place)."""
+    own scatter from the before median (a drive off everywhere says nothing of this place).
+    ``min_each``: every after-value lies at least this far from the before median (a share: a
+    changed line is at least half the markings near a drive)."""
     n = len(values)
     for k in range(min_before, n - min_after + 1):
         before, after = values[:k], values[k:]
         med = float(np.median(before))
         dev = after - med
-        need = min_effect / 2 if noise is None else np.maximum(min_effect / 2, 2.0 * noise[k:])
+        need = max(min_effect / 2, min_each) if noise is None else np.maximum(min_effect / 2, 2.0 * noise[k:])
         if not (np.all(dev >= need) or np.all(dev <= -need)):
             continue
         effect = float(np.mean(after)) - med
@@ -156,7 +166,10 @@ def change_point(
         ranked = np.sort(before)
         skip = (k - 1) // 10
         hi, lo = float(ranked[k - 1 - skip]), float(ranked[skip])
-        if not (np.all(after > hi) if effect > 0 else np.all(after < lo)):
+        beyond = bool(np.all(after > hi) if effect > 0 else np.all(after < lo))
+        if heavy_tails:  # a share: and none below the largest before (a tie counts: 1 of 2 points)
+            beyond = beyond and bool(np.all(after >= ranked[-1]) if effect > 0 else np.all(after <= ranked[0]))
+        if not beyond:
             continue  # an after-drive lies among the before-drives: their own scatter
         if heavy_tails:
             spread = max(floor, float(np.std(before)))
@@ -230,6 +243,7 @@ def _confirm(
             heavy_tails=not geometric,
             noise=np.array([scatter.get(e.drive_id, 0.0) for e in used]) if geometric else None,
             fleet_spread=spreads.get(name, 0.0),
+            min_each=0.0 if geometric else config.min_share_drive,
         )
         if found is None:
             continue
