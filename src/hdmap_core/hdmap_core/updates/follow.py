@@ -264,7 +264,7 @@ _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 # close (updates.splice.Reach): the same barrier seen again. Not ChangeConfig.pair_max_m (3 m):
 # on motorway_ramps the opposite carriageway's barrier, 2.5 m beyond the median one, which the
 # drives after the change saw and the local map holds, then took the median barrier's place
-# (shift10 seed 1: zone recall 93.8 % with 3 m, 97.4 % with 1.5 m; docs/journal/2026-12-06-zone-recall.md).
+# (shift10 seed 1: zone recall 93.8 % with 3 m, 97.4 % with 1.5 m; docs/updates.md, "How `bag2map` follows a change").
 _BORDER_SAME_M = 1.5
 
 
