@@ -156,3 +156,15 @@ def test_stitcher_announces_a_change_once_and_keeps_its_history_across_a_restart
     assert [m.id for m in again] == [c.id] and again[0].map_version == c.map_version
     assert values["changes_known"] == "1" and values["changes_new"] == "0"
     assert stitcher.map.version == 2 and stitcher.changes_followed()  # the stored followed map, not re-followed
+
+
+def test_a_destroyed_stitcher_does_no_more_work_on_its_closed_store(ros, tmp_path):
+    """An executor spinning in another thread may still run the stitcher's timer or take a tile
+    after ``destroy_node`` (a test harness, a composed process): that pass must not touch the
+    closed store (it raised sqlite3.ProgrammingError in the spinner thread, which then stopped)."""
+    stitcher = _stitcher(ros, tmp_path)
+    ros.nodes.remove(stitcher)
+    ros.executor.remove_node(stitcher)
+    stitcher.destroy_node()
+    stitcher.work()  # no exception: nothing to do after destroy
+    stitcher._on_mapper_status(rclpy_status_class()())

@@ -33,6 +33,7 @@ Restart: the stored map is published again; if tiles changed after it was made i
 from __future__ import annotations
 
 import json
+import threading
 import time
 import traceback
 from dataclasses import replace
@@ -178,6 +179,9 @@ class MapStitcher(HealthMixin, Node):
         self._status_sub = self.create_subscription(
             self._status_cls, MAPPER_STATUS_TOPIC, self._on_mapper_status, qos.LATCHED, callback_group=self._work_group
         )
+        self._work_lock = threading.Lock()  # work and the mapper's status; destroy_node takes both
+        self._rx_lock = threading.Lock()  # on_tile
+        self._destroyed = False
         self._timer = self.create_timer(0.1, self.work, callback_group=self._work_group)
         self._change_cls = rclpy_change_class()
         self._changes_pub = self.create_publisher(self._change_cls, CHANGES_TOPIC, CHANGES_QOS)
@@ -211,23 +215,34 @@ class MapStitcher(HealthMixin, Node):
             self.health.reject("invalid_tile", str(err))
             self.get_logger().warning(f"tile message rejected: {err}")
             return
-        if self.store.put_tile(
-            tile.key, tile.version, segments_to_blob(tile.segments), tile.drive_ids, tile.drive_tile_counts, tile.final
-        ):
-            self.health.accept()
-            now = time.monotonic()
-            self._last_rx = now
-            if self._first_dirty is None:
-                self._first_dirty = now
-        else:
-            self.health.duplicate()
-        self.health.backlog = int(self._first_dirty is not None)
-        self.health.set("tile_versions", self.store.version_total())
+        with self._rx_lock:
+            if self._destroyed:
+                return
+            if self.store.put_tile(
+                tile.key,
+                tile.version,
+                segments_to_blob(tile.segments),
+                tile.drive_ids,
+                tile.drive_tile_counts,
+                tile.final,
+            ):
+                self.health.accept()
+                now = time.monotonic()
+                self._last_rx = now
+                if self._first_dirty is None:
+                    self._first_dirty = now
+            else:
+                self.health.duplicate()
+            self.health.backlog = int(self._first_dirty is not None)
+            self.health.set("tile_versions", self.store.version_total())
 
     def work(self) -> None:
-        self._work()
-        self._follow()
-        self._update_status()
+        with self._work_lock:  # destroy_node waits for a pass in flight (another thread may spin)
+            if self._destroyed:
+                return
+            self._work()
+            self._follow()
+            self._update_status()
 
     def changes_followed(self) -> bool:
         """The current map follows the road changes of every stored drive (or following is off)."""
@@ -368,8 +383,11 @@ class MapStitcher(HealthMixin, Node):
         self._map_pub.publish(map_to_msg(self.map, types=self._types))
 
     def _on_mapper_status(self, msg) -> None:
-        self._mapper_status = msg_to_status(msg)
-        self._update_status()
+        with self._work_lock:
+            if self._destroyed:
+                return
+            self._mapper_status = msg_to_status(msg)
+            self._update_status()
 
     def _update_status(self) -> None:
         """Publish the map's status when it changed (and put it on /diagnostics)."""
@@ -398,7 +416,12 @@ class MapStitcher(HealthMixin, Node):
         return self._first_dirty is None and sig in (self._map_sig, self._failed_sig)
 
     def destroy_node(self) -> None:
-        self.store.close()
+        # An executor spinning in another thread may be inside work() or about to start it:
+        # close the store only after that pass, and let no pass start after it.
+        self._timer.cancel()
+        with self._work_lock, self._rx_lock:
+            self._destroyed = True
+            self.store.close()
         super().destroy_node()
 
 
