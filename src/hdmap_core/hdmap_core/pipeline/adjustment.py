@@ -48,9 +48,10 @@ from hdmap_core.errors import ConfigError
 from hdmap_core.pipeline import adjustment_assoc as assoc
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
-# The solver's building blocks (knot_layout, design_matrix, prior_matrix, reduced_normal, NormalSolver,
-# update_normal, sample_residuals, robust_weights, pool_offsets, coarse_config) are public but not
-# in __all__: adjustment_local.update_offsets solves new drives with them against a fixed fleet.
+# The solver's building blocks (shift_and_reassociate, knot_layout, design_matrix, prior_matrix,
+# reduced_normal, NormalSolver, update_normal, sample_residuals, robust_weights, pool_offsets,
+# coarse_config) are public but not in __all__: adjustment_local.update_offsets solves new drives
+# with them against a fixed fleet.
 
 _LOSSES = ("linear", "huber", "cauchy")
 _REWEIGHT_REL = 0.05  # IRLS: a sample is re-weighted only when its weight changes by more than 5 %
@@ -515,14 +516,14 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
             coarse = coarse_config(cfg)
             coarse_fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
             model = OffsetModel(**base, drives=_curves(samples, coarse_fit.layout, coarse_fit.theta, None))
-            label, n = _shift_and_reassociate(pool, label, model, cfg)
+            label, n = shift_and_reassociate(pool, label, model, cfg)
             n_shifted += n
     samples, fit, keep = _fit_all(pool, label, cfg)
     for _ in range(cfg.reassociate_rounds - 1):
         if fit is None:
             break
         model = OffsetModel(**base, drives=_curves(samples, fit.layout, fit.theta, None))
-        label, n = _shift_and_reassociate(pool, label, model, cfg)
+        label, n = shift_and_reassociate(pool, label, model, cfg)
         n_shifted += n
         samples, fit, keep = _fit_all(pool, label, cfg)
     stats["n_samples_used"] = int(samples.s_m.size)
@@ -562,10 +563,13 @@ def coarse_config(cfg: AdjustConfig) -> AdjustConfig:
     )
 
 
-def _shift_and_reassociate(
-    pool: assoc.Pool, label: np.ndarray, model: OffsetModel, cfg: AdjustConfig
+def shift_and_reassociate(
+    pool: assoc.Pool, label: np.ndarray, model: OffsetModel, cfg: AdjustConfig, free: np.ndarray | None = None
 ) -> tuple[np.ndarray, int]:
-    """Lane-shift search per drive, then re-association at the gate; returns labels and #shifted drives."""
+    """Lane-shift search per drive, then re-association at the gate; returns labels and #shifted drives.
+
+    ``free``: per pool drive, whether it may shift (None: all); the others keep their association
+    (``adjustment_local``: the solved fleet's)."""
     offset = pool_offsets(pool, model)
     cen = assoc.centres(pool, label, pool.lateral_m + offset)
     bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
@@ -579,6 +583,8 @@ def _shift_and_reassociate(
         noise_sigma_m=cfg.noise_sigma_m,
         bias_sigma_m=cfg.bias_sigma_m,
     )
+    if free is not None:
+        shift = np.where(free, shift, 0.0)
     new = assoc.reassociate(pool, label, offset + shift[pool.drive], cen, gate_m=REASSOCIATE_GATE_M)
     return new, int(np.count_nonzero(shift))
 

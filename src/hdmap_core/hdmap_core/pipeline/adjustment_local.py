@@ -38,9 +38,7 @@ import scipy.sparse as sp
 from hdmap_core.pipeline import adjustment_assoc as assoc
 from hdmap_core.pipeline.adjustment import (
     HUBER_WARMUP_ITERATIONS,
-    REASSOCIATE_GATE_M,
     ROBUST_K,
-    SHIFT_SEARCH_M,
     THIN_DRIVES,
     TOL_M,
     AdjustConfig,
@@ -55,6 +53,7 @@ from hdmap_core.pipeline.adjustment import (
     reduced_normal,
     robust_weights,
     sample_residuals,
+    shift_and_reassociate,
     update_normal,
 )
 
@@ -138,33 +137,11 @@ def update_offsets(
         if round_ + 1 >= cfg.reassociate_rounds:
             break
         merged = OffsetModel(**base, drives={**model.drives, **curves})
-        label, n = _shift_free(pool, label, merged, is_free, cfg)
+        label, n = shift_and_reassociate(pool, label, merged, cfg, free=is_free)
         n_shifted += n
     stats["lane_shifts"] = n_shifted
     stats["n_samples_used"] = int(assoc.select(pool, label, THIN_DRIVES).s_m.size)
     return OffsetModel(**base, drives={**model.drives, **curves}, stats=stats)
-
-
-def _shift_free(
-    pool: assoc.Pool, label: np.ndarray, model: OffsetModel, is_free: np.ndarray, cfg: AdjustConfig
-) -> tuple[np.ndarray, int]:
-    """Lane-shift search for the free drives only, then re-association at the gate."""
-    offset = pool_offsets(pool, model)
-    cen = assoc.centres(pool, label, pool.lateral_m + offset)
-    bias = np.array([model.drives[d].bias_m if d in model.drives else 0.0 for d in pool.drive_ids])
-    shift = assoc.lane_shift_search(
-        pool,
-        cen,
-        offset,
-        bias,
-        search_m=SHIFT_SEARCH_M,
-        gate_m=REASSOCIATE_GATE_M,
-        noise_sigma_m=cfg.noise_sigma_m,
-        bias_sigma_m=cfg.bias_sigma_m,
-    )
-    shift = np.where(is_free, shift, 0.0)  # the fixed drives' association is the solved fleet's
-    new = assoc.reassociate(pool, label, offset + shift[pool.drive], cen, gate_m=REASSOCIATE_GATE_M)
-    return new, int(np.count_nonzero(shift))
 
 
 def _fit_local(
