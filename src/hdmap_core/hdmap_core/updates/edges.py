@@ -35,11 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdmap_core.evaluation.cuts import Segments, intersect_cuts, segments_of
-from hdmap_core.geometry import arc_length
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, PlaceChange, change_point
-from hdmap_core.updates.evidence import PlaceEvidence
+from hdmap_core.updates.evidence import PlaceEvidence, drive_cuts
 from hdmap_core.updates.places import PlaceKey, Places
 
 __all__ = ["EdgeEvidence", "edge_evidence", "detect_edge_changes", "merge_changes", "MIN_EDGE_MOVE_M"]
@@ -62,16 +61,6 @@ class EdgeEvidence:
     key: PlaceKey
     move_m: float
     n_cuts: int
-
-
-def _cuts_of(drive: Drive, step_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(center (K, 2), unit tangent (K, 2), yaw (K,)) every ``step_m`` along the drive."""
-    xy = np.asarray(drive.xy, dtype=float)
-    s = arc_length(xy)
-    q = np.arange(0.0, s[-1], step_m) if s[-1] > 0 else np.zeros(1)
-    i = np.clip(np.searchsorted(s, q), 0, len(xy) - 1)
-    yaw = np.asarray(drive.yaw, dtype=float)[i]
-    return xy[i], np.stack([np.cos(yaw), np.sin(yaw)], axis=1), yaw
 
 
 def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, segs: Segments) -> tuple[np.ndarray, np.ndarray]:
@@ -106,7 +95,7 @@ def edge_evidence(
     segs, types = solid_lines(solids) if isinstance(solids, HDMap) else solids
     if len(drive.xy) < 2 or len(types) == 0:
         return []
-    center, tangent, yaw = _cuts_of(drive, _STEP_M)
+    center, tangent, yaw = drive_cuts(drive, _STEP_M)
     k = len(center)
     dets = [d for d in drive.detections if int(d.type) == _SOLID and len(d.points) >= 2]
     if not dets:

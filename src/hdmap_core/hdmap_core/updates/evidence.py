@@ -94,7 +94,7 @@ def density_mode(values: np.ndarray, *, reach_m: float, kernel_m: float, center:
     return float(near.mean()), len(near)
 
 
-def _cuts_of(drive: Drive, step_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def drive_cuts(drive: Drive, step_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(center (K, 2), unit tangent (K, 2), yaw (K,)) every ``step_m`` along the drive."""
     xy = np.asarray(drive.xy, dtype=float)
     s = arc_length(xy)
@@ -134,7 +134,7 @@ def drive_evidence(
     """The evidence of ``drive`` against the map ``lines``, one record per place it crossed."""
     if len(drive.xy) < 2 or len(lines.types) == 0:
         return []
-    center, tangent, yaw = _cuts_of(drive, config.cut_step_m)
+    center, tangent, yaw = drive_cuts(drive, config.cut_step_m)
     k = len(center)
     dets = [d for d in drive.detections if len(d.points) >= 2]
     dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
