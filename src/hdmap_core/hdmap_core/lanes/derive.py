@@ -523,24 +523,7 @@ def _track(
     station (track, feature, x, y)."""
     out: list[list[tuple[int, int, float, float]]] = [[] for _ in range(len(st))]
     next_track = 0
-    done = [False] * len(st)
-
-    def single(k: int) -> int | None:
-        if len(st.succ[k]) == 1 and len(st.pred[st.succ[k][0]]) == 1:
-            return st.succ[k][0]
-        return None
-
-    starts = [k for k in range(len(st)) if not (len(st.pred[k]) == 1 and single(st.pred[k][0]) == k)]
-    for k0 in starts + list(range(len(st))):
-        if done[k0]:
-            continue
-        chain = [k0]
-        done[k0] = True
-        nxt = single(k0)
-        while nxt is not None and not done[nxt]:
-            chain.append(nxt)
-            done[nxt] = True
-            nxt = single(nxt)
+    for chain in _chains(st):
         open_: dict[int, tuple[int, int, float, float]] = {}  # track -> (position in chain, feature, x, y)
         for i, k in enumerate(chain):
             nx, ny = normal[k]
