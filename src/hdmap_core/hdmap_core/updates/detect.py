@@ -34,7 +34,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +48,7 @@ __all__ = [
     "DetectedChange",
     "change_point",
     "detect_changes",
+    "grow_changes",
     "drive_scatter",
     "series_spread",
     "SERIES",
@@ -308,6 +309,30 @@ def _extends(rows: list[PlaceEvidence], key: PlaceKey, change: PlaceChange, conf
     )
 
 
+def grow_changes(
+    confirmed: dict[PlaceKey, PlaceChange],
+    places: Places,
+    extend: Callable[[PlaceKey, PlaceChange], PlaceChange | None],
+) -> dict[PlaceKey, PlaceChange]:
+    """``confirmed`` grown along the road, breadth first: a neighbouring place (same driving
+    direction) joins with ``extend(neighbour, change of the place it neighbours)`` unless that
+    is None (the displacement and shares here, the edge line's move in ``updates.edges``)."""
+    changed = dict(confirmed)
+    frontier = sorted(confirmed)
+    while frontier:
+        nxt = []
+        for key in frontier:
+            for nb in places.neighbours(key):
+                if nb in changed:
+                    continue
+                ext = extend(nb, changed[key])
+                if ext is not None:
+                    changed[nb] = ext
+                    nxt.append(nb)
+        frontier = sorted(nxt)
+    return changed
+
+
 def detect_changes(
     evidence: Sequence[PlaceEvidence], places: Places, *, config: ChangeConfig = ChangeConfig()
 ) -> list[DetectedChange]:
@@ -325,19 +350,9 @@ def detect_changes(
         if got is not None:
             confirmed[key] = got
     # Grow along the road from the confirmed places.
-    changed = dict(confirmed)
-    frontier = sorted(confirmed)
-    while frontier:
-        nxt = []
-        for key in frontier:
-            for nb in places.neighbours(key):
-                if nb in changed or nb not in by_place:
-                    continue
-                ext = _extends(by_place[nb], nb, changed[key], config)
-                if ext is not None:
-                    changed[nb] = ext
-                    nxt.append(nb)
-        frontier = sorted(nxt)
+    changed = grow_changes(
+        confirmed, places, lambda nb, c: _extends(by_place[nb], nb, c, config) if nb in by_place else None
+    )
     # Touching places of one change: connected components (the drives in evidence).
     out: list[DetectedChange] = []
     seen: set[PlaceKey] = set()

@@ -37,7 +37,7 @@ import numpy as np
 from hdmap_core.evaluation.cuts import Segments, intersect_cuts, segments_of
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
-from hdmap_core.updates.detect import DetectedChange, PlaceChange, change_point
+from hdmap_core.updates.detect import DetectedChange, PlaceChange, change_point, grow_changes
 from hdmap_core.updates.evidence import PlaceEvidence, drive_cuts
 from hdmap_core.updates.places import PlaceKey, Places
 
@@ -175,19 +175,7 @@ def detect_edge_changes(
         )
     # Grow along the road into the tapers: a neighbour where a drive after the change shows at
     # least half the smallest move the same way against the place's drives before, none the other.
-    frontier = sorted(confirmed)
-    while frontier:
-        nxt = []
-        for key in frontier:
-            c = confirmed[key]
-            for nb in places.neighbours(key):
-                if nb in confirmed or nb not in by_place:
-                    continue
-                ext = _extends(by_place[nb], nb, c)
-                if ext is not None:
-                    confirmed[nb] = ext
-                    nxt.append(nb)
-        frontier = sorted(nxt)
+    confirmed = grow_changes(confirmed, places, lambda nb, c: _extends(by_place[nb], nb, c) if nb in by_place else None)
     out: list[DetectedChange] = []
     seen: set[PlaceKey] = set()
     for key in sorted(confirmed):
