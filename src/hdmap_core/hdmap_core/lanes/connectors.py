@@ -147,7 +147,7 @@ def _placed(
         p = resample_evenly(xy, STEP_M) if len(xy) >= 2 else np.zeros((0, 2))
         if len(p) < 3:
             p = np.zeros((0, 2))
-        d: np.ndarray = np.gradient(p, axis=0) if len(p) else np.zeros((0, 2))
+        d = np.asarray(np.gradient(p, axis=0)) if len(p) else np.zeros((0, 2))
         pts.append(p)
         yaw.append(np.arctan2(d[:, 1], d[:, 0]))
     if not any(len(p) for p in pts):
