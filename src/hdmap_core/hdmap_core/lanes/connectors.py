@@ -123,12 +123,12 @@ def connections(lane_map: LaneMap, trajectories: Sequence[np.ndarray]) -> dict[t
             # start it passed first (B's or a successor's)
             lo = max(0, a0 - int(20.0 / STEP_M))
             hi = min(len(pts), b1 + int(20.0 / STEP_M))
-            p, ip = _passed(pts, lo, a1 + 1, [a], lanes, end=True)
+            p, ip = _passed(pts, lo, b0 + 1, [a], lanes, end=True)
             if p is None and _virtual(lanes[a]):
-                p, ip = _passed(pts, lo, a1 + 1, list(lanes[a].predecessors), lanes, end=True)
-            q, iq = _passed(pts, b0, hi, [b], lanes, end=False)
+                p, ip = _passed(pts, lo, b0 + 1, list(lanes[a].predecessors), lanes, end=True)
+            q, iq = _passed(pts, a1, hi, [b], lanes, end=False)
             if q is None and _virtual(lanes[b]):
-                q, iq = _passed(pts, b0, hi, list(lanes[b].successors), lanes, end=False)
+                q, iq = _passed(pts, a1, hi, list(lanes[b].successors), lanes, end=False)
             if p is None or q is None or iq <= ip or p == q or joined(p, q):
                 continue
             out[(p, q)].append(pts[ip : iq + 1])
