@@ -18,8 +18,8 @@ that turns off a straight connector through a junction); none: no connector. The
 (P, Q) is the connection's key; one already joined (Q reachable from P within HOPS) is skipped.
 RULE T3 (connector): per key, the mean path of the drives that made it (each trajectory piece
 between P's end and Q's start resampled to the same number of points by arc length), moved so
-that it starts at P's centerline end and ends at Q's centerline start (the difference blended
-linearly along the path); the width blends from P's end width to Q's start width. Its sides are
+that it starts at P's centerline end and ends at Q's centerline start (the differences fade out
+linearly within _PIN_M of each end); the width blends from P's end width to Q's start width. Its sides are
 virtual (``FeatureType.UNKNOWN``: no line in the map) and start at the end nodes of P's sides and
 end at the start nodes of Q's (Lanelet2 routes along shared nodes).
 RULE T4 (plausible): a connector whose directions at its ends disagree with P's end or Q's start
@@ -63,6 +63,7 @@ HOPS = 4  # RULE T1/T2: lanes already joined within this many steps need no conn
 END_NEAR_M = 2.5  # RULE T2: the trajectory passes the lane end this close
 MAX_TURN_DEG = 45.0  # RULE T4: connector direction vs. the joined lanes' at its ends
 MAX_LENGTH_M = 120.0  # RULE T4: longest connector
+_PIN_M = 6.0  # RULE T3: the ends' differences fade out within this way along the connector
 _BIAS_MIN_M = 0.1  # RULE T1: a smaller sideways offset is left as it is
 _ANGLE_RAD = 0.6  # RULE T1: heading agreement of a point and its lane
 _SAMPLE_M = 0.5  # RULE T1: centerline samples of the lane locator
@@ -274,8 +275,12 @@ def _connector(
     n = max(3, int(length // 2.0) + 2)  # a point every ~2 m
     mean = np.mean([_by_fraction(x, n) for x in pieces if len(x) >= 2], axis=0)
     t = np.linspace(0.0, 1.0, n)[:, None]
+    # the ends' differences fade out within _PIN_M (at most half the way): the drives' mean path
+    # stays where they drove, not where a lane's skewed end puts it
+    reach = min(_PIN_M / max(length, 1e-9), 0.5)
+    w0, w1 = np.clip(1.0 - t / reach, 0.0, 1.0), np.clip(1.0 - (1.0 - t) / reach, 0.0, 1.0)
     c0, c1 = p.centerline[-1], q.centerline[0]
-    center = mean + (1.0 - t) * (c0 - mean[0]) + t * (c1 - mean[-1])
+    center = mean + w0 * (c0 - mean[0]) + w1 * (c1 - mean[-1])
     d = np.gradient(center, axis=0)
     d /= np.maximum(np.hypot(*d.T), 1e-9)[:, None]
     cos_max = np.cos(np.radians(MAX_TURN_DEG))
@@ -292,7 +297,7 @@ def _connector(
     sides = []
     for sign, a, b in ((1.0, pl, ql), (-1.0, pr, qr)):
         pts = center + sign * half * normal
-        pts = pts + (1.0 - t) * (a.points[-1] - pts[0]) + t * (b.points[0] - pts[-1])
+        pts = pts + w0 * (a.points[-1] - pts[0]) + w1 * (b.points[0] - pts[-1])
         sides.append(
             Boundary(_uid("trajectory_side", a.id, b.id), 0, FeatureType.UNKNOWN, pts, a.end_node, b.start_node)
         )
