@@ -64,6 +64,7 @@ END_NEAR_M = 2.5  # RULE T2: the trajectory passes the lane end this close
 MAX_TURN_DEG = 45.0  # RULE T4: connector direction vs. the joined lanes' at its ends
 MAX_LENGTH_M = 300.0  # RULE T4: longest connector
 _PIN_M = 6.0  # RULE T3: the ends' differences fade out within this way along the connector
+_BIAS_EVERY = 5  # RULE T1: the sideways offset from every 5th trajectory point
 _BIAS_MIN_M = 0.1  # RULE T1: a smaller sideways offset is left as it is
 _ANGLE_RAD = 0.6  # RULE T1: heading agreement of a point and its lane
 _SAMPLE_M = 0.5  # RULE T1: centerline samples of the lane locator
@@ -156,7 +157,10 @@ def _placed(
     sizes = np.cumsum([0] + [len(p) for p in pts])
     allyaw = np.concatenate(yaw)
     where = _Locator(lane_map)
-    ids, off = where(np.concatenate(pts), allyaw)
+    # the offsets from every _BIAS_EVERY-th point (the median needs no more)
+    every = np.concatenate([np.arange(len(p)) % _BIAS_EVERY == 0 for p in pts])
+    ids, off = np.zeros(sizes[-1], dtype=np.int64), np.zeros(sizes[-1])
+    ids[every], off[every] = where(np.concatenate(pts)[every], allyaw[every])
     for i, p in enumerate(pts):
         own = off[sizes[i] : sizes[i + 1]][ids[sizes[i] : sizes[i + 1]] != 0]
         if len(own) and abs(bias := float(np.median(own))) > _BIAS_MIN_M:
