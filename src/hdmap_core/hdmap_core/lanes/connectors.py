@@ -19,12 +19,14 @@ that turns off a straight connector through a junction); none: no connector. The
 RULE T3 (connector): per key, the mean path of the drives that made it (each trajectory piece
 between P's end and Q's start resampled to the same number of points by arc length), moved so
 that it starts at P's centerline end and ends at Q's centerline start (the differences fade out
-linearly within _PIN_M of each end); the width blends from P's end width to Q's start width. Its sides are
-virtual (``FeatureType.UNKNOWN``: no line in the map) and start at the end nodes of P's sides and
-end at the start nodes of Q's (Lanelet2 routes along shared nodes).
-RULE T4 (plausible): a connector whose directions at its ends disagree with P's end or Q's start
-by more than MAX_TURN_DEG, that is longer than MAX_LENGTH_M, or whose sides are degenerate
-(:func:`hdmap_core.lanes.derive.proper_sides`, RULE 14) is left out.
+linearly within _PIN_M of each end); the width blends from P's end width to Q's start width.
+Its sides are virtual (``FeatureType.UNKNOWN``: no line in the map) and start at the end nodes
+of P's sides and end at the start nodes of Q's (Lanelet2 routes along shared nodes).
+RULE T4 (plausible): a connector is left out whose directions at its ends disagree with P's end
+or Q's start by more than MAX_TURN_DEG (ONE_DRIVE_TURN_DEG when one drive made it: a lane that
+starts right at a corner meets the drives at a right angle, one drive's kink is more often
+noise), that is longer than MAX_LENGTH_M, or whose sides are degenerate
+(:func:`hdmap_core.lanes.derive.proper_sides`, RULE 14).
 
 Ids are stable: hashes of the two joined lanes' ids.
 """
@@ -54,6 +56,7 @@ __all__ = [
     "END_NEAR_M",
     "HOPS",
     "MAX_TURN_DEG",
+    "ONE_DRIVE_TURN_DEG",
     "MAX_LENGTH_M",
 ]
 
@@ -61,7 +64,8 @@ STEP_M = 1.0  # RULE T1: trajectory sampling
 MIN_STAY_M = 4.0  # RULE T1: a shorter stay in a lane is a corner cut
 HOPS = 4  # RULE T1/T2: lanes already joined within this many steps need no connector
 END_NEAR_M = 2.5  # RULE T2: the trajectory passes the lane end this close
-MAX_TURN_DEG = 45.0  # RULE T4: connector direction vs. the joined lanes' at its ends
+MAX_TURN_DEG = 90.0  # RULE T4: connector direction vs. the joined lanes' at its ends
+ONE_DRIVE_TURN_DEG = 45.0  # RULE T4: the same for a connection one drive made
 MAX_LENGTH_M = 300.0  # RULE T4: longest connector
 _PIN_M = 6.0  # RULE T3: the ends' differences fade out within this way along the connector
 _BIAS_EVERY = 5  # RULE T1: the sideways offset from every 5th trajectory point
@@ -287,8 +291,8 @@ def _connector(
     center = mean + w0 * (c0 - mean[0]) + w1 * (c1 - mean[-1])
     d = np.gradient(center, axis=0)
     d /= np.maximum(np.hypot(*d.T), 1e-9)[:, None]
-    cos_max = np.cos(np.radians(MAX_TURN_DEG))
-    if d[0] @ _direction(p.centerline, first=False) < cos_max or d[-1] @ _direction(q.centerline, first=True) < cos_max:
+    turn = min(d[0] @ _direction(p.centerline, first=False), d[-1] @ _direction(q.centerline, first=True))
+    if turn < np.cos(np.radians(MAX_TURN_DEG if len(pieces) >= 2 else ONE_DRIVE_TURN_DEG)):
         return None
     normal = np.stack([-d[:, 1], d[:, 0]], axis=1)
     half = ((1.0 - t) * p.width[-1] + t * q.width[0]) / 2.0
