@@ -73,3 +73,15 @@ def test_connections_need_min_drives_and_are_stable():
     con = next(ln for ln in a.lanes if ln.left_type == FeatureType.UNKNOWN)
     con_b = b.lane(con.id)
     assert np.allclose(con.centerline, con_b.centerline)
+
+
+def test_bad_trajectories_are_no_evidence():
+    """Non-finite poses, empty, one-point and standing trajectories neither crash nor connect."""
+    lanes = derive_lanes(turn_without_lines())
+    drives = turn_drives(2, seed=4)
+    drives[0][50] = np.nan
+    drives[1][10:20] = np.inf
+    junk = [np.zeros((0, 2)), np.zeros((1, 2)), np.ones((5, 2)), np.full((4, 2), np.nan)]
+    assert trajectory_connectors(lanes, junk) is lanes
+    out = trajectory_connectors(lanes, drives + junk)
+    assert len(out.lanes) == len(lanes.lanes) + 1

@@ -150,6 +150,7 @@ def _placed(
     pts, yaw = [], []
     for traj in trajectories:
         xy = np.asarray(traj, dtype=float).reshape(-1, 2)
+        xy = xy[np.isfinite(xy).all(axis=1)]  # bad poses are no evidence
         p = resample_evenly(xy, STEP_M) if len(xy) >= 2 else np.zeros((0, 2))
         if len(p) < 3:
             p = np.zeros((0, 2))
