@@ -124,3 +124,44 @@ def two_way(length_m: float = 250.0) -> HDMap:
         for i in range(len(xs))
     )
     return HDMap(features=(east, west, centre), topology=_topology(length_m, 8.0) + back)
+
+
+TURN_RADIUS_M = 30.0  # ``turn_without_lines``: the turn's radius, centre (300, -30)
+
+
+def turn_without_lines() -> HDMap:
+    """A one-lane road east along y = 0 up to x = 300 and a one-lane road south along x = 330 from
+    y = -30 (solid lines 1.75 m either side of each), joined by a right turn of radius 30 m
+    about (300, -30) that has no line and no topology: a junction where the markings stop."""
+    x = np.arange(0.0, 300.0 + 1e-9, 1.0)
+    y = np.arange(-30.0, -300.0 - 1e-9, -1.0)
+    feats = (
+        _feature(1, FeatureType.SOLID, np.stack([x, np.full_like(x, 1.75)], axis=1)),
+        _feature(2, FeatureType.SOLID, np.stack([x, np.full_like(x, -1.75)], axis=1)),
+        _feature(3, FeatureType.SOLID, np.stack([np.full_like(y, 331.75), y], axis=1)),  # left, heading south
+        _feature(4, FeatureType.SOLID, np.stack([np.full_like(y, 328.25), y], axis=1)),
+    )
+    east = _topology(300.0, 6.0)
+    ys = np.arange(-31.0, -300.0, -2.0)
+    south = tuple(
+        TopologyNode(5000 + i, np.array([330.0, ys[i]]), -np.pi / 2, 6.0, (5000 + i + 1,) if i + 1 < len(ys) else ())
+        for i in range(len(ys))
+    )
+    return HDMap(features=feats, topology=east + south)
+
+
+def turn_drives(n: int = 4, *, seed: int = 0, bias_m: float = 0.8, noise_m: float = 0.1) -> list[np.ndarray]:
+    """``n`` trajectories (N, 2) through ``turn_without_lines``'s turn along the lanes' middle,
+    each with a constant sideways bias (uniform within ``bias_m``) and white noise."""
+    rng = np.random.default_rng(seed)
+    a = np.linspace(np.pi / 2, 0.0, 48)  # angle about the turn's centre: from (300, 0) to (330, -30)
+    path = np.concatenate(
+        [
+            np.stack([np.arange(100.0, 300.0, 1.0), np.zeros(200)], axis=1),
+            np.stack([300.0 + TURN_RADIUS_M * np.cos(a), -30.0 + TURN_RADIUS_M * np.sin(a)], axis=1),
+            np.stack([np.full(150, 330.0), np.arange(-31.0, -181.0, -1.0)], axis=1),
+        ]
+    )
+    d = np.gradient(path, axis=0)
+    normal = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.hypot(*d.T)[:, None]
+    return [path + rng.uniform(-bias_m, bias_m) * normal + rng.normal(0.0, noise_m, path.shape) for _ in range(n)]

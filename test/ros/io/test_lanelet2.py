@@ -7,12 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hdmap_core.lanes.connectors import trajectory_connectors
 from hdmap_core.lanes.derive import _proper, derive_lanes
 from hdmap_core.lanes.model import Boundary, Lane, LaneMap
 from hdmap_core.model import FeatureType, GeoOrigin
 from hdmap_ros.io.lanelet2 import MAP_FILE, PROJECTOR_FILE, write_lanelet2
 
-from lane_samples import junction_gap, lane_gain, three_lanes
+from lane_samples import junction_gap, lane_gain, three_lanes, turn_drives, turn_without_lines
 
 lanelet2 = pytest.importorskip("lanelet2")
 from lanelet2.projection import LocalCartesianProjector  # noqa: E402
@@ -53,6 +54,27 @@ def test_loads_clean_and_routes(tmp_path, make):
     assert graph.getRoute(ll[first.id], ll[last.id]) is not None
 
 
+def test_line_less_junction_is_routable_with_trajectory_connectors(tmp_path):
+    """A right turn without lines or topology: Lanelet2 finds no route from the road before it to
+    the road after it on the map's lanes alone, and one through a lanelet with virtual bounds
+    once the drives' trajectories add a connector."""
+    lanes = derive_lanes(turn_without_lines())
+    east = next(ln for ln in lanes.lanes if abs(ln.centerline[0, 1]) < 1.0)
+    south = next(ln for ln in lanes.lanes if ln.centerline[0, 1] < -29.0)
+    routes = []
+    for name, lm in (("lines", lanes), ("drives", trajectory_connectors(lanes, turn_drives(4, seed=3)))):
+        write_lanelet2(lm, ORIGIN, tmp_path / name)
+        llmap, errors, graph, problems = load(tmp_path / name)
+        assert list(errors) == [] and list(problems) == []
+        ll = by_lane_id(llmap)
+        routes.append(graph.getRoute(ll[east.id], ll[south.id]))
+    assert routes[0] is None and routes[1] is not None
+    path = [int(x.attributes["hdmap:lane_id"]) for x in routes[1].shortestPath()]
+    assert path[0] == east.id and path[-1] == south.id and len(path) == 3
+    con = ll[path[1]]
+    assert con.leftBound.attributes["type"] == "virtual" and con.rightBound.attributes["type"] == "virtual"
+
+
 def test_tags_projector_and_coordinates(tmp_path):
     lanes = derive_lanes(three_lanes())
     write_lanelet2(lanes, ORIGIN, tmp_path)
@@ -89,19 +111,20 @@ def test_sample_bag_export_is_routable(tmp_path, sample_bags):
     from hdmap_core.evaluation.lanes import route_ends
     from hdmap_core.groundtruth import load_ground_truth
     from hdmap_ros import cli
-    from hdmap_ros.io.bagio import read_map_bag
+    from hdmap_ros.io.bagio import read_fleet_bag, read_map_bag
 
     bag = sample_bags / "ramps_20"
     out = tmp_path / "map"
     assert cli.main(["bag2map", str(bag), "-o", str(out), "--no-progress", "--lanelet2", str(tmp_path / "ll")]) == 0
-    assert cli.main(["export", str(out), "--lanelet2", str(tmp_path / "ll2")]) == 0
+    # bag2map adds connectors from the drives where the lanes lack one; export does with --fleet
+    assert cli.main(["export", str(out), "--lanelet2", str(tmp_path / "ll2"), "--fleet", str(bag)]) == 0
     assert (tmp_path / "ll" / MAP_FILE).read_bytes() == (tmp_path / "ll2" / MAP_FILE).read_bytes()
     sim = json.loads((sample_bags / "ramps_20.sim.json").read_text())
     origin = GeoOrigin(**sim["origin"])
     llmap, errors, graph, problems = load(tmp_path / "ll", origin)
     assert list(errors) == [] and list(problems) == []
     gt = load_ground_truth(sample_bags / "ramps_20.gt.json")
-    lanes = derive_lanes(read_map_bag(out))
+    lanes = trajectory_connectors(derive_lanes(read_map_bag(out)), [d.xy for d in read_fleet_bag(bag).drives])
     ll = by_lane_id(llmap)
     driven = sorted({t["route_id"] for t in sim["truth"].values()})
     assert driven

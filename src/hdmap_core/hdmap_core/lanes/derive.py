@@ -83,6 +83,7 @@ __all__ = [
     "JOIN_TOL_M",
     "GAP_LINK_M",
     "BRIDGE_MAX_M",
+    "proper_sides",
 ]
 
 LANE_WIDTH_MIN_M = 2.4  # narrowest lane (3.5-3.9 m motorway lanes, 2.75 m in works zones)
@@ -799,6 +800,12 @@ def _proper(left: np.ndarray, right: np.ndarray, left_ends: tuple[int, int], rig
         if sign * _signed_distance(a, _middle(b)[None])[0] <= _SIDE_EPS_M:  # + = left of a
             return False
     return True
+
+
+def proper_sides(left: np.ndarray, right: np.ndarray, left_ends: tuple[int, int], right_ends: tuple[int, int]) -> bool:
+    """RULE 14 for a lane made elsewhere (trajectory connectors): its (N, 2) sides and their
+    (start, end) node ids are those of a lane that Lanelet2 loads the right way round."""
+    return _proper(left, right, left_ends, right_ends)
 
 
 def _middle(line: np.ndarray) -> np.ndarray:

@@ -276,7 +276,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"follow changes: {len(followed.changes)} change(s), {len(followed.retired)} retired piece(s)")
     hdmap: HDMap = result.map
 
-    _write_outputs(args, out, hdmap, origin, history=history)
+    _write_outputs(args, out, hdmap, origin, history=history, trajectories=[d.xy for d in fleet.drives])
     seconds = time.perf_counter() - t_start
     print(_summary(fleet, hdmap, result, seconds))
     if args.report:
@@ -286,10 +286,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_outputs(
-    args: argparse.Namespace, out: Path, hdmap: HDMap, origin: GeoOrigin | None, *, history: dict | None = None
+    args: argparse.Namespace,
+    out: Path,
+    hdmap: HDMap,
+    origin: GeoOrigin | None,
+    *,
+    history: dict | None = None,
+    trajectories: Sequence[np.ndarray] = (),
 ) -> None:
     """The map bag, the change history (``OUT.history.json``, when changes were followed) and the
-    GeoJSON, Lanelet2 and GraphML files asked for."""
+    GeoJSON, Lanelet2 and GraphML files asked for; the lanes gain connectors from the drives'
+    ``trajectories`` where they lack a connection (:mod:`hdmap_core.lanes.connectors`)."""
     write_map_bag(out, hdmap, origin, overwrite=args.overwrite)
     print(f"wrote {out}: {len(hdmap.features)} features, {len(hdmap.topology)} topology nodes")
     if history is not None:
@@ -301,6 +308,10 @@ def _write_outputs(
         from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415 - lanes only when written
 
         lanes = derive_lanes(hdmap)
+        if len(trajectories):
+            from hdmap_core.lanes.connectors import trajectory_connectors  # noqa: PLC0415
+
+            lanes = trajectory_connectors(lanes, trajectories)
     if args.geojson:
         write_geojson(hdmap, origin, args.geojson, lanes=lanes)
         print(f"wrote {args.geojson}")

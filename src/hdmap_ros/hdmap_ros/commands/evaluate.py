@@ -26,6 +26,7 @@ import dataclasses
 import json
 import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +39,7 @@ from hdmap_core.evaluation.plot import plot_evaluation
 from hdmap_core.evaluation.report import jsonable
 from hdmap_core.evaluation.summary import format_summary
 from hdmap_core.groundtruth import GroundTruth, load_ground_truth
-from hdmap_core.model import HDMap
+from hdmap_core.model import Drive, HDMap
 
 __all__ = [
     "NAME",
@@ -116,7 +117,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _lane_report(hdmap: HDMap, gt: GroundTruth, args: argparse.Namespace, config: EvalConfig) -> LaneReport:
+def _lane_report(
+    hdmap: HDMap, gt: GroundTruth, args: argparse.Namespace, config: EvalConfig, drives: Sequence[Drive] = ()
+) -> LaneReport:
     from hdmap_core.evaluation.lanes import evaluate_lanes  # noqa: PLC0415 - lanes only when asked
     from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415
 
@@ -125,7 +128,12 @@ def _lane_report(hdmap: HDMap, gt: GroundTruth, args: argparse.Namespace, config
     routes = None
     if isinstance(truth, dict):
         routes = {str(t.get("route_id")) for t in truth.values() if isinstance(t, dict)}
-    return evaluate_lanes(derive_lanes(hdmap), gt, route_ids=routes, config=config)
+    lanes = derive_lanes(hdmap)
+    if drives:  # the fleet's trajectories: connectors where the lanes lack one, as bag2map makes them
+        from hdmap_core.lanes.connectors import trajectory_connectors  # noqa: PLC0415
+
+        lanes = trajectory_connectors(lanes, [d.xy for d in drives])
+    return evaluate_lanes(lanes, gt, route_ids=routes, config=config)
 
 
 def _positive_float(text: str) -> float:
@@ -369,7 +377,7 @@ def run(args: argparse.Namespace) -> int:
     )
     print()
     print(format_summary(report))
-    lanes = _lane_report(hdmap, gt, args, config) if args.lanes else None
+    lanes = _lane_report(hdmap, gt, args, config, drives or ()) if args.lanes else None
     if lanes is not None:
         print(lanes.summary())
     zone_report = zone_lanes = None

@@ -17,12 +17,14 @@ x/y (and z = 0) to well below a millimetre.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from hdmap_core.geometry import rdp_mask_many
+from hdmap_core.lanes.connectors import trajectory_connectors
 from hdmap_core.lanes.derive import derive_lanes
 from hdmap_core.lanes.model import Boundary, LaneMap
 from hdmap_core.model import FeatureType, GeoOrigin, HDMap
@@ -55,13 +57,21 @@ def write_lanelet2(lane_map: LaneMap, origin: GeoOrigin, directory: str | Path) 
     return out
 
 
-def export_lanelet2(hdmap: HDMap, origin: GeoOrigin, directory: str | Path) -> str:
-    """Derive the lanes of ``hdmap`` and write them to ``directory``; returns a one-line note."""
+def export_lanelet2(
+    hdmap: HDMap, origin: GeoOrigin, directory: str | Path, *, trajectories: Sequence[np.ndarray] = ()
+) -> str:
+    """Derive the lanes of ``hdmap`` (with connectors from the drives' (N, 2) ``trajectories``
+    where the lanes lack a connection, :mod:`hdmap_core.lanes.connectors`) and write them to
+    ``directory``; returns a one-line note."""
     t0 = time.perf_counter()
     lanes = derive_lanes(hdmap)
+    n = len(lanes.lanes)
+    if len(trajectories):
+        lanes = trajectory_connectors(lanes, trajectories)
     out = write_lanelet2(lanes, origin, directory)
     km = sum(ln.length_m for ln in lanes.lanes) / 1000.0
-    return f"wrote {out}: {len(lanes.lanes)} lanelets ({km:.2f} km) in {time.perf_counter() - t0:.2f} s"
+    extra = f", {len(lanes.lanes) - n} connectors from {len(trajectories)} drives" if len(trajectories) else ""
+    return f"wrote {out}: {len(lanes.lanes)} lanelets ({km:.2f} km{extra}) in {time.perf_counter() - t0:.2f} s"
 
 
 def _osm(lane_map: LaneMap, origin: GeoOrigin) -> str:
