@@ -25,7 +25,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdmap_core.evaluation.cuts import Segments, intersect_cuts, segments_of
+from hdmap_core.evaluation.cuts import (
+    SegmentIndex,
+    Segments,
+    index_segments,
+    intersect_cuts,
+    intersect_indexed,
+    segments_of,
+)
 from hdmap_core.geometry import arc_length
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
@@ -65,17 +72,22 @@ class PlaceEvidence:
 
 @dataclass(frozen=True)
 class MapLines:
-    """The map's features as segments, ready to be cut; ``types`` (M,) per segment."""
+    """The map's features as segments with their spatial index, ready to be cut by every drive;
+    ``types`` (M,) per segment."""
 
-    segments: Segments
+    index: SegmentIndex
     types: np.ndarray
+
+    @property
+    def segments(self) -> Segments:
+        return self.index.segments
 
 
 def map_lines(hdmap: HDMap) -> MapLines:
     feats = [f for f in hdmap.features if len(f.points) >= 2]
     segs = segments_of([np.asarray(f.points, dtype=float) for f in feats])
     types = np.array([int(f.type) for f in feats], dtype=np.int64)[segs.owner] if feats else np.zeros(0, np.int64)
-    return MapLines(segs, types)
+    return MapLines(index_segments(segs), types)
 
 
 def density_mode(values: np.ndarray, *, reach_m: float, kernel_m: float, center: float = 0.0) -> tuple[float, int]:
@@ -104,10 +116,19 @@ def drive_cuts(drive: Drive, step_m: float) -> tuple[np.ndarray, np.ndarray, np.
     return xy[i], np.stack([np.cos(yaw), np.sin(yaw)], axis=1), yaw
 
 
-def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, segs: Segments, types: np.ndarray):
+def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, lines: Segments | SegmentIndex, types: np.ndarray):
+    """(cut, lateral position, type) of the ``lines`` crossing the cuts and running with the drive,
+    ordered by cut, then segment. The map's lines come indexed (``MapLines``): a drive's cuts
+    query them, at a cost that grows with the drive, not with the map."""
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
     k = len(center)
-    ci, si, s, _ = intersect_cuts(center, normal, np.full(k, -view_m), np.full(k, view_m), segs)
+    lo, hi = np.full(k, -view_m), np.full(k, view_m)
+    if isinstance(lines, SegmentIndex):
+        segs = lines.segments
+        ci, si, s, _ = intersect_indexed(center, normal, lo, hi, lines)
+    else:
+        segs = lines
+        ci, si, s, _ = intersect_cuts(center, normal, lo, hi, segs)
     d = segs.b[si] - segs.a[si]
     ok = (d * tangent[ci]).sum(axis=1) >= _COS_MIN * np.linalg.norm(d, axis=1)
     order = np.argsort(ci[ok], kind="stable")
@@ -140,7 +161,7 @@ def drive_evidence(
     dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
     dtypes = np.array([int(d.type) for d in dets], dtype=np.int64)[dsegs.owner] if dets else np.zeros(0, np.int64)
     d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, dsegs, dtypes)
-    m_cut, m_s, m_t = _on_cuts(center, tangent, config.view_m, lines.segments, lines.types)
+    m_cut, m_s, m_t = _on_cuts(center, tangent, config.view_m, lines.index, lines.types)
     keys = places.keys(center, yaw)
     ids = {key: i for i, key in enumerate(dict.fromkeys(keys))}
     place_of_cut = np.array([ids[key] for key in keys], dtype=np.int64)
