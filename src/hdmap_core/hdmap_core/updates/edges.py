@@ -129,11 +129,14 @@ def edge_evidence(
     # only where the drive would have seen the map's edge line: farther out, whether a drive sees
     # it depends on its lane and the sensor's reach, not on the road
     move[~(map_right >= -_SEEN_M)] = np.nan
+    ids = {key: i for i, key in enumerate(dict.fromkeys(keys))}
+    place = np.array([ids[key] for key in keys], dtype=np.int64)
+    good = np.isfinite(move) & np.isfinite(a)
+    n_good = np.bincount(place[good], minlength=len(ids))
     out = []
-    for key in dict.fromkeys(keys):
-        sel = np.array([kk == key for kk in keys]) & np.isfinite(move) & np.isfinite(a)
-        n = int(np.count_nonzero(sel))
-        value = float(np.median(move[sel])) if n >= _MIN_CUTS else math.nan
+    for key, p in ids.items():
+        n = int(n_good[p])
+        value = float(np.median(move[good & (place == p)])) if n >= _MIN_CUTS else math.nan
         out.append(EdgeEvidence(drive.drive_id, drive.start_ns, key, value, n))
     return out
 
