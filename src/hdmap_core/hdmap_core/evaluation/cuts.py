@@ -28,6 +28,9 @@ __all__ = [
     "CutPoints",
     "segments_of",
     "intersect_cuts",
+    "SegmentIndex",
+    "index_segments",
+    "intersect_indexed",
     "reference_cuts",
     "configured_cuts",
     "points_on_cuts",
@@ -156,6 +159,47 @@ def intersect_cuts(
     if not out:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
     return tuple(np.concatenate(parts) for parts in zip(*out))  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class SegmentIndex:
+    """Segments with a spatial index over them (bounding boxes), built once and cut many times
+    (``intersect_indexed``): a map compared with every drive of a fleet."""
+
+    segments: Segments
+    tree: shapely.STRtree
+
+    def __len__(self) -> int:
+        return len(self.segments)
+
+
+def index_segments(segs: Segments) -> SegmentIndex:
+    """``segs`` with their spatial index."""
+    return SegmentIndex(segs, shapely.STRtree(shapely.linestrings(np.stack([segs.a, segs.b], axis=1))))
+
+
+def intersect_indexed(
+    center: np.ndarray,
+    normal: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    index: SegmentIndex,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``intersect_cuts`` against indexed segments: the same intersections (the same candidate
+    pairs, bounding box against bounding box, solved alike), ordered by cut, then segment.
+
+    The cuts query the segments' index, so the cost grows with the cuts and what lies near them,
+    not with every segment (``intersect_cuts`` builds an index of the cuts and queries it with
+    every segment).
+    """
+    segs = index.segments
+    if not len(center) or not len(segs):
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+    p0 = center + lo[:, None] * normal
+    p1 = center + hi[:, None] * normal
+    ci, si = index.tree.query(shapely.linestrings(np.stack([p0, p1], axis=1)))
+    order = np.lexsort((si, ci))
+    return _solve(center, normal, lo, hi, segs, ci[order], si[order])
 
 
 def _solve(

@@ -34,7 +34,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdmap_core.evaluation.cuts import Segments, intersect_cuts, segments_of
+from hdmap_core.evaluation.cuts import (
+    SegmentIndex,
+    Segments,
+    index_segments,
+    intersect_cuts,
+    intersect_indexed,
+    segments_of,
+)
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, PlaceChange, change_point, grow_changes
@@ -63,11 +70,20 @@ class EdgeEvidence:
     n_cuts: int
 
 
-def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, segs: Segments) -> tuple[np.ndarray, np.ndarray]:
-    """(cut, lateral position) of the lines ``segs`` crossing the cuts, running with the drive."""
+def _on_cuts(
+    center: np.ndarray, tangent: np.ndarray, view_m: float, lines: Segments | SegmentIndex
+) -> tuple[np.ndarray, np.ndarray]:
+    """(cut, lateral position) of the ``lines`` crossing the cuts, running with the drive (the
+    map's come indexed, ``solid_lines``: a drive's cuts query them)."""
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
     k = len(center)
-    ci, si, s, _ = intersect_cuts(center, normal, np.full(k, -view_m), np.full(k, view_m), segs)
+    lo, hi = np.full(k, -view_m), np.full(k, view_m)
+    if isinstance(lines, SegmentIndex):
+        segs = lines.segments
+        ci, si, s, _ = intersect_indexed(center, normal, lo, hi, lines)
+    else:
+        segs = lines
+        ci, si, s, _ = intersect_cuts(center, normal, lo, hi, segs)
     d = segs.b[si] - segs.a[si]
     ok = (d * tangent[ci]).sum(axis=1) >= _COS_MIN * np.linalg.norm(d, axis=1)
     return ci[ok], s[ok]
@@ -91,7 +107,8 @@ def edge_evidence(
     config: ChangeConfig = ChangeConfig(),
 ) -> list[EdgeEvidence]:
     """The edge move of ``drive`` per place it crossed; ``solids``: the map, or its solid
-    markings as ``(segments, types)`` (``solid_lines``); ``anchors``: its anchor per place."""
+    markings as ``(segments or their index, types)`` (``solid_lines``); ``anchors``: its anchor per
+    place."""
     segs, types = solid_lines(solids) if isinstance(solids, HDMap) else solids
     if len(drive.xy) < 2 or len(types) == 0:
         return []
@@ -112,19 +129,23 @@ def edge_evidence(
     # only where the drive would have seen the map's edge line: farther out, whether a drive sees
     # it depends on its lane and the sensor's reach, not on the road
     move[~(map_right >= -_SEEN_M)] = np.nan
+    ids = {key: i for i, key in enumerate(dict.fromkeys(keys))}
+    place = np.array([ids[key] for key in keys], dtype=np.int64)
+    good = np.isfinite(move) & np.isfinite(a)
+    n_good = np.bincount(place[good], minlength=len(ids))
     out = []
-    for key in dict.fromkeys(keys):
-        sel = np.array([kk == key for kk in keys]) & np.isfinite(move) & np.isfinite(a)
-        n = int(np.count_nonzero(sel))
-        value = float(np.median(move[sel])) if n >= _MIN_CUTS else math.nan
+    for key, p in ids.items():
+        n = int(n_good[p])
+        value = float(np.median(move[good & (place == p)])) if n >= _MIN_CUTS else math.nan
         out.append(EdgeEvidence(drive.drive_id, drive.start_ns, key, value, n))
     return out
 
 
 def solid_lines(hdmap: HDMap) -> tuple:
+    """The map's solid markings as ``(SegmentIndex, types)``, indexed once for every drive."""
     feats = [f for f in hdmap.features if int(f.type) == _SOLID and len(f.points) >= 2]
     segs = segments_of([np.asarray(f.points, dtype=float) for f in feats])
-    return segs, np.full(len(segs.owner), _SOLID, dtype=np.int64)
+    return index_segments(segs), np.full(len(segs.owner), _SOLID, dtype=np.int64)
 
 
 def fleet_edge_evidence(

@@ -20,12 +20,20 @@ are intersected (the evaluator's vectorised cut machinery). Per place (``updates
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from hdmap_core.evaluation.cuts import Segments, intersect_cuts, segments_of
+from hdmap_core.evaluation.cuts import (
+    SegmentIndex,
+    Segments,
+    index_segments,
+    intersect_cuts,
+    intersect_indexed,
+    segments_of,
+)
 from hdmap_core.geometry import arc_length
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
@@ -65,17 +73,31 @@ class PlaceEvidence:
 
 @dataclass(frozen=True)
 class MapLines:
-    """The map's features as segments, ready to be cut; ``types`` (M,) per segment."""
+    """The map's features as segments with their spatial index, ready to be cut by every drive;
+    ``types`` (M,) per segment."""
 
-    segments: Segments
+    index: SegmentIndex
     types: np.ndarray
+
+    @property
+    def segments(self) -> Segments:
+        return self.index.segments
 
 
 def map_lines(hdmap: HDMap) -> MapLines:
     feats = [f for f in hdmap.features if len(f.points) >= 2]
     segs = segments_of([np.asarray(f.points, dtype=float) for f in feats])
     types = np.array([int(f.type) for f in feats], dtype=np.int64)[segs.owner] if feats else np.zeros(0, np.int64)
-    return MapLines(segs, types)
+    return MapLines(index_segments(segs), types)
+
+
+@functools.lru_cache(maxsize=8)
+def _kernel(kernel_m: float) -> np.ndarray:
+    """The Gaussian kernel on the grid, +- 3 widths (read-only: cached)."""
+    half = int(np.ceil(3 * kernel_m / _GRID_M))
+    k = np.exp(-0.5 * (np.arange(-half, half + 1) * _GRID_M / kernel_m) ** 2)
+    k.setflags(write=False)
+    return k
 
 
 def density_mode(values: np.ndarray, *, reach_m: float, kernel_m: float, center: float = 0.0) -> tuple[float, int]:
@@ -86,9 +108,7 @@ def density_mode(values: np.ndarray, *, reach_m: float, kernel_m: float, center:
         return float("nan"), 0
     edges = center + np.arange(-reach_m, reach_m + _GRID_M, _GRID_M)
     hist, _ = np.histogram(v, bins=edges)
-    half = int(np.ceil(3 * kernel_m / _GRID_M))
-    k = np.exp(-0.5 * (np.arange(-half, half + 1) * _GRID_M / kernel_m) ** 2)
-    dens = np.convolve(hist.astype(float), k, mode="same")
+    dens = np.convolve(hist.astype(float), _kernel(kernel_m), mode="same")
     mode = 0.5 * (edges[:-1] + edges[1:])[int(np.argmax(dens))]
     near = v[np.abs(v - mode) <= 2 * kernel_m]
     return float(near.mean()), len(near)
@@ -104,10 +124,19 @@ def drive_cuts(drive: Drive, step_m: float) -> tuple[np.ndarray, np.ndarray, np.
     return xy[i], np.stack([np.cos(yaw), np.sin(yaw)], axis=1), yaw
 
 
-def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, segs: Segments, types: np.ndarray):
+def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, lines: Segments | SegmentIndex, types: np.ndarray):
+    """(cut, lateral position, type) of the ``lines`` crossing the cuts and running with the drive,
+    ordered by cut, then segment. The map's lines come indexed (``MapLines``): a drive's cuts
+    query them, at a cost that grows with the drive, not with the map."""
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
     k = len(center)
-    ci, si, s, _ = intersect_cuts(center, normal, np.full(k, -view_m), np.full(k, view_m), segs)
+    lo, hi = np.full(k, -view_m), np.full(k, view_m)
+    if isinstance(lines, SegmentIndex):
+        segs = lines.segments
+        ci, si, s, _ = intersect_indexed(center, normal, lo, hi, lines)
+    else:
+        segs = lines
+        ci, si, s, _ = intersect_cuts(center, normal, lo, hi, segs)
     d = segs.b[si] - segs.a[si]
     ok = (d * tangent[ci]).sum(axis=1) >= _COS_MIN * np.linalg.norm(d, axis=1)
     order = np.argsort(ci[ok], kind="stable")
@@ -128,6 +157,14 @@ def _pairs(d_cut, d_s, m_cut, m_s, k: int, reach: float) -> tuple[np.ndarray, np
     return di[keep], mi[keep], r[keep]
 
 
+def _by_place(place: np.ndarray, n_places: int):
+    """place index -> the indices of ``place`` equal to it, in their order (one sort, not a mask
+    per place)."""
+    order = np.argsort(place, kind="stable")
+    bounds = np.searchsorted(place[order], np.arange(n_places + 1))
+    return lambda p: order[bounds[p] : bounds[p + 1]]
+
+
 def drive_evidence(
     drive: Drive, lines: MapLines, places: Places, *, config: ChangeConfig = ChangeConfig()
 ) -> list[PlaceEvidence]:
@@ -140,7 +177,7 @@ def drive_evidence(
     dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
     dtypes = np.array([int(d.type) for d in dets], dtype=np.int64)[dsegs.owner] if dets else np.zeros(0, np.int64)
     d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, dsegs, dtypes)
-    m_cut, m_s, m_t = _on_cuts(center, tangent, config.view_m, lines.segments, lines.types)
+    m_cut, m_s, m_t = _on_cuts(center, tangent, config.view_m, lines.index, lines.types)
     keys = places.keys(center, yaw)
     ids = {key: i for i, key in enumerate(dict.fromkeys(keys))}
     place_of_cut = np.array([ids[key] for key in keys], dtype=np.int64)
@@ -162,71 +199,79 @@ def drive_evidence(
     # Border offset per place; a place with too few borders takes the mean of its neighbours
     # along the drive (within ``_ANCHOR_REACH`` places) that have enough: the drift is slow.
     n_places = len(ids)
+    border_of = _by_place(border_place, n_places)
+    pairs_of = _by_place(pair_place, n_places)
     borders = np.full(n_places, np.nan)
     for p in range(n_places):
         if np.isfinite(drive_border):
             b, n_b = density_mode(
-                br[border_place == p], reach_m=_BORDER_REACH_M, kernel_m=config.kernel_m, center=drive_border
+                br[border_of(p)], reach_m=_BORDER_REACH_M, kernel_m=config.kernel_m, center=drive_border
             )
             if n_b >= config.min_border_pairs:
                 borders[p] = b
-    out: list[PlaceEvidence] = []
-    for key, p in ids.items():
-        on_borders = bool(np.isfinite(borders[p]))
+    anchors = np.full(n_places, np.nan)
+    offsets = np.full(n_places, np.nan)
+    n_pairs = np.zeros(n_places, dtype=np.int64)
+    on_borders = np.isfinite(borders)
+    for p in range(n_places):
         near = borders[max(0, p - _ANCHOR_REACH) : p + _ANCHOR_REACH + 1]
-        if on_borders:
-            anchor = float(borders[p])
+        if on_borders[p]:
+            anchors[p] = borders[p]
         elif np.isfinite(near).any():
-            anchor = float(np.nanmean(near))
+            anchors[p] = float(np.nanmean(near))
         else:
-            anchor = drive_border if np.isfinite(drive_border) else drive_offset
+            anchors[p] = drive_border if np.isfinite(drive_border) else drive_offset
         # The markings' offset near the anchor: farther than half a lane a marking pairs with its
         # neighbour line.
-        offset, n_pairs = float("nan"), 0
-        if np.isfinite(anchor):
-            offset, n_pairs = density_mode(
-                pr[pair_place == p], reach_m=config.max_shift_m, kernel_m=config.kernel_m, center=anchor
+        if np.isfinite(anchors[p]):
+            offsets[p], n_pairs[p] = density_mode(
+                pr[pairs_of(p)], reach_m=config.max_shift_m, kernel_m=config.kernel_m, center=float(anchors[p])
             )
-        enough = n_pairs >= config.min_pairs
-        displacement = offset - anchor if enough else float("nan")
-        o = offset if enough else (anchor if np.isfinite(anchor) else 0.0)
-        cuts_here = place_of_cut == p
-        # Type, negative and positive evidence, near the drive, after its offset.
-        dsel = dm[cuts_here[d_cut[dm]] & (np.abs(d_s[dm]) <= config.near_m)]
-        msel = mm[cuts_here[m_cut[mm]] & (np.abs(m_s[mm] - o) <= config.near_m)]
-        n_typed = n_wrong = n_extra = n_missed = 0
-        if len(dsel):
-            # nearest map marking on the same cut to each drive marking (after the offset)
-            ti, tj, tr = _pairs(d_cut[dsel], d_s[dsel] + o, m_cut[mm], m_s[mm], k, config.match_m)
-            best = np.full(len(dsel), np.inf)
-            best_j = np.full(len(dsel), -1)
-            order = np.argsort(np.abs(tr))[::-1]
-            best[ti[order]] = np.abs(tr[order])
-            best_j[ti[order]] = tj[order]
-            matched = np.isfinite(best)
-            n_typed = int(np.count_nonzero(matched))
-            n_wrong = int(np.count_nonzero(d_t[dsel][matched] != m_t[mm][best_j[matched]]))
-            n_extra = int(np.count_nonzero(~matched))
-        if len(msel):
-            ui, _, _ = _pairs(m_cut[msel], m_s[msel] - o, d_cut, d_s, k, config.match_m)
-            n_missed = int(len(msel) - len(np.unique(ui)))
+    enough = n_pairs >= config.min_pairs
+    displacement = np.where(enough, offsets - anchors, np.nan)
+    # the drive's offset per cut (its place's): its markings against the map's after it
+    o_cut = np.where(enough, offsets, np.where(np.isfinite(anchors), anchors, 0.0))[place_of_cut]
+    # Type, negative and positive evidence, near the drive, after its offset: on every cut at
+    # once (a cut lies in one place), counted per place.
+    dsel = dm[np.abs(d_s[dm]) <= config.near_m]
+    msel = mm[np.abs(m_s[mm] - o_cut[m_cut[mm]]) <= config.near_m]
+    d_place, m_place = place_of_cut[d_cut[dsel]], place_of_cut[m_cut[msel]]
+    n_drive_near = np.bincount(d_place, minlength=n_places)
+    n_map_near = np.bincount(m_place, minlength=n_places)
+    # nearest map marking on the same cut to each drive marking (after the offset)
+    ti, tj, tr = _pairs(d_cut[dsel], d_s[dsel] + o_cut[d_cut[dsel]], m_cut[mm], m_s[mm], k, config.match_m)
+    order = np.lexsort((np.abs(tr), ti))
+    first = order[np.r_[True, ti[order][1:] != ti[order][:-1]]] if len(order) else order
+    matched = np.zeros(len(dsel), dtype=bool)
+    matched[ti[first]] = True
+    wrong = np.zeros(len(dsel), dtype=bool)
+    wrong[ti[first]] = d_t[dsel][ti[first]] != m_t[mm][tj[first]]
+    n_typed = np.bincount(d_place[matched], minlength=n_places)
+    n_wrong = np.bincount(d_place[wrong], minlength=n_places)
+    ui, _, _ = _pairs(m_cut[msel], m_s[msel] - o_cut[m_cut[msel]], d_cut, d_s, k, config.match_m)
+    seen = np.zeros(len(msel), dtype=bool)
+    seen[ui] = True
+    n_missed = n_map_near - np.bincount(m_place[seen], minlength=n_places)
+    n_cuts = np.bincount(place_of_cut, minlength=n_places)
+    out: list[PlaceEvidence] = []
+    for key, p in ids.items():
         out.append(
             PlaceEvidence(
                 drive_id=drive.drive_id,
                 time_ns=drive.start_ns,
                 key=key,
-                n_cuts=int(np.count_nonzero(cuts_here)),
-                offset_m=offset,
-                anchor_m=float(anchor),
-                anchored_on_borders=bool(on_borders),
-                displacement_m=float(displacement),
-                n_pairs=n_pairs,
-                n_typed=n_typed,
-                n_wrong_type=n_wrong,
-                n_map_near=len(msel),
-                n_missed=n_missed,
-                n_drive_near=len(dsel),
-                n_extra=n_extra,
+                n_cuts=int(n_cuts[p]),
+                offset_m=float(offsets[p]),
+                anchor_m=float(anchors[p]),
+                anchored_on_borders=bool(on_borders[p]),
+                displacement_m=float(displacement[p]),
+                n_pairs=int(n_pairs[p]),
+                n_typed=int(n_typed[p]),
+                n_wrong_type=int(n_wrong[p]),
+                n_map_near=int(n_map_near[p]),
+                n_missed=int(n_missed[p]),
+                n_drive_near=int(n_drive_near[p]),
+                n_extra=int(n_drive_near[p] - n_typed[p]),
             )
         )
     return out
