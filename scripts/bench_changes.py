@@ -40,7 +40,8 @@ Time: the full run (both sections, seed 0 for the changes: 10 cases x 4-10 follo
 drives, 8 fleets x 3 presets) takes ~15 min of CPU on one core (6.6 min changes, 8.6 min no
 change; measured 2026-12-06 on the 2-core development machine, whose load of 6-19 stretched it to
 23 + 27 min wall with the sections side by side; docs/updates.md "Measured"); most of it is
-``paper`` on the 100-134-drive fleets and the evidence pass of paper_like. ``--smoke`` (the 1.5 m
+``paper`` on the 100-134-drive fleets (the evidence pass of paper_like was a large part before
+it indexed the map's lines once per fleet, about 3.5x cheaper; the full run not re-timed since). ``--smoke`` (the 1.5 m
 shift up to 3 drives, the sample bags with ``default`` and ``naive``) ~1 min. More seeds:
 ``--seeds 0,1,2`` (each adds the changes section's time again). Prints Markdown tables;
 ``--markdown`` / ``--json`` write them::
