@@ -165,3 +165,13 @@ def turn_drives(n: int = 4, *, seed: int = 0, bias_m: float = 0.8, noise_m: floa
     d = np.gradient(path, axis=0)
     normal = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.hypot(*d.T)[:, None]
     return [path + rng.uniform(-bias_m, bias_m) * normal + rng.normal(0.0, noise_m, path.shape) for _ in range(n)]
+
+
+def lines_stop(length_m: float = 800.0) -> HDMap:
+    """``three_lanes`` whose three right lines (-1.75 dashed, -5.25 solid, -6.5 border) stop at
+    x = 400 (a junction where the markings of two lanes stop) while the left lane goes on."""
+    base = three_lanes(length_m)
+    feats = tuple(
+        f if f.points[0, 1] > 0.0 else _feature(f.id, f.type, f.points[f.points[:, 0] <= 400.0]) for f in base.features
+    )
+    return HDMap(features=feats, topology=base.topology)

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 from hdmap_core.errors import NoUsableDataError
 from hdmap_core.live.tiles import TileConfig
@@ -27,13 +29,15 @@ __all__ = ["TiledBagResult", "make_runner", "build_from_bag"]
 @dataclass(frozen=True)
 class TiledBagResult:
     """The tiled build of a bag: the index (its counts and origin), what the bag reader rejected
-    ((drive_id, reason, text) each), the build, the index pass's time and peak RSS."""
+    ((drive_id, reason, text) each), the build, the index pass's time and peak RSS, and (when
+    asked for) the drives' trajectories (``TileIndex.trajectories``: poses only, every metre)."""
 
     index: TileIndex
     rejected: list[tuple[str, str, str]]
     result: TiledResult
     index_seconds: float
     index_peak_rss_mb: float
+    trajectories: list[np.ndarray] = field(default_factory=list)
 
 
 def make_runner(workers: int = 1, scheduler: str | None = None) -> Runner:
@@ -56,9 +60,11 @@ def build_from_bag(
     index_path: str | Path | None = None,
     progress: ProgressFn | None = None,
     block_tiles: int | None = None,
+    trajectories: bool = False,
 ) -> TiledBagResult:
     """Index ``bag`` by tile (into ``index_path``, else a temporary file) and build its map by tiles
-    (``block_tiles``: the adjustment block-wise, ``build_tiled``).
+    (``block_tiles``: the adjustment block-wise, ``build_tiled``); ``trajectories``: also read the
+    drives' poses back from the index (for the lanes' connectors; 16 bytes per metre driven).
 
     Raises:
         BagError: the bag is missing or not a bag.
@@ -86,11 +92,17 @@ def build_from_bag(
                 )
             try:
                 result = build_tiled(index, config=config, runner=runner, progress=progress, block_tiles=block_tiles)
+                poses = list(index.trajectories()) if trajectories else []
             finally:
                 if not index_path:
                     index.close()
     finally:
         runner.close()
     return TiledBagResult(
-        index=index, rejected=rejected, result=result, index_seconds=index_s, index_peak_rss_mb=index_rss
+        index=index,
+        rejected=rejected,
+        result=result,
+        index_seconds=index_s,
+        index_peak_rss_mb=index_rss,
+        trajectories=poses,
     )

@@ -9,7 +9,7 @@ from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
 from hdmap_core.model import FeatureType, HDMap
 
-from lane_samples import handover, junction_gap, lane_gain, missing_marking, three_lanes, two_way
+from lane_samples import handover, junction_gap, lane_gain, lines_stop, missing_marking, three_lanes, two_way
 
 
 def _lane_at(lanes, x: float, y: float) -> int:
@@ -156,3 +156,18 @@ def test_two_lines_handed_over_to_one_heir_keep_two_tracks():
     assert all(len(set(sec.features)) == len(sec.features) for sec in out)
     assert out[0].features == out[1].features == out[2].features  # one line handed over twice
     assert out[3].features == out[4].features  # and the two lines keep their tracks after
+
+
+def test_lanes_whose_lines_stop_together_end_where_they_are():
+    """RULE 4b: where the lines of two lanes stop at once beside a lane that goes on (a junction
+    whose markings stop), the two lanes end a lane wide where their lines end; they do not all
+    close onto the line that continues (the drives' connectors start at the lanes' ends)."""
+    lanes = derive_lanes(lines_stop())
+    ending = sorted(
+        (ln for ln in lanes.lanes if not ln.successors and ln.centerline[-1, 0] < 410.0),
+        key=lambda ln: -ln.centerline[-1, 1],
+    )
+    assert len(ending) == 2
+    np.testing.assert_allclose([ln.centerline[-1, 1] for ln in ending], [0.0, -3.5], atol=0.2)
+    assert all(ln.width[-1] > 3.0 for ln in ending)
+    assert _lane_at(lanes, 600.0, 3.5) and not _lane_at(lanes, 600.0, 0.0)

@@ -297,3 +297,36 @@ def test_tiled_bench_prints_the_scale_table(sample_bags, tmp_path, capsys):
     peaks = row["peak_rss_by_process"]
     assert sum(k.startswith("worker") for k in peaks) == 2 and row["peak_rss_mb"] == max(peaks.values())
     assert row["mean_m"] < 0.5 and row["coverage"] > 0.5
+
+
+def test_lane_figures_use_the_drives_connectors(tmp_path):
+    """The bench's lane figures are those of the exports: a turn without lines is routable once
+    the drives' trajectories add its connector (the map's lanes alone end before the turn)."""
+    import numpy as np
+
+    from hdmap_core.groundtruth import GroundTruth, GTLane, GTRoute, save_ground_truth
+    from hdmap_ros.commands.bench import Scenario, _lane_figures
+
+    from lane_samples import TURN_RADIUS_M, turn_drives, turn_without_lines
+
+    a = np.linspace(np.pi / 2, 0.0, 48)
+    lanes = {
+        "east": GTLane("east", np.stack([np.arange(0.0, 301.0), np.zeros(301)], axis=1), successors=("turn",)),
+        "turn": GTLane(
+            "turn",
+            np.stack([300.0 + TURN_RADIUS_M * np.cos(a), -30.0 + TURN_RADIUS_M * np.sin(a)], axis=1),
+            successors=("south",),
+            predecessors=("east",),
+        ),
+        "south": GTLane(
+            "south", np.stack([np.full(270, 330.0), np.arange(-30.0, -300.0, -1.0)], axis=1), predecessors=("turn",)
+        ),
+    }
+    save_ground_truth(
+        GroundTruth("turn", (), lanes, (GTRoute("r", ("east", "turn", "south")),)), tmp_path / "t.gt.json"
+    )
+    scenario = Scenario("turn", str(tmp_path / "none"), str(tmp_path / "t.gt.json"))
+    alone, _ = _lane_figures(scenario, turn_without_lines())
+    driven, _ = _lane_figures(scenario, turn_without_lines(), turn_drives(4, seed=3))
+    assert alone["routes"] == "0/1" and driven["routes"] == "1/1"
+    assert driven["n_lanes"] == alone["n_lanes"] + 1 and driven["lane_coverage"] > alone["lane_coverage"]

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from hdmap_core.errors import BagError, ConfigError
+from hdmap_core.geometry import resample_evenly
 from hdmap_core.live.tiles import TileConfig
 from hdmap_core.tiled.clips import MemorySource
 from hdmap_ros.io.bagio import read_fleet_bag, write_fleet_bag
-from hdmap_ros.io.tileindex import TileIndex, build_tile_index
+from hdmap_ros.io.tileindex import POSE_STEP_M, TileIndex, build_tile_index
 
 from bag_samples import T0_NS, make_drive
 
@@ -36,6 +37,12 @@ def test_index_holds_the_clips_of_the_in_memory_tiling(tmp_path, sample_bags):
         for (a, _), (b, _) in zip(got, want):
             np.testing.assert_array_equal(a.xy, b.xy)
             assert [len(d.points) for d in a.detections] == [len(d.points) for d in b.detections]
+    # the poses alone, every metre, in bag order: the drives' trajectories for the lanes' connectors
+    trajs = list(index.trajectories())
+    assert len(trajs) == len(fleet.drives)
+    for t, d in zip(trajs, fleet.drives):
+        np.testing.assert_allclose(t, resample_evenly(d.xy, POSE_STEP_M), atol=1e-9)
+        assert np.hypot(*np.diff(t, axis=0).T).max() <= POSE_STEP_M + 1e-9
     # a task carries the index as its path and reads it anew
     again = pickle.loads(pickle.dumps(index))
     assert len(pickle.dumps(index)) < 200 + len(str(index.path))
@@ -103,3 +110,28 @@ def test_bag2map_tiled_is_the_same_map_with_one_and_two_workers(tmp_path, sample
         )
         == 2
     )
+
+
+@pytest.mark.slow
+def test_tiled_bag2map_exports_lanes_with_the_drives_poses(tmp_path, sample_bags):
+    """bag2map --tiled --lanelet2 reads the drives' poses back from the index for the lanes'
+    connectors: its export is the one of ``export MAP --fleet BAG`` (the drives in memory)."""
+    from hdmap_core.pipeline.presets import preset
+    from hdmap_ros import cli
+    from hdmap_ros.io.lanelet2 import MAP_FILE
+    from hdmap_ros.tiled import build_from_bag
+
+    bag = sample_bags / "e6mini_20"
+    out, ll, ll2 = tmp_path / "map", tmp_path / "ll", tmp_path / "ll2"
+    argv = ["bag2map", str(bag), "-o", str(out), "--tiled", "--tile-size-m", "384", "--no-progress"]
+    assert cli.main([*argv, "--lanelet2", str(ll), "--geojson", str(tmp_path / "m.geojson")]) == 0
+    assert cli.main(["export", str(out), "--lanelet2", str(ll2), "--fleet", str(bag)]) == 0
+    assert (ll / MAP_FILE).read_bytes() == (ll2 / MAP_FILE).read_bytes()
+
+    got = build_from_bag(
+        bag, config=preset("default"), tile_config=TileConfig(tile_size_m=384.0, margin_m=128.0), trajectories=True
+    )
+    fleet = read_fleet_bag(bag)
+    assert len(got.trajectories) == len(fleet.drives) == 20
+    for t, d in zip(got.trajectories, fleet.drives):
+        np.testing.assert_allclose(t, resample_evenly(d.xy, POSE_STEP_M), atol=1e-9)

@@ -39,7 +39,11 @@ of the same or a linked feature (predecessor / successor), or the nearest one wi
 RULE 4 (lane gain, drop, gore): a boundary that starts (ends) without a preceding (following) one
 starts (ends) at the node of the nearest boundary that does continue: the new lane opens from a
 point beside a through lane (reached by a lane change across a dashed line, or as a split) and a
-dropped lane closes onto its neighbour (a merge).
+dropped lane closes onto its neighbour (a merge). RULE 4b (markings stop): where two or more
+lines whose map features end at the cut (within _STOP_M) would end at the same continuing line
+on the same side, the lanes between them stop (a junction where the markings stop, not one
+dropped lane): they end where their lines end, a lane wide, so that the drives' connectors
+(``lanes.connectors``) start where the drives leave them.
 RULE 13 (far joints): two runs are not joined where a boundary's joint lies more than
 _JOINT_MAX_M from its own crossing (the cut lines of a turn reach across the lines of another
 road: the nearest of those is no continuation).
@@ -65,15 +69,15 @@ from __future__ import annotations
 
 import hashlib
 from bisect import bisect_left, bisect_right
-from collections import defaultdict
-from collections.abc import Callable
+from collections import Counter, defaultdict
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hdmap_core.evaluation.cuts import CutPoints, Cuts, points_on_cuts
 from hdmap_core.lanes.model import Boundary, Lane, LaneMap
-from hdmap_core.model import FeatureType, HDMap
+from hdmap_core.model import FeatureType, HDMap, MapFeature
 
 __all__ = [
     "derive_lanes",
@@ -90,6 +94,7 @@ LANE_WIDTH_MIN_M = 2.4  # narrowest lane (3.5-3.9 m motorway lanes, 2.75 m in wo
 LANE_WIDTH_MAX_M = 5.5  # wider: two lanes with a missing marking, or a taper
 LANELET_MAX_M = 300.0  # longest lane piece where nothing changes
 JOIN_TOL_M = 1.0  # a boundary continues a boundary this close at the joint
+_STOP_M = 3.0  # RULE 4b: a line stops at a cut when its feature ends this close to the crossing
 GAP_LINK_M = 15.0  # topology chain ends linked across gaps up to this distance
 BRIDGE_MAX_M = 60.0  # RULE 8: longest connector across a junction without markings
 BRIDGE_LATERAL_M = 1.0  # RULE 8: sideways offset of the lane ahead
@@ -701,10 +706,17 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
         keep = [i for i, f in enumerate(sec.features) if f in fs]
         if not keep:
             continue
-        for i, f in enumerate(sec.features):
-            if f not in fs:
-                j = keep[int(np.argmin(np.abs(sec.s[keep] - sec.s[i])))]
-                uf.alias((k, f), (k, sec.features[j]))
+        nearest = {
+            i: keep[int(np.argmin(np.abs(sec.s[keep] - sec.s[i])))] for i, f in enumerate(sec.features) if f not in fs
+        }
+        # RULE 4b: two or more lines that stop here (their map feature ends at the cut) beside
+        # the same continuing line, on the same side, are lanes that stop (a junction where the
+        # markings stop), not one dropped lane: they end where they are
+        stop = {i for i in nearest if _ends_at(feats, sec.labels[i], sec.xy[i])}
+        side = Counter((j, bool(sec.s[i] > sec.s[j])) for i, j in nearest.items() if i in stop)
+        for i, j in nearest.items():
+            if i not in stop or side[(j, bool(sec.s[i] > sec.s[j]))] < 2:
+                uf.alias((k, sec.features[i]), (k, sec.features[j]))
 
     def node_uid(key: tuple[int, int]) -> int:
         root = uf.find(key)
@@ -783,6 +795,14 @@ def _build(st: _Stations, sections: list[_Section], runs: list[list[int]], hdmap
             )
     lanes += _bridges(lanes, boundaries, st, where)
     return LaneMap(_link(lanes, boundaries), tuple(sorted(boundaries.values(), key=lambda x: x.id)), nodes)
+
+
+def _ends_at(feats: Sequence[MapFeature], label: int, at: np.ndarray) -> bool:
+    """RULE 4b: the map feature ``label`` (an inferred line: no) ends within _STOP_M of ``at``."""
+    if label >= len(feats) or len(feats[label].points) == 0:
+        return False
+    pts = np.asarray(feats[label].points, dtype=float)
+    return bool(min(np.hypot(*(pts[0, :2] - at)), np.hypot(*(pts[-1, :2] - at))) <= _STOP_M)
 
 
 def _proper(left: np.ndarray, right: np.ndarray, left_ends: tuple[int, int], right_ends: tuple[int, int]) -> bool:

@@ -348,6 +348,7 @@ def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
             index_path=args.index,
             progress=progress,
             block_tiles=args.block_tiles,
+            trajectories=bool(args.lanelet2 or args.geojson),
         )
     index, result = got.index, got.result
     for _did, _reason, text in got.rejected:
@@ -362,7 +363,7 @@ def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
         if value and origin is None:
             return _fail(f"{flag} needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
     hdmap: HDMap = result.map
-    _write_outputs(args, out, hdmap, origin)
+    _write_outputs(args, out, hdmap, origin, trajectories=got.trajectories)
     seconds = time.perf_counter() - t_start
     rep = result.report
     print(

@@ -33,6 +33,10 @@ from hdmap_core.errors import ConfigError
 from hdmap_ros.commands.bag2map import add_set_argument
 
 if TYPE_CHECKING:  # the pipeline is heavy: loaded on use
+    from collections.abc import Sequence
+
+    import numpy as np
+
     from hdmap_core.pipeline.config import PipelineConfig
 
 __all__ = [
@@ -405,15 +409,22 @@ def build_and_evaluate(
     return fleet, result, rep, build_s, n_workers
 
 
-def _lane_figures(scenario: Scenario, hdmap: Any) -> tuple[dict[str, Any], float]:
+def _lane_figures(
+    scenario: Scenario, hdmap: Any, trajectories: Sequence[np.ndarray] = ()
+) -> tuple[dict[str, Any], float]:
     """The lane metrics of the map (``evaluation/lanes.py``; routes: those in ``BAG.sim.json``)
-    as row fields, and the seconds the lanes took to derive."""
+    as row fields, and the seconds the lanes took to derive. The lanes are those of the exports
+    (``bag2map --lanelet2``): with the connectors of the drives' ``trajectories``
+    (``lanes/connectors.py``) where the line map has no lane."""
     from hdmap_core.evaluation.lanes import evaluate_lanes  # noqa: PLC0415
     from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
+    from hdmap_core.lanes.connectors import trajectory_connectors  # noqa: PLC0415
     from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415
 
     t0 = time.perf_counter()
     lanes = derive_lanes(hdmap)
+    if len(trajectories):
+        lanes = trajectory_connectors(lanes, trajectories)
     seconds = time.perf_counter() - t0
     sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
     routes = None
@@ -503,7 +514,7 @@ def run_one(
         result = result.result
     o = rep.overall
     floor = rep.floor_mean_m
-    lanes, lanes_s = _lane_figures(scenario, result.map)
+    lanes, lanes_s = _lane_figures(scenario, result.map, [d.xy for d in fleet.drives])
     return (
         {
             **lanes,

@@ -10,24 +10,29 @@ same path on every worker (shared storage); docs/scale.md.
 
 Tables: ``meta`` (tiling, origin, counts), ``drives`` (id, length), ``clips`` (tile, drive id,
 start of the clip [m], the clip as a ``persistence.store.drive_to_blob``), ``rejected`` (what the
-bag reader skipped, with its reason).
+bag reader skipped, with its reason), ``poses`` (each drive's trajectory alone, every POSE_STEP_M,
+float64 x, y: the drives' connector lanes, ``lanes/connectors.py``, read them without the clips).
 """
 
 from __future__ import annotations
 
 import json
 import sqlite3
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
 from hdmap_core.errors import BagError, ConfigError
+from hdmap_core.geometry import resample_evenly
+from hdmap_core.lanes.connectors import STEP_M
 from hdmap_core.live.tiles import TileConfig, TileKey, clip_to_tile, tiles_of_drive
 from hdmap_core.model import MAP_FRAME, Drive, GeoOrigin
 from hdmap_ros.io.bagio import Rejection, iter_fleet_bag
 from hdmap_ros.persistence.store import blob_to_drive, drive_to_blob
 
-__all__ = ["TileIndex", "build_tile_index"]
+__all__ = ["TileIndex", "build_tile_index", "POSE_STEP_M"]
 
 _SCHEMA = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -36,8 +41,10 @@ CREATE TABLE clips (
     tx INTEGER NOT NULL, ty INTEGER NOT NULL, drive_id TEXT NOT NULL, s0_m REAL NOT NULL, blob BLOB NOT NULL,
     PRIMARY KEY (tx, ty, drive_id)
 );
-CREATE TABLE rejected (seq INTEGER PRIMARY KEY, drive_id TEXT, reason TEXT, detail TEXT)
+CREATE TABLE rejected (seq INTEGER PRIMARY KEY, drive_id TEXT, reason TEXT, detail TEXT);
+CREATE TABLE poses (seq INTEGER PRIMARY KEY, drive_id TEXT NOT NULL, xy BLOB NOT NULL)
 """
+POSE_STEP_M = STEP_M  # the trajectories kept for the lanes' connectors: every metre, as they use them
 
 _COMMIT_EVERY = 32  # drives per transaction
 
@@ -139,6 +146,9 @@ def _add_drive(con: sqlite3.Connection, drive: Drive, tile_config: TileConfig) -
         if clip is not None:
             rows.append((int(key[0]), int(key[1]), drive.drive_id, float(s0), drive_to_blob(clip)))
     con.executemany("INSERT INTO clips(tx, ty, drive_id, s0_m, blob) VALUES (?, ?, ?, ?, ?)", rows)
+    xy = np.asarray(drive.xy, dtype=float).reshape(-1, 2)
+    xy = resample_evenly(xy[np.isfinite(xy).all(axis=1)], POSE_STEP_M)
+    con.execute("INSERT INTO poses(drive_id, xy) VALUES (?, ?)", (drive.drive_id, xy.astype("<f8").tobytes()))
 
 
 class TileIndex:
@@ -208,6 +218,19 @@ class TileIndex:
             "SELECT s0_m, blob FROM clips WHERE tx=? AND ty=? ORDER BY drive_id", (int(key[0]), int(key[1]))
         )
         return [(blob_to_drive(blob), float(s0)) for s0, blob in rows]
+
+    def trajectories(self) -> Iterator[np.ndarray]:
+        """Each drive's (N, 2) trajectory [m, map frame, time ordered, every POSE_STEP_M], in bag
+        order, one at a time (an index written before the poses were kept gives none)."""
+        if self._con is None:
+            self._query("SELECT 1")
+        assert self._con is not None
+        try:
+            rows = self._con.execute("SELECT xy FROM poses ORDER BY seq")
+        except sqlite3.OperationalError:
+            return
+        for (blob,) in rows:
+            yield np.frombuffer(blob, dtype="<f8").reshape(-1, 2)
 
     def drive_ids(self, key: TileKey) -> list[str]:
         return [
