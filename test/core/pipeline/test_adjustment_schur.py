@@ -71,11 +71,20 @@ def test_solver_matches_a_direct_solve():
     assert solver.iterations - before <= 2
 
 
-def test_pair_fill_counts_the_unknowns_each_cluster_touches():
-    # two clusters: the first touches columns {0, 1, 3}, the second {1, 2}
+def test_pair_fill_counts_the_pairs_of_unknowns_that_share_a_cluster(monkeypatch):
+    import hdmap_core.pipeline.adjustment_schur as schur  # noqa: PLC0415
+
+    # two clusters: the first touches columns {0, 1, 3}, the second {1, 2}: pairs 3^2 + 2^2 less
+    # the one they share, (1, 1)
     a = sp.csr_matrix(np.array([[1.0, 0.5, 0, 0], [0, 1.0, 0, 0.5], [0, 0.3, 0.7, 0], [0, 0, 1.0, 0]]))
-    assert pair_fill(a, np.array([0, 0, 1, 1]), 2) == 3**2 + 2**2
-    assert pair_fill(a, np.array([0, 0, 0, 0]), 1) == 4**2  # at most p^2
+    assert pair_fill(a, np.array([0, 0, 1, 1]), 2) == 3**2 + 2**2 - 1
+    assert pair_fill(a, np.array([0, 0, 0, 0]), 1) == 4**2
+    samples, a, _, _ = _system()
+    b = (abs(a).T @ sp.csr_matrix((np.ones(a.shape[0]), samples.cluster, np.arange(a.shape[0] + 1)))).tocsr()
+    want = (b @ b.T).nnz
+    monkeypatch.setattr(schur, "PAIR_COUNT_ROWS", 7)  # many slabs: the same count
+    assert pair_fill(a, samples.cluster, samples.n_clusters) == want
+    assert want > pair_fill(a, samples.cluster, samples.n_clusters, stop_above=want // 10) > want // 10
 
 
 def test_matrix_free_adjustment_equals_the_explicit_one():

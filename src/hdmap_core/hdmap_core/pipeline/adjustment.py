@@ -100,11 +100,11 @@ class AdjustConfig:
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
             normal matrix; O(p^3) in the number of unknowns p; at most ``std_max_unknowns``).
         max_pair_fill: a fit whose normal matrix would hold more drive-pair entries than this
-            (``adjustment_schur.pair_fill``: the sum over clusters of the squared unknowns each
-            touches) is solved matrix-free (conjugate gradients on the Schur complement, the
-            same solution within 1e-10 relative residual), in memory and time linear in the
-            samples; below it the normal matrix is formed and factorised. Where many drives cross
-            a place (hundreds: 16x paper_like) the explicit matrix grows with their square.
+            (``adjustment_schur.pair_fill``: pairs of unknowns that share a cluster) is solved
+            matrix-free (conjugate gradients on the Schur complement, the same solution within
+            1e-10 relative residual), in memory and time linear in the samples; below it the
+            normal matrix is formed and factorised. Where many drives cross a place (hundreds:
+            16x paper_like) the explicit matrix grows with their square.
     """
 
     knot_spacing_m: float = 200.0
@@ -116,7 +116,7 @@ class AdjustConfig:
     iterations: int = 5
     reassociate_rounds: int = 2
     compute_std: bool = True
-    max_pair_fill: int = 4_000_000
+    max_pair_fill: int = 2_000_000
 
     #: before the curves are fitted, one constant per drive is fitted (Huber); samples farther
     #: than this from their cluster then are dropped as wrong associations (a drive associated
@@ -656,7 +656,7 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
     # budget the same system is solved matrix-free (adjustment_schur)
     h: sp.csr_matrix | SchurNormal
     solver: NormalSolver | SchurSolver
-    if pair_fill(a, samples.cluster, samples.n_clusters) <= cfg.max_pair_fill:
+    if pair_fill(a, samples.cluster, samples.n_clusters, stop_above=cfg.max_pair_fill) <= cfg.max_pair_fill:
         h, rhs = reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
         h = (h + prior).tocsr()
         solver = NormalSolver()

@@ -15,8 +15,8 @@ drive; factorised, they are as sparse as K), warm-started at the previous IRLS s
 solution is the explicit solve's within the CG tolerance (relative residual 1e-10: about 1e-9 m
 on a 16x tile; tests/test_adjustment_schur.py).
 
-``pair_fill`` bounds the explicit term's entries (the sum over clusters of the square of their
-nonzero rows of B, at most p^2); ``adjustment._irls`` uses the operator only above
+``pair_fill`` counts the explicit term's entries (a slab of rows at a time, stopping past the
+budget); ``adjustment._irls`` uses the operator only above
 ``AdjustConfig.max_pair_fill``, so fleets below it solve exactly as before.
 """
 
@@ -35,6 +35,8 @@ CG_RTOL = 1e-10
 #: CG iterations per solve at most (measured: 43 from zero on a 745-drive tile of 16x paper_like)
 CG_MAXITER = 2000
 #: ``SchurNormal.toarray`` adds the pair term this many clusters at a time
+#: ``pair_fill`` counts the pair term's entries this many rows (unknowns) at a time
+PAIR_COUNT_ROWS = 512
 DENSE_CHUNK_CLUSTERS = 256
 
 
@@ -49,12 +51,20 @@ def _incidence(index: np.ndarray, n_cols: int) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(n), index, np.arange(n + 1)), shape=(n, n_cols))
 
 
-def pair_fill(a: sp.csr_matrix, cluster: np.ndarray, n_clusters: int) -> int:
-    """A bound on the entries of the explicit pair term B diag(1/W_c) B^T: the sum over clusters
-    of (unknowns the cluster's samples touch)^2, at most p^2 (independent of the weights)."""
+def pair_fill(a: sp.csr_matrix, cluster: np.ndarray, n_clusters: int, stop_above: int | None = None) -> int:
+    """Entries of the explicit pair term B diag(1/W_c) B^T (its sparsity pattern: which unknowns
+    share a cluster; independent of the weights). Counted PAIR_COUNT_ROWS rows at a time, so the
+    count holds one slab of the pattern, never all of it; with ``stop_above`` the count stops
+    (returning a number above it) as soon as it exceeds it, so it costs at most about that much."""
     pattern = sp.csr_matrix((np.ones(a.nnz), a.indices, a.indptr), shape=a.shape).T.tocsr()
-    per_cluster = np.diff((pattern @ _incidence(cluster, n_clusters)).tocsc().indptr).astype(np.int64)
-    return int(min(np.sum(per_cluster**2), a.shape[1] ** 2))
+    b = (pattern @ _incidence(cluster, n_clusters)).tocsr()
+    bt = b.T.tocsr()
+    count = 0
+    for r0 in range(0, b.shape[0], PAIR_COUNT_ROWS):
+        count += (b[r0 : r0 + PAIR_COUNT_ROWS] @ bt).nnz
+        if stop_above is not None and count > stop_above:
+            break
+    return int(count)
 
 
 class SchurNormal:
