@@ -116,7 +116,7 @@ class AdjustConfig:
     iterations: int = 5
     reassociate_rounds: int = 2
     compute_std: bool = True
-    max_pair_fill: int = 2_000_000
+    max_pair_fill: int = 4_000_000
 
     #: before the curves are fitted, one constant per drive is fitted (Huber); samples farther
     #: than this from their cluster then are dropped as wrong associations (a drive associated
