@@ -469,3 +469,21 @@ def test_lane_shift_search_in_chunks_is_the_one_chunk_result(monkeypatch):
     for d, cur in one.drives.items():
         other = chunked.drives[d]
         assert cur.k0 == other.k0 and cur.bias_m == other.bias_m and np.array_equal(cur.drift_m, other.drift_m)
+
+
+def test_nearest_centre_lookup_in_chunks_is_the_one_chunk_result(monkeypatch):
+    """The re-association looks its samples up in chunks (bounded memory): the same labels."""
+    import hdmap_core.pipeline.adjustment_assoc as assoc  # noqa: PLC0415
+
+    obs, _ = simulate_step_observations(config=SMALL, seed=4)
+    pool = assoc.gather(obs, {})
+    cen = assoc.centres(pool, pool.label, pool.lateral_m)
+    assert cen is not None
+    v = pool.lateral_m + np.random.default_rng(0).normal(0.0, 0.5, pool.s_m.size)
+    one = assoc.nearest(cen, pool.step, pool.ftype, v)
+    monkeypatch.setattr(assoc, "NEAREST_CHUNK_SAMPLES", 1000)
+    chunked = assoc.nearest(cen, pool.step, pool.ftype, v)
+    assert pool.s_m.size > 10 * 1000  # many chunks
+    assert (one[0] != pool.label).any() and (one[0] == pool.label).any()  # the noise moved some
+    np.testing.assert_array_equal(one[0], chunked[0])
+    np.testing.assert_array_equal(one[1], chunked[1])

@@ -46,6 +46,7 @@ except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
 from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.pipeline import adjustment_assoc as assoc
+from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
 # The solver's building blocks (shift_and_reassociate, knot_layout, design_matrix, prior_matrix,
@@ -98,6 +99,12 @@ class AdjustConfig:
             per-step associations that were a lane off).
         compute_std: compute the posterior std of the offsets (exact, from a dense inverse of the
             normal matrix; O(p^3) in the number of unknowns p; at most ``std_max_unknowns``).
+        max_pair_fill: a fit whose normal matrix would hold more drive-pair entries than this
+            (``adjustment_schur.pair_fill``: pairs of unknowns that share a cluster) is solved
+            matrix-free (conjugate gradients on the Schur complement, the same solution within
+            1e-10 relative residual), in memory and time linear in the samples; below it the
+            normal matrix is formed and factorised. Where many drives cross a place (hundreds:
+            16x paper_like) the explicit matrix grows with their square.
     """
 
     knot_spacing_m: float = 200.0
@@ -109,6 +116,7 @@ class AdjustConfig:
     iterations: int = 5
     reassociate_rounds: int = 2
     compute_std: bool = True
+    max_pair_fill: int = 4_000_000
 
     #: before the curves are fitted, one constant per drive is fitted (Huber); samples farther
     #: than this from their cluster then are dropped as wrong associations (a drive associated
@@ -129,6 +137,7 @@ class AdjustConfig:
         check_choice(self, "loss", _LOSSES)
         check_range(self, ("iterations",), low=1, integer=True)
         check_range(self, ("reassociate_rounds",), low=0, integer=True)
+        check_range(self, ("max_pair_fill",), low=0, integer=True)
 
 
 @dataclass(frozen=True)
@@ -413,7 +422,7 @@ def update_normal(
     change of the IRLS fixed point). Returns the new H, rhs and the weights actually used.
     """
     changed = np.abs(want_info - old_info) > _REWEIGHT_REL * old_info
-    new_info = np.where(changed, want_info, old_info)
+    new_info = _kept_weights(old_info, want_info)
     hit = np.zeros(samples.n_clusters, dtype=bool)
     hit[samples.cluster[changed]] = True
     rows = np.flatnonzero(hit[samples.cluster])
@@ -430,6 +439,11 @@ def update_normal(
     diff = h_new - h_old
     del h_new, h_old
     return (h + diff).tocsr(), rhs + (rhs_new - rhs_old), new_info
+
+
+def _kept_weights(old_info: np.ndarray, want_info: np.ndarray) -> np.ndarray:
+    """IRLS: the new weights, except where they change by at most ``_REWEIGHT_REL`` (kept)."""
+    return np.where(np.abs(want_info - old_info) > _REWEIGHT_REL * old_info, want_info, old_info)
 
 
 class NormalSolver:
@@ -544,6 +558,8 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         downweighted_fraction=float(np.mean(info < 0.5 * cfg.noise_sigma_m**-2)),
         inlier_rms_m=float(np.sqrt(np.mean(r[inlier] ** 2))) if inlier.any() else float("nan"),
     )
+    if fit.schur is not None:  # the curve fit was solved matrix-free (past cfg.max_pair_fill)
+        stats.update(matrix_free=True, cg_iterations=fit.schur.iterations, cg_unconverged=fit.schur.unconverged)
     theta, h = fit.theta, fit.normal
     cov = None
     if cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:
@@ -619,11 +635,12 @@ def pool_offsets(pool: assoc.Pool, model: OffsetModel) -> np.ndarray:
 class _Fit:
     layout: _Layout
     theta: np.ndarray  # (p,) unknowns
-    normal: sp.csr_matrix  # (p, p) final normal matrix incl. prior
+    normal: sp.csr_matrix | SchurNormal  # (p, p) final normal matrix incl. prior (explicit or an operator)
     info: np.ndarray  # (n,) final sample weights / noise variance
     residual: np.ndarray  # (n,) residual of every sample about its weighted cluster mean [m]
     iterations: int
     last_change_m: float
+    schur: SchurSolver | None = None  # the matrix-free solver, when it was used
 
 
 def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
@@ -635,12 +652,20 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
     theta = np.zeros(lay.n_unknowns)
     warmup = HUBER_WARMUP_ITERATIONS if cfg.loss == "cauchy" else 0
     info = info0.copy()
-    h, rhs = reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
-    h = (h + prior).tocsr()
-    solver = NormalSolver()
+    # RULE the explicit normal matrix holds every pair of drives seen in a cluster; past the
+    # budget the same system is solved matrix-free (adjustment_schur)
+    h: sp.csr_matrix | SchurNormal
+    solver: NormalSolver | SchurSolver
+    if pair_fill(a, samples.cluster, samples.n_clusters, stop_above=cfg.max_pair_fill) <= cfg.max_pair_fill:
+        h, rhs = reduced_normal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m)
+        h = (h + prior).tocsr()
+        solver = NormalSolver()
+    else:
+        h = SchurNormal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m, prior, samples.drive)
+        rhs, solver = h.rhs, SchurSolver()
     it, change = 0, 0.0
     for it in range(1, cfg.iterations + 1):
-        new_theta = solver.solve(h, rhs, theta)
+        new_theta = solver.solve(h, rhs, theta)  # each solver gets its own kind of h
         change = float(np.max(np.abs(new_theta - theta), initial=0.0))
         theta = new_theta
         r = sample_residuals(a, theta, samples, info)
@@ -648,8 +673,14 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
         if cfg.loss == "linear" or it == cfg.iterations or (it >= 2 + warmup and change < TOL_M):
             break
         weights = robust_weights(r, ROBUST_K * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
-        h, rhs, info = update_normal(h, rhs, a, samples, prior, info, info0 * weights)
-    return _Fit(lay, theta, h, info, r, it, change)
+        if isinstance(h, SchurNormal):
+            info = _kept_weights(info, info0 * weights)
+            h = h.reweighted(info)
+            rhs = h.rhs
+        else:
+            h, rhs, info = update_normal(h, rhs, a, samples, prior, info, info0 * weights)
+    schur = solver if isinstance(solver, SchurSolver) else None
+    return _Fit(lay, theta, h, info, r, it, change, schur)
 
 
 def _covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:

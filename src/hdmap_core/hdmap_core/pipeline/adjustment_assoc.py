@@ -19,6 +19,9 @@ __all__: list[str] = []  # internal module
 MAX_REPORTED_PROBLEMS = 20
 #: samples scored per chunk of the lane-shift search (each against every shift of the grid)
 SHIFT_CHUNK_SAMPLES = 20_000
+#: samples looked up per chunk by ``nearest`` (its temporaries, a dozen arrays per sample, then
+#: grow with the chunk, not with a block's millions of samples; per sample, so the same result)
+NEAREST_CHUNK_SAMPLES = 262_144
 
 
 @dataclass(frozen=True)
@@ -187,6 +190,13 @@ def centres(pool: Pool, label: np.ndarray, v: np.ndarray) -> Centres | None:
 
 def nearest(cen: Centres, step: np.ndarray, ftype: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Label of and distance to the nearest centre of the same step and type (-1, inf if none)."""
+    if v.ndim == 1 and v.size > NEAREST_CHUNK_SAMPLES:
+        best = np.empty(v.shape, dtype=np.int64)
+        best_d = np.empty(v.shape)
+        for c0 in range(0, v.size, NEAREST_CHUNK_SAMPLES):
+            part = slice(c0, c0 + NEAREST_CHUNK_SAMPLES)
+            best[part], best_d[part] = nearest(cen, step[part], ftype[part], v[part])
+        return best, best_d
     grp = step * cen.n_types + ftype
     idx = np.searchsorted(cen.key, grp * cen.span + (v + cen.span / 2))
     best = np.full(v.shape, -1, dtype=np.int64)
