@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import os
 import pstats
 import time
 from collections import defaultdict
@@ -32,9 +33,14 @@ def main() -> int:
     ap.add_argument("--skip-offline", action="store_true")
     ap.add_argument("--tile-size", type=float, default=256.0, help="tile_size_m (the mapper's default 256)")
     ap.add_argument("--margin", type=float, default=128.0, help="margin_m (the mapper's default 128)")
+    ap.add_argument("--gt", default="", help="ground truth (default BAG.gt.json if there): score the settled maps")
+    ap.add_argument(
+        "--region-workers", type=int, default=1, help="processes of the region build (1: CPU in one process)"
+    )
     args = ap.parse_args()
 
-    from hdmap_core.live.jobs import run_job
+    from hdmap_core.live.jobs import JobResult, run_job
+    from hdmap_core.live.region import map_region
     from hdmap_core.live.scheduler import MAP, REMAP, Job
     from hdmap_core.live.tiles import (
         TileConfig,
@@ -104,11 +110,34 @@ def main() -> int:
     one[keys[len(keys) // 2]] = prev[keys[len(keys) // 2]]
     m_one, t_stitch1 = phase("", lambda: stitch(one))
     _, t_ids1 = phase("", lambda: carry_over_ids(m_new, m_one))
+    # the settle as one region (live.region): the offline passes on the whole drives, cut into tiles
+    reg, t_region = phase(
+        "region",
+        lambda: map_region(drives, keys, tile_config=tc, pipeline_config=pc, workers=args.region_workers),
+    )
+    m_reg, t_stitch_r = phase("", lambda: stitch({k: JobResult(segments=reg.segments[k]) for k in keys}))
     print(
         f"live: {len(keys)} tiles of {tc.tile_size_m:g} m (margin {tc.margin_m:g} m); preview {t_prev:.2f} s, "
         f"model {t_model:.2f} s, remap {t_remap:.2f} s, connect+stitch {t_stitch:.2f} s, ids {t_ids:.2f} s "
         f"(one tile changed: connect+stitch {t_stitch1:.2f} s, ids {t_ids1:.2f} s)"
     )
+    print(
+        f"region: the whole map as one region: build {t_region:.2f} s CPU (this process; workers "
+        f"{args.region_workers}), connect+stitch {t_stitch_r:.2f} s; tile path preview+model+remap "
+        f"{t_prev + t_model + t_remap:.2f} s"
+    )
+    gt_path = args.gt or (args.bag.rstrip("/") + ".gt.json")
+    if os.path.exists(gt_path):
+        from hdmap_core.evaluation.evaluate import evaluate_map
+        from hdmap_core.groundtruth import load_ground_truth
+
+        gt = load_ground_truth(gt_path)
+        maps = [("tiles (remap)", m_new), ("region", m_reg)]
+        if not args.skip_offline:
+            maps.insert(0, ("offline build_map", res.map))
+        for name, m in maps:
+            rep = evaluate_map(m, gt)
+            print(f"  {name}: mean error {rep.overall.mean_m:.3f} m, coverage {100 * rep.overall.coverage:.1f} %")
     if args.profile:
         st = pstats.Stats(prof)
         st.sort_stats("cumulative").print_stats(args.top)
