@@ -9,7 +9,10 @@ the segment mapper's default tiling (256 m tiles, 128 m margin, pivots 48 m arou
 every drive already there (``hdmap run --rate 0`` after the bag played): every tile's preview
 (``live.jobs.run_job`` MAP), the fleet offset model, every tile's settle job (REMAP), the
 connection per tile and one stitch of all tiles (as the map stitcher makes it), the carry-over of
-feature ids. ``--profile KIND``: a cProfile of that phase (preview, remap, stitch), top functions.
+feature ids; then the region settle (``live.region.map_region``: every tile from one offline build
+of all drives, ``--region-workers`` processes) and its stitch; with the ground truth
+(``BAG.gt.json``) the offline, tile-by-tile and region maps scored. ``--profile KIND``: a
+cProfile of that phase (preview, remap, stitch, region), top functions.
 Prints figures only; nothing is asserted.
 """
 
@@ -28,7 +31,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("bag", help="fleet bag")
     ap.add_argument("--preset", default="default")
-    ap.add_argument("--profile", default="", help="cProfile one phase: preview, remap or stitch")
+    ap.add_argument("--profile", default="", help="cProfile one phase: preview, remap, stitch or region")
     ap.add_argument("--top", type=int, default=20)
     ap.add_argument("--skip-offline", action="store_true")
     ap.add_argument("--tile-size", type=float, default=256.0, help="tile_size_m (the mapper's default 256)")
