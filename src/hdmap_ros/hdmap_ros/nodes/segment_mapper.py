@@ -162,10 +162,12 @@ class SegmentMapper(HealthMixin, Node):
             hi=100000,
         )
         republish = declare(self, "republish_on_start", True, "Publish every stored tile estimate at start.")
+        # RULE memory: the region is one build of every drive in one worker (paper_like, 134 drives:
+        # peak 482 MB), so beyond a few hundred drives the settle goes tile by tile
         region_max_drives = declare(
             self,
             "region_max_drives",
-            1000,
+            300,
             "With the fleet model: settle by one build of every tile while the map has at most this many "
             "drives (0 = tile by tile).",
             lo=0,
