@@ -496,8 +496,8 @@ class SegmentMapper(HealthMixin, Node):
             self.store.put_observations(job.key, result.observations, job.drive_ids)
         elif job.kind == REGION:
             segments = result.tiles or {}
-            for key, ids in job.tiles:
-                est = self.store.put_tile(key, segments.get(key, []), ids, model_sig=job.sig)
+            made = [(key, segments.get(key, []), ids) for key, ids in job.tiles]
+            for est in self.store.put_tiles(made, model_sig=job.sig):  # one commit for every tile
                 self._publish(est, final=True)
                 self.health.updated()
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
