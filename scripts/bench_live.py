@@ -54,6 +54,12 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=0.0, help="hdmap run --rate (0: as fast as possible)")
     ap.add_argument("--out", default=None, help="keep the bags here (default: a temporary folder)")
     ap.add_argument("--timeout", type=float, default=900.0)
+    ap.add_argument(
+        "--fleet", default="", help="an existing fleet bag (its ground truth BAG.gt.json) instead of simulating one"
+    )
+    ap.add_argument(
+        "--params-file", default="", help="node parameters (YAML) for hdmap run, e.g. the mapper's region_max_drives"
+    )
     ap.add_argument("--rates", default="", help="comma-separated replay rates: one live run each, a backlog table")
     args = ap.parse_args()
     if os.environ.get("BENCH_SMOKE") == "1":
@@ -64,7 +70,7 @@ def main() -> int:
         return 2
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="hdmap-bench-live-"))
     out.mkdir(parents=True, exist_ok=True)
-    fleet = out / "fleet"
+    fleet = Path(args.fleet) if args.fleet else out / "fleet"
     sim = [
         HDMAP,
         "simulate",
@@ -80,7 +86,8 @@ def main() -> int:
     ]
     if args.length_m:
         sim += ["--length-m", str(args.length_m)]
-    subprocess.run(sim, check=True, stdout=subprocess.DEVNULL)
+    if not args.fleet:
+        subprocess.run(sim, check=True, stdout=subprocess.DEVNULL)
 
     t0, c0 = time.monotonic(), _children_cpu()
     subprocess.run(
@@ -103,7 +110,8 @@ def main() -> int:
             rows.append(_backlog_row(args, fleet, rate, live_s, settle_line, probe))
             print(f"rate {rate:g} done", file=sys.stderr)
         print(
-            f"fleet: {args.map}, {args.drives} drives (seed {args.seed}); offline bag2map wall time {offline_s:.1f} s"
+            f"fleet: {args.fleet or args.map} ({args.drives} drives, seed {args.seed} if simulated); "
+            f"offline bag2map wall time {offline_s:.1f} s"
         )
         print(
             "rate  | drives/h offered | bag played [s] | backlog slope [tiles/min] | max backlog | "
@@ -216,8 +224,11 @@ class _Probe:
 def _run_live(args, fleet: Path, live: Path, probe: _Probe) -> tuple[float, str]:
     time.sleep(1.0)  # the probe discovered before the suite starts
     probe.t0, c0 = time.monotonic(), _children_cpu()
+    cmd = [HDMAP, "run", str(fleet), "--rate", str(args.rate), "-o", str(live), "--timeout", str(args.timeout)]
+    if args.params_file:
+        cmd += ["--params-file", args.params_file]
     proc = subprocess.run(
-        [HDMAP, "run", str(fleet), "--rate", str(args.rate), "-o", str(live), "--timeout", str(args.timeout)],
+        cmd,
         capture_output=True,
         text=True,
     )
@@ -247,7 +258,8 @@ def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settl
     run_settle = float(m.group(1)) if m else float("nan")
     t0 = probe.t0
 
-    print(f"fleet: {args.map}, {len(drives)} drives (seed {args.seed}), hdmap run --rate {args.rate:g}")
+    name = args.fleet or f"{args.map} (seed {args.seed})"
+    print(f"fleet: {name}, {len(drives)} drives, hdmap run --rate {args.rate:g}")
     print(f"offline bag2map wall time                 {offline_s:7.1f} s")
     print(
         f"hdmap run: settled after                  {run_settle:7.1f} s  (suite up to settled; "

@@ -9,7 +9,10 @@ the segment mapper's default tiling (256 m tiles, 128 m margin, pivots 48 m arou
 every drive already there (``hdmap run --rate 0`` after the bag played): every tile's preview
 (``live.jobs.run_job`` MAP), the fleet offset model, every tile's settle job (REMAP), the
 connection per tile and one stitch of all tiles (as the map stitcher makes it), the carry-over of
-feature ids. ``--profile KIND``: a cProfile of that phase (preview, remap, stitch), top functions.
+feature ids; then the region settle (``live.region.map_region``: every tile from one offline build
+of all drives, ``--region-workers`` processes) and its stitch; with the ground truth
+(``BAG.gt.json``) the offline, tile-by-tile and region maps scored. ``--profile KIND``: a
+cProfile of that phase (preview, remap, stitch, region), top functions.
 Prints figures only; nothing is asserted.
 """
 
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import os
 import pstats
 import time
 from collections import defaultdict
@@ -27,14 +31,19 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("bag", help="fleet bag")
     ap.add_argument("--preset", default="default")
-    ap.add_argument("--profile", default="", help="cProfile one phase: preview, remap or stitch")
+    ap.add_argument("--profile", default="", help="cProfile one phase: preview, remap, stitch or region")
     ap.add_argument("--top", type=int, default=20)
     ap.add_argument("--skip-offline", action="store_true")
     ap.add_argument("--tile-size", type=float, default=256.0, help="tile_size_m (the mapper's default 256)")
     ap.add_argument("--margin", type=float, default=128.0, help="margin_m (the mapper's default 128)")
+    ap.add_argument("--gt", default="", help="ground truth (default BAG.gt.json if there): score the settled maps")
+    ap.add_argument(
+        "--region-workers", type=int, default=1, help="processes of the region build (1: CPU in one process)"
+    )
     args = ap.parse_args()
 
-    from hdmap_core.live.jobs import run_job
+    from hdmap_core.live.jobs import JobResult, run_job
+    from hdmap_core.live.region import map_region
     from hdmap_core.live.scheduler import MAP, REMAP, Job
     from hdmap_core.live.tiles import (
         TileConfig,
@@ -104,11 +113,34 @@ def main() -> int:
     one[keys[len(keys) // 2]] = prev[keys[len(keys) // 2]]
     m_one, t_stitch1 = phase("", lambda: stitch(one))
     _, t_ids1 = phase("", lambda: carry_over_ids(m_new, m_one))
+    # the settle as one region (live.region): the offline passes on the whole drives, cut into tiles
+    reg, t_region = phase(
+        "region",
+        lambda: map_region(drives, keys, tile_config=tc, pipeline_config=pc, workers=args.region_workers),
+    )
+    m_reg, t_stitch_r = phase("", lambda: stitch({k: JobResult(segments=reg.segments[k]) for k in keys}))
     print(
         f"live: {len(keys)} tiles of {tc.tile_size_m:g} m (margin {tc.margin_m:g} m); preview {t_prev:.2f} s, "
         f"model {t_model:.2f} s, remap {t_remap:.2f} s, connect+stitch {t_stitch:.2f} s, ids {t_ids:.2f} s "
         f"(one tile changed: connect+stitch {t_stitch1:.2f} s, ids {t_ids1:.2f} s)"
     )
+    print(
+        f"region: the whole map as one region: build {t_region:.2f} s CPU (this process; workers "
+        f"{args.region_workers}), connect+stitch {t_stitch_r:.2f} s; tile path preview+model+remap "
+        f"{t_prev + t_model + t_remap:.2f} s"
+    )
+    gt_path = args.gt or (args.bag.rstrip("/") + ".gt.json")
+    if os.path.exists(gt_path):
+        from hdmap_core.evaluation.evaluate import evaluate_map
+        from hdmap_core.groundtruth import load_ground_truth
+
+        gt = load_ground_truth(gt_path)
+        maps = [("tiles (remap)", m_new), ("region", m_reg)]
+        if not args.skip_offline:
+            maps.insert(0, ("offline build_map", res.map))
+        for name, m in maps:
+            rep = evaluate_map(m, gt)
+            print(f"  {name}: mean error {rep.overall.mean_m:.3f} m, coverage {100 * rep.overall.coverage:.1f} %")
     if args.profile:
         st = pstats.Stats(prof)
         st.sort_stats("cumulative").print_stats(args.top)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import random
 from dataclasses import replace
 
-from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
+from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REGION, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig
 
 CFG = TileConfig(min_growth_fraction=0.10, min_growth_drives=3)
@@ -290,3 +290,66 @@ def test_prefer_picks_the_settle_job_a_worker_holds_the_observations_of():
     # before the settle, prefer changes nothing: new tiles go first in key order
     s.add_drive("n", [(5, 0), (4, 0)], now=3.0)
     assert [j.key for j in s.next_jobs(3.0, prefer=lambda k: k == (5, 0))] == [(4, 0)]
+
+
+def test_the_region_settle_is_one_job_of_every_tile_and_drops_the_previews_it_makes_anyway():
+    s = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=10)
+    for i in range(3):
+        s.add_drive(f"d{i}", [A, B], now=0.0)
+    (first,) = s.next_jobs(0.0)  # while drives come: a new tile's preview
+    assert first.kind == MAP and not first.final
+    s.add_drive("e", [B, C], now=0.5)
+    (second,) = s.next_jobs(1.0)  # not idle yet: previews go on
+    assert second.kind == MAP and s.queued() == {A, B, C}
+    s.finished(first, ok=True, observed=True)
+    s.finished(second, ok=True, observed=True)
+    assert s.queued() == {C}
+    # idle: B and C are not previewed any more, the region makes them; it waits for no job in work
+    (region,) = s.next_jobs(1.5, limit=4)
+    assert region.kind == REGION and region.key is None and region.final
+    assert region.tiles == ((A, ("d0", "d1", "d2")), (B, ("d0", "d1", "d2", "e")), (C, ("e",)))
+    assert region.drive_ids == ("d0", "d1", "d2", "e") and region.sig == s.region_sig() != ""
+    assert s.next_jobs(1.5, limit=4) == [] and not s.is_settled()
+    s.add_drive("f", [C, (3, 0)], now=1.6)  # a drive during the region: its new tile goes at once,
+    (new,) = s.next_jobs(1.6, limit=4)  # C waits behind the region
+    assert (new.kind, new.key) == (MAP, (3, 0))
+    s.finished(new, ok=True, observed=True)
+    s.finished(region, ok=True)
+    assert not s.is_settled() and s.queued() == {C}  # C is behind its drives, (3, 0) not made by a region
+    (again,) = s.next_jobs(3.0, limit=4)
+    assert again.kind == REGION and dict(again.tiles)[C] == ("e", "f") and again.sig != region.sig
+    s.finished(again, ok=True)
+    assert s.is_settled() and s.pending_tiles() == 0 and s.next_jobs(10.0, limit=4) == []
+
+
+def test_a_failed_region_falls_back_to_the_three_phases_and_too_many_drives_never_use_it():
+    s = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=10)
+    s.add_drive("d0", [A, B], now=0.0)
+    _drain(s, 0.0, observed=True)
+    (region,) = s.next_jobs(1.0, limit=4)
+    assert region.kind == REGION
+    s.finished(region, ok=False)
+    (model,) = s.next_jobs(1.0, limit=4)
+    assert model.kind == MODEL
+    s.finished(model, ok=True)
+    assert sorted(j.kind for j in _drain(s, 1.0)) == [REMAP, REMAP] and s.is_settled()
+    big = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=1)
+    for d in ("d0", "d1"):
+        big.add_drive(d, [A], now=0.0)
+    _drain(big, 0.0, observed=True)
+    assert [j.kind for j in big.next_jobs(1.0, limit=4)] == [MODEL]
+
+
+def test_restore_of_a_settled_region_is_settled_and_other_drive_sets_are_not():
+    s = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=10)
+    for d in ("d0", "d1"):
+        s.add_drive(d, [A, B], now=0.0)
+    _drain(s, 0.0, observed=True)
+    (region,) = _run(s, 1.0)
+    assert region.kind == REGION and s.is_settled()
+    t = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=10)
+    t.restore({A: ["d0", "d1"], B: ["d0", "d1"]}, [(k, ids, region.sig) for k, ids in region.tiles], now=0.0)
+    assert t.is_settled() and t.next_jobs(5.0, limit=4) == []
+    u = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=10)
+    u.restore({A: ["d0", "d1"], B: ["d0", "d1", "d2"]}, [(k, ids, region.sig) for k, ids in region.tiles], now=0.0)
+    assert not u.is_settled() and [j.kind for j in u.next_jobs(5.0, limit=4)] == [REGION]

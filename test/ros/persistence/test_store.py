@@ -258,12 +258,19 @@ def test_drive_store_acknowledges_once_and_indexes_tiles(tmp_path):
     assert est.version == 1 and st.put_tile((1, 0), [], ["a", "b"], model_sig="m").version == 2
     assert st.estimates() == [((1, 0), ["a", "b"], "m")] and st.tile((1, 0)).model_sig == "m"
     assert st.stale_tiles() == [(0, 0)]
+    # many tiles in one commit (the region settle): each gets its next version
+    many = st.put_tiles([((0, 0), _segments(), ["a"]), ((1, 0), [], ["a", "b"])], model_sig="r")
+    assert [(e.key, e.version, e.model_sig) for e in many] == [((0, 0), 1, "r"), ((1, 0), 3, "r")]
+    assert st.estimates() == [((0, 0), ["a"], "r"), ((1, 0), ["a", "b"], "r")]
+    assert st.tile((0, 0)).segments_blob == many[0].segments_blob == segments_to_blob(_segments())
+    assert st.stale_tiles() == []
+    st.put_tile((1, 0), [], ["a", "b"], model_sig="m")
     st.mark_processed(["a"])
     assert st.pending() == ["b"]
     st.close()
     # everything survives reopening
     st2 = DriveStore(tmp_path / "m.db")
-    assert st2.pending() == ["b"] and st2.tile((1, 0)).version == 2 and st2.tile((1, 0)).segments() == []
+    assert st2.pending() == ["b"] and st2.tile((1, 0)).version == 4 and st2.tile((1, 0)).segments() == []
     assert st2.tile((1, 0)).drive_ids == ("a", "b") and st2.tile((1, 0)).drive_count == 2
     _assert_drive_equal(st2.drives_covering((0, 0))[0], _drive("a"))
 

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job
+from hdmap_core.live.region import map_region
+from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REGION, REMAP, Job
 from hdmap_core.live.tiles import (
     TileConfig,
     TileKey,
@@ -45,13 +46,15 @@ class JobResult:
     Attributes:
         segments: MAP / REMAP: the tile's segments.
         observations: MAP with the fleet model, OBSERVE: the tile's step observations.
-        model: MODEL: the fleet-wide ``OffsetModel``.
+        model: MODEL: the fleet-wide ``OffsetModel``; REGION: the region's.
+        tiles: REGION: every tile of the job -> its segments.
         seconds: the job's own run time [s].
     """
 
     segments: list | None = None
     observations: list | None = None
     model: Any = None
+    tiles: dict[TileKey, list] | None = None
     seconds: float = 0.0
 
 
@@ -64,6 +67,7 @@ def run_job(
     use_fleet_model: bool,
     offset_model: OffsetSource | None = None,
     observations: Sequence | None = None,
+    region_workers: int = 1,
 ) -> JobResult:
     """Run one job.
 
@@ -73,6 +77,8 @@ def run_job(
         use_fleet_model: a MAP job also returns the tile's observations (for the fleet model).
         offset_model: REMAP: the fleet-wide model ``job.sig`` names.
         observations: MODEL: every tile's observations.
+        region_workers: REGION: processes of its build (this one plus forked children; keep 1 in
+            a process with native threads of its own, e.g. a ROS node).
 
     Raises:
         ConfigError: a job of unknown kind, or a REMAP without a model.
@@ -82,6 +88,10 @@ def run_job(
     tc, pc = tile_config, pipeline_config
     if job.kind == MODEL:
         out = JobResult(model=fleet_offsets(list(observations or ()), pipeline_config=pc))
+    elif job.kind == REGION:
+        _work.clear()  # the region makes every tile: no kept observation pass is used any more
+        reg = map_region(drives, [k for k, _ in job.tiles], tile_config=tc, pipeline_config=pc, workers=region_workers)
+        out = JobResult(tiles=reg.segments, model=reg.model)
     elif job.key is None:
         raise ConfigError(f"a {job.kind} job needs a tile")
     elif job.kind == OBSERVE:

@@ -23,6 +23,11 @@ and publishes their results. The rules:
   drive set, (2) one fleet-wide offset model from all observations, (3) every tile re-made from
   all its drives with that model. Phase 2 waits until no job is in work (a barrier); the jobs of
   phases 1 and 3 run side by side.
+- **The region settle** (with the fleet model and at most ``region_max_drives`` drives): instead
+  of the three phases, one :data:`REGION` job makes every tile of the map at once
+  (:func:`~hdmap_core.live.region.map_region`: the offline build's passes on the whole drives, cut
+  into tiles), once no job is in work. Tiles queued when the settle comes are not previewed any
+  more (the region makes them anyway). A region that fails falls back to the three phases.
 
 Each job's result is a function of the tile's drive set (and the model), so the settled map
 depends on the drives only, whatever the order, the number of workers or a restart in between.
@@ -35,7 +40,7 @@ from dataclasses import dataclass
 
 from hdmap_core.live.tiles import TileConfig, TileKey, needs_update, observations_signature
 
-__all__ = ["Job", "LiveScheduler", "MAP", "OBSERVE", "MODEL", "REMAP", "NEW_ROAD_CELLS"]
+__all__ = ["Job", "LiveScheduler", "MAP", "OBSERVE", "MODEL", "REMAP", "REGION", "NEW_ROAD_CELLS"]
 
 NEW_ROAD_CELLS = 2  # RULE: new road in a mapped tile: this many road cells (16 m) its estimate has not seen
 
@@ -43,6 +48,7 @@ MAP = "map"  # the tile with its own offset adjustment (and its observations, wi
 OBSERVE = "observe"  # the tile's observation pass only (settle phase 1)
 MODEL = "model"  # the fleet-wide offset model over every tile's observations (settle phase 2)
 REMAP = "remap"  # the tile's final pass with the fleet-wide model (settle phase 3)
+REGION = "region"  # every tile of the map in one build (the region settle)
 
 
 @dataclass(frozen=True)
@@ -50,11 +56,12 @@ class Job:
     """One unit of work.
 
     Attributes:
-        kind: :data:`MAP`, :data:`OBSERVE`, :data:`MODEL` or :data:`REMAP`.
-        key: the tile (None for :data:`MODEL`).
-        drive_ids: the drives covering the tile when the job was made, sorted (its input).
+        kind: :data:`MAP`, :data:`OBSERVE`, :data:`MODEL`, :data:`REMAP` or :data:`REGION`.
+        key: the tile (None for :data:`MODEL` and :data:`REGION`).
+        drive_ids: the drives covering the tile when the job was made, sorted (its input); a
+            :data:`REGION`: every drive of its tiles.
         sig: :data:`MODEL`: the signature of the observations it is made from; :data:`REMAP`: that
-            of the model it uses; else ''.
+            of the model it uses; :data:`REGION`: that of the drive sets of its tiles; else ''.
         final: its estimate is made as the settled map makes it (a REMAP; a MAP when no fleet model
             is used, or when the model of these observations failed): only then do the drives it is
             made from count as mapped on this tile (``Map.drive_ids``).
@@ -65,6 +72,7 @@ class Job:
     drive_ids: tuple[str, ...] = ()
     sig: str = ""
     final: bool = False
+    tiles: tuple[tuple[TileKey, tuple[str, ...]], ...] = ()  # REGION: every tile and its drives
 
 
 class LiveScheduler:
@@ -74,12 +82,19 @@ class LiveScheduler:
         tile_config: the tiling (its growth thresholds make the due test).
         use_fleet_model: settle with the fleet-wide offset model (a pipeline with a final pass).
         settle_after_s: idle time after the last drive before settling [s].
+        region_max_drives: with the fleet model, settle with one :data:`REGION` job while the map
+            has at most this many drives (0: never; the three phases).
     """
 
-    def __init__(self, tile_config: TileConfig, *, use_fleet_model: bool, settle_after_s: float) -> None:
+    def __init__(
+        self, tile_config: TileConfig, *, use_fleet_model: bool, settle_after_s: float, region_max_drives: int = 0
+    ) -> None:
         self.tile_config = tile_config
         self.use_fleet_model = use_fleet_model
         self.settle_after_s = float(settle_after_s)
+        self.region_max_drives = int(region_max_drives)
+        self._region_sig: str | None = None  # cache of the tiles' drive sets' signature
+        self._region_failed_sig = ""  # drive sets whose region job failed
         self._tiles: dict[TileKey, set[str]] = {}  # tile -> drives covering it
         self._drive_tiles: dict[str, int] = {}  # drive -> number of tiles it covers
         self._est: dict[TileKey, tuple[int, str]] = {}  # tile -> (drive count, model sig) of its estimate
@@ -126,6 +141,7 @@ class LiveScheduler:
         for key, ids in observations:
             self._obs[key] = tuple(sorted(ids))
         self._obs_sig = None
+        self._region_sig = None
         self._model_sig = model_sig
         self._last_input = now  # settling waits as after a drive
         self._queue.update(k for k in self._tiles if self._due(k))
@@ -148,12 +164,16 @@ class LiveScheduler:
         for key in keys:
             self._tiles.setdefault(key, set()).add(drive_id)
         self._queue.update(keys)
+        self._region_sig = None
         self._last_input = now
         return True
 
     def finished(self, job: Job, *, ok: bool, observed: bool = False) -> None:
         """A job ended. ``observed``: a :data:`MAP` job also stored the tile's observations."""
         self._busy.pop(job.key if job.kind != MODEL else None, None)
+        if job.kind == REGION:
+            self._region_finished(job, ok)
+            return
         n = len(job.drive_ids)
         if job.kind == MODEL:
             if ok:
@@ -183,6 +203,20 @@ class LiveScheduler:
         if observed:
             self._obs[key] = job.drive_ids
             self._obs_sig = None
+
+    def _region_finished(self, job: Job, ok: bool) -> None:
+        for key, _ in job.tiles:
+            self._busy.pop(key, None)
+        if not ok:
+            self._region_failed_sig = job.sig
+            for key, _ in job.tiles:
+                self._cells_job.pop(key, None)
+            return
+        for key, ids in job.tiles:
+            self._est[key] = (len(ids), job.sig)
+            self._cells_est[key] = self._cells_job.pop(key, frozenset())
+            self._cells_unknown.discard(key)
+            self._failed.pop(key, None)
 
     # --- queries ---------------------------------------------------------------------------------
 
@@ -231,6 +265,14 @@ class LiveScheduler:
             self._obs_sig = observations_signature(self._obs.items()) if self._obs else ""
         return self._obs_sig
 
+    def region_sig(self) -> str:
+        """Signature of every tile's drive set: what a :data:`REGION` job made from them is named by."""
+        if self._region_sig is None:
+            self._region_sig = (
+                "region:" + observations_signature((k, tuple(v)) for k, v in self._tiles.items()) if self._tiles else ""
+            )
+        return self._region_sig
+
     def idle(self, now: float) -> bool:
         """Nothing queued or in work and no drive for ``settle_after_s``: time to settle."""
         return not self._queue and not self._busy and now - self._last_input >= self.settle_after_s
@@ -240,6 +282,8 @@ class LiveScheduler:
         every tile observed, the model current, every tile made with it), failed tiles excepted."""
         if self._queue or self._busy:
             return False
+        if self._region_phase():
+            return not self._off_region()
         if self._model_phase():
             if self._stale_observations():
                 return False
@@ -264,10 +308,17 @@ class LiveScheduler:
             self._busy[job.key if job.kind != MODEL else None] = job
             if job.key is not None and job.kind in (MAP, REMAP):
                 self._cells_job[job.key] = frozenset(self._cells.get(job.key, ()))
+            for key, _ in job.tiles:  # a REGION: its tiles are in work (new drives wait behind it)
+                self._busy[key] = job
+                self._cells_job[key] = frozenset(self._cells.get(key, ()))
             jobs.append(job)
         return jobs
 
     def _next(self, now: float, prefer: Callable[[TileKey], bool] | None = None) -> Job | None:
+        if now - self._last_input >= self.settle_after_s and self._region_phase():
+            # RULE coalescing: once the input settles, the region job makes every tile; a preview
+            # of a tile still queued would be thrown away with it
+            self._queue.clear()
         while self._queue:
             ready = [k for k in self._queue if k not in self._busy]
             if not ready:
@@ -292,6 +343,12 @@ class LiveScheduler:
         return min(ready, key=lambda k: (-len(self._tiles.get(k, ())) / max(1, self._est[k][0]), k))
 
     def _settle_job(self, prefer: Callable[[TileKey], bool] | None = None) -> Job | None:
+        if self._region_phase():
+            if self._busy or not self._off_region():
+                return None  # the region waits for the jobs in work: it makes their tiles too
+            tiles = tuple((k, self.tile_drives(k)) for k in sorted(self._tiles))
+            ids = tuple(sorted({d for _, ds in tiles for d in ds}))
+            return Job(REGION, None, ids, self.region_sig(), final=True, tiles=tiles)
         if not self._model_phase():
             for key in sorted(self._tiles):
                 if key not in self._busy and self._stale(key) and not self._failed_at_count(key):
@@ -347,6 +404,19 @@ class LiveScheduler:
     def _model_phase(self) -> bool:
         """Settling goes through the fleet model (unless the model of these observations failed)."""
         return self.use_fleet_model and self._model_failed_sig != self.observations_sig()
+
+    def _region_phase(self) -> bool:
+        """Settling is one region job (the fleet model, not too many drives, its region not failed)."""
+        return (
+            self.use_fleet_model
+            and 0 < self.drive_count <= self.region_max_drives
+            and self._region_failed_sig != self.region_sig()
+        )
+
+    def _off_region(self) -> bool:
+        """Some tile is not made from all its drives by the region job of the current drive sets."""
+        sig = self.region_sig()
+        return any(self._est.get(k, (0, ""))[1] != sig or self._stale(k) for k in self._tiles)
 
     def _stale_observations(self) -> list[TileKey]:
         """Tiles whose observations are older than their drive set (and did not fail at it), by key."""

@@ -18,7 +18,11 @@ observations of all tiles (``live.tiles.fleet_offsets``, the network-wide adjust
 ``hdmap bag2map``) and stored (``OffsetModel.to_dict``) with a signature of the drive sets it was
 made from, and (3) every tile not yet made from all its drives with that model is re-estimated
 with it (the final pass only). Each is a pure function of the stored drives, so the settled map
-still depends on the drive set only, also across SIGKILL and restart.
+still depends on the drive set only, also across SIGKILL and restart. While the map has at most
+``region_max_drives`` drives the settle is instead one job making every tile at once
+(``live.region.map_region``: the passes of ``hdmap bag2map`` on the whole drives, cut into
+tiles): the tiles' margins are not mapped again, and tiles still queued when the input settles
+are not previewed first.
 
 The schedule (queue, due test, order, settle phases) is ``hdmap_core.live.scheduler.LiveScheduler``;
 this node feeds it drives and finished jobs, runs the jobs it hands out (``live.jobs.run_job``) on
@@ -55,7 +59,7 @@ from std_msgs.msg import String
 from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
 from hdmap_core.live.jobs import JobResult, run_job, warm_up
 from hdmap_core.live.progress import LiveStatus
-from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REMAP, Job, LiveScheduler
+from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REGION, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig, TileKey, road_cells, tiles_of_drive
 from hdmap_core.model import Drive, validate_drive
 from hdmap_core.parallel import available_cpus
@@ -158,6 +162,17 @@ class SegmentMapper(HealthMixin, Node):
             hi=100000,
         )
         republish = declare(self, "republish_on_start", True, "Publish every stored tile estimate at start.")
+        # RULE memory: the region is one build of every drive in one worker (paper_like, 134 drives:
+        # peak 482 MB), so beyond a few hundred drives the settle goes tile by tile
+        region_max_drives = declare(
+            self,
+            "region_max_drives",
+            300,
+            "With the fleet model: settle by one build of every tile while the map has at most this many "
+            "drives (0 = tile by tile).",
+            lo=0,
+            hi=1000000,
+        )
         self.work_slice_s = declare(
             self,
             "work_slice_s",
@@ -180,7 +195,10 @@ class SegmentMapper(HealthMixin, Node):
         self._tile_types = rclpy_tile_types()
         self.use_fleet_model = self.pipeline_config.final_pass is not None
         self.scheduler = LiveScheduler(
-            self.tile_config, use_fleet_model=self.use_fleet_model, settle_after_s=self.settle_after_s
+            self.tile_config,
+            use_fleet_model=self.use_fleet_model,
+            settle_after_s=self.settle_after_s,
+            region_max_drives=region_max_drives,
         )
         self._model: OffsetModel | None = None
         self._load_model()
@@ -443,6 +461,10 @@ class SegmentMapper(HealthMixin, Node):
             kw["observations"] = self.store.observations()
         if job.kind == REMAP:
             kw["offset_model"] = self._model
+        if job.kind == REGION:
+            # forked children only from a worker process, never from this one (native threads)
+            kw["region_workers"] = self.workers if self.workers > 1 else 1
+            self._home.clear()
         drives = self._drives(job.drive_ids) if job.kind != MODEL else []
         fut = self._pools[worker].submit(run_job, job, drives, **kw)
         self._running[fut] = (job, worker)
@@ -472,6 +494,16 @@ class SegmentMapper(HealthMixin, Node):
             self.health.set("last_model_update_s", f"{result.seconds:.3f}")
         elif job.kind == OBSERVE:
             self.store.put_observations(job.key, result.observations, job.drive_ids)
+        elif job.kind == REGION:
+            segments = result.tiles or {}
+            made = [(key, segments.get(key, []), ids) for key, ids in job.tiles]
+            for est in self.store.put_tiles(made, model_sig=job.sig):  # one commit for every tile
+                self._publish(est, final=True)
+                self.health.updated()
+            self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
+            self.health.set("tiles", self.scheduler.tile_count)
+            if result.model is not None:
+                self.health.set("offset_model_drives", len(result.model.drives))
         else:
             est = self.store.put_tile(
                 job.key,

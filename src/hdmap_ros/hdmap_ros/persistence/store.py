@@ -614,18 +614,34 @@ class DriveStore(_Store):
             observations: when given, the tile's observations (made from the same drives) are
                 replaced in the same transaction.
         """
+        with self._tx() as con:
+            est = self._put_tile(con, key, segments, drive_ids, model_sig)
+            if observations is not None:
+                self._put_obs(con, key, observations, est.drive_ids)
+        return est
+
+    def put_tiles(
+        self, tiles: Sequence[tuple[TileKey, Sequence[Segment], Sequence[str]]], *, model_sig: str = ""
+    ) -> list[TileEstimate]:
+        """Replace the estimates of many tiles (key, segments, drive ids) in one transaction (the
+        live settle's region: all of them or none after a crash, one commit instead of one per
+        tile); returns them with their new versions, in order."""
+        with self._tx() as con:
+            return [self._put_tile(con, key, segs, ids, model_sig) for key, segs, ids in tiles]
+
+    @staticmethod
+    def _put_tile(
+        con, key: TileKey, segments: Sequence[Segment], drive_ids: Sequence[str], model_sig: str
+    ) -> TileEstimate:
         blob = segments_to_blob(segments)
         ids = list(drive_ids)
-        with self._tx() as con:
-            row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
-            version = (row[0] if row else 0) + 1
-            con.execute(
-                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_count, drive_ids, segments, model_sig) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (key[0], key[1], version, len(ids), json.dumps(ids), blob, model_sig),
-            )
-            if observations is not None:
-                self._put_obs(con, key, observations, ids)
+        row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
+        version = (row[0] if row else 0) + 1
+        con.execute(
+            "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_count, drive_ids, segments, model_sig) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (key[0], key[1], version, len(ids), json.dumps(ids), blob, model_sig),
+        )
         return TileEstimate(key, version, ids, blob, model_sig)
 
     # --- the fleet-wide offset model and the observations it is estimated from ----------------------
