@@ -180,11 +180,12 @@ def unseen_moved(
             dist, j = same.query(q, distance_upper_bound=tol)
             found = np.isfinite(dist)
             move[found] = ((by_type[int(f.type)][j[found]] - p[found]) * n[found]).sum(axis=1)
-        # seen otherwise: a marking of the other type where it would have moved to (its neighbour
-        # line, when the shift is near a lane's width), or one where it was and none there
+        # seen staying: a marking where it was and none where it would have moved to; seen
+        # otherwise: a marking of the other type where it would have moved to (not modelled)
         dq, _ = tree.query(q, distance_upper_bound=tol)
         d0, _ = tree.query(p, distance_upper_bound=config.unseen_stay_m)
-        stayed = ~found & ((np.isfinite(dq)) | (np.isfinite(d0) & (np.abs(d) >= 2 * tol)))
+        stayed = ~np.isfinite(dq) & np.isfinite(d0) & (np.abs(d) >= 2 * tol)
+        stayed = np.where(np.isfinite(dq) & ~found, -1, stayed.astype(int))  # -1: seen as the other type
         rows.append((fi, idx, [keys[i] for i in idx], n, move, stayed))
     # Step 3: the lines seen per place, and whether they moved alike.
     lines: dict[PlaceKey, list[float]] = {}
@@ -194,7 +195,7 @@ def unseen_moved(
             sel = np.array([k == key for k in keys])
             if np.count_nonzero(np.isfinite(move[sel])) >= config.unseen_line_points:
                 lines.setdefault(key, []).append(float(np.nanmedian(move[sel])))
-            elif np.count_nonzero(stayed[sel]) >= config.unseen_line_points:
+            elif np.count_nonzero(stayed[sel] == 1) >= max(config.unseen_line_points, np.count_nonzero(sel) // 2):
                 stays.add(key)
     agree = set()
     for key, ms in lines.items():
@@ -227,7 +228,7 @@ def unseen_moved(
     for fi, idx, keys, n, move, stayed in rows:
         f = first.features[fi]
         pts = np.asarray(f.points, dtype=float)
-        cand = np.flatnonzero(np.array([k in agree for k in keys]) & ~np.isfinite(move) & ~stayed)
+        cand = np.flatnonzero(np.array([k in agree for k in keys]) & ~np.isfinite(move) & (stayed == 0))
         if len(cand) == 0:
             continue
         p = pts[idx[cand]]
