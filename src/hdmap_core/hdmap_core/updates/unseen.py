@@ -195,7 +195,9 @@ def unseen_moved(
             sel = np.array([k == key for k in keys])
             if np.count_nonzero(np.isfinite(move[sel])) >= config.unseen_line_points:
                 lines.setdefault(key, []).append(float(np.nanmedian(move[sel])))
-            elif np.count_nonzero(stayed[sel] == 1) >= max(config.unseen_line_points, np.count_nonzero(sel) // 2):
+            elif int(np.count_nonzero(stayed[sel] == 1)) >= max(
+                config.unseen_line_points, int(np.count_nonzero(sel)) // 2
+            ):
                 stays.add(key)
     agree = set()
     for key, ms in lines.items():
