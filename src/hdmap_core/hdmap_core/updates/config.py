@@ -54,6 +54,9 @@ class ChangeConfig:
         unseen_min_lines: lines seen moved a place needs for its unseen markings to move.
         unseen_alike_m: every line seen moved lies within this of their median move [m].
         unseen_radius_m: an unseen point moves by the median move of the seen points this near [m].
+        unseen_explained: share of the local map's markings in a place that must lie where a
+            first-map marking of their type moved by the place's displacement lies (a shift near
+            a lane's width pairs each line with its neighbour: the edge lines are left over).
     """
 
     cell_m: float = 100.0
@@ -85,6 +88,7 @@ class ChangeConfig:
     unseen_min_lines: int = 2
     unseen_alike_m: float = 0.3
     unseen_radius_m: float = 50.0
+    unseen_explained: float = 0.8
 
     def __post_init__(self) -> None:
         check_range(
@@ -111,7 +115,14 @@ class ChangeConfig:
         )
         check_range(
             self,
-            ("displacement_floor_m", "share_floor", "min_share", "min_share_drive", "max_share_before"),
+            (
+                "displacement_floor_m",
+                "share_floor",
+                "min_share",
+                "min_share_drive",
+                "max_share_before",
+                "unseen_explained",
+            ),
             low=0.0,
             low_open=True,
         )

@@ -111,6 +111,37 @@ def _resampled(lines: Sequence[np.ndarray]) -> np.ndarray:
     return np.concatenate(out)
 
 
+def _explained(
+    local_lines: Sequence[tuple[int, np.ndarray]],
+    predicted: dict[int, list[np.ndarray]],
+    places: Places,
+    moves: dict[PlaceKey, tuple[int, float]],
+    tol: float,
+) -> dict[PlaceKey, float]:
+    """Per candidate place: the share of the local map's marking points there with a first-map
+    marking of their type moved by the place's D within ``tol``."""
+    trees = {t: cKDTree(np.concatenate(v)) for t, v in predicted.items() if v}
+    hit: dict[PlaceKey, int] = {}
+    total: dict[PlaceKey, int] = {}
+    for t, pts in local_lines:
+        pts = _resampled([pts])
+        if len(pts) < 2:
+            continue
+        _, yaw = _normals(pts)
+        keys = places.keys(pts, yaw)
+        inside = np.array([k in moves for k in keys], dtype=bool)
+        if not inside.any():
+            continue
+        ok = np.zeros(len(pts), dtype=bool)
+        if t in trees:
+            d, _ = trees[t].query(pts[inside], distance_upper_bound=tol)
+            ok[inside] = np.isfinite(d)
+        for k, good in zip([k for k, i in zip(keys, inside) if i], ok[inside]):
+            total[k] = total.get(k, 0) + 1
+            hit[k] = hit.get(k, 0) + int(good)
+    return {k: hit.get(k, 0) / n for k, n in total.items()}
+
+
 def _place_moves(
     changes: Sequence[DetectedChange],
     evidence: Sequence[PlaceEvidence],
@@ -161,6 +192,7 @@ def unseen_moved(
     tol = config.unseen_match_m
     # Step 2: per first-map marking point in a candidate place, its move as the local map shows it.
     rows = []  # (feature index, point indices, keys, normals, measured move or NaN, stayed)
+    predicted: dict[int, list[np.ndarray]] = {}  # per type: the first map's markings moved by D
     for fi, f in enumerate(first.features):
         if int(f.type) not in _MARKINGS or len(f.points) < 2:
             continue
@@ -187,6 +219,10 @@ def unseen_moved(
         stayed = ~np.isfinite(dq) & np.isfinite(d0) & (np.abs(d) >= 2 * tol)
         stayed = np.where(np.isfinite(dq) & ~found, -1, stayed.astype(int))  # -1: seen as the other type
         rows.append((fi, idx, [keys[i] for i in idx], n, move, stayed))
+        predicted.setdefault(int(f.type), []).append(q)
+    # Every local marking must be a first-map marking moved by D: with a shift near a lane's
+    # width the lines pair with their neighbours (D is the rest), and the edge lines are left over.
+    explained = _explained(local_lines, predicted, places, moves, 2 * tol)
     # Step 3: the lines seen per place, and whether they moved alike.
     lines: dict[PlaceKey, list[float]] = {}
     stays: set[PlaceKey] = set()
@@ -205,7 +241,10 @@ def unseen_moved(
         alike = np.all(np.abs(m - np.median(m)) <= config.unseen_alike_m)
         # and as the drives measured it (the displacement is + for a move to the right)
         as_measured = abs(float(np.median(m)) + moves[key][1]) <= config.unseen_alike_m
-        if len(m) >= config.unseen_min_lines and key not in stays and alike and as_measured:
+        accounted = explained.get(key, 0.0) >= config.unseen_explained
+        # a place whose lines stayed (a taper's end) is no shifted carriageway
+        moved = abs(float(np.median(m))) >= config.min_shift_m / 2
+        if len(m) >= config.unseen_min_lines and key not in stays and alike and as_measured and accounted and moved:
             agree.add(key)
     if not agree:
         return none
