@@ -14,12 +14,17 @@ history (``ModelledMarking``).
    ``geometry`` (not re-striping or a gone / new marking) or it being a taper next to one; its
    displacement ``D`` is the median of the drives after the change there (``PlaceEvidence``).
 2. **Seen lines**: each first-map marking point in such a place is looked for in the (aligned)
-   local map at its place moved by ``D``; a local marking there gives the point's measured move.
+   local map at its place moved by ``D``; a local marking of its type there gives the point's
+   measured move (one of the other type excludes the point).
    A first-map marking piece in the place with enough such points is a line seen moved, its move
    the median; with enough points found where it was and not where it would have moved to, a
    line seen staying.
 3. **The place agrees** when it has at least ``min_lines`` lines seen moved, all within
-   ``alike_m`` of their median, and no line seen staying (with ``|D|`` large enough to tell).
+   ``alike_m`` of their median, that median within ``alike_m`` of D and at least half the
+   smallest shift, no line seen staying (with ``|D|`` large enough to tell), and the local map's
+   markings there are (``unseen_explained``) first-map markings moved by D: a shift near a
+   lane's width is measured as the rest (each line pairs with its neighbour) and leaves the edge
+   lines over.
 4. **Unseen points**: the first-map marking points of agreeing places that the local map has no
    marking for within ``seen_m`` of their moved place, on the moved carriageway (within
    ``view_m`` of a seen-moved point, with no first-map road border between them), move by the
