@@ -126,3 +126,20 @@ def test_the_splice_keeps_the_moved_markings_and_retires_where_they_were():
     retired = retired_features(FIRST, PLACES, [_change()], valid_from_ns=0, reach=reach)
     old_edge = np.concatenate([r.points for r in retired if r.feature_id == 1])
     assert np.all(old_edge[:, 1] == 50.0) and old_edge[:, 0].min() <= 220.0 and old_edge[:, 0].max() >= 380.0
+
+
+def test_no_model_where_the_local_map_has_markings_the_moved_first_map_does_not_explain():
+    """A shift near a lane's width (3 m on 3.5 m lanes) is measured as -0.5 m: each divider pairs
+    with its neighbour and moved 'alike', but the new edge lines are left over."""
+
+    def moved(y, m):
+        return lambda x: np.where((x >= 200.0) & (x < 400.0), m, 0.0)
+
+    dividers = [_feature(100 + i, DASHED, y, 100.0, 499.0, shift=moved(y, 0.5)) for i, y in enumerate((53.5, 57.0))]
+    edges = [_feature(110 + i, SOLID, y, 200.0, 399.0) for i, y in enumerate((46.5, 63.0))]
+    left = _evidence(-0.5)
+    got = unseen_moved(FIRST, HDMap(features=tuple(dividers + edges)), PLACES, [_change()], left, REBUILT)
+    assert got.pieces == () and got.map is FIRST
+    # the control: without the left-over edge lines the same moves are modelled
+    got = unseen_moved(FIRST, HDMap(features=tuple(dividers)), PLACES, [_change()], left, REBUILT)
+    assert got.pieces and all(np.allclose(p.move_m, 0.5, atol=0.05) for p in got.pieces)
