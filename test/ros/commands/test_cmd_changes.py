@@ -85,7 +85,11 @@ def test_follow_changes_leaves_the_sample_maps_byte_identical(tmp_path, sample_b
     assert "follow changes: 0 change(s)" in capsys.readouterr().out
     plain = (tmp_path / "plain" / "map" / "map.mcap").read_bytes()
     assert plain == (tmp_path / "follow" / "map" / "map.mcap").read_bytes()
-    assert json.loads((tmp_path / "follow" / "map.history.json").read_text()) == {"changes": [], "retired": []}
+    assert json.loads((tmp_path / "follow" / "map.history.json").read_text()) == {
+        "changes": [],
+        "retired": [],
+        "modelled": [],
+    }
 
 
 @pytest.mark.slow

@@ -44,6 +44,19 @@ class ChangeConfig:
         z_min: the change in the mean must be this many standard errors of it.
         displacement_floor_m: smallest per-drive spread of the displacement assumed [m].
         share_floor: smallest per-drive spread of a share assumed.
+        model_unseen: move the first map's markings that no drive after a shift saw by the shift
+            the drives measured (``updates.unseen``; flagged: ``drive_count`` 0).
+        unseen_match_m: a first-map marking moved by its place's displacement and a local
+            marking this close are the same line, seen moved [m].
+        unseen_stay_m: ... a local marking this close to where it was: seen staying [m].
+        unseen_seen_m: a moved point with a local marking this close was seen: not modelled [m].
+        unseen_line_points: points a first-map marking needs in a place to count as seen.
+        unseen_min_lines: lines seen moved a place needs for its unseen markings to move.
+        unseen_alike_m: every line seen moved lies within this of their median move [m].
+        unseen_radius_m: an unseen point moves by the median move of the seen points this near [m].
+        unseen_explained: share of the local map's markings in a place that must lie where a
+            first-map marking of their type moved by the place's displacement lies (a shift near
+            a lane's width pairs each line with its neighbour: the edge lines are left over).
     """
 
     cell_m: float = 100.0
@@ -67,6 +80,15 @@ class ChangeConfig:
     z_min: float = 5.0
     displacement_floor_m: float = 0.1
     share_floor: float = 0.05
+    model_unseen: bool = True
+    unseen_match_m: float = 0.5
+    unseen_stay_m: float = 0.3
+    unseen_seen_m: float = 1.0
+    unseen_line_points: int = 10
+    unseen_min_lines: int = 2
+    unseen_alike_m: float = 0.3
+    unseen_radius_m: float = 50.0
+    unseen_explained: float = 0.8
 
     def __post_init__(self) -> None:
         check_range(
@@ -82,19 +104,40 @@ class ChangeConfig:
                 "match_m",
                 "min_shift_m",
                 "z_min",
+                "unseen_match_m",
+                "unseen_stay_m",
+                "unseen_seen_m",
+                "unseen_alike_m",
+                "unseen_radius_m",
             ),
             low=0.0,
             low_open=True,
         )
         check_range(
             self,
-            ("displacement_floor_m", "share_floor", "min_share", "min_share_drive", "max_share_before"),
+            (
+                "displacement_floor_m",
+                "share_floor",
+                "min_share",
+                "min_share_drive",
+                "max_share_before",
+                "unseen_explained",
+            ),
             low=0.0,
             low_open=True,
         )
         check_range(
             self,
-            ("min_pairs", "min_border_pairs", "min_points", "min_before", "min_after", "min_after_shares"),
+            (
+                "min_pairs",
+                "min_border_pairs",
+                "min_points",
+                "min_before",
+                "min_after",
+                "min_after_shares",
+                "unseen_line_points",
+                "unseen_min_lines",
+            ),
             low=1,
             integer=True,
         )

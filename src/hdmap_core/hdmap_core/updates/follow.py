@@ -37,6 +37,7 @@ from hdmap_core.updates.edges import detect_edge_changes, fleet_edge_evidence, m
 from hdmap_core.updates.evidence import fleet_evidence
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
+from hdmap_core.updates.unseen import ModelledMarking, unseen_moved
 
 __all__ = [
     "RetiredFeature",
@@ -90,6 +91,8 @@ class FollowResult:
         report: the build's report: the first (whole) build's with a local rebuild, else the
             rebuild's (``follow_changes``; None from ``follow_map``, whose build gives none).
         places: the places the drives were compared in (None when nothing was compared).
+        modelled: the first map's markings no drive after a shift saw, moved by the shift the
+            drives measured (``updates.unseen``; with a local rebuild only).
     """
 
     map: HDMap
@@ -100,6 +103,7 @@ class FollowResult:
     rebuilt: frozenset[PlaceKey] = frozenset()
     seconds: dict[str, float] = field(default_factory=dict, compare=False)
     places: Places | None = field(default=None, compare=False)
+    modelled: tuple[ModelledMarking, ...] = ()
 
 
 def _change_times(changes: Sequence[DetectedChange]) -> dict[PlaceKey, int]:
@@ -391,27 +395,35 @@ def follow_map(
         poses = [d.xy[np.array([k in core for k in places.keys(d.xy, d.yaw)], dtype=bool)] for d in clipped]
         borders = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) == _BORDER]
         marks = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) in _MARKINGS]
+        # what no drive after a shift saw of the first map's markings: moved by the shift
+        unseen = unseen_moved(first_map, local_map, places, changes, evidence, core, config=config)
+        modelled = unseen.pieces
         reach = Reach(
             np.concatenate([np.zeros((0, 2)), *poses]),
             config.view_m,
             np.concatenate([np.zeros((0, 2)), *borders]),
             _BORDER_SAME_M,
             np.concatenate([np.zeros((0, 2)), *marks]),
+            keep=unseen.moved_to,
+            take=unseen.moved_from,
         )
-        new_map = splice(first_map, local_map, places, core, reach=reach)
+        new_map = splice(unseen.map, local_map, places, core, reach=reach)
     else:
         core = set()
         reach = None
+        modelled = ()
         cut = cut_before_changes(moved, places, changes)
         t1 = time.perf_counter()
         new_map = build(cut)
         seconds["rebuild"] = time.perf_counter() - t1
     start = min((d.start_ns for d in drives), default=0)
     retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start, reach=reach))
-    extra = {**new_map.extra, "changes": list(changes), "retired": list(retired)}
+    extra = {**new_map.extra, "changes": list(changes), "retired": list(retired), "modelled": list(modelled)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
     seconds["apply"] = time.perf_counter() - t0 - seconds["rebuild"]
-    return FollowResult(new_map, tuple(changes), retired, first_map, None, frozenset(core), seconds, places=places)
+    return FollowResult(
+        new_map, tuple(changes), retired, first_map, None, frozenset(core), seconds, places=places, modelled=modelled
+    )
 
 
 def history_to_dict(result: FollowResult) -> dict:
@@ -428,6 +440,7 @@ def history_to_dict(result: FollowResult) -> dict:
                     {"key": list(p.key), "kind": p.kind, "effect": round(p.effect, 4), "extended": p.extended}
                     for p in c.places
                 ],
+                "modelled_points": sum(len(m.points) for m in result.modelled if m.change_id == c.id),
             }
             for c in result.changes
         ],
@@ -441,5 +454,17 @@ def history_to_dict(result: FollowResult) -> dict:
                 "points": np.round(r.points, 3).tolist(),
             }
             for r in result.retired
+        ],
+        # the first map's markings no drive after a shift saw, moved by the measured shift
+        # (updates.unseen): a model, not an observation (their points' drive_count is 0)
+        "modelled": [
+            {
+                "feature_id": m.feature_id,
+                "type": m.type,
+                "change_id": m.change_id,
+                "move_m": round(float(np.median(m.move_m)), 3),
+                "points": np.round(m.points, 3).tolist(),
+            }
+            for m in result.modelled
         ],
     }

@@ -82,6 +82,9 @@ class Reach:
         border_m: a first map's border point with no local border point this close stays, unless
             ``markings`` (the local map's marking points) lie on both sides of it within
             ``reach_m`` (it crosses the road: not a border); 0: off [m].
+        keep: (K, 2) first-map points that stay wherever they are (the first map's unseen
+            markings moved by the change, ``updates.unseen``: in their new place).
+        take: (T, 2) first-map points replaced wherever they are (those markings' old places).
     """
 
     poses: np.ndarray
@@ -89,6 +92,8 @@ class Reach:
     borders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     border_m: float = 0.0
     markings: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    keep: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    take: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     @cached_property
     def tree(self) -> cKDTree:
@@ -115,6 +120,10 @@ class Reach:
         of type ``ftype`` that the local map replaces (of those in a changed place)."""
         pts = np.asarray(pts, dtype=float).reshape(-1, 2)
         out = self.mask(pts)
+        if len(self.take) and len(pts):
+            out |= _at(pts, self.take)
+        if len(self.keep) and len(pts):
+            out &= ~_at(pts, self.keep)
         if self.border_m <= 0 or int(ftype) != _BORDER or not out.any():
             return out
         idx = np.flatnonzero(out)
@@ -134,6 +143,12 @@ class Reach:
                     stays[i] = not (side.max() > _SIDE_M and side.min() < -_SIDE_M)
         out[idx[stays]] = False
         return out
+
+
+def _at(pts: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """(N,) True for the points ``pts`` that are one of ``where`` (to 1 micrometre)."""
+    d, _ = cKDTree(np.asarray(where, dtype=float).reshape(-1, 2)).query(pts, distance_upper_bound=1e-6)
+    return np.isfinite(d)
 
 
 def _in_keys(

@@ -269,9 +269,11 @@ def run(args: argparse.Namespace) -> int:
             base = first if followed.report is first.report else result
             result = dataclasses.replace(base, map=followed.map) if followed.changes else first
             for c in followed.changes:
+                modelled = sum(len(m.points) for m in followed.modelled if m.change_id == c.id)
                 print(
                     f"change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "
                     f"{len(c.drives_after)} drive(s) in evidence, confidence {c.confidence:.3f}"
+                    + (f", {modelled} unseen marking point(s) moved by its shift (model)" if modelled else "")
                 )
             print(f"follow changes: {len(followed.changes)} change(s), {len(followed.retired)} retired piece(s)")
     hdmap: HDMap = result.map
