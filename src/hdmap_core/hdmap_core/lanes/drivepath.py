@@ -7,12 +7,18 @@ no lane to start from and the drives' way stays without a lane. Here the drives 
 RULE D1 (off the lanes): each trajectory is placed in the lanes as in RULE T1 (its own sideways
 offset removed); its runs of points in no lane of their direction, or further than OFF_M from
 that lane's centerline towards a side with no neighbour lane (a lane as wide as its mapped lines
-allow does not cover the way; beside a neighbour it is a lane change), are the candidates; a run ends where the drive crosses from a lane into its neighbour (a lane change).
+allow does not cover the way; beside a neighbour it is a drive on the line), are the candidates;
+a run ends where the drive crosses from a lane into its neighbour (a lane change). A drive that
+lies in no lane for more than MAX_OFF_SHARE of its way is no evidence (its localisation is off by
+about a lane: its offset estimate of RULE T1 put it in the wrong lanes).
 RULE D2 (support): a candidate point is supported by the drives that have off-lane points within
-SUPPORT_M of it heading the same way (~35 deg); the path is the mean of those points, smoothed
-over SMOOTH_M. A stretch of at least MIN_RUN_M where at least ``min_drives`` drives are is a
-drive-path lane. The off-lane points within half its width are then used up (no second lane
-along the same way); runs are taken longest first.
+SUPPORT_M of it heading the same way (~35 deg), and contradicted by the other drives that are on
+a lane within AGAINST_M of it whose side towards it is a mapped line (one drive's localisation
+error puts it beyond the line of the lane the others drive in); it needs at least ``min_drives``
+drives for it and more for it than against it. The path is the mean of the supporting points,
+smoothed over SMOOTH_M; a supported stretch of at least MIN_RUN_M is a drive-path lane. The
+off-lane points within SUPPORT_M of it are then used up (no second lane along the same way);
+runs are taken longest first.
 RULE D3 (joins): a drive-path lane whose first point lies within JOIN_M of the end of a lane of
 its direction (~45 deg) starts at that lane's end nodes (the difference fades out within _PIN_M),
 and ends at the start nodes of a lane that starts within JOIN_M of its last point; otherwise its
@@ -29,27 +35,44 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hdmap_core.lanes.connectors import STEP_M, placed_trajectories, relinked, stable_id
+from hdmap_core.lanes.connectors import STEP_M, placed_trajectories, relinked, stable_id, trajectory_connectors
 from hdmap_core.lanes.derive import proper_sides
 from hdmap_core.lanes.model import Boundary, Lane, LaneMap
 from hdmap_core.model import FeatureType
 
-__all__ = ["drive_path_lanes", "OFF_M", "MIN_RUN_M", "SUPPORT_M", "JOIN_M", "SMOOTH_M", "MIN_DRIVES"]
+__all__ = [
+    "trajectory_lanes",
+    "drive_path_lanes",
+    "OFF_M",
+    "MAX_OFF_SHARE",
+    "MIN_RUN_M",
+    "SUPPORT_M",
+    "AGAINST_M",
+    "JOIN_M",
+    "SMOOTH_M",
+    "MIN_DRIVES",
+]
 
 OFF_M = 1.0  # RULE D1: a point further from its lane's centerline is not on that lane
+MAX_OFF_SHARE = 0.3  # RULE D1: a drive in no lane for more of its way is no evidence
 MIN_RUN_M = 30.0  # RULE D2: shortest drive-path lane
 SUPPORT_M = 1.5  # RULE D2: other drives' points this close support a point
+AGAINST_M = 4.0  # RULE D2: drives on a lane this close to a point speak against it
 SMOOTH_M = 5.0  # RULE D2: moving average of the mean path
 JOIN_M = 4.0  # RULE D3: a lane end (start) this close to the path's first (last) point is joined
-MIN_DRIVES = 2  # RULE D2: drives that must have gone the way
+MIN_DRIVES = 1  # RULE D2: drives that must have gone the way (2: Town06 94.3 % instead of 95.2 %)
 _ANGLE_COS = float(np.cos(0.6))  # RULE D2: heading agreement of supporting points
 _JOIN_COS = float(np.cos(np.radians(45.0)))  # RULE D3: direction agreement of a joined lane
 _PIN_M = 6.0  # RULE D3: the joined end's difference fades out within this way
 
 
-def drive_path_lanes(
-    lane_map: LaneMap, trajectories: Sequence[np.ndarray], *, min_drives: int = MIN_DRIVES
-) -> LaneMap:
+def trajectory_lanes(lane_map: LaneMap, trajectories: Sequence[np.ndarray]) -> LaneMap:
+    """``lane_map`` with everything the drives add: the connectors
+    (:func:`hdmap_core.lanes.connectors.trajectory_connectors`), then the drive-path lanes."""
+    return drive_path_lanes(trajectory_connectors(lane_map, trajectories), trajectories)
+
+
+def drive_path_lanes(lane_map: LaneMap, trajectories: Sequence[np.ndarray], *, min_drives: int = MIN_DRIVES) -> LaneMap:
     """``lane_map`` with drive-path lanes (module docstring) where at least ``min_drives`` of the
     (N, 2) ``trajectories`` [m, map frame, time ordered] went at least MIN_RUN_M outside every lane
     of their direction. No trajectory or no such way: ``lane_map`` itself."""
@@ -88,10 +111,16 @@ def _paths(
 ) -> list[np.ndarray]:
     """RULES D1-D2: the mean paths (M, 2) of the supported off-lane stretches."""
     pts, yaw, drive, runs = [], [], [], []
+    on_pts, on_yaw, on_drive, on_lines = [], [], [], []
+    lined = {0: (False, False)} | {
+        i: (ln.left_type != FeatureType.UNKNOWN, ln.right_type != FeatureType.UNKNOWN) for i, ln in lanes.items()
+    }
     start = 0
     need = max(2, int(np.ceil(MIN_RUN_M / STEP_M)))
     lone = {0: (True, True)} | {i: (ln.left is None, ln.right is None) for i, ln in lanes.items()}
     for k, (p, ids, aside) in enumerate(placed):
+        if np.mean(ids == 0) > MAX_OFF_SHARE:
+            continue  # RULE D1: a drive that is mostly in no lane is lost, no evidence
         d = np.gradient(p, axis=0)
         # no lane, or off the lane's centerline towards a side without a neighbour lane (beside
         # a neighbour it is a drive between two lanes: a lane change or a drive on the line)
@@ -100,6 +129,10 @@ def _paths(
         pts.append(p[off])
         yaw.append(np.arctan2(d[off, 1], d[off, 0]))
         drive.append(np.full(int(off.sum()), k))
+        on_pts.append(p[~off])
+        on_yaw.append(np.arctan2(d[~off, 1], d[~off, 0]))
+        on_drive.append(np.full(int((~off).sum()), k))
+        on_lines.append(np.array([lined[i] for i in ids[~off].tolist()], dtype=bool).reshape(-1, 2))
         # runs of off-lane points, as indices into the concatenated off-lane points; a run ends
         # where the drive crosses from one lane into its neighbour (a lane change, not a way)
         change = np.zeros(len(ids), dtype=bool)
@@ -119,19 +152,32 @@ def _paths(
     dv = np.concatenate(drive)
     unit = np.stack([np.cos(hd), np.sin(hd)], axis=1)
     tree = cKDTree(xy)
+    on_xy = np.concatenate(on_pts)
+    on_unit = np.concatenate(on_yaw)
+    on_unit = np.stack([np.cos(on_unit), np.sin(on_unit)], axis=1)
+    on_dv = np.concatenate(on_drive)
+    on_lined = np.concatenate(on_lines)
+    on_tree = cKDTree(on_xy) if len(on_xy) else None
     used = np.zeros(len(xy), dtype=bool)
     out: list[np.ndarray] = []
     for a, b in sorted(runs, key=lambda r: (r[0] - r[1], r[0])):
         idx = np.arange(a, b)
         near = tree.query_ball_point(xy[idx], SUPPORT_M)
+        against = on_tree.query_ball_point(xy[idx], AGAINST_M) if on_tree is not None else [[]] * len(idx)
         mean = np.zeros((len(idx), 2))
         ok = np.zeros(len(idx), dtype=bool)
-        for j, (i, nb) in enumerate(zip(idx, near, strict=True)):
+        for j, (i, nb, no) in enumerate(zip(idx, near, against, strict=True)):
             if used[i]:
                 continue
             nb = np.asarray(nb, dtype=np.int64)
             nb = nb[~used[nb] & (unit[nb] @ unit[i] >= _ANGLE_COS)]
-            if len(np.unique(dv[nb])) >= min_drives:
+            no = np.asarray(no, dtype=np.int64)
+            no = no[on_unit[no] @ unit[i] >= _ANGLE_COS]
+            rel = xy[i] - on_xy[no]
+            left = on_unit[no, 0] * rel[:, 1] - on_unit[no, 1] * rel[:, 0] > 0
+            no = no[np.where(left, on_lined[no, 0], on_lined[no, 1])]
+            support = np.unique(dv[nb])
+            if len(support) >= min_drives and len(support) > len(np.setdiff1d(on_dv[no], support)):
                 ok[j] = True
                 mean[j] = xy[nb].mean(axis=0)
         edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
