@@ -41,17 +41,21 @@ def test_drives_beyond_the_lanes_end_get_a_lane_joined_to_it():
     assert {ln.id for ln in trajectory_lanes(lanes, drives).lanes} == {ln.id for ln in out.lanes}
 
 
-def test_one_drive_beyond_a_mapped_line_the_others_drive_along_is_no_lane():
+def test_drives_beyond_a_mapped_line_need_two_and_more_than_the_drives_in_the_lane():
     lanes = derive_lanes(three_lanes(400.0))
     rng = np.random.default_rng(3)
     x = np.arange(0.0, 400.0, 1.0)
-    # one drive leaves the right lane (-3.5) beyond its solid line and the road border at x = 320
+    # drives leave the right lane (-3.5) beyond its solid line and the road border at x = 320
     y = np.where(x < 310.0, -3.5, np.where(x < 320.0, -3.5 - 0.35 * (x - 310.0), -7.0))
-    lost = _drive(x, y, rng, bias_m=0.0)
-    alone = drive_path_lanes(lanes, [lost])
-    assert len(alone.lanes) == len(lanes.lanes) + 1  # alone it is evidence of a way
+    lost = [_drive(x, y, rng, bias_m=0.1) for _ in range(2)]
+    assert drive_path_lanes(lanes, lost[:1]) is lanes  # one drive beside a mapped line: its error
+    two = drive_path_lanes(lanes, lost)
+    assert len(two.lanes) == len(lanes.lanes) + 1  # two: a way the line map missed
+    new = next(ln for ln in two.lanes if ln.id not in {x.id for x in lanes.lanes})
+    beyond = new.centerline[new.centerline[:, 0] > 325.0]
+    assert len(beyond) > 50 and np.abs(beyond[:, 1] + 7.0).max() < 0.3
     others = [_drive(x, np.full_like(x, -3.5), rng) for _ in range(4)]
-    assert drive_path_lanes(lanes, [lost, *others]) is lanes  # the others drive in the lane there
+    assert drive_path_lanes(lanes, [*lost, *others]) is lanes  # more drive in the lane there
 
 
 def test_lane_changes_and_drives_along_lanes_make_no_lane():

@@ -15,7 +15,9 @@ RULE D2 (support): a candidate point is supported by the drives that have off-la
 SUPPORT_M of it heading the same way (~35 deg), and contradicted by the other drives that are on
 a lane within AGAINST_M of it whose side towards it is a mapped line (one drive's localisation
 error puts it beyond the line of the lane the others drive in); it needs at least ``min_drives``
-drives for it and more for it than against it. The path is the mean of the supporting points,
+drives for it (LINED_DRIVES within AGAINST_M of a lane's mapped line on the side towards it:
+beside a mapped line one drive's error looks like a lane the line map missed) and more for it
+than against it. The path is the mean of the supporting points,
 smoothed over SMOOTH_M; a supported stretch of at least MIN_RUN_M is a drive-path lane. The
 off-lane points within SUPPORT_M of it are then used up (no second lane along the same way);
 runs are taken longest first.
@@ -30,7 +32,7 @@ Ids are stable: hashes of the path's end points (0.1 m).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -58,6 +60,7 @@ MAX_OFF_SHARE = 0.3  # RULE D1: a drive in no lane for more of its way is no evi
 MIN_RUN_M = 30.0  # RULE D2: shortest drive-path lane
 SUPPORT_M = 1.5  # RULE D2: other drives' points this close support a point
 AGAINST_M = 4.0  # RULE D2: drives on a lane this close to a point speak against it
+LINED_DRIVES = 2  # RULE D2: drives needed within AGAINST_M of a lane's mapped line
 SMOOTH_M = 5.0  # RULE D2: moving average of the mean path
 JOIN_M = 4.0  # RULE D3: a lane end (start) this close to the path's first (last) point is joined
 MIN_DRIVES = 1  # RULE D2: drives that must have gone the way (2: Town06 94.3 % instead of 95.2 %)
@@ -158,12 +161,14 @@ def _paths(
     on_dv = np.concatenate(on_drive)
     on_lined = np.concatenate(on_lines)
     on_tree = cKDTree(on_xy) if len(on_xy) else None
+    beside = _lined_sides(lanes.values())
     used = np.zeros(len(xy), dtype=bool)
     out: list[np.ndarray] = []
     for a, b in sorted(runs, key=lambda r: (r[0] - r[1], r[0])):
         idx = np.arange(a, b)
         near = tree.query_ball_point(xy[idx], SUPPORT_M)
         against = on_tree.query_ball_point(xy[idx], AGAINST_M) if on_tree is not None else [[]] * len(idx)
+        lined_near = beside(xy[idx], unit[idx])
         mean = np.zeros((len(idx), 2))
         ok = np.zeros(len(idx), dtype=bool)
         for j, (i, nb, no) in enumerate(zip(idx, near, against, strict=True)):
@@ -177,7 +182,8 @@ def _paths(
             left = on_unit[no, 0] * rel[:, 1] - on_unit[no, 1] * rel[:, 0] > 0
             no = no[np.where(left, on_lined[no, 0], on_lined[no, 1])]
             support = np.unique(dv[nb])
-            if len(support) >= min_drives and len(support) > len(np.setdiff1d(on_dv[no], support)):
+            least = max(min_drives, LINED_DRIVES) if lined_near[j] else min_drives
+            if len(support) >= least and len(support) > len(np.setdiff1d(on_dv[no], support)):
                 ok[j] = True
                 mean[j] = xy[nb].mean(axis=0)
         edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
@@ -193,6 +199,37 @@ def _paths(
                 nb = np.asarray(nb, dtype=np.int64)
                 used[nb[unit[nb] @ d[j] >= _ANGLE_COS]] = True
     return out
+
+
+def _lined_sides(lanes: Iterable[Lane]) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """RULE D2: a function telling, per point and unit heading, whether a lane of that direction
+    has a mapped line (not virtual) on its side towards the point within AGAINST_M."""
+    xy, dirs, lined = [], [], []
+    for ln in lanes:
+        c = ln.centerline
+        if len(c) < 2:
+            continue
+        d = np.gradient(c, axis=0)
+        xy.append(c)
+        dirs.append(d / np.maximum(np.hypot(*d.T), 1e-9)[:, None])
+        sides = [ln.left_type != FeatureType.UNKNOWN, ln.right_type != FeatureType.UNKNOWN]
+        lined.append(np.tile(sides, (len(c), 1)))
+    if not xy:
+        return lambda p, u: np.zeros(len(p), dtype=bool)
+    at, to, has = np.concatenate(xy), np.concatenate(dirs), np.concatenate(lined).astype(bool)
+    tree = cKDTree(at)
+
+    def near(p: np.ndarray, u: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(p), dtype=bool)
+        for j, nb in enumerate(tree.query_ball_point(p, AGAINST_M)):
+            nb = np.asarray(nb, dtype=np.int64)
+            nb = nb[to[nb] @ u[j] >= _ANGLE_COS]
+            rel = p[j] - at[nb]
+            left = to[nb, 0] * rel[:, 1] - to[nb, 1] * rel[:, 0] > 0
+            out[j] = bool(np.any(np.where(left, has[nb, 0], has[nb, 1])))
+        return out
+
+    return near
 
 
 def _smoothed(path: np.ndarray) -> np.ndarray:
