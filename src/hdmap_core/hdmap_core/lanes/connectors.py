@@ -51,6 +51,9 @@ from hdmap_core.model import FeatureType
 __all__ = [
     "trajectory_connectors",
     "connections",
+    "placed_trajectories",
+    "relinked",
+    "stable_id",
     "STEP_M",
     "MIN_STAY_M",
     "END_NEAR_M",
@@ -101,7 +104,7 @@ def trajectory_connectors(lane_map: LaneMap, trajectories: Sequence[np.ndarray],
         return lane_map
     all_bounds = {**bounds, **new_bounds}
     return LaneMap(
-        _relinked([*lane_map.lanes, *new_lanes], all_bounds),
+        relinked([*lane_map.lanes, *new_lanes], all_bounds),
         tuple(sorted(all_bounds.values(), key=lambda b: b.id)),
         lane_map.nodes,
     )
@@ -120,7 +123,7 @@ def connections(lane_map: LaneMap, trajectories: Sequence[np.ndarray]) -> dict[t
         return b in near[a]
 
     out: dict[tuple[int, int], list[np.ndarray]] = defaultdict(list)
-    for pts, ids in _placed(lane_map, lanes, trajectories):
+    for pts, ids, _ in placed_trajectories(lane_map, lanes, trajectories):
         stays = _stays(ids)
         for (a, a0, a1), (b, b0, b1) in zip(stays, stays[1:], strict=False):
             if a == b or joined(a, b):
@@ -141,12 +144,12 @@ def connections(lane_map: LaneMap, trajectories: Sequence[np.ndarray]) -> dict[t
     return dict(out)
 
 
-def _placed(
+def placed_trajectories(
     lane_map: LaneMap, lanes: dict[int, Lane], trajectories: Sequence[np.ndarray]
-) -> list[tuple[np.ndarray, np.ndarray]]:
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """RULE T1: per trajectory, its points every STEP_M, moved by its own median sideways offset
-    from the lanes they lie in, and the lane of each point (0: none). (All trajectories at once:
-    one spatial index.)"""
+    from the lanes they lie in, the lane of each point (0: none) and its signed offset from that
+    lane's centerline [m, + = left]. (All trajectories at once: one spatial index.)"""
     pts, yaw = [], []
     for traj in trajectories:
         xy = np.asarray(traj, dtype=float).reshape(-1, 2)
@@ -170,8 +173,8 @@ def _placed(
         own = off[sizes[i] : sizes[i + 1]][ids[sizes[i] : sizes[i + 1]] != 0]
         if len(own) and abs(bias := float(np.median(own))) > _BIAS_MIN_M:
             pts[i] = p - bias * np.stack([-np.sin(yaw[i]), np.cos(yaw[i])], axis=1)
-    ids, _ = where(np.concatenate(pts), allyaw)
-    return [(p, ids[sizes[i] : sizes[i + 1]]) for i, p in enumerate(pts) if len(p)]
+    ids, off = where(np.concatenate(pts), allyaw)
+    return [(p, ids[sizes[i] : sizes[i + 1]], off[sizes[i] : sizes[i + 1]]) for i, p in enumerate(pts) if len(p)]
 
 
 class _Locator:
@@ -308,7 +311,7 @@ def _connector(
         pts = center + sign * half * normal
         pts = pts + w0 * (a.points[-1] - pts[0]) + w1 * (b.points[0] - pts[-1])
         sides.append(
-            Boundary(_uid("trajectory_side", a.id, b.id), 0, FeatureType.UNKNOWN, pts, a.end_node, b.start_node)
+            Boundary(stable_id("trajectory_side", a.id, b.id), 0, FeatureType.UNKNOWN, pts, a.end_node, b.start_node)
         )
     left, right = sides
     if not proper_sides(
@@ -316,7 +319,7 @@ def _connector(
     ):
         return None
     lane = Lane(
-        id=_uid("trajectory_connector", p.id, q.id),
+        id=stable_id("trajectory_connector", p.id, q.id),
         centerline=(left.points + right.points) / 2.0,
         width=np.hypot(*(left.points - right.points).T),
         left_boundary=left.id,
@@ -343,7 +346,7 @@ def _direction(line: np.ndarray, *, first: bool) -> np.ndarray:
     return d / max(float(np.hypot(*d)), 1e-9)
 
 
-def _relinked(lanes: list[Lane], bounds: dict[int, Boundary]) -> tuple[Lane, ...]:
+def relinked(lanes: list[Lane], bounds: dict[int, Boundary]) -> tuple[Lane, ...]:
     """Successors and predecessors again by shared end nodes of both sides (Lanelet2's rule)."""
     by_start: dict[tuple[int, int], list[int]] = defaultdict(list)
     for ln in lanes:
@@ -362,7 +365,7 @@ def _relinked(lanes: list[Lane], bounds: dict[int, Boundary]) -> tuple[Lane, ...
     return tuple(sorted(out, key=lambda x: x.id))
 
 
-def _uid(name: str, *keys: int) -> int:
+def stable_id(name: str, *keys: int) -> int:
     """A stable 63-bit id (never 0) from a name and integer keys."""
     raw = name.encode() + b"".join(int(k).to_bytes(8, "little", signed=False) for k in keys)
     x = int.from_bytes(hashlib.blake2b(raw, digest_size=8).digest(), "little") & ((1 << 63) - 1)

@@ -311,9 +311,9 @@ def _write_outputs(
 
         lanes = derive_lanes(hdmap)
         if len(trajectories):
-            from hdmap_core.lanes.connectors import trajectory_connectors  # noqa: PLC0415
+            from hdmap_core.lanes.drivepath import trajectory_lanes  # noqa: PLC0415
 
-            lanes = trajectory_connectors(lanes, trajectories)
+            lanes = trajectory_lanes(lanes, trajectories)
     if args.geojson:
         write_geojson(hdmap, origin, args.geojson, lanes=lanes)
         print(f"wrote {args.geojson}")

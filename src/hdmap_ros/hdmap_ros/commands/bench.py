@@ -415,16 +415,16 @@ def _lane_figures(
     """The lane metrics of the map (``evaluation/lanes.py``; routes: those in ``BAG.sim.json``)
     as row fields, and the seconds the lanes took to derive. The lanes are those of the exports
     (``bag2map --lanelet2``): with the connectors of the drives' ``trajectories``
-    (``lanes/connectors.py``) where the line map has no lane."""
+    (``lanes/connectors.py``) and drive-path lanes (``lanes/drivepath.py``) where the line map has no lane."""
     from hdmap_core.evaluation.lanes import evaluate_lanes  # noqa: PLC0415
     from hdmap_core.groundtruth import load_ground_truth  # noqa: PLC0415
-    from hdmap_core.lanes.connectors import trajectory_connectors  # noqa: PLC0415
     from hdmap_core.lanes.derive import derive_lanes  # noqa: PLC0415
+    from hdmap_core.lanes.drivepath import trajectory_lanes  # noqa: PLC0415
 
     t0 = time.perf_counter()
     lanes = derive_lanes(hdmap)
     if len(trajectories):
-        lanes = trajectory_connectors(lanes, trajectories)
+        lanes = trajectory_lanes(lanes, trajectories)
     seconds = time.perf_counter() - t0
     sim = Path(scenario.bag).with_name(Path(scenario.bag).name + ".sim.json")
     routes = None

@@ -130,9 +130,9 @@ def _lane_report(
         routes = {str(t.get("route_id")) for t in truth.values() if isinstance(t, dict)}
     lanes = derive_lanes(hdmap)
     if drives:  # the fleet's trajectories: connectors where the lanes lack one, as bag2map makes them
-        from hdmap_core.lanes.connectors import trajectory_connectors  # noqa: PLC0415
+        from hdmap_core.lanes.drivepath import trajectory_lanes  # noqa: PLC0415
 
-        lanes = trajectory_connectors(lanes, [d.xy for d in drives])
+        lanes = trajectory_lanes(lanes, [d.xy for d in drives])
     return evaluate_lanes(lanes, gt, route_ids=routes, config=config)
 
 

@@ -24,8 +24,8 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from hdmap_core.geometry import rdp_mask_many
-from hdmap_core.lanes.connectors import trajectory_connectors
 from hdmap_core.lanes.derive import derive_lanes
+from hdmap_core.lanes.drivepath import trajectory_lanes
 from hdmap_core.lanes.model import Boundary, LaneMap
 from hdmap_core.model import FeatureType, GeoOrigin, HDMap
 from hdmap_ros.io.geojson import enu_to_geodetic
@@ -61,13 +61,14 @@ def export_lanelet2(
     hdmap: HDMap, origin: GeoOrigin, directory: str | Path, *, trajectories: Sequence[np.ndarray] = ()
 ) -> str:
     """Derive the lanes of ``hdmap`` (with connectors from the drives' (N, 2) ``trajectories``
-    where the lanes lack a connection, :mod:`hdmap_core.lanes.connectors`) and write them to
+    where the lanes lack a connection, :mod:`hdmap_core.lanes.connectors`, and drive-path lanes,
+    :mod:`hdmap_core.lanes.drivepath`) and write them to
     ``directory``; returns a one-line note."""
     t0 = time.perf_counter()
     lanes = derive_lanes(hdmap)
     n = len(lanes.lanes)
     if len(trajectories):
-        lanes = trajectory_connectors(lanes, trajectories)
+        lanes = trajectory_lanes(lanes, trajectories)
     out = write_lanelet2(lanes, origin, directory)
     km = sum(ln.length_m for ln in lanes.lanes) / 1000.0
     extra = f", {len(lanes.lanes) - n} connectors from {len(trajectories)} drives" if len(trajectories) else ""
