@@ -52,6 +52,7 @@ __all__ = [
     "trajectory_connectors",
     "connections",
     "placed_trajectories",
+    "Placed",
     "relinked",
     "stable_id",
     "STEP_M",
@@ -77,15 +78,19 @@ _ANGLE_RAD = 0.6  # RULE T1: heading agreement of a point and its lane
 _SAMPLE_M = 0.5  # RULE T1: centerline samples of the lane locator
 _NEIGHBOURS = 12  # RULE T1: centerline samples looked at per point
 _HEADING_M = 5.0  # RULE T1: lane locator: metres per radian of heading difference
+_CHUNK = 8192  # points the lane locator takes at a time (speed only)
 
 
-def trajectory_connectors(lane_map: LaneMap, trajectories: Sequence[np.ndarray], *, min_drives: int = 1) -> LaneMap:
+def trajectory_connectors(
+    lane_map: LaneMap, trajectories: Sequence[np.ndarray], *, min_drives: int = 1, placed: Placed | None = None
+) -> LaneMap:
     """``lane_map`` with connector lanes (module docstring) for the connections at least
     ``min_drives`` of the (N, 2) ``trajectories`` [m, map frame, time ordered] made and the lanes
-    lack; the lanes they join gain them as successors / predecessors. No trajectory, no change."""
+    lack; the lanes they join gain them as successors / predecessors. No trajectory, no change:
+    then ``lane_map`` itself. ``placed``: :func:`placed_trajectories` of these, if already made."""
     if not lane_map.lanes or not len(trajectories):
         return lane_map
-    found = connections(lane_map, trajectories)
+    found = connections(lane_map, trajectories, placed=placed)
     lanes = {ln.id: ln for ln in lane_map.lanes}
     bounds = {b.id: b for b in lane_map.boundaries}
     new_lanes: list[Lane] = []
@@ -110,9 +115,12 @@ def trajectory_connectors(lane_map: LaneMap, trajectories: Sequence[np.ndarray],
     )
 
 
-def connections(lane_map: LaneMap, trajectories: Sequence[np.ndarray]) -> dict[tuple[int, int], list[np.ndarray]]:
+def connections(
+    lane_map: LaneMap, trajectories: Sequence[np.ndarray], *, placed: Placed | None = None
+) -> dict[tuple[int, int], list[np.ndarray]]:
     """RULES T1-T2: (lane P, lane Q) -> the trajectory pieces (M, 2) from P's end to Q's start of
-    the drives that went from P to Q where the lane graph has no way (within HOPS steps)."""
+    the drives that went from P to Q where the lane graph has no way (within HOPS steps).
+    ``placed``: :func:`placed_trajectories` of ``trajectories`` on ``lane_map``, if already made."""
     lanes = {ln.id: ln for ln in lane_map.lanes}
     g = lane_graph(lane_map)
     near: dict[int, set[int]] = {}
@@ -123,7 +131,9 @@ def connections(lane_map: LaneMap, trajectories: Sequence[np.ndarray]) -> dict[t
         return b in near[a]
 
     out: dict[tuple[int, int], list[np.ndarray]] = defaultdict(list)
-    for pts, ids, _ in placed_trajectories(lane_map, lanes, trajectories):
+    if placed is None:
+        placed = placed_trajectories(lane_map, lanes, trajectories)
+    for pts, ids, _ in placed:
         stays = _stays(ids)
         for (a, a0, a1), (b, b0, b1) in zip(stays, stays[1:], strict=False):
             if a == b or joined(a, b):
@@ -144,9 +154,11 @@ def connections(lane_map: LaneMap, trajectories: Sequence[np.ndarray]) -> dict[t
     return dict(out)
 
 
-def placed_trajectories(
-    lane_map: LaneMap, lanes: dict[int, Lane], trajectories: Sequence[np.ndarray]
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+#: :func:`placed_trajectories`' result: per trajectory (points, lane ids, offsets)
+Placed = list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def placed_trajectories(lane_map: LaneMap, lanes: dict[int, Lane], trajectories: Sequence[np.ndarray]) -> Placed:
     """RULE T1: per trajectory, its points every STEP_M, moved by its own median sideways offset
     from the lanes they lie in, the lane of each point (0: none) and its signed offset from that
     lane's centerline [m, + = left]. (All trajectories at once: one spatial index.)"""
@@ -208,6 +220,15 @@ class _Locator:
         )
 
     def __call__(self, xy: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if len(xy) <= _CHUNK:
+            return self._locate(xy, yaw)
+        # in chunks: the (points, neighbours) arrays of one stay in the cache (paper_like's 380 k
+        # points: 0.77 s instead of 1.86 s CPU at once; each point is located on its own, so
+        # the result is the same)
+        parts = [self._locate(xy[i : i + _CHUNK], yaw[i : i + _CHUNK]) for i in range(0, len(xy), _CHUNK)]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+    def _locate(self, xy: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         out = np.zeros(len(xy), dtype=np.int64)
         off = np.zeros(len(xy))
         if self.tree is None or not len(xy):

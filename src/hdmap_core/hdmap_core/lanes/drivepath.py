@@ -37,7 +37,14 @@ from collections.abc import Callable, Iterable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hdmap_core.lanes.connectors import STEP_M, placed_trajectories, relinked, stable_id, trajectory_connectors
+from hdmap_core.lanes.connectors import (
+    STEP_M,
+    Placed,
+    placed_trajectories,
+    relinked,
+    stable_id,
+    trajectory_connectors,
+)
 from hdmap_core.lanes.derive import proper_sides
 from hdmap_core.lanes.model import Boundary, Lane, LaneMap
 from hdmap_core.model import FeatureType
@@ -71,18 +78,28 @@ _PIN_M = 6.0  # RULE D3: the joined end's difference fades out within this way
 
 def trajectory_lanes(lane_map: LaneMap, trajectories: Sequence[np.ndarray]) -> LaneMap:
     """``lane_map`` with everything the drives add: the connectors
-    (:func:`hdmap_core.lanes.connectors.trajectory_connectors`), then the drive-path lanes."""
-    return drive_path_lanes(trajectory_connectors(lane_map, trajectories), trajectories)
+    (:func:`hdmap_core.lanes.connectors.trajectory_connectors`), then the drive-path lanes. The
+    trajectories are placed on the lanes once, and again only if connectors were added."""
+    if not lane_map.lanes or not len(trajectories):
+        return lane_map
+    placed = placed_trajectories(lane_map, {ln.id: ln for ln in lane_map.lanes}, trajectories)
+    joined = trajectory_connectors(lane_map, trajectories, placed=placed)
+    return drive_path_lanes(joined, trajectories, placed=placed if joined is lane_map else None)
 
 
-def drive_path_lanes(lane_map: LaneMap, trajectories: Sequence[np.ndarray], *, min_drives: int = MIN_DRIVES) -> LaneMap:
+def drive_path_lanes(
+    lane_map: LaneMap, trajectories: Sequence[np.ndarray], *, min_drives: int = MIN_DRIVES, placed: Placed | None = None
+) -> LaneMap:
     """``lane_map`` with drive-path lanes (module docstring) where at least ``min_drives`` of the
     (N, 2) ``trajectories`` [m, map frame, time ordered] went at least MIN_RUN_M outside every lane
-    of their direction. No trajectory or no such way: ``lane_map`` itself."""
+    of their direction. No trajectory or no such way: ``lane_map`` itself. ``placed``:
+    :func:`hdmap_core.lanes.connectors.placed_trajectories` of these on ``lane_map``, if made."""
     if not lane_map.lanes or not len(trajectories):
         return lane_map
     lanes = {ln.id: ln for ln in lane_map.lanes}
-    paths = _paths(placed_trajectories(lane_map, lanes, trajectories), lanes, max(1, min_drives))
+    if placed is None:
+        placed = placed_trajectories(lane_map, lanes, trajectories)
+    paths = _paths(placed, lanes, max(1, min_drives))
     if not paths:
         return lane_map
     bounds = {b.id: b for b in lane_map.boundaries}
