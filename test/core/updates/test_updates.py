@@ -15,8 +15,9 @@ from hdmap_core.simulation.fleet import simulate_fleet
 from hdmap_core.simulation.synthetic import synthetic_highway
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import change_point, detect_changes
+from hdmap_core.updates.edges import fleet_edge_evidence
 from hdmap_core.updates.evidence import fleet_evidence
-from hdmap_core.updates.follow import cut_before_changes, follow_changes
+from hdmap_core.updates.follow import cut_before_changes, fleet_comparison, follow_changes
 from hdmap_core.updates.places import places_of
 
 N_BEFORE, N_AFTER = 14, 4
@@ -137,3 +138,18 @@ def _empty_map():
     from hdmap_core.model import HDMap
 
     return HDMap()
+
+
+def test_the_drives_compared_on_two_processes_give_the_serial_records(road):
+    fleet = simulate_fleet(road, config=SIM, seed=5, changes=[parse_change("close:400-1100:fwd_lane2@14")])
+    drives = fleet.drives
+    hdmap, _ = _build(drives)
+    places = places_of(drives, cell_m=ChangeConfig().cell_m)
+    evidence = fleet_evidence(drives, hdmap, places, config=ChangeConfig())
+    edges = fleet_edge_evidence(drives, hdmap, places, evidence, config=ChangeConfig())
+    assert evidence and edges
+    for workers in (2, 3):
+        par_evidence, par_edges = fleet_comparison(drives, hdmap, places, config=ChangeConfig(), workers=workers)
+        # repr: every field, NaN included, to the last bit of each float
+        assert [repr(e) for e in par_evidence] == [repr(e) for e in evidence]
+        assert [repr(e) for e in par_edges] == [repr(e) for e in edges]

@@ -30,11 +30,19 @@ from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
+from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
-from hdmap_core.updates.edges import detect_edge_changes, fleet_edge_evidence, merge_changes
-from hdmap_core.updates.evidence import fleet_evidence
+from hdmap_core.updates.edges import (
+    EdgeEvidence,
+    detect_edge_changes,
+    edge_evidence,
+    fleet_edge_evidence,
+    merge_changes,
+    solid_lines,
+)
+from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evidence, map_lines
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
 from hdmap_core.updates.unseen import ModelledMarking, unseen_moved
@@ -46,6 +54,7 @@ __all__ = [
     "follow_map",
     "anchored",
     "cut_before_changes",
+    "fleet_comparison",
     "clip_to_places",
     "retired_features",
     "history_to_dict",
@@ -201,6 +210,32 @@ def along_drives(
     return out
 
 
+def fleet_comparison(
+    drives: Sequence[Drive], hdmap: HDMap, places: Places, *, config: ChangeConfig, workers: int = 1
+) -> tuple[list[PlaceEvidence], list[EdgeEvidence]]:
+    """Every drive compared with ``hdmap``: ``fleet_evidence`` and ``fleet_edge_evidence``, in
+    drive order.
+
+    Each drive's comparison is its own (its edge evidence is anchored on its own place evidence),
+    so with ``workers`` > 1 the drives are shared out by length over that many processes
+    (``parallel.map_balanced``: the map's lines indexed once here, inherited by the forked
+    workers) and the records put back in drive order: the same records as one process. Drives
+    with a shared id (their anchors would mix) are compared in one process.
+    """
+    if workers < 2 or len(drives) < 2 or len({d.drive_id for d in drives}) != len(drives):
+        evidence = fleet_evidence(drives, hdmap, places, config=config)
+        return evidence, fleet_edge_evidence(drives, hdmap, places, evidence, config=config)
+    lines, solids = map_lines(hdmap), solid_lines(hdmap)
+
+    def one(i: int) -> tuple[list[PlaceEvidence], list[EdgeEvidence]]:
+        ev = drive_evidence(drives[i], lines, places, config=config)
+        anchors = {e.key: e.anchor_m for e in ev if np.isfinite(e.anchor_m)}
+        return ev, edge_evidence(drives[i], solids, places, anchors, config=config)
+
+    per_drive = map_balanced(one, [max(d.length_m, 1.0) for d in drives], workers)
+    return [e for ev, _ in per_drive for e in ev], [x for _, xs in per_drive for x in xs]
+
+
 def cut_before_changes(
     drives: Sequence[Drive],
     places: Places,
@@ -281,6 +316,7 @@ def follow_changes(
     local: bool = True,
     margin_places: int = 2,
     taper_places: int = 1,
+    workers: int = 1,
 ) -> FollowResult:
     """The map of ``drives`` as of the last of them: the map of every drive (``build``), then
     :func:`follow_map` on it (module docstring).
@@ -293,7 +329,7 @@ def follow_changes(
             them (or malformed) is left out here as the build leaves it out, so that no evidence
             is computed on it (a pose at 1e12 m would ask for terabytes). ``drives`` is passed
             to ``build`` as given when every drive keeps them.
-        local, margin_places, taper_places: as :func:`follow_map`.
+        local, margin_places, taper_places, workers: as :func:`follow_map`.
     """
     usable, rejected = prepare_drives(drives, bounds=bounds)
     if rejected:
@@ -316,6 +352,7 @@ def follow_changes(
         local=local,
         margin_places=margin_places,
         taper_places=taper_places,
+        workers=workers,
     )
     # the first (whole) build's report, unless the whole map was built again
     report = reports[-1] if result.changes and not local else reports[0]
@@ -331,6 +368,7 @@ def follow_map(
     local: bool = True,
     margin_places: int = 2,
     taper_places: int = 1,
+    workers: int = 1,
 ) -> FollowResult:
     """An existing map of ``drives`` made to follow the changes of the road they show.
 
@@ -354,6 +392,8 @@ def follow_map(
         taper_places: with ``local``, the places this many before and after the changed ones
             along the drives after the change are rebuilt with them (from those drives only):
             the ends of a change (tapers) that detection left out.
+        workers: processes the drives' comparison with ``first_map`` runs on
+            (:func:`fleet_comparison`); the result is the same with any number.
 
     Returns:
         The followed map (``first_map`` itself when nothing changed, its version grown by the
@@ -363,9 +403,8 @@ def follow_map(
     """
     t1 = time.perf_counter()
     places = places_of(drives, cell_m=config.cell_m)
-    evidence = fleet_evidence(drives, first_map, places, config=config)
+    evidence, edges = fleet_comparison(drives, first_map, places, config=config, workers=workers)
     changes = detect_changes(evidence, places, config=config)
-    edges = fleet_edge_evidence(drives, first_map, places, evidence, config=config)
     changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
     t0 = time.perf_counter()
     seconds = {"detect": t0 - t1}

@@ -263,7 +263,9 @@ def run(args: argparse.Namespace) -> int:
                 )
                 return result.map, result.report
 
-            followed = follow_changes(usable, build=build, bounds=None)  # usable: checked above
+            followed = follow_changes(
+                usable, build=build, bounds=None, workers=args.workers or available_cpus()
+            )  # usable: checked above
             history = history_to_dict(followed)
             # a local rebuild maps the changed places only: the run's figures are the first build's
             base = first if followed.report is first.report else result
