@@ -46,7 +46,6 @@ _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 _COS_MIN = 0.7  # a line runs with the drive on a cut when cos(angle) >= this
 _GRID_M = 0.02
 _ANCHOR_REACH = 2  # places along the drive whose border offsets stand in for a place without
-_UNWRAP_GAIN = 0.5  # markings per cut a lane-aliased offset must leave unexplained more than the true one
 _BORDER_REACH_M = 1.0  # a place's border offset within this of the drive's (below half the barriers' 2.5 m)
 
 
@@ -166,90 +165,21 @@ def _by_place(place: np.ndarray, n_places: int):
     return lambda p: order[bounds[p] : bounds[p + 1]]
 
 
-def _explained(
-    o_cut: np.ndarray,
-    drive: tuple[np.ndarray, np.ndarray, np.ndarray],
-    mapl: tuple[np.ndarray, np.ndarray, np.ndarray],
-    place_of_cut: np.ndarray,
-    n_places: int,
-    match_m: float,
-) -> np.ndarray:
-    """Per place, the markings one offset per cut ``o_cut`` (map - drive) leaves unexplained: the
-    drive's markings that land inside the map's lines on their cut (any class, borders too) with
-    no map marking within ``match_m``, and the map's markings that land inside the drive's lines
-    with no drive marking there."""
-    d_cut, d_s, d_t = drive
-    m_cut, m_s, m_t = mapl
-    k = len(o_cut)
-
-    def extent(cut: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
-        np.minimum.at(lo, cut, s)
-        np.maximum.at(hi, cut, s)
-        return lo - match_m, hi + match_m
-
-    d_lo, d_hi = extent(d_cut, d_s)
-    m_lo, m_hi = extent(m_cut, m_s)
-    dm, mm = np.flatnonzero(np.isin(d_t, _MARKINGS)), np.flatnonzero(np.isin(m_t, _MARKINGS))
-    dc, mc = d_cut[dm], m_cut[mm]
-    ds = d_s[dm] + o_cut[dc]  # the drive's markings where the map has them
-    ms = m_s[mm] - o_cut[mc]  # the map's markings where the drive has them
-    d_in = (ds >= m_lo[dc]) & (ds <= m_hi[dc])
-    m_in = (ms >= d_lo[mc]) & (ms <= d_hi[mc])
-    ti, tj, _ = _pairs(dc, ds, mc, m_s[mm], k, match_m)
-    d_ok = np.zeros(len(dm), dtype=bool)
-    d_ok[ti] = True
-    m_ok = np.zeros(len(mm), dtype=bool)
-    m_ok[tj] = True
-    return np.bincount(place_of_cut[dc[d_in & ~d_ok]], minlength=n_places) + np.bincount(
-        place_of_cut[mc[m_in & ~m_ok]], minlength=n_places
-    )
-
-
-def _unwrap_lane(
-    offsets: np.ndarray,
-    n_pairs: np.ndarray,
-    enough: np.ndarray,
-    anchors: np.ndarray,
-    drive: tuple[np.ndarray, np.ndarray, np.ndarray],
-    mapl: tuple[np.ndarray, np.ndarray, np.ndarray],
-    place_of_cut: np.ndarray,
-    config: ChangeConfig,
-) -> None:
-    """A move near a lane width aliases: each moved marking pairs with its neighbour's old place
-    (3 m reads as 3 - 3.5 = -0.5 m). Per place, the offsets a lane (``2 * max_shift_m``) either
-    side of the one found are hypotheses too, each refined on the pairs near it; one replaces the
-    offset (in place, with its pairs) where it leaves at least ``_UNWRAP_GAIN`` markings per cut
-    fewer unexplained (``_explained``): the true move explains every moved line, the alias leaves
-    the outermost moved line where the map has none and one old line empty."""
-    d_cut, d_s, d_t = drive
-    m_cut, m_s, m_t = mapl
-    n_places, k = len(offsets), len(place_of_cut)
-    lane = 2 * config.max_shift_m
-    dm, mm = np.flatnonzero(np.isin(d_t, _MARKINGS)), np.flatnonzero(np.isin(m_t, _MARKINGS))
-    wi, _, wr = _pairs(d_cut[dm], d_s[dm], m_cut[mm], m_s[mm], k, config.pair_max_m + lane)
-    pairs_of = _by_place(place_of_cut[d_cut[dm][wi]], n_places)
-    base = np.where(enough, offsets, np.nan)
-    o_base = np.nan_to_num(base, nan=0.0)[place_of_cut]
-    miss_base = _explained(o_base, drive, mapl, place_of_cut, n_places, config.match_m)
-    n_cuts = np.bincount(place_of_cut, minlength=n_places)
-    best, best_n, best_miss = base.copy(), n_pairs.copy(), miss_base.astype(float)
-    for sign in (-1.0, 1.0):
-        alt = np.full(n_places, np.nan)
-        n_alt = np.zeros(n_places, dtype=np.int64)
-        for p in np.flatnonzero(enough):
-            alt[p], n_alt[p] = density_mode(
-                wr[pairs_of(p)], reach_m=config.max_shift_m / 2, kernel_m=config.kernel_m, center=base[p] + sign * lane
-            )
-        ok = (n_alt >= config.min_pairs) & np.isfinite(alt) & (np.abs(alt - anchors) > config.max_shift_m)
-        if not ok.any():
-            continue
-        o_alt = np.where(ok, alt, np.nan_to_num(base, nan=0.0))[place_of_cut]
-        miss = _explained(o_alt, drive, mapl, place_of_cut, n_places, config.match_m).astype(float)
-        win = ok & (miss <= miss_base - _UNWRAP_GAIN * n_cuts) & (miss < best_miss)
-        best[win], best_n[win], best_miss[win] = alt[win], n_alt[win], miss[win]
-    offsets[:] = np.where(enough, best, offsets)
-    n_pairs[:] = best_n
+def _follow_move(cut: np.ndarray, move: np.ndarray, k: int, reach_m: float) -> np.ndarray:
+    """The markings' move (the pairs' ``move`` per ``cut``, sorted by cut) followed cut by cut
+    along the drive from 0 at its first cut: on each cut the median of its moves within ``reach_m`` of the move so
+    far pulls it half way (a shift zone starts with a taper, which a 4 m cut step follows in
+    steps of a few cm; a cut with none keeps it). (k,) per cut."""
+    out = np.zeros(k)
+    bounds = np.searchsorted(cut, np.arange(k + 1))
+    m = 0.0
+    for c in range(k):
+        v = move[bounds[c] : bounds[c + 1]]
+        v = v[np.isfinite(v) & (np.abs(v - m) <= reach_m)]
+        if len(v):
+            m += 0.5 * (float(np.median(v)) - m)
+        out[c] = m
+    return out
 
 
 def drive_evidence(
@@ -308,6 +238,29 @@ def drive_evidence(
             anchors[p] = float(np.nanmean(near))
         else:
             anchors[p] = drive_border if np.isfinite(drive_border) else drive_offset
+    # A move near a lane's width is sought where the drive followed it along the road (the
+    # markings' pairs farther apart than ``pair_max_m`` too), not near the anchor, where each
+    # moved marking pairs with its neighbour's old place (3 m on 3.5 m lanes reads -0.5 m).
+    lane = 2 * config.max_shift_m
+    wi, _, wr = _pairs(d_cut[dm], d_s[dm], m_cut[mm], m_s[mm], k, config.pair_max_m + lane)
+    w_cut = d_cut[dm][wi]
+    w_move = wr - anchors[place_of_cut[w_cut]]
+    ahead = _follow_move(w_cut, w_move, k, config.max_shift_m / 2)
+    back = _follow_move(k - 1 - w_cut[::-1], w_move[::-1], k, config.max_shift_m / 2)[::-1]
+    # From its start a drive that began inside a shift zone follows the alias (and then reads a
+    # lane's move past the zone's end); from its end, one that ends inside. Most of any drive's
+    # road did not move: the direction that finds less of it moved by more than half a lane.
+    far = config.max_shift_m
+    followed = ahead if (np.abs(ahead) > far).sum() <= (np.abs(back) > far).sum() else back
+    wide_of = _by_place(place_of_cut[w_cut], n_places)
+    cuts_of = _by_place(place_of_cut, n_places)
+    for p in range(n_places):
+        move = float(np.median(followed[cuts_of(p)])) if len(cuts_of(p)) else 0.0
+        if abs(move) > config.max_shift_m and np.isfinite(anchors[p]):
+            offsets[p], n_pairs[p] = density_mode(
+                wr[wide_of(p)], reach_m=config.max_shift_m, kernel_m=config.kernel_m, center=float(anchors[p]) + move
+            )
+            continue
         # The markings' offset near the anchor: farther than half a lane a marking pairs with its
         # neighbour line.
         if np.isfinite(anchors[p]):
@@ -315,7 +268,6 @@ def drive_evidence(
                 pr[pairs_of(p)], reach_m=config.max_shift_m, kernel_m=config.kernel_m, center=float(anchors[p])
             )
     enough = n_pairs >= config.min_pairs
-    _unwrap_lane(offsets, n_pairs, enough, anchors, (d_cut, d_s, d_t), (m_cut, m_s, m_t), place_of_cut, config)
     displacement = np.where(enough, offsets - anchors, np.nan)
     # the drive's offset per cut (its place's): its markings against the map's after it
     o_cut = np.where(enough, offsets, np.where(np.isfinite(anchors), anchors, 0.0))[place_of_cut]
