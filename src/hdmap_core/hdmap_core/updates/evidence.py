@@ -165,6 +165,20 @@ def _by_place(place: np.ndarray, n_places: int):
     return lambda p: order[bounds[p] : bounds[p + 1]]
 
 
+def _paired(
+    o_cut: np.ndarray, drive: tuple[np.ndarray, np.ndarray], mapl: tuple[np.ndarray, np.ndarray], match_m: float
+) -> np.ndarray:
+    """Per cut, the markings an offset per cut ``o_cut`` (map - drive) pairs: the drive's
+    ``(cut, lateral)`` markings with a map marking within ``match_m`` after it, and the map's
+    with such a drive marking. Counted, not as a share of the lines in view: an offset that moves
+    lines out of each other's view pairs fewer."""
+    d_cut, d_s = drive
+    m_cut, m_s = mapl
+    k = len(o_cut)
+    ti, tj, _ = _pairs(d_cut, d_s + o_cut[d_cut], m_cut, m_s, k, match_m)
+    return np.bincount(d_cut[np.unique(ti)], minlength=k) + np.bincount(m_cut[np.unique(tj)], minlength=k)
+
+
 def _follow_move(cut: np.ndarray, move: np.ndarray, k: int, reach_m: float) -> np.ndarray:
     """The markings' move (the pairs' ``move`` per ``cut``, sorted by cut) followed cut by cut
     along the drive from 0 at its first cut: on each cut the median of its moves within ``reach_m`` of the move so
@@ -248,10 +262,16 @@ def drive_evidence(
     ahead = _follow_move(w_cut, w_move, k, config.max_shift_m / 2)
     back = _follow_move(k - 1 - w_cut[::-1], w_move[::-1], k, config.max_shift_m / 2)[::-1]
     # From its start a drive that began inside a shift zone follows the alias (and then reads a
-    # lane's move past the zone's end); from its end, one that ends inside. Most of any drive's
-    # road did not move: the direction that finds less of it moved by more than half a lane.
-    far = config.max_shift_m
-    followed = ahead if (np.abs(ahead) > far).sum() <= (np.abs(back) > far).sum() else back
+    # lane's move past the zone's end); from its end, one that ends inside. Where the two
+    # disagree, the one that pairs more of the drive's markings with the map's is taken: the
+    # alias leaves the outermost moved line and one old line unpaired.
+    differ = np.abs(ahead - back) > config.max_shift_m
+    followed = ahead
+    if differ.any():
+        lines_d, lines_m = (d_cut[dm], d_s[dm]), (m_cut[mm], m_s[mm])
+        fit_a = _paired(anchors[place_of_cut] + ahead, lines_d, lines_m, config.match_m)[differ].sum()
+        fit_b = _paired(anchors[place_of_cut] + back, lines_d, lines_m, config.match_m)[differ].sum()
+        followed = ahead if fit_a >= fit_b else back
     wide_of = _by_place(place_of_cut[w_cut], n_places)
     cuts_of = _by_place(place_of_cut, n_places)
     for p in range(n_places):
