@@ -263,11 +263,15 @@ def drive_evidence(
     back = _follow_move(k - 1 - w_cut[::-1], w_move[::-1], k, config.max_shift_m / 2)[::-1]
     # From its start a drive that began inside a shift zone follows the alias (and then reads a
     # lane's move past the zone's end); from its end, one that ends inside. Where the two
-    # disagree, the one that pairs more of the drive's markings with the map's is taken: the
-    # alias leaves the outermost moved line and one old line unpaired.
-    differ = np.abs(ahead - back) > config.max_shift_m
+    # disagree: the one that comes back to no move at its other end (most road did not move),
+    # if only one does, else the one that pairs more of the drive's markings with the map's
+    # (the alias leaves the outermost moved line and one old line unpaired).
+    far = config.max_shift_m
+    differ = np.abs(ahead - back) > far
     followed = ahead
-    if differ.any():
+    if differ.any() and (abs(ahead[-1]) <= far) != (abs(back[0]) <= far):
+        followed = ahead if abs(ahead[-1]) <= far else back
+    elif differ.any():
         lines_d, lines_m = (d_cut[dm], d_s[dm]), (m_cut[mm], m_s[mm])
         fit_a = _paired(anchors[place_of_cut] + ahead, lines_d, lines_m, config.match_m)[differ].sum()
         fit_b = _paired(anchors[place_of_cut] + back, lines_d, lines_m, config.match_m)[differ].sum()
