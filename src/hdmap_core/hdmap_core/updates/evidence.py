@@ -21,8 +21,9 @@ are intersected (the evaluator's vectorised cut machinery). Per place (``updates
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -39,13 +40,22 @@ from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.places import PlaceKey, Places
 
-__all__ = ["PlaceEvidence", "MapLines", "map_lines", "drive_evidence", "density_mode"]
+__all__ = [
+    "PlaceEvidence",
+    "MapLines",
+    "map_lines",
+    "drive_evidence",
+    "fleet_evidence",
+    "unwrap_aliases",
+    "density_mode",
+]
 
 _BORDER = int(FeatureType.ROAD_BORDER)
 _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 _COS_MIN = 0.7  # a line runs with the drive on a cut when cos(angle) >= this
 _GRID_M = 0.02
 _ANCHOR_REACH = 2  # places along the drive whose border offsets stand in for a place without
+_ALIAS_M = 0.5  # a drive's move within this of the place's lane-sized move (or its alias) agrees
 _BORDER_REACH_M = 1.0  # a place's border offset within this of the drive's (below half the barriers' 2.5 m)
 
 
@@ -346,4 +356,34 @@ def fleet_evidence(
 ) -> list[PlaceEvidence]:
     """``drive_evidence`` of every drive against ``hdmap``."""
     lines = map_lines(hdmap)
-    return [e for d in drives for e in drive_evidence(d, lines, places, config=config)]
+    return unwrap_aliases([e for d in drives for e in drive_evidence(d, lines, places, config=config)], config)
+
+
+def unwrap_aliases(evidence: list[PlaceEvidence], config: ChangeConfig) -> list[PlaceEvidence]:
+    """``evidence`` with the aliases of a lane-sized move read as the move: per place, where at
+    least 2 drives read a move beyond half a lane (``max_shift_m``; nothing else reads one)
+    within ``_ALIAS_M`` of their median M, every drive there from the first of them on that
+    reads M's alias (M less a lane, within ``_ALIAS_M``) reads M: it missed the taper it would
+    have followed the move on. Drives after a change that disagree lose the change."""
+    lane, far = 2 * config.max_shift_m, config.max_shift_m
+    by_key: dict[PlaceKey, list[int]] = {}
+    for i, e in enumerate(evidence):
+        if math.isfinite(e.displacement_m):
+            by_key.setdefault(e.key, []).append(i)
+    out = list(evidence)
+    for idx in by_key.values():
+        big = [i for i in idx if abs(evidence[i].displacement_m) > far]
+        if len(big) < 2:
+            continue
+        m = float(np.median([evidence[i].displacement_m for i in big]))
+        agree = [i for i in big if abs(evidence[i].displacement_m - m) <= _ALIAS_M]
+        if len(agree) < 2:
+            continue
+        t0 = min(evidence[i].time_ns for i in agree)
+        alias = m - math.copysign(lane, m)
+        for i in idx:
+            e = evidence[i]
+            if e.time_ns >= t0 and abs(e.displacement_m - alias) <= _ALIAS_M:
+                step = math.copysign(lane, m)
+                out[i] = replace(e, offset_m=e.offset_m + step, displacement_m=e.displacement_m + step)
+    return out
