@@ -9,7 +9,7 @@ import pytest
 
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature
 from hdmap_core.updates.config import ChangeConfig
-from hdmap_core.updates.evidence import fleet_evidence
+from hdmap_core.updates.evidence import PlaceEvidence, fleet_evidence, unwrap_aliases
 from hdmap_core.updates.places import places_of
 
 LENGTH_M = 700.0
@@ -59,3 +59,20 @@ def test_a_move_near_a_lane_width_is_not_read_as_its_alias(shift_m):
     assert len(past) >= 6 and len(before) >= 2
     assert np.all(np.abs(np.array(past) + shift_m) < 0.1), past
     assert np.all(np.abs(np.array(before)) < 0.1), before
+
+
+def _ev(drive: str, t: int, disp: float, key=(0, 0, 0)) -> PlaceEvidence:
+    return PlaceEvidence(drive, t, key, 25, disp, 0.0, True, disp, 40, 40, 0, 40, 0, 40, 0)
+
+
+def test_a_drive_reading_the_alias_of_the_places_move_reads_the_move():
+    """A drive after the change that missed the taper reads the move less a lane; two others read
+    the move: it is read as the move too. Drives before the first of them, and places where
+    fewer than two drives read a lane-sized move, stay as they are."""
+    ev = [_ev("b1", 1, -0.3), _ev("b2", 2, 0.05), _ev("a1", 10, 3.1), _ev("a2", 11, -0.4), _ev("a3", 12, 3.2)]
+    ev += [_ev("a1", 10, 3.1, (1, 0, 0)), _ev("a2", 11, -0.4, (1, 0, 0))]
+    out = {(e.drive_id, e.key): e.displacement_m for e in unwrap_aliases(ev, ChangeConfig())}
+    assert out[("a2", (0, 0, 0))] == pytest.approx(3.1)
+    assert out[("b1", (0, 0, 0))] == pytest.approx(-0.3)  # before the move was seen
+    assert out[("b2", (0, 0, 0))] == pytest.approx(0.05)
+    assert out[("a2", (1, 0, 0))] == pytest.approx(-0.4)  # one drive is no move
