@@ -11,7 +11,9 @@ are intersected (the evaluator's vectorised cut machinery). Per place (``updates
   before and after it along the drive (else its border offset over all its places, else its
   marking offset over all its places);
 * **displacement** = offset - anchor: the markings' move relative to what did not move. A drive
-  that is merely badly localised is off by the same amount in both: displacement ~ 0;
+  that is merely badly localised is off by the same amount in both: displacement ~ 0. A move
+  near a lane's width is followed cut by cut along the drive (``_follow_move``), else each moved
+  marking pairs with its neighbour's old place; ``unwrap_aliases`` reconciles the drives;
 * **type**: of the drive's markings near it that match a map marking (after its offset), how
   many have the other type (dashed <-> solid);
 * **negative**: of the map's markings near the drive, how many it did not see at all;
@@ -191,9 +193,9 @@ def _paired(
 
 def _follow_move(cut: np.ndarray, move: np.ndarray, k: int, reach_m: float) -> np.ndarray:
     """The markings' move (the pairs' ``move`` per ``cut``, sorted by cut) followed cut by cut
-    along the drive from 0 at its first cut: on each cut the median of its moves within ``reach_m`` of the move so
-    far pulls it half way (a shift zone starts with a taper, which a 4 m cut step follows in
-    steps of a few cm; a cut with none keeps it). (k,) per cut."""
+    along the drive from 0 at its first cut: on each cut the median of its moves within
+    ``reach_m`` of the move so far pulls it half way (a shift zone starts with a taper, which a
+    4 m cut step follows in steps of a few cm; a cut with none keeps it). (k,) per cut."""
     out = np.zeros(k)
     bounds = np.searchsorted(cut, np.arange(k + 1))
     m = 0.0
