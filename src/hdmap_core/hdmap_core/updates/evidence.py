@@ -11,7 +11,9 @@ are intersected (the evaluator's vectorised cut machinery). Per place (``updates
   before and after it along the drive (else its border offset over all its places, else its
   marking offset over all its places);
 * **displacement** = offset - anchor: the markings' move relative to what did not move. A drive
-  that is merely badly localised is off by the same amount in both: displacement ~ 0;
+  that is merely badly localised is off by the same amount in both: displacement ~ 0. A move
+  near a lane's width is followed cut by cut along the drive (``_follow_move``), else each moved
+  marking pairs with its neighbour's old place; ``unwrap_aliases`` reconciles the drives;
 * **type**: of the drive's markings near it that match a map marking (after its offset), how
   many have the other type (dashed <-> solid);
 * **negative**: of the map's markings near the drive, how many it did not see at all;
@@ -21,8 +23,9 @@ are intersected (the evaluator's vectorised cut machinery). Per place (``updates
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -39,13 +42,22 @@ from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.places import PlaceKey, Places
 
-__all__ = ["PlaceEvidence", "MapLines", "map_lines", "drive_evidence", "density_mode"]
+__all__ = [
+    "PlaceEvidence",
+    "MapLines",
+    "map_lines",
+    "drive_evidence",
+    "fleet_evidence",
+    "unwrap_aliases",
+    "density_mode",
+]
 
 _BORDER = int(FeatureType.ROAD_BORDER)
 _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 _COS_MIN = 0.7  # a line runs with the drive on a cut when cos(angle) >= this
 _GRID_M = 0.02
 _ANCHOR_REACH = 2  # places along the drive whose border offsets stand in for a place without
+_ALIAS_M = 0.5  # a drive's move within this of the place's lane-sized move (or its alias) agrees
 _BORDER_REACH_M = 1.0  # a place's border offset within this of the drive's (below half the barriers' 2.5 m)
 
 
@@ -165,6 +177,37 @@ def _by_place(place: np.ndarray, n_places: int):
     return lambda p: order[bounds[p] : bounds[p + 1]]
 
 
+def _paired(
+    o_cut: np.ndarray, drive: tuple[np.ndarray, np.ndarray], mapl: tuple[np.ndarray, np.ndarray], match_m: float
+) -> np.ndarray:
+    """Per cut, the markings an offset per cut ``o_cut`` (map - drive) pairs: the drive's
+    ``(cut, lateral)`` markings with a map marking within ``match_m`` after it, and the map's
+    with such a drive marking. Counted, not as a share of the lines in view: an offset that moves
+    lines out of each other's view pairs fewer."""
+    d_cut, d_s = drive
+    m_cut, m_s = mapl
+    k = len(o_cut)
+    ti, tj, _ = _pairs(d_cut, d_s + o_cut[d_cut], m_cut, m_s, k, match_m)
+    return np.bincount(d_cut[np.unique(ti)], minlength=k) + np.bincount(m_cut[np.unique(tj)], minlength=k)
+
+
+def _follow_move(cut: np.ndarray, move: np.ndarray, k: int, reach_m: float) -> np.ndarray:
+    """The markings' move (the pairs' ``move`` per ``cut``, sorted by cut) followed cut by cut
+    along the drive from 0 at its first cut: on each cut the median of its moves within
+    ``reach_m`` of the move so far pulls it half way (a shift zone starts with a taper, which a
+    4 m cut step follows in steps of a few cm; a cut with none keeps it). (k,) per cut."""
+    out = np.zeros(k)
+    bounds = np.searchsorted(cut, np.arange(k + 1))
+    m = 0.0
+    for c in range(k):
+        v = move[bounds[c] : bounds[c + 1]]
+        v = v[np.isfinite(v) & (np.abs(v - m) <= reach_m)]
+        if len(v):
+            m += 0.5 * (float(np.median(v)) - m)
+        out[c] = m
+    return out
+
+
 def drive_evidence(
     drive: Drive, lines: MapLines, places: Places, *, config: ChangeConfig = ChangeConfig()
 ) -> list[PlaceEvidence]:
@@ -221,6 +264,39 @@ def drive_evidence(
             anchors[p] = float(np.nanmean(near))
         else:
             anchors[p] = drive_border if np.isfinite(drive_border) else drive_offset
+    # A move near a lane's width is sought where the drive followed it along the road (the
+    # markings' pairs farther apart than ``pair_max_m`` too), not near the anchor, where each
+    # moved marking pairs with its neighbour's old place (3 m on 3.5 m lanes reads -0.5 m).
+    lane = 2 * config.max_shift_m
+    wi, _, wr = _pairs(d_cut[dm], d_s[dm], m_cut[mm], m_s[mm], k, config.pair_max_m + lane)
+    w_cut = d_cut[dm][wi]
+    w_move = wr - anchors[place_of_cut[w_cut]]
+    ahead = _follow_move(w_cut, w_move, k, config.max_shift_m / 2)
+    back = _follow_move(k - 1 - w_cut[::-1], w_move[::-1], k, config.max_shift_m / 2)[::-1]
+    # From its start a drive that began inside a shift zone follows the alias (and then reads a
+    # lane's move past the zone's end); from its end, one that ends inside. Where the two
+    # disagree: the one that comes back to no move at its other end (most road did not move),
+    # if only one does, else the one that pairs more of the drive's markings with the map's
+    # (the alias leaves the outermost moved line and one old line unpaired).
+    far = config.max_shift_m
+    differ = np.abs(ahead - back) > far
+    followed = ahead
+    if differ.any() and (abs(ahead[-1]) <= far) != (abs(back[0]) <= far):
+        followed = ahead if abs(ahead[-1]) <= far else back
+    elif differ.any():
+        lines_d, lines_m = (d_cut[dm], d_s[dm]), (m_cut[mm], m_s[mm])
+        fit_a = _paired(anchors[place_of_cut] + ahead, lines_d, lines_m, config.match_m)[differ].sum()
+        fit_b = _paired(anchors[place_of_cut] + back, lines_d, lines_m, config.match_m)[differ].sum()
+        followed = ahead if fit_a >= fit_b else back
+    wide_of = _by_place(place_of_cut[w_cut], n_places)
+    cuts_of = _by_place(place_of_cut, n_places)
+    for p in range(n_places):
+        move = float(np.median(followed[cuts_of(p)])) if len(cuts_of(p)) else 0.0
+        if abs(move) > config.max_shift_m and np.isfinite(anchors[p]):
+            offsets[p], n_pairs[p] = density_mode(
+                wr[wide_of(p)], reach_m=config.max_shift_m, kernel_m=config.kernel_m, center=float(anchors[p]) + move
+            )
+            continue
         # The markings' offset near the anchor: farther than half a lane a marking pairs with its
         # neighbour line.
         if np.isfinite(anchors[p]):
@@ -282,4 +358,34 @@ def fleet_evidence(
 ) -> list[PlaceEvidence]:
     """``drive_evidence`` of every drive against ``hdmap``."""
     lines = map_lines(hdmap)
-    return [e for d in drives for e in drive_evidence(d, lines, places, config=config)]
+    return unwrap_aliases([e for d in drives for e in drive_evidence(d, lines, places, config=config)], config)
+
+
+def unwrap_aliases(evidence: list[PlaceEvidence], config: ChangeConfig) -> list[PlaceEvidence]:
+    """``evidence`` with the aliases of a lane-sized move read as the move: per place, where at
+    least 2 drives read a move beyond half a lane (``max_shift_m``; nothing else reads one)
+    within ``_ALIAS_M`` of their median M, every drive there from the first of them on that
+    reads M's alias (M less a lane, within ``_ALIAS_M``) reads M: it missed the taper it would
+    have followed the move on. Drives after a change that disagree lose the change."""
+    lane, far = 2 * config.max_shift_m, config.max_shift_m
+    by_key: dict[PlaceKey, list[int]] = {}
+    for i, e in enumerate(evidence):
+        if math.isfinite(e.displacement_m):
+            by_key.setdefault(e.key, []).append(i)
+    out = list(evidence)
+    for idx in by_key.values():
+        big = [i for i in idx if abs(evidence[i].displacement_m) > far]
+        if len(big) < 2:
+            continue
+        m = float(np.median([evidence[i].displacement_m for i in big]))
+        agree = [i for i in big if abs(evidence[i].displacement_m - m) <= _ALIAS_M]
+        if len(agree) < 2:
+            continue
+        t0 = min(evidence[i].time_ns for i in agree)
+        alias = m - math.copysign(lane, m)
+        for i in idx:
+            e = evidence[i]
+            if e.time_ns >= t0 and abs(e.displacement_m - alias) <= _ALIAS_M:
+                step = math.copysign(lane, m)
+                out[i] = replace(e, offset_m=e.offset_m + step, displacement_m=e.displacement_m + step)
+    return out

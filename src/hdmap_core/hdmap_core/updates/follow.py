@@ -42,7 +42,7 @@ from hdmap_core.updates.edges import (
     merge_changes,
     solid_lines,
 )
-from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evidence, map_lines
+from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evidence, map_lines, unwrap_aliases
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
 from hdmap_core.updates.unseen import ModelledMarking, unseen_moved
@@ -233,7 +233,8 @@ def fleet_comparison(
         return ev, edge_evidence(drives[i], solids, places, anchors, config=config)
 
     per_drive = map_balanced(one, [max(d.length_m, 1.0) for d in drives], workers)
-    return [e for ev, _ in per_drive for e in ev], [x for _, xs in per_drive for x in xs]
+    evidence = unwrap_aliases([e for ev, _ in per_drive for e in ev], config)  # as fleet_evidence
+    return evidence, [x for _, xs in per_drive for x in xs]
 
 
 def cut_before_changes(
