@@ -35,17 +35,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdmap_core.evaluation.cuts import (
-    SegmentIndex,
-    Segments,
     index_segments,
-    intersect_cuts,
-    intersect_indexed,
     segments_of,
 )
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, PlaceChange, change_point, grow_changes
-from hdmap_core.updates.evidence import PlaceEvidence, drive_cuts
+from hdmap_core.updates.evidence import PlaceEvidence, drive_cuts, lines_on_cuts
 from hdmap_core.updates.places import PlaceKey, Places
 
 __all__ = ["EdgeEvidence", "edge_evidence", "detect_edge_changes", "merge_changes", "MIN_EDGE_MOVE_M"]
@@ -56,7 +52,6 @@ _SOLID = int(FeatureType.SOLID)
 _SEEN_M = 6.0  # the map's edge line counts where it lies this close right of the drive (the next lane's) [m]
 _MIN_CUTS = 6  # cuts a drive needs in a place for its edge move there (a place is ~12 cuts long)
 _MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
-_COS_MIN = 0.7  # a line runs with the drive on a cut when cos(angle) >= this
 
 
 @dataclass(frozen=True)
@@ -68,25 +63,6 @@ class EdgeEvidence:
     key: PlaceKey
     move_m: float
     n_cuts: int
-
-
-def _on_cuts(
-    center: np.ndarray, tangent: np.ndarray, view_m: float, lines: Segments | SegmentIndex
-) -> tuple[np.ndarray, np.ndarray]:
-    """(cut, lateral position) of the ``lines`` crossing the cuts, running with the drive (the
-    map's come indexed, ``solid_lines``: a drive's cuts query them)."""
-    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-    k = len(center)
-    lo, hi = np.full(k, -view_m), np.full(k, view_m)
-    if isinstance(lines, SegmentIndex):
-        segs = lines.segments
-        ci, si, s, _ = intersect_indexed(center, normal, lo, hi, lines)
-    else:
-        segs = lines
-        ci, si, s, _ = intersect_cuts(center, normal, lo, hi, segs)
-    d = segs.b[si] - segs.a[si]
-    ok = (d * tangent[ci]).sum(axis=1) >= _COS_MIN * np.linalg.norm(d, axis=1)
-    return ci[ok], s[ok]
 
 
 def _rightmost(cut: np.ndarray, s: np.ndarray, k: int, reach: float) -> np.ndarray:
@@ -118,8 +94,8 @@ def edge_evidence(
     if not dets:
         return []
     dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
-    d_cut, d_s = _on_cuts(center, tangent, config.view_m, dsegs)
-    m_cut, m_s = _on_cuts(center, tangent, config.view_m, segs)
+    d_cut, _, d_s = lines_on_cuts(center, tangent, config.view_m, dsegs)
+    m_cut, _, m_s = lines_on_cuts(center, tangent, config.view_m, segs)
     keys = places.keys(center, yaw)
     a = np.array([anchors.get(key, np.nan) for key in keys])
     drive_right = _rightmost(d_cut, d_s, k, config.view_m)

@@ -47,6 +47,8 @@ __all__ = [
     "MapLines",
     "map_lines",
     "drive_evidence",
+    "drive_cuts",
+    "lines_on_cuts",
     "fleet_evidence",
     "unwrap_aliases",
     "density_mode",
@@ -136,10 +138,13 @@ def drive_cuts(drive: Drive, step_m: float) -> tuple[np.ndarray, np.ndarray, np.
     return xy[i], np.stack([np.cos(yaw), np.sin(yaw)], axis=1), yaw
 
 
-def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, lines: Segments | SegmentIndex, types: np.ndarray):
-    """(cut, lateral position, type) of the ``lines`` crossing the cuts and running with the drive,
-    ordered by cut, then segment. The map's lines come indexed (``MapLines``): a drive's cuts
-    query them, at a cost that grows with the drive, not with the map."""
+def lines_on_cuts(
+    center: np.ndarray, tangent: np.ndarray, view_m: float, lines: Segments | SegmentIndex
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(cut, segment, lateral position) of the ``lines`` crossing the cuts within ``view_m`` and
+    running with the drive (cos of the angle >= _COS_MIN). The map's lines come indexed
+    (``MapLines``, ``edges.solid_lines``): a drive's cuts query them, at a cost that grows with
+    the drive, not with the map."""
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
     k = len(center)
     lo, hi = np.full(k, -view_m), np.full(k, view_m)
@@ -151,8 +156,14 @@ def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, lines: Segm
         ci, si, s, _ = intersect_cuts(center, normal, lo, hi, segs)
     d = segs.b[si] - segs.a[si]
     ok = (d * tangent[ci]).sum(axis=1) >= _COS_MIN * np.linalg.norm(d, axis=1)
-    order = np.argsort(ci[ok], kind="stable")
-    return ci[ok][order], s[ok][order], types[si[ok]][order]
+    return ci[ok], si[ok], s[ok]
+
+
+def _on_cuts(center: np.ndarray, tangent: np.ndarray, view_m: float, lines: Segments | SegmentIndex, types: np.ndarray):
+    """``lines_on_cuts`` with each line's type, ordered by cut, then segment."""
+    ci, si, s = lines_on_cuts(center, tangent, view_m, lines)
+    order = np.argsort(ci, kind="stable")
+    return ci[order], s[order], types[si][order]
 
 
 def _pairs(d_cut, d_s, m_cut, m_s, k: int, reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
