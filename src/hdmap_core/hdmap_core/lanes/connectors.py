@@ -55,6 +55,7 @@ __all__ = [
     "Placed",
     "relinked",
     "stable_id",
+    "virtual_lane",
     "STEP_M",
     "MIN_STAY_M",
     "END_NEAR_M",
@@ -335,12 +336,18 @@ def _connector(
             Boundary(stable_id("trajectory_side", a.id, b.id), 0, FeatureType.UNKNOWN, pts, a.end_node, b.start_node)
         )
     left, right = sides
+    return virtual_lane(stable_id("trajectory_connector", p.id, q.id), left, right)
+
+
+def virtual_lane(lane_id: int, left: Boundary, right: Boundary) -> tuple[Lane, Boundary, Boundary] | None:
+    """The lane between two virtual sides (a connector, a drive path): (lane, left, right), or
+    None where RULE 14 finds the sides degenerate (``proper_sides``)."""
     if not proper_sides(
         left.points, right.points, (left.start_node, left.end_node), (right.start_node, right.end_node)
     ):
         return None
     lane = Lane(
-        id=stable_id("trajectory_connector", p.id, q.id),
+        id=lane_id,
         centerline=(left.points + right.points) / 2.0,
         width=np.hypot(*(left.points - right.points).T),
         left_boundary=left.id,

@@ -44,8 +44,8 @@ from hdmap_core.lanes.connectors import (
     relinked,
     stable_id,
     trajectory_connectors,
+    virtual_lane,
 )
-from hdmap_core.lanes.derive import proper_sides
 from hdmap_core.lanes.model import Boundary, Lane, LaneMap
 from hdmap_core.model import FeatureType
 
@@ -342,22 +342,7 @@ def _lane(
             nodes[n1] = pts[-1].copy()
         sides.append(Boundary(stable_id("drive_path_side", lane_id, pick), 0, FeatureType.UNKNOWN, pts, n0, n1))
     left, right = sides
-    if not proper_sides(
-        left.points, right.points, (left.start_node, left.end_node), (right.start_node, right.end_node)
-    ):
-        return None
-    lane = Lane(
-        id=lane_id,
-        centerline=(left.points + right.points) / 2.0,
-        width=np.hypot(*(left.points - right.points).T),
-        left_boundary=left.id,
-        right_boundary=right.id,
-        left_feature=0,
-        right_feature=0,
-        left_type=FeatureType.UNKNOWN,
-        right_type=FeatureType.UNKNOWN,
-    )
-    return lane, left, right
+    return virtual_lane(lane_id, left, right)
 
 
 def _direction(line: np.ndarray, *, first: bool) -> np.ndarray:
