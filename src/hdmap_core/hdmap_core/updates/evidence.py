@@ -61,6 +61,8 @@ _GRID_M = 0.02
 _ANCHOR_REACH = 2  # places along the drive whose border offsets stand in for a place without
 _ALIAS_M = 0.5  # a drive's move within this of the place's lane-sized move (or its alias) agrees
 _BORDER_REACH_M = 1.0  # a place's border offset within this of the drive's (below half the barriers' 2.5 m)
+_PEAK_SHARE = 0.5  # a peak of a drive's border pairs this share of the highest is a candidate offset
+_SUPPORT_RATIO = 2.0  # ... taken over the highest with this many times its marking pairs
 
 
 @dataclass(frozen=True)
@@ -202,6 +204,38 @@ def _paired(
     return np.bincount(d_cut[np.unique(ti)], minlength=k) + np.bincount(m_cut[np.unique(tj)], minlength=k)
 
 
+def _border_offset(border: np.ndarray, marking: np.ndarray, config: ChangeConfig) -> float:
+    """The drive's border offset over all its places: the mode of the density of its border pairs
+    (map - drive), unless another peak of it (at least ``_PEAK_SHARE`` of the highest) has at
+    least ``_SUPPORT_RATIO`` times the marking pairs (within 2 kernels). A drive sees the opposite
+    carriageway's median barrier too, which pairs with the map's median barrier 2.5 m off (the
+    map's opposite barrier runs the other way, unpaired): for a drive whose localisation error
+    puts the true pair near the end of ``pair_max_m`` that pair can outnumber the true one, and
+    every place then reads the markings' move 2.5 m off, or their lane alias. The markings pair
+    at the true offset (and a lane's width off), not a barrier's gap off. NaN without borders."""
+    reach, kernel = config.pair_max_m, config.kernel_m
+    mode = density_mode(border, reach_m=reach, kernel_m=kernel)[0]
+    v = border[np.abs(border) <= reach]
+    if len(v) == 0:
+        return mode
+    edges = np.arange(-reach, reach + _GRID_M, _GRID_M)
+    dens = np.convolve(np.histogram(v, bins=edges)[0].astype(float), _kernel(kernel), mode="same")
+    mid = 0.5 * (edges[:-1] + edges[1:])
+    inner = dens[1:-1]
+    peaks = 1 + np.flatnonzero((inner > dens[:-2]) & (inner >= dens[2:]) & (inner >= _PEAK_SHARE * dens.max()))
+
+    def support(at: float) -> int:
+        return int(np.count_nonzero(np.abs(marking - at) <= 2 * kernel))
+
+    top = support(mode)
+    alt = max(
+        (float(mid[i]) for i in peaks), key=lambda at: (support(at), dens[np.searchsorted(mid, at)]), default=None
+    )
+    if alt is None or abs(alt - mode) <= 2 * kernel or support(alt) < _SUPPORT_RATIO * max(top, 1):
+        return mode
+    return density_mode(border, reach_m=2 * kernel, kernel_m=kernel, center=alt)[0]
+
+
 def _follow_move(cut: np.ndarray, move: np.ndarray, k: int, reach_m: float) -> np.ndarray:
     """The markings' move (the pairs' ``move`` per ``cut``, sorted by cut) followed cut by cut
     along the drive from 0 at its first cut: on each cut the median of its moves within
@@ -248,7 +282,7 @@ def drive_evidence(
     drive_offset, _ = density_mode(pr, reach_m=config.pair_max_m, kernel_m=config.kernel_m)
     # The borders' offset over the whole drive picks the right one of two barriers side by side
     # (a divided road's median: 2.5 m apart); each place then looks only near it (drift is slow).
-    drive_border, _ = density_mode(br, reach_m=config.pair_max_m, kernel_m=config.kernel_m)
+    drive_border = _border_offset(br, pr, config)
 
     # Border offset per place; a place with too few borders takes the mean of its neighbours
     # along the drive (within ``_ANCHOR_REACH`` places) that have enough: the drift is slow.

@@ -56,6 +56,8 @@ __all__ = [
     "cut_before_changes",
     "fleet_comparison",
     "clip_to_places",
+    "along_drives",
+    "unseen_at_ends",
     "retired_features",
     "history_to_dict",
 ]
@@ -196,18 +198,90 @@ def along_drives(
     drives: Sequence[Drive], places: Places, times: dict[PlaceKey, int], steps: int
 ) -> dict[PlaceKey, int]:
     """``times`` with the places up to ``steps`` places before and after them along ``drives``
-    (the change's time of the place they lead to): the tapers and stretches detection left out."""
+    (the change's time of the place they lead to): the tapers and stretches detection left out.
+    A place a drive crosses for less than half a cell (a cell's corner) does not count as one
+    of the ``steps``, it is taken with the next: else a 100 m taper beyond a corner of 20 m
+    would be left out."""
     out = dict(times)
+    short = 0.5 * places.cell_m
     for d in drives:
         keys = places.keys(d.xy, d.yaw)
-        seq = [k for i, k in enumerate(keys) if i == 0 or k != keys[i - 1]]
+        if not keys:
+            continue
+        step = np.r_[0.0, np.linalg.norm(np.diff(np.asarray(d.xy, dtype=float), axis=0), axis=1)]
+        starts = [i for i in range(len(keys)) if i == 0 or keys[i] != keys[i - 1]]
+        seq = [keys[i] for i in starts]
+        length = np.add.reduceat(step, starts)
         for i, k in enumerate(seq):
             if k not in times:
                 continue
-            for j in range(max(0, i - steps), min(len(seq), i + steps + 1)):
-                if seq[j] not in times:
-                    out[seq[j]] = max(out.get(seq[j], times[k]), times[k])
+            for way in (-1, 1):
+                j, counted = i + way, 0
+                while 0 <= j < len(seq) and counted < steps:
+                    if seq[j] not in times:
+                        out[seq[j]] = max(out.get(seq[j], times[k]), times[k])
+                    counted += int(length[j] >= short)
+                    j += way
     return out
+
+
+def _dense(lines: Sequence[np.ndarray], step_m: float = 0.5) -> np.ndarray:
+    """(N, 2) the points of ``lines`` every ``step_m`` or closer."""
+    out = [np.zeros((0, 2))]
+    for pts in lines:
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        q = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / step_m)) + 1))
+        out.append(np.stack([np.interp(q, s, pts[:, 0]), np.interp(q, s, pts[:, 1])], axis=1))
+    return np.concatenate(out)
+
+
+def unseen_at_ends(first: HDMap, local: HDMap, places: Places, rebuilt: set[PlaceKey]) -> np.ndarray:
+    """(N, 2) the first map's marking points in the ``rebuilt`` places that the drives after
+    the change did not see (no local marking within ``_TAPER_KEEP_M``), walking in from where a
+    run of them leaves the rebuilt places, up to where the lines the drives saw leave the first
+    map's (the median distance of the nearest local marking points to a first-map marking
+    exceeds ``_TAPER_SAME_M``). A shift zone's tapers move the lines from 0: near their outer
+    end the lines no drive after it saw are still where the first map has them, and the rebuild
+    would drop them; past that point they moved (a move near a lane's width comes near the
+    neighbour's old place again: hence the first such point ends the walk)."""
+    if not rebuilt:
+        return np.zeros((0, 2))
+    first_marks = [np.asarray(f.points, dtype=float) for f in first.features if int(f.type) in _MARKINGS]
+    marks = _dense([np.asarray(f.points, dtype=float) for f in local.features if int(f.type) in _MARKINGS])
+    if len(marks) == 0 or not first_marks:
+        return np.zeros((0, 2))
+    tree = cKDTree(marks)
+    d_first, _ = cKDTree(_dense(first_marks)).query(marks)  # each local marking point: moved how far
+    out = [np.zeros((0, 2))]
+    for f in first.features:
+        if int(f.type) not in _MARKINGS or len(f.points) < 2:
+            continue
+        pts = np.asarray(f.points, dtype=float)
+        t = np.gradient(pts, axis=0)
+        keys = places.keys(pts, np.arctan2(t[:, 1], t[:, 0]))
+        inside = np.array([k in rebuilt for k in keys], dtype=bool)
+        if not inside.any():
+            continue
+        d, _ = tree.query(pts, distance_upper_bound=_TAPER_KEEP_M)
+        dn, jn = tree.query(pts, k=_TAPER_NEAREST, distance_upper_bound=_TAPER_VIEW_M)
+        # the median over the nearest local marking points found (inf: none)
+        near = np.sort(np.where(np.isfinite(dn), d_first[np.minimum(jn, len(marks) - 1)], np.inf), axis=1)
+        n = np.count_nonzero(np.isfinite(dn), axis=1)
+        rows = np.arange(len(pts))
+        moved = np.where(n > 0, 0.5 * (near[rows, np.maximum(n - 1, 0) // 2] + near[rows, n // 2]), np.inf)
+        for a, b in _runs(inside):
+            # walk in from each end where the feature leaves the rebuilt places
+            ends = [(a - 1, range(a, b)), (b, range(b - 1, a - 1, -1))]
+            for end, order in ends:
+                if not 0 <= end < len(keys):
+                    continue
+                for i in order:
+                    if moved[i] > _TAPER_SAME_M:  # (inf: no local marking near) ends it too
+                        break
+                    if not np.isfinite(d[i]):
+                        out.append(pts[i : i + 1])
+    return np.concatenate(out)
 
 
 def fleet_comparison(
@@ -306,6 +380,11 @@ _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 # drives after the change saw and the local map holds, then took the median barrier's place
 # (shift10 seed 1: zone recall 93.8 % with 3 m, 97.4 % with 1.5 m; docs/updates.md, "How `bag2map` follows a change").
 _BORDER_SAME_M = 1.5
+_TAPER_KEEP_M = 1.75
+_NOT_SHIFTED = {"lane_closed", "lane_opened", "type", "marking_gone"}
+_TAPER_SAME_M = 0.8
+_TAPER_NEAREST = 8
+_TAPER_VIEW_M = 12.0
 
 
 def follow_changes(
@@ -438,13 +517,18 @@ def follow_map(
         # what no drive after a shift saw of the first map's markings: moved by the shift
         unseen = unseen_moved(first_map, local_map, places, changes, evidence, core, config=config)
         modelled = unseen.pieces
+        # lines no drive after a shift saw, where the lines they saw had not moved yet (the
+        # tapers' ends): not where a line went or changed type, which the few drives cannot tell
+        # from a line they did not see
+        shifts = all("geometry" in c.kinds and not set(c.kinds) & _NOT_SHIFTED for c in changes)
+        keep = [unseen.moved_to, unseen_at_ends(unseen.map, local_map, places, core) if shifts else np.zeros((0, 2))]
         reach = Reach(
             np.concatenate([np.zeros((0, 2)), *poses]),
             config.view_m,
             np.concatenate([np.zeros((0, 2)), *borders]),
             _BORDER_SAME_M,
             np.concatenate([np.zeros((0, 2)), *marks]),
-            keep=unseen.moved_to,
+            keep=np.concatenate(keep),
             take=unseen.moved_from,
         )
         new_map = splice(unseen.map, local_map, places, core, reach=reach)
