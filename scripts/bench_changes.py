@@ -26,7 +26,7 @@ drives on the changed road. Of those, only the ones through the changed zone's m
   the old road) for the followed map and the ghost share of the map of every drive (plain
   consensus, ``--no-follow-changes``), the whole road's recall and mean error, changes confirmed on
   the zone / elsewhere; for ``close`` / ``open`` the share of zone cuts with the road's lane count
-  (``evaluate_zone_lanes``).
+  and the road's lane links in the zone the map's lane graph has (``evaluate_zone_lanes``).
 
 **nochange**: the bench fleets of ``make bench`` without any change (``paper_like`` 134 drives,
 ``esmini_e6mini`` 40, ``esmini_soderleden`` 40, ``carla_town04`` 100, ``carla_town06`` 100, seed 1),
@@ -262,7 +262,11 @@ def changes_tables(rows: list[dict]) -> str:
             z = s.zone
             head = f"| {r['case']} | {r['map']} | {r['seed']} | {r['through']} | {needed} " if first else "| | | | | | "
             first = False
-            lanes = _pct(s.lanes.count_accuracy) if s.lanes is not None else "-"
+            lanes = "-"
+            if s.lanes is not None:
+                lanes = _pct(s.lanes.count_accuracy) + (
+                    f" ({s.lanes.links_ok}/{s.lanes.n_links} links)" if s.lanes.n_links else ""
+                )
             out.append(
                 head + f"| {s.j} | {_pct(z.recall)} | {_pct(z.precision)} | {_m(z.mean_m)} | {_pct(z.type_accuracy)} "
                 f"| {_pct(z.ghost_share)} | {_pct(s.first_ghost)} | {_pct(s.road_recall)} | {_m(s.road_mean_m)} "
@@ -421,7 +425,8 @@ def main() -> int:
         "many; zone: the changed stretch with its tapers against the road as of the last drive; ghost: share of the "
         "map's points there matching only the old road (plain: the map of every drive, no following); changes "
         "zone/else: confirmed on the zone's places / elsewhere (false); lanes ok: zone cuts with the road's lane "
-        "count. No change: 'same map' = no change confirmed, the followed map is the first build itself.",
+        "count (its lane centerlines), and of its lane links in the zone those the map's lane graph has. "
+        "No change: 'same map' = no change confirmed, the followed map is the first build itself.",
         f"Wall time {time.perf_counter() - t_start:.0f} s.",
     ]
     text = "\n".join(md)

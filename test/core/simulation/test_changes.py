@@ -176,3 +176,42 @@ def test_open_moves_the_edge_out_and_draws_a_divider(road):
     assert new.type == FeatureType.DASHED and new.id > max(f.id for f in road.features)
     with pytest.raises(ConfigError):
         parse_change("open:400-1100@1")
+
+
+def test_open_adds_the_new_lane_linked_to_its_neighbour(road):
+    change = RoadChange("open", 400.0, 1100.0, 2.0, "fwd_lane2")
+    after = apply_change(road, change)
+    zone = change_zone(road, change)
+    (new,) = set(after.lanes) - set(road.lanes)
+    lane = after.lanes[new]
+    divider = after.features[-1]
+    # midway between the new divider (the old edge) and the moved edge: 1 m right of the divider
+    lat = _lateral(zone, lane.centerline)
+    assert np.allclose(lat, np.median(_lateral(zone, divider.points)) - 1.0, atol=0.05)
+    (first,), (last,) = lane.predecessors, lane.successors
+    assert new in after.lanes[first].successors and new in after.lanes[last].predecessors
+    assert first.endswith(":3") and last.endswith(":3") and lane.left is not None and lane.left.endswith(":3")
+    # the drives do not use it: no lane has it as its neighbour, so the simulated drives stay as they were
+    assert all(new not in (ln.left, ln.right) for ln in after.lanes.values())
+
+
+def test_the_zone_lane_count_follows_the_road_s_lanes(road):
+    """The road's lane count in the zone comes from its lane centerlines: one more lane where the
+    shoulder opened, one fewer where a lane closed (its centerline runs on its neighbour's)."""
+    from dataclasses import replace
+
+    from hdmap_core.evaluation.zone import evaluate_zone_lanes
+    from hdmap_core.lanes.model import LaneMap
+
+    for kind, size, lanes in (("open", 2.0, 4.0), ("close", None, 2.0)):
+        change = RoadChange(kind, 400.0, 1100.0, size, "fwd_lane2")
+        after = apply_change(road, change)
+        core = replace(change_zone(road, change), from_m=550.0, to_m=950.0)
+        rep = evaluate_zone_lanes(LaneMap(), after, [core])
+        assert rep.n_cuts > 50 and rep.mean_gt_lanes == pytest.approx(lanes), kind
+        assert rep.count_accuracy == 0.0 and rep.mean_map_lanes == 0.0
+    # the opened lane's split and merge are links of the zone; an empty map has none of them
+    full = evaluate_zone_lanes(
+        LaneMap(), apply_change(road, RoadChange("open", 400.0, 1100.0, 2.0, "fwd_lane2")), [change_zone(road, change)]
+    )
+    assert full.n_links >= 2 and full.links_ok == 0

@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from hdmap_core.evaluation.zone import evaluate_zone, evaluate_zone_lanes
 from hdmap_core.lanes.derive import derive_lanes
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature
 from hdmap_core.pipeline.driver import PipelineConfig, build_map
 from hdmap_core.simulation.changes import change_zone, parse_change
 from hdmap_core.simulation.config import SimConfig
 from hdmap_core.simulation.fleet import simulate_fleet
 from hdmap_core.simulation.synthetic import synthetic_highway
 from hdmap_core.updates.config import ChangeConfig
-from hdmap_core.updates.edges import EdgeEvidence, detect_edge_changes
+from hdmap_core.updates.edges import MIN_EDGE_MOVE_M, EdgeEvidence, detect_edge_changes, edge_evidence, solid_lines
 from hdmap_core.updates.follow import follow_changes
 from hdmap_core.updates.places import Places, places_of
 
@@ -44,6 +47,52 @@ def test_an_edge_line_that_moved_a_lane_is_a_lane_change_and_grows_into_the_tape
     assert detect_edge_changes(_rows((2, 0, 0), rng.normal(0, 0.05, 8), [3.5]), PLACES) == []
     assert detect_edge_changes(_rows((2, 0, 0), rng.normal(0, 0.05, 8), [1.2, 1.3]), PLACES) == []
     assert detect_edge_changes(_rows((2, 0, 0), rng.normal(0, 0.05, 8), [3.5, 0.0, 3.5]), PLACES) == []
+
+
+def test_a_drive_that_saw_the_old_edge_turned_divider_supports_a_measured_opening_only():
+    rng = np.random.default_rng(2)
+    before = rng.normal(0, 0.05, 8)
+    rows = _rows((2, 0, 0), before, [-2.0, -MIN_EDGE_MOVE_M])
+    seen_only = EdgeEvidence(rows[-1].drive_id, rows[-1].time_ns, rows[-1].key, -MIN_EDGE_MOVE_M, 12, measured=False)
+    # one drive measured the move, the next lane's drive saw the old edge line turned dashed
+    (o,) = detect_edge_changes([*rows[:-1], seen_only], PLACES)
+    assert o.kinds == ("lane_opened",) and len(o.drives_after) == 2
+    # two drives that only saw a divider where the edge was (a misread type) confirm nothing
+    first = EdgeEvidence(rows[-2].drive_id, rows[-2].time_ns, rows[-2].key, -MIN_EDGE_MOVE_M, 12, measured=False)
+    assert detect_edge_changes([*rows[:-2], first, seen_only], PLACES) == []
+
+
+def _line(y: float, ftype: FeatureType, x0: float = 0.0, x1: float = 400.0) -> np.ndarray:
+    x = np.arange(x0, x1 + 1e-9, 2.0)
+    return np.stack([x, np.full_like(x, y)], axis=1)
+
+
+def test_edge_evidence_of_the_next_lane_reads_the_old_edge_turned_divider():
+    """A drive in the next lane (the map's edge 5.25 m right of it) after a shoulder opened sees a
+    dashed line where the map has its solid edge and not the moved edge (the sensor's far band)."""
+    edge = MapFeature(
+        id=1,
+        type=FeatureType.SOLID,
+        points=_line(-5.25, FeatureType.SOLID),
+        drive_count=np.ones(201, dtype=np.int64),
+        lateral_std=np.zeros(201),
+    )
+    hdmap = HDMap(features=(edge,))
+    xy = _line(0.0, FeatureType.SOLID, 0.0, 300.0)
+    drive_points = {
+        "divider": Detection(FeatureType.DASHED, _line(-5.25, FeatureType.DASHED, 0.0, 330.0)),
+        "solid": Detection(FeatureType.SOLID, _line(1.75, FeatureType.SOLID, 0.0, 330.0)),
+    }
+    stamps = np.arange(len(xy), dtype=np.int64) * 10**8
+    drive = Drive("d", xy, np.zeros(len(xy)), stamps, tuple(drive_points.values()))
+    places = places_of([drive], cell_m=100.0)
+    anchors = dict.fromkeys(places.keys(xy, drive.yaw), 0.0)
+    ev = [e for e in edge_evidence(drive, solid_lines(hdmap), places, anchors) if np.isfinite(e.move_m)]
+    assert ev and all(e.move_m == -MIN_EDGE_MOVE_M and not e.measured for e in ev)
+    # the same drive seeing the edge solid still: no move
+    drive = replace(drive, detections=(Detection(FeatureType.SOLID, _line(-5.25, FeatureType.SOLID, 0.0, 330.0)),))
+    ev = [e for e in edge_evidence(drive, solid_lines(hdmap), places, anchors) if np.isfinite(e.move_m)]
+    assert ev and all(abs(e.move_m) < 0.01 and e.measured for e in ev)
 
 
 N_BEFORE, N_AFTER = 14, 4

@@ -118,7 +118,7 @@ def test_a_closed_lane_is_scored_by_lane_count_in_the_zone(tmp_path, capsys):
     assert cli.main(["evaluate", gt_old, gt_new, "--changes", changes, "--lanes", "--json", str(report)]) == 0
     zone = json.loads(report.read_text())["changed_zone_lanes"]
     assert "changed zone lanes" in capsys.readouterr().out
-    # the old road as map shows the closed lane: one lane too many all along the zone (the new
-    # road's own GT map is no reference: its closed lane's centerline runs on in its neighbour's)
-    assert zone["n_cuts"] > 100 and zone["count_accuracy"] < 0.1
-    assert zone["mean_map_lanes"] > zone["mean_gt_lanes"] + 0.8
+    # the old road as map shows the closed lane: one lane too many along the zone but where the
+    # closing lane still runs apart from its neighbour in the tapers (18 % of the cuts)
+    assert zone["n_cuts"] > 100 and zone["count_accuracy"] < 0.3
+    assert zone["mean_map_lanes"] > zone["mean_gt_lanes"] + 0.6

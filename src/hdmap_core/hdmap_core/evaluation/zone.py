@@ -21,19 +21,24 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
+import networkx as nx
 import numpy as np
 
 from hdmap_core.evaluation.config import EVAL_TYPES, EvalConfig
 from hdmap_core.evaluation.cuts import configured_cuts, nearest_on_same_cut, nearest_same_type, points_on_cuts
+from hdmap_core.geometry import arc_length
 from hdmap_core.groundtruth import GroundTruth
+from hdmap_core.lanes.lane_graph import lane_graph, lanes_at
 from hdmap_core.lanes.model import LaneMap
-from hdmap_core.model import FeatureType, HDMap
+from hdmap_core.model import HDMap
 from hdmap_core.simulation.changes import ChangeZone, zone_mask
 
 __all__ = ["ZoneReport", "evaluate_zone", "ZoneLanes", "evaluate_zone_lanes"]
 
 _EVAL_TYPES = tuple(int(t) for t in EVAL_TYPES)
-_MARKING_TYPES = (int(FeatureType.SOLID), int(FeatureType.DASHED))
+_SAME_LANE_M = 1.0  # two ground-truth lane centerlines this close on a cut are one lane [m]
+_LINK_PROBE_M = 15.0  # a lane link is probed this far before / after its joint [m]
+_LINK_REACH_M = 1000.0  # the map's successor path between the two probes may be this long [m]
 
 
 @dataclass(frozen=True)
@@ -125,28 +130,92 @@ def evaluate_zone(
 
 @dataclass(frozen=True)
 class ZoneLanes:
-    """Lane count in the changed zone (``evaluate_zone_lanes``): the share of the zone's cuts
-    where the map has as many lanes as the road has now, and the mean counts."""
+    """Lanes in the changed zone (``evaluate_zone_lanes``): the share of the zone's cuts where the
+    map has as many lanes as the road has now, the mean counts, and the road's lane links there
+    (successor links whose joint lies in the zone: a lane opened splits off its neighbour and
+    merges back) that the map's lane graph has."""
 
     n_cuts: int
     count_accuracy: float
     mean_map_lanes: float
     mean_gt_lanes: float
+    n_links: int = 0
+    links_ok: int = 0
+
+    @property
+    def link_share(self) -> float:
+        return self.links_ok / self.n_links if self.n_links else math.nan
 
     def line(self) -> str:
+        links = f", lane links {self.links_ok}/{self.n_links}" if self.n_links else ""
         return (
             f"changed zone lanes ({self.n_cuts} cuts): lane count right at {100 * self.count_accuracy:.1f} % "
-            f"(mean {self.mean_map_lanes:.2f} lanes in the map, {self.mean_gt_lanes:.2f} on the road)"
+            f"(mean {self.mean_map_lanes:.2f} lanes in the map, {self.mean_gt_lanes:.2f} on the road){links}"
         )
+
+
+def _distinct_per_cut(cut: np.ndarray, s: np.ndarray, n_cuts: int, apart_m: float) -> np.ndarray:
+    """Per cut, the number of crossings at least ``apart_m`` from the previous one along it."""
+    if not len(cut):
+        return np.zeros(n_cuts, dtype=np.int64)
+    order = np.lexsort((s, cut))
+    c, x = cut[order], s[order]
+    new = np.ones(len(c), dtype=bool)
+    new[1:] = (c[1:] != c[:-1]) | (np.diff(x) >= apart_m)
+    return np.bincount(c[new], minlength=n_cuts)
+
+
+def _zone_links(lane_map: LaneMap, gt_now: GroundTruth, zones: Sequence[ChangeZone]) -> tuple[int, int]:
+    """(GT successor links A -> B whose joint lies in a zone, those the map has): the map lane at
+    A's centerline ``_LINK_PROBE_M`` before the joint reaches the map lane at B's centerline that far
+    after it in the map's lane graph (successors and lane changes across dashed lines, as a route
+    does: a lane gained may open beside a through lane) within ``_LINK_REACH_M``."""
+    probes: list[tuple[np.ndarray, float, np.ndarray, float]] = []
+    for a in gt_now.lanes.values():
+        for bid in a.successors:
+            b = gt_now.lanes.get(bid)
+            if b is None or len(a.centerline) < 2 or len(b.centerline) < 2:
+                continue
+            ta = a.centerline[-1] - a.centerline[-2]
+            if not any(zone_mask(z, a.centerline[-1:], ta[None, :]).any() for z in zones):
+                continue
+            pa, ya = _probe(a.centerline, -_LINK_PROBE_M)
+            pb, yb = _probe(b.centerline, _LINK_PROBE_M)
+            probes.append((pa, ya, pb, yb))
+    if not probes:
+        return 0, 0
+    xy = np.array([p for pa, _, pb, _ in probes for p in (pa, pb)])
+    yaw = np.array([y for _, ya, _, yb in probes for y in (ya, yb)])
+    found = lanes_at(lane_map, xy, yaw).reshape(-1, 2)
+    graph = lane_graph(lane_map)
+    ok = 0
+    for la, lb in found:
+        if la == 0 or lb == 0:
+            continue
+        try:
+            ok += int(la == lb or nx.shortest_path_length(graph, int(la), int(lb), weight="weight") <= _LINK_REACH_M)
+        except (nx.NetworkXNoPath, nx.NodeNotFound):
+            pass
+    return len(probes), ok
+
+
+def _probe(line: np.ndarray, along_m: float) -> tuple[np.ndarray, float]:
+    """The point ``along_m`` from the end (< 0) or the start (> 0) of ``line`` and its heading."""
+    s = arc_length(line)
+    q = float(np.clip(s[-1] + along_m if along_m < 0 else along_m, 0.0, s[-1]))
+    j = int(np.clip(np.searchsorted(s, q), 1, len(line) - 1))
+    d = line[j] - line[j - 1]
+    w = (q - s[j - 1]) / max(s[j] - s[j - 1], 1e-9)
+    return line[j - 1] + w * d, float(np.arctan2(d[1], d[0]))
 
 
 def evaluate_zone_lanes(
     lane_map: LaneMap, gt_now: GroundTruth, zones: Sequence[ChangeZone], *, config: EvalConfig = EvalConfig()
 ) -> ZoneLanes:
-    """Lane count of ``lane_map`` (``hdmap_core.lanes.derive_lanes``) on the zone's cuts against the
-    road as it is now: its markings (solid, dashed) crossing the cut, less one. The ground truth's
-    lane centerlines do not say it: a closed lane's centerline merges into its neighbour and an
-    opened one has none (``simulation.changes``)."""
+    """Lanes of ``lane_map`` (``hdmap_core.lanes.derive_lanes``) in the zones against the road as
+    it is now (``ZoneLanes``). The road's lane count on a cut: its lane centerlines crossing it, two
+    within ``_SAME_LANE_M`` one lane (a closed lane's centerline runs on its neighbour's,
+    ``simulation.changes``; an opened lane has its own)."""
     cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
     cuts = configured_cuts(gt_now, config, cos_feature=cos_feat)
     inside = np.zeros(len(cuts), dtype=bool)
@@ -155,9 +224,11 @@ def evaluate_zone_lanes(
     cuts = cuts.take(inside)
     if len(cuts) == 0:
         return ZoneLanes(0, math.nan, math.nan, math.nan)
-    marks = [np.asarray(f.points, dtype=float) for f in gt_now.features if int(f.type) in _MARKING_TYPES]
-    g = points_on_cuts(cuts, marks, cos_min=cos_feat)
+    g = points_on_cuts(cuts, [ln.centerline for ln in gt_now.lanes.values()], cos_min=cos_feat)
     m = points_on_cuts(cuts, [ln.centerline for ln in lane_map.lanes], cos_min=cos_feat)
-    n_gt = np.maximum(np.bincount(g.cut, minlength=len(cuts)) - 1, 0)
+    n_gt = _distinct_per_cut(g.cut, g.s, len(cuts), _SAME_LANE_M)
     n_map = np.bincount(m.cut, minlength=len(cuts))
-    return ZoneLanes(len(cuts), float(np.mean(n_gt == n_map)), float(n_map.mean()), float(n_gt.mean()))
+    n_links, links_ok = _zone_links(lane_map, gt_now, zones)
+    return ZoneLanes(
+        len(cuts), float(np.mean(n_gt == n_map)), float(n_map.mean()), float(n_gt.mean()), n_links, links_ok
+    )

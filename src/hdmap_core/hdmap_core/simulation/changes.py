@@ -23,7 +23,8 @@ Kinds (``KINDS``):
   in it change lanes. Lane ids and links stay (the lane count changes in geometry only).
 * ``open``: the shoulder opens as a lane: the right edge marking moves ``size`` metres to the
   right (required), with the tapers, and a dashed marking is drawn where it was, between the
-  tapers. No lane centerline is added (simulated drives do not use the new lane).
+  tapers; there the new lane's centerline is added (``size`` wide, split off the rightmost lane
+  and merging back into it, that lane its left neighbour). Simulated drives do not use it.
 
 Text form (``parse_change``, ``hdmap simulate --change``): ``KIND:FROM_M-TO_M[:SIZE][:ROUTE]@AFTER``,
 e.g. ``shift:1000-2000:1.5:fwd_lane1@40``: drives 0..39 see the road as it was, drives 40.. the
@@ -43,7 +44,7 @@ from scipy.spatial import cKDTree
 
 from hdmap_core.errors import ConfigError, GroundTruthError
 from hdmap_core.geometry import arc_length, resample_evenly
-from hdmap_core.groundtruth import GroundTruth, GTFeature, GTRoute
+from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute
 from hdmap_core.model import FeatureType
 
 __all__ = [
@@ -443,7 +444,65 @@ def _lane_changes(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> Grou
     left = np.stack([-t[:, 1], t[:, 0]], axis=1)
     new_id = max((f.id for f in gt.features), default=0) + 1
     line = GTFeature(new_id, FeatureType.DASHED, resample_evenly(piece + lat_edge * left, 1.0))
-    return replace(gt, features=(*feats, line))
+    width = float(change.size or 0.0)
+    lanes = _opened_lane(zone, gt, change, resample_evenly(piece + (lat_edge - width / 2.0) * left, 1.0), lat_edge)
+    return replace(gt, features=(*feats, line), lanes=lanes)
+
+
+def _opened_lane(
+    zone: ChangeZone, gt: GroundTruth, change: RoadChange, centerline: np.ndarray, lat_edge: float
+) -> dict[str, GTLane]:
+    """``gt``'s lanes with the opened lane: ``centerline`` (between the tapers, where the new
+    divider is drawn), split off the rightmost lane beside it and merging back into it (that lane's
+    pieces at its two ends get it as a successor / predecessor; it has that lane as its ``left``).
+    The rightmost lane does not get it as its ``right``: the simulator's lane changes go to the
+    ``left`` / ``right`` neighbours, and the drives after the change do not use the new lane."""
+    lanes = dict(gt.lanes)
+    if len(centerline) < 2:
+        return lanes
+    # the lane pieces of the carriageway right next to the old edge, per station
+    pieces: list[tuple[float, float, str]] = []
+    for lid, ln in gt.lanes.items():
+        s, lat, member = _station(zone, ln.centerline, _tangents(ln.centerline))
+        inside = member & (s >= change.from_m) & (s <= change.to_m) & (lat > lat_edge)
+        if np.count_nonzero(inside) >= 2:
+            pieces.append((float(np.median(lat[inside])), float(s[inside].min()), lid))
+    if not pieces:
+        return lanes
+    nearest = min(p[0] for p in pieces)
+    outer = [lid for lat, _, lid in pieces if lat - nearest < 1.0]
+
+    def piece_at(station: float) -> str | None:
+        best, best_d = None, math.inf
+        for lid in outer:
+            s, _, member = _station(zone, gt.lanes[lid].centerline, None)
+            if not member.any():
+                continue
+            lo, hi = float(s[member].min()), float(s[member].max())
+            d = 0.0 if lo <= station <= hi else min(abs(station - lo), abs(station - hi))
+            if d < best_d:
+                best, best_d = lid, d
+        return best
+
+    ids = set(lanes)
+    new_id, k = "opened", 1
+    while new_id in ids:
+        k += 1
+        new_id = f"opened{k}"
+    a, b = change.from_m + change.taper_m, change.to_m - change.taper_m
+    first, last, beside = piece_at(a), piece_at(b), piece_at(0.5 * (a + b))
+    if first is not None:
+        lanes[first] = replace(lanes[first], successors=(*lanes[first].successors, new_id))
+    if last is not None:
+        lanes[last] = replace(lanes[last], predecessors=(*lanes[last].predecessors, new_id))
+    lanes[new_id] = GTLane(
+        new_id,
+        centerline,
+        successors=() if last is None else (last,),
+        predecessors=() if first is None else (first,),
+        left=beside,
+    )
+    return lanes
 
 
 def apply_change(gt: GroundTruth, change: RoadChange) -> GroundTruth:

@@ -13,11 +13,22 @@ edge, which needs ``min_after_shares`` drives after the change to confirm as sha
   the far lane sees it depends on its lane and its sensor, not on the road: such drives made the
   series two-valued at ramps); the median over the place's cuts where both exist (at least
   ``_MIN_CUTS``).
+* **the old edge a divider**: an opened shoulder moves the edge out of the next lane's sensor band
+  (0.25 visibility in the simulator's far band against 0.7 in the next) and draws a dashed divider
+  where the edge was, which the drives of the next lane see. A cut where the drive saw a dashed
+  marking within ``_TURN_M`` of the map's edge line and no solid one there counts with the cuts
+  that measured the move (at least ``_MIN_CUTS_TURNED`` of them, their median at least half the
+  smallest move outward); a place where the drive saw no solid there and a dashed one on at least
+  ``_MIN_CUTS`` cuts, but the moved edge on too few, reads the smallest move that is a lane
+  (``-MIN_EDGE_MOVE_M``: a lane lies beyond the divider), marked not ``measured``. Without it an
+  opened shoulder needed two drives after it in the right lane itself (9 drives through the zone
+  on ``motorway_ramps`` seed 0, where a third of the drives keep to the right lane).
 
 A change point of that series (``detect.change_point``, as for the displacement, but with at
 least ``_MIN_BEFORE`` drives before (a few drives that saw the edge on a handful of cuts made a
-change back on carla_town06), >= ``min_after`` after, at least ``MIN_EDGE_MOVE_M``) confirms the place; touching
-confirmed places of one direction are one change, ``lane_closed`` (edge moved left) or
+change back on carla_town06), >= ``min_after`` after, at least ``MIN_EDGE_MOVE_M``, and at least
+one drive after it that measured the move, not only saw a divider: a misread type is no lane)
+confirms the place; touching confirmed places of one direction are one change, ``lane_closed`` (edge moved left) or
 ``lane_opened``; it grows into neighbouring places where a drive after it shows at least half
 the move the same way and none the other (the tapers). A shift of the markings by less than
 ``MIN_EDGE_MOVE_M`` is no lane change (it is the displacement's), nor a drive badly localised
@@ -49,8 +60,11 @@ __all__ = ["EdgeEvidence", "edge_evidence", "detect_edge_changes", "merge_change
 MIN_EDGE_MOVE_M = 1.8  # the smallest move of the edge line that is a lane closed / opened (a 2 m shoulder) [m]
 _STEP_M = 8.0  # cut spacing [m]
 _SOLID = int(FeatureType.SOLID)
+_DASHED = int(FeatureType.DASHED)
 _SEEN_M = 6.0  # the map's edge line counts where it lies this close right of the drive (the next lane's) [m]
 _MIN_CUTS = 6  # cuts a drive needs in a place for its edge move there (a place is ~12 cuts long)
+_MIN_CUTS_TURNED = 2  # cuts that measured the opened edge, when cuts where its old line turned dashed make up the rest
+_TURN_M = 0.5  # a dashed marking this close to the map's edge line, and no solid one, is the edge turned divider [m]
 _MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
 
 
@@ -63,6 +77,7 @@ class EdgeEvidence:
     key: PlaceKey
     move_m: float
     n_cuts: int
+    measured: bool = True  # False: the old edge line seen as a divider, the move taken as the least one
 
 
 def _rightmost(cut: np.ndarray, s: np.ndarray, k: int, reach: float) -> np.ndarray:
@@ -104,17 +119,60 @@ def edge_evidence(
     move = drive_right - map_right  # + = the edge moved left of where the map has it
     # only where the drive would have seen the map's edge line: farther out, whether a drive sees
     # it depends on its lane and the sensor's reach, not on the road
-    move[~(map_right >= -_SEEN_M)] = np.nan
+    seen = (map_right >= -_SEEN_M) & np.isfinite(a)
+    move[~seen] = np.nan
+    turned, solid_there = _at_edge(drive, center, tangent, config.view_m, map_right, d_cut, d_s)
+    turned &= seen
     ids = {key: i for i, key in enumerate(dict.fromkeys(keys))}
     place = np.array([ids[key] for key in keys], dtype=np.int64)
-    good = np.isfinite(move) & np.isfinite(a)
+    good = np.isfinite(move)
     n_good = np.bincount(place[good], minlength=len(ids))
+    # an opened edge seen from the next lane: its old line turned dashed on the cuts where the
+    # moved one (in the sensor's far band) was not seen
+    n_turned = np.bincount(place[turned & ~good], minlength=len(ids))
+    n_solid = np.bincount(place[solid_there & seen], minlength=len(ids))
     out = []
     for key, p in ids.items():
-        n = int(n_good[p])
-        value = float(np.median(move[good & (place == p)])) if n >= _MIN_CUTS else math.nan
-        out.append(EdgeEvidence(drive.drive_id, drive.start_ns, key, value, n))
+        n, measured = int(n_good[p]), True
+        value = float(np.median(move[good & (place == p)])) if n else math.nan
+        if n < _MIN_CUTS and n + int(n_turned[p]) >= _MIN_CUTS:
+            if n >= _MIN_CUTS_TURNED and value <= -MIN_EDGE_MOVE_M / 2:
+                n += int(n_turned[p])  # the move measured on a few cuts, the old line a divider on the others
+            elif n_turned[p] >= _MIN_CUTS and not n_solid[p]:
+                # the old edge line is a divider all along the place: a lane lies beyond it, the
+                # edge moved out by at least the smallest move that is a lane (how far, the drive
+                # did not see); such a drive supports a change another drive measured
+                n, value, measured = int(n_turned[p]), -MIN_EDGE_MOVE_M, False
+        if n < _MIN_CUTS:
+            value = math.nan
+        out.append(EdgeEvidence(drive.drive_id, drive.start_ns, key, value, n, measured))
     return out
+
+
+def _at_edge(
+    drive: Drive,
+    center: np.ndarray,
+    tangent: np.ndarray,
+    view_m: float,
+    map_right: np.ndarray,
+    d_cut: np.ndarray,
+    d_s: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per cut, (the drive saw a dashed marking within ``_TURN_M`` of the map's edge line
+    (``map_right``, in the drive's frame) and no solid one there: the edge line became a divider,
+    the drive saw a solid one there)."""
+    k = len(center)
+    near_solid = np.zeros(k, dtype=bool)
+    near_solid[d_cut[np.abs(d_s - map_right[d_cut]) <= _TURN_M]] = True
+    dashed = [d for d in drive.detections if int(d.type) == _DASHED and len(d.points) >= 2]
+    if not dashed:
+        return np.zeros(k, dtype=bool), near_solid
+    t_cut, _, t_s = lines_on_cuts(
+        center, tangent, view_m, segments_of([np.asarray(d.points, dtype=float) for d in dashed])
+    )
+    near_dashed = np.zeros(k, dtype=bool)
+    near_dashed[t_cut[np.abs(t_s - map_right[t_cut]) <= _TURN_M]] = True
+    return near_dashed & ~near_solid, near_solid
 
 
 def solid_lines(hdmap: HDMap) -> tuple:
@@ -159,6 +217,8 @@ def detect_edge_changes(
         if found is None:
             continue
         i, effect, z = found
+        if not any(e.measured for e in rows[i:]):
+            continue  # the old edge line seen as a divider only supports a move some drive measured
         kind = "lane_closed" if effect > 0 else "lane_opened"
         confirmed[key] = PlaceChange(
             key,
