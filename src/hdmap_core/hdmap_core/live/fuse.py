@@ -169,7 +169,7 @@ def _offset_curve(s_pair: np.ndarray, diff: np.ndarray, length_m: float) -> tupl
     return np.asarray(knots), np.asarray(values)
 
 
-def fuse_drive(drive: Drive, tiles: Mapping[TileKey, Sequence[Segment]]) -> FuseResult:
+def fuse_drive(drive: Drive, tiles: Mapping[TileKey, Sequence[Segment]], *, gauge: bool = True) -> FuseResult:
     """Fuse one drive into the settled estimates of the tiles it touches (module docstring).
 
     Args:
@@ -249,6 +249,7 @@ def fuse_drive(drive: Drive, tiles: Mapping[TileKey, Sequence[Segment]]) -> Fuse
     for i, k in match:
         by_step.setdefault(int(ci[i]), []).append((k, float(x[i])))
     new_steps: dict[tuple[TileKey, int, int], StepResult] = {}
+    off_p = np.interp(s_p, knots, values)
     for c in range(len(sub)):
         st = steps_p[c]
         lat_m = np.asarray(st.lateral_m, dtype=float).reshape(-1).copy()
@@ -257,6 +258,9 @@ def fuse_drive(drive: Drive, tiles: Mapping[TileKey, Sequence[Segment]]) -> Fuse
             n = float(max(counts[k], 1))
             lat_m[k] += (xv - lat_m[k]) / (n + 1.0)
             counts[k] = counts[k] + 1
+        if gauge:  # the step's drives' offsets keep zero mean with the new one: all move by -off / (n + 1)
+            n_step = max(len(st.drive_ids), int(np.max(np.asarray(st.counts), initial=1)))
+            lat_m += -off_p[c] / (n_step + 1.0)
         ids = st.drive_ids if drive.drive_id in st.drive_ids else (*st.drive_ids, drive.drive_id)
         new_steps[where[int(sub[c])]] = replace(st, lateral_m=lat_m, counts=counts, drive_ids=tuple(ids))
     out: dict[TileKey, list[Segment]] = {}
