@@ -64,14 +64,22 @@ def test_fuse_names_the_drive_holds_the_map_as_gauge_and_refuses_a_drive_off_the
     assert after - before == res.matched  # each matched maximum carries one drive more
     named = [new.drive_id in st.drive_ids for k in res.tiles for seg in res.tiles[k] for st in seg.steps]
     assert sum(named) == res.steps_passed > 0
-    # the same drive 0.8 m off: its offset takes the 0.8 m, the map does not move by it
+    # the same drive 0.8 m off: its offset takes the 0.8 m; against the map held fixed the lines do
+    # not move by it, with the gauge they move as the batch solve's would: by -0.8 / (n + 1)
     moved = fuse_drive(_shifted(new, 0.8), mine)
     assert moved.tiles is not None
     d_off = np.interp(moved.offset_knots[0], *res.offset_knots) - moved.offset_knots[1]
     assert np.allclose(d_off, 0.8, atol=0.1)
-    lat = np.concatenate([st.lateral_m for k in sorted(res.tiles) for seg in res.tiles[k] for st in seg.steps])
-    lat_m = np.concatenate([st.lateral_m for k in sorted(moved.tiles) for seg in moved.tiles[k] for st in seg.steps])
-    assert lat.shape == lat_m.shape and np.mean(np.abs(lat - lat_m)) < 0.02
+
+    def lines(tiles):
+        return np.concatenate([st.lateral_m for k in sorted(tiles) for seg in tiles[k] for st in seg.steps])
+
+    fixed, fixed_m = fuse_drive(new, mine, gauge=False), fuse_drive(_shifted(new, 0.8), mine, gauge=False)
+    assert np.mean(np.abs(lines(fixed.tiles) - lines(fixed_m.tiles))) < 0.02
+    passed = [st for k in sorted(res.tiles) for seg in res.tiles[k] for st in seg.steps if new.drive_id in st.drive_ids]
+    want = np.mean([0.8 / len(st.drive_ids) for st in passed])  # n + 1 drives once it is named
+    moved_by = lines(moved.tiles) - lines(res.tiles)
+    assert abs(np.sum(moved_by) / sum(len(st.lateral_m) for st in passed) - want) < 0.03
     # a drive 300 m beside the road passes none of its steps: refused (the normal way)
     off = fuse_drive(_shifted(new, 300.0), mine)
     assert off.tiles is None and off.reason

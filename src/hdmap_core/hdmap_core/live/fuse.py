@@ -12,11 +12,9 @@ every tile exactly as before (the settled map is still a function of the drive s
    drive passed the step (at its travelled distance there).
 2. **Its samples.** The drive's detection polylines crossing the cuts it passed, running with it
    (``evaluation.cuts``: the evaluator's vectorised intersection).
-3. **Its offset, the map held fixed.** The lateral difference map - sample of same-type pairs:
-   their density mode over the whole drive (``updates.evidence.density_mode``), then per
-   ``WINDOW_M`` of the drive near that mode, interpolated along the drive. The map is the gauge,
-   so the map does not move by the drive's own offset (what keeps a local offset update,
-   ``pipeline.adjustment_local``, 0.13-0.16 m from the global solve: it moves the gauge).
+3. **Its offset, against the map held fixed.** The lateral difference map - sample of same-type
+   pairs: their density mode over the whole drive (``updates.evidence.density_mode``), then per
+   ``WINDOW_M`` of the drive near that mode, interpolated along the drive.
 4. **Consistency** (the drive shows the road the map holds, else it goes the normal way and
    waits for the settle, where road changes are followed): the passed steps cover at least
    ``MIN_PASSED`` of the drive's trajectory in the tiles, at least ``MIN_MATCHED`` of its
@@ -25,6 +23,11 @@ every tile exactly as before (the settled map is still a function of the drive s
 5. **Fusion.** Each matched maximum moves to the recursive weighted mean of its drives and the
    sample (``lateral + (sample - lateral) / (count + 1)``), its count grows by one; every passed
    step names the drive. Steps it did not pass are kept as they were.
+6. **The gauge** (``gauge``): the batch solve of the same drives keeps the fleet's offsets at zero
+   mean with the new drive in it, which moves the lines where it drove by -offset / (n + 1) (n:
+   the step's drives). So every maximum of a passed step moves by that much. Held fixed instead,
+   the map keeps the settled map's gauge, as a local offset update (``pipeline.adjustment_local``)
+   does, which is what kept that one 0.13-0.16 m from the global solve.
 
 Pure (numpy, shapely through ``evaluation.cuts``); a function of the estimates and the drive.
 """
@@ -175,6 +178,8 @@ def fuse_drive(drive: Drive, tiles: Mapping[TileKey, Sequence[Segment]], *, gaug
     Args:
         drive: the new drive (cleaned as stored by the mapper).
         tiles: every tile the drive touches -> its current (settled) segments.
+        gauge: move the lines of the passed steps as the batch solve would (step 6); False: the
+            map held fixed.
 
     Returns:
         The fused segments per tile, or the reason the drive goes the normal way.

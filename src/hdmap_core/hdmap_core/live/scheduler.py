@@ -26,15 +26,15 @@ and publishes their results. The rules:
 - **The fast path** (``fast_path``, with the fleet model): a drive every tile of which holds a
   settled estimate (made by the settle, or fused) and in which it drove no new road is not queued
   tile by tile: one :data:`FUSE` job fuses it into those estimates (:mod:`hdmap_core.live.fuse`:
-  its offset with the map held fixed, its samples into the matched maxima). Its estimates are
-  final but not the settle's (:data:`FUSED`), so the settle re-makes every tile as before. A drive
-  alone on new road (no drive covered any of its tiles before it) is one :data:`PART` job: its
-  tiles made by one build of it (:func:`~hdmap_core.live.region.map_region`), final, also
-  :data:`FUSED`. At
-  most ``FAST_MAX_SHARE`` of a tile's settled drives (at least one) are fused into it between two
-  settles. A
-  drive whose tiles changed meanwhile (a job on them, another drive's settle), or whose fusion is
-  refused (it does not show the road the map holds), goes the normal way: its tiles queued.
+  its offset against the map, the gauge moved as the batch solve would, its samples into the
+  matched maxima). Its estimates are final but not the settle's (:data:`FUSED`), so the settle
+  re-makes every tile as before. A drive alone on new road (no drive covered any of its tiles before
+  it) is one :data:`PART` job: its tiles made by one build of it
+  (:func:`~hdmap_core.live.region.map_region`), final, also :data:`FUSED`. At most
+  ``FAST_MAX_SHARE`` of a tile's settled drives (at least one) are fused into it between two
+  settles. A drive whose tiles changed meanwhile (a job on them, another drive's settle), or whose
+  fusion is refused (it does not show the road the map holds), goes the normal way: its tiles
+  queued.
 - **The region settle** (with the fleet model and at most ``region_max_drives`` drives): instead
   of the three phases, one :data:`REGION` job makes every tile of the map at once
   (:func:`~hdmap_core.live.region.map_region`: the offline build's passes on the whole drives, cut

@@ -32,10 +32,11 @@ covers yet go first, then tiles with new road, so coverage grows while drives co
 
 The fast path (``fast_path``, presets with the fleet model): a drive whose tiles all hold settled
 estimates and in which it drove no new road is fused into them at once (``live.fuse``: its offset
-with the map held fixed, its samples into the matched line points), and the fused estimates are
-published final, so the drive is listed within about a second; the next settle re-makes every
-tile as before. A drive the fusion refuses goes the normal way. A drive alone on new road (no
-drive covered its tiles) is mapped at once by one build of it (``PART``), final as well.
+against the map, the gauge moved as the batch solve would, its samples into the matched line
+points), and the fused estimates are published final, so the drive is listed within about a
+second; the next settle re-makes every tile as before. A drive the fusion refuses goes the normal
+way. A drive alone on new road (no drive covered its tiles) is mapped at once by one build of it
+(``PART``), final as well.
 
 Each tile estimate names, per drive it was made from, how many tiles that drive covers
 (``drive_tile_counts``), and whether it is *final*: made as the settled map makes it (with the
