@@ -261,6 +261,25 @@ def _run_live(args, fleet: Path, live: Path, probe: _Probe) -> tuple[float, str]
     return live_s, settle[-1] if settle else ""
 
 
+def _on_mapped_road(drives):
+    """The longest drive that drove no new road against the others (no tile with ``NEW_ROAD_CELLS``
+    road cells they did not pass): on mapped road once they are mapped."""
+    from hdmap_core.live.scheduler import NEW_ROAD_CELLS
+    from hdmap_core.live.tiles import TileConfig, road_cells
+
+    tc = TileConfig()
+    cells = {d.drive_id: road_cells(d, config=tc) for d in drives}
+    for d in sorted(drives, key=lambda d: -d.length_m):
+        seen: dict = {}
+        for o in drives:
+            if o is not d:
+                for k, c in cells[o.drive_id].items():
+                    seen.setdefault(k, set()).update(c)
+        if all(len(set(c) - seen.get(k, set())) < NEW_ROAD_CELLS for k, c in cells[d.drive_id].items()):
+            return d
+    raise SystemExit("no drive of the fleet lies on road the others drove")
+
+
 def _latency(args, fleet: Path, out: Path, offline_s: float) -> int:
     """Latency of single drives on a settled map (module docstring, 5.)."""
     import signal
@@ -277,7 +296,7 @@ def _latency(args, fleet: Path, out: Path, offline_s: float) -> int:
 
     bag = read_fleet_bag(fleet)
     drives = sorted(bag.drives, key=lambda d: d.drive_id)
-    mapped = max(drives, key=lambda d: d.length_m)
+    mapped = _on_mapped_road(drives)
     base = [d for d in drives if d is not mapped]
     write_fleet_bag(out / "base", base, bag.origin, overwrite=True)
     far = np.array([40000.0, 0.0])
