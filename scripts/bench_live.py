@@ -19,6 +19,15 @@
    the suite falls behind), the time from the last ack to the settled (last) map, and the ack -> listed latency.
    The highest offered rate whose slope stays <= 0 is what the suite absorbs on this machine.
 
+5. with ``--latency``: the arrival-to-listed latency of single drives on a settled map (issue 29:
+   <= 1 s for a 10 km drive on mapped road, <= 2 s per km on new road). The fleet (default: 16
+   drives of 9.5-10 km on 10.5 km of ``motorway``, seed 1; or ``--fleet``) without its longest
+   drive is played by ``hdmap run --keep-alive`` until settled; then the probe publishes that
+   drive (on mapped road: the fast path) and, once settled again, the same drive moved 40 km away
+   (new road). Per drive: publish -> ack -> first map listing it, and for the mapped-road drive
+   that map scored against the ground truth beside ``bag2map`` of the whole fleet (the batch map
+   of the same drives).
+
 ``BENCH_SMOKE=1``: a small fleet (8 drives on 2 km of ``motorway_ramps``), one run: a check
 that the benchmark works, in about a minute.
 
@@ -61,6 +70,7 @@ def main() -> int:
         "--params-file", default="", help="node parameters (YAML) for hdmap run, e.g. the mapper's region_max_drives"
     )
     ap.add_argument("--rates", default="", help="comma-separated replay rates: one live run each, a backlog table")
+    ap.add_argument("--latency", action="store_true", help="latency of one drive on mapped and on new road (5.)")
     args = ap.parse_args()
     if os.environ.get("BENCH_SMOKE") == "1":
         args.drives, args.length_m = 8, 2000.0
@@ -84,6 +94,13 @@ def main() -> int:
         str(fleet),
         "--overwrite",
     ]
+    if args.latency and not args.fleet:
+        if "--drives" not in sys.argv:
+            sim[sim.index("--drives") + 1] = "16"
+        if args.map == "motorway_ramps" and "--map" not in sys.argv:
+            sim[sim.index("--map") + 1] = "motorway"
+        args.length_m = args.length_m or 10500.0
+        sim += ["--set", "snippet_length_min_m=9500", "--set", "snippet_length_max_m=10000"]
     if args.length_m:
         sim += ["--length-m", str(args.length_m)]
     if not args.fleet:
@@ -98,6 +115,8 @@ def main() -> int:
     offline_s = time.monotonic() - t0
     args.offline_cpu = _children_cpu() - c0
 
+    if args.latency:
+        return _latency(args, fleet, out, offline_s)
     if args.rates:
         rows = []
         for rate in (float(r) for r in args.rates.split(",") if r.strip()):
@@ -240,6 +259,124 @@ def _run_live(args, fleet: Path, live: Path, probe: _Probe) -> tuple[float, str]
     settle = [ln for ln in proc.stderr.splitlines() if "settled:" in ln]
     time.sleep(0.5)
     return live_s, settle[-1] if settle else ""
+
+
+def _on_mapped_road(drives):
+    """The longest drive that drove no new road against the others (no tile with ``NEW_ROAD_CELLS``
+    road cells they did not pass): on mapped road once they are mapped."""
+    from hdmap_core.live.scheduler import NEW_ROAD_CELLS
+    from hdmap_core.live.tiles import TileConfig, road_cells
+
+    tc = TileConfig()
+    cells = {d.drive_id: road_cells(d, config=tc) for d in drives}
+    for d in sorted(drives, key=lambda d: -d.length_m):
+        seen: dict = {}
+        for o in drives:
+            if o is not d:
+                for k, c in cells[o.drive_id].items():
+                    seen.setdefault(k, set()).update(c)
+        if all(len(set(c) - seen.get(k, set())) < NEW_ROAD_CELLS for k, c in cells[d.drive_id].items()):
+            return d
+    raise SystemExit("no drive of the fleet lies on road the others drove")
+
+
+def _latency(args, fleet: Path, out: Path, offline_s: float) -> int:
+    """Latency of single drives on a settled map (module docstring, 5.)."""
+    import signal
+    from dataclasses import replace
+
+    import numpy as np
+
+    from hdmap_core.evaluation.evaluate import evaluate_map
+    from hdmap_core.groundtruth import load_ground_truth
+    from hdmap_core.model import Detection
+    from hdmap_ros.convert.messages import drive_to_msg, msg_to_map, rclpy_types
+    from hdmap_ros.io.bagio import read_fleet_bag, read_map_bag, write_fleet_bag
+    from hdmap_ros.nodes import qos
+
+    bag = read_fleet_bag(fleet)
+    drives = sorted(bag.drives, key=lambda d: d.drive_id)
+    mapped = _on_mapped_road(drives)
+    base = [d for d in drives if d is not mapped]
+    write_fleet_bag(out / "base", base, bag.origin, overwrite=True)
+    far = np.array([40000.0, 0.0])
+    new_road = replace(
+        mapped,
+        drive_id=mapped.drive_id + "_far",
+        xy=np.asarray(mapped.xy) + far,
+        detections=tuple(Detection(d.type, np.asarray(d.points) + far) for d in mapped.detections),
+    )
+    gt = load_ground_truth(str(fleet) + ".gt.json")
+    batch = evaluate_map(read_map_bag(out / "offline"), gt)
+    probe = _Probe()
+    pub = probe.node.create_publisher(rclpy_types().Drive, "/fleet/drives", qos.DRIVES)
+    cmd = [HDMAP, "run", str(out / "base"), "--rate", "0", "--keep-alive", "--state", str(out / "state")]
+    if args.params_file:
+        cmd += ["--params-file", args.params_file]
+    import shutil
+
+    shutil.rmtree(out / "state", ignore_errors=True)
+    time.sleep(1.0)
+    probe.t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=open(out / "run.log", "w"))  # noqa: SIM115
+
+    def wait(cond, timeout: float, what: str) -> float:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if cond():
+                return time.monotonic()
+            if proc.poll() is not None:
+                raise SystemExit(f"hdmap run ended ({proc.returncode}) waiting for {what}; see {out / 'run.log'}")
+            time.sleep(0.01)
+        raise SystemExit(f"timeout waiting for {what}")
+
+    def settled(n: int) -> bool:
+        return bool(probe.status) and probe.status[-1][1].settled and probe.status[-1][1].drives_integrated == n
+
+    rows = []
+    try:
+        t_base = wait(lambda: settled(len(base)), args.timeout, "the base fleet settled")
+        print(f"base fleet ({len(base)} drives) settled after {t_base - probe.t0:.1f} s", file=sys.stderr)
+        wait(lambda: pub.get_subscription_count() > 0, 30, "the ingestor")
+        n = len(base)
+        for label, drive in (("mapped road", mapped), ("new road", new_road)):
+            n_maps = len(probe.maps)
+            t_pub = time.monotonic()
+            pub.publish(drive_to_msg(drive, types=rclpy_types()))
+            did = drive.drive_id
+            t_in = wait(lambda did=did: any(did in set(m.drive_ids) for _, m in probe.maps[n_maps:]), args.timeout, did)
+            msg = next(m for _, m in probe.maps[n_maps:] if did in set(m.drive_ids))
+            t_ack = probe.acks.get(did, float("nan"))
+            n += 1
+            t_set = wait(lambda n=n: settled(n), args.timeout, "settled again")
+            rows.append((label, drive.length_m / 1000.0, t_ack - t_pub, t_in - t_ack, t_set - t_ack, msg))
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        probe.close()
+    print(f"fleet: {args.fleet or args.map} ({len(drives)} drives); bag2map of the whole fleet {offline_s:.1f} s wall")
+    print(
+        f"batch map (bag2map, every drive): mean error {batch.overall.mean_m:.4f} m, "
+        f"coverage {100 * batch.overall.coverage:.2f} %"
+    )
+    print(
+        "drive | km | publish -> ack [s] | ack -> listed [s] | per km [s] | ack -> settled again [s] | "
+        "listed map vs truth"
+    )
+    for label, km, pa, al, ast, msg in rows:
+        hd = msg_to_map(msg)
+        score = ""
+        if label == "mapped road":
+            rep = evaluate_map(hd, gt)
+            score = (
+                f"mean {rep.overall.mean_m:.4f} m ({rep.overall.mean_m - batch.overall.mean_m:+.4f}), coverage "
+                f"{100 * rep.overall.coverage:.2f} % ({100 * (rep.overall.coverage - batch.overall.coverage):+.2f} pt)"
+            )
+        print(f"{label} | {km:.2f} | {pa:.2f} | {al:.2f} | {al / km:.2f} | {ast:.2f} | {score}")
+    return 0
 
 
 def _report(args, fleet: Path, out: Path, offline_s: float, live_s: float, settle_line: str, probe: _Probe) -> None:

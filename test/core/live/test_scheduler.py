@@ -5,7 +5,7 @@ from __future__ import annotations
 import random
 from dataclasses import replace
 
-from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REGION, REMAP, Job, LiveScheduler
+from hdmap_core.live.scheduler import FUSE, MAP, MODEL, OBSERVE, PART, REGION, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig
 
 CFG = TileConfig(min_growth_fraction=0.10, min_growth_drives=3)
@@ -353,3 +353,68 @@ def test_restore_of_a_settled_region_is_settled_and_other_drive_sets_are_not():
     u = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=10)
     u.restore({A: ["d0", "d1"], B: ["d0", "d1", "d2"]}, [(k, ids, region.sig) for k, ids in region.tiles], now=0.0)
     assert not u.is_settled() and [j.kind for j in u.next_jobs(5.0, limit=4)] == [REGION]
+
+
+def _settled_region(n: int, keys=(A, B)) -> LiveScheduler:
+    s = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=100, fast_path=True)
+    for i in range(n):
+        s.add_drive(f"d{i:02d}", keys, now=0.0, cells={k: {(0, 0)} for k in keys})
+    _drain(s, 0.0, observed=True)
+    (region,) = s.next_jobs(1.0, limit=4)
+    s.finished(region, ok=True)
+    assert s.is_settled()
+    return s
+
+
+def test_fast_path_a_drive_on_settled_road_is_one_fuse_job_then_the_settle_re_makes_every_tile():
+    s = _settled_region(12)
+    s.add_drive("new", [A, B], now=2.0, cells={A: {(0, 0)}, B: {(0, 0)}})
+    assert s.queued() == set() and s.fast_pending() == 1 and not s.is_settled()
+    (fuse,) = s.next_jobs(2.0, limit=4)  # at once, not after settle_after_s
+    assert fuse.kind == FUSE and fuse.drive_ids == ("new",) and fuse.final
+    assert dict(fuse.tiles)[A] == tuple(sorted([f"d{i:02d}" for i in range(12)] + ["new"]))
+    assert s.next_jobs(2.0, limit=4) == []  # its tiles are in work
+    s.finished(fuse, ok=True)
+    assert not s.is_settled() and s.pending_tiles() == 0  # listed (final), not the settle's
+    (region,) = s.next_jobs(3.5, limit=4)  # idle: the settle re-makes every tile as before
+    assert region.kind == REGION and "new" in region.drive_ids
+    s.finished(region, ok=True)
+    assert s.is_settled()
+
+
+def test_fast_path_is_refused_on_new_road_thin_support_too_many_fused_or_changed_tiles():
+    s = _settled_region(12)
+    s.add_drive("ramp", [A, B], now=2.0, cells={A: {(0, 0), (5, 5), (5, 6)}, B: {(0, 0)}})  # new road in A
+    assert s.fast_pending() == 0 and s.queued() == {A, B}
+    thin = _settled_region(3)  # FAST_MAX_SHARE of 3 drives: still one
+    for x in ("x", "y"):
+        thin.add_drive(x, [A], now=2.0, cells={A: {(0, 0)}})
+    assert thin.fast_pending() == 1
+    s = _settled_region(12)  # at most FAST_MAX_SHARE of 12 = 3 per tile between two settles
+    for i in range(4):
+        s.add_drive(f"f{i}", [A], now=2.0, cells={A: {(0, 0)}})
+    assert s.fast_pending() == 3 and s.queued() == {A}
+    s = _settled_region(12)
+    s.add_drive("f", [A, C], now=2.0, cells={A: {(0, 0)}, C: {(0, 0)}})  # C never mapped
+    assert s.fast_pending() == 0
+    s.add_drive("g", [B], now=2.0, cells={B: {(0, 0)}})
+    (fuse,) = s.next_jobs(2.0, limit=1)
+    assert fuse.kind == FUSE and fuse.drive_ids == ("g",)
+    s.finished(fuse, ok=False)  # refused by the fusion: the normal way
+    assert B in s.queued() and s.fast_pending() == 0
+
+
+def test_fast_path_a_drive_alone_on_new_road_is_one_part_job_of_its_tiles():
+    s = _settled_region(12)
+    s.add_drive("far", [(9, 9), (9, 10)], now=2.0, cells={(9, 9): {(1, 1)}})
+    (part,) = s.next_jobs(2.0, limit=4)
+    assert part.kind == PART and part.final and part.tiles == (((9, 9), ("far",)), ((9, 10), ("far",)))
+    s.finished(part, ok=True)
+    assert s.pending_tiles() == 0 and not s.is_settled()  # listed; the settle re-makes every tile
+    (region,) = s.next_jobs(3.5, limit=4)
+    assert region.kind == REGION and "far" in region.drive_ids
+    # two drives on the same new road before the first is made: the normal way (previews)
+    s.add_drive("n1", [(7, 7)], now=4.0, cells={(7, 7): {(1, 1)}})
+    s.add_drive("n2", [(7, 7)], now=4.0, cells={(7, 7): {(1, 1)}})
+    (job,) = s.next_jobs(4.0, limit=1)
+    assert job.kind == MAP and not job.final and job.drive_ids == ("n1", "n2")

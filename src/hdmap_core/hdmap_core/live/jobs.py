@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from hdmap_core.errors import ConfigError
+from hdmap_core.live.fuse import fuse_drive
 from hdmap_core.live.region import map_region
-from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REGION, REMAP, Job
+from hdmap_core.live.scheduler import FUSE, MAP, MODEL, OBSERVE, PART, REGION, REMAP, Job
 from hdmap_core.live.tiles import (
     TileConfig,
     TileKey,
@@ -47,7 +48,9 @@ class JobResult:
         segments: MAP / REMAP: the tile's segments.
         observations: MAP with the fleet model, OBSERVE: the tile's step observations.
         model: MODEL: the fleet-wide ``OffsetModel``; REGION: the region's.
-        tiles: REGION: every tile of the job -> its segments.
+        tiles: REGION, PART: every tile of the job -> its segments; FUSE: the drive's tiles with it fused
+            in (None: refused, see ``refused``).
+        refused: FUSE: why the drive goes the normal way ('' when fused).
         seconds: the job's own run time [s].
     """
 
@@ -55,6 +58,7 @@ class JobResult:
     observations: list | None = None
     model: Any = None
     tiles: dict[TileKey, list] | None = None
+    refused: str = ""
     seconds: float = 0.0
 
 
@@ -68,6 +72,7 @@ def run_job(
     offset_model: OffsetSource | None = None,
     observations: Sequence | None = None,
     region_workers: int = 1,
+    tile_segments: dict | None = None,
 ) -> JobResult:
     """Run one job.
 
@@ -79,6 +84,7 @@ def run_job(
         observations: MODEL: every tile's observations.
         region_workers: REGION: processes of its build (this one plus forked children; keep 1 in
             a process with native threads of its own, e.g. a ROS node).
+        tile_segments: FUSE: every tile of the job -> its current (settled) segments.
 
     Raises:
         ConfigError: a job of unknown kind, or a REMAP without a model.
@@ -88,6 +94,15 @@ def run_job(
     tc, pc = tile_config, pipeline_config
     if job.kind == MODEL:
         out = JobResult(model=fleet_offsets(list(observations or ()), pipeline_config=pc))
+    elif job.kind == FUSE:
+        fused = fuse_drive(drives[0], dict(tile_segments or {})) if drives else None
+        if fused is None:
+            out = JobResult(refused="drive not in the store")
+        else:
+            out = JobResult(tiles=fused.tiles, refused=fused.reason)
+    elif job.kind == PART:  # a drive alone on new road: its tiles from one build of it
+        reg = map_region(drives, [k for k, _ in job.tiles], tile_config=tc, pipeline_config=pc, workers=1)
+        out = JobResult(tiles=reg.segments)
     elif job.kind == REGION:
         _work.clear()  # the region makes every tile: no kept observation pass is used any more
         reg = map_region(drives, [k for k, _ in job.tiles], tile_config=tc, pipeline_config=pc, workers=region_workers)

@@ -23,6 +23,18 @@ and publishes their results. The rules:
   drive set, (2) one fleet-wide offset model from all observations, (3) every tile re-made from
   all its drives with that model. Phase 2 waits until no job is in work (a barrier); the jobs of
   phases 1 and 3 run side by side.
+- **The fast path** (``fast_path``, with the fleet model): a drive every tile of which holds a
+  settled estimate (made by the settle, or fused) and in which it drove no new road is not queued
+  tile by tile: one :data:`FUSE` job fuses it into those estimates (:mod:`hdmap_core.live.fuse`:
+  its offset against the map, the gauge moved as the batch solve would, its samples into the
+  matched maxima). Its estimates are final but not the settle's (:data:`FUSED`), so the settle
+  re-makes every tile as before. A drive alone on new road (no drive covered any of its tiles before
+  it) is one :data:`PART` job: its tiles made by one build of it
+  (:func:`~hdmap_core.live.region.map_region`), final, also :data:`FUSED`. At most
+  ``FAST_MAX_SHARE`` of a tile's settled drives (at least one) are fused into it between two
+  settles. A drive whose tiles changed meanwhile (a job on them, another drive's settle), or whose
+  fusion is refused (it does not show the road the map holds), goes the normal way: its tiles
+  queued.
 - **The region settle** (with the fleet model and at most ``region_max_drives`` drives): instead
   of the three phases, one :data:`REGION` job makes every tile of the map at once
   (:func:`~hdmap_core.live.region.map_region`: the offline build's passes on the whole drives, cut
@@ -40,7 +52,19 @@ from dataclasses import dataclass
 
 from hdmap_core.live.tiles import TileConfig, TileKey, needs_update, observations_signature
 
-__all__ = ["Job", "LiveScheduler", "MAP", "OBSERVE", "MODEL", "REMAP", "REGION", "NEW_ROAD_CELLS"]
+__all__ = [
+    "Job",
+    "LiveScheduler",
+    "MAP",
+    "OBSERVE",
+    "MODEL",
+    "REMAP",
+    "REGION",
+    "FUSE",
+    "PART",
+    "FUSED",
+    "NEW_ROAD_CELLS",
+]
 
 NEW_ROAD_CELLS = 2  # RULE: new road in a mapped tile: this many road cells (16 m) its estimate has not seen
 
@@ -49,6 +73,15 @@ OBSERVE = "observe"  # the tile's observation pass only (settle phase 1)
 MODEL = "model"  # the fleet-wide offset model over every tile's observations (settle phase 2)
 REMAP = "remap"  # the tile's final pass with the fleet-wide model (settle phase 3)
 REGION = "region"  # every tile of the map in one build (the region settle)
+FUSE = "fuse"  # one drive on settled road fused into its tiles' estimates (the fast path)
+PART = "part"  # a drive alone on new road: its tiles made by one build of it (the fast path there)
+FUSED = "fused"  # the model signature of a fused (or PART) estimate: final, never the settle's own
+# RULE fast path: the fused map holds the settled map as its gauge, while the batch map of the same
+# drives re-solves the offsets with them; each drive moves that solve by about 1/n of its offset, so
+# at most FAST_MAX_SHARE of a tile's settled drives (at least one) are fused into it between two
+# settles (the rest wait for the settle; the support a drive needs where it drives, the drives per
+# line point, is checked by the fusion: a tile the drive only touches with its margin may hold few)
+FAST_MAX_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -62,6 +95,8 @@ class Job:
             :data:`REGION`: every drive of its tiles.
         sig: :data:`MODEL`: the signature of the observations it is made from; :data:`REMAP`: that
             of the model it uses; :data:`REGION`: that of the drive sets of its tiles; else ''.
+        tiles: :data:`REGION`: every tile and its drives; :data:`FUSE`: the drive's tiles and their
+            drives (the drive included).
         final: its estimate is made as the settled map makes it (a REMAP; a MAP when no fleet model
             is used, or when the model of these observations failed): only then do the drives it is
             made from count as mapped on this tile (``Map.drive_ids``).
@@ -84,15 +119,27 @@ class LiveScheduler:
         settle_after_s: idle time after the last drive before settling [s].
         region_max_drives: with the fleet model, settle with one :data:`REGION` job while the map
             has at most this many drives (0: never; the three phases).
+        fast_path: with the fleet model, a drive on settled road is fused into its tiles
+            (:data:`FUSE`) instead of waiting for the settle.
     """
 
     def __init__(
-        self, tile_config: TileConfig, *, use_fleet_model: bool, settle_after_s: float, region_max_drives: int = 0
+        self,
+        tile_config: TileConfig,
+        *,
+        use_fleet_model: bool,
+        settle_after_s: float,
+        region_max_drives: int = 0,
+        fast_path: bool = False,
     ) -> None:
         self.tile_config = tile_config
         self.use_fleet_model = use_fleet_model
         self.settle_after_s = float(settle_after_s)
         self.region_max_drives = int(region_max_drives)
+        self.fast_path = bool(fast_path) and use_fleet_model
+        self._fast: dict[str, tuple[TileKey, ...]] = {}  # drives waiting for the fast path (arrival order)
+        self._part: dict[str, tuple[TileKey, ...]] = {}  # drives alone on new road waiting for their PART job
+        self._fused: dict[TileKey, int] = {}  # drives fused into the tile's estimate since it was made
         self._region_sig: str | None = None  # cache of the tiles' drive sets' signature
         self._region_failed_sig = ""  # drive sets whose region job failed
         self._tiles: dict[TileKey, set[str]] = {}  # tile -> drives covering it
@@ -158,18 +205,54 @@ class LiveScheduler:
         if drive_id in self._drive_tiles:
             return False
         keys = set(tiles)
+        fast = self.fast_path and cells is not None and self._on_settled_road(keys, cells)
+        alone = self.fast_path and bool(keys) and all(self._alone_new(k) for k in keys)
         for key, cs in (cells or {}).items():
             self._cells.setdefault(key, set()).update(cs)
         self._drive_tiles[drive_id] = len(keys)
         for key in keys:
             self._tiles.setdefault(key, set()).add(drive_id)
-        self._queue.update(keys)
+        if fast:
+            self._fast[drive_id] = tuple(sorted(keys))
+        elif alone:
+            self._part[drive_id] = tuple(sorted(keys))
+        else:
+            self._queue.update(keys)
         self._region_sig = None
         self._last_input = now
         return True
 
+    def _alone_new(self, key: TileKey) -> bool:
+        """No drive covers the tile yet (before the one being added) and nothing is made or queued there."""
+        return not self._tiles.get(key) and key not in self._est and key not in self._queue and key not in self._busy
+
+    def _on_settled_road(self, keys: set[TileKey], cells: Mapping[TileKey, Iterable[tuple[int, int]]]) -> bool:
+        """Every tile holds a settled (or fused) estimate whose road cells are known and the drive
+        drove no new road in any of them."""
+        waiting: dict[TileKey, int] = {}
+        for ks in self._fast.values():
+            for k in ks:
+                waiting[k] = waiting.get(k, 0) + 1
+        for key in keys:
+            est = self._est.get(key)
+            if est is None or est[1] == "" or key in self._cells_unknown or key in self._queue:
+                return False
+            fused = self._fused.get(key, 0)
+            base = est[0] - fused
+            if fused + waiting.get(key, 0) + 1 > max(1.0, FAST_MAX_SHARE * base):
+                return False
+            if len(set(cells.get(key, ())) - self._cells_est.get(key, frozenset())) >= NEW_ROAD_CELLS:
+                return False
+        return bool(keys)
+
     def finished(self, job: Job, *, ok: bool, observed: bool = False) -> None:
         """A job ended. ``observed``: a :data:`MAP` job also stored the tile's observations."""
+        if job.kind == PART:
+            self._part_finished(job, ok)
+            return
+        if job.kind == FUSE:
+            self._fuse_finished(job, ok)
+            return
         self._busy.pop(job.key if job.kind != MODEL else None, None)
         if job.kind == REGION:
             self._region_finished(job, ok)
@@ -197,12 +280,35 @@ class LiveScheduler:
             self._failed[key] = n
             return
         self._est[key] = (n, job.sig if job.kind == REMAP else "")
+        self._fused.pop(key, None)
         self._cells_est[key] = cells
         self._cells_unknown.discard(key)
         self._failed.pop(key, None)
         if observed:
             self._obs[key] = job.drive_ids
             self._obs_sig = None
+
+    def _fuse_finished(self, job: Job, ok: bool) -> None:
+        for key, _ in job.tiles:
+            self._busy.pop(key, None)
+            cells = self._cells_job.pop(key, frozenset())
+            if ok and key in self._est:
+                self._est[key] = (self._est[key][0] + 1, FUSED)
+                self._fused[key] = self._fused.get(key, 0) + 1
+                self._cells_est[key] = self._cells_est.get(key, frozenset()) | cells
+        if not ok:  # the normal way: its tiles wait for the settle (or are due, with new road)
+            self._queue.update(k for k, _ in job.tiles)
+
+    def _part_finished(self, job: Job, ok: bool) -> None:
+        for key, ids in job.tiles:
+            self._busy.pop(key, None)
+            cells = self._cells_job.pop(key, frozenset())
+            if ok:
+                self._est[key] = (len(ids), FUSED)
+                self._cells_est[key] = cells
+                self._fused.pop(key, None)
+        if not ok:
+            self._queue.update(k for k, _ in job.tiles)
 
     def _region_finished(self, job: Job, ok: bool) -> None:
         for key, _ in job.tiles:
@@ -214,9 +320,14 @@ class LiveScheduler:
             return
         for key, ids in job.tiles:
             self._est[key] = (len(ids), job.sig)
+            self._fused.pop(key, None)
             self._cells_est[key] = self._cells_job.pop(key, frozenset())
             self._cells_unknown.discard(key)
             self._failed.pop(key, None)
+        for d in set(job.drive_ids) & set(self._fast):  # made by the region: nothing left to fuse
+            del self._fast[d]
+        for d in set(job.drive_ids) & set(self._part):
+            del self._part[d]
 
     # --- queries ---------------------------------------------------------------------------------
 
@@ -253,6 +364,10 @@ class LiveScheduler:
     def model_sig(self) -> str:
         return self._model_sig
 
+    def fast_pending(self) -> int:
+        """Drives waiting for the fast path (on settled road or alone on new road)."""
+        return len(self._fast) + len(self._part)
+
     def pending_tiles(self) -> int:
         """Tiles queued, in work, or not yet made from all their drives (failed ones excepted)."""
         waiting = set(self._queue) | {k for k in self._busy if k is not None}
@@ -275,12 +390,18 @@ class LiveScheduler:
 
     def idle(self, now: float) -> bool:
         """Nothing queued or in work and no drive for ``settle_after_s``: time to settle."""
-        return not self._queue and not self._busy and now - self._last_input >= self.settle_after_s
+        return (
+            not self._queue
+            and not self._busy
+            and not self._fast
+            and not self._part
+            and now - self._last_input >= self.settle_after_s
+        )
 
     def is_settled(self) -> bool:
         """Nothing queued or in work and every tile made from all its drives (with the fleet model:
         every tile observed, the model current, every tile made with it), failed tiles excepted."""
-        if self._queue or self._busy:
+        if self._queue or self._busy or self._fast or self._part:
             return False
         if self._region_phase():
             return not self._off_region()
@@ -305,16 +426,20 @@ class LiveScheduler:
             job = self._next(now, prefer)
             if job is None:
                 break
-            self._busy[job.key if job.kind != MODEL else None] = job
+            if job.kind not in (FUSE, PART):  # these hold their tiles only (several may run side by side)
+                self._busy[job.key if job.kind != MODEL else None] = job
             if job.key is not None and job.kind in (MAP, REMAP):
                 self._cells_job[job.key] = frozenset(self._cells.get(job.key, ()))
-            for key, _ in job.tiles:  # a REGION: its tiles are in work (new drives wait behind it)
+            for key, _ in job.tiles:  # a REGION, a FUSE: its tiles are in work (new drives wait behind it)
                 self._busy[key] = job
                 self._cells_job[key] = frozenset(self._cells.get(key, ()))
             jobs.append(job)
         return jobs
 
     def _next(self, now: float, prefer: Callable[[TileKey], bool] | None = None) -> Job | None:
+        fuse = self._fuse_job() or self._part_job()
+        if fuse is not None:
+            return fuse
         if now - self._last_input >= self.settle_after_s and self._region_phase():
             # RULE coalescing: once the input settles, the region job makes every tile; a preview
             # of a tile still queued would be thrown away with it
@@ -331,6 +456,39 @@ class LiveScheduler:
         if now - self._last_input < self.settle_after_s:
             return None
         return self._settle_job(prefer)
+
+    def _fuse_job(self) -> Job | None:
+        """The first drive waiting for the fast path whose tiles are free: its :data:`FUSE` job
+        if its tiles still hold settled estimates of all their other drives, else its tiles are
+        queued (the normal way)."""
+        waiting: dict[TileKey, int] = {}
+        for keys in self._fast.values():
+            for key in keys:
+                waiting[key] = waiting.get(key, 0) + 1
+        for did, keys in list(self._fast.items()):
+            if any(k in self._busy for k in keys):
+                continue
+            del self._fast[did]
+            ok = all(
+                k in self._est and self._est[k][1] != "" and self._est[k][0] + waiting[k] == self._count(k)
+                for k in keys
+            )
+            if ok:
+                return Job(FUSE, None, (did,), final=True, tiles=tuple((k, self.tile_drives(k)) for k in keys))
+            self._queue.update(keys)  # RULE: tiles changed meanwhile: the normal way
+        return None
+
+    def _part_job(self) -> Job | None:
+        """The first drive alone on new road whose tiles are free: its :data:`PART` job while it is
+        still the only drive on every tile of it, else its tiles are queued (the normal way)."""
+        for did, keys in list(self._part.items()):
+            if any(k in self._busy for k in keys):
+                continue
+            del self._part[did]
+            if all(self._count(k) == 1 and k not in self._est for k in keys):
+                return Job(PART, None, (did,), final=True, tiles=tuple((k, (did,)) for k in keys))
+            self._queue.update(keys)
+        return None
 
     def _pick(self, ready: list[TileKey]) -> TileKey:
         fresh = [k for k in ready if k not in self._est]

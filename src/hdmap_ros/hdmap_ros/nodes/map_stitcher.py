@@ -17,6 +17,12 @@ subscriber that waits until its drives are listed gets them fully mapped. The ma
 is published latched on ``/hdmap/status`` whenever it changes, from the mapper's part
 (``/hdmap/mapper_status``) and the stitcher's own, and is on /diagnostics too.
 
+A burst of final estimates that completes drives (every drive its estimates name is then in
+the map with all its tiles: a drive fused on settled road by the mapper's fast path, the end of a
+settle) is stitched at once, without waiting for ``debounce_s`` (still no sooner after the last
+rebuild than ``REBUILD_SHARE`` allows): a subscriber waiting for its drives does not wait for the
+debounce (``_completes_drives``).
+
 Road changes (docs/updates.md, "Live"): once the map has settled (the mapper settled, every
 estimate stitched), the stitcher reads every drive from the mapper's store (``drive_db_path``,
 read-only) and follows the changes of the road with ``bag2map``'s code
@@ -159,6 +165,15 @@ class MapStitcher(HealthMixin, Node):
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
+        # final estimates stored (tile -> its drives and their tile counts) and the tiles received
+        # since the last rebuild began: a burst that completes drives is stitched at once
+        self._final: dict[TileKey, tuple[list[str], list[int]]] = {}
+        progress = self.store.tile_progress()
+        for key, _, ids, _ in self.store.tiles():
+            counts, final = progress.get(key, ([], True))
+            if final:
+                self._final[key] = (list(ids), list(counts))
+        self._dirty: set[TileKey] = set()
         self.map, sig = self.store.map()
         self._map_sig = sig  # the tile versions the current map was made from
         self._failed_sig = ""
@@ -227,6 +242,11 @@ class MapStitcher(HealthMixin, Node):
                 tile.final,
             ):
                 self.health.accept()
+                self._dirty.add(tile.key)
+                if tile.final:
+                    self._final[tile.key] = (list(tile.drive_ids), list(tile.drive_tile_counts))
+                else:
+                    self._final.pop(tile.key, None)
                 now = time.monotonic()
                 self._last_rx = now
                 if self._first_dirty is None:
@@ -319,10 +339,14 @@ class MapStitcher(HealthMixin, Node):
         if self._first_dirty is None:
             return
         now = time.monotonic()
-        if now - self._last_rx < self.debounce_s and (
-            now - self._first_dirty < self.max_delay_s or now < self._rested_at
+        if (
+            now - self._last_rx < self.debounce_s
+            and (now - self._first_dirty < self.max_delay_s or now < self._rested_at)
+            and (now < self._rested_at or not self._completes_drives())
         ):
             return
+        with self._rx_lock:
+            self._dirty.clear()
         self._first_dirty = None
         sig = self.store.tiles_signature()
         t0 = time.monotonic()
@@ -335,6 +359,16 @@ class MapStitcher(HealthMixin, Node):
         end = time.monotonic()
         self._rested_at = end + (end - t0) * (1.0 - REBUILD_SHARE) / REBUILD_SHARE
         self.health.backlog = int(self._first_dirty is not None)
+
+    def _completes_drives(self) -> bool:
+        """RULE: every estimate received since the last rebuild is final and every drive they
+        name is then in the map with all its tiles (a fused drive, a settle's last estimate)."""
+        with self._rx_lock:
+            if not self._dirty or any(k not in self._final for k in self._dirty):
+                return False
+            named = {d for k in self._dirty for d in self._final[k][0]}
+            tiles = list(self._final.values())
+        return named <= integrated_drives(tiles)
 
     def _fail(self, sig: str, text: str) -> None:
         self._failed_sig = sig  # these inputs cannot be stitched: nobody should wait for them

@@ -30,6 +30,14 @@ this node feeds it drives and finished jobs, runs the jobs it hands out (``live.
 and publishes their results. A tile is one job for all drives waiting on it; tiles no estimate
 covers yet go first, then tiles with new road, so coverage grows while drives come.
 
+The fast path (``fast_path``, presets with the fleet model): a drive whose tiles all hold settled
+estimates and in which it drove no new road is fused into them at once (``live.fuse``: its offset
+against the map, the gauge moved as the batch solve would, its samples into the matched line
+points), and the fused estimates are published final, so the drive is listed within about a
+second; the next settle re-makes every tile as before. A drive the fusion refuses goes the normal
+way. A drive alone on new road (no drive covered its tiles) is mapped at once by one build of it
+(``PART``), final as well.
+
 Each tile estimate names, per drive it was made from, how many tiles that drive covers
 (``drive_tile_counts``), and whether it is *final*: made as the settled map makes it (with the
 fleet offset model where the preset has one). The stitcher lists a drive in ``Map.drive_ids``
@@ -59,7 +67,7 @@ from std_msgs.msg import String
 from hdmap_core.errors import ConfigError, HdmapError, InvalidDriveError
 from hdmap_core.live.jobs import JobResult, run_job, warm_up
 from hdmap_core.live.progress import LiveStatus
-from hdmap_core.live.scheduler import MAP, MODEL, OBSERVE, REGION, REMAP, Job, LiveScheduler
+from hdmap_core.live.scheduler import FUSE, FUSED, MAP, MODEL, OBSERVE, PART, REGION, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig, TileKey, road_cells, tiles_of_drive
 from hdmap_core.model import Drive, validate_drive
 from hdmap_core.parallel import available_cpus
@@ -182,6 +190,12 @@ class SegmentMapper(HealthMixin, Node):
             hi=600.0,
             dynamic="work_slice_s",
         )
+        fast_path = declare(
+            self,
+            "fast_path",
+            True,
+            "With the fleet model: fuse a drive on settled road into its tiles at once (listed before the settle).",
+        )
         workers = declare(
             self, "workers", 0, "Processes mapping tiles: 0 = every available CPU, 1 = in this process.", lo=0, hi=256
         )
@@ -199,6 +213,7 @@ class SegmentMapper(HealthMixin, Node):
             use_fleet_model=self.use_fleet_model,
             settle_after_s=self.settle_after_s,
             region_max_drives=region_max_drives,
+            fast_path=fast_path,
         )
         self._model: OffsetModel | None = None
         self._load_model()
@@ -224,6 +239,8 @@ class SegmentMapper(HealthMixin, Node):
         for pool in self._pools if self.workers > 1 else []:  # start the processes while nothing waits
             pool.submit(warm_up)
         self.tiles_published = 0
+        self.fast_fused = 0  # drives fused into settled tiles (the fast path)
+        self.fast_refused = 0  # ... refused by the fusion (they waited for the settle)
         self.received = 0
         self._rejected_ids: set[str] = set()
         self._status: LiveStatus | None = None
@@ -442,6 +459,10 @@ class SegmentMapper(HealthMixin, Node):
             self._drive_cache.popitem(last=False)
         return out
 
+    def _segments(self, key: TileKey) -> list:
+        est = self.store.tile(key)
+        return est.segments() if est is not None else []
+
     def _at_home(self, key: TileKey, *, worker: int) -> bool:
         """The tile's observation pass was made on ``worker`` (or on none still known)."""
         return self._home.get(key, worker) == worker
@@ -461,6 +482,8 @@ class SegmentMapper(HealthMixin, Node):
             kw["observations"] = self.store.observations()
         if job.kind == REMAP:
             kw["offset_model"] = self._model
+        if job.kind == FUSE:
+            kw["tile_segments"] = {key: self._segments(key) for key, _ in job.tiles}
         if job.kind == REGION:
             # forked children only from a worker process, never from this one (native threads)
             kw["region_workers"] = self.workers if self.workers > 1 else 1
@@ -487,6 +510,9 @@ class SegmentMapper(HealthMixin, Node):
             self._commit(job, result)
 
     def _commit(self, job: Job, result: JobResult) -> None:
+        if job.kind in (FUSE, PART):
+            self._commit_fused(job, result)
+            return
         if job.kind == MODEL:
             self.store.put_model(result.model.to_dict(), job.sig)
             self._load_model()
@@ -517,6 +543,25 @@ class SegmentMapper(HealthMixin, Node):
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
             self.health.set("tiles", self.scheduler.tile_count)
         self.scheduler.finished(job, ok=True, observed=job.kind == MAP and result.observations is not None)
+
+    def _commit_fused(self, job: Job, result: JobResult) -> None:
+        """A drive fused into its tiles: the estimates stored in one commit and published final
+        (the drive is listed once the stitcher has them); refused: its tiles go the normal way."""
+        did = job.drive_ids[0] if job.drive_ids else "?"
+        self.health.set("last_fuse_s", f"{result.seconds:.3f}")
+        if result.tiles is None:
+            self.fast_refused += 1
+            self.health.set("fast_refused", self.fast_refused)
+            self.get_logger().info(f"drive {did!r} not fused ({result.refused}): it waits for the settle")
+            self.scheduler.finished(job, ok=False)
+            return
+        made = [(key, result.tiles.get(key, []), ids) for key, ids in job.tiles]
+        for est in self.store.put_tiles(made, model_sig=FUSED):
+            self._publish(est, final=True)
+            self.health.updated()
+        self.fast_fused += 1
+        self.health.set("fast_fused", self.fast_fused)
+        self.scheduler.finished(job, ok=True)
 
     def _fail(self, job: Job, err: Exception) -> None:
         what = "fleet offset model" if job.kind == MODEL else f"tile {job.key} ({job.kind})"
