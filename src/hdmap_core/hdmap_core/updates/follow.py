@@ -43,6 +43,7 @@ from hdmap_core.updates.edges import (
     solid_lines,
 )
 from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evidence, map_lines, unwrap_aliases
+from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
 from hdmap_core.updates.unseen import ModelledMarking, unseen_moved
@@ -438,13 +439,16 @@ def follow_map(
         # what no drive after a shift saw of the first map's markings: moved by the shift
         unseen = unseen_moved(first_map, local_map, places, changes, evidence, core, config=config)
         modelled = unseen.pieces
+        # a re-striping or a marking gone leaves the other lines: those the drives after it had
+        # no evidence of stay (updates.marks)
+        kept = unchanged_marks(first_map, local_map, places, changes, after, core, config=config)
         reach = Reach(
             np.concatenate([np.zeros((0, 2)), *poses]),
             config.view_m,
             np.concatenate([np.zeros((0, 2)), *borders]),
             _BORDER_SAME_M,
             np.concatenate([np.zeros((0, 2)), *marks]),
-            keep=unseen.moved_to,
+            keep=np.concatenate([unseen.moved_to, kept]),
             take=unseen.moved_from,
         )
         new_map = splice(unseen.map, local_map, places, core, reach=reach)
