@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature
 from hdmap_core.updates.detect import DetectedChange, PlaceChange
 from hdmap_core.updates.marks import share_places, unchanged_marks
 from hdmap_core.updates.places import Places
@@ -40,10 +40,14 @@ FIRST = HDMap(
 )
 
 
-def _after(y=LANE_Y):
+def _after(y=LANE_Y, seen=()):
+    """Two drives after the change along the left lane; ``seen``: (type, y) of lines the first of
+    them detected over the whole carriageway."""
     x = np.arange(0.0, 600.0, 2.0)
     xy = np.stack([x, np.full(len(x), y)], axis=1)
-    return [Drive(f"a{i}", xy, np.zeros(len(x)), 10**12 + np.arange(len(x), dtype=np.int64) * 10**8) for i in (1, 2)]
+    stamps = 10**12 + np.arange(len(x), dtype=np.int64) * 10**8
+    dets = tuple(Detection(t, np.stack([x, np.full(len(x), float(ly))], axis=1)) for t, ly in seen)
+    return [Drive(f"a{i}", xy, np.zeros(len(x)), stamps, dets if i == 1 else ()) for i in (1, 2)]
 
 
 def _local(*lines):
@@ -56,8 +60,8 @@ def _change(kind):
     return DetectedChange(7, 10, (kind,), places, ("a1", "a2"), 0.9)
 
 
-def _followed(local, change, *, keep_unchanged=True):
-    after = _after()
+def _followed(local, change, *, keep_unchanged=True, seen=()):
+    after = _after(seen=seen)
     kept = unchanged_marks(FIRST, local, PLACES, [change], after, REBUILT) if keep_unchanged else np.zeros((0, 2))
     reach = Reach(np.concatenate([d.xy for d in after]), 12.0, keep=kept)
     return splice(FIRST, local, PLACES, REBUILT, reach=reach)
@@ -90,6 +94,14 @@ def test_a_marking_gone_next_to_the_drives_goes_and_a_far_line_stays():
     local = _local((SOLID, 60.5))
     got = _lines_at(_followed(local, _change("marking_gone")))
     assert got == [(int(SOLID), 50.0), (int(SOLID), 60.5)]
+
+
+def test_a_line_one_drive_after_the_change_detected_is_no_gone_line():
+    # only the divider 57 was removed; one drive saw the divider 53.5 in the next lane, too few
+    # for the local map
+    local = _local((SOLID, 60.5))
+    got = _lines_at(_followed(local, _change("marking_gone"), seen=((DASHED, 53.3), (SOLID, 60.5))))
+    assert got == [(int(SOLID), 50.0), (int(DASHED), 53.5), (int(SOLID), 60.5)]
 
 
 def test_a_line_the_local_map_saw_is_taken_from_it():

@@ -12,8 +12,9 @@ is replaced only where the drives after the change said something of it:
    line is taken there (with the type the drives after the change saw);
 2. **gone**: in the places of a change with ``marking_gone`` (and their neighbours), a point
    within twice ``ChangeConfig.near_m`` of a drive after the change (its lane or the next, whose
-   markings it sees nearly always or mostly) that the local map lacks: dropped. A removed line
-   left there would be a ghost of the old road;
+   markings it sees nearly always or mostly) that the local map lacks and no drive after the
+   change detected within ``_DETECTED_M``: dropped. A removed line left there would be a ghost
+   of the old road;
 3. otherwise the drives after the change have no evidence of it, for or against: it **stays**
    (``updates.splice.Reach.keep``): a far line beside the drives' lanes, and on a re-striped
    place any line the local map lacks (re-striping removes none).
@@ -42,6 +43,11 @@ _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 # A first-map marking point and an (aligned) local-map marking this close are the same line: well
 # within half a lane (3.5 m), beyond what is left of the alignment's error [m].
 _SAME_LINE_M = 1.0
+# ... a first-map marking point with a detection of a drive after the change (anchored) this close
+# was seen by it, though too few drives saw it for the local map: it is no gone line. Half the
+# alignment tolerance: a drive whose anchor took the other carriageway's barrier (2.5 m off)
+# puts its lines 1 m beside the first map's [m].
+_DETECTED_M = 0.5
 _STEP_M = 0.5  # lines are looked up at this spacing [m]
 
 
@@ -108,9 +114,14 @@ def unchanged_marks(
         seen = np.isfinite(d)
     # next to a drive after the change: in its lane or the next
     passed = np.zeros(len(p), dtype=bool)
+    detected = np.zeros(len(p), dtype=bool)
     for dr in after:
         if len(dr.xy):
             dp, _ = cKDTree(np.asarray(dr.xy, dtype=float)).query(p, distance_upper_bound=2 * config.near_m)
             passed |= np.isfinite(dp)
-    gone = passed & np.concatenate(in_went)
+            marks = _dense([det.points for det in dr.detections if int(det.type) in _MARKINGS])
+            if len(marks):
+                dd, _ = cKDTree(marks).query(p, distance_upper_bound=_DETECTED_M)
+                detected |= np.isfinite(dd)
+    gone = passed & ~detected & np.concatenate(in_went)
     return p[~seen & ~gone]
