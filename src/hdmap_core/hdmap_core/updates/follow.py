@@ -43,6 +43,7 @@ from hdmap_core.updates.edges import (
     solid_lines,
 )
 from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evidence, map_lines, unwrap_aliases
+from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
 from hdmap_core.updates.unseen import ModelledMarking, unseen_moved
@@ -522,13 +523,16 @@ def follow_map(
         # from a line they did not see
         shifts = all("geometry" in c.kinds and not set(c.kinds) & _NOT_SHIFTED for c in changes)
         keep = [unseen.moved_to, unseen_at_ends(unseen.map, local_map, places, core) if shifts else np.zeros((0, 2))]
+        # a re-striping or a marking gone leaves the other lines: those the drives after it had
+        # no evidence of stay (updates.marks)
+        kept = unchanged_marks(first_map, local_map, places, changes, after, core, config=config)
         reach = Reach(
             np.concatenate([np.zeros((0, 2)), *poses]),
             config.view_m,
             np.concatenate([np.zeros((0, 2)), *borders]),
             _BORDER_SAME_M,
             np.concatenate([np.zeros((0, 2)), *marks]),
-            keep=np.concatenate(keep),
+            keep=np.concatenate([*keep, kept]),
             take=unseen.moved_from,
         )
         new_map = splice(unseen.map, local_map, places, core, reach=reach)

@@ -1,0 +1,127 @@
+"""The lines a re-striping or a removed / new marking left alone: kept from the first map.
+
+A change of the shares' kinds (``type``: a marking re-striped; ``marking_gone``; ``marking_new``)
+acts on one marking or a few of a carriageway; the others stay where and what they were. The few
+drives after the change see the markings of their own lane nearly always and farther ones now and
+then, so a changed place rebuilt from them alone loses far lines that nothing changed (the right
+edge line beside the far lane, a ramp's lines). In the rebuilt places of such changes (not those
+of a change with a geometry or lane kind, nor the places next to those) a first-map marking point
+is replaced only where the drives after the change said something of it:
+
+1. **seen**: the aligned local map has a marking within ``_SAME_LINE_M`` of it: the local map's
+   line is taken there (with the type the drives after the change saw);
+2. **gone**: in the places of a change with ``marking_gone`` (and their neighbours), a point
+   within twice ``ChangeConfig.near_m`` of a drive after the change (its lane or the next, whose
+   markings it sees nearly always or mostly) that the local map lacks and no drive after the
+   change detected within ``_DETECTED_M``: dropped. A removed line left there would be a ghost
+   of the old road;
+3. otherwise the drives after the change have no evidence of it, for or against: it **stays**
+   (``updates.splice.Reach.keep``): a far line beside the drives' lanes, and on a re-striped
+   place any line the local map lacks (re-striping removes none).
+
+Road borders are not touched here (``updates.splice.Reach`` keeps a first-map border the local
+map lacks).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from hdmap_core.model import Drive, FeatureType, HDMap
+from hdmap_core.updates.config import ChangeConfig
+from hdmap_core.updates.detect import DetectedChange
+from hdmap_core.updates.places import PlaceKey, Places
+
+__all__ = ["SHARE_KINDS", "share_places", "unchanged_marks"]
+
+#: The change kinds of one marking's type or presence (the shares of ``updates.evidence``).
+SHARE_KINDS = ("type", "marking_gone", "marking_new")
+_MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
+# A first-map marking point and an (aligned) local-map marking this close are the same line: well
+# within half a lane (3.5 m), beyond what is left of the alignment's error [m].
+_SAME_LINE_M = 1.0
+# ... a first-map marking point with a detection of a drive after the change (anchored) this close
+# was seen by it, though too few drives saw it for the local map: it is no gone line. Half the
+# alignment tolerance: a drive whose anchor took the other carriageway's barrier (2.5 m off)
+# puts its lines 1 m beside the first map's [m].
+_DETECTED_M = 0.5
+_STEP_M = 0.5  # lines are looked up at this spacing [m]
+
+
+def _dense(lines: Sequence[np.ndarray]) -> np.ndarray:
+    """(N, 2) the points of ``lines`` every ``_STEP_M`` along each."""
+    out = [np.zeros((0, 2))]
+    for pts in lines:
+        pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+        if len(pts) < 2:
+            continue
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        if s[-1] <= 0:
+            continue
+        q = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / _STEP_M)) + 1))
+        out.append(np.stack([np.interp(q, s, pts[:, 0]), np.interp(q, s, pts[:, 1])], axis=1))
+    return np.concatenate(out)
+
+
+def share_places(changes: Sequence[DetectedChange], places: Places, rebuilt: set[PlaceKey]) -> set[PlaceKey]:
+    """The rebuilt places whose change is only of the shares' kinds: ``rebuilt`` less the places
+    of a change with another kind (geometry, lane closed / opened) and their neighbours."""
+    other = {p.key for c in changes if any(k not in SHARE_KINDS for k in c.kinds) for p in c.places}
+    other |= {nb for k in other for nb in places.neighbours(k)}
+    return set(rebuilt) - other
+
+
+def unchanged_marks(
+    first: HDMap,
+    local: HDMap,
+    places: Places,
+    changes: Sequence[DetectedChange],
+    after: Sequence[Drive],
+    rebuilt: set[PlaceKey],
+    *,
+    config: ChangeConfig = ChangeConfig(),
+) -> np.ndarray:
+    """(K, 2) the first map's marking points in the share-only places of ``rebuilt`` that stay
+    (module docstring): neither seen in ``local`` (the aligned rebuild) nor gone next to the
+    drives ``after`` the change (anchored on the first map)."""
+    keys = share_places(changes, places, rebuilt)
+    none = np.zeros((0, 2))
+    if not keys or not after:
+        return none
+    went = {pc.key for c in changes if "marking_gone" in c.kinds for pc in c.places}
+    went |= {nb for k in went for nb in places.neighbours(k)}
+    cand: list[np.ndarray] = [none]
+    in_went: list[np.ndarray] = [np.zeros(0, dtype=bool)]
+    for f in first.features:
+        if int(f.type) not in _MARKINGS or len(f.points) < 2:
+            continue
+        pts = np.asarray(f.points, dtype=float)
+        t = np.gradient(pts, axis=0)
+        fkeys = places.keys(pts, np.arctan2(t[:, 1], t[:, 0]))
+        inside = np.array([k in keys for k in fkeys], dtype=bool)
+        cand.append(pts[inside])
+        in_went.append(np.array([k in went for k, i in zip(fkeys, inside) if i], dtype=bool))
+    p = np.concatenate(cand)
+    local_marks = _dense([f.points for f in local.features if int(f.type) in _MARKINGS])
+    if len(p) == 0:
+        return none
+    seen = np.zeros(len(p), dtype=bool)
+    if len(local_marks):
+        d, _ = cKDTree(local_marks).query(p, distance_upper_bound=_SAME_LINE_M)
+        seen = np.isfinite(d)
+    # next to a drive after the change: in its lane or the next
+    passed = np.zeros(len(p), dtype=bool)
+    detected = np.zeros(len(p), dtype=bool)
+    for dr in after:
+        if len(dr.xy):
+            dp, _ = cKDTree(np.asarray(dr.xy, dtype=float)).query(p, distance_upper_bound=2 * config.near_m)
+            passed |= np.isfinite(dp)
+            marks = _dense([det.points for det in dr.detections if int(det.type) in _MARKINGS])
+            if len(marks):
+                dd, _ = cKDTree(marks).query(p, distance_upper_bound=_DETECTED_M)
+                detected |= np.isfinite(dd)
+    gone = passed & ~detected & np.concatenate(in_went)
+    return p[~seen & ~gone]
