@@ -6,7 +6,9 @@
    (``hdmap_core.live.tiles.fleet_offsets``; a single global solve, as ``build_map`` does).
 3. Final pass: every tile is sampled, aligned and aggregated with its drives shifted by the
    adjustment's offsets, and connected (``tasks.map_connect``); its segment graphs come back.
-4. The segment graphs of all tiles, in tile order, are stitched into the map (Sec. VI).
+4. The segment graphs of all tiles, in tile order, are stitched into the map (Sec. VI); with
+   ``stitch_tiles`` per region of tiles as tasks, then joined across the region borders
+   (``tiled.stitch``), so the segment graphs stay on the workers.
 
 Each tile is a pure function of its drives' clips, its key and the offsets, and results are
 combined in tile order: the map is the same with any number of workers. It is the map the live
@@ -29,6 +31,7 @@ from hdmap_core.tiled import tasks
 from hdmap_core.tiled.adjust import HALO_TILES, group_tiles
 from hdmap_core.tiled.clips import TileSource
 from hdmap_core.tiled.cluster import ProgressFn, Runner, SerialRunner
+from hdmap_core.tiled.stitch import STITCH_HALO_TILES
 
 __all__ = ["TiledReport", "TiledResult", "build_tiled"]
 
@@ -90,6 +93,7 @@ def build_tiled(
     progress: ProgressFn | None = None,
     block_tiles: int | None = None,
     halo_tiles: int = HALO_TILES,
+    stitch_tiles: int | None = None,
 ) -> TiledResult:
     """Build the map of the drives of ``source`` tile by tile (see the module docstring).
 
@@ -156,19 +160,47 @@ def build_tiled(
     def offsets(key: tuple[int, int]) -> tuple:
         return (tasks.model_of(fleet_model, source.drive_ids(key)) if fleet_model is not None else None,)
 
-    per_tile = runner.run(
-        "map", tasks.map_connect, keys, shared=(source, config), per_item=offsets, progress=progress, weights=weights
-    )
-    graphs = [g for gs in per_tile for g in gs]
-    del per_tile
-    seconds["final_pass"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    hdmap = stitch(graphs, config=config.stitching)
-    seconds["stitching"] = time.perf_counter() - t0
+    if stitch_tiles is not None:
+        if isinstance(stitch_tiles, bool) or not isinstance(stitch_tiles, int) or stitch_tiles < 1:
+            raise ConfigError(f"stitch_tiles must be an integer >= 1, got {stitch_tiles!r}")
+        regions = list(group_tiles(keys, stitch_tiles, STITCH_HALO_TILES).items())
+        if weights is not None:  # heaviest regions first
+            w = dict(zip(keys, weights, strict=True))
+            regions.sort(key=lambda g: -sum(w[k] for k in g[1]))
+        hdmap, n_graphs = runner.run_grouped(
+            "map",
+            tasks.map_connect_keyed,
+            regions,
+            tasks.stitch_region_of,
+            tasks.join_stitched,
+            shared=(source, config),
+            group_shared=(config.stitching, stitch_tiles),
+            progress=progress,
+            per_item=offsets,
+        )
+        seconds["final_pass_and_stitching"] = time.perf_counter() - t0
+    else:
+        per_tile = runner.run(
+            "map",
+            tasks.map_connect,
+            keys,
+            shared=(source, config),
+            per_item=offsets,
+            progress=progress,
+            weights=weights,
+        )
+        graphs = [g for gs in per_tile for g in gs]
+        n_graphs = len(graphs)
+        del per_tile
+        seconds["final_pass"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        hdmap = stitch(graphs, config=config.stitching)
+        del graphs
+        seconds["stitching"] = time.perf_counter() - t0
     report = TiledReport(
         tiles=len(keys),
         observations=n_obs,
-        graphs=len(graphs),
+        graphs=n_graphs,
         workers=runner.workers,
         seconds=time.perf_counter() - t_start,
         stage_seconds=seconds,
