@@ -50,6 +50,9 @@ class TiledReport:
         peak_rss_mb: peak RSS per process at the end [MB] ("main", "scheduler", "worker ADDR").
         cpu_seconds: CPU time per process during the build [s] ("main", "worker ADDR"; the
             workers' since they started): what the build cost on a machine shared with others.
+        stitch_cpu_seconds: CPU time of the stitch [s]: "stitch" in this process, or with
+            ``stitch_tiles`` of its tasks ("regions": all region tasks, "region_max": the
+            largest, "join").
     """
 
     tiles: int = 0
@@ -60,6 +63,7 @@ class TiledReport:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)
     cpu_seconds: dict[str, float] = field(default_factory=dict)
+    stitch_cpu_seconds: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> str:
         """A few readable lines."""
@@ -74,6 +78,11 @@ class TiledReport:
                 f"peak RSS MB: {rss}",
                 "CPU s: " + ", ".join(f"{k} {v:.1f}" for k, v in self.cpu_seconds.items()),
             ]
+            + (
+                ["stitch CPU s: " + ", ".join(f"{k} {v:.2f}" for k, v in self.stitch_cpu_seconds.items())]
+                if self.stitch_cpu_seconds
+                else []
+            )
         )
 
 
@@ -110,7 +119,12 @@ def build_tiled(
 
     Raises:
         NoUsableDataError: the source has no tile.
+        ConfigError: ``block_tiles`` or ``stitch_tiles`` not an integer >= 1.
     """
+    if stitch_tiles is not None and (
+        isinstance(stitch_tiles, bool) or not isinstance(stitch_tiles, int) or stitch_tiles < 1
+    ):
+        raise ConfigError(f"stitch_tiles must be an integer >= 1, got {stitch_tiles!r}")
     t_start = time.perf_counter()
     runner = runner or SerialRunner()
     cpu0 = runner.cpu_seconds()
@@ -121,6 +135,7 @@ def build_tiled(
     weights = [len(source.drive_ids(k)) for k in keys] if runner.workers > 1 else None  # heaviest tiles first
     model = None
     n_obs = 0
+    stitch_cpu: dict[str, float] = {}
     if config.final_pass is not None and block_tiles is not None:
         if isinstance(block_tiles, bool) or not isinstance(block_tiles, int) or block_tiles < 1:
             raise ConfigError(f"block_tiles must be an integer >= 1, got {block_tiles!r}")
@@ -161,13 +176,11 @@ def build_tiled(
         return (tasks.model_of(fleet_model, source.drive_ids(key)) if fleet_model is not None else None,)
 
     if stitch_tiles is not None:
-        if isinstance(stitch_tiles, bool) or not isinstance(stitch_tiles, int) or stitch_tiles < 1:
-            raise ConfigError(f"stitch_tiles must be an integer >= 1, got {stitch_tiles!r}")
         regions = list(group_tiles(keys, stitch_tiles, STITCH_HALO_TILES).items())
         if weights is not None:  # heaviest regions first
             w = dict(zip(keys, weights, strict=True))
             regions.sort(key=lambda g: -sum(w[k] for k in g[1]))
-        hdmap, n_graphs = runner.run_grouped(
+        hdmap, n_graphs, stitch_cpu = runner.run_grouped(
             "map",
             tasks.map_connect_keyed,
             regions,
@@ -193,10 +206,11 @@ def build_tiled(
         n_graphs = len(graphs)
         del per_tile
         seconds["final_pass"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         hdmap = stitch(graphs, config=config.stitching)
         del graphs
         seconds["stitching"] = time.perf_counter() - t0
+        stitch_cpu = {"stitch": time.process_time() - c0}
     report = TiledReport(
         tiles=len(keys),
         observations=n_obs,
@@ -206,5 +220,6 @@ def build_tiled(
         stage_seconds=seconds,
         peak_rss_mb=runner.peak_rss_mb(),
         cpu_seconds={k: v - cpu0.get(k, 0.0) for k, v in runner.cpu_seconds().items()},
+        stitch_cpu_seconds=stitch_cpu,
     )
     return TiledResult(map=hdmap, report=report)

@@ -18,6 +18,7 @@ and checked in the tests on a synthetic network of several regions.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -40,11 +41,13 @@ STITCH_HALO_TILES = 1
 
 @dataclass(frozen=True)
 class RegionStitch:
-    """One region's stitch: its own segment graphs and the decisions for them."""
+    """One region's stitch: its own segment graphs, the decisions for them and the CPU time the
+    stitch took [s]."""
 
     region: BlockKey
     graphs: tuple[SegmentGraph, ...]
     state: StitchState
+    cpu_seconds: float = 0.0
 
 
 def stitch_region(
@@ -55,10 +58,12 @@ def stitch_region(
 ) -> RegionStitch:
     """Stitch the graphs of ``parts`` (the region's tiles and its halo's, (tile, graphs) pairs)
     and keep the decisions for the graphs of the region's own tiles."""
+    cpu0 = time.process_time()
     graphs = [g for _, gs in parts for g in gs]
     own = [g for key, gs in parts if block_of(key, region_tiles) == region for g in gs]
     mg = MapGraph(graphs, config=config)
-    return RegionStitch(region=region, graphs=tuple(own), state=mg.state(g.key for g in own))
+    state = mg.state(g.key for g in own)
+    return RegionStitch(region=region, graphs=tuple(own), state=state, cpu_seconds=time.process_time() - cpu0)
 
 
 def join_regions(regions: Iterable[RegionStitch], config: StitchConfig) -> HDMap:
