@@ -11,7 +11,7 @@ from hdmap_core.errors import HdmapError
 from hdmap_core.graph.map_graph import MapGraph, stitch
 from hdmap_core.model import HDMap
 from hdmap_core.pipeline import presets
-from hdmap_core.tiled.stitch import join_regions, stitch_by_regions, stitch_region
+from hdmap_core.tiled.stitch import halo_tiles_for, join_regions, stitch_by_regions, stitch_region
 
 from segment_samples import LINES, B, S, conn, road
 
@@ -103,3 +103,7 @@ def test_a_link_across_a_border_is_kept_once_by_the_region_it_starts_in():
     _same(stitch(graphs, config=DEFAULT), join_regions(regions, DEFAULT))
     with pytest.raises(HdmapError, match="no stitch state"):
         MapGraph.from_states(graphs, [r.state for r in regions[1:]], config=DEFAULT)
+
+
+def test_the_halo_covers_a_kilometre_of_tiles_of_any_size():
+    assert [halo_tiles_for(m) for m in (1024.0, 1000.0, 512.0, 384.0, 256.0, 4000.0)] == [1, 1, 2, 3, 4, 1]

@@ -31,7 +31,7 @@ from hdmap_core.tiled import tasks
 from hdmap_core.tiled.adjust import HALO_TILES, group_tiles
 from hdmap_core.tiled.clips import TileSource
 from hdmap_core.tiled.cluster import ProgressFn, Runner, SerialRunner
-from hdmap_core.tiled.stitch import STITCH_HALO_TILES
+from hdmap_core.tiled.stitch import halo_tiles_for
 
 __all__ = ["TiledReport", "TiledResult", "build_tiled"]
 
@@ -176,7 +176,8 @@ def build_tiled(
         return (tasks.model_of(fleet_model, source.drive_ids(key)) if fleet_model is not None else None,)
 
     if stitch_tiles is not None:
-        regions = list(group_tiles(keys, stitch_tiles, STITCH_HALO_TILES).items())
+        halo = halo_tiles_for(source.tile_config.tile_size_m)
+        regions = list(group_tiles(keys, stitch_tiles, halo).items())
         if weights is not None:  # heaviest regions first
             w = dict(zip(keys, weights, strict=True))
             regions.sort(key=lambda g: -sum(w[k] for k in g[1]))

@@ -2,14 +2,14 @@
 
 A region is a block of ``region_tiles`` x ``region_tiles`` tiles (``tiled.adjust.block_of``).
 ``stitch_region`` stitches the segment graphs of a region's tiles together with those of the
-tiles within ``halo_tiles`` around it (``MapGraph.integrate``, as the global stitch does) and
+tiles within ``halo_tiles`` around it (``halo_tiles_for``: 1 km; ``MapGraph.integrate``, as the global stitch does) and
 keeps the decisions for its own graphs only (``MapGraph.state``): which of their nodes stay and
 the links that start at them, also those to a graph of the halo. ``join_regions`` puts every
 region's graphs and decisions together (``MapGraph.from_states``) and exports the map.
 
 Each decision is taken where the region sees the place with at least the halo around it: every
 rule of the stitch looks at most ~1 km away (the 500-node short-cycle test; the other radii are
-12-60 m, docs/graph.md), a tile of the halo is 1 km. The global stitch also reads the whole map's
+12-60 m, docs/graph.md), the halo covers 1 km. The global stitch also reads the whole map's
 connectivity (whether two pieces are one component yet, in its order of the ends) and walks its
 graphs in one order; a region sees only its part of both. So the joined map is the global
 stitch's where those do not reach past the halo: compared on the bench fleets in docs/scale.md,
@@ -18,6 +18,7 @@ and checked in the tests on a synthetic network of several regions.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -31,12 +32,27 @@ if TYPE_CHECKING:
     from hdmap_core.graph.stitch_config import StitchConfig
     from hdmap_core.model import HDMap
 
-__all__ = ["RegionStitch", "stitch_region", "join_regions", "stitch_by_regions", "STITCH_HALO_TILES"]
+__all__ = [
+    "RegionStitch",
+    "stitch_region",
+    "join_regions",
+    "stitch_by_regions",
+    "halo_tiles_for",
+    "STITCH_HALO_M",
+    "STITCH_HALO_TILES",
+]
 
 TileKey = tuple[int, int]
-#: the tiles around a region whose graphs its stitch sees too (a 1 km tile is more than every
-#: rule of the stitch reaches)
+#: how far around a region its stitch sees the graphs too [m]: the farthest rule of the stitch,
+#: the short-cycle test of 500 topology nodes (2 m steps)
+STITCH_HALO_M = 1000.0
+#: the halo in tiles of the tiled build's default size (1024 m)
 STITCH_HALO_TILES = 1
+
+
+def halo_tiles_for(tile_size_m: float) -> int:
+    """The tiles around a region that cover ``STITCH_HALO_M`` with tiles of ``tile_size_m``."""
+    return max(1, math.ceil(STITCH_HALO_M / float(tile_size_m) - 1e-9))
 
 
 @dataclass(frozen=True)
