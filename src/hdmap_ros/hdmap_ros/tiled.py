@@ -60,11 +60,13 @@ def build_from_bag(
     index_path: str | Path | None = None,
     progress: ProgressFn | None = None,
     block_tiles: int | None = None,
+    stitch_tiles: int | None = None,
     trajectories: bool = False,
 ) -> TiledBagResult:
     """Index ``bag`` by tile (into ``index_path``, else a temporary file) and build its map by tiles
-    (``block_tiles``: the adjustment block-wise, ``build_tiled``); ``trajectories``: also read the
-    drives' poses back from the index (for the lanes' connectors; 16 bytes per metre driven).
+    (``block_tiles``: the adjustment block-wise, ``stitch_tiles``: the stitch per region,
+    ``build_tiled``); ``trajectories``: also read the drives' poses back from the index (for the
+    lanes' connectors; 16 bytes per metre driven).
 
     Raises:
         BagError: the bag is missing or not a bag.
@@ -91,7 +93,14 @@ def build_from_bag(
                     f"{bag}: no usable drive" + (f" ({index.bag_error})" if index.bag_error else "")
                 )
             try:
-                result = build_tiled(index, config=config, runner=runner, progress=progress, block_tiles=block_tiles)
+                result = build_tiled(
+                    index,
+                    config=config,
+                    runner=runner,
+                    progress=progress,
+                    block_tiles=block_tiles,
+                    stitch_tiles=stitch_tiles,
+                )
                 poses = list(index.trajectories()) if trajectories else []
             finally:
                 if not index_path:

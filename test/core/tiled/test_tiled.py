@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from tiled_fleet import same_map, small_fleet
 
-from hdmap_core.errors import NoUsableDataError
+from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.live.tiles import TileConfig, map_tile, observe_tile
 from hdmap_core.pipeline import presets
 from hdmap_core.tiled import tasks
@@ -63,9 +63,14 @@ def test_tiled_build_is_the_same_map_on_one_process_and_on_two_dask_workers():
     try:
         assert runner.workers == 2
         two = build_tiled(src, config=pc, runner=runner)
+        # the stitch per region of one tile on the workers, joined across the borders: the same map
+        regional = build_tiled(src, config=pc, runner=runner, stitch_tiles=1)
     finally:
         runner.close()
     same_map(one.map, two.map)
+    same_map(one.map, regional.map)
+    assert len({(k[0], k[1]) for k in src.tiles()}) > 2 and regional.report.graphs == one.report.graphs
+    assert "stitching" not in regional.report.stage_seconds
     assert one.report.tiles == two.report.tiles == len(src.tiles())
     assert one.report.observations == two.report.observations > 0
     peaks = two.report.peak_rss_mb
@@ -90,6 +95,18 @@ def test_tiled_build_maps_the_road_as_the_whole_fleet_build_does():
     for a, b in ((points(tiled), points(whole)), (points(whole), points(tiled))):
         d, _ = cKDTree(b).query(a)
         assert np.median(d) < 0.5 and np.mean(d < 2.0) > 0.95
+
+
+@pytest.mark.slow
+def test_regional_stitch_in_one_process_is_the_global_stitch():
+    drives = small_fleet(n=5)
+    src = MemorySource(drives, TileConfig(tile_size_m=256.0, margin_m=96.0))
+    pc = presets.preset("default")
+    one = build_tiled(src, config=pc)
+    for n in (1, 2):
+        same_map(one.map, build_tiled(src, config=pc, stitch_tiles=n).map)
+    with pytest.raises(ConfigError):
+        build_tiled(src, config=pc, stitch_tiles=0)
 
 
 def test_tiled_build_needs_a_tile():

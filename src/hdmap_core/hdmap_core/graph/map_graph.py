@@ -52,7 +52,7 @@ from hdmap_core.graph.trim import trim_overlaps
 from hdmap_core.model import HDMap
 from hdmap_core.pipeline.evidence import refuted_edges
 
-__all__ = ["MapGraph", "IntegrateReport", "stitch", "to_hdmap"]
+__all__ = ["MapGraph", "IntegrateReport", "StitchState", "stitch", "to_hdmap"]
 
 
 # --- the complete map graph ---------------------------------------------------------------------------
@@ -74,6 +74,20 @@ class IntegrateReport:
     path_links: int = 0
     track_links: int = 0
     bridge_links: int = 0
+
+
+@dataclass(frozen=True)
+class StitchState:
+    """What the stitch decided for some segment graphs (``MapGraph.state``): which of their
+    topology nodes stay (``alive``, per key (T_k,) bool), which of their feature nodes were
+    dropped (``node_dead``, per key (N_k,) bool, keys without drops absent) and the links that
+    start at one of their nodes (to a node of any graph)."""
+
+    alive: dict[str, np.ndarray]
+    node_dead: dict[str, np.ndarray]
+    topo_links: frozenset[Link]
+    feature_links: frozenset[Link]
+    branch_links: frozenset[Link]
 
 
 class MapGraph:
@@ -140,6 +154,62 @@ class MapGraph:
         mg._graphs[g.key] = g
         mg._alive[g.key] = np.ones(g.n_topo, dtype=bool)
         mg.version = int(hdmap.version)
+        return mg
+
+    def state(self, keys: Iterable[str]) -> StitchState:
+        """The stitch's decisions for the graphs ``keys``: their masks and the links from their
+        nodes (a link belongs to the graph of its first node, so states of disjoint key sets
+        never hold the same link)."""
+        own = set(keys) & set(self._graphs)
+
+        def mine(links: set[Link]) -> frozenset[Link]:
+            return frozenset(ln for ln in links if ln[0] in own)
+
+        return StitchState(
+            alive={k: self._alive[k].copy() for k in sorted(own)},
+            node_dead={k: self._node_dead[k].copy() for k in sorted(own) if k in self._node_dead},
+            topo_links=mine(self._topo_links),
+            feature_links=mine(self._feature_links),
+            branch_links=mine(self._branch_links),
+        )
+
+    @classmethod
+    def from_states(
+        cls, graphs: Iterable[SegmentGraph], states: Iterable[StitchState], *, config: StitchConfig = StitchConfig()
+    ) -> MapGraph:
+        """A map graph of ``graphs`` with the decisions of ``states`` (``state`` of disjoint key
+        sets that cover every graph), as one ``integrate`` of them all leaves it: the join of
+        graphs stitched in parts (``hdmap_core.tiled.stitch``). Links to a graph not given are
+        dropped.
+
+        Raises:
+            HdmapError: a graph without a state, or two graphs with one key.
+        """
+        mg = cls(config=config)
+        for g in graphs:
+            if g.key in mg._graphs:
+                raise HdmapError(f"two segment graphs with the key {g.key!r}")
+            mg._graphs[g.key] = g
+        for st in states:
+            mg._alive.update(st.alive)
+            mg._node_dead.update(st.node_dead)
+            mg._topo_links |= st.topo_links
+            mg._feature_links |= st.feature_links
+            mg._branch_links |= st.branch_links
+        missing = sorted(set(mg._graphs) - set(mg._alive))
+        if missing:
+            raise HdmapError(f"no stitch state for the segment graphs {missing[:3]}")
+        mg._alive = {k: v for k, v in mg._alive.items() if k in mg._graphs}
+        mg._node_dead = {k: v for k, v in mg._node_dead.items() if k in mg._graphs}
+        for name in ("_topo_links", "_feature_links", "_branch_links"):
+            links = getattr(mg, name)
+            setattr(mg, name, {ln for ln in links if ln[0] in mg._graphs and ln[2] in mg._graphs})
+        mg.version = 1
+        mg.last_report = IntegrateReport(
+            added=len(mg._graphs),
+            topology_links=len(mg._topo_links),
+            feature_links=len(mg._feature_links) + len(mg._branch_links),
+        )
         return mg
 
     # -- updates --

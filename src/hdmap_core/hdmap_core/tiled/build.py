@@ -6,7 +6,9 @@
    (``hdmap_core.live.tiles.fleet_offsets``; a single global solve, as ``build_map`` does).
 3. Final pass: every tile is sampled, aligned and aggregated with its drives shifted by the
    adjustment's offsets, and connected (``tasks.map_connect``); its segment graphs come back.
-4. The segment graphs of all tiles, in tile order, are stitched into the map (Sec. VI).
+4. The segment graphs of all tiles, in tile order, are stitched into the map (Sec. VI); with
+   ``stitch_tiles`` per region of tiles as tasks, then joined across the region borders
+   (``tiled.stitch``), so the segment graphs stay on the workers.
 
 Each tile is a pure function of its drives' clips, its key and the offsets, and results are
 combined in tile order: the map is the same with any number of workers. It is the map the live
@@ -29,6 +31,7 @@ from hdmap_core.tiled import tasks
 from hdmap_core.tiled.adjust import HALO_TILES, group_tiles
 from hdmap_core.tiled.clips import TileSource
 from hdmap_core.tiled.cluster import ProgressFn, Runner, SerialRunner
+from hdmap_core.tiled.stitch import halo_tiles_for
 
 __all__ = ["TiledReport", "TiledResult", "build_tiled"]
 
@@ -47,6 +50,9 @@ class TiledReport:
         peak_rss_mb: peak RSS per process at the end [MB] ("main", "scheduler", "worker ADDR").
         cpu_seconds: CPU time per process during the build [s] ("main", "worker ADDR"; the
             workers' since they started): what the build cost on a machine shared with others.
+        stitch_cpu_seconds: CPU time of the stitch [s]: "stitch" in this process, or with
+            ``stitch_tiles`` of its tasks ("regions": all region tasks, "region_max": the
+            largest, "join").
     """
 
     tiles: int = 0
@@ -57,6 +63,7 @@ class TiledReport:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)
     cpu_seconds: dict[str, float] = field(default_factory=dict)
+    stitch_cpu_seconds: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> str:
         """A few readable lines."""
@@ -71,6 +78,11 @@ class TiledReport:
                 f"peak RSS MB: {rss}",
                 "CPU s: " + ", ".join(f"{k} {v:.1f}" for k, v in self.cpu_seconds.items()),
             ]
+            + (
+                ["stitch CPU s: " + ", ".join(f"{k} {v:.2f}" for k, v in self.stitch_cpu_seconds.items())]
+                if self.stitch_cpu_seconds
+                else []
+            )
         )
 
 
@@ -90,6 +102,7 @@ def build_tiled(
     progress: ProgressFn | None = None,
     block_tiles: int | None = None,
     halo_tiles: int = HALO_TILES,
+    stitch_tiles: int | None = None,
 ) -> TiledResult:
     """Build the map of the drives of ``source`` tile by tile (see the module docstring).
 
@@ -106,7 +119,12 @@ def build_tiled(
 
     Raises:
         NoUsableDataError: the source has no tile.
+        ConfigError: ``block_tiles`` or ``stitch_tiles`` not an integer >= 1.
     """
+    if stitch_tiles is not None and (
+        isinstance(stitch_tiles, bool) or not isinstance(stitch_tiles, int) or stitch_tiles < 1
+    ):
+        raise ConfigError(f"stitch_tiles must be an integer >= 1, got {stitch_tiles!r}")
     t_start = time.perf_counter()
     runner = runner or SerialRunner()
     cpu0 = runner.cpu_seconds()
@@ -117,6 +135,7 @@ def build_tiled(
     weights = [len(source.drive_ids(k)) for k in keys] if runner.workers > 1 else None  # heaviest tiles first
     model = None
     n_obs = 0
+    stitch_cpu: dict[str, float] = {}
     if config.final_pass is not None and block_tiles is not None:
         if isinstance(block_tiles, bool) or not isinstance(block_tiles, int) or block_tiles < 1:
             raise ConfigError(f"block_tiles must be an integer >= 1, got {block_tiles!r}")
@@ -156,23 +175,52 @@ def build_tiled(
     def offsets(key: tuple[int, int]) -> tuple:
         return (tasks.model_of(fleet_model, source.drive_ids(key)) if fleet_model is not None else None,)
 
-    per_tile = runner.run(
-        "map", tasks.map_connect, keys, shared=(source, config), per_item=offsets, progress=progress, weights=weights
-    )
-    graphs = [g for gs in per_tile for g in gs]
-    del per_tile
-    seconds["final_pass"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    hdmap = stitch(graphs, config=config.stitching)
-    seconds["stitching"] = time.perf_counter() - t0
+    if stitch_tiles is not None:
+        halo = halo_tiles_for(source.tile_config.tile_size_m)
+        regions = list(group_tiles(keys, stitch_tiles, halo).items())
+        if weights is not None:  # heaviest regions first
+            w = dict(zip(keys, weights, strict=True))
+            regions.sort(key=lambda g: -sum(w[k] for k in g[1]))
+        hdmap, n_graphs, stitch_cpu = runner.run_grouped(
+            "map",
+            tasks.map_connect_keyed,
+            regions,
+            tasks.stitch_region_of,
+            tasks.join_stitched,
+            shared=(source, config),
+            group_shared=(config.stitching, stitch_tiles),
+            progress=progress,
+            per_item=offsets,
+        )
+        seconds["final_pass_and_stitching"] = time.perf_counter() - t0
+    else:
+        per_tile = runner.run(
+            "map",
+            tasks.map_connect,
+            keys,
+            shared=(source, config),
+            per_item=offsets,
+            progress=progress,
+            weights=weights,
+        )
+        graphs = [g for gs in per_tile for g in gs]
+        n_graphs = len(graphs)
+        del per_tile
+        seconds["final_pass"] = time.perf_counter() - t0
+        t0, c0 = time.perf_counter(), time.process_time()
+        hdmap = stitch(graphs, config=config.stitching)
+        del graphs
+        seconds["stitching"] = time.perf_counter() - t0
+        stitch_cpu = {"stitch": time.process_time() - c0}
     report = TiledReport(
         tiles=len(keys),
         observations=n_obs,
-        graphs=len(graphs),
+        graphs=n_graphs,
         workers=runner.workers,
         seconds=time.perf_counter() - t_start,
         stage_seconds=seconds,
         peak_rss_mb=runner.peak_rss_mb(),
         cpu_seconds={k: v - cpu0.get(k, 0.0) for k, v in runner.cpu_seconds().items()},
+        stitch_cpu_seconds=stitch_cpu,
     )
     return TiledResult(map=hdmap, report=report)

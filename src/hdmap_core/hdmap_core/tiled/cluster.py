@@ -33,7 +33,7 @@ PerItem = Callable[[Any], tuple]
 class Runner(Protocol):
     """Runs ``fn(*shared, item, *per_item(item))`` for every item; results in item order.
 
-    ``run_grouped`` runs ``fn(*shared, item)`` once for every item of the ``(label, items)``
+    ``run_grouped`` runs ``fn(*shared, item, *per_item(item))`` once for every item of the ``(label, items)``
     groups (groups may share items), then ``group_fn(label, results of the group's items,
     *group_shared)`` per group and ``reduce_fn(the groups' results in group order, *group_shared)``
     once, and returns the latter; on a cluster the items' and the groups' results stay on the
@@ -63,6 +63,7 @@ class Runner(Protocol):
         shared: tuple = (),
         group_shared: tuple = (),
         progress: ProgressFn | None = None,
+        per_item: PerItem | None = None,
     ) -> Any: ...
 
     def peak_rss_mb(self) -> dict[str, float]: ...
@@ -104,6 +105,7 @@ class SerialRunner:
         shared: tuple = (),
         group_shared: tuple = (),
         progress: ProgressFn | None = None,
+        per_item: PerItem | None = None,
     ) -> Any:
         last = {item: g for g, (_, items) in enumerate(groups) for item in items}  # last group using it
         total, done, out = len(last), 0, []
@@ -111,7 +113,7 @@ class SerialRunner:
         for g, (label, items) in enumerate(groups):
             for item in items:
                 if item not in cache:
-                    cache[item] = fn(*shared, item)
+                    cache[item] = fn(*shared, item, *(per_item(item) if per_item else ()))
                     done += 1
                     if progress is not None:
                         progress(stage, done, total)
@@ -246,6 +248,7 @@ class DaskRunner:
         shared: tuple = (),
         group_shared: tuple = (),
         progress: ProgressFn | None = None,
+        per_item: PerItem | None = None,
     ) -> Any:
         """Groups submitted in the order given (put the heaviest first); a group's items (those
         not submitted before) and its group task together, at most ``in_flight`` x workers groups
@@ -274,7 +277,12 @@ class DaskRunner:
                 for item in items:
                     if item not in futs:
                         futs[item] = self.client.submit(
-                            fn, *shared_f, item, pure=False, key=f"{stage}-{len(futs)}-{g}-{tag}"
+                            fn,
+                            *shared_f,
+                            item,
+                            *(per_item(item) if per_item else ()),
+                            pure=False,
+                            key=f"{stage}-{len(futs)}-{g}-{tag}",
                         )
                         pending.add(futs[item])
                 parts = [futs[i] for i in items]

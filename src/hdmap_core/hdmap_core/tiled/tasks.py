@@ -10,6 +10,7 @@ carries a tile key, the source's address and, for the final pass, the offsets of
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable
 from dataclasses import replace
 from typing import TYPE_CHECKING
@@ -17,14 +18,27 @@ from typing import TYPE_CHECKING
 from hdmap_core.live.tiles import TileKey, connect_tile, map_clips, observe_clips
 from hdmap_core.pipeline.adjustment import OffsetModel
 from hdmap_core.tiled.adjust import BlockKey, block_of, coarse_shifts, merge_blocks, solve_block
+from hdmap_core.tiled.stitch import RegionStitch, join_regions, stitch_region
 
 if TYPE_CHECKING:
     from hdmap_core.graph.segment_graph import SegmentGraph
+    from hdmap_core.graph.stitch_config import StitchConfig
+    from hdmap_core.model import HDMap
     from hdmap_core.pipeline.config import PipelineConfig
     from hdmap_core.steps import StepObservations
     from hdmap_core.tiled.clips import TileSource
 
-__all__ = ["observe", "observe_keyed", "solve_block_of", "coarse_merge", "map_connect", "model_of"]
+__all__ = [
+    "observe",
+    "observe_keyed",
+    "solve_block_of",
+    "coarse_merge",
+    "map_connect",
+    "map_connect_keyed",
+    "stitch_region_of",
+    "join_stitched",
+    "model_of",
+]
 
 
 def observe(source: TileSource, pipeline_config: PipelineConfig, key: TileKey) -> list[StepObservations]:
@@ -76,6 +90,36 @@ def map_connect(
         offset_model=offset_model,
     )
     return connect_tile(segments, key, pipeline_config=pipeline_config)
+
+
+def map_connect_keyed(
+    source: TileSource, pipeline_config: PipelineConfig, key: TileKey, offset_model: OffsetModel | None
+) -> tuple[TileKey, list[SegmentGraph]]:
+    """``map_connect`` with the tile's key (the regional stitch groups them by region)."""
+    return key, map_connect(source, pipeline_config, key, offset_model)
+
+
+def stitch_region_of(
+    region: BlockKey,
+    parts: list[tuple[TileKey, list[SegmentGraph]]],
+    stitch_config: StitchConfig,
+    region_tiles: int,
+) -> RegionStitch:
+    """The stitch of one region (its tiles and halo) from their ``map_connect_keyed`` results
+    (``tiled.stitch``)."""
+    return stitch_region(region, parts, stitch_config, region_tiles)
+
+
+def join_stitched(
+    regions: list[RegionStitch], stitch_config: StitchConfig, region_tiles: int
+) -> tuple[HDMap, int, dict[str, float]]:
+    """The regions joined across their borders: the map, how many segment graphs it has and the
+    stitch's CPU time [s] ("regions": all region tasks, "region_max": the largest, "join")."""
+    cpu0 = time.process_time()
+    hdmap = join_regions(regions, stitch_config)
+    cpu = [r.cpu_seconds for r in regions]
+    seconds = {"regions": sum(cpu), "region_max": max(cpu, default=0.0), "join": time.process_time() - cpu0}
+    return hdmap, sum(len(r.graphs) for r in regions), seconds
 
 
 def model_of(model: OffsetModel, drive_ids: Iterable[str]) -> OffsetModel:

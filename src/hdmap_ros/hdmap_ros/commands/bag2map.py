@@ -131,6 +131,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the offset adjustment block-wise over blocks of N x N tiles with a global coarse solve, as tasks "
         "on the workers (default: one network-wide solve in this process)",
     )
+    tiled.add_argument(
+        "--stitch-tiles",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stitch per region of N x N tiles as tasks on the workers, then join across the region borders "
+        "(default: one stitch of all tiles in this process; the same map on the fleets measured, docs/scale.md)",
+    )
     tiled.add_argument("--index", metavar="FILE", help="keep the tile index in FILE (default: a temporary file)")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag")
     parser.add_argument("--report", metavar="FILE", help="write the input summary and the build report as JSON")
@@ -352,6 +360,7 @@ def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
             index_path=args.index,
             progress=progress,
             block_tiles=args.block_tiles,
+            stitch_tiles=args.stitch_tiles,
             trajectories=bool(args.lanelet2 or args.geojson),
         )
     index, result = got.index, got.result
