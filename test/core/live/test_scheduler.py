@@ -296,7 +296,8 @@ def test_the_region_settle_is_one_job_of_every_tile_and_drops_the_previews_it_ma
     s = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=1.0, region_max_drives=10)
     for i in range(3):
         s.add_drive(f"d{i}", [A, B], now=0.0)
-    (first,) = s.next_jobs(0.0)  # while drives come: a new tile's preview
+    assert s.next_jobs(0.0) == [] and s.next_jobs(0.49) == []  # a burst: no preview until it pauses
+    (first,) = s.next_jobs(0.5)  # while drives come: a new tile's preview
     assert first.kind == MAP and not first.final
     s.add_drive("e", [B, C], now=0.5)
     (second,) = s.next_jobs(1.0)  # not idle yet: previews go on
@@ -416,5 +417,65 @@ def test_fast_path_a_drive_alone_on_new_road_is_one_part_job_of_its_tiles():
     # two drives on the same new road before the first is made: the normal way (previews)
     s.add_drive("n1", [(7, 7)], now=4.0, cells={(7, 7): {(1, 1)}})
     s.add_drive("n2", [(7, 7)], now=4.0, cells={(7, 7): {(1, 1)}})
-    (job,) = s.next_jobs(4.0, limit=1)
+    assert s.next_jobs(4.0, limit=1) == []  # a burst (the region settle): previewed once it pauses
+    (job,) = s.next_jobs(4.5, limit=1)
     assert job.kind == MAP and not job.final and job.drive_ids == ("n1", "n2")
+
+
+def test_input_done_settles_at_once_and_a_later_drive_waits_settle_after_s_again():
+    s = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=5.0, region_max_drives=10)
+    for i in range(3):
+        s.add_drive(f"d{i}", [A, B], now=0.0)
+    s.add_drive("e", [B, C], now=0.1)
+    assert s.next_jobs(0.2) == []  # a burst
+    (first,) = s.next_jobs(0.7)  # input paused: a new tile's preview
+    assert first.kind == MAP and not first.final
+    assert not s.idle(0.7)
+    s.input_done()  # the sender's input is in: the queued previews are dropped, the region comes
+    assert s.next_jobs(0.7, limit=4) == []  # ... once the preview in work is done
+    s.finished(first, ok=True, observed=True)
+    assert s.idle(0.7)
+    (region,) = s.next_jobs(0.7, limit=4)
+    assert region.kind == REGION and [k for k, _ in region.tiles] == [A, B, C]
+    s.finished(region, ok=True)
+    assert s.is_settled()
+    # a drive after all: its new tile is previewed, and the settle waits settle_after_s as usual
+    s.add_drive("f", [C, (3, 0)], now=1.0)
+    (new,) = s.next_jobs(1.0, limit=4)
+    assert (new.kind, new.key, new.final) == (MAP, (3, 0), False)
+    s.finished(new, ok=True, observed=True)
+    assert s.next_jobs(5.9, limit=4) == [] and not s.idle(5.9)
+    (again,) = s.next_jobs(6.0, limit=4)
+    assert again.kind == REGION
+    # without the fleet model: input_done settles (every stale tile final) at once too
+    p = _sched(model=False, settle=5.0)
+    p.add_drive("a", [A], now=0.0)
+    _drain(p, 0.0)
+    p.add_drive("b", [A], now=1.0)  # a mapped tile, grown too little to be due before the settle
+    assert p.next_jobs(1.0) == []
+    p.input_done()
+    (settle,) = p.next_jobs(1.0)
+    assert settle.kind == MAP and settle.final and settle.drive_ids == ("a", "b")
+
+
+def test_a_burst_of_drives_is_not_previewed_with_the_region_settle_but_a_drive_alone_at_once():
+    s = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=5.0, region_max_drives=10)
+    s.add_drive("a", [A], now=0.0)  # alone: at once
+    (first,) = s.next_jobs(0.0)
+    assert (first.kind, first.key, first.final) == (MAP, A, False)
+    s.finished(first, ok=True, observed=True)
+    s.add_drive("b0", [B, (3, 0)], now=10.0)  # the first of a burst looks alone: at once
+    _drain(s, 10.0, observed=True)
+    for i, t in enumerate((10.2, 10.4), start=1):  # the rest 0.2 s apart: a burst
+        s.add_drive(f"b{i}", [B, (3 + i, 0)], now=t)
+        assert s.next_jobs(t, limit=4) == []
+    assert s.next_jobs(10.89, limit=4) == []
+    jobs = s.next_jobs(10.9, limit=4)  # paused for BURST_GAP_S: the previews go on
+    assert {j.key for j in jobs} == {(4, 0), (5, 0)} and not any(j.final for j in jobs)
+    # without the region settle (too many drives, or no fleet model) a burst is mapped as it comes
+    t = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=5.0, region_max_drives=1)
+    p = _sched(model=False)
+    for sched in (t, p):
+        sched.add_drive("x", [A], now=0.0)
+        sched.add_drive("y", [B], now=0.1)
+        assert {j.key for j in sched.next_jobs(0.1, limit=4)} == {A, B}

@@ -271,6 +271,51 @@ def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros,
         node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["nokey"])])
 
 
+def test_stitcher_waits_for_the_estimates_the_mapper_announced_and_then_rebuilds_at_once(ros, tmp_path, monkeypatch):
+    """The mapper's status names more estimates than have come (the region's burst): no map of a
+    part of them, even past max_delay_s; once every one is here and the mapper settled, the map is
+    made at once, without waiting debounce_s."""
+    import time
+
+    from hdmap_core.live.progress import LiveStatus
+    from hdmap_ros.nodes.map_stitcher import MapStitcher
+    from hdmap_ros.persistence.store import segments_to_blob
+
+    st = MapStitcher(  # not spun: only this test calls its turn
+        context=ros.context,
+        parameter_overrides=[
+            Parameter("db_path", value=str(tmp_path / "s.db")),
+            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
+            Parameter("debounce_s", value=0.2),
+            Parameter("max_delay_s", value=0.5),
+        ],
+    )
+    starts: list[float] = []
+    monkeypatch.setattr(st, "rebuild", lambda: starts.append(time.monotonic()))
+    try:
+        st._mapper_status = LiveStatus(tile_versions=3, settled=True)  # 3 estimates made, 2 here
+        for i in range(2):
+            st.store.put_tile((i, 0), 1, segments_to_blob([]), ["d"])
+        st._first_dirty = time.monotonic() - 10.0  # max_delay_s long past
+        st._last_rx = time.monotonic() - 0.3  # quiet for more than debounce_s
+        st._work()
+        assert starts == []  # the third is on its way
+        st.store.put_tile((2, 0), 1, segments_to_blob([]), ["d"])
+        st._last_rx = time.monotonic()  # it just came: not quiet, yet nothing more can come
+        st._work()
+        assert len(starts) == 1
+        # an announced estimate that never comes holds the map at most max_delay_s after the last one
+        st._mapper_status = LiveStatus(tile_versions=4, settled=True)
+        st._first_dirty = st._last_rx = time.monotonic() - 0.3
+        st._work()
+        assert len(starts) == 1
+        st._last_rx = time.monotonic() - 0.6
+        st._work()
+        assert len(starts) == 2
+    finally:
+        st.destroy_node()
+
+
 def test_stitcher_paces_rebuilds_while_estimates_stream_and_rebuilds_at_once_when_quiet(ros, tmp_path, monkeypatch):
     """While estimates keep coming (never a quiet debounce_s), a rebuild forced by max_delay_s
     waits at least as long as the last rebuild took (REBUILD_SHARE 0.5); once quiet, at once."""

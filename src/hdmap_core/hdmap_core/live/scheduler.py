@@ -15,9 +15,14 @@ and publishes their results. The rules:
   estimates meanwhile); without it, it is due when its drive count grew enough
   (:func:`~hdmap_core.live.tiles.needs_update`). A tile whose job failed is not retried until its
   drive set changes.
+- **Bursts.** With the region settle, while drives come less than ``BURST_GAP_S`` apart (a fast
+  replay) nothing is previewed: the settle after the burst makes every tile anyway. A drive alone
+  is previewed at once.
 - **Order.** Tiles no estimate covers yet go first, then tiles with new road, then re-estimates,
   the most grown (relative to the estimate) first.
-- **Settling**, after ``settle_after_s`` without input and with nothing queued or in work: without
+- **Settling**, after ``settle_after_s`` without input (at once after :meth:`LiveScheduler.input_done`:
+  the sender said no more drives come, e.g. ``hdmap run`` at the end of its bag) and with nothing
+  queued or in work: without
   the fleet-wide offset model every tile not made from all its drives is re-estimated once. With
   it (presets with a final pass), in three phases: (1) every tile's observations brought up to its
   drive set, (2) one fleet-wide offset model from all observations, (3) every tile re-made from
@@ -64,8 +69,13 @@ __all__ = [
     "PART",
     "FUSED",
     "NEW_ROAD_CELLS",
+    "BURST_GAP_S",
 ]
 
+# RULE: with the region settle, drives arriving less than this apart are a burst (a fast replay):
+# their tiles are not previewed until the input pauses this long (previews are thrown away by the
+# settle after the burst; 30-drive ramps fleet at --rate 0, py-spy: ~40 % of the region's samples)
+BURST_GAP_S = 0.5
 NEW_ROAD_CELLS = 2  # RULE: new road in a mapped tile: this many road cells (16 m) its estimate has not seen
 
 MAP = "map"  # the tile with its own offset adjustment (and its observations, with the fleet model)
@@ -155,6 +165,8 @@ class LiveScheduler:
         self._busy: dict[TileKey | None, Job] = {}  # jobs in work (None: the model)
         self._cursor: TileKey | None = None  # phase 3 round robin: where the last turn stopped
         self._last_input = float("-inf")
+        self._prev_input = float("-inf")  # the drive before the last one came then (a burst)
+        self._input_done = False  # the sender said no more input comes (until the next drive)
         self._cells: dict[TileKey, set[tuple[int, int]]] = {}  # road cells the tile's drives drove
         self._cells_est: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its estimate's drives
         self._cells_job: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its job in work
@@ -219,7 +231,8 @@ class LiveScheduler:
         else:
             self._queue.update(keys)
         self._region_sig = None
-        self._last_input = now
+        self._prev_input, self._last_input = self._last_input, now
+        self._input_done = False  # more input came after all: settle_after_s again
         return True
 
     def _alone_new(self, key: TileKey) -> bool:
@@ -244,6 +257,20 @@ class LiveScheduler:
             if len(set(cells.get(key, ())) - self._cells_est.get(key, frozenset())) >= NEW_ROAD_CELLS:
                 return False
         return bool(keys)
+
+    def input_done(self) -> None:
+        """No more drives come (the sender knows, e.g. its bag is played): settle without waiting
+        ``settle_after_s``. A drive added afterwards makes the settle wait again as usual."""
+        self._input_done = True
+
+    def _burst(self, now: float) -> bool:
+        """Drives are coming in a burst: the last two came less than :data:`BURST_GAP_S` apart and
+        the last one less than that ago (a drive alone is previewed at once)."""
+        return self._last_input - self._prev_input < BURST_GAP_S and now - self._last_input < BURST_GAP_S
+
+    def _quiet(self, now: float) -> bool:
+        """No input for ``settle_after_s``, or none to come (:meth:`input_done`)."""
+        return self._input_done or now - self._last_input >= self.settle_after_s
 
     def finished(self, job: Job, *, ok: bool, observed: bool = False) -> None:
         """A job ended. ``observed``: a :data:`MAP` job also stored the tile's observations."""
@@ -389,14 +416,8 @@ class LiveScheduler:
         return self._region_sig
 
     def idle(self, now: float) -> bool:
-        """Nothing queued or in work and no drive for ``settle_after_s``: time to settle."""
-        return (
-            not self._queue
-            and not self._busy
-            and not self._fast
-            and not self._part
-            and now - self._last_input >= self.settle_after_s
-        )
+        """Nothing queued or in work and no drive for ``settle_after_s`` (or none to come): time to settle."""
+        return not self._queue and not self._busy and not self._fast and not self._part and self._quiet(now)
 
     def is_settled(self) -> bool:
         """Nothing queued or in work and every tile made from all its drives (with the fleet model:
@@ -440,10 +461,14 @@ class LiveScheduler:
         fuse = self._fuse_job() or self._part_job()
         if fuse is not None:
             return fuse
-        if now - self._last_input >= self.settle_after_s and self._region_phase():
+        if self._quiet(now) and self._region_phase():
             # RULE coalescing: once the input settles, the region job makes every tile; a preview
             # of a tile still queued would be thrown away with it
             self._queue.clear()
+        if self._queue and self._burst(now) and self._region_phase():
+            # RULE: drives come faster than previews are made: a preview now is thrown away by the
+            # region settle after the burst (and costs a map version while drives come); wait for a pause
+            return None
         while self._queue:
             ready = [k for k in self._queue if k not in self._busy]
             if not ready:
@@ -453,7 +478,7 @@ class LiveScheduler:
             if self._due(key):
                 failed = self._model_failed_sig != "" and self._model_failed_sig == self.observations_sig()
                 return Job(MAP, key, self.tile_drives(key), final=not self.use_fleet_model or failed)
-        if now - self._last_input < self.settle_after_s:
+        if not self._quiet(now):
             return None
         return self._settle_job(prefer)
 

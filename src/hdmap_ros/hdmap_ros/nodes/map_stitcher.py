@@ -339,11 +339,19 @@ class MapStitcher(HealthMixin, Node):
         if self._first_dirty is None:
             return
         now = time.monotonic()
-        if (
+        mapper = self._mapper_status
+        in_flight = mapper.tile_versions > self.store.version_total()  # published, not here yet
+        if mapper.settled and not in_flight:
+            pass  # RULE: the mapper settled and every estimate it made is here: nothing more comes
+        elif (
             now - self._last_rx < self.debounce_s
             and (now - self._first_dirty < self.max_delay_s or now < self._rested_at)
             and (now < self._rested_at or not self._completes_drives())
         ):
+            return
+        elif in_flight and now - self._last_rx < max(self.debounce_s, self.max_delay_s):
+            # RULE: the rest of a burst (the region's tiles) is on its way: no map of a part of it
+            # (an estimate lost for good, e.g. beyond the history depth, delays the map by max_delay_s)
             return
         with self._rx_lock:
             self._dirty.clear()

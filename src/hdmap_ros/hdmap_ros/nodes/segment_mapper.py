@@ -236,6 +236,7 @@ class SegmentMapper(HealthMixin, Node):
         self._running: dict[Future, tuple[Job, int]] = {}  # job in work -> (job, its worker)
         self._home: dict[TileKey, int] = {}  # tile -> the worker that made its observation pass last
         self._drive_cache: OrderedDict[str, Drive] = OrderedDict()  # decoded stored drives (_drives)
+        self._input_done = False  # input_done() was called: handed to the schedule by work()
         for pool in self._pools if self.workers > 1 else []:  # start the processes while nothing waits
             pool.submit(warm_up)
         self.tiles_published = 0
@@ -395,11 +396,22 @@ class SegmentMapper(HealthMixin, Node):
         self.health.backlog += 1
         self.health.set("drives_stored", self.store.drive_count())
 
+    def input_done(self) -> None:
+        """No more drives come (``hdmap run``: its bag is played and every drive received): settle
+        without waiting ``settle_after_s`` (``LiveScheduler.input_done``), once the drives stored so
+        far are scheduled. A drive that comes later makes the settle wait as usual."""
+        self._input_done = True
+        with contextlib.suppress(Exception):  # the node may be on its way down
+            self._wake.trigger()
+
     # --- mapping ---------------------------------------------------------------------------------
 
     def work(self) -> None:
         """One worker turn: take new drives, collect finished jobs, start the next ones."""
         self._take_pending()
+        if self._input_done and not self.store.pending():  # after the drives it covers are scheduled
+            self._input_done = False
+            self.scheduler.input_done()
         self._collect()
         if self.workers <= 1:
             deadline = time.monotonic() + self.work_slice_s
@@ -523,7 +535,9 @@ class SegmentMapper(HealthMixin, Node):
         elif job.kind == REGION:
             segments = result.tiles or {}
             made = [(key, segments.get(key, []), ids) for key, ids in job.tiles]
-            for est in self.store.put_tiles(made, model_sig=job.sig):  # one commit for every tile
+            stored = self.store.put_tiles(made, model_sig=job.sig)  # one commit for every tile
+            self._update_status()  # first: the stitcher then knows the burst is coming (its tile_versions)
+            for est in stored:
                 self._publish(est, final=True)
                 self.health.updated()
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
