@@ -420,12 +420,13 @@ def _used_drives(drives: Sequence[Any], report: Any, config: Any) -> list:
     """The drives ``build_map`` used, in their order: those its ``report`` does not name as
     rejected (the bag's drive ids are unique: ``read_fleet_bag`` rejects a repeated one), without
     checking every drive against the physical bounds a second time; ``prepare_drives`` again
-    where the ids repeat."""
-    if len({d.drive_id for d in drives}) != len(drives):
+    where the ids repeat (or the report names none)."""
+    rejected = getattr(report, "rejected", None)
+    if rejected is None or len({d.drive_id for d in drives}) != len(drives):
         from hdmap_core.plausibility import prepare_drives  # noqa: PLC0415
 
         return prepare_drives(drives, bounds=config.plausibility)[0]
-    refused = {str(did) for did, _ in report.rejected}
+    refused = {str(did) for did, _ in rejected}
     return [d for d in drives if d.drive_id not in refused]
 
 
