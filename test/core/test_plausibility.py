@@ -116,3 +116,13 @@ def test_prepare_drives_reports_implausible_and_skips_bounds_when_asked():
     assert rejected[0][0] == "b" and rejected[0][1].startswith("too_fast")
     usable, rejected = prepare_drives([good, bad], bounds=None)
     assert len(usable) == 2 and not rejected
+
+
+def test_prepare_drives_on_several_processes_gives_the_serial_verdicts():
+    bad = [spoil(make_drive(f"bad{i}", seed=i)) for i, (spoil, _) in enumerate(CASES.values())]
+    drives = [make_drive("a"), *bad, make_drive("b", seed=7), make_drive("a", seed=8)]  # the last: a repeated id
+    serial = prepare_drives(drives)
+    assert [d.drive_id for d in serial[0]] == ["a", "b"] and len(serial[1]) == len(CASES) + 1
+    for workers in (2, 3):
+        usable, rejected = prepare_drives(drives, workers=workers)
+        assert [id(d) for d in usable] == [id(d) for d in serial[0]] and rejected == serial[1]

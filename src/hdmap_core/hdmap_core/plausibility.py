@@ -28,6 +28,7 @@ import numpy as np
 from hdmap_core.checks import check_range
 from hdmap_core.errors import InvalidDriveError
 from hdmap_core.model import Drive, validate_drive
+from hdmap_core.parallel import map_balanced
 
 __all__ = [
     "PhysicalBounds",
@@ -220,7 +221,7 @@ _BOUNDS = PhysicalBounds()
 
 
 def prepare_drives(
-    drives: Sequence[Drive], *, bounds: PhysicalBounds | None = _BOUNDS
+    drives: Sequence[Drive], *, bounds: PhysicalBounds | None = _BOUNDS, workers: int = 1
 ) -> tuple[list[Drive], list[tuple[str, str]]]:
     """Validate drives; invalid, implausible and duplicate ones are rejected with a reason, never raised.
 
@@ -229,20 +230,25 @@ def prepare_drives(
         bounds: the physical bounds every drive must keep (``hdmap_core.plausibility``); None:
             only the form is checked (``model.validate_drive``), e.g. for clips of drives that
             passed the bounds when they came in.
+        workers: processes the drives' checks are shared out over (``parallel.map_balanced``,
+            by their points); the verdicts are put back in drive order, so the result is the
+            one-process result.
 
     Returns:
         (usable drives in input order, [(drive_id, reason), ...]).
     """
+    drives = list(drives)
+    if workers > 1 and len(drives) > 1:
+        weight = [np.size(d.xy) + sum(np.size(det.points) for det in d.detections) for d in drives]
+        verdicts = map_balanced(lambda i: _verdict(drives[i], bounds), weight, workers)
+    else:
+        verdicts = [_verdict(d, bounds) for d in drives]
     ok: list[Drive] = []
     rejected: list[tuple[str, str]] = []
     seen: set[str] = set()
-    for d in drives:
-        try:
-            validate_drive(d)
-            if bounds is not None:
-                check_plausible(d, bounds=bounds)
-        except InvalidDriveError as err:
-            rejected.append((err.drive_id, f"{err.reason}" + (f": {err.detail}" if err.detail else "")))
+    for d, bad in zip(drives, verdicts):
+        if bad is not None:
+            rejected.append(bad)
             continue
         if d.drive_id in seen:
             rejected.append((d.drive_id, "duplicate_drive_id"))
@@ -250,3 +256,14 @@ def prepare_drives(
         seen.add(d.drive_id)
         ok.append(d)
     return ok, rejected
+
+
+def _verdict(drive: Drive, bounds: PhysicalBounds | None) -> tuple[str, str] | None:
+    """None when ``drive`` keeps the form and ``bounds``, else (drive_id, reason[: detail])."""
+    try:
+        validate_drive(drive)
+        if bounds is not None:
+            check_plausible(drive, bounds=bounds)
+    except InvalidDriveError as err:
+        return err.drive_id, f"{err.reason}" + (f": {err.detail}" if err.detail else "")
+    return None

@@ -86,6 +86,10 @@ def test_a_shifted_road_is_found_and_a_badly_localised_drive_is_not(road):
     bad_map, _ = _build(bad)
     found, places = _detect(bad, bad_map)
     assert found == []
+    # the places' change tests on two processes: the serial changes, to the last bit
+    shifted_places = places_of(drives, cell_m=ChangeConfig().cell_m)
+    evidence = fleet_evidence(drives, hdmap, shifted_places, config=ChangeConfig())
+    assert repr(detect_changes(evidence, shifted_places, workers=2)) == repr(changes)
     # ... though moving those drives 2 m moved their markings' offset against the map by 2 m:
     # their displacement against the borders did not move.
     moved_ev = fleet_evidence(bad[N_BEFORE:], bad_map, places, config=ChangeConfig())

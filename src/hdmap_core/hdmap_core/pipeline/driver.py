@@ -555,7 +555,7 @@ def build_map(
     """
     t_start = time.perf_counter()
     drives_in = list(drives)
-    usable, rejected = prepare_drives(drives_in, bounds=config.plausibility)
+    usable, rejected = prepare_drives(drives_in, bounds=config.plausibility, workers=_check_workers(workers))
     if not usable:
         raise NoUsableDataError(
             f"none of the {len(drives_in)} drive(s) is usable: " + "; ".join(f"{d!r}: {r}" for d, r in rejected[:5])

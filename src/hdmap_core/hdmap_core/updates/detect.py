@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hdmap_core.parallel import map_balanced
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.evidence import PlaceEvidence
 from hdmap_core.updates.places import PlaceKey, Places
@@ -334,9 +335,13 @@ def grow_changes(
 
 
 def detect_changes(
-    evidence: Sequence[PlaceEvidence], places: Places, *, config: ChangeConfig = ChangeConfig()
+    evidence: Sequence[PlaceEvidence], places: Places, *, config: ChangeConfig = ChangeConfig(), workers: int = 1
 ) -> list[DetectedChange]:
-    """The changes of the road the ``evidence`` confirms (module docstring), in time order."""
+    """The changes of the road the ``evidence`` confirms (module docstring), in time order.
+
+    ``workers``: processes the places' change-point tests are shared out over
+    (``parallel.map_balanced``, by the square of their drives: each test tries every split of
+    the place's series); each place is tested on its own, so the changes are the one-process ones."""
     by_place: dict[PlaceKey, list[PlaceEvidence]] = defaultdict(list)
     for e in evidence:
         by_place[e.key].append(e)
@@ -344,11 +349,13 @@ def detect_changes(
         rows.sort(key=lambda e: (e.time_ns, e.drive_id))
     spreads = {name: series_spread(by_place, name, config) for name in SERIES}
     scatter = drive_scatter(evidence)
-    confirmed: dict[PlaceKey, PlaceChange] = {}
-    for key in sorted(by_place):
-        got = _confirm(by_place[key], key, config, spreads, scatter)
-        if got is not None:
-            confirmed[key] = got
+    keys = sorted(by_place)
+    tested = map_balanced(
+        lambda i: _confirm(by_place[keys[i]], keys[i], config, spreads, scatter),
+        [float(len(by_place[k])) ** 2 for k in keys],
+        workers,
+    )
+    confirmed = {key: got for key, got in zip(keys, tested) if got is not None}
     # Grow along the road from the confirmed places.
     changed = grow_changes(
         confirmed, places, lambda nb, c: _extends(by_place[nb], nb, c, config) if nb in by_place else None

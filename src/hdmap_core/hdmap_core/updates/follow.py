@@ -474,7 +474,8 @@ def follow_map(
             along the drives after the change are rebuilt with them (from those drives only):
             the ends of a change (tapers) that detection left out.
         workers: processes the drives' comparison with ``first_map`` runs on
-            (:func:`fleet_comparison`); the result is the same with any number.
+            (:func:`fleet_comparison`) and the places' change tests (:func:`detect_changes`); the
+            result is the same with any number.
 
     Returns:
         The followed map (``first_map`` itself when nothing changed, its version grown by the
@@ -485,7 +486,7 @@ def follow_map(
     t1 = time.perf_counter()
     places = places_of(drives, cell_m=config.cell_m)
     evidence, edges = fleet_comparison(drives, first_map, places, config=config, workers=workers)
-    changes = detect_changes(evidence, places, config=config)
+    changes = detect_changes(evidence, places, config=config, workers=workers)
     changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
     t0 = time.perf_counter()
     seconds = {"detect": t0 - t1}
