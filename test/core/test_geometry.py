@@ -8,6 +8,7 @@ import pytest
 from hdmap_core.geometry import (
     arc_length,
     cut_segment_intersections,
+    dense_points,
     rdp_mask_many,
     resample_by_distance,
     resample_evenly,
@@ -106,6 +107,14 @@ def test_resample_evenly_keeps_both_ends():
     np.testing.assert_allclose(resample_evenly(np.array([[1, 2], [1, 2]], float), 2.0), [[1, 2]])
     np.testing.assert_allclose(resample_evenly(np.array([[1, 2]], float), 2.0), [[1, 2]])
     assert resample_evenly(np.zeros((0, 2)), 2.0).shape == (0, 2)
+
+
+def test_dense_points_joins_the_lines_resampled_and_leaves_out_those_of_no_length():
+    a = np.array([[0, 0], [3, 0]], float)
+    b = [[10, 0], [10, 1]]  # a list, as map features' points may come
+    got = dense_points([a, np.array([[5, 5], [5, 5]], float), np.array([[7, 7]], float), b], 1.0)
+    np.testing.assert_allclose(got, np.concatenate([resample_evenly(a, 1.0), [[10, 0], [10, 1]]]))
+    assert dense_points([], 1.0).shape == (0, 2)
 
 
 def test_rdp_closed_polyline_measures_from_the_end_point():

@@ -7,6 +7,7 @@ Polylines are (N, 2) float arrays. "Left" is +90 deg from a heading (ENU yaw, co
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -19,6 +20,7 @@ __all__ = [
     "heading_frame",
     "resample_by_distance",
     "resample_evenly",
+    "dense_points",
     "rdp_mask_many",
     "split_long_segments",
     "cut_segment_intersections",
@@ -118,6 +120,17 @@ def resample_evenly(xy: np.ndarray, max_step_m: float) -> np.ndarray:
         return xy[:1].copy()
     q = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / max_step_m)) + 1))
     return np.stack([np.interp(q, s, xy[:, 0]), np.interp(q, s, xy[:, 1])], axis=1)
+
+
+def dense_points(lines: Iterable[np.ndarray], max_step_m: float) -> np.ndarray:
+    """(K, 2) the points of every polyline of ``lines`` at most ``max_step_m`` apart along it
+    (:func:`resample_evenly`, both ends kept); polylines of no length are left out."""
+    out = [np.zeros((0, 2))]
+    for xy in lines:
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        if len(xy) >= 2 and polyline_length(xy) > 0:
+            out.append(resample_evenly(xy, max_step_m))
+    return np.concatenate(out)
 
 
 def rdp_mask_many(xy: np.ndarray, starts: np.ndarray, epsilon_m: float) -> np.ndarray:

@@ -3,41 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
+from carriageway_samples import CHANGED, DASHED, PLACES, REBUILT, SOLID, carriageway_lines, line_feature
 
-from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature
+from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.updates.detect import DetectedChange, PlaceChange
 from hdmap_core.updates.marks import share_places, unchanged_marks
-from hdmap_core.updates.places import Places
 from hdmap_core.updates.splice import Reach, splice
 
-# A straight carriageway along +x (left of the driving direction: +y), places of 100 m. Right edge
-# line (solid) y = 50, dashed dividers 53.5 and 57, left edge 60.5; barriers 49 and 61.5. Places 2
-# and 3 (x 200-400) changed; the drives after the change keep to the left lane (y = 58.75), so the
-# right edge line lies 8.75 m from them: within the sensors' reach (12 m), rarely seen.
-PLACES = Places(100.0, {(i, 0): 0.0 for i in range(0, 6)})
-SOLID, DASHED, BORDER = FeatureType.SOLID, FeatureType.DASHED, FeatureType.ROAD_BORDER
-CHANGED = [(2, 0, 0), (3, 0, 0)]
-REBUILT = {(1, 0, 0), *CHANGED, (4, 0, 0)}
+# The carriageway of carriageway_samples, places 2 and 3 (x 200-400) changed; the drives after the
+# change keep to the left lane (y = 58.75), so the right edge line lies 8.75 m from them: within
+# the sensors' reach (12 m), rarely seen.
 LANE_Y = 58.75
-
-
-def _feature(fid, ftype, y, x0=0.0, x1=600.0, step=1.0):
-    x = np.arange(x0, x1 + 1e-9, step)
-    return MapFeature(
-        fid, ftype, np.stack([x, np.full(len(x), float(y))], axis=1), np.full(len(x), 20), np.full(len(x), 0.05)
-    )
-
-
-FIRST = HDMap(
-    features=(
-        _feature(1, SOLID, 50.0),
-        _feature(2, DASHED, 53.5),
-        _feature(3, DASHED, 57.0),
-        _feature(4, SOLID, 60.5),
-        _feature(5, BORDER, 49.0),
-        _feature(6, BORDER, 61.5),
-    )
-)
+FIRST = HDMap(features=(*carriageway_lines(),))
 
 
 def _after(y=LANE_Y, seen=()):
@@ -52,7 +29,7 @@ def _after(y=LANE_Y, seen=()):
 
 def _local(*lines):
     """The aligned rebuild of places 1-4 from the drives after the change: the lines they saw."""
-    return HDMap(features=tuple(_feature(100 + i, t, y, 100.0, 499.0) for i, (t, y) in enumerate(lines)))
+    return HDMap(features=tuple(line_feature(100 + i, t, y, 100.0, 499.0) for i, (t, y) in enumerate(lines)))
 
 
 def _change(kind):

@@ -3,39 +3,21 @@
 from __future__ import annotations
 
 import numpy as np
+from carriageway_samples import CHANGED, DASHED, PLACES, REBUILT, SOLID, carriageway_lines, line_feature
 
-from hdmap_core.model import FeatureType, HDMap, MapFeature
+from hdmap_core.model import HDMap
 from hdmap_core.updates.detect import DetectedChange, PlaceChange
 from hdmap_core.updates.evidence import PlaceEvidence
 from hdmap_core.updates.follow import retired_features
-from hdmap_core.updates.places import Places
 from hdmap_core.updates.splice import Reach, splice
 from hdmap_core.updates.unseen import unseen_moved
 
-# A straight carriageway along +x (left of the driving direction: +y), places of 100 m. Right edge
-# line (solid) y = 50, dashed dividers 53.5 and 57, left edge 60.5; barriers 49 and 61.5; a ramp's
-# dashed line beyond the right barrier at 46. Places 2 and 3 (x 200-400) shifted 1.5 m right.
-PLACES = Places(100.0, {(i, 0): 0.0 for i in range(0, 6)})
-SOLID, DASHED, BORDER = FeatureType.SOLID, FeatureType.DASHED, FeatureType.ROAD_BORDER
-CHANGED = [(2, 0, 0), (3, 0, 0)]
-REBUILT = {(1, 0, 0), *CHANGED, (4, 0, 0)}
-
-
-def _feature(fid, ftype, y, x0=0.0, x1=600.0, step=1.0, shift=None):
-    x = np.arange(x0, x1 + 1e-9, step)
-    yy = np.full(len(x), float(y)) if shift is None else float(y) + shift(x)
-    return MapFeature(fid, ftype, np.stack([x, yy], axis=1), np.full(len(x), 20), np.full(len(x), 0.05))
-
-
+# The carriageway of carriageway_samples and a ramp's dashed line beyond the right barrier at 46;
+# places 2 and 3 (x 200-400) shifted 1.5 m right.
 FIRST = HDMap(
     features=(
-        _feature(1, SOLID, 50.0),
-        _feature(2, DASHED, 53.5),
-        _feature(3, DASHED, 57.0),
-        _feature(4, SOLID, 60.5),
-        _feature(5, BORDER, 49.0),
-        _feature(6, BORDER, 61.5),
-        _feature(7, DASHED, 46.0, 150.0, 450.0),
+        *carriageway_lines(),
+        line_feature(7, DASHED, 46.0, 150.0, 450.0),
     )
 )
 
@@ -47,7 +29,9 @@ def _in_zone(x):
 def _local(moves=(-1.5, -1.5)):
     """The aligned rebuild of places 1-4 from the drives after the change: they saw the two dividers."""
     feats = [
-        _feature(100 + i, DASHED, y, 100.0, 499.0, shift=lambda x, m=m: np.where((x >= 200.0) & (x < 400.0), m, 0.0))
+        line_feature(
+            100 + i, DASHED, y, 100.0, 499.0, shift=lambda x, m=m: np.where((x >= 200.0) & (x < 400.0), m, 0.0)
+        )
         for i, (y, m) in enumerate(((53.5, moves[0]), (57.0, moves[1])))
     ]
     return HDMap(features=tuple(feats))
@@ -135,8 +119,8 @@ def test_no_model_where_the_local_map_has_markings_the_moved_first_map_does_not_
     def moved(y, m):
         return lambda x: np.where((x >= 200.0) & (x < 400.0), m, 0.0)
 
-    dividers = [_feature(100 + i, DASHED, y, 100.0, 499.0, shift=moved(y, 0.5)) for i, y in enumerate((53.5, 57.0))]
-    edges = [_feature(110 + i, SOLID, y, 200.0, 399.0) for i, y in enumerate((46.5, 63.0))]
+    dividers = [line_feature(100 + i, DASHED, y, 100.0, 499.0, shift=moved(y, 0.5)) for i, y in enumerate((53.5, 57.0))]
+    edges = [line_feature(110 + i, SOLID, y, 200.0, 399.0) for i, y in enumerate((46.5, 63.0))]
     left = _evidence(-0.5)
     got = unseen_moved(FIRST, HDMap(features=tuple(dividers + edges)), PLACES, [_change()], left, REBUILT)
     assert got.pieces == () and got.map is FIRST

@@ -29,6 +29,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
+from hdmap_core.geometry import dense_points
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
@@ -226,17 +227,6 @@ def along_drives(
     return out
 
 
-def _dense(lines: Sequence[np.ndarray], step_m: float = 0.5) -> np.ndarray:
-    """(N, 2) the points of ``lines`` every ``step_m`` or closer."""
-    out = [np.zeros((0, 2))]
-    for pts in lines:
-        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-        s = np.concatenate([[0.0], np.cumsum(seg)])
-        q = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / step_m)) + 1))
-        out.append(np.stack([np.interp(q, s, pts[:, 0]), np.interp(q, s, pts[:, 1])], axis=1))
-    return np.concatenate(out)
-
-
 def unseen_at_ends(first: HDMap, local: HDMap, places: Places, rebuilt: set[PlaceKey]) -> np.ndarray:
     """(N, 2) the first map's marking points in the ``rebuilt`` places that the drives after
     the change did not see (no local marking within ``_TAPER_KEEP_M``), walking in from where a
@@ -249,18 +239,17 @@ def unseen_at_ends(first: HDMap, local: HDMap, places: Places, rebuilt: set[Plac
     if not rebuilt:
         return np.zeros((0, 2))
     first_marks = [np.asarray(f.points, dtype=float) for f in first.features if int(f.type) in _MARKINGS]
-    marks = _dense([np.asarray(f.points, dtype=float) for f in local.features if int(f.type) in _MARKINGS])
+    marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], _DENSE_M)
     if len(marks) == 0 or not first_marks:
         return np.zeros((0, 2))
     tree = cKDTree(marks)
-    d_first, _ = cKDTree(_dense(first_marks)).query(marks)  # each local marking point: moved how far
+    d_first, _ = cKDTree(dense_points(first_marks, _DENSE_M)).query(marks)  # each local marking point: moved how far
     out = [np.zeros((0, 2))]
     for f in first.features:
         if int(f.type) not in _MARKINGS or len(f.points) < 2:
             continue
         pts = np.asarray(f.points, dtype=float)
-        t = np.gradient(pts, axis=0)
-        keys = places.keys(pts, np.arctan2(t[:, 1], t[:, 0]))
+        keys = places.keys_along(pts)
         inside = np.array([k in rebuilt for k in keys], dtype=bool)
         if not inside.any():
             continue
@@ -384,6 +373,7 @@ _BORDER_SAME_M = 1.5
 _TAPER_KEEP_M = 1.75
 _NOT_SHIFTED = {"lane_closed", "lane_opened", "type", "marking_gone"}
 _TAPER_SAME_M = 0.8
+_DENSE_M = 0.5  # the markings are looked up at this spacing [m]
 _TAPER_NEAREST = 8
 _TAPER_VIEW_M = 12.0
 

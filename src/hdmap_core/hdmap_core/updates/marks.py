@@ -30,6 +30,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from hdmap_core.geometry import dense_points
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
@@ -49,21 +50,6 @@ _SAME_LINE_M = 1.0
 # puts its lines 1 m beside the first map's [m].
 _DETECTED_M = 0.5
 _STEP_M = 0.5  # lines are looked up at this spacing [m]
-
-
-def _dense(lines: Sequence[np.ndarray]) -> np.ndarray:
-    """(N, 2) the points of ``lines`` every ``_STEP_M`` along each."""
-    out = [np.zeros((0, 2))]
-    for pts in lines:
-        pts = np.asarray(pts, dtype=float).reshape(-1, 2)
-        if len(pts) < 2:
-            continue
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-        if s[-1] <= 0:
-            continue
-        q = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / _STEP_M)) + 1))
-        out.append(np.stack([np.interp(q, s, pts[:, 0]), np.interp(q, s, pts[:, 1])], axis=1))
-    return np.concatenate(out)
 
 
 def share_places(changes: Sequence[DetectedChange], places: Places, rebuilt: set[PlaceKey]) -> set[PlaceKey]:
@@ -99,13 +85,12 @@ def unchanged_marks(
         if int(f.type) not in _MARKINGS or len(f.points) < 2:
             continue
         pts = np.asarray(f.points, dtype=float)
-        t = np.gradient(pts, axis=0)
-        fkeys = places.keys(pts, np.arctan2(t[:, 1], t[:, 0]))
+        fkeys = places.keys_along(pts)
         inside = np.array([k in keys for k in fkeys], dtype=bool)
         cand.append(pts[inside])
         in_went.append(np.array([k in went for k, i in zip(fkeys, inside) if i], dtype=bool))
     p = np.concatenate(cand)
-    local_marks = _dense([f.points for f in local.features if int(f.type) in _MARKINGS])
+    local_marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], _STEP_M)
     if len(p) == 0:
         return none
     seen = np.zeros(len(p), dtype=bool)
@@ -119,7 +104,7 @@ def unchanged_marks(
         if len(dr.xy):
             dp, _ = cKDTree(np.asarray(dr.xy, dtype=float)).query(p, distance_upper_bound=2 * config.near_m)
             passed |= np.isfinite(dp)
-            marks = _dense([det.points for det in dr.detections if int(det.type) in _MARKINGS])
+            marks = dense_points([det.points for det in dr.detections if int(det.type) in _MARKINGS], _STEP_M)
             if len(marks):
                 dd, _ = cKDTree(marks).query(p, distance_upper_bound=_DETECTED_M)
                 detected |= np.isfinite(dd)

@@ -43,6 +43,11 @@ class Places:
         side = (np.cos(np.asarray(yaw, dtype=float) - ax) < 0).astype(np.int64)
         return list(zip(ij[:, 0].tolist(), ij[:, 1].tolist(), side.tolist()))
 
+    def keys_along(self, pts: np.ndarray) -> list[PlaceKey]:
+        """The place of each point of a polyline ``pts`` (N >= 2, 2), heading along its tangent."""
+        t = np.gradient(np.asarray(pts, dtype=float), axis=0)
+        return self.keys(pts, np.arctan2(t[:, 1], t[:, 0]))
+
     def neighbours(self, key: PlaceKey) -> list[PlaceKey]:
         """The places of the 8 cells around ``key``'s cell, on the side of the same direction.
 

@@ -43,6 +43,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.evaluation.cuts import intersect_cuts, segments_of
+from hdmap_core.geometry import dense_points
 from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
@@ -104,18 +105,6 @@ def _normals(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([-np.sin(yaw), np.cos(yaw)], axis=1), yaw
 
 
-def _resampled(lines: Sequence[np.ndarray]) -> np.ndarray:
-    out = [np.zeros((0, 2))]
-    for pts in lines:
-        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-        s = np.concatenate([[0.0], np.cumsum(seg)])
-        if s[-1] <= 0:
-            continue
-        q = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / _RESAMPLE_M)) + 1))
-        out.append(np.stack([np.interp(q, s, pts[:, 0]), np.interp(q, s, pts[:, 1])], axis=1))
-    return np.concatenate(out)
-
-
 def _explained(
     local_lines: Sequence[tuple[int, np.ndarray]],
     predicted: dict[int, list[np.ndarray]],
@@ -129,7 +118,7 @@ def _explained(
     hit: dict[PlaceKey, int] = {}
     total: dict[PlaceKey, int] = {}
     for t, pts in local_lines:
-        pts = _resampled([pts])
+        pts = dense_points([pts], _RESAMPLE_M)
         if len(pts) < 2:
             continue
         _, yaw = _normals(pts)
@@ -188,11 +177,11 @@ def unseen_moved(
     moves = _place_moves(changes, evidence, places, rebuilt)
     none = UnseenMove(first, ())
     local_lines = [(int(f.type), np.asarray(f.points, float)) for f in local.features if int(f.type) in _MARKINGS]
-    local_marks = _resampled([p for _, p in local_lines])
+    local_marks = dense_points([p for _, p in local_lines], _RESAMPLE_M)
     if not moves or len(local_marks) == 0 or not config.model_unseen:
         return none
     tree = cKDTree(local_marks)
-    by_type = {t: _resampled([p for u, p in local_lines if u == t]) for t in _MARKINGS}
+    by_type = {t: dense_points([p for u, p in local_lines if u == t], _RESAMPLE_M) for t in _MARKINGS}
     trees = {t: cKDTree(v) if len(v) else None for t, v in by_type.items()}
     tol = config.unseen_match_m
     # Step 2: per first-map marking point in a candidate place, its move as the local map shows it.
