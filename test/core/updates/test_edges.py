@@ -16,7 +16,15 @@ from hdmap_core.simulation.config import SimConfig
 from hdmap_core.simulation.fleet import simulate_fleet
 from hdmap_core.simulation.synthetic import synthetic_highway
 from hdmap_core.updates.config import ChangeConfig
-from hdmap_core.updates.edges import MIN_EDGE_MOVE_M, EdgeEvidence, detect_edge_changes, edge_evidence, solid_lines
+from hdmap_core.updates.detect import DetectedChange, PlaceChange
+from hdmap_core.updates.edges import (
+    MIN_EDGE_MOVE_M,
+    EdgeEvidence,
+    detect_edge_changes,
+    edge_evidence,
+    merge_changes,
+    solid_lines,
+)
 from hdmap_core.updates.follow import follow_changes
 from hdmap_core.updates.places import Places, places_of
 
@@ -60,6 +68,24 @@ def test_a_drive_that_saw_the_old_edge_turned_divider_supports_a_measured_openin
     # two drives that only saw a divider where the edge was (a misread type) confirm nothing
     first = EdgeEvidence(rows[-2].drive_id, rows[-2].time_ns, rows[-2].key, -MIN_EDGE_MOVE_M, 12, measured=False)
     assert detect_edge_changes([*rows[:-2], first, seen_only], PLACES) == []
+
+
+def _change(cid, kind, keys, effect):
+    places = tuple(PlaceChange(k, kind, 10, 5, effect, 9.0, ("b1",), ("a1", "a2")) for k in keys)
+    return DetectedChange(cid, 10, (kind,), places, ("a1", "a2"), 0.9)
+
+
+def test_an_edge_that_moved_with_the_markings_is_their_shift_not_a_lane_change():
+    # the markings moved 3 m right (displacement +3), the edge 2.6 m right (move -2.6): a shift
+    shift = _change(1, "geometry", [(2, 0, 0), (3, 0, 0)], 3.0)
+    opened = _change(2, "lane_opened", [(3, 0, 0)], -2.6)
+    assert merge_changes([shift], [opened], PLACES) == [shift]
+    # the edge moved a lane beyond the markings' shift (0.5 m right, the edge 2.6 m): a lane opened
+    small = _change(1, "geometry", [(2, 0, 0), (3, 0, 0)], 0.5)
+    (merged,) = merge_changes([small], [opened], PLACES)
+    assert merged.kinds == ("geometry", "lane_opened")
+    # no shift touching it: the lane change stands on its own
+    assert merge_changes([], [opened], PLACES) == [opened]
 
 
 def _line(y: float, ftype: FeatureType, x0: float = 0.0, x1: float = 400.0) -> np.ndarray:

@@ -32,7 +32,10 @@ confirms the place; touching confirmed places of one direction are one change, `
 ``lane_opened``; it grows into neighbouring places where a drive after it shows at least half
 the move the same way and none the other (the tapers). A shift of the markings by less than
 ``MIN_EDGE_MOVE_M`` is no lane change (it is the displacement's), nor a drive badly localised
-(the anchor takes that out). A larger shift (which the displacement does not see) shows as one.
+(the anchor takes that out). A larger shift the displacement does not see shows as one; one it
+sees is no lane change either: where the edge moved with the markings, the move left after their
+displacement is less than ``MIN_EDGE_MOVE_M`` (``merge_changes``; a 3 m shift read as a lane
+opened by the next lane's drives lost the shift's model of the lines they did not see).
 """
 
 from __future__ import annotations
@@ -295,7 +298,9 @@ def merge_changes(
 ) -> list[DetectedChange]:
     """``changes`` with the lane changes ``edges``: one that shares or touches a place of a change
     joins it (its places there are the change's; its kinds and drives are added), else it is a
-    change of its own."""
+    change of its own. One whose edge moved with the markings of the change it touches (the
+    displacement of its geometry places takes all but less than ``MIN_EDGE_MOVE_M`` of the
+    edge's move) is that shift, no lane change: it is left out."""
     out = list(changes)
     for e in edges:
         near = {nb for p in e.places for nb in (p.key, *places.neighbours(p.key))}
@@ -304,6 +309,10 @@ def merge_changes(
             out.append(e)
             continue
         c = out[hit]
+        shift = [p.effect for p in c.places if p.kind == "geometry"]
+        # signs: the displacement is + to the right, the edge's move + to the left
+        if shift and abs(float(np.median([p.effect for p in e.places])) + float(np.median(shift))) < MIN_EDGE_MOVE_M:
+            continue
         have = c.keys
         out[hit] = DetectedChange(
             id=c.id,
