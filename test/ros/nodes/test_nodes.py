@@ -271,6 +271,22 @@ def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros,
         node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["nokey"])])
 
 
+def _unspun_stitcher(ros, tmp_path, *, debounce_s: float, max_delay_s: float):
+    """A map stitcher on stores in ``tmp_path``, not spun: only the test calls its turn
+    (``_work``); the caller destroys it."""
+    from hdmap_ros.nodes.map_stitcher import MapStitcher
+
+    return MapStitcher(
+        context=ros.context,
+        parameter_overrides=[
+            Parameter("db_path", value=str(tmp_path / "s.db")),
+            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
+            Parameter("debounce_s", value=debounce_s),
+            Parameter("max_delay_s", value=max_delay_s),
+        ],
+    )
+
+
 def test_stitcher_waits_for_the_estimates_the_mapper_announced_and_then_rebuilds_at_once(ros, tmp_path, monkeypatch):
     """The mapper's status names more estimates than have come (the region's burst): no map of a
     part of them, even past max_delay_s; once every one is here and the mapper settled, the map is
@@ -278,18 +294,9 @@ def test_stitcher_waits_for_the_estimates_the_mapper_announced_and_then_rebuilds
     import time
 
     from hdmap_core.live.progress import LiveStatus
-    from hdmap_ros.nodes.map_stitcher import MapStitcher
     from hdmap_ros.persistence.store import segments_to_blob
 
-    st = MapStitcher(  # not spun: only this test calls its turn
-        context=ros.context,
-        parameter_overrides=[
-            Parameter("db_path", value=str(tmp_path / "s.db")),
-            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
-            Parameter("debounce_s", value=0.2),
-            Parameter("max_delay_s", value=0.5),
-        ],
-    )
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
     starts: list[float] = []
     monkeypatch.setattr(st, "rebuild", lambda: starts.append(time.monotonic()))
     try:
@@ -321,18 +328,10 @@ def test_stitcher_paces_rebuilds_while_estimates_stream_and_rebuilds_at_once_whe
     waits at least as long as the last rebuild took (REBUILD_SHARE 0.5); once quiet, at once."""
     import time
 
-    from hdmap_ros.nodes.map_stitcher import REBUILD_SHARE, MapStitcher
+    from hdmap_ros.nodes.map_stitcher import REBUILD_SHARE
 
     assert REBUILD_SHARE == 0.5
-    st = MapStitcher(  # not spun: only this test calls its turn
-        context=ros.context,
-        parameter_overrides=[
-            Parameter("db_path", value=str(tmp_path / "s.db")),
-            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
-            Parameter("debounce_s", value=0.5),
-            Parameter("max_delay_s", value=0.0),
-        ],
-    )
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.5, max_delay_s=0.0)
     starts: list[float] = []
 
     def rebuild() -> None:  # a rebuild that takes 0.3 s
