@@ -287,6 +287,26 @@ def _unspun_stitcher(ros, tmp_path, *, debounce_s: float, max_delay_s: float):
     )
 
 
+def test_a_restarted_stitcher_reports_its_stored_map_on_diagnostics(ros, tmp_path):
+    """A stitcher restarted on a store whose map is made from every stored estimate rebuilds
+    nothing, so its /diagnostics must name the stored map's version from the start (they named
+    none: the e2e SIGKILL test then waited for a map version forever when the mapper had settled
+    and the stitcher had every estimate before they were killed)."""
+    from hdmap_ros.persistence.store import segments_to_blob
+
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
+    st.store.put_tile((0, 0), 1, segments_to_blob([]), ["d"])
+    st.store.put_map(replace(make_map(n_features=3), version=7), st.store.tiles_signature())
+    st.destroy_node()
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
+    try:
+        kv = dict(st.health.key_values())
+        assert (kv["map_version"], kv["features"]) == ("7", "3")
+        assert st.is_settled()  # nothing to rebuild: the map stays version 7
+    finally:
+        st.destroy_node()
+
+
 def test_stitcher_waits_for_the_estimates_the_mapper_announced_and_then_rebuilds_at_once(ros, tmp_path, monkeypatch):
     """The mapper's status names more estimates than have come (the region's burst): no map of a
     part of them, even past max_delay_s; once every one is here and the mapper settled, the map is

@@ -215,6 +215,9 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("changes_new", 0)
         if self.map is not None:
             self._publish()
+            # the stored map is this node's map until a rebuild (none comes when no tile changed)
+            self.health.set("map_version", self.map.version)
+            self.health.set("features", len(self.map.features))
         if self.store.tiles_signature() != sig:
             self._first_dirty = time.monotonic()
         self.get_logger().info(
