@@ -307,6 +307,33 @@ def test_a_restarted_stitcher_reports_its_stored_map_on_diagnostics(ros, tmp_pat
         st.destroy_node()
 
 
+def test_the_stitcher_follows_road_changes_only_with_every_estimate_the_mapper_announced(ros, tmp_path, monkeypatch):
+    """The mapper's status (settled, N estimates made) may come before its estimates (another
+    topic; a restart republishes them): the map of the estimates here so far is not the settled
+    map, and road changes are followed only once every announced estimate is in the map."""
+    from hdmap_core.live.progress import LiveStatus
+    from hdmap_ros.nodes import map_stitcher
+    from hdmap_ros.persistence.store import segments_to_blob
+
+    reads: list[str] = []
+    monkeypatch.setattr(map_stitcher, "read_drives", lambda path: reads.append(str(path)) or [])
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
+    try:
+        assert st.follow_changes  # the default preset follows road changes
+        st._mapper_status = LiveStatus(tile_versions=2, settled=True)  # 2 estimates made, 1 here
+        st.store.put_tile((0, 0), 1, segments_to_blob([]), ["d"])
+        st.rebuild()
+        assert st.is_settled() and st.map.version == 1
+        st._follow()
+        assert reads == []  # the other estimate is on its way
+        st.store.put_tile((1, 0), 1, segments_to_blob([]), ["d"])
+        st.rebuild()
+        st._follow()
+        assert reads == [str(tmp_path / "m.db")] and st.changes_followed()
+    finally:
+        st.destroy_node()
+
+
 def test_stitcher_waits_for_the_estimates_the_mapper_announced_and_then_rebuilds_at_once(ros, tmp_path, monkeypatch):
     """The mapper's status names more estimates than have come (the region's burst): no map of a
     part of them, even past max_delay_s; once every one is here and the mapper settled, the map is

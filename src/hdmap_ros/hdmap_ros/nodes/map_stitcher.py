@@ -275,6 +275,8 @@ class MapStitcher(HealthMixin, Node):
         """Follow the road changes on the settled map (module docstring)."""
         if self.changes_followed() or not self._mapper_status.settled or not self.is_settled():
             return
+        if self.store.version_total() < self._mapper_status.tile_versions:
+            return  # RULE: estimates the settled mapper made are on their way: this is not its map yet
         sig = self._map_sig
         consensus = self._consensus
         if consensus is None:  # the stored map is the followed one of an older signature: rebuild
