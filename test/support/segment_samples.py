@@ -50,3 +50,29 @@ def conn(seg: Segment):
     """The segment's graph with the connection's first implementation (``former``: the rules
     these samples were drawn for)."""
     return connect_segment(seg, config=former(ConnectionConfig))
+
+
+def point_step(pivot: str, i: int, x: float, y: float = 0.0) -> StepResult:
+    """A valid step with its midpoint at (x, y) (two maxima 1 m either side, drive "a"): for the
+    tests of which steps a tile keeps (``select_steps``, ``cut_into_tiles``), where only the
+    position counts."""
+    return StepResult(
+        pivot_id=pivot,
+        index=i,
+        s_m=2.0 * i,
+        midpoint=np.array([x, y]),
+        heading=0.0,
+        width_m=10.0,
+        valid=True,
+        processed_before=False,
+        lateral_m=np.array([-1.0, 1.0]),
+        types=np.array([1, 2]),
+        counts=np.array([3, 3]),
+        std_m=np.array([0.1, 0.1]),
+        drive_ids=("a",),
+    )
+
+
+def step_runs(segments) -> list[tuple[str, list[int]]]:
+    """(pivot id, step indices) of each segment: what a selection of steps kept, comparable."""
+    return [(s.pivot_id, [st.index for st in s.steps]) for s in segments]

@@ -21,7 +21,9 @@ from hdmap_core.live.tiles import (
     tiles_of_drive,
 )
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
-from hdmap_core.steps import Segment, StepResult
+from hdmap_core.steps import Segment
+
+from segment_samples import point_step
 
 
 def _drive(xy, drive_id="d", dets=()):
@@ -104,28 +106,10 @@ def test_clip_drive_outside_returns_none():
     assert clip_drive(_drive(_line(200, 300)), (0.0, 0.0, 100.0, 100.0)) is None
 
 
-def _step(pivot, i, x):
-    return StepResult(
-        pivot_id=pivot,
-        index=i,
-        s_m=2.0 * i,
-        midpoint=np.array([x, 0.0]),
-        heading=0.0,
-        width_m=10.0,
-        valid=True,
-        processed_before=False,
-        lateral_m=np.array([-1.0, 1.0]),
-        types=np.array([1, 2]),
-        counts=np.array([3, 3]),
-        std_m=np.array([0.1, 0.1]),
-        drive_ids=("a",),
-    )
-
-
 def test_select_steps_keeps_inside_and_splits_runs():
     # steps at x = -4, -2, 0, 2, 4, 200, 6 (pivot leaves and comes back) ; box x in [0, 100)
     xs = [-4, -2, 0, 2, 4, 200, 6]
-    seg = Segment("p", tuple(_step("p", i, x) for i, x in enumerate(xs)))
+    seg = Segment("p", tuple(point_step("p", i, x) for i, x in enumerate(xs)))
     out = select_steps([seg, Segment("q", ())], (0.0, -10.0, 100.0, 10.0))
     assert [[s.index for s in o.steps] for o in out] == [[2, 3, 4], [6]]
     assert all(o.pivot_id == "p" for o in out)

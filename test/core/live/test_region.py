@@ -7,45 +7,25 @@ import pytest
 
 from hdmap_core.live.region import cut_into_tiles, map_region
 from hdmap_core.live.tiles import TileConfig, select_steps, tile_bounds, tiles_of_drive
-from hdmap_core.steps import Segment, StepResult
+from hdmap_core.steps import Segment
 
-
-def _step(pivot, i, x, y=0.0):
-    return StepResult(
-        pivot_id=pivot,
-        index=i,
-        s_m=2.0 * i,
-        midpoint=np.array([x, y]),
-        heading=0.0,
-        width_m=10.0,
-        valid=True,
-        processed_before=False,
-        lateral_m=np.array([-1.0, 1.0]),
-        types=np.array([1, 2]),
-        counts=np.array([3, 3]),
-        std_m=np.array([0.1, 0.1]),
-        drive_ids=("a",),
-    )
-
-
-def _ids(segments):
-    return [(s.pivot_id, [st.index for st in s.steps]) for s in segments]
+from segment_samples import point_step, step_runs
 
 
 def test_cut_into_tiles_keeps_of_each_tile_what_select_steps_keeps():
     # a pivot crossing tiles of 100 m: x = -30 .. 250, leaving (0, 0) for (0, 1) and coming back
     xs = [-30, -10, 0, 20, 99.9, 100, 150, 150, 199, 230, 250]
     ys = [5, 5, 5, 5, 5, 5, 5, 120, 5, 5, 5]
-    seg = Segment("p", tuple(_step("p", i, x, y) for i, (x, y) in enumerate(zip(xs, ys))))
-    other = Segment("q", tuple(_step("q", i, 10.0 * i, 50.0) for i in range(5)))
+    seg = Segment("p", tuple(point_step("p", i, x, y) for i, (x, y) in enumerate(zip(xs, ys))))
+    other = Segment("q", tuple(point_step("q", i, 10.0 * i, 50.0) for i in range(5)))
     keys = [(-1, 0), (0, 0), (1, 0), (2, 0), (1, 1), (5, 5)]
     out = cut_into_tiles([seg, Segment("e", ()), other], keys, tile_size_m=100.0)
     assert set(out) == set(keys) and out[(5, 5)] == []
     for k in keys:
-        assert _ids(out[k]) == _ids(select_steps([seg, other], tile_bounds(k, tile_size_m=100.0)))
-    assert _ids(out[(1, 0)]) == [("p", [5, 6]), ("p", [8])]  # split where the pivot left the tile
+        assert step_runs(out[k]) == step_runs(select_steps([seg, other], tile_bounds(k, tile_size_m=100.0)))
+    assert step_runs(out[(1, 0)]) == [("p", [5, 6]), ("p", [8])]  # split where the pivot left the tile
     # steps in a tile not asked for are dropped
-    assert _ids(cut_into_tiles([seg], [(0, 0)], tile_size_m=100.0)[(0, 0)]) == [("p", [2, 3, 4])]
+    assert step_runs(cut_into_tiles([seg], [(0, 0)], tile_size_m=100.0)[(0, 0)]) == [("p", [2, 3, 4])]
 
 
 @pytest.mark.slow
@@ -67,8 +47,8 @@ def test_map_region_is_the_offline_pass_on_the_drive_set_cut_into_tiles():
     n_steps = sum(len(s.steps) for s in whole.segments)
     assert n_steps > 0 and sum(len(s.steps) for k in keys for s in a.segments[k]) == n_steps  # every step once
     for k in keys:
-        assert _ids(a.segments[k]) == _ids(b.segments[k])
-        assert _ids(a.segments[k]) == _ids(select_steps(whole.segments, tile_bounds(k, tile_size_m=128.0)))
+        assert step_runs(a.segments[k]) == step_runs(b.segments[k])
+        assert step_runs(a.segments[k]) == step_runs(select_steps(whole.segments, tile_bounds(k, tile_size_m=128.0)))
         for sa, sb in zip(a.segments[k], b.segments[k]):
             for x, y in zip(sa.steps, sb.steps):
                 np.testing.assert_array_equal(x.lateral_m, y.lateral_m)

@@ -211,6 +211,8 @@ def test_build_map_rejects_malformed_drive_and_goes_on(fleet):
     rep = res.report
     assert rep.n_drives_in == len(fleet) + 2 and rep.n_drives_used == len(fleet)
     assert {d for d, _ in rep.rejected} == {"broken", "badtype"}
+    # the drives it used: the input's usable ones, in order, the same objects
+    assert len(res.drives) == len(fleet) and all(a is b for a, b in zip(res.drives, fleet))
     assert isinstance(res.map, HDMap) and len(res.map.features) >= 6
     assert rep.km_mapped > 0.1 and rep.steps_total > 0
     assert "rejected 'broken'" in rep.summary()

@@ -33,13 +33,14 @@ def fake_pipeline(monkeypatch):
     class BuildResult:
         map: object
         report: BuildReport
+        drives: list  # the drives the map was built from
 
     def build_map(drives, *, config, seed=0, progress=None, workers=1):
         calls.update(drives=list(drives), config=config, seed=seed, workers=workers)
         if progress is not None:
             progress("pivots", 1, 2)
             progress("pivots", 2, 2)
-        return BuildResult(make_map(n_features=3), BuildReport(len(drives)))
+        return BuildResult(make_map(n_features=3), BuildReport(len(drives)), list(drives))
 
     install_fake_pipeline(monkeypatch, build_map)
     return calls

@@ -271,6 +271,69 @@ def test_preset_overrides_change_the_pipeline_config_and_a_bad_one_is_named(ros,
         node_cls(context=ros.context, parameter_overrides=[db, Parameter("preset_overrides", value=["nokey"])])
 
 
+def _unspun_stitcher(ros, tmp_path, *, debounce_s: float, max_delay_s: float):
+    """A map stitcher on stores in ``tmp_path``, not spun: only the test calls its turn
+    (``_work``); the caller destroys it."""
+    from hdmap_ros.nodes.map_stitcher import MapStitcher
+
+    return MapStitcher(
+        context=ros.context,
+        parameter_overrides=[
+            Parameter("db_path", value=str(tmp_path / "s.db")),
+            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
+            Parameter("debounce_s", value=debounce_s),
+            Parameter("max_delay_s", value=max_delay_s),
+        ],
+    )
+
+
+def test_a_restarted_stitcher_reports_its_stored_map_on_diagnostics(ros, tmp_path):
+    """A stitcher restarted on a store whose map is made from every stored estimate rebuilds
+    nothing, so its /diagnostics must name the stored map's version from the start (they named
+    none: the e2e SIGKILL test then waited for a map version forever when the mapper had settled
+    and the stitcher had every estimate before they were killed)."""
+    from hdmap_ros.persistence.store import segments_to_blob
+
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
+    st.store.put_tile((0, 0), 1, segments_to_blob([]), ["d"])
+    st.store.put_map(replace(make_map(n_features=3), version=7), st.store.tiles_signature())
+    st.destroy_node()
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
+    try:
+        kv = dict(st.health.key_values())
+        assert (kv["map_version"], kv["features"]) == ("7", "3")
+        assert st.is_settled()  # nothing to rebuild: the map stays version 7
+    finally:
+        st.destroy_node()
+
+
+def test_the_stitcher_follows_road_changes_only_with_every_estimate_the_mapper_announced(ros, tmp_path, monkeypatch):
+    """The mapper's status (settled, N estimates made) may come before its estimates (another
+    topic; a restart republishes them): the map of the estimates here so far is not the settled
+    map, and road changes are followed only once every announced estimate is in the map."""
+    from hdmap_core.live.progress import LiveStatus
+    from hdmap_ros.nodes import map_stitcher
+    from hdmap_ros.persistence.store import segments_to_blob
+
+    reads: list[str] = []
+    monkeypatch.setattr(map_stitcher, "read_drives", lambda path: reads.append(str(path)) or [])
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
+    try:
+        assert st.follow_changes  # the default preset follows road changes
+        st._mapper_status = LiveStatus(tile_versions=2, settled=True)  # 2 estimates made, 1 here
+        st.store.put_tile((0, 0), 1, segments_to_blob([]), ["d"])
+        st.rebuild()
+        assert st.is_settled() and st.map.version == 1
+        st._follow()
+        assert reads == []  # the other estimate is on its way
+        st.store.put_tile((1, 0), 1, segments_to_blob([]), ["d"])
+        st.rebuild()
+        st._follow()
+        assert reads == [str(tmp_path / "m.db")] and st.changes_followed()
+    finally:
+        st.destroy_node()
+
+
 def test_stitcher_waits_for_the_estimates_the_mapper_announced_and_then_rebuilds_at_once(ros, tmp_path, monkeypatch):
     """The mapper's status names more estimates than have come (the region's burst): no map of a
     part of them, even past max_delay_s; once every one is here and the mapper settled, the map is
@@ -278,18 +341,9 @@ def test_stitcher_waits_for_the_estimates_the_mapper_announced_and_then_rebuilds
     import time
 
     from hdmap_core.live.progress import LiveStatus
-    from hdmap_ros.nodes.map_stitcher import MapStitcher
     from hdmap_ros.persistence.store import segments_to_blob
 
-    st = MapStitcher(  # not spun: only this test calls its turn
-        context=ros.context,
-        parameter_overrides=[
-            Parameter("db_path", value=str(tmp_path / "s.db")),
-            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
-            Parameter("debounce_s", value=0.2),
-            Parameter("max_delay_s", value=0.5),
-        ],
-    )
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
     starts: list[float] = []
     monkeypatch.setattr(st, "rebuild", lambda: starts.append(time.monotonic()))
     try:
@@ -321,18 +375,10 @@ def test_stitcher_paces_rebuilds_while_estimates_stream_and_rebuilds_at_once_whe
     waits at least as long as the last rebuild took (REBUILD_SHARE 0.5); once quiet, at once."""
     import time
 
-    from hdmap_ros.nodes.map_stitcher import REBUILD_SHARE, MapStitcher
+    from hdmap_ros.nodes.map_stitcher import REBUILD_SHARE
 
     assert REBUILD_SHARE == 0.5
-    st = MapStitcher(  # not spun: only this test calls its turn
-        context=ros.context,
-        parameter_overrides=[
-            Parameter("db_path", value=str(tmp_path / "s.db")),
-            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
-            Parameter("debounce_s", value=0.5),
-            Parameter("max_delay_s", value=0.0),
-        ],
-    )
+    st = _unspun_stitcher(ros, tmp_path, debounce_s=0.5, max_delay_s=0.0)
     starts: list[float] = []
 
     def rebuild() -> None:  # a rebuild that takes 0.3 s

@@ -303,6 +303,9 @@ def test_sigkill_mid_update_and_restart_gives_the_same_map(fleet, uninterrupted,
         assert acked <= set(hdmap.drive_ids), suite.logs()
         assert _features_key(hdmap) == _features_key(reference)
         assert all(suite.procs[n].alive() for n in NODES), suite.logs()
+    except AssertionError:
+        print("diagnostics:", suite.diags, "\nacks:", sorted(set(suite.acks)), "\n", suite.logs())
+        raise
     finally:
         suite.close()
 

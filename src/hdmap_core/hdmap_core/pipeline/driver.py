@@ -112,11 +112,13 @@ class BuildReport:
 
 @dataclass(frozen=True)
 class BuildResult:
-    """Output of ``build_map``: the map, the per-pivot segments and the report."""
+    """Output of ``build_map``: the map, the per-pivot segments, the report and the drives the map
+    was built from (the input drives ``prepare_drives`` kept, in their order, the same objects)."""
 
     map: HDMap
     segments: list[Segment]
     report: BuildReport
+    drives: list[Drive]
 
 
 @dataclass(frozen=True)
@@ -584,4 +586,4 @@ def build_map(
         seconds=time.perf_counter() - t_start,
         stage_seconds=seconds,
     )
-    return BuildResult(map=hdmap, segments=res.segments, report=report)
+    return BuildResult(map=hdmap, segments=res.segments, report=report, drives=usable)

@@ -255,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
 
             first = result
             # the drives the build used: change detection never sees a drive the build refused
-            usable = _used_drives(fleet.drives, first.report, config)
+            usable = first.drives
 
             def build(drives: Any) -> tuple[HDMap, Any]:
                 nonlocal result
@@ -414,20 +414,6 @@ def _run_tiled(args: argparse.Namespace, config: Any, out: Path) -> int:
         Path(args.report).write_text(json.dumps(doc, indent=1))
         print(f"wrote {args.report}")
     return 0
-
-
-def _used_drives(drives: Sequence[Any], report: Any, config: Any) -> list:
-    """The drives ``build_map`` used, in their order: those its ``report`` does not name as
-    rejected (the bag's drive ids are unique: ``read_fleet_bag`` rejects a repeated one), without
-    checking every drive against the physical bounds a second time; ``prepare_drives`` again
-    where the ids repeat (or the report names none)."""
-    rejected = getattr(report, "rejected", None)
-    if rejected is None or len({d.drive_id for d in drives}) != len(drives):
-        from hdmap_core.plausibility import prepare_drives  # noqa: PLC0415
-
-        return prepare_drives(drives, bounds=config.plausibility)[0]
-    refused = {str(did) for did, _ in rejected}
-    return [d for d in drives if d.drive_id not in refused]
 
 
 def _report_dict(args: argparse.Namespace, fleet: FleetBag, hdmap: HDMap, result: Any, seconds: float) -> dict:

@@ -165,8 +165,9 @@ class MapStitcher(HealthMixin, Node):
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
-        # final estimates stored (tile -> its drives and their tile counts) and the tiles received
-        # since the last rebuild began: a burst that completes drives is stitched at once
+        # final estimates stored (tile -> its drives and their tile counts: the drives a map lists,
+        # rebuild) and the tiles received since the last rebuild began: a burst that completes
+        # drives is stitched at once
         self._final: dict[TileKey, tuple[list[str], list[int]]] = {}
         progress = self.store.tile_progress()
         for key, _, ids, _ in self.store.tiles():
@@ -215,6 +216,9 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("changes_new", 0)
         if self.map is not None:
             self._publish()
+            # the stored map is this node's map until a rebuild (none comes when no tile changed)
+            self.health.set("map_version", self.map.version)
+            self.health.set("features", len(self.map.features))
         if self.store.tiles_signature() != sig:
             self._first_dirty = time.monotonic()
         self.get_logger().info(
@@ -272,6 +276,8 @@ class MapStitcher(HealthMixin, Node):
         """Follow the road changes on the settled map (module docstring)."""
         if self.changes_followed() or not self._mapper_status.settled or not self.is_settled():
             return
+        if self.store.version_total() < self._mapper_status.tile_versions:
+            return  # RULE: estimates the settled mapper made are on their way: this is not its map yet
         sig = self._map_sig
         consensus = self._consensus
         if consensus is None:  # the stored map is the followed one of an older signature: rebuild
@@ -386,19 +392,18 @@ class MapStitcher(HealthMixin, Node):
     def rebuild(self) -> None:
         """Stitch every stored tile into a new map version, commit and publish it."""
         t0 = time.perf_counter()
-        sig = self.store.tiles_signature()
-        graphs, parts = [], []
-        progress = self.store.tile_progress()
-        for key, version, ids, blob in self.store.tiles():
+        with self._rx_lock:  # the estimates and the drives they vouch for as of one moment (on_tile)
+            sig = self.store.tiles_signature()
+            tiles = self.store.tiles()
+            final = list(self._final.values())  # an estimate vouches for its drives once final
+        graphs = []
+        for key, version, _, blob in tiles:
             cached = self._graphs.get(key)
             if cached is None or cached[0] != version:
                 cached = (version, connect_tile(blob_to_segments(blob), key, pipeline_config=self.pipeline_config))
                 self._graphs[key] = cached
             graphs.extend(cached[1])
-            counts, final = progress.get(key, ([], True))
-            if final:  # an estimate vouches for its drives once made as the settled map makes it
-                parts.append((ids, counts))
-        drive_ids = integrated_drives(parts)  # every tile of each is in this map with it, final
+        drive_ids = integrated_drives(final)  # every tile of each is in this map with it, final
         t1 = time.perf_counter()
         new = stitch_graphs(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
         t2 = time.perf_counter()
