@@ -49,10 +49,11 @@ from hdmap_core.pipeline import adjustment_assoc as assoc
 from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
-# The solver's building blocks (shift_and_reassociate, knot_layout, design_matrix, prior_matrix,
-# reduced_normal, NormalSolver, update_normal, sample_residuals, robust_weights, pool_offsets,
-# coarse_config) are public but not in __all__: adjustment_local.update_offsets solves new drives
-# with them against a fixed fleet.
+# The solver's building blocks (shift_and_reassociate, knot_layout, layout_of, design_matrix,
+# prior_matrix, reduced_normal, NormalSolver, update_normal, kept_weights, sample_residuals,
+# robust_weights, pool_offsets, coarse_config, drive_curves) are public but not in __all__:
+# adjustment_local.update_offsets solves new drives with them against a fixed fleet, and
+# adjustment_dist runs the same solve over observations split into parts.
 
 _LOSSES = ("linear", "huber", "cauchy")
 _REWEIGHT_REL = 0.05  # IRLS: a sample is re-weighted only when its weight changes by more than 5 %
@@ -321,14 +322,21 @@ class _Layout:
 
 def knot_layout(samples: assoc.Samples, cfg: AdjustConfig) -> _Layout:
     n_drives = len(samples.drive_ids)
+    smin = np.full(n_drives, np.inf)
+    smax = np.full(n_drives, -np.inf)
+    if cfg.drift_sigma_m != 0:
+        np.minimum.at(smin, samples.drive, samples.s_m)
+        np.maximum.at(smax, samples.drive, samples.s_m)
+    return layout_of(smin, smax, cfg)
+
+
+def layout_of(smin: np.ndarray, smax: np.ndarray, cfg: AdjustConfig) -> _Layout:
+    """The unknowns of drives whose used samples span ``smin`` .. ``smax`` (per drive) [m]."""
+    n_drives = smin.size
     if cfg.drift_sigma_m == 0:
         n_knots = np.zeros(n_drives, dtype=np.int64)
         k0 = np.zeros(n_drives, dtype=np.int64)
     else:
-        smin = np.full(n_drives, np.inf)
-        smax = np.full(n_drives, -np.inf)
-        np.minimum.at(smin, samples.drive, samples.s_m)
-        np.maximum.at(smax, samples.drive, samples.s_m)
         k0 = np.floor(smin / cfg.knot_spacing_m).astype(np.int64)
         k1 = np.maximum(np.ceil(smax / cfg.knot_spacing_m).astype(np.int64), k0 + 1)
         n_knots = k1 - k0 + 1
@@ -423,7 +431,7 @@ def update_normal(
     change of the IRLS fixed point). Returns the new H, rhs and the weights actually used.
     """
     changed = np.abs(want_info - old_info) > _REWEIGHT_REL * old_info
-    new_info = _kept_weights(old_info, want_info)
+    new_info = kept_weights(old_info, want_info)
     hit = np.zeros(samples.n_clusters, dtype=bool)
     hit[samples.cluster[changed]] = True
     rows = np.flatnonzero(hit[samples.cluster])
@@ -442,7 +450,7 @@ def update_normal(
     return (h + diff).tocsr(), rhs + (rhs_new - rhs_old), new_info
 
 
-def _kept_weights(old_info: np.ndarray, want_info: np.ndarray) -> np.ndarray:
+def kept_weights(old_info: np.ndarray, want_info: np.ndarray) -> np.ndarray:
     """IRLS: the new weights, except where they change by at most ``_REWEIGHT_REL`` (kept)."""
     return np.where(np.abs(want_info - old_info) > _REWEIGHT_REL * old_info, want_info, old_info)
 
@@ -530,14 +538,16 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         if samples.s_m.size:
             coarse = coarse_config(cfg)
             coarse_fit = _irls(samples, coarse, np.ones(samples.s_m.size, dtype=bool))
-            model = OffsetModel(**base, drives=_curves(samples, coarse_fit.layout, coarse_fit.theta, None))
+            model = OffsetModel(
+                **base, drives=drive_curves(samples.drive_ids, coarse_fit.layout, coarse_fit.theta, None)
+            )
             label, n = shift_and_reassociate(pool, label, model, cfg)
             n_shifted += n
     samples, fit, keep = _fit_all(pool, label, cfg)
     for _ in range(cfg.reassociate_rounds - 1):
         if fit is None:
             break
-        model = OffsetModel(**base, drives=_curves(samples, fit.layout, fit.theta, None))
+        model = OffsetModel(**base, drives=drive_curves(samples.drive_ids, fit.layout, fit.theta, None))
         label, n = shift_and_reassociate(pool, label, model, cfg)
         n_shifted += n
         samples, fit, keep = _fit_all(pool, label, cfg)
@@ -566,7 +576,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     if cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:
         cov = _covariance_parts(h, lay)
     stats["std_computed"] = cov is not None
-    return OffsetModel(**base, drives=_curves(samples, lay, theta, cov), stats=stats)
+    return OffsetModel(**base, drives=drive_curves(samples.drive_ids, lay, theta, cov), stats=stats)
 
 
 def coarse_config(cfg: AdjustConfig) -> AdjustConfig:
@@ -675,7 +685,7 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
             break
         weights = robust_weights(r, ROBUST_K * cfg.noise_sigma_m, "huber" if it <= warmup else cfg.loss)
         if isinstance(h, SchurNormal):
-            info = _kept_weights(info, info0 * weights)
+            info = kept_weights(info, info0 * weights)
             h = h.reweighted(info)
             rhs = h.rhs
         else:
@@ -703,11 +713,11 @@ def _covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:
     }
 
 
-def _curves(
-    samples: assoc.Samples, lay: _Layout, theta: np.ndarray, cov: dict[str, np.ndarray] | None
+def drive_curves(
+    drive_ids: Sequence[str], lay: _Layout, theta: np.ndarray, cov: dict[str, np.ndarray] | None
 ) -> dict[str, DriveOffset]:
     out: dict[str, DriveOffset] = {}
-    for d, did in enumerate(samples.drive_ids):  # one entry per drive (~100s): cheap
+    for d, did in enumerate(drive_ids):  # one entry per drive (~100s): cheap
         c0, nk = int(lay.col0[d]), int(lay.n_knots[d])
         g = slice(c0 + 1, c0 + 1 + nk)
         extra: dict[str, Any]

@@ -36,6 +36,9 @@ class Pool:
     ftype: np.ndarray  # (n,) int FeatureType code
     label: np.ndarray  # (n,) int cluster label from the observations (-1 = none)
     step_drives: np.ndarray  # (number of observations,) distinct drives of each step (0 if skipped)
+    #: number of the first step in the whole observation sequence (a part of it: ``adjustment_dist``);
+    #: ``select`` thins by the global step number
+    step0: int = 0
 
 
 @dataclass(frozen=True)
@@ -138,7 +141,7 @@ def select(pool: Pool, label: np.ndarray, thin_drives: int = 0) -> Samples:
     if thin_drives > 0 and keep.size:
         stride = np.maximum(1, -(-pool.step_drives // thin_drives))
         st = pool.step[keep]
-        keep = keep[st % stride[st] == 0]
+        keep = keep[(st + pool.step0) % stride[st] == 0]
     cl, n_cl = compact(pool.step[keep] * (int(label[keep].max(initial=0)) + 1) + label[keep])
     _, first_of_pair = np.unique(cl * max(len(pool.drive_ids), 1) + pool.drive[keep], return_index=True)
     n_drives_in = np.bincount(cl[first_of_pair], minlength=n_cl)
@@ -244,17 +247,53 @@ def lane_shift_search(
     samples that a lane-off association rejects (borders, solid lines of the other type), so a
     drive associated one lane off over its whole length snaps back. At most ~200 samples per drive.
     """
-    v = pool.lateral_m + offset
     n_d = len(pool.drive_ids)
     if cen is None or search_m <= 0:
         return np.zeros(n_d)
+    grid = shift_grid(search_m)
+    cost = shift_costs(pool, cen, offset, shift_picks(pool), grid, gate_m=gate_m, noise_sigma_m=noise_sigma_m)
+    return choose_shifts(cost, bias_m, grid, bias_sigma_m=bias_sigma_m)
+
+
+def shift_grid(search_m: float) -> np.ndarray:
+    """The constant shifts the lane-shift search tries: 0.25 m apart (fine enough to tell lanes
+    apart; the fit that follows refines the offset)."""
+    return np.arange(-search_m, search_m + 1e-9, 0.25)
+
+
+def shift_picks(pool: Pool, first_rank: np.ndarray | None = None, stride: np.ndarray | None = None) -> np.ndarray:
+    """The pool samples the lane-shift search scores: every ``stride``-th of each drive's samples
+    in pool order (at most ~200 per drive), by drive then position.
+
+    ``first_rank`` / ``stride`` (per pool drive; a part of the observations, ``adjustment_dist``):
+    the rank, in the whole fleet's pool, of the drive's first sample here, and the whole fleet's
+    stride; by default this pool is the whole fleet."""
     order = np.argsort(pool.drive, kind="stable")
-    bounds = np.searchsorted(pool.drive[order], np.arange(n_d + 1))
-    picks = [order[b0:b1][:: max(1, (b1 - b0) // 200)] for b0, b1 in zip(bounds[:-1], bounds[1:])]
-    sel = np.concatenate(picks) if picks else np.zeros(0, np.int64)
-    # 0.25 m is fine enough to tell lanes apart; the fit that follows refines the offset
-    grid = np.arange(-search_m, search_m + 1e-9, 0.25)
-    cost = np.zeros((n_d, grid.size))
+    counts = np.bincount(pool.drive, minlength=len(pool.drive_ids))
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    if stride is None:
+        stride = np.maximum(1, counts // 200)
+    if first_rank is None:
+        first_rank = np.zeros(len(pool.drive_ids), dtype=np.int64)
+    d = pool.drive[order]
+    rank = first_rank[d] + np.arange(order.size) - bounds[d]
+    return order[rank % stride[d] == 0]
+
+
+def shift_costs(
+    pool: Pool,
+    cen: Centres,
+    offset: np.ndarray,
+    sel: np.ndarray,
+    grid: np.ndarray,
+    *,
+    gate_m: float,
+    noise_sigma_m: float,
+) -> np.ndarray:
+    """(D, shifts) data term of the lane-shift search: sum over the picked samples ``sel`` of each
+    drive of min(d_i(c), gate)^2 / noise^2."""
+    v = pool.lateral_m + offset
+    cost = np.zeros((len(pool.drive_ids), grid.size))
     # RULE bounded memory: (samples x shifts) at once is ~0.5 GB for a tile of 745 drives, more
     # for a block of tiles. Consecutive chunks add the same terms in the same order (add.at is
     # sequential), so the cost is bit-identical.
@@ -263,7 +302,12 @@ def lane_shift_search(
         vv = v[part][:, None] + grid[None, :]
         _, dist = nearest(cen, pool.step[part][:, None], pool.ftype[part][:, None], vv)
         np.add.at(cost, pool.drive[part], np.minimum(dist, gate_m) ** 2 / noise_sigma_m**2)
-    cost += (bias_m[:, None] + grid[None, :]) ** 2 / bias_sigma_m**2
+    return cost
+
+
+def choose_shifts(cost: np.ndarray, bias_m: np.ndarray, grid: np.ndarray, *, bias_sigma_m: float) -> np.ndarray:
+    """(D,) the shift per drive from the data term ``cost`` (``shift_costs``) and the bias prior."""
+    cost = cost + (bias_m[:, None] + grid[None, :]) ** 2 / bias_sigma_m**2
     best = grid[np.argmin(cost, axis=1)]
     # keep the current solution unless a shift is clearly better (a lane, not a nudge)
     at_zero = cost[:, np.argmin(np.abs(grid))]

@@ -2,8 +2,11 @@
 
 1. Observation pass: every tile's pivots sample and align (per-step EM) over the tile and its
    margin; the observations of the tile proper come back (``tasks.observe``).
-2. One network-wide offset adjustment over all observations, in this process
-   (``hdmap_core.live.tiles.fleet_offsets``; a single global solve, as ``build_map`` does).
+2. One network-wide offset adjustment over all observations (a single global solve, as
+   ``build_map`` and ``hdmap_core.live.tiles.fleet_offsets`` do), its observations held in parts
+   of consecutive tiles on the workers (``pipeline.adjustment_dist``): this process sums the
+   parts' shares of the normal equations and solves; the same offsets up to the order of
+   floating-point sums.
 3. Final pass: every tile is sampled, aligned and aggregated with its drives shifted by the
    adjustment's offsets, and connected (``tasks.map_connect``); its segment graphs come back.
 4. The segment graphs of all tiles, in tile order, are stitched into the map (Sec. VI); with
@@ -20,12 +23,12 @@ A preset without the adjustment (``final_pass`` None) runs the tiles' one pass o
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.graph.map_graph import stitch
-from hdmap_core.live.tiles import fleet_offsets
 from hdmap_core.model import HDMap
+from hdmap_core.pipeline.adjustment_dist import AdjustPart, adjust_parts
 from hdmap_core.pipeline.config import PipelineConfig
 from hdmap_core.tiled import tasks
 from hdmap_core.tiled.adjust import HALO_TILES, group_tiles
@@ -33,7 +36,12 @@ from hdmap_core.tiled.clips import TileSource
 from hdmap_core.tiled.cluster import ProgressFn, Runner, SerialRunner
 from hdmap_core.tiled.stitch import halo_tiles_for
 
-__all__ = ["TiledReport", "TiledResult", "build_tiled"]
+__all__ = ["TiledReport", "TiledResult", "build_tiled", "PART_TILES"]
+
+#: the one offset solve's observations are held in parts of this many consecutive tiles (key
+#: order), one Dask actor each: fewer parts, fewer messages per solver step; more, less memory
+#: per part (docs/scale.md)
+PART_TILES = 4
 
 
 @dataclass(frozen=True)
@@ -158,16 +166,28 @@ def build_tiled(
         seconds["observation_pass_and_adjustment"] = time.perf_counter() - t0
     elif config.final_pass is not None:
         t0 = time.perf_counter()
-        per_tile = runner.run(
-            "observe", tasks.observe, keys, shared=(source, config), progress=progress, weights=weights
+        # RULE the observations stay where they were made: parts of PART_TILES consecutive tiles
+        # (in key order, so their concatenation is the one solve's observation sequence and the
+        # partition does not depend on the workers), each held on a worker; the one solve runs
+        # over them (pipeline.adjustment_dist)
+        part_groups = [list(range(i, min(i + PART_TILES, len(keys)))) for i in range(0, len(keys), PART_TILES)]
+        parts = runner.run_parts(
+            "observe",
+            tasks.observe,
+            keys,
+            part_groups,
+            AdjustPart,
+            shared=(source, config),
+            progress=progress,
+            weights=weights,
         )
-        observations = [o for obs in per_tile for o in obs]
-        del per_tile
-        n_obs = len(observations)
         seconds["observation_pass"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        model = fleet_offsets(observations, pipeline_config=config)
-        del observations
+        try:
+            model = adjust_parts(parts.call, len(part_groups), replace(config.adjustment, compute_std=False))
+        finally:
+            parts.close()
+        n_obs = int(model.stats.get("n_steps", 0))
         seconds["adjustment"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     fleet_model = model

@@ -19,7 +19,7 @@ from typing import Any, Protocol
 from hdmap_core.errors import ConfigError
 from hdmap_core.tiled.memory import cpu_seconds, peak_rss_mb
 
-__all__ = ["Runner", "SerialRunner", "DaskRunner", "ProgressFn"]
+__all__ = ["Runner", "SerialRunner", "DaskRunner", "ProgressFn", "Parts", "LocalParts", "ActorParts"]
 
 ProgressFn = Callable[[str, int, int], None]
 _QUIET = {
@@ -66,11 +66,63 @@ class Runner(Protocol):
         per_item: PerItem | None = None,
     ) -> Any: ...
 
+    def run_parts(
+        self,
+        stage: str,
+        fn: Callable,
+        items: Sequence,
+        groups: Sequence[Sequence[int]],
+        factory: Callable,
+        shared: tuple = (),
+        progress: ProgressFn | None = None,
+        weights: Sequence[float] | None = None,
+    ) -> Parts: ...
+
     def peak_rss_mb(self) -> dict[str, float]: ...
 
     def cpu_seconds(self) -> dict[str, float]: ...
 
     def close(self) -> None: ...
+
+
+class Parts(Protocol):
+    """Objects held where they were built (``Runner.run_parts``): ``call(method, args)`` runs
+    ``part.method(*args[b])`` on every part ``b`` (all at once on a cluster) and returns the
+    results in part order; ``close()`` drops the parts."""
+
+    def call(self, method: str, args: Sequence[tuple]) -> list: ...
+
+    def close(self) -> None: ...
+
+
+class LocalParts:
+    """Parts in this process."""
+
+    def __init__(self, parts: Sequence[Any]) -> None:
+        self.parts = list(parts)
+
+    def call(self, method: str, args: Sequence[tuple]) -> list:
+        return [getattr(p, method)(*a) for p, a in zip(self.parts, args, strict=True)]
+
+    def close(self) -> None:
+        self.parts = []
+
+
+class ActorParts:
+    """Parts held as Dask actors on the workers: a call sends only its arguments and gets only its
+    result back (no task through the scheduler); the parts on one worker run one at a time."""
+
+    def __init__(self, actors: Sequence[Any], futures: Sequence[Any]) -> None:
+        self.actors, self.futures = list(actors), list(futures)
+
+    def call(self, method: str, args: Sequence[tuple]) -> list:
+        pending = [getattr(a, method)(*arg) for a, arg in zip(self.actors, args, strict=True)]
+        return [p.result() for p in pending]
+
+    def close(self) -> None:
+        for f in self.futures:
+            f.release()
+        self.actors, self.futures = [], []
 
 
 class SerialRunner:
@@ -122,6 +174,31 @@ class SerialRunner:
                 if last[item] == g:
                     cache.pop(item, None)
         return reduce_fn(out, *group_shared)
+
+    def run_parts(
+        self,
+        stage: str,
+        fn: Callable,
+        items: Sequence,
+        groups: Sequence[Sequence[int]],
+        factory: Callable,
+        shared: tuple = (),
+        progress: ProgressFn | None = None,
+        weights: Sequence[float] | None = None,
+    ) -> Parts:
+        """``fn(*shared, item)`` for every item, then ``factory(*results of the group's items)``
+        per group of item indices (each item's result dropped once its group is built)."""
+        parts, done = [], 0
+        for idx in groups:
+            results = []
+            for i in idx:
+                results.append(fn(*shared, items[i]))
+                done += 1
+                if progress is not None:
+                    progress(stage, done, len(items))
+            parts.append(factory(*results))
+            del results
+        return LocalParts(parts)
 
     def peak_rss_mb(self) -> dict[str, float]:
         """{"main": peak RSS of this process} [MB]."""
@@ -317,6 +394,51 @@ class DaskRunner:
         for f in [reduced, *group_futs, *shared_f, *gshared_f]:
             f.release()
         return out
+
+    def run_parts(
+        self,
+        stage: str,
+        fn: Callable,
+        items: Sequence,
+        groups: Sequence[Sequence[int]],
+        factory: Callable,
+        shared: tuple = (),
+        progress: ProgressFn | None = None,
+        weights: Sequence[float] | None = None,
+    ) -> Parts:
+        """The items' tasks (heaviest first), then one actor ``factory(*results of the group's
+        items)`` per group, the groups dealt to the workers in turn; the items' results go from
+        their workers to their group's actor, never to this process."""
+        from distributed import as_completed  # noqa: PLC0415
+
+        shared_f = [self.client.scatter(v, broadcast=True, hash=False) for v in shared]
+        tag = f"{id(groups):x}"
+        order = range(len(items)) if weights is None else sorted(range(len(items)), key=lambda i: -float(weights[i]))
+        futs = {i: self.client.submit(fn, *shared_f, items[i], pure=False, key=f"{stage}-{i}-{tag}") for i in order}
+        addrs = sorted(self.client.scheduler_info().get("workers", {}))
+        actor_futs = [
+            self.client.submit(
+                factory,
+                *[futs[i] for i in idx],
+                actor=True,
+                pure=False,
+                key=f"{stage}-part-{g}-{tag}",
+                workers=[addrs[g % len(addrs)]] if addrs else None,
+                allow_other_workers=not addrs,
+            )
+            for g, idx in enumerate(groups)
+        ]
+        done = 0
+        for fut in as_completed(list(futs.values())):
+            if fut.status == "error":
+                fut.result()  # a task's error is raised here, named by Dask
+            done += 1
+            if progress is not None:
+                progress(stage, done, len(items))
+        actors = [f.result() for f in actor_futs]
+        for f in [*futs.values(), *shared_f]:
+            f.release()
+        return ActorParts(actors, actor_futs)
 
     def peak_rss_mb(self) -> dict[str, float]:
         """Peak RSS [MB] of this process ("main"), of the scheduler and of each worker (by address).
