@@ -60,3 +60,24 @@ def test_unseen_lines_stay_where_the_seen_ones_had_not_moved():
     assert np.all(_move(kept[:, 0]) <= 1.0), kept[_move(kept[:, 0]) > 1.0]
     assert kept[:, 0].min() <= 101.0 and kept[:, 0].max() >= 899.0  # from both ends
     assert np.all((kept[:, 0] < 300.0) | (kept[:, 0] > 700.0))  # none where it moved 3 m
+
+
+def test_unseen_lines_are_not_kept_where_the_drives_measured_the_move():
+    """Once several drives passed after the change, the first map (every drive's consensus) holds
+    the moved line as well: the seen line lies on a first-map line all along and the walk from
+    the ends would run through the zone, keeping the old lines where they moved 3 m. The places
+    where the drives measured the move end it."""
+    x = np.arange(0.0, 1001.0, 1.0)
+    y0 = 50.0
+    old = [np.stack([x, np.full(len(x), y0 + k * LANE_M)], axis=1) for k in range(3)]
+    seen = np.stack([x[100:901], y0 - _move(x[100:901])], axis=1)
+    first = _map([*old, seen])
+    local = _map([seen])
+    places = places_of([_drive(np.stack([x, np.full(len(x), y0 - 1.75)], axis=1))], cell_m=100.0)
+    rebuilt = {(i, 0, 0) for i in range(1, 9)}
+    through = unseen_at_ends(first, local, places, rebuilt)
+    assert np.any((through[:, 0] > 300.0) & (through[:, 0] < 700.0))  # what the places' rule is for
+    moved = frozenset((i, 0, 0) for i in range(3, 7))  # x 300-700: the lines moved 3 m there
+    kept = unseen_at_ends(first, local, places, rebuilt, moved)
+    assert len(kept) > 0 and kept[:, 0].min() <= 101.0 and kept[:, 0].max() >= 899.0
+    assert np.all((kept[:, 0] < 300.0) | (kept[:, 0] >= 700.0))

@@ -227,15 +227,25 @@ def along_drives(
     return out
 
 
-def unseen_at_ends(first: HDMap, local: HDMap, places: Places, rebuilt: set[PlaceKey]) -> np.ndarray:
+def unseen_at_ends(
+    first: HDMap,
+    local: HDMap,
+    places: Places,
+    rebuilt: set[PlaceKey],
+    moved_places: frozenset[PlaceKey] = frozenset(),
+) -> np.ndarray:
     """(N, 2) the first map's marking points in the ``rebuilt`` places that the drives after
     the change did not see (no local marking within ``_TAPER_KEEP_M``), walking in from where a
     run of them leaves the rebuilt places, up to where the lines the drives saw leave the first
     map's (the median distance of the nearest local marking points to a first-map marking
-    exceeds ``_TAPER_SAME_M``). A shift zone's tapers move the lines from 0: near their outer
-    end the lines no drive after it saw are still where the first map has them, and the rebuild
-    would drop them; past that point they moved (a move near a lane's width comes near the
-    neighbour's old place again: hence the first such point ends the walk)."""
+    exceeds ``_TAPER_SAME_M``) or the first place of ``moved_places`` (where the drives after
+    the change measured the lines moved). A shift zone's tapers move the lines from 0: near
+    their outer end the lines no drive after it saw are still where the first map has them, and
+    the rebuild would drop them; past that point they moved (a move near a lane's width comes
+    near the neighbour's old place again: hence the first such point ends the walk). The first
+    map is the consensus of every drive, those after the change too: once several of them
+    passed, it holds the moved lines along the tapers as well, the lines they saw lie on its
+    own there, and only ``moved_places`` ends the walk before it runs through the zone."""
     if not rebuilt:
         return np.zeros((0, 2))
     first_marks = [np.asarray(f.points, dtype=float) for f in first.features if int(f.type) in _MARKINGS]
@@ -267,7 +277,7 @@ def unseen_at_ends(first: HDMap, local: HDMap, places: Places, rebuilt: set[Plac
                 if not 0 <= end < len(keys):
                     continue
                 for i in order:
-                    if moved[i] > _TAPER_SAME_M:  # (inf: no local marking near) ends it too
+                    if moved[i] > _TAPER_SAME_M or keys[i] in moved_places:  # (inf: none near) too
                         break
                     if not np.isfinite(d[i]):
                         out.append(pts[i : i + 1])
@@ -513,7 +523,12 @@ def follow_map(
         # tapers' ends): not where a line went or changed type, which the few drives cannot tell
         # from a line they did not see
         shifts = all("geometry" in c.kinds and not set(c.kinds) & _NOT_SHIFTED for c in changes)
-        keep = [unseen.moved_to, unseen_at_ends(unseen.map, local_map, places, core) if shifts else np.zeros((0, 2))]
+        # ... and not in a place where the drives after the change measured the lines moved
+        moved_places = frozenset(
+            p.key for c in changes for p in c.places if p.kind == "geometry" and abs(p.effect) >= config.min_shift_m
+        )
+        ends = unseen_at_ends(unseen.map, local_map, places, core, moved_places) if shifts else np.zeros((0, 2))
+        keep = [unseen.moved_to, ends]
         # a re-striping or a marking gone leaves the other lines: those the drives after it had
         # no evidence of stay (updates.marks)
         kept = unchanged_marks(first_map, local_map, places, changes, after, core, config=config)
