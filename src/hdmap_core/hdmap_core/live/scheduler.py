@@ -175,6 +175,10 @@ class LiveScheduler:
         self._cells_est: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its estimate's drives
         self._cells_job: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its job in work
         self._cells_unknown: set[TileKey] = set()  # estimates restored from a store: their cells are not known
+        # RULE: is_settled and pending_tiles are asked several times per worker turn (mapper,
+        # status, hdmap run's end check; paper_like: ~15000 calls, each over every tile) and only
+        # change with the state: their answers are kept until a method that changes it is called
+        self._memo: dict[str, int] = {}
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -191,6 +195,7 @@ class LiveScheduler:
         estimate, (tile, drives) of each tile's observations, the stored model's signature; ``now``
         counts as the last input. Every
         tile that is due is queued (the queue itself is not stored: it follows from the rest)."""
+        self._memo.clear()
         for key, ids in tile_drives.items():
             self._tiles.setdefault(key, set()).update(ids)
         counts: dict[str, int] = {}
@@ -218,6 +223,7 @@ class LiveScheduler:
     ) -> bool:
         """A new drive covering ``tiles`` (False, nothing changed, for a known drive); ``cells``:
         where it drove, per tile (:func:`~hdmap_core.live.tiles.road_cells`; None: not known)."""
+        self._memo.clear()
         if drive_id in self._drive_tiles:
             return False
         keys = set(tiles)
@@ -268,6 +274,7 @@ class LiveScheduler:
     def input_done(self) -> None:
         """No more drives come (the sender knows, e.g. its bag is played): settle without waiting
         ``settle_after_s``. A drive added afterwards makes the settle wait again as usual."""
+        self._memo.clear()
         self._input_done = True
         self._input_open = False
 
@@ -275,6 +282,7 @@ class LiveScheduler:
         """More drives are on their way (the sender knows, e.g. it is playing a bag): with the
         region settle, nothing is previewed and no drive takes the fast path until
         :meth:`input_done` (module docstring, "Bursts")."""
+        self._memo.clear()
         self._input_open = True
         self._input_done = False
 
@@ -299,6 +307,7 @@ class LiveScheduler:
 
     def finished(self, job: Job, *, ok: bool, observed: bool = False) -> None:
         """A job ended. ``observed``: a :data:`MAP` job also stored the tile's observations."""
+        self._memo.clear()
         if job.kind == PART:
             self._part_finished(job, ok)
             return
@@ -422,6 +431,11 @@ class LiveScheduler:
 
     def pending_tiles(self) -> int:
         """Tiles queued, in work, or not yet made from all their drives (failed ones excepted)."""
+        if "pending" not in self._memo:
+            self._memo["pending"] = self._pending_tiles()
+        return int(self._memo["pending"])
+
+    def _pending_tiles(self) -> int:
         waiting = set(self._queue) | {k for k in self._busy if k is not None}
         waiting.update(k for k in self._tiles if self._stale(k) and not self._failed_at_count(k))
         return len(waiting)
@@ -447,6 +461,11 @@ class LiveScheduler:
     def is_settled(self) -> bool:
         """Nothing queued or in work and every tile made from all its drives (with the fleet model:
         every tile observed, the model current, every tile made with it), failed tiles excepted."""
+        if "settled" not in self._memo:
+            self._memo["settled"] = int(self._is_settled())
+        return bool(self._memo["settled"])
+
+    def _is_settled(self) -> bool:
         if self._queue or self._busy or self._fast or self._part:
             return False
         if self._region_phase():
@@ -467,6 +486,7 @@ class LiveScheduler:
         ``prefer``: of the settle's final jobs (phase 3, any order gives the same map), a tile it
         holds true for goes first (the mapper: the worker asking holds that tile's observation pass).
         """
+        self._memo.clear()
         jobs: list[Job] = []
         while len(jobs) < limit:
             job = self._next(now, prefer)
