@@ -222,8 +222,6 @@ class MapStitcher(HealthMixin, Node):
         self._follow_fut: tuple[str, Future] | None = None  # (map signature, the follow in work)
         self._follow_t0 = 0.0
         self._follow_workers = available_cpus()
-        if self.follow_changes:
-            self._follow_pool()  # started while drives come, so its imports are done when the map settles
         self._followed_sig = self.store.get_meta("followed_sig", "") or ""
         # the consensus map (of every drive) the changes are followed on: the stored map unless
         # it is already the followed one
@@ -282,6 +280,8 @@ class MapStitcher(HealthMixin, Node):
         with self._work_lock:  # destroy_node waits for a pass in flight (another thread may spin)
             if self._destroyed:
                 return
+            if self.follow_changes and self._first_dirty is not None:
+                self._follow_pool()  # started with the first estimates: its imports are done when the map settles
             self._work()
             self._follow()
             self._update_status()
@@ -370,7 +370,8 @@ class MapStitcher(HealthMixin, Node):
     def _follow_pool(self) -> Executor:
         """The process the change following runs in (``live.changes.follow_loaded``: it reads the
         drives and compares them on every CPU, as ``bag2map`` does, away from this process's
-        executor; forks only from there, never from this process with its native threads)."""
+        executor; forks only from there, never from this process with its native threads). Made
+        when the first tile estimates come (a stitcher that never gets one never starts it)."""
         if self._follow_executor is None:
             self._follow_executor = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
             self._follow_executor.submit(warm_up)
