@@ -15,6 +15,7 @@ from hdmap_core.live.changes import (
     change_polygon,
     change_to_dict,
     follow_live,
+    follow_loaded,
     live_changes,
     new_changes,
 )
@@ -116,6 +117,23 @@ def test_follow_live_finds_the_offline_change_and_rebuilds_only_its_region(moved
     assert back.id == c.id and back.places == c.places and back.tiles == c.tiles
     np.testing.assert_allclose(back.polygon, c.polygon)
     assert [r.feature_id for r in back.retired] == [r.feature_id for r in c.retired]
+
+
+@pytest.mark.slow
+def test_follow_loaded_on_two_workers_is_follow_live_on_one(moved_fleet):
+    """The stitcher's worker process (drives loaded there, comparison and rebuild on every CPU, as
+    bag2map) follows the change to the same map as one process."""
+    _, fleet, first = moved_fleet
+
+    def build(drives):
+        return build_map(list(drives), config=PipelineConfig(), seed=0, workers=1).map
+
+    one = follow_live(first, fleet.drives, build=build)
+    two = follow_loaded(first, lambda: list(fleet.drives), pipeline_config=PipelineConfig(), workers=2)
+    assert len(one.changes) == 1 and [c.id for c in two.changes] == [c.id for c in one.changes]
+    assert [f.id for f in two.map.features] == [f.id for f in one.map.features]
+    for a, b in zip(one.map.features, two.map.features):
+        np.testing.assert_array_equal(a.points, b.points)
 
 
 def test_no_change_keeps_the_map_and_builds_nothing():

@@ -479,3 +479,23 @@ def test_a_burst_of_drives_is_not_previewed_with_the_region_settle_but_a_drive_a
         sched.add_drive("x", [A], now=0.0)
         sched.add_drive("y", [B], now=0.1)
         assert {j.key for j in sched.next_jobs(0.1, limit=4)} == {A, B}
+
+
+def test_while_the_input_is_open_nothing_is_previewed_and_no_drive_takes_the_fast_path():
+    s = _settled_region(12)  # a settled map with the fast path on
+    s.input_open()  # e.g. hdmap run playing a bag: more drives are on their way
+    s.add_drive("on", [A, B], now=2.0, cells={A: {(0, 0)}, B: {(0, 0)}})  # settled road: would be fused
+    s.add_drive("far", [(9, 9)], now=9.0, cells={(9, 9): {(1, 1)}})  # alone on new road: would be a PART
+    assert s.fast_pending() == 0 and s.queued() == {A, B, (9, 9)}
+    assert s.next_jobs(9.0, limit=4) == [] and s.next_jobs(9.9, limit=4) == []  # paused, still open: no preview
+    s.input_done()  # the input is in: one region job makes every tile, previews dropped
+    (region,) = s.next_jobs(9.9, limit=4)
+    assert region.kind == REGION and {"on", "far"} <= set(region.drive_ids)
+    s.finished(region, ok=True)
+    assert s.is_settled()
+    # the hold is for the region settle only: beyond region_max_drives drives, previews go on
+    t = LiveScheduler(CFG, use_fleet_model=True, settle_after_s=5.0, region_max_drives=1)
+    t.input_open()
+    t.add_drive("x", [A], now=0.0)
+    t.add_drive("y", [B], now=0.6)
+    assert {j.key for j in t.next_jobs(2.0, limit=4)} == {A, B}

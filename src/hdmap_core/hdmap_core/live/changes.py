@@ -19,6 +19,7 @@ store (:func:`change_to_dict`, :func:`change_from_dict`).
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -27,6 +28,7 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from hdmap_core.model import Drive, HDMap
+from hdmap_core.pipeline.config import PipelineConfig
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
 from hdmap_core.updates.follow import FollowResult, RetiredFeature, follow_map
@@ -35,6 +37,8 @@ from hdmap_core.updates.places import PlaceKey
 __all__ = [
     "LiveChange",
     "follow_live",
+    "follow_loaded",
+    "warm_up",
     "live_changes",
     "new_changes",
     "change_polygon",
@@ -84,6 +88,7 @@ def follow_live(
     *,
     build: Callable[[Sequence[Drive]], HDMap],
     config: ChangeConfig = ChangeConfig(),
+    workers: int = 1,
 ) -> FollowResult:
     """The live map as of the last of ``drives``: ``updates.follow.follow_map`` on ``consensus``.
 
@@ -93,6 +98,8 @@ def follow_live(
         build: drives -> map (the pipeline as the nodes are configured); called only when a
             change is confirmed, with the drives clipped to the changed places and their margin.
         config: change detection settings (as offline).
+        workers: processes of the drives' comparison and the change tests (``follow_map``; forks:
+            only from a process without native threads); the result is the same with any number.
 
     Returns:
         ``follow_map``'s result; its map is ``consensus`` itself when nothing changed (or there is
@@ -100,7 +107,34 @@ def follow_live(
     """
     if not drives or not consensus.features:
         return FollowResult(consensus, (), (), consensus, None)
-    return follow_map(consensus, drives, build=build, config=config)
+    return follow_map(consensus, drives, build=build, config=config, workers=workers)
+
+
+def follow_loaded(
+    consensus: HDMap,
+    load: Callable[[], Sequence[Drive]],
+    *,
+    pipeline_config: PipelineConfig,
+    workers: int = 1,
+) -> FollowResult:
+    """:func:`follow_live` on the drives ``load`` returns, the changed places rebuilt with
+    ``build_map`` of ``pipeline_config``, both on ``workers`` processes as ``hdmap bag2map`` does:
+    a job for a worker process (the stitcher's), which reads the drives itself."""
+    drives = list(load())
+    return follow_live(
+        consensus, drives, build=functools.partial(_build, config=pipeline_config, workers=workers), workers=workers
+    )
+
+
+def warm_up() -> None:
+    """Import what :func:`follow_loaded` needs (a worker process made before the map settles)."""
+    import hdmap_core.pipeline.driver  # noqa: F401, PLC0415
+
+
+def _build(drives: Sequence[Drive], *, config: PipelineConfig, workers: int) -> HDMap:
+    from hdmap_core.pipeline.driver import build_map  # noqa: PLC0415
+
+    return build_map(list(drives), config=config, workers=workers).map
 
 
 def change_polygon(keys: Iterable[PlaceKey], cell_m: float) -> np.ndarray:

@@ -17,7 +17,10 @@ and publishes their results. The rules:
   drive set changes.
 - **Bursts.** With the region settle, while drives come less than ``BURST_GAP_S`` apart (a fast
   replay) nothing is previewed: the settle after the burst makes every tile anyway. A drive alone
-  is previewed at once.
+  is previewed at once. While the sender says more drives are on their way
+  (:meth:`LiveScheduler.input_open`, e.g. ``hdmap run`` playing its bag) nothing is previewed and
+  no drive takes the fast path either: every tile is made by the region settle once the input is
+  in, so a preview or a one-drive map (and its map version) would be work thrown away.
 - **Order.** Tiles no estimate covers yet go first, then tiles with new road, then re-estimates,
   the most grown (relative to the estimate) first.
 - **Settling**, after ``settle_after_s`` without input (at once after :meth:`LiveScheduler.input_done`:
@@ -167,10 +170,15 @@ class LiveScheduler:
         self._last_input = float("-inf")
         self._prev_input = float("-inf")  # the drive before the last one came then (a burst)
         self._input_done = False  # the sender said no more input comes (until the next drive)
+        self._input_open = False  # the sender said more input is on its way (until input_done)
         self._cells: dict[TileKey, set[tuple[int, int]]] = {}  # road cells the tile's drives drove
         self._cells_est: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its estimate's drives
         self._cells_job: dict[TileKey, frozenset[tuple[int, int]]] = {}  # ... those of its job in work
         self._cells_unknown: set[TileKey] = set()  # estimates restored from a store: their cells are not known
+        # RULE: is_settled and pending_tiles are asked several times per worker turn (mapper,
+        # status, hdmap run's end check; paper_like: ~15000 calls, each over every tile) and only
+        # change with the state: their answers are kept until a method that changes it is called
+        self._memo: dict[str, int] = {}
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -187,6 +195,7 @@ class LiveScheduler:
         estimate, (tile, drives) of each tile's observations, the stored model's signature; ``now``
         counts as the last input. Every
         tile that is due is queued (the queue itself is not stored: it follows from the rest)."""
+        self._memo.clear()
         for key, ids in tile_drives.items():
             self._tiles.setdefault(key, set()).update(ids)
         counts: dict[str, int] = {}
@@ -214,11 +223,15 @@ class LiveScheduler:
     ) -> bool:
         """A new drive covering ``tiles`` (False, nothing changed, for a known drive); ``cells``:
         where it drove, per tile (:func:`~hdmap_core.live.tiles.road_cells`; None: not known)."""
+        self._memo.clear()
         if drive_id in self._drive_tiles:
             return False
         keys = set(tiles)
-        fast = self.fast_path and cells is not None and self._on_settled_road(keys, cells)
-        alone = self.fast_path and bool(keys) and all(self._alone_new(k) for k in keys)
+        # RULE: while the input is open (more drives on their way) and the region settle will make
+        # every tile, no drive takes the fast path: its map would be made again at once
+        hold = self._holding(extra=1)
+        fast = not hold and self.fast_path and cells is not None and self._on_settled_road(keys, cells)
+        alone = not hold and self.fast_path and bool(keys) and all(self._alone_new(k) for k in keys)
         for key, cs in (cells or {}).items():
             self._cells.setdefault(key, set()).update(cs)
         self._drive_tiles[drive_id] = len(keys)
@@ -261,7 +274,27 @@ class LiveScheduler:
     def input_done(self) -> None:
         """No more drives come (the sender knows, e.g. its bag is played): settle without waiting
         ``settle_after_s``. A drive added afterwards makes the settle wait again as usual."""
+        self._memo.clear()
         self._input_done = True
+        self._input_open = False
+
+    def input_open(self) -> None:
+        """More drives are on their way (the sender knows, e.g. it is playing a bag): with the
+        region settle, nothing is previewed and no drive takes the fast path until
+        :meth:`input_done` (module docstring, "Bursts")."""
+        self._memo.clear()
+        self._input_open = True
+        self._input_done = False
+
+    def _holding(self, extra: int = 0) -> bool:
+        """The input is open and the region settle will make every tile (``extra``: drives about
+        to be added)."""
+        return (
+            self._input_open
+            and self.use_fleet_model
+            and 0 < self.drive_count + extra <= self.region_max_drives
+            and (not self._region_failed_sig or self._region_failed_sig != self.region_sig())
+        )
 
     def _burst(self, now: float) -> bool:
         """Drives are coming in a burst: the last two came less than :data:`BURST_GAP_S` apart and
@@ -274,6 +307,7 @@ class LiveScheduler:
 
     def finished(self, job: Job, *, ok: bool, observed: bool = False) -> None:
         """A job ended. ``observed``: a :data:`MAP` job also stored the tile's observations."""
+        self._memo.clear()
         if job.kind == PART:
             self._part_finished(job, ok)
             return
@@ -397,6 +431,11 @@ class LiveScheduler:
 
     def pending_tiles(self) -> int:
         """Tiles queued, in work, or not yet made from all their drives (failed ones excepted)."""
+        if "pending" not in self._memo:
+            self._memo["pending"] = self._pending_tiles()
+        return int(self._memo["pending"])
+
+    def _pending_tiles(self) -> int:
         waiting = set(self._queue) | {k for k in self._busy if k is not None}
         waiting.update(k for k in self._tiles if self._stale(k) and not self._failed_at_count(k))
         return len(waiting)
@@ -422,6 +461,11 @@ class LiveScheduler:
     def is_settled(self) -> bool:
         """Nothing queued or in work and every tile made from all its drives (with the fleet model:
         every tile observed, the model current, every tile made with it), failed tiles excepted."""
+        if "settled" not in self._memo:
+            self._memo["settled"] = int(self._is_settled())
+        return bool(self._memo["settled"])
+
+    def _is_settled(self) -> bool:
         if self._queue or self._busy or self._fast or self._part:
             return False
         if self._region_phase():
@@ -442,6 +486,7 @@ class LiveScheduler:
         ``prefer``: of the settle's final jobs (phase 3, any order gives the same map), a tile it
         holds true for goes first (the mapper: the worker asking holds that tile's observation pass).
         """
+        self._memo.clear()
         jobs: list[Job] = []
         while len(jobs) < limit:
             job = self._next(now, prefer)
@@ -465,6 +510,8 @@ class LiveScheduler:
             # RULE coalescing: once the input settles, the region job makes every tile; a preview
             # of a tile still queued would be thrown away with it
             self._queue.clear()
+        if self._queue and self._holding():
+            return None  # RULE: the input is open: the region settle after it makes every tile
         if self._queue and self._burst(now) and self._region_phase():
             # RULE: drives come faster than previews are made: a preview now is thrown away by the
             # region settle after the burst (and costs a map version while drives come); wait for a pause

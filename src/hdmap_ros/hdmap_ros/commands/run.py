@@ -180,6 +180,9 @@ def run(args: argparse.Namespace) -> int:
         raise
     t0 = time.monotonic()
     last_print = last_check = 0.0
+    # RULE: the bag is on its way: no previews or one-drive maps while it plays (the settle after
+    # it makes every tile; they cost the ingest its time in this process)
+    suite.mapper.input_open()
     told = False
     try:
         while True:

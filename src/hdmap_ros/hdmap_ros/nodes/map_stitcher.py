@@ -38,19 +38,31 @@ Restart: the stored map is published again; if tiles changed after it was made i
 
 from __future__ import annotations
 
+import functools
 import json
+import multiprocessing
 import threading
 import time
 import traceback
+from concurrent.futures import BrokenExecutor, Executor, Future, ProcessPoolExecutor
 from dataclasses import replace
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
 from hdmap_core.errors import ConfigError, HdmapError
-from hdmap_core.live.changes import LiveChange, change_from_dict, dumps, follow_live, live_changes, new_changes
+from hdmap_core.live.changes import (
+    LiveChange,
+    change_from_dict,
+    dumps,
+    follow_loaded,
+    live_changes,
+    new_changes,
+    warm_up,
+)
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile, stitch_graphs
+from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
 from hdmap_ros.convert.messages import (
     change_to_msg,
@@ -206,6 +218,10 @@ class MapStitcher(HealthMixin, Node):
             c = change_from_dict(json.loads(doc))
             self.history[c.id] = c
         self.changes_new = 0  # changes first confirmed by this process
+        self._follow_executor: Executor | None = None
+        self._follow_fut: tuple[str, Future] | None = None  # (map signature, the follow in work)
+        self._follow_t0 = 0.0
+        self._follow_workers = available_cpus()
         self._followed_sig = self.store.get_meta("followed_sig", "") or ""
         # the consensus map (of every drive) the changes are followed on: the stored map unless
         # it is already the followed one
@@ -264,6 +280,8 @@ class MapStitcher(HealthMixin, Node):
         with self._work_lock:  # destroy_node waits for a pass in flight (another thread may spin)
             if self._destroyed:
                 return
+            if self.follow_changes and self._first_dirty is not None:
+                self._follow_pool()  # started with the first estimates: its imports are done when the map settles
             self._work()
             self._follow()
             self._update_status()
@@ -283,15 +301,33 @@ class MapStitcher(HealthMixin, Node):
         if consensus is None:  # the stored map is the followed one of an older signature: rebuild
             self._first_dirty = time.monotonic()
             return
-        t0 = time.perf_counter()
+        fut = self._follow_fut
+        if fut is not None and fut[0] != sig:  # the map changed while its changes were followed
+            fut[1].cancel()
+            self._follow_fut = fut = None
+        if fut is None:
+            self._follow_t0 = time.perf_counter()
+            load = functools.partial(read_drives, self.drive_db)
+            job = self._follow_pool().submit(
+                follow_loaded, consensus, load, pipeline_config=self.pipeline_config, workers=self._follow_workers
+            )
+            self._follow_fut = (sig, job)
+            return
+        if not fut[1].done():
+            return
+        self._follow_fut = None
+        t0 = self._follow_t0
         try:
-            drives = read_drives(self.drive_db)
-            result = follow_live(consensus, drives, build=self._build_region)
+            result = fut[1].result()
+        except BrokenExecutor as err:  # the process died (killed, out of memory): a new one next time
+            self._follow_executor = None
+            self._follow_failed(sig, f"{type(err).__name__}: {err}")
+            return
         except HdmapError as err:
             self._follow_failed(sig, str(err))
             return
         except Exception as err:  # noqa: BLE001 - a bug must not stop the live map; logged in full
-            self._follow_failed(sig, f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
+            self._follow_failed(sig, f"{type(err).__name__}: {err}\n{''.join(traceback.format_exception(err))}")
             return
         fresh = new_changes(self.history, result.changes)
         if not result.changes:  # nothing changed: the consensus map is the map
@@ -331,10 +367,15 @@ class MapStitcher(HealthMixin, Node):
             f"{len(result.changes)} in the map, {len(fresh)} new, {len(self.history)} in the history"
         )
 
-    def _build_region(self, drives):
-        from hdmap_core.pipeline.driver import build_map  # noqa: PLC0415
-
-        return build_map(list(drives), config=self.pipeline_config).map
+    def _follow_pool(self) -> Executor:
+        """The process the change following runs in (``live.changes.follow_loaded``: it reads the
+        drives and compares them on every CPU, as ``bag2map`` does, away from this process's
+        executor; forks only from there, never from this process with its native threads). Made
+        when the first tile estimates come (a stitcher that never gets one never starts it)."""
+        if self._follow_executor is None:
+            self._follow_executor = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self._follow_executor.submit(warm_up)
+        return self._follow_executor
 
     def _follow_failed(self, sig: str, text: str) -> None:
         self._followed_sig = sig  # not again on the same inputs
@@ -469,6 +510,8 @@ class MapStitcher(HealthMixin, Node):
         with self._work_lock, self._rx_lock:
             self._destroyed = True
             self.store.close()
+            if self._follow_executor is not None:
+                self._follow_executor.shutdown(wait=False, cancel_futures=True)
         super().destroy_node()
 
 

@@ -396,6 +396,12 @@ class SegmentMapper(HealthMixin, Node):
         self.health.backlog += 1
         self.health.set("drives_stored", self.store.drive_count())
 
+    def input_open(self) -> None:
+        """More drives are on their way (``hdmap run``: its bag is being played): with the region
+        settle nothing is previewed and no drive takes the fast path until :meth:`input_done`
+        (``LiveScheduler.input_open``): the region settle makes every tile once the input is in."""
+        self.scheduler.input_open()
+
     def input_done(self) -> None:
         """No more drives come (``hdmap run``: its bag is played and every drive received): settle
         without waiting ``settle_after_s`` (``LiveScheduler.input_done``), once the drives stored so
