@@ -8,7 +8,7 @@ from carriageway_samples import CHANGED, DASHED, PLACES, REBUILT, SOLID, carriag
 
 from hdmap_core.model import HDMap
 from hdmap_core.updates.detect import DetectedChange, PlaceChange
-from hdmap_core.updates.edges import opened_edge_moved
+from hdmap_core.updates.edges import EdgeEvidence, opened_edge_moved
 from hdmap_core.updates.splice import Reach, splice
 
 # The carriageway of carriageway_samples (right edge y = 50); the shoulder of places 2 and 3
@@ -38,7 +38,8 @@ def test_the_edge_no_drive_after_the_change_saw_moves_out_by_the_confirmed_move(
     # the drives after it kept to the left lanes: they saw the old edge turned divider, not the
     # moved edge line
     local = _local((DASHED, 50.0), (DASHED, 53.5), (DASHED, 57.0), (SOLID, 60.5))
-    moved = opened_edge_moved(FIRST, local, PLACES, [_change()], REBUILT)
+    moved, kept = opened_edge_moved(FIRST, local, PLACES, [_change()], REBUILT)
+    assert len(kept) == 0  # the local map saw every other line
     assert moved.pieces and all(p.feature_id == 1 for p in moved.pieces)
     assert _ys(moved.map, SOLID) == [48.0, 60.5]  # only the rightmost marking moved
     assert _ys(moved.map, SOLID, x=150.0) == [50.0, 60.5]  # not beside the opened places
@@ -57,7 +58,35 @@ def test_the_edge_no_drive_after_the_change_saw_moves_out_by_the_confirmed_move(
 
 def test_an_edge_the_drives_saw_is_theirs_and_other_changes_move_nothing():
     local = _local((SOLID, 48.1), (DASHED, 50.0), (DASHED, 53.5), (DASHED, 57.0), (SOLID, 60.5))
-    assert not opened_edge_moved(FIRST, local, PLACES, [_change()], REBUILT).pieces
+    assert not opened_edge_moved(FIRST, local, PLACES, [_change()], REBUILT)[0].pieces
     bare = _local((SOLID, 60.5))
-    assert not opened_edge_moved(FIRST, bare, PLACES, [_change("lane_closed", 3.5)], REBUILT).pieces
-    assert not opened_edge_moved(FIRST, bare, PLACES, [_change("geometry", -2.0)], REBUILT).pieces
+    for other in (_change("lane_closed", 3.5), _change("geometry", -2.0)):
+        moved, kept = opened_edge_moved(FIRST, bare, PLACES, [other], REBUILT)
+        assert not moved.pieces and len(kept) == 0
+
+
+def test_the_lines_a_lane_opened_left_alone_stay_where_the_drives_missed_them():
+    # the drives after it saw the left edge and the first divider only: the second divider (53.5)
+    # stays; the old edge (50) does not stay, it moves
+    local = _local((DASHED, 57.0), (SOLID, 60.5))
+    moved, kept = opened_edge_moved(FIRST, local, PLACES, [_change()], REBUILT)
+    inside = kept[(kept[:, 0] > 200.0) & (kept[:, 0] < 400.0)]
+    assert len(inside) and np.allclose(inside[:, 1], 53.5)
+    # beside the opened places (rebuilt, unchanged) the edge line stays where it was
+    assert np.any(np.isclose(kept[kept[:, 0] < 190.0, 1], 50.0))
+    assert _ys(moved.map, SOLID) == [48.0, 60.5]
+
+
+def test_a_place_where_no_drive_measured_the_move_gets_no_edge_model():
+    # the drives after the change saw only the old edge turned divider (not measured): the edge
+    # move there is unknown, the old edge neither moves nor stays
+    local = _local((DASHED, 50.0), (DASHED, 53.5), (DASHED, 57.0), (SOLID, 60.5))
+    rows = [EdgeEvidence(d, 1, k, 0.0, 10) for d in ("b1", "b2", "b3") for k in CHANGED]
+    rows += [EdgeEvidence(d, 20, k, -1.8, 10, measured=False) for d in ("a1", "a2") for k in CHANGED]
+    moved, kept = opened_edge_moved(FIRST, local, PLACES, [_change()], REBUILT, evidence=rows)
+    assert not moved.pieces and len(kept) == 0
+    # one of them measured 3 m: the edge moves by that, not by the mean with the divider's reading
+    rows[-1] = EdgeEvidence("a2", 20, CHANGED[1], -3.0, 10)
+    rows[-2] = EdgeEvidence("a2", 20, CHANGED[0], -3.0, 10)
+    moved, _ = opened_edge_moved(FIRST, local, PLACES, [_change()], REBUILT, evidence=rows)
+    assert _ys(moved.map, SOLID) == [47.0, 60.5]

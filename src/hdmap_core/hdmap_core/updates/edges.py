@@ -80,6 +80,7 @@ _MIN_CUTS_TURNED = 2  # cuts that measured the opened edge, when cuts where its 
 _TURN_M = 0.5  # a dashed marking this close to the map's edge line, and no solid one, is the edge turned divider [m]
 _MARKINGS = (_SOLID, _DASHED)
 _EDGE_APART_M = 0.5  # a first-map marking this far right of a solid one makes it no edge line [m]
+_SAME_LINE_M = 1.0  # a first-map marking point with a local-map marking this close was seen [m]
 _EDGE_STD_M = 0.2  # lateral uncertainty added to an opened edge moved by the confirmed move [m]
 _MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
 
@@ -345,8 +346,9 @@ def opened_edge_moved(
     changes: Sequence[DetectedChange],
     rebuilt: set[PlaceKey],
     *,
+    evidence: Sequence[EdgeEvidence] | None = None,
     config: ChangeConfig = ChangeConfig(),
-) -> UnseenMove:
+) -> tuple[UnseenMove, np.ndarray]:
     """The first map with the right edge line of an opened shoulder moved out by the confirmed
     move, where no drive after the change saw it (module docstring of ``updates.unseen`` for the
     record kept of it).
@@ -359,32 +361,60 @@ def opened_edge_moved(
     first-map marking within ``_SEEN_M`` to its right) moves out by it, unless the aligned local
     map has a solid marking within ``unseen_seen_m`` of where it moves to (seen: the local map's
     line is taken). Its points get ``drive_count`` 0 and a ``lateral_std`` grown by the move's
-    spread over the place's drives after the change (at least ``_EDGE_STD_M``).
+    spread over the place's drives after the change (at least ``_EDGE_STD_M``). With ``evidence``
+    (the drives' edge moves) the move of a place is what its drives after the change measured
+    (``EdgeEvidence.measured``, their median against the median of the drives before): a drive
+    that saw only the old edge turned divider reads the least move that is a lane, not the move;
+    a place none of them measured (a taper one drive passed) gets no model.
+
+    An opened lane moves that line only: every other first-map marking point of the rebuilt
+    places of such a change (and their neighbours) that the local map lacks (no marking within
+    ``_SAME_LINE_M``) stays where it was (second value, for ``updates.splice.Reach.keep``): three
+    drives after the change see their own and the next lanes' lines, and near the ends of the
+    rebuilt stretch the lines they missed were lost (the left edge line and the first divider
+    over 100-200 m on ``motorway_ramps`` seed 0). Only for a change that is a lane opened alone
+    (merged with a shift, the lines moved).
     """
     moves: dict[PlaceKey, tuple[int, float]] = {}
+    region: set[PlaceKey] = set()
+    opened: set[PlaceKey] = set()
     for c in changes:
+        if tuple(c.kinds) != ("lane_opened",):
+            continue
         for p in c.places:
+            region |= {p.key, *places.neighbours(p.key)}
             if p.kind == "lane_opened" and p.key in rebuilt and p.effect < 0:
-                moves[p.key] = (c.id, float(p.effect))
+                opened.add(p.key)
+                move = float(p.effect) if evidence is None else _measured_move(p, evidence)
+                if np.isfinite(move):
+                    moves[p.key] = (c.id, move)
+    region &= set(rebuilt)
     none = UnseenMove(first, ())
-    if not moves:
-        return none
+    no_pts = np.zeros((0, 2))
+    if not opened:
+        return none, no_pts
     marks = [(i, f) for i, f in enumerate(first.features) if int(f.type) in _MARKINGS and len(f.points) >= 2]
     if not marks:
-        return none
+        return none, no_pts
     all_pts = np.concatenate([np.asarray(f.points, dtype=float) for _, f in marks])
     all_tree = cKDTree(all_pts)
     local_solid = dense_points([f.points for f in local.features if int(f.type) == _SOLID], 0.5)
     local_tree = cKDTree(local_solid) if len(local_solid) else None
+    local_marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], 0.5)
+    marks_tree = cKDTree(local_marks) if len(local_marks) else None
     feats = list(first.features)
     pieces: list[ModelledMarking] = []
+    kept: list[np.ndarray] = [no_pts]
     for fi, f in marks:
-        if int(f.type) != _SOLID:
-            continue
         pts = np.asarray(f.points, dtype=float)
         keys = places.keys_along(pts)
-        at = np.array([k in moves for k in keys], dtype=bool)
-        if not at.any():
+        stay = np.array([k in region for k in keys], dtype=bool)
+        if marks_tree is not None and stay.any():
+            d, _ = marks_tree.query(pts[stay], distance_upper_bound=_SAME_LINE_M)
+            stay[np.flatnonzero(stay)[np.isfinite(d)]] = False
+        at = np.array([k in opened for k in keys], dtype=bool)
+        if int(f.type) != _SOLID or not at.any():
+            kept.append(pts[stay])
             continue
         t = np.gradient(pts, axis=0)
         t /= np.maximum(np.linalg.norm(t, axis=1), 1e-9)[:, None]
@@ -398,6 +428,8 @@ def opened_edge_moved(
                 lat, lon = v @ left[i], v @ t[i]
                 if np.any((lat < -_EDGE_APART_M) & (np.abs(lon) < _SEEN_M)):
                     ok[i] = False
+        kept.append(pts[stay & ~ok])  # the edge line's points do not stay where they were
+        ok &= np.array([k in moves for k in keys], dtype=bool)
         if not ok.any():
             continue
         mv = np.array([moves[k][1] if k in moves else 0.0 for k in keys])
@@ -427,6 +459,19 @@ def opened_edge_moved(
                         move_m=mv[r].copy(),
                     )
                 )
+    stays = np.concatenate(kept)
     if not pieces:
-        return none
-    return UnseenMove(replace(first, features=tuple(feats)), tuple(pieces))
+        return none, stays
+    return UnseenMove(replace(first, features=tuple(feats)), tuple(pieces)), stays
+
+
+def _measured_move(p: PlaceChange, evidence: Sequence[EdgeEvidence]) -> float:
+    """The edge move at ``p`` its drives after the change measured: the median of their measured
+    moves less the median of the drives before; NaN when none measured it."""
+    after, before = set(p.drives_after), set(p.drives_before)
+    rows = [e for e in evidence if e.key == p.key and np.isfinite(e.move_m)]
+    got = [e.move_m for e in rows if e.drive_id in after and e.measured]
+    was = [e.move_m for e in rows if e.drive_id in before]
+    if not got or not was:
+        return math.nan
+    return float(np.median(got) - np.median(was))

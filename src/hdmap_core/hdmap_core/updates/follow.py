@@ -520,7 +520,10 @@ def follow_map(
         # what no drive after a shift saw of the first map's markings: moved by the shift
         unseen = unseen_moved(first_map, local_map, places, changes, evidence, core, config=config)
         # an opened shoulder's edge line no drive after the change saw: moved by the edge's move
-        edge = opened_edge_moved(unseen.map, local_map, places, changes, core, config=config)
+        # and the other lines of a lane opened, which it left alone, where those drives missed them
+        edge, opened_kept = opened_edge_moved(
+            unseen.map, local_map, places, changes, core, evidence=edges, config=config
+        )
         unseen = UnseenMove(edge.map, unseen.pieces + edge.pieces)
         modelled = unseen.pieces
         # lines no drive after a shift saw, where the lines they saw had not moved yet (the
@@ -542,7 +545,7 @@ def follow_map(
             np.concatenate([np.zeros((0, 2)), *borders]),
             _BORDER_SAME_M,
             np.concatenate([np.zeros((0, 2)), *marks]),
-            keep=np.concatenate([*keep, kept]),
+            keep=np.concatenate([*keep, kept, opened_kept]),
             take=unseen.moved_from,
         )
         new_map = splice(unseen.map, local_map, places, core, reach=reach)
