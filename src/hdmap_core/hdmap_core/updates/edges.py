@@ -358,9 +358,10 @@ def opened_edge_moved(
     never), so the rebuilt places lack it where none of them saw it. The change measured how far
     the edge moved per place (``PlaceChange.effect``: + left); each first-map solid marking point
     of a rebuilt ``lane_opened`` place that is the carriageway's rightmost marking there (no
-    first-map marking within ``_SEEN_M`` to its right) moves out by it, unless the aligned local
-    map has a solid marking within ``unseen_seen_m`` of where it moves to (seen: the local map's
-    line is taken). Its points get ``drive_count`` 0 and a ``lateral_std`` grown by the move's
+    first-map marking within ``_SEEN_M`` to its right that more drives saw than drove after the
+    change: the first map holds the new line too where a few drives saw it) moves out by it,
+    unless the aligned local map has a solid marking within ``unseen_seen_m`` of where it moves
+    to (seen: the local map's line is taken). Its points get ``drive_count`` 0 and a ``lateral_std`` grown by the move's
     spread over the place's drives after the change (at least ``_EDGE_STD_M``). With ``evidence``
     (the drives' edge moves) the move of a place is what its drives after the change measured
     (``EdgeEvidence.measured``, their median against the median of the drives before): a drive
@@ -369,7 +370,8 @@ def opened_edge_moved(
 
     An opened lane moves that line only: every other first-map marking point of the rebuilt
     places of such a change (and their neighbours) that the local map lacks (no marking within
-    ``_SAME_LINE_M``) stays where it was (second value, for ``updates.splice.Reach.keep``): three
+    ``_SAME_LINE_M``), but for the edge line itself, stays where it was (second value, for
+    ``updates.splice.Reach.keep``): three
     drives after the change see their own and the next lanes' lines, and near the ends of the
     rebuilt stretch the lines they missed were lost (the left edge line and the first divider
     over 100-200 m on ``motorway_ramps`` seed 0). Only for a change that is a lane opened alone
@@ -378,15 +380,17 @@ def opened_edge_moved(
     moves: dict[PlaceKey, tuple[int, float]] = {}
     region: set[PlaceKey] = set()
     opened: set[PlaceKey] = set()
+    n_after = 0
     for c in changes:
         if tuple(c.kinds) != ("lane_opened",):
             continue
+        n_after = max(n_after, len(c.drives_after))
         for p in c.places:
             region |= {p.key, *places.neighbours(p.key)}
             if p.kind == "lane_opened" and p.key in rebuilt and p.effect < 0:
                 opened.add(p.key)
                 move = float(p.effect) if evidence is None else _measured_move(p, evidence)
-                if np.isfinite(move):
+                if move <= -MIN_EDGE_MOVE_M / 2:  # NaN: none measured; less: a taper's start
                     moves[p.key] = (c.id, move)
     region &= set(rebuilt)
     none = UnseenMove(first, ())
@@ -397,6 +401,9 @@ def opened_edge_moved(
     if not marks:
         return none, no_pts
     all_pts = np.concatenate([np.asarray(f.points, dtype=float) for _, f in marks])
+    # a first-map line no more drives saw than drove after the change may be the new one (the
+    # first map is built from every drive): it does not make the old edge line a divider
+    old_road = np.concatenate([np.asarray(f.drive_count) > n_after for _, f in marks])
     all_tree = cKDTree(all_pts)
     local_solid = dense_points([f.points for f in local.features if int(f.type) == _SOLID], 0.5)
     local_tree = cKDTree(local_solid) if len(local_solid) else None
@@ -413,23 +420,26 @@ def opened_edge_moved(
             d, _ = marks_tree.query(pts[stay], distance_upper_bound=_SAME_LINE_M)
             stay[np.flatnonzero(stay)[np.isfinite(d)]] = False
         at = np.array([k in opened for k in keys], dtype=bool)
-        if int(f.type) != _SOLID or not at.any():
+        if int(f.type) != _SOLID or not (at | stay).any():
             kept.append(pts[stay])
             continue
         t = np.gradient(pts, axis=0)
         t /= np.maximum(np.linalg.norm(t, axis=1), 1e-9)[:, None]
         left = np.stack([-t[:, 1], t[:, 0]], axis=1)
-        ok = at.copy()
+        ok = at | stay
         # the rightmost marking: no first-map marking to its right within _SEEN_M
-        for i in np.flatnonzero(at):
+        for i in np.flatnonzero(ok):
             near = all_tree.query_ball_point(pts[i], _SEEN_M)
             if near:
+                near = [j for j in near if old_road[j]]
                 v = all_pts[near] - pts[i]
                 lat, lon = v @ left[i], v @ t[i]
                 if np.any((lat < -_EDGE_APART_M) & (np.abs(lon) < _SEEN_M)):
                     ok[i] = False
-        kept.append(pts[stay & ~ok])  # the edge line's points do not stay where they were
-        ok &= np.array([k in moves for k in keys], dtype=bool)
+        # the edge line's points do not stay where they were, nor beside the opened places (the
+        # tapers the change left out: kept there, the old edge was a ghost of the old road)
+        kept.append(pts[stay & ~ok])
+        ok &= at & np.array([k in moves for k in keys], dtype=bool)
         if not ok.any():
             continue
         mv = np.array([moves[k][1] if k in moves else 0.0 for k in keys])
