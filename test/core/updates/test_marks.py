@@ -73,6 +73,29 @@ def test_a_marking_gone_next_to_the_drives_goes_and_a_far_line_stays():
     assert got == [(int(SOLID), 50.0), (int(SOLID), 60.5)]
 
 
+def test_a_line_in_the_next_band_goes_only_with_its_type():
+    # both dividers removed; the drives after the change keep to the middle lane (55.25): the
+    # dividers lie in their own lane (1.75 m), the edge lines in the next band (5.25 m), which
+    # they saw the left one of only. The solid right edge did not go: no solid went in a drive's
+    # own lane
+    local = _local((SOLID, 60.5))
+    after = _after(y=55.25)
+    kept = unchanged_marks(FIRST, local, PLACES, [_change("marking_gone")], after, REBUILT)
+    reach = Reach(np.concatenate([d.xy for d in after]), 12.0, keep=kept)
+    got = _lines_at(splice(FIRST, local, PLACES, REBUILT, reach=reach))
+    assert got == [(int(SOLID), 50.0), (int(SOLID), 60.5)]
+    # a solid that went in their own lane (the right one of it, 53.5 here taken as solid) takes
+    # the solid of the next band with it
+    first = HDMap(
+        features=tuple(
+            f if abs(f.points[0, 1] - 53.5) > 0.1 else line_feature(f.id, SOLID, 53.5, 0.0, 600.0)
+            for f in FIRST.features
+        )
+    )
+    kept = unchanged_marks(first, local, PLACES, [_change("marking_gone")], after, REBUILT)
+    assert not np.any(np.abs(kept[:, 1] - 50.0) < 0.1)
+
+
 def test_a_line_one_drive_after_the_change_detected_is_no_gone_line():
     # only the divider 57 was removed; one drive saw the divider 53.5 in the next lane, too few
     # for the local map

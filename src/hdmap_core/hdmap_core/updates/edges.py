@@ -44,21 +44,31 @@ import hashlib
 import math
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from hdmap_core.evaluation.cuts import (
     index_segments,
     segments_of,
 )
+from hdmap_core.geometry import dense_points
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, PlaceChange, change_point, grow_changes
 from hdmap_core.updates.evidence import PlaceEvidence, drive_cuts, lines_on_cuts
 from hdmap_core.updates.places import PlaceKey, Places
+from hdmap_core.updates.unseen import ModelledMarking, UnseenMove
 
-__all__ = ["EdgeEvidence", "edge_evidence", "detect_edge_changes", "merge_changes", "MIN_EDGE_MOVE_M"]
+__all__ = [
+    "EdgeEvidence",
+    "edge_evidence",
+    "detect_edge_changes",
+    "merge_changes",
+    "opened_edge_moved",
+    "MIN_EDGE_MOVE_M",
+]
 
 MIN_EDGE_MOVE_M = 1.8  # the smallest move of the edge line that is a lane closed / opened (a 2 m shoulder) [m]
 _STEP_M = 8.0  # cut spacing [m]
@@ -68,6 +78,10 @@ _SEEN_M = 6.0  # the map's edge line counts where it lies this close right of th
 _MIN_CUTS = 6  # cuts a drive needs in a place for its edge move there (a place is ~12 cuts long)
 _MIN_CUTS_TURNED = 2  # cuts that measured the opened edge, when cuts where its old line turned dashed make up the rest
 _TURN_M = 0.5  # a dashed marking this close to the map's edge line, and no solid one, is the edge turned divider [m]
+_MARKINGS = (_SOLID, _DASHED)
+_EDGE_APART_M = 0.5  # a first-map marking this far right of a solid one makes it no edge line [m]
+_SAME_LINE_M = 1.0  # a first-map marking point with a local-map marking this close was seen [m]
+_EDGE_STD_M = 0.2  # lateral uncertainty added to an opened edge moved by the confirmed move [m]
 _MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
 
 
@@ -323,3 +337,151 @@ def merge_changes(
             confidence=max(c.confidence, e.confidence),
         )
     return sorted(out, key=lambda c: (c.time_ns, c.id))
+
+
+def opened_edge_moved(
+    first: HDMap,
+    local: HDMap,
+    places: Places,
+    changes: Sequence[DetectedChange],
+    rebuilt: set[PlaceKey],
+    *,
+    evidence: Sequence[EdgeEvidence] | None = None,
+    config: ChangeConfig = ChangeConfig(),
+) -> tuple[UnseenMove, np.ndarray]:
+    """The first map with the right edge line of an opened shoulder moved out by the confirmed
+    move, where no drive after the change saw it (module docstring of ``updates.unseen`` for the
+    record kept of it).
+
+    The drives after a ``lane_opened`` change mostly keep to the lanes they drove before, left of
+    the new lane: the moved edge lies in their far band or beyond (seen a quarter of the time, or
+    never), so the rebuilt places lack it where none of them saw it. The change measured how far
+    the edge moved per place (``PlaceChange.effect``: + left); each first-map solid marking point
+    of a rebuilt ``lane_opened`` place that is the carriageway's rightmost marking there (no
+    first-map marking within ``_SEEN_M`` to its right that more drives saw than drove after the
+    change: the first map holds the new line too where a few drives saw it) moves out by it,
+    unless the aligned local map has a solid marking within ``unseen_seen_m`` of where it moves
+    to (seen: the local map's line is taken). Its points get ``drive_count`` 0 and a ``lateral_std`` grown by the move's
+    spread over the place's drives after the change (at least ``_EDGE_STD_M``). With ``evidence``
+    (the drives' edge moves) the move of a place is what its drives after the change measured
+    (``EdgeEvidence.measured``, their median against the median of the drives before): a drive
+    that saw only the old edge turned divider reads the least move that is a lane, not the move;
+    a place none of them measured (a taper one drive passed) gets no model.
+
+    An opened lane moves that line only: every other first-map marking point of the rebuilt
+    places of such a change (and their neighbours) that the local map lacks (no marking within
+    ``_SAME_LINE_M``), but for the edge line itself, stays where it was (second value, for
+    ``updates.splice.Reach.keep``): three
+    drives after the change see their own and the next lanes' lines, and near the ends of the
+    rebuilt stretch the lines they missed were lost (the left edge line and the first divider
+    over 100-200 m on ``motorway_ramps`` seed 0). Only for a change that is a lane opened alone
+    (merged with a shift, the lines moved).
+    """
+    moves: dict[PlaceKey, tuple[int, float]] = {}
+    region: set[PlaceKey] = set()
+    opened: set[PlaceKey] = set()
+    n_after = 0
+    for c in changes:
+        if tuple(c.kinds) != ("lane_opened",):
+            continue
+        n_after = max(n_after, len(c.drives_after))
+        for p in c.places:
+            region |= {p.key, *places.neighbours(p.key)}
+            if p.kind == "lane_opened" and p.key in rebuilt and p.effect < 0:
+                opened.add(p.key)
+                move = float(p.effect) if evidence is None else _measured_move(p, evidence)
+                if move <= -MIN_EDGE_MOVE_M / 2:  # NaN: none measured; less: a taper's start
+                    moves[p.key] = (c.id, move)
+    region &= set(rebuilt)
+    none = UnseenMove(first, ())
+    no_pts = np.zeros((0, 2))
+    if not opened:
+        return none, no_pts
+    marks = [(i, f) for i, f in enumerate(first.features) if int(f.type) in _MARKINGS and len(f.points) >= 2]
+    if not marks:
+        return none, no_pts
+    all_pts = np.concatenate([np.asarray(f.points, dtype=float) for _, f in marks])
+    # a first-map line no more drives saw than drove after the change may be the new one (the
+    # first map is built from every drive): it does not make the old edge line a divider
+    old_road = np.concatenate([np.asarray(f.drive_count) > n_after for _, f in marks])
+    all_tree = cKDTree(all_pts)
+    local_solid = dense_points([f.points for f in local.features if int(f.type) == _SOLID], 0.5)
+    local_tree = cKDTree(local_solid) if len(local_solid) else None
+    local_marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], 0.5)
+    marks_tree = cKDTree(local_marks) if len(local_marks) else None
+    feats = list(first.features)
+    pieces: list[ModelledMarking] = []
+    kept: list[np.ndarray] = [no_pts]
+    for fi, f in marks:
+        pts = np.asarray(f.points, dtype=float)
+        keys = places.keys_along(pts)
+        stay = np.array([k in region for k in keys], dtype=bool)
+        if marks_tree is not None and stay.any():
+            d, _ = marks_tree.query(pts[stay], distance_upper_bound=_SAME_LINE_M)
+            stay[np.flatnonzero(stay)[np.isfinite(d)]] = False
+        at = np.array([k in opened for k in keys], dtype=bool)
+        if int(f.type) != _SOLID or not (at | stay).any():
+            kept.append(pts[stay])
+            continue
+        t = np.gradient(pts, axis=0)
+        t /= np.maximum(np.linalg.norm(t, axis=1), 1e-9)[:, None]
+        left = np.stack([-t[:, 1], t[:, 0]], axis=1)
+        ok = at | stay
+        # the rightmost marking: no first-map marking to its right within _SEEN_M
+        for i in np.flatnonzero(ok):
+            near = all_tree.query_ball_point(pts[i], _SEEN_M)
+            if near:
+                near = [j for j in near if old_road[j]]
+                v = all_pts[near] - pts[i]
+                lat, lon = v @ left[i], v @ t[i]
+                if np.any((lat < -_EDGE_APART_M) & (np.abs(lon) < _SEEN_M)):
+                    ok[i] = False
+        # the edge line's points do not stay where they were, nor beside the opened places (the
+        # tapers the change left out: kept there, the old edge was a ghost of the old road)
+        kept.append(pts[stay & ~ok])
+        ok &= at & np.array([k in moves for k in keys], dtype=bool)
+        if not ok.any():
+            continue
+        mv = np.array([moves[k][1] if k in moves else 0.0 for k in keys])
+        new = pts + mv[:, None] * left
+        if local_tree is not None:
+            d, _ = local_tree.query(new[ok], distance_upper_bound=config.unseen_seen_m)
+            ok[np.flatnonzero(ok)[np.isfinite(d)]] = False
+        if not ok.any():
+            continue
+        idx = np.flatnonzero(ok)
+        new_pts = pts.copy()
+        new_pts[idx] = new[idx]
+        count = np.asarray(f.drive_count).copy()
+        count[idx] = 0
+        std = np.asarray(f.lateral_std, dtype=float).copy()
+        std[idx] = np.hypot(std[idx], _EDGE_STD_M)
+        feats[fi] = replace(f, points=new_pts, drive_count=count, lateral_std=std)
+        for r in np.split(idx, np.flatnonzero(np.diff(idx) != 1) + 1):
+            if len(r):
+                pieces.append(
+                    ModelledMarking(
+                        change_id=moves[keys[r[0]]][0],
+                        feature_id=int(f.id),
+                        type=int(f.type),
+                        points=new[r].copy(),
+                        from_points=pts[r].copy(),
+                        move_m=mv[r].copy(),
+                    )
+                )
+    stays = np.concatenate(kept)
+    if not pieces:
+        return none, stays
+    return UnseenMove(replace(first, features=tuple(feats)), tuple(pieces)), stays
+
+
+def _measured_move(p: PlaceChange, evidence: Sequence[EdgeEvidence]) -> float:
+    """The edge move at ``p`` its drives after the change measured: the median of their measured
+    moves less the median of the drives before; NaN when none measured it."""
+    after, before = set(p.drives_after), set(p.drives_before)
+    rows = [e for e in evidence if e.key == p.key and np.isfinite(e.move_m)]
+    got = [e.move_m for e in rows if e.drive_id in after and e.measured]
+    was = [e.move_m for e in rows if e.drive_id in before]
+    if not got or not was:
+        return math.nan
+    return float(np.median(got) - np.median(was))

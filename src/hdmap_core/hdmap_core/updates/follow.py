@@ -41,13 +41,14 @@ from hdmap_core.updates.edges import (
     edge_evidence,
     fleet_edge_evidence,
     merge_changes,
+    opened_edge_moved,
     solid_lines,
 )
 from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evidence, map_lines, unwrap_aliases
 from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
-from hdmap_core.updates.unseen import ModelledMarking, unseen_moved
+from hdmap_core.updates.unseen import ModelledMarking, UnseenMove, unseen_moved
 
 __all__ = [
     "RetiredFeature",
@@ -518,6 +519,12 @@ def follow_map(
         marks = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) in _MARKINGS]
         # what no drive after a shift saw of the first map's markings: moved by the shift
         unseen = unseen_moved(first_map, local_map, places, changes, evidence, core, config=config)
+        # an opened shoulder's edge line no drive after the change saw: moved by the edge's move
+        # and the other lines of a lane opened, which it left alone, where those drives missed them
+        edge, opened_kept = opened_edge_moved(
+            unseen.map, local_map, places, changes, core, evidence=edges, config=config
+        )
+        unseen = UnseenMove(edge.map, unseen.pieces + edge.pieces)
         modelled = unseen.pieces
         # lines no drive after a shift saw, where the lines they saw had not moved yet (the
         # tapers' ends): not where a line went or changed type, which the few drives cannot tell
@@ -538,7 +545,7 @@ def follow_map(
             np.concatenate([np.zeros((0, 2)), *borders]),
             _BORDER_SAME_M,
             np.concatenate([np.zeros((0, 2)), *marks]),
-            keep=np.concatenate([*keep, kept]),
+            keep=np.concatenate([*keep, kept, opened_kept]),
             take=unseen.moved_from,
         )
         new_map = splice(unseen.map, local_map, places, core, reach=reach)
