@@ -7,6 +7,8 @@ SIGKILL/restart) are in test_nodes_e2e.py and marked slow.
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 import numpy as np
 import pytest
 
@@ -315,9 +317,16 @@ def test_the_stitcher_follows_road_changes_only_with_every_estimate_the_mapper_a
     from hdmap_ros.nodes import map_stitcher
     from hdmap_ros.persistence.store import segments_to_blob
 
+    class InProcess:  # the follow's process pool, run here: the patched read_drives is seen
+        def submit(self, fn, *args, **kwargs):
+            fut: Future = Future()
+            fut.set_result(fn(*args, **kwargs))
+            return fut
+
     reads: list[str] = []
     monkeypatch.setattr(map_stitcher, "read_drives", lambda path: reads.append(str(path)) or [])
     st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
+    monkeypatch.setattr(st, "_follow_pool", InProcess)
     try:
         assert st.follow_changes  # the default preset follows road changes
         st._mapper_status = LiveStatus(tile_versions=2, settled=True)  # 2 estimates made, 1 here
@@ -328,7 +337,8 @@ def test_the_stitcher_follows_road_changes_only_with_every_estimate_the_mapper_a
         assert reads == []  # the other estimate is on its way
         st.store.put_tile((1, 0), 1, segments_to_blob([]), ["d"])
         st.rebuild()
-        st._follow()
+        st._follow()  # submits the follow
+        st._follow()  # takes its result
         assert reads == [str(tmp_path / "m.db")] and st.changes_followed()
     finally:
         st.destroy_node()
