@@ -178,8 +178,13 @@ class MapStitcher(HealthMixin, Node):
         # tile -> (version, its segment graphs, its segments, connected from them (False: moved
         # there from an earlier estimate by a fast update, never used by a full rebuild))
         self._graphs: dict[TileKey, tuple[int, list, list, bool]] = {}
-        self._mg: MapGraph | None = None  # the stitched map graph of the current map (restitch.stitch_tiles / moved_map)
+        self._mg: MapGraph | None = (
+            None  # the stitched map graph of the current map (restitch.stitch_tiles / moved_map)
+        )
         self._raw_ids: dict[int, int] = {}  # its features' raw ids -> their ids in the current map
+        # the segments of estimates received since the last map (tile -> (version, segments)): the
+        # fast update moves the map to them without decoding the stored blobs again
+        self._rx_segments: dict[TileKey, tuple[int, list]] = {}
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
@@ -269,6 +274,7 @@ class MapStitcher(HealthMixin, Node):
             ):
                 self.health.accept()
                 self._dirty.add(tile.key)
+                self._rx_segments[tile.key] = (tile.version, list(tile.segments))
                 if tile.final:
                     self._final[tile.key] = (list(tile.drive_ids), list(tile.drive_tile_counts))
                 else:
@@ -409,11 +415,13 @@ class MapStitcher(HealthMixin, Node):
         with self._rx_lock:
             dirty = set(self._dirty)
             self._dirty.clear()
+            received = dict(self._rx_segments)
+            self._rx_segments.clear()
         self._first_dirty = None
         sig = self.store.tiles_signature()
         t0 = time.monotonic()
         try:
-            if not (dirty and self._fast_update(dirty)):
+            if not (dirty and self._fast_update(dirty, received)):
                 self.rebuild()
         except HdmapError as err:
             self._fail(sig, str(err))
@@ -478,13 +486,15 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("features", len(new.features))
         self.health.set("last_rebuild_s", f"{time.perf_counter() - t0:.3f}")
 
-    def _fast_update(self, dirty: set[TileKey]) -> bool:
+    def _fast_update(self, dirty: set[TileKey], received: dict[TileKey, tuple[int, list]]) -> bool:
         """RULE fast update: when every tile received since the last map is final and its estimate
         only moved the maxima of the one the map holds (a drive fused into it, ``live.fuse``), the
         map's stitch decisions are kept and only its geometry moves (``live.restitch``): a new
         version at once, listing the drives that completes. The full rebuild of the same tiles
         follows as the next version (``_first_dirty`` stays set), so the map is again a function of the
-        tiles before it counts as settled. False (nothing done): rebuild in full."""
+        tiles before it counts as settled. False (nothing done): rebuild in full. ``received``:
+        the segments of the estimates as received (tile -> (version, segments)), else decoded
+        from the store."""
         if self._mg is None or self.map is None:
             return False
         t0 = time.perf_counter()
@@ -498,7 +508,8 @@ class MapStitcher(HealthMixin, Node):
             if cached is None or key not in stored or not final:
                 return False
             version, ids, blob = stored[key]
-            segments = blob_to_segments(blob)
+            got = received.get(key)
+            segments = got[1] if got is not None and got[0] == version else blob_to_segments(blob)
             graphs = moved_graphs(cached[1], cached[2], segments)
             if graphs is None:
                 return False
@@ -530,11 +541,12 @@ class MapStitcher(HealthMixin, Node):
         self._map_sig = sig
         t4 = time.perf_counter()
         self._publish()
-        self.health.set(
-            "last_fast_update_s",
-            f"{time.perf_counter() - t0:.3f} (move {t1 - t0:.3f}, export {t2 - t1:.3f}, ids {t3 - t2:.3f}, "
-            f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles)",
+        text = (
+            f"{time.perf_counter() - t0:.3f} s (move {t1 - t0:.3f}, export {t2 - t1:.3f}, ids {t3 - t2:.3f}, "
+            f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles)"
         )
+        self.health.set("last_fast_update_s", text)
+        self.get_logger().info(f"map version {new.version} moved in place (a fused burst) in {text}")
         self.health.updated()
         self.health.set("map_version", new.version)
         self.health.set("features", len(new.features))
