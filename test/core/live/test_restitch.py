@@ -26,6 +26,7 @@ from hdmap_core.live.restitch import (
     raw_id_map,
     remap_ids,
     same_structure,
+    same_topology,
     stitch_tiles,
 )
 from hdmap_core.live.tiles import TileConfig, carry_over_ids, connect_tile, stitch_graphs, tiles_of_drive
@@ -144,5 +145,10 @@ def test_ids_follow_the_raw_ids_of_the_previous_version(fused):
     have = {int(f.id) for f in fast.features}
     assert all(int(i) in have for f in fast.features for i in (*f.predecessors, *f.successors))
     assert all(int(i) in have for t in fast.topology for i in t.features)
+    # the moved map keeps the topology (the stitcher reuses its messages), not the feature geometry
+    kept = remap_ids(fast_raw, raw_id_map(raw, published))
+    assert kept is not None and same_topology(kept, published)
+    assert any(not np.array_equal(a.points, b.points) for a, b in zip(kept.features, published.features, strict=True))
+    assert not same_topology(kept, replace(published, topology=published.topology[1:]))
     assert remap_ids(fast_raw, {}) is None  # an id not known: carried over by shape instead
     assert remap_ids(fast_raw, {int(f.id): int(f.id) for f in fast_raw.features}) is fast_raw

@@ -43,6 +43,7 @@ __all__ = [
     "moved_map",
     "remap_ids",
     "raw_id_map",
+    "same_topology",
     "MOVED_TOLERANCE_M",
 ]
 
@@ -200,5 +201,26 @@ def remap_ids(raw: HDMap, ids: Mapping[int, int]) -> HDMap | None:
         replace(f, id=ids[int(f.id)], predecessors=_r(f.predecessors), successors=_r(f.successors))
         for f in raw.features
     )
-    topology = tuple(replace(t, features=_r(t.features)) for t in raw.topology)
+    changed = {k for k, v in ids.items() if k != v}
+    topology = tuple(
+        replace(t, features=_r(t.features)) if any(int(i) in changed for i in t.features) else t for t in raw.topology
+    )
     return replace(raw, features=features, topology=topology)
+
+
+def same_topology(a: HDMap, b: HDMap) -> bool:
+    """Do two map versions hold the same topology nodes (ids, positions, headings, widths,
+    successors, features)? A moved map keeps them: its message can reuse the last one's."""
+    if len(a.topology) != len(b.topology):
+        return False
+    for x, y in zip(a.topology, b.topology, strict=True):
+        if (
+            x.id != y.id
+            or x.heading != y.heading
+            or x.width != y.width
+            or tuple(x.features) != tuple(y.features)
+            or tuple(x.successors) != tuple(y.successors)
+            or not np.array_equal(x.position, y.position)
+        ):
+            return False
+    return True

@@ -62,8 +62,9 @@ from hdmap_core.live.changes import (
     warm_up,
 )
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
-from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
+from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, same_topology, stitch_tiles
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile
+from hdmap_core.model import HDMap
 from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
 from hdmap_ros.convert.messages import (
@@ -185,6 +186,7 @@ class MapStitcher(HealthMixin, Node):
         # the segments of estimates received since the last map (tile -> (version, segments)): the
         # fast update moves the map to them without decoding the stored blobs again
         self._rx_segments: dict[TileKey, tuple[int, list]] = {}
+        self._last_msg = None  # the last map message published
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
@@ -493,32 +495,26 @@ class MapStitcher(HealthMixin, Node):
         version at once, listing the drives that completes. The full rebuild of the same tiles
         follows as the next version (``_first_dirty`` stays set), so the map is again a function of the
         tiles before it counts as settled. False (nothing done): rebuild in full. ``received``:
-        the segments of the estimates as received (tile -> (version, segments)), else decoded
-        from the store."""
+        the segments of the estimates as received (tile -> (version, segments))."""
         if self._mg is None or self.map is None:
             return False
         t0 = time.perf_counter()
         sig = self.store.tiles_signature()
-        progress = self.store.tile_progress()
-        stored = {key: (version, ids, blob) for key, version, ids, blob in self.store.tiles()}
-        moved, updates, parts = [], {}, []
+        with self._rx_lock:
+            final = dict(self._final)  # the final estimates stored: their drives (as rebuild's parts)
+        moved, updates = [], {}
         for key in sorted(dirty):
             cached = self._graphs.get(key)
-            counts, final = progress.get(key, ([], True))
-            if cached is None or key not in stored or not final:
-                return False
-            version, ids, blob = stored[key]
             got = received.get(key)
-            segments = got[1] if got is not None and got[0] == version else blob_to_segments(blob)
-            graphs = moved_graphs(cached[1], cached[2], segments)
+            version = self.store.tile_version(key)
+            if cached is None or key not in final or got is None or got[0] != version:
+                return False
+            graphs = moved_graphs(cached[1], cached[2], got[1])
             if graphs is None:
                 return False
             moved.extend(graphs)
-            updates[key] = (version, graphs, segments, False)
-        for key, (_, ids, _) in stored.items():
-            counts, final = progress.get(key, ([], True))
-            if final:
-                parts.append((ids, counts))
+            updates[key] = (version, graphs, got[1], False)
+        parts = list(final.values())
         drive_ids = integrated_drives(parts)
         t1 = time.perf_counter()
         try:
@@ -537,10 +533,10 @@ class MapStitcher(HealthMixin, Node):
         self._first_dirty = time.monotonic()  # the full rebuild of these tiles follows
         # stored with a signature no tile set has: a restart rebuilds it in full
         self.store.put_map(new, sig + ";moved")
-        self.map = new
+        previous, self.map = self.map, new
         self._map_sig = sig
         t4 = time.perf_counter()
-        self._publish()
+        self._publish(previous)
         text = (
             f"{time.perf_counter() - t0:.3f} s (move {t1 - t0:.3f}, export {t2 - t1:.3f}, ids {t3 - t2:.3f}, "
             f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles)"
@@ -552,8 +548,17 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("features", len(new.features))
         return True
 
-    def _publish(self) -> None:
-        self._map_pub.publish(map_to_msg(self.map, types=self._types))
+    def _publish(self, previous: HDMap | None = None) -> None:
+        """Publish the map; ``previous``: the map of the last message, whose topology messages
+        are reused when the topology is the same (a moved map keeps it)."""
+        msg = None
+        if previous is not None and self._last_msg is not None and same_topology(self.map, previous):
+            msg = map_to_msg(replace(self.map, topology=()), types=self._types)
+            msg.topology = self._last_msg.topology
+        if msg is None:
+            msg = map_to_msg(self.map, types=self._types)
+        self._map_pub.publish(msg)
+        self._last_msg = msg
 
     def _on_mapper_status(self, msg) -> None:
         with self._work_lock:
