@@ -581,7 +581,8 @@ class SegmentMapper(HealthMixin, Node):
             self.health.updated()
         self.fast_fused += 1
         self.health.set("fast_fused", self.fast_fused)
-        self.get_logger().info(f"drive {did!r} fused into {len(made)} tile(s) (job {result.seconds:.3f} s)")
+        how = "fused into" if job.kind == FUSE else "mapped alone (new road) into"
+        self.get_logger().info(f"drive {did!r} {how} {len(made)} tile(s) (job {result.seconds:.3f} s)")
         self.scheduler.finished(job, ok=True)
 
     def _fail(self, job: Job, err: Exception) -> None:
