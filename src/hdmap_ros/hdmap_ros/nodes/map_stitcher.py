@@ -498,7 +498,7 @@ class MapStitcher(HealthMixin, Node):
         the segments of the estimates as received (tile -> (version, segments))."""
         if self._mg is None or self.map is None:
             return False
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         sig = self.store.tiles_signature()
         with self._rx_lock:
             final = dict(self._final)  # the final estimates stored: their drives (as rebuild's parts)
@@ -539,7 +539,8 @@ class MapStitcher(HealthMixin, Node):
         self._publish(previous)
         text = (
             f"{time.perf_counter() - t0:.3f} s (move {t1 - t0:.3f}, export {t2 - t1:.3f}, ids {t3 - t2:.3f}, "
-            f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles)"
+            f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles; "
+            f"CPU of this thread {time.thread_time() - c0:.3f} s)"
         )
         self.health.set("last_fast_update_s", text)
         self.get_logger().info(f"map version {new.version} moved in place (a fused burst) in {text}")
