@@ -5,6 +5,7 @@ is then the map (``stitch_graphs`` of every tile, bit for bit)."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -112,5 +113,13 @@ def test_a_fused_burst_moves_the_map_at_once_and_the_full_rebuild_follows(ros, t
         for a, b in zip(exact.features, full.features, strict=True):
             np.testing.assert_array_equal(a.points, b.points)  # the full rebuild, bit for bit
         assert exact.drive_ids == full.drive_ids
+        # on a map whose road changes were followed (another map than the stitch made), no fast
+        # update: the same estimates again (a fusion's shape) are rebuilt in full
+        st.map = replace(exact, version=exact.version + 1)
+        for m in _msgs(res.tiles, ids_after, 3, counts):
+            st.on_tile(m)
+        st._rested_at = 0.0
+        st._work()
+        assert st.map.version == exact.version + 2 and st.is_settled()
     finally:
         st.destroy_node()

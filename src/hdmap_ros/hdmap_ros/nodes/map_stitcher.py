@@ -179,9 +179,10 @@ class MapStitcher(HealthMixin, Node):
         # tile -> (version, its segment graphs, its segments, connected from them (False: moved
         # there from an earlier estimate by a fast update, never used by a full rebuild))
         self._graphs: dict[TileKey, tuple[int, list, list, bool]] = {}
-        self._mg: MapGraph | None = (
-            None  # the stitched map graph of the current map (restitch.stitch_tiles / moved_map)
-        )
+        # the stitched map graph of the last map made (restitch.stitch_tiles / moved_map) and that
+        # map (not the current one once road changes were followed on it)
+        self._mg: MapGraph | None = None
+        self._mg_map: HDMap | None = None
         self._raw_ids: dict[int, int] = {}  # its features' raw ids -> their ids in the current map
         # the segments of estimates received since the last map (tile -> (version, segments)): the
         # fast update moves the map to them without decoding the stored blobs again
@@ -473,7 +474,7 @@ class MapStitcher(HealthMixin, Node):
         self._raw_ids = raw_id_map(raw, new)
         t3 = time.perf_counter()
         self.store.put_map(new, sig)
-        self.map = new
+        self.map = self._mg_map = new
         self._consensus = new
         self._map_sig = sig
         t4 = time.perf_counter()
@@ -496,8 +497,8 @@ class MapStitcher(HealthMixin, Node):
         follows as the next version (``_first_dirty`` stays set), so the map is again a function of the
         tiles before it counts as settled. False (nothing done): rebuild in full. ``received``:
         the segments of the estimates as received (tile -> (version, segments))."""
-        if self._mg is None or self.map is None:
-            return False
+        if self._mg is None or self.map is None or self.map is not self._mg_map:
+            return False  # RULE: not on a map with road changes followed (the rebuild, then the follow)
         t0, c0 = time.perf_counter(), time.thread_time()
         sig = self.store.tiles_signature()
         with self._rx_lock:
@@ -525,7 +526,7 @@ class MapStitcher(HealthMixin, Node):
         new = remap_ids(raw, self._raw_ids)
         if new is None:
             new = carry_over_ids(raw, self.map, max_distance_m=self.id_distance_m, min_overlap=self.id_overlap)
-        new = replace(new, version=self.map.version + 1, stamp_ns=time.time_ns())
+        new = replace(new, version=(self.map.version if self.map else 0) + 1, stamp_ns=time.time_ns())
         t3 = time.perf_counter()
         self._graphs.update(updates)
         self._mg = mg
@@ -534,6 +535,7 @@ class MapStitcher(HealthMixin, Node):
         # stored with a signature no tile set has: a restart rebuilds it in full
         self.store.put_map(new, sig + ";moved")
         previous, self.map = self.map, new
+        self._mg_map = new
         self._map_sig = sig
         t4 = time.perf_counter()
         self._publish(previous)
