@@ -500,14 +500,15 @@ class MapStitcher(HealthMixin, Node):
         if self._mg is None or self.map is None or self.map is not self._mg_map:
             return False  # RULE: not on a map with road changes followed (the rebuild, then the follow)
         t0, c0 = time.perf_counter(), time.thread_time()
-        sig = self.store.tiles_signature()
-        with self._rx_lock:
-            final = dict(self._final)  # the final estimates stored: their drives (as rebuild's parts)
+        with self._rx_lock:  # the estimates and the drives they vouch for as of one moment (as rebuild)
+            sig = self.store.tiles_signature()
+            final = dict(self._final)  # the final estimates stored: their drives
+            versions = {key: self.store.tile_version(key) for key in dirty}
         moved, updates = [], {}
         for key in sorted(dirty):
             cached = self._graphs.get(key)
             got = received.get(key)
-            version = self.store.tile_version(key)
+            version = versions[key]
             if cached is None or key not in final or got is None or got[0] != version:
                 return False
             graphs = moved_graphs(cached[1], cached[2], got[1])
