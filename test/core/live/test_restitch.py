@@ -21,6 +21,7 @@ from hdmap_core.live.fuse import fuse_drive
 from hdmap_core.live.region import map_region
 from hdmap_core.live.restitch import (
     MOVED_TOLERANCE_M,
+    kept_nodes,
     moved_graphs,
     moved_map,
     raw_id_map,
@@ -150,5 +151,10 @@ def test_ids_follow_the_raw_ids_of_the_previous_version(fused):
     assert kept is not None and same_topology(kept, published)
     assert any(not np.array_equal(a.points, b.points) for a, b in zip(kept.features, published.features, strict=True))
     assert not same_topology(kept, replace(published, topology=published.topology[1:]))
+    n = len(published.topology)
+    assert kept_nodes(kept, published).tolist() == list(range(n))
+    moved_one = replace(published.topology[3], width=published.topology[3].width + 0.5)
+    other = replace(published, topology=(*published.topology[:3], moved_one, *published.topology[4:]))
+    assert kept_nodes(kept, other).tolist() == [*range(3), -1, *range(4, n)]
     assert remap_ids(fast_raw, {}) is None  # an id not known: carried over by shape instead
     assert remap_ids(fast_raw, {int(f.id): int(f.id) for f in fast_raw.features}) is fast_raw

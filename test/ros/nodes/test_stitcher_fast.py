@@ -22,6 +22,7 @@ from hdmap_core.live.tiles import TileConfig, connect_tile, stitch_graphs, tiles
 from hdmap_core.pipeline import presets  # noqa: E402
 from hdmap_core.simulation.fleet import SimConfig, simulate_fleet  # noqa: E402
 from hdmap_core.simulation.synthetic import synthetic_highway  # noqa: E402
+from hdmap_ros.convert.messages import map_to_msg, rclpy_types  # noqa: E402
 from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -89,6 +90,8 @@ def test_a_fused_burst_moves_the_map_at_once_and_the_full_rebuild_follows(ros, t
         fast = st.map
         assert fast.version == first.version + 1 and new.drive_id in fast.drive_ids
         assert "last_fast_update_s" in st.health.extra and not st.is_settled()  # the full rebuild is due
+        # the message reused the last one's unchanged topology nodes: the same as made afresh
+        assert st._last_msg == map_to_msg(fast, types=rclpy_types())
         after = dict(settled)
         after.update(res.tiles)
         full = stitch_graphs(

@@ -62,7 +62,7 @@ from hdmap_core.live.changes import (
     warm_up,
 )
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
-from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, same_topology, stitch_tiles
+from hdmap_core.live.restitch import kept_nodes, moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile
 from hdmap_core.model import HDMap
 from hdmap_core.parallel import available_cpus
@@ -553,13 +553,16 @@ class MapStitcher(HealthMixin, Node):
         return True
 
     def _publish(self, previous: HDMap | None = None) -> None:
-        """Publish the map; ``previous``: the map of the last message, whose topology messages
-        are reused when the topology is the same (a moved map keeps it)."""
-        msg = None
-        if previous is not None and self._last_msg is not None and same_topology(self.map, previous):
-            msg = map_to_msg(replace(self.map, topology=()), types=self._types)
-            msg.topology = self._last_msg.topology
-        if msg is None:
+        """Publish the map; ``previous``: the map of the last message, whose topology node
+        messages are reused where a node is the same (a moved map keeps most of them)."""
+        last = self._last_msg
+        if previous is not None and last is not None and len(last.topology) == len(previous.topology):
+            keep = kept_nodes(self.map, previous).tolist()
+            fresh = tuple(n for n, k in zip(self.map.topology, keep, strict=True) if k < 0)
+            msg = map_to_msg(replace(self.map, topology=fresh), types=self._types)
+            made = iter(msg.topology)
+            msg.topology = [last.topology[k] if k >= 0 else next(made) for k in keep]
+        else:
             msg = map_to_msg(self.map, types=self._types)
         self._map_pub.publish(msg)
         self._last_msg = msg
