@@ -233,15 +233,20 @@ def inner_borders(
         nodes = c[flat.n_count[c] > 0]
         if len(nodes) == 0:
             continue
-        inside = on_line = 0
-        for i, near in zip(nodes.tolist(), tree.query_ball_point(flat.n_xy[nodes], reach_m)):
-            j = mark[np.asarray(near, dtype=np.int64)]
-            j = j[np.cos(heading[j] - heading[i]) > cos_h]
-            if len(j) == 0:
-                continue
-            lat = (flat.n_xy[j] - flat.n_xy[i]) @ np.array([-math.sin(heading[i]), math.cos(heading[i])])
-            inside += bool((lat > 0.5).any() and (lat < -0.5).any())
-            on_line += bool((np.abs(lat) <= _DUP_LINE_M).any())
-        out[k] = inside > 0.5 * len(nodes)
-        dup[k] = on_line > 0.5 * len(nodes)
+        # every (node, marking node near it) pair at once: the same tests as node by node
+        near = tree.query_ball_point(flat.n_xy[nodes], reach_m)
+        lens = np.fromiter((len(x) for x in near), dtype=np.int64, count=len(near))
+        at = np.repeat(np.arange(len(nodes)), lens)  # the chain node of each pair
+        i = nodes[at]
+        j = mark[np.fromiter((q for x in near for q in x), dtype=np.int64, count=int(lens.sum()))]
+        ok = np.cos(heading[j] - heading[i]) > cos_h
+        at, i, j = at[ok], i[ok], j[ok]
+        d = flat.n_xy[j] - flat.n_xy[i]
+        lat = d[:, 0] * -np.sin(heading[i]) + d[:, 1] * np.cos(heading[i])
+        left, right, line = (np.zeros(len(nodes), dtype=bool) for _ in range(3))
+        left[at[lat > 0.5]] = True
+        right[at[lat < -0.5]] = True
+        line[at[np.abs(lat) <= _DUP_LINE_M]] = True
+        out[k] = int((left & right).sum()) > 0.5 * len(nodes)
+        dup[k] = int(line.sum()) > 0.5 * len(nodes)
     return out, dup

@@ -212,6 +212,28 @@ class MapGraph:
         )
         return mg
 
+    def with_geometry(self, graphs: Iterable[SegmentGraph]) -> MapGraph:
+        """A copy in which ``graphs`` replace the graphs of their keys with every stitch decision
+        kept (masks, drops, links): the same nodes and edges, moved (``live.restitch``: a fused
+        drive). Not the stitch of the moved graphs (``integrate`` / ``rebuild`` decide again).
+
+        Raises:
+            HdmapError: a graph whose key is not in the map or whose nodes or edges differ.
+        """
+        new = self.copy()
+        for g in graphs:
+            old = self._graphs.get(g.key)
+            if (
+                old is None
+                or not np.array_equal(old.node_uid, g.node_uid)
+                or not np.array_equal(old.topo_uid, g.topo_uid)
+                or not np.array_equal(old.edges, g.edges)
+                or not np.array_equal(old.topo_edges, g.topo_edges)
+            ):
+                raise HdmapError(f"with_geometry: {g.key!r} is not a graph of the map with the same nodes and edges")
+            new._graphs[g.key] = g
+        return new
+
     # -- updates --
     def remove(self, keys: Iterable[str]) -> int:
         """Drop segment graphs (and every link touching them); returns how many were present."""

@@ -51,6 +51,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
 from hdmap_core.errors import ConfigError, HdmapError
+from hdmap_core.graph.map_graph import MapGraph
 from hdmap_core.live.changes import (
     LiveChange,
     change_from_dict,
@@ -61,7 +62,9 @@ from hdmap_core.live.changes import (
     warm_up,
 )
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
-from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile, stitch_graphs
+from hdmap_core.live.restitch import kept_nodes, moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
+from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile
+from hdmap_core.model import HDMap
 from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
 from hdmap_ros.convert.messages import (
@@ -173,7 +176,18 @@ class MapStitcher(HealthMixin, Node):
         self.store = MapStore(state_path(db, "map_stitcher.db"))
         self.health.set("tile_versions", self.store.version_total())
         self._types = rclpy_types()
-        self._graphs: dict[TileKey, tuple[int, list]] = {}  # tile -> (version, segment graphs)
+        # tile -> (version, its segment graphs, its segments, connected from them (False: moved
+        # there from an earlier estimate by a fast update, never used by a full rebuild))
+        self._graphs: dict[TileKey, tuple[int, list, list, bool]] = {}
+        # the stitched map graph of the last map made (restitch.stitch_tiles / moved_map) and that
+        # map (not the current one once road changes were followed on it)
+        self._mg: MapGraph | None = None
+        self._mg_map: HDMap | None = None
+        self._raw_ids: dict[int, int] = {}  # its features' raw ids -> their ids in the current map
+        # the segments of estimates received since the last map (tile -> (version, segments)): the
+        # fast update moves the map to them without decoding the stored blobs again
+        self._rx_segments: dict[TileKey, tuple[int, list]] = {}
+        self._last_msg = None  # the last map message published
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
@@ -263,6 +277,7 @@ class MapStitcher(HealthMixin, Node):
             ):
                 self.health.accept()
                 self._dirty.add(tile.key)
+                self._rx_segments[tile.key] = (tile.version, list(tile.segments))
                 if tile.final:
                     self._final[tile.key] = (list(tile.drive_ids), list(tile.drive_tile_counts))
                 else:
@@ -401,12 +416,16 @@ class MapStitcher(HealthMixin, Node):
             # (an estimate lost for good, e.g. beyond the history depth, delays the map by max_delay_s)
             return
         with self._rx_lock:
+            dirty = set(self._dirty)
             self._dirty.clear()
+            received = dict(self._rx_segments)
+            self._rx_segments.clear()
         self._first_dirty = None
         sig = self.store.tiles_signature()
         t0 = time.monotonic()
         try:
-            self.rebuild()
+            if not (dirty and self._fast_update(dirty, received)):
+                self.rebuild()
         except HdmapError as err:
             self._fail(sig, str(err))
         except Exception as err:  # noqa: BLE001 - a bug must not stop the live map; logged in full
@@ -440,19 +459,22 @@ class MapStitcher(HealthMixin, Node):
         graphs = []
         for key, version, _, blob in tiles:
             cached = self._graphs.get(key)
-            if cached is None or cached[0] != version:
-                cached = (version, connect_tile(blob_to_segments(blob), key, pipeline_config=self.pipeline_config))
+            if cached is None or cached[0] != version or not cached[3]:
+                segments = blob_to_segments(blob)
+                tile_graphs = connect_tile(segments, key, pipeline_config=self.pipeline_config)
+                cached = (version, tile_graphs, segments, True)
                 self._graphs[key] = cached
             graphs.extend(cached[1])
         drive_ids = integrated_drives(final)  # every tile of each is in this map with it, final
         t1 = time.perf_counter()
-        new = stitch_graphs(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
+        raw, self._mg = stitch_tiles(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
         t2 = time.perf_counter()
-        new = carry_over_ids(new, self.map, max_distance_m=self.id_distance_m, min_overlap=self.id_overlap)
+        new = carry_over_ids(raw, self.map, max_distance_m=self.id_distance_m, min_overlap=self.id_overlap)
         new = replace(new, version=(self.map.version if self.map else 0) + 1, stamp_ns=time.time_ns())
+        self._raw_ids = raw_id_map(raw, new)
         t3 = time.perf_counter()
         self.store.put_map(new, sig)
-        self.map = new
+        self.map = self._mg_map = new
         self._consensus = new
         self._map_sig = sig
         t4 = time.perf_counter()
@@ -467,8 +489,83 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("features", len(new.features))
         self.health.set("last_rebuild_s", f"{time.perf_counter() - t0:.3f}")
 
-    def _publish(self) -> None:
-        self._map_pub.publish(map_to_msg(self.map, types=self._types))
+    def _fast_update(self, dirty: set[TileKey], received: dict[TileKey, tuple[int, list]]) -> bool:
+        """RULE fast update: when every tile received since the last map is final and its estimate
+        only moved the maxima of the one the map holds (a drive fused into it, ``live.fuse``), the
+        map's stitch decisions are kept and only its geometry moves (``live.restitch``): a new
+        version at once, listing the drives that completes. The full rebuild of the same tiles
+        follows as the next version (``_first_dirty`` stays set), so the map is again a function of the
+        tiles before it counts as settled. False (nothing done): rebuild in full. ``received``:
+        the segments of the estimates as received (tile -> (version, segments))."""
+        if self._mg is None or self.map is None or self.map is not self._mg_map:
+            return False  # RULE: not on a map with road changes followed (the rebuild, then the follow)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        with self._rx_lock:  # the estimates and the drives they vouch for as of one moment (as rebuild)
+            sig = self.store.tiles_signature()
+            final = dict(self._final)  # the final estimates stored: their drives
+            versions = {key: self.store.tile_version(key) for key in dirty}
+        moved, updates = [], {}
+        for key in sorted(dirty):
+            cached = self._graphs.get(key)
+            got = received.get(key)
+            version = versions[key]
+            if cached is None or key not in final or got is None or got[0] != version:
+                return False
+            graphs = moved_graphs(cached[1], cached[2], got[1])
+            if graphs is None:
+                return False
+            moved.extend(graphs)
+            updates[key] = (version, graphs, got[1], False)
+        parts = list(final.values())
+        drive_ids = integrated_drives(parts)
+        t1 = time.perf_counter()
+        try:
+            raw, mg = moved_map(self._mg, moved, drive_ids=drive_ids)
+        except HdmapError:
+            return False  # a graph not in the map as it is: rebuild in full
+        t2 = time.perf_counter()
+        new = remap_ids(raw, self._raw_ids)
+        if new is None:
+            new = carry_over_ids(raw, self.map, max_distance_m=self.id_distance_m, min_overlap=self.id_overlap)
+        new = replace(new, version=(self.map.version if self.map else 0) + 1, stamp_ns=time.time_ns())
+        t3 = time.perf_counter()
+        self._graphs.update(updates)
+        self._mg = mg
+        self._raw_ids = raw_id_map(raw, new)
+        self._first_dirty = time.monotonic()  # the full rebuild of these tiles follows
+        # stored with a signature no tile set has: a restart rebuilds it in full
+        self.store.put_map(new, sig + ";moved")
+        previous, self.map = self.map, new
+        self._mg_map = new
+        self._map_sig = sig
+        t4 = time.perf_counter()
+        self._publish(previous)
+        text = (
+            f"{time.perf_counter() - t0:.3f} s (move {t1 - t0:.3f}, export {t2 - t1:.3f}, ids {t3 - t2:.3f}, "
+            f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles; "
+            f"CPU of this thread {time.thread_time() - c0:.3f} s)"
+        )
+        self.health.set("last_fast_update_s", text)
+        self.get_logger().info(f"map version {new.version} moved in place (a fused burst) in {text}")
+        self.health.updated()
+        self.health.set("map_version", new.version)
+        self.health.set("features", len(new.features))
+        return True
+
+    def _publish(self, previous: HDMap | None = None) -> None:
+        """Publish the map; ``previous``: the map of the last message, whose topology node
+        messages are reused where a node is the same (a moved map keeps most of them)."""
+        last = self._last_msg
+        if previous is not None and last is not None and len(last.topology) == len(previous.topology):
+            keep = kept_nodes(self.map, previous).tolist()
+            fresh = tuple(n for n, k in zip(self.map.topology, keep, strict=True) if k < 0)
+            msg = map_to_msg(replace(self.map, topology=fresh), types=self._types)
+            made = iter(msg.topology)
+            msg.topology = [last.topology[k] if k >= 0 else next(made) for k in keep]
+        else:
+            msg = map_to_msg(self.map, types=self._types)
+        self._map_pub.publish(msg)
+        self._last_msg = msg
 
     def _on_mapper_status(self, msg) -> None:
         with self._work_lock:

@@ -236,6 +236,7 @@ class SegmentMapper(HealthMixin, Node):
         self._running: dict[Future, tuple[Job, int]] = {}  # job in work -> (job, its worker)
         self._home: dict[TileKey, int] = {}  # tile -> the worker that made its observation pass last
         self._drive_cache: OrderedDict[str, Drive] = OrderedDict()  # decoded stored drives (_drives)
+        self._seg_cache: dict[TileKey, tuple[int, list]] = {}  # final estimates stored, decoded (_keep_segments)
         self._input_done = False  # input_done() was called: handed to the schedule by work()
         for pool in self._pools if self.workers > 1 else []:  # start the processes while nothing waits
             pool.submit(warm_up)
@@ -479,7 +480,17 @@ class SegmentMapper(HealthMixin, Node):
 
     def _segments(self, key: TileKey) -> list:
         est = self.store.tile(key)
-        return est.segments() if est is not None else []
+        if est is None:
+            return []
+        cached = self._seg_cache.get(key)
+        return list(cached[1]) if cached is not None and cached[0] == est.version else est.segments()
+
+    def _keep_segments(self, est: TileEstimate, segments: Sequence) -> list:
+        """The segments of a final estimate just stored, kept decoded (the fast path's next fusion
+        into the tile takes them, and its message is made from them, without decoding the blob)."""
+        segs = list(segments)
+        self._seg_cache[est.key] = (est.version, segs)
+        return segs
 
     def _at_home(self, key: TileKey, *, worker: int) -> bool:
         """The tile's observation pass was made on ``worker`` (or on none still known)."""
@@ -543,8 +554,8 @@ class SegmentMapper(HealthMixin, Node):
             made = [(key, segments.get(key, []), ids) for key, ids in job.tiles]
             stored = self.store.put_tiles(made, model_sig=job.sig)  # one commit for every tile
             self._update_status()  # first: the stitcher then knows the burst is coming (its tile_versions)
-            for est in stored:
-                self._publish(est, final=True)
+            for est, (_, segs, _) in zip(stored, made, strict=True):
+                self._publish(est, final=True, segments=self._keep_segments(est, segs))
                 self.health.updated()
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
             self.health.set("tiles", self.scheduler.tile_count)
@@ -576,11 +587,13 @@ class SegmentMapper(HealthMixin, Node):
             self.scheduler.finished(job, ok=False)
             return
         made = [(key, result.tiles.get(key, []), ids) for key, ids in job.tiles]
-        for est in self.store.put_tiles(made, model_sig=FUSED):
-            self._publish(est, final=True)
+        for est, (_, segs, _) in zip(self.store.put_tiles(made, model_sig=FUSED), made, strict=True):
+            self._publish(est, final=True, segments=self._keep_segments(est, segs))
             self.health.updated()
         self.fast_fused += 1
         self.health.set("fast_fused", self.fast_fused)
+        how = "fused into" if job.kind == FUSE else "mapped alone (new road) into"
+        self.get_logger().info(f"drive {did!r} {how} {len(made)} tile(s) (job {result.seconds:.3f} s)")
         self.scheduler.finished(job, ok=True)
 
     def _fail(self, job: Job, err: Exception) -> None:
@@ -598,12 +611,12 @@ class SegmentMapper(HealthMixin, Node):
         self._model = OffsetModel.from_dict(data) if data is not None else None
         self._model_sig = sig if data is not None else ""
 
-    def _publish(self, est: TileEstimate, *, final: bool | None = None) -> None:
+    def _publish(self, est: TileEstimate, *, final: bool | None = None, segments: Sequence | None = None) -> None:
         """Publish an estimate; ``final`` None (a stored one): final when made with the fleet model
-        or when the preset has none."""
+        or when the preset has none. ``segments``: its segments when at hand (else decoded)."""
         msg = tile_to_msg(
             est.key,
-            est.segments(),
+            list(segments) if segments is not None else est.segments(),
             version=est.version,
             drive_ids=est.drive_ids,
             tile_size_m=self.tile_config.tile_size_m,

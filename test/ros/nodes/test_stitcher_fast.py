@@ -1,0 +1,128 @@
+"""The map stitcher's fast update (``live.restitch``) through the node, without spinning: a fused
+burst moves the map in place and lists the drive, the full rebuild of the same tiles follows and
+is then the map (``stitch_graphs`` of every tile, bit for bit)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("hdmap_msgs.msg")
+
+from rclpy.parameter import Parameter  # noqa: E402
+
+from hdmap_core.live.fuse import fuse_drive  # noqa: E402
+from hdmap_core.live.region import map_region  # noqa: E402
+from hdmap_core.live.restitch import MOVED_TOLERANCE_M  # noqa: E402
+from hdmap_core.live.tiles import TileConfig, connect_tile, stitch_graphs, tiles_of_drive  # noqa: E402
+from hdmap_core.pipeline import presets  # noqa: E402
+from hdmap_core.simulation.fleet import SimConfig, simulate_fleet  # noqa: E402
+from hdmap_core.simulation.synthetic import synthetic_highway  # noqa: E402
+from hdmap_ros.convert.messages import map_to_msg, rclpy_types  # noqa: E402
+from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg  # noqa: E402
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+TC = TileConfig(tile_size_m=256.0, margin_m=128.0, seed=0)
+
+
+def _msgs(tiles, ids, version, counts):
+    t = rclpy_tile_types()
+    return [
+        tile_to_msg(
+            k,
+            tiles[k],
+            version=version,
+            drive_ids=ids[k],
+            tile_size_m=TC.tile_size_m,
+            stamp_ns=0,
+            types=t,
+            drive_tile_counts=[counts[d] for d in ids[k]],
+            final=True,
+        )
+        for k in sorted(tiles)
+    ]
+
+
+def test_a_fused_burst_moves_the_map_at_once_and_the_full_rebuild_follows(ros, tmp_path):
+    from hdmap_ros.nodes.map_stitcher import MapStitcher
+
+    gt = synthetic_highway("motorway", length_m=700.0, seed=1)
+    sim = simulate_fleet(
+        gt, config=SimConfig(n_drives=14, snippet_length_min_m=550.0, snippet_length_max_m=700.0), seed=4
+    )
+    drives = sorted(sim.drives, key=lambda d: d.drive_id)
+    pc = presets.preset("default")
+    base, new = drives[:-1], drives[-1]
+    tiles_of = {d.drive_id: tiles_of_drive(d, config=TC) for d in drives}
+    keys = sorted(set().union(*[tiles_of[d.drive_id] for d in base]))
+    settled = map_region(base, keys, tile_config=TC, pipeline_config=pc).segments
+    res = fuse_drive(new, {k: settled[k] for k in tiles_of[new.drive_id] if k in settled})
+    assert res.tiles is not None, res.reason
+    counts = {d: len(k) for d, k in tiles_of.items()}
+    ids = {k: sorted(d.drive_id for d in base if k in tiles_of[d.drive_id]) for k in keys}
+    ids_after = {k: sorted([*ids[k], new.drive_id]) for k in res.tiles}
+
+    st = MapStitcher(  # not spun: this test calls its turns
+        context=ros.context,
+        parameter_overrides=[
+            Parameter("db_path", value=str(tmp_path / "s.db")),
+            Parameter("drive_db_path", value=str(tmp_path / "m.db")),
+            Parameter("debounce_s", value=0.2),
+            Parameter("max_delay_s", value=0.5),
+            Parameter("follow_changes", value="off"),
+        ],
+    )
+    try:
+        for m in _msgs(settled, ids, 1, counts):
+            st.on_tile(m)
+        st._work()  # every drive complete: at once
+        first = st.map
+        assert first is not None and set(first.drive_ids) == {d.drive_id for d in base} and st.is_settled()
+        for m in _msgs(res.tiles, ids_after, 2, counts):
+            st.on_tile(m)
+        st._rested_at = 0.0  # the drive came long after the last rebuild
+        st._work()  # the fused burst completes the new drive: moved in place at once
+        fast = st.map
+        assert fast.version == first.version + 1 and new.drive_id in fast.drive_ids
+        assert "last_fast_update_s" in st.health.extra and not st.is_settled()  # the full rebuild is due
+        # the message reused the last one's unchanged topology nodes: the same as made afresh
+        assert st._last_msg == map_to_msg(fast, types=rclpy_types())
+        after = dict(settled)
+        after.update(res.tiles)
+        full = stitch_graphs(
+            [g for k in sorted(after) for g in connect_tile(after[k], k, pipeline_config=pc)],
+            pipeline_config=pc,
+            drive_ids=[d.drive_id for d in drives],
+        )
+        # within the tolerance of the full re-stitch: the same lines, point for point nearly
+        assert len(fast.features) == len(full.features)
+        d = [
+            np.max(np.linalg.norm(a.points - b.points, axis=1))
+            for a, b in zip(fast.features, full.features, strict=True)
+            if len(a.points) == len(b.points)
+        ]
+        assert np.median(d) <= MOVED_TOLERANCE_M
+        time.sleep(0.25)  # quiet for debounce_s
+        st._rested_at = 0.0
+        st._work()
+        exact = st.map
+        assert exact.version == fast.version + 1 and st.is_settled()
+        assert len(exact.features) == len(full.features)
+        for a, b in zip(exact.features, full.features, strict=True):
+            np.testing.assert_array_equal(a.points, b.points)  # the full rebuild, bit for bit
+        assert exact.drive_ids == full.drive_ids
+        # on a map whose road changes were followed (another map than the stitch made), no fast
+        # update: the same estimates again (a fusion's shape) are rebuilt in full
+        st.map = replace(exact, version=exact.version + 1)
+        for m in _msgs(res.tiles, ids_after, 3, counts):
+            st.on_tile(m)
+        st._rested_at = 0.0
+        st._work()
+        assert st.map.version == exact.version + 2 and st.is_settled()
+    finally:
+        st.destroy_node()
