@@ -654,7 +654,8 @@ def build_map(
         config: pipeline options (default: the recommended method).
         seed: seeds the random pivot order.
         progress: optional callback(stage, done, total).
-        workers: processes for the pivot passes (see ``map_stretches``); the map is the same.
+        workers: processes for the pivot passes (see ``map_stretches``) and the connection (the
+            final pass's segments are connected where they are made); the map is the same.
 
     Returns:
         The map, the per-pivot segments and the report.
