@@ -181,3 +181,60 @@ def test_map_balanced_returns_results_in_item_order_from_two_processes():
     got = map_balanced(lambda i: (i * i, os.getpid()), [1.0, 4.0, 1.0, 2.0, 3.0], 2)
     assert [v for v, _ in got] == [0, 1, 4, 9, 16]
     assert len({pid for _, pid in got}) == 2 and os.getpid() in {pid for _, pid in got}
+
+
+def _same_map(want, got):
+    assert [(f.id, f.type, f.predecessors, f.successors) for f in want.features] == [
+        (f.id, f.type, f.predecessors, f.successors) for f in got.features
+    ]
+    for a, b in zip(want.features, got.features):
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.lateral_std, b.lateral_std)
+
+
+@pytest.mark.slow
+@needs_fork
+@pytest.mark.parametrize("head", ["none", "half", "all"])
+def test_the_final_pass_in_two_parts_connected_on_the_worker_gives_the_one_process_map(
+    two_way_fleet, monkeypatch, head
+):
+    """build_map's final pass: this process's share runs in two parts, the first part's segments
+    connected by the worker, the evidence index made there: the one-process map, wherever it cuts."""
+    cfg = presets.preset("default")
+    assert cfg.final_pass is not None and cfg.evidence is not None
+    want = build_map(two_way_fleet, config=cfg, seed=2, workers=1)
+    cuts = []
+
+    def cut(self, workers):
+        n = {"none": 0, "half": len(self.shares[0]) // 2, "all": len(self.shares[0])}[head]
+        cuts.append((n, len(self.shares[0])))
+        return n
+
+    monkeypatch.setattr(pipeline._TwoPasses, "_head", cut)
+    got = build_map(two_way_fleet, config=cfg, seed=2, workers=2)
+    assert len(cuts) == 1 and cuts[0][1] > 1  # two shares: the path ran
+    assert "evidence" in got.report.stage_seconds
+    _same_map(want.map, got.map)
+    _same_segments(want.segments, got.segments)
+    counts = ("steps_total", "steps_rejected", "steps_skipped_processed", "steps_off_road", "km_mapped")
+    assert [getattr(want.report, k) for k in counts] == [getattr(got.report, k) for k in counts]
+
+
+@pytest.mark.slow
+@needs_fork
+def test_a_worker_failing_in_the_final_connection_is_taken_over_with_the_same_map(two_way_fleet, monkeypatch, caplog):
+    cfg = presets.preset("default")
+    want = build_map(two_way_fleet, config=cfg, seed=2, workers=1).map
+    parent = os.getpid()
+    real = pipeline.connect_segment
+
+    def fails_in_child(*args, **kwargs):
+        if os.getpid() != parent:
+            raise RuntimeError("boom in the worker's connection")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "connect_segment", fails_in_child)
+    with caplog.at_level(logging.WARNING, logger="hdmap_core.parallel"):
+        got = build_map(two_way_fleet, config=cfg, seed=2, workers=2).map
+    assert "boom in the worker's connection" in caplog.text
+    _same_map(want, got)
