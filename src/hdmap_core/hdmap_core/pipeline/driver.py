@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
 
@@ -55,9 +54,6 @@ __all__ = [
 
 # A pass's results: segments, the processed-stretch store, observations (or None), step counts.
 _PassResult = tuple[list[Segment], ProcessedStore, list[StepObservations] | None, PassCounters]
-#: connection per final pass, in CPU time (4x paper_like, one process: 3.18 against 26.59 CPU-s):
-#: how much of this process's final-pass share the first worker connects once its own is done
-_CONNECT_PER_FINAL_PASS = 0.12
 
 
 class _Channel(Protocol):
@@ -372,26 +368,16 @@ class _TwoPasses:
         self.hit_cache: dict | None = {} if two else None
         self.tracks = DriveTracks(drives) if config.mark_on_cut_only else None
         self.observations_only = observations_only
-        #: set by ``build_map``: each final segment's connection, made where the segment is
-        #: (``_final_connected``); ``graphs`` holds them in segment order when it ran
-        self.connect: Callable[[Segment], Any] | None = None
-        self.graphs: list[Any] | None = None
         self.first_stride = config.observation_stride if (two or observations_only) else 1
         self.evidence: tuple[DetectionIndex, EvidenceConfig] | None = None
+        if not observations_only:
+            self.with_evidence()
         self.shares = [self.order]
         if workers > 1 and len(drives) > 1 and can_fork():
             t0 = time.perf_counter()
             group = pivot_groups(self.index, drives, config=config.sampling)
             self.shares = split_order(self.order, group, np.array([d.length_m for d in drives]), workers)
             self.seconds["grouping"] = time.perf_counter() - t0
-        # RULE with two passes over several processes only the final pass reads the evidence
-        # index: the first worker makes it while this process ends its (heavier) first-pass share
-        # and sends it over (``run``); each worker makes its own. The same index, off the serial path.
-        self.evidence_from_worker = (
-            two and not observations_only and len(self.shares) > 1 and config.evidence is not None
-        )
-        if not observations_only and not self.evidence_from_worker:
-            self.with_evidence()
 
     def with_evidence(self) -> None:
         """Make the negative-evidence index (``config.evidence``) if it is not there yet."""
@@ -433,18 +419,11 @@ class _TwoPasses:
             evidence=self.evidence,
         )
 
-    def _pass(
-        self,
-        share: np.ndarray,
-        model: OffsetSource | None,
-        report: ProgressFn | None,
-        store_in: ProcessedStore | None = None,
-    ) -> _PassResult:
+    def _pass(self, share: np.ndarray, model: OffsetSource | None, report: ProgressFn | None) -> _PassResult:
         counters = PassCounters()
         obs: list[StepObservations] | None = [] if (model is None and self.keep_observations) else None
         ctx = self._context(model, counters, obs)
-        store = self.store_in if store_in is None else store_in
-        segs, store = run_pass(self.drives, share, store, ctx, progress=report)
+        segs, store = run_pass(self.drives, share, self.store_in, ctx, progress=report)
         return segs, store, obs, counters
 
     def run(self, offset_model: OffsetSource | None, progress: ProgressFn | None) -> MappingResult:
@@ -456,11 +435,8 @@ class _TwoPasses:
             # read back only by that pivot's own profiles, so keeping the latest one gives the
             # same result without holding every hit of every pivot (a tiled build's final pass).
             self.hit_cache = _LatestOnly()
-        if self.evidence_from_worker and not adjust:  # a model given: no first pass to hide it behind
-            self.with_evidence()
         workers = [
-            ForkWorker(functools.partial(self._job, share=sh, model=model, adjust=adjust, first=k == 0))
-            for k, sh in enumerate(self.shares[1:])
+            ForkWorker(functools.partial(self._job, share=sh, model=model, adjust=adjust)) for sh in self.shares[1:]
         ]
         report: ProgressFn | None = None
         if progress is not None:
@@ -479,21 +455,11 @@ class _TwoPasses:
                 t0 = time.perf_counter()
                 model = adjust_offsets(obs or [], config=self.config.adjustment)
                 self.seconds["adjustment"] = time.perf_counter() - t0
-                if self.evidence is None and self.evidence_from_worker and workers:
-                    t0 = time.perf_counter()
-                    got = workers[0].result()  # made while this process ended its share
-                    if not workers[0].failed:
-                        self.evidence = cast(tuple[DetectionIndex, EvidenceConfig], got)
-                    self.seconds["evidence"] = time.perf_counter() - t0
-                self.with_evidence()  # here if no worker made it (a failed worker)
                 for w in workers:
                     w.send(model)
             if model is not None:
                 t0 = time.perf_counter()
-                if self.connect is not None and workers and not self._carries_offsets(model):
-                    segments, store, _, counters = self._final_connected(workers, model, report, progress)
-                else:
-                    segments, store, _, counters = self._all(workers, model, report, progress)
+                segments, store, _, counters = self._all(workers, model, report, progress)
                 self.seconds["final_pass"] = time.perf_counter() - t0
         finally:
             for w in workers:
@@ -523,88 +489,15 @@ class _TwoPasses:
             stage_seconds=dict(self.seconds),
         )
 
-    def _job(self, channel: _Channel, share: np.ndarray, model: OffsetSource | None, adjust: bool, first: bool) -> None:
-        """In a worker process: the same passes on its share, results sent back (the first
-        worker also sends the evidence index it makes while the parent adjusts)."""
+    def _job(self, channel: _Channel, share: np.ndarray, model: OffsetSource | None, adjust: bool) -> None:
+        """In a worker process: the same passes on its share, results sent back."""
         if model is None:
             segs, st, o, c = self._pass(share, None, None)
             channel.send((segs if not adjust else [], st, o, c))
             if not adjust:
                 return
-            if self.evidence_from_worker:
-                self.with_evidence()
-                if first:
-                    channel.send(self.evidence)
             model = cast(OffsetModel, channel.recv())
-        res = self._pass(share, model, None)
-        if self.connect is None or self._carries_offsets(model):
-            channel.send(res)
-            return
-        graphs = {seg.pivot_id: self.connect(seg) for seg in res[0]}
-        if first:  # the first worker: the head of the parent's share too
-            head = cast(list[Segment], channel.recv())
-            graphs.update((seg.pivot_id, self.connect(seg)) for seg in head)
-        channel.send((res, graphs))
-
-    def _carries_offsets(self, model: OffsetSource | None) -> bool:
-        """Whether the pass carries per-drive offsets from pivot to pivot (``run_pass``'s offset
-        memory): then a share does not run in parts."""
-        a = self.config.alignment if model is None else self.config.final_alignment
-        return a.clustering == "auto" and a.estimate_offsets
-
-    def _head(self, workers: list[ForkWorker]) -> int:
-        """How many pivots of this process's final-pass share the first worker connects: so that
-        both end together, by the shares' lengths (the pass's cost) and the connection's share."""
-        length = np.array([d.length_m for d in self.drives])
-        here = length[self.shares[0]]
-        there = float(length[self.shares[1]].sum())
-        c = _CONNECT_PER_FINAL_PASS
-        frac = (float(here.sum()) - there) * (1.0 + c) / max(2.0 * c * float(here.sum()), 1e-9)
-        return int(np.searchsorted(np.cumsum(here), np.clip(frac, 0.0, 1.0) * here.sum(), side="right"))
-
-    def _final_connected(
-        self,
-        workers: list[ForkWorker],
-        model: OffsetSource,
-        report: ProgressFn | None,
-        progress: ProgressFn | None,
-    ) -> _PassResult:
-        """The final pass as ``_all``, each segment connected (``self.graphs``) where it was made:
-        the workers connect their own, and the first one also the head of this process's share
-        (run in two parts: the same pivots in the same order, the store carried over), sent to
-        it while this process runs the rest."""
-        connect = cast(Callable[[Segment], Any], self.connect)
-        share = self.shares[0]
-        cut = self._head(workers)
-        head = self._pass(share[:cut], model, report)
-        sender = threading.Thread(target=workers[0].send, args=(head[0],), daemon=True)
-        sender.start()
-        tail_report: ProgressFn | None = None
-        if report is not None:
-            outer = report
-
-            def tail_report(stage: str, done: int, n: int) -> None:
-                outer(stage, done + cut, n)
-
-        tail = self._pass(share[cut:], model, tail_report, store_in=head[1])
-        graphs = {seg.pivot_id: connect(seg) for seg in tail[0]}
-        head[3].add(tail[3])
-        parts: list[_PassResult] = [(head[0] + tail[0], tail[1], None, head[3])]
-        for w, sh in zip(workers, self.shares[1:]):
-            got = w.result()
-            if w.failed:
-                parts.append(self._pass(sh, model, None))
-            else:
-                res, made = cast(tuple[_PassResult, dict[str, Any]], got)
-                parts.append(res)
-                graphs.update(made)
-        sender.join()
-        if progress is not None:
-            progress("pivots", len(self.order), len(self.order))
-        merged = _merge_parts(parts, self.order, self.drives, self.store_in)
-        # a failed worker's segments (and the head it did not return) are connected here
-        self.graphs = [graphs[seg.pivot_id] if seg.pivot_id in graphs else connect(seg) for seg in merged[0]]
-        return merged
+        channel.send(self._pass(share, model, None))
 
     def _all(
         self,
@@ -654,8 +547,7 @@ def build_map(
         config: pipeline options (default: the recommended method).
         seed: seeds the random pivot order.
         progress: optional callback(stage, done, total).
-        workers: processes for the pivot passes (see ``map_stretches``) and the connection (the
-            final pass's segments are connected where they are made); the map is the same.
+        workers: processes for the pivot passes (see ``map_stretches``); the map is the same.
 
     Returns:
         The map, the per-pivot segments and the report.
@@ -670,26 +562,13 @@ def build_map(
         raise NoUsableDataError(
             f"none of the {len(drives_in)} drive(s) is usable: " + "; ".join(f"{d!r}: {r}" for d, r in rejected[:5])
         )
-    ccfg = config.connection
-    with _blas_one():
-        passes = _TwoPasses(
-            usable,
-            config,
-            seed=seed,
-            processed=None,
-            collect_observations=False,
-            observations_only=False,
-            workers=_check_workers(workers),
-        )
-        # the final pass's segments are connected where they are made (``_TwoPasses._final_connected``)
-        passes.connect = functools.partial(connect_segment, config=ccfg)
-        res = passes.run(None, progress)
+    res = map_stretches(usable, config=config, seed=seed, progress=progress, validated=True, workers=workers)
     seconds = dict(res.stage_seconds)
     t0 = time.perf_counter()
+    ccfg = config.connection
     segs = res.segments
-    graphs = passes.graphs
-    if graphs is None:  # segments are connected one by one: over the workers by their step counts
-        graphs = map_balanced(lambda i: connect_segment(segs[i], config=ccfg), [len(g.steps) for g in segs], workers)
+    # segments are connected one by one: over the workers by their step counts
+    graphs = map_balanced(lambda i: connect_segment(segs[i], config=ccfg), [len(g.steps) for g in segs], workers)
     seconds["connection"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     hdmap = stitch(graphs, config=config.stitching)
