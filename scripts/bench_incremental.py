@@ -118,12 +118,12 @@ def main() -> int:
     types, ttypes = rclpy_types(), rclpy_tile_types()
 
     # hand the mapper's tile messages straight to the stitcher (what DDS does between processes)
-    def forward(est, *, final: bool | None = None) -> None:
+    def forward(est, *, final: bool | None = None, segments=None) -> None:
         counts = [mapper.scheduler.drive_tile_count(d) for d in est.drive_ids]
         stitcher.on_tile(
             tile_to_msg(
                 est.key,
-                est.segments(),
+                list(segments) if segments is not None else est.segments(),
                 version=est.version,
                 drive_ids=est.drive_ids,
                 tile_size_m=mapper.tile_config.tile_size_m,
@@ -253,7 +253,7 @@ def main() -> int:
             ]
             + mapper_overrides,
         )
-        fresh._publish = lambda est, final=None: None  # noqa: SLF001 - mapping only; the stitch is timed above
+        fresh._publish = lambda est, final=None, segments=None: None  # noqa: SLF001 - mapping only; the stitch is timed above
         msg = drive_to_msg(long_drive, types=types)
         t0 = time.perf_counter()
         fresh.on_drive(msg)
