@@ -116,8 +116,9 @@ def test_after_drives_among_the_before_drives_are_no_change():
     assert found is not None and found[0] == 20
 
 
-def _share_step(values: np.ndarray):
-    """``change_point`` of one place's share series (wrong type, say) as ``detect`` runs it."""
+def _share_step(values: np.ndarray, *, min_each: float = 0.0):
+    """``change_point`` of one place's share series (wrong type, say) with the default settings;
+    ``detect`` runs it with ``min_each=CONFIG.min_share_drive``."""
     return change_point(
         np.asarray(values, dtype=float),
         min_effect=CONFIG.min_share,
@@ -126,7 +127,7 @@ def _share_step(values: np.ndarray):
         min_before=CONFIG.min_before,
         min_after=CONFIG.min_after_shares,
         heavy_tails=True,
-        min_each=CONFIG.min_share_drive,
+        min_each=min_each,
     )
 
 
@@ -137,19 +138,22 @@ def test_a_later_drive_that_misses_the_changed_line_does_not_undo_it():
     it the true split fails, and every later one has changed drives among its before-drives:
     the change confirmed after 3 drives is gone after 8 (seed 2 of the bench lost its re-striping
     so after 5)."""
+    each = CONFIG.min_share_drive  # as detect runs it
     series = np.r_[np.zeros(19), 0.1, np.full(8, 0.5)]
     series[23] = 0.0
-    found = _share_step(series)
+    found = _share_step(series, min_each=each)
     assert found is not None and found[0] == 20 and abs(found[1] - 0.5) < 0.01
-    assert _share_step(series[:23]) is not None and _share_step(series[:23])[0] == 20  # after 3
+    assert (
+        _share_step(series[:23], min_each=each) is not None and _share_step(series[:23], min_each=each)[0] == 20
+    )  # after 3
     # the drive that misses it first: the change point is the next drive's
     first = series.copy()
     first[[20, 23]] = first[[23, 20]]
-    found = _share_step(first)
+    found = _share_step(first, min_each=each)
     assert found is not None and found[0] == 21
     # two of 5 that miss it: more than one in DISSENT_SHARE = 4, no split at the first
     two = np.r_[series[:20], 0.5, 0.0, 0.5, 0.0, 0.5]
-    assert _share_step(two) is None or _share_step(two)[0] != 20
+    assert _share_step(two, min_each=each) is None or _share_step(two, min_each=each)[0] != 20
     # the displacement allows none: a drive after a 1.5 m shift reading no move breaks the split
     moved = np.r_[np.zeros(20), np.full(8, 1.5)]
     moved[23] = 0.0
@@ -259,19 +263,6 @@ def _typed(shares: np.ndarray) -> list[PlaceEvidence]:
                 )
             )
     return out
-
-
-def _share_step(values: np.ndarray):
-    """``change_point`` of one place's share series with the default settings."""
-    return change_point(
-        np.asarray(values, dtype=float),
-        min_effect=CONFIG.min_share,
-        floor=CONFIG.share_floor,
-        z_min=CONFIG.z_min,
-        min_before=CONFIG.min_before,
-        min_after=CONFIG.min_after_shares,
-        heavy_tails=True,
-    )
 
 
 def test_share_after_drives_must_lie_beyond_every_before_drive():
