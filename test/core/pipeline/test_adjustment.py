@@ -15,6 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from step_fleets import LANE_SHIFT_M, lane_ambiguous_fleet
 
 from hdmap_core.errors import ConfigError
 from hdmap_core.model import FeatureType
@@ -180,21 +181,10 @@ def test_drive_with_large_bias_is_not_left_a_lane_off():
     # by raw position most of its dashed samples are nearer the neighbouring line (a whole-drive
     # lane ambiguity); its border samples and the far dashed line disagree. The default
     # adjustment (re-association, shift search) must end on the right lane.
-    sim = replace(
-        SMALL,
-        line_offsets_m=(-7.0, -3.5, 0.0, 3.5, 7.0),
-        line_types=(3, 2, 2, 2, 3),
-        line_detect_prob=(0.15, 0.9, 0.9, 0.9, 0.15),
-    )
-    obs, truth = simulate_step_observations(config=sim, seed=8)
-    victim = truth.drive_ids[int(np.argmax([g[-1] - g[0] for g in truth.grid_s_m]))]
-    moved = []
-    for o in obs:
-        hit = np.asarray(o.drive_ids) == victim
-        moved.append(replace(o, lateral_m=np.where(hit, o.lateral_m + 2.5, o.lateral_m)) if hit.any() else o)
+    moved, truth, victim = lane_ambiguous_fleet(SMALL)
     g = truth.grid_s_m[truth.drive_ids.index(victim)]
     s = np.linspace(g[0] + 100.0, g[-1] - 100.0, 9)
-    true = truth.true_correction(victim, s) - 2.5
+    true = truth.true_correction(victim, s) - LANE_SHIFT_M
     model = adjust_offsets(moved)
     err = np.abs(model.offset(victim, s) - true)
     print(f"large-bias drive: error {err.round(2)}, lane shifts {model.stats['lane_shifts']}")

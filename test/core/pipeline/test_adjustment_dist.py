@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from step_fleets import lane_ambiguous_fleet
 
 from hdmap_core.pipeline.adjustment import AdjustConfig, OffsetModel, adjust_offsets
 from hdmap_core.pipeline.adjustment_dist import AdjustPart, adjust_parts, local_call
@@ -19,21 +20,8 @@ CFG = AdjustConfig(compute_std=False)
 
 
 def _lane_ambiguous_fleet():
-    """Dashed lines 3.5 m apart, rare borders, and one drive moved by 2.5 m: the re-association
-    and the lane-shift search have work to do (as test_adjustment's large-bias case)."""
-    sim = replace(
-        SMALL,
-        line_offsets_m=(-7.0, -3.5, 0.0, 3.5, 7.0),
-        line_types=(3, 2, 2, 2, 3),
-        line_detect_prob=(0.15, 0.9, 0.9, 0.9, 0.15),
-    )
-    obs, truth = simulate_step_observations(config=sim, seed=8)
-    victim = truth.drive_ids[int(np.argmax([g[-1] - g[0] for g in truth.grid_s_m]))]
-    out = []
-    for o in obs:
-        hit = np.asarray(o.drive_ids) == victim
-        out.append(replace(o, lateral_m=np.where(hit, o.lateral_m + 2.5, o.lateral_m)) if hit.any() else o)
-    return out
+    """One drive a lane off by raw position: re-association and the lane-shift search have work."""
+    return lane_ambiguous_fleet(SMALL)[0]
 
 
 def _parts(obs, cuts):
