@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from fuse_fleet import fuse_fleet
 
 from hdmap_core.live.fuse import fuse_drive
 from hdmap_core.live.jobs import run_job
@@ -20,20 +21,13 @@ from hdmap_core.live.scheduler import FUSE, REGION, LiveScheduler
 from hdmap_core.live.tiles import TileConfig, road_cells, tiles_of_drive
 from hdmap_core.model import Detection, Drive
 from hdmap_core.pipeline import presets
-from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
-from hdmap_core.simulation.synthetic import synthetic_highway
 
 TC = TileConfig(tile_size_m=256.0, margin_m=128.0, seed=0)
-N = 14
 
 
 @pytest.fixture(scope="module")
 def fleet():
-    gt = synthetic_highway("motorway", length_m=700.0, seed=1)
-    sim = simulate_fleet(
-        gt, config=SimConfig(n_drives=N, snippet_length_min_m=550.0, snippet_length_max_m=700.0), seed=4
-    )
-    drives = sorted(sim.drives, key=lambda d: d.drive_id)
+    drives = fuse_fleet()
     pc = presets.preset("default")
     return drives, pc
 

@@ -15,6 +15,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import shapely
+from fuse_fleet import fuse_fleet
 
 from hdmap_core.errors import HdmapError
 from hdmap_core.live.fuse import fuse_drive
@@ -32,23 +33,16 @@ from hdmap_core.live.restitch import (
 )
 from hdmap_core.live.tiles import TileConfig, carry_over_ids, connect_tile, stitch_graphs, tiles_of_drive
 from hdmap_core.pipeline import presets
-from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
-from hdmap_core.simulation.synthetic import synthetic_highway
 
 from bag_samples import assert_maps_equal
 
 TC = TileConfig(tile_size_m=256.0, margin_m=128.0, seed=0)
-N = 14
 
 
 @pytest.fixture(scope="module")
 def fused():
     """The settled tiles of all drives but one, that drive fused into them, and the config."""
-    gt = synthetic_highway("motorway", length_m=700.0, seed=1)
-    sim = simulate_fleet(
-        gt, config=SimConfig(n_drives=N, snippet_length_min_m=550.0, snippet_length_max_m=700.0), seed=4
-    )
-    drives = sorted(sim.drives, key=lambda d: d.drive_id)
+    drives = fuse_fleet()
     pc = presets.preset("default")
     base, new = drives[:-1], drives[-1]
     keys = sorted(set().union(*[tiles_of_drive(d, config=TC) for d in base]))

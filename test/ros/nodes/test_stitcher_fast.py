@@ -13,6 +13,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("hdmap_msgs.msg")
 
+from fuse_fleet import fuse_fleet  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from hdmap_core.live.fuse import fuse_drive  # noqa: E402
@@ -20,8 +21,6 @@ from hdmap_core.live.region import map_region  # noqa: E402
 from hdmap_core.live.restitch import MOVED_TOLERANCE_M  # noqa: E402
 from hdmap_core.live.tiles import TileConfig, connect_tile, stitch_graphs, tiles_of_drive  # noqa: E402
 from hdmap_core.pipeline import presets  # noqa: E402
-from hdmap_core.simulation.fleet import SimConfig, simulate_fleet  # noqa: E402
-from hdmap_core.simulation.synthetic import synthetic_highway  # noqa: E402
 from hdmap_ros.convert.messages import map_to_msg, rclpy_types  # noqa: E402
 from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg  # noqa: E402
 
@@ -51,11 +50,7 @@ def _msgs(tiles, ids, version, counts):
 def test_a_fused_burst_moves_the_map_at_once_and_the_full_rebuild_follows(ros, tmp_path):
     from hdmap_ros.nodes.map_stitcher import MapStitcher
 
-    gt = synthetic_highway("motorway", length_m=700.0, seed=1)
-    sim = simulate_fleet(
-        gt, config=SimConfig(n_drives=14, snippet_length_min_m=550.0, snippet_length_max_m=700.0), seed=4
-    )
-    drives = sorted(sim.drives, key=lambda d: d.drive_id)
+    drives = fuse_fleet()
     pc = presets.preset("default")
     base, new = drives[:-1], drives[-1]
     tiles_of = {d.drive_id: tiles_of_drive(d, config=TC) for d in drives}
