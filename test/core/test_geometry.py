@@ -9,6 +9,7 @@ from hdmap_core.geometry import (
     arc_length,
     cut_segment_intersections,
     dense_points,
+    point_headings,
     rdp_mask_many,
     resample_by_distance,
     resample_evenly,
@@ -136,3 +137,14 @@ def test_split_long_segments_is_bounded_by_max_pieces():
     # segments within the cap are split as before: 25 m at 10 m -> 3 pieces
     near, _ = split_long_segments(np.array([[0.0, 0.0], [25.0, 0.0]]), np.array([0]), 10.0, max_pieces=1000)
     np.testing.assert_allclose(near[:, 0], [0.0, 25 / 3, 50 / 3, 25.0])
+
+
+def test_point_headings_follow_the_tangent_of_an_arc():
+    """On a circle of radius 50 m run anticlockwise, the heading at each point is its polar
+    angle + 90 degrees (central differences of even points are exact in direction), and a
+    straight line's ends take the segment's heading."""
+    phi = np.linspace(0.2, 1.2, 11)
+    arc = 50.0 * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    yaw = point_headings(arc)
+    assert np.allclose(yaw[1:-1], phi[1:-1] + np.pi / 2, atol=1e-12)
+    assert np.allclose(point_headings(np.array([[0.0, 0.0], [1.0, 1.0]])), np.pi / 4)

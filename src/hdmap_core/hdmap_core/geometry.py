@@ -15,6 +15,7 @@ __all__ = [
     "arc_length",
     "polyline_length",
     "segment_headings",
+    "point_headings",
     "interp_angle",
     "wrap_angle",
     "heading_frame",
@@ -56,6 +57,13 @@ def segment_headings(xy: np.ndarray) -> np.ndarray:
     """(N-1,) ENU yaw of each segment of a (N, 2) polyline [rad]."""
     d = np.diff(np.asarray(xy, dtype=float), axis=0)
     return np.arctan2(d[:, 1], d[:, 0])
+
+
+def point_headings(xy: np.ndarray) -> np.ndarray:
+    """(N,) ENU yaw of a (N >= 2, 2) polyline at each point, along its tangent (central
+    differences inside, one-sided at the ends: ``np.gradient``) [rad]."""
+    t = np.gradient(np.asarray(xy, dtype=float), axis=0)
+    return np.arctan2(t[:, 1], t[:, 0])
 
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import dense_points
+from hdmap_core.geometry import dense_points, point_headings
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
@@ -360,11 +360,11 @@ def retired_features(
         pts = np.asarray(f.points, dtype=float)
         if len(pts) < 2:
             continue
-        tang = np.gradient(pts, axis=0)
-        keys = places.keys(pts, np.arctan2(tang[:, 1], tang[:, 0]))
+        yaw = point_headings(pts)
+        keys = places.keys(pts, yaw)
         inside = np.array([k in owner for k in keys])
         if reach is not None and inside.any():
-            inside[inside] = reach.replaced(pts[inside], np.arctan2(tang[inside, 1], tang[inside, 0]), int(f.type))
+            inside[inside] = reach.replaced(pts[inside], yaw[inside], int(f.type))
         for a, b in _runs(inside):
             if b - a >= 2:
                 c = owner[keys[a]]

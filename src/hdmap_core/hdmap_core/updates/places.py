@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hdmap_core.geometry import point_headings
 from hdmap_core.model import Drive
 
 __all__ = ["PlaceKey", "Places", "places_of"]
@@ -45,8 +46,7 @@ class Places:
 
     def keys_along(self, pts: np.ndarray) -> list[PlaceKey]:
         """The place of each point of a polyline ``pts`` (N >= 2, 2), heading along its tangent."""
-        t = np.gradient(np.asarray(pts, dtype=float), axis=0)
-        return self.keys(pts, np.arctan2(t[:, 1], t[:, 0]))
+        return self.keys(pts, point_headings(pts))
 
     def neighbours(self, key: PlaceKey) -> list[PlaceKey]:
         """The places of the 8 cells around ``key``'s cell, on the side of the same direction.

@@ -38,6 +38,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
+from hdmap_core.geometry import point_headings
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.evidence import drive_evidence, map_lines
@@ -65,8 +66,7 @@ def grow(places: Places, keys: Iterable[PlaceKey], steps: int) -> set[PlaceKey]:
 
 
 def _tangent_yaw(pts: np.ndarray) -> np.ndarray:
-    t = np.gradient(pts, axis=0) if len(pts) >= 2 else np.zeros_like(pts)
-    return np.arctan2(t[:, 1], t[:, 0])
+    return point_headings(pts) if len(pts) >= 2 else np.zeros(len(pts))
 
 
 @dataclass(frozen=True)

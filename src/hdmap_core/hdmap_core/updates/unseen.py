@@ -43,7 +43,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.evaluation.cuts import intersect_cuts, segments_of
-from hdmap_core.geometry import dense_points
+from hdmap_core.geometry import dense_points, point_headings
 from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
@@ -100,8 +100,7 @@ class UnseenMove:
 
 def _normals(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(unit left normals (N, 2), yaw (N,)) of a polyline."""
-    t = np.gradient(pts, axis=0)
-    yaw = np.arctan2(t[:, 1], t[:, 0])
+    yaw = point_headings(pts)
     return np.stack([-np.sin(yaw), np.cos(yaw)], axis=1), yaw
 
 
