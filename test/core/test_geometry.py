@@ -14,6 +14,7 @@ from hdmap_core.geometry import (
     resample_by_distance,
     resample_evenly,
     split_long_segments,
+    true_runs,
     wrap_angle,
 )
 
@@ -148,3 +149,9 @@ def test_point_headings_follow_the_tangent_of_an_arc():
     yaw = point_headings(arc)
     assert np.allclose(yaw[1:-1], phi[1:-1] + np.pi / 2, atol=1e-12)
     assert np.allclose(point_headings(np.array([[0.0, 0.0], [1.0, 1.0]])), np.pi / 4)
+
+
+def test_true_runs_are_the_half_open_ranges_of_the_true_values():
+    mask = np.array([True, True, False, False, True, False, True])
+    assert true_runs(mask) == [(0, 2), (4, 5), (6, 7)]
+    assert true_runs(np.zeros(3, dtype=bool)) == [] and true_runs(np.zeros(0, dtype=bool)) == []

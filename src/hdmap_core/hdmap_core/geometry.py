@@ -16,6 +16,7 @@ __all__ = [
     "polyline_length",
     "segment_headings",
     "point_headings",
+    "true_runs",
     "interp_angle",
     "wrap_angle",
     "heading_frame",
@@ -64,6 +65,13 @@ def point_headings(xy: np.ndarray) -> np.ndarray:
     differences inside, one-sided at the ends: ``np.gradient``) [rad]."""
     t = np.gradient(np.asarray(xy, dtype=float), axis=0)
     return np.arctan2(t[:, 1], t[:, 0])
+
+
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) index ranges of the True runs of a boolean (N,) mask, in order."""
+    m = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]]).astype(np.int8)
+    d = np.diff(m)
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
 
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.geometry import arc_length, resample_evenly, split_long_segments
+from hdmap_core.geometry import arc_length, resample_evenly, split_long_segments, true_runs
 from hdmap_core.model import Detection, Drive, HDMap
 from hdmap_core.steps import Segment
 
@@ -186,15 +186,6 @@ def _inside(xy: np.ndarray, bounds: Sequence[float]) -> np.ndarray:
     return (xy[:, 0] >= xmin) & (xy[:, 0] < xmax) & (xy[:, 1] >= ymin) & (xy[:, 1] < ymax)
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """[start, stop) index ranges of the True runs of a boolean (N,) mask."""
-    if not mask.any():
-        return []
-    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
-    d = np.diff(m)
-    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
-
-
 def clip_drive(drive: Drive, bounds: Sequence[float]) -> Drive | None:
     """The part of a drive inside a box, or None when fewer than 2 poses lie inside.
 
@@ -222,7 +213,7 @@ def _clip(drive: Drive, bounds: Sequence[float]) -> tuple[Drive | None, float]:
     dets: list[Detection] = []
     for det in drive.detections:
         pts = np.asarray(det.points, dtype=float)
-        for s, e in _runs(_inside(pts, bounds)):
+        for s, e in true_runs(_inside(pts, bounds)):
             if e - s >= 2:
                 dets.append(Detection(type=det.type, points=pts[s:e]))
     clipped = replace(
@@ -246,7 +237,7 @@ def select_steps(segments: Iterable[Segment], bounds: Sequence[float]) -> list[S
         if not seg.steps:
             continue
         mids = np.array([np.asarray(st.midpoint, dtype=float) for st in seg.steps]).reshape(-1, 2)
-        for s, e in _runs(_inside(mids, bounds)):
+        for s, e in true_runs(_inside(mids, bounds)):
             out.append(Segment(pivot_id=seg.pivot_id, steps=tuple(seg.steps[s:e])))
     return out
 

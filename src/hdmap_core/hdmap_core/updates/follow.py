@@ -29,7 +29,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import dense_points, point_headings
+from hdmap_core.geometry import dense_points, point_headings, true_runs
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
@@ -129,18 +129,12 @@ def _change_times(changes: Sequence[DetectedChange]) -> dict[PlaceKey, int]:
     return out
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    edges = np.flatnonzero(np.diff(mask.astype(np.int8))) + 1
-    bounds = np.concatenate([[0], edges, [len(mask)]])
-    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if mask[a]]
-
-
 def _cut_drive(drive: Drive, keep: np.ndarray) -> list[Drive]:
     """The pieces of ``drive`` on its kept poses, each with the detections nearest to it."""
     xy = np.asarray(drive.xy, dtype=float)
     runs = [
         (a, b)
-        for a, b in _runs(keep)
+        for a, b in true_runs(keep)
         if b - a >= _MIN_POSES and float(np.linalg.norm(np.diff(xy[a:b], axis=0), axis=1).sum()) >= _MIN_PIECE_M
     ]
     if len(runs) == 1 and runs[0] == (0, len(keep)):
@@ -271,7 +265,7 @@ def unseen_at_ends(
         n = np.count_nonzero(np.isfinite(dn), axis=1)
         rows = np.arange(len(pts))
         moved = np.where(n > 0, 0.5 * (near[rows, np.maximum(n - 1, 0) // 2] + near[rows, n // 2]), np.inf)
-        for a, b in _runs(inside):
+        for a, b in true_runs(inside):
             # walk in from each end where the feature leaves the rebuilt places
             ends = [(a - 1, range(a, b)), (b, range(b - 1, a - 1, -1))]
             for end, order in ends:
@@ -365,7 +359,7 @@ def retired_features(
         inside = np.array([k in owner for k in keys])
         if reach is not None and inside.any():
             inside[inside] = reach.replaced(pts[inside], yaw[inside], int(f.type))
-        for a, b in _runs(inside):
+        for a, b in true_runs(inside):
             if b - a >= 2:
                 c = owner[keys[a]]
                 out.append(RetiredFeature(int(f.id), int(f.type), pts[a:b].copy(), c.id, valid_from_ns, c.time_ns))

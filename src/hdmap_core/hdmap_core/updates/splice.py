@@ -38,7 +38,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import point_headings
+from hdmap_core.geometry import point_headings, true_runs
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.evidence import drive_evidence, map_lines
@@ -166,12 +166,6 @@ def _inside(
     return _in_keys(pts, _tangent_yaw(pts), places, keys, reach, ftype)
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    edges = np.flatnonzero(np.diff(mask.astype(np.int8))) + 1
-    bounds = np.concatenate([[0], edges, [len(mask)]])
-    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if len(mask) and mask[a]]
-
-
 def border_shift(
     local: HDMap,
     first: HDMap,
@@ -230,7 +224,7 @@ def shifted(hdmap: HDMap, shifts: dict[PlaceKey, float], places: Places) -> HDMa
 
 
 def _pieces(f: MapFeature, keep: np.ndarray) -> list[tuple[int, int]]:
-    return [(a, b) for a, b in _runs(keep) if b - a >= 2]
+    return [(a, b) for a, b in true_runs(keep) if b - a >= 2]
 
 
 def splice(first: HDMap, local: HDMap, places: Places, keys: set[PlaceKey], *, reach: Reach | None = None) -> HDMap:
