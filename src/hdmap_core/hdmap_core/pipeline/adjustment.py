@@ -46,6 +46,7 @@ except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
 from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
 from hdmap_core.pipeline import adjustment_assoc as assoc
+from hdmap_core.pipeline.adjustment_coarse import coarse_basis, drive_links, place_sums
 from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
@@ -673,7 +674,9 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
         solver = NormalSolver()
     else:
         h = SchurNormal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m, prior, samples.drive)
-        rhs, solver = h.rhs, SchurSolver()
+        links = drive_links(samples.drive, samples.cluster)
+        z = coarse_basis(lay.col0, lay.n_knots, place_sums(a, samples.xy), links)
+        rhs, solver = h.rhs, SchurSolver(z)
     it, change = 0, 0.0
     for it in range(1, cfg.iterations + 1):
         new_theta = solver.solve(h, rhs, theta)  # each solver gets its own kind of h
