@@ -429,14 +429,20 @@ class DaskRunner:
             for g, idx in enumerate(groups)
         ]
         done = 0
-        for fut in as_completed(list(futs.values())):
+        pending = as_completed(list(futs.values()))
+        futs.clear()
+        for fut in pending:
             if fut.status == "error":
                 fut.result()  # a task's error is raised here, named by Dask
+            # RULE an item's result lives until its group's actor is built (the scheduler keeps a
+            # dependency for its dependents), not until every item is done: else every worker
+            # held all its tiles' observations beside the parts built from them
+            fut.release()
             done += 1
             if progress is not None:
                 progress(stage, done, len(items))
         actors = [f.result() for f in actor_futs]
-        for f in [*futs.values(), *shared_f]:
+        for f in shared_f:
             f.release()
         return ActorParts(actors, actor_futs)
 
