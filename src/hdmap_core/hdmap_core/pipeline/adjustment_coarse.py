@@ -10,6 +10,8 @@ iterations. Here those modes are solved directly (deflation, Tang et al. 2009, "
   or through others; the two directions of a road never do) one column that moves all its drives'
   biases by 1, and the bilinear hat functions of a square grid of ``COARSE_SPACING_M`` over the
   drift knots, the knot placed where its samples' steps are (weighted by the design matrix);
+  without drift (one constant per drive: the coarse stage) over the biases, each at its drive's
+  samples' mean place;
 - with ``E = Z^T H Z`` (m x m, a few hundred to a few thousand) and ``P = I - H Z E^+ Z^T``,
   CG solves ``P H x = P rhs``, and ``Z E^+ Z^T rhs + P^T x`` is the solution of ``H x = rhs``
   (``P H`` is symmetric; the residual of the deflated system is the original's). ``H Z`` is
@@ -71,7 +73,7 @@ def coarse_basis(
     rows, cols, vals = [col0], [group], [np.ones(n_drives)]
     drive_of = np.repeat(np.arange(n_drives), 1 + n_knots)
     is_knot = np.ones(p, dtype=bool)
-    is_knot[col0] = False
+    is_knot[col0[n_knots > 0]] = False  # a drive without knots: its bias is placed like a knot
     knot = np.flatnonzero(is_knot & (sums[:, 0] > 0))
     if knot.size:
         g = (sums[knot, 1:] / sums[knot, :1]) / spacing_m
