@@ -29,7 +29,6 @@ steps). The association (re-clustering all samples, lane-shift search) is in
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Protocol
@@ -39,12 +38,9 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-try:
-    from threadpoolctl import threadpool_limits
-except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
-    threadpool_limits = None
 from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
+from hdmap_core.parallel import one_blas_thread
 from hdmap_core.pipeline import adjustment_assoc as assoc
 from hdmap_core.pipeline.adjustment_coarse import coarse_basis, drive_links, place_sums
 from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
@@ -290,10 +286,6 @@ class OffsetModel:
             )
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise ConfigError(f"malformed offset model dict: {err!r}") from err
-
-
-def _one_blas_thread() -> contextlib.AbstractContextManager:
-    return threadpool_limits(limits=1, user_api="blas") if threadpool_limits else contextlib.nullcontext()
 
 
 def _jsonable(obj: Any) -> Any:
@@ -700,7 +692,7 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
 def _covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:
     """Entries of H^-1 needed for the std of o(s): var/cov of bias and knots, per column."""
     # One BLAS thread: on a small shared machine OpenBLAS threads thrash (measured 20x slower).
-    with _one_blas_thread():
+    with one_blas_thread():
         c, lower = scipy.linalg.cho_factor(h.toarray(), lower=False, check_finite=False)
         inv, info = scipy.linalg.lapack.dpotri(c, lower=lower)
     if info != 0:

@@ -31,6 +31,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from hdmap_core.parallel import one_blas_thread
+
 __all__ = ["COARSE_SPACING_M", "Deflation", "coarse_basis", "drive_links", "place_sums"]
 
 #: grid spacing of the coarse hat functions [m]
@@ -53,10 +55,12 @@ def drive_links(drive: np.ndarray, cluster: np.ndarray) -> np.ndarray:
     to find which drives are connected."""
     if drive.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    pairs = np.unique(np.column_stack([cluster, drive]).astype(np.int64), axis=0)
-    same = pairs[1:, 0] == pairs[:-1, 0]
-    links = np.column_stack([pairs[:-1, 1][same], pairs[1:, 1][same]])
-    return np.unique(links, axis=0) if links.size else links
+    n = int(drive.max()) + 1
+    pairs = np.unique(cluster.astype(np.int64) * n + drive)  # by cluster, then drive
+    c, d = pairs // n, pairs % n
+    same = c[1:] == c[:-1]
+    key = np.unique(d[:-1][same] * n + d[1:][same])
+    return np.column_stack([key // n, key % n])
 
 
 def coarse_basis(
@@ -102,7 +106,8 @@ class Deflation:
         self.z = z
         self.hz = sp.csr_matrix(h.matmat(z))
         e = np.asarray((z.T @ self.hz).todense())
-        lam, vec = np.linalg.eigh(0.5 * (e + e.T))
+        with one_blas_thread():
+            lam, vec = np.linalg.eigh(0.5 * (e + e.T))
         ok = lam > PINV_RTOL * max(float(lam.max(initial=0.0)), 1e-300)
         self._e_pinv = (vec[:, ok] / lam[ok]) @ vec[:, ok].T
         self.size = int(ok.sum())

@@ -14,7 +14,8 @@ share:
   the client adds them and solves, as ``adjust_offsets`` does. Above
   ``AdjustConfig.max_pair_fill`` (the parts' pair entries summed) nothing is assembled: conjugate
   gradients on ``H v = P v + sum_b H_b v`` (``adjustment_schur``), one round of part products per
-  iteration, preconditioned by the sum of the parts' per-drive blocks;
+  iteration, preconditioned by the sum of the parts' per-drive blocks and deflated by the coarse
+  space of place-wise shifts (``adjustment_coarse``: its ``H Z`` one more round per solve);
 - what is per sample (association, residuals, weights, coarse rejection) stays in its part; what
   is per drive is reduced in the client: each drive's used range (its knots), the lane-shift
   search's cost per drive and shift (summed), the curves (sent back to every part);

@@ -11,7 +11,8 @@ applied without forming it, as two sparse products with B and one with the per-d
 ``K = A^T W A + P`` (every row of A touches one drive's columns, so K is block diagonal by
 drive): linear in the samples. ``SchurSolver`` solves H x = rhs by conjugate gradients,
 preconditioned by the per-drive diagonal blocks of H (K minus the pair term's blocks within a
-drive; factorised, they are as sparse as K), warm-started at the previous IRLS solution. The
+drive; factorised, they are as sparse as K) and deflated by a coarse space of place-wise shifts
+(``adjustment_coarse``), warm-started at the previous IRLS solution. The
 solution is the explicit solve's within the CG tolerance (relative residual 1e-10: about 1e-9 m
 on a 16x tile; tests/test_adjustment_schur.py).
 
