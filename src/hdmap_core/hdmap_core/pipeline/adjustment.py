@@ -563,7 +563,12 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         inlier_rms_m=float(np.sqrt(np.mean(r[inlier] ** 2))) if inlier.any() else float("nan"),
     )
     if fit.schur is not None:  # the curve fit was solved matrix-free (past cfg.max_pair_fill)
-        stats.update(matrix_free=True, cg_iterations=fit.schur.iterations, cg_unconverged=fit.schur.unconverged)
+        stats.update(
+            matrix_free=True,
+            cg_iterations=fit.schur.iterations,
+            cg_unconverged=fit.schur.unconverged,
+            cg_coarse_unknowns=fit.schur.coarse_unknowns,
+        )
     theta, h = fit.theta, fit.normal
     cov = None
     if cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:

@@ -378,7 +378,10 @@ def adjust_parts(call: Call, n_parts: int, config: AdjustConfig) -> OffsetModel:
     )
     if curve_fit.schur is not None:
         stats.update(
-            matrix_free=True, cg_iterations=curve_fit.schur.iterations, cg_unconverged=curve_fit.schur.unconverged
+            matrix_free=True,
+            cg_iterations=curve_fit.schur.iterations,
+            cg_unconverged=curve_fit.schur.unconverged,
+            cg_coarse_unknowns=curve_fit.schur.coarse_unknowns,
         )
     return OffsetModel(**base, drives=drive_curves(_ids(drive_ids, used), lay, curve_fit.theta, None), stats=stats)
 

@@ -162,12 +162,13 @@ class SchurSolver:
     each solve: the weights change between IRLS solves, and the blocks are as sparse as K) and,
     with ``coarse`` (``adjustment_coarse.coarse_basis``), deflated by that coarse space.
     ``iterations``: CG iterations of all solves; ``unconverged``: solves that hit CG_MAXITER
-    (their last iterate is returned)."""
+    (their last iterate is returned); ``coarse_unknowns``: the last solve's coarse space rank."""
 
     def __init__(self, coarse: sp.csr_matrix | None = None) -> None:
         self.iterations = 0
         self.unconverged = 0
         self.coarse = coarse
+        self.coarse_unknowns = 0
 
     def solve(self, h: Any, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """``h``: a ``SchurNormal`` or an operator with its ``matvec``, ``drive_blocks`` (and
@@ -184,6 +185,7 @@ class SchurSolver:
         defl = Deflation(h, self.coarse) if self.coarse is not None and self.coarse.shape[1] else None
         if defl is not None:
             matvec, b = (lambda v: defl.project(h.matvec(v))), defl.project(rhs)
+            self.coarse_unknowns = defl.size
         x, info = spla.cg(
             spla.LinearOperator(h.shape, matvec=matvec, dtype=float),
             b,
