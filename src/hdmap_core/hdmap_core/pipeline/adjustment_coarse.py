@@ -1,8 +1,9 @@
 """The matrix-free offset solve's coarse space: one shift common to every drive at a place.
 
-What the data of the adjustment cannot see is a function ``f(place)`` added to all drives there
-(docs/adjustment.md, "Gauge"): only the priors hold it. Conjugate gradients preconditioned by
-the per-drive blocks (``adjustment_schur``) corrects it one drive-to-drive hop per iteration, so
+What the data of the adjustment cannot see is a function ``f(place)`` added to all drives
+there (docs/adjustment.md, "Model": the gauge): only the priors hold it. Conjugate gradients
+preconditioned by the per-drive blocks (``adjustment_schur``) corrects it one drive-to-drive
+hop per iteration, so
 on long chains of drives (4x and 16x paper_like) a solve needs hundreds to thousands of
 iterations. Here those modes are solved directly (deflation, Tang et al. 2009, "DEF1"):
 
