@@ -181,3 +181,68 @@ def test_map_balanced_returns_results_in_item_order_from_two_processes():
     got = map_balanced(lambda i: (i * i, os.getpid()), [1.0, 4.0, 1.0, 2.0, 3.0], 2)
     assert [v for v, _ in got] == [0, 1, 4, 9, 16]
     assert len({pid for _, pid in got}) == 2 and os.getpid() in {pid for _, pid in got}
+
+
+# A parent that makes a spawn_pool, hands its worker a job that outlives it, prints the worker's
+# pid and kills itself with SIGKILL (no clean-up runs).
+# A parent that starts a worker (a spawn_pool's, or a ForkWorker waiting for the parent's next
+# message), hands it work that outlives the parent, prints the worker's pid and kills itself with
+# SIGKILL (no clean-up runs).
+_KILLED_PARENT = """
+import os, signal, sys, time
+from hdmap_core.parallel import ForkWorker, spawn_pool
+
+def busy():
+    time.sleep(60)
+
+def waits(channel):
+    channel.send(os.getpid())
+    channel.recv()
+
+if __name__ == "__main__":
+    if sys.argv[1] == "spawn_pool":
+        pool = spawn_pool()
+        pid = pool.submit(os.getpid).result()
+        pool.submit(busy)
+    else:
+        pid = ForkWorker(waits).result()
+    print(pid, flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def _alive(pid: int) -> bool:
+    """Running (not gone, not a zombie waiting for a reaper that never comes in a container)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            state = next(line for line in f if line.startswith("State:"))
+    except (FileNotFoundError, ProcessLookupError, StopIteration):
+        return False
+    return "Z" not in state.split()[1]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (os.path.isdir("/proc") and can_fork()), reason="reads /proc, forks")
+@pytest.mark.parametrize("kind", ["spawn_pool", "fork_worker"])
+def test_a_worker_ends_when_its_parent_is_killed(tmp_path, kind):
+    import subprocess  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+    import time  # noqa: PLC0415
+
+    script = tmp_path / "parent.py"
+    script.write_text(_KILLED_PARENT)
+    src = os.path.join(os.path.dirname(__file__), "..", "..", "src", "hdmap_core")
+    env = {**os.environ, "PYTHONPATH": os.path.abspath(src)}
+    # the worker inherits stdout: read the pid line, not to EOF
+    with subprocess.Popen([sys.executable, str(script), kind], stdout=subprocess.PIPE, text=True, env=env) as parent:
+        assert parent.stdout is not None
+        worker = int(parent.stdout.readline())
+        assert parent.wait(timeout=120) == -9
+    try:
+        deadline = time.monotonic() + 30  # a liveness bound, not a timing figure: it ends in ~0.5 s
+        while _alive(worker) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(worker), f"the {kind} worker outlived its killed parent"
+    finally:
+        if _alive(worker):
+            os.kill(worker, 9)

@@ -40,11 +40,10 @@ from __future__ import annotations
 
 import functools
 import json
-import multiprocessing
 import threading
 import time
 import traceback
-from concurrent.futures import BrokenExecutor, Executor, Future, ProcessPoolExecutor
+from concurrent.futures import BrokenExecutor, Executor, Future
 from dataclasses import replace
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -65,7 +64,7 @@ from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
 from hdmap_core.live.restitch import kept_nodes, moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile
 from hdmap_core.model import HDMap
-from hdmap_core.parallel import available_cpus
+from hdmap_core.parallel import available_cpus, spawn_pool
 from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
 from hdmap_ros.convert.messages import (
     change_to_msg,
@@ -388,7 +387,7 @@ class MapStitcher(HealthMixin, Node):
         executor; forks only from there, never from this process with its native threads). Made
         when the first tile estimates come (a stitcher that never gets one never starts it)."""
         if self._follow_executor is None:
-            self._follow_executor = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self._follow_executor = spawn_pool()
             self._follow_executor.submit(warm_up)
         return self._follow_executor
 

@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import multiprocessing
 import time
 import traceback
 from collections import OrderedDict
@@ -70,7 +69,7 @@ from hdmap_core.live.progress import LiveStatus
 from hdmap_core.live.scheduler import FUSE, FUSED, MAP, MODEL, OBSERVE, PART, REGION, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig, TileKey, road_cells, tiles_of_drive
 from hdmap_core.model import Drive, validate_drive
-from hdmap_core.parallel import available_cpus
+from hdmap_core.parallel import available_cpus, spawn_pool
 from hdmap_core.pipeline.adjustment import OffsetModel
 from hdmap_core.plausibility import check_plausible
 from hdmap_ros.convert.messages import rclpy_status_class, rclpy_types, status_to_msg
@@ -229,9 +228,8 @@ class SegmentMapper(HealthMixin, Node):
         self.workers = workers or available_cpus()
         # one process per worker, so a tile's settle job can go to the process that keeps the
         # work of its observation pass (``live.jobs.TileWork``)
-        ctx = multiprocessing.get_context("spawn")
         self._pools: list[ProcessPoolExecutor | _Inline] = (
-            [ProcessPoolExecutor(1, mp_context=ctx) for _ in range(self.workers)] if self.workers > 1 else [_Inline()]
+            [spawn_pool() for _ in range(self.workers)] if self.workers > 1 else [_Inline()]
         )
         self._running: dict[Future, tuple[Job, int]] = {}  # job in work -> (job, its worker)
         self._home: dict[TileKey, int] = {}  # tile -> the worker that made its observation pass last
