@@ -51,7 +51,7 @@ from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
 from hdmap_core.updates.evidence import PlaceEvidence
-from hdmap_core.updates.places import PlaceKey, Places
+from hdmap_core.updates.places import PlaceKey, Places, markings_in
 
 __all__ = ["ModelledMarking", "UnseenMove", "unseen_at_ends", "unseen_moved"]
 
@@ -195,15 +195,9 @@ def unseen_moved(
     # Step 2: per first-map marking point in a candidate place, its move as the local map shows it.
     rows = []  # (feature index, point indices, keys, normals, measured move or NaN, stayed)
     predicted: dict[int, list[np.ndarray]] = {}  # per type: the first map's markings moved by D
-    for fi, f in enumerate(first.features):
-        if int(f.type) not in _MARKINGS or len(f.points) < 2:
-            continue
-        pts = np.asarray(f.points, dtype=float)
-        nrm, yaw = _normals(pts)
-        keys = places.keys(pts, yaw)
-        idx = np.array([i for i, k in enumerate(keys) if k in moves], dtype=np.int64)
-        if len(idx) == 0:
-            continue
+    for fi, f, pts, keys, inside in markings_in(first, places, moves):
+        nrm, _ = _normals(pts)
+        idx = np.flatnonzero(inside)
         d = np.array([moves[keys[i]][1] for i in idx])
         p, n = pts[idx], nrm[idx]
         q = p - d[:, None] * n  # D > 0: the markings moved right of the drives
@@ -355,14 +349,7 @@ def unseen_at_ends(
     tree = cKDTree(marks)
     d_first, _ = cKDTree(dense_points(first_marks, _RESAMPLE_M)).query(marks)  # each local marking point: moved how far
     out = [np.zeros((0, 2))]
-    for f in first.features:
-        if int(f.type) not in _MARKINGS or len(f.points) < 2:
-            continue
-        pts = np.asarray(f.points, dtype=float)
-        keys = places.keys_along(pts)
-        inside = np.array([k in rebuilt for k in keys], dtype=bool)
-        if not inside.any():
-            continue
+    for _, _, pts, keys, inside in markings_in(first, places, rebuilt):
         d, _ = tree.query(pts, distance_upper_bound=_TAPER_KEEP_M)
         dn, jn = tree.query(pts, k=_TAPER_NEAREST, distance_upper_bound=_TAPER_VIEW_M)
         # the median over the nearest local marking points found (inf: none)
