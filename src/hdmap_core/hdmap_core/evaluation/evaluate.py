@@ -55,6 +55,7 @@ from hdmap_core.evaluation.topology import (
     map_feature_graph,
     on_cuts,
 )
+from hdmap_core.geometry import turn_left, unit_tangents
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import Drive, HDMap, MapFeature
 
@@ -717,9 +718,7 @@ def hdmap_from_ground_truth(
     for i, f in enumerate(feats):
         pts = np.asarray(f.points, dtype=float)
         if lateral_shift_m:
-            t = np.gradient(pts, axis=0)
-            t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-            pts = pts + lateral_shift_m * np.stack([-t[:, 1], t[:, 0]], axis=1)
+            pts = pts + lateral_shift_m * turn_left(unit_tangents(pts))
         out.append(
             MapFeature(
                 id=int(f.id),

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import point_headings, true_runs
+from hdmap_core.geometry import left_normal, point_headings, true_runs
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
@@ -180,7 +180,7 @@ def anchored(drive: Drive, anchors: dict[PlaceKey, float], places: Places, *, sm
     a = np.interp(idx, idx[ok], a[ok])
     step = max(drive.length_m / max(len(a) - 1, 1), 1e-3)
     a = uniform_filter1d(a, size=max(1, int(round(smooth_m / step))) | 1, mode="nearest")
-    left = np.stack([-np.sin(drive.yaw), np.cos(drive.yaw)], axis=1)
+    left = left_normal(drive.yaw)
     move = a[:, None] * left
     tree = cKDTree(drive.xy)
     dets = []

@@ -46,7 +46,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.evaluation.cuts import intersect_cuts, segments_of
-from hdmap_core.geometry import dense_points, point_headings, true_runs
+from hdmap_core.geometry import dense_points, left_normal, point_headings, true_runs
 from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
@@ -107,12 +107,6 @@ class UnseenMove:
         return np.concatenate([np.zeros((0, 2)), *(p.from_points for p in self.pieces)])
 
 
-def _normals(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(unit left normals (N, 2), yaw (N,)) of a polyline."""
-    yaw = point_headings(pts)
-    return np.stack([-np.sin(yaw), np.cos(yaw)], axis=1), yaw
-
-
 def _explained(
     local_lines: Sequence[tuple[int, np.ndarray]],
     predicted: dict[int, list[np.ndarray]],
@@ -129,8 +123,7 @@ def _explained(
         pts = dense_points([pts], _RESAMPLE_M)
         if len(pts) < 2:
             continue
-        _, yaw = _normals(pts)
-        keys = places.keys(pts, yaw)
+        keys = places.keys_along(pts)
         inside = np.array([k in moves for k in keys], dtype=bool)
         if not inside.any():
             continue
@@ -196,7 +189,7 @@ def unseen_moved(
     rows = []  # (feature index, point indices, keys, normals, measured move or NaN, stayed)
     predicted: dict[int, list[np.ndarray]] = {}  # per type: the first map's markings moved by D
     for fi, f, pts, keys, inside in markings_in(first, places, moves):
-        nrm, _ = _normals(pts)
+        nrm = left_normal(point_headings(pts))
         idx = np.flatnonzero(inside)
         d = np.array([moves[keys[i]][1] for i in idx])
         p, n = pts[idx], nrm[idx]
