@@ -345,16 +345,23 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int, bool]]:
     return [(int(a), int(b), bool(mask[a])) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def _selected(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int, np.ndarray]:
-    """Feature index -> (N,) in-zone mask of the markings a restripe / remove acts on."""
-    cand: dict[int, tuple[np.ndarray, float]] = {}
+def _zone_markings(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int, tuple[np.ndarray, float]]:
+    """Feature index -> ((N,) in-zone mask, median lateral offset there [m, + = left]) of the
+    markings with at least two points in the zone between the change's ends."""
+    out: dict[int, tuple[np.ndarray, float]] = {}
     for i, f in enumerate(gt.features):
         if f.type not in (FeatureType.SOLID, FeatureType.DASHED):
             continue
         s, lat, member = _station(zone, f.points, unit_tangents(f.points))
         inside = member & (s >= change.from_m) & (s <= change.to_m)
         if np.count_nonzero(inside) >= 2:
-            cand[i] = (inside, float(np.median(lat[inside])))
+            out[i] = (inside, float(np.median(lat[inside])))
+    return out
+
+
+def _selected(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int, np.ndarray]:
+    """Feature index -> (N,) in-zone mask of the markings a restripe / remove acts on."""
+    cand = _zone_markings(zone, gt, change)
     if change.size is None:
         return {i: m for i, (m, _) in cand.items() if gt.features[i].type == FeatureType.DASHED}
     order = sorted(cand, key=lambda i: -cand[i][1])  # left first
@@ -369,14 +376,7 @@ def _selected(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int
 def _markings_by_offset(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> list[tuple[float, list[int]]]:
     """The carriageway's markings in the zone grouped by lateral offset (0.5 m), rightmost first:
     (median offset [m, + = left], feature indices)."""
-    cand: list[tuple[float, int]] = []
-    for i, f in enumerate(gt.features):
-        if f.type not in (FeatureType.SOLID, FeatureType.DASHED):
-            continue
-        s, lat, member = _station(zone, f.points, unit_tangents(f.points))
-        inside = member & (s >= change.from_m) & (s <= change.to_m)
-        if np.count_nonzero(inside) >= 2:
-            cand.append((float(np.median(lat[inside])), i))
+    cand = [(lat, i) for i, (_, lat) in _zone_markings(zone, gt, change).items()]
     groups: list[tuple[float, list[int]]] = []
     for offset, i in sorted(cand):
         if groups and abs(offset - groups[-1][0]) < 0.5:
