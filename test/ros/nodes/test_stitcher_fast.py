@@ -113,7 +113,7 @@ def test_a_fused_burst_moves_the_map_at_once_and_the_full_rebuild_follows(ros, t
         assert exact.drive_ids == full.drive_ids
         # on a map whose road changes were followed (another map than the stitch made), no fast
         # update: the same estimates again (a fusion's shape) are rebuilt in full
-        st.map = replace(exact, version=exact.version + 1)
+        st._put_followed(replace(exact, version=exact.version + 1), st._map_sig, [])
         for m in _msgs(res.tiles, ids_after, 3, counts):
             st.on_tile(m)
         st._rested_at = 0.0

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import dense_points, point_headings, true_runs
+from hdmap_core.geometry import left_normal, point_headings, true_runs
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
@@ -48,7 +48,7 @@ from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evi
 from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
-from hdmap_core.updates.unseen import ModelledMarking, UnseenMove, unseen_moved
+from hdmap_core.updates.unseen import ModelledMarking, UnseenMove, unseen_at_ends, unseen_moved
 
 __all__ = [
     "RetiredFeature",
@@ -60,7 +60,6 @@ __all__ = [
     "fleet_comparison",
     "clip_to_places",
     "along_drives",
-    "unseen_at_ends",
     "retired_features",
     "history_to_dict",
 ]
@@ -181,7 +180,7 @@ def anchored(drive: Drive, anchors: dict[PlaceKey, float], places: Places, *, sm
     a = np.interp(idx, idx[ok], a[ok])
     step = max(drive.length_m / max(len(a) - 1, 1), 1e-3)
     a = uniform_filter1d(a, size=max(1, int(round(smooth_m / step))) | 1, mode="nearest")
-    left = np.stack([-np.sin(drive.yaw), np.cos(drive.yaw)], axis=1)
+    left = left_normal(drive.yaw)
     move = a[:, None] * left
     tree = cKDTree(drive.xy)
     dets = []
@@ -220,63 +219,6 @@ def along_drives(
                     counted += int(length[j] >= short)
                     j += way
     return out
-
-
-def unseen_at_ends(
-    first: HDMap,
-    local: HDMap,
-    places: Places,
-    rebuilt: set[PlaceKey],
-    moved_places: frozenset[PlaceKey] = frozenset(),
-) -> np.ndarray:
-    """(N, 2) the first map's marking points in the ``rebuilt`` places that the drives after
-    the change did not see (no local marking within ``_TAPER_KEEP_M``), walking in from where a
-    run of them leaves the rebuilt places, up to where the lines the drives saw leave the first
-    map's (the median distance of the nearest local marking points to a first-map marking
-    exceeds ``_TAPER_SAME_M``) or the first place of ``moved_places`` (where the drives after
-    the change measured the lines moved). A shift zone's tapers move the lines from 0: near
-    their outer end the lines no drive after it saw are still where the first map has them, and
-    the rebuild would drop them; past that point they moved (a move near a lane's width comes
-    near the neighbour's old place again: hence the first such point ends the walk). The first
-    map is the consensus of every drive, those after the change too: once several of them
-    passed, it holds the moved lines along the tapers as well, the lines they saw lie on its
-    own there, and only ``moved_places`` ends the walk before it runs through the zone."""
-    if not rebuilt:
-        return np.zeros((0, 2))
-    first_marks = [np.asarray(f.points, dtype=float) for f in first.features if int(f.type) in _MARKINGS]
-    marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], _DENSE_M)
-    if len(marks) == 0 or not first_marks:
-        return np.zeros((0, 2))
-    tree = cKDTree(marks)
-    d_first, _ = cKDTree(dense_points(first_marks, _DENSE_M)).query(marks)  # each local marking point: moved how far
-    out = [np.zeros((0, 2))]
-    for f in first.features:
-        if int(f.type) not in _MARKINGS or len(f.points) < 2:
-            continue
-        pts = np.asarray(f.points, dtype=float)
-        keys = places.keys_along(pts)
-        inside = np.array([k in rebuilt for k in keys], dtype=bool)
-        if not inside.any():
-            continue
-        d, _ = tree.query(pts, distance_upper_bound=_TAPER_KEEP_M)
-        dn, jn = tree.query(pts, k=_TAPER_NEAREST, distance_upper_bound=_TAPER_VIEW_M)
-        # the median over the nearest local marking points found (inf: none)
-        near = np.sort(np.where(np.isfinite(dn), d_first[np.minimum(jn, len(marks) - 1)], np.inf), axis=1)
-        n = np.count_nonzero(np.isfinite(dn), axis=1)
-        rows = np.arange(len(pts))
-        moved = np.where(n > 0, 0.5 * (near[rows, np.maximum(n - 1, 0) // 2] + near[rows, n // 2]), np.inf)
-        for a, b in true_runs(inside):
-            # walk in from each end where the feature leaves the rebuilt places
-            ends = [(a - 1, range(a, b)), (b, range(b - 1, a - 1, -1))]
-            for end, order in ends:
-                if not 0 <= end < len(keys):
-                    continue
-                for i in order:
-                    if moved[i] > _TAPER_SAME_M or keys[i] in moved_places:  # (inf: none near) too
-                        break
-                    if not np.isfinite(d[i]):
-                        out.append(pts[i : i + 1])
-    return np.concatenate(out)
 
 
 def fleet_comparison(
@@ -375,12 +317,7 @@ _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 # drives after the change saw and the local map holds, then took the median barrier's place
 # (shift10 seed 1: zone recall 93.8 % with 3 m, 97.4 % with 1.5 m; docs/updates.md, "How `bag2map` follows a change").
 _BORDER_SAME_M = 1.5
-_TAPER_KEEP_M = 1.75
 _NOT_SHIFTED = {"lane_closed", "lane_opened", "type", "marking_gone"}
-_TAPER_SAME_M = 0.8
-_DENSE_M = 0.5  # the markings are looked up at this spacing [m]
-_TAPER_NEAREST = 8
-_TAPER_VIEW_M = 12.0
 
 
 def follow_changes(

@@ -45,6 +45,7 @@ import time
 import traceback
 from concurrent.futures import BrokenExecutor, Executor, Future
 from dataclasses import replace
+from typing import NamedTuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -92,6 +93,15 @@ CHANGES_TOPIC = "hdmap/changes"
 # max_delay_s took the CPU the mapper needs to finish its tiles (a quiet debounce_s rebuilds at once)
 REBUILD_SHARE = 0.5
 CHANGES_QOS = qos.CHANGES  # the whole history latched (a restart publishes it again)
+
+
+class TileGraphs(NamedTuple):
+    """A tile's segment graphs as the stitcher holds them."""
+
+    version: int  # of the tile estimate they are of
+    graphs: list  # its segment graphs (live.tiles.connect_tile)
+    segments: list  # its segments
+    connected: bool  # connected from them (False: moved there by a fast update; a rebuild connects again)
 
 
 class MapStitcher(HealthMixin, Node):
@@ -175,13 +185,10 @@ class MapStitcher(HealthMixin, Node):
         self.store = MapStore(state_path(db, "map_stitcher.db"))
         self.health.set("tile_versions", self.store.version_total())
         self._types = rclpy_types()
-        # tile -> (version, its segment graphs, its segments, connected from them (False: moved
-        # there from an earlier estimate by a fast update, never used by a full rebuild))
-        self._graphs: dict[TileKey, tuple[int, list, list, bool]] = {}
-        # the stitched map graph of the last map made (restitch.stitch_tiles / moved_map) and that
-        # map (not the current one once road changes were followed on it)
+        self._graphs: dict[TileKey, TileGraphs] = {}
+        # the stitched map graph of the current map (restitch.stitch_tiles / moved_map); None
+        # while there is none: at the start, and once road changes were followed on the map
         self._mg: MapGraph | None = None
-        self._mg_map: HDMap | None = None
         self._raw_ids: dict[int, int] = {}  # its features' raw ids -> their ids in the current map
         # the segments of estimates received since the last map (tile -> (version, segments)): the
         # fast update moves the map to them without decoding the stored blobs again
@@ -241,13 +248,11 @@ class MapStitcher(HealthMixin, Node):
         self._consensus = self.map if self._followed_sig != sig else None
         for c in self.history.values():  # latched: the history again, same ids (not new)
             self._changes_pub.publish(change_to_msg(c, cls=self._change_cls, types=self._types))
-        self.health.set("changes_known", len(self.history))
-        self.health.set("changes_new", 0)
+        self._changes_health()
         if self.map is not None:
             self._publish()
             # the stored map is this node's map until a rebuild (none comes when no tile changed)
-            self.health.set("map_version", self.map.version)
-            self.health.set("features", len(self.map.features))
+            self._map_health()
         if self.store.tiles_signature() != sig:
             self._first_dirty = time.monotonic()
         self.get_logger().info(
@@ -357,10 +362,7 @@ class MapStitcher(HealthMixin, Node):
                 )
                 if c.id not in self.history
             ]
-            self.store.put_followed(new, sig, [(c.id, c.time_ns, dumps(c)) for c in announced])
-            self.map = new
-            self._followed_sig = sig
-            self._publish()
+            self._put_followed(new, sig, announced)
             for c in announced:
                 self.history[c.id] = c
                 self.changes_new += 1
@@ -369,10 +371,8 @@ class MapStitcher(HealthMixin, Node):
                     f"road change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "
                     f"{len(c.drive_ids)} drive(s) in evidence, confidence {c.confidence:.3f}, map version {version}"
                 )
-            self.health.set("map_version", new.version)
-            self.health.set("features", len(new.features))
-        self.health.set("changes_known", len(self.history))
-        self.health.set("changes_new", self.changes_new)
+            self._map_health()
+        self._changes_health()
         self.health.set("changes_in_map", len(result.changes))
         seconds = time.perf_counter() - t0
         self.health.set("last_follow_s", f"{seconds:.3f}")
@@ -380,6 +380,14 @@ class MapStitcher(HealthMixin, Node):
             f"road changes followed on map version {self.map.version} in {seconds:.1f} s: "
             f"{len(result.changes)} in the map, {len(fresh)} new, {len(self.history)} in the history"
         )
+
+    def _put_followed(self, new: HDMap, sig: str, announced: list[LiveChange]) -> None:
+        """Store, take and publish ``new``, the map of the tiles ``sig`` with road changes followed."""
+        self.store.put_followed(new, sig, [(c.id, c.time_ns, dumps(c)) for c in announced])
+        self.map = new
+        self._mg = None  # no map graph made this map: no fast update on it (the rebuild, then the follow)
+        self._followed_sig = sig
+        self._publish()
 
     def _follow_pool(self) -> Executor:
         """The process the change following runs in (``live.changes.follow_loaded``: it reads the
@@ -458,12 +466,12 @@ class MapStitcher(HealthMixin, Node):
         graphs = []
         for key, version, _, blob in tiles:
             cached = self._graphs.get(key)
-            if cached is None or cached[0] != version or not cached[3]:
+            if cached is None or cached.version != version or not cached.connected:
                 segments = blob_to_segments(blob)
                 tile_graphs = connect_tile(segments, key, pipeline_config=self.pipeline_config)
-                cached = (version, tile_graphs, segments, True)
+                cached = TileGraphs(version, tile_graphs, segments, True)
                 self._graphs[key] = cached
-            graphs.extend(cached[1])
+            graphs.extend(cached.graphs)
         drive_ids = integrated_drives(final)  # every tile of each is in this map with it, final
         t1 = time.perf_counter()
         raw, self._mg = stitch_tiles(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
@@ -473,7 +481,7 @@ class MapStitcher(HealthMixin, Node):
         self._raw_ids = raw_id_map(raw, new)
         t3 = time.perf_counter()
         self.store.put_map(new, sig)
-        self.map = self._mg_map = new
+        self.map = new
         self._consensus = new
         self._map_sig = sig
         t4 = time.perf_counter()
@@ -484,8 +492,7 @@ class MapStitcher(HealthMixin, Node):
             f"publish {time.perf_counter() - t4:.3f}",
         )
         self.health.updated()
-        self.health.set("map_version", new.version)
-        self.health.set("features", len(new.features))
+        self._map_health()
         self.health.set("last_rebuild_s", f"{time.perf_counter() - t0:.3f}")
 
     def _fast_update(self, dirty: set[TileKey], received: dict[TileKey, tuple[int, list]]) -> bool:
@@ -496,7 +503,7 @@ class MapStitcher(HealthMixin, Node):
         follows as the next version (``_first_dirty`` stays set), so the map is again a function of the
         tiles before it counts as settled. False (nothing done): rebuild in full. ``received``:
         the segments of the estimates as received (tile -> (version, segments))."""
-        if self._mg is None or self.map is None or self.map is not self._mg_map:
+        if self._mg is None or self.map is None:
             return False  # RULE: not on a map with road changes followed (the rebuild, then the follow)
         t0, c0 = time.perf_counter(), time.thread_time()
         with self._rx_lock:  # the estimates and the drives they vouch for as of one moment (as rebuild)
@@ -510,11 +517,11 @@ class MapStitcher(HealthMixin, Node):
             version = versions[key]
             if cached is None or key not in final or got is None or got[0] != version:
                 return False
-            graphs = moved_graphs(cached[1], cached[2], got[1])
+            graphs = moved_graphs(cached.graphs, cached.segments, got[1])
             if graphs is None:
                 return False
             moved.extend(graphs)
-            updates[key] = (version, graphs, got[1], False)
+            updates[key] = TileGraphs(version, graphs, got[1], False)
         parts = list(final.values())
         drive_ids = integrated_drives(parts)
         t1 = time.perf_counter()
@@ -535,7 +542,6 @@ class MapStitcher(HealthMixin, Node):
         # stored with a signature no tile set has: a restart rebuilds it in full
         self.store.put_map(new, sig + ";moved")
         previous, self.map = self.map, new
-        self._mg_map = new
         self._map_sig = sig
         t4 = time.perf_counter()
         self._publish(previous)
@@ -547,9 +553,18 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("last_fast_update_s", text)
         self.get_logger().info(f"map version {new.version} moved in place (a fused burst) in {text}")
         self.health.updated()
-        self.health.set("map_version", new.version)
-        self.health.set("features", len(new.features))
+        self._map_health()
         return True
+
+    def _map_health(self) -> None:
+        """The current map's version and size on /diagnostics (after each new map)."""
+        self.health.set("map_version", self.map.version)
+        self.health.set("features", len(self.map.features))
+
+    def _changes_health(self) -> None:
+        """The history's size and the changes this process confirmed, on /diagnostics."""
+        self.health.set("changes_known", len(self.history))
+        self.health.set("changes_new", self.changes_new)
 
     def _publish(self, previous: HDMap | None = None) -> None:
         """Publish the map; ``previous``: the map of the last message, whose topology node
