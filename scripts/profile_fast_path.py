@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import pickle
 import time
-from dataclasses import replace
 
 
 def main() -> int:
@@ -47,12 +46,13 @@ def main() -> int:
     from rclpy.serialization import deserialize_message, serialize_message
 
     from hdmap_core.live.fuse import fuse_drive
-    from hdmap_core.live.restitch import kept_nodes, moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
+    from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
     from hdmap_core.live.tiles import TileConfig, carry_over_ids, connect_tile, stitch_graphs, tiles_of_drive
     from hdmap_core.pipeline.overrides import config_from
     from hdmap_ros.convert.messages import map_to_msg, rclpy_types
     from hdmap_ros.convert.tiles import batch_to_tiles, msg_to_tile, rclpy_tile_types, tile_to_msg, tiles_to_batch
     from hdmap_ros.io.bagio import read_fleet_bag
+    from hdmap_ros.io.cdr import encode_map
     from hdmap_ros.persistence.store import MapStore, blob_to_segments, columns_to_blob, segments_to_blob
 
     cfg = config_from(args.preset, {})
@@ -70,7 +70,7 @@ def main() -> int:
     raw0, mg = stitch_tiles([g for k in sorted(graphs) for g in graphs[k]], pipeline_config=cfg)
     types, tile_types = rclpy_types(), rclpy_tile_types()
     pub0 = carry_over_ids(raw0, None)
-    ids0, msg0 = raw_id_map(raw0, pub0), map_to_msg(pub0, types=types)
+    ids0 = raw_id_map(raw0, pub0)
     print(f"{len(segs)} tiles in the map ({len(pub0.features)} features), {len(touched)} touched by {drive.drive_id}")
     for _ in range(max(1, args.repeat)):
         st: dict[str, float] = {}
@@ -163,12 +163,7 @@ def main() -> int:
         new1 = remap_ids(raw1, ids0) or carry_over_ids(raw1, pub0)
         n_ids = P() - t
         t = P()
-        keep = kept_nodes(new1, pub0).tolist()
-        msg1 = map_to_msg(replace(new1, topology=tuple(n for n, k in zip(new1.topology, keep) if k < 0)), types=types)
-        made = iter(msg1.topology)
-        msg1.topology = [msg0.topology[k] if k >= 0 else next(made) for k in keep]
-        same = f"{sum(k >= 0 for k in keep)} of {len(keep)}"
-        serialize_message(msg1)
+        encode_map(new1)
         n_msg = P() - t
         now = n_move + n_export + n_ids + n_msg
         for name, v in st.items():
@@ -179,7 +174,7 @@ def main() -> int:
         )
         print(
             f"  stitcher now:    move {n_move:.3f} + export {n_export:.3f} + ids {n_ids:.3f} + map message "
-            f"{n_msg:.3f} (topology nodes reused: {same}) = {now:.3f} s  ({before / now:.1f}x less)"
+            f"{n_msg:.3f} (encode_map) = {now:.3f} s  ({before / now:.1f}x less)"
         )
         print(
             f"  chain CPU (mapper + hand-over + stitcher): main before live-stitch {common_before + before:.2f} s, "

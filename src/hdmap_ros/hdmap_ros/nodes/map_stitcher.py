@@ -64,14 +64,13 @@ from hdmap_core.live.changes import (
     warm_up,
 )
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
-from hdmap_core.live.restitch import kept_nodes, moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
+from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile
 from hdmap_core.model import HDMap
 from hdmap_core.parallel import available_cpus
 from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
 from hdmap_ros.convert.messages import (
     change_to_msg,
-    map_to_msg,
     msg_to_status,
     rclpy_change_class,
     rclpy_status_class,
@@ -79,6 +78,7 @@ from hdmap_ros.convert.messages import (
     status_to_msg,
 )
 from hdmap_ros.convert.tiles import TileMessage, batch_to_tiles, msg_to_tile, rclpy_tile_types
+from hdmap_ros.io.cdr import encode_map
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node, state_path
 from hdmap_ros.persistence.store import MapStore, blob_to_segments, columns_to_blob, read_drives, segments_to_blob
@@ -195,7 +195,7 @@ class MapStitcher(HealthMixin, Node):
         # its segments as received)): the fast update moves the map to them without decoding the
         # stored blobs again
         self._rx_segments: dict[TileKey, tuple[int, Callable[[], list]]] = {}
-        self._last_msg = None  # the last map message published
+        self._last_msg = b""  # the CDR bytes of the last map published
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
@@ -570,11 +570,11 @@ class MapStitcher(HealthMixin, Node):
         self._first_dirty = time.monotonic()  # the full rebuild of these tiles follows
         # stored with a signature no tile set has: a restart rebuilds it in full
         self.store.put_map(new, sig + ";moved")
-        previous, self.map = self.map, new
+        self.map = new
         self._mg_map = new
         self._map_sig = sig
         t4 = time.perf_counter()
-        self._publish(previous)
+        self._publish()
         text = (
             f"{time.perf_counter() - t0:.3f} s (move {t1 - t0:.3f}, export {t2 - t1:.3f}, ids {t3 - t2:.3f}, "
             f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles; "
@@ -587,20 +587,11 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("features", len(new.features))
         return True
 
-    def _publish(self, previous: HDMap | None = None) -> None:
-        """Publish the map; ``previous``: the map of the last message, whose topology node
-        messages are reused where a node is the same (a moved map keeps most of them)."""
-        last = self._last_msg
-        if previous is not None and last is not None and len(last.topology) == len(previous.topology):
-            keep = kept_nodes(self.map, previous).tolist()
-            fresh = tuple(n for n, k in zip(self.map.topology, keep, strict=True) if k < 0)
-            msg = map_to_msg(replace(self.map, topology=fresh), types=self._types)
-            made = iter(msg.topology)
-            msg.topology = [last.topology[k] if k >= 0 else next(made) for k in keep]
-        else:
-            msg = map_to_msg(self.map, types=self._types)
-        self._map_pub.publish(msg)
-        self._last_msg = msg
+    def _publish(self) -> None:
+        """Publish the map as CDR bytes (``io.cdr.encode_map``: no message object per point and
+        topology node; the bytes rosbags gives for ``map_to_msg``, read by rclpy as its own)."""
+        self._last_msg = encode_map(self.map)
+        self._map_pub.publish(self._last_msg)
 
     def _on_mapper_status(self, msg) -> None:
         with self._work_lock:
