@@ -219,17 +219,24 @@ def _child_main(job: Callable[[Any], None], conn: Any, parent_end: Any, parent_p
 PARENT_POLL_S = 0.5
 
 
-def spawn_pool(max_workers: int = 1) -> ProcessPoolExecutor:
+def spawn_pool(max_workers: int = 1, *, nice: int = 0) -> ProcessPoolExecutor:
     """A ``ProcessPoolExecutor`` of freshly spawned processes that end with the process that made
     them (``exit_with_parent``): a node killed with SIGKILL, which runs no clean-up, leaves no
     worker behind, busy or idle (a spawned worker holds both ends of its call queue, so it would
-    never see the parent go and would wait for work forever)."""
+    never see the parent go and would wait for work forever). ``nice``: added to the workers'
+    niceness (background work that must not slow the node's own)."""
     return ProcessPoolExecutor(
         max_workers,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=exit_with_parent,
-        initargs=(os.getpid(),),
+        initializer=_pool_worker_init,
+        initargs=(os.getpid(), nice),
     )
+
+
+def _pool_worker_init(parent_pid: int, nice: int) -> None:
+    if nice:
+        os.nice(nice)
+    exit_with_parent(parent_pid)
 
 
 def exit_with_parent(parent_pid: int) -> None:

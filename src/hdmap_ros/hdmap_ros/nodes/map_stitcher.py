@@ -43,6 +43,7 @@ import json
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from concurrent.futures import BrokenExecutor, Executor, Future
 from dataclasses import replace
 from typing import NamedTuple
@@ -62,28 +63,29 @@ from hdmap_core.live.changes import (
     warm_up,
 )
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
-from hdmap_core.live.restitch import kept_nodes, moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
+from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile
 from hdmap_core.model import HDMap
 from hdmap_core.parallel import available_cpus, spawn_pool
 from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
 from hdmap_ros.convert.messages import (
     change_to_msg,
-    map_to_msg,
     msg_to_status,
     rclpy_change_class,
     rclpy_status_class,
     rclpy_types,
     status_to_msg,
 )
-from hdmap_ros.convert.tiles import msg_to_tile, rclpy_tile_types
+from hdmap_ros.convert.tiles import TileMessage, batch_to_tiles, msg_to_tile, rclpy_tile_types
+from hdmap_ros.io.cdr import encode_map
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node, state_path
-from hdmap_ros.persistence.store import MapStore, blob_to_segments, read_drives, segments_to_blob
+from hdmap_ros.persistence.store import MapStore, blob_to_segments, columns_to_blob, read_drives, segments_to_blob
 
 __all__ = ["MapStitcher", "main"]
 
 SEGMENTS_TOPIC = "hdmap/segments"  # relative: a namespace (-r __ns:=/ns2) moves every topic
+BATCHES_TOPIC = "hdmap/segment_batches"
 MAP_TOPIC = "hdmap/map"
 STATUS_TOPIC = "hdmap/status"
 MAPPER_STATUS_TOPIC = "hdmap/mapper_status"
@@ -92,6 +94,10 @@ CHANGES_TOPIC = "hdmap/changes"
 # of the time: on a loaded machine a rebuild takes seconds, and back-to-back rebuilds every
 # max_delay_s took the CPU the mapper needs to finish its tiles (a quiet debounce_s rebuilds at once)
 REBUILD_SHARE = 0.5
+# RULE: the change following is background work (it reads every drive and rebuilds on every CPU
+# for seconds once the map settled); its process runs this much nicer, so that a drive arriving
+# meanwhile (the fast path: mapper and stitcher in their own processes) is not slowed by it
+FOLLOW_NICE = 10
 CHANGES_QOS = qos.CHANGES  # the whole history latched (a restart publishes it again)
 
 
@@ -190,10 +196,11 @@ class MapStitcher(HealthMixin, Node):
         # while there is none: at the start, and once road changes were followed on the map
         self._mg: MapGraph | None = None
         self._raw_ids: dict[int, int] = {}  # its features' raw ids -> their ids in the current map
-        # the segments of estimates received since the last map (tile -> (version, segments)): the
-        # fast update moves the map to them without decoding the stored blobs again
-        self._rx_segments: dict[TileKey, tuple[int, list]] = {}
-        self._last_msg = None  # the last map message published
+        # the segments of estimates received since the last map (tile -> (version, a function giving
+        # its segments as received)): the fast update moves the map to them without decoding the
+        # stored blobs again
+        self._rx_segments: dict[TileKey, tuple[int, Callable[[], list]]] = {}
+        self._last_msg = b""  # the CDR bytes of the last map published
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
@@ -222,6 +229,13 @@ class MapStitcher(HealthMixin, Node):
             SEGMENTS_TOPIC,
             self.on_tile,
             qos.replay(depth),
+            callback_group=self._rx_group,
+        )
+        self._batch_sub = self.create_subscription(
+            rclpy_tile_types().TileSegmentsBatch,
+            BATCHES_TOPIC,
+            self.on_batch,
+            qos.BATCHES,
             callback_group=self._rx_group,
         )
         self._status_sub = self.create_subscription(
@@ -268,30 +282,46 @@ class MapStitcher(HealthMixin, Node):
             self.health.reject("invalid_tile", str(err))
             self.get_logger().warning(f"tile message rejected: {err}")
             return
+        segments = list(tile.segments)
+        self._store_tiles([(tile, segments_to_blob(segments), functools.partial(list, segments))])
+
+    def on_batch(self, msg) -> None:
+        """Store the newer of a batch's tile estimates in one transaction (each as :meth:`on_tile`
+        would); their segments are made from the columns only when a fast update needs them."""
+        t0 = time.perf_counter()
+        try:
+            entries = batch_to_tiles(msg)
+        except (HdmapError, ValueError, TypeError, IndexError) as err:
+            self.health.reject("invalid_tile", f"batch: {err}")
+            self.get_logger().warning(f"tile batch rejected: {err}")
+            return
+        self._store_tiles([(e.tile, columns_to_blob(e.columns), e.segments) for e in entries])
+        self.get_logger().info(f"a batch of {len(entries)} tile estimate(s) stored in {time.perf_counter() - t0:.3f} s")
+
+    def _store_tiles(self, tiles: list[tuple[TileMessage, bytes, Callable[[], list]]]) -> None:
+        """Store tile estimates newer than the stored ones in one transaction: (tile, its segments'
+        blob, a function giving its segments)."""
         with self._rx_lock:
             if self._destroyed:
                 return
-            if self.store.put_tile(
-                tile.key,
-                tile.version,
-                segments_to_blob(tile.segments),
-                tile.drive_ids,
-                tile.drive_tile_counts,
-                tile.final,
-            ):
+            stored = self.store.put_tiles(
+                [(t.key, t.version, blob, t.drive_ids, t.drive_tile_counts, t.final) for t, blob, _ in tiles]
+            )
+            now = time.monotonic()
+            for (tile, _, segments), ok in zip(tiles, stored, strict=True):
+                if not ok:
+                    self.health.duplicate()
+                    continue
                 self.health.accept()
                 self._dirty.add(tile.key)
-                self._rx_segments[tile.key] = (tile.version, list(tile.segments))
+                self._rx_segments[tile.key] = (tile.version, segments)
                 if tile.final:
                     self._final[tile.key] = (list(tile.drive_ids), list(tile.drive_tile_counts))
                 else:
                     self._final.pop(tile.key, None)
-                now = time.monotonic()
                 self._last_rx = now
                 if self._first_dirty is None:
                     self._first_dirty = now
-            else:
-                self.health.duplicate()
             self.health.backlog = int(self._first_dirty is not None)
             self.health.set("tile_versions", self.store.version_total())
 
@@ -304,6 +334,7 @@ class MapStitcher(HealthMixin, Node):
             self._work()
             self._follow()
             self._update_status()
+            self.health.set("changes_followed", self.changes_followed())
 
     def changes_followed(self) -> bool:
         """The current map follows the road changes of every stored drive (or following is off)."""
@@ -395,7 +426,7 @@ class MapStitcher(HealthMixin, Node):
         executor; forks only from there, never from this process with its native threads). Made
         when the first tile estimates come (a stitcher that never gets one never starts it)."""
         if self._follow_executor is None:
-            self._follow_executor = spawn_pool()
+            self._follow_executor = spawn_pool(nice=FOLLOW_NICE)
             self._follow_executor.submit(warm_up)
         return self._follow_executor
 
@@ -495,14 +526,14 @@ class MapStitcher(HealthMixin, Node):
         self._map_health()
         self.health.set("last_rebuild_s", f"{time.perf_counter() - t0:.3f}")
 
-    def _fast_update(self, dirty: set[TileKey], received: dict[TileKey, tuple[int, list]]) -> bool:
+    def _fast_update(self, dirty: set[TileKey], received: dict[TileKey, tuple[int, Callable[[], list]]]) -> bool:
         """RULE fast update: when every tile received since the last map is final and its estimate
         only moved the maxima of the one the map holds (a drive fused into it, ``live.fuse``), the
         map's stitch decisions are kept and only its geometry moves (``live.restitch``): a new
         version at once, listing the drives that completes. The full rebuild of the same tiles
         follows as the next version (``_first_dirty`` stays set), so the map is again a function of the
         tiles before it counts as settled. False (nothing done): rebuild in full. ``received``:
-        the segments of the estimates as received (tile -> (version, segments))."""
+        the segments of the estimates as received (tile -> (version, a function giving them))."""
         if self._mg is None or self.map is None:
             return False  # RULE: not on a map with road changes followed (the rebuild, then the follow)
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -517,11 +548,12 @@ class MapStitcher(HealthMixin, Node):
             version = versions[key]
             if cached is None or key not in final or got is None or got[0] != version:
                 return False
-            graphs = moved_graphs(cached.graphs, cached.segments, got[1])
+            segments = got[1]()
+            graphs = moved_graphs(cached.graphs, cached.segments, segments)
             if graphs is None:
                 return False
             moved.extend(graphs)
-            updates[key] = TileGraphs(version, graphs, got[1], False)
+            updates[key] = TileGraphs(version, graphs, segments, False)
         parts = list(final.values())
         drive_ids = integrated_drives(parts)
         t1 = time.perf_counter()
@@ -541,10 +573,10 @@ class MapStitcher(HealthMixin, Node):
         self._first_dirty = time.monotonic()  # the full rebuild of these tiles follows
         # stored with a signature no tile set has: a restart rebuilds it in full
         self.store.put_map(new, sig + ";moved")
-        previous, self.map = self.map, new
+        self.map = new
         self._map_sig = sig
         t4 = time.perf_counter()
-        self._publish(previous)
+        self._publish()
         text = (
             f"{time.perf_counter() - t0:.3f} s (move {t1 - t0:.3f}, export {t2 - t1:.3f}, ids {t3 - t2:.3f}, "
             f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles; "
@@ -566,20 +598,11 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("changes_known", len(self.history))
         self.health.set("changes_new", self.changes_new)
 
-    def _publish(self, previous: HDMap | None = None) -> None:
-        """Publish the map; ``previous``: the map of the last message, whose topology node
-        messages are reused where a node is the same (a moved map keeps most of them)."""
-        last = self._last_msg
-        if previous is not None and last is not None and len(last.topology) == len(previous.topology):
-            keep = kept_nodes(self.map, previous).tolist()
-            fresh = tuple(n for n, k in zip(self.map.topology, keep, strict=True) if k < 0)
-            msg = map_to_msg(replace(self.map, topology=fresh), types=self._types)
-            made = iter(msg.topology)
-            msg.topology = [last.topology[k] if k >= 0 else next(made) for k in keep]
-        else:
-            msg = map_to_msg(self.map, types=self._types)
-        self._map_pub.publish(msg)
-        self._last_msg = msg
+    def _publish(self) -> None:
+        """Publish the map as CDR bytes (``io.cdr.encode_map``: no message object per point and
+        topology node; the bytes rosbags gives for ``map_to_msg``, read by rclpy as its own)."""
+        self._last_msg = encode_map(self.map)
+        self._map_pub.publish(self._last_msg)
 
     def _on_mapper_status(self, msg) -> None:
         with self._work_lock:
