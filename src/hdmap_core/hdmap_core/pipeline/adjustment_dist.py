@@ -525,7 +525,7 @@ def _irls(each: Callable[..., list], cfg: AdjustConfig, use_keep: bool, n_used: 
         rhs = rhs + _summed([d[1] for d in deltas])
     if isinstance(solver, SchurSolver):
         return _Fit(lay, theta, it, change, solver, None)
-    return _Fit(lay, theta, it, change, None, h)  # type: ignore[arg-type]  # explicit: h is the matrix
+    return _Fit(lay, theta, it, change, None, h)
 
 
 def _summed(vectors: Sequence[np.ndarray]) -> np.ndarray:
