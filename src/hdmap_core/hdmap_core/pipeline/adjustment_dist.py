@@ -1,8 +1,9 @@
 """The offset adjustment's one solve over observations split into parts that stay where they are.
 
 ``adjustment.adjust_offsets`` holds every step's samples in one process. Here the observation
-sequence is cut into consecutive parts (in a tiled build: runs of tiles in key order), each held
-by an ``AdjustPart`` (on a cluster: a Dask actor on a worker), and the client runs the same
+sequence is cut into parts (in a tiled build: runs of tiles in key order, each an ``AdjustPart``
+in a Dask actor on a worker; in the whole-fleet build: the pivot shares of its forked workers,
+``pipeline.driver``, whose steps interleave and which share no drive), and the client runs the same
 algorithm as ``adjust_offsets`` (raw association, coarse fit, lane-shift search, re-association,
 coarse rejection and the robust IRLS curve fit; docs/adjustment.md) by asking every part for its
 share:
