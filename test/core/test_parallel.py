@@ -128,6 +128,57 @@ def test_a_failing_worker_is_taken_over_with_the_same_result(two_way_fleet, monk
     assert want.counters == got.counters
 
 
+def _same_model(a, b):
+    assert list(a.drives) == list(b.drives) and a.drives
+    for d, x in a.drives.items():
+        y = b.drives[d]
+        assert (x.k0, x.bias_m) == (y.k0, y.bias_m)
+        np.testing.assert_array_equal(x.drift_m, y.drift_m)
+
+
+@pytest.fixture(scope="module")
+def one_process_run(two_way_fleet):
+    return map_stretches(two_way_fleet, config=presets.preset("default"), seed=2, workers=1)
+
+
+@pytest.mark.slow
+@needs_fork
+def test_the_adjustment_runs_over_the_workers_shares_with_the_one_process_offsets(two_way_fleet, one_process_run):
+    """Without collect_observations each worker keeps its share's observations and holds a part
+    of the one solve (adjustment_dist): the offsets are the one process's to the last bit."""
+    got = map_stretches(two_way_fleet, config=presets.preset("default"), seed=2, workers=2)
+    assert got.offset_model.stats["parts"] == 2 and "parts" not in one_process_run.offset_model.stats
+    _same_model(one_process_run.offset_model, got.offset_model)
+    _same_segments(one_process_run.segments, got.segments)
+    assert got.observations == []  # they stayed in the workers
+
+
+@pytest.mark.slow
+@needs_fork
+@pytest.mark.parametrize("method", ["set_fleet", "reweigh"])  # at its start; in the middle of a fit
+def test_a_worker_lost_in_the_adjustment_is_taken_over_with_the_same_result(
+    two_way_fleet, one_process_run, monkeypatch, caplog, method
+):
+    from hdmap_core.pipeline.adjustment_dist import AdjustPart
+
+    parent = os.getpid()
+    real = getattr(AdjustPart, method)
+
+    def fails_in_child(self, *args):
+        if os.getpid() != parent:
+            os._exit(5)  # the worker dies
+        return real(self, *args)
+
+    monkeypatch.setattr(AdjustPart, method, fails_in_child)
+    with caplog.at_level(logging.WARNING, logger="hdmap_core.parallel"):
+        got = map_stretches(two_way_fleet, config=presets.preset("default"), seed=2, workers=2)
+    assert "exit code 5" in caplog.text
+    assert "parts" not in got.offset_model.stats  # the one solve, here
+    _same_model(one_process_run.offset_model, got.offset_model)
+    _same_segments(one_process_run.segments, got.segments)
+    assert one_process_run.counters == got.counters
+
+
 @needs_fork
 def test_fork_worker_reports_a_dead_child_as_failed(caplog):
     def job(channel):
