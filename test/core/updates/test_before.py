@@ -6,11 +6,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hdmap_core.evaluation.zone import evaluate_zone
 from hdmap_core.model import Drive
+from hdmap_core.pipeline.driver import PipelineConfig, build_map
+from hdmap_core.simulation.changes import change_zone, parse_change
+from hdmap_core.simulation.config import SimConfig
+from hdmap_core.simulation.fleet import simulate_fleet
+from hdmap_core.simulation.synthetic import synthetic_highway
 from hdmap_core.updates.before import consensus_step, moved_consensus, with_neighbours
 from hdmap_core.updates.config import ChangeConfig
+from hdmap_core.updates.detect import detect_changes
 from hdmap_core.updates.evidence import PlaceEvidence
-from hdmap_core.updates.follow import cut_before_changes
+from hdmap_core.updates.follow import cut_before_changes, fleet_comparison, follow_map
 from hdmap_core.updates.places import places_of
 
 KW = {"min_effect": 0.5, "min_before": 3, "min_after": 2}
@@ -67,6 +74,9 @@ def test_candidate_places_take_their_group_s_median_time_and_their_neighbours():
     assert moved_consensus(evidence, ChangeConfig(), skip={keys[2]}) == {keys[3]: 6000, keys[4]: 7000}
     grown = with_neighbours(found, places)
     assert grown == {keys[1]: 6000, keys[2]: 6000, keys[3]: 6000, keys[4]: 6000, keys[5]: 6000}
+    # two touching places are no group: a step there is the drives' scatter
+    assert with_neighbours({keys[2]: 6000, keys[3]: 6000}, places) == {}
+    assert with_neighbours({keys[0]: 1000, keys[2]: 6000, keys[3]: 6000, keys[4]: 7000}, places) == grown
 
 
 def test_the_drives_cut_to_the_road_as_it_was():
@@ -89,3 +99,32 @@ def test_a_series_without_values_gives_no_candidate(value):
     key = (0, 0, 0)
     evidence = [_ev(f"d{i}", i, key, value) for i in range(12)]
     assert moved_consensus(evidence, ChangeConfig()) == {}
+
+
+@pytest.mark.slow
+def test_a_change_the_consensus_has_taken_is_confirmed_against_the_road_as_it_was():
+    # 12 drives on the road as it was, 14 after a 3 m shift: the map of every drive holds the moved
+    # lines blended with the old ones (3 m on 3.5 m lanes), and the drives against it show no change
+    road = synthetic_highway("motorway", length_m=1500.0)
+    change = parse_change("shift:400-1100:3.0:fwd_lane2@12")
+    sim = SimConfig(n_drives=26, snippet_length_min_m=1300.0, snippet_length_max_m=1500.0, direction_bias=1.0)
+    fleet = simulate_fleet(road, config=sim, seed=5, changes=[change])
+    drives = fleet.drives
+
+    def build(ds):
+        return build_map(list(ds), config=PipelineConfig(), seed=0, workers=1).map
+
+    first = build(drives)
+    places = places_of(drives, cell_m=ChangeConfig().cell_m)
+    evidence, _ = fleet_comparison(drives, first, places, config=ChangeConfig())
+    assert detect_changes(evidence, places) == []
+    assert moved_consensus(evidence, ChangeConfig())  # where the consensus moved
+    result = follow_map(first, drives, build=build)
+    assert len(result.changes) == 1
+    (c,) = result.changes
+    assert "geometry" in c.kinds and c.time_ns == drives[12].start_ns
+    assert set(c.drives_after) <= {d.drive_id for d in drives[12:]}
+    zones = [change_zone(road, change)]
+    now = fleet.extra["gt_after"]
+    plain, followed = evaluate_zone(first, now, road, zones), evaluate_zone(result.map, now, road, zones)
+    assert followed.recall > plain.recall + 0.05 and followed.precision > plain.precision + 0.1

@@ -37,6 +37,11 @@ from hdmap_core.updates.splice import border_shift, shifted
 
 __all__ = ["moved_consensus", "consensus_step", "with_neighbours", "as_before"]
 
+# Touching candidate places that count: a change the consensus took spans several (the bench's
+# zones 7-10 places); a step at one or two places of a fleet without a change is the drives'
+# scatter (4 places of 39 on esmini_e6mini_40_s1, one group of 2), and each costs a local build
+# and a second comparison of every drive.
+_MIN_GROUP = 3
 # Of the drives after a step, at least this share lies on its side of the before median by a
 # quarter of the smallest effect (a drive that missed the changed line may not).
 _ON_SIDE = 0.75
@@ -99,11 +104,12 @@ def moved_consensus(
 
 
 def with_neighbours(times: dict[PlaceKey, int], places: Places) -> dict[PlaceKey, int]:
-    """``times`` as one time per group of touching places (the lower median of theirs, as a
-    change's time is that of its places: one place's step found late, past a drive that missed the
-    changed line, would leave drives of the new road in its map), and the places next to each
-    group along the road with it: the consensus there is a blend too, its step below half the
-    smallest effect (the tapers, a place more drives of the old road passed)."""
+    """``times`` as one time per group of at least ``_MIN_GROUP`` touching places (the lower
+    median of theirs, as a change's time is that of its places: one place's step found late, past
+    a drive that missed the changed line, would leave drives of the new road in its map), and the
+    places next to each group along the road with it: the consensus there is a blend too, its step
+    below half the smallest effect (the tapers, a place more drives of the old road passed).
+    Smaller groups are left out."""
     out: dict[PlaceKey, int] = {}
     seen: set[PlaceKey] = set()
     for key in sorted(times):
@@ -118,6 +124,8 @@ def with_neighbours(times: dict[PlaceKey, int], places: Places) -> dict[PlaceKey
                 if nb in times and nb not in seen:
                     seen.add(nb)
                     stack.append(nb)
+        if len(group) < _MIN_GROUP:
+            continue
         ts = sorted(times[k] for k in group)
         t = ts[(len(ts) - 1) // 2]
         for k in group:
