@@ -33,6 +33,7 @@ from hdmap_core.geometry import left_normal, point_headings, true_runs
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
+from hdmap_core.updates.before import as_before, moved_consensus, with_neighbours
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
 from hdmap_core.updates.edges import (
@@ -254,15 +255,20 @@ def cut_before_changes(
     changes: Sequence[DetectedChange],
     *,
     times: dict[PlaceKey, int] | None = None,
+    before: bool = False,
 ) -> list[Drive]:
     """``drives`` without their parts in a changed place from before its change (module docstring);
-    ``times``: the change time per place, instead of ``changes``'."""
+    ``times``: the change time per place, instead of ``changes``'. ``before``: the other way, without
+    their parts in a changed place from its change on (the road as it was, ``updates.before``)."""
     times = _change_times(changes) if times is None else times
     out: list[Drive] = []
     for d in drives:
         keys = places.keys(d.xy, d.yaw)
-        t = np.array([times.get(k, np.iinfo(np.int64).min) for k in keys], dtype=np.int64)
-        keep = np.asarray(d.stamps_ns, dtype=np.int64) >= t
+        stamps = np.asarray(d.stamps_ns, dtype=np.int64)
+        if before:
+            keep = stamps < np.array([times.get(k, np.iinfo(np.int64).max) for k in keys], dtype=np.int64)
+        else:
+            keep = stamps >= np.array([times.get(k, np.iinfo(np.int64).min) for k in keys], dtype=np.int64)
         out.extend(_cut_drive(d, keep) if not keep.all() else [d])
     return out
 
@@ -420,6 +426,21 @@ def follow_map(
     evidence, edges = fleet_comparison(drives, first_map, places, config=config, workers=workers)
     changes = detect_changes(evidence, places, config=config, workers=workers)
     changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
+    # where the consensus has taken the new road (updates.before): the map as it was there, and
+    # every drive compared with that instead
+    changed = {p.key for c in changes for p in c.places}
+    taken = with_neighbours(moved_consensus(evidence, config, skip=changed), places)
+    taken = {k: t for k, t in taken.items() if k not in changed}
+    old_road: HDMap | None = None
+    if taken:
+        pieces = clip_to_places(
+            cut_before_changes(drives, places, (), times=taken, before=True), places, grow(places, taken, margin_places)
+        )
+        old_road = as_before(first_map, build(pieces), pieces, places, set(taken), config=config)
+        reference = splice(first_map, old_road, places, set(taken))
+        evidence, edges = fleet_comparison(drives, reference, places, config=config, workers=workers)
+        changes = detect_changes(evidence, places, config=config, workers=workers)
+        changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
     t0 = time.perf_counter()
     seconds = {"detect": t0 - t1}
     if not changes:
@@ -437,19 +458,21 @@ def follow_map(
         after = [d for d in after if d.drive_id in in_evidence]
         cut = cut_before_changes(moved, places, changes, times=times)
         core = set(times)
+        # the map the rebuilt places replace: the road as it was where the consensus had taken the new
+        base = first_map if old_road is None else splice(first_map, old_road, places, set(taken) & core)
         region = grow(places, core, margin_places)
         clipped = clip_to_places(cut, places, region)
         t1 = time.perf_counter()
         local_map = build(clipped)
         seconds["rebuild"] = time.perf_counter() - t1
-        local_map = shifted(local_map, border_shift(local_map, first_map, after, places, core, config=config), places)
+        local_map = shifted(local_map, border_shift(local_map, base, after, places, core, config=config), places)
         # what the rebuilt places were mapped from: beyond the sensors' reach of every such pose
         # the first map stays (updates.splice)
         poses = [d.xy[np.array([k in core for k in places.keys(d.xy, d.yaw)], dtype=bool)] for d in clipped]
         borders = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) == _BORDER]
         marks = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) in _MARKINGS]
         # what no drive after a shift saw of the first map's markings: moved by the shift
-        unseen = unseen_moved(first_map, local_map, places, changes, evidence, core, config=config)
+        unseen = unseen_moved(base, local_map, places, changes, evidence, core, config=config)
         # an opened shoulder's edge line no drive after the change saw: moved by the edge's move
         # and the other lines of a lane opened, which it left alone, where those drives missed them
         edge, opened_kept = opened_edge_moved(
@@ -469,7 +492,7 @@ def follow_map(
         keep = [unseen.moved_to, ends]
         # a re-striping or a marking gone leaves the other lines: those the drives after it had
         # no evidence of stay (updates.marks)
-        kept = unchanged_marks(first_map, local_map, places, changes, after, core, config=config)
+        kept = unchanged_marks(base, local_map, places, changes, after, core, config=config)
         reach = Reach(
             np.concatenate([np.zeros((0, 2)), *poses]),
             config.view_m,
@@ -482,6 +505,7 @@ def follow_map(
         new_map = splice(unseen.map, local_map, places, core, reach=reach)
     else:
         core = set()
+        base = first_map
         reach = None
         modelled = ()
         cut = cut_before_changes(moved, places, changes)
@@ -489,7 +513,7 @@ def follow_map(
         new_map = build(cut)
         seconds["rebuild"] = time.perf_counter() - t1
     start = min((d.start_ns for d in drives), default=0)
-    retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start, reach=reach))
+    retired = tuple(retired_features(base, places, changes, valid_from_ns=start, reach=reach))
     extra = {**new_map.extra, "changes": list(changes), "retired": list(retired), "modelled": list(modelled)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
     seconds["apply"] = time.perf_counter() - t0 - seconds["rebuild"]
