@@ -30,6 +30,7 @@ import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "src/hdmap_core"), str(ROOT / "src/hdmap_ros")]
@@ -135,6 +136,7 @@ def main() -> int:
         )
 
     mapper._publish = forward  # noqa: SLF001 - benchmark wiring, the node's own code otherwise
+    mapper._batch_pub = SimpleNamespace(publish=stitcher.on_batch)  # noqa: SLF001 - the same for its batches
 
     def receive(drive) -> float:
         msg = drive_to_msg(drive, types=types)
@@ -254,6 +256,7 @@ def main() -> int:
             + mapper_overrides,
         )
         fresh._publish = lambda est, final=None, segments=None: None  # noqa: SLF001 - mapping only; the stitch is timed above
+        fresh._batch_pub = SimpleNamespace(publish=lambda msg: None)  # noqa: SLF001
         msg = drive_to_msg(long_drive, types=types)
         t0 = time.perf_counter()
         fresh.on_drive(msg)

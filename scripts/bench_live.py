@@ -24,7 +24,8 @@
    drives of 9.5-10 km on 10.5 km of ``motorway``, seed 1; or ``--fleet``) without its longest
    drive is played by ``hdmap run --keep-alive`` until settled; then the probe publishes that
    drive (on mapped road: the fast path) and, once settled again, the same drive moved 40 km away
-   (new road). Per drive: publish -> ack -> first map listing it, and for the mapped-road drive
+   (new road); each once the machine is at rest (the map settled and the stitcher's following of
+   road changes on it done). Per drive: publish -> ack -> first map listing it, and for the mapped-road drive
    that map scored against the ground truth beside ``bag2map`` of the whole fleet (the batch map
    of the same drives).
 
@@ -197,6 +198,7 @@ class _Probe:
 
     def __init__(self) -> None:
         import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
         from std_msgs.msg import String
 
@@ -217,11 +219,17 @@ class _Probe:
         self.node.create_subscription(
             rclpy_status_class(), "/hdmap/status", lambda m: self.status.append((time.monotonic(), m)), qos.LATCHED
         )
+        self.diags: dict[str, dict[str, str]] = {}  # node -> its latest /diagnostics key-values
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, qos.DIAGNOSTICS)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = False
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
+
+    def _diag(self, arr) -> None:
+        for st in arr.status:
+            self.diags[st.name.removeprefix("hdmap: ")] = {kv.key: kv.value for kv in st.values}
 
     def _ack(self, msg) -> None:
         self.acks.setdefault(str(msg.data), time.monotonic())
@@ -333,6 +341,12 @@ def _latency(args, fleet: Path, out: Path, offline_s: float) -> int:
     def settled(n: int) -> bool:
         return bool(probe.status) and probe.status[-1][1].settled and probe.status[-1][1].drives_integrated == n
 
+    def followed(n: int) -> bool:
+        """Settled and the stitcher followed the road changes on that map (the machine at rest)."""
+        kv = probe.diags.get("map_stitcher", {})
+        version = probe.status[-1][1].map_version if probe.status else -1
+        return settled(n) and kv.get("changes_followed") == "True" and kv.get("map_version") == str(version)
+
     rows = []
     try:
         t_base = wait(lambda: settled(len(base)), args.timeout, "the base fleet settled")
@@ -340,6 +354,8 @@ def _latency(args, fleet: Path, out: Path, offline_s: float) -> int:
         wait(lambda: pub.get_subscription_count() > 0, 30, "the ingestor")
         n = len(base)
         for label, drive in (("mapped road", mapped), ("new road", new_road)):
+            t_rest = wait(lambda n=n: followed(n), args.timeout, "the road changes followed")
+            print(f"{label}: the road changes followed {t_rest - probe.t0:.1f} s after the start", file=sys.stderr)
             n_maps = len(probe.maps)
             t_pub = time.monotonic()
             pub.publish(drive_to_msg(drive, types=rclpy_types()))
@@ -347,6 +363,8 @@ def _latency(args, fleet: Path, out: Path, offline_s: float) -> int:
             t_in = wait(lambda did=did: any(did in set(m.drive_ids) for _, m in probe.maps[n_maps:]), args.timeout, did)
             msg = next(m for _, m in probe.maps[n_maps:] if did in set(m.drive_ids))
             t_ack = probe.acks.get(did, float("nan"))
+            wall = time.time() - time.monotonic()  # the nodes' log stamps are wall clock
+            print(f"{did}: ack at {t_ack + wall:.3f}, listed at {t_in + wall:.3f} (epoch s)", file=sys.stderr)
             n += 1
             t_set = wait(lambda n=n: settled(n), args.timeout, "settled again")
             rows.append((label, drive.length_m / 1000.0, t_ack - t_pub, t_in - t_ack, t_set - t_ack, msg))

@@ -12,13 +12,17 @@ into its tiles' stored estimates (a stand-in for the settled map without it: a d
 the settle is fused again, the same work). Stages, in one process (``time.process_time``, so the
 figures hold on a shared machine; DDS transport, SQLite fsyncs and scheduling are not in them):
 
-- mapper: decode the tiles' stored segments, ``fuse_drive``, encode the fused estimates
-  (``segments_to_blob``), ``tile_to_msg`` and CDR serialisation of every tile message;
-- stitcher: CDR deserialisation and ``msg_to_tile``, ``segments_to_blob`` of the store, then
-  **before** (main until 2026-12-07): ``connect_tile`` of the touched tiles, ``stitch_graphs`` of
-  all, ``carry_over_ids``, ``map_to_msg``; **now** (``live.restitch``): ``moved_graphs``,
-  ``moved_map``, ``remap_ids``, ``map_to_msg`` with the last map's messages of unchanged topology nodes reused;
-  and the CDR serialisation of the map.
+- the hand-over from the mapper to the stitcher, **per tile** (before 2026-12-07 live-fast3: the
+  tiles' segments pickled to a worker process and the fused ones back, one TileSegments per tile
+  made, serialised, deserialised and read, each tile's segments encoded for the stitcher's store)
+  against **batch** (now: the fusion in the mapper's process on its decoded segments, one
+  TileSegmentsBatch in columns, the store's blobs made from the columns, the segments made from
+  them for the moved graphs);
+- common to both: ``fuse_drive`` and the mapper's store encoding (``segments_to_blob``);
+- stitcher: **before** (main until 2026-12-07 live-stitch): ``connect_tile`` of the touched tiles,
+  ``stitch_graphs`` of all, ``carry_over_ids``, ``map_to_msg``; **now** (``live.restitch``):
+  ``moved_graphs``, ``moved_map``, ``remap_ids``, ``map_to_msg`` with the last map's messages of
+  unchanged topology nodes reused; and the CDR serialisation of the map.
 
 Prints figures only; nothing is asserted.
 """
@@ -26,8 +30,8 @@ Prints figures only; nothing is asserted.
 from __future__ import annotations
 
 import argparse
+import pickle
 import time
-from dataclasses import replace
 
 
 def main() -> int:
@@ -42,13 +46,14 @@ def main() -> int:
     from rclpy.serialization import deserialize_message, serialize_message
 
     from hdmap_core.live.fuse import fuse_drive
-    from hdmap_core.live.restitch import kept_nodes, moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
+    from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
     from hdmap_core.live.tiles import TileConfig, carry_over_ids, connect_tile, stitch_graphs, tiles_of_drive
     from hdmap_core.pipeline.overrides import config_from
     from hdmap_ros.convert.messages import map_to_msg, rclpy_types
-    from hdmap_ros.convert.tiles import msg_to_tile, rclpy_tile_types, tile_to_msg
+    from hdmap_ros.convert.tiles import batch_to_tiles, msg_to_tile, rclpy_tile_types, tile_to_msg, tiles_to_batch
     from hdmap_ros.io.bagio import read_fleet_bag
-    from hdmap_ros.persistence.store import MapStore, blob_to_segments, segments_to_blob
+    from hdmap_ros.io.cdr import encode_map
+    from hdmap_ros.persistence.store import MapStore, blob_to_segments, columns_to_blob, segments_to_blob
 
     cfg = config_from(args.preset, {})
     tc = TileConfig()
@@ -65,13 +70,13 @@ def main() -> int:
     raw0, mg = stitch_tiles([g for k in sorted(graphs) for g in graphs[k]], pipeline_config=cfg)
     types, tile_types = rclpy_types(), rclpy_tile_types()
     pub0 = carry_over_ids(raw0, None)
-    ids0, msg0 = raw_id_map(raw0, pub0), map_to_msg(pub0, types=types)
+    ids0 = raw_id_map(raw0, pub0)
     print(f"{len(segs)} tiles in the map ({len(pub0.features)} features), {len(touched)} touched by {drive.drive_id}")
     for _ in range(max(1, args.repeat)):
         st: dict[str, float] = {}
-        t = P()
-        mine = {k: blob_to_segments(blobs[k]) for k in touched}
-        st["mapper: decode the tiles"] = P() - t
+        per_tile: dict[str, float] = {}
+        batch: dict[str, float] = {}
+        mine = {k: segs[k] for k in touched}
         t = P()
         res = fuse_drive(drive, mine)
         st["mapper: fuse_drive"] = P() - t
@@ -82,25 +87,58 @@ def main() -> int:
         t = P()
         for k in touched:
             segments_to_blob(fused[k])
-        st["mapper: encode the estimates"] = P() - t
+        st["mapper: encode the estimates (store)"] = P() - t
+        # per tile (before)
+        t = P()
+        pickle.loads(pickle.dumps((drive, mine)))
+        pickle.loads(pickle.dumps(fused))
+        per_tile["mapper: job input and result pickled"] = P() - t
         t = P()
         msgs = [
             tile_to_msg(k, fused[k], version=2, drive_ids=[], tile_size_m=tc.tile_size_m, stamp_ns=0, types=tile_types)
             for k in touched
         ]
         wire = [serialize_message(m) for m in msgs]
-        st["mapper: tile messages + CDR"] = P() - t
+        per_tile["mapper: tile messages + CDR"] = P() - t
         t = P()
         got = {}
         for b in wire:
             tile = msg_to_tile(deserialize_message(b, type(msgs[0])))
             got[tile.key] = list(tile.segments)
-        st["stitcher: CDR + msg_to_tile"] = P() - t
+        per_tile["stitcher: CDR + msg_to_tile"] = P() - t
         t = P()
         for k in touched:
             segments_to_blob(got[k])
-        st["stitcher: encode for the store"] = P() - t
-        common = sum(st.values())
+        per_tile["stitcher: encode for the store"] = P() - t
+        # batch (now)
+        t = P()
+        bmsg = tiles_to_batch(
+            [(k, fused[k], 2, [drive.drive_id], [len(touched)], True) for k in touched],
+            tile_size_m=tc.tile_size_m,
+            stamp_ns=0,
+            types=tile_types,
+        )
+        bwire = serialize_message(bmsg)
+        batch["mapper: batch message + CDR"] = P() - t
+        t = P()
+        entries = batch_to_tiles(deserialize_message(bwire, type(bmsg)))
+        batch["stitcher: CDR + batch_to_tiles"] = P() - t
+        t = P()
+        for e in entries:
+            columns_to_blob(e.columns)
+        batch["stitcher: blobs from the columns"] = P() - t
+        t = P()
+        got = {e.tile.key: e.segments() for e in entries}
+        batch["stitcher: segments from the columns"] = P() - t
+        print(f"  batch message: {len(bwire) / 1e6:.2f} MB; tile messages: {sum(len(b) for b in wire) / 1e6:.2f} MB")
+        for name, v in per_tile.items():
+            print(f"  per tile  {name:38s} {v:6.3f} s")
+        print(f"  per tile  {'= hand-over':38s} {sum(per_tile.values()):6.3f} s")
+        for name, v in batch.items():
+            print(f"  batch     {name:38s} {v:6.3f} s")
+        print(f"  batch     {'= hand-over':38s} {sum(batch.values()):6.3f} s")
+        common_before = sum(st.values()) + sum(per_tile.values())
+        common = sum(st.values()) + sum(batch.values())
         t = P()
         g2 = dict(graphs)
         g2.update({k: connect_tile(got[k], k, pipeline_config=cfg) for k in touched})
@@ -125,25 +163,23 @@ def main() -> int:
         new1 = remap_ids(raw1, ids0) or carry_over_ids(raw1, pub0)
         n_ids = P() - t
         t = P()
-        keep = kept_nodes(new1, pub0).tolist()
-        msg1 = map_to_msg(replace(new1, topology=tuple(n for n, k in zip(new1.topology, keep) if k < 0)), types=types)
-        made = iter(msg1.topology)
-        msg1.topology = [msg0.topology[k] if k >= 0 else next(made) for k in keep]
-        same = f"{sum(k >= 0 for k in keep)} of {len(keep)}"
-        serialize_message(msg1)
+        encode_map(new1)
         n_msg = P() - t
         now = n_move + n_export + n_ids + n_msg
         for name, v in st.items():
-            print(f"  {name:34s} {v:6.3f} s")
+            print(f"  {name:48s} {v:6.3f} s")
         print(
             f"  stitcher before: connect {b_connect:.3f} + stitch {b_stitch:.3f} + ids {b_ids:.3f} + map message "
             f"{b_msg:.3f} = {before:.3f} s"
         )
         print(
             f"  stitcher now:    move {n_move:.3f} + export {n_export:.3f} + ids {n_ids:.3f} + map message "
-            f"{n_msg:.3f} (topology nodes reused: {same}) = {now:.3f} s  ({before / now:.1f}x less)"
+            f"{n_msg:.3f} (encode_map) = {now:.3f} s  ({before / now:.1f}x less)"
         )
-        print(f"  chain CPU (mapper + messages + stitcher): before {common + before:.2f} s, now {common + now:.2f} s")
+        print(
+            f"  chain CPU (mapper + hand-over + stitcher): main before live-stitch {common_before + before:.2f} s, "
+            f"per tile + moved {common_before + now:.2f} s, now {common + now:.2f} s"
+        )
     return 0
 
 

@@ -1,9 +1,9 @@
 """Shared fixtures and the environment of the whole suite.
 
-DDS: every test that can start a ROS 2 context (node tests, ``hdmap run``, a node subprocess) keeps
-discovery on this machine. The variable is set here, before any test module imports rclpy, so a
-bare ``pytest`` run is as safe as ``make test`` (which exports the same). ``ROS_DOMAIN_ID`` is left
-as the caller set it (the node tests choose their own domains, see support/nodes_harness.py).
+DDS: every test that starts DDS sets loopback discovery and a domain of its own through
+support/nodes_harness.py (the DDS rule and the domains are written there). The discovery range is
+also set here for the whole run, before any test module imports rclpy, so a bare ``pytest`` run is
+as safe as ``make test`` (which exports the same).
 
 Helper modules shared by several test folders live in ``test/support/`` (on ``pythonpath`` in
 pytest.ini): ``pipeline_fleet`` (a tiny deterministic fleet for the stage tests), ``bag_samples``

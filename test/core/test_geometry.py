@@ -9,12 +9,15 @@ from hdmap_core.geometry import (
     arc_length,
     cut_segment_intersections,
     dense_points,
+    left_normal,
     point_headings,
     rdp_mask_many,
     resample_by_distance,
     resample_evenly,
     split_long_segments,
     true_runs,
+    turn_left,
+    unit_tangents,
     wrap_angle,
 )
 
@@ -155,3 +158,27 @@ def test_true_runs_are_the_half_open_ranges_of_the_true_values():
     mask = np.array([True, True, False, False, True, False, True])
     assert true_runs(mask) == [(0, 2), (4, 5), (6, 7)]
     assert true_runs(np.zeros(3, dtype=bool)) == [] and true_runs(np.zeros(0, dtype=bool)) == []
+
+
+def test_unit_tangents_and_normals_of_an_arc():
+    """The circle of radius 50 m run anticlockwise: the unit tangent at each point is along its
+    heading, the left normal points to the centre; turning a tangent left is the left normal of
+    its heading. A polyline standing still has zero tangents, a single point one zero.
+
+        y
+        |   . <- normal (to the centre)
+        | .'  ^ tangent
+        o-----------> x
+    """
+    phi = np.linspace(0.2, 1.2, 11)
+    arc = 50.0 * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    t = unit_tangents(arc)
+    yaw = point_headings(arc)
+    np.testing.assert_allclose(np.linalg.norm(t, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(t, np.stack([np.cos(yaw), np.sin(yaw)], axis=1), atol=1e-12)
+    left = turn_left(t)
+    np.testing.assert_allclose(left, left_normal(yaw), atol=1e-12)
+    np.testing.assert_allclose(left[1:-1], -arc[1:-1] / 50.0, atol=1e-12)  # to the centre
+    assert left_normal(0.0).shape == (2,) and np.allclose(left_normal(0.0), [0.0, 1.0])
+    np.testing.assert_array_equal(unit_tangents(np.zeros((3, 2))), np.zeros((3, 2)))
+    np.testing.assert_array_equal(unit_tangents(np.ones((1, 2))), np.zeros((1, 2)))

@@ -128,6 +128,57 @@ def test_a_failing_worker_is_taken_over_with_the_same_result(two_way_fleet, monk
     assert want.counters == got.counters
 
 
+def _same_model(a, b):
+    assert list(a.drives) == list(b.drives) and a.drives
+    for d, x in a.drives.items():
+        y = b.drives[d]
+        assert (x.k0, x.bias_m) == (y.k0, y.bias_m)
+        np.testing.assert_array_equal(x.drift_m, y.drift_m)
+
+
+@pytest.fixture(scope="module")
+def one_process_run(two_way_fleet):
+    return map_stretches(two_way_fleet, config=presets.preset("default"), seed=2, workers=1)
+
+
+@pytest.mark.slow
+@needs_fork
+def test_the_adjustment_runs_over_the_workers_shares_with_the_one_process_offsets(two_way_fleet, one_process_run):
+    """Without collect_observations each worker keeps its share's observations and holds a part
+    of the one solve (adjustment_dist): the offsets are the one process's to the last bit."""
+    got = map_stretches(two_way_fleet, config=presets.preset("default"), seed=2, workers=2)
+    assert got.offset_model.stats["parts"] == 2 and "parts" not in one_process_run.offset_model.stats
+    _same_model(one_process_run.offset_model, got.offset_model)
+    _same_segments(one_process_run.segments, got.segments)
+    assert got.observations == []  # they stayed in the workers
+
+
+@pytest.mark.slow
+@needs_fork
+@pytest.mark.parametrize("method", ["set_fleet", "reweigh"])  # at its start; in the middle of a fit
+def test_a_worker_lost_in_the_adjustment_is_taken_over_with_the_same_result(
+    two_way_fleet, one_process_run, monkeypatch, caplog, method
+):
+    from hdmap_core.pipeline.adjustment_dist import AdjustPart
+
+    parent = os.getpid()
+    real = getattr(AdjustPart, method)
+
+    def fails_in_child(self, *args):
+        if os.getpid() != parent:
+            os._exit(5)  # the worker dies
+        return real(self, *args)
+
+    monkeypatch.setattr(AdjustPart, method, fails_in_child)
+    with caplog.at_level(logging.WARNING, logger="hdmap_core.parallel"):
+        got = map_stretches(two_way_fleet, config=presets.preset("default"), seed=2, workers=2)
+    assert "exit code 5" in caplog.text
+    assert "parts" not in got.offset_model.stats  # the one solve, here
+    _same_model(one_process_run.offset_model, got.offset_model)
+    _same_segments(one_process_run.segments, got.segments)
+    assert one_process_run.counters == got.counters
+
+
 @needs_fork
 def test_fork_worker_reports_a_dead_child_as_failed(caplog):
     def job(channel):
@@ -181,3 +232,68 @@ def test_map_balanced_returns_results_in_item_order_from_two_processes():
     got = map_balanced(lambda i: (i * i, os.getpid()), [1.0, 4.0, 1.0, 2.0, 3.0], 2)
     assert [v for v, _ in got] == [0, 1, 4, 9, 16]
     assert len({pid for _, pid in got}) == 2 and os.getpid() in {pid for _, pid in got}
+
+
+# A parent that makes a spawn_pool, hands its worker a job that outlives it, prints the worker's
+# pid and kills itself with SIGKILL (no clean-up runs).
+# A parent that starts a worker (a spawn_pool's, or a ForkWorker waiting for the parent's next
+# message), hands it work that outlives the parent, prints the worker's pid and kills itself with
+# SIGKILL (no clean-up runs).
+_KILLED_PARENT = """
+import os, signal, sys, time
+from hdmap_core.parallel import ForkWorker, spawn_pool
+
+def busy():
+    time.sleep(60)
+
+def waits(channel):
+    channel.send(os.getpid())
+    channel.recv()
+
+if __name__ == "__main__":
+    if sys.argv[1] == "spawn_pool":
+        pool = spawn_pool()
+        pid = pool.submit(os.getpid).result()
+        pool.submit(busy)
+    else:
+        pid = ForkWorker(waits).result()
+    print(pid, flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def _alive(pid: int) -> bool:
+    """Running (not gone, not a zombie waiting for a reaper that never comes in a container)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            state = next(line for line in f if line.startswith("State:"))
+    except (FileNotFoundError, ProcessLookupError, StopIteration):
+        return False
+    return "Z" not in state.split()[1]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (os.path.isdir("/proc") and can_fork()), reason="reads /proc, forks")
+@pytest.mark.parametrize("kind", ["spawn_pool", "fork_worker"])
+def test_a_worker_ends_when_its_parent_is_killed(tmp_path, kind):
+    import subprocess  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+    import time  # noqa: PLC0415
+
+    script = tmp_path / "parent.py"
+    script.write_text(_KILLED_PARENT)
+    src = os.path.join(os.path.dirname(__file__), "..", "..", "src", "hdmap_core")
+    env = {**os.environ, "PYTHONPATH": os.path.abspath(src)}
+    # the worker inherits stdout: read the pid line, not to EOF
+    with subprocess.Popen([sys.executable, str(script), kind], stdout=subprocess.PIPE, text=True, env=env) as parent:
+        assert parent.stdout is not None
+        worker = int(parent.stdout.readline())
+        assert parent.wait(timeout=120) == -9
+    try:
+        deadline = time.monotonic() + 30  # a liveness bound, not a timing figure: it ends in ~0.5 s
+        while _alive(worker) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(worker), f"the {kind} worker outlived its killed parent"
+    finally:
+        if _alive(worker):
+            os.kill(worker, 9)

@@ -1,9 +1,21 @@
 """DDS test harness for the node tests (not a test module).
 
-Every test gets its own ROS_DOMAIN_ID (from 70-79, this suite's range) and discovery on loopback
-only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), set before any context is initialised; nodes run in
-this process on an explicit rclpy Context (so other test modules' rclpy use is untouched), or as
-subprocesses in their own session with the same environment (killed as a group).
+**The DDS rule**, kept here in one place: every test that starts DDS sets both
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (discovery on loopback only) and a ``ROS_DOMAIN_ID`` of
+its own, before any context is initialised, through this module (``dds_vars``):
+
+- ``Ros(domain)``: rclpy in this process, on an explicit Context (other test modules' rclpy use is
+  untouched); ``Proc(module, domain, ...)``: a node process in its own session (killed as a group);
+- ``dds_env(domain)``: the environment of any other subprocess that starts DDS (``hdmap run``);
+- ``use_dds(monkeypatch, domain)``: ``hdmap run`` called in this process (``cli.main``).
+
+Domains, this suite's range 70-79: 70-74 the ``ros`` fixture (one per test, by its name,
+test/ros/nodes/conftest.py); 74 the conformance, bad-drive and live-changes subprocesses; 75-77
+the e2e suite; 78 the live contract. ``HDMAP_TEST_ROS_DOMAIN=N`` puts every one on domain N
+instead (a session given a domain of its own, or a machine where 70-79 are taken); the caller's
+``ROS_DOMAIN_ID`` is never used, so a test does not land on the domain of the caller's own nodes.
+test/conftest.py sets the discovery range for the whole run as well (a safety net), and
+test/ros/nodes/test_dds_rule.py checks that no test starts DDS around this module.
 """
 
 from __future__ import annotations
@@ -31,12 +43,22 @@ def ros_domain(domain_id: int) -> int:
     return int(os.environ.get("HDMAP_TEST_ROS_DOMAIN", domain_id))
 
 
+def dds_vars(domain_id: int) -> dict[str, str]:
+    """The two variables of the DDS rule: loopback discovery and the domain (``ros_domain``)."""
+    return {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(ros_domain(domain_id))}
+
+
+def use_dds(monkeypatch, domain_id: int) -> int:
+    """Set the DDS rule's variables in this process for one test (``monkeypatch`` undoes them);
+    the domain."""
+    for name, value in dds_vars(domain_id).items():
+        monkeypatch.setenv(name, value)
+    return ros_domain(domain_id)
+
+
 def dds_env(domain_id: int) -> dict[str, str]:
     """Environment of a node process: isolated domain, loopback discovery, the source tree first."""
-    domain_id = ros_domain(domain_id)
-    env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(domain_id)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env = {**os.environ, **dds_vars(domain_id)}
     env["PYTHONPATH"] = os.pathsep.join(
         [str(ROOT / "src/hdmap_core"), str(ROOT / "src/hdmap_ros")]
         + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
@@ -60,9 +82,8 @@ class Ros:
     """An initialised context with a spinning executor in a background thread."""
 
     def __init__(self, domain_id: int) -> None:
+        os.environ.update(dds_vars(domain_id))
         domain_id = ros_domain(domain_id)
-        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-        os.environ["ROS_DOMAIN_ID"] = str(domain_id)
         self.domain_id = domain_id
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)

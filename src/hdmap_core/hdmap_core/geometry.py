@@ -16,6 +16,9 @@ __all__ = [
     "polyline_length",
     "segment_headings",
     "point_headings",
+    "unit_tangents",
+    "turn_left",
+    "left_normal",
     "true_runs",
     "interp_angle",
     "wrap_angle",
@@ -65,6 +68,26 @@ def point_headings(xy: np.ndarray) -> np.ndarray:
     differences inside, one-sided at the ends: ``np.gradient``) [rad]."""
     t = np.gradient(np.asarray(xy, dtype=float), axis=0)
     return np.arctan2(t[:, 1], t[:, 0])
+
+
+def unit_tangents(xy: np.ndarray) -> np.ndarray:
+    """(N, 2) unit tangent of a (N, 2) polyline at each point (``np.gradient``, as
+    ``point_headings``); zero where it stands still, and for a single point."""
+    xy = np.asarray(xy, dtype=float)
+    t = np.gradient(xy, axis=0) if len(xy) > 1 else np.zeros_like(xy)
+    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+
+
+def turn_left(v: np.ndarray) -> np.ndarray:
+    """(N, 2) the vectors ``v`` (N, 2) turned +90 deg: the left normals of unit tangents."""
+    v = np.asarray(v, dtype=float)
+    return np.stack([-v[:, 1], v[:, 0]], axis=1)
+
+
+def left_normal(heading: float | np.ndarray) -> np.ndarray:
+    """Unit normal pointing left of an ENU heading [rad]: (2,) for a scalar, else (N, 2)."""
+    h = np.asarray(heading, dtype=float)
+    return np.stack([-np.sin(h), np.cos(h)], axis=-1)
 
 
 def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:

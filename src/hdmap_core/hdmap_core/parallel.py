@@ -18,8 +18,11 @@ import functools
 import logging
 import multiprocessing
 import os
+import threading
+import time
 import traceback
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -34,9 +37,11 @@ __all__ = [
     "available_cpus",
     "balance",
     "can_fork",
+    "exit_with_parent",
     "map_balanced",
     "one_blas_thread",
     "run_shares",
+    "spawn_pool",
     "split_order",
 ]
 
@@ -140,7 +145,7 @@ class ForkWorker:
         self._conn, child_conn = ctx.Pipe(duplex=True)
         self.failed = False
         self._proc: multiprocessing.process.BaseProcess | None = ctx.Process(
-            target=_child_main, args=(job, child_conn), daemon=True
+            target=_child_main, args=(job, child_conn, self._conn, os.getpid()), daemon=True
         )
         try:
             self._proc.start()
@@ -199,7 +204,13 @@ class ForkWorker:
         _LOG.warning("%s; running its share in this process instead", why)
 
 
-def _child_main(job: Callable[[Any], None], conn: Any) -> None:
+def _child_main(job: Callable[[Any], None], conn: Any, parent_end: Any, parent_pid: int) -> None:
+    # The parent's end came along with the fork: closed here, a recv() sees the parent go (EOF)
+    # instead of waiting on a pipe this process holds open itself; and the child ends with a
+    # killed parent while it computes (``exit_with_parent``).
+    parent_end.close()
+    exit_with_parent(parent_pid)
+
     class _Channel:
         def send(self, obj: Any) -> None:
             conn.send(("ok", obj))
@@ -216,3 +227,41 @@ def _child_main(job: Callable[[Any], None], conn: Any) -> None:
             pass
     finally:
         conn.close()
+
+
+# How often a pool's worker looks whether the process that started it is still there [s].
+PARENT_POLL_S = 0.5
+
+
+def spawn_pool(max_workers: int = 1, *, nice: int = 0) -> ProcessPoolExecutor:
+    """A ``ProcessPoolExecutor`` of freshly spawned processes that end with the process that made
+    them (``exit_with_parent``): a node killed with SIGKILL, which runs no clean-up, leaves no
+    worker behind, busy or idle (a spawned worker holds both ends of its call queue, so it would
+    never see the parent go and would wait for work forever). ``nice``: added to the workers'
+    niceness (background work that must not slow the node's own)."""
+    return ProcessPoolExecutor(
+        max_workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_pool_worker_init,
+        initargs=(os.getpid(), nice),
+    )
+
+
+def _pool_worker_init(parent_pid: int, nice: int) -> None:
+    if nice:
+        os.nice(nice)
+    exit_with_parent(parent_pid)
+
+
+def exit_with_parent(parent_pid: int) -> None:
+    """Pool initializer: a daemon thread ends this process (``os._exit``, nothing left to clean
+    up that the parent still wants) once ``parent_pid`` is no longer its parent, i.e. the parent
+    died and the process was re-parented. Polls every ``PARENT_POLL_S`` seconds; portable POSIX
+    (``prctl(PR_SET_PDEATHSIG)`` would fire when the *thread* that spawned the pool ends)."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()

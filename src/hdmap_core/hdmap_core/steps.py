@@ -15,20 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hdmap_core.geometry import left_normal  # re-exported: the steps' lateral convention
+
 __all__ = ["StepResult", "Segment", "StepObservations", "left_normal"]
-
-
-def left_normal(heading: float | np.ndarray) -> np.ndarray:
-    """Unit normal pointing left of an ENU heading.
-
-    Args:
-        heading: yaw [rad], scalar or (N,).
-
-    Returns:
-        (2,) for a scalar heading, else (N, 2).
-    """
-    h = np.asarray(heading, dtype=float)
-    return np.stack([-np.sin(h), np.cos(h)], axis=-1)
 
 
 @dataclass(frozen=True)

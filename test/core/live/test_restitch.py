@@ -22,13 +22,11 @@ from hdmap_core.live.fuse import fuse_drive
 from hdmap_core.live.region import map_region
 from hdmap_core.live.restitch import (
     MOVED_TOLERANCE_M,
-    kept_nodes,
     moved_graphs,
     moved_map,
     raw_id_map,
     remap_ids,
     same_structure,
-    same_topology,
     stitch_tiles,
 )
 from hdmap_core.live.tiles import TileConfig, carry_over_ids, connect_tile, stitch_graphs, tiles_of_drive
@@ -68,6 +66,15 @@ def _points_to_lines(a, b) -> np.ndarray:
             shapely.distance(shapely.points(pts), shapely.MultiLineString(lines)) if lines else np.full(len(pts), 9e9)
         )
     return np.concatenate(out)
+
+
+def _same_topology(a, b) -> bool:
+    return len(a.topology) == len(b.topology) and all(
+        (x.id, x.heading, x.width, tuple(x.successors), tuple(x.features))
+        == (y.id, y.heading, y.width, tuple(y.successors), tuple(y.features))
+        and np.array_equal(x.position, y.position)
+        for x, y in zip(a.topology, b.topology, strict=True)
+    )
 
 
 def test_moved_map_is_the_full_restitch_of_the_fused_tiles_within_the_tolerance(fused):
@@ -140,15 +147,10 @@ def test_ids_follow_the_raw_ids_of_the_previous_version(fused):
     have = {int(f.id) for f in fast.features}
     assert all(int(i) in have for f in fast.features for i in (*f.predecessors, *f.successors))
     assert all(int(i) in have for t in fast.topology for i in t.features)
-    # the moved map keeps the topology (the stitcher reuses its messages), not the feature geometry
+    # the moved map keeps the topology (which maxima are nodes, where), not the feature geometry
     kept = remap_ids(fast_raw, raw_id_map(raw, published))
-    assert kept is not None and same_topology(kept, published)
+    assert kept is not None and _same_topology(kept, published)
     assert any(not np.array_equal(a.points, b.points) for a, b in zip(kept.features, published.features, strict=True))
-    assert not same_topology(kept, replace(published, topology=published.topology[1:]))
-    n = len(published.topology)
-    assert kept_nodes(kept, published).tolist() == list(range(n))
-    moved_one = replace(published.topology[3], width=published.topology[3].width + 0.5)
-    other = replace(published, topology=(*published.topology[:3], moved_one, *published.topology[4:]))
-    assert kept_nodes(kept, other).tolist() == [*range(3), -1, *range(4, n)]
+    assert not _same_topology(kept, replace(published, topology=published.topology[1:]))
     assert remap_ids(fast_raw, {}) is None  # an id not known: carried over by shape instead
     assert remap_ids(fast_raw, {int(f.id): int(f.id) for f in fast_raw.features}) is fast_raw

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from step_fleets import lane_ambiguous_fleet
 
+from hdmap_core.errors import ConfigError
 from hdmap_core.pipeline.adjustment import AdjustConfig, OffsetModel, adjust_offsets
 from hdmap_core.pipeline.adjustment_dist import AdjustPart, adjust_parts, local_call
 from hdmap_core.simulation.chains import ChainSimConfig, simulate_step_observations
@@ -83,3 +84,43 @@ def test_no_usable_observation_gives_an_empty_model():
     empty = [replace(o, cluster=np.full(len(o.drive_ids), -1)) for o in obs[:3]]
     model = adjust_parts(local_call(_parts(empty, [1])), 2, replace(CFG, reassociate_rounds=0))
     assert model.drives == {} and model.stats["n_drives"] == 0
+
+
+def _two_roads():
+    """Two fleets that share no drive (two carriageways), their steps interleaved at random as
+    two processes' pivots interleave in the one pivot order: (observations, road of each step)."""
+    a = _lane_ambiguous_fleet()
+    b = [
+        replace(o, pivot_id="B" + o.pivot_id, drive_ids=tuple("B" + d for d in o.drive_ids))
+        for o in simulate_step_observations(config=replace(SMALL, n_drives=25), seed=5)[0]
+    ]
+    road = np.random.default_rng(1).permutation(np.r_[np.zeros(len(a), int), np.ones(len(b), int)])
+    queues = [iter(a), iter(b)]
+    return [next(queues[r]) for r in road], road
+
+
+@pytest.mark.parametrize("compute_std", [False, True])
+def test_parts_that_share_no_drive_give_the_one_solve_to_the_last_bit(compute_std):
+    """The whole-fleet build's pivot shares: parts of interleaved steps, given their numbers."""
+    obs, road = _two_roads()
+    cfg = replace(CFG, compute_std=compute_std, iterations=8)
+    one = adjust_offsets(obs, config=cfg)
+    steps = [np.flatnonzero(road == r) for r in (1, 0)]  # the parts in any order
+    got = adjust_parts(local_call([AdjustPart([obs[i] for i in s]) for s in steps]), 2, cfg, steps=steps)
+    assert list(got.drives) == list(one.drives)  # the one solve's drive order
+    assert one.stats["lane_shifts"] > 0 and one.stats["iterations"] > 2  # re-weighting happened
+    assert got.stats["std_computed"] == compute_std
+    for d, want in one.drives.items():
+        have = got.drives[d]
+        assert (have.k0, have.bias_m) == (want.k0, want.bias_m)
+        np.testing.assert_array_equal(have.drift_m, want.drift_m)
+        np.testing.assert_array_equal([have.var_bias], [want.var_bias])  # nan without the std
+        np.testing.assert_array_equal(have.var_drift, want.var_drift)
+
+
+def test_parts_with_step_numbers_must_not_share_a_drive():
+    obs = _lane_ambiguous_fleet()
+    n = len(obs)
+    steps = [np.arange(0, n, 2), np.arange(1, n, 2)]
+    with pytest.raises(ConfigError, match="must not share a drive"):
+        adjust_parts(local_call([AdjustPart([obs[i] for i in s]) for s in steps]), 2, CFG, steps=steps)

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
-from hdmap_core.updates.follow import along_drives, unseen_at_ends
+from hdmap_core.updates.follow import along_drives
 from hdmap_core.updates.places import places_of
+from hdmap_core.updates.unseen import unseen_at_ends
 
 
 def _drive(xy: np.ndarray) -> Drive:

@@ -73,3 +73,36 @@ def test_encoder_is_byte_identical_to_rosbags(drive_id, frame, n):
     drive = replace(drive, xy=drive.xy[:n], yaw=drive.yaw[:n], stamps_ns=drive.stamps_ns[:n])
     drive = replace(drive, detections=drive.detections + (Detection(FeatureType.SOLID, np.zeros((0, 2))),))
     assert encode_drive(drive) == _raw(drive)
+
+
+@pytest.mark.parametrize("frame", ["map", "m", "mapframe", ""])
+@pytest.mark.parametrize("n_points", [1, 2, 3, 30])
+@pytest.mark.parametrize("drive_ids", [(), ("a",), ("a", "bc", "def")])
+def test_map_encoder_is_byte_identical_to_rosbags(frame, n_points, drive_ids):
+    """Every alignment case: odd point counts (the uint16 and float32 arrays end off 8),
+    features and nodes without predecessors, successors or features, empty drive ids."""
+    from hdmap_ros.convert.messages import map_to_msg
+    from hdmap_ros.io.cdr import encode_map
+
+    from bag_samples import make_map
+
+    m = replace(make_map(n_features=5, n_points=n_points, seed=n_points), frame_id=frame, drive_ids=drive_ids)
+    m = replace(m, features=(*m.features, replace(m.features[0], id=3, predecessors=(), successors=())))
+    m = replace(m, topology=(*m.topology, replace(m.topology[0], id=99, successors=(), features=())))
+    assert encode_map(m) == bytes(default_typestore().serialize_cdr(map_to_msg(m), "hdmap_msgs/msg/Map"))
+    assert encode_map(replace(m, features=(), topology=())) == bytes(
+        default_typestore().serialize_cdr(map_to_msg(replace(m, features=(), topology=())), "hdmap_msgs/msg/Map")
+    )
+
+
+def test_map_encoder_refuses_what_map_to_msg_refuses():
+    from hdmap_core.errors import InvalidMessageError
+    from hdmap_ros.io.cdr import encode_map
+
+    from bag_samples import make_map
+
+    m = make_map()
+    with pytest.raises(InvalidMessageError):
+        encode_map(replace(m, features=(replace(m.features[0], id=2**64),)))
+    with pytest.raises(InvalidMessageError):
+        encode_map(replace(m, features=(replace(m.features[0], drive_count=m.features[0].drive_count[1:]),)))

@@ -19,7 +19,7 @@ from hdmap_ros.convert.messages import drive_to_msg, rclpy_types  # noqa: E402
 from hdmap_ros.persistence.store import DriveStore  # noqa: E402
 
 from bag_samples import make_drive  # noqa: E402
-from nodes_harness import ros_domain, wait_for  # noqa: E402
+from nodes_harness import use_dds, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -145,8 +145,7 @@ def test_hdmap_run_settles_on_a_bag_with_undecodable_and_invalid_drives(tmp_path
     player skips (before: never counted, so `hdmap run` waited forever)."""
     from hdmap_ros import cli
 
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain(74)))
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    use_dds(monkeypatch, 74)
 
     code = cli.main(["run", str(sample_bags / "bad_inputs"), "-o", str(tmp_path / "map"), "--timeout", "300"])
     err = capsys.readouterr().err

@@ -84,14 +84,19 @@ class Suite:
         self.types = t
         self.probe.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, qos.DIAGNOSTICS)
         self.probe.create_subscription(String, "/hdmap/drive_acks", lambda m: self.acks.append(m.data), qos.ACKS)
-        from hdmap_msgs.msg import TileSegments
+        from hdmap_msgs.msg import TileSegments, TileSegmentsBatch
 
         self.probe.create_subscription(TileSegments, "/hdmap/segments", self._on_seg, qos.replay(1000))
+        # the tiles one job makes together (the region settle) come as one batch
+        self.probe.create_subscription(TileSegmentsBatch, "/hdmap/segment_batches", self._on_batch, qos.BATCHES)
         self.drive_pub = self.probe.create_publisher(t.Drive, "/fleet/drives", qos.DRIVES)
         self.probe.create_subscription(t.Map, "/hdmap/map", self.maps.append, qos.LATCHED)
 
     def _on_seg(self, _msg) -> None:
         self.segments += 1
+
+    def _on_batch(self, msg) -> None:
+        self.segments += len(msg.tile_x)
 
     def _on_diag(self, arr) -> None:
         for st in arr.status:

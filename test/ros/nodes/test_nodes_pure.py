@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -192,3 +193,105 @@ def test_launch_file_compiles_and_names_every_node():
     compile(text, str(path), "exec")
     for node in ("drive_ingestor", "segment_mapper", "map_stitcher", "map_publisher", "bag_player"):
         assert f'"{node}"' in text
+
+
+def _batch_tiles():
+    segs = _segments()
+    more = [
+        Segment(p, tuple(replace(st, pivot_id=p) for st in steps))
+        for p, steps in (("third", segs[0].steps[2:]), ("fourth", segs[0].steps[:1]))
+    ]
+    return [
+        ((3, -2), segs, 7, ["a", "b"], [4, 1], True),
+        ((2**40, -(2**40)), [], 1, [], [], False),
+        ((4, -2), more, 2, ["b"], [1], True),
+    ]
+
+
+@pytest.mark.parametrize("kind", ["rosbags", "rclpy"])
+def test_tile_batch_round_trip_through_cdr_is_each_tile_message(kind):
+    """A TileSegmentsBatch carries what one TileSegments per tile carries (the stitcher stores
+    either the same), and its columns make the same store blob as the segments."""
+    from hdmap_ros.convert.tiles import batch_to_tiles, msg_to_tile, tile_to_msg, tiles_to_batch
+    from hdmap_ros.persistence.store import columns_to_blob, segments_to_blob
+
+    if kind == "rosbags":
+        pytest.importorskip("rosbags")
+        from hdmap_ros.convert.tiles import rosbags_tile_types
+        from hdmap_ros.io.msgdefs import make_typestore
+
+        store = make_typestore()
+        types = rosbags_tile_types(store)
+
+        def wire(msg, name):
+            return store.deserialize_cdr(store.serialize_cdr(msg, f"hdmap_msgs/msg/{name}"), f"hdmap_msgs/msg/{name}")
+    else:
+        pytest.importorskip("rclpy")
+        pytest.importorskip("hdmap_msgs.msg")
+        from rclpy.serialization import deserialize_message, serialize_message
+
+        from hdmap_ros.convert.tiles import rclpy_tile_types
+
+        types = rclpy_tile_types()
+
+        def wire(msg, _name):
+            return deserialize_message(serialize_message(msg), type(msg))
+
+    tiles = _batch_tiles()
+    stamp = 1_700_000_000_123_456_789
+    got = batch_to_tiles(
+        wire(tiles_to_batch(tiles, tile_size_m=256.0, stamp_ns=stamp, types=types), "TileSegmentsBatch")
+    )
+    assert len(got) == len(tiles)
+    for entry, (key, segs, version, ids, counts, final) in zip(got, tiles, strict=True):
+        one = msg_to_tile(
+            wire(
+                tile_to_msg(
+                    key,
+                    segs,
+                    version=version,
+                    drive_ids=ids,
+                    tile_size_m=256.0,
+                    stamp_ns=stamp,
+                    types=types,
+                    drive_tile_counts=counts,
+                    final=final,
+                ),
+                "TileSegments",
+            )
+        )
+        # every field, the segments apart (made from the columns on demand)
+        assert entry.tile == replace(one, segments=[])
+        back = entry.segments()
+        assert columns_to_blob(entry.columns) == segments_to_blob(back) == segments_to_blob(segs)
+        assert [s.pivot_id for s in back] == [s.pivot_id for s in segs]
+        for a, b in zip([st for s in segs for st in s.steps], [st for s in back for st in s.steps], strict=True):
+            assert (a.pivot_id, a.index, a.s_m, a.heading, a.valid, a.processed_before, a.drive_ids) == (
+                b.pivot_id,
+                b.index,
+                b.s_m,
+                b.heading,
+                b.valid,
+                b.processed_before,
+                b.drive_ids,
+            )
+            for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
+                np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
+
+
+def test_a_tile_batch_whose_columns_do_not_add_up_is_refused():
+    pytest.importorskip("rosbags")
+    from hdmap_ros.convert.tiles import batch_to_tiles, rosbags_tile_types, tiles_to_batch
+    from hdmap_ros.io.msgdefs import make_typestore
+
+    msg = tiles_to_batch(_batch_tiles(), tile_size_m=256.0, stamp_ns=0, types=rosbags_tile_types(make_typestore()))
+    for field, value in [
+        ("step_maxima", msg.step_maxima[:-1]),
+        ("lateral_m", msg.lateral_m[1:]),
+        ("tile_segments", msg.tile_segments + 1),
+        ("step_drive_index", msg.step_drive_index + 10),
+        ("version", msg.version[:1]),
+    ]:
+        bad = type(msg)(**{**{f: getattr(msg, f) for f in msg.__dataclass_fields__}, field: value})
+        with pytest.raises(ValueError, match="do not add up"):
+            batch_to_tiles(bad)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import sqlite3
 import subprocess
 import sys
 import textwrap
 
 import numpy as np
+import pytest
 
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.steps import Segment, StepResult
@@ -286,6 +288,20 @@ def test_map_store_ignores_old_tile_versions(tmp_path):
     st.put_map(_map(), st.tiles_signature())
     m, sig = st.map()
     assert m.version == 12 and sig == "0,0:2"
+
+
+def test_map_store_stores_a_batch_in_one_transaction_newer_versions_only(tmp_path):
+    st = MapStore(tmp_path / "s.db")
+    blob = segments_to_blob(_segments())
+    assert st.put_tile((0, 0), 2, blob, ["a"])
+    got = st.put_tiles([((0, 0), 2, b"junk", ["a"], [1], True), ((1, 0), 1, blob, ["a", "b"], [2, 1], False)])
+    assert got == [False, True]  # the same version again is ignored, the new tile stored
+    assert st.tiles_signature() == "0,0:2;1,0:1"
+    with pytest.raises(sqlite3.Error):  # one bad tile: none of the batch is stored
+        st.put_tiles([((2, 0), 1, blob, ["a"], [1], True), ((3,), 1, blob, ["a"], [1], True)])
+    assert st.tiles_signature() == "0,0:2;1,0:1"
+    assert st.tile_progress()[(1, 0)] == ([2, 1], False)
+    assert [b for k, _, _, b in st.tiles() if k == (0, 0)] == [blob]
 
 
 def test_sigkill_mid_transaction_keeps_committed_drives(tmp_path):

@@ -18,7 +18,7 @@ import numpy as np
 import shapely
 
 from hdmap_core.evaluation.config import EvalConfig
-from hdmap_core.geometry import nearest_on_same_cut
+from hdmap_core.geometry import nearest_on_same_cut, turn_left
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import FeatureType
 
@@ -230,10 +230,6 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.where(norm > _EPS, norm, 1.0)
 
 
-def _left(t: np.ndarray) -> np.ndarray:
-    return np.stack([-t[:, 1], t[:, 0]], axis=1)
-
-
 def _reference_lines(gt: GroundTruth) -> list[tuple[np.ndarray, np.ndarray]]:
     """Contiguous reference lines: (N, 2) joined lane centerlines and (N - 1,) highway flag per segment.
 
@@ -304,7 +300,7 @@ def _border_extents(
     Borders crossing the cut at a steep angle (|cos| < ``cos_min``, e.g. an overpass) are ignored.
     """
     k = len(center)
-    normal = _left(tangent)
+    normal = turn_left(tangent)
     full = np.full(k, max_half_m)
     ci, si, s, _ = intersect_cuts(center, normal, -full, full, border_segs)
     seg_dir = _unit(border_segs.b[si] - border_segs.a[si])
@@ -338,7 +334,7 @@ def _deduplicate(
     if c < 2:
         return keep
     half = step_m / 2 + 1e-6
-    normal = _left(tangent)
+    normal = turn_left(tangent)
     corners = np.stack(
         [
             center - half * tangent + lo[:, None] * normal,
@@ -397,7 +393,7 @@ def reference_cuts(
     keep = _deduplicate(center, tangent, lo, hi, step_m=step_m, cos_heading=cos_dedup)
     center, tangent, lo, hi = center[keep], tangent[keep], lo[keep], hi[keep]
     station = np.arange(len(center), dtype=float) * step_m
-    return Cuts(center, tangent, _left(tangent), lo, hi, station)
+    return Cuts(center, tangent, turn_left(tangent), lo, hi, station)
 
 
 # --------------------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ Typical use::
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -55,6 +56,7 @@ from hdmap_core.evaluation.topology import (
     map_feature_graph,
     on_cuts,
 )
+from hdmap_core.geometry import turn_left, unit_tangents
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import Drive, HDMap, MapFeature
 
@@ -289,32 +291,11 @@ def evaluate_map(
     floor = np.where(drive_count >= 1, sigma / np.sqrt(np.maximum(drive_count, 1.0)), np.nan)
     fleet_err = _cut_fleet_error(k, crossings, drive_errors) if crossings is not None and drive_errors else None
 
-    per_type = {}
-    for t in EVAL_TYPES:
-        per_type[t.label] = _type_stats(
-            g_mask=g_type == t,
-            m_mask=m_type == t,
-            gp=gp,
-            mp=mp,
-            err=err,
-            corrected=corrected,
-            matched=matched,
-            gt_hit=gt_hit,
-            map_hit=map_hit,
-            k=k,
-        )
-    overall = _type_stats(
-        g_mask=np.ones(len(gp.cut), dtype=bool),
-        m_mask=np.ones(len(mp.cut), dtype=bool),
-        gp=gp,
-        mp=mp,
-        err=err,
-        corrected=corrected,
-        matched=matched,
-        gt_hit=gt_hit,
-        map_hit=map_hit,
-        k=k,
+    stats = functools.partial(
+        _type_stats, gp=gp, mp=mp, err=err, corrected=corrected, matched=matched, gt_hit=gt_hit, map_hit=map_hit, k=k
     )
+    per_type = {t.label: stats(g_mask=g_type == t, m_mask=m_type == t) for t in EVAL_TYPES}
+    overall = stats(g_mask=np.ones(len(gp.cut), dtype=bool), m_mask=np.ones(len(mp.cut), dtype=bool))
 
     frag_mean, frag_max, n_frag = _fragmentation(gp, gi, matched, map_feats, mp)
     branch_points = _branch_points(gt_feats, cuts, gp, gi, gd, mp, map_feats, config, cos_feat)
@@ -717,9 +698,7 @@ def hdmap_from_ground_truth(
     for i, f in enumerate(feats):
         pts = np.asarray(f.points, dtype=float)
         if lateral_shift_m:
-            t = np.gradient(pts, axis=0)
-            t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-            pts = pts + lateral_shift_m * np.stack([-t[:, 1], t[:, 0]], axis=1)
+            pts = pts + lateral_shift_m * turn_left(unit_tangents(pts))
         out.append(
             MapFeature(
                 id=int(f.id),

@@ -37,6 +37,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from hdmap_core.evaluation.roads import NODE_ALONG_M, TopologyArrays, densify_path
+from hdmap_core.geometry import unit_tangents
 from hdmap_core.groundtruth import GTLane
 
 __all__ = ["LinkCheckConfig", "TopologyLink", "LinkPrecision", "check_topology_links"]
@@ -149,8 +150,7 @@ class _LanePoints:
         xy, lane, st, dirs, length = [], [], [], [], []
         for k, line in enumerate(lines):
             p, arc = densify_path(np.asarray(line, dtype=float))
-            d = np.gradient(p, axis=0) if len(p) > 1 else np.zeros_like(p)
-            d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+            d = unit_tangents(p)
             xy.append(p)
             lane.append(np.full(len(p), k, dtype=np.int64))
             st.append(arc)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from hdmap_core.evaluation.report import EvalReport
+from hdmap_core.geometry import left_normal
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import FeatureType, HDMap
 
@@ -51,7 +52,7 @@ def _draw_map(
             ax.plot(p[:, 0], p[:, 1], color=TYPE_COLORS.get(mf.type, "#7f7f7f"), lw=map_lw)
     cuts = report.cuts
     ref, ev = cuts.reference, cuts.evaluable
-    normal = np.stack([-np.sin(cuts.heading_rad), np.cos(cuts.heading_rad)], axis=1)
+    normal = left_normal(cuts.heading_rad).reshape(-1, 2)
     ends = np.stack([cuts.center + cuts.lo_m[:, None] * normal, cuts.center + cuts.hi_m[:, None] * normal], axis=1)
     ax.add_collection(lc(ends[ref][::cut_every], colors="0.6", linewidths=0.3, alpha=0.6, zorder=0))
     if (ref & ~ev).any():

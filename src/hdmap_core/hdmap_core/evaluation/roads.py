@@ -32,6 +32,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
+from hdmap_core.geometry import unit_tangents
 from hdmap_core.groundtruth import GTLane
 from hdmap_core.model import TopologyNode
 
@@ -174,8 +175,7 @@ def follow_lanes(lanes: Mapping[str, GTLane], start: str, *, forward: bool, foll
         seen.add(lid)
         line = lanes[lid].centerline if forward else lanes[lid].centerline[::-1]
         xy, arc = densify_path(np.asarray(line, dtype=float))
-        direction = np.gradient(xy, axis=0) if len(xy) > 1 else np.zeros_like(xy)
-        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
+        direction = unit_tangents(xy)
         if not forward:
             direction = -direction
         keep = d0 + arc <= follow_m

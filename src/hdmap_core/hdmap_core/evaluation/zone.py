@@ -25,7 +25,7 @@ import networkx as nx
 import numpy as np
 
 from hdmap_core.evaluation.config import EVAL_TYPES, EvalConfig
-from hdmap_core.evaluation.cuts import configured_cuts, nearest_on_same_cut, nearest_same_type, points_on_cuts
+from hdmap_core.evaluation.cuts import Cuts, configured_cuts, nearest_on_same_cut, nearest_same_type, points_on_cuts
 from hdmap_core.geometry import arc_length
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.lanes.lane_graph import lane_graph, lanes_at
@@ -76,6 +76,17 @@ def _share(num: int, den: int) -> float:
     return num / den if den else math.nan
 
 
+def _zone_cuts(gt_now: GroundTruth, zones: Sequence[ChangeZone], config: EvalConfig) -> tuple[Cuts, float]:
+    """The metric's cut lines of ``gt_now`` inside ``zones``, and the cosine of the largest angle
+    between a feature and a cut's road direction."""
+    cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
+    cuts = configured_cuts(gt_now, config, cos_feature=cos_feat)
+    inside = np.zeros(len(cuts), dtype=bool)
+    for z in zones:
+        inside |= zone_mask(z, cuts.center, cuts.tangent)
+    return cuts.take(inside), cos_feat
+
+
 def evaluate_zone(
     hdmap: HDMap,
     gt_now: GroundTruth,
@@ -85,12 +96,7 @@ def evaluate_zone(
     config: EvalConfig = EvalConfig(),
 ) -> ZoneReport:
     """Score ``hdmap`` inside ``zones`` against ``gt_now``; ghosts against ``gt_before``."""
-    cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
-    cuts = configured_cuts(gt_now, config, cos_feature=cos_feat)
-    inside = np.zeros(len(cuts), dtype=bool)
-    for z in zones:
-        inside |= zone_mask(z, cuts.center, cuts.tangent)
-    cuts = cuts.take(inside)
+    cuts, cos_feat = _zone_cuts(gt_now, zones, config)
     width = 4.0 * (config.max_half_length_m + config.border_margin_m) + 10.0
 
     def on_cuts(feats: Sequence) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -216,12 +222,7 @@ def evaluate_zone_lanes(
     it is now (``ZoneLanes``). The road's lane count on a cut: its lane centerlines crossing it, two
     within ``_SAME_LANE_M`` one lane (a closed lane's centerline runs on its neighbour's,
     ``simulation.changes``; an opened lane has its own)."""
-    cos_feat = math.cos(math.radians(config.max_feature_angle_deg))
-    cuts = configured_cuts(gt_now, config, cos_feature=cos_feat)
-    inside = np.zeros(len(cuts), dtype=bool)
-    for z in zones:
-        inside |= zone_mask(z, cuts.center, cuts.tangent)
-    cuts = cuts.take(inside)
+    cuts, cos_feat = _zone_cuts(gt_now, zones, config)
     if len(cuts) == 0:
         return ZoneLanes(0, math.nan, math.nan, math.nan)
     g = points_on_cuts(cuts, [ln.centerline for ln in gt_now.lanes.values()], cos_min=cos_feat)

@@ -155,7 +155,7 @@ def _flatten(valid: list[StepResult], config: ConnectionConfig) -> _Steps:
     off = np.concatenate([[0], np.cumsum(k)]).astype(np.int64)
     mid = np.array([np.asarray(st.midpoint, dtype=float) for st in valid]).reshape(-1, 2)
     hdg = np.array([float(st.heading) for st in valid])
-    nrm = np.stack([-np.sin(hdg), np.cos(hdg)], axis=1)
+    nrm = left_normal(hdg)
     xy = mid[j_of] + lat[:, None] * nrm[j_of]
     return _Steps(valid, off, lat, xy, typ, cnt, std, slot, _fast_pairs(valid, off, xy, typ, hdg, config))
 

@@ -12,7 +12,7 @@ import copy
 
 import numpy as np
 
-from hdmap_core.geometry import nearest_on_same_cut
+from hdmap_core.geometry import left_normal, nearest_on_same_cut
 from hdmap_core.graph.flat import FlatGraph
 from hdmap_core.graph.segment_graph import feature_chains
 from hdmap_core.model import FeatureType
@@ -33,7 +33,7 @@ def edge_lines_solid(flat: FlatGraph, *, within_m: float, max_drives: int) -> np
     if not (weak.any() and border.any()):
         return types
     h = flat.t_heading[topo]
-    nrm = np.stack([-np.sin(h), np.cos(h)], axis=1)
+    nrm = left_normal(h)
     lat = np.einsum("ij,ij->i", flat.n_xy - flat.t_xy[topo], nrm)
     # the laterally nearest border of the same topology node (cut widths are < 1e3 m)
     bi, wi = np.flatnonzero(border), np.flatnonzero(weak)

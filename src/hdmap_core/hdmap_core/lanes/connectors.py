@@ -42,7 +42,7 @@ import networkx as nx
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import resample_evenly
+from hdmap_core.geometry import left_normal, resample_evenly
 from hdmap_core.lanes.derive import proper_sides
 from hdmap_core.lanes.lane_graph import lane_graph
 from hdmap_core.lanes.model import Boundary, Lane, LaneMap
@@ -185,7 +185,7 @@ def placed_trajectories(lane_map: LaneMap, lanes: dict[int, Lane], trajectories:
     for i, p in enumerate(pts):
         own = off[sizes[i] : sizes[i + 1]][ids[sizes[i] : sizes[i + 1]] != 0]
         if len(own) and abs(bias := float(np.median(own))) > _BIAS_MIN_M:
-            pts[i] = p - bias * np.stack([-np.sin(yaw[i]), np.cos(yaw[i])], axis=1)
+            pts[i] = p - bias * left_normal(yaw[i])
     ids, off = where(np.concatenate(pts), allyaw)
     return [(p, ids[sizes[i] : sizes[i + 1]], off[sizes[i] : sizes[i + 1]]) for i, p in enumerate(pts) if len(p)]
 

@@ -380,7 +380,14 @@ def _chains(st: _Stations) -> list[list[int]]:
             return st.succ[k][0]
         return None
 
-    starts = [k for k in range(len(st)) if not (len(st.pred[k]) == 1 and single(st.pred[k][0]) == k)]
+    return _walks(st, single)
+
+
+def _walks(st: _Stations, follow: Callable[[int], int | None]) -> list[list[int]]:
+    """Maximal chains of stations along ``follow`` (a station's one next station, or None), in
+    order: first from every station no other one follows to, then the closed loops; every station
+    in exactly one chain."""
+    starts = [k for k in range(len(st)) if not (len(st.pred[k]) == 1 and follow(st.pred[k][0]) == k)]
     done = [False] * len(st)
     chains = []
     for k0 in starts + list(range(len(st))):
@@ -388,11 +395,11 @@ def _chains(st: _Stations) -> list[list[int]]:
             continue
         chain = [k0]
         done[k0] = True
-        nxt = single(k0)
+        nxt = follow(k0)
         while nxt is not None and not done[nxt]:
             chain.append(nxt)
             done[nxt] = True
-            nxt = single(nxt)
+            nxt = follow(nxt)
         chains.append(chain)
     return chains
 
@@ -584,26 +591,7 @@ def _runs(st: _Stations, sections: list[_Section]) -> list[list[int]]:
             return None
         return b
 
-    starts = [k for k in range(len(st)) if not (len(st.pred[k]) == 1 and continues(st.pred[k][0]) == k)]
-    seen = np.zeros(len(st), dtype=bool)
-    runs: list[list[int]] = []
-
-    def walk(k: int) -> None:
-        run = [k]
-        seen[k] = True
-        nxt = continues(k)
-        while nxt is not None and not seen[nxt]:
-            run.append(nxt)
-            seen[nxt] = True
-            nxt = continues(nxt)
-        runs.extend(_chunks(st, run))
-
-    for k in starts:
-        walk(k)
-    for k in range(len(st)):  # closed loops without any change
-        if not seen[k]:
-            walk(k)
-    return runs
+    return [piece for run in _walks(st, continues) for piece in _chunks(st, run)]
 
 
 def _chunks(st: _Stations, run: list[int]) -> list[list[int]]:

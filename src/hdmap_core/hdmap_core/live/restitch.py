@@ -43,8 +43,6 @@ __all__ = [
     "moved_map",
     "remap_ids",
     "raw_id_map",
-    "same_topology",
-    "kept_nodes",
     "MOVED_TOLERANCE_M",
 ]
 
@@ -207,34 +205,3 @@ def remap_ids(raw: HDMap, ids: Mapping[int, int]) -> HDMap | None:
         replace(t, features=_r(t.features)) if any(int(i) in changed for i in t.features) else t for t in raw.topology
     )
     return replace(raw, features=features, topology=topology)
-
-
-def _same_node(x, y) -> bool:
-    return (
-        x.id == y.id
-        and x.heading == y.heading
-        and x.width == y.width
-        and tuple(x.features) == tuple(y.features)
-        and tuple(x.successors) == tuple(y.successors)
-        and np.array_equal(x.position, y.position)
-    )
-
-
-def kept_nodes(a: HDMap, b: HDMap) -> np.ndarray:
-    """(len(a.topology),) int: per topology node of ``a``, the index of the same node (id,
-    position, heading, width, successors, features) in ``b``, or -1. A moved map keeps most of
-    them: its message reuses theirs."""
-    where = {int(n.id): i for i, n in enumerate(b.topology)}
-    out = np.full(len(a.topology), -1, dtype=np.int64)
-    for k, x in enumerate(a.topology):
-        i = where.get(int(x.id))
-        if i is not None and _same_node(x, b.topology[i]):
-            out[k] = i
-    return out
-
-
-def same_topology(a: HDMap, b: HDMap) -> bool:
-    """Do two map versions hold the same topology nodes, in the same order?"""
-    return len(a.topology) == len(b.topology) and all(
-        _same_node(x, y) for x, y in zip(a.topology, b.topology, strict=True)
-    )

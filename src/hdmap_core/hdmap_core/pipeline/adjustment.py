@@ -47,8 +47,9 @@ from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
 # The solver's building blocks (shift_and_reassociate, knot_layout, layout_of, design_matrix,
-# prior_matrix, reduced_normal, NormalSolver, update_normal, kept_weights, sample_residuals,
-# robust_weights, pool_offsets, coarse_config, drive_curves) are public but not in __all__:
+# prior_matrix, reduced_normal, NormalSolver, update_normal, rebuilds, kept_weights,
+# sample_residuals, robust_weights, pool_offsets, coarse_config, covariance_parts, drive_curves)
+# are public but not in __all__:
 # adjustment_local.update_offsets solves new drives with them against a fixed fleet, and
 # adjustment_dist runs the same solve over observations split into parts.
 
@@ -430,7 +431,7 @@ def update_normal(
     rows = np.flatnonzero(hit[samples.cluster])
     if rows.size == 0:
         return h, rhs, old_info
-    if rows.size > samples.s_m.size // 3:  # cheaper to rebuild than to subtract and add
+    if rebuilds(rows.size, samples.s_m.size):
         h_all, rhs_all = reduced_normal(a, samples.cluster, samples.n_clusters, new_info, samples.lateral_m)
         return (h_all + prior).tocsr(), rhs_all, new_info
     a_sub, c_sub, l_sub = a[rows], samples.cluster[rows], samples.lateral_m[rows]
@@ -441,6 +442,12 @@ def update_normal(
     diff = h_new - h_old
     del h_new, h_old
     return (h + diff).tocsr(), rhs + (rhs_new - rhs_old), new_info
+
+
+def rebuilds(changed_rows: int, n_samples: int) -> bool:
+    """IRLS: whether re-weighting ``changed_rows`` of ``n_samples`` rebuilds the normal
+    equations (cheaper than subtracting and adding the changed clusters)."""
+    return changed_rows > n_samples // 3
 
 
 def kept_weights(old_info: np.ndarray, want_info: np.ndarray) -> np.ndarray:
@@ -572,7 +579,7 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
     theta, h = fit.theta, fit.normal
     cov = None
     if cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:
-        cov = _covariance_parts(h, lay)
+        cov = covariance_parts(h, lay)
     stats["std_computed"] = cov is not None
     return OffsetModel(**base, drives=drive_curves(samples.drive_ids, lay, theta, cov), stats=stats)
 
@@ -694,7 +701,7 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
     return _Fit(lay, theta, h, info, r, it, change, schur)
 
 
-def _covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:
+def covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:
     """Entries of H^-1 needed for the std of o(s): var/cov of bias and knots, per column."""
     # One BLAS thread: on a small shared machine OpenBLAS threads thrash (measured 20x slower).
     with one_blas_thread():

@@ -36,9 +36,13 @@ class Pool:
     ftype: np.ndarray  # (n,) int FeatureType code
     label: np.ndarray  # (n,) int cluster label from the observations (-1 = none)
     step_drives: np.ndarray  # (number of observations,) distinct drives of each step (0 if skipped)
-    #: number of the first step in the whole observation sequence (a part of it: ``adjustment_dist``);
+    #: number of the first step in the whole observation sequence (a part of it: ``adjustment_dist``),
+    #: or, for a part whose steps are not consecutive there, the number of each of its steps;
     #: ``select`` thins by the global step number
-    step0: int = 0
+    step0: int | np.ndarray = 0
+    #: (D,) the step of each drive's first sample (finite or not): drives are numbered in that
+    #: order (``adjustment_dist`` merges the parts' drives by it)
+    first_step: np.ndarray | None = None
     #: (number of observations, 2) each step's cut midpoint [m] (NaN if unreadable): where it is
     step_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
@@ -108,7 +112,9 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
     if not s_list:
         stats["n_samples"] = stats["n_nonfinite_dropped"] = 0
         e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
-        return Pool(e_i, (), e_f, e_f, e_i, e_i, e_i, np.zeros(len(observations), np.int64), step_xy=step_xy)
+        return Pool(
+            e_i, (), e_f, e_f, e_i, e_i, e_i, np.zeros(len(observations), np.int64), first_step=e_i, step_xy=step_xy
+        )
     s = np.concatenate(s_list)
     lat = np.concatenate(lat_list)
     label = np.concatenate(cl_list).astype(np.int64)
@@ -131,6 +137,7 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
         ftype[finite],
         label[finite],
         step_drives,
+        first_step=step[firsts],
         step_xy=step_xy,
     )
 
@@ -156,7 +163,7 @@ def select(pool: Pool, label: np.ndarray, thin_drives: int = 0) -> Samples:
     if thin_drives > 0 and keep.size:
         stride = np.maximum(1, -(-pool.step_drives // thin_drives))
         st = pool.step[keep]
-        keep = keep[(st + pool.step0) % stride[st] == 0]
+        keep = keep[step_numbers(pool, st) % stride[st] == 0]
     cl, n_cl = compact(pool.step[keep] * (int(label[keep].max(initial=0)) + 1) + label[keep])
     _, first_of_pair = np.unique(cl * max(len(pool.drive_ids), 1) + pool.drive[keep], return_index=True)
     n_drives_in = np.bincount(cl[first_of_pair], minlength=n_cl)
@@ -177,6 +184,33 @@ def select(pool: Pool, label: np.ndarray, thin_drives: int = 0) -> Samples:
     )
 
 
+def step_numbers(pool: Pool, step: np.ndarray) -> np.ndarray:
+    """The numbers in the whole observation sequence of this pool's steps ``step``."""
+    if isinstance(pool.step0, np.ndarray):
+        return pool.step0[step]
+    return step + pool.step0
+
+
+#: what sets the scale of ``centres``' sort keys: max |v| of the labelled samples, max |v| of
+#: all samples, the largest type code; a part of the fleet is given the whole fleet's
+#: (``adjustment_dist``), so that its keys round as the one solve's
+Extent = tuple[float, float, int]
+
+
+def extent(pool: Pool, label: np.ndarray, v: np.ndarray) -> Extent:
+    """``centres``' scale from this pool's samples (``max_extent`` of the parts' for the fleet's)."""
+    return (
+        float(np.abs(v[label >= 0]).max(initial=0.0)),
+        float(np.abs(v).max(initial=0.0)),
+        int(pool.ftype.max(initial=0)),
+    )
+
+
+def max_extent(extents: Sequence[Extent]) -> Extent:
+    """The fleet's ``Extent`` from its parts'."""
+    return (max(e[0] for e in extents), max(e[1] for e in extents), max(e[2] for e in extents))
+
+
 @dataclass(frozen=True)
 class Centres:
     """Cluster centres of all steps, sorted by (step, type) group then position."""
@@ -189,18 +223,20 @@ class Centres:
     span: float
 
 
-def centres(pool: Pool, label: np.ndarray, v: np.ndarray) -> Centres | None:
-    """Centres (median of the members' positions ``v``) of the clusters of ``label``."""
+def centres(pool: Pool, label: np.ndarray, v: np.ndarray, scale: Extent | None = None) -> Centres | None:
+    """Centres (median of the members' positions ``v``) of the clusters of ``label``; ``scale``:
+    the whole fleet's ``extent`` when this pool is a part of it (default: this pool's)."""
     have = np.flatnonzero(label >= 0)
     if have.size == 0:
         return None
+    v_have, v_all, top_type = scale if scale is not None else extent(pool, label, v)
     g, n_g = compact(pool.step[have] * (int(label[have].max()) + 1) + label[have])
-    width = 2.0 * float(np.abs(v[have]).max()) + 1.0
+    width = 2.0 * v_have + 1.0
     o = np.argsort(g * width + (v[have] + width / 2))  # by cluster, then position
     starts = np.concatenate([[0], np.cumsum(np.bincount(g, minlength=n_g))[:-1]])
     mid = have[o][starts + np.bincount(g, minlength=n_g) // 2]
-    n_types = int(pool.ftype.max(initial=0)) + 1
-    span = 2.0 * float(np.abs(v).max(initial=0.0)) + 20.0
+    n_types = top_type + 1
+    span = 2.0 * v_all + 20.0
     group = pool.step[mid] * n_types + pool.ftype[mid]
     key = group * span + (v[mid] + span / 2)
     o = np.argsort(key)

@@ -1,8 +1,9 @@
 """The offset adjustment's one solve over observations split into parts that stay where they are.
 
 ``adjustment.adjust_offsets`` holds every step's samples in one process. Here the observation
-sequence is cut into consecutive parts (in a tiled build: runs of tiles in key order), each held
-by an ``AdjustPart`` (on a cluster: a Dask actor on a worker), and the client runs the same
+sequence is cut into parts (in a tiled build: runs of tiles in key order, each an ``AdjustPart``
+in a Dask actor on a worker; in the whole-fleet build: the pivot shares of its forked workers,
+``pipeline.driver``, whose steps interleave and which share no drive), and the client runs the same
 algorithm as ``adjust_offsets`` (raw association, coarse fit, lane-shift search, re-association,
 coarse rejection and the robust IRLS curve fit; docs/adjustment.md) by asking every part for its
 share:
@@ -41,6 +42,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from hdmap_core.errors import ConfigError
 from hdmap_core.pipeline import adjustment_assoc as assoc
 from hdmap_core.pipeline.adjustment import (
     HUBER_WARMUP_ITERATIONS,
@@ -53,12 +55,14 @@ from hdmap_core.pipeline.adjustment import (
     NormalSolver,
     OffsetModel,
     coarse_config,
+    covariance_parts,
     design_matrix,
     drive_curves,
     kept_weights,
     layout_of,
     pool_offsets,
     prior_matrix,
+    rebuilds,
     reduced_normal,
     robust_weights,
     sample_residuals,
@@ -93,12 +97,15 @@ class AdjustPart:
 
     # -- numbering --------------------------------------------------------------------------------
 
-    def summary(self) -> tuple[int, tuple[str, ...], dict[str, Any]]:
-        """Observations, drives (in order of first appearance) and the gathering's stats."""
-        return self.n_observations, self.pool.drive_ids, self.gather_stats
+    def summary(self) -> tuple[int, tuple[str, ...], dict[str, Any], np.ndarray]:
+        """Observations, drives (in order of first appearance), the gathering's stats and the
+        step (here) of each drive's first sample."""
+        first = self.pool.first_step if self.pool.first_step is not None else np.zeros(0, dtype=np.int64)
+        return self.n_observations, self.pool.drive_ids, self.gather_stats, first
 
-    def set_fleet(self, step0: int, drive_index: np.ndarray, drive_ids: tuple[str, ...]) -> np.ndarray:
-        """Number steps and drives as in the whole fleet; returns the samples per fleet drive."""
+    def set_fleet(self, step0: int | np.ndarray, drive_index: np.ndarray, drive_ids: tuple[str, ...]) -> np.ndarray:
+        """Number steps (``step0``: of the first step, or of each step) and drives as in the whole
+        fleet; returns the samples per fleet drive."""
         p = self.pool
         self.pool = replace(p, drive=np.asarray(drive_index, dtype=np.int64)[p.drive], drive_ids=drive_ids, step0=step0)
         return np.bincount(self.pool.drive, minlength=len(drive_ids))
@@ -109,17 +116,29 @@ class AdjustPart:
 
     # -- association --------------------------------------------------------------------------------
 
-    def associate_raw(self) -> None:
-        """Every sample to the nearest centre of its step and type by raw position."""
+    def raw_extent(self) -> assoc.Extent:
+        """The scale of the raw positions' centres here (``assoc.extent``)."""
+        p = self.pool
+        return assoc.extent(p, p.label, p.lateral_m)
+
+    def associate_raw(self, scale: assoc.Extent) -> None:
+        """Every sample to the nearest centre of its step and type by raw position (``scale``: the
+        fleet's ``raw_extent``)."""
         p = self.pool
         self.label = assoc.reassociate(
-            p, p.label, np.zeros(p.s_m.size), assoc.centres(p, p.label, p.lateral_m), gate_m=np.inf
+            p, p.label, np.zeros(p.s_m.size), assoc.centres(p, p.label, p.lateral_m, scale), gate_m=np.inf
         )
 
-    def shift_costs(self, model: OffsetModel, grid: np.ndarray, noise_sigma_m: float) -> np.ndarray | None:
-        """The lane-shift search's data term per fleet drive and shift (None: no cluster here)."""
+    def shift_extent(self, model: OffsetModel) -> assoc.Extent:
+        """The samples' offsets under ``model`` (kept for ``shift_costs``) and the scale of their
+        centres here."""
         self.offset = pool_offsets(self.pool, model)
-        self.cen = assoc.centres(self.pool, self.label, self.pool.lateral_m + self.offset)
+        return assoc.extent(self.pool, self.label, self.pool.lateral_m + self.offset)
+
+    def shift_costs(self, grid: np.ndarray, noise_sigma_m: float, scale: assoc.Extent) -> np.ndarray | None:
+        """The lane-shift search's data term per fleet drive and shift (None: no cluster here),
+        at the offsets of the last ``shift_extent`` (``scale``: the fleet's)."""
+        self.cen = assoc.centres(self.pool, self.label, self.pool.lateral_m + self.offset, scale)
         if self.cen is None:
             return None
         return assoc.shift_costs(
@@ -176,18 +195,29 @@ class AdjustPart:
         """Residuals of the samples about their weighted cluster means under ``theta``."""
         self.r = sample_residuals(self.a, theta, self._samples(), self.info)
 
-    def reweight(self, loss: str) -> tuple[sp.csr_matrix, np.ndarray] | None:
-        """IRLS re-weighting; returns the change of this part's H and rhs (None: no change): only
-        the clusters whose weights changed (``adjustment.update_normal``'s rule)."""
+    def reweigh(self, loss: str) -> int:
+        """IRLS: the new weights (``kept_weights``); returns the samples of the clusters whose
+        weights changed (the client decides from all parts' whether ``reweight`` rebuilds)."""
         s = self._samples()
         want = self.info0 * robust_weights(self.r, ROBUST_K * self.cfg.noise_sigma_m, loss)
-        new = kept_weights(self.info, want)
-        changed = new != self.info
-        if not changed.any():
-            return None
+        self.new_info = kept_weights(self.info, want)
+        changed = self.new_info != self.info
         hit = np.zeros(s.n_clusters, dtype=bool)
         hit[s.cluster[changed]] = True
-        rows = np.flatnonzero(hit[s.cluster])
+        self.rows = np.flatnonzero(hit[s.cluster])
+        return int(self.rows.size)
+
+    def reweight(self, rebuild: bool) -> tuple[sp.csr_matrix, np.ndarray] | None:
+        """The weights of the last ``reweigh`` in this part's share: with ``rebuild`` its whole H
+        and rhs anew, else their change (None: none), from only the clusters whose weights
+        changed (``adjustment.update_normal``'s rules)."""
+        s = self._samples()
+        new, rows = self.new_info, self.rows
+        if rebuild:
+            self.info = new
+            return self.normal()
+        if rows.size == 0:
+            return None
         a_sub, c_sub, l_sub = self.a[rows], s.cluster[rows], s.lateral_m[rows]
         h_old, rhs_old = reduced_normal(a_sub, c_sub, s.n_clusters, self.info[rows], l_sub)
         h_new, rhs_new = reduced_normal(a_sub, c_sub, s.n_clusters, new[rows], l_sub)
@@ -273,6 +303,7 @@ class _Fit:
     iterations: int
     last_change_m: float
     schur: SchurSolver | None
+    normal: sp.csr_matrix | None  # the explicit normal matrix of the last solve (None: matrix-free)
 
 
 class _PartsNormal:
@@ -301,9 +332,18 @@ class _PartsNormal:
         return total.tocsc()
 
 
-def adjust_parts(call: Call, n_parts: int, config: AdjustConfig) -> OffsetModel:
+def adjust_parts(
+    call: Call, n_parts: int, config: AdjustConfig, steps: Sequence[np.ndarray] | None = None
+) -> OffsetModel:
     """``adjustment.adjust_offsets`` over the observations held by ``n_parts`` parts, in order
-    (their concatenation is the observation sequence); see the module docstring."""
+    (their concatenation is the observation sequence); see the module docstring.
+
+    ``steps``: per part, the number of each of its observations in the whole sequence, for parts
+    that are not consecutive runs of it (e.g. the pivot shares of ``pipeline.driver``, whose steps
+    interleave). Such parts must not share a drive (ConfigError). Parts that share no drive give
+    the one solve's offsets to the last bit (explicit solver): each drive's samples, clusters and
+    normal-matrix rows lie in one part, in the one solve's order, and the client joins the parts'
+    rows instead of adding them."""
     cfg = config
 
     def each(method: str, *args: Any) -> list:
@@ -311,22 +351,34 @@ def adjust_parts(call: Call, n_parts: int, config: AdjustConfig) -> OffsetModel:
 
     stats: dict[str, Any] = {}
     summaries = each("summary")
+    step0 = np.concatenate([[0], np.cumsum([n for n, _, _, _ in summaries])[:-1]]).astype(int)
+    numbers = list(steps) if steps is not None else [int(step0[b]) + np.arange(s[0]) for b, s in enumerate(summaries)]
+    # drives in order of first appearance in the whole sequence (a part's in its own order)
+    first = [
+        (int(numbers[b][f]), b, r, d)
+        for b, (_, ids, _, fs) in enumerate(summaries)
+        for r, (d, f) in enumerate(zip(ids, fs))
+    ]
     lookup: dict[str, int] = {}
-    for _, ids, _ in summaries:
-        for d in ids:
-            lookup.setdefault(d, len(lookup))
+    for *_, d in sorted(first):
+        lookup.setdefault(d, len(lookup))
     drive_ids = tuple(lookup)
-    gstats = [g for _, _, g in summaries]
+    if steps is not None and len(lookup) < len(first):
+        raise ConfigError("adjust_parts: parts given with their step numbers must not share a drive")
+    gstats = [g for _, _, g, _ in summaries]
     for key in ("n_steps", "n_steps_skipped", "n_samples", "n_nonfinite_dropped"):
         stats[key] = int(sum(g.get(key, 0) for g in gstats))
     stats["problems"] = [p for g in gstats for p in g.get("problems", [])][: assoc.MAX_REPORTED_PROBLEMS]
-    step0 = np.concatenate([[0], np.cumsum([n for n, _, _ in summaries])[:-1]]).astype(int)
     counts = np.array(
         call(
             "set_fleet",
             [
-                (int(step0[b]), np.array([lookup[d] for d in ids], dtype=np.int64), drive_ids)
-                for b, (_, ids, _) in enumerate(summaries)
+                (
+                    int(step0[b]) if steps is None else np.asarray(numbers[b], dtype=np.int64),
+                    np.array([lookup[d] for d in ids], dtype=np.int64),
+                    drive_ids,
+                )
+                for b, (_, ids, _, _) in enumerate(summaries)
             ],
         )
     ).reshape(n_parts, len(drive_ids))
@@ -341,10 +393,10 @@ def adjust_parts(call: Call, n_parts: int, config: AdjustConfig) -> OffsetModel:
     )
     n_shifted = 0
     if cfg.reassociate_rounds > 0:
-        each("associate_raw")
+        each("associate_raw", assoc.max_extent(each("raw_extent")))
         used, n = _select(each)
         if n:
-            fit = _irls(each, coarse_config(cfg), False, used.size)
+            fit = _irls(each, coarse_config(cfg), False, used.size, n)
             model = OffsetModel(**base, drives=drive_curves(_ids(drive_ids, used), fit.layout, fit.theta, None))
             n_shifted += _shift(each, model, cfg, drive_ids)
     used, n, curve_fit = _fit_all(each, cfg)
@@ -358,7 +410,6 @@ def adjust_parts(call: Call, n_parts: int, config: AdjustConfig) -> OffsetModel:
     stats["lane_shifts"] = n_shifted
     rel = np.array(each("relabelled")).reshape(n_parts, 2).sum(axis=0)
     stats["relabelled_fraction"] = float(rel[0] / rel[1]) if rel[1] else 0.0
-    stats["std_computed"] = False
     stats["parts"] = n_parts
     if curve_fit is None:
         stats.update(n_drives=0, n_unknowns=0, iterations=0)
@@ -383,7 +434,11 @@ def adjust_parts(call: Call, n_parts: int, config: AdjustConfig) -> OffsetModel:
             cg_unconverged=curve_fit.schur.unconverged,
             cg_coarse_unknowns=curve_fit.schur.coarse_unknowns,
         )
-    return OffsetModel(**base, drives=drive_curves(_ids(drive_ids, used), lay, curve_fit.theta, None), stats=stats)
+    cov = None
+    if curve_fit.normal is not None and cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:
+        cov = covariance_parts(curve_fit.normal, lay)
+    stats["std_computed"] = cov is not None
+    return OffsetModel(**base, drives=drive_curves(_ids(drive_ids, used), lay, curve_fit.theta, cov), stats=stats)
 
 
 def _ids(drive_ids: tuple[str, ...], used: np.ndarray) -> tuple[str, ...]:
@@ -404,16 +459,17 @@ def _fit_all(each: Callable[..., list], cfg: AdjustConfig) -> tuple[np.ndarray, 
     if n == 0:
         return used, n, None
     if cfg.coarse_reject_m > 0 and cfg.drift_sigma_m > 0:
-        _irls(each, coarse_config(cfg), False, used.size)
+        _irls(each, coarse_config(cfg), False, used.size, n)
         each("coarse_keep", cfg.coarse_reject_m)
-    return used, n, _irls(each, cfg, True, used.size)
+    return used, n, _irls(each, cfg, True, used.size, n)
 
 
 def _shift(each: Callable[..., list], model: OffsetModel, cfg: AdjustConfig, drive_ids: tuple[str, ...]) -> int:
     """``adjustment.shift_and_reassociate`` over the parts: the costs summed, the shifts chosen
     here, the re-association in the parts."""
     grid = assoc.shift_grid(SHIFT_SEARCH_M)
-    costs = [c for c in each("shift_costs", model, grid, cfg.noise_sigma_m) if c is not None]
+    scale = assoc.max_extent(each("shift_extent", model))
+    costs = [c for c in each("shift_costs", grid, cfg.noise_sigma_m, scale) if c is not None]
     shift = np.zeros(len(drive_ids))
     if costs:
         cost = costs[0].copy()
@@ -425,7 +481,29 @@ def _shift(each: Callable[..., list], model: OffsetModel, cfg: AdjustConfig, dri
     return int(np.count_nonzero(shift))
 
 
-def _irls(each: Callable[..., list], cfg: AdjustConfig, use_keep: bool, n_used: int) -> _Fit:
+def _joined(shares: Sequence[sp.csr_matrix]) -> sp.csr_matrix:
+    """The sum of the parts' (p, p) shares of the normal matrix. Where no two parts have entries
+    in the same row (they share no drive) the rows are put together as they are, every entry and
+    its place in its row kept: the one solve's matrix to the last bit (its products then add in
+    the same order); else added."""
+    shares = [sp.csr_matrix(m) for m in shares]
+    lengths = np.array([np.diff(m.indptr) for m in shares])
+    if len(shares) == 1 or np.count_nonzero(lengths, axis=0).max(initial=0) > 1:
+        total = shares[0]
+        for m in shares[1:]:
+            total = total + m
+        return total.tocsr()
+    indptr = np.concatenate([[0], np.cumsum(lengths.sum(axis=0))])
+    indices = np.empty(indptr[-1], dtype=np.int64)
+    data = np.empty(indptr[-1])
+    for m, n in zip(shares, lengths):
+        rows = np.repeat(np.arange(n.size), n)
+        at = indptr[rows] + np.arange(rows.size) - m.indptr[rows]
+        indices[at], data[at] = m.indices, m.data
+    return sp.csr_matrix((data, indices, indptr), shape=shares[0].shape)
+
+
+def _irls(each: Callable[..., list], cfg: AdjustConfig, use_keep: bool, n_used: int, n_samples: int) -> _Fit:
     """``adjustment._irls`` over the parts (see the module docstring)."""
     if cfg.drift_sigma_m > 0:
         spans = each("span")
@@ -439,11 +517,7 @@ def _irls(each: Callable[..., list], cfg: AdjustConfig, use_keep: bool, n_used: 
     h: sp.csr_matrix | _PartsNormal
     solver: NormalSolver | SchurSolver
     if fill <= cfg.max_pair_fill:
-        h, rhs = prior.copy(), np.zeros(lay.n_unknowns)
-        for hb, rb in each("normal"):
-            h = h + hb
-            rhs += rb
-        h = h.tocsr()
+        h, rhs = _normal(each("normal"), prior)
         solver = NormalSolver()
     else:
         rhs = np.sum(each("schur_begin"), axis=0)
@@ -464,10 +538,31 @@ def _irls(each: Callable[..., list], cfg: AdjustConfig, use_keep: bool, n_used: 
         loss = "huber" if it <= warmup else cfg.loss
         if isinstance(h, _PartsNormal):
             rhs = np.sum(each("schur_reweight", loss), axis=0)
-        else:
-            for delta in each("reweight", loss):
-                if delta is not None:
-                    h = h + delta[0]
-                    rhs = rhs + delta[1]
-            h = h.tocsr()
-    return _Fit(lay, theta, it, change, solver if isinstance(solver, SchurSolver) else None)
+            continue
+        rows = sum(each("reweigh", loss))
+        if rows == 0:
+            continue
+        if rebuilds(rows, n_samples):
+            h, rhs = _normal(each("reweight", True), prior)
+            continue
+        deltas = [d for d in each("reweight", False) if d is not None]
+        h = (h + _joined([d[0] for d in deltas])).tocsr()
+        rhs = rhs + _summed([d[1] for d in deltas])
+    if isinstance(solver, SchurSolver):
+        return _Fit(lay, theta, it, change, solver, None)
+    return _Fit(lay, theta, it, change, None, h)
+
+
+def _summed(vectors: Sequence[np.ndarray]) -> np.ndarray:
+    out = vectors[0].copy()
+    for v in vectors[1:]:
+        out += v
+    return out
+
+
+def _normal(
+    shares: Sequence[tuple[sp.csr_matrix, np.ndarray]], prior: sp.csr_matrix
+) -> tuple[sp.csr_matrix, np.ndarray]:
+    """The normal equations from the parts' shares: H = (joined shares) + prior, as the one solve
+    adds them, and rhs."""
+    return (_joined([hb for hb, _ in shares]) + prior).tocsr(), _summed([rb for _, rb in shares])

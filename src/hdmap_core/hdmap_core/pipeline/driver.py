@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
 
@@ -26,6 +26,7 @@ from hdmap_core.graph.map_graph import stitch
 from hdmap_core.model import Drive, HDMap
 from hdmap_core.parallel import ForkWorker, can_fork, map_balanced, one_blas_thread, split_order
 from hdmap_core.pipeline.adjustment import OffsetModel, OffsetSource, adjust_offsets
+from hdmap_core.pipeline.adjustment_dist import AdjustPart, adjust_parts
 from hdmap_core.pipeline.aggregation import ProcessedStore
 from hdmap_core.pipeline.config import PipelineConfig
 from hdmap_core.pipeline.evidence import EvidenceConfig
@@ -124,7 +125,8 @@ class MappingResult:
             before is represented by its first and last step (``processed_before=True``).
         processed: the processed-stretch store after the run (input store plus new stretches).
         observations: one per accepted step of the first (observation) pass; empty unless
-            requested or used by the global adjustment.
+            requested or used by the global adjustment in this process (with several workers and
+            not requested, each worker keeps its share's for the adjustment: empty).
         offset_model: the global offset model (None without global adjustment).
         counters: steps_total, steps_rejected, steps_skipped_processed, steps_valid,
             steps_off_road.
@@ -353,6 +355,9 @@ class _TwoPasses:
         self.order = np.random.default_rng(seed).permutation(len(drives))
         two = config.final_pass is not None
         self.keep_observations = collect_observations or two
+        # with several workers the adjustment runs over the shares' observations where they are
+        # made (adjustment_dist), unless the caller wants them all here
+        self.observations_stay = two and not collect_observations and not observations_only
         self.hit_cache: dict | None = {} if two else None
         self.tracks = DriveTracks(drives) if config.mark_on_cut_only else None
         self.observations_only = observations_only
@@ -407,6 +412,36 @@ class _TwoPasses:
             evidence=self.evidence,
         )
 
+    def _ranks(self, observations: Sequence[StepObservations]) -> np.ndarray:
+        """The place of each observation's pivot in the pivot order."""
+        rank = np.empty(len(self.order), dtype=np.int64)
+        rank[self.order] = np.arange(len(self.order))
+        index = {d.drive_id: i for i, d in enumerate(self.drives)}
+        return rank[np.array([index[o.pivot_id] for o in observations], dtype=np.int64)]
+
+    def _adjust(self, obs: list[StepObservations], workers: list[ForkWorker]) -> OffsetModel:
+        """The adjustment: the one solve over ``obs`` (this process's shares' observations) and
+        the observations the workers kept (``_job``), as parts of ``adjustment_dist`` (parts of
+        different pivot groups share no drive: the one solve's offsets to the last bit). A worker
+        lost on the way: the shares of the workers that held parts are run here again (their
+        first pass) and the one solve runs here."""
+        cfg = self.config.adjustment
+        live = [w for w in workers if not w.failed] if self.observations_stay else []
+        ranks = [self._ranks(obs)] + [w.result() for w in live]
+        if live and not any(w.failed for w in live):
+            numbers = np.empty(sum(r.size for r in ranks), dtype=np.int64)
+            numbers[np.argsort(np.concatenate(ranks), kind="stable")] = np.arange(numbers.size)
+            steps = np.split(numbers, np.cumsum([r.size for r in ranks])[:-1])
+            try:
+                return adjust_parts(_fork_call(AdjustPart(obs), live), 1 + len(live), cfg, steps=steps)
+            except _WorkerLost:
+                pass
+        for w, share in zip(workers, self.shares[1:]):
+            if any(w is x for x in live):  # (a worker lost before holds no part: its share ran here)
+                obs = obs + (self._pass(share, None, None)[2] or [])
+        rank = self._ranks(obs)
+        return adjust_offsets([obs[i] for i in np.argsort(rank, kind="stable")], config=cfg)
+
     def _pass(self, share: np.ndarray, model: OffsetSource | None, report: ProgressFn | None) -> _PassResult:
         counters = PassCounters()
         obs: list[StepObservations] | None = [] if (model is None and self.keep_observations) else None
@@ -441,8 +476,10 @@ class _TwoPasses:
                 self.seconds["sampling_em"] = time.perf_counter() - t0
             if adjust:
                 t0 = time.perf_counter()
-                model = adjust_offsets(obs or [], config=self.config.adjustment)
+                model = self._adjust(obs or [], workers)
                 self.seconds["adjustment"] = time.perf_counter() - t0
+                if self.observations_stay and workers:
+                    obs = None  # the workers' stayed with them
                 for w in workers:
                     w.send(model)
             if model is not None:
@@ -481,10 +518,15 @@ class _TwoPasses:
         """In a worker process: the same passes on its share, results sent back."""
         if model is None:
             segs, st, o, c = self._pass(share, None, None)
-            channel.send((segs if not adjust else [], st, o, c))
+            stay = adjust and self.observations_stay
+            channel.send((segs if not adjust else [], st, None if stay else o, c))
             if not adjust:
                 return
-            model = cast(OffsetModel, channel.recv())
+            if stay:
+                channel.send(self._ranks(o or []))
+                model = _serve(channel, AdjustPart(o or []))
+            else:
+                model = cast(OffsetModel, channel.recv())
         channel.send(self._pass(share, model, None))
 
     def _all(
@@ -503,6 +545,38 @@ class _TwoPasses:
         if progress is not None and len(self.shares) > 1:
             progress("pivots", len(self.order), len(self.order))
         return _merge_parts(parts, self.order, self.drives, self.store_in)
+
+
+class _WorkerLost(Exception):
+    """A worker holding a part of the adjustment failed."""
+
+
+def _fork_call(here: AdjustPart, workers: list[ForkWorker]) -> Callable[[str, Sequence[tuple]], list]:
+    """``adjustment_dist``'s ``call`` over ``here`` (the first part) and the parts the ``workers``
+    hold (``_serve``): the workers' calls sent first, so that they run while this one does."""
+
+    def call(method: str, args: Sequence[tuple]) -> list:
+        for w, a in zip(workers, args[1:]):
+            w.send(("call", method, a))
+        out = [getattr(here, method)(*args[0])]
+        for w in workers:
+            got = w.result()
+            if w.failed:
+                raise _WorkerLost(method)
+            out.append(got)
+        return out
+
+    return call
+
+
+def _serve(channel: _Channel, part: AdjustPart) -> OffsetModel:
+    """In a worker: answer the adjustment's calls on its part until the offset model comes."""
+    while True:
+        msg = channel.recv()
+        if not (isinstance(msg, tuple) and msg[:1] == ("call",)):
+            return cast(OffsetModel, msg)
+        _, method, args = msg
+        channel.send(getattr(part, method)(*args))
 
 
 def map_segments(

@@ -43,7 +43,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.errors import ConfigError, GroundTruthError
-from hdmap_core.geometry import arc_length, resample_evenly
+from hdmap_core.geometry import arc_length, resample_evenly, turn_left, unit_tangents
 from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute
 from hdmap_core.model import FeatureType
 
@@ -227,7 +227,7 @@ class ChangeZone:
     @cached_property
     def tangents(self) -> np.ndarray:
         """(N, 2) unit tangents of ``line``."""
-        return _tangents(self.line)
+        return unit_tangents(self.line)
 
     def piece(self, *, step_m: float = 5.0) -> np.ndarray:
         """(M, 2) the route centerline between the zone's ends, every ~``step_m`` (for files)."""
@@ -240,9 +240,7 @@ class ChangeZone:
         pts = self.piece()
         if len(pts) < 2:
             return np.zeros((0, 2))
-        t = np.gradient(pts, axis=0)
-        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-        left = np.stack([-t[:, 1], t[:, 0]], axis=1)
+        left = turn_left(unit_tangents(pts))
         ring = np.concatenate([pts + self.band_m * left, (pts - self.band_m * left)[::-1]])
         return np.concatenate([ring, ring[:1]])
 
@@ -305,11 +303,6 @@ def _station(
     return zone.s[j] + along, lat, member
 
 
-def _tangents(points: np.ndarray) -> np.ndarray:
-    t = np.gradient(points, axis=0) if len(points) > 1 else np.zeros_like(points)
-    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-
-
 def zone_mask(zone: ChangeZone, points: np.ndarray, tangents: np.ndarray | None = None) -> np.ndarray:
     """(N,) True for the points inside the zone: on its carriageway (running its way when
     ``tangents`` (N, 2) are given) and between its ends."""
@@ -333,7 +326,7 @@ def _profile(s: np.ndarray, change: RoadChange) -> np.ndarray:
 
 
 def _shifted(zone: ChangeZone, pts: np.ndarray, change: RoadChange) -> np.ndarray:
-    s, lat, member = _station(zone, pts, _tangents(pts))
+    s, lat, member = _station(zone, pts, unit_tangents(pts))
     # Full shift within half the band, fading out smoothly toward its edge (a ramp leaving the
     # carriageway bends back onto its old course rather than jumping there).
     fade = np.clip((zone.band_m - np.abs(lat)) / (zone.band_m / 2.0), 0.0, 1.0)
@@ -341,8 +334,7 @@ def _shifted(zone: ChangeZone, pts: np.ndarray, change: RoadChange) -> np.ndarra
     if not np.any(w > 0):
         return pts
     _, j = zone.tree.query(pts)
-    t = zone.tangents[j]
-    left = np.stack([-t[:, 1], t[:, 0]], axis=1)
+    left = turn_left(zone.tangents[j])
     return pts - (change.shift_m * w)[:, None] * left
 
 
@@ -353,16 +345,23 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int, bool]]:
     return [(int(a), int(b), bool(mask[a])) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def _selected(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int, np.ndarray]:
-    """Feature index -> (N,) in-zone mask of the markings a restripe / remove acts on."""
-    cand: dict[int, tuple[np.ndarray, float]] = {}
+def _zone_markings(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int, tuple[np.ndarray, float]]:
+    """Feature index -> ((N,) in-zone mask, median lateral offset there [m, + = left]) of the
+    markings with at least two points in the zone between the change's ends."""
+    out: dict[int, tuple[np.ndarray, float]] = {}
     for i, f in enumerate(gt.features):
         if f.type not in (FeatureType.SOLID, FeatureType.DASHED):
             continue
-        s, lat, member = _station(zone, f.points, _tangents(f.points))
+        s, lat, member = _station(zone, f.points, unit_tangents(f.points))
         inside = member & (s >= change.from_m) & (s <= change.to_m)
         if np.count_nonzero(inside) >= 2:
-            cand[i] = (inside, float(np.median(lat[inside])))
+            out[i] = (inside, float(np.median(lat[inside])))
+    return out
+
+
+def _selected(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int, np.ndarray]:
+    """Feature index -> (N,) in-zone mask of the markings a restripe / remove acts on."""
+    cand = _zone_markings(zone, gt, change)
     if change.size is None:
         return {i: m for i, (m, _) in cand.items() if gt.features[i].type == FeatureType.DASHED}
     order = sorted(cand, key=lambda i: -cand[i][1])  # left first
@@ -377,14 +376,7 @@ def _selected(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> dict[int
 def _markings_by_offset(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> list[tuple[float, list[int]]]:
     """The carriageway's markings in the zone grouped by lateral offset (0.5 m), rightmost first:
     (median offset [m, + = left], feature indices)."""
-    cand: list[tuple[float, int]] = []
-    for i, f in enumerate(gt.features):
-        if f.type not in (FeatureType.SOLID, FeatureType.DASHED):
-            continue
-        s, lat, member = _station(zone, f.points, _tangents(f.points))
-        inside = member & (s >= change.from_m) & (s <= change.to_m)
-        if np.count_nonzero(inside) >= 2:
-            cand.append((float(np.median(lat[inside])), i))
+    cand = [(lat, i) for i, (_, lat) in _zone_markings(zone, gt, change).items()]
     groups: list[tuple[float, list[int]]] = []
     for offset, i in sorted(cand):
         if groups and abs(offset - groups[-1][0]) < 0.5:
@@ -419,7 +411,7 @@ def _lane_changes(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> Grou
             if i not in divider:
                 out.append(f)
                 continue
-            s, _, member = _station(zone, f.points, _tangents(f.points))
+            s, _, member = _station(zone, f.points, unit_tangents(f.points))
             gone = member & (s >= change.from_m) & (s <= change.to_m)
             pieces = [(a, b) for a, b, kept in _runs(~gone) if kept and b - a >= 2]
             for k, (a, b) in enumerate(pieces):
@@ -429,7 +421,7 @@ def _lane_changes(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> Grou
         lanes = {}
         shift_left = replace(change, kind="shift", size=-width)
         for lid, ln in gt.lanes.items():
-            s, lat, member = _station(zone, ln.centerline, _tangents(ln.centerline))
+            s, lat, member = _station(zone, ln.centerline, unit_tangents(ln.centerline))
             inside = member & (s >= change.from_m) & (s <= change.to_m)
             closed = np.count_nonzero(inside) >= 2 and lat_edge < float(np.median(lat[inside])) < lat_div
             lanes[lid] = replace(ln, centerline=_shifted(zone, ln.centerline, shift_left)) if closed else ln
@@ -440,8 +432,7 @@ def _lane_changes(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> Grou
     feats = _edge_moved(zone, gt, change, edge, float(change.size or 0.0))
     keep = (zone.s >= change.from_m + change.taper_m) & (zone.s <= change.to_m - change.taper_m)
     piece = zone.line[keep]
-    t = _tangents(piece)
-    left = np.stack([-t[:, 1], t[:, 0]], axis=1)
+    left = turn_left(unit_tangents(piece))
     new_id = max((f.id for f in gt.features), default=0) + 1
     line = GTFeature(new_id, FeatureType.DASHED, resample_evenly(piece + lat_edge * left, 1.0))
     width = float(change.size or 0.0)
@@ -463,7 +454,7 @@ def _opened_lane(
     # the lane pieces of the carriageway right next to the old edge, per station
     pieces: list[tuple[float, float, str]] = []
     for lid, ln in gt.lanes.items():
-        s, lat, member = _station(zone, ln.centerline, _tangents(ln.centerline))
+        s, lat, member = _station(zone, ln.centerline, unit_tangents(ln.centerline))
         inside = member & (s >= change.from_m) & (s <= change.to_m) & (lat > lat_edge)
         if np.count_nonzero(inside) >= 2:
             pieces.append((float(np.median(lat[inside])), float(s[inside].min()), lid))
@@ -529,8 +520,7 @@ def apply_change(gt: GroundTruth, change: RoadChange) -> GroundTruth:
     if change.kind == "add":
         keep = (zone.s >= change.from_m) & (zone.s <= change.to_m)
         piece = zone.line[keep]
-        t = _tangents(piece)
-        left = np.stack([-t[:, 1], t[:, 0]], axis=1)
+        left = turn_left(unit_tangents(piece))
         pts = resample_evenly(piece - float(change.size or 0.0) * left, 1.0)
         return replace(gt, features=(*gt.features, GTFeature(next_id, FeatureType.SOLID, pts)))
     chosen = _selected(zone, gt, change)

@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 
 from hdmap_core import geometry, groundtruth
 from hdmap_core.errors import ConfigError, GroundTruthError, NoUsableDataError
-from hdmap_core.geometry import arc_length, resample_evenly
+from hdmap_core.geometry import arc_length, resample_evenly, unit_tangents
 from hdmap_core.groundtruth import GroundTruth, GTRoute, load_ground_truth
 from hdmap_core.model import Drive, GeoOrigin
 from hdmap_core.simulation import changes as sim_changes
@@ -52,7 +52,6 @@ from hdmap_core.simulation.sensor import (
     gauss_markov,
     seen_per_feature,
     smoothstep,
-    unit_tangents,
 )
 
 __all__ = [

@@ -18,7 +18,7 @@ from scipy.ndimage import minimum_filter1d
 from scipy.signal import lfilter
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import arc_length
+from hdmap_core.geometry import arc_length, left_normal, unit_tangents
 from hdmap_core.groundtruth import GroundTruth
 from hdmap_core.model import Detection, FeatureType
 from hdmap_core.simulation.config import SimConfig
@@ -29,7 +29,6 @@ __all__ = [
     "detections",
     "seen_per_feature",
     "false_positives",
-    "unit_tangents",
     "smoothstep",
     "gauss_markov",
 ]
@@ -37,12 +36,6 @@ __all__ = [
 _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 _BORDER = int(FeatureType.ROAD_BORDER)
 _NONE_SEEN = np.zeros(0, dtype=np.int64)
-
-
-def unit_tangents(xy: np.ndarray) -> np.ndarray:
-    t = np.gradient(xy, axis=0) if len(xy) > 1 else np.zeros_like(xy)
-    n = np.linalg.norm(t, axis=1, keepdims=True)
-    return t / np.maximum(n, 1e-12)
 
 
 def smoothstep(x: np.ndarray) -> np.ndarray:
@@ -358,7 +351,7 @@ def false_positives(
         typ = int(rng.choice(types))
         npts = max(2, int(np.ceil(ln / cfg.detection_spacing_m)) + 1)
         d = np.array([np.cos(ang), np.sin(ang)])
-        base = xy[k] + lat * np.array([-np.sin(yaw[k]), np.cos(yaw[k])])
+        base = xy[k] + lat * left_normal(yaw[k])
         pts = base + np.outer(np.linspace(0.0, ln, npts), d) + disp[k]
         out.append(Detection(FeatureType(typ), pts))
     return out

@@ -30,6 +30,7 @@ from functools import partial
 import numpy as np
 
 from hdmap_core.errors import ConfigError
+from hdmap_core.geometry import left_normal
 from hdmap_core.groundtruth import GroundTruth, GTFeature, GTLane, GTRoute
 from hdmap_core.model import FeatureType
 
@@ -115,7 +116,7 @@ class _Reference:
         x = np.interp(s, self.s, self.xy[:, 0])
         y = np.interp(s, self.s, self.xy[:, 1])
         th = np.interp(s, self.s, self.theta)
-        left = np.stack([-np.sin(th), np.cos(th)], axis=1)
+        left = left_normal(th)
         sign = -1.0 if direction == "fwd" else 1.0  # right of fwd = -left; right of bwd = +left
         return np.stack([x, y], axis=1) + (sign * r)[:, None] * left
 

@@ -60,6 +60,7 @@ __all__ = [
     "drive_scatter",
     "series_spread",
     "SERIES",
+    "series_value",
     "DISSENT_SHARE",
 ]
 
@@ -124,7 +125,8 @@ class DetectedChange:
         return {p.key for p in self.places}
 
 
-def _series(e: PlaceEvidence, name: str, config: ChangeConfig) -> float:
+def series_value(e: PlaceEvidence, name: str, config: ChangeConfig) -> float:
+    """The value of series ``name`` (``SERIES``) of one drive at one place; NaN: too few points."""
     if name == "displacement":
         return e.displacement_m
     if name == "wrong_type":
@@ -216,7 +218,7 @@ def series_spread(by_place: dict[PlaceKey, list[PlaceEvidence]], name: str, conf
     fleet raises it everywhere. 0 when no place has enough drives."""
     spreads = []
     for rows in by_place.values():
-        v = np.array([_series(e, name, config) for e in rows])
+        v = np.array([series_value(e, name, config) for e in rows])
         v = v[np.isfinite(v)]
         if len(v) >= 2 * config.min_before:
             spreads.append(1.4826 * float(np.median(np.abs(v - np.median(v)))))
@@ -253,7 +255,7 @@ def _confirm(
     own (``drive_scatter``), for the displacement."""
     best: PlaceChange | None = None
     for name, kind in SERIES.items():
-        vals = np.array([_series(e, name, config) for e in rows])
+        vals = np.array([series_value(e, name, config) for e in rows])
         ok = np.isfinite(vals)
         used = [e for e, good in zip(rows, ok) if good]
         geometric = name == "displacement"
@@ -297,7 +299,7 @@ def _extends(rows: list[PlaceEvidence], key: PlaceKey, change: PlaceChange, conf
     shows the same kind of effect here, at least half the smallest, against this place's drives
     before, and no drive after shows the opposite."""
     name = next(n for n, k in SERIES.items() if k == change.kind)
-    vals = np.array([_series(e, name, config) for e in rows])
+    vals = np.array([series_value(e, name, config) for e in rows])
     t = np.array([e.time_ns for e in rows])
     ok = np.isfinite(vals)
     before = vals[ok & (t < change.time_ns)]

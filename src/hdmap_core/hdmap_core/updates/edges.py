@@ -53,7 +53,7 @@ from hdmap_core.evaluation.cuts import (
     index_segments,
     segments_of,
 )
-from hdmap_core.geometry import dense_points
+from hdmap_core.geometry import dense_points, turn_left, unit_tangents
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, PlaceChange, change_point, grow_changes
@@ -423,9 +423,8 @@ def opened_edge_moved(
         if int(f.type) != _SOLID or not (at | stay).any():
             kept.append(pts[stay])
             continue
-        t = np.gradient(pts, axis=0)
-        t /= np.maximum(np.linalg.norm(t, axis=1), 1e-9)[:, None]
-        left = np.stack([-t[:, 1], t[:, 0]], axis=1)
+        t = unit_tangents(pts)
+        left = turn_left(t)
         ok = at | stay
         # the rightmost marking: no first-map marking to its right within _SEEN_M
         for i in np.flatnonzero(ok):

@@ -29,10 +29,11 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import dense_points, point_headings, true_runs
+from hdmap_core.geometry import left_normal, point_headings, true_runs
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
+from hdmap_core.updates.before import as_before, moved_consensus, with_neighbours
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
 from hdmap_core.updates.edges import (
@@ -48,7 +49,7 @@ from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evi
 from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
-from hdmap_core.updates.unseen import ModelledMarking, UnseenMove, unseen_moved
+from hdmap_core.updates.unseen import ModelledMarking, UnseenMove, unseen_at_ends, unseen_moved
 
 __all__ = [
     "RetiredFeature",
@@ -60,7 +61,6 @@ __all__ = [
     "fleet_comparison",
     "clip_to_places",
     "along_drives",
-    "unseen_at_ends",
     "retired_features",
     "history_to_dict",
 ]
@@ -181,7 +181,7 @@ def anchored(drive: Drive, anchors: dict[PlaceKey, float], places: Places, *, sm
     a = np.interp(idx, idx[ok], a[ok])
     step = max(drive.length_m / max(len(a) - 1, 1), 1e-3)
     a = uniform_filter1d(a, size=max(1, int(round(smooth_m / step))) | 1, mode="nearest")
-    left = np.stack([-np.sin(drive.yaw), np.cos(drive.yaw)], axis=1)
+    left = left_normal(drive.yaw)
     move = a[:, None] * left
     tree = cKDTree(drive.xy)
     dets = []
@@ -222,63 +222,6 @@ def along_drives(
     return out
 
 
-def unseen_at_ends(
-    first: HDMap,
-    local: HDMap,
-    places: Places,
-    rebuilt: set[PlaceKey],
-    moved_places: frozenset[PlaceKey] = frozenset(),
-) -> np.ndarray:
-    """(N, 2) the first map's marking points in the ``rebuilt`` places that the drives after
-    the change did not see (no local marking within ``_TAPER_KEEP_M``), walking in from where a
-    run of them leaves the rebuilt places, up to where the lines the drives saw leave the first
-    map's (the median distance of the nearest local marking points to a first-map marking
-    exceeds ``_TAPER_SAME_M``) or the first place of ``moved_places`` (where the drives after
-    the change measured the lines moved). A shift zone's tapers move the lines from 0: near
-    their outer end the lines no drive after it saw are still where the first map has them, and
-    the rebuild would drop them; past that point they moved (a move near a lane's width comes
-    near the neighbour's old place again: hence the first such point ends the walk). The first
-    map is the consensus of every drive, those after the change too: once several of them
-    passed, it holds the moved lines along the tapers as well, the lines they saw lie on its
-    own there, and only ``moved_places`` ends the walk before it runs through the zone."""
-    if not rebuilt:
-        return np.zeros((0, 2))
-    first_marks = [np.asarray(f.points, dtype=float) for f in first.features if int(f.type) in _MARKINGS]
-    marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], _DENSE_M)
-    if len(marks) == 0 or not first_marks:
-        return np.zeros((0, 2))
-    tree = cKDTree(marks)
-    d_first, _ = cKDTree(dense_points(first_marks, _DENSE_M)).query(marks)  # each local marking point: moved how far
-    out = [np.zeros((0, 2))]
-    for f in first.features:
-        if int(f.type) not in _MARKINGS or len(f.points) < 2:
-            continue
-        pts = np.asarray(f.points, dtype=float)
-        keys = places.keys_along(pts)
-        inside = np.array([k in rebuilt for k in keys], dtype=bool)
-        if not inside.any():
-            continue
-        d, _ = tree.query(pts, distance_upper_bound=_TAPER_KEEP_M)
-        dn, jn = tree.query(pts, k=_TAPER_NEAREST, distance_upper_bound=_TAPER_VIEW_M)
-        # the median over the nearest local marking points found (inf: none)
-        near = np.sort(np.where(np.isfinite(dn), d_first[np.minimum(jn, len(marks) - 1)], np.inf), axis=1)
-        n = np.count_nonzero(np.isfinite(dn), axis=1)
-        rows = np.arange(len(pts))
-        moved = np.where(n > 0, 0.5 * (near[rows, np.maximum(n - 1, 0) // 2] + near[rows, n // 2]), np.inf)
-        for a, b in true_runs(inside):
-            # walk in from each end where the feature leaves the rebuilt places
-            ends = [(a - 1, range(a, b)), (b, range(b - 1, a - 1, -1))]
-            for end, order in ends:
-                if not 0 <= end < len(keys):
-                    continue
-                for i in order:
-                    if moved[i] > _TAPER_SAME_M or keys[i] in moved_places:  # (inf: none near) too
-                        break
-                    if not np.isfinite(d[i]):
-                        out.append(pts[i : i + 1])
-    return np.concatenate(out)
-
-
 def fleet_comparison(
     drives: Sequence[Drive], hdmap: HDMap, places: Places, *, config: ChangeConfig, workers: int = 1
 ) -> tuple[list[PlaceEvidence], list[EdgeEvidence]]:
@@ -312,15 +255,20 @@ def cut_before_changes(
     changes: Sequence[DetectedChange],
     *,
     times: dict[PlaceKey, int] | None = None,
+    before: bool = False,
 ) -> list[Drive]:
     """``drives`` without their parts in a changed place from before its change (module docstring);
-    ``times``: the change time per place, instead of ``changes``'."""
+    ``times``: the change time per place, instead of ``changes``'. ``before``: the other way, without
+    their parts in a changed place from its change on (the road as it was, ``updates.before``)."""
     times = _change_times(changes) if times is None else times
     out: list[Drive] = []
     for d in drives:
         keys = places.keys(d.xy, d.yaw)
-        t = np.array([times.get(k, np.iinfo(np.int64).min) for k in keys], dtype=np.int64)
-        keep = np.asarray(d.stamps_ns, dtype=np.int64) >= t
+        stamps = np.asarray(d.stamps_ns, dtype=np.int64)
+        if before:
+            keep = stamps < np.array([times.get(k, np.iinfo(np.int64).max) for k in keys], dtype=np.int64)
+        else:
+            keep = stamps >= np.array([times.get(k, np.iinfo(np.int64).min) for k in keys], dtype=np.int64)
         out.extend(_cut_drive(d, keep) if not keep.all() else [d])
     return out
 
@@ -375,12 +323,7 @@ _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 # drives after the change saw and the local map holds, then took the median barrier's place
 # (shift10 seed 1: zone recall 93.8 % with 3 m, 97.4 % with 1.5 m; docs/updates.md, "How `bag2map` follows a change").
 _BORDER_SAME_M = 1.5
-_TAPER_KEEP_M = 1.75
 _NOT_SHIFTED = {"lane_closed", "lane_opened", "type", "marking_gone"}
-_TAPER_SAME_M = 0.8
-_DENSE_M = 0.5  # the markings are looked up at this spacing [m]
-_TAPER_NEAREST = 8
-_TAPER_VIEW_M = 12.0
 
 
 def follow_changes(
@@ -483,6 +426,21 @@ def follow_map(
     evidence, edges = fleet_comparison(drives, first_map, places, config=config, workers=workers)
     changes = detect_changes(evidence, places, config=config, workers=workers)
     changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
+    # where the consensus has taken the new road (updates.before): the map as it was there, and
+    # every drive compared with that instead
+    changed = {p.key for c in changes for p in c.places}
+    taken = with_neighbours(moved_consensus(evidence, config, skip=changed), places)
+    taken = {k: t for k, t in taken.items() if k not in changed}
+    old_road: HDMap | None = None
+    if taken:
+        pieces = clip_to_places(
+            cut_before_changes(drives, places, (), times=taken, before=True), places, grow(places, taken, margin_places)
+        )
+        old_road = as_before(first_map, build(pieces), pieces, places, set(taken), config=config)
+        reference = splice(first_map, old_road, places, set(taken))
+        evidence, edges = fleet_comparison(drives, reference, places, config=config, workers=workers)
+        changes = detect_changes(evidence, places, config=config, workers=workers)
+        changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
     t0 = time.perf_counter()
     seconds = {"detect": t0 - t1}
     if not changes:
@@ -500,19 +458,21 @@ def follow_map(
         after = [d for d in after if d.drive_id in in_evidence]
         cut = cut_before_changes(moved, places, changes, times=times)
         core = set(times)
+        # the map the rebuilt places replace: the road as it was where the consensus had taken the new
+        base = first_map if old_road is None else splice(first_map, old_road, places, set(taken) & core)
         region = grow(places, core, margin_places)
         clipped = clip_to_places(cut, places, region)
         t1 = time.perf_counter()
         local_map = build(clipped)
         seconds["rebuild"] = time.perf_counter() - t1
-        local_map = shifted(local_map, border_shift(local_map, first_map, after, places, core, config=config), places)
+        local_map = shifted(local_map, border_shift(local_map, base, after, places, core, config=config), places)
         # what the rebuilt places were mapped from: beyond the sensors' reach of every such pose
         # the first map stays (updates.splice)
         poses = [d.xy[np.array([k in core for k in places.keys(d.xy, d.yaw)], dtype=bool)] for d in clipped]
         borders = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) == _BORDER]
         marks = [np.asarray(f.points, dtype=float) for f in local_map.features if int(f.type) in _MARKINGS]
         # what no drive after a shift saw of the first map's markings: moved by the shift
-        unseen = unseen_moved(first_map, local_map, places, changes, evidence, core, config=config)
+        unseen = unseen_moved(base, local_map, places, changes, evidence, core, config=config)
         # an opened shoulder's edge line no drive after the change saw: moved by the edge's move
         # and the other lines of a lane opened, which it left alone, where those drives missed them
         edge, opened_kept = opened_edge_moved(
@@ -532,7 +492,7 @@ def follow_map(
         keep = [unseen.moved_to, ends]
         # a re-striping or a marking gone leaves the other lines: those the drives after it had
         # no evidence of stay (updates.marks)
-        kept = unchanged_marks(first_map, local_map, places, changes, after, core, config=config)
+        kept = unchanged_marks(base, local_map, places, changes, after, core, config=config)
         reach = Reach(
             np.concatenate([np.zeros((0, 2)), *poses]),
             config.view_m,
@@ -545,6 +505,7 @@ def follow_map(
         new_map = splice(unseen.map, local_map, places, core, reach=reach)
     else:
         core = set()
+        base = first_map
         reach = None
         modelled = ()
         cut = cut_before_changes(moved, places, changes)
@@ -552,7 +513,7 @@ def follow_map(
         new_map = build(cut)
         seconds["rebuild"] = time.perf_counter() - t1
     start = min((d.start_ns for d in drives), default=0)
-    retired = tuple(retired_features(first_map, places, changes, valid_from_ns=start, reach=reach))
+    retired = tuple(retired_features(base, places, changes, valid_from_ns=start, reach=reach))
     extra = {**new_map.extra, "changes": list(changes), "retired": list(retired), "modelled": list(modelled)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
     seconds["apply"] = time.perf_counter() - t0 - seconds["rebuild"]

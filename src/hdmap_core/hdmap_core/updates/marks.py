@@ -39,7 +39,7 @@ from hdmap_core.geometry import dense_points
 from hdmap_core.model import Drive, FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
-from hdmap_core.updates.places import PlaceKey, Places
+from hdmap_core.updates.places import PlaceKey, Places, markings_in
 
 __all__ = ["SHARE_KINDS", "share_places", "unchanged_marks"]
 
@@ -90,12 +90,7 @@ def unchanged_marks(
     cand: list[np.ndarray] = [none]
     in_went: list[np.ndarray] = [np.zeros(0, dtype=bool)]
     ptype: list[np.ndarray] = [np.zeros(0, dtype=np.int64)]
-    for f in first.features:
-        if int(f.type) not in _MARKINGS or len(f.points) < 2:
-            continue
-        pts = np.asarray(f.points, dtype=float)
-        fkeys = places.keys_along(pts)
-        inside = np.array([k in keys for k in fkeys], dtype=bool)
+    for _, f, pts, fkeys, inside in markings_in(first, places, keys):
         cand.append(pts[inside])
         in_went.append(np.array([k in went for k, i in zip(fkeys, inside) if i], dtype=bool))
         ptype.append(np.full(int(inside.sum()), int(f.type), dtype=np.int64))

@@ -9,15 +9,16 @@ the same one, whatever the road's heading.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from hdmap_core.geometry import point_headings
-from hdmap_core.model import Drive
+from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature
 
-__all__ = ["PlaceKey", "Places", "places_of"]
+__all__ = ["PlaceKey", "Places", "places_of", "PlacedMarking", "markings_in"]
 
 PlaceKey = tuple[int, int, int]
 
@@ -83,3 +84,33 @@ def places_of(drives: Iterable[Drive], *, cell_m: float) -> Places:
             acc = sums.setdefault(key, np.zeros(2))
             acc += (c, s)
     return Places(cell_m, {k: float(np.arctan2(v[1], v[0]) / 2.0) for k, v in sums.items()})
+
+
+class PlacedMarking(NamedTuple):
+    """A map's marking along the places: its ``feature_index`` in the map's features, the
+    ``feature``, its ``points`` (N, 2), each point's place ``keys`` (``Places.keys_along``) and
+    ``inside`` (N,): the point lies in one of the places asked for."""
+
+    feature_index: int
+    feature: MapFeature
+    points: np.ndarray
+    keys: list[PlaceKey]
+    inside: np.ndarray
+
+
+_MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
+
+
+def markings_in(hdmap: HDMap, places: Places, keys: Collection[PlaceKey]) -> list[PlacedMarking]:
+    """The markings (solid, dashed; >= 2 points) of ``hdmap`` with a point in the places ``keys``,
+    in the map's order."""
+    out = []
+    for i, f in enumerate(hdmap.features):
+        if int(f.type) not in _MARKINGS or len(f.points) < 2:
+            continue
+        pts = np.asarray(f.points, dtype=float)
+        along = places.keys_along(pts)
+        inside = np.array([k in keys for k in along], dtype=bool)
+        if inside.any():
+            out.append(PlacedMarking(i, f, pts, along, inside))
+    return out

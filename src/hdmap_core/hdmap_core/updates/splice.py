@@ -38,7 +38,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
-from hdmap_core.geometry import point_headings, true_runs
+from hdmap_core.geometry import left_normal, point_headings, true_runs
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.evidence import drive_evidence, map_lines
@@ -210,7 +210,7 @@ def shifted(hdmap: HDMap, shifts: dict[PlaceKey, float], places: Places) -> HDMa
         a = np.interp(idx, idx[ok], a[ok])
         step = max(float(np.linalg.norm(np.diff(pts, axis=0), axis=1).mean()), 1e-3)
         a = uniform_filter1d(a, size=max(1, int(round(_SMOOTH_M / step))) | 1, mode="nearest")
-        left = np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
+        left = left_normal(yaw)
         feats.append(replace(f, points=pts + a[:, None] * left))
     nodes = []
     for n in hdmap.topology:
@@ -219,7 +219,7 @@ def shifted(hdmap: HDMap, shifts: dict[PlaceKey, float], places: Places) -> HDMa
         if s is None:
             nodes.append(n)
             continue
-        nodes.append(replace(n, position=pos + s * np.array([-np.sin(n.heading), np.cos(n.heading)])))
+        nodes.append(replace(n, position=pos + s * left_normal(n.heading)))
     return replace(hdmap, features=tuple(feats), topology=tuple(nodes))
 
 

@@ -32,6 +32,9 @@ history (``ModelledMarking``).
    the tapers along the road).
 
 Nothing is invented where no line was: only the first map's own markings move.
+
+``unseen_at_ends`` keeps the other unseen lines of a shift: at the tapers' ends, where the lines
+the drives saw had not moved yet, the first map's lines they did not see stay where they were.
 """
 
 from __future__ import annotations
@@ -43,20 +46,26 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.evaluation.cuts import intersect_cuts, segments_of
-from hdmap_core.geometry import dense_points, point_headings
+from hdmap_core.geometry import dense_points, left_normal, point_headings, true_runs
 from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
 from hdmap_core.updates.evidence import PlaceEvidence
-from hdmap_core.updates.places import PlaceKey, Places
+from hdmap_core.updates.places import PlaceKey, Places, markings_in
 
-__all__ = ["ModelledMarking", "UnseenMove", "unseen_moved"]
+__all__ = ["ModelledMarking", "UnseenMove", "unseen_at_ends", "unseen_moved"]
 
 _BORDER = int(FeatureType.ROAD_BORDER)
 _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
 _NOT_A_SHIFT = ("lane_closed", "lane_opened", "type")  # one line moved, or re-striping
 _RESAMPLE_M = 0.5  # the local map's markings are looked up at this spacing [m]
 _STD_FLOOR_M = 0.1  # least lateral uncertainty added to a moved point [m]
+# unseen_at_ends: seen within _TAPER_KEEP_M; lines moved past _TAPER_SAME_M (the median over the
+# _TAPER_NEAREST nearest local marking points within _TAPER_VIEW_M) [m]
+_TAPER_KEEP_M = 1.75
+_TAPER_SAME_M = 0.8
+_TAPER_NEAREST = 8
+_TAPER_VIEW_M = 12.0
 
 
 @dataclass(frozen=True)
@@ -98,12 +107,6 @@ class UnseenMove:
         return np.concatenate([np.zeros((0, 2)), *(p.from_points for p in self.pieces)])
 
 
-def _normals(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(unit left normals (N, 2), yaw (N,)) of a polyline."""
-    yaw = point_headings(pts)
-    return np.stack([-np.sin(yaw), np.cos(yaw)], axis=1), yaw
-
-
 def _explained(
     local_lines: Sequence[tuple[int, np.ndarray]],
     predicted: dict[int, list[np.ndarray]],
@@ -120,8 +123,7 @@ def _explained(
         pts = dense_points([pts], _RESAMPLE_M)
         if len(pts) < 2:
             continue
-        _, yaw = _normals(pts)
-        keys = places.keys(pts, yaw)
+        keys = places.keys_along(pts)
         inside = np.array([k in moves for k in keys], dtype=bool)
         if not inside.any():
             continue
@@ -186,15 +188,9 @@ def unseen_moved(
     # Step 2: per first-map marking point in a candidate place, its move as the local map shows it.
     rows = []  # (feature index, point indices, keys, normals, measured move or NaN, stayed)
     predicted: dict[int, list[np.ndarray]] = {}  # per type: the first map's markings moved by D
-    for fi, f in enumerate(first.features):
-        if int(f.type) not in _MARKINGS or len(f.points) < 2:
-            continue
-        pts = np.asarray(f.points, dtype=float)
-        nrm, yaw = _normals(pts)
-        keys = places.keys(pts, yaw)
-        idx = np.array([i for i, k in enumerate(keys) if k in moves], dtype=np.int64)
-        if len(idx) == 0:
-            continue
+    for fi, f, pts, keys, inside in markings_in(first, places, moves):
+        nrm = left_normal(point_headings(pts))
+        idx = np.flatnonzero(inside)
         d = np.array([moves[keys[i]][1] for i in idx])
         p, n = pts[idx], nrm[idx]
         q = p - d[:, None] * n  # D > 0: the markings moved right of the drives
@@ -316,3 +312,53 @@ def unseen_moved(
     if not pieces:
         return none
     return UnseenMove(replace(first, features=tuple(feats)), tuple(pieces))
+
+
+def unseen_at_ends(
+    first: HDMap,
+    local: HDMap,
+    places: Places,
+    rebuilt: set[PlaceKey],
+    moved_places: frozenset[PlaceKey] = frozenset(),
+) -> np.ndarray:
+    """(N, 2) the first map's marking points in the ``rebuilt`` places that the drives after
+    the change did not see (no local marking within ``_TAPER_KEEP_M``), walking in from where a
+    run of them leaves the rebuilt places, up to where the lines the drives saw leave the first
+    map's (the median distance of the nearest local marking points to a first-map marking
+    exceeds ``_TAPER_SAME_M``) or the first place of ``moved_places`` (where the drives after
+    the change measured the lines moved). A shift zone's tapers move the lines from 0: near
+    their outer end the lines no drive after it saw are still where the first map has them, and
+    the rebuild would drop them; past that point they moved (a move near a lane's width comes
+    near the neighbour's old place again: hence the first such point ends the walk). The first
+    map is the consensus of every drive, those after the change too: once several of them
+    passed, it holds the moved lines along the tapers as well, the lines they saw lie on its
+    own there, and only ``moved_places`` ends the walk before it runs through the zone."""
+    if not rebuilt:
+        return np.zeros((0, 2))
+    first_marks = [np.asarray(f.points, dtype=float) for f in first.features if int(f.type) in _MARKINGS]
+    marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], _RESAMPLE_M)
+    if len(marks) == 0 or not first_marks:
+        return np.zeros((0, 2))
+    tree = cKDTree(marks)
+    d_first, _ = cKDTree(dense_points(first_marks, _RESAMPLE_M)).query(marks)  # each local marking point: moved how far
+    out = [np.zeros((0, 2))]
+    for _, _, pts, keys, inside in markings_in(first, places, rebuilt):
+        d, _ = tree.query(pts, distance_upper_bound=_TAPER_KEEP_M)
+        dn, jn = tree.query(pts, k=_TAPER_NEAREST, distance_upper_bound=_TAPER_VIEW_M)
+        # the median over the nearest local marking points found (inf: none)
+        near = np.sort(np.where(np.isfinite(dn), d_first[np.minimum(jn, len(marks) - 1)], np.inf), axis=1)
+        n = np.count_nonzero(np.isfinite(dn), axis=1)
+        rows = np.arange(len(pts))
+        moved = np.where(n > 0, 0.5 * (near[rows, np.maximum(n - 1, 0) // 2] + near[rows, n // 2]), np.inf)
+        for a, b in true_runs(inside):
+            # walk in from each end where the feature leaves the rebuilt places
+            ends = [(a - 1, range(a, b)), (b, range(b - 1, a - 1, -1))]
+            for end, order in ends:
+                if not 0 <= end < len(keys):
+                    continue
+                for i in order:
+                    if moved[i] > _TAPER_SAME_M or keys[i] in moved_places:  # (inf: none near) too
+                        break
+                    if not np.isfinite(d[i]):
+                        out.append(pts[i : i + 1])
+    return np.concatenate(out)

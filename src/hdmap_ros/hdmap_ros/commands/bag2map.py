@@ -39,6 +39,7 @@ __all__ = [
     "add_arguments",
     "run",
     "override_arg",
+    "add_origin_argument",
     "add_set_argument",
     "parse_origin",
     "tile_config_of",
@@ -73,12 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "JSON, e.g. --set stitching.max_distance_m=8 --set alignment.robust_loss=false",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed of the pipeline (default: %(default)s)")
-    parser.add_argument(
-        "--origin",
-        metavar="LAT,LON[,ALT]",
-        type=parse_origin,
-        help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
-    )
+    add_origin_argument(parser)
     parser.add_argument(
         "--workers",
         type=_parse_workers,
@@ -168,6 +164,16 @@ def parse_origin(text: str) -> GeoOrigin:
     if len(values) not in (2, 3) or not np.all(np.isfinite(values)) or abs(values[0]) > 90 or abs(values[1]) > 180:
         raise argparse.ArgumentTypeError(f"{text!r} is not a WGS84 LAT,LON[,ALT]")
     return GeoOrigin(*values)
+
+
+def add_origin_argument(parser: argparse.ArgumentParser) -> None:
+    """``--origin LAT,LON[,ALT]`` (parsed by :func:`parse_origin`) into ``args.origin``."""
+    parser.add_argument(
+        "--origin",
+        metavar="LAT,LON[,ALT]",
+        type=parse_origin,
+        help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
+    )
 
 
 def add_set_argument(parser: argparse.ArgumentParser, help_text: str, dest: str = "overrides") -> None:

@@ -20,7 +20,7 @@ HELP = "write the lanes of a map bag as a Lanelet2 / Autoware map directory"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hdmap_ros.commands.bag2map import parse_origin  # noqa: PLC0415
+    from hdmap_ros.commands.bag2map import add_origin_argument  # noqa: PLC0415
 
     parser.add_argument("map", metavar="MAP_BAG", help="map bag (rosbag2 directory or .mcap) with /hdmap/map")
     parser.add_argument(
@@ -29,12 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         required=True,
         help="directory to write: DIR/lanelet2_map.osm and DIR/map_projector_info.yaml",
     )
-    parser.add_argument(
-        "--origin",
-        metavar="LAT,LON[,ALT]",
-        type=parse_origin,
-        help="WGS84 origin of the map frame when the bag has no /fleet/origin (or to override it)",
-    )
+    add_origin_argument(parser)
     parser.add_argument(
         "--fleet",
         metavar="BAG",

@@ -1,4 +1,6 @@
-"""Pure conversions: tile estimates (segments of hdmap_core.steps) <-> hdmap_msgs/TileSegments.
+"""Pure conversions: tile estimates (segments of hdmap_core.steps) <-> hdmap_msgs/TileSegments,
+and many of them <-> one hdmap_msgs/TileSegmentsBatch (their segments in columns,
+``hdmap_core.segment_columns``).
 
 Works with rosbags typestore classes (tests, bags) and rclpy classes (nodes) alike: the classes come
 from a :class:`TileTypes` namespace; primitive arrays are written as numpy (rosbags) or
@@ -14,9 +16,20 @@ from typing import Any
 import numpy as np
 
 from hdmap_core.live.tiles import TileKey
+from hdmap_core.segment_columns import SegmentColumns, columns_to_segments, segment_columns, take_segments
 from hdmap_core.steps import Segment, StepResult
 
-__all__ = ["TileTypes", "rclpy_tile_types", "rosbags_tile_types", "tile_to_msg", "msg_to_tile", "TileMessage"]
+__all__ = [
+    "TileTypes",
+    "rclpy_tile_types",
+    "rosbags_tile_types",
+    "tile_to_msg",
+    "msg_to_tile",
+    "TileMessage",
+    "tiles_to_batch",
+    "batch_to_tiles",
+    "TileBatchEntry",
+]
 
 
 @dataclass(frozen=True)
@@ -28,6 +41,7 @@ class TileTypes:
     Header: Any
     Time: Any
     numpy_arrays: bool
+    TileSegmentsBatch: Any = None
 
 
 def rclpy_tile_types() -> TileTypes:
@@ -36,9 +50,18 @@ def rclpy_tile_types() -> TileTypes:
     from std_msgs.msg import Header  # noqa: PLC0415
 
     from hdmap_msgs.msg import Segment as SegmentMsg  # noqa: PLC0415
-    from hdmap_msgs.msg import SegmentStep, TileSegments  # noqa: PLC0415
+    from hdmap_msgs.msg import SegmentStep, TileSegments, TileSegmentsBatch  # noqa: PLC0415
 
-    return TileTypes(TileSegments, SegmentMsg, SegmentStep, Point, Header, Time, numpy_arrays=False)
+    return TileTypes(
+        TileSegments,
+        SegmentMsg,
+        SegmentStep,
+        Point,
+        Header,
+        Time,
+        numpy_arrays=False,
+        TileSegmentsBatch=TileSegmentsBatch,
+    )
 
 
 def rosbags_tile_types(typestore: Any = None) -> TileTypes:
@@ -55,10 +78,11 @@ def rosbags_tile_types(typestore: Any = None) -> TileTypes:
         t["std_msgs/msg/Header"],
         t["builtin_interfaces/msg/Time"],
         numpy_arrays=True,
+        TileSegmentsBatch=t["hdmap_msgs/msg/TileSegmentsBatch"],
     )
 
 
-_ARRAY_CODES = {np.float64: "d", np.uint8: "B", np.uint32: "I"}
+_ARRAY_CODES = {np.float64: "d", np.uint8: "B", np.uint32: "I", np.int64: "q", np.uint64: "Q"}
 
 
 def _prim(types: TileTypes, values: Any, dtype) -> Any:
@@ -66,6 +90,11 @@ def _prim(types: TileTypes, values: Any, dtype) -> Any:
     if types.numpy_arrays:
         return arr
     return array.array(_ARRAY_CODES[dtype], arr.tobytes())
+
+
+def _bools(types: TileTypes, values: Any) -> Any:
+    arr = np.asarray(values, dtype=bool).reshape(-1)
+    return arr if types.numpy_arrays else arr.tolist()
 
 
 def _step_to_msg(t: TileTypes, st: StepResult) -> Any:
@@ -209,3 +238,154 @@ def _tile_counts(msg: Any) -> tuple[int, ...]:
     """The per-drive tile counts, () when absent or not one per drive id (unknown)."""
     counts = tuple(int(n) for n in getattr(msg, "drive_tile_counts", ()))
     return counts if len(counts) == len(msg.drive_ids) else ()
+
+
+@dataclass(frozen=True)
+class TileBatchEntry:
+    """One tile of a decoded TileSegmentsBatch: the tile (its segments not yet made) and its
+    segments in columns (``columns_to_segments`` makes them; a store takes the columns as they are)."""
+
+    tile: TileMessage
+    columns: SegmentColumns
+
+    def segments(self) -> list[Segment]:
+        return columns_to_segments(self.columns)
+
+
+def tiles_to_batch(
+    tiles: list[tuple[TileKey, list[Segment], int, list[str] | tuple[str, ...], list[int] | tuple[int, ...], bool]],
+    *,
+    tile_size_m: float,
+    stamp_ns: int,
+    frame_id: str = "map",
+    types: TileTypes,
+) -> Any:
+    """Many tile estimates -> one hdmap_msgs/msg/TileSegmentsBatch.
+
+    Args:
+        tiles: per tile (key, segments, version, drive ids, per drive id the tiles it covers (one
+            per drive id, or empty for every tile: unknown), final), as :func:`tile_to_msg` takes them.
+    """
+    t = types
+    c = segment_columns([seg for _, segs, *_ in tiles for seg in segs])
+    counts = [int(n) for *_, tc, _ in tiles for n in tc]
+    n_ids = sum(len(ids) for *_, ids, _, _ in tiles)
+    return t.TileSegmentsBatch(
+        header=t.Header(stamp=t.Time(sec=int(stamp_ns // 10**9), nanosec=int(stamp_ns % 10**9)), frame_id=frame_id),
+        tile_size_m=float(tile_size_m),
+        tile_x=_prim(t, [int(k[0]) for k, *_ in tiles], np.int64),
+        tile_y=_prim(t, [int(k[1]) for k, *_ in tiles], np.int64),
+        version=_prim(t, [int(v) for _, _, v, *_ in tiles], np.uint64),
+        final=_bools(t, [bool(f) for *_, f in tiles]),
+        tile_drives=_prim(t, [len(ids) for *_, ids, _, _ in tiles], np.uint32),
+        tile_segments=_prim(t, [len(segs) for _, segs, *_ in tiles], np.uint32),
+        drive_ids=[str(d) for *_, ids, _, _ in tiles for d in ids],
+        drive_tile_counts=_prim(t, counts if len(counts) == n_ids else [], np.uint32),
+        pivot_id=list(c.pivots),
+        segment_steps=_prim(t, c.nsteps, np.uint32),
+        index=_prim(t, c.index, np.uint32),
+        s_m=_prim(t, c.s_m, np.float64),
+        midpoint_x=_prim(t, c.midpoint[:, 0], np.float64),
+        midpoint_y=_prim(t, c.midpoint[:, 1], np.float64),
+        heading=_prim(t, c.heading, np.float64),
+        width_m=_prim(t, c.width_m, np.float64),
+        valid=_bools(t, c.valid),
+        processed_before=_bools(t, c.processed_before),
+        judged=_bools(t, c.judged),
+        pose_x=_prim(t, c.pose[:, 0], np.float64),
+        pose_y=_prim(t, c.pose[:, 1], np.float64),
+        step_maxima=_prim(t, c.k, np.uint32),
+        step_empty=_prim(t, c.n_empty, np.uint32),
+        step_drives=_prim(t, c.n_drives, np.uint32),
+        lateral_m=_prim(t, c.lateral_m, np.float64),
+        types=_prim(t, c.types, np.uint8),
+        counts=_prim(t, c.counts, np.uint32),
+        std_m=_prim(t, c.std_m, np.float64),
+        empty_lo_m=_prim(t, c.empty_m[:, 0], np.float64),
+        empty_hi_m=_prim(t, c.empty_m[:, 1], np.float64),
+        step_drive_names=list(c.drive_names),
+        step_drive_index=_prim(t, c.drive_index, np.uint32),
+    )
+
+
+def _arr(values: Any, dtype) -> np.ndarray:
+    """A message's primitive array (numpy, ``array.array`` or a list) as a numpy array of ``dtype``."""
+    if isinstance(values, array.array):
+        return np.frombuffer(values, dtype=np.dtype(values.typecode)).astype(dtype)
+    return np.asarray(values).astype(dtype).reshape(-1)
+
+
+def batch_to_tiles(msg: Any) -> list[TileBatchEntry]:
+    """hdmap_msgs/msg/TileSegmentsBatch (rosbags or rclpy) -> its tiles, in order.
+
+    Raises:
+        ValueError: the columns do not add up (a malformed message).
+    """
+    n_seg = _arr(msg.tile_segments, np.int64)
+    n_ids = _arr(msg.tile_drives, np.int64)
+    nsteps = _arr(msg.segment_steps, np.int64)
+    k, n_empty, n_drives = (_arr(getattr(msg, f), np.int64) for f in ("step_maxima", "step_empty", "step_drives"))
+    c = SegmentColumns(
+        pivots=tuple(str(p) for p in msg.pivot_id),
+        nsteps=nsteps,
+        index=_arr(msg.index, np.int64),
+        s_m=_arr(msg.s_m, np.float64),
+        midpoint=np.stack([_arr(msg.midpoint_x, np.float64), _arr(msg.midpoint_y, np.float64)], axis=1),
+        pose=np.stack([_arr(msg.pose_x, np.float64), _arr(msg.pose_y, np.float64)], axis=1),
+        heading=_arr(msg.heading, np.float64),
+        width_m=_arr(msg.width_m, np.float64),
+        valid=_arr(msg.valid, bool),
+        processed_before=_arr(msg.processed_before, bool),
+        judged=_arr(msg.judged, bool),
+        k=k,
+        lateral_m=_arr(msg.lateral_m, np.float64),
+        types=_arr(msg.types, np.int64),
+        counts=_arr(msg.counts, np.int64),
+        std_m=_arr(msg.std_m, np.float64),
+        n_empty=n_empty,
+        empty_m=np.stack([_arr(msg.empty_lo_m, np.float64), _arr(msg.empty_hi_m, np.float64)], axis=1),
+        drive_names=tuple(str(d) for d in msg.step_drive_names),
+        n_drives=n_drives,
+        drive_index=_arr(msg.step_drive_index, np.int64),
+    )
+    n_steps = len(c.index)
+    n_tiles = len(msg.tile_x)
+    per_step = ("s_m", "heading", "width_m", "valid", "processed_before", "judged", "k", "n_empty", "n_drives")
+    if (
+        any(len(a) != n_tiles for a in (msg.tile_y, msg.version, msg.final, n_seg, n_ids))
+        or int(n_seg.sum()) != len(c.pivots)
+        or len(nsteps) != len(c.pivots)
+        or int(nsteps.sum()) != n_steps
+        or any(len(getattr(c, f)) != n_steps for f in per_step)
+        or len(c.midpoint) != n_steps
+        or len(c.pose) != n_steps
+        or any(len(a) != int(k.sum()) for a in (c.lateral_m, c.types, c.counts, c.std_m))
+        or len(c.empty_m) != int(n_empty.sum())
+        or len(c.drive_index) != int(n_drives.sum())
+        or (len(c.drive_index) and int(c.drive_index.max()) >= len(c.drive_names))
+        or int(n_ids.sum()) != len(msg.drive_ids)
+    ):
+        raise ValueError("TileSegmentsBatch: its columns do not add up")
+    ids = [str(d) for d in msg.drive_ids]
+    counts = [int(n) for n in msg.drive_tile_counts]
+    if len(counts) != len(ids):
+        counts = []  # unknown
+    stamp = msg.header.stamp
+    stamp_ns = int(stamp.sec) * 10**9 + int(stamp.nanosec)
+    seg_at = np.concatenate([[0], np.cumsum(n_seg)])
+    id_at = np.concatenate([[0], np.cumsum(n_ids)])
+    out = []
+    for i in range(n_tiles):
+        a, b = int(id_at[i]), int(id_at[i + 1])
+        tile = TileMessage(
+            key=(int(msg.tile_x[i]), int(msg.tile_y[i])),
+            tile_size_m=float(msg.tile_size_m),
+            version=int(msg.version[i]),
+            drive_ids=tuple(ids[a:b]),
+            segments=[],
+            stamp_ns=stamp_ns,
+            drive_tile_counts=tuple(counts[a:b]) if counts else (),
+            final=bool(msg.final[i]),
+        )
+        out.append(TileBatchEntry(tile, take_segments(c, int(seg_at[i]), int(seg_at[i + 1]))))
+    return out

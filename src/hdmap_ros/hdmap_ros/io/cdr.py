@@ -1,4 +1,5 @@
-"""Vectorised decoding (and encoding) of hdmap_msgs/msg/Drive straight from (to) CDR bytes.
+"""Vectorised decoding (and encoding) of hdmap_msgs/msg/Drive straight from (to) CDR bytes, and
+the encoding of hdmap_msgs/msg/Map (``encode_map``: the live map published as bytes).
 
 A drive of 3000 poses and 6000 detection points takes about 25 ms through rosbags' generic
 deserializer (one Python object per pose, header, point ...); reading the same bytes with numpy
@@ -19,10 +20,11 @@ import struct
 
 import numpy as np
 
-from hdmap_core.model import Detection, Drive, FeatureType
+from hdmap_core.errors import InvalidMessageError
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.plausibility import check_quaternions
 
-__all__ = ["decode_drive", "drive_id_of", "encode_drive"]
+__all__ = ["decode_drive", "drive_id_of", "encode_drive", "encode_map"]
 
 _CDR_LE = b"\x00\x01"
 _BASE = 4  # alignment origin: after the encapsulation header
@@ -210,9 +212,18 @@ class _Builder:
         self.buf += data + b"\x00"
 
     def doubles(self, values: np.ndarray) -> None:
-        if values.size:
-            self.align(8)
-            self.buf += np.ascontiguousarray(values, dtype="<f8").tobytes()
+        self.array(values, "<f8")
+
+    def array(self, values: np.ndarray, dtype: str) -> None:
+        """The elements of a primitive sequence (its length written before), aligned to their size."""
+        arr = np.ascontiguousarray(values, dtype=dtype)
+        if arr.size:
+            self.align(arr.itemsize)
+            self.buf += arr.tobytes()
+
+    def sequence(self, values: np.ndarray, dtype: str) -> None:
+        self.u32(int(np.size(values)))
+        self.array(values, dtype)
 
 
 def encode_drive(drive: Drive) -> bytes:
@@ -270,4 +281,62 @@ def encode_drive(drive: Drive) -> bytes:
         pts = np.asarray(det.points, dtype=np.float64).reshape(-1, 2)
         b.u32(len(pts))
         b.doubles(np.column_stack([pts, np.zeros(len(pts))]))
+    return bytes(b.buf)
+
+
+_U16_MAX = 2**16 - 1
+_U64_MAX = 2**64 - 1
+
+
+def _ids(what: str, values) -> np.ndarray:
+    ids = [int(v) for v in values]
+    if any(not 0 <= v <= _U64_MAX for v in ids):
+        raise InvalidMessageError(f"{what} id out of uint64 in {ids}")
+    return np.array(ids, dtype=np.uint64)
+
+
+def encode_map(hdmap: HDMap) -> bytes:
+    """CDR bytes of hdmap_msgs/msg/Map for ``hdmap`` -- byte for byte what
+    ``serialize_message(convert.map_to_msg(hdmap, types=rclpy_types()))`` gives, without one
+    Python message object per point and topology node (a live map of 10 km: 52 000 points,
+    10 000 nodes; publishers take the bytes as they are).
+
+    Raises:
+        InvalidMessageError: an id outside uint64, or per-point arrays of the wrong length (as
+            ``map_to_msg``).
+    """
+    b = _Builder()
+    sec, nsec = divmod(int(hdmap.stamp_ns), 1_000_000_000)
+    b.i32(sec)
+    b.u32(nsec)
+    b.string(hdmap.frame_id)
+    b.array(np.array([int(hdmap.version)]), "<u8")
+    b.u32(len(hdmap.drive_ids))
+    for d in hdmap.drive_ids:
+        b.string(str(d))
+    b.u32(len(hdmap.features))
+    for f in hdmap.features:
+        pts = np.asarray(f.points, dtype=np.float64).reshape(-1, 2)
+        counts = np.asarray(f.drive_count).reshape(-1)
+        std = np.asarray(f.lateral_std, dtype=np.float64).reshape(-1)
+        if len(counts) != len(pts) or len(std) != len(pts):
+            raise InvalidMessageError(
+                f"map feature {f.id}: {len(pts)} points but {len(counts)} drive counts and {len(std)} lateral stds"
+            )
+        b.array(_ids("map feature", [f.id]), "<u8")
+        b.buf.append(int(f.type) & 0xFF)
+        b.u32(len(pts))
+        b.doubles(np.column_stack([pts, np.zeros(len(pts))]))
+        b.sequence(np.clip(counts, 0, _U16_MAX), "<u2")
+        b.sequence(std, "<f4")
+        b.sequence(_ids("predecessor", f.predecessors), "<u8")
+        b.sequence(_ids("successor", f.successors), "<u8")
+    b.u32(len(hdmap.topology))
+    for n in hdmap.topology:
+        x, y = np.asarray(n.position, dtype=np.float64).reshape(2).tolist()
+        b.array(_ids("topology node", [n.id]), "<u8")
+        b.buf += struct.pack("<dddd", x, y, 0.0, float(n.heading))  # 8-aligned after the id
+        b.buf += struct.pack("<f", float(n.width))
+        b.sequence(_ids("successor", n.successors), "<u8")
+        b.sequence(_ids("feature", n.features), "<u8")
     return bytes(b.buf)

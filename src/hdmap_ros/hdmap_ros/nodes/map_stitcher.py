@@ -40,12 +40,13 @@ from __future__ import annotations
 
 import functools
 import json
-import multiprocessing
 import threading
 import time
 import traceback
-from concurrent.futures import BrokenExecutor, Executor, Future, ProcessPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import BrokenExecutor, Executor, Future
 from dataclasses import replace
+from typing import NamedTuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -62,28 +63,29 @@ from hdmap_core.live.changes import (
     warm_up,
 )
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
-from hdmap_core.live.restitch import kept_nodes, moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
+from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile
 from hdmap_core.model import HDMap
-from hdmap_core.parallel import available_cpus
+from hdmap_core.parallel import available_cpus, spawn_pool
 from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
 from hdmap_ros.convert.messages import (
     change_to_msg,
-    map_to_msg,
     msg_to_status,
     rclpy_change_class,
     rclpy_status_class,
     rclpy_types,
     status_to_msg,
 )
-from hdmap_ros.convert.tiles import msg_to_tile, rclpy_tile_types
+from hdmap_ros.convert.tiles import TileMessage, batch_to_tiles, msg_to_tile, rclpy_tile_types
+from hdmap_ros.io.cdr import encode_map
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node, state_path
-from hdmap_ros.persistence.store import MapStore, blob_to_segments, read_drives, segments_to_blob
+from hdmap_ros.persistence.store import MapStore, blob_to_segments, columns_to_blob, read_drives, segments_to_blob
 
 __all__ = ["MapStitcher", "main"]
 
 SEGMENTS_TOPIC = "hdmap/segments"  # relative: a namespace (-r __ns:=/ns2) moves every topic
+BATCHES_TOPIC = "hdmap/segment_batches"
 MAP_TOPIC = "hdmap/map"
 STATUS_TOPIC = "hdmap/status"
 MAPPER_STATUS_TOPIC = "hdmap/mapper_status"
@@ -92,7 +94,20 @@ CHANGES_TOPIC = "hdmap/changes"
 # of the time: on a loaded machine a rebuild takes seconds, and back-to-back rebuilds every
 # max_delay_s took the CPU the mapper needs to finish its tiles (a quiet debounce_s rebuilds at once)
 REBUILD_SHARE = 0.5
+# RULE: the change following is background work (it reads every drive and rebuilds on every CPU
+# for seconds once the map settled); its process runs this much nicer, so that a drive arriving
+# meanwhile (the fast path: mapper and stitcher in their own processes) is not slowed by it
+FOLLOW_NICE = 10
 CHANGES_QOS = qos.CHANGES  # the whole history latched (a restart publishes it again)
+
+
+class TileGraphs(NamedTuple):
+    """A tile's segment graphs as the stitcher holds them."""
+
+    version: int  # of the tile estimate they are of
+    graphs: list  # its segment graphs (live.tiles.connect_tile)
+    segments: list  # its segments
+    connected: bool  # connected from them (False: moved there by a fast update; a rebuild connects again)
 
 
 class MapStitcher(HealthMixin, Node):
@@ -176,18 +191,16 @@ class MapStitcher(HealthMixin, Node):
         self.store = MapStore(state_path(db, "map_stitcher.db"))
         self.health.set("tile_versions", self.store.version_total())
         self._types = rclpy_types()
-        # tile -> (version, its segment graphs, its segments, connected from them (False: moved
-        # there from an earlier estimate by a fast update, never used by a full rebuild))
-        self._graphs: dict[TileKey, tuple[int, list, list, bool]] = {}
-        # the stitched map graph of the last map made (restitch.stitch_tiles / moved_map) and that
-        # map (not the current one once road changes were followed on it)
+        self._graphs: dict[TileKey, TileGraphs] = {}
+        # the stitched map graph of the current map (restitch.stitch_tiles / moved_map); None
+        # while there is none: at the start, and once road changes were followed on the map
         self._mg: MapGraph | None = None
-        self._mg_map: HDMap | None = None
         self._raw_ids: dict[int, int] = {}  # its features' raw ids -> their ids in the current map
-        # the segments of estimates received since the last map (tile -> (version, segments)): the
-        # fast update moves the map to them without decoding the stored blobs again
-        self._rx_segments: dict[TileKey, tuple[int, list]] = {}
-        self._last_msg = None  # the last map message published
+        # the segments of estimates received since the last map (tile -> (version, a function giving
+        # its segments as received)): the fast update moves the map to them without decoding the
+        # stored blobs again
+        self._rx_segments: dict[TileKey, tuple[int, Callable[[], list]]] = {}
+        self._last_msg = b""  # the CDR bytes of the last map published
         self._first_dirty: float | None = None
         self._last_rx = 0.0
         self._rested_at = 0.0  # while estimates stream in, no rebuild before then (REBUILD_SHARE)
@@ -218,6 +231,13 @@ class MapStitcher(HealthMixin, Node):
             qos.replay(depth),
             callback_group=self._rx_group,
         )
+        self._batch_sub = self.create_subscription(
+            rclpy_tile_types().TileSegmentsBatch,
+            BATCHES_TOPIC,
+            self.on_batch,
+            qos.BATCHES,
+            callback_group=self._rx_group,
+        )
         self._status_sub = self.create_subscription(
             self._status_cls, MAPPER_STATUS_TOPIC, self._on_mapper_status, qos.LATCHED, callback_group=self._work_group
         )
@@ -242,13 +262,11 @@ class MapStitcher(HealthMixin, Node):
         self._consensus = self.map if self._followed_sig != sig else None
         for c in self.history.values():  # latched: the history again, same ids (not new)
             self._changes_pub.publish(change_to_msg(c, cls=self._change_cls, types=self._types))
-        self.health.set("changes_known", len(self.history))
-        self.health.set("changes_new", 0)
+        self._changes_health()
         if self.map is not None:
             self._publish()
             # the stored map is this node's map until a rebuild (none comes when no tile changed)
-            self.health.set("map_version", self.map.version)
-            self.health.set("features", len(self.map.features))
+            self._map_health()
         if self.store.tiles_signature() != sig:
             self._first_dirty = time.monotonic()
         self.get_logger().info(
@@ -264,30 +282,46 @@ class MapStitcher(HealthMixin, Node):
             self.health.reject("invalid_tile", str(err))
             self.get_logger().warning(f"tile message rejected: {err}")
             return
+        segments = list(tile.segments)
+        self._store_tiles([(tile, segments_to_blob(segments), functools.partial(list, segments))])
+
+    def on_batch(self, msg) -> None:
+        """Store the newer of a batch's tile estimates in one transaction (each as :meth:`on_tile`
+        would); their segments are made from the columns only when a fast update needs them."""
+        t0 = time.perf_counter()
+        try:
+            entries = batch_to_tiles(msg)
+        except (HdmapError, ValueError, TypeError, IndexError) as err:
+            self.health.reject("invalid_tile", f"batch: {err}")
+            self.get_logger().warning(f"tile batch rejected: {err}")
+            return
+        self._store_tiles([(e.tile, columns_to_blob(e.columns), e.segments) for e in entries])
+        self.get_logger().info(f"a batch of {len(entries)} tile estimate(s) stored in {time.perf_counter() - t0:.3f} s")
+
+    def _store_tiles(self, tiles: list[tuple[TileMessage, bytes, Callable[[], list]]]) -> None:
+        """Store tile estimates newer than the stored ones in one transaction: (tile, its segments'
+        blob, a function giving its segments)."""
         with self._rx_lock:
             if self._destroyed:
                 return
-            if self.store.put_tile(
-                tile.key,
-                tile.version,
-                segments_to_blob(tile.segments),
-                tile.drive_ids,
-                tile.drive_tile_counts,
-                tile.final,
-            ):
+            stored = self.store.put_tiles(
+                [(t.key, t.version, blob, t.drive_ids, t.drive_tile_counts, t.final) for t, blob, _ in tiles]
+            )
+            now = time.monotonic()
+            for (tile, _, segments), ok in zip(tiles, stored, strict=True):
+                if not ok:
+                    self.health.duplicate()
+                    continue
                 self.health.accept()
                 self._dirty.add(tile.key)
-                self._rx_segments[tile.key] = (tile.version, list(tile.segments))
+                self._rx_segments[tile.key] = (tile.version, segments)
                 if tile.final:
                     self._final[tile.key] = (list(tile.drive_ids), list(tile.drive_tile_counts))
                 else:
                     self._final.pop(tile.key, None)
-                now = time.monotonic()
                 self._last_rx = now
                 if self._first_dirty is None:
                     self._first_dirty = now
-            else:
-                self.health.duplicate()
             self.health.backlog = int(self._first_dirty is not None)
             self.health.set("tile_versions", self.store.version_total())
 
@@ -300,6 +334,7 @@ class MapStitcher(HealthMixin, Node):
             self._work()
             self._follow()
             self._update_status()
+            self.health.set("changes_followed", self.changes_followed())
 
     def changes_followed(self) -> bool:
         """The current map follows the road changes of every stored drive (or following is off)."""
@@ -358,10 +393,7 @@ class MapStitcher(HealthMixin, Node):
                 )
                 if c.id not in self.history
             ]
-            self.store.put_followed(new, sig, [(c.id, c.time_ns, dumps(c)) for c in announced])
-            self.map = new
-            self._followed_sig = sig
-            self._publish()
+            self._put_followed(new, sig, announced)
             for c in announced:
                 self.history[c.id] = c
                 self.changes_new += 1
@@ -370,10 +402,8 @@ class MapStitcher(HealthMixin, Node):
                     f"road change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "
                     f"{len(c.drive_ids)} drive(s) in evidence, confidence {c.confidence:.3f}, map version {version}"
                 )
-            self.health.set("map_version", new.version)
-            self.health.set("features", len(new.features))
-        self.health.set("changes_known", len(self.history))
-        self.health.set("changes_new", self.changes_new)
+            self._map_health()
+        self._changes_health()
         self.health.set("changes_in_map", len(result.changes))
         seconds = time.perf_counter() - t0
         self.health.set("last_follow_s", f"{seconds:.3f}")
@@ -382,13 +412,21 @@ class MapStitcher(HealthMixin, Node):
             f"{len(result.changes)} in the map, {len(fresh)} new, {len(self.history)} in the history"
         )
 
+    def _put_followed(self, new: HDMap, sig: str, announced: list[LiveChange]) -> None:
+        """Store, take and publish ``new``, the map of the tiles ``sig`` with road changes followed."""
+        self.store.put_followed(new, sig, [(c.id, c.time_ns, dumps(c)) for c in announced])
+        self.map = new
+        self._mg = None  # no map graph made this map: no fast update on it (the rebuild, then the follow)
+        self._followed_sig = sig
+        self._publish()
+
     def _follow_pool(self) -> Executor:
         """The process the change following runs in (``live.changes.follow_loaded``: it reads the
         drives and compares them on every CPU, as ``bag2map`` does, away from this process's
         executor; forks only from there, never from this process with its native threads). Made
         when the first tile estimates come (a stitcher that never gets one never starts it)."""
         if self._follow_executor is None:
-            self._follow_executor = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self._follow_executor = spawn_pool(nice=FOLLOW_NICE)
             self._follow_executor.submit(warm_up)
         return self._follow_executor
 
@@ -459,12 +497,12 @@ class MapStitcher(HealthMixin, Node):
         graphs = []
         for key, version, _, blob in tiles:
             cached = self._graphs.get(key)
-            if cached is None or cached[0] != version or not cached[3]:
+            if cached is None or cached.version != version or not cached.connected:
                 segments = blob_to_segments(blob)
                 tile_graphs = connect_tile(segments, key, pipeline_config=self.pipeline_config)
-                cached = (version, tile_graphs, segments, True)
+                cached = TileGraphs(version, tile_graphs, segments, True)
                 self._graphs[key] = cached
-            graphs.extend(cached[1])
+            graphs.extend(cached.graphs)
         drive_ids = integrated_drives(final)  # every tile of each is in this map with it, final
         t1 = time.perf_counter()
         raw, self._mg = stitch_tiles(graphs, pipeline_config=self.pipeline_config, drive_ids=drive_ids)
@@ -474,7 +512,7 @@ class MapStitcher(HealthMixin, Node):
         self._raw_ids = raw_id_map(raw, new)
         t3 = time.perf_counter()
         self.store.put_map(new, sig)
-        self.map = self._mg_map = new
+        self.map = new
         self._consensus = new
         self._map_sig = sig
         t4 = time.perf_counter()
@@ -485,19 +523,18 @@ class MapStitcher(HealthMixin, Node):
             f"publish {time.perf_counter() - t4:.3f}",
         )
         self.health.updated()
-        self.health.set("map_version", new.version)
-        self.health.set("features", len(new.features))
+        self._map_health()
         self.health.set("last_rebuild_s", f"{time.perf_counter() - t0:.3f}")
 
-    def _fast_update(self, dirty: set[TileKey], received: dict[TileKey, tuple[int, list]]) -> bool:
+    def _fast_update(self, dirty: set[TileKey], received: dict[TileKey, tuple[int, Callable[[], list]]]) -> bool:
         """RULE fast update: when every tile received since the last map is final and its estimate
         only moved the maxima of the one the map holds (a drive fused into it, ``live.fuse``), the
         map's stitch decisions are kept and only its geometry moves (``live.restitch``): a new
         version at once, listing the drives that completes. The full rebuild of the same tiles
         follows as the next version (``_first_dirty`` stays set), so the map is again a function of the
         tiles before it counts as settled. False (nothing done): rebuild in full. ``received``:
-        the segments of the estimates as received (tile -> (version, segments))."""
-        if self._mg is None or self.map is None or self.map is not self._mg_map:
+        the segments of the estimates as received (tile -> (version, a function giving them))."""
+        if self._mg is None or self.map is None:
             return False  # RULE: not on a map with road changes followed (the rebuild, then the follow)
         t0, c0 = time.perf_counter(), time.thread_time()
         with self._rx_lock:  # the estimates and the drives they vouch for as of one moment (as rebuild)
@@ -511,11 +548,12 @@ class MapStitcher(HealthMixin, Node):
             version = versions[key]
             if cached is None or key not in final or got is None or got[0] != version:
                 return False
-            graphs = moved_graphs(cached[1], cached[2], got[1])
+            segments = got[1]()
+            graphs = moved_graphs(cached.graphs, cached.segments, segments)
             if graphs is None:
                 return False
             moved.extend(graphs)
-            updates[key] = (version, graphs, got[1], False)
+            updates[key] = TileGraphs(version, graphs, segments, False)
         parts = list(final.values())
         drive_ids = integrated_drives(parts)
         t1 = time.perf_counter()
@@ -535,11 +573,10 @@ class MapStitcher(HealthMixin, Node):
         self._first_dirty = time.monotonic()  # the full rebuild of these tiles follows
         # stored with a signature no tile set has: a restart rebuilds it in full
         self.store.put_map(new, sig + ";moved")
-        previous, self.map = self.map, new
-        self._mg_map = new
+        self.map = new
         self._map_sig = sig
         t4 = time.perf_counter()
-        self._publish(previous)
+        self._publish()
         text = (
             f"{time.perf_counter() - t0:.3f} s (move {t1 - t0:.3f}, export {t2 - t1:.3f}, ids {t3 - t2:.3f}, "
             f"commit {t4 - t3:.3f}, publish {time.perf_counter() - t4:.3f}; {len(dirty)} tiles; "
@@ -548,24 +585,24 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("last_fast_update_s", text)
         self.get_logger().info(f"map version {new.version} moved in place (a fused burst) in {text}")
         self.health.updated()
-        self.health.set("map_version", new.version)
-        self.health.set("features", len(new.features))
+        self._map_health()
         return True
 
-    def _publish(self, previous: HDMap | None = None) -> None:
-        """Publish the map; ``previous``: the map of the last message, whose topology node
-        messages are reused where a node is the same (a moved map keeps most of them)."""
-        last = self._last_msg
-        if previous is not None and last is not None and len(last.topology) == len(previous.topology):
-            keep = kept_nodes(self.map, previous).tolist()
-            fresh = tuple(n for n, k in zip(self.map.topology, keep, strict=True) if k < 0)
-            msg = map_to_msg(replace(self.map, topology=fresh), types=self._types)
-            made = iter(msg.topology)
-            msg.topology = [last.topology[k] if k >= 0 else next(made) for k in keep]
-        else:
-            msg = map_to_msg(self.map, types=self._types)
-        self._map_pub.publish(msg)
-        self._last_msg = msg
+    def _map_health(self) -> None:
+        """The current map's version and size on /diagnostics (after each new map)."""
+        self.health.set("map_version", self.map.version)
+        self.health.set("features", len(self.map.features))
+
+    def _changes_health(self) -> None:
+        """The history's size and the changes this process confirmed, on /diagnostics."""
+        self.health.set("changes_known", len(self.history))
+        self.health.set("changes_new", self.changes_new)
+
+    def _publish(self) -> None:
+        """Publish the map as CDR bytes (``io.cdr.encode_map``: no message object per point and
+        topology node; the bytes rosbags gives for ``map_to_msg``, read by rclpy as its own)."""
+        self._last_msg = encode_map(self.map)
+        self._map_pub.publish(self._last_msg)
 
     def _on_mapper_status(self, msg) -> None:
         with self._work_lock:

@@ -5,6 +5,7 @@ Topic                  | profile        | why
 /fleet/drives          | DRIVES         | a burst of large drive messages must not be dropped
 /hdmap/drives_accepted | ACCEPTED       | same, and a restarted mapper gets recent drives again
 /hdmap/segments        | SEGMENTS       | a restarted stitcher gets the recent tile estimates again
+/hdmap/segment_batches | BATCHES        | same, for the estimates one job made together (a few MB each)
 /hdmap/map             | LATCHED        | a late subscriber gets the latest map at once
 /hdmap/markers         | LATCHED        | RViz / Foxglove opened later still show the map
 /hdmap/changes         | CHANGES        | every road change ever confirmed, for a late subscriber too
@@ -17,7 +18,18 @@ from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-__all__ = ["DRIVES", "ACCEPTED", "SEGMENTS", "LATCHED", "CHANGES", "ORIGIN_LIVE", "ACKS", "DIAGNOSTICS", "replay"]
+__all__ = [
+    "DRIVES",
+    "ACCEPTED",
+    "SEGMENTS",
+    "BATCHES",
+    "LATCHED",
+    "CHANGES",
+    "ORIGIN_LIVE",
+    "ACKS",
+    "DIAGNOSTICS",
+    "replay",
+]
 
 # /fleet/drives: as the bag player and a fleet gateway publish.
 DRIVES = QoSProfile(
@@ -49,6 +61,10 @@ def replay(depth: int) -> QoSProfile:
 # Default profiles for the internal topics (the nodes build theirs from a depth parameter).
 ACCEPTED = replay(100)
 SEGMENTS = replay(1000)
+# RULE memory: a batch holds every tile one job made (a region: all of them, a fused 10 km drive
+# ~100 tiles, a few MB), so only the last few are kept for a restarting stitcher; the mapper's
+# republish_on_start sends every stored estimate again.
+BATCHES = replay(8)
 
 # /hdmap/map, /hdmap/markers, /fleet/origin.
 LATCHED = QoSProfile(

@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import multiprocessing
 import time
 import traceback
 from collections import OrderedDict
@@ -70,11 +69,11 @@ from hdmap_core.live.progress import LiveStatus
 from hdmap_core.live.scheduler import FUSE, FUSED, MAP, MODEL, OBSERVE, PART, REGION, REMAP, Job, LiveScheduler
 from hdmap_core.live.tiles import TileConfig, TileKey, road_cells, tiles_of_drive
 from hdmap_core.model import Drive, validate_drive
-from hdmap_core.parallel import available_cpus
+from hdmap_core.parallel import available_cpus, spawn_pool
 from hdmap_core.pipeline.adjustment import OffsetModel
 from hdmap_core.plausibility import check_plausible
 from hdmap_ros.convert.messages import rclpy_status_class, rclpy_types, status_to_msg
-from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg
+from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg, tiles_to_batch
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import (
     HealthMixin,
@@ -91,6 +90,7 @@ __all__ = ["SegmentMapper", "main"]
 ACCEPTED_TOPIC = "hdmap/drives_accepted"  # relative: a namespace (-r __ns:=/ns2) moves every topic
 REJECTED_TOPIC = "hdmap/drives_rejected"
 SEGMENTS_TOPIC = "hdmap/segments"
+BATCHES_TOPIC = "hdmap/segment_batches"
 ACKS_TOPIC = "hdmap/drive_acks"
 STATUS_TOPIC = "hdmap/mapper_status"
 DRIVES_KEPT = 64  # RULE: stored drives the mapper keeps decoded (most recently used)
@@ -229,15 +229,15 @@ class SegmentMapper(HealthMixin, Node):
         self.workers = workers or available_cpus()
         # one process per worker, so a tile's settle job can go to the process that keeps the
         # work of its observation pass (``live.jobs.TileWork``)
-        ctx = multiprocessing.get_context("spawn")
         self._pools: list[ProcessPoolExecutor | _Inline] = (
-            [ProcessPoolExecutor(1, mp_context=ctx) for _ in range(self.workers)] if self.workers > 1 else [_Inline()]
+            [spawn_pool() for _ in range(self.workers)] if self.workers > 1 else [_Inline()]
         )
         self._running: dict[Future, tuple[Job, int]] = {}  # job in work -> (job, its worker)
         self._home: dict[TileKey, int] = {}  # tile -> the worker that made its observation pass last
         self._drive_cache: OrderedDict[str, Drive] = OrderedDict()  # decoded stored drives (_drives)
         self._seg_cache: dict[TileKey, tuple[int, list]] = {}  # final estimates stored, decoded (_keep_segments)
         self._input_done = False  # input_done() was called: handed to the schedule by work()
+        self._last_taken = ("", 0.0)  # the last drive handed to the schedule and when (the fast path's log)
         for pool in self._pools if self.workers > 1 else []:  # start the processes while nothing waits
             pool.submit(warm_up)
         self.tiles_published = 0
@@ -249,6 +249,7 @@ class SegmentMapper(HealthMixin, Node):
         self._status_cls = rclpy_status_class()
 
         self._seg_pub = self.create_publisher(self._tile_types.TileSegments, SEGMENTS_TOPIC, qos.replay(depth))
+        self._batch_pub = self.create_publisher(self._tile_types.TileSegmentsBatch, BATCHES_TOPIC, qos.BATCHES)
         self._ack_pub = self.create_publisher(String, ACKS_TOPIC, qos.ACKS)
         self._status_pub = self.create_publisher(self._status_cls, STATUS_TOPIC, qos.LATCHED)
         # Receiving (commit + ack) stays quick and apart from the slow mapping worker.
@@ -445,6 +446,7 @@ class SegmentMapper(HealthMixin, Node):
         now = time.monotonic()
         for d in pending:
             self.scheduler.add_drive(d, per_drive[d], now, cells.get(d))
+            self._last_taken = (d, now)
         self.store.mark_processed(pending)
 
     def _start(self, free: int) -> int:
@@ -452,13 +454,16 @@ class SegmentMapper(HealthMixin, Node):
         busy = {w for _, w in self._running.values()}
         idle = [w for w in range(len(self._pools)) if w not in busy][: max(0, free)]
         started = 0
-        for w in idle:
+        while idle:
+            w = idle[0]
             # RULE: a settle job goes preferably to the worker holding its tile's observation pass
             jobs = self.scheduler.next_jobs(time.monotonic(), 1, prefer=functools.partial(self._at_home, worker=w))
             if not jobs:
                 break
             self._submit(jobs[0], w)
             started += 1
+            if jobs[0].kind != FUSE:  # a fusion ran here (_submit): the worker is still free
+                idle.pop(0)
         return started
 
     def _drives(self, drive_ids: Sequence[str]) -> list[Drive]:
@@ -479,11 +484,13 @@ class SegmentMapper(HealthMixin, Node):
         return out
 
     def _segments(self, key: TileKey) -> list:
-        est = self.store.tile(key)
-        if est is None:
-            return []
+        """A tile's stored segments: kept decoded (:meth:`_keep_segments`) while that version is
+        the stored one (its version read alone), else decoded from the store."""
         cached = self._seg_cache.get(key)
-        return list(cached[1]) if cached is not None and cached[0] == est.version else est.segments()
+        if cached is not None and cached[0] == self.store.tile_version(key):
+            return list(cached[1])
+        est = self.store.tile(key)
+        return est.segments() if est is not None else []
 
     def _keep_segments(self, est: TileEstimate, segments: Sequence) -> list:
         """The segments of a final estimate just stored, kept decoded (the fast path's next fusion
@@ -518,10 +525,25 @@ class SegmentMapper(HealthMixin, Node):
             kw["region_workers"] = self.workers if self.workers > 1 else 1
             self._home.clear()
         drives = self._drives(job.drive_ids) if job.kind != MODEL else []
+        if job.kind == FUSE:
+            # RULE: a fusion runs here, where its tiles' settled segments are kept decoded: on a
+            # worker, the segments of its ~100 tiles and the fused ones were pickled there and back
+            # (more CPU than the fusion itself, ``scripts/profile_fast_path.py``)
+            self._run_here(job, drives, kw)
+            return
         fut = self._pools[worker].submit(run_job, job, drives, **kw)
         self._running[fut] = (job, worker)
         if self.workers > 1:
             fut.add_done_callback(self._job_done)
+
+    def _run_here(self, job: Job, drives: Sequence[Drive], kw: dict) -> None:
+        """Run a job in this process and commit it at once (as :meth:`_collect` would)."""
+        try:
+            result = run_job(job, drives, **kw)
+        except Exception as err:  # noqa: BLE001 - a bug on one drive must not stop the live map; logged in full
+            self._fail(job, err)
+            return
+        self._commit(job, result)
 
     def _job_done(self, _fut: Future) -> None:
         """(A pool's thread) a job ended: wake :meth:`work` to collect it and start the next."""
@@ -554,9 +576,7 @@ class SegmentMapper(HealthMixin, Node):
             made = [(key, segments.get(key, []), ids) for key, ids in job.tiles]
             stored = self.store.put_tiles(made, model_sig=job.sig)  # one commit for every tile
             self._update_status()  # first: the stitcher then knows the burst is coming (its tile_versions)
-            for est, (_, segs, _) in zip(stored, made, strict=True):
-                self._publish(est, final=True, segments=self._keep_segments(est, segs))
-                self.health.updated()
+            self._publish_batch(stored, [segs for _, segs, _ in made])
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
             self.health.set("tiles", self.scheduler.tile_count)
             if result.model is not None:
@@ -586,14 +606,20 @@ class SegmentMapper(HealthMixin, Node):
             self.get_logger().info(f"drive {did!r} not fused ({result.refused}): it waits for the settle")
             self.scheduler.finished(job, ok=False)
             return
+        t0 = time.perf_counter()
         made = [(key, result.tiles.get(key, []), ids) for key, ids in job.tiles]
-        for est, (_, segs, _) in zip(self.store.put_tiles(made, model_sig=FUSED), made, strict=True):
-            self._publish(est, final=True, segments=self._keep_segments(est, segs))
-            self.health.updated()
+        stored = self.store.put_tiles(made, model_sig=FUSED)
+        t1 = time.perf_counter()
+        self._publish_batch(stored, [segs for _, segs, _ in made])
         self.fast_fused += 1
         self.health.set("fast_fused", self.fast_fused)
         how = "fused into" if job.kind == FUSE else "mapped alone (new road) into"
-        self.get_logger().info(f"drive {did!r} {how} {len(made)} tile(s) (job {result.seconds:.3f} s)")
+        taken = self._last_taken[1] if self._last_taken[0] == did else None
+        since = f"{time.monotonic() - taken:.3f} s after it was scheduled: " if taken is not None else ""
+        self.get_logger().info(
+            f"drive {did!r} {how} {len(made)} tile(s) ({since}job {result.seconds:.3f} s, store {t1 - t0:.3f} s, "
+            f"batch message {time.perf_counter() - t1:.3f} s)"
+        )
         self.scheduler.finished(job, ok=True)
 
     def _fail(self, job: Job, err: Exception) -> None:
@@ -627,6 +653,29 @@ class SegmentMapper(HealthMixin, Node):
         )
         self._seg_pub.publish(msg)
         self.tiles_published += 1
+
+    def _publish_batch(self, stored: Sequence[TileEstimate], segments: Sequence[Sequence]) -> None:
+        """Publish the final estimates one job made (``stored``, with their ``segments``) as one
+        TileSegmentsBatch: one message the stitcher stores in one transaction, instead of one
+        TileSegments per tile; their segments are kept decoded (:meth:`_keep_segments`)."""
+        tiles = [
+            (
+                est.key,
+                self._keep_segments(est, segs),
+                est.version,
+                est.drive_ids,
+                [self.scheduler.drive_tile_count(d) for d in est.drive_ids],
+                True,
+            )
+            for est, segs in zip(stored, segments, strict=True)
+        ]
+        msg = tiles_to_batch(
+            tiles, tile_size_m=self.tile_config.tile_size_m, stamp_ns=time.time_ns(), types=self._tile_types
+        )
+        self._batch_pub.publish(msg)
+        self.tiles_published += len(tiles)
+        for _ in tiles:
+            self.health.updated()
 
     def _update_status(self) -> None:
         """Publish the mapper's part of MapStatus when it changed."""

@@ -25,14 +25,14 @@ import json
 import sqlite3
 import threading
 from collections.abc import Iterable, Sequence
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from hdmap_core.live.tiles import TileKey
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
-from hdmap_core.steps import Segment, StepObservations, StepResult
+from hdmap_core.segment_columns import SegmentColumns, columns_to_segments, segment_columns, split_by
+from hdmap_core.steps import Segment, StepObservations
 
 __all__ = [
     "drive_to_blob",
@@ -40,6 +40,8 @@ __all__ = [
     "blob_to_drive",
     "segments_to_blob",
     "blob_to_segments",
+    "columns_to_blob",
+    "blob_to_columns",
     "map_to_blob",
     "blob_to_map",
     "observations_to_blob",
@@ -66,10 +68,6 @@ def _unpack(blob: bytes) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, meta
 
 
-def _split(flat: np.ndarray, lengths: np.ndarray) -> list[np.ndarray]:
-    return np.split(flat, np.cumsum(lengths)[:-1]) if len(lengths) else []
-
-
 def drive_to_blob(drive: Drive) -> bytes:
     """Serialize a drive exactly (float64 coordinates, int64 stamps)."""
     dets = drive.detections
@@ -91,7 +89,7 @@ def blob_to_drive(blob: bytes) -> Drive:
     a, m = _unpack(blob)
     dets = tuple(
         Detection(type=FeatureType(int(t)), points=p)
-        for t, p in zip(a["det_types"], _split(a["det_pts"], a["det_lens"]))
+        for t, p in zip(a["det_types"], split_by(a["det_pts"], a["det_lens"]))
     )
     return Drive(
         drive_id=m["drive_id"],
@@ -106,80 +104,68 @@ def blob_to_drive(blob: bytes) -> Drive:
 
 def segments_to_blob(segments: Sequence[Segment]) -> bytes:
     """Serialize segments (every StepResult field) exactly."""
-    steps = [st for seg in segments for st in seg.steps]
-    k = np.array([len(np.asarray(st.lateral_m).reshape(-1)) for st in steps], dtype=np.int64)
+    return columns_to_blob(segment_columns(segments))
 
-    def cat(attr: str, dtype) -> np.ndarray:
-        parts = [np.asarray(getattr(st, attr), dtype=dtype).reshape(-1) for st in steps]
-        return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
 
+def columns_to_blob(c: SegmentColumns) -> bytes:
+    """Segments in columns -> the blob :func:`segments_to_blob` makes of them."""
     return _pack(
         {
-            "nsteps": np.array([len(s.steps) for s in segments], dtype=np.int64),
-            "index": np.array([st.index for st in steps], dtype=np.int64),
-            "s_m": np.array([st.s_m for st in steps], dtype=np.float64),
-            "midpoint": np.array([np.asarray(st.midpoint, dtype=np.float64) for st in steps]).reshape(-1, 2),
-            "pose": np.array(
-                [
-                    np.full(2, np.nan) if st.pose is None else np.asarray(st.pose, dtype=np.float64).reshape(-1)[:2]
-                    for st in steps
-                ]
-            ).reshape(-1, 2),
-            "heading": np.array([st.heading for st in steps], dtype=np.float64),
-            "width_m": np.array([st.width_m for st in steps], dtype=np.float64),
-            "valid": np.array([st.valid for st in steps], dtype=bool),
-            "processed_before": np.array([st.processed_before for st in steps], dtype=bool),
-            "k": k,
-            "lateral_m": cat("lateral_m", np.float64),
-            "types": cat("types", np.int64),
-            "counts": cat("counts", np.int64),
-            "std_m": cat("std_m", np.float64),
-            "judged": np.array([st.empty_m is not None for st in steps], dtype=bool),
-            "n_empty": np.array(
-                [0 if st.empty_m is None else len(np.asarray(st.empty_m).reshape(-1, 2)) for st in steps],
-                dtype=np.int64,
-            ),
-            "empty_m": np.concatenate(
-                [np.zeros((0, 2))]
-                + [np.asarray(st.empty_m, dtype=np.float64).reshape(-1, 2) for st in steps if st.empty_m is not None]
-            ),
+            "nsteps": c.nsteps,
+            "index": c.index,
+            "s_m": c.s_m,
+            "midpoint": c.midpoint,
+            "pose": c.pose,
+            "heading": c.heading,
+            "width_m": c.width_m,
+            "valid": c.valid,
+            "processed_before": c.processed_before,
+            "k": c.k,
+            "lateral_m": c.lateral_m,
+            "types": c.types,
+            "counts": c.counts,
+            "std_m": c.std_m,
+            "judged": c.judged,
+            "n_empty": c.n_empty,
+            "empty_m": c.empty_m,
         },
-        {"pivots": [s.pivot_id for s in segments], "drive_ids": [list(st.drive_ids) for st in steps]},
+        {"pivots": list(c.pivots), "drive_ids": [list(ids) for ids in c.step_drive_ids()]},
+    )
+
+
+def blob_to_columns(blob: bytes) -> SegmentColumns:
+    """A blob of :func:`segments_to_blob` -> its segments in columns."""
+    a, m = _unpack(blob)
+    n = len(a["k"])
+    names: dict[str, int] = {}
+    index = [names.setdefault(d, len(names)) for ids in m["drive_ids"] for d in ids]
+    return SegmentColumns(
+        pivots=tuple(m["pivots"]),
+        nsteps=a["nsteps"],
+        index=a["index"],
+        s_m=a["s_m"],
+        midpoint=a["midpoint"].reshape(-1, 2),
+        pose=a["pose"] if "pose" in a else np.full((n, 2), np.nan),  # blobs written before poses
+        heading=a["heading"],
+        width_m=a["width_m"],
+        valid=a["valid"],
+        processed_before=a["processed_before"],
+        judged=a["judged"] if "judged" in a else np.zeros(n, dtype=bool),  # blobs written before evidence
+        k=a["k"],
+        lateral_m=a["lateral_m"],
+        types=a["types"],
+        counts=a["counts"],
+        std_m=a["std_m"],
+        n_empty=a["n_empty"] if "n_empty" in a else np.zeros(n, dtype=np.int64),
+        empty_m=a["empty_m"].reshape(-1, 2) if "empty_m" in a else np.zeros((0, 2)),
+        drive_names=tuple(names),
+        n_drives=np.array([len(ids) for ids in m["drive_ids"]], dtype=np.int64),
+        drive_index=np.array(index, dtype=np.int64),
     )
 
 
 def blob_to_segments(blob: bytes) -> list[Segment]:
-    a, m = _unpack(blob)
-    k = a["k"]
-    lat, typ, cnt, std = (_split(a[n], k) for n in ("lateral_m", "types", "counts", "std_m"))
-    judged = a["judged"] if "judged" in a else np.zeros(len(k), dtype=bool)  # blobs written before evidence
-    empty = _split(a["empty_m"].reshape(-1, 2), a["n_empty"]) if "empty_m" in a else [None] * len(k)
-    pose = a["pose"] if "pose" in a else np.full((len(k), 2), np.nan)  # blobs written before poses
-    steps = [
-        StepResult(
-            pivot_id="",
-            index=int(a["index"][i]),
-            s_m=float(a["s_m"][i]),
-            midpoint=a["midpoint"][i],
-            heading=float(a["heading"][i]),
-            width_m=float(a["width_m"][i]),
-            valid=bool(a["valid"][i]),
-            processed_before=bool(a["processed_before"][i]),
-            lateral_m=lat[i],
-            types=typ[i],
-            counts=cnt[i],
-            std_m=std[i],
-            drive_ids=tuple(m["drive_ids"][i]),
-            empty_m=empty[i] if judged[i] else None,
-            pose=pose[i] if np.isfinite(pose[i]).all() else None,
-        )
-        for i in range(len(k))
-    ]
-    out, at = [], 0
-    for pivot, n in zip(m["pivots"], a["nsteps"].tolist()):
-        out.append(Segment(pivot_id=pivot, steps=tuple(_with_pivot(st, pivot) for st in steps[at : at + n])))
-        at += n
-    return out
+    return columns_to_segments(blob_to_columns(blob))
 
 
 def observations_to_blob(observations: Sequence[StepObservations]) -> bytes:
@@ -218,8 +204,8 @@ def blob_to_observations(blob: bytes) -> list[StepObservations]:
     a, m = _unpack(blob)
     table = np.array(m["drive_ids"], dtype=object)
     k = a["k"]
-    drv, ds, lat, typ, clu = (_split(a[n], k) for n in ("drive", "drive_s_m", "lateral_m", "types", "cluster"))
-    off = _split(a["offsets_m"], a["k_off"])
+    drv, ds, lat, typ, clu = (split_by(a[n], k) for n in ("drive", "drive_s_m", "lateral_m", "types", "cluster"))
+    off = split_by(a["offsets_m"], a["k_off"])
     return [
         StepObservations(
             pivot_id=m["pivots"][i],
@@ -235,10 +221,6 @@ def blob_to_observations(blob: bytes) -> list[StepObservations]:
         )
         for i in range(len(k))
     ]
-
-
-def _with_pivot(step: StepResult, pivot: str) -> StepResult:
-    return replace(step, pivot_id=pivot)
 
 
 def _ids(lists: Iterable[Sequence[int]]) -> tuple[np.ndarray, np.ndarray]:
@@ -295,8 +277,8 @@ def map_to_blob(hdmap: HDMap) -> bytes:
 def blob_to_map(blob: bytes) -> HDMap:
     a, m = _unpack(blob)
     n = a["f_n"]
-    pts, cnt, std = _split(a["f_pts"], n), _split(a["f_count"], n), _split(a["f_std"], n)
-    pred, succ = _split(a["f_pred"], a["f_pred_n"]), _split(a["f_succ"], a["f_succ_n"])
+    pts, cnt, std = split_by(a["f_pts"], n), split_by(a["f_count"], n), split_by(a["f_std"], n)
+    pred, succ = split_by(a["f_pred"], a["f_pred_n"]), split_by(a["f_succ"], a["f_succ_n"])
     features = tuple(
         MapFeature(
             id=int(a["f_id"][i]),
@@ -309,7 +291,7 @@ def blob_to_map(blob: bytes) -> HDMap:
         )
         for i in range(len(n))
     )
-    tsucc, tfeat = _split(a["t_succ"], a["t_succ_n"]), _split(a["t_feat"], a["t_feat_n"])
+    tsucc, tfeat = split_by(a["t_succ"], a["t_succ_n"]), split_by(a["t_feat"], a["t_feat_n"])
     topology = tuple(
         TopologyNode(
             id=int(a["t_id"][i]),
@@ -390,6 +372,11 @@ class _Store:
     def version_total(self) -> int:
         """Sum of all tile versions: equal in mapper and stitcher when the stitcher has every estimate."""
         return int(self._query("SELECT COALESCE(SUM(version), 0) FROM tiles")[0][0])
+
+    def tile_version(self, key: TileKey) -> int:
+        """The stored version of a tile's estimate (0: none)."""
+        rows = self._query("SELECT version FROM tiles WHERE tx=? AND ty=?", key)
+        return int(rows[0][0]) if rows else 0
 
     def close(self) -> None:
         with self._lock:
@@ -751,34 +738,39 @@ class MapStore(_Store):
         """Store a tile's segments unless a same or newer version is stored; True when stored.
         ``drive_tile_counts``: per drive id, the tiles that drive covers (empty: unknown); ``final``:
         made as the settled map makes it."""
+        return self.put_tiles([(key, version, segments_blob, drive_ids, drive_tile_counts, final)])[0]
+
+    def put_tiles(self, tiles: Sequence[tuple[TileKey, int, bytes, Sequence[str], Sequence[int], bool]]) -> list[bool]:
+        """:meth:`put_tile` of each (key, version, segments blob, drive ids, drive tile counts,
+        final), in one transaction (one commit for a batch of estimates); per tile, True when stored."""
+        out = []
         with self._tx() as con:
-            row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
-            if row and row[0] >= version:
-                return False
-            con.execute(
-                "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_ids, segments, drive_tile_counts, final) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (
-                    key[0],
-                    key[1],
-                    int(version),
-                    json.dumps(list(drive_ids)),
-                    segments_blob,
-                    json.dumps([int(n) for n in drive_tile_counts]),
-                    int(bool(final)),
-                ),
-            )
-        return True
+            for key, version, blob, drive_ids, counts, final in tiles:
+                row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
+                if row and row[0] >= version:
+                    out.append(False)
+                    continue
+                con.execute(
+                    "INSERT OR REPLACE INTO tiles(tx, ty, version, drive_ids, segments, drive_tile_counts, final) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        key[0],
+                        key[1],
+                        int(version),
+                        json.dumps(list(drive_ids)),
+                        blob,
+                        json.dumps([int(n) for n in counts]),
+                        int(bool(final)),
+                    ),
+                )
+                out.append(True)
+        return out
 
     def tile_progress(self) -> dict[TileKey, tuple[list[int], bool]]:
         """Per tile, the tile counts of its estimate's drives and whether it is final (as
         :meth:`put_tile` got them)."""
         rows = self._query("SELECT tx, ty, drive_tile_counts, final FROM tiles ORDER BY tx, ty")
         return {(r[0], r[1]): (json.loads(r[2]), bool(r[3])) for r in rows}
-
-    def tile_version(self, key: TileKey) -> int:
-        rows = self._query("SELECT version FROM tiles WHERE tx=? AND ty=?", key)
-        return int(rows[0][0]) if rows else 0
 
     def tiles(self) -> list[tuple[TileKey, int, list[str], bytes]]:
         """(key, version, drive_ids, segments blob) of every tile, ordered by key."""
