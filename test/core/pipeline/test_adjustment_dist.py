@@ -39,19 +39,23 @@ def _max_diff(a: OffsetModel, b: OffsetModel) -> float:
 @pytest.mark.parametrize("matrix_free", [False, True])
 def test_parts_give_the_one_solve(monkeypatch, matrix_free):
     obs = _lane_ambiguous_fleet()
+    explicit = adjust_offsets(obs, config=CFG)
     if matrix_free:
         monkeypatch.setattr(AdjustConfig, "max_pair_fill", 0)
-    one = adjust_offsets(obs, config=CFG)
+    one = adjust_offsets(obs, config=CFG) if matrix_free else explicit
     # uneven parts, one of them a single step: the steps' global numbers, the drives' order and
     # the lane-shift search's picks must be the fleet's
     n = len(obs)
     parts = _parts(obs, [n // 5, n // 5 + 1, n // 2, (4 * n) // 5])
     got = adjust_parts(local_call(parts), len(parts), CFG)
     assert _max_diff(one, got) < 1e-7
+    assert _max_diff(explicit, got) < 1e-7  # matrix-free (deflated CG) or not: the explicit one solve
     for key in ("n_samples_used", "lane_shifts", "n_clusters", "n_unknowns", "iterations", "relabelled_fraction"):
         assert got.stats[key] == pytest.approx(one.stats[key], rel=1e-9), key
     assert one.stats["lane_shifts"] > 0  # the shift search was exercised
     assert got.stats.get("matrix_free", False) == matrix_free == one.stats.get("matrix_free", False)
+    if matrix_free:  # the parts' coarse space is the one process's
+        assert got.stats["cg_coarse_unknowns"] == one.stats["cg_coarse_unknowns"] > 0
     # dense steps were thinned (seen by more than THIN_DRIVES drives): by their global number
     assert one.stats["n_samples_used"] < sum(np.count_nonzero(np.asarray(o.cluster) >= 0) for o in obs)
 

@@ -95,6 +95,7 @@ def test_matrix_free_adjustment_equals_the_explicit_one(monkeypatch):
     free = adjust_offsets(obs)
     assert "matrix_free" not in explicit.stats
     assert free.stats["matrix_free"] is True and free.stats["cg_unconverged"] == 0
+    assert free.stats["cg_coarse_unknowns"] > 0  # deflated by the coarse space
     assert explicit.stats["iterations"] > 1  # IRLS re-weighted: the operator was rebuilt
     for key in ("n_samples_used", "lane_shifts", "iterations", "relabelled_fraction"):
         assert free.stats[key] == explicit.stats[key], key

@@ -29,7 +29,6 @@ steps). The association (re-clustering all samples, lane-shift search) is in
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Protocol
@@ -39,13 +38,11 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-try:
-    from threadpoolctl import threadpool_limits
-except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
-    threadpool_limits = None
 from hdmap_core.checks import check_choice, check_range
 from hdmap_core.errors import ConfigError
+from hdmap_core.parallel import one_blas_thread
 from hdmap_core.pipeline import adjustment_assoc as assoc
+from hdmap_core.pipeline.adjustment_coarse import coarse_basis, drive_links, place_sums
 from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
@@ -290,10 +287,6 @@ class OffsetModel:
             )
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise ConfigError(f"malformed offset model dict: {err!r}") from err
-
-
-def _one_blas_thread() -> contextlib.AbstractContextManager:
-    return threadpool_limits(limits=1, user_api="blas") if threadpool_limits else contextlib.nullcontext()
 
 
 def _jsonable(obj: Any) -> Any:
@@ -577,7 +570,12 @@ def adjust_offsets(observations: Sequence[Any], *, config: AdjustConfig = Adjust
         inlier_rms_m=float(np.sqrt(np.mean(r[inlier] ** 2))) if inlier.any() else float("nan"),
     )
     if fit.schur is not None:  # the curve fit was solved matrix-free (past cfg.max_pair_fill)
-        stats.update(matrix_free=True, cg_iterations=fit.schur.iterations, cg_unconverged=fit.schur.unconverged)
+        stats.update(
+            matrix_free=True,
+            cg_iterations=fit.schur.iterations,
+            cg_unconverged=fit.schur.unconverged,
+            cg_coarse_unknowns=fit.schur.coarse_unknowns,
+        )
     theta, h = fit.theta, fit.normal
     cov = None
     if cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:
@@ -680,7 +678,9 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
         solver = NormalSolver()
     else:
         h = SchurNormal(a, samples.cluster, samples.n_clusters, info, samples.lateral_m, prior, samples.drive)
-        rhs, solver = h.rhs, SchurSolver()
+        links = drive_links(samples.drive, samples.cluster)
+        z = coarse_basis(lay.col0, lay.n_knots, place_sums(a, samples.xy), links)
+        rhs, solver = h.rhs, SchurSolver(z)
     it, change = 0, 0.0
     for it in range(1, cfg.iterations + 1):
         new_theta = solver.solve(h, rhs, theta)  # each solver gets its own kind of h
@@ -704,7 +704,7 @@ def _irls(samples: assoc.Samples, cfg: AdjustConfig, keep: np.ndarray) -> _Fit:
 def covariance_parts(h: sp.csr_matrix, lay: _Layout) -> dict[str, np.ndarray]:
     """Entries of H^-1 needed for the std of o(s): var/cov of bias and knots, per column."""
     # One BLAS thread: on a small shared machine OpenBLAS threads thrash (measured 20x slower).
-    with _one_blas_thread():
+    with one_blas_thread():
         c, lower = scipy.linalg.cho_factor(h.toarray(), lower=False, check_finite=False)
         inv, info = scipy.linalg.lapack.dpotri(c, lower=lower)
     if info != 0:

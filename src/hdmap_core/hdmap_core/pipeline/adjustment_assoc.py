@@ -9,7 +9,7 @@ steps; see docs/adjustment.md for the method.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -43,6 +43,8 @@ class Pool:
     #: (D,) the step of each drive's first sample (finite or not): drives are numbered in that
     #: order (``adjustment_dist`` merges the parts' drives by it)
     first_step: np.ndarray | None = None
+    #: (number of observations, 2) each step's cut midpoint [m] (NaN if unreadable): where it is
+    step_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,7 @@ class Samples:
     drive_ids: tuple[str, ...]
     pool_index: np.ndarray  # (n,) position of each sample in the Pool
     pool_drive: np.ndarray  # (D,) pool drive index of each drive
+    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) its step's midpoint [m]
 
 
 def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
@@ -66,6 +69,7 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
     problems: list[str] = []
     n_bad_steps = 0
     step_drives = np.zeros(len(observations), dtype=np.int64)
+    step_xy = np.full((len(observations), 2), np.nan)
     for j, obs in enumerate(observations):
         try:
             ids = tuple(obs.drive_ids)
@@ -96,6 +100,7 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
             continue
         drive_lists.append(ids)
         step_drives[j] = len(set(ids))
+        step_xy[j] = _midpoint(obs)
         s_list.append(s)
         lat_list.append(lat)
         cl_list.append(cl)
@@ -107,7 +112,9 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
     if not s_list:
         stats["n_samples"] = stats["n_nonfinite_dropped"] = 0
         e_i, e_f = np.zeros(0, np.int64), np.zeros(0)
-        return Pool(e_i, (), e_f, e_f, e_i, e_i, e_i, np.zeros(len(observations), np.int64), first_step=e_i)
+        return Pool(
+            e_i, (), e_f, e_f, e_i, e_i, e_i, np.zeros(len(observations), np.int64), first_step=e_i, step_xy=step_xy
+        )
     s = np.concatenate(s_list)
     lat = np.concatenate(lat_list)
     label = np.concatenate(cl_list).astype(np.int64)
@@ -131,7 +138,17 @@ def gather(observations: Sequence[Any], stats: dict[str, Any]) -> Pool:
         label[finite],
         step_drives,
         first_step=step[firsts],
+        step_xy=step_xy,
     )
+
+
+def _midpoint(obs: Any) -> np.ndarray:
+    """A step's cut midpoint (NaN when it has none: only the matrix-free solve's coarse space uses it)."""
+    try:
+        xy = np.asarray(obs.midpoint, dtype=float).ravel()
+    except (AttributeError, TypeError, ValueError):
+        return np.full(2, np.nan)
+    return xy[:2] if xy.size >= 2 else np.full(2, np.nan)
 
 
 def select(pool: Pool, label: np.ndarray, thin_drives: int = 0) -> Samples:
@@ -163,6 +180,7 @@ def select(pool: Pool, label: np.ndarray, thin_drives: int = 0) -> Samples:
         drive_ids=tuple(pool.drive_ids[i] for i in pool_drive),
         pool_index=used,
         pool_drive=np.asarray(pool_drive, dtype=np.int64),
+        xy=pool.step_xy[pool.step[used]] if pool.step_xy.shape[0] else np.full((used.size, 2), np.nan),
     )
 
 

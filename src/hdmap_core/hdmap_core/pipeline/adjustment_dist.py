@@ -15,7 +15,8 @@ share:
   the client adds them and solves, as ``adjust_offsets`` does. Above
   ``AdjustConfig.max_pair_fill`` (the parts' pair entries summed) nothing is assembled: conjugate
   gradients on ``H v = P v + sum_b H_b v`` (``adjustment_schur``), one round of part products per
-  iteration, preconditioned by the sum of the parts' per-drive blocks;
+  iteration, preconditioned by the sum of the parts' per-drive blocks and deflated by the coarse
+  space of place-wise shifts (``adjustment_coarse``: its ``H Z`` one more round per solve);
 - what is per sample (association, residuals, weights, coarse rejection) stays in its part; what
   is per drive is reduced in the client: each drive's used range (its knots), the lane-shift
   search's cost per drive and shift (summed), the curves (sent back to every part);
@@ -66,6 +67,7 @@ from hdmap_core.pipeline.adjustment import (
     robust_weights,
     sample_residuals,
 )
+from hdmap_core.pipeline.adjustment_coarse import coarse_basis, drive_links, place_sums
 from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
 
 __all__ = ["AdjustPart", "Call", "adjust_parts", "local_call"]
@@ -244,6 +246,16 @@ class AdjustPart:
         assert self.schur is not None
         return self.schur.matvec(v)
 
+    def schur_matmat(self, z: sp.csr_matrix) -> sp.csr_matrix:
+        """This part's ``H_b @ z`` (the coarse space's share)."""
+        assert self.schur is not None
+        return self.schur.matmat(z)
+
+    def coarse_shares(self) -> tuple[np.ndarray, np.ndarray]:
+        """This part's shares of the coarse space: ``place_sums`` and ``drive_links``."""
+        s = self._samples()
+        return place_sums(self.a, s.xy), drive_links(s.drive, s.cluster)
+
     def schur_blocks(self) -> sp.csc_matrix:
         """This part's per-drive diagonal blocks of ``H_b`` (the preconditioner's share)."""
         assert self.schur is not None
@@ -306,6 +318,12 @@ class _PartsNormal:
         for part in self._each("schur_matvec", v):
             out += part
         return out
+
+    def matmat(self, z: sp.csr_matrix) -> sp.csr_matrix:
+        out = (self._prior @ z).tocsr()
+        for part in self._each("schur_matmat", z):
+            out = out + part
+        return out.tocsr()
 
     def drive_blocks(self) -> sp.csc_matrix:
         total = self._prior.tocsc()
@@ -411,7 +429,10 @@ def adjust_parts(
     )
     if curve_fit.schur is not None:
         stats.update(
-            matrix_free=True, cg_iterations=curve_fit.schur.iterations, cg_unconverged=curve_fit.schur.unconverged
+            matrix_free=True,
+            cg_iterations=curve_fit.schur.iterations,
+            cg_unconverged=curve_fit.schur.unconverged,
+            cg_coarse_unknowns=curve_fit.schur.coarse_unknowns,
         )
     cov = None
     if curve_fit.normal is not None and cfg.compute_std and lay.n_unknowns <= cfg.std_max_unknowns:
@@ -500,12 +521,15 @@ def _irls(each: Callable[..., list], cfg: AdjustConfig, use_keep: bool, n_used: 
         solver = NormalSolver()
     else:
         rhs = np.sum(each("schur_begin"), axis=0)
-        h, solver = _PartsNormal(each, prior), SchurSolver()
+        shares = each("coarse_shares")
+        sums = np.sum([s for s, _ in shares], axis=0)
+        z = coarse_basis(lay.col0, lay.n_knots, sums, np.concatenate([k for _, k in shares]))
+        h, solver = _PartsNormal(each, prior), SchurSolver(z)
     theta = np.zeros(lay.n_unknowns)
     warmup = HUBER_WARMUP_ITERATIONS if cfg.loss == "cauchy" else 0
     it, change = 0, 0.0
     for it in range(1, cfg.iterations + 1):
-        new_theta = solver.solve(h, rhs, theta)  # type: ignore[arg-type]  # each solver its own kind of h
+        new_theta = solver.solve(h, rhs, theta)  # each solver its own kind of h
         change = float(np.max(np.abs(new_theta - theta), initial=0.0))
         theta = new_theta
         each("residuals", theta)

@@ -11,7 +11,8 @@ applied without forming it, as two sparse products with B and one with the per-d
 ``K = A^T W A + P`` (every row of A touches one drive's columns, so K is block diagonal by
 drive): linear in the samples. ``SchurSolver`` solves H x = rhs by conjugate gradients,
 preconditioned by the per-drive diagonal blocks of H (K minus the pair term's blocks within a
-drive; factorised, they are as sparse as K), warm-started at the previous IRLS solution. The
+drive; factorised, they are as sparse as K) and deflated by a coarse space of place-wise shifts
+(``adjustment_coarse``), warm-started at the previous IRLS solution. The
 solution is the explicit solve's within the CG tolerance (relative residual 1e-10: about 1e-9 m
 on a 16x tile; tests/test_adjustment_schur.py).
 
@@ -27,6 +28,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
+from hdmap_core.pipeline.adjustment_coarse import Deflation
 
 __all__ = ["pair_fill", "SchurNormal", "SchurSolver"]
 
@@ -120,6 +123,10 @@ class SchurNormal:
     def __matmul__(self, v: np.ndarray) -> np.ndarray:
         return self.matvec(v)
 
+    def matmat(self, z: sp.spmatrix) -> sp.csr_matrix:
+        """H @ z for a sparse z (the coarse space's ``H Z``)."""
+        return (self._k @ z - self._b @ (sp.diags(self._inv_w) @ (self._bt @ z))).tocsr()
+
     def drive_blocks(self) -> sp.csc_matrix:
         """The diagonal blocks of H within each drive (H's other entries set to 0), as CSC.
 
@@ -152,15 +159,20 @@ class SchurNormal:
 
 class SchurSolver:
     """Conjugate gradients on a ``SchurNormal``, preconditioned by its per-drive blocks (factorised
-    each solve: the weights change between IRLS solves, and the blocks are as sparse as K).
+    each solve: the weights change between IRLS solves, and the blocks are as sparse as K) and,
+    with ``coarse`` (``adjustment_coarse.coarse_basis``), deflated by that coarse space.
     ``iterations``: CG iterations of all solves; ``unconverged``: solves that hit CG_MAXITER
-    (their last iterate is returned)."""
+    (their last iterate is returned); ``coarse_unknowns``: the last solve's coarse space rank."""
 
-    def __init__(self) -> None:
+    def __init__(self, coarse: sp.csr_matrix | None = None) -> None:
         self.iterations = 0
         self.unconverged = 0
+        self.coarse = coarse
+        self.coarse_unknowns = 0
 
-    def solve(self, h: SchurNormal, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    def solve(self, h: Any, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
+        """``h``: a ``SchurNormal`` or an operator with its ``matvec``, ``drive_blocks`` (and
+        ``matmat`` with ``coarse``)."""
         blocks = spla.splu(
             h.drive_blocks(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True)
         )
@@ -169,9 +181,14 @@ class SchurSolver:
         def _count(_: Any) -> None:
             count[0] += 1
 
+        matvec, b = h.matvec, rhs
+        defl = Deflation(h, self.coarse) if self.coarse is not None and self.coarse.shape[1] else None
+        if defl is not None:
+            matvec, b = (lambda v: defl.project(h.matvec(v))), defl.project(rhs)
+            self.coarse_unknowns = defl.size
         x, info = spla.cg(
-            spla.LinearOperator(h.shape, matvec=h.matvec, dtype=float),
-            rhs,
+            spla.LinearOperator(h.shape, matvec=matvec, dtype=float),
+            b,
             x0=x0,
             M=spla.LinearOperator(h.shape, matvec=blocks.solve, dtype=float),
             rtol=CG_RTOL,
@@ -181,4 +198,4 @@ class SchurSolver:
         )
         self.iterations += count[0]
         self.unconverged += int(info != 0)
-        return np.asarray(x)
+        return defl.solution(np.asarray(x), rhs) if defl is not None else np.asarray(x)

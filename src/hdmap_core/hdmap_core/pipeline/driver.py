@@ -12,7 +12,6 @@ recommended method), ``presets`` and ``overrides``.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import time
 from collections.abc import Callable, Sequence
@@ -21,16 +20,11 @@ from typing import Any, Protocol, cast
 
 import numpy as np
 
-try:  # threadpoolctl comes with scikit-learn
-    from threadpoolctl import threadpool_limits
-except ImportError:  # pragma: no cover
-    threadpool_limits = None
-
 from hdmap_core.errors import ConfigError, NoUsableDataError
 from hdmap_core.graph.connection import connect_segment
 from hdmap_core.graph.map_graph import stitch
 from hdmap_core.model import Drive, HDMap
-from hdmap_core.parallel import ForkWorker, can_fork, map_balanced, split_order
+from hdmap_core.parallel import ForkWorker, can_fork, map_balanced, one_blas_thread, split_order
 from hdmap_core.pipeline.adjustment import OffsetModel, OffsetSource, adjust_offsets
 from hdmap_core.pipeline.adjustment_dist import AdjustPart, adjust_parts
 from hdmap_core.pipeline.aggregation import ProcessedStore
@@ -250,7 +244,7 @@ def map_stretches(
         raise NoUsableDataError("no valid drive to map")
     if offset_model is not None and config.final_pass is None:
         raise ConfigError("map_stretches: an offset_model needs a config with a final pass (final_pass is None)")
-    with _blas_one():
+    with one_blas_thread():
         return _TwoPasses(
             drives,
             config,
@@ -297,7 +291,7 @@ class StagedPasses:
             raise NoUsableDataError("no valid drive to map")
         if config.final_pass is None:
             raise ConfigError("StagedPasses needs a config with a final pass (final_pass is None)")
-        with _blas_one():
+        with one_blas_thread():
             self._passes = _TwoPasses(
                 drives,
                 config,
@@ -311,7 +305,7 @@ class StagedPasses:
     def first(self) -> MappingResult:
         """The observation pass: its segments and its step observations (no adjustment)."""
         p = self._passes
-        with _blas_one():
+        with one_blas_thread():
             t0 = time.perf_counter()
             segments, store, obs, counters = p._all([], None, None, None)
             p.seconds["sampling_em"] = time.perf_counter() - t0
@@ -320,18 +314,12 @@ class StagedPasses:
     def final(self, model: OffsetSource) -> MappingResult:
         """The final pass with ``model`` (travelled distances of these drives)."""
         p = self._passes
-        with _blas_one():
+        with one_blas_thread():
             p.with_evidence()
             t0 = time.perf_counter()
             segments, store, _, counters = p._all([], model, None, None)
             p.seconds["final_pass"] = time.perf_counter() - t0
         return p.result(segments, store, None, model, counters)
-
-
-def _blas_one():
-    """Tens of thousands of tiny (D x D) solves: multithreaded BLAS only adds sync overhead
-    (measured: 3.6 ms per 55 x 55 solve with 2 threads on a loaded 2-core machine)."""
-    return threadpool_limits(limits=1, user_api="blas") if threadpool_limits is not None else contextlib.nullcontext()
 
 
 class _LatestOnly(dict):

@@ -406,14 +406,19 @@ class DaskRunner:
         progress: ProgressFn | None = None,
         weights: Sequence[float] | None = None,
     ) -> Parts:
-        """The items' tasks (heaviest first), then one actor ``factory(*results of the group's
-        items)`` per group, the groups dealt to the workers in turn; the items' results go from
-        their workers to their group's actor, never to this process."""
+        """The items' tasks (group by group, the heaviest groups first), then one actor
+        ``factory(*results of the group's items)`` per group, the groups dealt to the workers in
+        turn; the items' results go from their workers to their group's actor, never to this
+        process."""
         from distributed import as_completed  # noqa: PLC0415
 
         shared_f = [self.client.scatter(v, broadcast=True, hash=False) for v in shared]
         tag = f"{id(groups):x}"
-        order = range(len(items)) if weights is None else sorted(range(len(items)), key=lambda i: -float(weights[i]))
+        # RULE a group's items one after the other: an item's result waits on a worker until its
+        # group's last item is done (heaviest items first across groups kept every group open
+        # until the end of the pass, their results beside the parts built so far)
+        by_weight = sorted(groups, key=lambda idx: -sum(float(weights[i]) for i in idx)) if weights else groups
+        order = [i for idx in by_weight for i in idx]
         futs = {i: self.client.submit(fn, *shared_f, items[i], pure=False, key=f"{stage}-{i}-{tag}") for i in order}
         addrs = sorted(self.client.scheduler_info().get("workers", {}))
         actor_futs = [
@@ -429,14 +434,20 @@ class DaskRunner:
             for g, idx in enumerate(groups)
         ]
         done = 0
-        for fut in as_completed(list(futs.values())):
+        pending = as_completed(list(futs.values()))
+        futs.clear()
+        for fut in pending:
             if fut.status == "error":
                 fut.result()  # a task's error is raised here, named by Dask
+            # RULE an item's result lives until its group's actor is built (the scheduler keeps a
+            # dependency for its dependents), not until every item is done: else every worker
+            # held all its tiles' observations beside the parts built from them
+            fut.release()
             done += 1
             if progress is not None:
                 progress(stage, done, len(items))
         actors = [f.result() for f in actor_futs]
-        for f in [*futs.values(), *shared_f]:
+        for f in shared_f:
             f.release()
         return ActorParts(actors, actor_futs)
 

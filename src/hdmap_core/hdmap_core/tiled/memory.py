@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import ctypes
+import gc
 import resource
 import sys
 
-__all__ = ["peak_rss_mb", "rss_mb", "cpu_seconds"]
+__all__ = ["peak_rss_mb", "rss_mb", "cpu_seconds", "trim_memory"]
 
 
 def peak_rss_mb() -> float:
@@ -29,3 +31,17 @@ def cpu_seconds() -> float:
     what a build costs: this is)."""
     use = resource.getrusage(resource.RUSAGE_SELF)
     return float(use.ru_utime + use.ru_stime)
+
+
+def trim_memory() -> bool:
+    """Collect garbage and give the heap's free pages back to the OS (glibc ``malloc_trim(0)``,
+    which also releases free pages inside the heap, not only at its top); False where there is no
+    glibc. A worker's freed memory (the adjustment's parts, an earlier tile) otherwise stays in
+    its RSS under the next task's."""
+    gc.collect()
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    libc.malloc_trim(0)
+    return True

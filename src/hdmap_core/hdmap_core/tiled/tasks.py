@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from hdmap_core.live.tiles import TileKey, connect_tile, map_clips, observe_clips
 from hdmap_core.pipeline.adjustment import OffsetModel
 from hdmap_core.tiled.adjust import BlockKey, block_of, coarse_shifts, merge_blocks, solve_block
+from hdmap_core.tiled.memory import trim_memory
 from hdmap_core.tiled.stitch import RegionStitch, join_regions, stitch_region
 
 if TYPE_CHECKING:
@@ -82,6 +83,10 @@ def map_connect(
 ) -> list[SegmentGraph]:
     """The final pass of one tile with ``offset_model``, connected: its segment graphs (without a
     model, e.g. a preset without the adjustment: the tile's one pass)."""
+    # RULE a dense tile's final pass is a worker's peak (16x paper_like: about 450 MB on top of
+    # what the worker held before it): start it from a trimmed heap, not above the freed pages
+    # of the adjustment's parts and of the tiles before
+    trim_memory()
     segments = map_clips(
         source.clips(key),
         key,
