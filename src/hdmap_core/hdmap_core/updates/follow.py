@@ -32,7 +32,7 @@ from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
 from hdmap_core.geometry import left_normal, point_headings, true_runs
-from hdmap_core.model import Detection, Drive, FeatureType, HDMap
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
 from hdmap_core.updates.before import as_before, moved_consensus, with_neighbours
@@ -285,10 +285,10 @@ def fleet_comparison(
     return unwrapped(drive_comparisons(drives, hdmap, places, config=config, workers=workers), config)
 
 
-def _segment_rows(hdmap: HDMap) -> Counter[tuple[float, ...]]:
-    """The map's line segments as (type, ax, ay, bx, by) rows, counted (``map_lines``' segments)."""
+def _segment_rows(features: Sequence[MapFeature]) -> Counter[tuple[float, ...]]:
+    """The features' line segments as (type, ax, ay, bx, by) rows, counted (``map_lines``')."""
     rows: Counter[tuple[float, ...]] = Counter()
-    for f in hdmap.features:
+    for f in features:
         pts = np.asarray(f.points, dtype=float)
         if len(pts) >= 2:
             rows.update(map(tuple, np.c_[np.full(len(pts) - 1, float(f.type)), pts[:-1], pts[1:]].tolist()))
@@ -300,18 +300,27 @@ def drives_near_changes(drives: Sequence[Drive], first: HDMap, other: HDMap, rea
     holds more often than the other. A drive's comparison meets the map only on its cuts, each
     through one of its poses and ``view_m`` long to either side: with ``reach_m`` >= ``view_m``,
     every other drive meets the same segments in both maps, in the same order (``updates.splice``
-    keeps the first map's features in order), and its records are the same."""
-    a, b = _segment_rows(first), _segment_rows(other)
+    keeps the first map's features in order), and its records are the same. Features both maps
+    hold (their very points, as ``splice`` keeps them) are not looked at."""
+
+    def own(a: HDMap, b: HDMap) -> list[MapFeature]:
+        shared = {(id(f.points), int(f.type)) for f in b.features}
+        return [f for f in a.features if (id(f.points), int(f.type)) not in shared]
+
+    a, b = _segment_rows(own(first, other)), _segment_rows(own(other, first))
     differ = (a - b) + (b - a)
     if not differ:
         return []
-    rows = np.array(sorted(differ))
-    lines = shapely.multilinestrings(shapely.linestrings(rows[:, 1:].reshape(-1, 2, 2)))
-    return [
-        i
-        for i, d in enumerate(drives)
-        if len(d.xy) and shapely.dwithin(shapely.multipoints(np.asarray(d.xy, dtype=float)), lines, reach_m)
-    ]
+    ends = np.array(sorted(differ))[:, 1:].reshape(-1, 2, 2)
+    lo, hi = ends.min(axis=(0, 1)) - reach_m, ends.max(axis=(0, 1)) + reach_m
+    lines = shapely.multilinestrings(shapely.linestrings(ends))
+    out = []
+    for i, d in enumerate(drives):
+        xy = np.asarray(d.xy, dtype=float)
+        xy = xy[((xy >= lo) & (xy <= hi)).all(axis=1)]  # a pose farther out than the box is no nearer
+        if len(xy) and shapely.dwithin(shapely.multipoints(xy), lines, reach_m):
+            out.append(i)
+    return out
 
 
 def recompared(
@@ -511,9 +520,7 @@ def follow_map(
     # each drive's own records kept (ids unique): where the map as it was is put in, only the
     # drives near it are compared again
     records = (
-        drive_comparisons(drives, first_map, places, config=config, workers=workers)
-        if _ids_unique(drives)
-        else None
+        drive_comparisons(drives, first_map, places, config=config, workers=workers) if _ids_unique(drives) else None
     )
     if records is not None:
         evidence, edges = unwrapped(records, config)
