@@ -168,6 +168,8 @@ def test_only_the_drives_near_the_road_as_it_was_are_compared_again():
     full = drive_comparisons(drives, reference, places, config=config)
     # repr: every field, NaN included, to the last bit of each float; per drive and unwrapped
     assert [repr(r) for r in partial] == [repr(r) for r in full]
+    two = recompared(records, drives, first, reference, places, config=config, workers=2)
+    assert [repr(r) for r in two] == [repr(r) for r in full]
     for got, want in zip(unwrapped(partial, config), fleet_comparison(drives, reference, places, config=config)):
         assert [repr(e) for e in got] == [repr(e) for e in want]
     # the reference matters: some drives compared again read otherwise than against the first map
