@@ -13,12 +13,22 @@ from hdmap_core.simulation.changes import change_zone, parse_change
 from hdmap_core.simulation.config import SimConfig
 from hdmap_core.simulation.fleet import simulate_fleet
 from hdmap_core.simulation.synthetic import synthetic_highway
-from hdmap_core.updates.before import consensus_step, moved_consensus, with_neighbours
+from hdmap_core.updates.before import as_before, consensus_step, moved_consensus, with_neighbours
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import detect_changes
 from hdmap_core.updates.evidence import PlaceEvidence
-from hdmap_core.updates.follow import cut_before_changes, fleet_comparison, follow_map
+from hdmap_core.updates.follow import (
+    clip_to_places,
+    cut_before_changes,
+    drive_comparisons,
+    drives_near_changes,
+    fleet_comparison,
+    follow_map,
+    recompared,
+    unwrapped,
+)
 from hdmap_core.updates.places import places_of
+from hdmap_core.updates.splice import grow, splice
 
 KW = {"min_effect": 0.5, "min_before": 3, "min_after": 2}
 
@@ -128,3 +138,39 @@ def test_a_change_the_consensus_has_taken_is_confirmed_against_the_road_as_it_wa
     now = fleet.extra["gt_after"]
     plain, followed = evaluate_zone(first, now, road, zones), evaluate_zone(result.map, now, road, zones)
     assert followed.recall > plain.recall + 0.05 and followed.precision > plain.precision + 0.1
+
+
+@pytest.mark.slow
+def test_only_the_drives_near_the_road_as_it_was_are_compared_again():
+    # the fleet above with drives of 300-1500 m: some pass the moved place, some stay clear of it
+    road = synthetic_highway("motorway", length_m=1500.0)
+    change = parse_change("shift:400-1100:3.0:fwd_lane2@12")
+    sim = SimConfig(n_drives=26, snippet_length_min_m=300.0, snippet_length_max_m=1500.0, direction_bias=1.0)
+    drives = simulate_fleet(road, config=sim, seed=5, changes=[change]).drives
+
+    def build(ds):
+        return build_map(list(ds), config=PipelineConfig(), seed=0, workers=1).map
+
+    config = ChangeConfig()
+    first = build(drives)
+    places = places_of(drives, cell_m=config.cell_m)
+    records = drive_comparisons(drives, first, places, config=config)
+    evidence, _ = unwrapped(records, config)
+    taken = with_neighbours(moved_consensus(evidence, config), places)
+    assert taken
+    pieces = clip_to_places(
+        cut_before_changes(drives, places, (), times=taken, before=True), places, grow(places, taken, 2)
+    )
+    reference = splice(first, as_before(first, build(pieces), pieces, places, set(taken)), places, set(taken))
+    again = drives_near_changes(drives, first, reference, config.view_m + 1.0)
+    assert 0 < len(again) < len(drives)  # some drives keep their first records
+    partial = recompared(records, drives, first, reference, places, config=config)
+    full = drive_comparisons(drives, reference, places, config=config)
+    # repr: every field, NaN included, to the last bit of each float; per drive and unwrapped
+    assert [repr(r) for r in partial] == [repr(r) for r in full]
+    two = recompared(records, drives, first, reference, places, config=config, workers=2)
+    assert [repr(r) for r in two] == [repr(r) for r in full]
+    for got, want in zip(unwrapped(partial, config), fleet_comparison(drives, reference, places, config=config)):
+        assert [repr(e) for e in got] == [repr(e) for e in want]
+    # the reference matters: some drives compared again read otherwise than against the first map
+    assert any(repr(records[i]) != repr(full[i]) for i in again)

@@ -15,9 +15,10 @@ of the drives before and after, at least half the smallest effect, most drives a
 side: no test of a change, only where one may hide), and the map is rebuilt there from the
 drives before that step alone (``follow.follow_map``: cut as the follow cuts the drives after a
 change, mapped with the margin of the local rebuild), aligned on the first map's borders and put
-in (``as_before``). Detection then compares every drive with that map, with all its rules: a
-badly localised drive confirms or refuses nothing it would not against the first map, and where
-no change is confirmed the result is the first map as before.
+in (``as_before``). Detection then compares the drives with that map (again only those near
+where it differs from the first map, ``follow.recompared``: the others' records are the same),
+with all its rules: a badly localised drive confirms or refuses nothing it would not against the
+first map, and where no change is confirmed the result is the first map as before.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ __all__ = ["moved_consensus", "consensus_step", "with_neighbours", "as_before"]
 # Touching candidate places that count: a change the consensus took spans several (the bench's
 # zones 7-10 places); a step at one or two places of a fleet without a change is the drives'
 # scatter (4 places of 39 on esmini_e6mini_40_s1, one group of 2), and each costs a local build
-# and a second comparison of every drive.
+# and a second comparison of the drives near it.
 _MIN_GROUP = 3
 # Of the drives after a step, at least this share lies on its side of the before median by a
 # quarter of the smallest effect (a drive that missed the changed line may not).

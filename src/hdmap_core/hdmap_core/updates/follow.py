@@ -22,15 +22,17 @@ map follows a change with exactly the code ``bag2map`` uses.
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import shapely
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
 from hdmap_core.geometry import left_normal, point_headings, true_runs
-from hdmap_core.model import Detection, Drive, FeatureType, HDMap
+from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature
 from hdmap_core.parallel import map_balanced
 from hdmap_core.plausibility import PhysicalBounds, prepare_drives
 from hdmap_core.updates.before import as_before, moved_consensus, with_neighbours
@@ -59,6 +61,10 @@ __all__ = [
     "anchored",
     "cut_before_changes",
     "fleet_comparison",
+    "drive_comparisons",
+    "unwrapped",
+    "drives_near_changes",
+    "recompared",
     "clip_to_places",
     "along_drives",
     "retired_features",
@@ -222,31 +228,119 @@ def along_drives(
     return out
 
 
+def _ids_unique(drives: Sequence[Drive]) -> bool:
+    return len({d.drive_id for d in drives}) == len(drives)
+
+
+Records = list[tuple[list[PlaceEvidence], list[EdgeEvidence]]]
+
+
+def drive_comparisons(
+    drives: Sequence[Drive],
+    hdmap: HDMap,
+    places: Places,
+    *,
+    config: ChangeConfig,
+    workers: int = 1,
+    only: Sequence[int] | None = None,
+) -> Records:
+    """Per drive (those at the indices ``only``, else every one) its comparison with ``hdmap``
+    alone: its place evidence before ``unwrap_aliases`` and its edge evidence anchored on it.
+
+    With ``workers`` > 1 the drives are shared out by length over that many processes
+    (``parallel.map_balanced``: the map's lines indexed once here, inherited by the forked
+    workers), the records in drive order: the same records as one process."""
+    lines, solids = map_lines(hdmap), solid_lines(hdmap)
+    at = list(range(len(drives))) if only is None else list(only)
+
+    def one(i: int) -> tuple[list[PlaceEvidence], list[EdgeEvidence]]:
+        drive = drives[at[i]]
+        ev = drive_evidence(drive, lines, places, config=config)
+        anchors = {e.key: e.anchor_m for e in ev if np.isfinite(e.anchor_m)}
+        return ev, edge_evidence(drive, solids, places, anchors, config=config)
+
+    return map_balanced(one, [max(drives[i].length_m, 1.0) for i in at], workers)
+
+
+def unwrapped(records: Records, config: ChangeConfig) -> tuple[list[PlaceEvidence], list[EdgeEvidence]]:
+    """The fleet's evidence of per-drive ``records``: ``unwrap_aliases`` over every drive's place
+    evidence (as ``fleet_evidence``), the edge evidence in drive order."""
+    evidence = unwrap_aliases([e for ev, _ in records for e in ev], config)
+    return evidence, [x for _, xs in records for x in xs]
+
+
 def fleet_comparison(
     drives: Sequence[Drive], hdmap: HDMap, places: Places, *, config: ChangeConfig, workers: int = 1
 ) -> tuple[list[PlaceEvidence], list[EdgeEvidence]]:
     """Every drive compared with ``hdmap``: ``fleet_evidence`` and ``fleet_edge_evidence``, in
     drive order.
 
-    Each drive's comparison is its own (its edge evidence is anchored on its own place evidence),
-    so with ``workers`` > 1 the drives are shared out by length over that many processes
-    (``parallel.map_balanced``: the map's lines indexed once here, inherited by the forked
-    workers) and the records put back in drive order: the same records as one process. Drives
-    with a shared id (their anchors would mix) are compared in one process.
+    Each drive's comparison is its own (its edge evidence is anchored on its own place evidence):
+    ``drive_comparisons``, on ``workers`` processes. Drives with a shared id (their anchors mix in
+    ``fleet_edge_evidence``) are compared as one fleet in this process.
     """
-    if workers < 2 or len(drives) < 2 or len({d.drive_id for d in drives}) != len(drives):
+    if not _ids_unique(drives):
         evidence = fleet_evidence(drives, hdmap, places, config=config)
         return evidence, fleet_edge_evidence(drives, hdmap, places, evidence, config=config)
-    lines, solids = map_lines(hdmap), solid_lines(hdmap)
+    return unwrapped(drive_comparisons(drives, hdmap, places, config=config, workers=workers), config)
 
-    def one(i: int) -> tuple[list[PlaceEvidence], list[EdgeEvidence]]:
-        ev = drive_evidence(drives[i], lines, places, config=config)
-        anchors = {e.key: e.anchor_m for e in ev if np.isfinite(e.anchor_m)}
-        return ev, edge_evidence(drives[i], solids, places, anchors, config=config)
 
-    per_drive = map_balanced(one, [max(d.length_m, 1.0) for d in drives], workers)
-    evidence = unwrap_aliases([e for ev, _ in per_drive for e in ev], config)  # as fleet_evidence
-    return evidence, [x for _, xs in per_drive for x in xs]
+def _segment_rows(features: Sequence[MapFeature]) -> Counter[tuple[float, ...]]:
+    """The features' line segments as (type, ax, ay, bx, by) rows, counted (``map_lines``')."""
+    rows: Counter[tuple[float, ...]] = Counter()
+    for f in features:
+        pts = np.asarray(f.points, dtype=float)
+        if len(pts) >= 2:
+            rows.update(map(tuple, np.c_[np.full(len(pts) - 1, float(f.type)), pts[:-1], pts[1:]].tolist()))
+    return rows
+
+
+def drives_near_changes(drives: Sequence[Drive], first: HDMap, other: HDMap, reach_m: float) -> list[int]:
+    """Indices of the ``drives`` with a pose within ``reach_m`` of a line segment one of the maps
+    holds more often than the other. A drive's comparison meets the map only on its cuts, each
+    through one of its poses and ``view_m`` long to either side: with ``reach_m`` >= ``view_m``,
+    every other drive meets the same segments in both maps, in the same order (``updates.splice``
+    keeps the first map's features in order), and its records are the same. Features both maps
+    hold (their very points, as ``splice`` keeps them) are not looked at."""
+
+    def own(a: HDMap, b: HDMap) -> list[MapFeature]:
+        shared = {(id(f.points), int(f.type)) for f in b.features}
+        return [f for f in a.features if (id(f.points), int(f.type)) not in shared]
+
+    a, b = _segment_rows(own(first, other)), _segment_rows(own(other, first))
+    differ = (a - b) + (b - a)
+    if not differ:
+        return []
+    ends = np.array(sorted(differ))[:, 1:].reshape(-1, 2, 2)
+    lo, hi = ends.min(axis=(0, 1)) - reach_m, ends.max(axis=(0, 1)) + reach_m
+    lines = shapely.multilinestrings(shapely.linestrings(ends))
+    out = []
+    for i, d in enumerate(drives):
+        xy = np.asarray(d.xy, dtype=float)
+        xy = xy[((xy >= lo) & (xy <= hi)).all(axis=1)]  # a pose farther out than the box is no nearer
+        if len(xy) and shapely.dwithin(shapely.multipoints(xy), lines, reach_m):
+            out.append(i)
+    return out
+
+
+def recompared(
+    records: Records,
+    drives: Sequence[Drive],
+    first: HDMap,
+    reference: HDMap,
+    places: Places,
+    *,
+    config: ChangeConfig,
+    workers: int = 1,
+) -> Records:
+    """``records`` (``drive_comparisons`` of ``drives`` with ``first``) as compared with
+    ``reference`` instead: only the drives near where the two maps differ are compared again
+    (``drives_near_changes``, within the cuts' reach plus a metre), the others keep theirs."""
+    again = drives_near_changes(drives, first, reference, config.view_m + 1.0)
+    out = list(records)
+    for i, r in zip(again, drive_comparisons(drives, reference, places, config=config, workers=workers, only=again)):
+        out[i] = r
+    return out
 
 
 def cut_before_changes(
@@ -423,7 +517,15 @@ def follow_map(
     """
     t1 = time.perf_counter()
     places = places_of(drives, cell_m=config.cell_m)
-    evidence, edges = fleet_comparison(drives, first_map, places, config=config, workers=workers)
+    # each drive's own records kept (ids unique): where the map as it was is put in, only the
+    # drives near it are compared again
+    records = (
+        drive_comparisons(drives, first_map, places, config=config, workers=workers) if _ids_unique(drives) else None
+    )
+    if records is not None:
+        evidence, edges = unwrapped(records, config)
+    else:
+        evidence, edges = fleet_comparison(drives, first_map, places, config=config, workers=workers)
     changes = detect_changes(evidence, places, config=config, workers=workers)
     changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
     # where the consensus has taken the new road (updates.before): the map as it was there, and
@@ -438,7 +540,11 @@ def follow_map(
         )
         old_road = as_before(first_map, build(pieces), pieces, places, set(taken), config=config)
         reference = splice(first_map, old_road, places, set(taken))
-        evidence, edges = fleet_comparison(drives, reference, places, config=config, workers=workers)
+        if records is not None:
+            records = recompared(records, drives, first_map, reference, places, config=config, workers=workers)
+            evidence, edges = unwrapped(records, config)
+        else:
+            evidence, edges = fleet_comparison(drives, reference, places, config=config, workers=workers)
         changes = detect_changes(evidence, places, config=config, workers=workers)
         changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
     t0 = time.perf_counter()
