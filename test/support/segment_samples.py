@@ -76,3 +76,19 @@ def point_step(pivot: str, i: int, x: float, y: float = 0.0) -> StepResult:
 def step_runs(segments) -> list[tuple[str, list[int]]]:
     """(pivot id, step indices) of each segment: what a selection of steps kept, comparable."""
     return [(s.pivot_id, [st.index for st in s.steps]) for s in segments]
+
+
+def assert_same_steps(want, got) -> None:
+    """Two sequences of steps equal field for field, arrays exactly (a round trip through a blob,
+    a message or the columns)."""
+    want, got = list(want), list(got)
+    assert len(want) == len(got)
+    for a, b in zip(want, got, strict=True):
+        fields = ("pivot_id", "index", "s_m", "heading", "width_m", "valid", "processed_before", "drive_ids")
+        assert tuple(getattr(a, f) for f in fields) == tuple(getattr(b, f) for f in fields)
+        for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
+            np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
+        for attr in ("empty_m", "pose"):  # optional arrays
+            assert (getattr(a, attr) is None) == (getattr(b, attr) is None)
+            if getattr(a, attr) is not None:
+                np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))

@@ -13,6 +13,8 @@ from hdmap_core.steps import Segment, StepResult
 from hdmap_ros.convert.markers import DELETEALL, LINE_LIST, LINE_STRIP, TYPE_COLORS, MarkerTypes, map_to_markers
 from hdmap_ros.nodes.diagnostics import OK, WARN, Health
 
+from segment_samples import assert_same_steps
+
 
 class _Msg(SimpleNamespace):
     pass
@@ -149,24 +151,7 @@ def test_tile_msg_round_trip_through_cdr():
     assert (back.key, back.version, back.drive_ids, back.tile_size_m) == ((3, -2), 7, ("a", "b"), 256.0)
     assert back.stamp_ns == 1_700_000_000_123_456_789
     assert [s.pivot_id for s in back.segments] == ["piv", "other"]
-    for a, b in zip(segs[0].steps, back.segments[0].steps):
-        assert (a.index, a.s_m, a.heading, a.width_m, a.valid, a.processed_before, a.drive_ids) == (
-            b.index,
-            b.s_m,
-            b.heading,
-            b.width_m,
-            b.valid,
-            b.processed_before,
-            b.drive_ids,
-        )
-        for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
-            np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
-        assert (a.empty_m is None) == (b.empty_m is None)
-        if a.empty_m is not None:
-            np.testing.assert_array_equal(a.empty_m, b.empty_m)
-        assert (a.pose is None) == (b.pose is None)
-        if a.pose is not None:
-            np.testing.assert_array_equal(a.pose, b.pose)
+    assert_same_steps(segs[0].steps, back.segments[0].steps)
     assert back.segments[0].steps[0].empty_m.shape == (2, 2)
 
 
@@ -265,18 +250,7 @@ def test_tile_batch_round_trip_through_cdr_is_each_tile_message(kind):
         back = entry.segments()
         assert columns_to_blob(entry.columns) == segments_to_blob(back) == segments_to_blob(segs)
         assert [s.pivot_id for s in back] == [s.pivot_id for s in segs]
-        for a, b in zip([st for s in segs for st in s.steps], [st for s in back for st in s.steps], strict=True):
-            assert (a.pivot_id, a.index, a.s_m, a.heading, a.valid, a.processed_before, a.drive_ids) == (
-                b.pivot_id,
-                b.index,
-                b.s_m,
-                b.heading,
-                b.valid,
-                b.processed_before,
-                b.drive_ids,
-            )
-            for attr in ("midpoint", "lateral_m", "types", "counts", "std_m"):
-                np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
+        assert_same_steps([st for s in segs for st in s.steps], [st for s in back for st in s.steps])
 
 
 def test_a_tile_batch_whose_columns_do_not_add_up_is_refused():
