@@ -55,6 +55,7 @@ __all__ = [
     "drive_to_msg",
     "msg_to_drive",
     "map_to_msg",
+    "feature_arrays",
     "msg_to_map",
     "origin_to_msg",
     "msg_to_origin",
@@ -320,15 +321,22 @@ def _check_id(what: str, value: int) -> int:
     return value
 
 
-def _feature_to_msg(t: MsgTypes, f: MapFeature) -> Any:
-    fid = _check_id("map feature", f.id)
+def feature_arrays(f: MapFeature) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A map feature's per-point arrays as a message carries them: points (N, 2), drive counts
+    (N,), lateral stds (N,). Raises InvalidMessageError when their lengths differ."""
     pts = np.asarray(f.points, dtype=np.float64).reshape(-1, 2)
     counts = np.asarray(f.drive_count).reshape(-1)
     std = np.asarray(f.lateral_std, dtype=np.float64).reshape(-1)
     if len(counts) != len(pts) or len(std) != len(pts):
         raise InvalidMessageError(
-            f"map feature {fid}: {len(pts)} points but {len(counts)} drive counts and {len(std)} lateral stds"
+            f"map feature {f.id}: {len(pts)} points but {len(counts)} drive counts and {len(std)} lateral stds"
         )
+    return pts, counts, std
+
+
+def _feature_to_msg(t: MsgTypes, f: MapFeature) -> Any:
+    fid = _check_id("map feature", f.id)
+    pts, counts, std = feature_arrays(f)
     return t.MapFeature(
         id=fid,
         type=int(f.type),

@@ -23,6 +23,7 @@ import numpy as np
 from hdmap_core.errors import InvalidMessageError
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap
 from hdmap_core.plausibility import check_quaternions
+from hdmap_ros.convert.messages import feature_arrays
 
 __all__ = ["decode_drive", "drive_id_of", "encode_drive", "encode_map"]
 
@@ -316,13 +317,7 @@ def encode_map(hdmap: HDMap) -> bytes:
         b.string(str(d))
     b.u32(len(hdmap.features))
     for f in hdmap.features:
-        pts = np.asarray(f.points, dtype=np.float64).reshape(-1, 2)
-        counts = np.asarray(f.drive_count).reshape(-1)
-        std = np.asarray(f.lateral_std, dtype=np.float64).reshape(-1)
-        if len(counts) != len(pts) or len(std) != len(pts):
-            raise InvalidMessageError(
-                f"map feature {f.id}: {len(pts)} points but {len(counts)} drive counts and {len(std)} lateral stds"
-            )
+        pts, counts, std = feature_arrays(f)  # checked as map_to_msg checks them
         b.array(_ids("map feature", [f.id]), "<u8")
         b.buf.append(int(f.type) & 0xFF)
         b.u32(len(pts))
