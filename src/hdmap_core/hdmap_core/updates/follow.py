@@ -529,7 +529,7 @@ def follow_map(
     changes = detect_changes(evidence, places, config=config, workers=workers)
     changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
     # where the consensus has taken the new road (updates.before): the map as it was there, and
-    # every drive compared with that instead
+    # the drives compared with that instead (those near it again, the others keep their records)
     changed = {p.key for c in changes for p in c.places}
     taken = with_neighbours(moved_consensus(evidence, config, skip=changed), places)
     taken = {k: t for k, t in taken.items() if k not in changed}
