@@ -5,6 +5,7 @@ the same change again (same id) and announces nothing new."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -37,8 +38,11 @@ SIM = SimConfig(
 CHANGE = f"shift:400-1100:1.5:fwd_lane2@{N_BEFORE}"
 
 
-def _diag_values(arrays, name):
+def _diag_values(arrays, name, since_ns=0):
+    """The latest status ``name``'s key/values among arrays stamped at or after ``since_ns``."""
     for arr in reversed(arrays):
+        if arr.header.stamp.sec * 1_000_000_000 + arr.header.stamp.nanosec < since_ns:
+            continue
         for st in arr.status:
             if st.name == name:
                 return {kv.key: kv.value for kv in st.values}
@@ -145,11 +149,12 @@ def test_stitcher_announces_a_change_once_and_keeps_its_history_across_a_restart
     late = ros.node("late")
     again = []
     late.create_subscription(rclpy_change_class(), CHANGES_TOPIC, again.append, CHANGES_QOS)
-    diags.clear()
+    # the stopped node's last /diagnostics may still be in flight: only the restarted node's count
+    restarted_ns = time.time_ns()
     stitcher = _stitcher(ros, d)
     wait_for(lambda: again, 20, what="the stored history on hdmap/changes")
     values = wait_for(
-        lambda: (v := _diag_values(diags, "hdmap: map_stitcher")) and "changes_known" in v and v,
+        lambda: (v := _diag_values(diags, "hdmap: map_stitcher", restarted_ns)) and "changes_known" in v and v,
         20,
         what="diagnostics after the restart",
     )
