@@ -90,7 +90,9 @@ class FuseResult:
 
 def _steps(tiles: Mapping[TileKey, Sequence[Segment]]) -> tuple[list[tuple[TileKey, int, int]], list[StepResult]]:
     """Every step with maxima: (tile, segment index, step index) and the step."""
-    where = [(key, si, ti) for key in sorted(tiles) for si, seg in enumerate(tiles[key]) for ti in range(len(seg.steps))]
+    where = [
+        (key, si, ti) for key in sorted(tiles) for si, seg in enumerate(tiles[key]) for ti in range(len(seg.steps))
+    ]
     every = [st for key in sorted(tiles) for seg in tiles[key] for st in seg.steps]
     if not every:
         return [], []

@@ -152,14 +152,19 @@ def stitch_tiles(
 ) -> tuple[HDMap, MapGraph]:
     """``tiles.stitch_graphs`` (the same map), with the stitched graph kept for :func:`moved_map`."""
     mg = MapGraph(list(graphs), config=pipeline_config.stitching)
-    return replace(mg.to_hdmap(), drive_ids=tuple(sorted(set(drive_ids)))), mg
+    return replace(mg.to_hdmap(keep_plan=True), drive_ids=tuple(sorted(set(drive_ids)))), mg
 
 
 def moved_map(mg: MapGraph, graphs: Sequence[SegmentGraph], *, drive_ids: Iterable[str] = ()) -> tuple[HDMap, MapGraph]:
     """The map of ``mg`` with ``graphs`` (:func:`moved_graphs`) in place of theirs, every stitch
-    decision kept (``MapGraph.with_geometry``), and that map graph."""
+    decision kept (``MapGraph.with_geometry``), and that map graph. RULE: the export's decisions
+    are kept too (``MapGraph.to_hdmap_planned``: the same polylines of the same nodes, moved) when
+    ``mg`` was exported with its plan (:func:`stitch_tiles`): the export of the whole map was the
+    largest part of a fast update's CPU; a decision of it that the moved lines would flip (a length
+    or count threshold) is made again by the full rebuild that follows."""
     moved = mg.with_geometry(graphs)
-    return replace(moved.to_hdmap(), drive_ids=tuple(sorted(set(drive_ids)))), moved
+    hd = moved.to_hdmap_planned() if moved.export_plan is not None else moved.to_hdmap(keep_plan=True)
+    return replace(hd, drive_ids=tuple(sorted(set(drive_ids)))), moved
 
 
 def raw_id_map(raw: HDMap, published: HDMap) -> dict[int, int]:

@@ -623,7 +623,9 @@ class DriveStore(_Store):
         else:
             ends = np.cumsum([0] + [len(segs) for _, segs, _ in tiles])
             if int(ends[-1]) != len(columns.pivots):
-                raise ValueError(f"put_tiles: {len(columns.pivots)} segments in the columns, {int(ends[-1])} in the tiles")
+                raise ValueError(
+                    f"put_tiles: {len(columns.pivots)} segments in the columns, {int(ends[-1])} in the tiles"
+                )
             blobs = [columns_to_blob(take_segments(columns, int(a), int(b))) for a, b in zip(ends[:-1], ends[1:])]
         with self._tx() as con:
             return [
