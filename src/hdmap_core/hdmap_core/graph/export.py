@@ -259,7 +259,7 @@ def export_with_plan(
                 tuple(sorted({int(fid[head_of[s]]) for s in succ.get(k1, ()) if keep[s]})),
             )
         )
-    features = [_run_feature([geoms[k] for k in run], *rest) for run, *rest in planned]
+    features = [_run_feature([geoms[k] for k in run], fid_k, ft, pr, sc) for run, fid_k, ft, pr, sc in planned]
 
     # topology: successors by uid, and the kept features crossing each step (in lateral order)
     te = flat.topo_edges
@@ -299,8 +299,8 @@ def export_with_plan(
         fill_spacing_m=cfg.fill_spacing_m,
         gore_max_m=cfg.gore_max_m,
     )
-    features, topology = _finish(features, topology, branch_of, cfg.gore_max_m)
-    return features, topology, plan
+    out_features, out_topology = _finish(features, topology, branch_of, cfg.gore_max_m)
+    return out_features, out_topology, plan
 
 
 def _finish(
