@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from fuse_fleet import fuse_fleet
 
-from hdmap_core.live.fuse import fuse_drive
+from hdmap_core.live.fuse import _greedy, fuse_drive
 from hdmap_core.live.jobs import run_job
 from hdmap_core.live.progress import integrated_drives
 from hdmap_core.live.region import map_region
@@ -130,3 +130,18 @@ def test_fast_path_lists_a_drive_with_its_evidence_and_the_settle_gives_the_offl
         assert [(g.pivot_id, [st.lateral_m.tolist() for st in g.steps]) for g in segs] == [
             (g.pivot_id, [st.lateral_m.tolist() for st in g.steps]) for g in offline[k]
         ]
+
+
+def test_greedy_matching_in_rounds_is_the_greedy_pass():
+    """``fuse._greedy`` (rounds of pairs first for their sample and their maximum) takes exactly the
+    pairs the greedy pass over the pairs in order takes (one per sample, one per maximum)."""
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 200, 2000):
+        sample, maximum = rng.integers(0, max(1, n // 3), n), rng.integers(0, max(1, n // 4), n)
+        used_s, used_m, want = set(), set(), []
+        for j, (i, k) in enumerate(zip(sample.tolist(), maximum.tolist(), strict=True)):
+            if i not in used_s and k not in used_m:
+                used_s.add(i)
+                used_m.add(k)
+                want.append(j)
+        assert _greedy(sample, maximum).tolist() == want

@@ -31,6 +31,7 @@ from hdmap_core.live.restitch import (
 )
 from hdmap_core.live.tiles import TileConfig, carry_over_ids, connect_tile, stitch_graphs, tiles_of_drive
 from hdmap_core.pipeline import presets
+from hdmap_core.segment_columns import segment_columns
 
 from bag_samples import assert_maps_equal
 
@@ -88,9 +89,20 @@ def test_moved_map_is_the_full_restitch_of_the_fused_tiles_within_the_tolerance(
         m = moved_graphs(g0[k], before[k], after[k])
         assert m is not None, k  # a fusion only moves maxima
         assert [g.key for g in m] == [g.key for g in g0[k]]
+        # the same graphs from the estimates in columns (the stitcher's: a batch message's as received)
+        c = moved_graphs(g0[k], segment_columns(before[k]), segment_columns(after[k]))
+        for x, y in zip(m, c, strict=True):
+            assert x.drive_ids == y.drive_ids
+            for f in ("node_xy", "node_count", "node_std", "node_uid", "node_type"):
+                assert np.array_equal(getattr(x, f), getattr(y, f)), f
         moved.extend(m)
     fast, _ = moved_map(mg, moved, drive_ids=["a", "b"])
     assert fast.drive_ids == ("a", "b")
+    # the export's decisions kept (the plan stitch_tiles keeps): unmoved, the map exactly as exported;
+    # moved, the lines of the full export of the moved graph
+    assert_maps_equal(mg.with_geometry([]).to_hdmap_planned(drive_ids=["a"]), mg.to_hdmap(drive_ids=["a"]))
+    exported = mg.with_geometry(moved).to_hdmap(drive_ids=["a", "b"])
+    assert np.mean(_points_to_lines(fast, exported)) <= 1e-6 and np.mean(_points_to_lines(exported, fast)) <= 1e-6
     g1 = _graphs(after, pc)
     full = stitch_graphs([g for k in sorted(g1) for g in g1[k]], pipeline_config=pc, drive_ids=["a", "b"])
     to_full, from_full = _points_to_lines(fast, full), _points_to_lines(full, fast)

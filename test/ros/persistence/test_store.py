@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
+from hdmap_core.segment_columns import segment_columns
 from hdmap_core.steps import Segment, StepResult
 from hdmap_ros.persistence.store import (
     DriveStore,
@@ -249,6 +250,15 @@ def test_drive_store_acknowledges_once_and_indexes_tiles(tmp_path):
     assert [(e.key, e.version, e.model_sig) for e in many] == [((0, 0), 1, "r"), ((1, 0), 3, "r")]
     assert st.estimates() == [((0, 0), ["a"], "r"), ((1, 0), ["a", "b"], "r")]
     assert st.tile((0, 0)).segments_blob == many[0].segments_blob == segments_to_blob(_segments())
+    # the same blobs cut from the tiles' segments in columns (made once for the store and the batch)
+    other = DriveStore(tmp_path / "columns.db")
+    tiles = [((5, 0), [], ["a"]), ((6, 0), _segments(), ["a"]), ((7, 0), _segments(), ["b"])]
+    cols = segment_columns([seg for _, segs, _ in tiles for seg in segs])
+    blobs = [e.segments_blob for e in other.put_tiles(tiles, model_sig="f", columns=cols)]
+    assert blobs == [segments_to_blob(segs) for _, segs, _ in tiles]
+    with pytest.raises(ValueError):
+        other.put_tiles([((8, 0), _segments(), ["a"])], columns=cols)  # columns of other segments
+    other.close()
     assert st.stale_tiles() == []
     st.put_tile((1, 0), [], ["a", "b"], model_sig="m")
     st.mark_processed(["a"])

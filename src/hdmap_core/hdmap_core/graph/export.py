@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
+from hdmap_core.errors import HdmapError
 from hdmap_core.graph.cleanup import end_stubs, inner_borders, spur_free
 from hdmap_core.graph.flat import FlatGraph, dedupe_uids, subset_nodes
 from hdmap_core.graph.gores import gore_branches, gore_junctions
@@ -21,7 +23,7 @@ from hdmap_core.graph.stitch_config import StitchConfig
 from hdmap_core.graph.type_runs import edge_lines_solid, smooth_types
 from hdmap_core.model import FeatureType, MapFeature, TopologyNode
 
-__all__ = ["export_map"]
+__all__ = ["export_map", "export_with_plan", "export_planned", "ExportPlan"]
 
 #: a refuted piece (``refuted_piece_min_m``) is one of at most this many drives at any of its points
 _REFUTED_PIECE_MAX_DRIVES = 1
@@ -35,20 +37,74 @@ _EDGE_LINE_MAX_DRIVES = 1
 _UNKNOWN_CODE = int(FeatureType.UNKNOWN)
 
 
+@dataclass(frozen=True)
+class ExportPlan:
+    """Every decision of one :func:`export_map` call, to export the same graph with its feature
+    nodes moved (:func:`export_planned`: the live map after a fusion) without deciding again.
+
+    Attributes:
+        n_uid: (N,) the uids of the flat graph's feature nodes (the same graph, moved, has them).
+        chains: per chain, (its nodes, its head, its tail), nodes as indices of that flat graph;
+            a head (tail) is () (none), (u,) (node u's point) or (u, f) (the middle of u and f).
+        runs: per feature, (its chains in driving direction, id, type, predecessors, successors).
+        topology: the topology nodes (before the gore rules, which run again on the moved lines).
+        branches: (through feature id, branch feature id, "split" | "merge") for ``gore_branches``.
+        fill_spacing_m, gore_max_m: the config's.
+    """
+
+    n_uid: np.ndarray
+    chains: tuple[tuple[np.ndarray, tuple[int, ...], tuple[int, ...]], ...]
+    runs: tuple[tuple[tuple[int, ...], int, FeatureType, tuple[int, ...], tuple[int, ...]], ...]
+    topology: tuple[TopologyNode, ...]
+    branches: tuple[tuple[int, int, str], ...]
+    fill_spacing_m: float
+    gore_max_m: float
+
+
 def export_map(
     flat: FlatGraph, *, config: StitchConfig, protect: np.ndarray | None = None
 ) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
     """The polylines and topology nodes of ``flat`` (module docstring). ``protect``: (N,) bool,
     feature nodes whose polylines are not dropped as isolated specks (the ends of fills refuted
     by the negative evidence: a short piece between two junction mouths is drive-supported)."""
+    features, topology, _ = export_with_plan(flat, config=config, protect=protect)
+    return features, topology
+
+
+def export_planned(flat: FlatGraph, plan: ExportPlan) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
+    """``flat`` exported with the decisions of ``plan`` (an export of the same graph before its
+    feature nodes moved): every polyline of the same nodes, at their new positions (junction
+    points and gap fills made again); the gore rules run again on them.
+
+    Raises:
+        HdmapError: ``flat`` does not have the plan's feature nodes.
+    """
+    if flat.n_nodes != len(plan.n_uid) or not np.array_equal(flat.n_uid, plan.n_uid):
+        raise HdmapError("export_planned: the flat graph is not the one the plan was made of")
+    geoms = {}
+    for run, *_ in plan.runs:
+        for k in run:
+            geoms[k] = _chain_geometry(flat.n_xy, flat.n_count, flat.n_std, plan.chains[k], plan.fill_spacing_m)
+    features = [
+        _run_feature([geoms[k] for k in run], fid, ftype, pred, succ) for run, fid, ftype, pred, succ in plan.runs
+    ]
+    return _finish(features, list(plan.topology), list(plan.branches), plan.gore_max_m)
+
+
+def export_with_plan(
+    flat: FlatGraph, *, config: StitchConfig, protect: np.ndarray | None = None
+) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...], ExportPlan]:
+    """:func:`export_map` and the plan of its decisions (:func:`export_planned`)."""
     cfg = config
     uid = dedupe_uids(flat)
+    n_uid = flat.n_uid
+    orig = np.arange(flat.n_nodes)  # each node's index in the flat graph given (the plan's)
     protect = np.zeros(flat.n_nodes, dtype=bool) if protect is None else np.asarray(protect, dtype=bool)
     if (cfg.spur_max_m > 0 or cfg.bubble_max_m > 0) and flat.n_nodes:
         # RULE spur / bubble
         keep = spur_free(flat, uid, spur_max_m=cfg.spur_max_m, bubble_max_m=cfg.bubble_max_m)
         if not keep.all():
-            flat, uid, protect = subset_nodes(flat, keep), uid[keep], protect[keep]
+            flat, uid, protect, orig = subset_nodes(flat, keep), uid[keep], protect[keep], orig[keep]
     nn = flat.n_nodes
     e = flat.edges
     if cfg.edge_line_solid_m > 0 and nn:
@@ -73,7 +129,7 @@ def export_map(
     if unknown.any():
         # RULE unknown type: a line of unknown type that continues no typed line is dropped
         keep_n = ~unknown
-        flat, uid, protect = subset_nodes(flat, keep_n), uid[keep_n], protect[keep_n]
+        flat, uid, protect, orig = subset_nodes(flat, keep_n), uid[keep_n], protect[keep_n], orig[keep_n]
         nn, e = flat.n_nodes, flat.edges
     through = cfg.through_lines
     if cfg.end_stub_max_m > 0 and len(e):
@@ -81,7 +137,7 @@ def export_map(
         drop = end_stubs(flat, uid, config=cfg, through=through)
         if drop.any():
             keep_n = ~drop
-            flat, uid, protect = subset_nodes(flat, keep_n), uid[keep_n], protect[keep_n]
+            flat, uid, protect, orig = subset_nodes(flat, keep_n), uid[keep_n], protect[keep_n], orig[keep_n]
             nn, e = flat.n_nodes, flat.edges
     chains = feature_chains(nn, e, flat.leftover, flat.n_type, uid, through=through)
     link = chain_links(nn, e, flat.leftover, flat.n_type, through=through)
@@ -117,32 +173,22 @@ def export_map(
 
     # geometry with junction points: a split's branches start at the split point, a merge's
     # inflows end at the merge point, a type change meets in the middle of its edge
-    geoms = []
+    specs = []
     for c in chains:
-        idx = c.tolist()
-        xy = flat.n_xy[c]
-        cnt, std = flat.n_count[c], flat.n_std[c]
-        f, last = idx[0], idx[-1]
-        head = tail = None
+        f, last = int(c[0]), int(c[-1])
+        head: tuple[int, ...] = ()
+        tail: tuple[int, ...] = ()
         if len(in_cross.get(f, ())) == 1:
             u = in_cross[f][0]
             if outdeg[u] >= 2:
-                head = flat.n_xy[u]
+                head = (u,)
             elif indeg[f] == 1:
-                head = 0.5 * (flat.n_xy[u] + flat.n_xy[f])
+                head = (u, f)
         if len(out_cross.get(last, ())) == 1 and outdeg[last] == 1:
             w = out_cross[last][0]
-            if indeg[w] >= 2:
-                tail = flat.n_xy[w]
-            else:
-                tail = 0.5 * (flat.n_xy[last] + flat.n_xy[w])
-        if head is not None:
-            xy, cnt, std = np.vstack([head, xy]), np.r_[cnt[:1], cnt], np.r_[std[:1], std]
-        if tail is not None:
-            xy, cnt, std = np.vstack([xy, tail]), np.r_[cnt, cnt[-1:]], np.r_[std, std[-1:]]
-        if cfg.fill_spacing_m > 0 and len(xy) > 2:
-            xy, cnt, std = _fill_gaps(xy, cnt, std, cfg.fill_spacing_m)
-        geoms.append((xy, cnt, std))
+            tail = (w,) if indeg[w] >= 2 else (last, w)
+        specs.append((c, head, tail))
+    geoms = [_chain_geometry(flat.n_xy, flat.n_count, flat.n_std, sp, cfg.fill_spacing_m) for sp in specs]
 
     keep = np.ones(len(chains), dtype=bool)
     on_through = {k for t, b, _ in attached for k in (t, b)}
@@ -201,27 +247,19 @@ def export_map(
     for run in runs:
         head_of[run] = run[0]
 
-    features = []
+    planned = []
     for run in runs:
         k0, k1 = run[0], run[-1]
-        parts = [geoms[k] for k in run]
-        xy = parts[0][0]
-        cnt, std = parts[0][1], parts[0][2]
-        for pxy, pcnt, pstd in parts[1:]:
-            # 1: the next part starts where this one ends (the shared point is kept once)
-            same = int(len(xy) > 0 and len(pxy) > 0 and float(np.hypot(*(xy[-1] - pxy[0]))) < 1e-6)
-            xy, cnt, std = np.vstack([xy, pxy[same:]]), np.r_[cnt, pcnt[same:]], np.r_[std, pstd[same:]]
-        features.append(
-            MapFeature(
-                id=int(fid[k0]),
-                type=_ftype(ctype[k0]),
-                points=np.ascontiguousarray(xy, dtype=float),
-                drive_count=np.asarray(cnt, dtype=np.int64),
-                lateral_std=np.asarray(std, dtype=float),
-                predecessors=tuple(sorted({int(fid[head_of[p]]) for p in pred.get(k0, ()) if keep[p]})),
-                successors=tuple(sorted({int(fid[head_of[s]]) for s in succ.get(k1, ()) if keep[s]})),
+        planned.append(
+            (
+                tuple(run),
+                int(fid[k0]),
+                _ftype(ctype[k0]),
+                tuple(sorted({int(fid[head_of[p]]) for p in pred.get(k0, ()) if keep[p]})),
+                tuple(sorted({int(fid[head_of[s]]) for s in succ.get(k1, ()) if keep[s]})),
             )
         )
+    features = [_run_feature([geoms[k] for k in run], fid_k, ft, pr, sc) for run, fid_k, ft, pr, sc in planned]
 
     # topology: successors by uid, and the kept features crossing each step (in lateral order)
     te = flat.topo_edges
@@ -245,16 +283,80 @@ def export_map(
                 features=feats,
             )
         )
-    if cfg.gore_max_m > 0:
-        if attached:
-            branch_of = [
-                (int(fid[head_of[t]]), int(fid[head_of[b]]), kind) for t, b, kind in attached if keep[t] and keep[b]
-            ]
-            features, topology = gore_branches(features, topology, branch_of, max_m=cfg.gore_max_m)
-        features, topology = gore_junctions(features, topology, max_m=cfg.gore_max_m)
+    branch_of = [(int(fid[head_of[t]]), int(fid[head_of[b]]), kind) for t, b, kind in attached if keep[t] and keep[b]]
+    used = {k for run in runs for k in run}
+    plan = ExportPlan(
+        n_uid=n_uid,
+        chains=tuple(
+            (orig[c], tuple(int(orig[i]) for i in hd), tuple(int(orig[i]) for i in tl))
+            if k in used
+            else (orig[:0], (), ())
+            for k, (c, hd, tl) in enumerate(specs)
+        ),
+        runs=tuple(planned),
+        topology=tuple(topology),
+        branches=tuple(branch_of),
+        fill_spacing_m=cfg.fill_spacing_m,
+        gore_max_m=cfg.gore_max_m,
+    )
+    out_features, out_topology = _finish(features, topology, branch_of, cfg.gore_max_m)
+    return out_features, out_topology, plan
+
+
+def _finish(
+    features: list[MapFeature], topology: list[TopologyNode], branch_of: list[tuple[int, int, str]], gore_max_m: float
+) -> tuple[tuple[MapFeature, ...], tuple[TopologyNode, ...]]:
+    """The gore rules, then features and topology nodes in id order."""
+    if gore_max_m > 0:
+        if branch_of:
+            features, topology = gore_branches(features, topology, branch_of, max_m=gore_max_m)
+        features, topology = gore_junctions(features, topology, max_m=gore_max_m)
     features.sort(key=lambda f: f.id)
     topology.sort(key=lambda t: t.id)
     return tuple(features), tuple(topology)
+
+
+def _chain_geometry(
+    n_xy: np.ndarray, n_count: np.ndarray, n_std: np.ndarray, spec, fill_spacing_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A chain's points, drive counts and uncertainties: its nodes, with its head and tail
+    junction points (``spec``: nodes, head, tail as in ``ExportPlan.chains``) and gaps filled."""
+    c, head, tail = spec
+    xy, cnt, std = n_xy[c], n_count[c], n_std[c]
+    if head:
+        hp = n_xy[head[0]] if len(head) == 1 else 0.5 * (n_xy[head[0]] + n_xy[head[1]])
+        xy, cnt, std = np.vstack([hp, xy]), np.r_[cnt[:1], cnt], np.r_[std[:1], std]
+    if tail:
+        tp = n_xy[tail[0]] if len(tail) == 1 else 0.5 * (n_xy[tail[0]] + n_xy[tail[1]])
+        xy, cnt, std = np.vstack([xy, tp]), np.r_[cnt, cnt[-1:]], np.r_[std, std[-1:]]
+    if fill_spacing_m > 0 and len(xy) > 2:
+        xy, cnt, std = _fill_gaps(xy, cnt, std, fill_spacing_m)
+    return xy, cnt, std
+
+
+def _run_feature(
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    fid: int,
+    ftype: FeatureType,
+    predecessors: tuple[int, ...],
+    successors: tuple[int, ...],
+) -> MapFeature:
+    """One polyline of a run of chains (``parts``: their geometry in driving direction)."""
+    xy = parts[0][0]
+    cnt, std = parts[0][1], parts[0][2]
+    for pxy, pcnt, pstd in parts[1:]:
+        # 1: the next part starts where this one ends (the shared point is kept once)
+        same = int(len(xy) > 0 and len(pxy) > 0 and float(np.hypot(*(xy[-1] - pxy[0]))) < 1e-6)
+        xy, cnt, std = np.vstack([xy, pxy[same:]]), np.r_[cnt, pcnt[same:]], np.r_[std, pstd[same:]]
+    return MapFeature(
+        id=fid,
+        type=ftype,
+        points=np.ascontiguousarray(xy, dtype=float),
+        drive_count=np.asarray(cnt, dtype=np.int64),
+        lateral_std=np.asarray(std, dtype=float),
+        predecessors=predecessors,
+        successors=successors,
+    )
 
 
 def _continuation_runs(

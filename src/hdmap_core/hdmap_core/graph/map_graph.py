@@ -41,7 +41,7 @@ import numpy as np
 
 from hdmap_core.errors import HdmapError
 from hdmap_core.graph.cleanup import spur_free
-from hdmap_core.graph.export import export_map
+from hdmap_core.graph.export import ExportPlan, export_planned, export_with_plan
 from hdmap_core.graph.flat import FlatGraph, Link, dedupe_uids, flatten, link_key
 from hdmap_core.graph.from_hdmap import graph_from_hdmap
 from hdmap_core.graph.linking import link_segments
@@ -112,6 +112,10 @@ class MapGraph:
         self._branch_links: set[Link] = set()  # split/merge joins (leftover-like: a branch)
         self.version = 0
         self.last_report = IntegrateReport()
+        # the decisions of the last export (``to_hdmap(keep_plan=True)``), kept by ``with_geometry``
+        # (``to_hdmap_planned``); None after any change of the graph's structure
+        self.export_plan: ExportPlan | None = None
+        self._plan_refuted = 0  # the fills refuted in that export
         graphs = list(graphs)
         if graphs:
             self.integrate(graphs)
@@ -232,12 +236,16 @@ class MapGraph:
             ):
                 raise HdmapError(f"with_geometry: {g.key!r} is not a graph of the map with the same nodes and edges")
             new._graphs[g.key] = g
+        new.export_plan = self.export_plan  # the same nodes and edges: the same export decisions
+        new._plan_refuted = self._plan_refuted
         return new
 
     # -- updates --
     def remove(self, keys: Iterable[str]) -> int:
         """Drop segment graphs (and every link touching them); returns how many were present."""
         gone = {k for k in keys if k in self._graphs}
+        if gone:
+            self.export_plan = None
         for k in gone:
             del self._graphs[k]
             del self._alive[k]
@@ -273,6 +281,7 @@ class MapGraph:
         Returns:
             What was done. Also bumps ``version``.
         """
+        self.export_plan = None  # the structure changes: the last export's decisions are not this graph's
         new = list(graphs)
         for g in new:
             if not isinstance(g, SegmentGraph):
@@ -349,9 +358,15 @@ class MapGraph:
 
     # -- export --
     def to_hdmap(
-        self, *, version: int | None = None, stamp_ns: int = 0, drive_ids: Sequence[str] | None = None
+        self,
+        *,
+        version: int | None = None,
+        stamp_ns: int = 0,
+        drive_ids: Sequence[str] | None = None,
+        keep_plan: bool = False,
     ) -> HDMap:
-        """The complete map as an ``HDMap``: every field of MapFeature / TopologyNode filled."""
+        """The complete map as an ``HDMap``: every field of MapFeature / TopologyNode filled.
+        ``keep_plan``: keep the export's decisions as ``export_plan`` (:meth:`to_hdmap_planned`)."""
         flat = self._flatten()
         if drive_ids is None:
             drive_ids = sorted({d for g in self._graphs.values() for d in g.drive_ids})
@@ -364,7 +379,10 @@ class MapGraph:
             protect = np.zeros(flat.n_nodes, dtype=bool)
             protect[flat.edges[drop].reshape(-1)] = True
             flat = dataclasses.replace(flat, edges=flat.edges[~drop], leftover=flat.leftover[~drop])
-        features, topology = export_map(flat, config=self.config, protect=protect)
+        features, topology, plan = export_with_plan(flat, config=self.config, protect=protect)
+        if keep_plan:
+            self.export_plan = plan
+            self._plan_refuted = refuted
         return HDMap(
             features=features,
             topology=topology,
@@ -377,6 +395,34 @@ class MapGraph:
                 "feature_links": len(self._feature_links) + len(self._branch_links),
                 "last_integrate": dict(self.last_report.__dict__),
                 "fills_refuted": refuted,
+            },
+        )
+
+    def to_hdmap_planned(self, *, drive_ids: Sequence[str] | None = None) -> HDMap:
+        """The map as ``to_hdmap`` gives it, with the decisions of the export ``export_plan`` holds
+        (an export of this graph before ``with_geometry`` moved its nodes: ``live.restitch``):
+        the same polylines of the same nodes at their new positions, the fills refuted then
+        dropped again, the gore rules run again.
+
+        Raises:
+            HdmapError: no export plan, or one of another graph.
+        """
+        if self.export_plan is None:
+            raise HdmapError("to_hdmap_planned: no export plan (to_hdmap(keep_plan=True) first)")
+        features, topology = export_planned(self._flatten(), self.export_plan)
+        if drive_ids is None:
+            drive_ids = sorted({d for g in self._graphs.values() for d in g.drive_ids})
+        return HDMap(
+            features=features,
+            topology=topology,
+            drive_ids=tuple(drive_ids),
+            version=self.version,
+            extra={
+                "segments": len(self._graphs),
+                "topology_links": len(self._topo_links),
+                "feature_links": len(self._feature_links) + len(self._branch_links),
+                "last_integrate": dict(self.last_report.__dict__),
+                "fills_refuted": self._plan_refuted,
             },
         )
 

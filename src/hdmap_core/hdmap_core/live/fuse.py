@@ -90,15 +90,19 @@ class FuseResult:
 
 def _steps(tiles: Mapping[TileKey, Sequence[Segment]]) -> tuple[list[tuple[TileKey, int, int]], list[StepResult]]:
     """Every step with maxima: (tile, segment index, step index) and the step."""
-    where: list[tuple[TileKey, int, int]] = []
-    steps: list[StepResult] = []
-    for key in sorted(tiles):
-        for si, seg in enumerate(tiles[key]):
-            for ti, st in enumerate(seg.steps):
-                if st.valid and len(st.lateral_m) and np.all(np.isfinite(st.midpoint)):
-                    where.append((key, si, ti))
-                    steps.append(st)
-    return where, steps
+    where = [
+        (key, si, ti) for key in sorted(tiles) for si, seg in enumerate(tiles[key]) for ti in range(len(seg.steps))
+    ]
+    every = [st for key in sorted(tiles) for seg in tiles[key] for st in seg.steps]
+    if not every:
+        return [], []
+    try:  # the midpoints at once (one shape, the usual case)
+        finite = np.isfinite(np.array([st.midpoint for st in every], dtype=float)).reshape(len(every), -1).all(axis=1)
+    except ValueError:
+        finite = np.array([bool(np.all(np.isfinite(np.asarray(st.midpoint, dtype=float)))) for st in every])
+    ok = finite & np.array([bool(st.valid) and np.size(st.lateral_m) > 0 for st in every], dtype=bool)
+    keep = np.flatnonzero(ok).tolist()
+    return [where[j] for j in keep], [every[j] for j in keep]
 
 
 def _passed(drive: Drive, center: np.ndarray, tangent: np.ndarray, normal: np.ndarray, half: np.ndarray):
@@ -136,25 +140,50 @@ def _samples(drive: Drive, center: np.ndarray, tangent: np.ndarray, normal: np.n
     return ci[ok], s[ok], types[segs.owner[si[ok]]]
 
 
-def _pairs(cut: np.ndarray, lat: np.ndarray, typ: np.ndarray, steps: Sequence[StepResult]):
-    """(sample index, maximum index within its step, map - sample) of every same-type pair."""
-    out_i, out_k, out_d = [], [], []
+def _maxima(steps: Sequence[StepResult]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The maxima of ``steps`` flat: per step its first maximum and count of maxima; per maximum its
+    lateral [m] (float64), type and drive count (the steps' dtype)."""
+    lat = [np.asarray(st.lateral_m, dtype=float).reshape(-1) for st in steps]
+    k = np.array([len(x) for x in lat], dtype=np.int64)
+    start = np.cumsum(k) - k
+    cat = np.concatenate
+    typ = cat([np.asarray(st.types).reshape(-1) for st in steps]).astype(np.int64) if steps else np.zeros(0, np.int64)
+    cnt = cat([np.asarray(st.counts).reshape(-1) for st in steps]) if steps else np.zeros(0, np.int64)
+    return start, k, (cat(lat) if steps else np.zeros(0)), typ, cnt
+
+
+def _pairs(cut: np.ndarray, lat: np.ndarray, typ: np.ndarray, start: np.ndarray, k: np.ndarray, m_lat, m_typ):
+    """(sample index, maximum index within its step, map - sample) of every same-type pair: the
+    samples in (stable) cut order, each with the maxima of its cut's step in order (``_maxima``:
+    ``start``, ``k``, ``m_lat``, ``m_typ`` per step of the cuts)."""
     order = np.argsort(cut, kind="stable")
-    bounds = np.flatnonzero(np.diff(cut[order])) + 1
-    for grp in np.split(order, bounds):
-        if not len(grp):
-            continue
-        st = steps[int(cut[grp[0]])]
-        m_lat = np.asarray(st.lateral_m, dtype=float).reshape(-1)
-        m_typ = np.asarray(st.types).reshape(-1).astype(np.int64)
-        same = typ[grp][:, None] == m_typ[None, :]
-        i, k = np.nonzero(same)
-        out_i.append(grp[i])
-        out_k.append(k)
-        out_d.append(m_lat[k] - lat[grp][i])
-    if not out_i:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
-    return np.concatenate(out_i), np.concatenate(out_k), np.concatenate(out_d)
+    n = k[cut[order]]
+    i = np.repeat(order, n)
+    slot = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    m = start[cut[i]] + slot
+    same = typ[i] == m_typ[m]
+    i, slot, m = i[same], slot[same], m[same]
+    return i, slot, m_lat[m] - lat[i]
+
+
+def _greedy(sample: np.ndarray, maximum: np.ndarray) -> np.ndarray:
+    """Indices of the pairs a greedy pass in the given order accepts, one pair per sample and per
+    maximum (nearest first when ordered by residual), in that order. In rounds: a pair first among
+    the remaining ones for both its sample and its maximum is what the greedy pass takes; the pairs
+    sharing a sample or a maximum with it are then out."""
+    alive = np.arange(len(sample))
+    taken = []
+    while len(alive):
+        s, m = sample[alive], maximum[alive]
+        first_s = np.zeros(len(alive), dtype=bool)
+        first_s[np.unique(s, return_index=True)[1]] = True
+        first_m = np.zeros(len(alive), dtype=bool)
+        first_m[np.unique(m, return_index=True)[1]] = True
+        win = first_s & first_m
+        taken.append(alive[win])
+        out = np.isin(s, s[win]) | np.isin(m, m[win])
+        alive = alive[~out]
+    return np.sort(np.concatenate(taken)) if taken else np.zeros(0, dtype=np.int64)
 
 
 def _offset_curve(s_pair: np.ndarray, diff: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -187,11 +216,11 @@ def fuse_drive(drive: Drive, tiles: Mapping[TileKey, Sequence[Segment]], *, gaug
     where, steps = _steps(tiles)
     if not steps:
         return FuseResult(None, "no mapped step")
-    center = np.array([np.asarray(st.midpoint, dtype=float)[:2] for st in steps])
+    center = np.array([np.asarray(st.midpoint, dtype=float).reshape(-1)[:2] for st in steps]).reshape(-1, 2)
     heading = np.array([float(st.heading) for st in steps])
     normal = left_normal(heading).reshape(-1, 2)
     tangent = np.stack([np.cos(heading), np.sin(heading)], axis=1)
-    half = np.array([max(float(st.width_m), 0.0) for st in steps]) * 0.5 + CUT_MARGIN_M
+    half = np.maximum(np.array([float(st.width_m) for st in steps]), 0.0) * 0.5 + CUT_MARGIN_M
 
     cut_p, s_p = _passed(drive, center, tangent, normal, half)
     res = FuseResult(None, steps_passed=len(cut_p))
@@ -213,7 +242,8 @@ def fuse_drive(drive: Drive, tiles: Mapping[TileKey, Sequence[Segment]], *, gaug
         return res
     s_of_sample = s_p[ci]
     steps_p = [steps[int(j)] for j in sub]
-    pi, pk, pd = _pairs(ci, lat, typ, steps_p)
+    start, k_max, m_lat, m_typ, m_cnt = _maxima(steps_p)  # the passed steps' maxima, flat
+    pi, pk, pd = _pairs(ci, lat, typ, start, k_max, m_lat, m_typ)
     knots, values = _offset_curve(s_of_sample[pi], pd, drive.length_m)
     if not len(knots):
         res.reason = "no offset against the map"
@@ -225,56 +255,71 @@ def fuse_drive(drive: Drive, tiles: Mapping[TileKey, Sequence[Segment]], *, gaug
     pi, pk, resid = pi[ok], pk[ok], resid[ok]
     # one sample per maximum and one maximum per sample: nearest first
     order = np.argsort(resid, kind="stable")
-    used_s: set[int] = set()
-    used_m: set[tuple[int, int]] = set()
-    match: list[tuple[int, int]] = []
-    for j in order.tolist():
-        i, k = int(pi[j]), int(pk[j])
-        mk = (int(ci[i]), k)
-        if i in used_s or mk in used_m:
-            continue
-        used_s.add(i)
-        used_m.add(mk)
-        match.append((i, k))
+    pi, pk = pi[order], pk[order]
+    m_of = start[ci[pi]] + pk  # the pair's maximum, flat
+    won = _greedy(pi, m_of)
+    mi, mm = pi[won], m_of[won]  # the matches: sample, maximum (flat)
     marking = np.isin(typ, _MARKINGS)
-    matched_mark = sum(1 for i, _ in match if marking[i])
-    res.matched = len(match)
-    res.matched_share = float(matched_mark / marking.sum()) if marking.any() else float(len(match) / len(ci))
+    matched_mark = int(marking[mi].sum())
+    res.matched = len(mi)
+    res.matched_share = float(matched_mark / marking.sum()) if marking.any() else float(len(mi) / len(ci))
     if res.matched_share < MIN_MATCHED:
         res.reason = f"{res.matched_share:.0%} of its markings on the map's lines (< {MIN_MATCHED:.0%})"
         return res
-    support = float(np.median([np.asarray(steps_p[int(ci[i])].counts).reshape(-1)[k] for i, k in match]))
+    support = float(np.median(m_cnt[mm]))
     if support < MIN_SUPPORT:
         res.reason = f"the map's lines stand on {support:g} drives there (< {MIN_SUPPORT})"
         return res
 
-    # fusion: per passed step, its matched maxima move to the weighted mean, counts + 1
+    # fusion: the matched maxima move to the weighted mean, counts + 1 (one sample per maximum)
     x = lat + off  # the samples with the drive's offset: in the map's frame
-    by_step: dict[int, list[tuple[int, float]]] = {}
-    for i, k in match:
-        by_step.setdefault(int(ci[i]), []).append((k, float(x[i])))
-    new_steps: dict[tuple[TileKey, int, int], StepResult] = {}
-    off_p = np.interp(s_p, knots, values)
-    for c in range(len(sub)):
-        st = steps_p[c]
-        lat_m = np.asarray(st.lateral_m, dtype=float).reshape(-1).copy()
-        counts = np.asarray(st.counts).reshape(-1).copy()
-        for k, xv in by_step.get(c, ()):
-            n = float(max(counts[k], 1))
-            lat_m[k] += (xv - lat_m[k]) / (n + 1.0)
-            counts[k] = counts[k] + 1
-        if gauge:  # the step's drives' offsets keep zero mean with the new one: all move by -off / (n + 1)
-            n_step = max(len(st.drive_ids), int(np.max(np.asarray(st.counts), initial=1)))
-            lat_m += -off_p[c] / (n_step + 1.0)
-        ids = st.drive_ids if drive.drive_id in st.drive_ids else (*st.drive_ids, drive.drive_id)
-        new_steps[where[int(sub[c])]] = replace(st, lateral_m=lat_m, counts=counts, drive_ids=tuple(ids))
+    new_lat = m_lat.copy()
+    new_cnt = m_cnt.copy()
+    n = np.maximum(m_cnt[mm], 1).astype(float)
+    new_lat[mm] += (x[mi] - new_lat[mm]) / (n + 1.0)
+    new_cnt[mm] = new_cnt[mm] + 1
+    if gauge:  # the step's drives' offsets keep zero mean with the new one: all move by -off / (n + 1)
+        off_p = np.interp(s_p, knots, values)
+        most = np.maximum.reduceat(m_cnt, start) if len(m_cnt) else np.zeros(0, m_cnt.dtype)
+        n_step = np.maximum(np.array([len(st.drive_ids) for st in steps_p]), np.maximum(most, 1))
+        step_of = np.repeat(np.arange(len(steps_p)), k_max)
+        new_lat += -off_p[step_of] / (n_step[step_of] + 1.0)
+    lat_parts = np.split(new_lat, start[1:])
+    cnt_parts = np.split(new_cnt, start[1:])
+    new_steps: dict[tuple[TileKey, int], dict[int, StepResult]] = {}
+    did = drive.drive_id
+    for c, st in enumerate(steps_p):
+        ids = st.drive_ids if did in st.drive_ids else (*st.drive_ids, did)
+        key, si, ti = where[int(sub[c])]
+        new_steps.setdefault((key, si), {})[ti] = _with(st, lat_parts[c], cnt_parts[c], tuple(ids))
     out: dict[TileKey, list[Segment]] = {}
     for key in tiles:
-        segs = []
-        for si, seg in enumerate(tiles[key]):
-            if any((key, si, ti) in new_steps for ti in range(len(seg.steps))):
-                seg = replace(seg, steps=tuple(new_steps.get((key, si, ti), st) for ti, st in enumerate(seg.steps)))
-            segs.append(seg)
+        segs = list(tiles[key])
+        for si, seg in enumerate(segs):
+            moved = new_steps.get((key, si))
+            if moved:
+                segs[si] = replace(seg, steps=tuple(moved.get(ti, st) for ti, st in enumerate(seg.steps)))
         out[key] = segs
     res.tiles = out
     return res
+
+
+def _with(st: StepResult, lateral_m: np.ndarray, counts: np.ndarray, drive_ids: tuple[str, ...]) -> StepResult:
+    """``st`` with these maxima and drives (``dataclasses.replace``, without its per-call field walk)."""
+    return StepResult(
+        st.pivot_id,
+        st.index,
+        st.s_m,
+        st.midpoint,
+        st.heading,
+        st.width_m,
+        st.valid,
+        st.processed_before,
+        lateral_m,
+        st.types,
+        counts,
+        st.std_m,
+        drive_ids,
+        st.empty_m,
+        st.pose,
+    )

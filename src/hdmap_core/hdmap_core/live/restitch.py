@@ -31,6 +31,7 @@ import numpy as np
 from hdmap_core.graph.map_graph import MapGraph
 from hdmap_core.graph.segment_graph import SegmentGraph, stable_uid
 from hdmap_core.model import HDMap
+from hdmap_core.segment_columns import SegmentColumns, segment_columns
 from hdmap_core.steps import Segment, left_normal
 
 if TYPE_CHECKING:
@@ -51,110 +52,95 @@ __all__ = [
 MOVED_TOLERANCE_M = 0.01
 
 
-class _Flat:
-    """The steps of one segment as arrays: per step (index, valid, processed before, s, midpoint,
-    heading, width, number of maxima), per maximum (step index, slot, lateral, type, count, std)."""
-
-    def __init__(self, seg: Segment) -> None:
-        st = seg.steps
-        self.index = np.array([int(s.index) for s in st], dtype=np.int64)
-        self.flags = np.array([(bool(s.valid), bool(s.processed_before)) for s in st], dtype=bool).reshape(-1, 2)
-        self.pose = np.array([(float(s.s_m), float(s.heading), float(s.width_m)) for s in st], dtype=float).reshape(
-            -1, 3
-        )
-        self.mid = np.array([np.asarray(s.midpoint, dtype=float).reshape(2) for s in st]).reshape(-1, 2)
-        self.k = np.array([np.asarray(s.lateral_m).size for s in st], dtype=np.int64)
-        cat = np.concatenate
-        self.lat = cat([np.asarray(s.lateral_m, dtype=float).reshape(-1) for s in st]) if st else np.zeros(0)
-        self.typ = cat([np.asarray(s.types, dtype=np.int64).reshape(-1) for s in st]) if st else np.zeros(0, np.int64)
-        self.cnt = cat([np.asarray(s.counts, dtype=np.int64).reshape(-1) for s in st]) if st else np.zeros(0, np.int64)
-        self.std = cat([np.asarray(s.std_m, dtype=float).reshape(-1) for s in st]) if st else np.zeros(0)
-        self.row = np.repeat(np.arange(len(st)), self.k)  # the step of each maximum
-        self.slot = np.arange(len(self.lat)) - np.repeat(np.cumsum(self.k) - self.k, self.k)
-
-    def same_maxima(self, other: _Flat) -> bool:
-        """The same steps (cuts) with the same maxima (types; positions and counts may differ)."""
-        return (
-            np.array_equal(self.index, other.index)
-            and np.array_equal(self.flags, other.flags)
-            and np.array_equal(self.pose, other.pose, equal_nan=True)
-            and np.array_equal(self.mid, other.mid, equal_nan=True)
-            and np.array_equal(self.k, other.k)
-            and len(self.typ) == len(other.typ)
-            and np.array_equal(self.typ, other.typ)
-            and np.array_equal(np.isfinite(self.lat), np.isfinite(other.lat))
-        )
+Estimate = Sequence[Segment] | SegmentColumns  # a tile's estimate: its segments, or these in columns
 
 
-def same_structure(old: Sequence[Segment], new: Sequence[Segment]) -> bool:
+def _columns(est: Estimate) -> SegmentColumns:
+    return est if isinstance(est, SegmentColumns) else segment_columns(est)
+
+
+def _same_maxima(o: SegmentColumns, n: SegmentColumns) -> bool:
+    """The same segments, steps (cuts) and maxima (types); positions and counts may differ."""
+    return (
+        o.pivots == n.pivots
+        and np.array_equal(o.nsteps, n.nsteps)
+        and np.array_equal(o.index, n.index)
+        and np.array_equal(o.valid, n.valid)
+        and np.array_equal(o.processed_before, n.processed_before)
+        and all(np.array_equal(a, b, equal_nan=True) for a, b in ((o.s_m, n.s_m), (o.heading, n.heading)))
+        and np.array_equal(o.width_m, n.width_m, equal_nan=True)
+        and np.array_equal(o.midpoint, n.midpoint, equal_nan=True)
+        and np.array_equal(o.k, n.k)
+        and np.array_equal(o.types, n.types)
+        and np.array_equal(np.isfinite(o.lateral_m), np.isfinite(n.lateral_m))
+    )
+
+
+def same_structure(old: Estimate, new: Estimate) -> bool:
     """Do two estimates of a tile hold the same segments, steps and maxima (types), so that the
     newer one only moved maxima and grew counts (a fusion)?"""
-    if len(old) != len(new):
-        return False
-    for so, sn in zip(old, new, strict=True):
-        if so.pivot_id != sn.pivot_id or len(so.steps) != len(sn.steps):
-            return False
-        if not _Flat(so).same_maxima(_Flat(sn)):
-            return False
-    return True
+    return _same_maxima(_columns(old), _columns(new))
 
 
-def _moved(g: SegmentGraph, seg: Segment, f: _Flat) -> SegmentGraph | None:
-    """``g`` (connected from an earlier estimate of ``seg``) with its feature nodes at the
-    maxima of ``seg`` (``f``: its arrays); None if a node is not found among them."""
+def _moved(g: SegmentGraph, c: SegmentColumns, a: int, b: int, ma: int) -> SegmentGraph | None:
+    """``g`` (connected from an earlier estimate of its segment) with its feature nodes at the
+    maxima of that segment in ``c`` (its steps ``a:b``, their maxima from ``ma``); None if a node
+    is not found among them."""
     if g.n_nodes == 0:
         return g
-    if len(f.lat) == 0:
+    k = c.k[a:b]
+    n_max = int(k.sum())
+    if n_max == 0:
         return None
-    uid = stable_uid("feature:" + g.pivot_id, f.index[f.row], f.slot)
+    row = np.repeat(np.arange(b - a), k)  # the step of each maximum
+    slot = np.arange(n_max) - np.repeat(np.cumsum(k) - k, k)
+    uid = stable_uid("feature:" + g.pivot_id, c.index[a:b][row], slot)
     order = np.argsort(uid, kind="stable")
     pos = np.minimum(np.searchsorted(uid[order], g.node_uid), len(uid) - 1)
     rows = order[pos]
-    if not np.array_equal(uid[rows], g.node_uid) or not np.array_equal(f.typ[rows], g.node_type):
+    mx = slice(ma, ma + n_max)
+    if not np.array_equal(uid[rows], g.node_uid) or not np.array_equal(c.types[mx][rows], g.node_type):
         return None
-    step = f.row[rows]
-    nrm = left_normal(f.pose[step, 1]).reshape(-1, 2)
-    xy = f.mid[step] + f.lat[rows][:, None] * nrm
+    step = row[rows]
+    nrm = left_normal(c.heading[a:b][step]).reshape(-1, 2)
+    xy = c.midpoint[a:b][step] + c.lateral_m[mx][rows][:, None] * nrm
     if not np.isfinite(xy).all():
         return None
-    used = set(np.unique(g.topo_step).tolist())
-    drive_ids = sorted({d for st in seg.steps if int(st.index) in used for d in st.drive_ids} | set(g.drive_ids))
-    return replace(g, node_xy=xy, node_count=f.cnt[rows], node_std=f.std[rows], drive_ids=tuple(drive_ids))
+    used = np.isin(c.index[a:b], g.topo_step)  # the steps of the graph's topology nodes
+    d0 = int(c.n_drives[:a].sum())
+    entry_step = np.repeat(np.arange(b - a), c.n_drives[a:b])
+    picked = c.drive_index[d0 : d0 + len(entry_step)][used[entry_step]]
+    drive_ids = sorted({c.drive_names[i] for i in picked.tolist()} | set(g.drive_ids))
+    return replace(g, node_xy=xy, node_count=c.counts[mx][rows], node_std=c.std_m[mx][rows], drive_ids=tuple(drive_ids))
 
 
-def moved_graphs(
-    graphs: Sequence[SegmentGraph], old: Sequence[Segment], new: Sequence[Segment]
-) -> list[SegmentGraph] | None:
+def moved_graphs(graphs: Sequence[SegmentGraph], old: Estimate, new: Estimate) -> list[SegmentGraph] | None:
     """A tile's segment graphs with their feature nodes moved to a newer estimate's maxima.
 
     Args:
         graphs: ``tiles.connect_tile`` of ``old`` (one graph per segment with steps, in order).
-        old: the estimate the graphs were connected from.
-        new: the newer estimate of the same tile.
+        old: the estimate the graphs were connected from (segments, or in columns).
+        new: the newer estimate of the same tile (segments, or in columns: a batch message's).
 
     Returns:
         The graphs (same keys, nodes, edges) with node positions, counts and uncertainties of
         ``new``; None when ``new`` is not ``old`` with moved maxima (:func:`same_structure`):
         then the tile must be connected again.
     """
-    if len(old) != len(new):
+    o, c = _columns(old), _columns(new)
+    if not _same_maxima(o, c):
         return None
-    pairs = []
-    for so, sn in zip(old, new, strict=True):
-        if so.pivot_id != sn.pivot_id or len(so.steps) != len(sn.steps):
-            return None
-        fn = _Flat(sn)
-        if not _Flat(so).same_maxima(fn):
-            return None
-        if sn.steps:
-            pairs.append((sn, fn))
-    if len(pairs) != len(graphs):
+    with_steps = np.flatnonzero(c.nsteps > 0).tolist()
+    if len(with_steps) != len(graphs):
         return None
+    step0 = np.concatenate([[0], np.cumsum(c.nsteps)]).tolist()
+    max0 = np.concatenate([[0], np.cumsum(c.k)]).tolist()
     out = []
-    for g, (seg, fn) in zip(graphs, pairs, strict=True):
-        if (g.pivot_drive or g.pivot_id) != seg.pivot_id:
+    for g, j in zip(graphs, with_steps, strict=True):
+        if (g.pivot_drive or g.pivot_id) != c.pivots[j]:
             return None
-        m = _moved(g, seg, fn)
+        a, b = step0[j], step0[j + 1]
+        m = _moved(g, c, a, b, max0[a])
         if m is None:
             return None
         out.append(m)
@@ -166,14 +152,19 @@ def stitch_tiles(
 ) -> tuple[HDMap, MapGraph]:
     """``tiles.stitch_graphs`` (the same map), with the stitched graph kept for :func:`moved_map`."""
     mg = MapGraph(list(graphs), config=pipeline_config.stitching)
-    return replace(mg.to_hdmap(), drive_ids=tuple(sorted(set(drive_ids)))), mg
+    return replace(mg.to_hdmap(keep_plan=True), drive_ids=tuple(sorted(set(drive_ids)))), mg
 
 
 def moved_map(mg: MapGraph, graphs: Sequence[SegmentGraph], *, drive_ids: Iterable[str] = ()) -> tuple[HDMap, MapGraph]:
     """The map of ``mg`` with ``graphs`` (:func:`moved_graphs`) in place of theirs, every stitch
-    decision kept (``MapGraph.with_geometry``), and that map graph."""
+    decision kept (``MapGraph.with_geometry``), and that map graph. RULE: the export's decisions
+    are kept too (``MapGraph.to_hdmap_planned``: the same polylines of the same nodes, moved) when
+    ``mg`` was exported with its plan (:func:`stitch_tiles`): the export of the whole map was the
+    largest part of a fast update's CPU; a decision of it that the moved lines would flip (a length
+    or count threshold) is made again by the full rebuild that follows."""
     moved = mg.with_geometry(graphs)
-    return replace(moved.to_hdmap(), drive_ids=tuple(sorted(set(drive_ids)))), moved
+    hd = moved.to_hdmap_planned() if moved.export_plan is not None else moved.to_hdmap(keep_plan=True)
+    return replace(hd, drive_ids=tuple(sorted(set(drive_ids)))), moved
 
 
 def raw_id_map(raw: HDMap, published: HDMap) -> dict[int, int]:

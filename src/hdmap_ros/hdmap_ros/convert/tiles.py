@@ -259,15 +259,19 @@ def tiles_to_batch(
     stamp_ns: int,
     frame_id: str = "map",
     types: TileTypes,
+    columns: SegmentColumns | None = None,
 ) -> Any:
     """Many tile estimates -> one hdmap_msgs/msg/TileSegmentsBatch.
 
     Args:
         tiles: per tile (key, segments, version, drive ids, per drive id the tiles it covers (one
             per drive id, or empty for every tile: unknown), final), as :func:`tile_to_msg` takes them.
+        columns: the tiles' segments in columns, in order (``segment_columns``), when at hand.
     """
     t = types
-    c = segment_columns([seg for _, segs, *_ in tiles for seg in segs])
+    c = segment_columns([seg for _, segs, *_ in tiles for seg in segs]) if columns is None else columns
+    if len(c.pivots) != sum(len(segs) for _, segs, *_ in tiles):
+        raise ValueError("tiles_to_batch: the columns are not of the tiles' segments")
     counts = [int(n) for *_, tc, _ in tiles for n in tc]
     n_ids = sum(len(ids) for *_, ids, _, _ in tiles)
     return t.TileSegmentsBatch(

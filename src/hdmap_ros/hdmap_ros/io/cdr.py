@@ -327,11 +327,38 @@ def encode_map(hdmap: HDMap) -> bytes:
         b.sequence(_ids("predecessor", f.predecessors), "<u8")
         b.sequence(_ids("successor", f.successors), "<u8")
     b.u32(len(hdmap.topology))
-    for n in hdmap.topology:
-        x, y = np.asarray(n.position, dtype=np.float64).reshape(2).tolist()
-        b.array(_ids("topology node", [n.id]), "<u8")
-        b.buf += struct.pack("<dddd", x, y, 0.0, float(n.heading))  # 8-aligned after the id
-        b.buf += struct.pack("<f", float(n.width))
-        b.sequence(_ids("successor", n.successors), "<u8")
-        b.sequence(_ids("feature", n.features), "<u8")
+    try:
+        b.buf += _topology_bytes(hdmap.topology, len(b.buf) - _BASE)
+    except (struct.error, OverflowError, TypeError, ValueError):  # an id out of uint64: named as map_to_msg does
+        for n in hdmap.topology:
+            _ids("topology node", [n.id])
+            _ids("successor", n.successors)
+            _ids("feature", n.features)
+        raise
     return bytes(b.buf)
+
+
+def _topology_bytes(topology, offset: int) -> bytes:
+    """The CDR bytes of the TopologyNode sequence's elements, written from ``offset`` (relative to
+    the CDR body: alignment), in one ``struct.pack`` (a node's fields, its two id sequences and
+    their padding follow from the offset).
+
+    Raises:
+        struct.error: an id outside uint64.
+    """
+    fmt = ["<"]
+    vals: list = []
+    at = offset
+    for n in topology:
+        pad = -at % 8  # id: uint64
+        x, y = np.asarray(n.position, dtype=np.float64).reshape(2).tolist()
+        succ, feats = n.successors, n.features
+        # id, position (x, y, z), heading: 40 bytes; width: 4; successors: count, then (8-aligned) ids
+        at += pad + 44
+        p1 = -(at + 4) % 8 if succ else 0
+        at += 4 + p1 + 8 * len(succ)
+        p2 = -(at + 4) % 8 if feats else 0  # the count is 4-aligned: every field before is
+        at += 4 + p2 + 8 * len(feats)
+        fmt.append(f"{pad}xQddddfI{p1}x{len(succ)}QI{p2}x{len(feats)}Q")
+        vals += [int(n.id), x, y, 0.0, float(n.heading), float(n.width), len(succ), *succ, len(feats), *feats]
+    return struct.pack("".join(fmt), *vals)

@@ -72,6 +72,7 @@ from hdmap_core.model import Drive, validate_drive
 from hdmap_core.parallel import available_cpus, spawn_pool
 from hdmap_core.pipeline.adjustment import OffsetModel
 from hdmap_core.plausibility import check_plausible
+from hdmap_core.segment_columns import SegmentColumns, segment_columns
 from hdmap_ros.convert.messages import rclpy_status_class, rclpy_types, status_to_msg
 from hdmap_ros.convert.tiles import rclpy_tile_types, tile_to_msg, tiles_to_batch
 from hdmap_ros.nodes import qos
@@ -238,6 +239,7 @@ class SegmentMapper(HealthMixin, Node):
         self._seg_cache: dict[TileKey, tuple[int, list]] = {}  # final estimates stored, decoded (_keep_segments)
         self._input_done = False  # input_done() was called: handed to the schedule by work()
         self._last_taken = ("", 0.0)  # the last drive handed to the schedule and when (the fast path's log)
+        self._here_cpu0 = 0.0  # this thread's CPU time when the last job run here began (the fast path's log)
         for pool in self._pools if self.workers > 1 else []:  # start the processes while nothing waits
             pool.submit(warm_up)
         self.tiles_published = 0
@@ -397,6 +399,8 @@ class SegmentMapper(HealthMixin, Node):
         self.health.accept()
         self.health.backlog += 1
         self.health.set("drives_stored", self.store.drive_count())
+        with contextlib.suppress(Exception):  # the node may be on its way down
+            self._wake.trigger()  # scheduled at once (the fast path), not at the work timer's next tick
 
     def input_open(self) -> None:
         """More drives are on their way (``hdmap run``: its bag is being played): with the region
@@ -538,6 +542,7 @@ class SegmentMapper(HealthMixin, Node):
 
     def _run_here(self, job: Job, drives: Sequence[Drive], kw: dict) -> None:
         """Run a job in this process and commit it at once (as :meth:`_collect` would)."""
+        self._here_cpu0 = time.thread_time()  # the CPU of this thread for the job, its commit and message (log)
         try:
             result = run_job(job, drives, **kw)
         except Exception as err:  # noqa: BLE001 - a bug on one drive must not stop the live map; logged in full
@@ -574,9 +579,10 @@ class SegmentMapper(HealthMixin, Node):
         elif job.kind == REGION:
             segments = result.tiles or {}
             made = [(key, segments.get(key, []), ids) for key, ids in job.tiles]
-            stored = self.store.put_tiles(made, model_sig=job.sig)  # one commit for every tile
+            cols = segment_columns([seg for _, segs, _ in made for seg in segs])  # the blobs and the batch
+            stored = self.store.put_tiles(made, model_sig=job.sig, columns=cols)  # one commit for every tile
             self._update_status()  # first: the stitcher then knows the burst is coming (its tile_versions)
-            self._publish_batch(stored, [segs for _, segs, _ in made])
+            self._publish_batch(stored, [segs for _, segs, _ in made], cols)
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
             self.health.set("tiles", self.scheduler.tile_count)
             if result.model is not None:
@@ -608,17 +614,19 @@ class SegmentMapper(HealthMixin, Node):
             return
         t0 = time.perf_counter()
         made = [(key, result.tiles.get(key, []), ids) for key, ids in job.tiles]
-        stored = self.store.put_tiles(made, model_sig=FUSED)
+        cols = segment_columns([seg for _, segs, _ in made for seg in segs])  # made once: the blobs and the batch
+        stored = self.store.put_tiles(made, model_sig=FUSED, columns=cols)
         t1 = time.perf_counter()
-        self._publish_batch(stored, [segs for _, segs, _ in made])
+        self._publish_batch(stored, [segs for _, segs, _ in made], cols)
         self.fast_fused += 1
         self.health.set("fast_fused", self.fast_fused)
         how = "fused into" if job.kind == FUSE else "mapped alone (new road) into"
         taken = self._last_taken[1] if self._last_taken[0] == did else None
         since = f"{time.monotonic() - taken:.3f} s after it was scheduled: " if taken is not None else ""
+        cpu = f", CPU of this thread {time.thread_time() - self._here_cpu0:.3f} s" if job.kind == FUSE else ""
         self.get_logger().info(
             f"drive {did!r} {how} {len(made)} tile(s) ({since}job {result.seconds:.3f} s, store {t1 - t0:.3f} s, "
-            f"batch message {time.perf_counter() - t1:.3f} s)"
+            f"batch message {time.perf_counter() - t1:.3f} s{cpu})"
         )
         self.scheduler.finished(job, ok=True)
 
@@ -654,10 +662,13 @@ class SegmentMapper(HealthMixin, Node):
         self._seg_pub.publish(msg)
         self.tiles_published += 1
 
-    def _publish_batch(self, stored: Sequence[TileEstimate], segments: Sequence[Sequence]) -> None:
-        """Publish the final estimates one job made (``stored``, with their ``segments``) as one
-        TileSegmentsBatch: one message the stitcher stores in one transaction, instead of one
-        TileSegments per tile; their segments are kept decoded (:meth:`_keep_segments`)."""
+    def _publish_batch(
+        self, stored: Sequence[TileEstimate], segments: Sequence[Sequence], columns: SegmentColumns | None = None
+    ) -> None:
+        """Publish the final estimates one job made (``stored``, with their ``segments``, and these
+        in ``columns`` when at hand) as one TileSegmentsBatch: one message the stitcher stores in one
+        transaction, instead of one TileSegments per tile; their segments are kept decoded
+        (:meth:`_keep_segments`)."""
         tiles = [
             (
                 est.key,
@@ -670,7 +681,11 @@ class SegmentMapper(HealthMixin, Node):
             for est, segs in zip(stored, segments, strict=True)
         ]
         msg = tiles_to_batch(
-            tiles, tile_size_m=self.tile_config.tile_size_m, stamp_ns=time.time_ns(), types=self._tile_types
+            tiles,
+            tile_size_m=self.tile_config.tile_size_m,
+            stamp_ns=time.time_ns(),
+            types=self._tile_types,
+            columns=columns,
         )
         self._batch_pub.publish(msg)
         self.tiles_published += len(tiles)

@@ -31,7 +31,7 @@ import numpy as np
 
 from hdmap_core.live.tiles import TileKey
 from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
-from hdmap_core.segment_columns import SegmentColumns, columns_to_segments, segment_columns, split_by
+from hdmap_core.segment_columns import SegmentColumns, columns_to_segments, segment_columns, split_by, take_segments
 from hdmap_core.steps import Segment, StepObservations
 
 __all__ = [
@@ -608,19 +608,35 @@ class DriveStore(_Store):
         return est
 
     def put_tiles(
-        self, tiles: Sequence[tuple[TileKey, Sequence[Segment], Sequence[str]]], *, model_sig: str = ""
+        self,
+        tiles: Sequence[tuple[TileKey, Sequence[Segment], Sequence[str]]],
+        *,
+        model_sig: str = "",
+        columns: SegmentColumns | None = None,
     ) -> list[TileEstimate]:
         """Replace the estimates of many tiles (key, segments, drive ids) in one transaction (the
         live settle's region: all of them or none after a crash, one commit instead of one per
-        tile); returns them with their new versions, in order."""
+        tile); returns them with their new versions, in order. ``columns``: the tiles' segments
+        in columns, in order (``segment_columns``), when at hand: the blobs are cut from them."""
+        if columns is None:
+            blobs = [segments_to_blob(segs) for _, segs, _ in tiles]
+        else:
+            ends = np.cumsum([0] + [len(segs) for _, segs, _ in tiles])
+            if int(ends[-1]) != len(columns.pivots):
+                raise ValueError(
+                    f"put_tiles: {len(columns.pivots)} segments in the columns, {int(ends[-1])} in the tiles"
+                )
+            blobs = [columns_to_blob(take_segments(columns, int(a), int(b))) for a, b in zip(ends[:-1], ends[1:])]
         with self._tx() as con:
-            return [self._put_tile(con, key, segs, ids, model_sig) for key, segs, ids in tiles]
+            return [
+                self._put_tile(con, key, blob, ids, model_sig) for (key, _, ids), blob in zip(tiles, blobs, strict=True)
+            ]
 
     @staticmethod
     def _put_tile(
-        con, key: TileKey, segments: Sequence[Segment], drive_ids: Sequence[str], model_sig: str
+        con, key: TileKey, segments: Sequence[Segment] | bytes, drive_ids: Sequence[str], model_sig: str
     ) -> TileEstimate:
-        blob = segments_to_blob(segments)
+        blob = segments if isinstance(segments, bytes) else segments_to_blob(segments)
         ids = list(drive_ids)
         row = con.execute("SELECT version FROM tiles WHERE tx=? AND ty=?", key).fetchone()
         version = (row[0] if row else 0) + 1
