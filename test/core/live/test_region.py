@@ -52,3 +52,32 @@ def test_map_region_is_the_offline_pass_on_the_drive_set_cut_into_tiles():
         for sa, sb in zip(a.segments[k], b.segments[k]):
             for x, y in zip(sa.steps, sb.steps):
                 np.testing.assert_array_equal(x.lateral_m, y.lateral_m)
+
+
+@pytest.mark.slow
+def test_the_region_job_reading_its_drives_itself_makes_the_same_tiles():
+    """The mapper's worker reads the region's drives from the store (``load_drives``), already
+    checked when they came (``checked``): the tiles are those of the drives handed over."""
+    from hdmap_core.live.jobs import run_job
+    from hdmap_core.live.scheduler import REGION, Job
+    from hdmap_core.pipeline import presets
+    from hdmap_core.simulation.fleet import SimConfig, simulate_fleet
+    from hdmap_core.simulation.synthetic import synthetic_highway
+
+    gt = synthetic_highway("motorway", length_m=600.0, seed=4)
+    fleet = simulate_fleet(gt, config=SimConfig(n_drives=4, snippet_length_min_m=400, snippet_length_max_m=500), seed=4)
+    tc = TileConfig(tile_size_m=128.0, margin_m=64.0, seed=1)
+    pc = presets.preset("default")
+    keys = sorted({k for d in fleet.drives for k in tiles_of_drive(d, config=tc)})
+    used = sorted(fleet.drives, key=lambda d: d.drive_id)[1:]  # a store may hold more than the job's drives
+    job = Job(REGION, None, tuple(d.drive_id for d in used), "sig", final=True, tiles=tuple((k, ()) for k in keys))
+    kw = {"tile_config": tc, "pipeline_config": pc, "use_fleet_model": True}
+    handed = run_job(job, used, **kw)
+    read = run_job(job, [], load_drives=lambda: list(reversed(fleet.drives)), **kw)
+    checked = map_region(used, keys, tile_config=tc, pipeline_config=pc)
+    assert set(read.tiles) == set(keys)
+    for k in keys:
+        assert step_runs(read.tiles[k]) == step_runs(handed.tiles[k]) == step_runs(checked.segments[k])
+        for sa, sb in zip(read.tiles[k], checked.segments[k]):
+            for x, y in zip(sa.steps, sb.steps):
+                np.testing.assert_array_equal(x.lateral_m, y.lateral_m)

@@ -128,7 +128,7 @@ def test_map_publisher_markers_and_save_service(ros, tmp_path):
     from hdmap_msgs.srv import SaveMap
     from hdmap_ros.nodes.map_publisher import MapPublisher
 
-    ros.add(MapPublisher(context=ros.context))
+    node = ros.add(MapPublisher(context=ros.context))
     hdmap = make_map(n_features=3)
     t = rclpy_types()
     src = ros.node("source")
@@ -139,8 +139,10 @@ def test_map_publisher_markers_and_save_service(ros, tmp_path):
     fix = NavSatStatus(status=NavSatStatus.STATUS_FIX)
     origin_pub.publish(NavSatFix(status=fix, latitude=48.1, longitude=11.5, altitude=520.0))
     map_pub.publish(map_to_msg(hdmap, types=t))
+    wait_for(lambda: node.map is not None, 10, what="the map at the publisher")
+    assert node.lanes is None  # no reader of the markers yet: nothing drawn, no lanes derived
 
-    viewer = ros.node("viewer")  # joins after the map was published: markers are latched
+    viewer = ros.node("viewer")  # joins after the map was published: drawn then, and latched
     markers = _collect(viewer, MarkerArray, "/hdmap/markers", qos.LATCHED)
     arr = wait_for(lambda: markers and markers[-1], 10, what="markers")
     strips = [m for m in arr.markers if m.type == 4 and m.ns.startswith("features/")]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -73,6 +73,7 @@ def run_job(
     observations: Sequence | None = None,
     region_workers: int = 1,
     tile_segments: dict | None = None,
+    load_drives: Callable[[], Sequence[Drive]] | None = None,
 ) -> JobResult:
     """Run one job.
 
@@ -85,6 +86,10 @@ def run_job(
         region_workers: REGION: processes of its build (this one plus forked children; keep 1 in
             a process with native threads of its own, e.g. a ROS node).
         tile_segments: FUSE: every tile of the job -> its current (settled) segments.
+        load_drives: REGION: read the drives in this process instead of ``drives`` (the
+            mapper's store, read-only: no decoding and pickling of every drive in the mapper's
+            process); those ``job.drive_ids`` names are used. Either way they are the mapper's
+            stored drives, checked when they came (``map_region``'s ``checked``).
 
     Raises:
         ConfigError: a job of unknown kind, or a REMAP without a model.
@@ -105,7 +110,17 @@ def run_job(
         out = JobResult(tiles=reg.segments)
     elif job.kind == REGION:
         _work.clear()  # the region makes every tile: no kept observation pass is used any more
-        reg = map_region(drives, [k for k, _ in job.tiles], tile_config=tc, pipeline_config=pc, workers=region_workers)
+        if load_drives is not None:
+            wanted = set(job.drive_ids)
+            drives = [d for d in load_drives() if d.drive_id in wanted]
+        reg = map_region(
+            drives,
+            [k for k, _ in job.tiles],
+            tile_config=tc,
+            pipeline_config=pc,
+            workers=region_workers,
+            checked=True,  # the mapper's stored drives: checked with these bounds when they came
+        )
         out = JobResult(tiles=reg.segments, model=reg.model)
     elif job.key is None:
         raise ConfigError(f"a {job.kind} job needs a tile")

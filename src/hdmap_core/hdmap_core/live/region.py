@@ -81,6 +81,7 @@ def map_region(
     tile_config: TileConfig,
     pipeline_config: PipelineConfig,
     workers: int = 1,
+    checked: bool = False,
 ) -> RegionResult:
     """The tiles ``keys`` made from ``drives`` in one build (see the module docstring).
 
@@ -90,6 +91,9 @@ def map_region(
         tile_config: the tiling (``tile_size_m``; ``seed`` seeds the build).
         pipeline_config: the pipeline's options (as ``bag2map``'s).
         workers: processes for the passes (this one plus forked children; see ``map_stretches``).
+        checked: every drive passed ``validate_drive`` and ``check_plausible`` with
+            ``pipeline_config.plausibility`` already and no id repeats (the live mapper's store
+            keeps only such drives): not checked again.
 
     Raises:
         HdmapError: the pipeline's own errors.
@@ -98,7 +102,9 @@ def map_region(
     from hdmap_core.plausibility import prepare_drives  # noqa: PLC0415
 
     keys = [(int(k[0]), int(k[1])) for k in keys]
-    usable, _ = prepare_drives(sorted(drives, key=lambda d: d.drive_id), bounds=pipeline_config.plausibility)
+    usable = sorted(drives, key=lambda d: d.drive_id)
+    if not checked:
+        usable, _ = prepare_drives(usable, bounds=pipeline_config.plausibility)
     if not usable:
         return RegionResult({k: [] for k in keys})
     res = map_stretches(usable, config=pipeline_config, seed=tile_config.seed, validated=True, workers=workers)

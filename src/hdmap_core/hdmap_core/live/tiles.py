@@ -150,10 +150,12 @@ def tiles_of_drive(drive: Drive, *, config: TileConfig) -> set[TileKey]:
         return set()
     lo = np.floor((xy - margin) / size).astype(np.int64)
     hi = np.floor((xy + margin) / size).astype(np.int64)
+    rows = np.concatenate([lo, hi], axis=1)
+    rows = rows[np.concatenate([[True], np.any(rows[1:] != rows[:-1], axis=1)])]  # runs of points: once
     keys: set[TileKey] = set()
     # margin < size: each axis spans at most two tiles per point.
-    for ax in (lo[:, 0], hi[:, 0]):
-        for ay in (lo[:, 1], hi[:, 1]):
+    for ax in (rows[:, 0], rows[:, 2]):
+        for ay in (rows[:, 1], rows[:, 3]):
             keys.update(zip(ax.tolist(), ay.tolist()))
     return keys
 
@@ -170,8 +172,11 @@ def road_cells(drive: Drive, *, config: TileConfig) -> dict[TileKey, frozenset[t
         return {}
     cells = np.floor(xy / ROAD_CELL_M).astype(np.int64)
     tiles = np.floor(xy / config.tile_size_m).astype(np.int64)
+    rows = np.concatenate([tiles, cells], axis=1)
+    # consecutive points mostly share their cell (poses ~1 m apart): each run once
+    rows = rows[np.concatenate([[True], np.any(rows[1:] != rows[:-1], axis=1)])]
     out: dict[TileKey, set[tuple[int, int]]] = {}
-    for (tx, ty), (cx, cy) in zip(tiles.tolist(), cells.tolist()):
+    for tx, ty, cx, cy in rows.tolist():
         out.setdefault((tx, ty), set()).add((cx, cy))
     return {k: frozenset(v) for k, v in out.items()}
 

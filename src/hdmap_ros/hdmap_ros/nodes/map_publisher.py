@@ -5,7 +5,8 @@ Subscribes ``/hdmap/map`` and ``/fleet/origin`` (both latched). Publishes
 by type, plus the topology graph and the lanes (``hdmap_core.lanes``), and the road changes the map
 followed (``hdmap/changes``, hdmap_msgs/MapChange: each zone's polygon and the pieces it retired, in
 namespaces ``changes/zone`` and ``changes/retired``; the saved GeoJSON has the retired pieces,
-``kind`` "retired"). Offers ``/hdmap/save_map``
+``kind`` "retired"). The markers are made only while ``/hdmap/markers`` has a reader; a reader
+that comes later gets them made then (latched). Offers ``/hdmap/save_map``
 (hdmap_msgs/srv/SaveMap): writes the current map as a rosbag2 MCAP directory at ``path`` and, when
 the WGS84 origin is known, as GeoJSON (features and lanes) at ``path + ".geojson"`` and as a
 Lanelet2 / Autoware map directory at ``path + ".lanelet2"``.
@@ -18,6 +19,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from sensor_msgs.msg import NavSatFix
 from std_msgs.msg import Header
@@ -87,7 +89,13 @@ class MapPublisher(HealthMixin, Node):
         self.origin: GeoOrigin | None = None
         self._marker_types = rclpy_marker_types()
         t = rclpy_types()
-        self._markers_pub = self.create_publisher(self._marker_types.MarkerArray, MARKERS_TOPIC, qos.LATCHED)
+        self._drawn = True  # the latched markers show the current map and changes (or there is none)
+        self._markers_pub = self.create_publisher(
+            self._marker_types.MarkerArray,
+            MARKERS_TOPIC,
+            qos.LATCHED,
+            event_callbacks=PublisherEventCallbacks(matched=self._on_matched),
+        )
         self._map_sub = self.create_subscription(t.Map, MAP_TOPIC, self.on_map, qos.LATCHED)
         self._origin_sub = self.create_subscription(NavSatFix, ORIGIN_TOPIC, self.on_origin, qos.LATCHED)
         self._origin_live = self.create_subscription(NavSatFix, ORIGIN_TOPIC, self.on_origin, qos.ORIGIN_LIVE)
@@ -119,8 +127,7 @@ class MapPublisher(HealthMixin, Node):
             return
         self.changes[int(msg.id)] = (poly, retired)
         self.health.set("changes", len(self.changes))
-        if self.map is not None:
-            self._draw()
+        self._redraw()
 
     def on_map(self, msg) -> None:
         try:
@@ -130,14 +137,31 @@ class MapPublisher(HealthMixin, Node):
             self.get_logger().warning(f"map rejected: {err}")
             return
         self.lanes = None
-        self._draw()
+        self._redraw()
         self.health.accept()
         self.health.updated(time.time_ns())
         self.health.set("map_version", self.map.version)
 
+    def _redraw(self) -> None:
+        """The map or its changes changed: draw them for the readers of ``/hdmap/markers``.
+
+        RULE: the markers (with the lanes derived from each map version: ~2.5 s of CPU for the
+        134-drive ``paper_like`` map, in the process of every node under ``hdmap run``) are made
+        only while someone reads them; with no reader they are made when one matches
+        (:meth:`_on_matched`), so a late reader still gets the current ones (latched)."""
+        self._drawn = False
+        if self._markers_pub.get_subscription_count() > 0:
+            self._draw()
+
+    def _on_matched(self, status) -> None:
+        """A reader of ``/hdmap/markers`` came (or went): draw what it has not been shown yet."""
+        if status.current_count > 0 and not self._drawn:
+            self._draw()
+
     def _draw(self) -> None:
         if self.map is None:
             return
+        self._drawn = True
         header = Header(frame_id=self.map.frame_id, stamp=self.get_clock().now().to_msg())
         self._markers_pub.publish(
             map_to_markers(

@@ -84,7 +84,7 @@ from hdmap_ros.nodes._common import (
     run_node,
     state_path,
 )
-from hdmap_ros.persistence.store import DriveStore, TileEstimate, blob_to_drive
+from hdmap_ros.persistence.store import DriveStore, TileEstimate, blob_to_drive, read_drives
 
 __all__ = ["SegmentMapper", "main"]
 
@@ -528,7 +528,13 @@ class SegmentMapper(HealthMixin, Node):
             # forked children only from a worker process, never from this one (native threads)
             kw["region_workers"] = self.workers if self.workers > 1 else 1
             self._home.clear()
-        drives = self._drives(job.drive_ids) if job.kind != MODEL else []
+        if job.kind == REGION and self.workers > 1 and self.store.path != ":memory:":
+            # RULE: the region's worker reads every drive from the store itself (read-only): not
+            # decoded here and pickled over, in this process of every node, on the settle's path
+            kw["load_drives"] = functools.partial(read_drives, self.store.path)
+            drives: list[Drive] = []
+        else:
+            drives = self._drives(job.drive_ids) if job.kind != MODEL else []
         if job.kind == FUSE:
             # RULE: a fusion runs here, where its tiles' settled segments are kept decoded: on a
             # worker, the segments of its ~100 tiles and the fused ones were pickled there and back
