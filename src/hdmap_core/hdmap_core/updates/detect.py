@@ -40,8 +40,8 @@ most of them show). A place of another kind whose own change point lies before t
 only if its series also shows its change with the split at that time; else it is left out, with
 the places grown from it: its drives after include drives that passed before the change, and as
 one of the change's kinds it would make a shift something else (a one-place wrong-type step of
-two drives a day before a 1.0 m shift, and one after it, turned the shift into a re-striping for
-``updates.unseen``, which then left the lines no drive after it saw out of the rebuilt zone).
+two drives a day before a 1.0 m shift and one after it made the shift a `geometry` and `type`
+change, for which ``updates.unseen`` does not model the lines no drive after it saw).
 """
 
 from __future__ import annotations
