@@ -34,6 +34,14 @@ near 0, so it confirms nothing. Confirmed places of one direction that touch are
 grows along the road into neighbouring places where the drives after its time (even one) show the
 same effect: the tapers and the stretches fewer drives passed (carried by the drives in evidence:
 one of them must show the effect there, and no drive after the change the opposite).
+
+The places of one change agree on its time (the median change point of its places of the kind
+most of them show). A place of another kind whose own change point lies before that time stays
+only if its series also shows its change with the split at that time; else it is left out, with
+the places grown from it: its drives after include drives that passed before the change, and as
+one of the change's kinds it would make a shift something else (a one-place wrong-type step of
+two drives a day before a 1.0 m shift and one after it made the shift a `geometry` and `type`
+change, for which ``updates.unseen`` does not model the lines no drive after it saw).
 """
 
 from __future__ import annotations
@@ -148,6 +156,7 @@ def change_point(
     noise: np.ndarray | None = None,
     fleet_spread: float = 0.0,
     min_each: float = 0.0,
+    split: int | None = None,
 ) -> tuple[int, float, float] | None:
     """(index of the first after-value, effect, z) of the earliest change point of ``values``
     (time ordered, no NaN), or None (module docstring).
@@ -168,9 +177,11 @@ def change_point(
     own scatter over the road (``drive_scatter``); an after-drive must lie at least twice its
     own scatter from the before median (a drive off everywhere says nothing of this place).
     ``min_each``: every after-value lies at least this far from the before median (a share: a
-    changed line is at least half the markings near a drive)."""
+    changed line is at least half the markings near a drive). ``split``: only the split with
+    that many values before it is tested."""
     n = len(values)
-    for k in range(min_before, n - min_after + 1):
+    splits = range(min_before, n - min_after + 1)
+    for k in splits if split is None else [split] if split in splits else []:
         before, after = values[:k], values[k:]
         med = float(np.median(before))
         dev = after - med
@@ -243,6 +254,55 @@ def drive_scatter(evidence: Sequence[PlaceEvidence]) -> dict[str, float]:
     return out
 
 
+def _series_change(
+    rows: list[PlaceEvidence],
+    key: PlaceKey,
+    name: str,
+    config: ChangeConfig,
+    spreads: dict[str, float],
+    scatter: dict[str, float],
+    at_ns: int | None = None,
+) -> PlaceChange | None:
+    """The change of series ``name`` at one place (its evidence in time order), if any: at its
+    earliest change point, or with ``at_ns`` at the split there only (the drives before that
+    time before it)."""
+    vals = np.array([series_value(e, name, config) for e in rows])
+    ok = np.isfinite(vals)
+    used = [e for e, good in zip(rows, ok) if good]
+    geometric = name == "displacement"
+    found = change_point(
+        vals[ok],
+        min_effect=config.min_shift_m if geometric else config.min_share,
+        floor=config.displacement_floor_m if geometric else config.share_floor,
+        z_min=config.z_min,
+        min_before=config.min_before,
+        min_after=config.min_after if geometric else config.min_after_shares,
+        heavy_tails=not geometric,
+        noise=np.array([scatter.get(e.drive_id, 0.0) for e in used]) if geometric else None,
+        fleet_spread=spreads.get(name, 0.0),
+        min_each=0.0 if geometric else config.min_share_drive,
+        split=None if at_ns is None else sum(e.time_ns < at_ns for e in used),
+    )
+    if found is None:
+        return None
+    k, effect, z = found
+    before_med = float(np.median(vals[ok][:k]))
+    if not geometric and (effect <= 0 or before_med > config.max_share_before):
+        return None  # fewer wrong / missed / extra, or a place the map never agreed on
+    if geometric and abs(before_med) > config.min_shift_m:
+        return None  # the map lies off its own drives before: a poor consensus there, no evidence
+    return PlaceChange(
+        key,
+        SERIES[name],
+        used[k].time_ns,
+        used[k - 1].time_ns,
+        effect,
+        z,
+        tuple(e.drive_id for e in used[:k]),
+        tuple(e.drive_id for e in used[k:]),
+    )
+
+
 def _confirm(
     rows: list[PlaceEvidence],
     key: PlaceKey,
@@ -254,42 +314,9 @@ def _confirm(
     ``spreads``: the fleet's spread per series (``series_spread``); ``scatter``: each drive's
     own (``drive_scatter``), for the displacement."""
     best: PlaceChange | None = None
-    for name, kind in SERIES.items():
-        vals = np.array([series_value(e, name, config) for e in rows])
-        ok = np.isfinite(vals)
-        used = [e for e, good in zip(rows, ok) if good]
-        geometric = name == "displacement"
-        found = change_point(
-            vals[ok],
-            min_effect=config.min_shift_m if geometric else config.min_share,
-            floor=config.displacement_floor_m if geometric else config.share_floor,
-            z_min=config.z_min,
-            min_before=config.min_before,
-            min_after=config.min_after if geometric else config.min_after_shares,
-            heavy_tails=not geometric,
-            noise=np.array([scatter.get(e.drive_id, 0.0) for e in used]) if geometric else None,
-            fleet_spread=spreads.get(name, 0.0),
-            min_each=0.0 if geometric else config.min_share_drive,
-        )
-        if found is None:
-            continue
-        k, effect, z = found
-        before_med = float(np.median(vals[ok][:k]))
-        if not geometric and (effect <= 0 or before_med > config.max_share_before):
-            continue  # fewer wrong / missed / extra, or a place the map never agreed on
-        if geometric and abs(before_med) > config.min_shift_m:
-            continue  # the map lies off its own drives before: a poor consensus there, no evidence
-        cand = PlaceChange(
-            key,
-            kind,
-            used[k].time_ns,
-            used[k - 1].time_ns,
-            effect,
-            z,
-            tuple(e.drive_id for e in used[:k]),
-            tuple(e.drive_id for e in used[k:]),
-        )
-        if best is None or z > best.z:
+    for name in SERIES:
+        cand = _series_change(rows, key, name, config, spreads, scatter)
+        if cand is not None and (best is None or cand.z > best.z):
             best = cand
     return best
 
@@ -358,6 +385,37 @@ def grow_changes(
     return changed
 
 
+def _components(changed: dict[PlaceKey, PlaceChange], places: Places) -> list[list[PlaceChange]]:
+    """Touching places of ``changed`` (connected components along the road) that hold a place
+    confirmed on its own, each sorted by key."""
+    out: list[list[PlaceChange]] = []
+    seen: set[PlaceKey] = set()
+    for key in sorted(changed):
+        if key in seen or changed[key].extended:
+            continue
+        comp, stack = [], [key]
+        seen.add(key)
+        while stack:
+            k = stack.pop()
+            comp.append(changed[k])
+            for nb in places.neighbours(k):
+                if nb in changed and nb not in seen:
+                    seen.add(nb)
+                    stack.append(nb)
+        out.append(sorted(comp, key=lambda p: p.key))
+    return out
+
+
+def _main_kind_time(comp: Sequence[PlaceChange]) -> tuple[str, int]:
+    """The kind most of ``comp``'s own places show (geometry on a tie) and the (lower) median
+    change point of those places: the change's time."""
+    own = [p for p in comp if not p.extended]
+    kinds = [p.kind for p in own]
+    main = max(set(kinds), key=lambda k: (kinds.count(k), k == "geometry"))
+    times = sorted(p.time_ns for p in own if p.kind == main)
+    return main, times[(len(times) - 1) // 2]
+
+
 def detect_changes(
     evidence: Sequence[PlaceEvidence], places: Places, *, config: ChangeConfig = ChangeConfig(), workers: int = 1
 ) -> list[DetectedChange]:
@@ -384,27 +442,27 @@ def detect_changes(
     changed = grow_changes(
         confirmed, places, lambda nb, c: _extends(by_place[nb], nb, c, config) if nb in by_place else None
     )
-    # Touching places of one change: connected components (the drives in evidence).
+    # Touching places of one change: connected components (the drives in evidence). Its places
+    # agree on its time: a place of another kind whose change point lies before it stays only
+    # if its series shows the change with the split at that time too (module docstring)
+    name = {kind: n for n, kind in SERIES.items()}
+    comps = []
+    for comp in _components(changed, places):
+        main, t = _main_kind_time(comp)
+        early = {
+            (p.kind, p.time_ns)
+            for p in comp
+            if not p.extended
+            and p.kind != main
+            and p.time_ns < t
+            and _series_change(by_place[p.key], p.key, name[p.kind], config, spreads, scatter, at_ns=t) is None
+        }
+        # left out with the places grown from them (their kind and time)
+        comps += _components({p.key: p for p in comp if (p.kind, p.time_ns) not in early}, places) if early else [comp]
     out: list[DetectedChange] = []
-    seen: set[PlaceKey] = set()
-    for key in sorted(changed):
-        if key in seen or changed[key].extended:
-            continue
-        comp, stack = [], [key]
-        seen.add(key)
-        while stack:
-            k = stack.pop()
-            comp.append(changed[k])
-            for nb in places.neighbours(k):
-                if nb in changed and nb not in seen:
-                    seen.add(nb)
-                    stack.append(nb)
-        comp.sort(key=lambda p: p.key)
+    for comp in comps:
         own = [p for p in comp if not p.extended]
-        kinds = [p.kind for p in own]
-        main = max(set(kinds), key=lambda k: (kinds.count(k), k == "geometry"))
-        times = sorted(p.time_ns for p in own if p.kind == main)
-        t = times[(len(times) - 1) // 2]  # the (lower) median change point of the main kind
+        main, t = _main_kind_time(comp)
         z = max(p.z for p in own)
         after_t = {e.drive_id for p in comp for e in by_place[p.key] if e.time_ns >= t}
         digest = hashlib.sha1(repr(([p.key for p in comp], t)).encode()).digest()

@@ -1,0 +1,88 @@
+"""The places of one change agree on its time (updates/detect.py): a touching place of another
+kind whose own change point lies before the change's, and whose series shows no change at the
+change's time, is left out of it (as one of its kinds it took the shift's model of its unseen
+lines away: ``updates.unseen``; bench_changes shift1.0, seed 0, after 3 drives)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hdmap_core.updates.config import ChangeConfig
+from hdmap_core.updates.detect import detect_changes
+from hdmap_core.updates.evidence import PlaceEvidence
+from hdmap_core.updates.places import Places
+
+N_PLACES = 11  # along a straight road: places (i, 0, 0), i = 0..10
+PLACES = Places(100.0, {(i, 0): 0.0 for i in range(N_PLACES)})
+HOUR = 3_600_000_000_000
+TYPED = 2  # the place with type evidence, touching the shifted places 3-6
+
+
+def _evidence(moved: np.ndarray, wrong: dict[int, float]) -> list[PlaceEvidence]:
+    """Per drive (rows of ``moved``, time order) and place its displacement [m]; at place TYPED
+    the drives in ``wrong`` read that share of 20 typed points as the other type (the others too
+    few typed points there: NaN), every other place no type evidence."""
+    out = []
+    for d, row in enumerate(moved):
+        for i, v in enumerate(row):
+            typed = 20 if i == TYPED and d in wrong else 0
+            out.append(
+                PlaceEvidence(
+                    drive_id=f"d{d:02d}",
+                    time_ns=(d + 1) * HOUR,
+                    key=(i, 0, 0),
+                    n_cuts=25,
+                    offset_m=float(v),
+                    anchor_m=0.0,
+                    anchored_on_borders=True,
+                    displacement_m=float(v),
+                    n_pairs=40,
+                    n_typed=typed,
+                    n_wrong_type=int(round(20 * wrong.get(d, 0.0))) if typed else 0,
+                    n_map_near=0,
+                    n_missed=0,
+                    n_drive_near=0,
+                    n_extra=0,
+                )
+            )
+    return out
+
+
+def _shifted() -> np.ndarray:
+    """15 drives, the last 3 after the markings of places 3-6 moved 1.0 m (drives scatter 0.03 m)."""
+    v = np.random.default_rng(0).normal(0.0, 0.03, (15, N_PLACES))
+    v[12:, 3:7] += 1.0
+    return v
+
+
+def test_a_touching_type_step_of_drives_before_the_change_is_left_out():
+    """At place 2, beside the shifted places 3-6, drives 7 and 9 (before the shift) and 13 (after
+    it) read half the markings as the other type, drive 8 reads 5 % (one in 4 after a share's
+    change point may dissent); 7 drives before read none. Its own change point is drive 7's.
+    With the split at the shift's time (drive 12) only drive 13 is after it: no change then. So
+    the shift is a shift (kinds `geometry` only), the same change as without place 2's type
+    evidence. Before this rule it was one change of kinds `geometry` and `type`, with place 2."""
+    wrong = {**{d: 0.0 for d in range(7)}, 7: 0.5, 8: 0.05, 9: 0.5, 13: 0.5}
+    (shift,) = detect_changes(_evidence(_shifted(), wrong), PLACES, config=ChangeConfig())
+    assert shift.kinds == ("geometry",)
+    assert shift.keys == {(i, 0, 0) for i in range(3, 7)}
+    assert shift.time_ns == 13 * HOUR
+    assert shift.drives_after == ("d12", "d13", "d14")
+    (alone,) = detect_changes(_evidence(_shifted(), {}), PLACES, config=ChangeConfig())
+    assert alone == shift
+    # the place's own series is a change (drive 7 on): what leaves it out is the shift's time
+    typed_only = _shifted()
+    typed_only[12:, 3:7] -= 1.0
+    (typed,) = detect_changes(_evidence(typed_only, wrong), PLACES, config=ChangeConfig())
+    assert typed.kinds == ("type",) and typed.keys == {(TYPED, 0, 0)} and typed.time_ns == 8 * HOUR
+
+
+def test_a_touching_type_step_at_the_change_time_is_part_of_it():
+    """The same place 2 read half wrong by the 3 drives after the shift and by none of 9 before
+    (a re-striping that came with it): its change point is the shift's, and it is one change of
+    both kinds."""
+    wrong = {**{d: 0.0 for d in range(9)}, 12: 0.5, 13: 0.5, 14: 0.5}
+    (change,) = detect_changes(_evidence(_shifted(), wrong), PLACES, config=ChangeConfig())
+    assert change.kinds == ("geometry", "type")
+    assert change.keys == {(i, 0, 0) for i in range(2, 7)}
+    assert change.time_ns == 13 * HOUR
