@@ -222,10 +222,12 @@ def run(args: argparse.Namespace) -> int:
     if args.graphml and Path(args.graphml).is_dir():
         return _fail(f"--graphml {args.graphml} is a directory")
 
-    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
+    from hdmap_core.parallel import SpareWork, available_cpus  # noqa: PLC0415
     from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
     from hdmap_core.pipeline.overrides import config_from  # noqa: PLC0415
     from hdmap_core.pipeline.presets import FOLLOWS_CHANGES  # noqa: PLC0415
+    from hdmap_core.updates.config import ChangeConfig  # noqa: PLC0415
+    from hdmap_core.updates.follow import own_side  # noqa: PLC0415
 
     try:  # a bad --set is named before the bag is read
         config = config_from(args.preset, dict(args.overrides))
@@ -251,12 +253,20 @@ def run(args: argparse.Namespace) -> int:
     if args.lanelet2 and origin is None:
         return _fail(f"--lanelet2 needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
 
-    with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
-        result = pipeline.build_map(
-            fleet.drives, config=config, seed=args.seed, progress=progress, workers=args.workers or available_cpus()
-        )
+    workers = args.workers or available_cpus()
+    follow = args.follow_changes if args.follow_changes is not None else FOLLOWS_CHANGES.get(args.preset, False)
+    change_config = ChangeConfig()
+    # the drives' side of the follow's comparison with the map (their cuts and their own lines on
+    # them) needs no map: with more than one worker it is made meanwhile, on the CPU time the
+    # build leaves idle (its serial stages, the passes' uneven shares)
+    ahead = follow and workers > 1
+    with (
+        _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress,
+        SpareWork(lambda i: own_side(fleet.drives[i], change_config), len(fleet.drives) if ahead else 0) as spare,
+    ):
+        result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress, workers=workers)
         history = None
-        if args.follow_changes if args.follow_changes is not None else FOLLOWS_CHANGES.get(args.preset, False):
+        if follow:
             from hdmap_core.updates.follow import follow_changes, history_to_dict  # noqa: PLC0415
 
             first = result
@@ -268,16 +278,13 @@ def run(args: argparse.Namespace) -> int:
                 if drives is usable:  # the map of every drive: built above
                     return first.map, first.report
                 result = pipeline.build_map(
-                    list(drives),
-                    config=config,
-                    seed=args.seed,
-                    progress=progress,
-                    workers=args.workers or available_cpus(),
+                    list(drives), config=config, seed=args.seed, progress=progress, workers=workers
                 )
                 return result.map, result.report
 
+            sides = {fleet.drives[i].drive_id: side for i, side in spare.take().items()}
             followed = follow_changes(
-                usable, build=build, bounds=None, workers=args.workers or available_cpus()
+                usable, build=build, config=change_config, bounds=None, workers=workers, sides=sides
             )  # usable: checked above
             history = history_to_dict(followed)
             # a local rebuild maps the changed places only: the run's figures are the first build's
