@@ -464,6 +464,7 @@ def follow_changes(
     taper_places: int = 1,
     workers: int = 1,
     sides: Mapping[str, OwnSide] | None = None,
+    places: Places | None = None,
 ) -> FollowResult:
     """The map of ``drives`` as of the last of them: the map of every drive (``build``), then
     :func:`follow_map` on it (module docstring).
@@ -476,7 +477,8 @@ def follow_changes(
             them (or malformed) is left out here as the build leaves it out, so that no evidence
             is computed on it (a pose at 1e12 m would ask for terabytes). ``drives`` is passed
             to ``build`` as given when every drive keeps them.
-        local, margin_places, taper_places, workers, sides: as :func:`follow_map`.
+        local, margin_places, taper_places, workers, sides, places: as :func:`follow_map` (``places``
+            of the drives as given, used only when every drive keeps the bounds).
     """
     usable, rejected = prepare_drives(drives, bounds=bounds)
     if rejected:
@@ -501,6 +503,7 @@ def follow_changes(
         taper_places=taper_places,
         workers=workers,
         sides=sides,
+        places=None if rejected else places,
     )
     # the first (whole) build's report, unless the whole map was built again
     report = reports[-1] if result.changes and not local else reports[0]
@@ -518,6 +521,7 @@ def follow_map(
     taper_places: int = 1,
     workers: int = 1,
     sides: Mapping[str, OwnSide] | None = None,
+    places: Places | None = None,
 ) -> FollowResult:
     """An existing map of ``drives`` made to follow the changes of the road they show.
 
@@ -546,6 +550,7 @@ def follow_map(
             result is the same with any number.
         sides: the drives' ``own_side`` (their side of the comparison, which no map changes),
             made before, by drive id; the others' are made here (the same result).
+        places: ``places_of(drives, cell_m=config.cell_m)`` made before (else made here).
 
     Returns:
         The followed map (``first_map`` itself when nothing changed, its version grown by the
@@ -554,7 +559,8 @@ def follow_map(
         ``report`` is None: ``build`` gives none.
     """
     t1 = time.perf_counter()
-    places = places_of(drives, cell_m=config.cell_m)
+    if places is None or places.cell_m != config.cell_m:
+        places = places_of(drives, cell_m=config.cell_m)
     # each drive's own records kept (ids unique): where the map as it was is put in, only the
     # drives near it are compared again
     records = (

@@ -228,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
     from hdmap_core.pipeline.presets import FOLLOWS_CHANGES  # noqa: PLC0415
     from hdmap_core.updates.config import ChangeConfig  # noqa: PLC0415
     from hdmap_core.updates.follow import own_side  # noqa: PLC0415
+    from hdmap_core.updates.places import places_of  # noqa: PLC0415
 
     try:  # a bad --set is named before the bag is read
         config = config_from(args.preset, dict(args.overrides))
@@ -256,12 +257,13 @@ def run(args: argparse.Namespace) -> int:
     workers = args.workers or available_cpus()
     follow = args.follow_changes if args.follow_changes is not None else FOLLOWS_CHANGES.get(args.preset, False)
     change_config = ChangeConfig()
-    # the drives' side of the follow's comparison with the map (their cuts and their own lines on
-    # them) needs no map: with more than one worker it is made meanwhile, on the CPU time the
-    # build leaves idle (its serial stages, the passes' uneven shares)
+    # the follow's places and the drives' side of its comparison with the map (their cuts and
+    # their own lines on them) need no map: with more than one worker they are made meanwhile, on
+    # the CPU time the build leaves idle (its serial stages, the passes' uneven shares)
     ahead = follow and workers > 1
     with (
         _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress,
+        SpareWork(lambda _: places_of(fleet.drives, cell_m=change_config.cell_m), int(ahead)) as spare_places,
         SpareWork(lambda i: own_side(fleet.drives[i], change_config), len(fleet.drives) if ahead else 0) as spare,
     ):
         result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress, workers=workers)
@@ -283,8 +285,16 @@ def run(args: argparse.Namespace) -> int:
                 return result.map, result.report
 
             sides = {fleet.drives[i].drive_id: side for i, side in spare.take().items()}
+            # the places of every drive read: those of the drives used when the build used every one
+            places = spare_places.take().get(0) if len(usable) == len(fleet.drives) else None
             followed = follow_changes(
-                usable, build=build, config=change_config, bounds=None, workers=workers, sides=sides
+                usable,
+                build=build,
+                config=change_config,
+                bounds=None,
+                workers=workers,
+                sides=sides,
+                places=places,
             )  # usable: checked above
             history = history_to_dict(followed)
             # a local rebuild maps the changed places only: the run's figures are the first build's
