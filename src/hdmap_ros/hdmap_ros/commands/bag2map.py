@@ -81,7 +81,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="processes for the pivot passes; independent parts of the map (e.g. the two carriageways) "
-        "run apart and the map is the same as with 1 (default: the CPUs available); with --tiled: Dask "
+        "run apart and the map is the same as with 1 (default: the CPUs available); with N > 1 the "
+        "drives' side of the change following's comparison is also made ahead, at the lowest priority, "
+        "on the CPU time the build leaves idle; with --tiled: Dask "
         "worker processes of a LocalCluster (default: 1, the tiles in this process)",
     )
     parser.add_argument(
