@@ -289,6 +289,11 @@ def run(args: argparse.Namespace) -> int:
             sides = {fleet.drives[i].drive_id: side for i, side in spare.take().items()}
             # the places of every drive read: those of the drives used when the build used every one
             places = spare_places.take().get(0) if len(usable) == len(fleet.drives) else None
+            if ahead:
+                print(
+                    f"made ahead on idle CPU time: {len(sides)} of {len(fleet.drives)} drives' side of the comparison"
+                    + (", the places" if places is not None else "")
+                )
             followed = follow_changes(
                 usable,
                 build=build,
