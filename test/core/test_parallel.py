@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 
 import numpy as np
 import pytest
 
 from hdmap_core.errors import ConfigError
-from hdmap_core.parallel import ForkWorker, can_fork, split_order
+from hdmap_core.parallel import ForkWorker, SpareWork, can_fork, split_order
 from hdmap_core.pipeline import driver as pipeline
 from hdmap_core.pipeline import presets
 from hdmap_core.pipeline.driver import build_map, map_stretches, prepare_drives
@@ -297,3 +298,36 @@ def test_a_worker_ends_when_its_parent_is_killed(tmp_path, kind):
     finally:
         if _alive(worker):
             os.kill(worker, 9)
+
+
+@pytest.mark.skipif(not can_fork(), reason="needs fork")
+def test_spare_work_gives_what_it_finished_computed_at_the_lowest_priority():
+    def fn(i):
+        return i, np.arange(i, dtype=float), os.nice(0)
+
+    with SpareWork(fn, 5) as spare:
+        done = spare.take(wait=True)
+        assert spare.take() == {}  # taken once
+    assert sorted(done) == list(range(5))
+    for i, (j, values, niceness) in done.items():
+        assert j == i and np.array_equal(values, np.arange(i, dtype=float))
+        assert niceness == 19
+
+
+@pytest.mark.skipif(not can_fork(), reason="needs fork")
+def test_spare_work_stopped_early_gives_only_finished_items(tmp_path):
+    started = tmp_path / "started_2"
+
+    def fn(i):
+        if i == 2:
+            started.touch()  # items 0 and 1 are written by now
+            time.sleep(3600)  # stopped here by take()
+        return i * i
+
+    spare = SpareWork(fn, 4)
+    deadline = time.monotonic() + 30
+    while not started.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    t0 = time.monotonic()
+    assert spare.take() == {0: 0, 1: 1}
+    assert time.monotonic() - t0 < 5

@@ -5,6 +5,10 @@ pivot passes, ``pipeline.sampling.pivot_groups`` unites drives that may meet on 
 independent groups; ``split_order`` cuts the global pivot order into shares of whole groups, and
 each share runs in its own process in that order, so the merged result is the one-process result.
 
+``SpareWork`` computes items ahead in a forked child at the lowest priority, on the CPU time the
+other processes leave idle (e.g. the second core while a 2-core run does serial work); the caller
+takes what it finished and computes the rest itself: the same results either way.
+
 ``ForkWorker`` runs one share of the groups in a forked child process (Linux/Unix ``fork``: the
 child inherits the detection index and the drives, nothing is pickled on the way in; results come
 back through a pipe). A child that fails for any reason is reported by ``result()`` returning
@@ -18,6 +22,9 @@ import functools
 import logging
 import multiprocessing
 import os
+import pickle
+import struct
+import tempfile
 import threading
 import time
 import traceback
@@ -34,6 +41,7 @@ except ImportError:  # pragma: no cover
 
 __all__ = [
     "ForkWorker",
+    "SpareWork",
     "available_cpus",
     "balance",
     "can_fork",
@@ -265,3 +273,77 @@ def exit_with_parent(parent_pid: int) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+class SpareWork:
+    """``fn(i)`` for ``i`` in ``range(n)``, computed ahead in a forked child at the lowest
+    priority (nice 19): it runs on CPU time the other processes leave idle and gives way to them
+    everywhere else. :meth:`take` stops it and returns what it finished, ``{i: fn(i)}``; the
+    caller computes the rest itself (the same results: ``fn`` is the same function on the same
+    data, inherited by the fork).
+
+    Results go to an anonymous temporary file (one record per item: index, size, pickle), not
+    a pipe: a starved child need not run again to hand them over, it is killed and its complete
+    records read. Nothing is started where ``fork`` is missing (``take`` then returns ``{}``).
+    """
+
+    _HEAD = struct.Struct("<qq")
+
+    def __init__(self, fn: Callable[[int], Any], n: int) -> None:
+        self._file = tempfile.TemporaryFile()
+        self._proc: multiprocessing.process.BaseProcess | None = None
+        if n < 1 or not can_fork():
+            return
+        ctx = multiprocessing.get_context("fork")
+        proc = ctx.Process(
+            target=_spare_main, args=(fn, n, self._file.fileno(), os.getpid()), name="spare-work", daemon=True
+        )
+        try:
+            proc.start()
+        except (AssertionError, OSError) as err:  # e.g. a daemonic process may not have children
+            _LOG.debug("no spare worker: %r", err)
+            return
+        self._proc = proc
+
+    def take(self, *, wait: bool = False) -> dict[int, Any]:
+        """Stop the child (``wait``: let it finish every item first); the items it finished
+        (none after the first call)."""
+        if self._proc is not None:
+            if wait:
+                self._proc.join()
+            self._proc.kill()
+            self._proc.join()
+            self._proc = None
+        if self._file.closed:
+            return {}
+        self._file.seek(0)
+        data = memoryview(self._file.read())
+        self._file.close()
+        out: dict[int, Any] = {}
+        pos, head = 0, self._HEAD.size
+        while pos + head <= len(data):
+            i, size = self._HEAD.unpack_from(data, pos)
+            if pos + head + size > len(data):
+                break  # the record being written when the child was stopped
+            out[i] = pickle.loads(data[pos + head : pos + head + size])
+            pos += head + size
+        return out
+
+    def __enter__(self) -> SpareWork:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.take()
+
+
+def _spare_main(fn: Callable[[int], Any], n: int, fd: int, parent_pid: int) -> None:
+    os.nice(19)
+    exit_with_parent(parent_pid)
+    try:
+        for i in range(n):
+            blob = pickle.dumps(fn(i), protocol=pickle.HIGHEST_PROTOCOL)
+            record = memoryview(SpareWork._HEAD.pack(i, len(blob)) + blob)
+            while len(record):
+                record = record[os.write(fd, record) :]
+    except Exception:  # noqa: BLE001 - the caller computes what is missing
+        _LOG.debug("spare work stopped:\n%s", traceback.format_exc())

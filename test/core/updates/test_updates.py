@@ -8,6 +8,7 @@ import pytest
 
 from hdmap_core.evaluation.zone import evaluate_zone
 from hdmap_core.model import Detection
+from hdmap_core.parallel import SpareWork
 from hdmap_core.pipeline.driver import PipelineConfig, build_map
 from hdmap_core.simulation.changes import change_zone, parse_change
 from hdmap_core.simulation.config import SimConfig
@@ -17,7 +18,14 @@ from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import change_point, detect_changes
 from hdmap_core.updates.edges import fleet_edge_evidence
 from hdmap_core.updates.evidence import fleet_evidence
-from hdmap_core.updates.follow import cut_before_changes, fleet_comparison, follow_changes
+from hdmap_core.updates.follow import (
+    cut_before_changes,
+    drive_comparisons,
+    fleet_comparison,
+    follow_changes,
+    own_side,
+    unwrapped,
+)
 from hdmap_core.updates.places import places_of
 
 N_BEFORE, N_AFTER = 14, 4
@@ -157,3 +165,18 @@ def test_the_drives_compared_on_two_processes_give_the_serial_records(road):
         # repr: every field, NaN included, to the last bit of each float
         assert [repr(e) for e in par_evidence] == [repr(e) for e in evidence]
         assert [repr(e) for e in par_edges] == [repr(e) for e in edges]
+    # the drives' own sides made ahead (every drive's in a spare process, or every other drive's)
+    with SpareWork(lambda i: own_side(drives[i], ChangeConfig()), len(drives)) as spare:
+        ahead = {drives[i].drive_id: side for i, side in spare.take(wait=True).items()}
+    assert len(ahead) == len(drives)
+    some = {d.drive_id: ahead[d.drive_id] for d in drives[::2]}
+    for sides, workers in ((ahead, 1), (some, 2)):
+        records = drive_comparisons(drives, hdmap, places, config=ChangeConfig(), workers=workers, sides=sides)
+        got_evidence, got_edges = unwrapped(records, ChangeConfig())
+        assert [repr(e) for e in got_evidence] == [repr(e) for e in evidence]
+        assert [repr(e) for e in got_edges] == [repr(e) for e in edges]
+    # made with other cuts: not used
+    other = ChangeConfig(cut_step_m=2.0)
+    stale = {d.drive_id: own_side(d, other) for d in drives}
+    records = drive_comparisons(drives, hdmap, places, config=ChangeConfig(), sides=stale)
+    assert [repr(e) for e in unwrapped(records, ChangeConfig())[0]] == [repr(e) for e in evidence]

@@ -64,6 +64,8 @@ from hdmap_core.updates.unseen import ModelledMarking, UnseenMove
 __all__ = [
     "EdgeEvidence",
     "edge_evidence",
+    "EdgeSide",
+    "edge_side",
     "detect_edge_changes",
     "merge_changes",
     "opened_edge_moved",
@@ -106,6 +108,38 @@ def _rightmost(cut: np.ndarray, s: np.ndarray, k: int, reach: float) -> np.ndarr
     return out
 
 
+@dataclass(frozen=True)
+class EdgeSide:
+    """The drive's own side of ``edge_evidence``, which no map changes: its cuts every
+    ``_STEP_M`` (center (K, 2), unit tangent (K, 2), yaw (K,)), ``view_m`` to each side, and its
+    solid and dashed markings on them (cut, lateral position; None: it saw none; the dashed ones
+    only where it saw a solid one)."""
+
+    view_m: float
+    center: np.ndarray
+    tangent: np.ndarray
+    yaw: np.ndarray
+    solid: tuple[np.ndarray, np.ndarray] | None
+    dashed: tuple[np.ndarray, np.ndarray] | None
+
+
+def edge_side(drive: Drive, config: ChangeConfig = ChangeConfig()) -> EdgeSide:
+    """``drive``'s own side of its edge evidence (``EdgeSide``); a drive of at least 2 poses."""
+    center, tangent, yaw = drive_cuts(drive, _STEP_M)
+
+    def on_cuts(kind: int) -> tuple[np.ndarray, np.ndarray] | None:
+        dets = [d for d in drive.detections if int(d.type) == kind and len(d.points) >= 2]
+        if not dets:
+            return None
+        cut, _, s = lines_on_cuts(
+            center, tangent, config.view_m, segments_of([np.asarray(d.points, dtype=float) for d in dets])
+        )
+        return cut, s
+
+    solid = on_cuts(_SOLID)
+    return EdgeSide(config.view_m, center, tangent, yaw, solid, on_cuts(_DASHED) if solid is not None else None)
+
+
 def edge_evidence(
     drive: Drive,
     solids: HDMap | tuple,
@@ -113,20 +147,21 @@ def edge_evidence(
     anchors: dict[PlaceKey, float],
     *,
     config: ChangeConfig = ChangeConfig(),
+    side: EdgeSide | None = None,
 ) -> list[EdgeEvidence]:
     """The edge move of ``drive`` per place it crossed; ``solids``: the map, or its solid
     markings as ``(segments or their index, types)`` (``solid_lines``); ``anchors``: its anchor per
-    place."""
+    place; ``side``: ``edge_side(drive, config)`` made before (else made here)."""
     segs, types = solid_lines(solids) if isinstance(solids, HDMap) else solids
     if len(drive.xy) < 2 or len(types) == 0:
         return []
-    center, tangent, yaw = drive_cuts(drive, _STEP_M)
-    k = len(center)
-    dets = [d for d in drive.detections if int(d.type) == _SOLID and len(d.points) >= 2]
-    if not dets:
+    if side is None or side.view_m != config.view_m:
+        side = edge_side(drive, config)
+    if side.solid is None:
         return []
-    dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
-    d_cut, _, d_s = lines_on_cuts(center, tangent, config.view_m, dsegs)
+    center, tangent, yaw = side.center, side.tangent, side.yaw
+    k = len(center)
+    d_cut, d_s = side.solid
     m_cut, _, m_s = lines_on_cuts(center, tangent, config.view_m, segs)
     keys = places.keys(center, yaw)
     a = np.array([anchors.get(key, np.nan) for key in keys])
@@ -138,7 +173,7 @@ def edge_evidence(
     # it depends on its lane and the sensor's reach, not on the road
     seen = (map_right >= -_SEEN_M) & np.isfinite(a)
     move[~seen] = np.nan
-    turned, solid_there = _at_edge(drive, center, tangent, config.view_m, map_right, d_cut, d_s)
+    turned, solid_there = _at_edge(k, side.dashed, map_right, d_cut, d_s)
     turned &= seen
     ids = {key: i for i, key in enumerate(dict.fromkeys(keys))}
     place = np.array([ids[key] for key in keys], dtype=np.int64)
@@ -167,26 +202,21 @@ def edge_evidence(
 
 
 def _at_edge(
-    drive: Drive,
-    center: np.ndarray,
-    tangent: np.ndarray,
-    view_m: float,
+    k: int,
+    dashed: tuple[np.ndarray, np.ndarray] | None,
     map_right: np.ndarray,
     d_cut: np.ndarray,
     d_s: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per cut, (the drive saw a dashed marking within ``_TURN_M`` of the map's edge line
-    (``map_right``, in the drive's frame) and no solid one there: the edge line became a divider,
-    the drive saw a solid one there)."""
-    k = len(center)
+    """Per cut of the ``k``, (the drive saw a dashed marking (``dashed``: cut, lateral position)
+    within ``_TURN_M`` of the map's edge line (``map_right``, in the drive's frame) and no solid
+    one (``d_cut``, ``d_s``) there: the edge line became a divider, the drive saw a solid one
+    there)."""
     near_solid = np.zeros(k, dtype=bool)
     near_solid[d_cut[np.abs(d_s - map_right[d_cut]) <= _TURN_M]] = True
-    dashed = [d for d in drive.detections if int(d.type) == _DASHED and len(d.points) >= 2]
-    if not dashed:
+    if dashed is None:
         return np.zeros(k, dtype=bool), near_solid
-    t_cut, _, t_s = lines_on_cuts(
-        center, tangent, view_m, segments_of([np.asarray(d.points, dtype=float) for d in dashed])
-    )
+    t_cut, t_s = dashed
     near_dashed = np.zeros(k, dtype=bool)
     near_dashed[t_cut[np.abs(t_s - map_right[t_cut]) <= _TURN_M]] = True
     return near_dashed & ~near_solid, near_solid

@@ -47,6 +47,8 @@ __all__ = [
     "MapLines",
     "map_lines",
     "drive_evidence",
+    "DriveSide",
+    "drive_side",
     "drive_cuts",
     "lines_on_cuts",
     "fleet_evidence",
@@ -258,18 +260,53 @@ def _follow_move(cut: np.ndarray, move: np.ndarray, k: int, reach_m: float) -> n
     return out
 
 
-def drive_evidence(
-    drive: Drive, lines: MapLines, places: Places, *, config: ChangeConfig = ChangeConfig()
-) -> list[PlaceEvidence]:
-    """The evidence of ``drive`` against the map ``lines``, one record per place it crossed."""
-    if len(drive.xy) < 2 or len(lines.types) == 0:
-        return []
+@dataclass(frozen=True)
+class DriveSide:
+    """The drive's own side of ``drive_evidence``, which no map changes: its cuts every
+    ``step_m`` (center (K, 2), unit tangent (K, 2), yaw (K,)) and its detections on them
+    (``_on_cuts``: cut, lateral position, type), for cuts ``view_m`` to each side."""
+
+    step_m: float
+    view_m: float
+    center: np.ndarray
+    tangent: np.ndarray
+    yaw: np.ndarray
+    d_cut: np.ndarray
+    d_s: np.ndarray
+    d_t: np.ndarray
+
+    def fits(self, config: ChangeConfig) -> bool:
+        """Made with ``config``'s cuts."""
+        return self.step_m == config.cut_step_m and self.view_m == config.view_m
+
+
+def drive_side(drive: Drive, config: ChangeConfig = ChangeConfig()) -> DriveSide:
+    """``drive``'s own side of its evidence (``DriveSide``); a drive of at least 2 poses."""
     center, tangent, yaw = drive_cuts(drive, config.cut_step_m)
-    k = len(center)
     dets = [d for d in drive.detections if len(d.points) >= 2]
     dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
     dtypes = np.array([int(d.type) for d in dets], dtype=np.int64)[dsegs.owner] if dets else np.zeros(0, np.int64)
     d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, dsegs, dtypes)
+    return DriveSide(config.cut_step_m, config.view_m, center, tangent, yaw, d_cut, d_s, d_t)
+
+
+def drive_evidence(
+    drive: Drive,
+    lines: MapLines,
+    places: Places,
+    *,
+    config: ChangeConfig = ChangeConfig(),
+    side: DriveSide | None = None,
+) -> list[PlaceEvidence]:
+    """The evidence of ``drive`` against the map ``lines``, one record per place it crossed;
+    ``side``: ``drive_side(drive, config)`` made before (else made here)."""
+    if len(drive.xy) < 2 or len(lines.types) == 0:
+        return []
+    if side is None or not side.fits(config):
+        side = drive_side(drive, config)
+    center, tangent, yaw = side.center, side.tangent, side.yaw
+    k = len(center)
+    d_cut, d_s, d_t = side.d_cut, side.d_s, side.d_t
     m_cut, m_s, m_t = _on_cuts(center, tangent, config.view_m, lines.index, lines.types)
     keys = places.keys(center, yaw)
     ids = {key: i for i, key in enumerate(dict.fromkeys(keys))}

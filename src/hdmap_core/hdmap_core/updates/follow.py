@@ -23,8 +23,9 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 import shapely
@@ -40,14 +41,24 @@ from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange, detect_changes
 from hdmap_core.updates.edges import (
     EdgeEvidence,
+    EdgeSide,
     detect_edge_changes,
     edge_evidence,
+    edge_side,
     fleet_edge_evidence,
     merge_changes,
     opened_edge_moved,
     solid_lines,
 )
-from hdmap_core.updates.evidence import PlaceEvidence, drive_evidence, fleet_evidence, map_lines, unwrap_aliases
+from hdmap_core.updates.evidence import (
+    DriveSide,
+    PlaceEvidence,
+    drive_evidence,
+    drive_side,
+    fleet_evidence,
+    map_lines,
+    unwrap_aliases,
+)
 from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
@@ -62,6 +73,8 @@ __all__ = [
     "cut_before_changes",
     "fleet_comparison",
     "drive_comparisons",
+    "OwnSide",
+    "own_side",
     "unwrapped",
     "drives_near_changes",
     "recompared",
@@ -235,6 +248,20 @@ def _ids_unique(drives: Sequence[Drive]) -> bool:
 Records = list[tuple[list[PlaceEvidence], list[EdgeEvidence]]]
 
 
+class OwnSide(NamedTuple):
+    """A drive's own side of its comparison with a map (its cuts and its detections on them),
+    which no map changes: it can be made before the map is there (``bag2map`` makes it on a
+    spare core while the map is built)."""
+
+    places: DriveSide
+    edges: EdgeSide
+
+
+def own_side(drive: Drive, config: ChangeConfig = ChangeConfig()) -> OwnSide:
+    """``drive``'s ``OwnSide`` (``drive_side`` and ``edge_side``)."""
+    return OwnSide(drive_side(drive, config), edge_side(drive, config))
+
+
 def drive_comparisons(
     drives: Sequence[Drive],
     hdmap: HDMap,
@@ -243,21 +270,25 @@ def drive_comparisons(
     config: ChangeConfig,
     workers: int = 1,
     only: Sequence[int] | None = None,
+    sides: Mapping[str, OwnSide] | None = None,
 ) -> Records:
     """Per drive (those at the indices ``only``, else every one) its comparison with ``hdmap``
     alone: its place evidence before ``unwrap_aliases`` and its edge evidence anchored on it.
 
     With ``workers`` > 1 the drives are shared out by length over that many processes
     (``parallel.map_balanced``: the map's lines indexed once here, inherited by the forked
-    workers), the records in drive order: the same records as one process."""
+    workers), the records in drive order: the same records as one process. ``sides``: drives'
+    ``own_side`` made before, by drive id (the others' are made here; the same records)."""
     lines, solids = map_lines(hdmap), solid_lines(hdmap)
     at = list(range(len(drives))) if only is None else list(only)
+    sides = sides or {}
 
     def one(i: int) -> tuple[list[PlaceEvidence], list[EdgeEvidence]]:
         drive = drives[at[i]]
-        ev = drive_evidence(drive, lines, places, config=config)
+        side = sides.get(drive.drive_id)
+        ev = drive_evidence(drive, lines, places, config=config, side=side.places if side else None)
         anchors = {e.key: e.anchor_m for e in ev if np.isfinite(e.anchor_m)}
-        return ev, edge_evidence(drive, solids, places, anchors, config=config)
+        return ev, edge_evidence(drive, solids, places, anchors, config=config, side=side.edges if side else None)
 
     return map_balanced(one, [max(drives[i].length_m, 1.0) for i in at], workers)
 
@@ -332,13 +363,15 @@ def recompared(
     *,
     config: ChangeConfig,
     workers: int = 1,
+    sides: Mapping[str, OwnSide] | None = None,
 ) -> Records:
     """``records`` (``drive_comparisons`` of ``drives`` with ``first``) as compared with
     ``reference`` instead: only the drives near where the two maps differ are compared again
     (``drives_near_changes``, within the cuts' reach plus a metre), the others keep theirs."""
     again = drives_near_changes(drives, first, reference, config.view_m + 1.0)
     out = list(records)
-    for i, r in zip(again, drive_comparisons(drives, reference, places, config=config, workers=workers, only=again)):
+    redone = drive_comparisons(drives, reference, places, config=config, workers=workers, only=again, sides=sides)
+    for i, r in zip(again, redone):
         out[i] = r
     return out
 
@@ -430,6 +463,8 @@ def follow_changes(
     margin_places: int = 2,
     taper_places: int = 1,
     workers: int = 1,
+    sides: Mapping[str, OwnSide] | None = None,
+    places: Places | None = None,
 ) -> FollowResult:
     """The map of ``drives`` as of the last of them: the map of every drive (``build``), then
     :func:`follow_map` on it (module docstring).
@@ -442,7 +477,8 @@ def follow_changes(
             them (or malformed) is left out here as the build leaves it out, so that no evidence
             is computed on it (a pose at 1e12 m would ask for terabytes). ``drives`` is passed
             to ``build`` as given when every drive keeps them.
-        local, margin_places, taper_places, workers: as :func:`follow_map`.
+        local, margin_places, taper_places, workers, sides, places: as :func:`follow_map` (``places``
+            of the drives as given, used only when every drive keeps the bounds).
     """
     usable, rejected = prepare_drives(drives, bounds=bounds)
     if rejected:
@@ -466,6 +502,8 @@ def follow_changes(
         margin_places=margin_places,
         taper_places=taper_places,
         workers=workers,
+        sides=sides,
+        places=None if rejected else places,
     )
     # the first (whole) build's report, unless the whole map was built again
     report = reports[-1] if result.changes and not local else reports[0]
@@ -482,6 +520,8 @@ def follow_map(
     margin_places: int = 2,
     taper_places: int = 1,
     workers: int = 1,
+    sides: Mapping[str, OwnSide] | None = None,
+    places: Places | None = None,
 ) -> FollowResult:
     """An existing map of ``drives`` made to follow the changes of the road they show.
 
@@ -508,6 +548,9 @@ def follow_map(
         workers: processes the drives' comparison with ``first_map`` runs on
             (:func:`fleet_comparison`) and the places' change tests (:func:`detect_changes`); the
             result is the same with any number.
+        sides: the drives' ``own_side`` (their side of the comparison, which no map changes),
+            made before, by drive id; the others' are made here (the same result).
+        places: ``places_of(drives, cell_m=config.cell_m)`` made before (else made here).
 
     Returns:
         The followed map (``first_map`` itself when nothing changed, its version grown by the
@@ -516,11 +559,14 @@ def follow_map(
         ``report`` is None: ``build`` gives none.
     """
     t1 = time.perf_counter()
-    places = places_of(drives, cell_m=config.cell_m)
+    if places is None or places.cell_m != config.cell_m:
+        places = places_of(drives, cell_m=config.cell_m)
     # each drive's own records kept (ids unique): where the map as it was is put in, only the
     # drives near it are compared again
     records = (
-        drive_comparisons(drives, first_map, places, config=config, workers=workers) if _ids_unique(drives) else None
+        drive_comparisons(drives, first_map, places, config=config, workers=workers, sides=sides)
+        if _ids_unique(drives)
+        else None
     )
     if records is not None:
         evidence, edges = unwrapped(records, config)
@@ -541,7 +587,9 @@ def follow_map(
         old_road = as_before(first_map, build(pieces), pieces, places, set(taken), config=config)
         reference = splice(first_map, old_road, places, set(taken))
         if records is not None:
-            records = recompared(records, drives, first_map, reference, places, config=config, workers=workers)
+            records = recompared(
+                records, drives, first_map, reference, places, config=config, workers=workers, sides=sides
+            )
             evidence, edges = unwrapped(records, config)
         else:
             evidence, edges = fleet_comparison(drives, reference, places, config=config, workers=workers)

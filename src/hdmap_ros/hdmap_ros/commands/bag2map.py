@@ -81,7 +81,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="processes for the pivot passes; independent parts of the map (e.g. the two carriageways) "
-        "run apart and the map is the same as with 1 (default: the CPUs available); with --tiled: Dask "
+        "run apart and the map is the same as with 1 (default: the CPUs available); with N > 1 the "
+        "drives' side of the change following's comparison is also made ahead, at the lowest priority, "
+        "on the CPU time the build leaves idle; with --tiled: Dask "
         "worker processes of a LocalCluster (default: 1, the tiles in this process)",
     )
     parser.add_argument(
@@ -222,10 +224,13 @@ def run(args: argparse.Namespace) -> int:
     if args.graphml and Path(args.graphml).is_dir():
         return _fail(f"--graphml {args.graphml} is a directory")
 
-    from hdmap_core.parallel import available_cpus  # noqa: PLC0415
+    from hdmap_core.parallel import SpareWork, available_cpus  # noqa: PLC0415
     from hdmap_core.pipeline import driver as pipeline  # noqa: PLC0415 - heavy, and only needed for a real run
     from hdmap_core.pipeline.overrides import config_from  # noqa: PLC0415
     from hdmap_core.pipeline.presets import FOLLOWS_CHANGES  # noqa: PLC0415
+    from hdmap_core.updates.config import ChangeConfig  # noqa: PLC0415
+    from hdmap_core.updates.follow import own_side  # noqa: PLC0415
+    from hdmap_core.updates.places import places_of  # noqa: PLC0415
 
     try:  # a bad --set is named before the bag is read
         config = config_from(args.preset, dict(args.overrides))
@@ -251,12 +256,21 @@ def run(args: argparse.Namespace) -> int:
     if args.lanelet2 and origin is None:
         return _fail(f"--lanelet2 needs the map origin: {args.bag} has no /fleet/origin; give --origin LAT,LON")
 
-    with _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress:
-        result = pipeline.build_map(
-            fleet.drives, config=config, seed=args.seed, progress=progress, workers=args.workers or available_cpus()
-        )
+    workers = args.workers or available_cpus()
+    follow = args.follow_changes if args.follow_changes is not None else FOLLOWS_CHANGES.get(args.preset, False)
+    change_config = ChangeConfig()
+    # the follow's places and the drives' side of its comparison with the map (their cuts and
+    # their own lines on them) need no map: with more than one worker they are made meanwhile, on
+    # the CPU time the build leaves idle (its serial stages, the passes' uneven shares)
+    ahead = follow and workers > 1
+    with (
+        _Progress(enabled=not args.no_progress and sys.stderr.isatty()) as progress,
+        SpareWork(lambda _: places_of(fleet.drives, cell_m=change_config.cell_m), int(ahead)) as spare_places,
+        SpareWork(lambda i: own_side(fleet.drives[i], change_config), len(fleet.drives) if ahead else 0) as spare,
+    ):
+        result = pipeline.build_map(fleet.drives, config=config, seed=args.seed, progress=progress, workers=workers)
         history = None
-        if args.follow_changes if args.follow_changes is not None else FOLLOWS_CHANGES.get(args.preset, False):
+        if follow:
             from hdmap_core.updates.follow import follow_changes, history_to_dict  # noqa: PLC0415
 
             first = result
@@ -268,16 +282,26 @@ def run(args: argparse.Namespace) -> int:
                 if drives is usable:  # the map of every drive: built above
                     return first.map, first.report
                 result = pipeline.build_map(
-                    list(drives),
-                    config=config,
-                    seed=args.seed,
-                    progress=progress,
-                    workers=args.workers or available_cpus(),
+                    list(drives), config=config, seed=args.seed, progress=progress, workers=workers
                 )
                 return result.map, result.report
 
+            sides = {fleet.drives[i].drive_id: side for i, side in spare.take().items()}
+            # the places of every drive read: those of the drives used when the build used every one
+            places = spare_places.take().get(0) if len(usable) == len(fleet.drives) else None
+            if ahead:
+                print(
+                    f"made ahead on idle CPU time: {len(sides)} of {len(fleet.drives)} drives' side of the comparison"
+                    + (", the places" if places is not None else "")
+                )
             followed = follow_changes(
-                usable, build=build, bounds=None, workers=args.workers or available_cpus()
+                usable,
+                build=build,
+                config=change_config,
+                bounds=None,
+                workers=workers,
+                sides=sides,
+                places=places,
             )  # usable: checked above
             history = history_to_dict(followed)
             # a local rebuild maps the changed places only: the run's figures are the first build's
