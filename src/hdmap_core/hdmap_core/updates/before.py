@@ -112,19 +112,7 @@ def with_neighbours(times: dict[PlaceKey, int], places: Places) -> dict[PlaceKey
     below half the smallest effect (the tapers, a place more drives of the old road passed).
     Smaller groups are left out."""
     out: dict[PlaceKey, int] = {}
-    seen: set[PlaceKey] = set()
-    for key in sorted(times):
-        if key in seen:
-            continue
-        group, stack = [], [key]
-        seen.add(key)
-        while stack:
-            k = stack.pop()
-            group.append(k)
-            for nb in places.neighbours(k):
-                if nb in times and nb not in seen:
-                    seen.add(nb)
-                    stack.append(nb)
+    for group in places.components(times):
         if len(group) < _MIN_GROUP:
             continue
         ts = sorted(times[k] for k in group)

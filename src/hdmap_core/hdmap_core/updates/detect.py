@@ -388,22 +388,8 @@ def grow_changes(
 def _components(changed: dict[PlaceKey, PlaceChange], places: Places) -> list[list[PlaceChange]]:
     """Touching places of ``changed`` (connected components along the road) that hold a place
     confirmed on its own, each sorted by key."""
-    out: list[list[PlaceChange]] = []
-    seen: set[PlaceKey] = set()
-    for key in sorted(changed):
-        if key in seen or changed[key].extended:
-            continue
-        comp, stack = [], [key]
-        seen.add(key)
-        while stack:
-            k = stack.pop()
-            comp.append(changed[k])
-            for nb in places.neighbours(k):
-                if nb in changed and nb not in seen:
-                    seen.add(nb)
-                    stack.append(nb)
-        out.append(sorted(comp, key=lambda p: p.key))
-    return out
+    own = [k for k, c in changed.items() if not c.extended]
+    return [[changed[k] for k in sorted(comp)] for comp in places.components(changed, seeds=own)]
 
 
 def _main_kind_time(comp: Sequence[PlaceChange]) -> tuple[str, int]:

@@ -281,20 +281,12 @@ def detect_edge_changes(
     # least half the smallest move the same way against the place's drives before, none the other.
     confirmed = grow_changes(confirmed, places, lambda nb, c: _extends(by_place[nb], nb, c) if nb in by_place else None)
     out: list[DetectedChange] = []
-    seen: set[PlaceKey] = set()
-    for key in sorted(confirmed):
-        if key in seen:
-            continue
-        comp, stack = [], [key]
-        seen.add(key)
-        while stack:
-            k = stack.pop()
-            comp.append(confirmed[k])
-            for nb in places.neighbours(k):
-                if nb in confirmed and nb not in seen and confirmed[nb].kind == confirmed[key].kind:
-                    seen.add(nb)
-                    stack.append(nb)
-        comp.sort(key=lambda p: p.key)
+
+    def same_kind(seed: PlaceKey, nb: PlaceKey) -> bool:
+        return confirmed[nb].kind == confirmed[seed].kind
+
+    for keys in places.components(confirmed, joins=same_kind):
+        comp = [confirmed[k] for k in sorted(keys)]
         if all(p.extended for p in comp):
             continue
         times = sorted(p.time_ns for p in comp if not p.extended)

@@ -9,7 +9,7 @@ the same one, whatever the road's heading.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable
+from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -62,6 +62,34 @@ class Places:
                 if (dx or dy) and c in self.axis:
                     flip = int(np.cos(self.axis[c] - a) < 0)
                     out.append((c[0], c[1], side ^ flip))
+        return out
+
+    def components(
+        self,
+        keys: Collection[PlaceKey],
+        *,
+        seeds: Iterable[PlaceKey] | None = None,
+        joins: Callable[[PlaceKey, PlaceKey], bool] | None = None,
+    ) -> list[list[PlaceKey]]:
+        """The touching places of ``keys`` (connected along the road by :meth:`neighbours`), one
+        list per component in the order found: grown from each of ``seeds`` (default: every key),
+        in sorted order, that no earlier component holds. ``joins(seed, nb)``: whether neighbour
+        ``nb`` may join the component grown from ``seed`` (default: any)."""
+        out: list[list[PlaceKey]] = []
+        seen: set[PlaceKey] = set()
+        for key in sorted(keys if seeds is None else seeds):
+            if key in seen:
+                continue
+            comp, stack = [], [key]
+            seen.add(key)
+            while stack:
+                k = stack.pop()
+                comp.append(k)
+                for nb in self.neighbours(k):
+                    if nb in keys and nb not in seen and (joins is None or joins(key, nb)):
+                        seen.add(nb)
+                        stack.append(nb)
+            out.append(comp)
         return out
 
 
