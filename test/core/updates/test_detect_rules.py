@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from place_rows import HOUR, place_row
 
 from hdmap_core.model import Detection, Drive
 from hdmap_core.pipeline.driver import PipelineConfig, build_map
@@ -22,7 +23,6 @@ N_PLACES = 11  # along a straight road: places (i, 0, 0), i = 0..10
 PLACE = 5  # where the after-drives step
 PLACES = Places(100.0, {(i, 0): 0.0 for i in range(N_PLACES)})
 CONFIG = ChangeConfig()
-HOUR = 3_600_000_000_000
 
 
 def _evidence(values: np.ndarray, *, seen: dict[int, list[int]] | None = None) -> list[PlaceEvidence]:
@@ -35,25 +35,7 @@ def _evidence(values: np.ndarray, *, seen: dict[int, list[int]] | None = None) -
         for i, v in enumerate(row):
             if seen is not None and i in seen and d not in seen[i]:
                 continue
-            out.append(
-                PlaceEvidence(
-                    drive_id=f"d{d:02d}",
-                    time_ns=(d + 1) * HOUR,
-                    key=(i, 0, 0),
-                    n_cuts=25,
-                    offset_m=float(v),
-                    anchor_m=0.0,
-                    anchored_on_borders=True,
-                    displacement_m=float(v),
-                    n_pairs=40,
-                    n_typed=0,
-                    n_wrong_type=0,
-                    n_map_near=0,
-                    n_missed=0,
-                    n_drive_near=0,
-                    n_extra=0,
-                )
-            )
+            out.append(place_row(d, i, float(v)))
     return out
 
 
@@ -243,25 +225,7 @@ def _typed(shares: np.ndarray) -> list[PlaceEvidence]:
     for d, share in enumerate(shares):
         for i in range(N_PLACES):
             wrong = int(round(20 * share)) if i == PLACE else 0
-            out.append(
-                PlaceEvidence(
-                    drive_id=f"d{d:02d}",
-                    time_ns=(d + 1) * HOUR,
-                    key=(i, 0, 0),
-                    n_cuts=25,
-                    offset_m=float("nan"),
-                    anchor_m=0.0,
-                    anchored_on_borders=True,
-                    displacement_m=float("nan"),
-                    n_pairs=0,
-                    n_typed=20,
-                    n_wrong_type=wrong,
-                    n_map_near=0,
-                    n_missed=0,
-                    n_drive_near=0,
-                    n_extra=0,
-                )
-            )
+            out.append(place_row(d, i, float("nan"), n_pairs=0, n_typed=20, n_wrong_type=wrong))
     return out
 
 

@@ -6,6 +6,7 @@ lines away: ``updates.unseen``; bench_changes shift1.0, seed 0, after 3 drives).
 from __future__ import annotations
 
 import numpy as np
+from place_rows import HOUR, place_row
 
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import detect_changes
@@ -14,7 +15,6 @@ from hdmap_core.updates.places import Places
 
 N_PLACES = 11  # along a straight road: places (i, 0, 0), i = 0..10
 PLACES = Places(100.0, {(i, 0): 0.0 for i in range(N_PLACES)})
-HOUR = 3_600_000_000_000
 TYPED = 2  # the place with type evidence, touching the shifted places 3-6
 
 
@@ -26,25 +26,8 @@ def _evidence(moved: np.ndarray, wrong: dict[int, float]) -> list[PlaceEvidence]
     for d, row in enumerate(moved):
         for i, v in enumerate(row):
             typed = 20 if i == TYPED and d in wrong else 0
-            out.append(
-                PlaceEvidence(
-                    drive_id=f"d{d:02d}",
-                    time_ns=(d + 1) * HOUR,
-                    key=(i, 0, 0),
-                    n_cuts=25,
-                    offset_m=float(v),
-                    anchor_m=0.0,
-                    anchored_on_borders=True,
-                    displacement_m=float(v),
-                    n_pairs=40,
-                    n_typed=typed,
-                    n_wrong_type=int(round(20 * wrong.get(d, 0.0))) if typed else 0,
-                    n_map_near=0,
-                    n_missed=0,
-                    n_drive_near=0,
-                    n_extra=0,
-                )
-            )
+            n_wrong = int(round(20 * wrong.get(d, 0.0))) if typed else 0
+            out.append(place_row(d, i, float(v), n_typed=typed, n_wrong_type=n_wrong))
     return out
 
 
