@@ -17,7 +17,7 @@ from rclpy.exceptions import (
     ParameterImmutableException,
     ParameterUninitializedException,
 )
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
@@ -28,6 +28,7 @@ from hdmap_ros.convert.messages import msg_to_drive
 from hdmap_ros.io.cdr import decode_drive, encode_drive
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes.diagnostics import Health, health_to_msg
+from hdmap_ros.nodes.executor import NodeExecutor
 
 __all__ = [
     "declare",
@@ -299,7 +300,7 @@ def run_node(
         warn_unknown_parameters(node)
         # Two threads: a node's receiving callbacks (own callback group) stay responsive while its
         # worker callback maps or stitches; callbacks of one group never run concurrently.
-        executor = MultiThreadedExecutor(num_threads=2)
+        executor = NodeExecutor(num_threads=2)
         executor.add_node(node)
         if until is None:
             executor.spin()
