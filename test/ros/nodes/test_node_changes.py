@@ -84,7 +84,8 @@ def _stitcher(ros, d):
 
 
 def test_stitcher_announces_a_change_once_and_keeps_its_history_across_a_restart(ros, settled_state):
-    from hdmap_ros.nodes.map_stitcher import CHANGES_QOS, CHANGES_TOPIC, MAP_TOPIC
+    from hdmap_ros.nodes.change_following import CHANGES_QOS, CHANGES_TOPIC
+    from hdmap_ros.nodes.map_stitcher import MAP_TOPIC
 
     d, fleet = settled_state
     probe = ros.node("probe")

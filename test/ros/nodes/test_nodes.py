@@ -316,7 +316,7 @@ def test_the_stitcher_follows_road_changes_only_with_every_estimate_the_mapper_a
     topic; a restart republishes them): the map of the estimates here so far is not the settled
     map, and road changes are followed only once every announced estimate is in the map."""
     from hdmap_core.live.progress import LiveStatus
-    from hdmap_ros.nodes import map_stitcher
+    from hdmap_ros.nodes import change_following
     from hdmap_ros.persistence.store import segments_to_blob
 
     class InProcess:  # the follow's process pool, run here: the patched read_drives is seen
@@ -326,7 +326,7 @@ def test_the_stitcher_follows_road_changes_only_with_every_estimate_the_mapper_a
             return fut
 
     reads: list[str] = []
-    monkeypatch.setattr(map_stitcher, "read_drives", lambda path: reads.append(str(path)) or [])
+    monkeypatch.setattr(change_following, "read_drives", lambda path: reads.append(str(path)) or [])
     st = _unspun_stitcher(ros, tmp_path, debounce_s=0.2, max_delay_s=0.5)
     monkeypatch.setattr(st, "_follow_pool", InProcess)
     try:

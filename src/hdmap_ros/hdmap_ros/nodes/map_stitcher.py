@@ -23,15 +23,8 @@ settle) is stitched at once, without waiting for ``debounce_s`` (still no sooner
 rebuild than ``REBUILD_SHARE`` allows): a subscriber waiting for its drives does not wait for the
 debounce (``_completes_drives``).
 
-Road changes (docs/updates.md, "Live"): once the map has settled (the mapper settled, every
-estimate stitched), the stitcher reads every drive from the mapper's store (``drive_db_path``,
-read-only) and follows the changes of the road with ``bag2map``'s code
-(``live.changes.follow_live``: ``updates.follow.follow_map`` on the settled map): the changed
-places are rebuilt from the drives after the change, aligned and spliced in with their topology,
-their old pieces retired. Each change not yet in the history is published on ``hdmap/changes``
-(hdmap_msgs/MapChange, RELIABLE, TRANSIENT_LOCAL, depth 1000) and stored with the followed map in
-one transaction; the map's version grows by the number of new changes. A restart publishes the
-stored history again (same ids) and finds the same changes, which are not new.
+Road changes: once the map has settled, their following (``nodes.change_following``) rebuilds
+the changed places and publishes each change on ``hdmap/changes``.
 
 Restart: the stored map is published again; if tiles changed after it was made it is rebuilt.
 """
@@ -39,40 +32,23 @@ Restart: the stored map is published again; if tiles changed after it was made i
 from __future__ import annotations
 
 import contextlib
-import functools
-import json
 import threading
 import time
 import traceback
-from concurrent.futures import BrokenExecutor, Executor, Future
 from dataclasses import replace
 from typing import NamedTuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
-from hdmap_core.errors import ConfigError, HdmapError
+from hdmap_core.errors import HdmapError
 from hdmap_core.graph.map_graph import MapGraph
-from hdmap_core.live.changes import (
-    LiveChange,
-    change_from_dict,
-    dumps,
-    follow_loaded,
-    live_changes,
-    new_changes,
-    warm_up,
-)
 from hdmap_core.live.progress import LiveStatus, integrated_drives, map_status
 from hdmap_core.live.restitch import moved_graphs, moved_map, raw_id_map, remap_ids, stitch_tiles
 from hdmap_core.live.tiles import TileKey, carry_over_ids, connect_tile
-from hdmap_core.model import HDMap
-from hdmap_core.parallel import available_cpus, spawn_pool
-from hdmap_core.pipeline.presets import FOLLOWS_CHANGES
 from hdmap_core.segment_columns import SegmentColumns, columns_to_segments
 from hdmap_ros.convert.messages import (
-    change_to_msg,
     msg_to_status,
-    rclpy_change_class,
     rclpy_status_class,
     rclpy_types,
     status_to_msg,
@@ -81,7 +57,8 @@ from hdmap_ros.convert.tiles import TileMessage, batch_to_tiles, msg_to_tile, rc
 from hdmap_ros.io.cdr import encode_map
 from hdmap_ros.nodes import qos
 from hdmap_ros.nodes._common import HealthMixin, declare, declare_pipeline_config, run_node, state_path
-from hdmap_ros.persistence.store import MapStore, blob_to_columns, columns_to_blob, read_drives, segments_to_blob
+from hdmap_ros.nodes.change_following import ChangeFollowing
+from hdmap_ros.persistence.store import MapStore, blob_to_columns, columns_to_blob, segments_to_blob
 
 __all__ = ["MapStitcher", "main"]
 
@@ -90,16 +67,10 @@ BATCHES_TOPIC = "hdmap/segment_batches"
 MAP_TOPIC = "hdmap/map"
 STATUS_TOPIC = "hdmap/status"
 MAPPER_STATUS_TOPIC = "hdmap/mapper_status"
-CHANGES_TOPIC = "hdmap/changes"
 # RULE: while tile estimates keep coming (no quiet debounce_s), rebuilds take at most this share
 # of the time: on a loaded machine a rebuild takes seconds, and back-to-back rebuilds every
 # max_delay_s took the CPU the mapper needs to finish its tiles (a quiet debounce_s rebuilds at once)
 REBUILD_SHARE = 0.5
-# RULE: the change following is background work (it reads every drive and rebuilds on every CPU
-# for seconds once the map settled); its process runs this much nicer, so that a drive arriving
-# meanwhile (the fast path: mapper and stitcher in their own processes) is not slowed by it
-FOLLOW_NICE = 10
-CHANGES_QOS = qos.CHANGES  # the whole history latched (a restart publishes it again)
 
 
 class TileGraphs(NamedTuple):
@@ -111,7 +82,7 @@ class TileGraphs(NamedTuple):
     connected: bool  # connected from them (False: moved there by a fast update; a rebuild connects again)
 
 
-class MapStitcher(HealthMixin, Node):
+class MapStitcher(ChangeFollowing, HealthMixin, Node):
     """Integrates tile estimates into the map; see the module docstring."""
 
     def __init__(self, **kwargs) -> None:
@@ -162,31 +133,7 @@ class MapStitcher(HealthMixin, Node):
             lo=1,
             hi=100000,
         )
-        follow = declare(
-            self,
-            "follow_changes",
-            "auto",
-            "Follow road changes once the map settled: on, off, or auto (as bag2map: on with the default preset).",
-        )
-        if follow not in ("auto", "on", "off"):
-            raise ConfigError(f"follow_changes: {follow!r} is not one of auto, on, off")
-        preset_name = self.get_parameter("preset").value
-        self.follow_changes = follow == "on" or (follow == "auto" and FOLLOWS_CHANGES.get(preset_name, False))
-        drive_db = declare(
-            self,
-            "drive_db_path",
-            "",
-            "The mapper's SQLite drive store, read for change detection ('' = $ROS_HOME/hdmap/segment_mapper.db).",
-        )
-        self.drive_db = state_path(drive_db, "segment_mapper.db")
-        self.tile_size_m = declare(
-            self,
-            "tile_size_m",
-            256.0,
-            "Edge of a map tile [m], as the mapper's (names the tiles of a change on hdmap/changes).",
-            lo=32.0,
-            hi=4096.0,
-        )
+        self._declare_change_following()
         self._init_health("map_stitcher", item="tile_estimates")
         self.pipeline_config = pipeline_config
         self.store = MapStore(state_path(db, "map_stitcher.db"))
@@ -248,24 +195,7 @@ class MapStitcher(HealthMixin, Node):
         self._timer = self.create_timer(0.1, self.work, callback_group=self._work_group)
         # a received burst that completes drives wakes the work at once, not at the next tick
         self._wake = self.create_guard_condition(self.work, callback_group=self._work_group)
-        self._change_cls = rclpy_change_class()
-        self._changes_pub = self.create_publisher(self._change_cls, CHANGES_TOPIC, CHANGES_QOS)
-        self.history: dict[int, LiveChange] = {}
-        for doc in self.store.changes():
-            c = change_from_dict(json.loads(doc))
-            self.history[c.id] = c
-        self.changes_new = 0  # changes first confirmed by this process
-        self._follow_executor: Executor | None = None
-        self._follow_fut: tuple[str, Future] | None = None  # (map signature, the follow in work)
-        self._follow_t0 = 0.0
-        self._follow_workers = available_cpus()
-        self._followed_sig = self.store.get_meta("followed_sig", "") or ""
-        # the consensus map (of every drive) the changes are followed on: the stored map unless
-        # it is already the followed one
-        self._consensus = self.map if self._followed_sig != sig else None
-        for c in self.history.values():  # latched: the history again, same ids (not new)
-            self._changes_pub.publish(change_to_msg(c, cls=self._change_cls, types=self._types))
-        self._changes_health()
+        self._init_change_following(sig)
         if self.map is not None:
             self._publish()
             # the stored map is this node's map until a rebuild (none comes when no tile changed)
@@ -343,105 +273,6 @@ class MapStitcher(HealthMixin, Node):
             self._follow()
             self._update_status()
             self.health.set("changes_followed", self.changes_followed())
-
-    def changes_followed(self) -> bool:
-        """The current map follows the road changes of every stored drive (or following is off)."""
-        return not self.follow_changes or self.map is None or self._followed_sig == self._map_sig
-
-    def _follow(self) -> None:
-        """Follow the road changes on the settled map (module docstring)."""
-        if self.changes_followed() or not self._mapper_status.settled or not self.is_settled():
-            return
-        if self.store.version_total() < self._mapper_status.tile_versions:
-            return  # RULE: estimates the settled mapper made are on their way: this is not its map yet
-        sig = self._map_sig
-        consensus = self._consensus
-        if consensus is None:  # the stored map is the followed one of an older signature: rebuild
-            self._first_dirty = time.monotonic()
-            return
-        fut = self._follow_fut
-        if fut is not None and fut[0] != sig:  # the map changed while its changes were followed
-            fut[1].cancel()
-            self._follow_fut = fut = None
-        if fut is None:
-            self._follow_t0 = time.perf_counter()
-            load = functools.partial(read_drives, self.drive_db)
-            job = self._follow_pool().submit(
-                follow_loaded, consensus, load, pipeline_config=self.pipeline_config, workers=self._follow_workers
-            )
-            self._follow_fut = (sig, job)
-            return
-        if not fut[1].done():
-            return
-        self._follow_fut = None
-        t0 = self._follow_t0
-        try:
-            result = fut[1].result()
-        except BrokenExecutor as err:  # the process died (killed, out of memory): a new one next time
-            self._follow_executor = None
-            self._follow_failed(sig, f"{type(err).__name__}: {err}")
-            return
-        except HdmapError as err:
-            self._follow_failed(sig, str(err))
-            return
-        except Exception as err:  # noqa: BLE001 - a bug must not stop the live map; logged in full
-            self._follow_failed(sig, f"{type(err).__name__}: {err}\n{''.join(traceback.format_exception(err))}")
-            return
-        fresh = new_changes(self.history, result.changes)
-        if not result.changes:  # nothing changed: the consensus map is the map
-            self.store.set_meta("followed_sig", sig)
-            self._followed_sig = sig
-        else:
-            version = self.map.version + max(1, len(fresh))
-            new = replace(result.map, version=version, stamp_ns=time.time_ns())
-            announced = [
-                c
-                for c in live_changes(
-                    result, tile_size_m=self.tile_size_m, map_version=version, confirmed_ns=new.stamp_ns
-                )
-                if c.id not in self.history
-            ]
-            self._put_followed(new, sig, announced)
-            for c in announced:
-                self.history[c.id] = c
-                self.changes_new += 1
-                self._changes_pub.publish(change_to_msg(c, cls=self._change_cls, types=self._types))
-                self.get_logger().info(
-                    f"road change {c.id}: {', '.join(c.kinds)} at {c.time_ns} ns, {len(c.places)} place(s), "
-                    f"{len(c.drive_ids)} drive(s) in evidence, confidence {c.confidence:.3f}, map version {version}"
-                )
-            self._map_health()
-        self._changes_health()
-        self.health.set("changes_in_map", len(result.changes))
-        seconds = time.perf_counter() - t0
-        self.health.set("last_follow_s", f"{seconds:.3f}")
-        self.get_logger().info(
-            f"road changes followed on map version {self.map.version} in {seconds:.1f} s: "
-            f"{len(result.changes)} in the map, {len(fresh)} new, {len(self.history)} in the history"
-        )
-
-    def _put_followed(self, new: HDMap, sig: str, announced: list[LiveChange]) -> None:
-        """Store, take and publish ``new``, the map of the tiles ``sig`` with road changes followed."""
-        self.store.put_followed(new, sig, [(c.id, c.time_ns, dumps(c)) for c in announced])
-        self.map = new
-        self._mg = None  # no map graph made this map: no fast update on it (the rebuild, then the follow)
-        self._followed_sig = sig
-        self._publish()
-
-    def _follow_pool(self) -> Executor:
-        """The process the change following runs in (``live.changes.follow_loaded``: it reads the
-        drives and compares them on every CPU, as ``bag2map`` does, away from this process's
-        executor; forks only from there, never from this process with its native threads). Made
-        when the first tile estimates come (a stitcher that never gets one never starts it)."""
-        if self._follow_executor is None:
-            self._follow_executor = spawn_pool(nice=FOLLOW_NICE)
-            self._follow_executor.submit(warm_up)
-        return self._follow_executor
-
-    def _follow_failed(self, sig: str, text: str) -> None:
-        self._followed_sig = sig  # not again on the same inputs
-        self.health.error(text.splitlines()[0])
-        self.get_logger().error(f"following road changes failed, the map of every drive kept: {text}")
 
     def _work(self) -> None:
         if self._first_dirty is None:
@@ -604,11 +435,6 @@ class MapStitcher(HealthMixin, Node):
         self.health.set("map_version", self.map.version)
         self.health.set("features", len(self.map.features))
 
-    def _changes_health(self) -> None:
-        """The history's size and the changes this process confirmed, on /diagnostics."""
-        self.health.set("changes_known", len(self.history))
-        self.health.set("changes_new", self.changes_new)
-
     def _publish(self) -> None:
         """Publish the map as CDR bytes (``io.cdr.encode_map``: no message object per point and
         topology node; the bytes rosbags gives for ``map_to_msg``, read by rclpy as its own)."""
@@ -655,8 +481,7 @@ class MapStitcher(HealthMixin, Node):
         with self._work_lock, self._rx_lock:
             self._destroyed = True
             self.store.close()
-            if self._follow_executor is not None:
-                self._follow_executor.shutdown(wait=False, cancel_futures=True)
+            self._close_change_following()
         super().destroy_node()
 
 
