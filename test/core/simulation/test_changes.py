@@ -215,3 +215,69 @@ def test_the_zone_lane_count_follows_the_road_s_lanes(road):
         LaneMap(), apply_change(road, RoadChange("open", 400.0, 1100.0, 2.0, "fwd_lane2")), [change_zone(road, change)]
     )
     assert full.n_links >= 2 and full.links_ok == 0
+
+
+def _lane(lid: int, centerline: np.ndarray, half_m: float, succ: tuple[int, ...] = ()):
+    """A map lane piece along ``centerline`` with solid sides ``half_m`` to each side (no lane changes)."""
+    from hdmap_core.geometry import turn_left, unit_tangents
+    from hdmap_core.lanes.model import Boundary, Lane
+
+    left = turn_left(unit_tangents(centerline))
+    sides = [
+        Boundary(10 * lid + k, 0, FeatureType.SOLID, centerline + sign * half_m * left, 0, 0)
+        for k, sign in ((1, 1.0), (2, -1.0))
+    ]
+    lane = Lane(
+        lid,
+        centerline,
+        np.full(len(centerline), 2 * half_m),
+        sides[0].id,
+        sides[1].id,
+        0,
+        0,
+        FeatureType.SOLID,
+        FeatureType.SOLID,
+        successors=succ,
+    )
+    return lane, sides
+
+
+def test_the_opened_lane_s_split_and_merge_are_probed_where_it_parts_and_joins(road):
+    """The road links the opened lane to the right lane's pieces at its two ends, which run on past
+    its start and began before its end: the split is probed at the opened lane's start, the merge
+    at its end (probing at the right piece's end and the next piece's start looked for the lane
+    before the joint after the one behind it). A map whose right lane is cut where the opened lane
+    starts and ends, linked only by successors, has both; without the link, not."""
+    from hdmap_core.evaluation.zone import evaluate_zone_lanes
+    from hdmap_core.geometry import arc_length
+    from hdmap_core.lanes.model import LaneMap
+
+    change = RoadChange("open", 600.0, 1300.0, 3.0, "fwd_lane2")  # the opened lane: 700-1200 m
+    after = apply_change(road, change)
+    zone = change_zone(road, change)
+    opened = after.lanes["opened"]
+    (first,), (last,) = opened.predecessors, opened.successors
+    right = np.concatenate([after.lanes[x].centerline for x in ("fwd:0:3", first, last)])
+    right = right[np.r_[True, np.hypot(*np.diff(right, axis=0).T) > 1e-6]]
+    s = arc_length(right)
+    ends = [int(np.argmin(np.hypot(*(right - p).T))) for p in (opened.centerline[0], opened.centerline[-1])]
+    assert 0 < ends[0] < ends[1] < len(right) - 1
+    pieces = np.split(np.arange(len(right)), ends)
+    r = [right[np.r_[p, p[-1] + 1] if p[-1] + 1 < len(right) else p] for p in pieces]
+    assert s[ends[0]] - s[0] > 100.0 and s[-1] - s[ends[1]] > 100.0
+
+    def lane_map(split: bool, merge: bool) -> LaneMap:
+        parts = [
+            _lane(1, r[0], 1.75, (2, 4) if split else (2,)),
+            _lane(2, r[1], 1.75, (3,)),
+            _lane(3, r[2], 1.75),
+            _lane(4, opened.centerline, 1.5, (3,) if merge else ()),
+        ]
+        return LaneMap(tuple(p[0] for p in parts), tuple(b for p in parts for b in p[1]))
+
+    full = evaluate_zone_lanes(lane_map(True, True), after, [zone])
+    # the five links: the three lanes' piece joints in the zone, the split and the merge; the map
+    # has the right lane's joint (inside its piece 2), the split and the merge, not the other lanes
+    assert full.n_links == 5 and full.links_ok == 3
+    assert evaluate_zone_lanes(lane_map(False, True), after, [zone]).links_ok == 2
+    assert evaluate_zone_lanes(lane_map(True, False), after, [zone]).links_ok == 2

@@ -27,7 +27,7 @@ import numpy as np
 from hdmap_core.evaluation.config import EVAL_TYPES, EvalConfig
 from hdmap_core.evaluation.cuts import Cuts, configured_cuts, nearest_on_same_cut, nearest_same_type, points_on_cuts
 from hdmap_core.geometry import arc_length
-from hdmap_core.groundtruth import GroundTruth
+from hdmap_core.groundtruth import GroundTruth, GTLane
 from hdmap_core.lanes.lane_graph import lane_graph, lanes_at
 from hdmap_core.lanes.model import LaneMap
 from hdmap_core.model import HDMap
@@ -175,18 +175,19 @@ def _zone_links(lane_map: LaneMap, gt_now: GroundTruth, zones: Sequence[ChangeZo
     """(GT successor links A -> B whose joint lies in a zone, those the map has): the map lane at
     A's centerline ``_LINK_PROBE_M`` before the joint reaches the map lane at B's centerline that far
     after it in the map's lane graph (successors and lane changes across dashed lines, as a route
-    does: a lane gained may open beside a through lane) within ``_LINK_REACH_M``."""
+    does: a lane gained may open beside a through lane) within ``_LINK_REACH_M``. The joint is
+    where the two lanes part or join (``_joint``)."""
     probes: list[tuple[np.ndarray, float, np.ndarray, float]] = []
     for a in gt_now.lanes.values():
         for bid in a.successors:
             b = gt_now.lanes.get(bid)
             if b is None or len(a.centerline) < 2 or len(b.centerline) < 2:
                 continue
-            ta = a.centerline[-1] - a.centerline[-2]
-            if not any(zone_mask(z, a.centerline[-1:], ta[None, :]).any() for z in zones):
+            on_a, on_b, at, heading = _joint(a, b, gt_now)
+            if not any(zone_mask(z, at[None, :], heading[None, :]).any() for z in zones):
                 continue
-            pa, ya = _probe(a.centerline, -_LINK_PROBE_M)
-            pb, yb = _probe(b.centerline, _LINK_PROBE_M)
+            pa, ya = _probe(a.centerline, on_a - _LINK_PROBE_M)
+            pb, yb = _probe(b.centerline, on_b + _LINK_PROBE_M)
             probes.append((pa, ya, pb, yb))
     if not probes:
         return 0, 0
@@ -205,10 +206,44 @@ def _zone_links(lane_map: LaneMap, gt_now: GroundTruth, zones: Sequence[ChangeZo
     return len(probes), ok
 
 
-def _probe(line: np.ndarray, along_m: float) -> tuple[np.ndarray, float]:
-    """The point ``along_m`` from the end (< 0) or the start (> 0) of ``line`` and its heading."""
+def _joint(a: GTLane, b: GTLane, gt_now: GroundTruth) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """Where GT lane ``a`` hands over to its successor ``b``: (the joint's station along ``a``,
+    along ``b`` [m], its position, a's heading there). Where ``a`` ends at ``b``'s start (within
+    ``_SAME_LANE_M``), there. Where they do not meet, a lane split off or merged into the side
+    of another lane's piece (the road's lane model may link a lane opened beside a through lane
+    to the through lane's pieces at its two ends): where ``a`` runs on (one of its successors
+    starts at its end), ``b`` splits off its side at ``b``'s start; else ``a`` merges into
+    ``b``'s side at ``a``'s end. Probing at ``a``'s end and ``b``'s start there would look for
+    the lane before the joint after the one behind it."""
+    ca, cb = np.asarray(a.centerline, dtype=float), np.asarray(b.centerline, dtype=float)
+    len_a = float(arc_length(ca)[-1])
+    if np.hypot(*(ca[-1] - cb[0])) <= _SAME_LANE_M:
+        return len_a, 0.0, ca[-1], ca[-1] - ca[-2]
+    runs_on = any(
+        np.hypot(*(ca[-1] - np.asarray(gt_now.lanes[c].centerline[0], dtype=float))) <= _SAME_LANE_M
+        for c in a.successors
+        if c != b.id and c in gt_now.lanes and len(gt_now.lanes[c].centerline)
+    )
+    if runs_on:  # a split: b starts beside a
+        s_a = _station_on(ca, cb[0])
+        return s_a, 0.0, cb[0], cb[1] - cb[0]
+    s_b = _station_on(cb, ca[-1])  # a merge: a ends beside b
+    return len_a, s_b, ca[-1], ca[-1] - ca[-2]
+
+
+def _station_on(line: np.ndarray, p: np.ndarray) -> float:
+    """Arc length along ``line`` of the point of ``line`` nearest to ``p`` [m]."""
+    a, d = line[:-1], np.diff(line, axis=0)
+    t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+    dist = np.hypot(*(a + t[:, None] * d - p).T)
+    i = int(np.argmin(dist))
+    return float(arc_length(line)[i] + t[i] * np.hypot(*d[i]))
+
+
+def _probe(line: np.ndarray, at_m: float) -> tuple[np.ndarray, float]:
+    """The point ``at_m`` along ``line`` (clipped to its ends) and its heading."""
     s = arc_length(line)
-    q = float(np.clip(s[-1] + along_m if along_m < 0 else along_m, 0.0, s[-1]))
+    q = float(np.clip(at_m, 0.0, s[-1]))
     j = int(np.clip(np.searchsorted(s, q), 1, len(line) - 1))
     d = line[j] - line[j - 1]
     w = (q - s[j - 1]) / max(s[j] - s[j - 1], 1e-9)
