@@ -24,7 +24,9 @@ Kinds (``KINDS``):
 * ``open``: the shoulder opens as a lane: the right edge marking moves ``size`` metres to the
   right (required), with the tapers, and a dashed marking is drawn where it was, between the
   tapers; there the new lane's centerline is added (``size`` wide, split off the rightmost lane
-  and merging back into it, that lane its left neighbour). Simulated drives do not use it.
+  and merging back into it, that lane its left neighbour). Simulated drives do not use it. The
+  moved edge stays on or inside the road border right of it: a ``size`` larger than the room
+  between them is refused (``GroundTruthError`` naming the largest ``size`` there).
 
 Text form (``parse_change``, ``hdmap simulate --change``): ``KIND:FROM_M-TO_M[:SIZE][:ROUTE]@AFTER``,
 e.g. ``shift:1000-2000:1.5:fwd_lane1@40``: drives 0..39 see the road as it was, drives 40.. the
@@ -434,13 +436,13 @@ def _lane_changes(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> Grou
     if not groups:
         raise GroundTruthError(f"road change {change.text()}: no marking in the zone to open the shoulder beside")
     lat_edge, edge = groups[0]
-    room = _open_room(zone, gt, change, edge)
-    if float(change.size or 0.0) > room + 1e-9:
+    size, room = float(change.size or 0.0), _open_room(zone, gt, change, edge)
+    if size > room + 1e-9:
         raise GroundTruthError(
-            f"road change {change.text()}: the edge marking would move {float(change.size or 0.0):g} m, beyond the road "
-            f"border; the shoulder there allows an opening of at most SIZE {room:.2f} m"
+            f"road change {change.text()}: the edge marking would move {size:g} m, beyond the road border; "
+            f"the shoulder there allows an opening of at most SIZE {room:.2f} m"
         )
-    feats = _edge_moved(zone, gt, change, edge, float(change.size or 0.0))
+    feats = _edge_moved(zone, gt, change, edge, size)
     keep = (zone.s >= change.from_m + change.taper_m) & (zone.s <= change.to_m - change.taper_m)
     piece = zone.line[keep]
     left = turn_left(unit_tangents(piece))
