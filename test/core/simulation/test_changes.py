@@ -178,6 +178,31 @@ def test_open_moves_the_edge_out_and_draws_a_divider(road):
         parse_change("open:400-1100@1")
 
 
+def test_open_keeps_the_moved_edge_within_the_road_border(road):
+    """The synthetic motorway's hard shoulder is 2.5 m (edge line to road border): an opening of
+    up to 2.5 m puts the moved edge on or inside the border, a wider one is refused, naming the
+    largest SIZE there."""
+    change = RoadChange("open", 400.0, 1100.0, 2.5, "fwd_lane2")
+    after = apply_change(road, change)
+    zone = change_zone(road, change)
+    core = _core(zone)
+    borders = [f for f in after.features if f.type == FeatureType.ROAD_BORDER]
+    edge = min(
+        (f for f in after.features if f.type == FeatureType.SOLID and zone_mask(core, f.points).any()),
+        key=lambda f: np.median(_lateral(zone, f.points[zone_mask(core, f.points)])),
+    )
+    lat_edge = _lateral(zone, edge.points[zone_mask(core, edge.points)])
+    lat_border = max(
+        np.median(lat)
+        for f in borders
+        if (lat := _lateral(zone, f.points[zone_mask(core, f.points)])).size and np.median(lat) < 0
+    )
+    assert np.allclose(lat_edge, lat_border, atol=0.02)  # on the border, not beyond it
+    for size in (2.6, 3.0):
+        with pytest.raises(GroundTruthError, match=r"beyond the road border.*at most SIZE 2\.50 m"):
+            apply_change(road, RoadChange("open", 400.0, 1100.0, size, "fwd_lane2"))
+
+
 def test_open_adds_the_new_lane_linked_to_its_neighbour(road):
     change = RoadChange("open", 400.0, 1100.0, 2.0, "fwd_lane2")
     after = apply_change(road, change)
@@ -252,7 +277,7 @@ def test_the_opened_lane_s_split_and_merge_are_probed_where_it_parts_and_joins(r
     from hdmap_core.geometry import arc_length
     from hdmap_core.lanes.model import LaneMap
 
-    change = RoadChange("open", 600.0, 1300.0, 3.0, "fwd_lane2")  # the opened lane: 700-1200 m
+    change = RoadChange("open", 600.0, 1300.0, 2.5, "fwd_lane2")  # the opened lane: 700-1200 m
     after = apply_change(road, change)
     zone = change_zone(road, change)
     opened = after.lanes["opened"]
@@ -271,7 +296,7 @@ def test_the_opened_lane_s_split_and_merge_are_probed_where_it_parts_and_joins(r
             _lane(1, r[0], 1.75, (2, 4) if split else (2,)),
             _lane(2, r[1], 1.75, (3,)),
             _lane(3, r[2], 1.75),
-            _lane(4, opened.centerline, 1.5, (3,) if merge else ()),
+            _lane(4, opened.centerline, 1.25, (3,) if merge else ()),
         ]
         return LaneMap(tuple(p[0] for p in parts), tuple(b for p in parts for b in p[1]))
 

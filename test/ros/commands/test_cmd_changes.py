@@ -122,3 +122,12 @@ def test_a_closed_lane_is_scored_by_lane_count_in_the_zone(tmp_path, capsys):
     # closing lane still runs apart from its neighbour in the tapers (18 % of the cuts)
     assert zone["n_cuts"] > 100 and zone["count_accuracy"] < 0.3
     assert zone["mean_map_lanes"] > zone["mean_gt_lanes"] + 0.6
+
+
+def test_an_opening_wider_than_the_shoulder_is_refused_without_a_traceback(tmp_path, capsys):
+    """The motorway's 2.5 m shoulder: ``open`` of 3 m would put the edge beyond the road border."""
+    out = tmp_path / "fleet"
+    assert cli.main(["simulate", *ARGS, "--change", "open:400-1100:3.0:fwd_lane2@2", "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "beyond the road border" in err and "at most SIZE 2.50 m" in err and "Traceback" not in err
+    assert not list(tmp_path.iterdir())  # refused before any drive is written

@@ -24,7 +24,9 @@ Kinds (``KINDS``):
 * ``open``: the shoulder opens as a lane: the right edge marking moves ``size`` metres to the
   right (required), with the tapers, and a dashed marking is drawn where it was, between the
   tapers; there the new lane's centerline is added (``size`` wide, split off the rightmost lane
-  and merging back into it, that lane its left neighbour). Simulated drives do not use it.
+  and merging back into it, that lane its left neighbour). Simulated drives do not use it. The
+  moved edge stays on or inside the road border right of it: a ``size`` larger than the room
+  between them is refused (``GroundTruthError`` naming the largest ``size`` there).
 
 Text form (``parse_change``, ``hdmap simulate --change``): ``KIND:FROM_M-TO_M[:SIZE][:ROUTE]@AFTER``,
 e.g. ``shift:1000-2000:1.5:fwd_lane1@40``: drives 0..39 see the road as it was, drives 40.. the
@@ -325,12 +327,17 @@ def _profile(s: np.ndarray, change: RoadChange) -> np.ndarray:
     return ramp((s - change.from_m) / change.taper_m) * ramp((change.to_m - s) / change.taper_m)
 
 
-def _shifted(zone: ChangeZone, pts: np.ndarray, change: RoadChange) -> np.ndarray:
+def _shift_weight(zone: ChangeZone, pts: np.ndarray, change: RoadChange) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(station, lateral, weight) of each point: ``_shifted`` moves it ``change.shift_m * weight``."""
     s, lat, member = _station(zone, pts, unit_tangents(pts))
     # Full shift within half the band, fading out smoothly toward its edge (a ramp leaving the
     # carriageway bends back onto its old course rather than jumping there).
     fade = np.clip((zone.band_m - np.abs(lat)) / (zone.band_m / 2.0), 0.0, 1.0)
-    w = np.where(member, _profile(s, change) * fade * fade * (3.0 - 2.0 * fade), 0.0)
+    return s, lat, np.where(member, _profile(s, change) * fade * fade * (3.0 - 2.0 * fade), 0.0)
+
+
+def _shifted(zone: ChangeZone, pts: np.ndarray, change: RoadChange) -> np.ndarray:
+    _, _, w = _shift_weight(zone, pts, change)
     if not np.any(w > 0):
         return pts
     _, j = zone.tree.query(pts)
@@ -429,7 +436,13 @@ def _lane_changes(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> Grou
     if not groups:
         raise GroundTruthError(f"road change {change.text()}: no marking in the zone to open the shoulder beside")
     lat_edge, edge = groups[0]
-    feats = _edge_moved(zone, gt, change, edge, float(change.size or 0.0))
+    size, room = float(change.size or 0.0), _open_room(zone, gt, change, edge)
+    if size > room + 1e-9:
+        raise GroundTruthError(
+            f"road change {change.text()}: the edge marking would move {size:g} m, beyond the road border; "
+            f"the shoulder there allows an opening of at most SIZE {room:.2f} m"
+        )
+    feats = _edge_moved(zone, gt, change, edge, size)
     keep = (zone.s >= change.from_m + change.taper_m) & (zone.s <= change.to_m - change.taper_m)
     piece = zone.line[keep]
     left = turn_left(unit_tangents(piece))
@@ -438,6 +451,39 @@ def _lane_changes(zone: ChangeZone, gt: GroundTruth, change: RoadChange) -> Grou
     width = float(change.size or 0.0)
     lanes = _opened_lane(zone, gt, change, resample_evenly(piece + (lat_edge - width / 2.0) * left, 1.0), lat_edge)
     return replace(gt, features=(*feats, line), lanes=lanes)
+
+
+def _open_room(zone: ChangeZone, gt: GroundTruth, change: RoadChange, edge: list[int]) -> float:
+    """The largest SIZE an ``open`` of the ``edge`` marking's features may have [m, floored to the
+    cm]: where it moves (its shift weight w > 0), the moved edge stays on or inside the nearest road
+    border right of it, at that station (lateral room / w); ``inf`` where no border runs beside it."""
+    borders = []  # (station, lateral) of each road border's points on the carriageway, by station
+    for f in gt.features:
+        if f.type != FeatureType.ROAD_BORDER:
+            continue
+        s, lat, member = _station(zone, f.points, None)
+        if np.count_nonzero(member) >= 2:
+            order = np.argsort(s[member])
+            borders.append((s[member][order], lat[member][order]))
+    room = math.inf
+    for i in edge:
+        s, lat, w = _shift_weight(zone, gt.features[i].points, change)
+        moved = w > 1e-3
+        if not moved.any():
+            continue
+        s, lat, w = s[moved], lat[moved], w[moved]
+        # the nearest border right of each point, at its station (-inf: none)
+        beside = np.full(len(s), -np.inf)
+        for bs, blat in borders:
+            at = np.interp(s, bs, blat)
+            k = np.clip(np.searchsorted(bs, s), 1, len(bs) - 1)
+            near = (s >= bs[0]) & (s <= bs[-1]) & (bs[k] - bs[k - 1] <= 5.0)  # not across a gap
+            right = near & (at < lat)
+            beside = np.where(right, np.maximum(beside, at), beside)
+        has = np.isfinite(beside)
+        if has.any():
+            room = min(room, float(np.min((lat[has] - beside[has]) / w[has])))
+    return math.floor(room * 100.0 + 1e-3) / 100.0 if math.isfinite(room) else room
 
 
 def _opened_lane(
