@@ -357,7 +357,9 @@ class ProcessedStore:
             pad_m: each mark covers [s - pad, s + pad] (half a step).
             merge_gap_m: marks closer than this join one interval.
         """
-        new = {k: list(v) for k, v in self.intervals.items()}
+        # the lists are never changed in place (``_merge`` makes new ones): shared, not copied
+        # (a copy of every drive's list per pivot grew with pivots x drives)
+        new = dict(self.intervals)
         for did, s in marks.items():
             s = np.sort(np.asarray(s, dtype=float))
             if len(s) == 0:
