@@ -193,6 +193,8 @@ def test_processed_store_marks_merges_and_round_trips():
     assert not s2.contains("zzz", np.array([1.0])).any()
     s3 = s2.with_marks({"a": np.array([16.0])}, pad_m=1.0, merge_gap_m=6.0)
     assert s3.intervals["a"][0] == (9.0, 17.0)
+    # the new store shares the unmarked drives' lists, and the store before keeps its own
+    assert s2.intervals["a"] == [(9.0, 15.0), (39.0, 41.0)] and s3.intervals["b"] == s2.intervals["b"]
     back = ProcessedStore.from_json(s3.to_json())
     assert back.intervals == s3.intervals
     with pytest.raises(ConfigError):
