@@ -18,7 +18,9 @@ def _model() -> OffsetModel:
         "c": DriveOffset(k0=-3, bias_m=0.05, drift_m=rng.normal(0.0, 0.4, 2)),
         "d": DriveOffset(k0=11, bias_m=1.7, drift_m=rng.normal(0.0, 0.4, 30)),
     }
-    return OffsetModel(knot_spacing_m=25.0, correlation_length_m=150.0, drift_sigma_m=0.3, bias_sigma_m=1.0, drives=drives)
+    return OffsetModel(
+        knot_spacing_m=25.0, correlation_length_m=150.0, drift_sigma_m=0.3, bias_sigma_m=1.0, drives=drives
+    )
 
 
 def _samples(ids: tuple[str, ...], n: int = 4000) -> tuple[np.ndarray, np.ndarray]:

@@ -42,9 +42,9 @@ from hdmap_core.steps import Segment
 
 if TYPE_CHECKING:  # the pipeline is heavy; tiles load it on first use
     from hdmap_core.pipeline.adjustment import OffsetSource
-    from hdmap_core.pipeline.offset_table import OffsetTable
     from hdmap_core.pipeline.aggregation import ProcessedStore
     from hdmap_core.pipeline.config import PipelineConfig
+    from hdmap_core.pipeline.offset_table import OffsetTable
 
 __all__ = [
     "TileConfig",

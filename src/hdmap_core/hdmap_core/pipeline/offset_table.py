@@ -12,14 +12,24 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from hdmap_core.pipeline.adjustment import OffsetModel
-
 __all__ = ["OffsetTable", "offset_table"]
+
+
+class _Curves(Protocol):
+    """What the table reads of an ``OffsetModel`` (``DriveOffset`` curves by drive id)."""
+
+    @property
+    def knot_spacing_m(self) -> float: ...
+
+    @property
+    def correlation_length_m(self) -> float: ...
+
+    @property
+    def drives(self) -> dict[str, Any]: ...
 
 
 @dataclass(frozen=True)
@@ -80,7 +90,7 @@ class OffsetTable:
         return out
 
 
-def offset_table(model: OffsetModel, drive_ids: Sequence[str]) -> OffsetTable:
+def offset_table(model: _Curves, drive_ids: Sequence[str]) -> OffsetTable:
     """``model``'s curves of ``drive_ids`` (drive i of the table is ``drive_ids[i]``)."""
     n = len(drive_ids)
     curves = [model.drives.get(d) for d in drive_ids]
