@@ -253,3 +253,17 @@ def test_common_error_of_corrected_drives_is_added_to_the_spread():
     assert one.std_m[0] == pytest.approx(np.hypot(SINGLE_DRIVE_STD_M, 1.0))
     with pytest.raises(ConfigError, match="common_sigma_m"):
         former(AggregationConfig, common_sigma_m=-0.1)
+
+
+def test_distinct_drives_per_cluster_by_marks_and_by_unique():
+    from hdmap_core.pipeline.aggregation import _distinct_drives  # noqa: PLC0415 - a private helper
+
+    rng = np.random.default_rng(7)
+    # dense pairs (marks) and sparse ones (few samples, many drives: the unique)
+    for m, k, nd in [(5000, 40, 30), (200, 20, 5000)]:
+        lab = np.concatenate([np.arange(k), rng.integers(0, k, m - k)])
+        drive = rng.integers(0, nd, m)
+        want = np.array([len(set(drive[lab == c].tolist())) for c in range(k)])
+        got = _distinct_drives(lab, drive, k)
+        np.testing.assert_array_equal(got, want)
+        assert got.dtype == np.int64

@@ -240,8 +240,7 @@ def aggregate_many(
     ctype[lab] = types
     cstep = np.zeros(k, dtype=np.int64)
     cstep[lab] = step
-    nd = int(drive.max()) + 1
-    n_drives = np.bincount(np.unique(lab * nd + drive) // nd, minlength=k)
+    n_drives = _distinct_drives(lab, drive, k)
     bw = np.maximum(config.kde_bandwidth_factor * std, config.kde_min_bandwidth_m)
     pos = kde_maxima(x, lab, bw) if config.method == "kde" else mean
     keep = np.ones(k, dtype=bool)
@@ -296,6 +295,19 @@ def aggregate_many(
         n_samples=n[idx].astype(np.int64),
         kept_labels=orig[idx],
     )
+
+
+def _distinct_drives(lab: np.ndarray, drive: np.ndarray, k: int) -> np.ndarray:
+    """(K,) how many distinct drives have samples in each cluster (``lab`` (M,) 0..K-1)."""
+    nd = int(drive.max()) + 1
+    key = lab * nd + drive
+    if k * nd <= 4 * len(key):
+        # RULE linear in the samples: a mark per (cluster, drive) pair; the unique of the keys
+        # (a hash table of every pair) grew faster than the samples at hundreds of drives per place
+        seen = np.zeros(k * nd, dtype=bool)
+        seen[key] = True
+        return np.count_nonzero(seen.reshape(k, nd), axis=1).astype(np.int64)
+    return np.bincount(np.unique(key) // nd, minlength=k)
 
 
 _BORDER = int(FeatureType.ROAD_BORDER)
