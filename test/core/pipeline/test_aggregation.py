@@ -267,3 +267,19 @@ def test_distinct_drives_per_cluster_by_marks_and_by_unique():
         got = _distinct_drives(lab, drive, k)
         np.testing.assert_array_equal(got, want)
         assert got.dtype == np.int64
+
+
+def test_kde_maxima_the_same_in_runs_of_clusters(monkeypatch):
+    from hdmap_core.pipeline import aggregation  # noqa: PLC0415
+
+    rng = np.random.default_rng(11)
+    k = 300
+    labels = np.concatenate([np.arange(k), rng.integers(0, k, 20000)])
+    x = labels * 0.7 + rng.normal(0.0, 0.2, len(labels))
+    bw = rng.uniform(0.15, 0.4, k)
+    whole = kde_maxima(x, labels, bw)
+    for chunk in (1, 50, 997):
+        monkeypatch.setattr(aggregation, "KDE_CHUNK_SAMPLES", chunk)
+        np.testing.assert_array_equal(kde_maxima(x, labels, bw), whole)  # to the last bit
+    # each maximum near its cluster's centre
+    assert np.all(np.abs(whole - np.arange(k) * 0.7) < 0.2)
