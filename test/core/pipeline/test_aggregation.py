@@ -193,6 +193,8 @@ def test_processed_store_marks_merges_and_round_trips():
     assert not s2.contains("zzz", np.array([1.0])).any()
     s3 = s2.with_marks({"a": np.array([16.0])}, pad_m=1.0, merge_gap_m=6.0)
     assert s3.intervals["a"][0] == (9.0, 17.0)
+    # the new store shares the unmarked drives' lists, and the store before keeps its own
+    assert s2.intervals["a"] == [(9.0, 15.0), (39.0, 41.0)] and s3.intervals["b"] == s2.intervals["b"]
     back = ProcessedStore.from_json(s3.to_json())
     assert back.intervals == s3.intervals
     with pytest.raises(ConfigError):
@@ -251,3 +253,33 @@ def test_common_error_of_corrected_drives_is_added_to_the_spread():
     assert one.std_m[0] == pytest.approx(np.hypot(SINGLE_DRIVE_STD_M, 1.0))
     with pytest.raises(ConfigError, match="common_sigma_m"):
         former(AggregationConfig, common_sigma_m=-0.1)
+
+
+def test_distinct_drives_per_cluster_by_marks_and_by_unique():
+    from hdmap_core.pipeline.aggregation import _distinct_drives  # noqa: PLC0415 - a private helper
+
+    rng = np.random.default_rng(7)
+    # dense pairs (marks) and sparse ones (few samples, many drives: the unique)
+    for m, k, nd in [(5000, 40, 30), (200, 20, 5000)]:
+        lab = np.concatenate([np.arange(k), rng.integers(0, k, m - k)])
+        drive = rng.integers(0, nd, m)
+        want = np.array([len(set(drive[lab == c].tolist())) for c in range(k)])
+        got = _distinct_drives(lab, drive, k)
+        np.testing.assert_array_equal(got, want)
+        assert got.dtype == np.int64
+
+
+def test_kde_maxima_the_same_in_runs_of_clusters(monkeypatch):
+    from hdmap_core.pipeline import aggregation  # noqa: PLC0415
+
+    rng = np.random.default_rng(11)
+    k = 300
+    labels = np.concatenate([np.arange(k), rng.integers(0, k, 20000)])
+    x = labels * 0.7 + rng.normal(0.0, 0.2, len(labels))
+    bw = rng.uniform(0.15, 0.4, k)
+    whole = kde_maxima(x, labels, bw)
+    for chunk in (1, 50, 997):
+        monkeypatch.setattr(aggregation, "KDE_CHUNK_SAMPLES", chunk)
+        np.testing.assert_array_equal(kde_maxima(x, labels, bw), whole)  # to the last bit
+    # each maximum near its cluster's centre
+    assert np.all(np.abs(whole - np.arange(k) * 0.7) < 0.2)

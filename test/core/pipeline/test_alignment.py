@@ -604,3 +604,34 @@ def test_sparse_step_of_two_drives_sharing_no_line_accepted_when_apart():
         p = presets.preset(name)
         assert p.alignment.sparse_disjoint_apart_m == 0.0
         assert p.final_pass is None
+
+
+@pytest.mark.parametrize("n_drives, n_clusters", [(300, 8), (40, 3), (4, 6)])
+def test_closed_form_solves_the_normal_equations(n_drives, n_clusters):
+    # the rank-K (Woodbury) solve where K < D, the D x D one else: both the minimiser, i.e. the
+    # solution of the full Hessian's system
+    from hdmap_core.pipeline.alignment import _closed_form  # noqa: PLC0415 - a private helper
+
+    rng = np.random.default_rng(n_drives)
+    m_samples = 6 * n_drives
+    drive = np.concatenate([np.arange(n_drives), rng.integers(0, n_drives, m_samples - n_drives)])
+    labels = rng.integers(0, n_clusters, m_samples)
+    x = labels * 3.5 + rng.normal(0.0, 0.2, n_drives)[drive] + rng.normal(0.0, 0.05, m_samples)
+    w = rng.uniform(0.3, 1.0, m_samples)
+    has_prior = rng.random(n_drives) < 0.7
+    reg_w = 1e-4 + np.where(has_prior, 1.0, 0.0)
+    reg_t = np.where(has_prior, rng.normal(0.0, 0.2, n_drives), 0.0)
+    got = _closed_form(x, labels, drive, n_drives, w, reg_w, reg_t)
+    # the Hessian/2 and gradient/2 of the documented cost, built sample by sample
+    n_c = np.bincount(labels, minlength=n_clusters).astype(float)
+    m = np.zeros((n_clusters, n_drives))
+    xm = np.zeros((n_clusters, n_drives))
+    np.add.at(m, (labels, drive), w)
+    np.add.at(xm, (labels, drive), w * x)
+    h = np.diag(reg_w).astype(float)
+    g = np.zeros(n_drives)
+    for c in range(n_clusters):
+        wc = m[c].sum()
+        h += (np.diag(m[c]) - np.outer(m[c], m[c]) / wc) / n_c[c]
+        g += (xm[c] - xm[c].sum() * m[c] / wc) / n_c[c]
+    np.testing.assert_allclose(got, np.linalg.solve(h, reg_w * reg_t - g), rtol=0, atol=1e-10)

@@ -44,6 +44,7 @@ if TYPE_CHECKING:  # the pipeline is heavy; tiles load it on first use
     from hdmap_core.pipeline.adjustment import OffsetSource
     from hdmap_core.pipeline.aggregation import ProcessedStore
     from hdmap_core.pipeline.config import PipelineConfig
+    from hdmap_core.pipeline.offset_table import OffsetTable
 
 __all__ = [
     "TileConfig",
@@ -326,6 +327,14 @@ class _ClippedOffsets:
 
     def offset(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:
         return self.model.offset(drive_id, np.asarray(s_m, dtype=float) + self.s0.get(drive_id, 0.0))
+
+    def table(self, drive_ids: Sequence[str]) -> OffsetTable | None:
+        """The model's ``OffsetTable`` read from the clips' starts (None: the model has none)."""
+        make = getattr(self.model, "table", None)
+        base = make(drive_ids) if make is not None else None
+        if base is None or base.s0_m is not None:
+            return None  # (a clip of a clip: its sums would be in another order)
+        return base.with_start(np.array([self.s0.get(d, 0.0) for d in drive_ids], dtype=float))
 
 
 def _core_observations(observations: Sequence, inp: _TileInput, key: TileKey) -> list:

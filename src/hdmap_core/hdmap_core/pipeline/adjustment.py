@@ -44,6 +44,7 @@ from hdmap_core.parallel import one_blas_thread
 from hdmap_core.pipeline import adjustment_assoc as assoc
 from hdmap_core.pipeline.adjustment_coarse import coarse_basis, drive_links, place_sums
 from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
+from hdmap_core.pipeline.offset_table import OffsetTable, offset_table
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
 # The solver's building blocks (shift_and_reassociate, knot_layout, layout_of, design_matrix,
@@ -208,6 +209,11 @@ class OffsetModel:
         k, t, rho, _ = self._locate(cur, s)
         g = (1.0 - t) * cur.drift_m[k] + t * cur.drift_m[k + 1]
         return cur.bias_m + rho * g
+
+    def table(self, drive_ids: Sequence[str]) -> OffsetTable:
+        """The curves of ``drive_ids`` as one ``OffsetTable`` (drive i: ``drive_ids[i]``): the
+        offsets of many drives at once, the same values as ``offset``."""
+        return offset_table(self, drive_ids)
 
     def std(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:
         """Posterior 1-sigma of ``offset(drive_id, s_m)`` [m]; NaN when it was not computed."""

@@ -108,26 +108,55 @@ def kde_maxima(
     # per-cluster extent and grid densities without ufunc.at (slow): min/max over the clusters'
     # sorted runs, the sums by bincount per grid column (same summation order as add.at)
     order = np.argsort(labels, kind="stable")
-    starts = np.searchsorted(labels[order], np.arange(k))
-    lo = np.minimum.reduceat(x[order], starts)
-    hi = np.maximum.reduceat(x[order], starts)
+    xs, ls = x[order], labels[order]
+    starts = np.searchsorted(ls, np.arange(k))
+    lo = np.minimum.reduceat(xs, starts)
+    hi = np.maximum.reduceat(xs, starts)
     g = np.linspace(0.0, 1.0, grid_points)
     grid = lo[:, None] + (hi - lo)[:, None] * g[None, :]  # (K, G)
-    h = bandwidth_m[labels]
-    z = (grid[labels] - x[:, None]) / h[:, None]  # (M, G)
-    e = np.exp(-0.5 * z * z)
-    dens = np.stack([np.bincount(labels, weights=e[:, j], minlength=k) for j in range(grid_points)], axis=1)
+    hs = bandwidth_m[ls]
+    # RULE bounded temporaries: the clusters go through in runs of about KDE_CHUNK_SAMPLES samples
+    # (one array of (M, G) grew past the caches with hundreds of drives per place); a cluster's
+    # samples keep their order, so every sum is the one over all samples at once
+    runs = _cluster_runs(starts, len(xs), KDE_CHUNK_SAMPLES)
+    dens = np.empty((k, grid_points))
+    for c0, c1, a, b in runs:
+        lc = ls[a:b] - c0
+        z = (grid[ls[a:b]] - xs[a:b, None]) / hs[a:b, None]  # (run, G)
+        e = np.exp(-0.5 * z * z)
+        dens[c0:c1] = np.stack([np.bincount(lc, weights=e[:, j], minlength=c1 - c0) for j in range(grid_points)], 1)
     m = grid[np.arange(k), np.argmax(dens, axis=1)]
+    new = np.empty(k)
     for _ in range(n_shift):
-        w = np.exp(-0.5 * ((m[labels] - x) / h) ** 2)
-        num = np.bincount(labels, weights=w * x, minlength=k)
-        den = np.bincount(labels, weights=w, minlength=k)
-        new = np.where(den > 0, num / np.where(den > 0, den, 1.0), m)
+        # all runs step together: the iterations stop when every cluster has converged
+        for c0, c1, a, b in runs:
+            lc, xr = ls[a:b] - c0, xs[a:b]
+            w = np.exp(-0.5 * ((m[ls[a:b]] - xr) / hs[a:b]) ** 2)
+            num = np.bincount(lc, weights=w * xr, minlength=c1 - c0)
+            den = np.bincount(lc, weights=w, minlength=c1 - c0)
+            new[c0:c1] = np.where(den > 0, num / np.where(den > 0, den, 1.0), m[c0:c1])
         if np.max(np.abs(new - m)) < 1e-9:
             m = new
             break
-        m = new
+        m, new = new, m
     return m
+
+
+#: Samples per run of clusters in ``kde_maxima`` (a run is whole clusters).
+KDE_CHUNK_SAMPLES = 1 << 15
+
+
+def _cluster_runs(starts: np.ndarray, n: int, chunk: int) -> list[tuple[int, int, int, int]]:
+    """Runs of consecutive clusters (``starts``: the first sample of each, in sorted order; ``n``
+    samples) of about ``chunk`` samples each: (first cluster, end cluster, first sample, end sample)."""
+    k = len(starts)
+    runs = []
+    c0 = 0
+    while c0 < k:
+        c1 = max(int(np.searchsorted(starts, starts[c0] + chunk, side="left")), c0 + 1)
+        runs.append((c0, c1, int(starts[c0]), int(starts[c1]) if c1 < k else n))
+        c0 = c1
+    return runs
 
 
 def _kde_on(points: np.ndarray, x: np.ndarray, h: float) -> np.ndarray:
@@ -240,8 +269,7 @@ def aggregate_many(
     ctype[lab] = types
     cstep = np.zeros(k, dtype=np.int64)
     cstep[lab] = step
-    nd = int(drive.max()) + 1
-    n_drives = np.bincount(np.unique(lab * nd + drive) // nd, minlength=k)
+    n_drives = _distinct_drives(lab, drive, k)
     bw = np.maximum(config.kde_bandwidth_factor * std, config.kde_min_bandwidth_m)
     pos = kde_maxima(x, lab, bw) if config.method == "kde" else mean
     keep = np.ones(k, dtype=bool)
@@ -296,6 +324,19 @@ def aggregate_many(
         n_samples=n[idx].astype(np.int64),
         kept_labels=orig[idx],
     )
+
+
+def _distinct_drives(lab: np.ndarray, drive: np.ndarray, k: int) -> np.ndarray:
+    """(K,) how many distinct drives have samples in each cluster (``lab`` (M,) 0..K-1)."""
+    nd = int(drive.max()) + 1
+    key = lab * nd + drive
+    if k * nd <= 4 * len(key):
+        # RULE linear in the samples: a mark per (cluster, drive) pair; the unique of the keys
+        # (a hash table of every pair) grew faster than the samples at hundreds of drives per place
+        seen = np.zeros(k * nd, dtype=bool)
+        seen[key] = True
+        return np.count_nonzero(seen.reshape(k, nd), axis=1).astype(np.int64)
+    return np.bincount(np.unique(key) // nd, minlength=k)
 
 
 _BORDER = int(FeatureType.ROAD_BORDER)
@@ -357,7 +398,9 @@ class ProcessedStore:
             pad_m: each mark covers [s - pad, s + pad] (half a step).
             merge_gap_m: marks closer than this join one interval.
         """
-        new = {k: list(v) for k, v in self.intervals.items()}
+        # the lists are never changed in place (``_merge`` makes new ones): shared, not copied
+        # (a copy of every drive's list per pivot grew with pivots x drives)
+        new = dict(self.intervals)
         for did, s in marks.items():
             s = np.sort(np.asarray(s, dtype=float))
             if len(s) == 0:

@@ -180,6 +180,12 @@ def _merge_parts(
 
 def _shift_fn(model: OffsetSource, drive_ids: tuple[str, ...]) -> ShiftFn:
     """The offset model as ``shift(drive index (N,), drive s (N,)) -> (N,)`` [m]."""
+    # RULE linear in the drives per place: a model with a ``table`` is read for all drives at
+    # once (``offset_table``), not one Python call per drive of every pivot's samples
+    make = getattr(model, "table", None)
+    table = make(drive_ids) if make is not None else None
+    if table is not None:
+        return cast(ShiftFn, table.offset)
 
     def shift(drive_idx: np.ndarray, s_m: np.ndarray) -> np.ndarray:
         out = np.zeros(len(drive_idx))

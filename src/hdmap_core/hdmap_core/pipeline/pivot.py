@@ -76,24 +76,39 @@ class _OffsetMemory:
         self._sorted: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def add(self, drive: np.ndarray, s_m: np.ndarray, offset_m: np.ndarray) -> None:
-        for d in np.unique(drive):
-            sel = drive == d
-            self._s[int(d)].append(s_m[sel])
-            self._o[int(d)].append(offset_m[sel])
-            self._sorted.pop(int(d), None)
+        # grouped by one stable sort, not a mask per drive (quadratic in the drives of a pass):
+        # each drive's values in the same order
+        order = np.argsort(drive, kind="stable")
+        d_sorted = drive[order]
+        cut = np.flatnonzero(np.diff(d_sorted)) + 1
+        for part in np.split(order, cut) if len(order) else ():
+            d = int(drive[part[0]])
+            self._s[d].append(s_m[part])
+            self._o[d].append(offset_m[part])
+            self._sorted.pop(d, None)
 
-    def lookup(self, uniq: np.ndarray, sample_s: np.ndarray, local: np.ndarray) -> np.ndarray:
+    def lookup(self, uniq: np.ndarray, sample_s: np.ndarray, local: np.ndarray, want: np.ndarray) -> np.ndarray:
+        """Offsets of the step's drives ``uniq`` (K,) through earlier pivots (NaN: none within
+        reach), where ``want`` (K,) (elsewhere NaN); ``sample_s``, ``local``: the step's samples'
+        travelled distances and drive codes 0..K-1."""
         out = np.full(len(uniq), np.nan)
-        for k, d in enumerate(uniq.tolist()):
-            if not self._s[d]:
-                continue
+        todo = [k for k in np.flatnonzero(want).tolist() if self._s[int(uniq[k])]]
+        if not todo:
+            return out
+        # each drive's samples as a run of one stable sort (a mask per drive was quadratic in
+        # the drives of a step): the same values in the same order, so the same means
+        order = np.argsort(local, kind="stable")
+        s_by = sample_s[order]
+        ptr = np.searchsorted(local[order], np.arange(len(uniq) + 1))
+        for k in todo:
+            d = int(uniq[k])
             if d not in self._sorted:
                 s_all = np.concatenate(self._s[d])
                 o_all = np.concatenate(self._o[d])
-                order = np.argsort(s_all)
-                self._sorted[d] = (s_all[order], o_all[order])
+                srt = np.argsort(s_all)
+                self._sorted[d] = (s_all[srt], o_all[srt])
             s_all, o_all = self._sorted[d]
-            s = float(sample_s[local == k].mean())
+            s = float(s_by[ptr[k] : ptr[k + 1]].mean())
             i = int(np.clip(np.searchsorted(s_all, s), 1, len(s_all) - 1)) if len(s_all) > 1 else 0
             j = i - 1 if i > 0 and abs(s_all[i - 1] - s) < abs(s_all[i] - s) else i
             if abs(s_all[j] - s) <= self.reach_m:
@@ -256,7 +271,7 @@ def _align_steps(ps: PivotSamples, todo: np.ndarray, pid: str, status: np.ndarra
             prior = prev[uniq] if use_prior else None
             init = None
             if ctx.memory is not None and prior is not None and np.isnan(prior).any():
-                init = ctx.memory.lookup(uniq, ps.drive_s_m[a:b], local)
+                init = ctx.memory.lookup(uniq, ps.drive_s_m[a:b], local, ~np.isfinite(prior))
             al = align_step(
                 x,
                 ty,
