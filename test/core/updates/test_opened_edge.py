@@ -4,16 +4,28 @@
 from __future__ import annotations
 
 import numpy as np
-from carriageway_samples import CHANGED, DASHED, PLACES, REBUILT, SOLID, carriageway_lines, line_feature
+from carriageway_samples import (
+    BORDER,
+    CHANGED,
+    DASHED,
+    PLACES,
+    REBUILT,
+    SOLID,
+    carriageway_lines,
+    line_feature,
+)
 
 from hdmap_core.model import HDMap
 from hdmap_core.updates.detect import DetectedChange, PlaceChange
 from hdmap_core.updates.edges import EdgeEvidence, opened_edge_moved
 from hdmap_core.updates.splice import Reach, splice
 
-# The carriageway of carriageway_samples (right edge y = 50); the shoulder of places 2 and 3
+# The carriageway of carriageway_samples (right edge y = 50) with a 3.5 m shoulder (its right
+# border y = 46.5, not 49: an opened lane lies within the road); the shoulder of places 2 and 3
 # (x 200-400) opened: the edge moved 2 m out (y = 48), the old one turned a dashed divider.
-FIRST = HDMap(features=(*carriageway_lines(),))
+FIRST = HDMap(
+    features=tuple(line_feature(5, BORDER, 46.5) if f.id == 5 else f for f in carriageway_lines()),
+)
 
 
 def _change(kind="lane_opened", effect=-2.0):

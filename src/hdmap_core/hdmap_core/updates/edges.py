@@ -85,6 +85,8 @@ _EDGE_APART_M = 0.5  # a first-map marking this far right of a solid one makes i
 _SAME_LINE_M = 1.0  # a first-map marking point with a local-map marking this close was seen [m]
 _EDGE_STD_M = 0.2  # lateral uncertainty added to an opened edge moved by the confirmed move [m]
 _MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
+_MIN_TAPER_DRIVES = 2  # drives after the change that measured the move of a taper place (one joined along the road)
+_BORDER = int(FeatureType.ROAD_BORDER)
 
 
 @dataclass(frozen=True)
@@ -427,6 +429,9 @@ def opened_edge_moved(
     # first map is built from every drive): it does not make the old edge line a divider
     old_road = np.concatenate([np.asarray(f.drive_count) > n_after for _, f in marks])
     all_tree = cKDTree(all_pts)
+    old_tree = cKDTree(all_pts[old_road]) if old_road.any() else None
+    border_pts = dense_points([f.points for f in first.features if int(f.type) == _BORDER], 0.5)
+    borders = (border_pts, cKDTree(border_pts)) if len(border_pts) else None
     local_solid = dense_points([f.points for f in local.features if int(f.type) == _SOLID], 0.5)
     local_tree = cKDTree(local_solid) if len(local_solid) else None
     local_marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], 0.5)
@@ -464,6 +469,18 @@ def opened_edge_moved(
         if not ok.any():
             continue
         mv = np.array([moves[k][1] if k in moves else 0.0 for k in keys])
+        # a point of a line only the drives after the change may have seen that lies the move
+        # out from an old-road marking is the moved edge already: not moved again
+        young = ok & (np.asarray(f.drive_count) <= n_after)
+        if old_tree is not None and young.any():
+            i = np.flatnonzero(young)
+            d, _ = old_tree.query(pts[i] - mv[i, None] * left[i], distance_upper_bound=config.unseen_seen_m)
+            ok[i[np.isfinite(d)]] = False
+        # no further out than the road border right of it
+        mv = np.where(ok, _to_border(pts, t, left, mv, borders), mv)
+        ok &= mv <= -MIN_EDGE_MOVE_M / 2
+        if not ok.any():
+            continue
         new = pts + mv[:, None] * left
         if local_tree is not None:
             d, _ = local_tree.query(new[ok], distance_upper_bound=config.unseen_seen_m)
@@ -496,13 +513,38 @@ def opened_edge_moved(
     return UnseenMove(replace(first, features=tuple(feats)), tuple(pieces)), stays
 
 
+def _to_border(
+    pts: np.ndarray, t: np.ndarray, left: np.ndarray, mv: np.ndarray, borders: tuple[np.ndarray, cKDTree] | None
+) -> np.ndarray:
+    """``mv`` (+ left, per point of ``pts``; tangents ``t``, their left normals ``left``) limited
+    to the nearest road border of ``borders`` (points, their tree) right of each point, beside it
+    (within ``_SAME_LINE_M`` along): no marking moves beyond the road's border."""
+    out = np.asarray(mv, dtype=float).copy()
+    if borders is None:
+        return out
+    b_pts, b_tree = borders
+    for i in np.flatnonzero(out < 0):
+        near = b_tree.query_ball_point(pts[i], -out[i] + _SAME_LINE_M)
+        if not near:
+            continue
+        v = b_pts[near] - pts[i]
+        lat, lon = v @ left[i], v @ t[i]
+        right = (lat < 0) & (np.abs(lon) < _SAME_LINE_M)
+        if right.any():
+            out[i] = max(out[i], float(lat[right].max()))
+    return out
+
+
 def _measured_move(p: PlaceChange, evidence: Sequence[EdgeEvidence]) -> float:
     """The edge move at ``p`` its drives after the change measured: the median of their measured
-    moves less the median of the drives before; NaN when none measured it."""
+    moves less the median of the drives before; NaN when none measured it, or, in a place joined
+    along the road (a taper, ``PlaceChange.extended``), fewer than ``_MIN_TAPER_DRIVES``: there
+    the edge runs between the old line and the moved one, and one drive's median over the place
+    is no move of its points."""
     after, before = set(p.drives_after), set(p.drives_before)
     rows = [e for e in evidence if e.key == p.key and np.isfinite(e.move_m)]
     got = [e.move_m for e in rows if e.drive_id in after and e.measured]
     was = [e.move_m for e in rows if e.drive_id in before]
-    if not got or not was:
+    if not got or not was or (p.extended and len(got) < _MIN_TAPER_DRIVES):
         return math.nan
     return float(np.median(got) - np.median(was))
