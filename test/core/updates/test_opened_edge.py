@@ -135,22 +135,25 @@ def test_no_marking_moves_beyond_the_road_border_right_of_it():
 
 
 def test_a_taper_place_one_drive_measured_gets_no_edge_model():
-    # places 2, 3 confirmed (both drives after the change measured 2 m), place 4 joined along the
-    # road (a taper): one drive measured 1.2 m there, the other saw too little
-    places = tuple(PlaceChange(k, "lane_opened", 10, 5, -2.0, 9.0, ("b1", "b2", "b3"), ("a1", "a2")) for k in CHANGED)
+    # places 2, 3 confirmed (both drives after the change measured 2.5 m), place 4 joined along
+    # the road (a taper): one drive measured 1.2 m there, the other saw too little
+    places = tuple(PlaceChange(k, "lane_opened", 10, 5, -2.5, 9.0, ("b1", "b2", "b3"), ("a1", "a2")) for k in CHANGED)
     taper = PlaceChange((4, 0, 0), "lane_opened", 10, 5, -1.2, np.nan, ("b1", "b2", "b3"), ("a1",), extended=True)
     change = DetectedChange(7, 10, ("lane_opened",), (*places, taper), ("a1", "a2"), 0.9)
     keys = [*CHANGED, (4, 0, 0)]
     rows = [EdgeEvidence(d, 1, k, 0.0, 10) for d in ("b1", "b2", "b3") for k in keys]
-    rows += [EdgeEvidence(d, 20, k, -2.0, 10) for d in ("a1", "a2") for k in CHANGED]
+    rows += [EdgeEvidence(d, 20, k, -2.5, 10) for d in ("a1", "a2") for k in CHANGED]
     local = _local((DASHED, 50.0), (DASHED, 53.5), (DASHED, 57.0), (SOLID, 60.5))
     one = [*rows, EdgeEvidence("a1", 20, (4, 0, 0), -1.2, 10)]
     moved, _ = opened_edge_moved(FIRST, local, PLACES, [change], REBUILT, evidence=one)
-    assert _ys(moved.map, SOLID) == [48.0, 60.5]  # the confirmed places moved
+    assert _ys(moved.map, SOLID) == [47.5, 60.5]  # the confirmed places moved
     assert _ys(moved.map, SOLID, x=450.0) == [50.0, 60.5]  # the taper place not
     # two drives that measured it: the taper place's move is theirs
     two = [*one, EdgeEvidence("a2", 20, (4, 0, 0), -1.2, 10)]
-    taper2 = replace(taper, drives_after=("a1", "a2"))
-    change2 = replace(change, places=(*places, taper2))
+    change2 = replace(change, places=(*places, replace(taper, drives_after=("a1", "a2"))))
     moved, _ = opened_edge_moved(FIRST, local, PLACES, [change2], REBUILT, evidence=two)
     assert _ys(moved.map, SOLID, x=450.0) == [48.8, 60.5]
+    # one drive that measured the change's move there (within the match radius): it moves by it
+    full = [*rows, EdgeEvidence("a1", 20, (4, 0, 0), -2.4, 10)]
+    moved, _ = opened_edge_moved(FIRST, local, PLACES, [change], REBUILT, evidence=full)
+    assert _ys(moved.map, SOLID, x=450.0) == [47.6, 60.5]

@@ -85,7 +85,7 @@ _EDGE_APART_M = 0.5  # a first-map marking this far right of a solid one makes i
 _SAME_LINE_M = 1.0  # a first-map marking point with a local-map marking this close was seen [m]
 _EDGE_STD_M = 0.2  # lateral uncertainty added to an opened edge moved by the confirmed move [m]
 _MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
-_MIN_TAPER_DRIVES = 2  # drives after the change that measured the move of a taper place (one joined along the road)
+_MIN_PLACE_DRIVES = 2  # drives after the change that measured a place's move, else it must be the change's move
 _BORDER = int(FeatureType.ROAD_BORDER)
 
 
@@ -409,11 +409,19 @@ def opened_edge_moved(
         if tuple(c.kinds) != ("lane_opened",):
             continue
         n_after = max(n_after, len(c.drives_after))
+        measured = {p.key: (float(p.effect), 2) if evidence is None else _measured_move(p, evidence) for p in c.places}
+        # the change's move: that of the places it confirmed on their own
+        full = np.array([measured[p.key][0] for p in c.places if not p.extended])
+        full = float(np.median(full[np.isfinite(full)])) if np.isfinite(full).any() else math.nan
         for p in c.places:
             region |= {p.key, *places.neighbours(p.key)}
             if p.kind == "lane_opened" and p.key in rebuilt and p.effect < 0:
                 opened.add(p.key)
-                move = float(p.effect) if evidence is None else _measured_move(p, evidence)
+                move, n = measured[p.key]
+                if n < _MIN_PLACE_DRIVES and abs(move - full) > config.unseen_seen_m:
+                    # one drive's median over a place where the edge runs from the old line to
+                    # the moved one (a taper) is no move of its points
+                    continue
                 if move <= -MIN_EDGE_MOVE_M / 2:  # NaN: none measured; less: a taper's start
                     moves[p.key] = (c.id, move)
     region &= set(rebuilt)
@@ -535,16 +543,14 @@ def _to_border(
     return out
 
 
-def _measured_move(p: PlaceChange, evidence: Sequence[EdgeEvidence]) -> float:
+def _measured_move(p: PlaceChange, evidence: Sequence[EdgeEvidence]) -> tuple[float, int]:
     """The edge move at ``p`` its drives after the change measured: the median of their measured
-    moves less the median of the drives before; NaN when none measured it, or, in a place joined
-    along the road (a taper, ``PlaceChange.extended``), fewer than ``_MIN_TAPER_DRIVES``: there
-    the edge runs between the old line and the moved one, and one drive's median over the place
-    is no move of its points."""
+    moves less the median of the drives before (NaN when none measured it), and how many
+    measured it."""
     after, before = set(p.drives_after), set(p.drives_before)
     rows = [e for e in evidence if e.key == p.key and np.isfinite(e.move_m)]
     got = [e.move_m for e in rows if e.drive_id in after and e.measured]
     was = [e.move_m for e in rows if e.drive_id in before]
-    if not got or not was or (p.extended and len(got) < _MIN_TAPER_DRIVES):
-        return math.nan
-    return float(np.median(got) - np.median(was))
+    if not got or not was:
+        return math.nan, 0
+    return float(np.median(got) - np.median(was)), len(got)
