@@ -132,6 +132,9 @@ def test_no_marking_moves_beyond_the_road_border_right_of_it():
     # an edge on the border already: nothing to move
     at_border = HDMap(features=tuple(line_feature(5, BORDER, 49.8) if f.id == 5 else f for f in carriageway_lines()))
     assert not opened_edge_moved(at_border, local, PLACES, [_change()], REBUILT)[0].pieces
+    # ... or a little beyond it (the first map's border 0.2 m left of the line)
+    beyond = HDMap(features=tuple(line_feature(5, BORDER, 50.2) if f.id == 5 else f for f in carriageway_lines()))
+    assert not opened_edge_moved(beyond, local, PLACES, [_change()], REBUILT)[0].pieces
 
 
 def test_a_taper_place_one_drive_measured_gets_no_edge_model():

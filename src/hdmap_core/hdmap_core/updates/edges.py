@@ -390,7 +390,13 @@ def opened_edge_moved(
     (the drives' edge moves) the move of a place is what its drives after the change measured
     (``EdgeEvidence.measured``, their median against the median of the drives before): a drive
     that saw only the old edge turned divider reads the least move that is a lane, not the move;
-    a place none of them measured (a taper one drive passed) gets no model.
+    a place none of them measured (a taper one drive passed) gets no model, nor one where fewer
+    than ``_MIN_PLACE_DRIVES`` measured a move more than ``unseen_seen_m`` from the change's
+    move (the median over its places confirmed on their own; there the edge runs from the old
+    line to the moved one: a taper). A point of a line no more drives saw than drove after the
+    change that lies the move out from an old-road marking (within ``unseen_seen_m``) is the
+    moved edge already: it is not moved again; and no point moves beyond the first map's road
+    border right of it (``_to_border``).
 
     An opened lane moves that line only: every other first-map marking point of the rebuilt
     places of such a change (and their neighbours) that the local map lacks (no marking within
@@ -526,7 +532,8 @@ def _to_border(
 ) -> np.ndarray:
     """``mv`` (+ left, per point of ``pts``; tangents ``t``, their left normals ``left``) limited
     to the nearest road border of ``borders`` (points, their tree) right of each point, beside it
-    (within ``_SAME_LINE_M`` along): no marking moves beyond the road's border."""
+    (within ``_SAME_LINE_M`` along): no marking moves beyond the road's border. A border less than
+    ``_EDGE_APART_M`` left of a point counts too (the point lies on it: it moves nowhere)."""
     out = np.asarray(mv, dtype=float).copy()
     if borders is None:
         return out
@@ -537,7 +544,7 @@ def _to_border(
             continue
         v = b_pts[near] - pts[i]
         lat, lon = v @ left[i], v @ t[i]
-        right = (lat < 0) & (np.abs(lon) < _SAME_LINE_M)
+        right = (lat < _EDGE_APART_M) & (np.abs(lon) < _SAME_LINE_M)
         if right.any():
             out[i] = max(out[i], float(lat[right].max()))
     return out
