@@ -129,6 +129,9 @@ def test_no_marking_moves_beyond_the_road_border_right_of_it():
     moved, _ = opened_edge_moved(narrow, local, PLACES, [_change(effect=-3.0)], REBUILT)
     assert moved.pieces
     assert _ys(moved.map, SOLID) == [47.5, 60.5]  # on the border, not 0.5 m beyond it
+    # within the modelled edge's uncertainty (0.2 m) of the mapped border the move stands
+    moved, _ = opened_edge_moved(narrow, local, PLACES, [_change(effect=-2.6)], REBUILT)
+    assert _ys(moved.map, SOLID) == [47.4, 60.5]
     # an edge on the border already: nothing to move
     at_border = HDMap(features=tuple(line_feature(5, BORDER, 49.8) if f.id == 5 else f for f in carriageway_lines()))
     assert not opened_edge_moved(at_border, local, PLACES, [_change()], REBUILT)[0].pieces

@@ -532,8 +532,10 @@ def _to_border(
 ) -> np.ndarray:
     """``mv`` (+ left, per point of ``pts``; tangents ``t``, their left normals ``left``) limited
     to the nearest road border of ``borders`` (points, their tree) right of each point, beside it
-    (within ``_SAME_LINE_M`` along): no marking moves beyond the road's border. A border less than
-    ``_EDGE_APART_M`` left of a point counts too (the point lies on it: it moves nowhere)."""
+    (within ``_SAME_LINE_M`` along): no marking moves beyond the road's border (a move that ends
+    more than ``_EDGE_STD_M`` beyond it, the modelled edge's own uncertainty, ends on it). A
+    border less than ``_EDGE_APART_M`` left of a point counts too (the point lies on it: it moves
+    nowhere)."""
     out = np.asarray(mv, dtype=float).copy()
     if borders is None:
         return out
@@ -546,7 +548,9 @@ def _to_border(
         lat, lon = v @ left[i], v @ t[i]
         right = (lat < _EDGE_APART_M) & (np.abs(lon) < _SAME_LINE_M)
         if right.any():
-            out[i] = max(out[i], float(lat[right].max()))
+            limit = float(lat[right].max())
+            if out[i] < limit - _EDGE_STD_M:
+                out[i] = limit
     return out
 
 
