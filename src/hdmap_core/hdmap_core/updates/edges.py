@@ -415,10 +415,14 @@ def opened_edge_moved(
         if tuple(c.kinds) != ("lane_opened",):
             continue
         n_after = max(n_after, len(c.drives_after))
-        measured = {p.key: (float(p.effect), 2) if evidence is None else _measured_move(p, evidence) for p in c.places}
+        # without evidence the confirmed effect stands (as if measured by enough drives)
+        measured = {
+            p.key: (float(p.effect), _MIN_PLACE_DRIVES) if evidence is None else _measured_move(p, evidence)
+            for p in c.places
+        }
         # the change's move: that of the places it confirmed on their own
-        full = np.array([measured[p.key][0] for p in c.places if not p.extended])
-        full = float(np.median(full[np.isfinite(full)])) if np.isfinite(full).any() else math.nan
+        own = np.array([measured[p.key][0] for p in c.places if not p.extended])
+        full = float(np.median(own[np.isfinite(own)])) if np.isfinite(own).any() else math.nan
         for p in c.places:
             region |= {p.key, *places.neighbours(p.key)}
             if p.kind == "lane_opened" and p.key in rebuilt and p.effect < 0:
@@ -487,9 +491,9 @@ def opened_edge_moved(
         # out from an old-road marking is the moved edge already: not moved again
         young = ok & (np.asarray(f.drive_count) <= n_after)
         if old_tree is not None and young.any():
-            i = np.flatnonzero(young)
-            d, _ = old_tree.query(pts[i] - mv[i, None] * left[i], distance_upper_bound=config.unseen_seen_m)
-            ok[i[np.isfinite(d)]] = False
+            yi = np.flatnonzero(young)
+            d, _ = old_tree.query(pts[yi] - mv[yi, None] * left[yi], distance_upper_bound=config.unseen_seen_m)
+            ok[yi[np.isfinite(d)]] = False
         # no further out than the road border right of it
         mv = np.where(ok, _to_border(pts, t, left, mv, borders), mv)
         ok &= mv <= -MIN_EDGE_MOVE_M / 2
