@@ -3,17 +3,31 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
-from carriageway_samples import CHANGED, DASHED, PLACES, REBUILT, SOLID, carriageway_lines, line_feature
+from carriageway_samples import (
+    BORDER,
+    CHANGED,
+    DASHED,
+    PLACES,
+    REBUILT,
+    SOLID,
+    carriageway_lines,
+    line_feature,
+)
 
 from hdmap_core.model import HDMap
 from hdmap_core.updates.detect import DetectedChange, PlaceChange
 from hdmap_core.updates.edges import EdgeEvidence, opened_edge_moved
 from hdmap_core.updates.splice import Reach, splice
 
-# The carriageway of carriageway_samples (right edge y = 50); the shoulder of places 2 and 3
+# The carriageway of carriageway_samples (right edge y = 50) with a 3.5 m shoulder (its right
+# border y = 46.5, not 49: an opened lane lies within the road); the shoulder of places 2 and 3
 # (x 200-400) opened: the edge moved 2 m out (y = 48), the old one turned a dashed divider.
-FIRST = HDMap(features=(*carriageway_lines(),))
+FIRST = HDMap(
+    features=tuple(line_feature(5, BORDER, 46.5) if f.id == 5 else f for f in carriageway_lines()),
+)
 
 
 def _change(kind="lane_opened", effect=-2.0):
@@ -92,3 +106,60 @@ def test_a_place_where_no_drive_measured_the_move_gets_no_edge_model():
     rows[-2] = EdgeEvidence("a2", 20, CHANGED[0], -3.0, 10)
     moved, _ = opened_edge_moved(FIRST, local, PLACES, [_change()], REBUILT, evidence=rows)
     assert _ys(moved.map, SOLID) == [47.0, 60.5]
+
+
+def test_an_edge_piece_the_first_map_has_moved_already_is_not_moved_again():
+    # the first map (every drive) has the moved edge (y = 48) where the 2 drives after the change
+    # saw it (drive_count 2) beside the old one; the drives after it of the rebuilt map saw neither
+    young = line_feature(7, SOLID, 48.0, 200.0, 399.0)
+    young = type(young)(7, SOLID, young.points, np.full(len(young.points), 2), young.lateral_std)
+    wide = tuple(line_feature(5, BORDER, 44.0) if f.id == 5 else f for f in carriageway_lines())
+    first = HDMap(features=(*wide, young))
+    local = _local((DASHED, 50.0), (DASHED, 53.5), (DASHED, 57.0), (SOLID, 60.5))
+    moved, _ = opened_edge_moved(first, local, PLACES, [_change()], REBUILT)
+    # the old edge moves onto it, it stays (not 2 m further out, y = 46)
+    assert _ys(moved.map, SOLID) == [48.0, 48.0, 60.5]
+    assert all(p.feature_id == 1 for p in moved.pieces)
+
+
+def test_no_marking_moves_beyond_the_road_border_right_of_it():
+    # a 2.5 m shoulder (border y = 47.5); the drives after the change measured 3 m
+    narrow = HDMap(features=tuple(line_feature(5, BORDER, 47.5) if f.id == 5 else f for f in carriageway_lines()))
+    local = _local((DASHED, 50.0), (DASHED, 53.5), (DASHED, 57.0), (SOLID, 60.5))
+    moved, _ = opened_edge_moved(narrow, local, PLACES, [_change(effect=-3.0)], REBUILT)
+    assert moved.pieces
+    assert _ys(moved.map, SOLID) == [47.5, 60.5]  # on the border, not 0.5 m beyond it
+    # within the modelled edge's uncertainty (0.2 m) of the mapped border the move stands
+    moved, _ = opened_edge_moved(narrow, local, PLACES, [_change(effect=-2.6)], REBUILT)
+    assert _ys(moved.map, SOLID) == [47.4, 60.5]
+    # an edge on the border already: nothing to move
+    at_border = HDMap(features=tuple(line_feature(5, BORDER, 49.8) if f.id == 5 else f for f in carriageway_lines()))
+    assert not opened_edge_moved(at_border, local, PLACES, [_change()], REBUILT)[0].pieces
+    # ... or a little beyond it (the first map's border 0.2 m left of the line)
+    beyond = HDMap(features=tuple(line_feature(5, BORDER, 50.2) if f.id == 5 else f for f in carriageway_lines()))
+    assert not opened_edge_moved(beyond, local, PLACES, [_change()], REBUILT)[0].pieces
+
+
+def test_a_taper_place_one_drive_measured_gets_no_edge_model():
+    # places 2, 3 confirmed (both drives after the change measured 2.5 m), place 4 joined along
+    # the road (a taper): one drive measured 1.2 m there, the other saw too little
+    places = tuple(PlaceChange(k, "lane_opened", 10, 5, -2.5, 9.0, ("b1", "b2", "b3"), ("a1", "a2")) for k in CHANGED)
+    taper = PlaceChange((4, 0, 0), "lane_opened", 10, 5, -1.2, np.nan, ("b1", "b2", "b3"), ("a1",), extended=True)
+    change = DetectedChange(7, 10, ("lane_opened",), (*places, taper), ("a1", "a2"), 0.9)
+    keys = [*CHANGED, (4, 0, 0)]
+    rows = [EdgeEvidence(d, 1, k, 0.0, 10) for d in ("b1", "b2", "b3") for k in keys]
+    rows += [EdgeEvidence(d, 20, k, -2.5, 10) for d in ("a1", "a2") for k in CHANGED]
+    local = _local((DASHED, 50.0), (DASHED, 53.5), (DASHED, 57.0), (SOLID, 60.5))
+    one = [*rows, EdgeEvidence("a1", 20, (4, 0, 0), -1.2, 10)]
+    moved, _ = opened_edge_moved(FIRST, local, PLACES, [change], REBUILT, evidence=one)
+    assert _ys(moved.map, SOLID) == [47.5, 60.5]  # the confirmed places moved
+    assert _ys(moved.map, SOLID, x=450.0) == [50.0, 60.5]  # the taper place not
+    # two drives that measured it: the taper place's move is theirs
+    two = [*one, EdgeEvidence("a2", 20, (4, 0, 0), -1.2, 10)]
+    change2 = replace(change, places=(*places, replace(taper, drives_after=("a1", "a2"))))
+    moved, _ = opened_edge_moved(FIRST, local, PLACES, [change2], REBUILT, evidence=two)
+    assert _ys(moved.map, SOLID, x=450.0) == [48.8, 60.5]
+    # one drive that measured the change's move there (within the match radius): it moves by it
+    full = [*rows, EdgeEvidence("a1", 20, (4, 0, 0), -2.4, 10)]
+    moved, _ = opened_edge_moved(FIRST, local, PLACES, [change], REBUILT, evidence=full)
+    assert _ys(moved.map, SOLID, x=450.0) == [47.6, 60.5]

@@ -85,6 +85,8 @@ _EDGE_APART_M = 0.5  # a first-map marking this far right of a solid one makes i
 _SAME_LINE_M = 1.0  # a first-map marking point with a local-map marking this close was seen [m]
 _EDGE_STD_M = 0.2  # lateral uncertainty added to an opened edge moved by the confirmed move [m]
 _MIN_BEFORE = 5  # drives a place needs before a change point of the edge (it is noisier than the displacement)
+_MIN_PLACE_DRIVES = 2  # drives after the change that measured a place's move, else it must be the change's move
+_BORDER = int(FeatureType.ROAD_BORDER)
 
 
 @dataclass(frozen=True)
@@ -388,7 +390,13 @@ def opened_edge_moved(
     (the drives' edge moves) the move of a place is what its drives after the change measured
     (``EdgeEvidence.measured``, their median against the median of the drives before): a drive
     that saw only the old edge turned divider reads the least move that is a lane, not the move;
-    a place none of them measured (a taper one drive passed) gets no model.
+    a place none of them measured (a taper one drive passed) gets no model, nor one where fewer
+    than ``_MIN_PLACE_DRIVES`` measured a move more than ``unseen_seen_m`` from the change's
+    move (the median over its places confirmed on their own; there the edge runs from the old
+    line to the moved one: a taper). A point of a line no more drives saw than drove after the
+    change that lies the move out from an old-road marking (within ``unseen_seen_m``) is the
+    moved edge already: it is not moved again; and no point moves beyond the first map's road
+    border right of it (``_to_border``).
 
     An opened lane moves that line only: every other first-map marking point of the rebuilt
     places of such a change (and their neighbours) that the local map lacks (no marking within
@@ -407,11 +415,23 @@ def opened_edge_moved(
         if tuple(c.kinds) != ("lane_opened",):
             continue
         n_after = max(n_after, len(c.drives_after))
+        # without evidence the confirmed effect stands (as if measured by enough drives)
+        measured = {
+            p.key: (float(p.effect), _MIN_PLACE_DRIVES) if evidence is None else _measured_move(p, evidence)
+            for p in c.places
+        }
+        # the change's move: that of the places it confirmed on their own
+        own = np.array([measured[p.key][0] for p in c.places if not p.extended])
+        full = float(np.median(own[np.isfinite(own)])) if np.isfinite(own).any() else math.nan
         for p in c.places:
             region |= {p.key, *places.neighbours(p.key)}
             if p.kind == "lane_opened" and p.key in rebuilt and p.effect < 0:
                 opened.add(p.key)
-                move = float(p.effect) if evidence is None else _measured_move(p, evidence)
+                move, n = measured[p.key]
+                if n < _MIN_PLACE_DRIVES and abs(move - full) > config.unseen_seen_m:
+                    # one drive's median over a place where the edge runs from the old line to
+                    # the moved one (a taper) is no move of its points
+                    continue
                 if move <= -MIN_EDGE_MOVE_M / 2:  # NaN: none measured; less: a taper's start
                     moves[p.key] = (c.id, move)
     region &= set(rebuilt)
@@ -427,6 +447,9 @@ def opened_edge_moved(
     # first map is built from every drive): it does not make the old edge line a divider
     old_road = np.concatenate([np.asarray(f.drive_count) > n_after for _, f in marks])
     all_tree = cKDTree(all_pts)
+    old_tree = cKDTree(all_pts[old_road]) if old_road.any() else None
+    border_pts = dense_points([f.points for f in first.features if int(f.type) == _BORDER], 0.5)
+    borders = (border_pts, cKDTree(border_pts)) if len(border_pts) else None
     local_solid = dense_points([f.points for f in local.features if int(f.type) == _SOLID], 0.5)
     local_tree = cKDTree(local_solid) if len(local_solid) else None
     local_marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], 0.5)
@@ -464,6 +487,18 @@ def opened_edge_moved(
         if not ok.any():
             continue
         mv = np.array([moves[k][1] if k in moves else 0.0 for k in keys])
+        # a point of a line only the drives after the change may have seen that lies the move
+        # out from an old-road marking is the moved edge already: not moved again
+        young = ok & (np.asarray(f.drive_count) <= n_after)
+        if old_tree is not None and young.any():
+            yi = np.flatnonzero(young)
+            d, _ = old_tree.query(pts[yi] - mv[yi, None] * left[yi], distance_upper_bound=config.unseen_seen_m)
+            ok[yi[np.isfinite(d)]] = False
+        # no further out than the road border right of it
+        mv = np.where(ok, _to_border(pts, t, left, mv, borders), mv)
+        ok &= mv <= -MIN_EDGE_MOVE_M / 2
+        if not ok.any():
+            continue
         new = pts + mv[:, None] * left
         if local_tree is not None:
             d, _ = local_tree.query(new[ok], distance_upper_bound=config.unseen_seen_m)
@@ -496,13 +531,41 @@ def opened_edge_moved(
     return UnseenMove(replace(first, features=tuple(feats)), tuple(pieces)), stays
 
 
-def _measured_move(p: PlaceChange, evidence: Sequence[EdgeEvidence]) -> float:
+def _to_border(
+    pts: np.ndarray, t: np.ndarray, left: np.ndarray, mv: np.ndarray, borders: tuple[np.ndarray, cKDTree] | None
+) -> np.ndarray:
+    """``mv`` (+ left, per point of ``pts``; tangents ``t``, their left normals ``left``) limited
+    to the nearest road border of ``borders`` (points, their tree) right of each point, beside it
+    (within ``_SAME_LINE_M`` along): no marking moves beyond the road's border (a move that ends
+    more than ``_EDGE_STD_M`` beyond it, the modelled edge's own uncertainty, ends on it). A
+    border less than ``_EDGE_APART_M`` left of a point counts too (the point lies on it: it moves
+    nowhere)."""
+    out = np.asarray(mv, dtype=float).copy()
+    if borders is None:
+        return out
+    b_pts, b_tree = borders
+    for i in np.flatnonzero(out < 0):
+        near = b_tree.query_ball_point(pts[i], -out[i] + _SAME_LINE_M)
+        if not near:
+            continue
+        v = b_pts[near] - pts[i]
+        lat, lon = v @ left[i], v @ t[i]
+        right = (lat < _EDGE_APART_M) & (np.abs(lon) < _SAME_LINE_M)
+        if right.any():
+            limit = float(lat[right].max())
+            if out[i] < limit - _EDGE_STD_M:
+                out[i] = limit
+    return out
+
+
+def _measured_move(p: PlaceChange, evidence: Sequence[EdgeEvidence]) -> tuple[float, int]:
     """The edge move at ``p`` its drives after the change measured: the median of their measured
-    moves less the median of the drives before; NaN when none measured it."""
+    moves less the median of the drives before (NaN when none measured it), and how many
+    measured it."""
     after, before = set(p.drives_after), set(p.drives_before)
     rows = [e for e in evidence if e.key == p.key and np.isfinite(e.move_m)]
     got = [e.move_m for e in rows if e.drive_id in after and e.measured]
     was = [e.move_m for e in rows if e.drive_id in before]
     if not got or not was:
-        return math.nan
-    return float(np.median(got) - np.median(was))
+        return math.nan, 0
+    return float(np.median(got) - np.median(was)), len(got)
