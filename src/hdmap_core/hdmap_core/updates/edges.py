@@ -43,7 +43,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -448,12 +448,9 @@ def opened_edge_moved(
     old_road = np.concatenate([np.asarray(f.drive_count) > n_after for _, f in marks])
     all_tree = cKDTree(all_pts)
     old_tree = cKDTree(all_pts[old_road]) if old_road.any() else None
-    border_pts = dense_points([f.points for f in first.features if int(f.type) == _BORDER], 0.5)
-    borders = (border_pts, cKDTree(border_pts)) if len(border_pts) else None
-    local_solid = dense_points([f.points for f in local.features if int(f.type) == _SOLID], 0.5)
-    local_tree = cKDTree(local_solid) if len(local_solid) else None
-    local_marks = dense_points([f.points for f in local.features if int(f.type) in _MARKINGS], 0.5)
-    marks_tree = cKDTree(local_marks) if len(local_marks) else None
+    borders = _dense_tree(first, {_BORDER})
+    local_solid = _dense_tree(local, {_SOLID})
+    local_marks = _dense_tree(local, _MARKINGS)
     feats = list(first.features)
     pieces: list[ModelledMarking] = []
     kept: list[np.ndarray] = [no_pts]
@@ -461,8 +458,8 @@ def opened_edge_moved(
         pts = np.asarray(f.points, dtype=float)
         keys = places.keys_along(pts)
         stay = np.array([k in region for k in keys], dtype=bool)
-        if marks_tree is not None and stay.any():
-            d, _ = marks_tree.query(pts[stay], distance_upper_bound=_SAME_LINE_M)
+        if local_marks is not None and stay.any():
+            d, _ = local_marks[1].query(pts[stay], distance_upper_bound=_SAME_LINE_M)
             stay[np.flatnonzero(stay)[np.isfinite(d)]] = False
         at = np.array([k in opened for k in keys], dtype=bool)
         if int(f.type) != _SOLID or not (at | stay).any():
@@ -500,8 +497,8 @@ def opened_edge_moved(
         if not ok.any():
             continue
         new = pts + mv[:, None] * left
-        if local_tree is not None:
-            d, _ = local_tree.query(new[ok], distance_upper_bound=config.unseen_seen_m)
+        if local_solid is not None:
+            d, _ = local_solid[1].query(new[ok], distance_upper_bound=config.unseen_seen_m)
             ok[np.flatnonzero(ok)[np.isfinite(d)]] = False
         if not ok.any():
             continue
@@ -529,6 +526,12 @@ def opened_edge_moved(
     if not pieces:
         return none, stays
     return UnseenMove(replace(first, features=tuple(feats)), tuple(pieces)), stays
+
+
+def _dense_tree(hdmap: HDMap, types: Collection[int]) -> tuple[np.ndarray, cKDTree] | None:
+    """The points of ``hdmap``'s features of ``types`` every 0.5 m and their tree (None: none)."""
+    pts = dense_points([f.points for f in hdmap.features if int(f.type) in types], 0.5)
+    return (pts, cKDTree(pts)) if len(pts) else None
 
 
 def _to_border(
