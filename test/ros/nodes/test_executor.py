@@ -36,10 +36,18 @@ def node(ros):
     n.destroy_node()
 
 
-def _spin(executor, until, timeout=10.0):
+def _spin(node, until, executor_cls=NodeExecutor, timeout=10.0):
+    """Spin ``node`` on a new two-thread ``executor_cls`` until ``until()`` (or ``timeout``); the
+    executor, shut down."""
+    executor = executor_cls(num_threads=2, context=node.context)
+    executor.add_node(node)
     end = time.monotonic() + timeout
-    while not until() and time.monotonic() < end:
-        executor.spin_once(timeout_sec=0.05)
+    try:
+        while not until() and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        executor.shutdown()
+    return executor
 
 
 def test_a_busy_group_is_not_handed_out_again_and_again(node):
@@ -62,12 +70,7 @@ def test_a_busy_group_is_not_handed_out_again_and_again(node):
 
     timer = node.create_timer(0.05, work, callback_group=group)
     wake = node.create_guard_condition(work, callback_group=group)
-    executor = _Counting(num_threads=2, context=node.context)
-    executor.add_node(node)
-    try:
-        _spin(executor, lambda: len(ended) >= 8)
-    finally:
-        executor.shutdown()
+    executor = _spin(node, lambda: len(ended) >= 8, _Counting)
     assert len(runs) >= 8
     # each run was handed out once; the last hand-out may still wait for its thread
     assert executor.handed <= len(runs) + 2, (executor.handed, len(runs))
@@ -84,12 +87,7 @@ def test_callbacks_of_two_groups_still_run_at_once(node):
 
     node.create_timer(0.01, worker, callback_group=MutuallyExclusiveCallbackGroup())
     node.create_timer(0.05, released.set, callback_group=MutuallyExclusiveCallbackGroup())
-    executor = NodeExecutor(num_threads=2, context=node.context)
-    executor.add_node(node)
-    try:
-        _spin(executor, lambda: bool(done))
-    finally:
-        executor.shutdown()
+    _spin(node, lambda: bool(done))
     assert done and done[0] is True
 
 
@@ -107,11 +105,8 @@ def test_a_coroutine_callback_is_resumed_when_its_future_is_done(node):
 
     t = node.create_timer(0.01, waiter, callback_group=MutuallyExclusiveCallbackGroup())
     node.create_timer(0.2, setter, callback_group=MutuallyExclusiveCallbackGroup())
-    executor = NodeExecutor(num_threads=2, context=node.context)
-    executor.add_node(node)
     try:
-        _spin(executor, lambda: bool(finished))
+        _spin(node, lambda: bool(finished))
     finally:
         t.cancel()
-        executor.shutdown()
     assert finished == ["set"]
