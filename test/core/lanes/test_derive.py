@@ -218,3 +218,16 @@ def test_cut_lines_reach_the_lines_where_the_road_width_of_the_nodes_dips():
     through = lanes.lane(_lane_at(lanes, 485.0, -3.5))
     np.testing.assert_allclose(np.median(through.width), 3.5, atol=0.05)
     assert _routable(lanes, (485.0, -3.5), (515.0, -6.5))
+
+
+def test_a_taper_keeps_the_through_lane_when_the_lane_gained_is_the_wider_one():
+    """RULE 15's side: a 3.0 m lane opened beside a 2.75 m through lane (a works zone). The divider
+    is continued at its distance from the line that runs on (the lane divider -1.75, whose distance
+    to the line left of it stays), not from the moving edge, although the lane on that side is the
+    wider one."""
+    lanes = derive_lanes(taper_open(size_m=3.0, lane_m=2.75))
+    through = lanes.lane(_lane_at(lanes, 485.0, -3.1))
+    np.testing.assert_allclose(np.median(through.width), 2.75, atol=0.05)
+    assert lanes.boundary(through.right_boundary).inferred
+    assert _routable(lanes, (485.0, -3.1), (515.0, -6.0))
+    assert _routable(lanes, (785.0, -6.0), (815.0, -3.1))

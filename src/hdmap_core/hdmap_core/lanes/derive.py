@@ -20,11 +20,12 @@ starts) is born narrow beside the through lane and widens, and a lane dropped na
 (Lanelet2, OpenDRIVE): a marking that starts (ends) between two lines bounding a lane on each side,
 where the strip just before (after) it is wider than one lane (LANE_WIDTH_MAX_M) and narrows to one
 lane within _TAPER_MAX_M, is continued back (on) as an inferred dashed line at its distance from
-the side that runs on (the one whose distance to its own outer line stays; alike: the one beside
-the wider lane), until the widening lane is narrower than _DUPLICATE_M; RULE 9's lines give way
-to it there. The through lane keeps its width; the narrow strip beside it is a lane only where
-RULE 1 finds one (its median width); the lane gained starts where the divider does, beside the
-through lane (RULE 4): a split or merge across the dashed line.
+the side that runs on (the one whose distance to its own outer line stays, median over the
+strip; alike: the one beside the wider lane), until the widening lane is narrower than
+_DUPLICATE_M; RULE 9's lines give way to it there (a marking RULE 9's line runs into, a strip of
+two lanes' width, is left to RULE 9). The through lane keeps its width; the narrow strip beside
+it is a lane only where RULE 1 finds one (its median width); the lane gained starts where the
+divider does, beside the through lane (RULE 4): a split or merge across the dashed line.
 RULE 16 (reach): a cut line reaches at least as far as the shorter of the farthest reaches of its
 chain's stations up to _REACH_STATIONS before and after it: where the map's road width dips for a
 few stations the lines there are still crossed.
@@ -626,8 +627,8 @@ def _tapers(
     that runs on beside it, as far as the strip holds the widening lane (at least _DUPLICATE_M
     wide) and at most _TAPER_MAX_M: a lane born in a taper starts narrow beside the through lane
     and widens (Lanelet2, OpenDRIVE), and the through lane keeps its width. The side held: the
-    neighbour whose distance to its own outer neighbour stays (the other one moves); alike, the
-    one beside the wider lane. Returns the tracks and the ids of the continued ones."""
+    neighbour whose distance to its own outer neighbour changes least along the strip (median;
+    the other one moves); alike, the one beside the wider lane. Returns the tracks and the ids of the continued ones."""
     out = [list(row) for row in tracks]
     next_track = 1 + max((t for row in tracks for t, *_ in row), default=-1)
     continued: set[int] = set()
@@ -696,11 +697,16 @@ def _tapers(
                         continue  # the strip before it is one lane (or not there)
                     if all(wl - wr > LANE_WIDTH_MAX_M for _, wl, wr in walk):
                         continue  # no taper: the strip is never one lane wide before it
-                    far, (_, fl, fr) = across(walk[-1][0]), walk[-1]
-                    drift = []  # per side: how much its distance to its own outer neighbour changes
-                    for s_k, s_far, sign in ((row[left][0], fl, 1.0), (row[right][0], fr, -1.0)):
-                        ok, of = outer(row, s_k, sign), outer(far, s_far, sign)
-                        drift.append(np.inf if ok is None or of is None else abs((of - s_far) - (ok - s_k)))
+                    drift = []  # per side: how much its distance to its own outer neighbour changes (median)
+                    rows = [across(q) for q, _, _ in walk]
+                    for s_k, i, sign in ((row[left][0], 1, 1.0), (row[right][0], 2, -1.0)):
+                        o_k = outer(row, s_k, sign)
+                        d = []
+                        for rq, w in zip(rows, walk, strict=True):
+                            o = outer(rq, w[i], sign)
+                            if o is not None and o_k is not None:
+                                d.append(abs((o - w[i]) - (o_k - s_k)))
+                        drift.append(float(np.median(d)) if d else np.inf)
                     if np.isfinite(drift).any() and abs(drift[0] - drift[1]) > _TRACK_TOL_M:
                         hold_left = drift[0] < drift[1]
                     else:
