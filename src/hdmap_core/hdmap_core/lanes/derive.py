@@ -238,7 +238,8 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
     same line seen at consecutive stations (RULE 6), also across a change of feature id.
     (Per station a handful of lines: plain Python floats are faster here than numpy.)"""
     normal = np.stack([-st.tangent[:, 1], st.tangent[:, 0]], axis=1)
-    half = _reach(st, st.width / 2.0 + _CUT_MARGIN_M)
+    chains = _chains(st)
+    half = _reach(chains, st.width / 2.0 + _CUT_MARGIN_M)
     cuts = Cuts(st.pos, st.tangent, normal, -half, half, np.zeros(len(st)))
     polylines = [np.asarray(f.points, dtype=float) for f in hdmap.features]
     length = [float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in polylines]
@@ -260,7 +261,7 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
         for k in range(len(st))
     ]
     tracks = _track(st, raw, types, nrm)
-    tracks, continued = _tapers(st, tracks, types, virtual, pos, nrm)
+    tracks, continued = _tapers(st, chains, tracks, types, virtual, pos, nrm)
     size: dict[int, int] = defaultdict(int)  # track -> stations
     for row in tracks:
         for t, *_ in row:
@@ -292,14 +293,14 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
     return _handover(st, out, types, continued)
 
 
-def _reach(st: _Stations, half: np.ndarray) -> np.ndarray:
+def _reach(chains: list[list[int]], half: np.ndarray) -> np.ndarray:
     """RULE 16 (reach): a cut line reaches to each side at least as far as the shorter of the
     farthest reaches of its chain's stations within _REACH_STATIONS before it and after it: where
     the map's road width dips for a few stations (in a taper, where the lines move apart) no line
     is cut off; a road that narrows for good (a ramp parted, a lane dropped) keeps its cuts.
     Returns the (K,) half lengths [m]."""
     before, after = half.copy(), half.copy()
-    for chain in _chains(st):
+    for chain in chains:
         c = np.asarray(chain)
         for d in range(1, min(_REACH_STATIONS, len(c) - 1) + 1):
             before[c[d:]] = np.maximum(before[c[d:]], half[c[:-d]])
@@ -614,6 +615,7 @@ def _track(
 
 def _tapers(
     st: _Stations,
+    chains: list[list[int]],
     tracks: list[list[tuple[int, int, float, float]]],
     types: list[int],
     virtual: int,
@@ -630,14 +632,19 @@ def _tapers(
     neighbour whose distance to its own outer neighbour changes least along the strip (median;
     the other one moves); alike, the one beside the wider lane. Returns the tracks and the ids of the continued ones."""
     out = [list(row) for row in tracks]
+    ids = [{t for t, *_ in row} for row in tracks]  # the tracks of each station, before any is continued
     next_track = 1 + max((t for row in tracks for t, *_ in row), default=-1)
     continued: set[int] = set()
     marking = {int(FeatureType.DASHED), int(FeatureType.SOLID)}
     lo, hi = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M, LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
 
+    seen: dict[int, dict[int, tuple[float, int]]] = {}  # station -> its crossings (read only)
+
     def across(k: int) -> dict[int, tuple[float, int]]:  # track -> (s, feature) on station k
-        (px, py), (nx, ny) = pos[k], normal[k]
-        return {t: ((x - px) * nx + (y - py) * ny, f) for t, f, x, y in out[k]}
+        if k not in seen:
+            (px, py), (nx, ny) = pos[k], normal[k]
+            seen[k] = {t: ((x - px) * nx + (y - py) * ny, f) for t, f, x, y in out[k]}
+        return seen[k]
 
     def neighbours(row: dict[int, tuple[float, int]], t: int) -> tuple[int | None, int | None]:
         s = row[t][0]
@@ -663,16 +670,18 @@ def _tapers(
             return False
         return all(v[1] == virtual for v in row.values() if sr + _DUPLICATE_M / 2 < v[0] < sl - _DUPLICATE_M / 2)
 
-    for chain in _chains(st):
+    for chain in chains:
         step = np.hypot(*np.diff(st.pos[chain], axis=0).T) if len(chain) > 1 else np.zeros(0)
         along = np.concatenate([[0.0], np.cumsum(step)])
         for forward in (True, False):  # starts (walking back), then ends (walking on)
             order = list(range(len(chain))) if forward else list(range(len(chain) - 1, -1, -1))
             for n in range(1, len(order)):
                 k, prev = chain[order[n]], chain[order[n - 1]]
-                row, before = across(k), across(prev)
+                if ids[k] <= ids[prev]:
+                    continue  # no line starts here
+                row = across(k)
                 for t, (s_t, f) in sorted(row.items()):
-                    if t in before or f == virtual or types[f] not in marking:
+                    if t in ids[prev] or f == virtual or types[f] not in marking:
                         continue
                     left, right = neighbours(row, t)
                     if left is None or right is None:
@@ -721,6 +730,7 @@ def _tapers(
                         rq = across(q)
                         out[q] = [it for it in out[q] if not (it[1] == virtual and wr < rq[it[0]][0] < wl)]
                         out[q].append((track, virtual, px + s_v * nx, py + s_v * ny))
+                        seen.pop(q, None)
                         continued.add(track)
     return out, frozenset(continued)
 
