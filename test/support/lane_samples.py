@@ -175,3 +175,34 @@ def lines_stop(length_m: float = 800.0) -> HDMap:
         f if f.points[0, 1] > 0.0 else _feature(f.id, f.type, f.points[f.points[:, 0] <= 400.0]) for f in base.features
     )
     return HDMap(features=feats, topology=base.topology)
+
+
+def taper_open(length_m: float = 1300.0, *, size_m: float = 2.5, lane_m: float = 3.5, dip: bool = False) -> HDMap:
+    """``three_lanes`` whose right edge line (-5.25; -1.75 - ``lane_m``) moves ``size_m`` (2.5) out
+    over a 100 m taper (400-500, smoothstep, as ``simulation.changes`` does) onto the road border
+    and back over 800-900, a dashed line drawn where the edge was between the tapers (500-800): the
+    shoulder opened as a lane ``size_m`` wide. In the tapers the strip between the divider (-1.75)
+    and the edge is 3.5-6.0 m wide. The nodes sit in the middle of the road; with ``dip`` the road
+    width of the nodes at 460-500 falls to 9 m and their middle moves 3 m left (a map's width
+    estimate in a taper): their cut lines miss the moved edge."""
+    x = np.arange(0.0, length_m + 1e-9, 1.0)
+
+    def ramp(u: np.ndarray) -> np.ndarray:
+        u = np.clip(u, 0.0, 1.0)
+        return u * u * (3.0 - 2.0 * u)
+
+    y_edge = -1.75 - lane_m
+    edge = y_edge - size_m * ramp((x - 400.0) / 100.0) * ramp((900.0 - x) / 100.0)
+    feats = [_feature(i + 1, t, np.stack([x, np.full_like(x, y)], axis=1)) for i, (y, t) in enumerate(THREE[:4])]
+    feats.append(_feature(5, FeatureType.SOLID, np.stack([x, edge], axis=1)))
+    feats.append(_feature(6, FeatureType.ROAD_BORDER, np.stack([x, np.full_like(x, y_edge - size_m)], axis=1)))
+    xd = x[(x >= 500.0) & (x <= 800.0)]
+    feats.append(_feature(7, FeatureType.DASHED, np.stack([xd, np.full_like(xd, y_edge)], axis=1)))
+    nodes = _topology(length_m, 6.5 - y_edge + size_m, y0=(6.5 + y_edge - size_m) / 2.0)
+    if dip:
+        inside = [460.0 <= n.position[0] <= 500.0 for n in nodes]
+        nodes = tuple(
+            TopologyNode(n.id, n.position + [0.0, 3.0], n.heading, 9.0, n.successors) if dips else n
+            for n, dips in zip(nodes, inside, strict=True)
+        )
+    return HDMap(features=tuple(feats), topology=nodes)

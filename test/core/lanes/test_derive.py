@@ -9,7 +9,16 @@ from hdmap_core.lanes.derive import LANELET_MAX_M, derive_lanes
 from hdmap_core.lanes.lane_graph import lane_graph, lane_route, lanes_at, reachable_lanes
 from hdmap_core.model import FeatureType, HDMap
 
-from lane_samples import handover, junction_gap, lane_gain, lines_stop, missing_marking, three_lanes, two_way
+from lane_samples import (
+    handover,
+    junction_gap,
+    lane_gain,
+    lines_stop,
+    missing_marking,
+    taper_open,
+    three_lanes,
+    two_way,
+)
 
 
 def _lane_at(lanes, x: float, y: float) -> int:
@@ -171,3 +180,54 @@ def test_lanes_whose_lines_stop_together_end_where_they_are():
     np.testing.assert_allclose([ln.centerline[-1, 1] for ln in ending], [0.0, -3.5], atol=0.2)
     assert all(ln.width[-1] > 3.0 for ln in ending)
     assert _lane_at(lanes, 600.0, 3.5) and not _lane_at(lanes, 600.0, 0.0)
+
+
+def _routable(lanes, a: tuple[float, float], b: tuple[float, float]) -> bool:
+    la, lb = _lane_at(lanes, *a), _lane_at(lanes, *b)
+    return bool(la and lb and lane_route(lane_graph(lanes), la, lb) is not None)
+
+
+def test_a_lane_opened_in_a_taper_splits_off_and_merges_back_beside_the_through_lane():
+    """RULE 15: in the tapers the strip between the divider and the moving edge is 5.5-6.0 m wide
+    (one lane too wide, too narrow for two); the dashed line that starts after the taper is
+    continued back through it as an inferred line, so the through lane keeps its 3.5 m there, and
+    the opened lane is reached from it (the split) and reaches it again (the merge): 15 m before
+    and after the dashed line's ends, as the zone's link probes ask."""
+    lanes = derive_lanes(taper_open())
+    for x in (485.0, 815.0):  # in the tapers, strip 5.85 m: the through lane, 3.5 m wide
+        through = lanes.lane(_lane_at(lanes, x, -3.5))
+        np.testing.assert_allclose(np.median(through.width), 3.5, atol=0.05)
+        right = lanes.boundary(through.right_boundary)
+        assert right.inferred and right.type == FeatureType.DASHED
+        # where the new lane is born (dies) the line starts (ends) on the edge line (RULE 4)
+        np.testing.assert_allclose(right.points[1:-1, 1], -5.25, atol=0.05)
+    assert _routable(lanes, (485.0, -3.5), (515.0, -6.5))  # split
+    assert _routable(lanes, (785.0, -6.5), (815.0, -3.5))  # merge
+    opened = lanes.lane(_lane_at(lanes, 650.0, -6.5))
+    np.testing.assert_allclose(np.median(opened.width), 2.5, atol=0.05)
+    # the narrow part of the new lane in the tapers is no lane: one lane right of -1.75 there
+    for x in (430.0, 470.0, 830.0, 870.0):
+        assert _lane_at(lanes, x, -3.5) and not _lane_at(lanes, x, -6.0)
+
+
+def test_cut_lines_reach_the_lines_where_the_road_width_of_the_nodes_dips():
+    """RULE 16: the nodes at 460-500 m estimate the road 9 m wide and 3 m left of its middle; their
+    cut lines reach as far as those of the nodes around them, so the moving edge is still crossed
+    and the split found as without the dip."""
+    lanes = derive_lanes(taper_open(dip=True))
+    through = lanes.lane(_lane_at(lanes, 485.0, -3.5))
+    np.testing.assert_allclose(np.median(through.width), 3.5, atol=0.05)
+    assert _routable(lanes, (485.0, -3.5), (515.0, -6.5))
+
+
+def test_a_taper_keeps_the_through_lane_when_the_lane_gained_is_the_wider_one():
+    """RULE 15's side: a 3.0 m lane opened beside a 2.75 m through lane (a works zone). The divider
+    is continued at its distance from the line that runs on (the lane divider -1.75, whose distance
+    to the line left of it stays), not from the moving edge, although the lane on that side is the
+    wider one."""
+    lanes = derive_lanes(taper_open(size_m=3.0, lane_m=2.75))
+    through = lanes.lane(_lane_at(lanes, 485.0, -3.1))
+    np.testing.assert_allclose(np.median(through.width), 2.75, atol=0.05)
+    assert lanes.boundary(through.right_boundary).inferred
+    assert _routable(lanes, (485.0, -3.1), (515.0, -6.0))
+    assert _routable(lanes, (785.0, -6.0), (815.0, -3.1))

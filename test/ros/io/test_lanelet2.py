@@ -13,7 +13,7 @@ from hdmap_core.lanes.model import Boundary, Lane, LaneMap
 from hdmap_core.model import FeatureType, GeoOrigin
 from hdmap_ros.io.lanelet2 import MAP_FILE, PROJECTOR_FILE, write_lanelet2
 
-from lane_samples import junction_gap, lane_gain, three_lanes, turn_drives, turn_without_lines
+from lane_samples import junction_gap, lane_gain, taper_open, three_lanes, turn_drives, turn_without_lines
 
 lanelet2 = pytest.importorskip("lanelet2")
 from lanelet2.projection import LocalCartesianProjector  # noqa: E402
@@ -36,7 +36,7 @@ def by_lane_id(llmap) -> dict[int, object]:
     return {int(ll.attributes["hdmap:lane_id"]): ll for ll in llmap.laneletLayer}
 
 
-@pytest.mark.parametrize("make", [three_lanes, lane_gain, junction_gap])
+@pytest.mark.parametrize("make", [three_lanes, lane_gain, junction_gap, taper_open])
 def test_loads_clean_and_routes(tmp_path, make):
     lanes = derive_lanes(make())
     write_lanelet2(lanes, ORIGIN, tmp_path)

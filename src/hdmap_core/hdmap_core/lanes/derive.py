@@ -15,6 +15,20 @@ RULE 7 (relevant lines): only lines next to a plausible lane take part (an outer
 shoulder, or a line of a road beside, never cuts a lane).
 RULE 9 (missing marking): a strip between two markings n >= 2 lanes wide gets n - 1 inferred
 dashed lines (``Boundary.inferred``).
+RULE 15 (tapers): a lane gained in a taper (the edge line moves out over a ramp, then a divider
+starts) is born narrow beside the through lane and widens, and a lane dropped narrows beside it
+(Lanelet2, OpenDRIVE): a marking that starts (ends) between two lines bounding a lane on each side,
+where the strip just before (after) it is wider than one lane (LANE_WIDTH_MAX_M) and narrows to one
+lane within _TAPER_MAX_M, is continued back (on) as an inferred dashed line at its distance from
+the side that runs on (the one whose distance to its own outer line stays, median over the
+strip; alike: the one beside the wider lane), until the widening lane is narrower than
+_DUPLICATE_M; RULE 9's lines give way to it there (a marking RULE 9's line runs into, a strip of
+two lanes' width, is left to RULE 9). The through lane keeps its width; the narrow strip beside
+it is a lane only where RULE 1 finds one (its median width); the lane gained starts where the
+divider does, beside the through lane (RULE 4): a split or merge across the dashed line.
+RULE 16 (reach): a cut line reaches at least as far as the shorter of the farthest reaches of its
+chain's stations up to _REACH_STATIONS before and after it: where the map's road width dips for a
+few stations the lines there are still crossed.
 RULE 10 (hand-over): along a chain, a boundary that ends is continued by one of any kind starting
 within _HANDOVER_M of it at the next cross section (the map hands a line over from one feature to
 an overlapping one, or flickers between dashed and solid); a boundary is cut where its kind changes
@@ -123,6 +137,8 @@ _TRACK_TOL_M = 0.5  # sideways shift of one line between two stations of a chain
 _TRACK_GAP = 5  # stations a line may be missing (10 m) and still continue
 _HANDOVER_M = 1.0  # RULE 10: a boundary that ends continues one starting this close at the next station
 _JOINT_MAX_M = 15.0  # RULE 13: farthest joint of a boundary (the fans reached 40 m; 6 m lost 5 of 15 routes)
+_REACH_STATIONS = 15  # RULE 16: stations (30 m) each way whose cut reach a cut line takes
+_TAPER_MAX_M = 250.0  # RULE 15: longest continuation of a divider through a taper
 _KIND_MIN = 10  # RULE 10: stations (20 m): a shorter stretch of another kind along a boundary is noise
 
 
@@ -222,7 +238,8 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
     same line seen at consecutive stations (RULE 6), also across a change of feature id.
     (Per station a handful of lines: plain Python floats are faster here than numpy.)"""
     normal = np.stack([-st.tangent[:, 1], st.tangent[:, 0]], axis=1)
-    half = st.width / 2.0 + _CUT_MARGIN_M
+    chains = _chains(st)
+    half = _reach(chains, st.width / 2.0 + _CUT_MARGIN_M)
     cuts = Cuts(st.pos, st.tangent, normal, -half, half, np.zeros(len(st)))
     polylines = [np.asarray(f.points, dtype=float) for f in hdmap.features]
     length = [float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in polylines]
@@ -244,6 +261,7 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
         for k in range(len(st))
     ]
     tracks = _track(st, raw, types, nrm)
+    tracks, continued = _tapers(st, chains, tracks, types, virtual, pos, nrm)
     size: dict[int, int] = defaultdict(int)  # track -> stations
     for row in tracks:
         for t, *_ in row:
@@ -263,7 +281,7 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
                 continue
             kept.append(it)
         items = kept
-        items = [it for it, keep in zip(items, _bounding(items, types), strict=True) if keep]
+        items = [it for it, keep in zip(items, _bounding(items, types, continued), strict=True) if keep]
         out.append(
             _Section(
                 tuple(it[1] for it in items),
@@ -272,7 +290,22 @@ def _cross_sections(st: _Stations, hdmap: HDMap) -> list[_Section]:
                 np.array([(it[3], it[4]) for it in items], dtype=float).reshape(-1, 2),
             )
         )
-    return _handover(st, out, types)
+    return _handover(st, out, types, continued)
+
+
+def _reach(chains: list[list[int]], half: np.ndarray) -> np.ndarray:
+    """RULE 16 (reach): a cut line reaches to each side at least as far as the shorter of the
+    farthest reaches of its chain's stations within _REACH_STATIONS before it and after it: where
+    the map's road width dips for a few stations (in a taper, where the lines move apart) no line
+    is cut off; a road that narrows for good (a ramp parted, a lane dropped) keeps its cuts.
+    Returns the (K,) half lengths [m]."""
+    before, after = half.copy(), half.copy()
+    for chain in chains:
+        c = np.asarray(chain)
+        for d in range(1, min(_REACH_STATIONS, len(c) - 1) + 1):
+            before[c[d:]] = np.maximum(before[c[d:]], half[c[:-d]])
+            after[c[:-d]] = np.maximum(after[c[:-d]], half[c[d:]])
+    return np.maximum(half, np.minimum(before, after))
 
 
 def _with_centre_lines(
@@ -404,10 +437,13 @@ def _walks(st: _Stations, follow: Callable[[int], int | None]) -> list[list[int]
     return chains
 
 
-def _handover(st: _Stations, sections: list[_Section], types: list[int]) -> list[_Section]:
+def _handover(
+    st: _Stations, sections: list[_Section], types: list[int], continued: frozenset[int] = frozenset()
+) -> list[_Section]:
     """RULE 10: relabel the boundaries (tracks) of ``sections`` along each chain so that a
     boundary handed over to another line keeps its track, and a track whose kind changes for
-    _KIND_MIN stations or more gets a new one there."""
+    _KIND_MIN stations or more gets a new one there. A divider continued through a taper
+    (RULE 15, the tracks ``continued``) is no hand-over: it stays a boundary of its own."""
     orig = [sec.features for sec in sections]
     feats = [list(f) for f in orig]
     next_track = 1 + max((t for f in orig for t in f), default=0)
@@ -430,11 +466,11 @@ def _handover(st: _Stations, sections: list[_Section], types: list[int]) -> list
             if i > 0 and not set(row).issubset(feats[chain[i - 1]]):
                 prev = chain[i - 1]
                 pf, ps, s = feats[prev], sections[prev].s, sections[k].s
-                gone = [(float(ps[n]), t) for n, t in enumerate(pf) if t not in row]
+                gone = [(float(ps[n]), t) for n, t in enumerate(pf) if t not in row and t not in continued]
                 pairs = sorted(
                     (abs(float(s[n]) - s0), n, t0)
                     for n, t in enumerate(row)
-                    if t not in pf
+                    if t not in pf and t not in continued
                     for s0, t0 in gone
                     if abs(float(s[n]) - s0) <= _HANDOVER_M
                 )
@@ -476,16 +512,18 @@ def _handover(st: _Stations, sections: list[_Section], types: list[int]) -> list
     ]
 
 
-def _bounding(items: list[tuple], types: list[int]) -> list[bool]:
+def _bounding(items: list[tuple], types: list[int], continued: frozenset[int] = frozenset()) -> list[bool]:
     """RULE 7: the boundaries (``(s, track, feature, x, y)``, left to right) next to a plausible
     lane (RULES 1, 2, with _WIDTH_SLACK_M); others (outer borders beyond shoulders, lines of a road
-    beside) are left out so that they never cut a lane."""
+    beside) are left out so that they never cut a lane. A divider continued through a taper
+    (RULE 15, the tracks ``continued``) and the line beside it bound the lane widening there."""
     keep = [False] * len(items)
     lo, hi = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M, LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
     shoulder = {int(FeatureType.ROAD_BORDER), int(FeatureType.SOLID)}
     for i in range(len(items) - 1):
         a, b = items[i], items[i + 1]
-        if lo <= a[0] - b[0] <= hi and {types[a[2]], types[b[2]]} != shoulder:
+        taper = a[1] in continued or b[1] in continued
+        if (taper or lo <= a[0] - b[0] <= hi) and {types[a[2]], types[b[2]]} != shoulder:
             keep[i] = keep[i + 1] = True
     return keep
 
@@ -573,6 +611,128 @@ def _track(
                     next_track += 1
             open_ = {t: v for t, v in open_.items() if i - v[0] <= _TRACK_GAP}
     return out
+
+
+def _tapers(
+    st: _Stations,
+    chains: list[list[int]],
+    tracks: list[list[tuple[int, int, float, float]]],
+    types: list[int],
+    virtual: int,
+    pos: list[list[float]],
+    normal: list[list[float]],
+) -> tuple[list[list[tuple[int, int, float, float]]], frozenset[int]]:
+    """RULE 15 (tapers): a marking that starts (ends) between two lines of a chain, bounding a
+    lane on each side, where the strip between those lines just before (after) it is wider than
+    one lane, is continued back (on) through the strip as an inferred line (feature ``virtual``,
+    a track of its own, replacing RULE 9's lines there) at its distance from the neighbour line
+    that runs on beside it, as far as the strip holds the widening lane (at least _DUPLICATE_M
+    wide) and at most _TAPER_MAX_M: a lane born in a taper starts narrow beside the through lane
+    and widens (Lanelet2, OpenDRIVE), and the through lane keeps its width. The side held: the
+    neighbour whose distance to its own outer neighbour changes least along the strip (median;
+    the other one moves); alike, the one beside the wider lane. Returns the tracks and the ids of the continued ones."""
+    out = [list(row) for row in tracks]
+    ids = [{t for t, *_ in row} for row in tracks]  # the tracks of each station, before any is continued
+    next_track = 1 + max((t for row in tracks for t, *_ in row), default=-1)
+    continued: set[int] = set()
+    marking = {int(FeatureType.DASHED), int(FeatureType.SOLID)}
+    lo, hi = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M, LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
+
+    seen: dict[int, dict[int, tuple[float, int]]] = {}  # station -> its crossings (read only)
+
+    def across(k: int) -> dict[int, tuple[float, int]]:  # track -> (s, feature) on station k
+        if k not in seen:
+            (px, py), (nx, ny) = pos[k], normal[k]
+            seen[k] = {t: ((x - px) * nx + (y - py) * ny, f) for t, f, x, y in out[k]}
+        return seen[k]
+
+    def neighbours(row: dict[int, tuple[float, int]], t: int) -> tuple[int | None, int | None]:
+        s = row[t][0]
+        left = [(v[0], u) for u, v in row.items() if v[0] > s and v[1] != virtual]
+        right = [(v[0], u) for u, v in row.items() if v[0] < s and v[1] != virtual]
+        return (min(left)[1] if left else None), (max(right)[1] if right else None)
+
+    def near(row: dict[int, tuple[float, int]], s: float, inward: float) -> float | None:
+        """The line of ``row`` (no inferred one) within _HANDOVER_M of ``s`` (RULE 10) farthest
+        toward ``inward`` (+1: left): a strip's side is the line next to it (an edge line leaving
+        the road border beside it)."""
+        cands = [v[0] for v in row.values() if v[1] != virtual and abs(v[0] - s) <= _HANDOVER_M]
+        return max(cands, key=lambda x: inward * x) if cands else None
+
+    def outer(row: dict[int, tuple[float, int]], s: float, sign: float) -> float | None:
+        """The nearest line of ``row`` (no inferred one) beyond ``s`` on the side of ``sign``."""
+        cands = [v[0] for v in row.values() if v[1] != virtual and sign * (v[0] - s) > _DUPLICATE_M]
+        return min(cands, key=lambda x: abs(x - s)) if cands else None
+
+    def strip(row: dict[int, tuple[float, int]], sl: float | None, sr: float | None) -> bool:
+        """Lines at ``sl`` and ``sr``, with only inferred lines between them."""
+        if sl is None or sr is None or sl - sr <= _DUPLICATE_M:
+            return False
+        return all(v[1] == virtual for v in row.values() if sr + _DUPLICATE_M / 2 < v[0] < sl - _DUPLICATE_M / 2)
+
+    for chain in chains:
+        step = np.hypot(*np.diff(st.pos[chain], axis=0).T) if len(chain) > 1 else np.zeros(0)
+        along = np.concatenate([[0.0], np.cumsum(step)])
+        for forward in (True, False):  # starts (walking back), then ends (walking on)
+            order = list(range(len(chain))) if forward else list(range(len(chain) - 1, -1, -1))
+            for n in range(1, len(order)):
+                k, prev = chain[order[n]], chain[order[n - 1]]
+                if ids[k] <= ids[prev]:
+                    continue  # no line starts here
+                row = across(k)
+                for t, (s_t, f) in sorted(row.items()):
+                    if t in ids[prev] or f == virtual or types[f] not in marking:
+                        continue
+                    left, right = neighbours(row, t)
+                    if left is None or right is None:
+                        continue
+                    a, b = row[left][0] - s_t, s_t - row[right][0]
+                    if not (lo <= a <= hi and lo <= b <= hi):
+                        continue  # no divider between two lanes
+                    # the strip just before it, then walking back while its two lines run on
+                    walk: list[tuple[int, float, float]] = []
+                    sl, sr = row[left][0], row[right][0]
+                    for m in range(n - 1, -1, -1):
+                        q = chain[order[m]]
+                        if abs(along[order[m]] - along[order[n]]) > _TAPER_MAX_M:
+                            break
+                        rq = across(q)
+                        sl2, sr2 = near(rq, sl, -1.0), near(rq, sr, 1.0)
+                        if sl2 is None or sr2 is None or not strip(rq, sl2, sr2):
+                            break
+                        sl, sr = sl2, sr2
+                        walk.append((q, sl, sr))
+                    if not walk or walk[0][1] - walk[0][2] <= LANE_WIDTH_MAX_M:
+                        continue  # the strip before it is one lane (or not there)
+                    if all(wl - wr > LANE_WIDTH_MAX_M for _, wl, wr in walk):
+                        continue  # no taper: the strip is never one lane wide before it
+                    drift = []  # per side: how much its distance to its own outer neighbour changes (median)
+                    rows = [across(q) for q, _, _ in walk]
+                    for s_k, i, sign in ((row[left][0], 1, 1.0), (row[right][0], 2, -1.0)):
+                        o_k = outer(row, s_k, sign)
+                        d = []
+                        for rq, w in zip(rows, walk, strict=True):
+                            o = outer(rq, w[i], sign)
+                            if o is not None and o_k is not None:
+                                d.append(abs((o - w[i]) - (o_k - s_k)))
+                        drift.append(float(np.median(d)) if d else np.inf)
+                    if np.isfinite(drift).any() and abs(drift[0] - drift[1]) > _TRACK_TOL_M:
+                        hold_left = drift[0] < drift[1]
+                    else:
+                        hold_left = a >= b
+                    track = next_track
+                    next_track += 1
+                    for q, wl, wr in walk:
+                        s_v = wl - a if hold_left else wr + b
+                        if (s_v - wr if hold_left else wl - s_v) < _DUPLICATE_M:
+                            break
+                        (px, py), (nx, ny) = pos[q], normal[q]
+                        rq = across(q)
+                        out[q] = [it for it in out[q] if not (it[1] == virtual and wr < rq[it[0]][0] < wl)]
+                        out[q].append((track, virtual, px + s_v * nx, py + s_v * ny))
+                        seen.pop(q, None)
+                        continued.add(track)
+    return out, frozenset(continued)
 
 
 # --------------------------------------------------------------------------------------------

@@ -29,8 +29,8 @@ class Boundary:
         points: (N, 2) [m], N >= 2, in driving direction; the first and last point are the
             positions of ``start_node`` and ``end_node``.
         start_node, end_node: ids of the end nodes, shared with the preceding / following pieces.
-        inferred: no map feature: a dashed line inferred in a strip of two or more lanes' width
-            (``feature_id`` 0).
+        inferred: no map feature: a dashed line inferred in a strip of two or more lanes' width,
+            or a divider continued through a taper (``feature_id`` 0).
     """
 
     id: int
