@@ -143,6 +143,22 @@ def test_drive_beside_the_cut_is_not_marked_processed(fleet):
     assert found > 0.8 * len(valid)
 
 
+def test_observation_pass_marks_drives_just_beside_the_cut(fleet):
+    """Three drives 2 m beyond the right road border (a GNSS error, or a gore between two roads)
+    see the ego road's lines. The observation pass (it only feeds the adjustment) counts a drive
+    within ``max_pivot_outside_m`` beyond a cut as on it, so they are marked processed by the ego
+    pivots and do not sample the whole place again as pivots: at most their ends (before the ego
+    pivots' first accepted step) remain. Without the tolerance they add a step per place (53
+    observations on top of the ego road's 51)."""
+    strays = [make_drive(f"stray{k}", lane=-8.5, bias=0.0, s0=10.0 * k, s1=200.0) for k in range(3)]
+    drives = [*fleet, *strays]
+    assert np.random.default_rng(0).permutation(len(drives))[0] < len(fleet)  # an ego pivot first
+    res = map_stretches(drives, config=presets.preset("default"), seed=0, observations_only=True)
+    by_strays = [o for o in res.observations if o.pivot_id.startswith("stray")]
+    assert 40 < len(res.observations) - len(by_strays)  # the ego road is observed
+    assert len(by_strays) < 10
+
+
 def test_observations_for_the_adjustment(run):
     res = run("paper")[0]
     assert len(res.observations) == res.counters["steps_valid"]

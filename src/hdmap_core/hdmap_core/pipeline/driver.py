@@ -394,6 +394,12 @@ class _TwoPasses:
         if final is None:
             # the first pass's segments are returned (and get the profiles) only without a final pass
             ends = cfg.final_pass is None or self.observations_only
+            # RULE an observation pass (it only feeds the adjustment) counts a drive within the
+            # pivot's own tolerance beyond a cut (``max_pivot_outside_m``, a GNSS error) as on it:
+            # else each badly localised drive between two roads (a gore, the median) becomes a
+            # pivot there, and its steps sample every drive of the place again: that work grows
+            # with the square of the drives per place
+            feeds_adjustment = cfg.final_pass is not None or self.observations_only
             return PivotContext(
                 index=self.index,
                 sampling=cfg.sampling,
@@ -403,6 +409,7 @@ class _TwoPasses:
                 counters=counters,
                 hit_cache=self.hit_cache,
                 tracks=self.tracks,
+                mark_outside_m=cfg.sampling.max_pivot_outside_m if feeds_adjustment else 0.0,
                 stride=self.first_stride,
                 evidence=self.evidence if ends else None,
             )

@@ -167,6 +167,7 @@ class PivotContext:
         hit_cache: same-direction cut intersections per pivot, shared by the two passes.
         tracks: with ``mark_on_cut_only``, the drives' trajectories (only drives on a step's cut
             are marked processed there).
+        mark_outside_m: with ``tracks``, a drive this far beyond a step's cut still counts as on it.
         stride: the EM runs at steps whose index is a multiple of it (the others count as rejected).
         evidence: (trajectory index, settings) of the negative-evidence profiles, or None.
     """
@@ -180,6 +181,7 @@ class PivotContext:
     counters: PassCounters = field(default_factory=PassCounters)
     hit_cache: dict | None = None
     tracks: DriveTracks | None = None
+    mark_outside_m: float = 0.0
     stride: int = 1
     evidence: tuple[DetectionIndex, EvidenceConfig] | None = None
     memory: _OffsetMemory | None = None
@@ -392,7 +394,7 @@ def _processed_marks(
         lat = ((pos - ps.midpoint[uq]) * left_normal(ps.heading[uq]).reshape(-1, 2)).sum(axis=1)
         if ctx.shift is not None:
             lat = lat + np.asarray(ctx.shift(ud, s_mean), dtype=float)
-        on_cut = np.abs(lat) <= 0.5 * ps.width_m[uq]
+        on_cut = np.abs(lat) <= 0.5 * ps.width_m[uq] + ctx.mark_outside_m
         uk, s_mean = uk[on_cut], s_mean[on_cut]
     valid_q = np.flatnonzero(status == _ACCEPTED)
     pidx = ctx.index.drive_ids.index(pid)
