@@ -119,7 +119,9 @@ class PipelineConfig:
         mark_on_cut_only: a drive's stretch is stored as processed at an accepted step only when
             the drive itself was on the step's refined cut. False (the paper's reading): every
             drive whose samples took part is marked, so a ramp beside the ego road never becomes
-            a pivot there.
+            a pivot there. The observation pass of two passes counts a drive up to
+            ``sampling.max_pivot_outside_m`` beyond the cut as on it (a badly localised drive
+            between two roads would sample the place again as a pivot).
         evidence: negative evidence per step of the returned pass (``StepResult.empty_m``; the
             stitcher drops fills through empty places with ``stitching.fill_evidence``).
             None: no profiles.
