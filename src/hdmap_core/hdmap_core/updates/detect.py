@@ -94,6 +94,9 @@ class PlaceChange:
         z: that in standard errors.
         drives_before, drives_after: the drives on each side.
         extended: True for a place joined along the road, not confirmed on its own.
+        dissent: drives after the change point that fell short of the step and were left out of
+            its tests (a share's, ``DISSENT_SHARE``); such a place needs a touching place of the
+            same kind confirmed on its own (module docstring).
     """
 
     key: PlaceKey
@@ -105,6 +108,7 @@ class PlaceChange:
     drives_before: tuple[str, ...]
     drives_after: tuple[str, ...]
     extended: bool = False
+    dissent: int = 0
 
 
 @dataclass(frozen=True)
@@ -291,6 +295,12 @@ def _series_change(
         return None  # fewer wrong / missed / extra, or a place the map never agreed on
     if geometric and abs(before_med) > config.min_shift_m:
         return None  # the map lies off its own drives before: a poor consensus there, no evidence
+    # the after-drives change_point left out (a share: they fell short of the step)
+    short = (
+        0
+        if geometric
+        else int(np.count_nonzero(vals[ok][k:] - before_med < max(config.min_share / 2, config.min_share_drive)))
+    )
     return PlaceChange(
         key,
         SERIES[name],
@@ -300,6 +310,7 @@ def _series_change(
         z,
         tuple(e.drive_id for e in used[:k]),
         tuple(e.drive_id for e in used[k:]),
+        dissent=short,
     )
 
 
@@ -319,6 +330,18 @@ def _confirm(
         if cand is not None and (best is None or cand.z > best.z):
             best = cand
     return best
+
+
+def corroborated(confirmed: dict[PlaceKey, PlaceChange], places: Places) -> dict[PlaceKey, PlaceChange]:
+    """``confirmed`` without the places whose change point left a dissenting drive out
+    (``PlaceChange.dissent``) and that touch no place of the same kind confirmed on its own: the
+    tolerance is for a drive that missed a changed line somewhere along a change, which spans
+    places; alone, a step that not every drive after it shows is a run of misreads."""
+    return {
+        key: c
+        for key, c in confirmed.items()
+        if not c.dissent or any(nb in confirmed and confirmed[nb].kind == c.kind for nb in places.neighbours(key))
+    }
 
 
 def _extends(rows: list[PlaceEvidence], key: PlaceKey, change: PlaceChange, config: ChangeConfig) -> PlaceChange | None:
@@ -423,7 +446,7 @@ def detect_changes(
         [float(len(by_place[k])) ** 2 for k in keys],
         workers,
     )
-    confirmed = {key: got for key, got in zip(keys, tested) if got is not None}
+    confirmed = corroborated({key: got for key, got in zip(keys, tested) if got is not None}, places)
     # Grow along the road from the confirmed places.
     changed = grow_changes(
         confirmed, places, lambda nb, c: _extends(by_place[nb], nb, c, config) if nb in by_place else None
