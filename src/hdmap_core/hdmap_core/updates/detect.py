@@ -11,7 +11,9 @@ drives) and "after" (>= ``min_after`` drives) such that
   up to one in ``DISSENT_SHARE`` after-drives (not the first) may fall short of that side and
   are left out of the tests below: else one later drive that missed or misread the changed line
   at the place breaks the true split, and the later splits have the changed drives among their
-  before drives (a re-striping confirmed after 3 drives was lost after 5, seed 2). Not for the
+  before drives (a re-striping confirmed after 3 drives was lost after 5, seed 2). That is a
+  drive missing the line somewhere along a change, which spans places: a change whose only place
+  confirmed on its own left such a drive out is none (a run of misreads at one place). Not for the
   displacement, which does not depend on the drive's localisation (markings against borders):
   allowing it there moved the split of a 1.5 m shift and cost its zone 4 points of recall
   after 10;
@@ -95,8 +97,8 @@ class PlaceChange:
         drives_before, drives_after: the drives on each side.
         extended: True for a place joined along the road, not confirmed on its own.
         dissent: drives after the change point that fell short of the step and were left out of
-            its tests (a share's, ``DISSENT_SHARE``); such a place needs a touching place of the
-            same kind confirmed on its own (module docstring).
+            its tests (a share's, ``DISSENT_SHARE``): such a place alone is no change (module
+            docstring).
     """
 
     key: PlaceKey
@@ -332,18 +334,6 @@ def _confirm(
     return best
 
 
-def corroborated(confirmed: dict[PlaceKey, PlaceChange], places: Places) -> dict[PlaceKey, PlaceChange]:
-    """``confirmed`` without the places whose change point left a dissenting drive out
-    (``PlaceChange.dissent``) and that touch no place of the same kind confirmed on its own: the
-    tolerance is for a drive that missed a changed line somewhere along a change, which spans
-    places; alone, a step that not every drive after it shows is a run of misreads."""
-    return {
-        key: c
-        for key, c in confirmed.items()
-        if not c.dissent or any(nb in confirmed and confirmed[nb].kind == c.kind for nb in places.neighbours(key))
-    }
-
-
 def _extends(rows: list[PlaceEvidence], key: PlaceKey, change: PlaceChange, config: ChangeConfig) -> PlaceChange | None:
     """``key`` joined to a neighbouring ``change`` when a drive in evidence of it (one is enough)
     shows the same kind of effect here, at least half the smallest, against this place's drives
@@ -446,7 +436,7 @@ def detect_changes(
         [float(len(by_place[k])) ** 2 for k in keys],
         workers,
     )
-    confirmed = corroborated({key: got for key, got in zip(keys, tested) if got is not None}, places)
+    confirmed = {key: got for key, got in zip(keys, tested) if got is not None}
     # Grow along the road from the confirmed places.
     changed = grow_changes(
         confirmed, places, lambda nb, c: _extends(by_place[nb], nb, c, config) if nb in by_place else None
@@ -471,6 +461,8 @@ def detect_changes(
     out: list[DetectedChange] = []
     for comp in comps:
         own = [p for p in comp if not p.extended]
+        if len(own) == 1 and own[0].dissent:
+            continue  # one place, a step not every drive after it shows: a run of misreads
         main, t = _main_kind_time(comp)
         z = max(p.z for p in own)
         after_t = {e.drive_id for p in comp for e in by_place[p.key] if e.time_ns >= t}
