@@ -11,9 +11,7 @@ drives) and "after" (>= ``min_after`` drives) such that
   up to one in ``DISSENT_SHARE`` after-drives (not the first) may fall short of that side and
   are left out of the tests below: else one later drive that missed or misread the changed line
   at the place breaks the true split, and the later splits have the changed drives among their
-  before drives (a re-striping confirmed after 3 drives was lost after 5, seed 2). That is a
-  drive missing the line somewhere along a change, which spans places: a change whose only place
-  confirmed on its own left such a drive out is none (a run of misreads at one place). Not for the
+  before drives (a re-striping confirmed after 3 drives was lost after 5, seed 2). Not for the
   displacement, which does not depend on the drive's localisation (markings against borders):
   allowing it there moved the split of a 1.5 m shift and cost its zone 4 points of recall
   after 10;
@@ -96,9 +94,6 @@ class PlaceChange:
         z: that in standard errors.
         drives_before, drives_after: the drives on each side.
         extended: True for a place joined along the road, not confirmed on its own.
-        dissent: drives after the change point that fell short of the step and were left out of
-            its tests (a share's, ``DISSENT_SHARE``): such a place alone is no change (module
-            docstring).
     """
 
     key: PlaceKey
@@ -110,7 +105,6 @@ class PlaceChange:
     drives_before: tuple[str, ...]
     drives_after: tuple[str, ...]
     extended: bool = False
-    dissent: int = 0
 
 
 @dataclass(frozen=True)
@@ -297,12 +291,6 @@ def _series_change(
         return None  # fewer wrong / missed / extra, or a place the map never agreed on
     if geometric and abs(before_med) > config.min_shift_m:
         return None  # the map lies off its own drives before: a poor consensus there, no evidence
-    # the after-drives change_point left out (a share: they fell short of the step)
-    short = (
-        0
-        if geometric
-        else int(np.count_nonzero(vals[ok][k:] - before_med < max(config.min_share / 2, config.min_share_drive)))
-    )
     return PlaceChange(
         key,
         SERIES[name],
@@ -312,7 +300,6 @@ def _series_change(
         z,
         tuple(e.drive_id for e in used[:k]),
         tuple(e.drive_id for e in used[k:]),
-        dissent=short,
     )
 
 
@@ -461,8 +448,6 @@ def detect_changes(
     out: list[DetectedChange] = []
     for comp in comps:
         own = [p for p in comp if not p.extended]
-        if len(own) == 1 and own[0].dissent:
-            continue  # one place, a step not every drive after it shows: a run of misreads
         main, t = _main_kind_time(comp)
         z = max(p.z for p in own)
         after_t = {e.drive_id for p in comp for e in by_place[p.key] if e.time_ns >= t}
