@@ -44,7 +44,7 @@ from hdmap_core.parallel import one_blas_thread
 from hdmap_core.pipeline import adjustment_assoc as assoc
 from hdmap_core.pipeline.adjustment_coarse import coarse_basis, drive_links, place_sums
 from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
-from hdmap_core.pipeline.offset_table import OffsetTable, offset_table
+from hdmap_core.pipeline.offset_table import OffsetTable, knot_position, offset_table
 
 __all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
 # The solver's building blocks (shift_and_reassociate, knot_layout, layout_of, design_matrix,
@@ -190,12 +190,8 @@ class OffsetModel:
 
     def _locate(self, cur: DriveOffset, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Knot index k (0..K-2), fraction t in [0, 1], decay factor rho and inside-mask per s."""
-        n_knots = cur.drift_m.size
         u = s_m / self.knot_spacing_m - cur.k0
-        k = np.clip(np.floor(u), 0, max(n_knots - 2, 0)).astype(np.int64)
-        t = np.clip(u - k, 0.0, 1.0)
-        outside_m = np.maximum(-u, u - (n_knots - 1)).clip(min=0.0) * self.knot_spacing_m
-        rho = np.exp(-outside_m / self.correlation_length_m)
+        k, t, rho, outside_m = knot_position(u, cur.drift_m.size, self.knot_spacing_m, self.correlation_length_m)
         return k, t, rho, outside_m > 0
 
     def offset(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:

@@ -16,7 +16,21 @@ from typing import Any, Protocol
 
 import numpy as np
 
-__all__ = ["OffsetTable", "offset_table"]
+__all__ = ["OffsetTable", "knot_position", "offset_table"]
+
+
+def knot_position(
+    u: np.ndarray, n_knots: np.ndarray | int, knot_spacing_m: float, correlation_length_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where distances fall on a drift curve: ``u`` the distance in knot spacings from the curve's
+    first knot, ``n_knots`` its knots (per element or one). Returns knot index k (0..K-2),
+    fraction t in [0, 1], the prior's decay factor rho outside the knots and the distance
+    outside them [m] (``OffsetModel``'s arithmetic, shared by ``OffsetTable``)."""
+    k = np.clip(np.floor(u), 0, np.maximum(n_knots - 2, 0)).astype(np.int64)
+    t = np.clip(u - k, 0.0, 1.0)
+    outside_m = np.maximum(-u, u - (n_knots - 1)).clip(min=0.0) * knot_spacing_m
+    rho = np.exp(-outside_m / correlation_length_m)
+    return k, t, rho, outside_m
 
 
 class _Curves(Protocol):
@@ -76,13 +90,10 @@ class OffsetTable:
         curve = known & (n_knots > 0)
         if not curve.any():
             return out
-        # OffsetModel._locate and .offset, element-wise with each drive's knots
+        # OffsetModel.offset, element-wise with each drive's knots
         dr, s, nk = drive[curve], s[curve], n_knots[curve]
         u = s / self.knot_spacing_m - self.k0[dr]
-        k = np.clip(np.floor(u), 0, np.maximum(nk - 2, 0)).astype(np.int64)
-        t = np.clip(u - k, 0.0, 1.0)
-        outside_m = np.maximum(-u, u - (nk - 1)).clip(min=0.0) * self.knot_spacing_m
-        rho = np.exp(-outside_m / self.correlation_length_m)
+        k, t, rho, _ = knot_position(u, nk, self.knot_spacing_m, self.correlation_length_m)
         at = self.start[dr] + k
         # (a curve of one knot has no k + 1: the model would fail there; here it is constant)
         g = (1.0 - t) * self.drift_m[at] + t * self.drift_m[np.minimum(k + 1, nk - 1) + self.start[dr]]
