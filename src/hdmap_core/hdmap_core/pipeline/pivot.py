@@ -60,6 +60,12 @@ class PassCounters:
         self.off_road += other.off_road
 
 
+def _runs(keys: np.ndarray) -> list[np.ndarray]:
+    """The indices of ``keys`` grouped by key (ascending), each group in its original order."""
+    order = np.argsort(keys, kind="stable")
+    return np.split(order, np.flatnonzero(np.diff(keys[order])) + 1) if len(order) else []
+
+
 class _OffsetMemory:
     """Offsets of drives from accepted steps of earlier pivots, by the drive's own distance.
 
@@ -76,12 +82,8 @@ class _OffsetMemory:
         self._sorted: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def add(self, drive: np.ndarray, s_m: np.ndarray, offset_m: np.ndarray) -> None:
-        # grouped by one stable sort, not a mask per drive (quadratic in the drives of a pass):
-        # each drive's values in the same order
-        order = np.argsort(drive, kind="stable")
-        d_sorted = drive[order]
-        cut = np.flatnonzero(np.diff(d_sorted)) + 1
-        for part in np.split(order, cut) if len(order) else ():
+        # grouped by one stable sort, not a mask per drive (quadratic in the drives of a pass)
+        for part in _runs(drive):
             d = int(drive[part[0]])
             self._s[d].append(s_m[part])
             self._o[d].append(offset_m[part])
@@ -497,12 +499,7 @@ def run_pass(
         seg, md, ms = run_pivot(pivot, processed.contains(pivot.drive_id, s), ctx)
         segments.append(seg)
         if len(md):
-            marks: dict[str, np.ndarray] = {}
-            order_d = np.argsort(md, kind="stable")
-            md, ms = md[order_d], ms[order_d]
-            cut = np.flatnonzero(np.diff(md)) + 1
-            for dd, ss in zip(np.split(md, cut), np.split(ms, cut)):
-                marks[ctx.index.drive_ids[int(dd[0])]] = ss
+            marks = {ctx.index.drive_ids[int(md[part[0]])]: ms[part] for part in _runs(md)}
             processed = processed.with_marks(marks, pad_m=0.5 * step_m, merge_gap_m=_MARK_MERGE_STEPS * step_m)
         if progress is not None:
             progress("pivots", n_done + 1, len(order))
