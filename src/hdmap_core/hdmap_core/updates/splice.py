@@ -39,9 +39,9 @@ from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
 from hdmap_core.geometry import left_normal, point_headings, true_runs
-from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
+from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.updates.config import ChangeConfig
-from hdmap_core.updates.evidence import drive_evidence, map_lines
+from hdmap_core.updates.evidence import drive_evidence, map_lines, side_of_lines
 from hdmap_core.updates.places import PlaceKey, Places
 
 __all__ = ["Reach", "grow", "border_shift", "shifted", "splice"]
@@ -177,13 +177,12 @@ def border_shift(
 ) -> dict[PlaceKey, float]:
     """Per place of ``keys``: how far (left of the driving direction, m) ``local`` must move to
     lie on ``first``'s road borders; the median over ``drives``' paths (module docstring)."""
-    lines = map_lines(first)
-    dets = tuple(Detection(f.type, np.asarray(f.points, dtype=float)) for f in local.features if len(f.points) >= 2)
+    lines, seen = map_lines(first), map_lines(local)
     per: dict[PlaceKey, list[float]] = {}
     for d in drives:
         if len(d.xy) < 2:
             continue
-        for e in drive_evidence(replace(d, detections=dets), lines, places, config=config):
+        for e in drive_evidence(d, lines, places, config=config, side=side_of_lines(d, seen, config)):
             if e.key in keys and e.anchored_on_borders and np.isfinite(e.anchor_m):
                 per.setdefault(e.key, []).append(e.anchor_m)
     return {k: float(np.median(v)) for k, v in per.items()}
