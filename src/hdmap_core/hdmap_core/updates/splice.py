@@ -358,29 +358,36 @@ def _splice_topology(
             kept.append((n, "local"))
     alive = {int(n.id) if src == "first" else renum[int(n.id)] for n, src in kept}
 
-    trees: dict[int, cKDTree] = {}
+    # a node's feature cut into pieces: the piece nearest to it, each piece's distances to the
+    # nodes that ask for it queried at once
+    asks: dict[int, dict[int, None]] = {}
+    for i, (n, src) in enumerate(kept):
+        for fid in n.features:
+            rows = pieces_of[src].get(int(fid), [])
+            if len(rows) > 1:
+                for r in rows:
+                    asks.setdefault(r, {})[i] = None
+    dist: dict[tuple[int, int], float] = {}
+    for r, at in asks.items():
+        idx = list(at)
+        d, _ = cKDTree(feats[r].points).query(np.array([np.asarray(kept[i][0].position, dtype=float) for i in idx]))
+        dist.update(zip(((i, r) for i in idx), d.tolist()))
 
-    def distance(row: int, pos: np.ndarray) -> float:
-        if row not in trees:
-            trees[row] = cKDTree(feats[row].points)
-        return float(trees[row].query(pos)[0])
-
-    def feature_ids(n: TopologyNode, src: str) -> tuple[int, ...]:
+    def feature_ids(i: int, n: TopologyNode, src: str) -> tuple[int, ...]:
         got = []
-        pos = np.asarray(n.position, dtype=float)
         for fid in n.features:
             rows = pieces_of[src].get(int(fid), [])
             if len(rows) == 1:
                 got.append(int(feats[rows[0]].id))
             elif rows:
-                got.append(int(feats[min(rows, key=lambda r: distance(r, pos))].id))
+                got.append(int(feats[min(rows, key=lambda r: dist[(i, r)])].id))
         return tuple(dict.fromkeys(got))
 
     nodes: list[TopologyNode] = []
-    for n, src in kept:
+    for i, (n, src) in enumerate(kept):
         nid = int(n.id) if src == "first" else renum[int(n.id)]
         succ = [int(s) if src == "first" else renum.get(int(s), -1) for s in n.successors]
-        succ_t, feat_t = tuple(s for s in succ if s in alive), feature_ids(n, src)
+        succ_t, feat_t = tuple(s for s in succ if s in alive), feature_ids(i, n, src)
         same = src == "first" and succ_t == tuple(n.successors) and feat_t == tuple(n.features)
         nodes.append(n if same else replace(n, id=nid, successors=succ_t, features=feat_t))
     # Successors lost at a seam: the nearest node of the other side ahead, running the same way.
