@@ -579,7 +579,7 @@ def follow_map(
     # where the consensus has taken the new road (updates.before): the map as it was there, and
     # the drives compared with that instead (those near it again, the others keep their records)
     changed = {p.key for c in changes for p in c.places}
-    taken = with_neighbours(moved_consensus(evidence, config, skip=changed), places)
+    taken = with_neighbours(moved_consensus(evidence, config, skip=changed, edges=edges), places)
     taken = {k: t for k, t in taken.items() if k not in changed}
     old_road: HDMap | None = None
     if taken:
