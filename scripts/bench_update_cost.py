@@ -22,6 +22,7 @@ four times larger), and the no-change fleets ``--nochange`` (confirm only: nothi
 Prints a Markdown table; no assertions::
 
     .venv/bin/python scripts/bench_update_cost.py                    # ~6 min on one core
+    .venv/bin/python scripts/bench_update_cost.py --smoke            # CI-sized, ~15 s
     .venv/bin/python scripts/bench_update_cost.py --cases shift1.5 --before 40 --nochange ''
 """
 
@@ -116,7 +117,10 @@ def main() -> int:
     ap.add_argument("--after", type=int, default=3, help="drives through the zone after the change")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--nochange", default=",".join(DEFAULT_NOCHANGE), help="no-change fleets of bench_changes.py")
+    ap.add_argument("--smoke", action="store_true", help="CI-sized: the 1.5 m shift after 40 drives, no other fleet")
     args = ap.parse_args()
+    if args.smoke:
+        args.cases, args.before, args.nochange = "shift1.5", "40", ""
     rows = []
     for n_before in [int(x) for x in args.before.split(",") if x]:
         for label in [c for c in args.cases.split(",") if c]:
