@@ -19,6 +19,7 @@ if [[ -n "${BENCH_SMOKE:-}" ]]; then
     .venv/bin/python scripts/ablation.py --smoke --work-dir "$OUT/fleets" --out "$OUT/ablation"
     # Map updating: a 1.5 m shift followed after 2-3 drives, no false change on the sample bags.
     .venv/bin/python scripts/bench_changes.py --smoke --markdown "$OUT/changes_smoke.md" --json "$OUT/changes_smoke.json"
+    .venv/bin/python scripts/bench_update_cost.py --smoke > "$OUT/update_cost_smoke.md"
     exit 0
 fi
 "$HDMAP" bench paper_like:134:1 esmini_e6mini:40:1 esmini_soderleden:40:1 carla_town04:100:1 carla_town06:100:1 \
@@ -46,4 +47,6 @@ fi
 # Map updating (issue 28): drives needed to follow each kind and size of change, the changed zone
 # after 3 / 5 / 10 drives through it, and false changes on the fleets above without a change.
 .venv/bin/python scripts/bench_changes.py --markdown "$OUT/changes.md" --json "$OUT/changes.json"
+# What following a change costs (confirm, rebuild, apply) against mapping the places it touches.
+.venv/bin/python scripts/bench_update_cost.py > "$OUT/update_cost.md"
 if [[ -f scripts/bench_adjustment.py ]]; then .venv/bin/python scripts/bench_adjustment.py; fi

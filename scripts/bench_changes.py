@@ -167,40 +167,71 @@ def _zone_keys(zone, places) -> set:
     return keys | {nb for k in keys for nb in places.neighbours(k)}
 
 
-def run_case(label: str, seed: int, js: list[int], preset: str = "default") -> dict:
+@dataclass
+class CaseFleet:
+    """A change case's fleet: ``before`` (on the road as it was), ``through`` (after the change,
+    through the zone's middle, in time order), the change, its zone, the road ``now`` and ``old``."""
+
+    change: Any
+    zone: Any
+    before: list
+    through: list
+    now: Any
+    old: Any
+    after_simulated: int
+
+
+def case_fleet(label: str, seed: int, need: int, n_before: int = N_BEFORE) -> CaseFleet:
+    """``n_before`` drives on the road as it was, then drives after the change, simulated until
+    ``need`` of them pass the zone's middle (or 120 simulated)."""
     import numpy as np
 
-    from hdmap_core.evaluation.evaluate import evaluate_map
-    from hdmap_core.evaluation.zone import evaluate_zone, evaluate_zone_lanes
-    from hdmap_core.lanes.derive import derive_lanes
     from hdmap_core.simulation.changes import change_zone, parse_change, zone_mask
     from hdmap_core.simulation.config import SimConfig
     from hdmap_core.simulation.fleet import load_map, simulate_fleet
-    from hdmap_core.updates.config import ChangeConfig
-    from hdmap_core.updates.follow import follow_changes
-    from hdmap_core.updates.places import places_of
 
     map_name, text = CASES[label]
-    change = parse_change(f"{text}@{N_BEFORE}")
+    change = parse_change(f"{text}@{n_before}")
     gt = load_map(map_name)
     zone = change_zone(gt, change)
     mid = zone.line[np.argmin(np.abs(zone.s - 0.5 * (zone.from_m + zone.to_m)))]
-    t0 = time.perf_counter()
     through: list = []
     n_after = 0
-    for extra in (30, 60, 120):  # more drives after the change until 10 pass the zone
+    for extra in (30, 60, 120):  # more drives after the change until enough pass the zone
         n_after = extra
-        fleet = simulate_fleet(gt, config=SimConfig(n_drives=N_BEFORE + extra), seed=seed, changes=[change])
+        fleet = simulate_fleet(gt, config=SimConfig(n_drives=n_before + extra), seed=seed, changes=[change])
         through = []
-        for d in fleet.drives[N_BEFORE:]:
+        for d in fleet.drives[n_before:]:
             near = np.linalg.norm(d.xy - mid, axis=1) < 10.0
             tang = np.stack([np.cos(d.yaw), np.sin(d.yaw)], axis=1)
             if near.any() and zone_mask(zone, d.xy[near], tang[near]).any():
                 through.append(d)
-        if len(through) >= max(js):
+        if len(through) >= need:
             break
-    now, old = fleet.extra["gt_after"], fleet.extra["gt_before"]
-    before = list(fleet.drives[:N_BEFORE])
+    return CaseFleet(
+        change,
+        zone,
+        list(fleet.drives[:n_before]),
+        through,
+        fleet.extra["gt_after"],
+        fleet.extra["gt_before"],
+        n_after,
+    )
+
+
+def run_case(label: str, seed: int, js: list[int], preset: str = "default") -> dict:
+    from hdmap_core.evaluation.evaluate import evaluate_map
+    from hdmap_core.evaluation.zone import evaluate_zone, evaluate_zone_lanes
+    from hdmap_core.lanes.derive import derive_lanes
+    from hdmap_core.updates.config import ChangeConfig
+    from hdmap_core.updates.follow import follow_changes
+    from hdmap_core.updates.places import places_of
+
+    map_name, _ = CASES[label]
+    t0 = time.perf_counter()
+    cf = case_fleet(label, seed, max(js))
+    change, zone, before, through = cf.change, cf.zone, cf.before, cf.through
+    now, old, n_after = cf.now, cf.old, cf.after_simulated
     sim_s = time.perf_counter() - t0
     build = _builder(preset)
     steps: list[Step] = []

@@ -61,10 +61,13 @@ def test_clipped_table_reads_from_the_clip_starts():
 
 
 class _NoTable:
-    """An offset source with ``offset`` only."""
+    """An offset source without a table: read drive by drive."""
 
     def offset(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:
         return np.full(np.shape(s_m), {"a": 0.5}.get(drive_id, -0.25))
+
+    def table(self, drive_ids: tuple[str, ...]) -> None:
+        return None
 
 
 def test_shift_fn_reads_the_table_or_drive_by_drive():

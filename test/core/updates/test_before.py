@@ -174,3 +174,26 @@ def test_only_the_drives_near_the_road_as_it_was_are_compared_again():
         assert [repr(e) for e in got] == [repr(e) for e in want]
     # the reference matters: some drives compared again read otherwise than against the first map
     assert any(repr(records[i]) != repr(full[i]) for i in again)
+
+
+def test_the_edge_line_the_consensus_took_is_a_candidate():
+    # an opened lane: at places 3-5 the map of every drive holds the new edge line 2.5 m out, so
+    # the 8 drives before read the old edge 2.5 m inside it and the 3 after read ~0; at place 6 the
+    # map still has the old edge (the drives before read ~0, those after -2.5): a change itself,
+    # which follow_map skips once confirmed. Each steps at drive 7 (the earliest split with 3 of
+    # the 4 after it on the step's side: one drive of the old road among them at most)
+    from hdmap_core.updates.edges import EdgeEvidence
+
+    rng = np.random.default_rng(2)
+    edges = []
+    for d in range(11):
+        for i in (3, 4, 5, 6):
+            took = i < 6
+            move = (2.5 if d < 8 else 0.0) if took else (0.0 if d < 8 else -2.5)
+            edges.append(EdgeEvidence(f"d{d:02d}", d * 100, (i, 0, 0), move + rng.normal(0, 0.08), 10))
+    got = moved_consensus([], ChangeConfig(), edges=edges)
+    assert got == {(i, 0, 0): 700 for i in (3, 4, 5, 6)}
+    assert moved_consensus([], ChangeConfig()) == {}
+    # the edge read alike by every drive (no change, the drives' scatter): none
+    calm = [EdgeEvidence(e.drive_id, e.time_ns, e.key, rng.normal(0, 0.1), 10) for e in edges]
+    assert moved_consensus([], ChangeConfig(), edges=calm) == {}

@@ -69,3 +69,37 @@ def test_a_touching_type_step_at_the_change_time_is_part_of_it():
     assert change.kinds == ("geometry", "type")
     assert change.keys == {(i, 0, 0) for i in range(2, 7)}
     assert change.time_ns == 13 * HOUR
+
+
+def _gone(missed: dict[tuple[int, int], float]) -> list[PlaceEvidence]:
+    """15 drives over places 0-10, each seeing 40 map marking points near it per place; the share
+    ``missed[(drive, place)]`` of them it did not see (else none); displacement noise 0.03 m."""
+    from dataclasses import replace
+
+    v = np.random.default_rng(1).normal(0.0, 0.03, (15, N_PLACES))
+    return [
+        replace(place_row(d, i, float(v[d, i])), n_map_near=40, n_missed=int(round(40 * missed.get((d, i), 0.0))))
+        for d in range(15)
+        for i in range(N_PLACES)
+    ]
+
+
+def test_a_drive_of_the_old_road_that_missed_the_line_in_some_places_is_no_drive_after_the_change():
+    """A divider removed over places 3-6 after drive 12: drives 12-14 miss half the markings
+    there. Drive 11, before the removal, missed the line at places 3 and 4 (a dropout) but saw it
+    at 5 and 6. Places 3 and 4 put their change point at drive 11, places 5 and 6 at drive 12:
+    the lower median of the four is drive 11's, and taken as the change's time drive 11 was a
+    drive after the change, its old line rebuilt into the zone. With the split at drive 11 places
+    5 and 6 show no change (drive 11, the first after it, saw the line); with the split at drive 12
+    all four do: the change's time is drive 12's."""
+    missed = {(d, i): 0.5 for d in (12, 13, 14) for i in range(3, 7)}
+    missed |= {(11, 3): 0.5, (11, 4): 0.5}
+    (gone,) = detect_changes(_gone(missed), PLACES, config=ChangeConfig())
+    assert gone.kinds == ("marking_gone",)
+    assert {p.key for p in gone.places if not p.extended} == {(i, 0, 0) for i in range(3, 7)}
+    assert {p.time_ns for p in gone.places if not p.extended} == {12 * HOUR, 13 * HOUR}  # drive 11's, 12's
+    assert gone.time_ns == 13 * HOUR
+    assert "d11" not in gone.drives_after
+    # the dropout at one place of four: the median was drive 12's already
+    (one,) = detect_changes(_gone(missed | {(11, 4): 0.0}), PLACES, config=ChangeConfig())
+    assert one.time_ns == 13 * HOUR

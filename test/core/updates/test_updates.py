@@ -180,3 +180,22 @@ def test_the_drives_compared_on_two_processes_give_the_serial_records(road):
     stale = {d.drive_id: own_side(d, other) for d in drives}
     records = drive_comparisons(drives, hdmap, places, config=ChangeConfig(), sides=stale)
     assert [repr(e) for e in unwrapped(records, ChangeConfig())[0]] == [repr(e) for e in evidence]
+
+
+def test_a_map_seen_as_detections_gives_the_drive_side_of_those_detections(road):
+    # border_shift sees the rebuilt map from each drive: its lines indexed once must give the very
+    # arrays drive_side makes of the drive with the map's features as its own detections
+    from dataclasses import replace
+
+    from hdmap_core.updates.evidence import drive_side, map_lines, side_of_lines
+
+    fleet = simulate_fleet(road, config=SIM, seed=3)
+    hdmap, _ = _build(fleet.drives[:6])
+    dets = tuple(Detection(f.type, np.asarray(f.points, dtype=float)) for f in hdmap.features if len(f.points) >= 2)
+    lines = map_lines(hdmap)
+    for drive in fleet.drives[6:10]:
+        want = drive_side(replace(drive, detections=dets), ChangeConfig())
+        got = side_of_lines(drive, lines, ChangeConfig())
+        assert len(want.d_cut) > 2 * len(want.center)  # several of the map's lines on each cut
+        for name in ("center", "tangent", "yaw", "d_cut", "d_s", "d_t"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)

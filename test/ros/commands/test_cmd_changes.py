@@ -97,7 +97,7 @@ def test_follow_changes_leaves_the_sample_maps_byte_identical(tmp_path, sample_b
 def test_paper_and_naive_map_the_consensus_unless_asked(tmp_path, sample_bags, preset, capsys):
     """``paper`` and ``naive`` do not follow changes by default (FOLLOWS_CHANGES): the naive map,
     without offset correction, is too far off for change detection (false changes on the CARLA
-    bench fleets, docs/updates.md "No false changes"); ``--follow-changes`` still turns it on."""
+    bench fleets, docs/updates.md "How `bag2map` follows a change"); ``--follow-changes`` still turns it on."""
     bag = str(sample_bags / "e6mini_20")
     args = ["bag2map", bag, "--preset", preset, "--workers", "1"]
     assert cli.main([*args, "-o", str(tmp_path / "plain")]) == 0

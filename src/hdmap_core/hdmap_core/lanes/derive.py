@@ -613,6 +613,53 @@ def _track(
     return out
 
 
+# --------------------------------------------------------------------------------------------
+# RULE 15: dividers continued through tapers
+
+_Row = dict[int, tuple[float, int]]  # a station's crossings: track -> (s along its normal [m], feature)
+_Walk = list[tuple[int, float, float]]  # along a strip: (station, s of its left line, s of its right line)
+_MARKINGS = frozenset({int(FeatureType.DASHED), int(FeatureType.SOLID)})  # what RULE 15 continues
+
+
+@dataclass(frozen=True)
+class _Divider:
+    """A marking that starts (ends) at a station between two lines, a lane away on each side."""
+
+    left_m: float  # s of the line left of it [m]
+    right_m: float  # s of the line right of it [m]
+    lane_left_m: float  # width of the lane left of it [m]
+    lane_right_m: float  # width of the lane right of it [m]
+
+
+class _Crossings:
+    """The tracks at every station while RULE 15 adds its lines: ``lines[k]`` are station k's
+    ``(track, feature, x, y)``; ``row(k)`` gives them as offsets along its cut, computed when first
+    asked and again after ``infer`` changed the station (the walks read the same stations many
+    times)."""
+
+    def __init__(
+        self, tracks: list[list[tuple[int, int, float, float]]], pos: list[list[float]], normal: list[list[float]]
+    ) -> None:
+        self.lines = [list(row) for row in tracks]
+        self.pos, self.normal = pos, normal
+        self._rows: dict[int, _Row] = {}
+
+    def row(self, k: int) -> _Row:
+        if k not in self._rows:
+            (px, py), (nx, ny) = self.pos[k], self.normal[k]
+            self._rows[k] = {t: ((x - px) * nx + (y - py) * ny, f) for t, f, x, y in self.lines[k]}
+        return self._rows[k]
+
+    def infer(self, k: int, track: int, virtual: int, s_m: float, left_m: float, right_m: float) -> None:
+        """An inferred line ``track`` at ``s_m`` on station k, in place of the inferred lines
+        (RULE 9's) strictly between ``right_m`` and ``left_m``."""
+        (px, py), (nx, ny) = self.pos[k], self.normal[k]
+        row = self.row(k)
+        self.lines[k] = [it for it in self.lines[k] if not (it[1] == virtual and right_m < row[it[0]][0] < left_m)]
+        self.lines[k].append((track, virtual, px + s_m * nx, py + s_m * ny))
+        self._rows.pop(k, None)
+
+
 def _tapers(
     st: _Stations,
     chains: list[list[int]],
@@ -630,109 +677,165 @@ def _tapers(
     wide) and at most _TAPER_MAX_M: a lane born in a taper starts narrow beside the through lane
     and widens (Lanelet2, OpenDRIVE), and the through lane keeps its width. The side held: the
     neighbour whose distance to its own outer neighbour changes least along the strip (median;
-    the other one moves); alike, the one beside the wider lane. Returns the tracks and the ids of the continued ones."""
-    out = [list(row) for row in tracks]
+    the other one moves); alike, the one beside the wider lane. Returns the tracks and the ids of the continued ones.
+
+    Chains are walked forward for the markings that start (each continued back through the
+    stations already passed), then backward for those that end; the lines placed by one walk are
+    seen by the later ones (``_Crossings``)."""
+    crossings = _Crossings(tracks, pos, normal)
     ids = [{t for t, *_ in row} for row in tracks]  # the tracks of each station, before any is continued
     next_track = 1 + max((t for row in tracks for t, *_ in row), default=-1)
     continued: set[int] = set()
-    marking = {int(FeatureType.DASHED), int(FeatureType.SOLID)}
-    lo, hi = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M, LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
-
-    seen: dict[int, dict[int, tuple[float, int]]] = {}  # station -> its crossings (read only)
-
-    def across(k: int) -> dict[int, tuple[float, int]]:  # track -> (s, feature) on station k
-        if k not in seen:
-            (px, py), (nx, ny) = pos[k], normal[k]
-            seen[k] = {t: ((x - px) * nx + (y - py) * ny, f) for t, f, x, y in out[k]}
-        return seen[k]
-
-    def neighbours(row: dict[int, tuple[float, int]], t: int) -> tuple[int | None, int | None]:
-        s = row[t][0]
-        left = [(v[0], u) for u, v in row.items() if v[0] > s and v[1] != virtual]
-        right = [(v[0], u) for u, v in row.items() if v[0] < s and v[1] != virtual]
-        return (min(left)[1] if left else None), (max(right)[1] if right else None)
-
-    def near(row: dict[int, tuple[float, int]], s: float, inward: float) -> float | None:
-        """The line of ``row`` (no inferred one) within _HANDOVER_M of ``s`` (RULE 10) farthest
-        toward ``inward`` (+1: left): a strip's side is the line next to it (an edge line leaving
-        the road border beside it)."""
-        cands = [v[0] for v in row.values() if v[1] != virtual and abs(v[0] - s) <= _HANDOVER_M]
-        return max(cands, key=lambda x: inward * x) if cands else None
-
-    def outer(row: dict[int, tuple[float, int]], s: float, sign: float) -> float | None:
-        """The nearest line of ``row`` (no inferred one) beyond ``s`` on the side of ``sign``."""
-        cands = [v[0] for v in row.values() if v[1] != virtual and sign * (v[0] - s) > _DUPLICATE_M]
-        return min(cands, key=lambda x: abs(x - s)) if cands else None
-
-    def strip(row: dict[int, tuple[float, int]], sl: float | None, sr: float | None) -> bool:
-        """Lines at ``sl`` and ``sr``, with only inferred lines between them."""
-        if sl is None or sr is None or sl - sr <= _DUPLICATE_M:
-            return False
-        return all(v[1] == virtual for v in row.values() if sr + _DUPLICATE_M / 2 < v[0] < sl - _DUPLICATE_M / 2)
-
     for chain in chains:
-        step = np.hypot(*np.diff(st.pos[chain], axis=0).T) if len(chain) > 1 else np.zeros(0)
-        along = np.concatenate([[0.0], np.cumsum(step)])
-        for forward in (True, False):  # starts (walking back), then ends (walking on)
-            order = list(range(len(chain))) if forward else list(range(len(chain) - 1, -1, -1))
-            for n in range(1, len(order)):
-                k, prev = chain[order[n]], chain[order[n - 1]]
+        for stations, along in _both_ways(st, chain):  # starts (walking back), then ends (walking on)
+            for n in range(1, len(stations)):
+                k, prev = stations[n], stations[n - 1]
                 if ids[k] <= ids[prev]:
                     continue  # no line starts here
-                row = across(k)
-                for t, (s_t, f) in sorted(row.items()):
-                    if t in ids[prev] or f == virtual or types[f] not in marking:
+                row = crossings.row(k)
+                for divider in _new_dividers(row, ids[prev], types, virtual):
+                    walk = _strip_behind(crossings, stations, along, n, divider, virtual)
+                    # RULE 15: only a strip wider than one lane just behind the divider that
+                    # narrows to one lane is a taper (two lanes' width all along: RULE 9's)
+                    if not _is_taper(walk):
                         continue
-                    left, right = neighbours(row, t)
-                    if left is None or right is None:
-                        continue
-                    a, b = row[left][0] - s_t, s_t - row[right][0]
-                    if not (lo <= a <= hi and lo <= b <= hi):
-                        continue  # no divider between two lanes
-                    # the strip just before it, then walking back while its two lines run on
-                    walk: list[tuple[int, float, float]] = []
-                    sl, sr = row[left][0], row[right][0]
-                    for m in range(n - 1, -1, -1):
-                        q = chain[order[m]]
-                        if abs(along[order[m]] - along[order[n]]) > _TAPER_MAX_M:
-                            break
-                        rq = across(q)
-                        sl2, sr2 = near(rq, sl, -1.0), near(rq, sr, 1.0)
-                        if sl2 is None or sr2 is None or not strip(rq, sl2, sr2):
-                            break
-                        sl, sr = sl2, sr2
-                        walk.append((q, sl, sr))
-                    if not walk or walk[0][1] - walk[0][2] <= LANE_WIDTH_MAX_M:
-                        continue  # the strip before it is one lane (or not there)
-                    if all(wl - wr > LANE_WIDTH_MAX_M for _, wl, wr in walk):
-                        continue  # no taper: the strip is never one lane wide before it
-                    drift = []  # per side: how much its distance to its own outer neighbour changes (median)
-                    rows = [across(q) for q, _, _ in walk]
-                    for s_k, i, sign in ((row[left][0], 1, 1.0), (row[right][0], 2, -1.0)):
-                        o_k = outer(row, s_k, sign)
-                        d = []
-                        for rq, w in zip(rows, walk, strict=True):
-                            o = outer(rq, w[i], sign)
-                            if o is not None and o_k is not None:
-                                d.append(abs((o - w[i]) - (o_k - s_k)))
-                        drift.append(float(np.median(d)) if d else np.inf)
-                    if np.isfinite(drift).any() and abs(drift[0] - drift[1]) > _TRACK_TOL_M:
-                        hold_left = drift[0] < drift[1]
-                    else:
-                        hold_left = a >= b
+                    hold_left = _held_side(crossings, row, divider, walk, virtual)
                     track = next_track
                     next_track += 1
-                    for q, wl, wr in walk:
-                        s_v = wl - a if hold_left else wr + b
-                        if (s_v - wr if hold_left else wl - s_v) < _DUPLICATE_M:
-                            break
-                        (px, py), (nx, ny) = pos[q], normal[q]
-                        rq = across(q)
-                        out[q] = [it for it in out[q] if not (it[1] == virtual and wr < rq[it[0]][0] < wl)]
-                        out[q].append((track, virtual, px + s_v * nx, py + s_v * ny))
-                        seen.pop(q, None)
+                    if _continue_divider(crossings, walk, divider, track, virtual, hold_left=hold_left):
                         continued.add(track)
-    return out, frozenset(continued)
+    return crossings.lines, frozenset(continued)
+
+
+def _both_ways(st: _Stations, chain: list[int]) -> list[tuple[list[int], np.ndarray]]:
+    """A chain's stations with their distances along it [m], in its direction, then against it:
+    walking on, a line that starts at station n is continued back through stations n-1 .. 0 (a
+    lane gained); walking against it, one that ends (a lane dropped)."""
+    step = np.hypot(*np.diff(st.pos[chain], axis=0).T) if len(chain) > 1 else np.zeros(0)
+    along = np.concatenate([[0.0], np.cumsum(step)])
+    forward = list(range(len(chain)))
+    return [([chain[i] for i in order], along[order]) for order in (forward, forward[::-1])]
+
+
+def _new_dividers(row: _Row, before: set[int], types: list[int], virtual: int) -> list[_Divider]:
+    """The markings of a station (``row``) that are not among the tracks ``before`` (they start
+    here) with a line on each side a lane away (RULE 7's width test): the dividers RULE 15 may
+    continue, in the order of their track ids."""
+    lo, hi = LANE_WIDTH_MIN_M - _WIDTH_SLACK_M, LANE_WIDTH_MAX_M + _WIDTH_SLACK_M
+    out = []
+    for t, (s_t, f) in sorted(row.items()):
+        if t in before or f == virtual or types[f] not in _MARKINGS:
+            continue
+        left, right = _beside(row, t, virtual)
+        if left is None or right is None:
+            continue
+        a, b = row[left][0] - s_t, s_t - row[right][0]
+        if not (lo <= a <= hi and lo <= b <= hi):
+            continue  # no divider between two lanes
+        out.append(_Divider(row[left][0], row[right][0], a, b))
+    return out
+
+
+def _beside(row: _Row, t: int, virtual: int) -> tuple[int | None, int | None]:
+    """The tracks of the lines (no inferred one) next to track ``t`` on its left and right."""
+    s = row[t][0]
+    left = [(v[0], u) for u, v in row.items() if v[0] > s and v[1] != virtual]
+    right = [(v[0], u) for u, v in row.items() if v[0] < s and v[1] != virtual]
+    return (min(left)[1] if left else None), (max(right)[1] if right else None)
+
+
+def _strip_behind(
+    crossings: _Crossings, stations: list[int], along: np.ndarray, n: int, divider: _Divider, virtual: int
+) -> _Walk:
+    """The strip between ``divider``'s two neighbour lines, walked back from ``stations[n]``
+    (toward ``stations[0]``) while both lines run on (RULE 10's hand-over distance), no mapped line
+    lies between them and for at most _TAPER_MAX_M: per station its two sides."""
+    walk: _Walk = []
+    sl, sr = divider.left_m, divider.right_m
+    for m in range(n - 1, -1, -1):
+        if abs(along[m] - along[n]) > _TAPER_MAX_M:
+            break
+        q = stations[m]
+        rq = crossings.row(q)
+        sl2, sr2 = _line_near(rq, sl, -1.0, virtual), _line_near(rq, sr, 1.0, virtual)
+        if sl2 is None or sr2 is None or not _only_inferred_between(rq, sl2, sr2, virtual):
+            break
+        sl, sr = sl2, sr2
+        walk.append((q, sl, sr))
+    return walk
+
+
+def _line_near(row: _Row, s: float, inward: float, virtual: int) -> float | None:
+    """The line of ``row`` (no inferred one) within _HANDOVER_M of ``s`` (RULE 10) farthest
+    toward ``inward`` (+1: left): a strip's side is the line next to it (an edge line leaving
+    the road border beside it)."""
+    cands = [v[0] for v in row.values() if v[1] != virtual and abs(v[0] - s) <= _HANDOVER_M]
+    return max(cands, key=lambda x: inward * x) if cands else None
+
+
+def _only_inferred_between(row: _Row, sl: float, sr: float, virtual: int) -> bool:
+    """Lines at ``sl`` and ``sr`` (left of it) apart, with only inferred lines between them."""
+    if sl - sr <= _DUPLICATE_M:
+        return False
+    return all(v[1] == virtual for v in row.values() if sr + _DUPLICATE_M / 2 < v[0] < sl - _DUPLICATE_M / 2)
+
+
+def _is_taper(walk: _Walk) -> bool:
+    """The strip behind a divider is wider than one lane where it starts (ends) and one lane
+    wide somewhere along ``walk``: it narrows, a taper."""
+    if not walk or walk[0][1] - walk[0][2] <= LANE_WIDTH_MAX_M:
+        return False  # the strip before it is one lane (or not there)
+    return not all(wl - wr > LANE_WIDTH_MAX_M for _, wl, wr in walk)  # (all wider: never one lane)
+
+
+def _held_side(crossings: _Crossings, row: _Row, divider: _Divider, walk: _Walk, virtual: int) -> bool:
+    """Whether the divider keeps its distance to its left neighbour line through the strip (else
+    to its right one): the side that runs on is the one whose distance to its own outer line
+    changes less along ``walk`` (by more than _TRACK_TOL_M); alike, or not measured on either
+    side, the side of the wider lane."""
+    rows = [crossings.row(q) for q, _, _ in walk]
+    drift = [
+        _outer_drift(row, divider.left_m, rows, [wl for _, wl, _ in walk], 1.0, virtual),
+        _outer_drift(row, divider.right_m, rows, [wr for _, _, wr in walk], -1.0, virtual),
+    ]
+    if np.isfinite(drift).any() and abs(drift[0] - drift[1]) > _TRACK_TOL_M:
+        return drift[0] < drift[1]
+    return divider.lane_left_m >= divider.lane_right_m
+
+
+def _outer_drift(row: _Row, s_m: float, rows: list[_Row], sides_m: list[float], sign: float, virtual: int) -> float:
+    """How much the distance from a strip's side to its own outer line (toward ``sign``, +1:
+    left) changes along the strip: median over ``rows`` (the side at ``sides_m`` there) of its
+    difference to the distance at the divider (``row``, side at ``s_m``) [m]; inf: not measured."""
+    o_k = _outer_line(row, s_m, sign, virtual)
+    d = []
+    for rq, s in zip(rows, sides_m, strict=True):
+        o = _outer_line(rq, s, sign, virtual)
+        if o is not None and o_k is not None:
+            d.append(abs((o - s) - (o_k - s_m)))
+    return float(np.median(d)) if d else np.inf
+
+
+def _outer_line(row: _Row, s: float, sign: float, virtual: int) -> float | None:
+    """The nearest line of ``row`` (no inferred one) beyond ``s`` on the side of ``sign``."""
+    cands = [v[0] for v in row.values() if v[1] != virtual and sign * (v[0] - s) > _DUPLICATE_M]
+    return min(cands, key=lambda x: abs(x - s)) if cands else None
+
+
+def _continue_divider(
+    crossings: _Crossings, walk: _Walk, divider: _Divider, track: int, virtual: int, *, hold_left: bool
+) -> bool:
+    """``divider`` continued through the strip of ``walk`` as the inferred line ``track``, at its
+    distance from the held side, as long as the widening lane beside it is at least _DUPLICATE_M
+    wide. Returns whether it was placed anywhere."""
+    placed = False
+    for q, wl, wr in walk:
+        s_v = wl - divider.lane_left_m if hold_left else wr + divider.lane_right_m
+        if (s_v - wr if hold_left else wl - s_v) < _DUPLICATE_M:
+            break
+        crossings.infer(q, track, virtual, s_v, wl, wr)
+        placed = True
+    return placed
 
 
 # --------------------------------------------------------------------------------------------

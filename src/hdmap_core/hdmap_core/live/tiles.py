@@ -330,8 +330,7 @@ class _ClippedOffsets:
 
     def table(self, drive_ids: Sequence[str]) -> OffsetTable | None:
         """The model's ``OffsetTable`` read from the clips' starts (None: the model has none)."""
-        make = getattr(self.model, "table", None)
-        base = make(drive_ids) if make is not None else None
+        base = self.model.table(drive_ids)
         if base is None or base.s0_m is not None:
             return None  # (a clip of a clip: its sums would be in another order)
         return base.with_start(np.array([self.s0.get(d, 0.0) for d in drive_ids], dtype=float))

@@ -46,7 +46,7 @@ from hdmap_core.pipeline.adjustment_coarse import coarse_basis, drive_links, pla
 from hdmap_core.pipeline.adjustment_schur import SchurNormal, SchurSolver, pair_fill
 from hdmap_core.pipeline.offset_table import OffsetTable, knot_position, offset_table
 
-__all__ = ["AdjustConfig", "OffsetModel", "DriveOffset", "adjust_offsets"]
+__all__ = ["AdjustConfig", "OffsetModel", "OffsetSource", "DriveOffset", "adjust_offsets"]
 # The solver's building blocks (shift_and_reassociate, knot_layout, layout_of, design_matrix,
 # prior_matrix, reduced_normal, NormalSolver, update_normal, rebuilds, kept_weights,
 # sample_residuals, robust_weights, pool_offsets, coarse_config, covariance_parts, drive_curves)
@@ -166,10 +166,17 @@ class DriveOffset:
 
 class OffsetSource(Protocol):
     """What the final pass reads of an offset model (an ``OffsetModel``, or one seen through a
-    change of travelled distance such as a live tile's clip)."""
+    change of travelled distance such as a live tile's clip): the offsets of one drive, and of
+    many drives at once where the source can give them so."""
 
     def offset(self, drive_id: str, s_m: np.ndarray) -> np.ndarray:
         """Lateral offset [m] to add to ``drive_id``'s samples at travelled distances ``s_m``."""
+        ...
+
+    def table(self, drive_ids: Sequence[str]) -> OffsetTable | None:
+        """The offsets of ``drive_ids`` (drive i: ``drive_ids[i]``) as one ``OffsetTable``, the
+        same values as ``offset`` to the last bit; None where the source has no such table (it
+        is then read drive by drive with ``offset``)."""
         ...
 
 

@@ -180,12 +180,13 @@ def _merge_parts(
 
 def _shift_fn(model: OffsetSource, drive_ids: tuple[str, ...]) -> ShiftFn:
     """The offset model as ``shift(drive index (N,), drive s (N,)) -> (N,)`` [m]."""
-    # RULE linear in the drives per place: a model with a ``table`` is read for all drives at
-    # once (``offset_table``), not one Python call per drive of every pivot's samples
-    make = getattr(model, "table", None)
-    table = make(drive_ids) if make is not None else None
+    # RULE linear in the drives per place: a model with a table is read for all drives at once
+    # (``offset_table``), not one Python call per drive of every pivot's samples
+    table = model.table(drive_ids)
     if table is not None:
         return cast(ShiftFn, table.offset)
+    # else drive by drive: a source without a table (a live tile's clip of a clip, whose sums
+    # would be in another order; a test's spy)
 
     def shift(drive_idx: np.ndarray, s_m: np.ndarray) -> np.ndarray:
         out = np.zeros(len(drive_idx))

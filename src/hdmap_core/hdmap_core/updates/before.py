@@ -10,8 +10,9 @@ design (a place where the map never agreed with its drives says nothing), so a c
 after 3 drives through was lost again after 10 (re-striping and the 3 m shift, seed 2), and a
 0.5 m shift read 0.43 m after 3 (the map already 0.07 m toward the new lines).
 
-Here such places are found (``moved_consensus``: a step in time of a series between the medians
-of the drives before and after, at least half the smallest effect, most drives after on its
+Here such places are found (``moved_consensus``: a step in time of a series, the place
+evidence's or the edge line's move (an opened lane's new edge taken), between the medians of the
+drives before and after, at least half the smallest effect, most drives after on its
 side: no test of a change, only where one may hide), and the map is rebuilt there from the
 drives before that step alone (``follow.follow_map``: cut as the follow cuts the drives after a
 change, mapped with the margin of the local rebuild), aligned on the first map's borders and put
@@ -32,6 +33,7 @@ import numpy as np
 from hdmap_core.model import Drive, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import SERIES, series_value
+from hdmap_core.updates.edges import MIN_EDGE_MOVE_M, EdgeEvidence
 from hdmap_core.updates.evidence import PlaceEvidence
 from hdmap_core.updates.places import PlaceKey, Places
 from hdmap_core.updates.splice import border_shift, shifted
@@ -69,36 +71,46 @@ def consensus_step(values: np.ndarray, *, min_effect: float, min_before: int, mi
 
 
 def moved_consensus(
-    evidence: Sequence[PlaceEvidence], config: ChangeConfig, *, skip: Set[PlaceKey] = frozenset()
+    evidence: Sequence[PlaceEvidence],
+    config: ChangeConfig,
+    *,
+    skip: Set[PlaceKey] = frozenset(),
+    edges: Sequence[EdgeEvidence] = (),
 ) -> dict[PlaceKey, int]:
     """Per place (not in ``skip``, e.g. already changed) where a series of the drives steps in
     time (``consensus_step``): the time of the first drive after its strongest step (over the
-    series, by the step in units of the smallest effect). Candidates, not changes."""
-    by_place: dict[PlaceKey, list[PlaceEvidence]] = defaultdict(list)
+    series, by the step in units of the smallest effect). Candidates, not changes.
+
+    The series: the place evidence's (``detect.SERIES``) and, with ``edges``, the edge line's move
+    (``updates.edges``, smallest effect ``MIN_EDGE_MOVE_M``): once the consensus took an opened
+    lane's new edge line at some places, the drives before the change read the old edge a lane
+    inside it there and the drives after read none, and the lane opened was lost again (seed 1:
+    confirmed after 3 drives through, not after 5)."""
+    # per series its smallest effect and the drives it needs after a step; per place and series
+    # the drives' (time, drive id, value)
+    shares = (config.min_share, config.min_after_shares)
+    params = [(config.min_shift_m, config.min_after) if name == "displacement" else shares for name in SERIES]
+    params.append((MIN_EDGE_MOVE_M, config.min_after))
+    rows: dict[PlaceKey, list[list[tuple[int, str, float]]]] = defaultdict(lambda: [[] for _ in params])
     for e in evidence:
         if e.key not in skip:
-            by_place[e.key].append(e)
+            for i, name in enumerate(SERIES):
+                rows[e.key][i].append((e.time_ns, e.drive_id, series_value(e, name, config)))
+    for x in edges:
+        if x.key not in skip:
+            rows[x.key][-1].append((x.time_ns, x.drive_id, x.move_m))
     out: dict[PlaceKey, int] = {}
-    for key, rows in by_place.items():
-        rows.sort(key=lambda e: (e.time_ns, e.drive_id))
+    for key, per in rows.items():
         best: tuple[float, int] | None = None  # (step in smallest effects, time)
-        for name in SERIES:
-            vals = np.array([series_value(e, name, config) for e in rows])
-            ok = np.isfinite(vals)
-            geometric = name == "displacement"
-            smallest = config.min_shift_m if geometric else config.min_share
-            k = consensus_step(
-                vals[ok],
-                min_effect=smallest,
-                min_before=config.min_before,
-                min_after=config.min_after if geometric else config.min_after_shares,
-            )
+        for (smallest, min_after), series in zip(params, per):
+            one = sorted((r for r in series if math.isfinite(r[2])), key=lambda r: (r[0], r[1]))
+            vals = np.array([r[2] for r in one])
+            k = consensus_step(vals, min_effect=smallest, min_before=config.min_before, min_after=min_after)
             if k is None:
                 continue
-            v = vals[ok]
-            size = abs(float(np.median(v[k:]) - np.median(v[:k]))) / smallest
+            size = abs(float(np.median(vals[k:]) - np.median(vals[:k]))) / smallest
             if best is None or size > best[0]:
-                best = (size, [e for e, good in zip(rows, ok) if good][k].time_ns)
+                best = (size, one[k][0])
         if best is not None:
             out[key] = best[1]
     return out

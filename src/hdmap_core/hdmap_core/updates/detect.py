@@ -36,8 +36,11 @@ same effect: the tapers and the stretches fewer drives passed (carried by the dr
 one of them must show the effect there, and no drive after the change the opposite).
 
 The places of one change agree on its time (the median change point of its places of the kind
-most of them show). A place of another kind whose own change point lies before that time stays
-only if its series also shows its change with the split at that time; else it is left out, with
+most of them show, unless, for a share's kind, another of their change points is the split at
+which more of them show the change: a drive of the old road that missed the line at some places
+is no drive after it).
+A place of another kind whose own change point lies before that time stays only if its series
+also shows its change with the split at that time; else it is left out, with
 the places grown from it: its drives after include drives that passed before the change, and as
 one of the change's kinds it would make a shift something else (a one-place wrong-type step of
 two drives a day before a 1.0 m shift and one after it made the shift a `geometry` and `type`
@@ -114,7 +117,9 @@ class DetectedChange:
     Attributes:
         id: stable (a hash of its places and time).
         time_ns: the change point: the (lower) median of the change points of its places of the
-            kind most of them show (one place's early change point does not move it).
+            kind most of them show (one place's early change point does not move it), or for a
+            share's kind the one of them at which more of those places show the change
+            (``_main_kind_time``).
         kinds: the kinds seen.
         places: its places.
         drives_after: drives in evidence (after the change).
@@ -392,14 +397,48 @@ def _components(changed: dict[PlaceKey, PlaceChange], places: Places) -> list[li
     return [[changed[k] for k in sorted(comp)] for comp in places.components(changed, seeds=own)]
 
 
-def _main_kind_time(comp: Sequence[PlaceChange]) -> tuple[str, int]:
-    """The kind most of ``comp``'s own places show (geometry on a tie) and the (lower) median
-    change point of those places: the change's time."""
+def _main_kind_time(
+    comp: Sequence[PlaceChange],
+    by_place: dict[PlaceKey, list[PlaceEvidence]],
+    config: ChangeConfig,
+    spreads: dict[str, float],
+    scatter: dict[str, float],
+) -> tuple[str, int]:
+    """The kind most of ``comp``'s own places show (geometry on a tie) and the change's time: the
+    (lower) median change point of those places, unless they are of a share's kind (type,
+    marking gone or new) and another of their change points is the split at which more of them
+    show the change (``_series_change`` with the split forced there; the earliest such).
+
+    RULE: a drive of the old road that missed the line at one place (a dropout) puts that place's
+    change point before it; taken as the change's time, it counts among the drives after the
+    change and its old lines are rebuilt into the changed places (a removed dashed divider kept
+    over the whole zone after 3 drives, seed 1: precision 65 %). At the time most places agree
+    on, it is a drive before the change. Not for a shift: a dropout fakes no displacement, and
+    the displacement allows no dissenting drive after a split, so a drive after the shift that
+    read less of it at some places moved the time past it (1.5 m shift after 10, seed 0: zone
+    recall 97.3 -> 94.0 %)."""
     own = [p for p in comp if not p.extended]
     kinds = [p.kind for p in own]
     main = max(set(kinds), key=lambda k: (kinds.count(k), k == "geometry"))
-    times = sorted(p.time_ns for p in own if p.kind == main)
-    return main, times[(len(times) - 1) // 2]
+    mains = [p for p in own if p.kind == main]
+    times = sorted(p.time_ns for p in mains)
+    t = times[(len(times) - 1) // 2]
+    candidates = sorted(set(times))
+    if len(candidates) > 1 and main != "geometry":
+        name = next(n for n, kind in SERIES.items() if kind == main)
+
+        def shown(at: int) -> int:
+            return sum(
+                p.time_ns == at
+                or _series_change(by_place[p.key], p.key, name, config, spreads, scatter, at_ns=at) is not None
+                for p in mains
+            )
+
+        counts = {c: shown(c) for c in candidates}
+        best = max(counts.values())
+        if counts[t] < best:
+            t = min(c for c in candidates if counts[c] == best)
+    return main, t
 
 
 def detect_changes(
@@ -434,7 +473,7 @@ def detect_changes(
     name = {kind: n for n, kind in SERIES.items()}
     comps = []
     for comp in _components(changed, places):
-        main, t = _main_kind_time(comp)
+        main, t = _main_kind_time(comp, by_place, config, spreads, scatter)
         early = {
             (p.kind, p.time_ns)
             for p in comp
@@ -448,7 +487,7 @@ def detect_changes(
     out: list[DetectedChange] = []
     for comp in comps:
         own = [p for p in comp if not p.extended]
-        main, t = _main_kind_time(comp)
+        main, t = _main_kind_time(comp, by_place, config, spreads, scatter)
         z = max(p.z for p in own)
         after_t = {e.drive_id for p in comp for e in by_place[p.key] if e.time_ns >= t}
         digest = hashlib.sha1(repr(([p.key for p in comp], t)).encode()).digest()

@@ -49,6 +49,7 @@ __all__ = [
     "drive_evidence",
     "DriveSide",
     "drive_side",
+    "side_of_lines",
     "drive_cuts",
     "lines_on_cuts",
     "fleet_evidence",
@@ -287,6 +288,18 @@ def drive_side(drive: Drive, config: ChangeConfig = ChangeConfig()) -> DriveSide
     dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
     dtypes = np.array([int(d.type) for d in dets], dtype=np.int64)[dsegs.owner] if dets else np.zeros(0, np.int64)
     d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, dsegs, dtypes)
+    return DriveSide(config.cut_step_m, config.view_m, center, tangent, yaw, d_cut, d_s, d_t)
+
+
+def side_of_lines(drive: Drive, lines: MapLines, config: ChangeConfig = ChangeConfig()) -> DriveSide:
+    """``drive``'s side of its evidence with ``lines`` as its detections: the ``DriveSide`` that
+    ``drive_side`` makes of the drive with the lines' features (``map_lines``) as detections, the
+    same arrays, but the lines indexed once for every drive that takes them (``border_shift``:
+    a rebuilt map seen from each drive through it) instead of every drive's cuts indexed and
+    queried with every segment of them (``intersect_indexed``, the same pairs in the same order
+    once sorted by cut)."""
+    center, tangent, yaw = drive_cuts(drive, config.cut_step_m)
+    d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, lines.index, lines.types)
     return DriveSide(config.cut_step_m, config.view_m, center, tangent, yaw, d_cut, d_s, d_t)
 
 

@@ -120,7 +120,9 @@ class FollowResult:
         rebuilt: with a local rebuild, the places taken from it (the changed ones and their
             ends along the drives); the map is the first map's everywhere else.
         seconds: wall time per stage: ``build`` (the first map), ``detect`` (evidence and change
-            points), ``rebuild`` (the second build), ``apply`` (alignment and splice).
+            points), ``rebuild`` (the second build), ``apply`` (alignment and splice); and the
+            CPU time of this process in ``detect_cpu``, ``rebuild_cpu``, ``apply_cpu`` (worker
+            processes not counted).
         report: the build's report: the first (whole) build's with a local rebuild, else the
             rebuild's (``follow_changes``; None from ``follow_map``, whose build gives none).
         places: the places the drives were compared in (None when nothing was compared).
@@ -558,7 +560,7 @@ def follow_map(
         ``rebuilt`` (with ``local``) and the stages' wall time (``detect``, ``rebuild``, ``apply``).
         ``report`` is None: ``build`` gives none.
     """
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     if places is None or places.cell_m != config.cell_m:
         places = places_of(drives, cell_m=config.cell_m)
     # each drive's own records kept (ids unique): where the map as it was is put in, only the
@@ -577,7 +579,7 @@ def follow_map(
     # where the consensus has taken the new road (updates.before): the map as it was there, and
     # the drives compared with that instead (those near it again, the others keep their records)
     changed = {p.key for c in changes for p in c.places}
-    taken = with_neighbours(moved_consensus(evidence, config, skip=changed), places)
+    taken = with_neighbours(moved_consensus(evidence, config, skip=changed, edges=edges), places)
     taken = {k: t for k, t in taken.items() if k not in changed}
     old_road: HDMap | None = None
     if taken:
@@ -595,8 +597,8 @@ def follow_map(
             evidence, edges = fleet_comparison(drives, reference, places, config=config, workers=workers)
         changes = detect_changes(evidence, places, config=config, workers=workers)
         changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
-    t0 = time.perf_counter()
-    seconds = {"detect": t0 - t1}
+    t0, c0 = time.perf_counter(), time.process_time()
+    seconds = {"detect": t0 - t1, "detect_cpu": c0 - c1}
     if not changes:
         return FollowResult(first_map, (), (), first_map, None, seconds=seconds, places=places)
     in_evidence = {d for c in changes for d in c.drives_after}
@@ -616,9 +618,9 @@ def follow_map(
         base = first_map if old_road is None else splice(first_map, old_road, places, set(taken) & core)
         region = grow(places, core, margin_places)
         clipped = clip_to_places(cut, places, region)
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         local_map = build(clipped)
-        seconds["rebuild"] = time.perf_counter() - t1
+        seconds["rebuild"], seconds["rebuild_cpu"] = time.perf_counter() - t1, time.process_time() - c1
         local_map = shifted(local_map, border_shift(local_map, base, after, places, core, config=config), places)
         # what the rebuilt places were mapped from: beyond the sensors' reach of every such pose
         # the first map stays (updates.splice)
@@ -663,14 +665,15 @@ def follow_map(
         reach = None
         modelled = ()
         cut = cut_before_changes(moved, places, changes)
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         new_map = build(cut)
-        seconds["rebuild"] = time.perf_counter() - t1
+        seconds["rebuild"], seconds["rebuild_cpu"] = time.perf_counter() - t1, time.process_time() - c1
     start = min((d.start_ns for d in drives), default=0)
     retired = tuple(retired_features(base, places, changes, valid_from_ns=start, reach=reach))
     extra = {**new_map.extra, "changes": list(changes), "retired": list(retired), "modelled": list(modelled)}
     new_map = replace(new_map, version=first_map.version + len(changes), extra=extra)
     seconds["apply"] = time.perf_counter() - t0 - seconds["rebuild"]
+    seconds["apply_cpu"] = time.process_time() - c0 - seconds["rebuild_cpu"]
     return FollowResult(
         new_map, tuple(changes), retired, first_map, None, frozenset(core), seconds, places=places, modelled=modelled
     )

@@ -39,9 +39,9 @@ from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
 from hdmap_core.geometry import left_normal, point_headings, true_runs
-from hdmap_core.model import Detection, Drive, FeatureType, HDMap, MapFeature, TopologyNode
+from hdmap_core.model import Drive, FeatureType, HDMap, MapFeature, TopologyNode
 from hdmap_core.updates.config import ChangeConfig
-from hdmap_core.updates.evidence import drive_evidence, map_lines
+from hdmap_core.updates.evidence import drive_evidence, map_lines, side_of_lines
 from hdmap_core.updates.places import PlaceKey, Places
 
 __all__ = ["Reach", "grow", "border_shift", "shifted", "splice"]
@@ -177,13 +177,12 @@ def border_shift(
 ) -> dict[PlaceKey, float]:
     """Per place of ``keys``: how far (left of the driving direction, m) ``local`` must move to
     lie on ``first``'s road borders; the median over ``drives``' paths (module docstring)."""
-    lines = map_lines(first)
-    dets = tuple(Detection(f.type, np.asarray(f.points, dtype=float)) for f in local.features if len(f.points) >= 2)
+    lines, seen = map_lines(first), map_lines(local)
     per: dict[PlaceKey, list[float]] = {}
     for d in drives:
         if len(d.xy) < 2:
             continue
-        for e in drive_evidence(replace(d, detections=dets), lines, places, config=config):
+        for e in drive_evidence(d, lines, places, config=config, side=side_of_lines(d, seen, config)):
             if e.key in keys and e.anchored_on_borders and np.isfinite(e.anchor_m):
                 per.setdefault(e.key, []).append(e.anchor_m)
     return {k: float(np.median(v)) for k, v in per.items()}
@@ -359,29 +358,36 @@ def _splice_topology(
             kept.append((n, "local"))
     alive = {int(n.id) if src == "first" else renum[int(n.id)] for n, src in kept}
 
-    trees: dict[int, cKDTree] = {}
+    # a node's feature cut into pieces: the piece nearest to it, each piece's distances to the
+    # nodes that ask for it queried at once
+    asks: dict[int, dict[int, None]] = {}
+    for i, (n, src) in enumerate(kept):
+        for fid in n.features:
+            rows = pieces_of[src].get(int(fid), [])
+            if len(rows) > 1:
+                for r in rows:
+                    asks.setdefault(r, {})[i] = None
+    dist: dict[tuple[int, int], float] = {}
+    for r, at in asks.items():
+        idx = list(at)
+        d, _ = cKDTree(feats[r].points).query(np.array([np.asarray(kept[i][0].position, dtype=float) for i in idx]))
+        dist.update(zip(((i, r) for i in idx), d.tolist()))
 
-    def distance(row: int, pos: np.ndarray) -> float:
-        if row not in trees:
-            trees[row] = cKDTree(feats[row].points)
-        return float(trees[row].query(pos)[0])
-
-    def feature_ids(n: TopologyNode, src: str) -> tuple[int, ...]:
+    def feature_ids(i: int, n: TopologyNode, src: str) -> tuple[int, ...]:
         got = []
-        pos = np.asarray(n.position, dtype=float)
         for fid in n.features:
             rows = pieces_of[src].get(int(fid), [])
             if len(rows) == 1:
                 got.append(int(feats[rows[0]].id))
             elif rows:
-                got.append(int(feats[min(rows, key=lambda r: distance(r, pos))].id))
+                got.append(int(feats[min(rows, key=lambda r: dist[(i, r)])].id))
         return tuple(dict.fromkeys(got))
 
     nodes: list[TopologyNode] = []
-    for n, src in kept:
+    for i, (n, src) in enumerate(kept):
         nid = int(n.id) if src == "first" else renum[int(n.id)]
         succ = [int(s) if src == "first" else renum.get(int(s), -1) for s in n.successors]
-        succ_t, feat_t = tuple(s for s in succ if s in alive), feature_ids(n, src)
+        succ_t, feat_t = tuple(s for s in succ if s in alive), feature_ids(i, n, src)
         same = src == "first" and succ_t == tuple(n.successors) and feat_t == tuple(n.features)
         nodes.append(n if same else replace(n, id=nid, successors=succ_t, features=feat_t))
     # Successors lost at a seam: the nearest node of the other side ahead, running the same way.
