@@ -18,7 +18,7 @@ if [[ -n "${BENCH_SMOKE:-}" ]]; then
     .venv/bin/python scripts/bench_incremental.py --drives 12 --road-km 2 --long-km 2 --replay-drives 6
     .venv/bin/python scripts/ablation.py --smoke --work-dir "$OUT/fleets" --out "$OUT/ablation"
     # Map updating: a 1.5 m shift followed after 2-3 drives, no false change on the sample bags.
-    .venv/bin/python scripts/bench_changes.py --smoke --markdown "$OUT/changes_smoke.md" --json "$OUT/changes_smoke.json"
+    "$HDMAP" bench --changes --change-smoke --markdown "$OUT/changes_smoke.md" --json "$OUT/changes_smoke.json"
     .venv/bin/python scripts/bench_update_cost.py --smoke > "$OUT/update_cost_smoke.md"
     exit 0
 fi
@@ -46,7 +46,7 @@ fi
 .venv/bin/python scripts/ablation.py --work-dir "$OUT/fleets" --out "$OUT/ablation"
 # Map updating (issue 28): drives needed to follow each kind and size of change, the changed zone
 # after 3 / 5 / 10 drives through it, and false changes on the fleets above without a change.
-.venv/bin/python scripts/bench_changes.py --markdown "$OUT/changes.md" --json "$OUT/changes.json"
+"$HDMAP" bench --changes --markdown "$OUT/changes.md" --json "$OUT/changes.json"
 # What following a change costs (confirm, rebuild, apply) against mapping the places it touches.
 .venv/bin/python scripts/bench_update_cost.py > "$OUT/update_cost.md"
 if [[ -f scripts/bench_adjustment.py ]]; then .venv/bin/python scripts/bench_adjustment.py; fi

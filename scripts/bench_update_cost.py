@@ -35,9 +35,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT / "scripts"), str(ROOT / "src/hdmap_core"), str(ROOT / "src/hdmap_ros")]
+sys.path[:0] = [str(ROOT / "src/hdmap_core"), str(ROOT / "src/hdmap_ros")]
 
-import bench_changes  # noqa: E402
+from hdmap_ros.commands import bench_changes  # noqa: E402
 
 DEFAULT_CASES = ("shift1.5", "restripe", "close", "open2.5", "soderleden_shift1.5")
 DEFAULT_NOCHANGE = ("paper_like_134_s1", "carla_town04_100_s1")
@@ -133,7 +133,7 @@ def main() -> int:
     fleets = {f[0]: f for f in bench_changes.NOCHANGE}
     for label in [c for c in args.nochange.split(",") if c]:
         _, name, n, seed = fleets[label]
-        drives, _ = bench_changes._fleet(label, name, n, seed)
+        drives, _ = bench_changes._fleet(label, name, n, seed, ROOT / "bags")
         rows.append(measure(f"{label} (no change)", list(drives)))
         print(rows[-1], file=sys.stderr, flush=True)
     print(table(rows))

@@ -330,3 +330,19 @@ def test_lane_figures_use_the_drives_connectors(tmp_path):
     driven, _ = _lane_figures(scenario, turn_without_lines(), turn_drives(4, seed=3))
     assert alone["routes"] == "0/1" and driven["routes"] == "1/1"
     assert driven["n_lanes"] == alone["n_lanes"] + 1 and driven["lane_coverage"] > alone["lane_coverage"]
+
+
+def test_the_map_updating_benchmark_is_a_section_of_hdmap_bench(sample_bags, tmp_path, capsys):
+    # a sample bag without a change, followed with the default preset: no change, the first map
+    out = tmp_path / "changes.json"
+    argv = ["bench", "--changes", "--change-section", "nochange", "--change-fleets", "e6mini_20"]
+    argv += ["--change-bags", str(sample_bags), "--presets", "default", "--json", str(out)]
+    assert cli.main(argv) == 0
+    (row,) = json.loads(out.read_text())["nochange"]
+    assert row["fleet"] == "e6mini_20" and row["preset"] == "default" and row["drives"] == 20
+    assert row["changes"] == 0 and row["same_map"]
+    assert row["plain"] == row["follow"]
+    assert "| e6mini_20 | default | 20 |" in capsys.readouterr().out
+    # no scenario with it, nor an unknown fleet
+    assert cli.main(["bench", "motorway:3", "--changes"]) == 1
+    assert cli.main(["bench", "--changes", "--change-fleets", "nowhere", "--change-bags", str(sample_bags)]) == 1

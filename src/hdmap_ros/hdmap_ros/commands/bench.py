@@ -13,6 +13,8 @@ and peak memory (peak RSS of that process: imports, bag reading, map building an
 its own. The table has the evaluator's figures (``hdmap_core.evaluation.evaluate``), the floor
 sigma_loc / sqrt(drives), and from the simulator's truth (``BAG.sim.json``) the realized floor, the
 share of the ground truth the fleet observed and recall over it; build time and peak RSS.
+``--changes``: instead, the map-updating benchmark (``hdmap_ros.commands.bench_changes``; its
+options ``--change-*``).
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hdmap_core.errors import ConfigError
+from hdmap_core.simulation.scenarios import NAMED_SCENARIOS
+from hdmap_ros.commands import bench_changes
 from hdmap_ros.commands.bag2map import add_set_argument
 
 if TYPE_CHECKING:  # the pipeline is heavy: loaded on use
@@ -208,6 +212,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="build as hdmap bag2map --tiled (tile index on disk, tiles on a Dask LocalCluster of --workers "
         "processes); a second table: build time, drive-km per second per worker, peak RSS of each process",
     )
+    parser.add_argument(
+        "--changes",
+        action="store_true",
+        help="instead: the map-updating benchmark (drives needed to follow each kind of road change, the "
+        "changed zone after 3 / 5 / 10 drives, false changes on fleets without one; --presets for the "
+        "no-change fleets; the --change-* options)",
+    )
+    bench_changes.add_arguments(parser, prefix="change-")
 
 
 def _presets(text: str) -> list[str]:
@@ -221,21 +233,6 @@ def _presets(text: str) -> list[str]:
 def _sigma_from_config(config: Any) -> float:
     # The lateral error of a drive at one place: constant bias plus slow drift (independent).
     return math.hypot(config.bias_lateral_sigma_m, config.drift_sigma_m)
-
-
-# Named scenarios: a synthetic layout with simulator overrides. ``paper_like`` follows the paper's
-# data set (Sec. VII): both directions with exits and entries, 134 drive snippets, ~400 drive-km,
-# 5-25 drives per place (a 12 km motorway with an interchange every 3 km, snippets of 2-6 km; the
-# simulator's "coverage" route choice drives every ramp, and a mild direction bias keeps the
-# lesser direction at >= 5 drives per place too: 96 % of its 50 m places have 5-25 drives).
-NAMED_SCENARIOS: dict[str, dict[str, Any]] = {
-    "paper_like": {
-        "map": "motorway_ramps",
-        "length_m": 12000.0,
-        "drives": 134,
-        "sim": {"snippet_length_min_m": 2000.0, "snippet_length_max_m": 6000.0, "direction_bias": 0.55},
-    },
-}
 
 
 def prepare_scenarios(specs: list[str], *, scales: list[float], work_dir: Path) -> list[Scenario]:
@@ -611,6 +608,14 @@ def format_table(rows: list[dict[str, Any]], *, markdown: bool = False, columns:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.changes:
+        if args.scenarios:
+            raise ConfigError("--changes simulates its own fleets: no SCENARIO with it")
+        given = {k: getattr(args, k) for k in ("section", "smoke", "cases", "fleets", "seeds", "bags")}
+        presets = None if args.presets == ",".join(PRESETS) else args.presets
+        return bench_changes.run(
+            argparse.Namespace(**given, presets=presets, preset="default", markdown=args.markdown, json=args.json)
+        )
     presets = _presets(args.presets)
     scales = args.scale or [1.0]
     if any(s <= 0 for s in scales):
