@@ -82,6 +82,7 @@ DISSENT_SHARE = 4
 
 #: The evidence series tested, with the kind of change each reveals.
 SERIES = {"displacement": "geometry", "wrong_type": "type", "missed": "marking_gone", "extra": "marking_new"}
+_SERIES_OF = {kind: name for name, kind in SERIES.items()}  # a change kind's series
 
 
 @dataclass(frozen=True)
@@ -330,7 +331,7 @@ def _extends(rows: list[PlaceEvidence], key: PlaceKey, change: PlaceChange, conf
     """``key`` joined to a neighbouring ``change`` when a drive in evidence of it (one is enough)
     shows the same kind of effect here, at least half the smallest, against this place's drives
     before, and no drive after shows the opposite."""
-    name = next(n for n, k in SERIES.items() if k == change.kind)
+    name = _SERIES_OF[change.kind]
     vals = np.array([series_value(e, name, config) for e in rows])
     t = np.array([e.time_ns for e in rows])
     ok = np.isfinite(vals)
@@ -425,7 +426,7 @@ def _main_kind_time(
     t = times[(len(times) - 1) // 2]
     candidates = sorted(set(times))
     if len(candidates) > 1 and main != "geometry":
-        name = next(n for n, kind in SERIES.items() if kind == main)
+        name = _SERIES_OF[main]
 
         def shown(at: int) -> int:
             return sum(
@@ -470,8 +471,7 @@ def detect_changes(
     # Touching places of one change: connected components (the drives in evidence). Its places
     # agree on its time: a place of another kind whose change point lies before it stays only
     # if its series shows the change with the split at that time too (module docstring)
-    name = {kind: n for n, kind in SERIES.items()}
-    comps = []
+    comps: list[tuple[list[PlaceChange], int]] = []  # each change's places and time
     for comp in _components(changed, places):
         main, t = _main_kind_time(comp, by_place, config, spreads, scatter)
         early = {
@@ -480,14 +480,17 @@ def detect_changes(
             if not p.extended
             and p.kind != main
             and p.time_ns < t
-            and _series_change(by_place[p.key], p.key, name[p.kind], config, spreads, scatter, at_ns=t) is None
+            and _series_change(by_place[p.key], p.key, _SERIES_OF[p.kind], config, spreads, scatter, at_ns=t) is None
         }
+        if not early:
+            comps.append((comp, t))
+            continue
         # left out with the places grown from them (their kind and time)
-        comps += _components({p.key: p for p in comp if (p.kind, p.time_ns) not in early}, places) if early else [comp]
+        for sub in _components({p.key: p for p in comp if (p.kind, p.time_ns) not in early}, places):
+            comps.append((sub, _main_kind_time(sub, by_place, config, spreads, scatter)[1]))
     out: list[DetectedChange] = []
-    for comp in comps:
+    for comp, t in comps:
         own = [p for p in comp if not p.extended]
-        main, t = _main_kind_time(comp, by_place, config, spreads, scatter)
         z = max(p.z for p in own)
         after_t = {e.drive_id for p in comp for e in by_place[p.key] if e.time_ns >= t}
         digest = hashlib.sha1(repr(([p.key for p in comp], t)).encode()).digest()
