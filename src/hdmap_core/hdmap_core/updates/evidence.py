@@ -283,12 +283,10 @@ class DriveSide:
 
 def drive_side(drive: Drive, config: ChangeConfig = ChangeConfig()) -> DriveSide:
     """``drive``'s own side of its evidence (``DriveSide``); a drive of at least 2 poses."""
-    center, tangent, yaw = drive_cuts(drive, config.cut_step_m)
     dets = [d for d in drive.detections if len(d.points) >= 2]
     dsegs = segments_of([np.asarray(d.points, dtype=float) for d in dets])
     dtypes = np.array([int(d.type) for d in dets], dtype=np.int64)[dsegs.owner] if dets else np.zeros(0, np.int64)
-    d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, dsegs, dtypes)
-    return DriveSide(config.cut_step_m, config.view_m, center, tangent, yaw, d_cut, d_s, d_t)
+    return _side(drive, dsegs, dtypes, config)
 
 
 def side_of_lines(drive: Drive, lines: MapLines, config: ChangeConfig = ChangeConfig()) -> DriveSide:
@@ -298,8 +296,13 @@ def side_of_lines(drive: Drive, lines: MapLines, config: ChangeConfig = ChangeCo
     a rebuilt map seen from each drive through it) instead of every drive's cuts indexed and
     queried with every segment of them (``intersect_indexed``, the same pairs in the same order
     once sorted by cut)."""
+    return _side(drive, lines.index, lines.types, config)
+
+
+def _side(drive: Drive, lines: Segments | SegmentIndex, types: np.ndarray, config: ChangeConfig) -> DriveSide:
+    """The drive's cuts and ``lines`` (``types`` per segment) on them, as its detections."""
     center, tangent, yaw = drive_cuts(drive, config.cut_step_m)
-    d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, lines.index, lines.types)
+    d_cut, d_s, d_t = _on_cuts(center, tangent, config.view_m, lines, types)
     return DriveSide(config.cut_step_m, config.view_m, center, tangent, yaw, d_cut, d_s, d_t)
 
 
