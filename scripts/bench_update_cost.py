@@ -9,8 +9,8 @@ One process, the ``default`` preset, CPU seconds of this process (``time.process
   tests, the map as it was where the consensus took the new road; ``detect_cpu``);
 * ``rebuild`` / ``apply``: the changed places mapped again from the drives after the change, then
   aligned and spliced (``rebuild_cpu`` / ``apply_cpu``);
-* ``places``: mapping the places the change touches (the rebuilt places grown by ``follow_map``'s
-  margin of 2 places) from every drive through them: the fleet's drives clipped to those places
+* ``places``: mapping the places the change touches (the rebuilt places grown by the follow's
+  margin, ``MARGIN_PLACES``) from every drive through them: the fleet's drives clipped to those places
   (``updates.follow.clip_to_places``) and built, what mapping those places costs.
 
 Ratios: ``follow / places`` = (confirm + rebuild + apply) / places, and ``confirm / build``.
@@ -43,21 +43,24 @@ DEFAULT_CASES = ("shift1.5", "restripe", "close", "open2.5", "soderleden_shift1.
 DEFAULT_NOCHANGE = ("paper_like_134_s1", "carla_town04_100_s1")
 
 
+MARGIN_PLACES = 2  # the follow's margin of places around the rebuilt ones (``follow_map``'s default)
+
+
 def _timed_build():
-    """drives -> (map, report) with ``default``, one worker; the CPU seconds of each call in ``.cpu``."""
+    """drives -> (map, report) with ``default``, one worker, and the CPU seconds of each call."""
     from hdmap_core.pipeline.driver import build_map
     from hdmap_core.pipeline.presets import preset
 
     config = preset("default")
+    cpu: list[float] = []
 
     def build(drives):
         c = time.process_time()
         r = build_map(list(drives), config=config, seed=0, workers=1)
-        build.cpu.append(time.process_time() - c)
+        cpu.append(time.process_time() - c)
         return r.map, r.report
 
-    build.cpu = []
-    return build
+    return build, cpu
 
 
 def measure(label: str, drives) -> dict:
@@ -65,14 +68,14 @@ def measure(label: str, drives) -> dict:
     from hdmap_core.updates.follow import clip_to_places, follow_changes
     from hdmap_core.updates.splice import grow
 
-    build = _timed_build()
-    res = follow_changes(drives, build=build)
+    build, cpu = _timed_build()
+    res = follow_changes(drives, build=build, margin_places=MARGIN_PLACES)
     s = res.seconds
     row = {
         "fleet": label,
         "drives": len(drives),
         "changes": len(res.changes),
-        "build": build.cpu[0],
+        "build": cpu[0],
         "confirm": s["detect_cpu"],
         "rebuild": s.get("rebuild_cpu", math.nan),
         "apply": s.get("apply_cpu", math.nan),
@@ -81,11 +84,11 @@ def measure(label: str, drives) -> dict:
         "places": math.nan,
     }
     if res.changes and res.places is not None:
-        region = grow(res.places, set(res.rebuilt), 2)
+        region = grow(res.places, set(res.rebuilt), MARGIN_PLACES)
         pieces = clip_to_places(drives, res.places, region)
-        mapped = _timed_build()
+        mapped, mapped_cpu = _timed_build()
         mapped(pieces)
-        row.update(places_n=len(region), pieces=len(pieces), places=mapped.cpu[0])
+        row.update(places_n=len(region), pieces=len(pieces), places=mapped_cpu[0])
     return row
 
 
