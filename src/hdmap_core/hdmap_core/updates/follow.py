@@ -62,6 +62,7 @@ from hdmap_core.updates.evidence import (
 from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
+from hdmap_core.updates.tapers import taper_moved
 from hdmap_core.updates.unseen import ModelledMarking, UnseenMove, unseen_at_ends, unseen_moved
 
 __all__ = [
@@ -644,6 +645,11 @@ def follow_map(
         moved_places = frozenset(
             p.key for c in changes for p in c.places if p.kind == "geometry" and abs(p.effect) >= config.min_shift_m
         )
+        if shifts:
+            # along the tapers, where the lines moved less than the shift: moved as the lines
+            # the drives saw beside them
+            unseen = taper_moved(base, unseen, local_map, places, changes, core, config=config)
+            modelled = unseen.pieces
         ends = unseen_at_ends(unseen.map, local_map, places, core, moved_places) if shifts else np.zeros((0, 2))
         keep = [unseen.moved_to, ends]
         # a re-striping or a marking gone leaves the other lines: those the drives after it had
