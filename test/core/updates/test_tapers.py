@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from carriageway_samples import CHANGED, DASHED, PLACES, REBUILT, carriageway_lines, line_feature
+from carriageway_samples import BORDER, CHANGED, DASHED, PLACES, REBUILT, carriageway_lines, line_feature
 
 from hdmap_core.model import HDMap
 from hdmap_core.updates.detect import DetectedChange, PlaceChange
@@ -67,6 +67,20 @@ def test_the_unseen_lines_of_the_tapers_follow_the_lines_seen_beside_them():
         assert _at(got.map, fid, 300.0) == _at(moved.map, fid, 300.0)
     # before the tapers the lines stay where they were (a move of the field's scatter at most)
     assert abs(_at(got.map, 1, 120.0)[0] - 50.0) < 0.05
+    # a piece shorter than a place that begins and ends in the rebuilt places (the consensus's
+    # blend of both roads) is no line of the road as it was: it does not move
+    stub = line_feature(8, DASHED, 52.0, 160.0, 190.0)
+    first = HDMap(features=(*FIRST.features, stub))
+    with_stub = taper_moved(
+        first,
+        unseen_moved(first, _local(), PLACES, [_change()], _evidence(), REBUILT),
+        _local(),
+        PLACES,
+        [_change()],
+        REBUILT,
+    )
+    np.testing.assert_array_equal(next(f for f in with_stub.map.features if f.id == 8).points, stub.points)
+    assert _at(with_stub.map, 1, 180.0) == _at(got.map, 1, 180.0)
     # the ramp's line beyond the barrier is not on the moved carriageway; the barriers stay
     for fid, y in ((7, 46.0), (5, 49.0), (6, 61.5)):
         assert {_at(got.map, fid, x)[0] for x in (170.0, 300.0, 430.0)} == {y}
@@ -87,10 +101,50 @@ def test_no_taper_model_without_a_shift_nor_against_its_direction():
     )
     got = taper_moved(FIRST, moved, _local(), PLACES, [left], REBUILT)
     assert _at(got.map, 1, 180.0)[0] == 50.0
-    # nor for a shift of half a lane or more (the moved lines pair with their neighbours)
-    far = DetectedChange(
-        7, 10, ("geometry",), tuple(replace(p, effect=1.75) for p in _change().places), ("a1", "a2"), 0.9
-    )
-    assert taper_moved(FIRST, moved, _local(), PLACES, [far], REBUILT) is moved
     # the control: with the change as measured the taper moves
     assert _at(taper_moved(FIRST, moved, _local(), PLACES, [_change()], REBUILT).map, 1, 180.0)[0] < 49.5
+
+
+def test_a_shift_near_a_lanes_width_pairs_each_line_with_its_own_old_place():
+    """3 m right on 3.5 m lanes: past half the taper a moved divider lies nearer its right
+    neighbour's old place (1.0 m) than its own (2.5 m); paired by the move in the shift's
+    direction, the unseen edge lines follow the taper all along."""
+
+    def taper3(x):
+        return 2.0 * _taper(x)
+
+    first = HDMap(features=(*carriageway_lines()[:4], line_feature(5, BORDER, 45.0), line_feature(6, BORDER, 65.0)))
+    local = HDMap(
+        features=tuple(line_feature(100 + i, DASHED, y, 100.0, 499.0, shift=taper3) for i, y in enumerate((53.5, 57.0)))
+    )
+    change = DetectedChange(
+        7, 10, ("geometry",), tuple(replace(p, effect=3.0) for p in _change().places), ("a1", "a2"), 0.9
+    )
+    got = taper_moved(
+        first, unseen_moved(first, local, PLACES, [change], [], REBUILT), local, PLACES, [change], REBUILT
+    )
+    for fid, y in ((1, 50.0), (4, 60.5)):
+        for x in (160.0, 175.0, 190.0, 410.0, 425.0, 440.0):
+            assert abs(_at(got.map, fid, x)[0] - (y + taper3(np.array(x)))) < 0.15, (fid, x)
+
+
+def test_the_places_where_the_drives_measured_the_lines_moved_are_left_to_unseen_moved():
+    """There the lines seen moved 1.5 and 0.9 m (not alike): ``unseen_moved`` models nothing, and
+    no field may move the unseen lines either."""
+    local = HDMap(
+        features=(
+            line_feature(100, DASHED, 53.5, 100.0, 499.0, shift=_taper),
+            line_feature(101, DASHED, 57.0, 100.0, 499.0, shift=lambda x: 0.6 * _taper(x)),
+        )
+    )
+    moved = unseen_moved(FIRST, local, PLACES, [_change()], _evidence(), REBUILT)
+    assert _at(moved.map, 1, 300.0)[0] == 50.0
+    got = taper_moved(FIRST, moved, local, PLACES, [_change()], REBUILT)
+    for x in (210.0, 300.0, 390.0):
+        assert _at(got.map, 1, x) == (50.0, 20)
+    # the control: the same lines, the change's places not measured as moved (effect below the
+    # smallest shift), are moved by the field
+    small = DetectedChange(
+        7, 10, ("geometry",), tuple(replace(p, effect=0.4) for p in _change().places), ("a1", "a2"), 0.9
+    )
+    assert _at(taper_moved(FIRST, moved, local, PLACES, [small], REBUILT).map, 1, 300.0)[0] < 50.0 - 0.2
