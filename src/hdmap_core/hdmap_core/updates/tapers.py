@@ -209,16 +209,14 @@ def taper_moved(
         # step 3: the field's nearest points on the same carriageway
         dn, jn = field_tree.query(p, k=_NEAREST, distance_upper_bound=config.view_m)
         found = np.isfinite(dn)
-        if bsegs is not None:
-            for c in range(_NEAREST):
-                rows = np.flatnonzero(found[:, c])
-                if not len(rows):
-                    continue
-                v = field_p[jn[rows, c]] - p[rows]
-                length = np.linalg.norm(v, axis=1)
-                u = v / np.maximum(length, 1e-9)[:, None]
-                crossed, _, _, _ = intersect_cuts(p[rows], u, np.zeros(len(rows)), length, bsegs)
-                found[rows[np.unique(crossed)], c] = False
+        if bsegs is not None and found.any():  # every (point, field point) pair at once
+            rows, cols = np.nonzero(found)
+            v = field_p[jn[rows, cols]] - p[rows]
+            length = np.linalg.norm(v, axis=1)
+            u = v / np.maximum(length, 1e-9)[:, None]
+            crossed, _, _, _ = intersect_cuts(p[rows], u, np.zeros(len(rows)), length, bsegs)
+            crossed = np.unique(crossed)
+            found[rows[crossed], cols[crossed]] = False
         s = np.where(found, (field_v[np.minimum(jn, len(field_v) - 1)] * n[:, None, :]).sum(axis=2), np.nan)
         enough = np.count_nonzero(found, axis=1) >= _NEAREST // 2
         mv = np.full(len(idx), np.nan)
