@@ -59,6 +59,7 @@ from hdmap_core.updates.evidence import (
     map_lines,
     unwrap_aliases,
 )
+from hdmap_core.updates.lone import lone_copies_dropped
 from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
@@ -665,6 +666,8 @@ def follow_map(
             take=unseen.moved_from,
         )
         new_map = splice(unseen.map, local_map, places, core, reach=reach)
+        # one drive's copy of a line with another type, beside the line the map has there
+        new_map, _ = lone_copies_dropped(new_map, places, core)
     else:
         core = set()
         base = first_map
