@@ -320,6 +320,60 @@ def fleet_comparison(
     return unwrapped(drive_comparisons(drives, hdmap, places, config=config, workers=workers), config)
 
 
+class _Compared(NamedTuple):
+    """The drives compared with a map: the fleet's place and edge evidence, and each drive's own
+    records where the drive ids are unique (None otherwise: compared as one fleet)."""
+
+    evidence: list[PlaceEvidence]
+    edges: list[EdgeEvidence]
+    records: Records | None
+
+
+def _compared(
+    drives: Sequence[Drive],
+    hdmap: HDMap,
+    places: Places,
+    *,
+    config: ChangeConfig,
+    workers: int,
+    sides: Mapping[str, OwnSide] | None,
+) -> _Compared:
+    """Every drive compared with ``hdmap``, each drive's records kept where the ids are unique
+    (:func:`drive_comparisons`; else :func:`fleet_comparison`)."""
+    if not _ids_unique(drives):
+        return _Compared(*fleet_comparison(drives, hdmap, places, config=config, workers=workers), None)
+    records = drive_comparisons(drives, hdmap, places, config=config, workers=workers, sides=sides)
+    return _Compared(*unwrapped(records, config), records)
+
+
+def _compared_again(
+    compared: _Compared,
+    drives: Sequence[Drive],
+    first: HDMap,
+    reference: HDMap,
+    places: Places,
+    *,
+    config: ChangeConfig,
+    workers: int,
+    sides: Mapping[str, OwnSide] | None,
+) -> _Compared:
+    """``compared`` (the drives against ``first``) as against ``reference`` instead: with records,
+    only the drives near where the two maps differ are compared again (:func:`recompared`)."""
+    if compared.records is None:
+        return _Compared(*fleet_comparison(drives, reference, places, config=config, workers=workers), None)
+    records = recompared(
+        compared.records, drives, first, reference, places, config=config, workers=workers, sides=sides
+    )
+    return _Compared(*unwrapped(records, config), records)
+
+
+def _detected(compared: _Compared, places: Places, *, config: ChangeConfig, workers: int) -> list[DetectedChange]:
+    """The changes ``compared`` shows: the places' (``detect_changes``) and the edge line's
+    (``detect_edge_changes``), merged."""
+    changes = detect_changes(compared.evidence, places, config=config, workers=workers)
+    return merge_changes(changes, detect_edge_changes(compared.edges, places, config=config), places)
+
+
 def _segment_rows(features: Sequence[MapFeature]) -> Counter[tuple[float, ...]]:
     """The features' line segments as (type, ax, ay, bx, by) rows, counted (``map_lines``')."""
     rows: Counter[tuple[float, ...]] = Counter()
@@ -565,23 +619,12 @@ def follow_map(
     t1, c1 = time.perf_counter(), time.process_time()
     if places is None or places.cell_m != config.cell_m:
         places = places_of(drives, cell_m=config.cell_m)
-    # each drive's own records kept (ids unique): where the map as it was is put in, only the
-    # drives near it are compared again
-    records = (
-        drive_comparisons(drives, first_map, places, config=config, workers=workers, sides=sides)
-        if _ids_unique(drives)
-        else None
-    )
-    if records is not None:
-        evidence, edges = unwrapped(records, config)
-    else:
-        evidence, edges = fleet_comparison(drives, first_map, places, config=config, workers=workers)
-    changes = detect_changes(evidence, places, config=config, workers=workers)
-    changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
+    compared = _compared(drives, first_map, places, config=config, workers=workers, sides=sides)
+    changes = _detected(compared, places, config=config, workers=workers)
     # where the consensus has taken the new road (updates.before): the map as it was there, and
     # the drives compared with that instead (those near it again, the others keep their records)
     changed = {p.key for c in changes for p in c.places}
-    taken = with_neighbours(moved_consensus(evidence, config, skip=changed, edges=edges), places)
+    taken = with_neighbours(moved_consensus(compared.evidence, config, skip=changed, edges=compared.edges), places)
     taken = {k: t for k, t in taken.items() if k not in changed}
     old_road: HDMap | None = None
     if taken:
@@ -590,15 +633,11 @@ def follow_map(
         )
         old_road = as_before(first_map, build(pieces), pieces, places, set(taken), config=config)
         reference = splice(first_map, old_road, places, set(taken))
-        if records is not None:
-            records = recompared(
-                records, drives, first_map, reference, places, config=config, workers=workers, sides=sides
-            )
-            evidence, edges = unwrapped(records, config)
-        else:
-            evidence, edges = fleet_comparison(drives, reference, places, config=config, workers=workers)
-        changes = detect_changes(evidence, places, config=config, workers=workers)
-        changes = merge_changes(changes, detect_edge_changes(edges, places, config=config), places)
+        compared = _compared_again(
+            compared, drives, first_map, reference, places, config=config, workers=workers, sides=sides
+        )
+        changes = _detected(compared, places, config=config, workers=workers)
+    evidence, edges = compared.evidence, compared.edges
     t0, c0 = time.perf_counter(), time.process_time()
     seconds = {"detect": t0 - t1, "detect_cpu": c0 - c1}
     if not changes:
