@@ -41,6 +41,8 @@ def test_what_stays():
         "two drives": replace(line_feature(20, BORDER, 53.7, 220.0, 380.0), drive_count=np.full(161, 2)),
         # modelled (no drive saw it: count 0)
         "modelled": replace(line_feature(20, BORDER, 53.7, 220.0, 380.0), drive_count=np.zeros(161, dtype=int)),
+        # a marking along a border: an edge line at its curb (here 0.3 m in from the barrier at 49)
+        "edge line at a curb": _one_drive(line_feature(20, SOLID, 49.3, 220.0, 380.0)),
         # reaching out of the rebuilt places (x 100-500): the first map's, not the rebuild's
         "beyond the rebuilt places": _one_drive(line_feature(20, BORDER, 53.7, 420.0, 560.0)),
         # along the divider over less than 80 % of its length

@@ -14,7 +14,9 @@ opened, after 3 drives through: a road border along 150 m of the new divider, 71
 one drive saw (its points' ``drive_count`` at most 1, at least one of them 1: not a modelled
 line, whose count is 0) and that lies along a line of another type two or more drives saw
 (``_ALONG`` of its points within ``_NEAR_M``) is dropped, with the links to it (its neighbours'
-and the topology nodes' references). A line one drive
+and the topology nodes' references). Not a marking along a road border: an edge line at its curb
+is both (a 3 m shift puts the right edge line on the barrier's border; dropped, the zone's recall
+after 10 drives through fell by 1.8 points, seed 1). A line one drive
 saw with nothing of another type beside it stays: it may be what the others missed.
 """
 
@@ -27,11 +29,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hdmap_core.geometry import resample_evenly, true_runs
-from hdmap_core.model import HDMap, MapFeature
+from hdmap_core.model import FeatureType, HDMap, MapFeature
 from hdmap_core.updates.places import PlaceKey, Places
 
 __all__ = ["lone_copies_dropped"]
 
+_BORDER = int(FeatureType.ROAD_BORDER)
 _NEAR_M = 0.5  # a point this close to the other line lies along it [m]
 _ALONG = 0.8  # share of a feature's points that must lie along the other line
 _STEP_M = 0.5  # the other lines are looked at this spacing [m]
@@ -64,7 +67,8 @@ def lone_copies_dropped(hdmap: HDMap, places: Places, rebuilt: Collection[PlaceK
         pts = np.asarray(f.points, dtype=float)
         along = np.zeros(len(pts), dtype=bool)
         for t, tree in trees.items():
-            if t != int(f.type):
+            # a marking along a border is an edge line at its curb: both there
+            if t != int(f.type) and not (t == _BORDER and int(f.type) != _BORDER):
                 d, _ = tree.query(pts, distance_upper_bound=_NEAR_M)
                 along |= np.isfinite(d)
         if np.count_nonzero(along) >= _ALONG * len(pts):
