@@ -56,7 +56,7 @@ import functools
 import time
 import traceback
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -583,12 +583,8 @@ class SegmentMapper(HealthMixin, Node):
         elif job.kind == OBSERVE:
             self.store.put_observations(job.key, result.observations, job.drive_ids)
         elif job.kind == REGION:
-            segments = result.tiles or {}
-            made = [(key, segments.get(key, []), ids) for key, ids in job.tiles]
-            cols = segment_columns([seg for _, segs, _ in made for seg in segs])  # the blobs and the batch
-            stored = self.store.put_tiles(made, model_sig=job.sig, columns=cols)  # one commit for every tile
-            self._update_status()  # first: the stitcher then knows the burst is coming (its tile_versions)
-            self._publish_batch(stored, [segs for _, segs, _ in made], cols)
+            # the status first: the stitcher then knows the burst is coming (its tile_versions)
+            self._put_and_publish(job, result.tiles or {}, model_sig=job.sig, announce=True)
             self.health.set("last_tile_update_s", f"{result.seconds:.3f}")
             self.health.set("tiles", self.scheduler.tile_count)
             if result.model is not None:
@@ -618,12 +614,7 @@ class SegmentMapper(HealthMixin, Node):
             self.get_logger().info(f"drive {did!r} not fused ({result.refused}): it waits for the settle")
             self.scheduler.finished(job, ok=False)
             return
-        t0 = time.perf_counter()
-        made = [(key, result.tiles.get(key, []), ids) for key, ids in job.tiles]
-        cols = segment_columns([seg for _, segs, _ in made for seg in segs])  # made once: the blobs and the batch
-        stored = self.store.put_tiles(made, model_sig=FUSED, columns=cols)
-        t1 = time.perf_counter()
-        self._publish_batch(stored, [segs for _, segs, _ in made], cols)
+        n_tiles, store_s, batch_s = self._put_and_publish(job, result.tiles, model_sig=FUSED)
         self.fast_fused += 1
         self.health.set("fast_fused", self.fast_fused)
         how = "fused into" if job.kind == FUSE else "mapped alone (new road) into"
@@ -631,10 +622,26 @@ class SegmentMapper(HealthMixin, Node):
         since = f"{time.monotonic() - taken:.3f} s after it was scheduled: " if taken is not None else ""
         cpu = f", CPU of this thread {time.thread_time() - self._here_cpu0:.3f} s" if job.kind == FUSE else ""
         self.get_logger().info(
-            f"drive {did!r} {how} {len(made)} tile(s) ({since}job {result.seconds:.3f} s, store {t1 - t0:.3f} s, "
-            f"batch message {time.perf_counter() - t1:.3f} s{cpu})"
+            f"drive {did!r} {how} {n_tiles} tile(s) ({since}job {result.seconds:.3f} s, store {store_s:.3f} s, "
+            f"batch message {batch_s:.3f} s{cpu})"
         )
         self.scheduler.finished(job, ok=True)
+
+    def _put_and_publish(
+        self, job: Job, tiles: Mapping[TileKey, list], *, model_sig: str, announce: bool = False
+    ) -> tuple[int, float, float]:
+        """A job's tile estimates (``tiles`` by key; a tile of the job without any: no segments)
+        stored in one commit and published as one batch; ``announce``: the status published
+        between. Returns the number of tiles, the seconds storing and publishing took."""
+        t0 = time.perf_counter()
+        made = [(key, tiles.get(key, []), ids) for key, ids in job.tiles]
+        cols = segment_columns([seg for _, segs, _ in made for seg in segs])  # made once: the blobs and the batch
+        stored = self.store.put_tiles(made, model_sig=model_sig, columns=cols)
+        t1 = time.perf_counter()
+        if announce:
+            self._update_status()
+        self._publish_batch(stored, [segs for _, segs, _ in made], cols)
+        return len(made), t1 - t0, time.perf_counter() - t1
 
     def _fail(self, job: Job, err: Exception) -> None:
         what = "fleet offset model" if job.kind == MODEL else f"tile {job.key} ({job.kind})"
