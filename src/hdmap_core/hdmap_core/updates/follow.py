@@ -64,7 +64,7 @@ from hdmap_core.updates.marks import unchanged_marks
 from hdmap_core.updates.places import PlaceKey, Places, places_of
 from hdmap_core.updates.splice import Reach, border_shift, grow, shifted, splice
 from hdmap_core.updates.tapers import taper_moved
-from hdmap_core.updates.unseen import ModelledMarking, UnseenMove, unseen_at_ends, unseen_moved
+from hdmap_core.updates.unseen import ModelledMarking, UnseenMove, measured_moved, unseen_at_ends, unseen_moved
 
 __all__ = [
     "RetiredFeature",
@@ -682,9 +682,7 @@ def follow_map(
         # from a line they did not see
         shifts = all("geometry" in c.kinds and not set(c.kinds) & _NOT_SHIFTED for c in changes)
         # ... and not in a place where the drives after the change measured the lines moved
-        moved_places = frozenset(
-            p.key for c in changes for p in c.places if p.kind == "geometry" and abs(p.effect) >= config.min_shift_m
-        )
+        moved_places = measured_moved(changes, config)
         if shifts:
             # along the tapers, where the lines moved less than the shift: moved as the lines
             # the drives saw beside them

@@ -49,25 +49,23 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hdmap_core.evaluation.cuts import intersect_cuts, segments_of
+from hdmap_core.evaluation.cuts import segments_of
 from hdmap_core.geometry import left_normal, point_headings, polyline_length, resample_evenly
 from hdmap_core.model import FeatureType, HDMap
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
 from hdmap_core.updates.places import PlaceKey, Places, markings_in
-from hdmap_core.updates.unseen import ModelledMarking, UnseenMove
+from hdmap_core.updates.unseen import UnseenMove, across_border, is_shift, measured_moved, with_modelled
 
 __all__ = ["taper_moved"]
 
 _BORDER = int(FeatureType.ROAD_BORDER)
 _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
-_NOT_A_SHIFT = ("lane_closed", "lane_opened", "type")  # as updates.unseen
 _STEP_M = 0.5  # the local map's markings are looked at this spacing [m]
 _CANDIDATES = 24  # first-map points a local marking point may pair with ...
 _ONE_LINE_M = 0.5  # ... all of one line: their moves this close [m]
 _SEEN_M = 1.0  # a first-map point with a paired one this close was seen [m]
 _NEAREST = 16  # field points a move is the median of ...
-_STD_FLOOR_M = 0.1  # least lateral uncertainty added to a moved point [m]
 
 
 def _shifts(changes: Sequence[DetectedChange], places: Places) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -76,7 +74,7 @@ def _shifts(changes: Sequence[DetectedChange], places: Places) -> tuple[np.ndarr
     places) and the change's id (P,)."""
     centres, ds, ids = [], [], []
     for c in changes:
-        if "geometry" not in c.kinds or any(k in c.kinds for k in _NOT_A_SHIFT):
+        if not is_shift(c):
             continue
         geo = [p for p in c.places if p.kind == "geometry"]
         if not geo:
@@ -185,10 +183,7 @@ def taper_moved(
     n_before = len(pieces)
     # not in the places where the drives measured the lines moved (``unseen_moved``'s, where a
     # consensus that took part of the new road leaves blends no move can explain)
-    moved_places = {
-        p.key for c in changes for p in c.places if p.kind == "geometry" and abs(p.effect) >= config.min_shift_m
-    }
-    for fi, f, pts, keys, inside in markings_in(first, places, set(rebuilt) - moved_places):
+    for fi, _, pts, keys, inside in markings_in(first, places, set(rebuilt) - measured_moved(changes, config)):
         # step 2: a line of the road as it was (a piece shorter than a place that begins and
         # ends in the rebuilt places is what the consensus made of both roads), unseen, not
         # moved already
@@ -211,11 +206,7 @@ def taper_moved(
         found = np.isfinite(dn)
         if bsegs is not None and found.any():  # every (point, field point) pair at once
             rows, cols = np.nonzero(found)
-            v = field_p[jn[rows, cols]] - p[rows]
-            length = np.linalg.norm(v, axis=1)
-            u = v / np.maximum(length, 1e-9)[:, None]
-            crossed, _, _, _ = intersect_cuts(p[rows], u, np.zeros(len(rows)), length, bsegs)
-            crossed = np.unique(crossed)
+            crossed = across_border(p[rows], field_p[jn[rows, cols]], bsegs)
             found[rows[crossed], cols[crossed]] = False
         s = np.where(found, (field_v[np.minimum(jn, len(field_v) - 1)] * n[:, None, :]).sum(axis=2), np.nan)
         enough = np.count_nonzero(found, axis=1) >= _NEAREST // 2
@@ -236,27 +227,9 @@ def taper_moved(
         if not ok.any():
             continue
         at = idx[ok]
-        g = feats[fi]
-        new_pts = np.asarray(g.points, dtype=float).copy()
-        new_pts[at] = new[ok]
-        count = np.asarray(g.drive_count).copy()
-        count[at] = 0
-        std = np.asarray(g.lateral_std, dtype=float).copy()
-        std[at] = np.hypot(std[at], np.maximum(np.nan_to_num(spread[ok]), _STD_FLOOR_M))
-        feats[fi] = replace(g, points=new_pts, drive_count=count, lateral_std=std)
-        # one record per run of consecutive moved points
-        for r in np.split(np.arange(len(at)), np.flatnonzero(np.diff(at) != 1) + 1):
-            a, b = int(r[0]), int(r[-1]) + 1
-            pieces.append(
-                ModelledMarking(
-                    change_id=int(ids[near[ok][a]]),
-                    feature_id=int(f.id),
-                    type=int(f.type),
-                    points=new[ok][a:b].copy(),
-                    from_points=pts[at[a:b]].copy(),
-                    move_m=mv[ok][a:b].copy(),
-                )
-            )
+        ids_at = ids[near[ok]]
+        feats[fi], made = with_modelled(feats[fi], at, new[ok], mv[ok], spread[ok], ids_at, pts[at])
+        pieces += made
     if len(pieces) == n_before:
         return moved
     return UnseenMove(replace(moved.map, features=tuple(feats)), tuple(pieces))

@@ -45,15 +45,24 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hdmap_core.evaluation.cuts import intersect_cuts, segments_of
+from hdmap_core.evaluation.cuts import Segments, intersect_cuts, segments_of
 from hdmap_core.geometry import dense_points, left_normal, point_headings, true_runs
-from hdmap_core.model import FeatureType, HDMap
+from hdmap_core.model import FeatureType, HDMap, MapFeature
 from hdmap_core.updates.config import ChangeConfig
 from hdmap_core.updates.detect import DetectedChange
 from hdmap_core.updates.evidence import PlaceEvidence
 from hdmap_core.updates.places import PlaceKey, Places, markings_in
 
-__all__ = ["ModelledMarking", "UnseenMove", "unseen_at_ends", "unseen_moved"]
+__all__ = [
+    "ModelledMarking",
+    "UnseenMove",
+    "unseen_at_ends",
+    "unseen_moved",
+    "is_shift",
+    "measured_moved",
+    "across_border",
+    "with_modelled",
+]
 
 _BORDER = int(FeatureType.ROAD_BORDER)
 _MARKINGS = (int(FeatureType.SOLID), int(FeatureType.DASHED))
@@ -107,6 +116,63 @@ class UnseenMove:
         return np.concatenate([np.zeros((0, 2)), *(p.from_points for p in self.pieces)])
 
 
+def is_shift(change: DetectedChange) -> bool:
+    """A change of geometry that closes, opens or re-stripes nothing: the carriageway moved."""
+    return "geometry" in change.kinds and not any(k in change.kinds for k in _NOT_A_SHIFT)
+
+
+def measured_moved(changes: Sequence[DetectedChange], config: ChangeConfig) -> frozenset[PlaceKey]:
+    """The geometry places of ``changes`` where the drives after them measured the lines moved
+    (their effect at least ``min_shift_m``)."""
+    return frozenset(
+        p.key for c in changes for p in c.places if p.kind == "geometry" and abs(p.effect) >= config.min_shift_m
+    )
+
+
+def across_border(p: np.ndarray, q: np.ndarray, borders: Segments) -> np.ndarray:
+    """(N,) True where the segment from ``p`` to ``q`` (both (N, 2)) crosses one of ``borders``."""
+    v = q - p
+    length = np.linalg.norm(v, axis=1)
+    u = v / np.maximum(length, 1e-9)[:, None]
+    crossed, _, _, _ = intersect_cuts(p, u, np.zeros(len(p)), length, borders)
+    out = np.zeros(len(p), dtype=bool)
+    out[crossed] = True
+    return out
+
+
+def with_modelled(
+    f: MapFeature,
+    at: np.ndarray,
+    new: np.ndarray,
+    moves: np.ndarray,
+    spread: np.ndarray,
+    change_ids: Sequence[int],
+    from_points: np.ndarray,
+) -> tuple[MapFeature, list[ModelledMarking]]:
+    """``f`` with its points ``at`` (sorted indices) moved to ``new`` by ``moves``: a model, not an
+    observation (``drive_count`` 0, ``lateral_std`` grown by ``spread``, at least
+    ``_STD_FLOOR_M``), and one ``ModelledMarking`` per run of consecutive moved points (the change
+    of its first point; ``from_points``: where they were)."""
+    pts = np.asarray(f.points, dtype=float).copy()
+    pts[at] = new
+    count = np.asarray(f.drive_count).copy()
+    count[at] = 0
+    std = np.asarray(f.lateral_std, dtype=float).copy()
+    std[at] = np.hypot(std[at], np.maximum(np.nan_to_num(spread), _STD_FLOOR_M))
+    pieces = [
+        ModelledMarking(
+            change_id=int(change_ids[r[0]]),
+            feature_id=int(f.id),
+            type=int(f.type),
+            points=new[r].copy(),
+            from_points=from_points[r].copy(),
+            move_m=moves[r].copy(),
+        )
+        for r in np.split(np.arange(len(at)), np.flatnonzero(np.diff(at) != 1) + 1)
+    ]
+    return replace(f, points=pts, drive_count=count, lateral_std=std), pieces
+
+
 def _explained(
     local_lines: Sequence[tuple[int, np.ndarray]],
     predicted: dict[int, list[np.ndarray]],
@@ -146,7 +212,7 @@ def _place_moves(
     """Per candidate place (step 1): (change id, displacement D, + = the markings moved right)."""
     out: dict[PlaceKey, tuple[int, float]] = {}
     for c in changes:
-        if "geometry" not in c.kinds or any(k in c.kinds for k in _NOT_A_SHIFT):
+        if not is_shift(c):
             continue
         geo = {p.key for p in c.places if p.kind == "geometry"}
         other = {p.key for p in c.places if p.kind != "geometry"}
@@ -274,11 +340,7 @@ def unseen_moved(
         ok &= np.isfinite(dn)
         if bsegs is not None and ok.any():
             k_ok = np.flatnonzero(ok)
-            v = seen_p[jn[k_ok]] - p[k_ok]
-            length = np.linalg.norm(v, axis=1)
-            u = v / np.maximum(length, 1e-9)[:, None]
-            ci, _, _, _ = intersect_cuts(p[k_ok], u, np.zeros(len(k_ok)), length, bsegs)
-            ok[k_ok[np.unique(ci)]] = False
+            ok[k_ok[across_border(p[k_ok], seen_p[jn[k_ok]], bsegs)]] = False
         # not seen after all: no local marking near where it would be now
         new = p + np.where(ok, mv, 0.0)[:, None] * n[cand]
         if ok.any():
@@ -287,28 +349,9 @@ def unseen_moved(
         if not ok.any():
             continue
         at = idx[cand[ok]]
-        new_pts = pts.copy()
-        new_pts[at] = new[ok]
-        count = np.asarray(f.drive_count).copy()
-        count[at] = 0
-        std = np.asarray(f.lateral_std, dtype=float).copy()
-        std[at] = np.hypot(std[at], np.maximum(spread[ok], _STD_FLOOR_M))
-        feats[fi] = replace(f, points=new_pts, drive_count=count, lateral_std=std)
-        # one record per run of consecutive moved points
-        runs = np.split(np.arange(len(at)), np.flatnonzero(np.diff(at) != 1) + 1)
-        for r in runs:
-            if len(r) == 0:
-                continue
-            pieces.append(
-                ModelledMarking(
-                    change_id=moves[keys[cand[ok][r[0]]]][0],
-                    feature_id=int(f.id),
-                    type=int(f.type),
-                    points=new[ok][r].copy(),
-                    from_points=pts[at[r]].copy(),
-                    move_m=mv[ok][r].copy(),
-                )
-            )
+        ids = [moves[keys[i]][0] for i in cand[ok]]
+        feats[fi], made = with_modelled(f, at, new[ok], mv[ok], spread[ok], ids, pts[at])
+        pieces += made
     if not pieces:
         return none
     return UnseenMove(replace(first, features=tuple(feats)), tuple(pieces))
