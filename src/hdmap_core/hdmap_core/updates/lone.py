@@ -55,9 +55,14 @@ def lone_copies_dropped(hdmap: HDMap, places: Places, rebuilt: Collection[PlaceK
     lone = [f for f in hdmap.features if _lone(f, places, rebuilt)]
     if not lone:
         return hdmap, ()
+    # only the features whose box meets the lone ones' (grown by _NEAR_M): not the whole map
+    lone_pts = np.concatenate([np.asarray(f.points, dtype=float) for f in lone])
+    lo, hi = lone_pts.min(axis=0) - _NEAR_M, lone_pts.max(axis=0) + _NEAR_M
     seen: dict[int, list[np.ndarray]] = {}  # per type: the stretches two or more drives saw
     for f in hdmap.features:
         pts = np.asarray(f.points, dtype=float)
+        if not len(pts) or np.any(pts.min(axis=0) > hi) or np.any(pts.max(axis=0) < lo):
+            continue
         for a, b in true_runs(np.asarray(f.drive_count) >= 2):
             if b - a >= 2:
                 seen.setdefault(int(f.type), []).append(resample_evenly(pts[a:b], _STEP_M))
